@@ -1,0 +1,64 @@
+"""Internal force and consistent tangent stiffness (thesis eq. 3.44-3.57).
+
+With the gradient operator B (4 nq x 2 n_free) of the discretized tissue,
+
+    f_int = B^T (w P)              P = F S, first Piola-Kirchhoff stress
+    K     = B^T diag(w A) B        A_iJkL = dP_iJ / dF_kL = K_H + K_G of eq. 3.45-3.53
+
+B is built once per discretization; the block-diagonal material-point stiffness diag(w A)
+keeps a fixed sparsity pattern and only its values are refilled. Newton iterations
+mostly need K only as a product K v = B^T (diag(w A) (B v)), three sparse mat-vecs; the
+explicit K (a sparse-sparse product) is formed only when a factorization is wanted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .discretization import TissueModel
+from .material import first_piola_and_tangent
+
+
+class Assembler:
+    def __init__(self, model: TissueModel):
+        self.model = model
+        self.gradient = model.gradient
+        self.gradient_t = model.gradient.T.tocsr()
+        n_points = len(model.quadrature_weights)
+        # block-diagonal (4 x 4 per point) as CSR with a fixed pattern: data order is (q, r, c)
+        cols = (4 * np.arange(n_points)[:, None, None] + np.zeros((1, 4, 1), int) + np.arange(4)).ravel()
+        self._pointwise = sp.csr_matrix(
+            (np.zeros(16 * n_points), cols, np.arange(0, 16 * n_points + 1, 4)),
+            shape=(4 * n_points, 4 * n_points),
+        )
+        self._first_piola: np.ndarray | None = None
+        self.tangent_assemblies = 0
+        self.tangent_products = 0
+
+    def update(self, deformation_gradient: np.ndarray) -> np.ndarray:
+        """Evaluate stress and tangent at F (nq, 2, 2); returns f_int (2 n_free,)."""
+        first_piola, tangent = first_piola_and_tangent(self.model.material, deformation_gradient)
+        weights = self.model.quadrature_weights
+        n_points = len(weights)
+        self._pointwise.data[:] = (tangent.reshape(n_points, 4, 4) * weights[:, None, None]).ravel()
+        self._first_piola = first_piola
+        return self.gradient_t @ (first_piola * weights[:, None, None]).reshape(-1)
+
+    def tangent_product(self, vector: np.ndarray) -> np.ndarray:
+        self.tangent_products += 1
+        return self.gradient_t @ (self._pointwise @ (self.gradient @ vector))
+
+    def tangent_operator(self) -> spla.LinearOperator:
+        n = self.gradient.shape[1]
+        return spla.LinearOperator((n, n), matvec=self.tangent_product, dtype=float)
+
+    def tangent_matrix(self) -> sp.csr_matrix:
+        """Explicit K at the last update (eq. 3.45)."""
+        self.tangent_assemblies += 1
+        return (self.gradient_t @ (self._pointwise @ self.gradient)).tocsr()
+
+    def force_and_tangent(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+        internal = self.update(deformation_gradient)
+        return internal, self.tangent_matrix()

@@ -1,0 +1,127 @@
+"""Essential boundary conditions by the transformation method (thesis eq. 3.24-3.38).
+
+RK shape functions lack the Kronecker-delta property, so prescribing a particle
+coefficient does not prescribe the displacement there. The transformation method
+enforces u(X_I) = g_I at every boundary particle exactly:
+
+    d_b = (D^b)^-1 g - (D^b)^-1 D^nb d_nb                       (eq. 3.33)
+
+so the full coefficient vector is d = T d_nb + T_g g with sparse T and T_g, and the
+transformed shape functions N T and N T_g are those of eq. 3.37-3.38.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+
+from .config import Tissue
+
+CLAMPED = -1
+
+
+@dataclass(frozen=True)
+class ConstrainedParticles:
+    indices: np.ndarray  # (Nb,) particle indices on the essential boundary
+    group: np.ndarray  # (Nb,) CLAMPED or the index of the prescribed-displacement segment
+
+
+@dataclass(frozen=True)
+class EssentialBoundary:
+    indices: np.ndarray  # (Nb,)
+    group: np.ndarray  # (Nb,)
+    free_indices: np.ndarray  # (n_free,)
+    free_map: sp.csr_matrix  # T (NP, n_free)
+    prescribed_map: sp.csr_matrix  # T_g (NP, Nb)
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free_indices)
+
+    def full(self, free: np.ndarray, prescribed: np.ndarray) -> np.ndarray:
+        """d = T d_nb + T_g g; free (n_free, 2), prescribed (Nb, 2) -> (NP, 2)."""
+        return self.free_map @ free + self.prescribed_map @ prescribed
+
+
+def _on_segment(points: np.ndarray, start: np.ndarray, end: np.ndarray, tol: float) -> np.ndarray:
+    direction = end - start
+    length = np.linalg.norm(direction)
+    rel = points - start
+    along = rel @ direction / length
+    across = np.abs(rel[:, 0] * direction[1] - rel[:, 1] * direction[0]) / length
+    return (across <= tol) & (along >= -tol) & (along <= length + tol)
+
+
+def edge_mask(points: np.ndarray, size: tuple[float, float], edge: str, tol: float) -> np.ndarray:
+    width, height = size
+    coordinate, value = {"left": (0, 0.0), "right": (0, width), "bottom": (1, 0.0), "top": (1, height)}[edge]
+    return np.abs(points[:, coordinate] - value) <= tol
+
+
+def boundary_particles(
+    particles: np.ndarray,
+    tissue: Tissue,
+    prescribed_segments: tuple,
+    spacing: float,
+) -> ConstrainedParticles:
+    """Particles on clamped edges (group CLAMPED) and on prescribed-displacement segments.
+
+    A particle that is both clamped and on a segment stays clamped: the clamp holds the corner.
+    """
+    tol = 1e-9 * max(tissue.size)
+    group = np.full(len(particles), -2)
+    for k, (start, end) in enumerate(prescribed_segments):
+        group[_on_segment(particles, np.asarray(start), np.asarray(end), tol)] = k
+    for edge in tissue.clamped:
+        group[edge_mask(particles, tissue.size, edge, tol)] = CLAMPED
+    for k, (start, end) in enumerate(prescribed_segments):
+        if not np.any(group == k):
+            raise ValueError(
+                f"loads: the displacement segment {list(start)}-{list(end)} holds no particle at "
+                f"spacing {spacing:g} mm: lengthen it or refine the spacing"
+            )
+    indices = np.flatnonzero(group > -2)
+    return ConstrainedParticles(indices, group[indices])
+
+
+def transformation(
+    at_boundary: sp.csr_matrix, constrained: ConstrainedParticles, n_particles: int
+) -> EssentialBoundary:
+    """Build T and T_g from N(X_b), the RK functions evaluated at the boundary particles."""
+    b = constrained.indices
+    is_free = np.ones(n_particles, dtype=bool)
+    is_free[b] = False
+    free = np.flatnonzero(is_free)
+    column_of_free = np.full(n_particles, -1)
+    column_of_free[free] = np.arange(len(free))
+
+    identity_rows = sp.csr_matrix(
+        (np.ones(len(free)), (free, np.arange(len(free)))), shape=(n_particles, len(free))
+    )
+    if len(b) == 0:
+        empty = sp.csr_matrix((n_particles, 0))
+        return EssentialBoundary(b, constrained.group, free, identity_rows, empty)
+
+    at_boundary = at_boundary.tocsc()
+    d_b = at_boundary[:, b].toarray()  # D^b (Nb, Nb), eq. 3.31
+    d_nb = at_boundary[:, free]  # D^nb (Nb, n_free), eq. 3.32
+    touched = np.flatnonzero(np.diff(d_nb.indptr) > 0)  # free particles seen by the boundary
+    lu = scipy.linalg.lu_factor(d_b)
+    coupling = scipy.linalg.lu_solve(lu, d_nb[:, touched].toarray())  # (D^b)^-1 D^nb
+    inverse = scipy.linalg.lu_solve(lu, np.eye(len(b)))  # (D^b)^-1
+
+    rows_b = np.repeat(b, len(touched))
+    cols = np.tile(touched, len(b))
+    free_map = identity_rows + sp.csr_matrix(
+        (-coupling.ravel(), (rows_b, cols)), shape=(n_particles, len(free))
+    )
+    prescribed_map = sp.csr_matrix(
+        (inverse.ravel(), (np.repeat(b, len(b)), np.tile(np.arange(len(b)), len(b)))),
+        shape=(n_particles, len(b)),
+    )
+    free_map.eliminate_zeros()
+    prescribed_map.eliminate_zeros()
+    return EssentialBoundary(b, constrained.group, free, free_map.tocsr(), prescribed_map.tocsr())

@@ -1,0 +1,356 @@
+"""Scenario files: YAML in, validated typed configuration out.
+
+Every error names the field, the value received and what was expected; unknown keys are
+refused so a misspelt option never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+EDGES = ("left", "right", "bottom", "top")
+MATERIAL_MODELS = ("saint-venant-kirchhoff", "neo-hookean")
+TIP_TRACKING = ("auto", "inverse-gradient", "levenberg-marquardt")
+LINEAR_SOLVERS = ("direct", "minres")
+
+
+class ScenarioError(ValueError):
+    """A scenario or input file that cannot be used; the message is one line for the user."""
+
+
+@dataclass(frozen=True)
+class Material:
+    model: str = "saint-venant-kirchhoff"
+    lame_lambda: float = 0.189151
+    lame_mu: float = 0.147688
+
+
+@dataclass(frozen=True)
+class Tissue:
+    size: tuple[float, float]
+    thickness: float
+    material: Material
+    clamped: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Discretization:
+    spacing: float = 5.0
+    dilation: float = 2.0
+    quadrature_order: int = 2
+    basis_order: int = 1
+    cells_per_spacing: int = 1
+
+
+@dataclass(frozen=True)
+class Needle:
+    radius: float
+    arc: float
+    entry: tuple[float, float]
+    turn: str
+    step: float
+    friction: float
+    cutting_force: float
+    tip_tracking: str = "auto"
+    linear_solver: str = "direct"
+
+
+@dataclass(frozen=True)
+class Load:
+    segment: tuple[tuple[float, float], tuple[float, float]]
+    force: tuple[float, float] | None = None
+    displacement: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Solver:
+    residual_tolerance: float = 1e-8
+    increment_tolerance: float = 1e-8
+    max_iterations: int = 25
+    max_step_cuts: int = 6
+
+
+@dataclass(frozen=True)
+class Scenario:
+    tissue: Tissue
+    discretization: Discretization = field(default_factory=Discretization)
+    needle: Needle | None = None
+    loads: tuple[Load, ...] = ()
+    load_steps: int = 10
+    probes: tuple[tuple[float, float], ...] = ()
+    solver: Solver = field(default_factory=Solver)
+    name: str = ""
+    source_text: str = ""
+
+
+# --- field readers -------------------------------------------------------------------
+
+
+def _fail(path: str, value: Any, expected: str) -> ScenarioError:
+    return ScenarioError(f"{path}: got {value!r}, expected {expected}")
+
+
+def _mapping(value: Any, path: str, allowed: tuple[str, ...]) -> dict:
+    if not isinstance(value, dict):
+        raise _fail(path, value, "a mapping")
+    unknown = [k for k in value if k not in allowed]
+    if unknown:
+        raise ScenarioError(
+            f"{path}: unknown key {unknown[0]!r}, expected one of: {', '.join(allowed)}"
+        )
+    return value
+
+
+def _required(block: dict, key: str, path: str) -> Any:
+    if key not in block:
+        raise ScenarioError(f"{path}.{key}: missing, required")
+    return block[key]
+
+
+def _number(value: Any, path: str, *, positive: bool = False, nonnegative: bool = False,
+            unit: str = "") -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    kind = "a positive number" if positive else "a non-negative number" if nonnegative else "a number"
+    kind += f" ({unit})" if unit else ""
+    if not ok or (positive and value <= 0) or (nonnegative and value < 0):
+        raise _fail(path, value, kind)
+    return float(value)
+
+
+def _integer(value: Any, path: str, minimum: int = 1, maximum: int | None = None) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum or (
+        maximum is not None and value > maximum
+    ):
+        bound = f"between {minimum} and {maximum}" if maximum is not None else f">= {minimum}"
+        raise _fail(path, value, f"an integer {bound}")
+    return value
+
+
+def _point(value: Any, path: str) -> tuple[float, float]:
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise _fail(path, value, "a pair [x, y] of numbers (mm)")
+    return (_number(value[0], f"{path}[0]"), _number(value[1], f"{path}[1]"))
+
+
+def _choice(value: Any, path: str, choices: tuple[str, ...]) -> str:
+    if value not in choices:
+        raise _fail(path, value, "one of " + ", ".join(choices))
+    return value
+
+
+# --- blocks --------------------------------------------------------------------------
+
+
+def parse_material(raw: Any, path: str = "tissue.material") -> Material:
+    block = _mapping(raw, path, ("model", "lame_lambda", "lame_mu"))
+    return Material(
+        model=_choice(block.get("model", "saint-venant-kirchhoff"), f"{path}.model", MATERIAL_MODELS),
+        lame_lambda=_number(_required(block, "lame_lambda", path), f"{path}.lame_lambda",
+                            nonnegative=True, unit="MPa"),
+        lame_mu=_number(_required(block, "lame_mu", path), f"{path}.lame_mu", positive=True,
+                        unit="MPa"),
+    )
+
+
+def parse_tissue(raw: Any, path: str = "tissue", need_material: bool = True) -> Tissue:
+    block = _mapping(raw, path, ("size", "thickness", "material", "clamped"))
+    size = _required(block, "size", path)
+    if not isinstance(size, (list, tuple)) or len(size) != 2:
+        raise _fail(f"{path}.size", size, "a pair [W, H] of positive numbers (mm)")
+    width = _number(size[0], f"{path}.size[0]", positive=True, unit="mm")
+    height = _number(size[1], f"{path}.size[1]", positive=True, unit="mm")
+    thickness = _number(_required(block, "thickness", path), f"{path}.thickness", positive=True,
+                        unit="mm")
+    material = (parse_material(_required(block, "material", path), f"{path}.material")
+                if need_material or "material" in block else Material())
+    clamped = block.get("clamped", [])
+    if not isinstance(clamped, (list, tuple)):
+        raise _fail(f"{path}.clamped", clamped, "a list of edges among " + ", ".join(EDGES))
+    edges = tuple(_choice(edge, f"{path}.clamped[{i}]", EDGES) for i, edge in enumerate(clamped))
+    if len(set(edges)) != len(edges):
+        raise _fail(f"{path}.clamped", list(clamped), "each edge at most once")
+    return Tissue((width, height), thickness, material, edges)
+
+
+def parse_discretization(raw: Any, path: str = "discretization") -> Discretization:
+    if raw is None:
+        return Discretization()
+    block = _mapping(raw, path, ("spacing", "dilation", "quadrature_order", "basis_order",
+                                 "cells_per_spacing"))
+    default = Discretization()
+    dilation = _number(block.get("dilation", default.dilation), f"{path}.dilation", positive=True)
+    if dilation <= 1.0:
+        raise _fail(f"{path}.dilation", dilation,
+                    "a number > 1 (kernel support / spacing; at least ~1.5 for a linear basis)")
+    return Discretization(
+        spacing=_number(block.get("spacing", default.spacing), f"{path}.spacing", positive=True,
+                        unit="mm"),
+        dilation=dilation,
+        quadrature_order=_integer(block.get("quadrature_order", default.quadrature_order),
+                                  f"{path}.quadrature_order", 1, 10),
+        basis_order=_integer(block.get("basis_order", default.basis_order), f"{path}.basis_order",
+                             1, 2),
+        cells_per_spacing=_integer(block.get("cells_per_spacing", default.cells_per_spacing),
+                                   f"{path}.cells_per_spacing", 1, 4),
+    )
+
+
+def parse_needle(raw: Any, path: str = "needle") -> Needle:
+    block = _mapping(raw, path, ("radius", "arc", "entry", "turn", "step", "friction",
+                                 "cutting_force", "tip_tracking", "linear_solver"))
+    arc = _number(block.get("arc", math.pi), f"{path}.arc", positive=True, unit="rad")
+    if arc > 2 * math.pi:
+        raise _fail(f"{path}.arc", arc, "a positive angle of at most 2*pi rad")
+    step = _number(_required(block, "step", path), f"{path}.step", positive=True, unit="rad")
+    if step > 0.5:
+        raise _fail(f"{path}.step", step, "a positive angle of at most 0.5 rad per step")
+    return Needle(
+        radius=_number(_required(block, "radius", path), f"{path}.radius", positive=True, unit="mm"),
+        arc=arc,
+        entry=_point(_required(block, "entry", path), f"{path}.entry"),
+        turn=_choice(_required(block, "turn", path), f"{path}.turn", ("cw", "ccw")),
+        step=step,
+        friction=_number(block.get("friction", 0.0), f"{path}.friction", nonnegative=True,
+                         unit="N/mm"),
+        cutting_force=_number(block.get("cutting_force", 0.0), f"{path}.cutting_force",
+                              nonnegative=True, unit="N"),
+        tip_tracking=_choice(block.get("tip_tracking", "auto"), f"{path}.tip_tracking",
+                             TIP_TRACKING),
+        linear_solver=_choice(block.get("linear_solver", "direct"), f"{path}.linear_solver",
+                              LINEAR_SOLVERS),
+    )
+
+
+def _on_boundary(point: tuple[float, float], size: tuple[float, float], tol: float) -> bool:
+    x, y = point
+    w, h = size
+    inside = -tol <= x <= w + tol and -tol <= y <= h + tol
+    return inside and min(abs(x), abs(x - w), abs(y), abs(y - h)) <= tol
+
+
+def parse_loads(raw: Any, size: tuple[float, float], path: str = "loads") -> tuple[Load, ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, (list, tuple)):
+        raise _fail(path, raw, "a list of loads")
+    loads = []
+    tol = 1e-9 * max(size)
+    for i, item in enumerate(raw):
+        item_path = f"{path}[{i}]"
+        block = _mapping(item, item_path, ("segment", "force", "displacement"))
+        segment = _required(block, "segment", item_path)
+        if not isinstance(segment, (list, tuple)) or len(segment) != 2:
+            raise _fail(f"{item_path}.segment", segment, "two points [[x0, y0], [x1, y1]] (mm)")
+        p0 = _point(segment[0], f"{item_path}.segment[0]")
+        p1 = _point(segment[1], f"{item_path}.segment[1]")
+        same_edge = (abs(p0[0] - p1[0]) <= tol and (abs(p0[0]) <= tol or abs(p0[0] - size[0]) <= tol)) or (
+            abs(p0[1] - p1[1]) <= tol and (abs(p0[1]) <= tol or abs(p0[1] - size[1]) <= tol))
+        if not (_on_boundary(p0, size, tol) and _on_boundary(p1, size, tol) and same_edge) or p0 == p1:
+            raise _fail(f"{item_path}.segment", [list(p0), list(p1)],
+                        f"a non-empty straight piece of one edge of the {size[0]:g} x {size[1]:g} mm tissue")
+        has_force, has_disp = "force" in block, "displacement" in block
+        if has_force == has_disp:
+            raise ScenarioError(f"{item_path}: expected exactly one of 'force' (N) or "
+                                f"'displacement' (mm), got {sorted(k for k in block if k != 'segment') or 'neither'}")
+        force = _point(block["force"], f"{item_path}.force") if has_force else None
+        displacement = _point(block["displacement"], f"{item_path}.displacement") if has_disp else None
+        loads.append(Load((p0, p1), force, displacement))
+    return tuple(loads)
+
+
+def parse_solver(raw: Any, path: str = "solver") -> Solver:
+    if raw is None:
+        return Solver()
+    block = _mapping(raw, path, ("residual_tolerance", "increment_tolerance", "max_iterations",
+                                 "max_step_cuts"))
+    d = Solver()
+    return Solver(
+        residual_tolerance=_number(block.get("residual_tolerance", d.residual_tolerance),
+                                   f"{path}.residual_tolerance", positive=True),
+        increment_tolerance=_number(block.get("increment_tolerance", d.increment_tolerance),
+                                    f"{path}.increment_tolerance", positive=True),
+        max_iterations=_integer(block.get("max_iterations", d.max_iterations),
+                                f"{path}.max_iterations", 1, 500),
+        max_step_cuts=_integer(block.get("max_step_cuts", d.max_step_cuts),
+                               f"{path}.max_step_cuts", 0, 30),
+    )
+
+
+def default_spacing(tissue: Tissue, needle: Needle | None) -> float:
+    """Spacing used when the scenario gives none: a twentieth of the smaller side for a
+    static load (within 1 % of the converged probe displacements on the shipped slab, see
+    benchmarks/), and at most a quarter of the needle radius when a needle is present."""
+    spacing = min(tissue.size) / 20.0
+    if needle is not None:
+        spacing = min(spacing, needle.radius / 4.0)
+    return spacing
+
+
+SCENARIO_KEYS = ("name", "tissue", "discretization", "needle", "loads", "load_steps", "probes",
+                 "solver")
+
+
+def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
+    block = _mapping(raw, "scenario", SCENARIO_KEYS)
+    tissue = parse_tissue(_required(block, "tissue", "scenario"))
+    probes_raw = block.get("probes", [])
+    if not isinstance(probes_raw, (list, tuple)):
+        raise _fail("probes", probes_raw, "a list of reference points [[x, y], ...] (mm)")
+    probes = tuple(_point(p, f"probes[{i}]") for i, p in enumerate(probes_raw))
+    w, h = tissue.size
+    for i, (x, y) in enumerate(probes):
+        if not (0 <= x <= w and 0 <= y <= h):
+            raise _fail(f"probes[{i}]", [x, y], f"a point inside [0, {w:g}] x [0, {h:g}] mm")
+    discretization = parse_discretization(block.get("discretization"))
+    needle = parse_needle(block["needle"]) if block.get("needle") is not None else None
+    spacing_given = isinstance(block.get("discretization"), dict) and "spacing" in block["discretization"]
+    if not spacing_given:
+        discretization = replace(discretization, spacing=default_spacing(tissue, needle))
+    name = block.get("name", "")
+    if not isinstance(name, str):
+        raise _fail("name", name, "a string")
+    return Scenario(
+        tissue=tissue,
+        discretization=discretization,
+        needle=needle,
+        loads=parse_loads(block.get("loads"), tissue.size),
+        load_steps=_integer(block.get("load_steps", 10), "load_steps", 1, 10000),
+        probes=probes,
+        solver=parse_solver(block.get("solver")),
+        name=name,
+        source_text=source_text,
+    )
+
+
+def read_yaml(path: str | Path) -> tuple[Any, str]:
+    """Read a YAML file, turning I/O and syntax problems into ScenarioError."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as error:
+        raise ScenarioError(f"{path}: cannot be read ({error.strerror or error})") from None
+    try:
+        return yaml.safe_load(text), text
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise ScenarioError(f"{path}: not valid YAML{where}") from None
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    raw, text = read_yaml(path)
+    return parse_scenario(raw, text)
+
+
+def with_discretization(scenario: Scenario, **overrides: float | int | None) -> Scenario:
+    """Copy of the scenario with discretization fields replaced (None values ignored)."""
+    from dataclasses import asdict, replace
+
+    values = asdict(scenario.discretization)
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return replace(scenario, discretization=parse_discretization(values))

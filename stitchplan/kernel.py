@@ -1,0 +1,30 @@
+"""Cubic-spline kernel of the reproducing kernel particle method (thesis eq. 3.22-3.23)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def cubic_spline(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cubic spline phi(z) of eq. 3.23 and its derivative d phi / dz (support |z| < 1)."""
+    r = np.abs(z)
+    inner = r <= 0.5
+    outer = (r > 0.5) & (r < 1.0)
+    phi = np.where(inner, 2.0 / 3.0 - 4.0 * r**2 + 4.0 * r**3, 0.0)
+    phi = np.where(outer, 4.0 / 3.0 - 4.0 * r + 4.0 * r**2 - 4.0 / 3.0 * r**3, phi)
+    dphi = np.where(inner, -8.0 * r + 12.0 * r**2, 0.0)
+    dphi = np.where(outer, -4.0 + 8.0 * r - 4.0 * r**2, dphi)
+    return phi, dphi * np.sign(z)
+
+
+def tensor_kernel(offset: np.ndarray, support: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tensor-product kernel phi_a(X - X_I) of eq. 3.22 and its gradient with respect to X.
+
+    offset: (n, 2) values X - X_I; support: (n,) kernel half-width a of each pair.
+    Returns phi (n,) and grad (n, 2).
+    """
+    a = support[:, None]  # (n, 1)
+    phi_1d, dphi_1d = cubic_spline(offset / a)  # (n, 2) each
+    phi = phi_1d[:, 0] * phi_1d[:, 1] / support**2
+    grad = np.stack([dphi_1d[:, 0] * phi_1d[:, 1], phi_1d[:, 0] * dphi_1d[:, 1]], axis=1)
+    return phi, grad / support[:, None] ** 3

@@ -1,0 +1,94 @@
+"""Hyperelastic plane-strain materials: PK2 stress and consistent material tangent.
+
+Arrays are points-first: F, E, S are (n, 2, 2); the material tangent dS/dE is (n, 2, 2, 2, 2).
+Plane strain: F_33 = 1, so the in-plane right Cauchy-Green tensor carries all the strain.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import Material
+
+IDENTITY = np.eye(2)
+
+
+def green_lagrange_strain(deformation_gradient: np.ndarray) -> np.ndarray:
+    """E = (F^T F - I) / 2."""
+    return 0.5 * (np.einsum("nki,nkj->nij", deformation_gradient, deformation_gradient) - IDENTITY)
+
+
+@dataclass(frozen=True)
+class SaintVenantKirchhoff:
+    """W(E) = lambda/2 (tr E)^2 + mu tr(E^2) (eq. 3.3); S = lambda tr(E) I + 2 mu E (eq. A.1)."""
+
+    lame_lambda: float
+    lame_mu: float
+
+    def energy(self, deformation_gradient: np.ndarray) -> np.ndarray:
+        strain = green_lagrange_strain(deformation_gradient)
+        trace = np.trace(strain, axis1=1, axis2=2)
+        return 0.5 * self.lame_lambda * trace**2 + self.lame_mu * np.einsum("nij,nij->n", strain, strain)
+
+    def pk2_stress(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Returns S (n, 2, 2) and dS/dE (n, 2, 2, 2, 2)."""
+        strain = green_lagrange_strain(deformation_gradient)
+        trace = np.trace(strain, axis1=1, axis2=2)
+        stress = self.lame_lambda * trace[:, None, None] * IDENTITY + 2.0 * self.lame_mu * strain
+        i = IDENTITY
+        tangent = self.lame_lambda * np.einsum("ij,kl->ijkl", i, i) + self.lame_mu * (
+            np.einsum("ik,jl->ijkl", i, i) + np.einsum("il,jk->ijkl", i, i)
+        )
+        return stress, np.broadcast_to(tangent, (len(stress), 2, 2, 2, 2))
+
+
+@dataclass(frozen=True)
+class NeoHookean:
+    """Compressible neo-Hookean: W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2.
+
+    S = mu (I - C^-1) + lambda ln J C^-1, dS/dE = lambda C^-1 x C^-1 + 2 (mu - lambda ln J) I_{C^-1}.
+    """
+
+    lame_lambda: float
+    lame_mu: float
+
+    def energy(self, deformation_gradient: np.ndarray) -> np.ndarray:
+        j = np.linalg.det(deformation_gradient)
+        i1 = np.einsum("nij,nij->n", deformation_gradient, deformation_gradient) + 1.0
+        log_j = np.log(j)
+        return 0.5 * self.lame_mu * (i1 - 3.0) - self.lame_mu * log_j + 0.5 * self.lame_lambda * log_j**2
+
+    def pk2_stress(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        right_cauchy_green = np.einsum("nki,nkj->nij", deformation_gradient, deformation_gradient)
+        c_inv = np.linalg.inv(right_cauchy_green)
+        log_j = np.log(np.linalg.det(deformation_gradient))
+        stress = self.lame_mu * (IDENTITY - c_inv) + self.lame_lambda * log_j[:, None, None] * c_inv
+        coefficient = (self.lame_mu - self.lame_lambda * log_j)[:, None, None, None, None]
+        tangent = self.lame_lambda * np.einsum("nij,nkl->nijkl", c_inv, c_inv) + coefficient * (
+            np.einsum("nik,njl->nijkl", c_inv, c_inv) + np.einsum("nil,njk->nijkl", c_inv, c_inv)
+        )
+        return stress, tangent
+
+
+def make_material(material: Material) -> SaintVenantKirchhoff | NeoHookean:
+    cls = SaintVenantKirchhoff if material.model == "saint-venant-kirchhoff" else NeoHookean
+    return cls(material.lame_lambda, material.lame_mu)
+
+
+def first_piola_and_tangent(
+    model: SaintVenantKirchhoff | NeoHookean, deformation_gradient: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """P = F S and A = dP/dF (eq. 3.13-3.16: A_iJkL = delta_ik S_JL + F_iM C_MJNL F_kN).
+
+    Returns P (n, 2, 2) and A (n, 2, 2, 2, 2) indexed [n, i, J, k, L].
+    """
+    stress, tangent = model.pk2_stress(deformation_gradient)
+    n = len(stress)
+    first_piola = deformation_gradient @ stress
+    # F_iM C_MJNL -> (n, i, J N L); then contract N with F_kN
+    left = (deformation_gradient @ tangent.reshape(-1, 2, 8)).reshape(n, 2, 2, 2, 2)
+    material = np.einsum("niJNL,nkN->niJkL", left, deformation_gradient, optimize=True)
+    material += np.eye(2)[None, :, None, :, None] * stress[:, None, :, None, :]  # D_ijlm, eq. 3.14
+    return first_piola, material

@@ -1,0 +1,145 @@
+"""Reproducing-kernel shape functions and their exact gradients (thesis eq. 3.18-3.23).
+
+Shape functions are evaluated in the reference configuration once per discretization and
+stored as sparse (points x particles) matrices, so the Total-Lagrangian solver only ever
+multiplies by them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import chain
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from .kernel import tensor_kernel
+
+
+class SingularMomentMatrix(ValueError):
+    """The moment matrix M(X) of eq. 3.20 is singular: too few particles cover a point."""
+
+
+@dataclass(frozen=True)
+class ShapeFunctions:
+    """RK shape functions N_I(X) at a set of points; each matrix is (n_points, n_particles)."""
+
+    values: sp.csr_matrix
+    grad_x: sp.csr_matrix | None = None
+    grad_y: sp.csr_matrix | None = None
+
+
+def basis_size(order: int) -> int:
+    return {1: 3, 2: 6}[order]
+
+
+def _basis(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """Basis H(Y) of eq. 3.21 and dH/dY; y (n, 2) -> H (n, m), dH (n, m, 2)."""
+    n = len(y)
+    one, zero = np.ones(n), np.zeros(n)
+    y1, y2 = y[:, 0], y[:, 1]
+    if order == 1:
+        h = np.stack([one, y1, y2], axis=1)
+        dh1 = np.stack([zero, one, zero], axis=1)
+        dh2 = np.stack([zero, zero, one], axis=1)
+    else:
+        h = np.stack([one, y1, y2, y1 * y1, y1 * y2, y2 * y2], axis=1)
+        dh1 = np.stack([zero, one, zero, 2 * y1, y2, zero], axis=1)
+        dh2 = np.stack([zero, zero, one, zero, y1, 2 * y2], axis=1)
+    return h, np.stack([dh1, dh2], axis=2)
+
+
+def neighbour_pairs(
+    points: np.ndarray, particles: np.ndarray, support: np.ndarray, tree: cKDTree | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All (point, particle) pairs with |X - X_I|_inf < a_I, grouped by point.
+
+    Returns (point_index, particle_index, indptr) where indptr delimits each point's pairs.
+    """
+    tree = tree if tree is not None else cKDTree(particles)
+    lists = tree.query_ball_point(points, r=float(support.max()), p=np.inf, return_sorted=True)
+    counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(points))
+    cols = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
+    rows = np.repeat(np.arange(len(points)), counts)
+    keep = np.max(np.abs(points[rows] - particles[cols]), axis=1) < support[cols]
+    rows, cols = rows[keep], cols[keep]
+    indptr = np.zeros(len(points) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=len(points)), out=indptr[1:])
+    return rows, cols, indptr
+
+
+def rk_shape_functions(
+    points: np.ndarray,
+    particles: np.ndarray,
+    support: np.ndarray,
+    volumes: np.ndarray,
+    order: int = 1,
+    gradients: bool = True,
+    tree: cKDTree | None = None,
+    basis_scale: float | None = None,
+) -> ShapeFunctions:
+    """N_I(X) = H(0)^T M(X)^-1 H((X - X_I)/a) phi_a(X - X_I) dV_I (eq. 3.19-3.20) and grad N_I.
+
+    points (n, 2) evaluation points; particles (NP, 2); support (NP,) kernel half-widths a_I;
+    volumes (NP,) particle volumes dV_I. The basis argument is scaled by one length for all
+    particles (basis_scale, default the mean support) so that reproduction holds when the
+    supports vary between particles.
+    """
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    rows, cols, indptr = neighbour_pairs(points, particles, support, tree)
+    counts = np.diff(indptr)
+    m = basis_size(order)
+    if np.any(counts < m):
+        bad = int(np.argmin(counts))
+        raise SingularMomentMatrix(
+            f"point ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm is covered by "
+            f"{counts[bad]} particles; the order-{order} basis needs at least {m}: "
+            "increase the dilation or refine the spacing"
+        )
+    scale = float(basis_scale if basis_scale is not None else support.mean())
+    offset = points[rows] - particles[cols]  # (pairs, 2)
+    phi, dphi = tensor_kernel(offset, support[cols])
+    phi = phi * volumes[cols]
+    dphi = dphi * volumes[cols][:, None]
+    h, dh_dy = _basis(offset / scale, order)  # (pairs, m), (pairs, m, 2)
+    dh = dh_dy / scale
+
+    starts = indptr[:-1]
+    moment = np.add.reduceat(h[:, :, None] * h[:, None, :] * phi[:, None, None], starts, axis=0)
+    eigenvalues = np.linalg.eigvalsh(moment)  # (n, m), ascending
+    rcond = eigenvalues[:, 0] / eigenvalues[:, -1]
+    if np.any(rcond < 1e-12):
+        bad = int(np.argmin(rcond))
+        raise SingularMomentMatrix(
+            f"moment matrix M(X) is singular at ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm "
+            f"(reciprocal condition {rcond[bad]:.2e}): increase the dilation"
+        )
+    e1 = np.zeros(m)
+    e1[0] = 1.0
+    b = np.linalg.solve(moment, np.broadcast_to(e1, (len(points), m))[..., None])[..., 0]  # (n, m)
+    b_pair = b[rows]  # (pairs, m)
+    shape = np.einsum("pm,pm->p", b_pair, h) * phi
+    n_particles = len(particles)
+
+    def csr(data: np.ndarray) -> sp.csr_matrix:
+        return sp.csr_matrix((data, cols, indptr), shape=(len(points), n_particles))
+
+    if not gradients:
+        return ShapeFunctions(csr(shape))
+
+    grads = []
+    for k in range(2):
+        # dM/dX_k = sum (dH H^T + H dH^T) phi + H H^T dphi
+        hdh = h[:, :, None] * dh[:, None, :, k]
+        dmoment_terms = (hdh + hdh.transpose(0, 2, 1)) * phi[:, None, None]
+        dmoment_terms += h[:, :, None] * h[:, None, :] * dphi[:, k, None, None]
+        dmoment = np.add.reduceat(dmoment_terms, starts, axis=0)  # (n, m, m)
+        db = -np.linalg.solve(moment, np.einsum("nij,nj->ni", dmoment, b)[..., None])[..., 0]
+        grad = (
+            np.einsum("pm,pm->p", db[rows], h) * phi
+            + np.einsum("pm,pm->p", b_pair, dh[:, :, k]) * phi
+            + np.einsum("pm,pm->p", b_pair, h) * dphi[:, k]
+        )
+        grads.append(csr(grad))
+    return ShapeFunctions(csr(shape), grads[0], grads[1])

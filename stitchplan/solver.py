@@ -1,0 +1,263 @@
+"""Total-Lagrangian Newton solver with load stepping and step cutting (thesis eq. 3.44-3.57)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .assembly import Assembler
+from .config import Solver
+from .discretization import TissueModel
+
+log = logging.getLogger(__name__)
+
+
+class SolverDivergence(RuntimeError):
+    """Newton failed even after cutting the load step; the message says where."""
+
+
+class InvertedMaterial(ArithmeticError):
+    """det F <= 0 at a quadrature point: the trial state is not admissible."""
+
+
+@dataclass
+class StepRecord:
+    load_fraction: float
+    iterations: int
+    residual: float
+    increment: float
+    cuts: int
+
+
+@dataclass
+class NewtonReport:
+    steps: list[StepRecord] = field(default_factory=list)
+    linear_solves: int = 0
+    factorizations: int = 0
+    krylov_iterations: int = 0
+
+    @property
+    def iterations(self) -> int:
+        return sum(step.iterations for step in self.steps)
+
+    @property
+    def cuts(self) -> int:
+        return sum(step.cuts for step in self.steps)
+
+
+def checked_deformation_gradient(model: TissueModel, coefficients: np.ndarray) -> np.ndarray:
+    """F at the quadrature points; raises InvertedMaterial where det F <= 0."""
+    deformation_gradient = model.deformation_gradient(coefficients)
+    jacobian = np.linalg.det(deformation_gradient)
+    if not np.all(np.isfinite(jacobian)) or jacobian.min() <= 0.0:
+        worst = int(np.nanargmin(np.where(np.isfinite(jacobian), jacobian, -np.inf)))
+        x, y = model.quadrature_points[worst]
+        raise InvertedMaterial(f"det F = {jacobian[worst]:.3g} at ({x:.3g}, {y:.3g}) mm")
+    return deformation_gradient
+
+
+def factorize(matrix: sp.spmatrix):
+    """Sparse LU (SuperLU) with a symmetric fill-reducing ordering; returns the factor."""
+    return spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A")
+
+
+def preconditioned_cg(
+    operator: Callable[[np.ndarray], np.ndarray],
+    preconditioner: Callable[[np.ndarray], np.ndarray],
+    rhs: np.ndarray,
+    rtol: float,
+    max_iterations: int,
+) -> tuple[np.ndarray | None, int]:
+    """Conjugate gradients; returns (None, its) on negative curvature or no convergence."""
+    x = np.zeros_like(rhs)
+    r = rhs.copy()
+    target = rtol * np.linalg.norm(rhs)
+    z = preconditioner(r)
+    p = z.copy()
+    rz = r @ z
+    for iteration in range(1, max_iterations + 1):
+        kp = operator(p)
+        curvature = p @ kp
+        if curvature <= 0.0:
+            return None, iteration
+        alpha = rz / curvature
+        x += alpha * p
+        r -= alpha * kp
+        if np.linalg.norm(r) <= target:
+            return x, iteration
+        z = preconditioner(r)
+        rz_new = r @ z
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return None, max_iterations
+
+
+class TangentSolver:
+    """Solves K dx = -r for the successive tangents of a Newton run.
+
+    mode "direct": factorize every tangent. mode "pcg": conjugate gradients on the
+    matrix-free tangent, preconditioned by the factorization of an earlier tangent (the
+    thesis's K_Inv of eq. 3.72, taken at zero deformation and renewed when it stops
+    working: CG needing more than `refactor_after` iterations, or meeting negative curvature).
+    """
+
+    def __init__(self, mode: str = "pcg", refactor_after: int = 25, rtol: float = 1e-10):
+        self.mode = mode
+        self.refactor_after = refactor_after
+        self.rtol = rtol
+        self.factor = None
+        self.factorizations = 0
+        self.krylov_iterations = 0
+
+    def _refactor(self, matrix: sp.spmatrix) -> None:
+        self.factor = factorize(matrix)
+        self.factorizations += 1
+
+    def solve(self, problem, rhs: np.ndarray) -> np.ndarray:
+        if self.mode == "pcg" and self.factor is not None:
+            x, iterations = preconditioned_cg(problem.tangent_product, self.factor.solve, rhs,
+                                              self.rtol, self.refactor_after)
+            self.krylov_iterations += iterations
+            if x is not None:
+                return x
+        self._refactor(problem.tangent_matrix())
+        return self.factor.solve(rhs)
+
+
+def newton(
+    problem,
+    start: np.ndarray,
+    settings: Solver,
+    reference_force: float,
+    length_scale: float,
+    linear: TangentSolver,
+) -> tuple[np.ndarray, int, float, float]:
+    """Newton iterations on problem.residual(x) = 0 from `start`.
+
+    Converged when |r| <= residual_tolerance * max(reference, |r_0|) and the last increment
+    |dx|_inf <= increment_tolerance * (|x|_inf + length_scale), or the residual is 1000x
+    below its tolerance. Raises InvertedMaterial or SolverDivergence; the caller cuts the step.
+    Returns (x, iterations, |r|, |dx|_inf).
+    """
+    x = start.copy()
+    increment_norm = np.inf
+    residual_norm = np.inf
+    for iteration in range(settings.max_iterations + 1):
+        residual = problem.residual(x)
+        residual_norm = float(np.linalg.norm(residual))
+        if not np.isfinite(residual_norm):
+            raise SolverDivergence(f"residual is not finite after {iteration} iterations")
+        if iteration == 0:
+            tolerance = settings.residual_tolerance * max(reference_force, residual_norm, 1e-300)
+        small_step = increment_norm <= settings.increment_tolerance * (np.abs(x).max() + length_scale)
+        if residual_norm <= tolerance and (small_step or residual_norm <= 1e-3 * tolerance):
+            return x, iteration, residual_norm, increment_norm
+        if iteration == settings.max_iterations:
+            break
+        delta = linear.solve(problem, -residual)
+        if not np.all(np.isfinite(delta)):
+            raise SolverDivergence(f"linear solve failed at iteration {iteration + 1}")
+        x = x + delta
+        increment_norm = float(np.abs(delta).max())
+    raise SolverDivergence(
+        f"no convergence in {settings.max_iterations} iterations (residual {residual_norm:.3e} N)"
+    )
+
+
+class StaticProblem:
+    """f_int(d) - lambda f_ext = 0 on the free coefficients, with g = lambda g_final."""
+
+    def __init__(self, model: TissueModel, assembler: Assembler, external_force: np.ndarray,
+                 prescribed: np.ndarray):
+        self.model = model
+        self.assembler = assembler
+        self.external_force = external_force
+        self.prescribed = prescribed
+        self.load_fraction = 0.0
+
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        coefficients = self.model.coefficients(x.reshape(-1, 2), self.load_fraction * self.prescribed)
+        deformation_gradient = checked_deformation_gradient(self.model, coefficients)
+        return self.assembler.update(deformation_gradient) - self.load_fraction * self.external_force
+
+    def tangent_product(self, vector: np.ndarray) -> np.ndarray:
+        return self.assembler.tangent_product(vector)
+
+    def tangent_matrix(self) -> sp.csr_matrix:
+        return self.assembler.tangent_matrix()
+
+
+@dataclass
+class StaticSolution:
+    free: np.ndarray  # (n_free, 2)
+    coefficients: np.ndarray  # (NP, 2)
+    report: NewtonReport
+
+
+def solve_static(
+    model: TissueModel,
+    external_force: np.ndarray,
+    prescribed: np.ndarray,
+    load_steps: int,
+    settings: Solver,
+    assembler: Assembler | None = None,
+    on_step: Callable[[int, StepRecord], None] | None = None,
+    linear: TangentSolver | None = None,
+) -> StaticSolution:
+    """Incremental-iterative solve of f_int(d) = lambda f_ext with g = lambda g_final.
+
+    external_force (2 n_free,) interleaved; prescribed (Nb, 2) final boundary displacements.
+    A step whose Newton iterations fail (divergence or det F <= 0) is halved, up to
+    settings.max_step_cuts times; then SolverDivergence names the step and load fraction.
+    """
+    problem = StaticProblem(model, assembler or Assembler(model), external_force, prescribed)
+    linear = linear or TangentSolver()
+    free = np.zeros((model.n_free, 2))
+    previous_increment = np.zeros_like(free)
+    report = NewtonReport()
+    reference_force = float(np.linalg.norm(external_force))
+    fraction = 0.0
+    nominal = 1.0 / load_steps
+
+    for step in range(1, load_steps + 1):
+        target = step / load_steps
+        cuts = iterations = 0
+        size = nominal
+        while fraction < target - 1e-12:
+            trial = min(fraction + size, target)
+            scale = (trial - fraction) / nominal
+            problem.load_fraction = trial
+            start = free + scale * previous_increment  # secant predictor
+            try:
+                x, its, residual, increment = newton(problem, start.ravel(), settings,
+                                                     trial * reference_force, model.spacing, linear)
+            except (SolverDivergence, InvertedMaterial) as failure:
+                if cuts >= settings.max_step_cuts:
+                    raise SolverDivergence(
+                        f"Newton failed at load step {step} (load fraction {trial:.4f}) after "
+                        f"{cuts} step cuts: {failure}"
+                    ) from None
+                cuts += 1
+                size *= 0.5
+                previous_increment = np.zeros_like(free)
+                log.info("load step %d: cutting to %.4g (%s)", step, size, failure)
+                continue
+            new_free = x.reshape(-1, 2)
+            previous_increment = (new_free - free) / scale
+            free = new_free
+            fraction = trial
+            iterations += its
+        record = StepRecord(target, iterations, residual, increment, cuts)
+        report.steps.append(record)
+        if on_step is not None:
+            on_step(step, record)
+    report.linear_solves = report.iterations
+    report.factorizations = linear.factorizations
+    report.krylov_iterations = linear.krylov_iterations
+    coefficients = model.coefficients(free, prescribed)
+    return StaticSolution(free, coefficients, report)
