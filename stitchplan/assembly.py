@@ -33,20 +33,32 @@ class Assembler:
             (np.zeros(16 * n_points), cols, np.arange(0, 16 * n_points + 1, 4)),
             shape=(4 * n_points, 4 * n_points),
         )
-        self._first_piola: np.ndarray | None = None
+        self._deformation_gradient: np.ndarray | None = None
+        self._tangent_current = False
         self.tangent_assemblies = 0
         self.tangent_products = 0
 
     def update(self, deformation_gradient: np.ndarray) -> np.ndarray:
-        """Evaluate stress and tangent at F (nq, 2, 2); returns f_int (2 n_free,)."""
-        first_piola, tangent = first_piola_and_tangent(self.model.material, deformation_gradient)
+        """Evaluate the stress at F (nq, 2, 2); returns f_int (2 n_free,). The material
+        tangent at this F is evaluated only if a tangent product or matrix is asked for."""
+        stress, _ = self.model.material.pk2_stress(deformation_gradient)
+        first_piola = deformation_gradient @ stress
+        self._deformation_gradient = deformation_gradient
+        self._tangent_current = False
+        weights = self.model.quadrature_weights
+        return self.gradient_t @ (first_piola * weights[:, None, None]).reshape(-1)
+
+    def _refresh_tangent(self) -> None:
+        if self._tangent_current:
+            return
+        _, tangent = first_piola_and_tangent(self.model.material, self._deformation_gradient)
         weights = self.model.quadrature_weights
         n_points = len(weights)
         self._pointwise.data[:] = (tangent.reshape(n_points, 4, 4) * weights[:, None, None]).ravel()
-        self._first_piola = first_piola
-        return self.gradient_t @ (first_piola * weights[:, None, None]).reshape(-1)
+        self._tangent_current = True
 
     def tangent_product(self, vector: np.ndarray) -> np.ndarray:
+        self._refresh_tangent()
         self.tangent_products += 1
         return self.gradient_t @ (self._pointwise @ (self.gradient @ vector))
 
@@ -56,6 +68,7 @@ class Assembler:
 
     def tangent_matrix(self) -> sp.csr_matrix:
         """Explicit K at the last update (eq. 3.45)."""
+        self._refresh_tangent()
         self.tangent_assemblies += 1
         return (self.gradient_t @ (self._pointwise @ self.gradient)).tocsr()
 

@@ -38,11 +38,12 @@ def user_errors(command: Callable) -> Callable:
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         from .config import ScenarioError
+        from .simulation import InsertionFailure
         from .solver import SolverDivergence
 
         try:
             return command(*args, **kwargs)
-        except (ScenarioError, SolverDivergence) as error:
+        except (ScenarioError, SolverDivergence, InsertionFailure) as error:
             typer.echo(f"error: {error}", err=True)
             raise typer.Exit(EXIT_USER_ERROR) from None
         except ValueError as error:  # domain checks raised by the numerics
@@ -114,6 +115,126 @@ def deform(
         f"deform: {result.model.n_particles} particles, {scenario.load_steps} load steps, "
         f"{result.report.iterations} Newton iterations, {result.wall_seconds:.3f} s"
     )
+
+
+@calibrate_app.command("material")
+@user_errors
+def calibrate_material(
+    calibration_path: Path = typer.Argument(..., help="Calibration YAML: tissue, experiments "
+                                            "(loads + markers CSV x,y,x_def,y_def), fit ranges."),
+    out: Path = typer.Option(..., "--out", help="Fitted YAML: `material:` block, fit quality, diagnostics."),
+    plot_dir: Optional[Path] = typer.Option(None, "--plot-dir",
+                                            help="Folder for cost_surface.png and marker_residuals.png."),
+    spacing: Optional[float] = SpacingOption,
+    dilation: Optional[float] = DilationOption,
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log solver progress."),
+) -> None:
+    """Fit lame_lambda and lame_mu to marker displacements (grid search, then least squares)."""
+    _setup_logging(verbose)
+    _check_outputs(out, None if plot_dir is None else plot_dir / "cost_surface.png")
+    from . import calibration
+    from .progress import progress_bar
+
+    result = calibration.calibrate_material(calibration_path, spacing, dilation, progress=progress_bar)
+    calibration.write_material_outputs(result, out, plot_dir)
+    typer.echo(calibration.material_summary_line(result))
+
+
+@calibrate_app.command("needle")
+@user_errors
+def calibrate_needle(
+    air: Path = typer.Option(..., "--air", help="CSV angle_rad,force_N: needle rotated in air."),
+    tissue: Path = typer.Option(..., "--tissue", help="CSV angle_rad,force_N: needle rotated into "
+                                "the tissue, angle from the moment the tip touches it."),
+    radius: float = typer.Option(..., "--radius", help="Needle radius, mm."),
+    out: Path = typer.Option(..., "--out", help="YAML with friction, cutting_force and diagnostics."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="PNG of the recordings and the fit."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log details."),
+) -> None:
+    """Fit needle friction (N/mm) and cutting force (N) to force recordings in air and tissue."""
+    _setup_logging(verbose)
+    _check_outputs(out, plot)
+    from . import calibration
+
+    result = calibration.calibrate_needle(air, tissue, radius)
+    calibration.write_needle_outputs(result, out, plot)
+    typer.echo(calibration.needle_summary_line(result))
+
+
+def _parse_steps(text: Optional[str]) -> Optional[list[int]]:
+    from .config import ScenarioError
+
+    if not text:
+        return None
+    try:
+        return [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise ScenarioError(f"--plot-steps: got {text!r}, expected comma-separated step numbers") from None
+
+
+LinearSolverOption = typer.Option(None, "--linear-solver",
+                                  help="Saddle-point solver: direct or minres (overrides the scenario).")
+TipTrackingOption = typer.Option(
+    None, "--tip-tracking",
+    help="levenberg-marquardt, inverse-gradient, or auto (inverse gradient, falling back to LM).")
+
+
+def _choice_option(value: Optional[str], name: str, choices: tuple[str, ...]) -> Optional[str]:
+    from .config import ScenarioError
+
+    if value is not None and value not in choices:
+        raise ScenarioError(f"{name}: got {value!r}, expected one of {', '.join(choices)}")
+    return value
+
+
+@app.command()
+@user_errors
+def simulate(
+    scenario_path: Path = ScenarioArgument,
+    out: Optional[Path] = typer.Option(None, "--out", help="HDF5 run log."),
+    summary: Optional[Path] = SummaryOption,
+    plot: Optional[Path] = typer.Option(None, "--plot", help="PNG: deformed tissue, needle and tip path."),
+    plot_steps: Optional[str] = typer.Option(None, "--plot-steps", help="Steps to draw, e.g. 10,20,37."),
+    spacing: Optional[float] = SpacingOption,
+    dilation: Optional[float] = DilationOption,
+    linear_solver: Optional[str] = LinearSolverOption,
+    tip_tracking: Optional[str] = TipTrackingOption,
+    condition_numbers: bool = typer.Option(False, "--condition-numbers",
+                                           help="Record condition numbers per step (dense; small models)."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log solver progress."),
+) -> None:
+    """Needle insertion without planning: the needle centre stays fixed (thesis Algorithm 1)."""
+    from .config import LINEAR_SOLVERS, TIP_TRACKING
+
+    _setup_logging(verbose)
+    _check_outputs(out, summary, plot)
+    _choice_option(linear_solver, "--linear-solver", LINEAR_SOLVERS)
+    _choice_option(tip_tracking, "--tip-tracking", TIP_TRACKING)
+    steps_to_plot = _parse_steps(plot_steps)
+    scenario = _load(scenario_path, spacing, dilation)
+    from . import reports
+    from .needle import needle_geometry
+    from .progress import progress_bar
+    from .simulation import run_insertion
+
+    if scenario.needle is None:
+        from .config import ScenarioError
+
+        raise ScenarioError("needle: missing, required by simulate")
+    geometry = needle_geometry(scenario.needle, scenario.tissue.size)
+    expected = int(geometry.exit_rotation / geometry.step) + 1
+    with progress_bar("needle steps", expected) as advance:
+        result = run_insertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking,
+                               condition_numbers=condition_numbers, on_step=lambda record: advance())
+    reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
+                                    plot_steps=steps_to_plot)
+    typer.echo(
+        f"simulate: {len(result.steps)} steps, {result.model.n_particles} particles, exit error "
+        f"{result.exit_error_mm:.4f} mm (material {result.exit_error_material_mm:.4f} mm), "
+        f"{result.wall_seconds:.2f} s"
+    )
+    for event in result.events:
+        typer.echo(f"note: {event}", err=True)
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -43,3 +43,156 @@ def plot_deformed(path: str | Path, particles: np.ndarray, displacements: np.nda
     ax.set_title(title)
     ax.legend(loc="upper right", fontsize=8)
     save(fig, path)
+
+
+def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.ndarray,
+                      cost: np.ndarray, grid_best: tuple[float, float], optimum: tuple[float, float],
+                      refinement: np.ndarray | None = None, log_axes: bool = True) -> None:
+    """Marker misfit f(lambda, mu) (eq. A.3) on the calibration grid, cost (n_lambda, n_mu) in
+    mm^2 with nan where the solve failed; the grid's best point, the least-squares path and
+    the optimum marked."""
+    from matplotlib.colors import LogNorm
+
+    fig, ax = _figure(6.5, 5.0)
+    masked = np.ma.masked_invalid(cost.T)  # rows: mu, columns: lambda
+    positive = masked.compressed()
+    positive = positive[positive > 0]
+    norm = LogNorm(vmin=positive.min(), vmax=positive.max()) if len(positive) > 1 else None
+    mesh = ax.pcolormesh(lame_lambda, lame_mu, masked, shading="nearest", cmap="viridis", norm=norm)
+    fig.colorbar(mesh, ax=ax, label="f = sum |p - q|^2 (mm^2)")
+    failed = np.argwhere(~np.isfinite(cost))
+    if len(failed):
+        ax.plot(lame_lambda[failed[:, 0]], lame_mu[failed[:, 1]], "x", color="0.4",
+                label="no static solution")
+    if refinement is not None and len(refinement):
+        ax.plot(refinement[:, 0], refinement[:, 1], ".-", color="white", lw=0.8, ms=3,
+                label="least-squares evaluations")
+    ax.plot(*grid_best, "s", mfc="none", mec="white", ms=10, label="grid best")
+    ax.plot(*optimum, "*", color="red", ms=14, label="fitted")
+    if log_axes:
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+    ax.set_xlabel("lame_lambda (MPa)")
+    ax.set_ylabel("lame_mu (MPa)")
+    ax.set_title(f"marker misfit: fitted lambda = {optimum[0]:.4g}, mu = {optimum[1]:.4g} MPa")
+    ax.legend(loc="upper right", fontsize=8, framealpha=0.6)
+    save(fig, path)
+
+
+def plot_marker_residuals(path: str | Path, size: tuple[float, float], markers: list[np.ndarray],
+                          measured: list[np.ndarray], simulated: list[np.ndarray],
+                          segments: list[list], titles: list[str]) -> None:
+    """One panel per experiment: measured (p) and simulated (q) marker positions with the
+    residual p - q drawn as arrows, magnified so the largest is ~8 % of the tissue size."""
+    import matplotlib.pyplot as plt
+
+    n = len(markers)
+    columns = min(n, 3)
+    rows = -(-n // columns)
+    width, height = size
+    fig, axes = plt.subplots(rows, columns, figsize=(5.0 * columns, 5.0 * rows * max(height / width, 0.5)),
+                             squeeze=False)
+    largest = max(float(np.linalg.norm(p - q, axis=1).max()) for p, q in zip(measured, simulated))
+    magnify = 0.08 * max(size) / largest if largest > 0 else 1.0
+    for k, ax in enumerate(axes.ravel()):
+        if k >= n:
+            ax.axis("off")
+            continue
+        p, q = measured[k], simulated[k]
+        ax.add_patch(plt.Rectangle((0, 0), width, height, fill=False, ec="0.6", lw=0.8))
+        for start, end in segments[k]:
+            ax.plot([start[0], end[0]], [start[1], end[1]], "-", color="tab:red", lw=3)
+        ax.plot(markers[k][:, 0], markers[k][:, 1], ".", color="0.75", ms=4, label="rest")
+        ax.plot(q[:, 0], q[:, 1], "o", mfc="none", mec="tab:blue", ms=6, label="simulated q")
+        ax.plot(p[:, 0], p[:, 1], ".", color="black", ms=4, label="measured p")
+        ax.quiver(q[:, 0], q[:, 1], p[:, 0] - q[:, 0], p[:, 1] - q[:, 1], angles="xy",
+                  scale_units="xy", scale=1.0 / magnify, color="tab:orange", width=0.004,
+                  label=f"p - q (x {magnify:.3g})")
+        rms = float(np.sqrt(np.mean(np.sum((p - q) ** 2, axis=1))))
+        ax.set_title(f"{titles[k]}: rms residual {rms:.3g} mm", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.legend(loc="upper right", fontsize=7, framealpha=0.7)
+    save(fig, path)
+
+
+def plot_needle_forces(path: str | Path, air: np.ndarray, tissue: np.ndarray, background_offset: float,
+                       background_slope: float, inserted_length: np.ndarray, corrected: np.ndarray,
+                       friction: float, cutting_force: float) -> None:
+    """Left: both recordings (angle, force) and the background line. Right: tissue force
+    minus background against inserted length, with the fitted cutting force + friction x length."""
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11.0, 4.5))
+    angles = np.linspace(min(air[0, 0], tissue[0, 0]), max(air[-1, 0], tissue[-1, 0]), 50)
+    left.plot(air[:, 0], air[:, 1], ".", ms=3, color="0.5", label="in air")
+    left.plot(tissue[:, 0], tissue[:, 1], ".", ms=3, color="tab:blue", label="into tissue")
+    left.plot(angles, background_offset + background_slope * angles, "-", color="black",
+              label=f"background {background_offset:.3g} + {background_slope:.3g} angle")
+    left.set_xlabel("needle rotation (rad)")
+    left.set_ylabel("force (N)")
+    left.legend(fontsize=8)
+    left.set_title("recordings")
+    length = np.linspace(0.0, inserted_length.max(), 50)
+    right.plot(inserted_length, corrected, ".", ms=3, color="tab:blue", label="tissue - background")
+    right.plot(length, cutting_force + friction * length, "-", color="tab:red",
+               label=f"{cutting_force:.4g} N + {friction:.4g} N/mm x length")
+    right.set_xlabel("inserted length radius x angle (mm)")
+    right.set_ylabel("force (N)")
+    right.legend(fontsize=8)
+    right.set_title("cutting force (intercept) and friction (slope)")
+    fig.tight_layout()
+    save(fig, path)
+
+
+def _needle_arc(ax, center, radius, start_angle, sense, rotation, arc, **style):
+    """The needle body: the arc from the tip back over `arc` rad (clipped at the start)."""
+    back = np.linspace(rotation, max(rotation - arc, rotation - 2 * np.pi), 80)
+    angles = start_angle + sense * back
+    ax.plot(center[0] + radius * np.cos(angles), center[1] + radius * np.sin(angles), **style)
+
+
+def plot_insertion(path: str | Path, result, steps: list[int] | None = None, ax=None, fig=None,
+                   title: str | None = None) -> None:
+    """Deformed particles, needle and tip path at the chosen steps (default: the last)."""
+    chosen = steps or [len(result.steps)]
+    chosen = [min(max(int(s), 0), len(result.steps)) for s in chosen]
+    if ax is None:
+        fig, axes = _figure(5.5 * len(chosen), 5.5)
+        import matplotlib.pyplot as plt  # noqa: F401
+
+        fig.clf()
+        axes = [fig.add_subplot(1, len(chosen), i + 1) for i in range(len(chosen))]
+    else:
+        axes = [ax]
+    geometry = result.geometry
+    particles = result.model.particles
+    for ax, step in zip(axes, chosen):
+        displacement = result.displacements[step]
+        magnitude = np.linalg.norm(displacement, axis=1)
+        deformed = particles + displacement
+        points = ax.scatter(deformed[:, 0], deformed[:, 1], s=4, c=magnitude, cmap="viridis")
+        fig.colorbar(points, ax=ax, label="|u| (mm)", shrink=0.7)
+        record = result.steps[step - 1] if step > 0 else None
+        center = record.center if record is not None else geometry.center
+        rotation = record.rotation if record is not None else 0.0
+        _needle_arc(ax, center, geometry.radius, geometry.start_angle, geometry.sense, rotation,
+                    geometry.arc, color="crimson", lw=2, label="needle")
+        tips = np.array([s.tip_spatial for s in result.steps[:step]]) if step else np.zeros((0, 2))
+        if len(tips):
+            ax.plot(tips[:, 0], tips[:, 1], ".-", color="orange", ms=3, lw=1, label="tip path")
+        ax.plot(*result.desired_exit, "x", color="k", ms=9, mew=2, label="desired exit (reference)")
+        if step == len(result.steps):
+            ax.plot(*result.desired_exit_def, "+", color="blue", ms=11, mew=2, label="desired exit, deformed")
+            ax.plot(*result.achieved_exit_def, "o", mfc="none", color="crimson", ms=9, label="achieved exit")
+        zoom = 1.8 * geometry.radius
+        middle = geometry.center
+        ax.set_xlim(middle[0] - zoom, middle[0] + zoom)
+        ax.set_ylim(middle[1] - zoom, middle[1] + zoom)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_title(title or f"step {step}, rotation {rotation:.2f} rad")
+        ax.legend(loc="upper right", fontsize=7)
+    save(fig, path)

@@ -94,3 +94,99 @@ def write_deform_outputs(result, probes_out: Path | None = None, reactions_out: 
 
         plot_deformed(plot, result.model.particles, result.particle_displacements,
                       title=f"{result.scenario.name or 'deform'}: deformed particles")
+
+
+def insertion_summary(result) -> dict:
+    steps = result.steps
+    return {
+        "desired_exit": result.desired_exit,
+        "desired_exit_def": result.desired_exit_def,
+        "achieved_exit_def": result.achieved_exit_def,
+        "achieved_exit": result.achieved_exit,
+        "exit_error_mm": result.exit_error_mm,
+        "exit_error_material_mm": result.exit_error_material_mm,
+        "steps": len(steps),
+        "particles": result.model.n_particles,
+        "wall_seconds": result.wall_seconds,
+        "exit_rotation_rad": result.exit_rotation,
+        "needle_center_at_entry": result.geometry.center,
+        "needle_points": len(result.needle_points),
+        "newton_iterations": int(sum(s.newton_iterations for s in steps)),
+        "minres_iterations": int(sum(s.minres_iterations for s in steps)),
+        "max_constraint_violation_mm": max((s.constraint_violation for s in steps), default=0.0),
+        "tip_tracking": sorted({s.tracking for s in steps}),
+        "events": result.events,
+        "solver": result.solver_counts,
+        "timings_seconds": result.timings,
+        "discretization": discretization_summary(result.model),
+    }
+
+
+def insertion_datasets(result) -> dict[str, dict]:
+    steps = result.steps
+    geometry = result.geometry
+
+    def column(name):
+        return np.asarray([getattr(s, name) for s in steps])
+
+    return {
+        "scenario": {"text": result.scenario.source_text},
+        "needle": {
+            "center_at_entry": geometry.center,
+            "entry": geometry.entry,
+            "radius": geometry.radius,
+            "arc": geometry.arc,
+            "step": geometry.step,
+            "turn_sense": geometry.sense,
+            "desired_exit": result.desired_exit,
+            "desired_exit_def": result.desired_exit_def,
+            "achieved_exit": result.achieved_exit,
+            "achieved_exit_def": result.achieved_exit_def,
+            "exit_rotation": result.exit_rotation,
+            "trajectory_reference": result.needle_points,
+        },
+        "steps": {
+            "step": column("step"),
+            "rotation": column("rotation"),
+            "center": column("center").reshape(-1, 2),
+            "needle_tip": column("needle_tip").reshape(-1, 2),
+            "tip_reference": column("tip_reference").reshape(-1, 2),
+            "tip_spatial": column("tip_spatial").reshape(-1, 2),
+            "needle_points": column("needle_points"),
+            "insertion_force": np.asarray([s.insertion_force for s in steps]),
+            "friction_force": column("friction_force"),
+            "cutting_force": column("cutting_force"),
+            "newton_iterations": column("newton_iterations"),
+            "minres_iterations": column("minres_iterations"),
+            "constraint_violation": column("constraint_violation"),
+            "tracking": "\n".join(s.tracking for s in steps),
+            "exit_displacement": column("exit_displacement").reshape(-1, 2),
+            "planner_iterations": column("planner_iterations"),
+            "condition_saddle": column("condition_saddle"),
+            "condition_preconditioned": column("condition_preconditioned"),
+        },
+        "particles": {"reference": result.model.particles, "displacement": result.displacements},
+        "solver": {"events": "\n".join(result.events)},
+    }
+
+
+def write_insertion_outputs(result, command: str, out: Path | None = None,
+                            summary: Path | None = None, plot: Path | None = None,
+                            plot_steps: list[int] | None = None, extra_summary: dict | None = None,
+                            extra_datasets: dict | None = None) -> None:
+    if summary is not None:
+        write_json(summary, {**insertion_summary(result), **(extra_summary or {})})
+    if out is not None:
+        datasets = insertion_datasets(result)
+        for group, values in (extra_datasets or {}).items():
+            datasets.setdefault(group, {}).update(values)
+        write_hdf5(out, datasets, {**run_attributes(command, result.scenario), **{
+            "wall_seconds": result.wall_seconds,
+            "timings_seconds": result.timings,
+            "solver_counts": result.solver_counts,
+            "discretization": discretization_summary(result.model),
+        }})
+    if plot is not None:
+        from .plots import plot_insertion
+
+        plot_insertion(plot, result, plot_steps)

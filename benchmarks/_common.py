@@ -1,0 +1,98 @@
+"""Shared helpers for the benchmark scripts (not part of the installed package).
+
+The scripts are run from the repository root as `python benchmarks/<name>.py`; Python then
+puts benchmarks/ on sys.path, so `import _common` finds this file.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+BENCH_DIR = Path(__file__).resolve().parent
+REPO_ROOT = BENCH_DIR.parent
+RESULTS_DIR = BENCH_DIR / "results"
+SCENARIO_PATH = REPO_ROOT / "configs" / "slab_edge_load.yaml"
+
+
+def results_path(name: str) -> Path:
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    return RESULTS_DIR / name
+
+
+def load_slab_scenario():
+    """The shipped slab scenario, parsed exactly as `stitchplan deform` parses it."""
+    from stitchplan.config import load_scenario
+
+    return load_scenario(SCENARIO_PATH)
+
+
+def max_probe_error(values: np.ndarray, reference: np.ndarray) -> float:
+    """max_i |u_i - u_ref,i| / max_i |u_ref,i| over the probes (vector norms per probe)."""
+    values, reference = np.asarray(values), np.asarray(reference)
+    return float(np.linalg.norm(values - reference, axis=1).max()
+                 / np.linalg.norm(reference, axis=1).max())
+
+
+def median_time(function: Callable[[], object], repeats: int, number: int = 1) -> tuple[float, object]:
+    """Median over `repeats` of the mean time of `number` back-to-back calls; returns (s, last result)."""
+    samples = []
+    result = None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(number):
+            result = function()
+        samples.append((time.perf_counter() - start) / number)
+    return statistics.median(samples), result
+
+
+def loglog_slope(x: Sequence[float], y: Sequence[float]) -> float:
+    """Least-squares slope of log y against log x."""
+    return float(np.polyfit(np.log(np.asarray(x, float)), np.log(np.asarray(y, float)), 1)[0])
+
+
+def fmt(value: object, digits: int = 4) -> str:
+    if isinstance(value, (float, np.floating)):
+        if value == 0.0:
+            return "0"
+        if not math.isfinite(value):
+            return str(value)
+        magnitude = abs(value)
+        if magnitude >= 1e5 or magnitude < 1e-3:
+            return f"{value:.{digits - 1}e}"
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(header)
+        for row in rows:
+            writer.writerow([repr(float(v)) if isinstance(v, (float, np.floating)) else v for v in row])
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def machine_note() -> str:
+    import numpy
+    import scipy
+
+    import stitchplan
+
+    threads = os.environ.get("OPENBLAS_NUM_THREADS") or os.environ.get("OMP_NUM_THREADS") or "default"
+    return (f"Python {platform.python_version()}, numpy {numpy.__version__}, scipy {scipy.__version__}, "
+            f"stitchplan {stitchplan.__version__}, {os.cpu_count()} CPUs, BLAS threads: {threads}, "
+            f"{time.strftime('%Y-%m-%d %H:%M')}")

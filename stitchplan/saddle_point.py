@@ -1,0 +1,166 @@
+"""Linear solves of the needle saddle-point system (thesis eq. 3.62, 3.71-3.74).
+
+    [ K + H   G ] [dd]     [r_u]
+    [ G^T     0 ] [dl] = - [ g ]
+
+K is the tissue tangent, H the curvature of the needle constraints weighted by their
+multipliers, G the constraint rows (eq. 3.65). Two solvers:
+
+- direct: sparse LU of the whole saddle matrix, kept while Newton converges fast
+  (a modified Newton step) and renewed when it slows down or the system grows;
+- minres: MINRES with the block-diagonal preconditioner diag(K0^-1, S^-1) of eq. 3.71-3.72,
+  K0 the tangent at zero deformation (factorized once) and S = G^T K0^-1 G updated by
+  bordering as needle points are added (eq. 3.73-3.74). A MINRES run that stagnates falls
+  back to the direct solve and says so.
+
+The thesis writes the Schur block as G^T K G; the preconditioner here uses G^T K0^-1 G,
+the Schur complement of the saddle matrix, which is what makes diag(K, S) an optimal
+preconditioner (Murphy, Golub and Wathen 2000).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .solver import factorize
+
+log = logging.getLogger(__name__)
+
+
+class SchurPreconditioner:
+    """S^-1 for S = G^T K0^-1 G, grown one constraint at a time (eq. 3.73-3.74)."""
+
+    def __init__(self, stiffness_factor):
+        self.stiffness_factor = stiffness_factor
+        self.columns = np.zeros((0, 0))  # K0^-1 G, (n, k)
+        self.constraints = np.zeros((0, 0))  # G, (n, k)
+        self.inverse = np.zeros((0, 0))  # S^-1, (k, k)
+
+    @property
+    def size(self) -> int:
+        return self.inverse.shape[0]
+
+    def add(self, column: np.ndarray) -> None:
+        """Border S with one more constraint column g: v = G_k^T K0^-1 g, alpha = g^T K0^-1 g."""
+        solved = self.stiffness_factor.solve(column)
+        v = self.constraints.T @ solved if self.size else np.zeros(0)
+        alpha = float(column @ solved)
+        if self.size == 0:
+            self.inverse = np.array([[1.0 / alpha]])
+        else:
+            q_inv_v = self.inverse @ v
+            # a constraint (nearly) dependent on the earlier ones leaves alpha - v^T Q^-1 v at
+            # round-off level; keep the block positive so MINRES sees an SPD preconditioner
+            beta = 1.0 / max(alpha - v @ q_inv_v, 1e-12 * alpha)
+            w = -q_inv_v * beta
+            self.inverse = np.block([[self.inverse + np.outer(q_inv_v, q_inv_v) * beta, w[:, None]],
+                                     [w[None, :], np.array([[beta]])]])
+        self.constraints = column[:, None] if self.constraints.size == 0 else np.hstack(
+            [self.constraints, column[:, None]])
+        self.columns = solved[:, None] if self.columns.size == 0 else np.hstack([self.columns, solved[:, None]])
+
+    def keep(self, active: np.ndarray) -> None:
+        """Drop constraints (rebuilds S^-1 from the stored columns)."""
+        self.constraints = self.constraints[:, active]
+        self.columns = self.columns[:, active]
+        self.inverse = np.linalg.inv(self.constraints.T @ self.columns)
+
+
+class SaddlePointSolver:
+    def __init__(self, method: str, stiffness_factor=None, minres_rtol: float = 1e-10,
+                 minres_maxiter: int = 400):
+        self.method = method
+        self.stiffness_factor = stiffness_factor
+        self.schur = SchurPreconditioner(stiffness_factor) if method == "minres" else None
+        self.minres_rtol = minres_rtol
+        self.minres_maxiter = minres_maxiter
+        self._factor = None
+        self.factorizations = 0
+        self.minres_iterations = 0
+        self.fallbacks = 0
+        self.last_minres_iterations = 0
+
+    def invalidate(self) -> None:
+        self._factor = None
+
+    @staticmethod
+    def saddle_matrix(stiffness: sp.spmatrix, constraints: sp.spmatrix) -> sp.csc_matrix:
+        k = constraints.shape[1]
+        return sp.bmat([[stiffness, constraints], [constraints.T, sp.csr_matrix((k, k))]], format="csc")
+
+    def solve_direct(self, stiffness, constraints: sp.spmatrix, rhs: np.ndarray,
+                     refactor: bool, expanded_rows: sp.csr_matrix | None = None,
+                     normals: np.ndarray | None = None) -> np.ndarray:
+        """Block elimination with a sparse LU of K + H (renewed when `refactor` or missing):
+
+            a = K^-1 (-r_u),  S = G^T K^-1 G,  dl = S^-1 (G^T a + g),  dd = a - K^-1 G dl
+
+        G^T dd = -g holds exactly even with an older factor of K, so the constraints
+        converge at once; an older K only slows the equilibrium residual (modified Newton).
+        `stiffness` is a callable returning the current K + H when a factor is needed.
+        """
+        n, k = constraints.shape
+        if refactor or self._factor is None:
+            self._factor = factorize(stiffness())
+            self.factorizations += 1
+            self._solved_rows = np.zeros((n, 0))
+        a = self._factor.solve(rhs[:n])
+        if k == 0:
+            return a
+        if expanded_rows is not None:
+            # G = N^T n per point: cache K^-1 N^T (both directions) for this factor, so only
+            # the rows of newly added points cost a solve
+            have = self._solved_rows.shape[1]
+            if have < expanded_rows.shape[0]:
+                new = self._factor.solve(expanded_rows[have:].T.toarray())
+                self._solved_rows = np.hstack([self._solved_rows, new])
+            rows = self._solved_rows[:, : 2 * k].reshape(n, k, 2)
+            solved = np.einsum("nkd,kd->nk", rows, normals)  # K^-1 G, (n, k)
+        else:
+            solved = self._factor.solve(constraints.toarray())  # K^-1 G, (n, k)
+        schur = constraints.T @ solved
+        right = constraints.T @ a - rhs[n:]
+        try:
+            multipliers = scipy.linalg.cho_solve(scipy.linalg.cho_factor(schur), right)
+        except np.linalg.LinAlgError:  # nearly dependent constraints: least squares
+            multipliers = np.linalg.lstsq(schur, right, rcond=1e-13)[0]
+        return np.concatenate([a - solved @ multipliers, multipliers])
+
+    def solve_minres(self, stiffness_product, constraints: sp.spmatrix, rhs: np.ndarray) -> tuple[np.ndarray | None, int]:
+        n, k = constraints.shape
+        g_t = constraints.T.tocsr()
+
+        def matvec(x):
+            return np.concatenate([stiffness_product(x[:n]) + constraints @ x[n:], g_t @ x[:n]])
+
+        def precondition(x):
+            return np.concatenate([self.stiffness_factor.solve(x[:n]), self.schur.inverse @ x[n:]])
+
+        operator = spla.LinearOperator((n + k, n + k), matvec=matvec, dtype=float)
+        preconditioner = spla.LinearOperator((n + k, n + k), matvec=precondition, dtype=float)
+        count = [0]
+        solution, info = spla.minres(operator, rhs, M=preconditioner, rtol=self.minres_rtol,
+                                     maxiter=self.minres_maxiter,
+                                     callback=lambda _x: count.__setitem__(0, count[0] + 1))
+        self.minres_iterations += count[0]
+        self.last_minres_iterations = count[0]
+        return (solution if info == 0 else None), count[0]
+
+
+def condition_numbers(stiffness: sp.spmatrix, constraints: sp.spmatrix, stiffness_factor,
+                      schur_inverse: np.ndarray) -> tuple[float, float]:
+    """cond of the saddle matrix and of the block-preconditioned one (dense; small systems only)."""
+    saddle = SaddlePointSolver.saddle_matrix(stiffness, constraints).toarray()
+    eigenvalues = np.abs(np.linalg.eigvalsh(saddle))
+    n = stiffness.shape[0]
+    k0_inverse = stiffness_factor.solve(np.eye(n))
+    blocks = scipy.linalg.block_diag(0.5 * (k0_inverse + k0_inverse.T), schur_inverse)
+    # eigenvalues of P^-1 A equal those of L^T A L with P^-1 = L L^T
+    lower = np.linalg.cholesky(0.5 * (blocks + blocks.T))
+    preconditioned = np.abs(np.linalg.eigvalsh(lower.T @ saddle @ lower))
+    return float(eigenvalues.max() / eigenvalues.min()), float(preconditioned.max() / preconditioned.min())

@@ -1,0 +1,118 @@
+"""RK shape functions (thesis eq. 3.18-3.23): reproducing conditions to round-off and
+exact gradients against finite differences, on a small regular particle grid."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stitchplan.discretization import grid_particles
+from stitchplan.shape_functions import SingularMomentMatrix, rk_shape_functions
+
+SIZE = (10.0, 8.0)  # mm
+SPACING = 2.0  # mm -> 6 x 5 particles
+ROUND_OFF = 1e-12
+
+# (basis order, dilation): a quadratic basis needs 3 x 3 particles at a corner, so dilation > 2
+CASES = [(1, 2.0), (1, 2.5), (2, 2.5), (2, 3.0)]
+
+
+def particle_grid(dilation: float):
+    particles, volumes, dx, dy = grid_particles(SIZE, SPACING)
+    support = np.full(len(particles), dilation * max(dx, dy))
+    return particles, support, volumes
+
+
+def evaluation_points(rng: np.random.Generator) -> np.ndarray:
+    """Random interior points, points a hair inside each edge, points exactly on the edges,
+    exactly at the four corners and exactly at particles (where kernel breakpoints sit)."""
+    width, height = SIZE
+    inside = rng.uniform((0.0, 0.0), SIZE, size=(40, 2))
+    gaps = np.array([1e-12, 1e-9, 1e-6, 1e-3])
+    along_x = rng.uniform(0.0, width, size=len(gaps))
+    along_y = rng.uniform(0.0, height, size=len(gaps))
+    near_edges = np.concatenate([
+        np.stack([gaps, along_y], axis=1),  # left
+        np.stack([width - gaps, along_y], axis=1),  # right
+        np.stack([along_x, gaps], axis=1),  # bottom
+        np.stack([along_x, height - gaps], axis=1),  # top
+    ])
+    on_edges = np.array([[0.0, 3.3], [width, 5.1], [7.7, 0.0], [2.9, height]])
+    corners = np.array([[0.0, 0.0], [width, 0.0], [0.0, height], [width, height]])
+    at_particles = np.array([[2.0, 2.0], [4.0, 6.0], [8.0, 0.0]])
+    return np.concatenate([inside, near_edges, on_edges, corners, at_particles])
+
+
+def monomials(points: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Basis fields p(X) and their exact derivatives d/dX, d/dY, each (n, terms)."""
+    x, y = points[:, 0], points[:, 1]
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    values = [one, x, y]
+    d_dx = [zero, one, zero]
+    d_dy = [zero, zero, one]
+    if order == 2:
+        values += [x * x, x * y, y * y]
+        d_dx += [2 * x, y, zero]
+        d_dy += [zero, x, 2 * y]
+    return np.stack(values, 1), np.stack(d_dx, 1), np.stack(d_dy, 1)
+
+
+@pytest.mark.parametrize("order, dilation", CASES)
+def test_reproduces_complete_polynomials_to_round_off(order, dilation, rng):
+    """sum N_I = 1, sum N_I X_I = X (and the quadratics for order 2), also on edges and corners."""
+    particles, support, volumes = particle_grid(dilation)
+    points = evaluation_points(rng)
+    shape = rk_shape_functions(points, particles, support, volumes, order, gradients=False)
+
+    np.testing.assert_allclose(shape.values.sum(axis=1).A1, 1.0, rtol=0, atol=ROUND_OFF)
+    np.testing.assert_allclose(shape.values @ particles, points, rtol=0, atol=ROUND_OFF * max(SIZE))
+    exact, _, _ = monomials(points, order)
+    nodal, _, _ = monomials(particles, order)
+    np.testing.assert_allclose(shape.values @ nodal, exact, rtol=0, atol=ROUND_OFF * max(SIZE) ** 2)
+
+
+@pytest.mark.parametrize("order, dilation", CASES)
+def test_gradients_reproduce_polynomial_gradients_to_round_off(order, dilation, rng):
+    """sum dN_I = 0 and sum dN_I X_I = identity (plus quadratic gradients for order 2)."""
+    particles, support, volumes = particle_grid(dilation)
+    points = evaluation_points(rng)
+    shape = rk_shape_functions(points, particles, support, volumes, order, gradients=True)
+
+    for grad in (shape.grad_x, shape.grad_y):
+        np.testing.assert_allclose(grad.sum(axis=1).A1, 0.0, rtol=0, atol=ROUND_OFF)
+    identity_rows = np.broadcast_to(np.eye(2), (len(points), 2, 2))
+    jacobian = np.stack([shape.grad_x @ particles, shape.grad_y @ particles], axis=2)  # d X_i / d X_J
+    np.testing.assert_allclose(jacobian, identity_rows, rtol=0, atol=ROUND_OFF)
+    _, exact_dx, exact_dy = monomials(points, order)
+    nodal, _, _ = monomials(particles, order)
+    np.testing.assert_allclose(shape.grad_x @ nodal, exact_dx, rtol=0, atol=ROUND_OFF * max(SIZE))
+    np.testing.assert_allclose(shape.grad_y @ nodal, exact_dy, rtol=0, atol=ROUND_OFF * max(SIZE))
+
+
+@pytest.mark.parametrize("order, dilation", CASES)
+def test_gradients_match_central_finite_differences(order, dilation, rng):
+    """grad N_I against (N_I(X + h e_k) - N_I(X - h e_k)) / 2h for every particle.
+
+    h = 1e-6 mm: the truncation error (h^2 N''') is ~1e-13 and the cancellation error
+    ~1e-16/h ~ 1e-10, so the bound 1e-6 x max|grad N| leaves four decades of margin while a
+    missing term of the gradient (dM/dX, dH/dX or dphi) shows up at the 1e-2 level."""
+    particles, support, volumes = particle_grid(dilation)
+    points = evaluation_points(rng)
+    h = 1e-6
+    shape = rk_shape_functions(points, particles, support, volumes, order, gradients=True)
+
+    for grad, step in ((shape.grad_x, (h, 0.0)), (shape.grad_y, (0.0, h))):
+        forward = rk_shape_functions(points + step, particles, support, volumes, order, False).values
+        backward = rk_shape_functions(points - step, particles, support, volumes, order, False).values
+        finite_difference = ((forward - backward) / (2 * h)).toarray()
+        scale = np.abs(grad.toarray()).max()
+        assert scale > 0.05  # the comparison is not trivially between zeros
+        np.testing.assert_allclose(grad.toarray(), finite_difference, rtol=0, atol=1e-6 * scale)
+
+
+def test_too_few_particles_for_the_basis_is_reported():
+    """At a corner a dilation-2 kernel sees 2 x 2 particles: the quadratic basis (6 terms)
+    cannot be reproduced there and the error says where and what to change."""
+    particles, support, volumes = particle_grid(2.0)
+    with pytest.raises(SingularMomentMatrix, match=r"\(0, 0\) mm .*order-2 basis needs at least 6"):
+        rk_shape_functions(np.array([[0.0, 0.0]]), particles, support, volumes, order=2)
