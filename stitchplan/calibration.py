@@ -631,8 +631,8 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         warnings.append(
             f"the data cannot separate lame_lambda and lame_mu (correlation of the estimates "
             f"{stats['correlation']:+.4f}): only lame_lambda/lame_mu = {theta[0] / theta[1]:.4g} is "
-            "determined; this happens when every load is a prescribed displacement, since scaling "
-            "both moduli then changes no marker position; add a force-controlled experiment")
+            "determined, as when every load is a prescribed displacement (scaling both moduli then "
+            "moves no marker); add a force-controlled experiment")
     for k, (name, (lo, hi)) in enumerate((("lame_lambda", fit.lame_lambda), ("lame_mu", fit.lame_mu))):
         if identifiable and (theta[k] <= lo * (1 + 1e-6) or theta[k] >= hi * (1 - 1e-6)):
             warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the bound of its search range "

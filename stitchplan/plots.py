@@ -53,17 +53,25 @@ def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.nda
     the optimum marked."""
     from matplotlib.colors import LogNorm
 
+    def edges(centres: np.ndarray) -> np.ndarray:
+        """Cell edges halfway between grid points (geometric halfway on log axes)."""
+        t = np.log(centres) if log_axes else centres
+        middle = 0.5 * (t[1:] + t[:-1])
+        e = np.concatenate([[2 * t[0] - middle[0]], middle, [2 * t[-1] - middle[-1]]])
+        return np.exp(e) if log_axes else e
+
     fig, ax = _figure(6.5, 5.0)
     masked = np.ma.masked_invalid(cost.T)  # rows: mu, columns: lambda
     positive = masked.compressed()
     positive = positive[positive > 0]
     norm = LogNorm(vmin=positive.min(), vmax=positive.max()) if len(positive) > 1 else None
-    mesh = ax.pcolormesh(lame_lambda, lame_mu, masked, shading="nearest", cmap="viridis", norm=norm)
+    mesh = ax.pcolormesh(edges(lame_lambda), edges(lame_mu), masked, shading="flat", cmap="viridis",
+                         norm=norm)
     fig.colorbar(mesh, ax=ax, label="f = sum |p - q|^2 (mm^2)")
     failed = np.argwhere(~np.isfinite(cost))
     if len(failed):
         ax.plot(lame_lambda[failed[:, 0]], lame_mu[failed[:, 1]], "x", color="0.4",
-                label="no static solution")
+                label="not solved (too soft for the loads)")
     if refinement is not None and len(refinement):
         ax.plot(refinement[:, 0], refinement[:, 1], ".-", color="white", lw=0.8, ms=3,
                 label="least-squares evaluations")
@@ -75,7 +83,7 @@ def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.nda
     ax.set_xlabel("lame_lambda (MPa)")
     ax.set_ylabel("lame_mu (MPa)")
     ax.set_title(f"marker misfit: fitted lambda = {optimum[0]:.4g}, mu = {optimum[1]:.4g} MPa")
-    ax.legend(loc="upper right", fontsize=8, framealpha=0.6)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, fontsize=8, frameon=False)
     save(fig, path)
 
 
@@ -113,7 +121,7 @@ def plot_marker_residuals(path: str | Path, size: tuple[float, float], markers: 
         ax.set_aspect("equal")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
-        ax.legend(loc="upper right", fontsize=7, framealpha=0.7)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=4, fontsize=7, frameon=False)
     save(fig, path)
 
 

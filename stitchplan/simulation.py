@@ -254,6 +254,7 @@ class NeedleInsertion:
             if (residual_norm <= settings.residual_tolerance * max(force_norm, 1e-6) + 1e-12
                     and worst <= CONSTRAINT_TOLERANCE):
                 self.free, self.multipliers = free.reshape(-1, 2), multipliers
+                self.last_violation = worst
                 return iteration, minres_total, worst
             if iteration == settings.max_iterations or not np.isfinite(residual_norm):
                 break
@@ -393,12 +394,7 @@ def run_insertion(
     method_used = insertion.tip_tracking
     for step in range(1, limit + 1):
         rotation = step * geometry.step
-        if center_path is not None:
-            if step >= len(center_path):
-                raise ScenarioError(f"centre path: {len(center_path)} rows end before the tip exits "
-                                    f"(step {step}); expected one row per step")
-            center = np.asarray(center_path[step], dtype=float)
-        insertion.center = center
+        insertion.center = center  # the tip advances about the centre of the previous step
         point, method_used = insertion.track(geometry.step, step, rotation)
         if _outside_distance(point, insertion.size) > 0.0:
             method = "levenberg-marquardt" if method_used == "levenberg-marquardt" else insertion.tip_tracking
@@ -412,12 +408,18 @@ def run_insertion(
             insertion.timings["tip_tracking"] += time.perf_counter() - t0
             break
         insertion.add_point(point)
+        if center_path is not None:
+            if step >= len(center_path):
+                raise ScenarioError(f"centre path: {len(center_path)} rows end before the tip exits "
+                                    f"(step {step}); expected one row per step")
+            center = np.asarray(center_path[step], dtype=float)
+            insertion.center = center
         iterations, minres_its, violation = insertion.equilibrate(center, rotation, step)
         planner_iterations = 0
         if center_update is not None:
             center, planner_iterations = center_update(insertion, step, rotation, center)
             insertion.center = center
-            violation = insertion.last_violation if hasattr(insertion, "last_violation") else violation
+            violation = insertion.last_violation
         u_tip = insertion.displacement(point)[0]
         u_exit = insertion.displacement(desired_exit)[0]
         record = NeedleStep(

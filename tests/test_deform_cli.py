@@ -165,14 +165,22 @@ def with_changes(raw: dict, **changes) -> dict:
     return raw
 
 
+def with_value(raw: dict, path: tuple, value) -> dict:
+    block = raw
+    for key in path[:-1]:
+        block = block[key]
+    block[path[-1]] = value
+    return raw
+
+
 # (id, scenario dict builder or None for a missing file, extra options, fragments of the error)
 BAD_INPUTS = [
     ("missing file", None, [], ["absent.yaml", "cannot be read"]),
     ("unknown key", lambda r: with_changes(r, solver_settings={"max_iterations": 3}), [],
      ["unknown key 'solver_settings'"]),
-    ("negative thickness", lambda r: (r["tissue"].update(thickness=-10.0), r)[1], [],
+    ("negative thickness", lambda r: with_value(r, ("tissue", "thickness"), -10.0), [],
      ["tissue.thickness", "-10.0", "positive"]),
-    ("negative lame_mu", lambda r: (r["tissue"]["material"].update(lame_mu=-0.2), r)[1], [],
+    ("negative lame_mu", lambda r: with_value(r, ("tissue", "material", "lame_mu"), -0.2), [],
      ["tissue.material.lame_mu", "-0.2", "positive"]),
     ("zero spacing option", lambda r: r, ["--spacing", "0"], ["--spacing", "0.0", "positive number"]),
     ("small dilation option", lambda r: r, ["--dilation", "0.5"], ["--dilation", "0.5", "> 1"]),

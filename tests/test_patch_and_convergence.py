@@ -28,6 +28,7 @@ from stitchplan.assembly import Assembler
 from stitchplan.config import Discretization, Material, Solver, Tissue
 from stitchplan.deform import interpolate
 from stitchplan.discretization import build_tissue_model
+from stitchplan.material import first_piola_and_tangent
 from stitchplan.quadrature import segment_quadrature
 from stitchplan.solver import solve_static
 
@@ -86,7 +87,7 @@ def interior_residual(model) -> float:
     coefficients = linear_field(SMALL_GRADIENT)(model.particles)
     assembler = Assembler(model)
     force = assembler.update(model.deformation_gradient(coefficients)).reshape(-1, 2)
-    first_piola = assembler._first_piola  # (nq, 2, 2), homogeneous
+    first_piola, _ = first_piola_and_tangent(model.material, model.deformation_gradient(coefficients))
     np.testing.assert_allclose(first_piola, np.broadcast_to(first_piola[0], first_piola.shape), atol=1e-14)
     free_points = model.particles[model.boundary.free_indices]
     distance = np.minimum(free_points, np.asarray(model.tissue.size) - free_points).min(axis=1)
@@ -116,8 +117,9 @@ def test_linear_field_residual_is_exactly_the_collocation_boundary_term(rectangl
     model = patch_model(rectangle_edges, quadrature_order=8)
     assembler = Assembler(model)
     coefficients = linear_field(SMALL_GRADIENT)(model.particles)
-    force = assembler.update(model.deformation_gradient(coefficients)).reshape(-1, 2)
-    first_piola = assembler._first_piola[0]
+    deformation_gradient = model.deformation_gradient(coefficients)
+    force = assembler.update(deformation_gradient).reshape(-1, 2)
+    first_piola = first_piola_and_tangent(model.material, deformation_gradient)[0][0]  # homogeneous
     boundary_term = np.zeros_like(force)
     for start, end in rectangle_edges(*PATCH_SIZE):
         start, end = np.asarray(start), np.asarray(end)

@@ -1,0 +1,100 @@
+"""Regenerate the SYNTHETIC calibration data in this folder.
+
+Nothing here was measured. The marker files are the deformed positions that stitchplan's
+own forward model (the static solver behind `stitchplan deform`, via
+stitchplan.calibration.simulate_markers) predicts for known Lamé moduli, plus Gaussian
+noise; the force recordings are straight lines with known friction and cutting force plus
+Gaussian noise. Fitting them back shows how well the calibration recovers known values.
+
+    python sample_runs/calibration/generate.py        # rewrites the inputs (seeded: identical)
+
+then the commands in README.md rewrite the fitted outputs and plots.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from stitchplan.calibration import simulate_markers
+from stitchplan.config import Discretization, Load, Material, Tissue
+from stitchplan.io import write_text
+
+HERE = Path(__file__).resolve().parent
+SEED = 20240611
+
+# --- material: two force experiments on a 100 x 60 mm block clamped on the right -------
+TRUE_MATERIAL = Material("saint-venant-kirchhoff", lame_lambda=0.189151, lame_mu=0.147688)
+TISSUE = Tissue((100.0, 60.0), 10.0, TRUE_MATERIAL, ("right",))
+# generated at half the fit's default spacing (3 mm for this block), so the fit does not
+# see its own discretization (about 0.5 % bias in lambda, 0.2 % in mu, noise-free)
+GENERATION = Discretization(spacing=1.5)
+MARKER_NOISE_MM = 0.05
+MARKERS_PER_EXPERIMENT = 20
+EXPERIMENTS = {
+    "markers1.csv": (Load(((0.0, 24.0), (0.0, 36.0)), force=(2.0, 1.0)),),
+    "markers2.csv": (Load(((20.0, 60.0), (60.0, 60.0)), force=(-1.0, -3.0)),),
+}
+# displacement-controlled counter-example: only lambda/mu can be identified from it
+DISPLACEMENT_EXPERIMENT = {
+    "markers_displacement.csv": (Load(((0.0, 20.0), (0.0, 40.0)), displacement=(-4.0, 2.0)),),
+}
+
+# --- needle: ETHICON SH radius, friction and cutting force of the thesis's phantom -------
+RADIUS_MM = 8.88
+FRICTION_N_PER_MM = 0.0602
+CUTTING_FORCE_N = 0.7
+BACKGROUND = (0.12, 0.035)  # N, N/rad: bearing and cable drag of the rotation stage
+AIR_NOISE_N = 0.01
+TISSUE_NOISE_N = 0.02
+
+
+def _csv(path: Path, header: str, columns: list[str], rows: np.ndarray) -> None:
+    lines = [f"# {line}" for line in header.strip().splitlines()]
+    lines.append(",".join(columns))
+    lines += [",".join(f"{v:.6f}" for v in row) for row in rows]
+    write_text(path, "\n".join(lines) + "\n")
+
+
+def markers(rng: np.random.Generator, count: int) -> np.ndarray:
+    """Rest positions spread over the block, away from the clamped right edge."""
+    width, height = TISSUE.size
+    return np.column_stack([rng.uniform(2.0, width - 5.0, count), rng.uniform(2.0, height - 2.0, count)])
+
+
+def material_data(rng: np.random.Generator) -> None:
+    for name, loads in {**EXPERIMENTS, **DISPLACEMENT_EXPERIMENT}.items():
+        rest = markers(rng, MARKERS_PER_EXPERIMENT)
+        deformed = simulate_markers(TISSUE, GENERATION, loads, rest, TRUE_MATERIAL)
+        deformed += MARKER_NOISE_MM * rng.standard_normal(deformed.shape)
+        header = (f"SYNTHETIC markers, not measured: generate.py (seed {SEED}), stitchplan forward model\n"
+                  f"lame_lambda {TRUE_MATERIAL.lame_lambda} MPa, lame_mu {TRUE_MATERIAL.lame_mu} MPa, "
+                  f"spacing {GENERATION.spacing} mm, + Gaussian noise {MARKER_NOISE_MM} mm")
+        _csv(HERE / name, header, ["x", "y", "x_def", "y_def"], np.hstack([rest, deformed]))
+
+
+def needle_data(rng: np.random.Generator) -> None:
+    offset, slope = BACKGROUND
+    air_angle = np.arange(0.0, np.pi, 0.02)
+    air_force = offset + slope * air_angle + AIR_NOISE_N * rng.standard_normal(len(air_angle))
+    header = (f"SYNTHETIC recording, not measured: generate.py (seed {SEED}); needle turned in air:\n"
+              f"background {offset} N + {slope} N/rad x angle + Gaussian noise {AIR_NOISE_N} N")
+    _csv(HERE / "air.csv", header, ["angle_rad", "force_N"], np.column_stack([air_angle, air_force]))
+    angle = np.arange(0.0, 2.8, 0.02)
+    force = (offset + slope * angle + CUTTING_FORCE_N + FRICTION_N_PER_MM * RADIUS_MM * angle
+             + TISSUE_NOISE_N * rng.standard_normal(len(angle)))
+    header = (f"SYNTHETIC recording, not measured: generate.py (seed {SEED}); needle turned into tissue\n"
+              f"from the moment the tip touches it: background + cutting {CUTTING_FORCE_N} N + friction "
+              f"{FRICTION_N_PER_MM} N/mm x {RADIUS_MM} mm x angle + Gaussian noise {TISSUE_NOISE_N} N")
+    _csv(HERE / "tissue.csv", header, ["angle_rad", "force_N"], np.column_stack([angle, force]))
+
+
+def main() -> None:
+    rng = np.random.default_rng(SEED)
+    material_data(rng)
+    needle_data(rng)
+
+
+if __name__ == "__main__":
+    main()
