@@ -90,7 +90,8 @@ def no_progress(label: str, total: int | None) -> Iterator[Callable[..., None]]:
 # --- CSV input ------------------------------------------------------------------------
 
 
-def read_columns(path: str | Path, columns: tuple[str, ...], label: str = "") -> tuple[dict[str, np.ndarray], np.ndarray]:
+def read_columns(path: str | Path, columns: tuple[str, ...],
+                 label: str = "") -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Read a numeric CSV whose header is exactly `columns` (any order).
 
     Lines starting with '#' and blank lines are skipped (data files may carry a comment
@@ -279,10 +280,11 @@ def load_material_calibration(path: str | Path, spacing: float | None = None,
     path = Path(path)
     raw, _ = read_yaml(path)
     problem = parse_material_calibration(raw, path.parent, str(path))
+    if spacing is not None:
+        _number(spacing, "--spacing", positive=True, unit="mm")
+    if dilation is not None and not _number(dilation, "--dilation", positive=True) > 1.0:
+        raise _fail("--dilation", dilation, "a number > 1 (kernel support / spacing)")
     overrides = {"spacing": spacing, "dilation": dilation}
-    for key, value in overrides.items():
-        if value is not None:
-            parse_discretization({key: value}, f"--{key}")
     if any(v is not None for v in overrides.values()):
         values = {**asdict(problem.discretization),
                   **{k: v for k, v in overrides.items() if v is not None}}
@@ -292,7 +294,9 @@ def load_material_calibration(path: str | Path, spacing: float | None = None,
 
 def _start_point(fit: FitSettings) -> tuple[float, float]:
     """Geometric (or arithmetic) middle of the search ranges."""
-    mid = (lambda lo, hi: math.sqrt(lo * hi)) if fit.grid_scale == "log" else (lambda lo, hi: 0.5 * (lo + hi))
+    def mid(low: float, high: float) -> float:
+        return math.sqrt(low * high) if fit.grid_scale == "log" else 0.5 * (low + high)
+
     return mid(*fit.lame_lambda), mid(*fit.lame_mu)
 
 
@@ -366,7 +370,8 @@ class ExperimentModel:
         self.solves += 1
         if self._solutions:
             log_theta = np.log(theta + 1e-9)
-            nearest = min(self._solutions, key=lambda s: float(np.sum((np.log(s[0] + 1e-9) - log_theta) ** 2)))
+            nearest = min(self._solutions,
+                          key=lambda s: float(np.sum((np.log(s[0] + 1e-9) - log_theta) ** 2)))
             problem = StaticProblem(self.model, self.assembler, self.external, self.prescribed)
             reference = self._reference_force(problem)
             problem.load_fraction = 1.0
@@ -389,13 +394,16 @@ class ExperimentModel:
 
     def predict(self, theta: np.ndarray, jacobian: bool = False,
                 quick: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
-        """Simulated marker positions q_i (n, 2) and, if asked, dq_i/dtheta (n, 2, 2) [marker, xy, theta].
+        """Simulated marker positions q_i (n, 2) and, if asked, dq_i/dtheta (n, 2, 2)
+        indexed [marker, xy, theta].
 
         Raises SolverDivergence when the static solve fails (e.g. far too soft a material).
         quick: give up after at most 2 load-step cuts (for a coarse look such as the grid).
         """
         theta = np.asarray(theta, dtype=float)
-        settings = replace(self.settings, max_step_cuts=min(self.settings.max_step_cuts, 2)) if quick else self.settings
+        settings = self.settings
+        if quick:
+            settings = replace(settings, max_step_cuts=min(settings.max_step_cuts, 2))
         free = self._solve(theta, settings)
         coefficients = self.model.coefficients(free, self.prescribed)
         positions = self.experiment.markers + self.marker_values @ coefficients
@@ -413,9 +421,11 @@ class ExperimentModel:
         columns = []
         for unit in ((1.0, 0.0), (0.0, 1.0)):  # S_lambda, S_mu: the stress per unit modulus
             stress, _ = self.material_class(*unit).pk2_stress(deformation_gradient)
-            columns.append(self.assembler.gradient_t @ ((deformation_gradient @ stress) * weights).reshape(-1))
+            first_piola = deformation_gradient @ stress  # (nq, 2, 2)
+            columns.append(self.assembler.gradient_t @ (first_piola * weights).reshape(-1))
         # the assembler was last updated at the converged state, so this is K there
-        dfree = -factorize(self.assembler.tangent_matrix()).solve(np.stack(columns, axis=1))  # (2 n_free, 2)
+        tangent = factorize(self.assembler.tangent_matrix())
+        dfree = -tangent.solve(np.stack(columns, axis=1))  # (2 n_free, 2)
         n_free = model.n_free
         du = self.marker_free @ dfree.reshape(n_free, 4)  # (n, 4): (xy, theta)
         return du.reshape(-1, 2, 2)
@@ -599,7 +609,8 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         grid = grid_search(misfit, fit, advance)
     grid_solves = misfit.solves
     grid_evaluations = len(misfit.evaluations)
-    measured_scale = float(np.abs(misfit.measured - np.concatenate([e.markers for e in problem.experiments])).max())
+    rest = np.concatenate([e.markers for e in problem.experiments])
+    measured_scale = float(np.abs(misfit.measured - rest).max())
     penalty = 10.0 * (measured_scale + 1.0)  # residual returned where a trial point cannot be solved
     failures = 0
 
@@ -637,12 +648,10 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         if identifiable and (theta[k] <= lo * (1 + 1e-6) or theta[k] >= hi * (1 - 1e-6)):
             warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the bound of its search range "
                             f"[{lo:g}, {hi:g}]: widen fit.{name}")
-    i, j = (int(np.argmin(np.abs(axis - value))) for axis, value in
-            zip((grid.lame_lambda, grid.lame_mu), grid.best))
-    if np.isnan(grid.cost[max(i - 1, 0):i + 2, max(j - 1, 0):j + 2]).any():
-        warnings.append(f"the best grid point borders grid points without a static solution "
-                        f"({grid.failed} of {grid.cost.size}, too soft for the loads): the optimum "
-                        "may lie among them; check the cost surface plot")
+    if failures:
+        warnings.append(f"least squares tried {failures} parameter point(s) where the static solve "
+                        "failed (too soft for the loads): the optimum may lie at the edge of the "
+                        "solvable materials; check the cost surface plot")
     for k, name in enumerate(("lame_lambda", "lame_mu")):
         u = stats["uncertainty"][k]
         if identifiable and u is not None and u > POORLY_DETERMINED * theta[k]:
@@ -907,7 +916,8 @@ def material_plots(result: MaterialFit, folder: str | Path) -> list[Path]:
     return paths
 
 
-def write_material_outputs(result: MaterialFit, out: str | Path, plot_dir: str | Path | None = None) -> None:
+def write_material_outputs(result: MaterialFit, out: str | Path,
+                           plot_dir: str | Path | None = None) -> None:
     """Plots first, then the fitted YAML (atomically), so fitted.yaml appears only on success."""
     from .io import write_yaml
 
@@ -920,11 +930,12 @@ def write_material_outputs(result: MaterialFit, out: str | Path, plot_dir: str |
 
 def material_summary_line(result: MaterialFit) -> str:
     u = result.standard_uncertainty
-    spread = (f" +- {u[0]:.2g}" if u[0] is not None else "", f" +- {u[1]:.2g}" if u[1] is not None else "")
+    spread = [f" +- {value:.2g}" if value is not None else "" for value in u]
     flag = "" if result.identifiable else " (NOT identifiable: see warnings)"
+    spread_mm = float(result.distances.std(ddof=1)) if len(result.distances) > 1 else 0.0
     return (f"calibrate material: lame_lambda {result.lame_lambda:.6g}{spread[0]} MPa, lame_mu "
             f"{result.lame_mu:.6g}{spread[1]} MPa{flag}; marker residual "
-            f"{result.distances.mean():.4g} +- {result.distances.std():.2g} mm; "
+            f"{result.distances.mean():.4g} +- {spread_mm:.2g} mm; "
             f"{result.forward_solves} forward solves, {result.wall_seconds:.2f} s")
 
 

@@ -122,9 +122,10 @@ def deform(
 def calibrate_material(
     calibration_path: Path = typer.Argument(..., help="Calibration YAML: tissue, experiments "
                                             "(loads + markers CSV x,y,x_def,y_def), fit ranges."),
-    out: Path = typer.Option(..., "--out", help="Fitted YAML: `material:` block, fit quality, diagnostics."),
-    plot_dir: Optional[Path] = typer.Option(None, "--plot-dir",
-                                            help="Folder for cost_surface.png and marker_residuals.png."),
+    out: Path = typer.Option(..., "--out",
+                             help="Fitted YAML: `material:` block, fit quality, diagnostics."),
+    plot_dir: Optional[Path] = typer.Option(
+        None, "--plot-dir", help="Folder for cost_surface.png and marker_residuals.png."),
     spacing: Optional[float] = SpacingOption,
     dilation: Optional[float] = DilationOption,
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log solver progress."),
@@ -201,9 +202,12 @@ def simulate(
     tip_tracking: Optional[str] = TipTrackingOption,
     condition_numbers: bool = typer.Option(False, "--condition-numbers",
                                            help="Record condition numbers per step (dense; small models)."),
+    center_path: Optional[Path] = typer.Option(
+        None, "--center-path", help="Replay needle centres from a trajectory CSV (row n = step n)."),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log solver progress."),
 ) -> None:
-    """Needle insertion without planning: the needle centre stays fixed (thesis Algorithm 1)."""
+    """Needle insertion without planning (thesis Algorithm 1): the needle centre stays fixed,
+    or follows --center-path."""
     from .config import LINEAR_SOLVERS, TIP_TRACKING
 
     _setup_logging(verbose)
@@ -213,19 +217,15 @@ def simulate(
     steps_to_plot = _parse_steps(plot_steps)
     scenario = _load(scenario_path, spacing, dilation)
     from . import reports
-    from .needle import needle_geometry
     from .progress import progress_bar
     from .simulation import run_insertion
+    from .trajectory import read_center_path
 
-    if scenario.needle is None:
-        from .config import ScenarioError
-
-        raise ScenarioError("needle: missing, required by simulate")
-    geometry = needle_geometry(scenario.needle, scenario.tissue.size)
-    expected = int(geometry.exit_rotation / geometry.step) + 1
-    with progress_bar("needle steps", expected) as advance:
+    path = read_center_path(center_path) if center_path is not None else None
+    with progress_bar("needle steps", _expected_steps(scenario)) as advance:
         result = run_insertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking,
-                               condition_numbers=condition_numbers, on_step=lambda record: advance())
+                               condition_numbers=condition_numbers, center_path=path,
+                               on_step=lambda record: advance())
     reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
                                     plot_steps=steps_to_plot)
     typer.echo(
@@ -233,8 +233,97 @@ def simulate(
         f"{result.exit_error_mm:.4f} mm (material {result.exit_error_material_mm:.4f} mm), "
         f"{result.wall_seconds:.2f} s"
     )
-    for event in result.events:
+    _echo_events(result.events)
+
+
+def _expected_steps(scenario) -> int:
+    from .config import ScenarioError
+    from .needle import needle_geometry
+
+    if scenario.needle is None:
+        raise ScenarioError("needle: missing, required by simulate and plan")
+    geometry = needle_geometry(scenario.needle, scenario.tissue.size)
+    return int(geometry.exit_rotation / geometry.step) + 1
+
+
+def _echo_events(events: list[str], shown: int = 3) -> None:
+    for event in events[:shown]:
         typer.echo(f"note: {event}", err=True)
+    if len(events) > shown:
+        typer.echo(f"note: {len(events) - shown} more notes in the summary and run log", err=True)
+
+
+def _parse_base_transform(text: Optional[str]):
+    from .config import ScenarioError
+
+    if text is None:
+        return None
+    try:
+        rotation, tx, ty = (float(part) for part in text.split(","))
+    except ValueError:
+        raise ScenarioError(f"--base-transform: got {text!r}, expected ROTATION_DEG,TX_MM,TY_MM") from None
+    return rotation, (tx, ty)
+
+
+@app.command()
+@user_errors
+def plan(
+    scenario_path: Path = ScenarioArgument,
+    export: Path = typer.Option(..., "--export", help="Trajectory CSV for the manipulator."),
+    out: Optional[Path] = typer.Option(None, "--out", help="HDF5 run log."),
+    summary: Optional[Path] = SummaryOption,
+    plot: Optional[Path] = typer.Option(None, "--plot", help="PNG: planned vs unplanned paths and O(t)."),
+    base_transform: Optional[str] = typer.Option(
+        None, "--base-transform", help="Tissue -> robot base frame: ROTATION_DEG,TX_MM,TY_MM."),
+    angular_speed: Optional[float] = typer.Option(
+        None, "--angular-speed", help="Needle rotation speed in rad/s; adds a time_s column."),
+    strict: bool = typer.Option(False, "--strict", help="Fail when the planner's eq. 4.2 fails."),
+    spacing: Optional[float] = SpacingOption,
+    dilation: Optional[float] = DilationOption,
+    linear_solver: Optional[str] = LinearSolverOption,
+    tip_tracking: Optional[str] = TipTrackingOption,
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log solver progress."),
+) -> None:
+    """Plan the needle-centre trajectory that brings the tip out at the desired exit
+    (thesis Algorithm 2) and export it; also runs the unplanned insertion for comparison."""
+    from dataclasses import replace
+
+    from .config import LINEAR_SOLVERS, TIP_TRACKING, ScenarioError
+
+    _setup_logging(verbose)
+    _check_outputs(export, out, summary, plot)
+    _choice_option(linear_solver, "--linear-solver", LINEAR_SOLVERS)
+    _choice_option(tip_tracking, "--tip-tracking", TIP_TRACKING)
+    if angular_speed is not None and not angular_speed > 0:
+        raise ScenarioError(f"--angular-speed: got {angular_speed!r}, expected a positive speed in rad/s")
+    transform = _parse_base_transform(base_transform)
+    scenario = _load(scenario_path, spacing, dilation)
+    robot = scenario.robot
+    if transform is not None:
+        robot = replace(robot, rotation_deg=transform[0], translation=transform[1], given=True)
+    if angular_speed is not None:
+        robot = replace(robot, angular_speed=angular_speed)
+    scenario = replace(scenario, robot=robot,
+                       planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
+    from . import reports
+    from .planner import PlannerSettings, run_plan
+    from .progress import progress_bar
+
+    settings = PlannerSettings(scenario.planner.tolerance, scenario.planner.max_iterations,
+                               scenario.planner.strict, scenario.planner.exit_tolerance,
+                               scenario.planner.max_passes)
+    expected = _expected_steps(scenario)
+    with progress_bar("planned steps", 2 * expected) as advance:
+        result = run_plan(scenario, settings, linear_solver=linear_solver, tip_tracking=tip_tracking,
+                          on_step=lambda record: advance())
+    reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot)
+    planned, unplanned = result.planned, result.unplanned
+    typer.echo(
+        f"plan: {len(planned.steps)} steps, exit error {planned.exit_error_mm:.4f} mm planned vs "
+        f"{unplanned.exit_error_mm:.4f} mm unplanned, {planned.wall_seconds:.2f} s planned run; "
+        f"trajectory written to {export}"
+    )
+    _echo_events(planned.events)
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -76,6 +76,25 @@ class Solver:
 
 
 @dataclass(frozen=True)
+class Planner:
+    tolerance: float = 1e-4  # mm
+    max_iterations: int = 30
+    strict: bool = False
+    exit_tolerance: float = 0.005  # mm
+    max_passes: int = 4
+
+
+@dataclass(frozen=True)
+class Robot:
+    """Tissue frame -> robot base frame: p_base = R(rotation) p_tissue + translation."""
+
+    rotation_deg: float = 0.0
+    translation: tuple[float, float] = (0.0, 0.0)
+    angular_speed: float | None = None  # rad/s of needle rotation; adds time_s to trajectories
+    given: bool = False
+
+
+@dataclass(frozen=True)
 class Scenario:
     tissue: Tissue
     discretization: Discretization = field(default_factory=Discretization)
@@ -84,6 +103,8 @@ class Scenario:
     load_steps: int = 10
     probes: tuple[tuple[float, float], ...] = ()
     solver: Solver = field(default_factory=Solver)
+    planner: Planner = field(default_factory=Planner)
+    robot: Robot = field(default_factory=Robot)
     name: str = ""
     source_text: str = ""
 
@@ -292,8 +313,41 @@ def default_spacing(tissue: Tissue, needle: Needle | None) -> float:
     return spacing
 
 
+def parse_planner(raw: Any, path: str = "planner") -> Planner:
+    if raw is None:
+        return Planner()
+    block = _mapping(raw, path, ("tolerance", "max_iterations", "strict", "exit_tolerance", "max_passes"))
+    d = Planner()
+    strict = block.get("strict", d.strict)
+    if not isinstance(strict, bool):
+        raise _fail(f"{path}.strict", strict, "true or false")
+    return Planner(
+        tolerance=_number(block.get("tolerance", d.tolerance), f"{path}.tolerance", positive=True, unit="mm"),
+        max_iterations=_integer(block.get("max_iterations", d.max_iterations), f"{path}.max_iterations", 1, 1000),
+        strict=strict,
+        exit_tolerance=_number(block.get("exit_tolerance", d.exit_tolerance), f"{path}.exit_tolerance",
+                               positive=True, unit="mm"),
+        max_passes=_integer(block.get("max_passes", d.max_passes), f"{path}.max_passes", 1, 20),
+    )
+
+
+def parse_robot(raw: Any, path: str = "robot") -> Robot:
+    if raw is None:
+        return Robot()
+    block = _mapping(raw, path, ("base_transform", "angular_speed"))
+    rotation, translation = 0.0, (0.0, 0.0)
+    given = "base_transform" in block
+    if given:
+        transform = _mapping(block["base_transform"], f"{path}.base_transform", ("rotation_deg", "translation"))
+        rotation = _number(transform.get("rotation_deg", 0.0), f"{path}.base_transform.rotation_deg", unit="deg")
+        translation = _point(transform.get("translation", [0.0, 0.0]), f"{path}.base_transform.translation")
+    speed = block.get("angular_speed")
+    speed = None if speed is None else _number(speed, f"{path}.angular_speed", positive=True, unit="rad/s")
+    return Robot(rotation, translation, speed, given)
+
+
 SCENARIO_KEYS = ("name", "tissue", "discretization", "needle", "loads", "load_steps", "probes",
-                 "solver")
+                 "solver", "planner", "robot")
 
 
 def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
@@ -323,6 +377,8 @@ def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
         load_steps=_integer(block.get("load_steps", 10), "load_steps", 1, 10000),
         probes=probes,
         solver=parse_solver(block.get("solver")),
+        planner=parse_planner(block.get("planner")),
+        robot=parse_robot(block.get("robot")),
         name=name,
         source_text=source_text,
     )

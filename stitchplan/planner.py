@@ -11,6 +11,7 @@ not, planning stops with a message naming the step instead of diverging silently
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,9 +31,11 @@ class PlannerSettings:
     tolerance: float = 1e-4  # mm: centre change that ends the iterations within a step
     max_iterations: int = 30
     strict: bool = False  # raise PlanningFailure when eq. 4.2 fails instead of recording it
+    exit_tolerance: float = 0.005  # mm: planned exit error that ends the passes
+    max_passes: int = 4
 
 
-def exit_tracking_update(settings: PlannerSettings):
+def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = None):
     """The centre update of Algorithm 2 as a callback for run_insertion.
 
     Within a step the fixed point O = O(t_0) + u(X_exit; O) (eq. 4.1) is iterated until the
@@ -46,13 +49,28 @@ def exit_tracking_update(settings: PlannerSettings):
     almost rigidly and no centre move changes their relative position.
     """
     state = {"jacobian": np.zeros((2, 2))}
+    shift = np.zeros(2) if offset is None else np.asarray(offset, dtype=float)
 
     def update(insertion: NeedleInsertion, step: int, rotation: float, center: np.ndarray):
-        origin = insertion.geometry.center
+        origin = insertion.geometry.center - shift  # target: O - x_exit = O(t0) - X_exit - offset
         target = insertion.geometry.desired_exit
         jacobian = state["jacobian"]
         exit_displacement = insertion.displacement(target)[0]
+        best = None  # (|mismatch|, centre, tissue state) of the best centre tried in this step
+
+        def keep_best():
+            norm = float(np.linalg.norm(origin + exit_displacement - center))
+            if best is None or norm < best[0]:
+                return (norm, center.copy(), insertion.free.copy(), insertion.multipliers.copy())
+            return best
+
+        def restore_best():
+            insertion.free, insertion.multipliers = best[2], best[3]
+            insertion.center = best[1]
+            return best[1]
+
         for iteration in range(1, settings.max_iterations + 1):
+            best = keep_best()
             mismatch = origin + exit_displacement - center
             try:
                 move = np.linalg.solve(np.eye(2) - jacobian, mismatch)
@@ -74,25 +92,27 @@ def exit_tracking_update(settings: PlannerSettings):
             jacobian = jacobian + np.outer(new_exit - exit_displacement - jacobian @ move, move) / (move @ move)
             center, exit_displacement = new_center, new_exit
             if moved_exit >= size:  # eq. 4.2 fails
+                best = keep_best()
                 message = (f"planning: eq. 4.2 fails at step {step} (needle rotation {rotation:.3f} rad): "
                            f"moving the centre by {size:.3g} mm moved the desired exit point by "
                            f"{moved_exit:.3g} mm, so iterating within the step cannot converge; "
-                           "the step keeps this centre")
+                           f"the step keeps the best centre tried (mismatch {best[0]:.3g} mm)")
                 if settings.strict:
                     raise PlanningFailure(message.replace("planning: ", "planning failed: ", 1))
                 insertion.events.append(message)
                 log.warning(message)
                 state["jacobian"] = np.zeros((2, 2))
-                return center, iteration
+                return restore_best(), iteration
+        best = keep_best()
         message = (f"planning: no convergence at step {step} (needle rotation {rotation:.3f} rad) in "
                    f"{settings.max_iterations} iterations, the centre still moves {size:.3g} mm; "
-                   "the step keeps this centre")
+                   f"the step keeps the best centre tried (mismatch {best[0]:.3g} mm)")
         if settings.strict:
             raise PlanningFailure(message.replace("planning: ", "planning failed: ", 1))
         insertion.events.append(message)
         log.warning(message)
         state["jacobian"] = jacobian
-        return center, settings.max_iterations
+        return restore_best(), settings.max_iterations
 
     return update
 
@@ -101,6 +121,7 @@ def exit_tracking_update(settings: PlannerSettings):
 class PlanResult:
     planned: InsertionResult
     unplanned: InsertionResult | None
+    passes: list[dict]
 
     @property
     def center_trajectory(self) -> np.ndarray:
@@ -109,10 +130,49 @@ class PlanResult:
         return np.asarray(centers)
 
 
+def final_mismatch(result: InsertionResult) -> np.ndarray:
+    """O(t0) + u(X_exit) - O at the last step: what Algorithm 2 drives to zero."""
+    last = result.steps[-1]
+    return result.geometry.center + last.exit_displacement - last.center
+
+
 def run_plan(scenario: Scenario, settings: PlannerSettings | None = None, compare: bool = True,
              on_step=None, **options) -> PlanResult:
-    """Planned insertion, and (compare=True) the unplanned one of the same scene."""
-    planned = run_insertion(scenario, center_update=exit_tracking_update(settings or PlannerSettings()),
-                            on_step=on_step, **options)
-    unplanned = run_insertion(scenario, **options) if compare else None
-    return PlanResult(planned, unplanned)
+    """Planned insertion, and (compare=True) the unplanned one of the same scene.
+
+    Algorithm 2 controls the exit only while the exit point does not follow the needle
+    rigidly (eq. 4.2). Late in a stitch the material enclosed by the arc and the free edge
+    follows the needle, and the loads can still shift the exit relative to the centre by a
+    drift that no centre move undoes then. The planner therefore shoots over whole passes:
+    pass k aims the centre at O(t0) + u(X_exit) - c_k, with c_1 = 0 and c_{k+1} = c_k - m_k,
+    m_k the mismatch O(t0) + u(X_exit) - O left at the end of pass k, so the early,
+    controllable steps pre-compensate the late drift. Passes stop when the planned exit error
+    is below exit_tolerance, or below 2 % of the unplanned error, or after max_passes; the
+    best pass is returned.
+    """
+    if settings is None:
+        settings = PlannerSettings(scenario.planner.tolerance, scenario.planner.max_iterations,
+                                   scenario.planner.strict, scenario.planner.exit_tolerance,
+                                   scenario.planner.max_passes)
+    unplanned = run_insertion(scenario, on_step=on_step, **options) if compare else None
+    target = settings.exit_tolerance
+    if unplanned is not None:
+        target = max(target, 0.02 * unplanned.exit_error_mm)
+    start = time.perf_counter()
+    offset = np.zeros(2)
+    passes = []
+    best = None
+    for number in range(1, settings.max_passes + 1):
+        planned = run_insertion(scenario, center_update=exit_tracking_update(settings, offset),
+                                on_step=on_step, **options)
+        mismatch = final_mismatch(planned)
+        passes.append({"pass": number, "offset_mm": offset.copy(), "exit_error_mm": planned.exit_error_mm,
+                       "final_mismatch_mm": mismatch, "wall_seconds": planned.wall_seconds})
+        log.info("planning pass %d: exit error %.4g mm", number, planned.exit_error_mm)
+        if best is None or planned.exit_error_mm < best.exit_error_mm:
+            best = planned
+        if planned.exit_error_mm <= target:
+            break
+        offset = offset - mismatch
+    best.wall_seconds = time.perf_counter() - start
+    return PlanResult(best, unplanned, passes)

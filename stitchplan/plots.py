@@ -98,8 +98,8 @@ def plot_marker_residuals(path: str | Path, size: tuple[float, float], markers: 
     columns = min(n, 3)
     rows = -(-n // columns)
     width, height = size
-    fig, axes = plt.subplots(rows, columns, figsize=(5.0 * columns, 5.0 * rows * max(height / width, 0.5)),
-                             squeeze=False)
+    panel_height = 5.0 * max(height / width, 0.5)
+    fig, axes = plt.subplots(rows, columns, figsize=(5.0 * columns, panel_height * rows), squeeze=False)
     largest = max(float(np.linalg.norm(p - q, axis=1).max()) for p, q in zip(measured, simulated))
     magnify = 0.08 * max(size) / largest if largest > 0 else 1.0
     for k, ax in enumerate(axes.ravel()):
@@ -203,4 +203,53 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, ax=
         ax.set_ylabel("y (mm)")
         ax.set_title(title or f"step {step}, rotation {rotation:.2f} rad")
         ax.legend(loc="upper right", fontsize=7)
+    save(fig, path)
+
+
+def plot_plan(path: str | Path, result) -> None:
+    """Planned and unplanned needle paths over the deformed tissue, desired exit marked
+    (thesis figures 5.9-5.15), and the centre trajectory O(t)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    planned, unplanned = result.planned, result.unplanned
+    geometry = planned.geometry
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 5.5))
+    particles = planned.model.particles
+    deformed = particles + planned.displacements[-1]
+    magnitude = np.linalg.norm(planned.displacements[-1], axis=1)
+    points = left.scatter(deformed[:, 0], deformed[:, 1], s=4, c=magnitude, cmap="viridis")
+    fig.colorbar(points, ax=left, label="|u| planned (mm)", shrink=0.7)
+    tips = np.array([s.tip_spatial for s in planned.steps] + [planned.achieved_exit_def])
+    left.plot(tips[:, 0], tips[:, 1], "-", color="crimson", lw=2, label="planned tip path")
+    if unplanned is not None:
+        tips_u = np.array([s.tip_spatial for s in unplanned.steps] + [unplanned.achieved_exit_def])
+        left.plot(tips_u[:, 0], tips_u[:, 1], "--", color="orange", lw=2, label="unplanned tip path")
+        left.plot(*unplanned.achieved_exit_def, "s", mfc="none", color="orange", ms=8,
+                  label=f"unplanned exit ({unplanned.exit_error_mm:.3f} mm off)")
+    last = planned.steps[-1]
+    _needle_arc(left, last.center, geometry.radius, geometry.start_angle, geometry.sense, last.rotation,
+                geometry.arc, color="crimson", lw=1, alpha=0.5)
+    left.plot(*planned.desired_exit_def, "x", color="k", ms=10, mew=2, label="desired exit (deformed)")
+    left.plot(*planned.achieved_exit_def, "o", mfc="none", color="crimson", ms=9,
+              label=f"planned exit ({planned.exit_error_mm:.3f} mm off)")
+    zoom = 1.8 * geometry.radius
+    left.set_xlim(geometry.center[0] - zoom, geometry.center[0] + zoom)
+    left.set_ylim(geometry.center[1] - zoom, geometry.center[1] + zoom)
+    left.set_aspect("equal")
+    left.set_xlabel("x (mm)")
+    left.set_ylabel("y (mm)")
+    left.set_title(f"{planned.scenario.name or 'plan'}: planned vs unplanned")
+    left.legend(loc="upper right", fontsize=7)
+    centers = result.center_trajectory
+    rotation = np.arange(len(centers)) * geometry.step
+    right.plot(rotation, centers[:, 0] - centers[0, 0], label="O_x(t) - O_x(0)")
+    right.plot(rotation, centers[:, 1] - centers[0, 1], label="O_y(t) - O_y(0)")
+    right.set_xlabel("needle rotation (rad)")
+    right.set_ylabel("centre offset (mm)")
+    right.set_title("planned needle-centre trajectory O(t)")
+    right.grid(alpha=0.3)
+    right.legend()
     save(fig, path)

@@ -190,3 +190,51 @@ def write_insertion_outputs(result, command: str, out: Path | None = None,
         from .plots import plot_insertion
 
         plot_insertion(plot, result, plot_steps)
+
+
+def write_plan_outputs(result, export: Path, out: Path | None = None, summary: Path | None = None,
+                       plot: Path | None = None) -> None:
+    """trajectory.csv (atomic), summary JSON, HDF5 run log and the planned-vs-unplanned PNG."""
+    from .trajectory import trajectory_table
+
+    planned, unplanned = result.planned, result.unplanned
+    columns, table = trajectory_table(planned, planned.scenario.robot)
+    rows = [[int(row[0])] + list(row[1:]) for row in table]
+    extra = {
+        "unplanned_exit_error_mm": unplanned.exit_error_mm if unplanned else None,
+        "unplanned_exit_error_material_mm": unplanned.exit_error_material_mm if unplanned else None,
+        "unplanned_achieved_exit_def": unplanned.achieved_exit_def if unplanned else None,
+        "unplanned_wall_seconds": unplanned.wall_seconds if unplanned else None,
+        "error_reduction": (1.0 - planned.exit_error_mm / unplanned.exit_error_mm)
+        if unplanned and unplanned.exit_error_mm > 0 else None,
+        "planner_iterations": int(sum(s.planner_iterations for s in planned.steps)),
+        "planner_passes": result.passes,
+        "trajectory_rows": len(rows),
+        "trajectory_columns": columns,
+    }
+    datasets = {
+        "planner": {
+            "center_trajectory": result.center_trajectory,
+            "exit_displacement": np.asarray([s.exit_displacement for s in planned.steps]).reshape(-1, 2),
+            "planner_iterations": np.asarray([s.planner_iterations for s in planned.steps]),
+            "trajectory_columns": ",".join(columns),
+            "trajectory": table,
+        },
+    }
+    if unplanned is not None:
+        datasets["unplanned"] = {
+            "tip_spatial": np.asarray([s.tip_spatial for s in unplanned.steps]).reshape(-1, 2),
+            "tip_reference": np.asarray([s.tip_reference for s in unplanned.steps]).reshape(-1, 2),
+            "achieved_exit": unplanned.achieved_exit,
+            "achieved_exit_def": unplanned.achieved_exit_def,
+            "desired_exit_def": unplanned.desired_exit_def,
+            "exit_error_mm": unplanned.exit_error_mm,
+            "final_displacement": unplanned.displacements[-1],
+        }
+    write_csv(export, columns, rows)
+    write_insertion_outputs(planned, "plan", out=out, summary=summary, extra_summary=extra,
+                            extra_datasets=datasets)
+    if plot is not None:
+        from .plots import plot_plan
+
+        plot_plan(plot, result)

@@ -1,0 +1,389 @@
+"""Calibration: the forward model and its exact Jacobian, round trips of known parameters
+through synthetic data, the identifiability warning, and the CLI on good and bad files.
+
+Synthetic markers come from the calibration's own forward model at the fit's
+discretization (coarse, 10 mm, for speed), so a noise-free round trip must return the
+parameters to solver tolerance, and a noisy one tests the statistics, not the discretization.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from stitchplan import calibration
+from stitchplan.cli import app
+from stitchplan.config import (
+    Discretization,
+    Load,
+    Material,
+    Scenario,
+    Solver,
+    Tissue,
+    parse_material,
+    parse_needle,
+)
+
+TRUE = Material("saint-venant-kirchhoff", 0.189151, 0.147688)
+THETA = np.array([TRUE.lame_lambda, TRUE.lame_mu])
+TISSUE = Tissue((100.0, 60.0), 10.0, TRUE, ("right",))
+COARSE = Discretization(spacing=10.0)
+LOADS = {  # force-controlled experiments on the 100 x 60 mm block clamped on the right
+    "left-pull": (Load(((0.0, 24.0), (0.0, 36.0)), force=(2.0, 1.0)),),
+    "top-press": (Load(((0.0, 60.0), (100.0, 60.0)), force=(0.0, -4.0)),),
+    "left-shear": (Load(((0.0, 0.0), (0.0, 60.0)), force=(0.0, 2.0)),),
+    "left-stretch": (Load(((0.0, 0.0), (0.0, 60.0)), force=(-4.0, 0.0)),),
+}
+DISPLACED = (Load(((0.0, 20.0), (0.0, 40.0)), displacement=(-4.0, 2.0)),)
+FIT = {"lame_lambda": [0.01, 2.0], "lame_mu": [0.01, 2.0], "grid": 4}
+
+
+def random_markers(rng: np.random.Generator, count: int) -> np.ndarray:
+    return np.column_stack([rng.uniform(0.0, 100.0, count), rng.uniform(0.0, 60.0, count)])
+
+
+def load_block(loads: tuple[Load, ...], scale: float = 1.0) -> list[dict]:
+    block = []
+    for load in loads:
+        item = {"segment": [list(p) for p in load.segment]}
+        if load.force is not None:
+            item["force"] = [scale * f for f in load.force]
+        else:
+            item["displacement"] = list(load.displacement)
+        block.append(item)
+    return block
+
+
+def write_calibration(folder, experiments, fit=None, rng=None, noise=0.0, markers=20, scale=1.0,
+                      extra=None):
+    """Markers from the forward model at TRUE (+ noise) and the calibration YAML; returns its path."""
+    rng = rng or np.random.default_rng(0)
+    entries = []
+    for k, loads in enumerate(experiments):
+        scaled = tuple(Load(l.segment, None if l.force is None else tuple(scale * f for f in l.force),
+                            l.displacement) for l in loads)
+        rest = random_markers(rng, markers)
+        deformed = calibration.simulate_markers(TISSUE, COARSE, scaled, rest, TRUE)
+        deformed += noise * rng.standard_normal(deformed.shape)
+        name = f"markers{k}.csv"
+        rows = "\n".join(",".join(f"{v:.12g}" for v in row) for row in np.hstack([rest, deformed]))
+        (folder / name).write_text("x,y,x_def,y_def\n" + rows + "\n")
+        entries.append({"loads": load_block(loads, scale), "markers": name})
+    data = {
+        "tissue": {"size": [100.0, 60.0], "thickness": 10.0, "clamped": ["right"]},
+        "experiments": entries,
+        "fit": fit or dict(FIT),
+        "discretization": {"spacing": 10.0},
+        **(extra or {}),
+    }
+    path = folder / "calib.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def run(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+# --- forward model ----------------------------------------------------------------------
+
+
+def test_forward_model_is_the_deform_solve_at_the_markers():
+    """simulate_markers = X + u(X) of `stitchplan deform` (probes = markers, deform.interpolate)."""
+    from stitchplan.deform import run_deform
+
+    markers = random_markers(np.random.default_rng(1), 12)
+    loads = LOADS["left-pull"]
+    scenario = Scenario(tissue=TISSUE, discretization=COARSE, loads=loads,
+                        probes=tuple(map(tuple, markers)))
+    reference = run_deform(scenario)
+    positions = calibration.simulate_markers(TISSUE, COARSE, loads, markers, TRUE)
+    np.testing.assert_allclose(positions - markers, reference.probe_displacements, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("model", ["saint-venant-kirchhoff", "neo-hookean"])
+def test_marker_jacobian_matches_finite_differences(model):
+    """dq/dtheta from K dd/dtheta = -B^T (w F S_theta) against central differences of solves."""
+    markers = random_markers(np.random.default_rng(2), 10)
+    loads = LOADS["left-pull"] + (Load(((0.0, 50.0), (0.0, 60.0)), displacement=(-1.0, 0.5)),)
+    experiment = calibration.Experiment("", loads, 10, markers, markers)
+    forward = calibration.ExperimentModel(TISSUE, COARSE, experiment, model, Solver())
+    _, jacobian = forward.predict(THETA, jacobian=True)
+    assert np.abs(jacobian).max() > 1.0  # mm per MPa: the markers do move with the moduli
+    for k in range(2):
+        step = np.zeros(2)
+        step[k] = 1e-5 * THETA[k]
+        plus, _ = forward.predict(THETA + step)
+        minus, _ = forward.predict(THETA - step)
+        np.testing.assert_allclose(jacobian[:, :, k], (plus - minus) / (2 * step[k]),
+                                   rtol=1e-4, atol=1e-6 * np.abs(jacobian).max())
+
+
+def test_displacement_control_sees_only_the_ratio():
+    """Scaling both moduli moves no marker when every load is a prescribed displacement,
+    but does under a force: the reason for the identifiability warning."""
+    markers = random_markers(np.random.default_rng(3), 8)
+    for loads, moves in ((DISPLACED, False), (LOADS["left-pull"], True)):
+        a = calibration.simulate_markers(TISSUE, COARSE, loads, markers, TRUE)
+        b = calibration.simulate_markers(TISSUE, COARSE, loads, markers,
+                                         Material(TRUE.model, 2 * TRUE.lame_lambda, 2 * TRUE.lame_mu))
+        assert (np.abs(a - b).max() > 0.1) == moves
+
+
+# --- material round trips ---------------------------------------------------------------
+
+
+def test_round_trip_noise_free_through_the_cli(tmp_path):
+    path = write_calibration(tmp_path, [LOADS["left-pull"], LOADS["top-press"]])
+    out, plots = tmp_path / "fitted.yaml", tmp_path / "plots"
+    result = run("calibrate", "material", path, "--out", out, "--plot-dir", plots)
+    assert result.exit_code == 0, result.output
+    fitted = yaml.safe_load(out.read_text())
+    material = parse_material(fitted["material"])  # pastes into a scenario as it is
+    assert material.lame_lambda == pytest.approx(TRUE.lame_lambda, rel=1e-3)
+    assert material.lame_mu == pytest.approx(TRUE.lame_mu, rel=1e-3)
+    assert fitted["fit"]["residual_mean_mm"] < 1e-5
+    assert fitted["fit"]["identifiable"] is True and fitted["fit"]["warnings"] == []
+    assert fitted["fit"]["markers"] == 40
+    diagnostics = fitted["diagnostics"]
+    assert diagnostics["forward_solves"] == (diagnostics["grid_forward_solves"]
+                                             + diagnostics["refinement_forward_solves"])
+    assert 0 < diagnostics["grid_forward_solves"] <= 2 * 4 * 4  # 2 experiments, 4 x 4 grid
+    assert diagnostics["wall_seconds"] > 0
+    for name in ("cost_surface.png", "marker_residuals.png"):
+        assert (plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_round_trip_with_noise(tmp_path):
+    """0.05 mm noise: 4 force experiments x 400 markers make the standard uncertainty of
+    lambda (the weakly determined modulus, volumetric) about 0.5 %, so the 2 % bound is
+    ~4 sigma and a pass is not luck; the reported uncertainty must explain the error."""
+    rng = np.random.default_rng(20240611)
+    path = write_calibration(tmp_path, list(LOADS.values()), rng=rng, noise=0.05, markers=400,
+                             scale=2.0)
+    problem = calibration.load_material_calibration(path)
+    result = calibration.fit_material(problem)
+    errors = np.array([result.lame_lambda, result.lame_mu]) / THETA - 1.0
+    sigma = np.array(result.standard_uncertainty) / THETA
+    assert np.all(np.abs(errors) < 0.02), errors
+    assert np.all(sigma < 0.006), sigma
+    assert np.all(np.abs(errors) < 4 * sigma), (errors, sigma)
+    # |p - q| of 2D Gaussian noise is Rayleigh distributed: mean 0.05 sqrt(pi/2) mm
+    assert result.distances.mean() == pytest.approx(0.05 * math.sqrt(math.pi / 2), rel=0.05)
+    assert result.identifiable and not result.warnings
+
+
+def test_identifiability_warning_on_displacement_only_data(tmp_path, caplog):
+    rng = np.random.default_rng(5)
+    path = write_calibration(tmp_path, [DISPLACED], rng=rng, noise=0.05)
+    out = tmp_path / "fitted.yaml"
+    with caplog.at_level(logging.WARNING, logger="stitchplan.calibration"):
+        result = run("calibrate", "material", path, "--out", out)
+    assert result.exit_code == 0, result.output
+    assert "NOT identifiable" in result.output
+    assert "cannot separate lame_lambda and lame_mu" in caplog.text  # logged warning
+    fit = yaml.safe_load(out.read_text())["fit"]
+    assert fit["identifiable"] is False
+    assert fit["correlation"] == pytest.approx(1.0, abs=1e-3)
+    assert any("cannot separate" in w for w in fit["warnings"])
+    assert fit["standard_uncertainty"] == {"lame_lambda": None, "lame_mu": None}
+    # the ratio is still determined, within its reported uncertainty
+    ratio = TRUE.lame_lambda / TRUE.lame_mu
+    assert abs(fit["lambda_over_mu"] - ratio) < 4 * fit["lambda_over_mu_uncertainty"]
+
+
+def test_no_identifiability_warning_on_force_data(tmp_path):
+    path = write_calibration(tmp_path, [LOADS["left-pull"], LOADS["top-press"]],
+                             rng=np.random.default_rng(6), noise=0.05)
+    result = calibration.fit_material(calibration.load_material_calibration(path))
+    assert result.identifiable
+    assert abs(result.correlation) < calibration.CORRELATION_LIMIT
+    assert not any("cannot separate" in w for w in result.warnings)
+
+
+# --- needle -----------------------------------------------------------------------------
+
+RADIUS = 8.88
+FRICTION, CUTTING = 0.0602, 0.7
+BACKGROUND = (0.12, 0.035)
+
+
+def write_recordings(folder, noise=(0.0, 0.0), seed=0, samples=(200, 180)):
+    """Air on one angle grid, tissue on another (the background is evaluated at the tissue's)."""
+    rng = np.random.default_rng(seed)
+    air_angle = np.linspace(0.0, math.pi, samples[0])
+    air = BACKGROUND[0] + BACKGROUND[1] * air_angle + noise[0] * rng.standard_normal(samples[0])
+    angle = np.sort(rng.uniform(0.0, 2.8, samples[1]))
+    tissue = (BACKGROUND[0] + BACKGROUND[1] * angle + CUTTING + FRICTION * RADIUS * angle
+              + noise[1] * rng.standard_normal(samples[1]))
+    paths = folder / "air.csv", folder / "tissue.csv"
+    for path, a, f in zip(paths, (air_angle, angle), (air, tissue)):
+        path.write_text("angle_rad,force_N\n" + "".join(f"{float(x)!r},{float(y)!r}\n" for x, y in zip(a, f)))
+    return paths
+
+
+def test_needle_noise_free_is_exact(tmp_path):
+    air, tissue = write_recordings(tmp_path)
+    result = calibration.calibrate_needle(air, tissue, RADIUS)
+    assert result.friction == pytest.approx(FRICTION, rel=1e-10)
+    assert result.cutting_force == pytest.approx(CUTTING, rel=1e-10)
+    assert result.tissue_fit.r_squared == pytest.approx(1.0)
+
+
+def test_needle_round_trip_with_noise_through_the_cli(tmp_path):
+    air, tissue = write_recordings(tmp_path, noise=(0.01, 0.02), seed=11)
+    out, plot = tmp_path / "needle.yaml", tmp_path / "forces.png"
+    result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", RADIUS,
+                 "--out", out, "--plot", plot)
+    assert result.exit_code == 0, result.output
+    data = yaml.safe_load(out.read_text())
+    needle = parse_needle({"radius": RADIUS, "entry": [0.0, 30.0], "turn": "cw", "step": 0.08,
+                           "friction": data["friction"], "cutting_force": data["cutting_force"]})
+    assert needle.friction == pytest.approx(FRICTION, rel=0.02)
+    assert needle.cutting_force == pytest.approx(CUTTING, rel=0.02)
+    sigma = data["diagnostics"]["standard_uncertainty"]
+    assert abs(data["friction"] - FRICTION) < 4 * sigma["friction"]
+    assert abs(data["cutting_force"] - CUTTING) < 4 * sigma["cutting_force"]
+    assert data["diagnostics"]["r_squared"] > 0.99
+    assert data["diagnostics"]["residual_std_N"] == pytest.approx(0.02, rel=0.2)
+    assert plot.read_bytes()[:4] == b"\x89PNG"
+
+
+# --- bad inputs -------------------------------------------------------------------------
+
+
+def assert_refused(result, out, *fragments):
+    assert result.exit_code == 2, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    assert not out.exists()
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.")]  # no temp left
+
+
+BAD_RECORDINGS = {
+    "wrong columns": ("angle,force\n" + "".join(f"{0.1 * i},{i}\n" for i in range(10)),
+                      ["columns 'angle,force'", "angle_rad,force_N"]),
+    "too short": ("angle_rad,force_N\n" + "".join(f"{0.1 * i},{i}\n" for i in range(4)),
+                  ["4 samples", "at least 5"]),
+    "not increasing": ("angle_rad,force_N\n0,1\n0.1,1\n0.3,1\n0.2,1\n0.4,1\n0.5,1\n",
+                       ["line 5", "strictly increasing"]),
+    "non-numeric": ("angle_rad,force_N\n0,1\n0.1,1\n0.2,abc\n0.3,1\n0.4,1\n",
+                    ["line 4", "force_N", "'abc'", "finite number"]),
+    "short span": ("angle_rad,force_N\n" + "".join(f"{0.01 * i},{i}\n" for i in range(6)),
+                   ["spans 0.05 rad", "at least 0.1 rad"]),
+}
+
+
+@pytest.mark.parametrize("problem", sorted(BAD_RECORDINGS))
+def test_needle_refuses_bad_recordings(tmp_path, problem):
+    text, fragments = BAD_RECORDINGS[problem]
+    air, _ = write_recordings(tmp_path)
+    bad = tmp_path / "bad.csv"
+    bad.write_text(text)
+    out = tmp_path / "needle.yaml"
+    result = run("calibrate", "needle", "--air", air, "--tissue", bad, "--radius", RADIUS, "--out", out)
+    assert_refused(result, out, "--tissue", "bad.csv", *fragments)
+
+
+@pytest.mark.parametrize("radius, fragment", [("-8.88", "got -8.88"), ("0", "got 0.0")])
+def test_needle_refuses_non_positive_radius(tmp_path, radius, fragment):
+    air, tissue = write_recordings(tmp_path)
+    out = tmp_path / "needle.yaml"
+    result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", radius, "--out", out)
+    assert_refused(result, out, "--radius", fragment, "positive number (mm)")
+
+
+def test_needle_refuses_missing_file(tmp_path):
+    _, tissue = write_recordings(tmp_path)
+    out = tmp_path / "needle.yaml"
+    result = run("calibrate", "needle", "--air", tmp_path / "nope.csv", "--tissue", tissue,
+                 "--radius", RADIUS, "--out", out)
+    assert_refused(result, out, "--air", "nope.csv", "file not found")
+
+
+def _mutate_markers_missing(folder, data):
+    data["experiments"][0]["markers"] = "missing.csv"
+
+
+def _mutate_unknown_key(folder, data):
+    data["fit"]["grdi"] = 5
+
+
+def _mutate_marker_columns(folder, data):
+    (folder / "markers0.csv").write_text("x,y,xd,yd\n1,2,3,4\n")
+
+
+def _mutate_marker_outside(folder, data):
+    (folder / "markers0.csv").write_text("x,y,x_def,y_def\n10,10,10,10\n120,10,121,10\n")
+
+
+def _mutate_material_given(folder, data):
+    data["tissue"]["material"] = {"lame_lambda": 0.2, "lame_mu": 0.1}
+
+
+def _mutate_bad_range(folder, data):
+    data["fit"]["lame_mu"] = [2.0, 0.01]
+
+
+def _mutate_bad_model(folder, data):
+    data["fit"]["model"] = "mooney-rivlin"
+
+
+BAD_CALIBRATIONS = {
+    "missing markers file": (_mutate_markers_missing, ["experiments[0].markers", "missing.csv",
+                                                       "file not found"]),
+    "unknown key": (_mutate_unknown_key, ["fit", "unknown key 'grdi'", "expected one of"]),
+    "marker columns": (_mutate_marker_columns, ["experiments[0].markers", "'x,y,xd,yd'",
+                                                "'x,y,x_def,y_def'"]),
+    "marker outside": (_mutate_marker_outside, ["line 3", "(120, 10)", "inside [0, 100] x [0, 60]"]),
+    "material given": (_mutate_material_given, ["tissue.material", "fit.model"]),
+    "range reversed": (_mutate_bad_range, ["fit.lame_mu", "[2.0, 0.01]", "low < high"]),
+    "unknown model": (_mutate_bad_model, ["fit.model", "'mooney-rivlin'", "neo-hookean"]),
+}
+
+
+@pytest.mark.parametrize("problem", sorted(BAD_CALIBRATIONS))
+def test_material_refuses_bad_files(tmp_path, problem):
+    mutate, fragments = BAD_CALIBRATIONS[problem]
+    path = tmp_path / "calib.yaml"
+    (tmp_path / "markers0.csv").write_text("x,y,x_def,y_def\n10,10,10.5,10.2\n50,30,50.3,30.1\n")
+    data = {"tissue": {"size": [100.0, 60.0], "thickness": 10.0, "clamped": ["right"]},
+            "experiments": [{"loads": load_block(LOADS["left-pull"]), "markers": "markers0.csv"}],
+            "fit": dict(FIT)}
+    mutate(tmp_path, data)
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "fitted.yaml"
+    result = run("calibrate", "material", path, "--out", out, "--plot-dir", tmp_path / "plots")
+    assert_refused(result, out, *fragments)
+    assert not (tmp_path / "plots").exists()
+
+
+# --- shipped example --------------------------------------------------------------------
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_runs" / "calibration"
+
+
+def test_shipped_example_inputs_load_and_outputs_match_the_truth():
+    """sample_runs/calibration: the inputs validate, the needle fit reproduces needle.yaml,
+    and the shipped fitted values lie within 3 reported sigma of the generating values."""
+    problem = calibration.load_material_calibration(SAMPLES / "calibration.yaml")
+    assert [len(e.markers) for e in problem.experiments] == [20, 20]
+    assert problem.discretization.spacing == pytest.approx(3.0)  # default: min(W, H) / 20
+    fitted = yaml.safe_load((SAMPLES / "fitted.yaml").read_text())
+    for name in ("lame_lambda", "lame_mu"):
+        sigma = fitted["fit"]["standard_uncertainty"][name]
+        assert abs(fitted["material"][name] - getattr(TRUE, name)) < 3 * sigma
+    shipped = yaml.safe_load((SAMPLES / "needle.yaml").read_text())
+    result = calibration.calibrate_needle(SAMPLES / "air.csv", SAMPLES / "tissue.csv", 8.88)
+    assert result.friction == pytest.approx(shipped["friction"], rel=1e-5)
+    assert result.cutting_force == pytest.approx(shipped["cutting_force"], rel=1e-5)
+    assert abs(result.friction - FRICTION) < 3 * result.standard_uncertainty[0]
+    assert abs(result.cutting_force - CUTTING) < 3 * result.standard_uncertainty[1]
