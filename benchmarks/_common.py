@@ -42,8 +42,18 @@ def max_probe_error(values: np.ndarray, reference: np.ndarray) -> float:
                  / np.linalg.norm(reference, axis=1).max())
 
 
-def median_time(function: Callable[[], object], repeats: int, number: int = 1) -> tuple[float, object]:
-    """Median over `repeats` of the mean time of `number` back-to-back calls; returns (s, last result)."""
+def median_time(function: Callable[[], object], repeats: int,
+                number: int | None = None) -> tuple[float, object]:
+    """Median over `repeats` of the mean time of `number` back-to-back calls; returns (s, last result).
+
+    With number=None, one untimed call is made first and `number` is chosen so that each
+    sample lasts at least ~20 ms (at most 50 calls), which steadies very short timings.
+    """
+    if number is None:
+        start = time.perf_counter()
+        function()
+        once = time.perf_counter() - start
+        number = int(min(50, max(1, math.ceil(0.02 / max(once, 1e-9)))))
     samples = []
     result = None
     for _ in range(repeats):
@@ -52,6 +62,11 @@ def median_time(function: Callable[[], object], repeats: int, number: int = 1) -
             result = function()
         samples.append((time.perf_counter() - start) / number)
     return statistics.median(samples), result
+
+
+def repeats_for(seconds: float, minimum: int, budget: float = 3.0, maximum: int = 15) -> int:
+    """How many runs of a job taking `seconds` fit in `budget` seconds, clipped to [minimum, maximum]."""
+    return int(min(maximum, max(minimum, budget // max(seconds, 1e-9))))
 
 
 def loglog_slope(x: Sequence[float], y: Sequence[float]) -> float:

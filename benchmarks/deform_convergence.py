@@ -31,15 +31,19 @@ DILATION = 2.0
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3,
-                        help="timed runs per spacing; the table shows the median wall time")
+                        help="minimum timed runs per spacing (cheap spacings get more, up to ~3 s "
+                             "of runs); the table shows the median wall time")
     args = parser.parse_args()
 
     base = common.load_slab_scenario()
     probes = np.asarray(base.probes)
+    run_deform(with_discretization(base, spacing=SPACINGS[0], dilation=DILATION))  # warm-up
     runs = []
     for spacing in SPACINGS:
         scenario = with_discretization(base, spacing=spacing, dilation=DILATION)
-        results = [run_deform(scenario) for _ in range(args.repeats)]
+        results = [run_deform(scenario)]
+        repeats = common.repeats_for(results[0].wall_seconds, args.repeats)
+        results += [run_deform(scenario) for _ in range(repeats - 1)]
         result = results[-1]
         runs.append({
             "spacing": spacing,
@@ -48,9 +52,10 @@ def main() -> None:
             "iterations": result.report.iterations,
             "u": result.probe_displacements,
             "wall": statistics.median(r.wall_seconds for r in results),
+            "runs": len(results),
         })
         print(f"spacing {spacing:5.2f} mm: {result.model.n_particles:6d} particles, "
-              f"{runs[-1]['wall']:.3f} s", flush=True)
+              f"{runs[-1]['wall']:.3f} s (median of {len(results)})", flush=True)
 
     reference = runs[-1]["u"]
     scale = float(np.linalg.norm(reference, axis=1).max())
@@ -69,10 +74,10 @@ def main() -> None:
 
     probe_columns = [f"{c}({x:g},{y:g})" for x, y in probes for c in ("ux", "uy", "abs_u")]
     header = ["spacing_mm", "particles", *probe_columns, "max_probe_error_rel",
-              "change_from_previous_rel", "newton_iterations", "wall_seconds_median"]
+              "change_from_previous_rel", "newton_iterations", "wall_seconds_median", "timed_runs"]
     rows = [[r["spacing"], r["particles"],
              *np.column_stack([r["u"], np.linalg.norm(r["u"], axis=1)]).ravel(), r["error"],
-             r["change"] if r["change"] is not None else "", r["iterations"], r["wall"]]
+             r["change"] if r["change"] is not None else "", r["iterations"], r["wall"], r["runs"]]
             for r in runs]
     common.write_csv(common.results_path("deform_convergence.csv"), header, rows)
 
@@ -93,7 +98,9 @@ def main() -> None:
         f"Dilation {DILATION:g}, default quadrature (2x2 Gauss per background cell), 10 load "
         f"steps. Error = max over probes of |u - u_ref| / max |u_ref|, with u_ref the "
         f"{finest:g} mm run (largest probe displacement {scale:.4f} mm). Wall time = "
-        f"`DeformResult.wall_seconds` (discretization + solve), median of {args.repeats} runs.",
+        f"`DeformResult.wall_seconds` (discretization + solve), median of "
+        f"{min(r['runs'] for r in runs)}-{max(r['runs'] for r in runs)} runs (more for the cheap "
+        f"spacings) after one untimed warm-up run.",
         "",
         table,
         "",

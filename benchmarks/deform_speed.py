@@ -55,7 +55,9 @@ COLUMNS = {  # key: (csv column, markdown heading)
 
 def measure(spacing: float, base, repeats: int, deform_repeats: int) -> dict:
     scenario = with_discretization(base, spacing=spacing, dilation=DILATION)
-    results = [run_deform(scenario) for _ in range(deform_repeats)]
+    results = [run_deform(scenario)]
+    repeats_d = common.repeats_for(results[0].wall_seconds, deform_repeats)
+    results += [run_deform(scenario) for _ in range(repeats_d - 1)]
     result = results[-1]
     model = result.model
     row = {
@@ -70,6 +72,7 @@ def measure(spacing: float, base, repeats: int, deform_repeats: int) -> dict:
                                           / model.n_particles),
         "max_row_nnz_gradient": int(np.diff(model.gradient.indptr).max()),
         "deform": statistics.median(r.wall_seconds for r in results),
+        "deform_runs": len(results),
         "newton": result.report.iterations,
         "factorizations": result.report.factorizations,
         "krylov": result.report.krylov_iterations,
@@ -91,13 +94,12 @@ def measure(spacing: float, base, repeats: int, deform_repeats: int) -> dict:
         lambda: (assembler.update(deformation_gradient), assembler.tangent_matrix()), repeats)
     row["tangent_nnz"] = matrix.nnz
     vector = np.random.default_rng(0).standard_normal(matrix.shape[0])
-    row["product"], _ = common.median_time(lambda: assembler.tangent_product(vector), repeats,
-                                           number=20)
+    row["product"], _ = common.median_time(lambda: assembler.tangent_product(vector), repeats)
 
     # (c) one sparse direct solve of K x = f_ext
     rhs = to_free(model, external_forces(model, scenario))
     row["lu"], factor = common.median_time(lambda: factorize(matrix), repeats)
-    row["lu_solve"], _ = common.median_time(lambda: factor.solve(rhs), repeats, number=5)
+    row["lu_solve"], _ = common.median_time(lambda: factor.solve(rhs), repeats)
     row["direct"], _ = common.median_time(lambda: factorize(matrix).solve(rhs), repeats)
     row["lu_nnz"] = factor.L.nnz + factor.U.nnz
     return row
@@ -106,10 +108,12 @@ def measure(spacing: float, base, repeats: int, deform_repeats: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5, help="repetitions for (a)-(c)")
-    parser.add_argument("--deform-repeats", type=int, default=3, help="repetitions for (d)")
+    parser.add_argument("--deform-repeats", type=int, default=3,
+                        help="minimum repetitions for (d); cheap spacings get more (~3 s of runs)")
     args = parser.parse_args()
 
     base = common.load_slab_scenario()
+    run_deform(with_discretization(base, spacing=10.0, dilation=DILATION))  # warm-up, not timed
     rows = []
     for spacing in SPACINGS:
         rows.append(measure(spacing, base, args.repeats, args.deform_repeats))
@@ -123,7 +127,7 @@ def main() -> None:
     slopes_large = {key: common.loglog_slope([r["particles"] for r in large], [r[key] for r in large])
                     for key in COLUMNS}
 
-    extra = ["quadrature_points", "dofs", "gradient_nnz", "max_row_nnz_gradient",
+    extra = ["deform_runs", "quadrature_points", "dofs", "gradient_nnz", "max_row_nnz_gradient",
              "spgemm_work_per_particle", "tangent_nnz", "lu_nnz", "newton", "factorizations", "krylov"]
     header = ["spacing_mm", "particles", *extra, *(COLUMNS[k][0] for k in COLUMNS)]
     common.write_csv(common.results_path("deform_speed.csv"), header,
@@ -157,8 +161,10 @@ def main() -> None:
         "",
         f"configs/slab_edge_load.yaml, dilation {DILATION:g}, 2x2 Gauss per background cell. "
         f"(a)-(c) evaluated at the converged final state, median of {args.repeats} repetitions "
-        f"(the matrix-free product: median of {args.repeats} x mean of 20 calls); (d) median of "
-        f"{args.deform_repeats} full runs (`DeformResult.wall_seconds`).",
+        f"(calls shorter than 20 ms are batched and averaged within each repetition); (d) median "
+        f"of {min(r['deform_runs'] for r in rows)}-{max(r['deform_runs'] for r in rows)} full "
+        f"runs (`DeformResult.wall_seconds`; more for the cheap spacings), after one untimed "
+        f"warm-up run.",
         "",
         table,
         "",

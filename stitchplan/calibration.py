@@ -219,6 +219,9 @@ def parse_experiment(raw: Any, tissue: Tissue, folder: Path, path: str) -> Exper
     loads = parse_loads(_required(block, "loads", path), tissue.size, f"{path}.loads")
     if not loads:
         raise _fail(f"{path}.loads", block["loads"], "at least one load (force or displacement)")
+    if not tissue.clamped and all(load.displacement is None for load in loads):
+        raise ScenarioError(f"{path}.loads: only forces on a tissue with no clamped edge, expected "
+                            "tissue.clamped or a displacement load to hold the slab in place")
     markers_name = _required(block, "markers", path)
     if not isinstance(markers_name, str) or not markers_name:
         raise _fail(f"{path}.markers", markers_name, "a CSV file name (relative to the YAML file)")
@@ -645,7 +648,8 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
             "determined, as when every load is a prescribed displacement (scaling both moduli then "
             "moves no marker); add a force-controlled experiment")
     for k, (name, (lo, hi)) in enumerate((("lame_lambda", fit.lame_lambda), ("lame_mu", fit.lame_mu))):
-        if identifiable and (theta[k] <= lo * (1 + 1e-6) or theta[k] >= hi * (1 - 1e-6)):
+        margin = 1e-6 * (hi - lo)
+        if identifiable and (theta[k] <= lo + margin or theta[k] >= hi - margin):
             warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the bound of its search range "
                             f"[{lo:g}, {hi:g}]: widen fit.{name}")
     if failures:
@@ -854,6 +858,11 @@ def material_report(result: MaterialFit) -> dict:
             "lame_lambda": _round(result.lame_lambda),
             "lame_mu": _round(result.lame_mu),
         },
+        # the same figures at the top level, as SCENARIO.md names them
+        "lame_lambda": _round(result.lame_lambda),
+        "lame_mu": _round(result.lame_mu),
+        "residual_mean_mm": _round(float(distances.mean())),
+        "residual_std_mm": _round(float(distances.std(ddof=1)) if len(distances) > 1 else 0.0),
         "fit": {
             "residual_mean_mm": _round(float(distances.mean())),
             "residual_std_mm": _round(float(distances.std(ddof=1)) if len(distances) > 1 else 0.0),

@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Regenerate the shipped sample outputs from the scenarios in configs/.
+# Usage (from the repository root, project installed): bash sample_runs/regenerate.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out=sample_runs
+
+stitchplan deform configs/slab_edge_load.yaml --probes-out $out/slab_edge_load/probes.csv \
+  --reactions-out $out/slab_edge_load/reactions.csv --summary $out/slab_edge_load/summary.json \
+  --out $out/slab_edge_load/run.h5 --plot $out/slab_edge_load/deformed.png
+
+for scene in sh12_100x100 sh12_100x100_mid sh12_100x50 sh12_100x40 sh12_100x30; do
+  [ -f configs/$scene.yaml ] || continue
+  stitchplan plan configs/$scene.yaml --export $out/$scene/trajectory.csv \
+    --summary $out/$scene/plan_summary.json --plot $out/$scene/plan.png --angular-speed 0.5
+done
+
+stitchplan simulate configs/sh12_100x100.yaml --summary $out/sh12_100x100/simulate_summary.json \
+  --out $out/sh12_100x100/simulate.h5 --plot $out/sh12_100x100/simulate.png --plot-steps 10,25,39
+
+python sample_runs/plan_table.py > $out/plan_table.md

@@ -1,0 +1,220 @@
+"""Needle geometry (centre and desired exit of the orthogonal entry, SCENARIO.md "Needle
+geometry"), the user errors of impossible needles, the two tip-tracking kernels on fields
+whose answer is known, and the geometry of the shipped needle scenarios."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stitchplan.config import Needle, ScenarioError, load_scenario, parse_scenario
+from stitchplan.needle import (TipTrackingJump, inside, inverse_gradient_step, levenberg_marquardt_tip,
+                               needle_geometry)
+
+from conftest import CONFIGS
+
+SIZE = (40.0, 30.0)  # W x H mm of the small test block
+RADIUS = 6.0
+
+
+def make_needle(entry, turn="cw", radius=RADIUS, arc=math.pi, step=0.1) -> Needle:
+    return Needle(radius=radius, arc=arc, entry=tuple(entry), turn=turn, step=step, friction=0.05,
+                  cutting_force=0.5)
+
+
+def on_edge(point, size=SIZE, tol=1e-9) -> bool:
+    x, y = point
+    return inside(np.asarray(point), size, tol) and min(abs(x), abs(x - size[0]), abs(y), abs(y - size[1])) <= tol
+
+
+# (edge, entry, turn, centre, desired exit): a half circle of radius 6 fits in the 40 x 30
+# block from each of these entries, so the exit is the entry mirrored through the centre
+# along the edge. Clockwise from the left edge the tip heads into the tissue and curls down.
+CASES = [
+    ("left", (0.0, 20.0), "cw", (0.0, 14.0), (0.0, 8.0)),
+    ("left", (0.0, 10.0), "ccw", (0.0, 16.0), (0.0, 22.0)),
+    ("right", (40.0, 10.0), "cw", (40.0, 16.0), (40.0, 22.0)),
+    ("right", (40.0, 20.0), "ccw", (40.0, 14.0), (40.0, 8.0)),
+    ("bottom", (10.0, 0.0), "cw", (16.0, 0.0), (22.0, 0.0)),
+    ("bottom", (30.0, 0.0), "ccw", (24.0, 0.0), (18.0, 0.0)),
+    ("top", (30.0, 30.0), "cw", (24.0, 30.0), (18.0, 30.0)),
+    ("top", (10.0, 30.0), "ccw", (16.0, 30.0), (22.0, 30.0)),
+]
+
+
+@pytest.mark.parametrize("edge,entry,turn,center,exit_point", CASES, ids=[f"{c[0]}-{c[2]}" for c in CASES])
+def test_centre_and_desired_exit_on_every_edge(edge, entry, turn, center, exit_point):
+    geometry = needle_geometry(make_needle(entry, turn), SIZE)
+    assert geometry.entry_edge == edge
+    np.testing.assert_allclose(geometry.center, center, atol=1e-12)
+    np.testing.assert_allclose(geometry.desired_exit, exit_point, atol=1e-12)
+    assert geometry.exit_rotation == pytest.approx(math.pi, abs=1e-12)
+    # the tip starts at the entry and moves along the inward normal (orthogonal entry) ...
+    np.testing.assert_allclose(geometry.tip(0.0), entry, atol=1e-12)
+    inward = (geometry.tip(1e-6) - geometry.tip(0.0)) / 1e-6
+    normal = {"left": (1, 0), "right": (-1, 0), "bottom": (0, 1), "top": (0, -1)}[edge]
+    np.testing.assert_allclose(inward / np.linalg.norm(inward), normal, atol=1e-5)
+    # ... turning the requested way: the z component of (velocity x acceleration) is < 0 for cw
+    later = (geometry.tip(2e-3) - geometry.tip(1e-3)) / 1e-3
+    turning = inward[0] * later[1] - inward[1] * later[0]
+    assert np.sign(turning) == (-1.0 if turn == "cw" else 1.0)
+    # ... and stays inside the tissue until the desired exit
+    path = geometry.tip(np.linspace(0.0, geometry.exit_rotation, 200)[1:-1])
+    assert inside(path, SIZE).all()
+
+
+def test_desired_exit_where_the_circle_first_leaves_through_another_edge():
+    """A 20 mm needle turning cw from (0, 30) of a 100 x 100 block (configs/needle20_entry30.yaml)
+    leaves through the bottom edge at x = sqrt(20^2 - 10^2), a third of a turn after entry."""
+    geometry = needle_geometry(make_needle((0.0, 30.0), "cw", radius=20.0), (100.0, 100.0))
+    np.testing.assert_allclose(geometry.center, [0.0, 10.0], atol=1e-12)
+    np.testing.assert_allclose(geometry.desired_exit, [math.sqrt(300.0), 0.0], atol=1e-9)
+    assert geometry.exit_rotation == pytest.approx(2 * math.pi / 3, abs=1e-12)
+
+
+@pytest.mark.parametrize("entry,fragment", [
+    ((5.0, 15.0), "needle.entry: got [5.0, 15.0], expected a point on the boundary"),
+    ((-1.0, 15.0), "needle.entry: got [-1.0, 15.0], expected a point on the boundary"),
+    ((0.0, 31.0), "needle.entry: got [0.0, 31.0], expected a point on the boundary"),
+    ((0.0, 0.0), "needle.entry: got [0.0, 0.0], a corner"),
+    ((40.0, 30.0), "needle.entry: got [40.0, 30.0], a corner"),
+])
+def test_entry_off_the_boundary_or_at_a_corner_is_refused(entry, fragment):
+    with pytest.raises(ScenarioError) as error:
+        needle_geometry(make_needle(entry), SIZE)
+    assert fragment in str(error.value)
+
+
+def test_arc_too_short_to_exit_is_refused():
+    """A quarter-circle needle cannot bring the tip back out of a half-circle stitch."""
+    with pytest.raises(ScenarioError) as error:
+        needle_geometry(make_needle((0.0, 20.0), arc=math.pi / 2), SIZE)
+    message = str(error.value)
+    assert message.startswith("needle:") and "leaves after 3.142 rad" in message
+    assert "expected an exit within its arc of 1.571 rad" in message
+
+
+def test_exit_within_two_steps_is_refused():
+    """An entry 0.5 mm from the bottom corner turning towards it exits almost at once."""
+    with pytest.raises(ScenarioError, match="expected at least two steps of 0.4 rad"):
+        needle_geometry(make_needle((0.0, 0.5), "cw", step=0.4), SIZE)
+
+
+def needle_raw(**changes) -> dict:
+    needle = {"radius": 6.0, "entry": [0.0, 20.0], "turn": "cw", "step": 0.1, "friction": 0.05,
+              "cutting_force": 0.5}
+    needle.update(changes)
+    return {"tissue": {"size": list(SIZE), "thickness": 10.0, "clamped": ["right"],
+                       "material": {"lame_lambda": 0.19, "lame_mu": 0.15}},
+            "needle": needle}
+
+
+@pytest.mark.parametrize("field,value,fragment", [
+    ("radius", -8.88, "needle.radius: got -8.88, expected a positive number (mm)"),
+    ("radius", 0.0, "needle.radius: got 0.0, expected a positive number (mm)"),
+    ("turn", "left", "needle.turn: got 'left', expected one of cw, ccw"),
+    ("step", 0.8, "needle.step: got 0.8, expected a positive angle of at most 0.5 rad per step"),
+    ("friction", -0.1, "needle.friction: got -0.1, expected a non-negative number (N/mm)"),
+    ("tip_tracking", "newton", "needle.tip_tracking: got 'newton', expected one of auto"),
+    ("entry", [0.0], "needle.entry: got [0.0], expected a pair [x, y] of numbers (mm)"),
+])
+def test_bad_needle_fields_are_refused_by_the_config(field, value, fragment):
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(needle_raw(**{field: value}))
+    assert fragment in str(error.value)
+
+
+# --- tip-tracking kernels ---------------------------------------------------------------
+
+
+def test_inverse_gradient_step_under_a_homogeneous_stretch():
+    """For u = (F - I) X the linearisation is exact: X_{n+1} = F^-1 x_{n+1} (eq. 3.66-3.67)."""
+    deformation_gradient = np.array([[1.1, 0.05], [-0.02, 0.95]])
+    previous = np.array([2.0, 20.0])
+    spatial_previous = deformation_gradient @ previous
+    target = spatial_previous + np.array([0.6, -0.1])
+    expected = np.linalg.solve(deformation_gradient, target)
+    step = expected - previous
+    point = inverse_gradient_step(previous, spatial_previous, deformation_gradient, target,
+                                  float(np.linalg.norm(step)), step,
+                                  displacement=lambda x: (deformation_gradient - np.eye(2)) @ x)
+    np.testing.assert_allclose(point, expected, atol=1e-12)
+
+
+@pytest.mark.parametrize("length_factor,turn_deg,message", [
+    (3.0, 0.0, "inverse-gradient step of"),
+    (0.3, 0.0, "inverse-gradient step of"),
+    (1.0, 80.0, "at 80 deg from the expected"),
+])
+def test_inverse_gradient_jump_is_detected(length_factor, turn_deg, message):
+    """A material step 3x too long, 3x too short or turned by 80 degrees is a jump."""
+    expected_direction = np.array([1.0, 0.0])
+    angle = math.radians(turn_deg)
+    step = length_factor * np.array([math.cos(angle), math.sin(angle)])
+    with pytest.raises(TipTrackingJump, match=message):
+        inverse_gradient_step(np.zeros(2), np.zeros(2), np.eye(2), step, 1.0, expected_direction)
+
+
+def test_inverse_gradient_jump_when_the_linearisation_misses_the_needle():
+    """F at X_n says 'rigid', the real field shifts the point by 0.2 mm: the point found is
+    0.2 mm from the target, more than 5 % of the 1 mm step."""
+    with pytest.raises(TipTrackingJump, match="lands 0.2 mm from the needle"):
+        inverse_gradient_step(np.zeros(2), np.zeros(2), np.eye(2), np.array([1.0, 0.0]), 1.0,
+                              np.array([1.0, 0.0]), displacement=lambda x: np.array([0.0, 0.2 * x[0]]))
+
+
+def test_levenberg_marquardt_in_undeformed_tissue_lands_on_the_circle():
+    """With u = 0, eq. 3.68-3.69 has the exact solution: the point of the circle one chord
+    (2 R sin(theta / 2)) further along from the previous tip."""
+    center, radius, theta = np.array([0.0, 14.0]), 6.0, 0.1
+    previous = center + radius * np.array([math.cos(1.2), math.sin(1.2)])
+    chord = 2 * radius * math.sin(theta / 2)
+    expected = center + radius * np.array([math.cos(1.2 - theta), math.sin(1.2 - theta)])
+    start = previous + chord * np.array([math.sin(1.2 - theta / 2), -math.cos(1.2 - theta / 2)])
+    point, evaluations = levenberg_marquardt_tip(previous, center, radius, chord, start,
+                                                 lambda x: (np.zeros(2), np.zeros((2, 2))))
+    np.testing.assert_allclose(point, expected, atol=1e-10)
+    assert evaluations >= 1
+
+
+# --- shipped needle scenarios ------------------------------------------------------------
+
+NEEDLE20 = {  # entry y -> desired exit on the bottom edge (x = sqrt(20^2 - (y - 20)^2))
+    30: 17.320508075688775, 25: 19.364916731037084, 20: 20.0, 18: 19.899748742132399}
+
+
+@pytest.mark.parametrize("entry_y", sorted(NEEDLE20))
+def test_shipped_needle20_scenarios(entry_y):
+    """configs/needle20_entry*.yaml (thesis 5.1.1): the material and needle as stated in the
+    comments, and the desired exit where the undeformed circle first leaves the block: on the
+    bottom edge, as the file's comment says."""
+    scenario = load_scenario(CONFIGS / f"needle20_entry{entry_y}.yaml")
+    material, needle = scenario.tissue.material, scenario.needle
+    assert (material.lame_lambda, material.lame_mu) == (9.263, 1.029)
+    assert (needle.radius, needle.step, needle.friction, needle.cutting_force) == (20.0, 0.1, 0.02, 0.03)
+    assert needle.turn == "cw" and needle.tip_tracking == "auto" and needle.arc == pytest.approx(math.pi)
+    assert scenario.tissue.size == (100.0, 100.0) and scenario.tissue.clamped == ("right",)
+    geometry = needle_geometry(needle, scenario.tissue.size)
+    np.testing.assert_allclose(geometry.desired_exit, [NEEDLE20[entry_y], 0.0], atol=1e-9)
+    assert f"({NEEDLE20[entry_y]:.2f}, 0) on the bottom edge" in scenario.source_text
+
+
+@pytest.mark.parametrize("name,height", [("sh12_100x100_mid", 100.0), ("sh12_100x50", 50.0),
+                                         ("sh12_100x40", 40.0), ("sh12_100x30", 30.0)])
+def test_shipped_sh12_block_series_follows_one_entry_rule(name, height):
+    """configs/sh12_100x{100_mid,50,40,30}.yaml: the SH needle of sh12_100x100.yaml on blocks of
+    height 100 ... 30 mm, entering at mid-height + r so the stitch is symmetric about mid-height."""
+    reference = load_scenario(CONFIGS / "sh12_100x100.yaml")
+    scenario = load_scenario(CONFIGS / f"{name}.yaml")
+    assert scenario.tissue.size == (100.0, height)
+    assert scenario.tissue.material == reference.tissue.material
+    assert scenario.tissue.clamped == ("right",)
+    from dataclasses import replace
+
+    assert scenario.needle == replace(reference.needle, entry=scenario.needle.entry)
+    geometry = needle_geometry(scenario.needle, scenario.tissue.size)
+    assert scenario.needle.entry == pytest.approx((0.0, height / 2 + 8.88))
+    np.testing.assert_allclose(geometry.center, [0.0, height / 2], atol=1e-12)
+    np.testing.assert_allclose(geometry.desired_exit, [0.0, height / 2 - 8.88], atol=1e-9)
