@@ -77,8 +77,8 @@ class Solver:
 
 @dataclass(frozen=True)
 class Planner:
-    tolerance: float = 1e-4  # mm
-    max_iterations: int = 30
+    tolerance: float = 1e-3  # mm
+    max_iterations: int = 10
     strict: bool = False
     exit_tolerance: float = 0.005  # mm
     max_passes: int = 4

@@ -55,7 +55,7 @@ class NeoHookean:
     lame_mu: float
 
     def energy(self, deformation_gradient: np.ndarray) -> np.ndarray:
-        j = np.linalg.det(deformation_gradient)
+        j = determinant(deformation_gradient)
         i1 = np.einsum("nij,nij->n", deformation_gradient, deformation_gradient) + 1.0
         log_j = np.log(j)
         return 0.5 * self.lame_mu * (i1 - 3.0) - self.lame_mu * log_j + 0.5 * self.lame_lambda * log_j**2
@@ -63,13 +63,19 @@ class NeoHookean:
     def pk2_stress(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         right_cauchy_green = np.einsum("nki,nkj->nij", deformation_gradient, deformation_gradient)
         c_inv = np.linalg.inv(right_cauchy_green)
-        log_j = np.log(np.linalg.det(deformation_gradient))
+        log_j = np.log(determinant(deformation_gradient))
         stress = self.lame_mu * (IDENTITY - c_inv) + self.lame_lambda * log_j[:, None, None] * c_inv
         coefficient = (self.lame_mu - self.lame_lambda * log_j)[:, None, None, None, None]
         tangent = self.lame_lambda * np.einsum("nij,nkl->nijkl", c_inv, c_inv) + coefficient * (
             np.einsum("nik,njl->nijkl", c_inv, c_inv) + np.einsum("nil,njk->nijkl", c_inv, c_inv)
         )
         return stress, tangent
+
+
+def determinant(deformation_gradient: np.ndarray) -> np.ndarray:
+    """det F of (n, 2, 2) in closed form (np.linalg.det is ~10x slower for 2 x 2)."""
+    f = deformation_gradient
+    return f[:, 0, 0] * f[:, 1, 1] - f[:, 0, 1] * f[:, 1, 0]
 
 
 def make_material(material: Material) -> SaintVenantKirchhoff | NeoHookean:
@@ -87,6 +93,17 @@ def first_piola_and_tangent(
     stress, tangent = model.pk2_stress(deformation_gradient)
     n = len(stress)
     first_piola = deformation_gradient @ stress
+    if isinstance(model, SaintVenantKirchhoff):
+        # F C F for C = lambda I x I + 2 mu I_sym, in closed form:
+        # lambda F_iJ F_kL + mu (F F^T)_ik delta_JL + mu F_iL F_kJ
+        f = deformation_gradient
+        eye = np.eye(2)
+        ffT = f @ f.transpose(0, 2, 1)
+        material = (model.lame_lambda * f[:, :, :, None, None] * f[:, None, None, :, :]
+                    + model.lame_mu * ffT[:, :, None, :, None] * eye[None, None, :, None, :]
+                    + model.lame_mu * f[:, :, None, None, :] * f[:, None, :, :, None].transpose(0, 1, 3, 2, 4))
+        material += eye[None, :, None, :, None] * stress[:, None, :, None, :]  # D_ijlm, eq. 3.14
+        return first_piola, material
     # F_iM C_MJNL -> (n, i, J N L); then contract N with F_kN
     left = (deformation_gradient @ tangent.reshape(-1, 2, 8)).reshape(n, 2, 2, 2, 2)
     material = np.einsum("niJNL,nkN->niJkL", left, deformation_gradient, optimize=True)

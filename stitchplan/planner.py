@@ -28,8 +28,8 @@ class PlanningFailure(InsertionFailure):
 
 @dataclass(frozen=True)
 class PlannerSettings:
-    tolerance: float = 1e-4  # mm: centre change that ends the iterations within a step
-    max_iterations: int = 30
+    tolerance: float = 1e-3  # mm: centre change that ends the iterations within a step
+    max_iterations: int = 10
     strict: bool = False  # raise PlanningFailure when eq. 4.2 fails instead of recording it
     exit_tolerance: float = 0.005  # mm: planned exit error that ends the passes
     max_passes: int = 4
@@ -144,9 +144,10 @@ def run_plan(scenario: Scenario, settings: PlannerSettings | None = None, compar
     rigidly (eq. 4.2). Late in a stitch the material enclosed by the arc and the free edge
     follows the needle, and the loads can still shift the exit relative to the centre by a
     drift that no centre move undoes then. The planner therefore shoots over whole passes:
-    pass k aims the centre at O(t0) + u(X_exit) - c_k, with c_1 = 0 and c_{k+1} = c_k - m_k,
-    m_k the mismatch O(t0) + u(X_exit) - O left at the end of pass k, so the early,
-    controllable steps pre-compensate the late drift. Passes stop when the planned exit error
+    pass k aims the centre at O(t0) + u(X_exit) - c_k, with c_1 = 0 and c_{k+1} = c_k - S^-1 m_k,
+    m_k the mismatch O(t0) + u(X_exit) - O left at the end of pass k and S a secant
+    (Broyden) estimate of dm/dc started at the identity, so the early, controllable steps
+    pre-compensate the late drift. Passes stop when the planned exit error
     is below exit_tolerance, or below 2 % of the unplanned error, or after max_passes; the
     best pass is returned.
     """
@@ -160,6 +161,8 @@ def run_plan(scenario: Scenario, settings: PlannerSettings | None = None, compar
         target = max(target, 0.02 * unplanned.exit_error_mm)
     start = time.perf_counter()
     offset = np.zeros(2)
+    sensitivity = np.eye(2)  # secant estimate of d m / d c over the passes
+    previous = None
     passes = []
     best = None
     for number in range(1, settings.max_passes + 1):
@@ -173,6 +176,14 @@ def run_plan(scenario: Scenario, settings: PlannerSettings | None = None, compar
             best = planned
         if planned.exit_error_mm <= target:
             break
-        offset = offset - mismatch
+        if previous is not None:  # Broyden update of d m / d c from the last two passes
+            change, response = offset - previous[0], mismatch - previous[1]
+            if change @ change > 0:
+                sensitivity = sensitivity + np.outer(response - sensitivity @ change, change) / (change @ change)
+        previous = (offset.copy(), mismatch)
+        try:
+            offset = offset - np.linalg.solve(sensitivity, mismatch)
+        except np.linalg.LinAlgError:
+            offset = offset - mismatch
     best.wall_seconds = time.perf_counter() - start
     return PlanResult(best, unplanned, passes)

@@ -13,6 +13,7 @@ import scipy.sparse.linalg as spla
 from .assembly import Assembler
 from .config import Solver
 from .discretization import TissueModel
+from .material import determinant
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +54,7 @@ class NewtonReport:
 def checked_deformation_gradient(model: TissueModel, coefficients: np.ndarray) -> np.ndarray:
     """F at the quadrature points; raises InvertedMaterial where det F <= 0."""
     deformation_gradient = model.deformation_gradient(coefficients)
-    jacobian = np.linalg.det(deformation_gradient)
+    jacobian = determinant(deformation_gradient)
     if not np.all(np.isfinite(jacobian)) or jacobian.min() <= 0.0:
         worst = int(np.nanargmin(np.where(np.isfinite(jacobian), jacobian, -np.inf)))
         x, y = model.quadrature_points[worst]
@@ -106,7 +107,7 @@ class TangentSolver:
     working: CG needing more than `refactor_after` iterations, or meeting negative curvature).
     """
 
-    def __init__(self, mode: str = "pcg", refactor_after: int = 25, rtol: float = 1e-10):
+    def __init__(self, mode: str = "pcg", refactor_after: int = 25, rtol: float = 1e-6):
         self.mode = mode
         self.refactor_after = refactor_after
         self.rtol = rtol
