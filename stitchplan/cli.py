@@ -260,6 +260,8 @@ def _parse_base_transform(text: Optional[str]):
         return None
     try:
         rotation, tx, ty = (float(part) for part in text.split(","))
+        if not all(abs(value) < float("inf") for value in (rotation, tx, ty)):  # nan, inf
+            raise ValueError
     except ValueError:
         raise ScenarioError(f"--base-transform: got {text!r}, expected ROTATION_DEG,TX_MM,TY_MM") from None
     return rotation, (tx, ty)
@@ -294,7 +296,7 @@ def plan(
     _check_outputs(export, out, summary, plot)
     _choice_option(linear_solver, "--linear-solver", LINEAR_SOLVERS)
     _choice_option(tip_tracking, "--tip-tracking", TIP_TRACKING)
-    if angular_speed is not None and not angular_speed > 0:
+    if angular_speed is not None and not 0 < angular_speed < float("inf"):  # also refuses nan
         raise ScenarioError(f"--angular-speed: got {angular_speed!r}, expected a positive speed in rad/s")
     transform = _parse_base_transform(base_transform)
     scenario = _load(scenario_path, spacing, dilation)

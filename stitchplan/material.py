@@ -17,7 +17,7 @@ IDENTITY = np.eye(2)
 
 def green_lagrange_strain(deformation_gradient: np.ndarray) -> np.ndarray:
     """E = (F^T F - I) / 2."""
-    return 0.5 * (np.einsum("nki,nkj->nij", deformation_gradient, deformation_gradient) - IDENTITY)
+    return 0.5 * (deformation_gradient.transpose(0, 2, 1) @ deformation_gradient - IDENTITY)
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,7 @@ class NeoHookean:
         return 0.5 * self.lame_mu * (i1 - 3.0) - self.lame_mu * log_j + 0.5 * self.lame_lambda * log_j**2
 
     def pk2_stress(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        right_cauchy_green = np.einsum("nki,nkj->nij", deformation_gradient, deformation_gradient)
+        right_cauchy_green = deformation_gradient.transpose(0, 2, 1) @ deformation_gradient
         c_inv = np.linalg.inv(right_cauchy_green)
         log_j = np.log(determinant(deformation_gradient))
         stress = self.lame_mu * (IDENTITY - c_inv) + self.lame_lambda * log_j[:, None, None] * c_inv

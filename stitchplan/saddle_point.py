@@ -33,42 +33,68 @@ log = logging.getLogger(__name__)
 
 
 class SchurPreconditioner:
-    """S^-1 for S = G^T K0^-1 G, grown one constraint at a time (eq. 3.73-3.74)."""
+    """S^-1 for S = G^T K0^-1 G, grown one constraint at a time (eq. 3.73-3.74).
+
+    S is kept as its Cholesky factor L (S = L L^T), bordered by one row per new constraint.
+    Needle points a fraction of the particle spacing apart make S very ill-conditioned
+    (cond ~1e10 on the SH 1/2 scenario); bordering the explicit inverse S^-1 then loses all
+    accuracy after ~30 points and turns indefinite, which breaks MINRES. Bordering the
+    Cholesky factor is the row-by-row Cholesky algorithm, backward stable, and applying
+    S^-1 by two triangular solves keeps the preconditioner symmetric positive definite.
+    """
 
     def __init__(self, stiffness_factor):
         self.stiffness_factor = stiffness_factor
         self.columns = np.zeros((0, 0))  # K0^-1 G, (n, k)
         self.constraints = np.zeros((0, 0))  # G, (n, k)
-        self.inverse = np.zeros((0, 0))  # S^-1, (k, k)
+        self.cholesky = np.zeros((0, 0))  # L, lower triangular, S = L L^T, (k, k)
 
     @property
     def size(self) -> int:
-        return self.inverse.shape[0]
+        return self.cholesky.shape[0]
+
+    @property
+    def inverse(self) -> np.ndarray:
+        """S^-1 as a dense (k, k) matrix (for inspection; the solver applies `solve`)."""
+        return self.solve(np.eye(self.size))
+
+    def solve(self, x: np.ndarray) -> np.ndarray:
+        """S^-1 x by forward and back substitution with L."""
+        if self.size == 0:
+            return np.zeros_like(x)
+        return scipy.linalg.cho_solve((self.cholesky, True), x)
+
+    def _border(self, v: np.ndarray, alpha: float) -> None:
+        """L <- [[L, 0], [l^T, d]] with L l = v, d^2 = alpha - l^T l (the new Schur pivot)."""
+        l = scipy.linalg.solve_triangular(self.cholesky, v, lower=True) if self.size else np.zeros(0)
+        # a constraint (nearly) dependent on the earlier ones leaves the pivot at round-off
+        # level; keep it positive so MINRES sees an SPD preconditioner
+        d = np.sqrt(max(alpha - l @ l, 1e-12 * alpha))
+        k = self.size
+        grown = np.zeros((k + 1, k + 1))
+        grown[:k, :k] = self.cholesky
+        grown[k, :k] = l
+        grown[k, k] = d
+        self.cholesky = grown
 
     def add(self, column: np.ndarray) -> None:
         """Border S with one more constraint column g: v = G_k^T K0^-1 g, alpha = g^T K0^-1 g."""
         solved = self.stiffness_factor.solve(column)
         v = self.constraints.T @ solved if self.size else np.zeros(0)
         alpha = float(column @ solved)
-        if self.size == 0:
-            self.inverse = np.array([[1.0 / alpha]])
-        else:
-            q_inv_v = self.inverse @ v
-            # a constraint (nearly) dependent on the earlier ones leaves alpha - v^T Q^-1 v at
-            # round-off level; keep the block positive so MINRES sees an SPD preconditioner
-            beta = 1.0 / max(alpha - v @ q_inv_v, 1e-12 * alpha)
-            w = -q_inv_v * beta
-            self.inverse = np.block([[self.inverse + np.outer(q_inv_v, q_inv_v) * beta, w[:, None]],
-                                     [w[None, :], np.array([[beta]])]])
         self.constraints = column[:, None] if self.constraints.size == 0 else np.hstack(
             [self.constraints, column[:, None]])
         self.columns = solved[:, None] if self.columns.size == 0 else np.hstack([self.columns, solved[:, None]])
+        self._border(v, alpha)  # eq. 3.73-3.74, on the Cholesky factor
 
     def keep(self, active: np.ndarray) -> None:
-        """Drop constraints (rebuilds S^-1 from the stored columns)."""
+        """Drop constraints (refactors S from the stored columns)."""
         self.constraints = self.constraints[:, active]
         self.columns = self.columns[:, active]
-        self.inverse = np.linalg.inv(self.constraints.T @ self.columns)
+        schur = self.constraints.T @ self.columns
+        self.cholesky = np.zeros((0, 0))
+        for j in range(schur.shape[0]):
+            self._border(0.5 * (schur[:j, j] + schur[j, :j]), float(schur[j, j]))
 
 
 class SaddlePointSolver:
@@ -139,14 +165,17 @@ class SaddlePointSolver:
             return np.concatenate([stiffness_product(x[:n]) + constraints @ x[n:], g_t @ x[:n]])
 
         def precondition(x):
-            return np.concatenate([self.stiffness_factor.solve(x[:n]), self.schur.inverse @ x[n:]])
+            return np.concatenate([self.stiffness_factor.solve(x[:n]), self.schur.solve(x[n:])])
 
         operator = spla.LinearOperator((n + k, n + k), matvec=matvec, dtype=float)
         preconditioner = spla.LinearOperator((n + k, n + k), matvec=precondition, dtype=float)
         count = [0]
-        solution, info = spla.minres(operator, rhs, M=preconditioner, rtol=self.minres_rtol,
-                                     maxiter=self.minres_maxiter,
-                                     callback=lambda _x: count.__setitem__(0, count[0] + 1))
+        try:
+            solution, info = spla.minres(operator, rhs, M=preconditioner, rtol=self.minres_rtol,
+                                         maxiter=self.minres_maxiter,
+                                         callback=lambda _x: count.__setitem__(0, count[0] + 1))
+        except ValueError:  # MINRES met a non-positive preconditioner inner product
+            solution, info = None, -1
         self.minres_iterations += count[0]
         self.last_minres_iterations = count[0]
         return (solution if info == 0 else None), count[0]

@@ -128,6 +128,8 @@ class NeedleInsertion:
         self.multipliers = np.zeros(0)
         self.points = np.zeros((0, 2))
         self.point_rows = sp.csr_matrix((0, n_free))  # N(Q) T, (k, n_free)
+        self._point_rows_coo = self.point_rows.tocoo()
+        self._expanded = self._expanded_rows()
         self.segment_points = np.zeros((0, 2))  # Gauss points on Gamma_N, reference, 2 per segment
         self.segment_rows = sp.csr_matrix((0, n_free))  # N(X_s) T at those points
         self.center = self.geometry.center.copy()
@@ -169,11 +171,14 @@ class NeedleInsertion:
             per_segment[-1] += self.needle.cutting_force
         return np.repeat(0.5 * per_segment, 2)
 
-    def _state(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, rotation: float):
-        """Residuals and linearisation of the constrained equilibrium at (free, multipliers)."""
-        model = self.model
-        coefficients = model.boundary.free_map @ free
-        deformation_gradient = checked_deformation_gradient(model, coefficients)
+    def _fields(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray):
+        """Residual r_u = f_int - f_needle + G lambda and constraint values g_k at (free, lambda).
+
+        Returns (residual, violation, normal, rho, |f_needle|, load magnitudes); G and the
+        constraint curvature are built only when a solve needs them.
+        """
+        coefficients = self.model.boundary.free_map @ free
+        deformation_gradient = checked_deformation_gradient(self.model, coefficients)
         internal = self.assembler.update(deformation_gradient)
         spatial = self.points + self.point_rows @ free  # (k, 2)
         relative = spatial - center
@@ -186,20 +191,34 @@ class NeedleInsertion:
         tangent = self.geometry.tangent(angles)  # a_0, direction of needle motion
         magnitude = self._needle_load_magnitudes()
         needle_force = (self.segment_rows.T @ (magnitude[:, None] * tangent)).ravel()  # eq. 3.64
-        rows = self.point_rows.tocoo()
-        k = len(self.points)
-        n_dof = 2 * model.n_free
-        constraint_matrix = sp.csr_matrix(
+        # G lambda = N^T (lambda_k n_k), interleaved
+        constraint_force = self._expanded.T @ (multipliers[:, None] * normal).ravel()
+        residual = internal - needle_force + constraint_force
+        return residual, violation, normal, rho, float(np.linalg.norm(needle_force)), magnitude
+
+    def _constraint_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
+        """G of eq. 3.65 for the residual form g_k = |x_k - C| - R: column k = N_k^T n_k."""
+        rows = self._point_rows_coo
+        return sp.csr_matrix(
             (np.concatenate([rows.data * normal[rows.row, 0], rows.data * normal[rows.row, 1]]),
              (np.concatenate([2 * rows.col, 2 * rows.col + 1]), np.concatenate([rows.row, rows.row]))),
-            shape=(n_dof, k))  # G of eq. 3.65 for the residual form of the constraint
-        residual = internal - needle_force + constraint_matrix @ multipliers
-        # curvature of g_k weighted by lambda_k: N^T (lambda (I - n n^T) / rho) N
+            shape=(2 * self.model.n_free, len(self.points)))
+
+    def _curvature(self, multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> sp.csr_matrix:
+        """sum_k lambda_k d^2 g_k = N^T blockdiag(lambda_k (I - n_k n_k^T) / rho_k) N."""
+        k = len(self.points)
+        if k == 0:
+            return sp.csr_matrix((2 * self.model.n_free, 2 * self.model.n_free))
         blocks = multipliers[:, None, None] * (np.eye(2) - normal[:, :, None] * normal[:, None, :]) / rho[:, None, None]
-        expanded = self._expanded_rows()
-        block_matrix = sp.block_diag(list(blocks), format="csr") if k else sp.csr_matrix((0, 0))
-        curvature = (expanded.T @ block_matrix @ expanded).tocsr()
-        return residual, violation, constraint_matrix, curvature, float(np.linalg.norm(needle_force)), magnitude
+        block_matrix = sp.bsr_matrix((blocks, np.arange(k), np.arange(k + 1)), shape=(2 * k, 2 * k)).tocsr()
+        return (self._expanded.T @ block_matrix @ self._expanded).tocsr()
+
+    def _state(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, rotation: float):
+        """Residuals and linearisation of the constrained equilibrium at (free, multipliers):
+        (r_u, g, G, curvature, |f_needle|, load magnitudes)."""
+        residual, violation, normal, rho, force_norm, magnitude = self._fields(free, multipliers, center)
+        return (residual, violation, self._constraint_matrix(normal), self._curvature(multipliers, normal, rho),
+                force_norm, magnitude)
 
     def _expanded_rows(self) -> sp.csr_matrix:
         """N(Q) T acting on interleaved dofs: rows (k, i), columns (p, i)."""
@@ -221,6 +240,8 @@ class NeedleInsertion:
         row = self.model.shape_functions_at(reference_point[None]).values @ free_map
         self.points = np.vstack([self.points, reference_point])
         self.point_rows = sp.vstack([self.point_rows, sp.csr_matrix(row)], format="csr")
+        self._point_rows_coo = self.point_rows.tocoo()
+        self._expanded = self._expanded_rows()
         self.multipliers = np.append(self.multipliers, 0.0)
         if self.saddle.schur is not None:
             spatial = reference_point + (row @ self.free)[0]
@@ -244,8 +265,8 @@ class NeedleInsertion:
         for iteration in range(settings.max_iterations + 1):
             t0 = time.perf_counter()
             try:
-                residual, violation, constraints, curvature, force_norm, _ = self._state(
-                    free.reshape(-1, 2), multipliers, center, rotation)
+                residual, violation, normal, rho, force_norm, _ = self._fields(
+                    free.reshape(-1, 2), multipliers, center)
             except InvertedMaterial as error:
                 raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): {error}") from None
             self.timings["assembly"] += time.perf_counter() - t0
@@ -261,7 +282,9 @@ class NeedleInsertion:
             rhs = -np.concatenate([residual, violation])
             t0 = time.perf_counter()
             solution = None
+            constraints = self._constraint_matrix(normal)
             if self.linear_method == "minres":
+                curvature = self._curvature(multipliers, normal, rho)
                 solution, its = self.saddle.solve_minres(
                     lambda v: self.assembler.tangent_product(v) + curvature @ v, constraints, rhs)
                 minres_total += its
@@ -276,8 +299,8 @@ class NeedleInsertion:
                 measure = residual_norm / max(force_norm, 1e-12) + worst
                 refactor = measure > 0.2 * previous
                 solution = self.saddle.solve_direct(
-                    lambda: self.assembler.tangent_matrix() + curvature, constraints, rhs, refactor,
-                    self._expanded_rows(), self._normals)
+                    lambda: self.assembler.tangent_matrix() + self._curvature(multipliers, normal, rho),
+                    constraints, rhs, refactor, self._expanded, normal)
                 previous = measure
             self.timings["solve"] += time.perf_counter() - t0
             free = free + solution[:n_dof]

@@ -1,0 +1,262 @@
+"""`stitchplan plan` on real files in tmp_path: the exported trajectory (documented columns in
+order, one row per step, angles, timestamps, robot base frame from the scenario file or the
+command line), its replay through `simulate --center-path`, the planner's eq. 4.2 failure
+reported as a note or, with --strict / planner.strict, as one error line, and bad inputs
+ending in one error line, exit code 2 and no trajectory file.
+
+The scenes are small (40 x 40 mm and 20 x 20 mm blocks, 4-5 mm spacing, 0.16-0.3 rad needle
+steps) so every `plan` run takes a few seconds.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from stitchplan.cli import app
+
+RADIUS = 8.88
+TRAJECTORY_COLUMNS = ["step", "angle_rad", "center_x_mm", "center_y_mm", "tip_x_mm", "tip_y_mm"]
+BASE_COLUMNS = ["base_center_x_mm", "base_center_y_mm", "base_tip_x_mm", "base_tip_y_mm"]
+EQ_42 = re.compile(r"eq\. 4\.2 fails at step (\d+) \(needle rotation (\d+\.\d+) rad\)")
+
+
+def scene_raw(size=(40.0, 40.0), entry=(0.0, 28.0), step=0.16, spacing=4.0, **extra) -> dict:
+    """An SH 1/2 needle (r = 8.88 mm) entering the left edge and turning cw into a block
+    clamped at the right edge: the centre sits at (0, entry_y - 8.88) and the desired exit is
+    (0, entry_y - 17.76). On the 40 x 40 mm block the unplanned exit error is ~0.27 mm."""
+    return {"name": "plan-cli",
+            "tissue": {"size": list(size), "thickness": 10.0, "clamped": ["right"],
+                       "material": {"lame_lambda": 0.189151, "lame_mu": 0.147688}},
+            "discretization": {"spacing": spacing},
+            "needle": {"radius": RADIUS, "entry": list(entry), "turn": "cw", "step": step,
+                       "friction": 0.0602, "cutting_force": 0.7},
+            **extra}
+
+
+def small_raw(planner=None, **extra) -> dict:
+    """20 x 20 mm block, 5 mm spacing (25 particles), 0.3 rad steps, one planner pass: the
+    cheapest scene whose planner still meets eq. 4.2 failures (from step 6 on)."""
+    return scene_raw(size=(20.0, 20.0), entry=(0.0, 18.0), step=0.3, spacing=5.0,
+                     planner={"max_passes": 1, **(planner or {})}, **extra)
+
+
+def write(folder: Path, raw: dict, name: str = "scene.yaml") -> Path:
+    path = folder / name
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return path
+
+
+def invoke(command: str, *args):
+    return CliRunner().invoke(app, [command, *map(str, args)])
+
+
+def read_trajectory(path: Path) -> tuple[list[str], np.ndarray]:
+    with path.open(newline="") as handle:
+        rows = list(csv.reader(handle))
+    return rows[0], np.asarray(rows[1:], dtype=float)
+
+
+def one_error_line(result) -> str:
+    """The single line a user error prints; the run must end with exit code 2, no traceback."""
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    """One `plan` run on the 40 x 40 mm scene whose file gives a robot block (180 deg, (5, -3) mm,
+    0.5 rad/s) that the command line overrides (90 deg, (100, -5) mm, 2 rad/s)."""
+    folder = tmp_path_factory.mktemp("plan")
+    scenario = write(folder, scene_raw(robot={"base_transform": {"rotation_deg": 180.0, "translation": [5.0, -3.0]},
+                                             "angular_speed": 0.5}))
+    result = invoke("plan", scenario, "--export", folder / "trajectory.csv", "--summary", folder / "summary.json",
+                    "--out", folder / "run.h5", "--base-transform", "90,100,-5", "--angular-speed", "2.0")
+    summary = json.loads((folder / "summary.json").read_text()) if result.exit_code == 0 else None
+    return folder, result, summary
+
+
+def test_plan_exports_the_documented_columns_one_row_per_step(planned):
+    folder, result, summary = planned
+    assert result.exit_code == 0, result.output
+    columns, table = read_trajectory(folder / "trajectory.csv")
+    assert columns == TRAJECTORY_COLUMNS + ["time_s"] + BASE_COLUMNS
+    assert summary["trajectory_columns"] == columns
+    n = summary["steps"]  # simulated steps N; rows 0 .. N+1
+    assert n > 10 and table.shape == (n + 2, len(columns)) and summary["trajectory_rows"] == n + 2
+    data = dict(zip(columns, table.T))
+    np.testing.assert_array_equal(data["step"], np.arange(n + 2))
+    assert data["angle_rad"][0] == 0.0
+    np.testing.assert_allclose(np.diff(data["angle_rad"]), 0.16, atol=1e-8)
+    np.testing.assert_allclose(data["time_s"], data["angle_rad"] / 2.0, rtol=1e-8, atol=1e-12)  # CLI speed
+    center = np.column_stack([data["center_x_mm"], data["center_y_mm"]])
+    tip = np.column_stack([data["tip_x_mm"], data["tip_y_mm"]])
+    np.testing.assert_allclose(center[0], [0.0, 28.0 - RADIUS], atol=1e-9)  # entry centre O(t0)
+    np.testing.assert_allclose(tip[0], [0.0, 28.0], atol=1e-9)  # the tip starts at the entry
+    np.testing.assert_array_equal(center[-1], center[-2])  # the exit step keeps O(t_N)
+    # rigid needle, cw from the top of the circle: tip = O + R (sin a, cos a)
+    angle = data["angle_rad"]
+    np.testing.assert_allclose(tip, center + RADIUS * np.column_stack([np.sin(angle), np.cos(angle)]),
+                               atol=1e-7)
+    assert np.ptp(center, axis=0).max() > 0.05  # the planner did move the centre
+    # base frame: rotation by 90 deg maps (x, y) to (-y, x), then the translation (100, -5)
+    np.testing.assert_allclose(data["base_center_x_mm"], 100.0 - center[:, 1], atol=1e-7)
+    np.testing.assert_allclose(data["base_center_y_mm"], -5.0 + center[:, 0], atol=1e-7)
+    np.testing.assert_allclose(data["base_tip_x_mm"], 100.0 - tip[:, 1], atol=1e-7)
+    np.testing.assert_allclose(data["base_tip_y_mm"], -5.0 + tip[:, 0], atol=1e-7)
+
+
+def test_plan_summary_compares_planned_and_unplanned(planned):
+    folder, result, summary = planned
+    assert result.exit_code == 0, result.output
+    assert re.match(r"plan: \d+ steps, exit error \d\.\d{4} mm planned vs \d\.\d{4} mm unplanned", result.output)
+    for key in ("desired_exit", "desired_exit_def", "achieved_exit_def", "achieved_exit", "exit_error_mm",
+                "exit_error_material_mm", "steps", "particles", "wall_seconds", "unplanned_exit_error_mm"):
+        assert key in summary, key
+    np.testing.assert_allclose(summary["desired_exit"], [0.0, 28.0 - 2 * RADIUS], atol=1e-9)
+    assert summary["exit_error_mm"] == pytest.approx(
+        math.dist(summary["achieved_exit_def"], summary["desired_exit_def"]), rel=1e-12)
+    unplanned = summary["unplanned_exit_error_mm"]
+    assert unplanned > 0.05  # the scene deforms enough for the comparison to mean something
+    assert summary["exit_error_mm"] < 0.05 and summary["exit_error_mm"] < 0.05 * unplanned
+    assert (folder / "run.h5").stat().st_size > 0
+
+
+def test_replaying_the_exported_centres_reproduces_the_planned_exit(planned, tmp_path):
+    folder, result, summary = planned
+    assert result.exit_code == 0, result.output
+    replay_summary = tmp_path / "replay.json"
+    replay = invoke("simulate", folder / "scene.yaml", "--center-path", folder / "trajectory.csv",
+                    "--summary", replay_summary)
+    assert replay.exit_code == 0, replay.output
+    replayed = json.loads(replay_summary.read_text())
+    assert replayed["steps"] == summary["steps"]
+    assert math.dist(replayed["achieved_exit_def"], summary["achieved_exit_def"]) < 1e-3
+    assert math.dist(replayed["desired_exit_def"], summary["desired_exit_def"]) < 1e-3
+    assert replayed["exit_error_mm"] == pytest.approx(summary["exit_error_mm"], abs=1e-3)
+
+
+def test_eq_4_2_failure_is_an_event_and_a_note(planned):
+    """Late in the stitch the enclosed material follows the needle rigidly (eq. 4.2 fails); the
+    non-strict run records it, names step and angle, prints a note and still exports."""
+    folder, result, summary = planned
+    assert result.exit_code == 0, result.output
+    failures = [EQ_42.search(event) for event in summary["events"]]
+    failures = [(int(m.group(1)), float(m.group(2))) for m in failures if m]
+    assert failures, summary["events"]
+    for step, rotation in failures:
+        assert 1 <= step <= summary["steps"] and rotation == pytest.approx(0.16 * step, abs=5e-4)
+    notes = [line for line in result.output.splitlines() if line.startswith("note: ")]
+    assert any(EQ_42.search(line) for line in notes), result.output
+
+
+def test_base_transform_from_the_scenario_file(tmp_path):
+    """robot.base_transform (180 deg: (x, y) -> (-x, -y)) and robot.angular_speed, no options."""
+    scenario = write(tmp_path, small_raw(robot={"base_transform": {"rotation_deg": 180.0, "translation": [5.0, -3.0]},
+                                               "angular_speed": 0.5}))
+    export, summary_path = tmp_path / "trajectory.csv", tmp_path / "summary.json"
+    result = invoke("plan", scenario, "--export", export, "--summary", summary_path)
+    assert result.exit_code == 0, result.output
+    columns, table = read_trajectory(export)
+    assert columns == TRAJECTORY_COLUMNS + ["time_s"] + BASE_COLUMNS
+    summary = json.loads(summary_path.read_text())
+    assert table.shape[0] == summary["steps"] + 2
+    data = dict(zip(columns, table.T))
+    np.testing.assert_allclose(np.diff(data["angle_rad"]), 0.3, atol=1e-8)
+    np.testing.assert_allclose(data["time_s"], data["angle_rad"] / 0.5, rtol=1e-8, atol=1e-12)
+    for point in ("center", "tip"):
+        np.testing.assert_allclose(data[f"base_{point}_x_mm"], 5.0 - data[f"{point}_x_mm"], atol=1e-7)
+        np.testing.assert_allclose(data[f"base_{point}_y_mm"], -3.0 - data[f"{point}_y_mm"], atol=1e-7)
+
+
+@pytest.mark.parametrize("how", ["option", "scenario"])
+def test_strict_planning_fails_with_one_line_naming_the_step(tmp_path, how):
+    if how == "option":
+        scenario, options, rotation_step = write(tmp_path, scene_raw()), ["--strict"], 0.16
+    else:
+        scenario, options, rotation_step = write(tmp_path, small_raw(planner={"strict": True})), [], 0.3
+    export = tmp_path / "trajectory.csv"
+    result = invoke("plan", scenario, "--export", export, "--summary", tmp_path / "summary.json", *options)
+    line = one_error_line(result)
+    assert line.startswith("error: planning failed: ")
+    match = EQ_42.search(line)
+    assert match, line
+    assert float(match.group(2)) == pytest.approx(rotation_step * int(match.group(1)), abs=5e-4)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]  # no trajectory, no temp file
+
+
+# --- bad inputs ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("options,fragments", [
+    (["--base-transform", "90,1"], ["--base-transform", "'90,1'", "expected ROTATION_DEG,TX_MM,TY_MM"]),
+    (["--base-transform", "90deg,1,2"], ["--base-transform", "'90deg,1,2'", "expected ROTATION_DEG"]),
+    (["--base-transform", "nan,1,2"], ["--base-transform", "'nan,1,2'", "expected ROTATION_DEG"]),
+    (["--angular-speed", "-1"], ["--angular-speed", "got -1.0", "expected a positive speed in rad/s"]),
+    (["--angular-speed", "0"], ["--angular-speed", "got 0.0", "expected a positive speed"]),
+    (["--angular-speed", "inf"], ["--angular-speed", "got inf", "expected a positive speed"]),
+])
+def test_bad_plan_options(tmp_path, options, fragments):
+    scenario = write(tmp_path, scene_raw())
+    result = invoke("plan", scenario, "--export", tmp_path / "trajectory.csv", "--summary",
+                    tmp_path / "summary.json", *options)
+    line = one_error_line(result)
+    for fragment in fragments:
+        assert fragment in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
+def _without_needle() -> dict:
+    raw = scene_raw()
+    del raw["needle"]
+    return raw
+
+
+@pytest.mark.parametrize("raw,fragments", [
+    (_without_needle(), ["needle: missing", "required by simulate and plan"]),
+    (scene_raw(entry=(10.0, 28.0)), ["needle.entry: got [10.0, 28.0]", "expected a point on the boundary"]),
+    (scene_raw(robot={"angular_speed": 1.0, "speed": 2.0}),
+     ["robot: unknown key 'speed'", "expected one of: base_transform, angular_speed"]),
+    (scene_raw(robot={"base_transform": {"rotation": 90.0}}),
+     ["robot.base_transform: unknown key 'rotation'", "rotation_deg, translation"]),
+    (scene_raw(robot={"angular_speed": -2.0}), ["robot.angular_speed: got -2.0", "expected a positive number"]),
+    (scene_raw(planner={"tolerence": 0.01}), ["planner: unknown key 'tolerence'", "expected one of: tolerance"]),
+    (scene_raw(planner={"strict": "yes"}), ["planner.strict: got 'yes'", "expected true or false"]),
+])
+def test_bad_scenario_for_plan(tmp_path, raw, fragments):
+    scenario = write(tmp_path, raw)
+    result = invoke("plan", scenario, "--export", tmp_path / "trajectory.csv", "--out", tmp_path / "run.h5")
+    line = one_error_line(result)
+    for fragment in fragments:
+        assert fragment in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
+@pytest.mark.parametrize("text,fragments", [
+    ("step,x,y\n0,0,19.12\n", ["path.csv: columns ['step', 'x', 'y'] lack ['center_x_mm', 'center_y_mm']",
+                               "expected at least step, center_x_mm, center_y_mm"]),
+    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv", "not a number"]),
+    ("step,center_x_mm,center_y_mm\n1,0,9.12\n2,0,9.12\n", ["path.csv: steps [1, 2]", "expected 0, 1, 2"]),
+    ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0,9.12\n", ["centre path: 2 rows end before the tip exits",
+                                                            "expected one row per step"]),
+])
+def test_bad_center_path_for_simulate(tmp_path, text, fragments):
+    scenario = write(tmp_path, small_raw())
+    (tmp_path / "path.csv").write_text(text)
+    result = invoke("simulate", scenario, "--center-path", tmp_path / "path.csv",
+                    "--summary", tmp_path / "summary.json", "--out", tmp_path / "run.h5")
+    line = one_error_line(result)
+    for fragment in fragments:
+        assert fragment in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["path.csv", "scene.yaml"]
