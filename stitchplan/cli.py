@@ -54,7 +54,8 @@ def user_errors(command: Callable) -> Callable:
 
 
 def _setup_logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
+    # warnings of the numerics also come back as events, printed once as `note:` lines
+    logging.basicConfig(level=logging.INFO if verbose else logging.ERROR,
                         format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
 
 

@@ -98,7 +98,8 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
                            f"{moved_exit:.3g} mm, so iterating within the step cannot converge; "
                            f"the step keeps the best centre tried (mismatch {best[0]:.3g} mm)")
                 if settings.strict:
-                    raise PlanningFailure(message.replace("planning: ", "planning failed: ", 1))
+                    raise PlanningFailure(  # strict: nothing is kept, drop that clause
+                        message.replace("planning: ", "planning failed: ", 1).split("; the step keeps")[0])
                 insertion.events.append(message)
                 log.warning(message)
                 state["jacobian"] = np.zeros((2, 2))
@@ -108,7 +109,7 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
                    f"{settings.max_iterations} iterations, the centre still moves {size:.3g} mm; "
                    f"the step keeps the best centre tried (mismatch {best[0]:.3g} mm)")
         if settings.strict:
-            raise PlanningFailure(message.replace("planning: ", "planning failed: ", 1))
+            raise PlanningFailure(message.replace("planning: ", "planning failed: ", 1).split("; the step keeps")[0])
         insertion.events.append(message)
         log.warning(message)
         state["jacobian"] = jacobian

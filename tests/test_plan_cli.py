@@ -193,6 +193,7 @@ def test_strict_planning_fails_with_one_line_naming_the_step(tmp_path, how):
     match = EQ_42.search(line)
     assert match, line
     assert float(match.group(2)) == pytest.approx(rotation_step * int(match.group(1)), abs=5e-4)
+    assert "keeps the best centre" not in line  # strict stops; it keeps nothing
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]  # no trajectory, no temp file
 
 
