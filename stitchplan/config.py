@@ -45,6 +45,12 @@ class Discretization:
     quadrature_order: int = 2
     basis_order: int = 1
     cells_per_spacing: int = 1
+    # graded particles (see discretization.graded_particles): `needle_spacing` within
+    # `needle_zone` needle radii of the needle centre, growing to `spacing` away from it
+    needle_spacing: float | None = None
+    needle_zone: float = 1.5
+    # exit-point accuracy (mm): the auto discretization (stitchplan.auto) picks the rest
+    accuracy: float | None = None
 
 
 @dataclass(frozen=True)
@@ -202,15 +208,24 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
     if raw is None:
         return Discretization()
     block = _mapping(raw, path, ("spacing", "dilation", "quadrature_order", "basis_order",
-                                 "cells_per_spacing"))
+                                 "cells_per_spacing", "needle_spacing", "needle_zone", "accuracy"))
     default = Discretization()
     dilation = _number(block.get("dilation", default.dilation), f"{path}.dilation", positive=True)
     if dilation <= 1.0:
         raise _fail(f"{path}.dilation", dilation,
                     "a number > 1 (kernel support / spacing; at least ~1.5 for a linear basis)")
+    spacing = _number(block.get("spacing", default.spacing), f"{path}.spacing", positive=True, unit="mm")
+    needle_spacing = block.get("needle_spacing")
+    if needle_spacing is not None:
+        needle_spacing = _number(needle_spacing, f"{path}.needle_spacing", positive=True, unit="mm")
+        if needle_spacing > spacing:
+            raise _fail(f"{path}.needle_spacing", needle_spacing,
+                        f"a spacing (mm) no larger than spacing = {spacing:g} mm")
+    accuracy = block.get("accuracy")
+    if accuracy is not None:
+        accuracy = _number(accuracy, f"{path}.accuracy", positive=True, unit="mm, exit point")
     return Discretization(
-        spacing=_number(block.get("spacing", default.spacing), f"{path}.spacing", positive=True,
-                        unit="mm"),
+        spacing=spacing,
         dilation=dilation,
         quadrature_order=_integer(block.get("quadrature_order", default.quadrature_order),
                                   f"{path}.quadrature_order", 1, 10),
@@ -218,6 +233,10 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
                              1, 2),
         cells_per_spacing=_integer(block.get("cells_per_spacing", default.cells_per_spacing),
                                    f"{path}.cells_per_spacing", 1, 4),
+        needle_spacing=needle_spacing,
+        needle_zone=_number(block.get("needle_zone", default.needle_zone), f"{path}.needle_zone",
+                            positive=True, unit="needle radii"),
+        accuracy=accuracy,
     )
 
 
@@ -347,7 +366,7 @@ def parse_robot(raw: Any, path: str = "robot") -> Robot:
 
 
 SCENARIO_KEYS = ("name", "tissue", "discretization", "needle", "loads", "load_steps", "probes",
-                 "solver", "planner", "robot")
+                 "solver", "planner", "robot", "study")
 
 
 def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
