@@ -18,7 +18,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .discretization import TissueModel
-from .material import first_piola_and_tangent
+from .material import first_piola_and_tangent, matmul22
 
 
 class Assembler:
@@ -42,7 +42,7 @@ class Assembler:
         """Evaluate the stress at F (nq, 2, 2); returns f_int (2 n_free,). The material
         tangent at this F is evaluated only if a tangent product or matrix is asked for."""
         stress, _ = self.model.material.pk2_stress(deformation_gradient)
-        first_piola = deformation_gradient @ stress
+        first_piola = matmul22(deformation_gradient, stress)
         self._deformation_gradient = deformation_gradient
         self._tangent_current = False
         weights = self.model.quadrature_weights

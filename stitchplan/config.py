@@ -113,6 +113,7 @@ class Scenario:
     robot: Robot = field(default_factory=Robot)
     name: str = ""
     source_text: str = ""
+    study: Any = None  # stitchplan.study.StudySpec from the optional `study:` block
 
 
 # --- field readers -------------------------------------------------------------------
@@ -400,7 +401,16 @@ def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
         robot=parse_robot(block.get("robot")),
         name=name,
         source_text=source_text,
+        study=_parse_study(block.get("study")),
     )
+
+
+def _parse_study(raw: Any):
+    if raw is None:
+        return None
+    from .study import parse_study  # the study block is validated where it is used
+
+    return parse_study(raw)
 
 
 def read_yaml(path: str | Path) -> tuple[Any, str]:
@@ -429,4 +439,6 @@ def with_discretization(scenario: Scenario, **overrides: float | int | None) -> 
 
     values = asdict(scenario.discretization)
     values.update({k: v for k, v in overrides.items() if v is not None})
+    if overrides.get("spacing") is not None and "accuracy" not in overrides:
+        values["accuracy"] = None  # an explicit spacing replaces the auto discretization
     return replace(scenario, discretization=parse_discretization(values))

@@ -40,6 +40,96 @@ def grid_particles(size: tuple[float, float], spacing: float) -> tuple[np.ndarra
     return particles, volumes, dx, dy
 
 
+@dataclass(frozen=True)
+class GradedParticles:
+    """Particles at the corners of the leaf cells of a balanced quadtree over the slab."""
+
+    particles: np.ndarray  # (NP, 2)
+    volumes: np.ndarray  # (NP,) tributary areas: a quarter of each adjacent leaf cell
+    local_spacing: np.ndarray  # (NP,) largest side of the leaf cells meeting at the particle
+    cells: np.ndarray  # (nc, 4) leaf cells: x0, y0, width, height (mm)
+    fine_spacing: float  # leaf side near the needle (mm)
+    coarse_spacing: float  # leaf side far from it (mm)
+
+
+def graded_particles(size: tuple[float, float], spacing: float, fine_spacing: float,
+                     center: np.ndarray, radius: float, growth: float = 0.5) -> GradedParticles:
+    """A particle set graded toward a disk (the needle's zone): leaf cells of side
+    ~`fine_spacing` within `radius` of `center`, the side allowed to grow by `growth` mm per
+    mm of distance beyond it, up to ~`spacing` (coarse side = fine x 2^L, L the nearest
+    integer); neighbouring leaves differ by at most one level (2:1 balance), so the local
+    spacing, and with it the kernel support, varies smoothly.
+
+    Particles sit at the leaf corners (hanging corners included, as meshfree allows), with
+    volume a quarter of each adjacent leaf, so the volumes sum to the slab's area.
+    """
+    from scipy.ndimage import maximum_filter
+
+    width, height = size
+    levels = max(int(round(np.log2(spacing / fine_spacing))), 0)
+    base = fine_spacing * 2**levels
+    nx0, ny0 = max(int(round(width / base)), 1), max(int(round(height / base)), 1)
+    n = 2**levels
+    fx, fy = nx0 * n, ny0 * n  # finest lattice: fx x fy cells
+    fdx, fdy = width / fx, height / fy
+    side0 = max(width / nx0, height / ny0)
+    xc = (np.arange(fx) + 0.5) * fdx
+    yc = (np.arange(fy) + 0.5) * fdy
+    distance = np.hypot(xc[:, None] - center[0], yc[None, :] - center[1]) - radius  # (fx, fy)
+    target = fine_spacing * (1.0 + 1e-9) + growth * np.maximum(distance, 0.0)
+    required = np.clip(np.ceil(np.log2(side0 / target)), 0, levels).astype(int)
+
+    def leaf_levels(required: np.ndarray) -> np.ndarray:
+        """Level of the leaf holding each finest cell: the smallest l whose level-l ancestor
+        needs no split (no finest cell inside asks for more than l)."""
+        leaf = np.full_like(required, levels)
+        for level in range(levels - 1, -1, -1):
+            b = 2 ** (levels - level)
+            block = required.reshape(fx // b, b, fy // b, b).max(axis=(1, 3))
+            leaf = np.where(np.repeat(np.repeat(block, b, 0), b, 1) <= level, level, leaf)
+        return leaf
+
+    leaf = leaf_levels(required)
+    while True:  # 2:1 balance: a leaf's neighbours are at most one level coarser
+        balanced = np.maximum(required, maximum_filter(leaf, size=3, mode="nearest") - 1)
+        if np.array_equal(balanced, required):
+            break
+        required = balanced
+        leaf = leaf_levels(required)
+
+    corners, sides = [], []
+    i, j = np.meshgrid(np.arange(fx), np.arange(fy), indexing="ij")
+    for level in range(levels + 1):
+        b = 2 ** (levels - level)
+        first = (leaf == level) & (i % b == 0) & (j % b == 0)
+        corners.append(np.stack([i[first], j[first]], axis=1))
+        sides.append(np.full(int(first.sum()), b))
+    corner = np.concatenate(corners)  # (nc, 2) lower-left corner on the finest lattice
+    side = np.concatenate(sides)  # (nc,) in finest cells
+    offsets = np.array([[0, 0], [1, 0], [0, 1], [1, 1]])
+    lattice = corner[:, None, :] + offsets[None] * side[:, None, None]  # (nc, 4, 2)
+    keys = lattice[..., 0] * (fy + 1) + lattice[..., 1]
+    unique, inverse = np.unique(keys.ravel(), return_inverse=True)
+    particles = np.stack([unique // (fy + 1) / fx * width, unique % (fy + 1) / fy * height], axis=1)
+    cell_w, cell_h = side * fdx, side * fdy
+    volumes = np.zeros(len(unique))
+    np.add.at(volumes, inverse, np.repeat(cell_w * cell_h / 4.0, 4))
+    local = np.zeros(len(unique))
+    np.maximum.at(local, inverse, np.repeat(np.maximum(cell_w, cell_h), 4))
+    cells = np.column_stack([corner[:, 0] * fdx, corner[:, 1] * fdy, cell_w, cell_h])
+    return GradedParticles(particles, volumes, local, cells, max(fdx, fdy), max(fdx, fdy) * n)
+
+
+def leaf_quadrature(cells: np.ndarray, order: int, subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss rule of `order` points per direction on each of subdivisions^2 sub-cells of every
+    leaf cell (nc, 4: x0, y0, width, height). Returns points (n, 2), weights (n,) (mm^2)."""
+    unit_points, unit_weights = cell_quadrature((1.0, 1.0), (subdivisions, subdivisions), order)
+    origin, extent = cells[:, None, :2], cells[:, None, 2:]  # (nc, 1, 2)
+    points = origin + unit_points[None] * extent  # (nc, g, 2)
+    weights = unit_weights[None] * (cells[:, 2] * cells[:, 3])[:, None]
+    return points.reshape(-1, 2), weights.ravel()
+
+
 @dataclass
 class TissueModel:
     """Particles, RK shape functions at the quadrature points and the boundary transformation.
@@ -96,16 +186,34 @@ def build_tissue_model(
     tissue: Tissue,
     discretization: Discretization,
     prescribed_segments: tuple[tuple[tuple[float, float], tuple[float, float]], ...] = (),
+    needle_zone: tuple[tuple[float, float], float] | None = None,
 ) -> TissueModel:
-    """Discretize the slab: particles, quadrature, shape functions and the essential boundary."""
-    particles, volumes, dx, dy = grid_particles(tissue.size, discretization.spacing)
-    spacing = max(dx, dy)
-    support = np.full(len(particles), discretization.dilation * spacing)
-    n_cells = (
-        int(round(tissue.size[0] / dx)) * discretization.cells_per_spacing,
-        int(round(tissue.size[1] / dy)) * discretization.cells_per_spacing,
-    )
-    points, weights = cell_quadrature(tissue.size, n_cells, discretization.quadrature_order)
+    """Discretize the slab: particles, quadrature, shape functions and the essential boundary.
+
+    With discretization.needle_spacing set, the particles are graded toward `needle_zone`
+    (centre, radius in mm; see graded_particles) and each particle's kernel support is the
+    dilation times its local spacing; otherwise they form a uniform grid.
+    """
+    if discretization.needle_spacing is not None:
+        if needle_zone is None:
+            raise ScenarioError("discretization.needle_spacing: needs a needle to grade the "
+                                "particles toward; remove it or add a `needle:` block")
+        graded = graded_particles(tissue.size, discretization.spacing, discretization.needle_spacing,
+                                  np.asarray(needle_zone[0], dtype=float), float(needle_zone[1]))
+        particles, volumes = graded.particles, graded.volumes
+        spacing = graded.fine_spacing
+        support = discretization.dilation * graded.local_spacing
+        points, weights = leaf_quadrature(graded.cells, discretization.quadrature_order,
+                                          discretization.cells_per_spacing)
+    else:
+        particles, volumes, dx, dy = grid_particles(tissue.size, discretization.spacing)
+        spacing = max(dx, dy)
+        support = np.full(len(particles), discretization.dilation * spacing)
+        n_cells = (
+            int(round(tissue.size[0] / dx)) * discretization.cells_per_spacing,
+            int(round(tissue.size[1] / dy)) * discretization.cells_per_spacing,
+        )
+        points, weights = cell_quadrature(tissue.size, n_cells, discretization.quadrature_order)
     tree = cKDTree(particles)
     order = discretization.basis_order
     try:
@@ -114,7 +222,8 @@ def build_tissue_model(
     except SingularMomentMatrix as error:
         raise ScenarioError(
             f"discretization: dilation {discretization.dilation:g} with spacing "
-            f"{discretization.spacing:g} mm gives a singular RK moment matrix ({error})"
+            f"{discretization.spacing:g} mm (basis order {order}, quadrature order "
+            f"{discretization.quadrature_order}) gives a singular RK moment matrix ({error})"
         ) from None
     constrained = boundary_particles(particles, tissue, prescribed_segments, spacing)
     at_boundary = rk_shape_functions(particles[constrained.indices], particles, support, volumes,
@@ -140,7 +249,19 @@ def build_tissue_model(
 
 def model_for_scenario(scenario: Scenario) -> TissueModel:
     segments = tuple(load.segment for load in scenario.loads if load.displacement is not None)
-    return build_tissue_model(scenario.tissue, scenario.discretization, segments)
+    return build_tissue_model(scenario.tissue, scenario.discretization, segments,
+                              needle_zone_for(scenario))
+
+
+def needle_zone_for(scenario: Scenario) -> tuple[tuple[float, float], float] | None:
+    """(needle centre at entry, needle_zone x radius) when the particles are graded toward
+    the needle, else None."""
+    if scenario.needle is None or scenario.discretization.needle_spacing is None:
+        return None
+    from .needle import needle_geometry
+
+    geometry = needle_geometry(scenario.needle, scenario.tissue.size)
+    return tuple(geometry.center), scenario.discretization.needle_zone * geometry.radius
 
 
 def _gradient_operator(shape: ShapeFunctions, free_map: sp.csr_matrix) -> sp.csr_matrix:

@@ -15,9 +15,20 @@ from .config import Material
 IDENTITY = np.eye(2)
 
 
+def matmul22(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b for stacks of 2 x 2 matrices, (n, 2, 2); written out by components because
+    numpy's batched matmul is slow for matrices this small."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[:, 0, 0] = a[:, 0, 0] * b[:, 0, 0] + a[:, 0, 1] * b[:, 1, 0]
+    out[:, 0, 1] = a[:, 0, 0] * b[:, 0, 1] + a[:, 0, 1] * b[:, 1, 1]
+    out[:, 1, 0] = a[:, 1, 0] * b[:, 0, 0] + a[:, 1, 1] * b[:, 1, 0]
+    out[:, 1, 1] = a[:, 1, 0] * b[:, 0, 1] + a[:, 1, 1] * b[:, 1, 1]
+    return out
+
+
 def green_lagrange_strain(deformation_gradient: np.ndarray) -> np.ndarray:
     """E = (F^T F - I) / 2."""
-    return 0.5 * (deformation_gradient.transpose(0, 2, 1) @ deformation_gradient - IDENTITY)
+    return 0.5 * (matmul22(deformation_gradient.transpose(0, 2, 1), deformation_gradient) - IDENTITY)
 
 
 @dataclass(frozen=True)
@@ -35,8 +46,10 @@ class SaintVenantKirchhoff:
     def pk2_stress(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Returns S (n, 2, 2) and dS/dE (n, 2, 2, 2, 2)."""
         strain = green_lagrange_strain(deformation_gradient)
-        trace = np.trace(strain, axis1=1, axis2=2)
-        stress = self.lame_lambda * trace[:, None, None] * IDENTITY + 2.0 * self.lame_mu * strain
+        stress = 2.0 * self.lame_mu * strain
+        trace = self.lame_lambda * (strain[:, 0, 0] + strain[:, 1, 1])
+        stress[:, 0, 0] += trace
+        stress[:, 1, 1] += trace
         i = IDENTITY
         tangent = self.lame_lambda * np.einsum("ij,kl->ijkl", i, i) + self.lame_mu * (
             np.einsum("ik,jl->ijkl", i, i) + np.einsum("il,jk->ijkl", i, i)
@@ -61,7 +74,7 @@ class NeoHookean:
         return 0.5 * self.lame_mu * (i1 - 3.0) - self.lame_mu * log_j + 0.5 * self.lame_lambda * log_j**2
 
     def pk2_stress(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        right_cauchy_green = deformation_gradient.transpose(0, 2, 1) @ deformation_gradient
+        right_cauchy_green = matmul22(deformation_gradient.transpose(0, 2, 1), deformation_gradient)
         c_inv = np.linalg.inv(right_cauchy_green)
         log_j = np.log(determinant(deformation_gradient))
         stress = self.lame_mu * (IDENTITY - c_inv) + self.lame_lambda * log_j[:, None, None] * c_inv
@@ -92,7 +105,7 @@ def first_piola_and_tangent(
     """
     stress, tangent = model.pk2_stress(deformation_gradient)
     n = len(stress)
-    first_piola = deformation_gradient @ stress
+    first_piola = matmul22(deformation_gradient, stress)
     if isinstance(model, SaintVenantKirchhoff):
         # F C F for C = lambda I x I + 2 mu I_sym, in closed form:
         # lambda F_iJ F_kL + mu (F F^T)_ik delta_JL + mu F_iL F_kJ

@@ -31,7 +31,7 @@ import scipy.sparse as sp
 
 from .assembly import Assembler
 from .config import Scenario, ScenarioError
-from .discretization import TissueModel, build_tissue_model
+from .discretization import TissueModel, build_tissue_model, needle_zone_for
 from .needle import (NeedleGeometry, TipTrackingJump, inside, inverse_gradient_step,
                      levenberg_marquardt_tip, needle_geometry)
 from .saddle_point import SaddlePointSolver, condition_numbers
@@ -116,7 +116,8 @@ class NeedleInsertion:
         self.geometry = needle_geometry(self.needle, self.size)
         self.timings = {"discretization": 0.0, "assembly": 0.0, "solve": 0.0, "tip_tracking": 0.0}
         start = time.perf_counter()
-        self.model = model or build_tissue_model(scenario.tissue, scenario.discretization)
+        self.model = model or build_tissue_model(scenario.tissue, scenario.discretization,
+                                                 needle_zone=needle_zone_for(scenario))
         self.particle_values = self.model.shape_functions_at(self.model.particles).values
         self.timings["discretization"] += time.perf_counter() - start
         self.assembler = Assembler(self.model)
