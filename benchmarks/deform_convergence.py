@@ -18,6 +18,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 import _common as common  # noqa: E402
@@ -119,10 +120,12 @@ def main() -> None:
     h = np.array([r["spacing"] for r in runs[:-1]])
     e = np.array([r["error"] for r in runs[:-1]])
     axis.loglog(h, 100 * e, "o-", label=f"stitchplan (vs {finest:g} mm run)")
-    anchor = fit[0]
-    guide = 100 * anchor["error"] * (h / anchor["spacing"]) ** rate
-    axis.loglog(h, guide, "k--", lw=0.8, label=f"fit: h^{rate:.2f}")
+    slope, intercept = np.polyfit(np.log([r["spacing"] for r in fit]), np.log([r["error"] for r in fit]), 1)
+    axis.loglog(h, 100 * np.exp(intercept) * h**slope, "k--", lw=0.8, label=f"fit: h^{rate:.2f}")
     axis.axhline(1.0, color="grey", lw=0.8, ls=":")
+    axis.set_xticks(h)
+    axis.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+    axis.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     axis.set_xlabel("particle spacing h (mm)")
     axis.set_ylabel("max probe error (% of largest |u|)")
     axis.set_title("slab_edge_load: probe convergence")

@@ -155,9 +155,13 @@ def main() -> None:
                         "", "", "", "", ""])
     detail = common.markdown_table(detail_header, detail_rows)
 
+    work_slope = common.loglog_slope(particles, [r["spgemm_work_per_particle"] * r["particles"]
+                                                 for r in rows])
     summary = (f"Tangent assembly (update + tangent_matrix) time ~ particles^{slopes['assembly']:.2f} "
                f"over all spacings, ^{slopes_large['assembly']:.2f} over the {len(large)} finest "
-               f"(1.0 = linear). Whole deform ~ particles^{slopes['deform']:.2f}.")
+               f"(1.0 = linear). Whole deform ~ particles^{slopes['deform']:.2f}. The operation "
+               f"count of the sparse product B^T (W B), sum nnz(B row)^2, grows like "
+               f"particles^{work_slope:.2f} (timer-independent).")
     text = "\n".join([
         "# stitchplan deform: cost of the pieces against problem size",
         "",

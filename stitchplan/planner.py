@@ -33,6 +33,7 @@ class PlannerSettings:
     strict: bool = False  # raise PlanningFailure when eq. 4.2 fails instead of recording it
     exit_tolerance: float = 0.005  # mm: planned exit error that ends the passes
     max_passes: int = 4
+    exact_sensitivity: bool = True  # Newton with du(X_exit)/dO from the linearised equilibrium
 
 
 def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = None):
@@ -40,9 +41,10 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
 
     Within a step the fixed point O = O(t_0) + u(X_exit; O) (eq. 4.1) is iterated until the
     centre moves less than `tolerance`. The plain iteration contracts by the factor
-    ||du(X_exit)|| / ||dO|| of eq. 4.2, often 0.9 or more here, so the updates are
-    accelerated by a secant (Broyden) estimate B of du(X_exit)/dO: O <- O + (I - B)^-1 m,
-    m = O(t_0) + u(X_exit) - O, with B = 0 the thesis's plain update. If the exit point moved
+    ||du(X_exit)|| / ||dO|| of eq. 4.2, often 0.9 or more here, so the updates are Newton
+    steps O <- O + (I - B)^-1 m, m = O(t_0) + u(X_exit) - O, with B = du(X_exit)/dO from
+    the linearised constrained equilibrium (NeedleInsertion.center_sensitivity; with
+    exact_sensitivity off, a secant (Broyden) estimate; B = 0 is the thesis's plain update). If the exit point moved
     as much as the centre or more (eq. 4.2 fails), the step keeps its centre and the failure
     is recorded as an event (raised with `strict`). That happens when the needle is deep in
     the tissue: the material enclosed by the arc and the free edge then follows the needle
@@ -72,6 +74,8 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
         for iteration in range(1, settings.max_iterations + 1):
             best = keep_best()
             mismatch = origin + exit_displacement - center
+            if settings.exact_sensitivity:
+                jacobian = insertion.center_sensitivity(center, target)
             try:
                 move = np.linalg.solve(np.eye(2) - jacobian, mismatch)
             except np.linalg.LinAlgError:

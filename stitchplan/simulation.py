@@ -310,6 +310,29 @@ class NeedleInsertion:
             f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
             f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} iterations")
 
+    def center_sensitivity(self, center: np.ndarray, point: np.ndarray) -> np.ndarray:
+        """d u(point) / d C (2 x 2) of the constrained equilibrium at the current state.
+
+        Differentiating eq. 3.62's residuals with respect to the needle centre C:
+        K du + G dl = -d r_u/dC dC with d r_u/dC = -sum_k lambda_k N_k^T (I - n_k n_k^T) / rho_k,
+        and G^T du = -d g/dC dC with d g_k/dC = -n_k^T; solved with the current factor of K.
+        """
+        residual, violation, normal, rho, _, _ = self._fields(self.free, self.multipliers, center)
+        constraints = self._constraint_matrix(normal)
+        n_dof = 2 * self.model.n_free
+        blocks = -self.multipliers[:, None, None] * (np.eye(2) - normal[:, :, None] * normal[:, None, :]) / rho[:, None, None]
+        row = self.model.shape_functions_at(point[None]).values @ self.model.boundary.free_map
+        multipliers, curvature_normal = self.multipliers, normal
+        columns = []
+        for j in range(2):
+            force_change = self._expanded.T @ blocks[:, :, j].ravel()
+            rhs = -np.concatenate([force_change, -normal[:, j]])
+            solution = self.saddle.solve_direct(
+                lambda: self.assembler.tangent_matrix() + self._curvature(multipliers, curvature_normal, rho),
+                constraints, rhs, False, self._expanded, normal)
+            columns.append((row @ solution[:n_dof].reshape(-1, 2))[0])
+        return np.column_stack(columns)
+
     # --- tip tracking --------------------------------------------------------------------
 
     def track_tip(self, rotation_step: float, method: str) -> tuple[np.ndarray, str]:
