@@ -8,12 +8,17 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Optional
 
 import typer
+
+# the numerics are sparse and small-dense; BLAS threads only compete with each other on a
+# busy machine (set the variable yourself to override)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 app = typer.Typer(
     add_completion=False,
@@ -327,6 +332,35 @@ def plan(
         f"trajectory written to {export}"
     )
     _echo_events(planned.events)
+
+
+@app.command()
+@user_errors
+def study(
+    scenario_path: Path = ScenarioArgument,
+    out: Path = typer.Option(..., "--out", help="Folder for study.csv and speed_accuracy.png."),
+    quick: bool = typer.Option(False, "--quick", help="A tiny sweep: two families, two spacings."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log each run."),
+) -> None:
+    """Speed against accuracy: run the needle insertion over a sweep of discretization and
+    method choices (the scenario's `study:` block, or a default around its discretization)
+    and compare each run's exit point and wall time with the finest run's."""
+    from .config import ScenarioError
+
+    _setup_logging(verbose)
+    if out.exists() and not out.is_dir():
+        raise ScenarioError(f"--out: {out} is a file, expected a folder")
+    _check_outputs(out / "study.csv")
+    scenario = _load(scenario_path, None, None)
+    from .progress import progress_bar
+    from .study import run_study, study_size, summary_lines, write_study_outputs
+
+    with progress_bar("study runs", study_size(scenario, quick)) as advance:
+        result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label))
+    csv_path, png_path = write_study_outputs(result, out)
+    for line in summary_lines(result):
+        typer.echo(line)
+    typer.echo(f"study: wrote {csv_path} and {png_path}")
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -216,18 +216,18 @@ def build_tissue_model(
         points, weights = cell_quadrature(tissue.size, n_cells, discretization.quadrature_order)
     tree = cKDTree(particles)
     order = discretization.basis_order
-    try:
+    constrained = boundary_particles(particles, tissue, prescribed_segments, spacing)
+    try:  # at the quadrature points, then at the boundary particles (eq. 3.31)
         shape = rk_shape_functions(points, particles, support, volumes, order, True, tree,
                                    float(support.mean()))
+        at_boundary = rk_shape_functions(particles[constrained.indices], particles, support, volumes,
+                                         order, False, tree, float(support.mean())).values
     except SingularMomentMatrix as error:
         raise ScenarioError(
             f"discretization: dilation {discretization.dilation:g} with spacing "
             f"{discretization.spacing:g} mm (basis order {order}, quadrature order "
             f"{discretization.quadrature_order}) gives a singular RK moment matrix ({error})"
         ) from None
-    constrained = boundary_particles(particles, tissue, prescribed_segments, spacing)
-    at_boundary = rk_shape_functions(particles[constrained.indices], particles, support, volumes,
-                                     order, False, tree, float(support.mean())).values
     boundary = transformation(at_boundary, constrained, len(particles))
     gradient = _gradient_operator(shape, boundary.free_map)
     return TissueModel(

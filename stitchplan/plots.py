@@ -253,3 +253,78 @@ def plot_plan(path: str | Path, result) -> None:
     right.grid(alpha=0.3)
     right.legend()
     save(fig, path)
+
+
+def plot_speed_accuracy(path: str | Path, study) -> None:
+    """Wall time against exit-point deviation from the study's finest run (log-log), one
+    series per method family, the Pareto front joined and ringed; failed runs drawn as
+    crosses at the right edge (deviation unknown). Left: `deviation_mm` (largest of the
+    spatial, material and exit-error deviations); right: the spatial achieved exit alone."""
+    import math
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [r for r in study.runs if r is not study.reference]
+    families = list(dict.fromkeys(r.family for r in runs))
+    colours = plt.get_cmap("tab10")
+    fig, axes = plt.subplots(1, 2, figsize=(13.0, 5.5))
+    panels = (("deviation_mm", "exit-point deviation from the finest run (mm)\n"
+               "largest of spatial, material and exit-error vector"),
+              ("exit_deviation_mm", "achieved exit (spatial) deviation from the finest run (mm)"))
+    accuracy = getattr(study.auto, "accuracy", None)
+    for ax, (key, xlabel) in zip(axes, panels):
+        done = [r for r in runs if r.ok and key in r.deviations]
+        values = [r.deviations[key] for r in done]
+        floor = min([v for v in values if v > 0] or [1e-3]) / 3.0
+        top = max(values or [1.0]) * 3.0
+        times = [r.wall_seconds for r in done] or [r.wall_seconds for r in runs]
+        low, high = min(times) / 1.5, max(times) * 1.5
+
+        def x_of(run):
+            return max(run.deviations[key], floor)
+
+        for k, family in enumerate(families):
+            members = sorted((r for r in done if r.family == family), key=lambda r: r.spacing, reverse=True)
+            style = dict(color=colours(k % 10))
+            if family == "auto":
+                style = dict(color="crimson", marker="*", ms=16, ls="none")
+            else:
+                style.update(marker="o", ms=5, lw=0.8)
+            if members:
+                ax.plot([x_of(r) for r in members], [r.wall_seconds for r in members], label=family, **style)
+            failed = [r for r in runs if r.family == family and not r.ok]
+            if failed:  # times clipped to the successful runs' range (failures before a solve are instant)
+                ax.plot([top] * len(failed), [min(max(r.wall_seconds, low), high) for r in failed], "x",
+                        color=colours(k % 10),
+                        ms=8, mew=2, clip_on=False,
+                        label=f"{family}: {len(failed)} failed" if not members else None)
+        ordered = sorted(done, key=lambda r: (r.wall_seconds, r.deviations[key]))
+        front, best = [], math.inf
+        for run in ordered:
+            if run.deviations[key] < best:
+                front.append(run)
+                best = run.deviations[key]
+        ax.step([x_of(r) for r in front], [r.wall_seconds for r in front], where="pre", color="black",
+                lw=1.2, alpha=0.6)
+        ax.plot([x_of(r) for r in front], [r.wall_seconds for r in front], "o", mfc="none", mec="black",
+                ms=11, label="Pareto front")
+        if accuracy is not None and key == "deviation_mm":
+            ax.axvline(accuracy, color="crimson", ls="--", lw=1, label=f"auto target {accuracy:g} mm")
+        if any(not r.ok for r in runs):
+            ax.axvline(top, color="0.6", lw=0.8, ls=":")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_ylim(low, high)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("wall time (s)")
+        ax.grid(alpha=0.3, which="both")
+    reference = study.reference
+    axes[0].set_title(f"{study.scenario.name or 'study'}: speed against accuracy\n"
+                      f"finest run: {reference.label}, {reference.particles} particles, "
+                      f"{reference.wall_seconds:.1f} s (crosses at the right: failed runs)", fontsize=9)
+    axes[1].set_title("achieved exit, spatial position only (achieved_exit_def)", fontsize=9)
+    axes[0].legend(loc="upper center", bbox_to_anchor=(1.1, -0.16), ncol=5, fontsize=8, frameon=False)
+    save(fig, path)

@@ -424,9 +424,17 @@ def run_insertion(
     the planner move the centre after each step (Algorithm 2); center_path (n, 2) replays
     prescribed centres, row n used for step n (row 0 is the entry centre).
     """
+    auto_note = None
+    if scenario.discretization.accuracy is not None:  # `discretization: {accuracy: ...}`
+        from .auto import resolve_accuracy
+
+        scenario, auto_note = resolve_accuracy(scenario, tip_tracking=tip_tracking,
+                                               linear_solver=linear_solver)
     wall_start = time.perf_counter()
     insertion = NeedleInsertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking,
                                 condition_numbers=condition_numbers)
+    if auto_note is not None:
+        insertion.events.append(auto_note)
     geometry = insertion.geometry
     insertion.add_point(geometry.entry.copy())
     desired_exit = geometry.desired_exit
