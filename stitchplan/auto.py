@@ -18,9 +18,11 @@ x(h) - x* ~ C h^p,
     C = d / (h^p (1 - 2^-p)),  e(h') ~ C h'^p.
 
 p = 1 is assumed: the exit point converges at least that fast on the shipped scenes (the
-observed order on SH 1/2 is ~1.2-1.6), so the estimate errs on the safe side. The ladder
-starts at h0 = R/3 and halves until e(h/2) <= accuracy; then the largest h' on a
-2^(-1/4) ladder between h and h/2 with e(h') <= accuracy is chosen.
+observed order on SH 1/2 is ~1.2-1.6), so the estimate errs on the safe side. The pair
+starts at (R/3, R/6) and is halved while the accuracy lies beyond one more halving
+(e(h/4) > accuracy), so the estimate never extrapolates further than that; then the
+largest h' on a 2^(-1/4) ladder with e(h') <= accuracy is run and returned (from the first
+pair the ladder reaches up to 2 h, so a loose accuracy gets a model coarser than R/3).
 
 Methods, chosen on the first (cheapest) pair's discretization, the cheaper where safe:
 
@@ -44,7 +46,6 @@ log = logging.getLogger(__name__)
 
 ASSUMED_ORDER = 1.0  # convergence order of the exit point in the needle spacing (conservative)
 GRADING = 4  # coarse / needle spacing
-LADDER = (1.0, 2 ** -0.25, 2 ** -0.5, 2 ** -0.75, 0.5)  # h' / h between a pair h, h/2
 MAX_HALVINGS = 5
 
 
@@ -227,7 +228,8 @@ def choose_discretization(scenario: Scenario, accuracy: float, tip_tracking: str
         difference = _deviation(coarse, fine)
         constant = difference / (h ** ASSUMED_ORDER * (1.0 - 2.0 ** -ASSUMED_ORDER))  # e(h') ~ C h'^p
         pair = (h, fine, difference, constant, first)
-        if constant * (h / 2) ** ASSUMED_ORDER <= accuracy:
+        # extrapolate at most one halving beyond the pair; halve the pair when the target lies further
+        if constant * (h / 4) ** ASSUMED_ORDER <= accuracy:
             break
         h, coarse, first = h / 2, fine, False
     if pair is None:
@@ -236,16 +238,16 @@ def choose_discretization(scenario: Scenario, accuracy: float, tip_tracking: str
     h, fine, difference, constant, first = pair
     basis = (f"runs at needle spacing {h:.3g} and {h / 2:.3g} mm differ by {difference:.3g} mm, "
              f"order {ASSUMED_ORDER:g} assumed")
-    verified = constant * (h / 2) ** ASSUMED_ORDER <= accuracy
+    verified = constant * (h / 4) ** ASSUMED_ORDER <= accuracy
     chosen = fine
-    if verified:
-        # coarser than the pair only from the first pair, and by at most 2x
-        ladder = ((2.0, 2 ** 0.75, 2 ** 0.5, 2 ** 0.25) if first else ()) + LADDER
-        target = next(round(h * f, 4) for f in ladder
-                      if constant * (h * f) ** ASSUMED_ORDER <= accuracy or f == LADDER[-1])
-        candidate = run("chosen", target, tracking, solver)
-        if candidate.status == "ok":
-            chosen = candidate
+    # the largest spacing on a 2^(1/4) ladder whose estimated error meets the accuracy:
+    # between h/2 and h/4, or up to 2h coarser than the pair when it is the first one
+    ladder = tuple(2.0 ** (-k / 4) for k in range(-4 if first else 0, 9))
+    target = next((round(h * f, 4) for f in ladder if constant * (h * f) ** ASSUMED_ORDER <= accuracy),
+                  round(h / 4, 4))
+    candidate = run("chosen", target, tracking, solver)
+    if candidate.status == "ok":
+        chosen = candidate
     estimate = constant * chosen.needle_spacing ** ASSUMED_ORDER
     if chosen.role == "resolution":
         chosen.role = "chosen"

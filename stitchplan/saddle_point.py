@@ -10,7 +10,9 @@ multipliers, G the constraint rows (eq. 3.65). Two solvers:
   (a modified Newton step) and renewed when it slows down or the system grows;
 - minres: MINRES with the block-diagonal preconditioner diag(K0^-1, S^-1) of eq. 3.71-3.72,
   K0 the tangent at zero deformation (factorized once) and S = G^T K0^-1 G updated by
-  bordering as needle points are added (eq. 3.73-3.74). A MINRES run that stagnates falls
+  bordering as needle points are added (eq. 3.73-3.74): K0^-1 N^T is solved once per point,
+  S is re-formed with the current normals each Newton iteration and kept as a Cholesky
+  factor. A MINRES run that stagnates, or whose true residual misses its tolerance, falls
   back to the direct solve and says so.
 
 The thesis writes the Schur block as G^T K G; the preconditioner here uses G^T K0^-1 G,
@@ -48,6 +50,7 @@ class SchurPreconditioner:
         self.columns = np.zeros((0, 0))  # K0^-1 G, (n, k)
         self.constraints = np.zeros((0, 0))  # G, (n, k)
         self.cholesky = np.zeros((0, 0))  # L, lower triangular, S = L L^T, (k, k)
+        self._solved_rows = np.zeros((0, 0))  # K0^-1 N^T, two columns per point, (n, 2k)
 
     @property
     def size(self) -> int:
@@ -68,7 +71,9 @@ class SchurPreconditioner:
         """L <- [[L, 0], [l^T, d]] with L l = v, d^2 = alpha - l^T l (the new Schur pivot)."""
         l = scipy.linalg.solve_triangular(self.cholesky, v, lower=True) if self.size else np.zeros(0)
         # a constraint (nearly) dependent on the earlier ones leaves the pivot at round-off
-        # level; keep it positive so MINRES sees an SPD preconditioner
+        # level: factor S + 1e-12 diag(S) instead (pivots then stay >= ~1e-12 alpha, so l
+        # stays bounded), and keep the pivot positive so MINRES sees an SPD preconditioner
+        alpha = alpha * (1.0 + 1e-12)
         d = np.sqrt(max(alpha - l @ l, 1e-12 * alpha))
         k = self.size
         grown = np.zeros((k + 1, k + 1))
@@ -86,6 +91,26 @@ class SchurPreconditioner:
             [self.constraints, column[:, None]])
         self.columns = solved[:, None] if self.columns.size == 0 else np.hstack([self.columns, solved[:, None]])
         self._border(v, alpha)  # eq. 3.73-3.74, on the Cholesky factor
+
+    def refresh(self, constraints: sp.spmatrix, expanded_rows: sp.csr_matrix, normals: np.ndarray) -> None:
+        """Re-form S = G^T K0^-1 G with the current normals (each Newton iteration).
+
+        The columns bordered in by `add` carry each point's normal at the moment it was
+        added; as the tissue slides along the needle the normals turn, and with nearly
+        dependent constraints the stale S is a poor preconditioner (10x more MINRES
+        iterations and direct fallbacks on the SH 1/2 scenario). K0^-1 N^T (two directions
+        per point) is solved once per point and cached, so only the k x k matrix S and its
+        Cholesky factor are renewed: G = N^T n gives K0^-1 G = (K0^-1 N^T) n.
+        """
+        n, k = constraints.shape
+        solved = self._solved_rows if self._solved_rows.shape[0] == n else np.zeros((n, 0))
+        if solved.shape[1] < 2 * k:
+            new = self.stiffness_factor.solve(expanded_rows[solved.shape[1]: 2 * k].T.toarray())
+            solved = np.hstack([solved, new.reshape(n, -1)])
+            self._solved_rows = solved
+        self.columns = np.einsum("nkd,kd->nk", solved[:, : 2 * k].reshape(n, k, 2), normals)  # K0^-1 G
+        self.constraints = constraints.toarray()
+        self.keep(np.arange(k))
 
     def keep(self, active: np.ndarray) -> None:
         """Drop constraints (refactors S from the stored columns)."""
@@ -161,9 +186,16 @@ class SaddlePointSolver:
             multipliers = np.linalg.lstsq(schur, right, rcond=1e-13)[0]
         return np.concatenate([a - solved @ multipliers, multipliers])
 
-    def solve_minres(self, stiffness_product, constraints: sp.spmatrix, rhs: np.ndarray) -> tuple[np.ndarray | None, int]:
+    def solve_minres(self, stiffness_product, constraints: sp.spmatrix, rhs: np.ndarray,
+                     expanded_rows: sp.csr_matrix | None = None,
+                     normals: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
+        """MINRES on the saddle system with diag(K0^-1, S^-1); with `expanded_rows` (N per
+        point, interleaved) and the current `normals`, S is re-formed from the current G
+        (SchurPreconditioner.refresh), otherwise the bordered S of `add` is used."""
         n, k = constraints.shape
         g_t = constraints.T.tocsr()
+        if expanded_rows is not None and k:
+            self.schur.refresh(constraints, expanded_rows, normals)
 
         def matvec(x):
             return np.concatenate([stiffness_product(x[:n]) + constraints @ x[n:], g_t @ x[:n]])

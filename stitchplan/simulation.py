@@ -150,7 +150,10 @@ class NeedleInsertion:
         return self.model.boundary.free_map @ self.free
 
     def displacement(self, points: np.ndarray, gradient: bool = False):
-        shape = self.model.shape_functions_at(np.atleast_2d(points), gradients=gradient)
+        # a probe outside the tissue (LM trying points past the exit) may lie outside every
+        # kernel support: evaluate the field at the nearest tissue point instead
+        points = np.clip(np.atleast_2d(points), [0.0, 0.0], self.size)
+        shape = self.model.shape_functions_at(points, gradients=gradient)
         d = self.coefficients()
         u = shape.values @ d
         if not gradient:
@@ -287,7 +290,8 @@ class NeedleInsertion:
             if self.linear_method == "minres":
                 curvature = self._curvature(multipliers, normal, rho)
                 solution, its = self.saddle.solve_minres(
-                    lambda v: self.assembler.tangent_product(v) + curvature @ v, constraints, rhs)
+                    lambda v: self.assembler.tangent_product(v) + curvature @ v, constraints, rhs,
+                    self._expanded, normal)
                 minres_total += its
                 if solution is None:
                     self.saddle.fallbacks += 1

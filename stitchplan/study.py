@@ -168,9 +168,9 @@ def parse_study(raw: Any, path: str = "study") -> StudySpec:
 
 
 def default_spacings(scenario: Scenario, quick: bool = False) -> tuple[float, ...]:
-    """Around the scenario's spacing h: from 2 h down to 0.65 h (quick: 2 h and 1.4 h)."""
+    """Around the scenario's spacing h: from 1.6 h down to 0.7 h (quick: 1.4 h and h)."""
     h = scenario.discretization.spacing
-    factors = (2.0, 1.4) if quick else (2.0, 1.6, 1.3, 1.0, 0.8, 0.65)
+    factors = (1.4, 1.0) if quick else (1.6, 1.35, 1.15, 1.0, 0.85, 0.7)
     return tuple(round(h * f, 3) for f in factors)
 
 
@@ -187,7 +187,9 @@ def default_families(scenario: Scenario, quick: bool = False) -> tuple[StudyFami
         StudyFamily(f"linear solver {other_solver}", linear_solver=other_solver),
         StudyFamily("dilation 1.5", dilation=1.5) if d.dilation != 1.5 else StudyFamily("dilation 2.5", dilation=2.5),
         StudyFamily(f"quadrature {d.quadrature_order + 1}", quadrature_order=d.quadrature_order + 1),
-        StudyFamily(f"basis order {3 - d.basis_order}", basis_order=3 - d.basis_order),
+        # a quadratic basis needs the support to reach past two neighbours at the edges
+        StudyFamily("basis order 2, dilation 2.5", basis_order=2, dilation=max(d.dilation, 2.5))
+        if d.basis_order == 1 else StudyFamily("basis order 1", basis_order=1),
         StudyFamily(f"step {needle.step / 2:g}", step=needle.step / 2),
     ])
 

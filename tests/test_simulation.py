@@ -227,7 +227,7 @@ def test_strict_inverse_gradient_fails_at_the_jump_naming_step_and_angle():
 # --- Algorithm 1 ---------------------------------------------------------------------------
 
 
-def ramped_magnitudes(insertion: NeedleInsertion, force: float) -> np.ndarray:
+def ramped_magnitudes(insertion: NeedleInsertion, force: float) -> tuple[np.ndarray, float]:
     """Algorithm 1's split of the insertion force F (N) over the Gauss points of Gamma_N:
     friction up to its full value (friction x inserted length) spread evenly over the
     segments, the remainder to the tip segment. Returns (per Gauss point magnitudes, tip force)."""
@@ -314,16 +314,120 @@ def test_algorithm_1_force_ramp_adds_points_at_the_directly_solved_state():
 
 # --- shipped scenarios ---------------------------------------------------------------------
 
-# configs/needle20_entry*.yaml at their default 5 mm spacing: exit error (mm) pinned to 5 % -
-# the value moves by more than that only if the needle loads, the constraint or the tip
-# tracking change; Newton's tolerance and the machine move it by far less than 1e-6 mm.
-NEEDLE20_EXIT_ERROR = {30: 0.014206, 20: 0.006401}
+# Exit errors (mm) of the shipped needle scenarios at their default spacings, pinned to 2 %:
+# the direct and MINRES solves agree to 1e-9 mm and Newton's tolerance moves the value by
+# far less, while halving the spacing moves it by ~13 % (benchmarks/results/
+# simulate_convergence.md) - a 2 % change means the model (loads, constraint, tip tracking,
+# discretization defaults) changed, which should be deliberate.
+NEEDLE20_EXIT_ERROR = {30: 0.014206, 25: 0.008918, 20: 0.006401, 18: 0.004297}
+SH12_SERIES_EXIT_ERROR = {"sh12_100x100_mid": 0.3151, "sh12_100x50": 0.4102, "sh12_100x40": 0.4877,
+                          "sh12_100x30": 0.6499}
 
 
 @pytest.mark.parametrize("entry_y", sorted(NEEDLE20_EXIT_ERROR))
 def test_shipped_needle20_scenarios_run_to_the_bottom_edge(entry_y):
     result = run_insertion(load_scenario(CONFIGS / f"needle20_entry{entry_y}.yaml"))
     assert abs(result.achieved_exit[1]) <= 1e-9  # out through the bottom edge, as documented
-    assert result.exit_error_mm == pytest.approx(NEEDLE20_EXIT_ERROR[entry_y], rel=0.05)
+    assert result.exit_error_mm == pytest.approx(NEEDLE20_EXIT_ERROR[entry_y], rel=0.02)
     assert max(s.constraint_violation for s in result.steps) <= CONSTRAINT_TOLERANCE
     assert result.steps[-1].rotation < result.geometry.exit_rotation + result.geometry.step
+
+
+def test_shipped_sh12_block_series_exit_error_grows_as_the_block_narrows():
+    """configs/sh12_100x{100_mid,50,40,30}.yaml: each tip leaves through the left edge near
+    its desired exit, with the pinned exit error, growing as the block narrows (thesis
+    table 5.1's trend)."""
+    errors = []
+    for name, pinned in SH12_SERIES_EXIT_ERROR.items():
+        result = run_insertion(load_scenario(CONFIGS / f"{name}.yaml"))
+        assert abs(result.achieved_exit[0]) <= 1e-9
+        assert result.exit_error_mm == pytest.approx(pinned, rel=0.02), name
+        errors.append(result.exit_error_mm)
+    assert errors == sorted(errors)
+
+
+# --- saddle-point solves -------------------------------------------------------------------
+
+
+def dense_rest_stiffness(insertion: NeedleInsertion) -> np.ndarray:
+    """K0, the tangent at zero deformation, as a dense matrix."""
+    from stitchplan.assembly import Assembler
+
+    assembler = Assembler(insertion.model)
+    assembler.update(np.tile(np.eye(2), (len(insertion.model.quadrature_weights), 1, 1)))
+    return assembler.tangent_matrix().toarray()
+
+
+def test_schur_preconditioner_stays_positive_definite_with_nearly_dependent_points():
+    """60 needle points 0.16 mm apart on a 4 mm particle grid make S = G^T K0^-1 G nearly
+    singular (cond > 1e8). The bordered Cholesky factor still reproduces S to 1e-8 of its
+    norm (it factors S + 1e-10 diag S) with positive pivots, so S^-1 x stays an SPD map."""
+    scenario = small_scene(step=0.02, linear_solver="minres")
+    insertion = NeedleInsertion(scenario)
+    for rotation in np.arange(60) * 0.02:
+        insertion.add_point(insertion.geometry.tip(rotation))
+    schur = insertion.saddle.schur
+    k0 = dense_rest_stiffness(insertion)
+    g = schur.constraints
+    exact = g.T @ np.linalg.solve(k0, g)
+    assert np.linalg.cond(exact) > 1e8
+    lower = schur.cholesky
+    assert np.all(np.diag(lower) > 0.0) and np.allclose(lower, np.tril(lower))
+    assert np.linalg.norm(lower @ lower.T - exact) <= 1e-8 * np.linalg.norm(exact)
+    probes = np.random.default_rng(3).standard_normal((60, 10))
+    assert np.all(np.einsum("ij,ij->j", probes, schur.solve(probes)) > 0.0)
+
+
+def test_minres_solution_meets_its_true_residual_tolerance(rng):
+    """solve_minres returns a Newton step whose true residual |b - A x| / |b| is below
+    minres_true_rtol (scipy's own stopping test is a backward error in the preconditioned
+    norm that can pass at 1e-4 ... 1 on these systems)."""
+    insertion = started(small_scene(linear_solver="minres"), steps=5)
+    free, multipliers = insertion.free + 0.02 * rng.standard_normal(insertion.free.shape), insertion.multipliers
+    residual, violation, constraints, curvature, _, _ = insertion._state(free, multipliers, insertion.center, 1.0)
+    rhs = -np.concatenate([residual, violation])
+    solver = insertion.saddle
+    solution, iterations = solver.solve_minres(lambda v: insertion.assembler.tangent_product(v) + curvature @ v,
+                                               constraints, rhs, insertion._expanded, insertion._normals)
+    assert solution is not None and 0 < iterations <= solver.minres_maxiter
+    n = constraints.shape[0]
+    tangent = insertion.assembler.tangent_matrix() + curvature
+    true = np.concatenate([tangent @ solution[:n] + constraints @ solution[n:], constraints.T @ solution[:n]]) - rhs
+    assert np.linalg.norm(true) <= solver.minres_true_rtol * np.linalg.norm(rhs)
+
+
+def test_stagnating_minres_falls_back_to_the_direct_solve_and_says_so():
+    """With a MINRES budget of 3 iterations every linear solve falls back: the step still
+    converges (through the direct solve) and each fallback is logged as an event."""
+    insertion = started(small_scene(linear_solver="minres"))
+    insertion.saddle.minres_maxiter = 3
+    advance(insertion, 2)
+    assert insertion.saddle.fallbacks >= 2 and insertion.saddle.factorizations >= 1
+    assert len(insertion.events) == insertion.saddle.fallbacks
+    assert insertion.events[0].startswith("MINRES stagnated after 3 iterations at step 1 (needle rotation 0.200 rad)")
+    assert "fell back to the direct solve" in insertion.events[0]
+    assert insertion.last_violation <= CONSTRAINT_TOLERANCE
+
+
+def test_condition_numbers_match_generalised_eigenvalues():
+    """insertion_condition_numbers: cond of the saddle matrix A, and of P^-1 A with
+    P = diag(K0, G^T K0^-1 G), against dense (generalised) symmetric eigenvalue problems."""
+    import scipy.linalg
+
+    from stitchplan.simulation import insertion_condition_numbers
+
+    insertion = started(small_scene(spacing=5.0, linear_solver="minres"), steps=3)
+    saddle_cond, preconditioned_cond = insertion_condition_numbers(insertion, 0.6)
+    _, _, constraints, curvature, _, _ = insertion._state(insertion.free, insertion.multipliers,
+                                                         insertion.center, 0.6)
+    g = constraints.toarray()
+    n, k = g.shape
+    stiffness = insertion.assembler.tangent_matrix().toarray() + curvature.toarray()
+    saddle = np.block([[stiffness, g], [g.T, np.zeros((k, k))]])
+    k0 = dense_rest_stiffness(insertion)
+    preconditioner = scipy.linalg.block_diag(k0, g.T @ np.linalg.solve(k0, g))
+    plain = np.abs(np.linalg.eigvalsh(saddle))
+    general = np.abs(scipy.linalg.eigh(saddle, preconditioner, eigvals_only=True))
+    assert saddle_cond == pytest.approx(plain.max() / plain.min(), rel=1e-6)
+    assert preconditioned_cond == pytest.approx(general.max() / general.min(), rel=1e-6)
+    assert preconditioned_cond < 10.0 < saddle_cond

@@ -1,0 +1,240 @@
+"""Stability limits: each test reproduces where the weaker method fails and checks what the
+tool does about it (README, "Stability limits").
+
+1. Inverse-gradient tip tracking against Levenberg-Marquardt as the cutting force (and with
+   it the deformation at the tip) grows: the inverse-gradient path drifts from LM's without
+   any jump being detected, and from 2.7 N on the jump detector fires at step 3: strict
+   'inverse-gradient' raises InsertionFailure naming the step and angle, 'auto' falls back
+   to LM and records an event.
+2. MINRES with the thesis's block preconditioner as needle points accumulate: iterations
+   per solve and the preconditioned condition number grow with the number of constraints
+   (the unpreconditioned one by eight orders of magnitude); a MINRES that stagnates falls
+   back to the direct solve with an event and the same answer.
+3. Newton with St. Venant-Kirchhoff under strong compression: a punch pressed into a block
+   needs load-step cutting at 3.5 mm and fails beyond ~3.9 mm with a SolverDivergence
+   naming the load step and fraction; neo-Hookean solves 8 mm without a cut.
+4. A dilation too small for the moment matrix (here a quadratic basis): a ScenarioError
+   naming the dilation, spacing and orders, raised before any solve.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from stitchplan.cli import app
+from stitchplan.config import ScenarioError, parse_scenario
+from stitchplan.deform import run_deform
+from stitchplan.material import determinant
+from stitchplan.simulation import InsertionFailure, run_insertion
+from stitchplan.solver import SolverDivergence
+from stitchplan.study import exit_deviations
+
+PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
+
+
+def needle_scene(*, cutting_force=0.7, spacing=4.0, step=0.2, **needle):
+    """40 x 30 mm phantom block clamped on the right, 8 mm needle entering (0, 22) cw: 99
+    particles at 4 mm, well under a second per insertion."""
+    return parse_scenario({
+        "tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": ["right"], "material": dict(PHANTOM)},
+        "discretization": {"spacing": spacing},
+        "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": step, "friction": 0.0602,
+                   "cutting_force": cutting_force, **needle}})
+
+
+# --- 1. tip tracking ------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tracking_sweep():
+    """Per cutting force (N): the LM run, and the strict inverse-gradient run (or its failure)."""
+    sweep = {}
+    for force in (0.7, 1.5, 2.5, 2.7):
+        lm = run_insertion(needle_scene(cutting_force=force, tip_tracking="levenberg-marquardt"))
+        try:
+            strict = run_insertion(needle_scene(cutting_force=force, tip_tracking="inverse-gradient"))
+        except InsertionFailure as failure:
+            strict = failure
+        sweep[force] = lm, strict
+    return sweep
+
+
+def test_inverse_gradient_drifts_from_levenberg_marquardt_as_the_tip_force_grows(tracking_sweep):
+    """Below the jump threshold every inverse-gradient step passes the jump checks, yet the
+    exit drifts from LM's by 0.33 mm at the phantom's 0.7 N and by 0.71 mm at 2.5 N, growing
+    with the largest displacement (0.45 -> 0.94 mm): X + F^-1 dx moves the tip a rotation step
+    along the deformed circle, LM an insertion step R theta through the material, and the two
+    part as the tissue stretches along the needle."""
+    drift, largest = [], []
+    for force in (0.7, 1.5, 2.5):
+        lm, strict = tracking_sweep[force]
+        assert not isinstance(strict, Exception) and not strict.events
+        assert {s.tracking for s in strict.steps} == {"inverse-gradient"}
+        drift.append(exit_deviations(strict, lm)["deviation_mm"])
+        largest.append(float(np.linalg.norm(lm.displacements[-1], axis=1).max()))
+    assert drift[0] > 0.3 and drift[-1] > 0.7
+    assert np.all(np.diff(drift) > 0) and np.all(np.diff(largest) > 0)
+
+
+def test_strict_inverse_gradient_fails_at_the_jump_and_auto_falls_back(tracking_sweep):
+    """At 2.7 N (largest displacement ~1 mm) the step-3 inverse-gradient point misses the
+    needle by more than 5 % of the step: strict tracking stops with InsertionFailure naming
+    the step and angle; 'auto' switches to LM for that step, says so, and exits closer to the
+    LM exit than strict tracking did at any smaller force."""
+    lm, strict = tracking_sweep[2.7]
+    assert isinstance(strict, InsertionFailure)
+    assert str(strict).startswith("inverse-gradient tip tracking jumped at step 3 (needle rotation 0.600 rad)")
+    auto = run_insertion(needle_scene(cutting_force=2.7, tip_tracking="auto"))
+    assert auto.events and all("fell back to Levenberg-Marquardt" in event for event in auto.events)
+    assert "at step 3 (needle rotation 0.600 rad)" in auto.events[0]
+    assert [s.tracking for s in auto.steps][2] == "levenberg-marquardt"
+    drift_auto = exit_deviations(auto, lm)["deviation_mm"]
+    drift_before = exit_deviations(tracking_sweep[2.5][1], tracking_sweep[2.5][0])["deviation_mm"]
+    assert drift_auto < drift_before
+
+
+# --- 2. MINRES --------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def minres_run():
+    """MINRES with diag(K0^-1, S^-1) on the coarse scene in 0.1 rad steps: 30 needle
+    points, condition numbers (dense) recorded at every step."""
+    return run_insertion(needle_scene(step=0.1), linear_solver="minres", tip_tracking="levenberg-marquardt",
+                         condition_numbers=True)
+
+
+def test_minres_iterations_and_preconditioned_condition_grow_with_the_constraints(minres_run):
+    """Observed: about 9 iterations per Newton solve with 2 needle points and roughly three
+    times that with 30; the preconditioned condition number 2.6 -> 2.9 while the saddle
+    matrix's own goes from 5e2 to 1e11. The preconditioner keeps MINRES usable, but its work per solve grows with k."""
+    steps = minres_run.steps
+    points = np.array([s.needle_points for s in steps])
+    per_solve = np.array([s.minres_iterations / s.newton_iterations for s in steps])
+    preconditioned = np.array([s.condition_preconditioned for s in steps])
+    saddle = np.array([s.condition_saddle for s in steps])
+    assert points[0] == 2 and points[-1] >= 30
+    first, last = slice(0, 5), slice(-5, None)
+    assert per_solve[last].mean() > 1.6 * per_solve[first].mean()
+    # the preconditioner (S refreshed with the current normals) keeps the condition bounded
+    # while the saddle matrix's grows by orders of magnitude
+    assert preconditioned.max() < 10 and saddle[-1] > 1e6 * saddle[0]
+    slope = np.polyfit(points, per_solve, 1)[0]
+    assert slope > 0.15  # iterations per solve grow with each added needle point (measured ~0.28)
+
+
+def test_a_stagnating_minres_falls_back_to_the_direct_solve(monkeypatch):
+    """With its iteration budget cut to 3, MINRES cannot converge: every Newton step falls
+    back to the direct solve, each fallback is an event naming the step and angle, and the
+    insertion is the direct one (exit to 1e-7 mm)."""
+    import stitchplan.simulation as simulation
+
+    original = simulation.SaddlePointSolver
+
+    def starved(method, stiffness_factor=None, **options):
+        return original(method, stiffness_factor, **{**options, "minres_maxiter": 3})
+
+    monkeypatch.setattr(simulation, "SaddlePointSolver", starved)
+    scenario = needle_scene()
+    fallback = run_insertion(scenario, linear_solver="minres", tip_tracking="levenberg-marquardt")
+    monkeypatch.setattr(simulation, "SaddlePointSolver", original)
+    direct = run_insertion(scenario, linear_solver="direct", tip_tracking="levenberg-marquardt")
+    assert fallback.solver_counts["minres_fallbacks"] == len(fallback.events) > 0
+    assert re.match(r"MINRES stagnated after \d+ iterations at step 1 \(needle rotation 0\.200 rad\): "
+                    r"fell back to the direct solve", fallback.events[0])
+    np.testing.assert_allclose(fallback.achieved_exit_def, direct.achieved_exit_def, atol=1e-7)
+
+
+# --- 3. St. Venant-Kirchhoff under compression --------------------------------------------------
+
+
+def punch(model: str, depth: float, load_steps: int = 10, max_step_cuts: int = 6):
+    """20 x 20 mm phantom block clamped at the bottom, a 10 mm punch in the middle of the top
+    edge pressed down by `depth` mm (prescribed displacement)."""
+    return parse_scenario({
+        "tissue": {"size": [20.0, 20.0], "thickness": 10.0, "clamped": ["bottom"],
+                   "material": {"model": model, **PHANTOM}},
+        "discretization": {"spacing": 2.0},
+        "loads": [{"segment": [[5.0, 20.0], [15.0, 20.0]], "displacement": [0.0, -depth]}],
+        "load_steps": load_steps, "solver": {"max_step_cuts": max_step_cuts}})
+
+
+def min_jacobian(result) -> float:
+    return float(determinant(result.model.deformation_gradient(result.coefficients)).min())
+
+
+def test_saint_venant_kirchhoff_needs_step_cutting_then_fails_under_the_punch():
+    """3.5 mm in one load step: the full step inverts the material (det F = -0.89), two cuts
+    make it converge (min det F 0.53). 3.9 mm: Newton fails at load fraction 0.995 even in
+    40 load steps with 6 cuts each: past the SVK stress maximum in compression there is no
+    nearby equilibrium to converge to. The error names the load step and fraction."""
+    with pytest.raises(SolverDivergence, match=r"Newton failed at load step 1 \(load fraction 1\.0000\) "
+                                               r"after 0 step cuts: det F = -"):
+        run_deform(punch("saint-venant-kirchhoff", 3.5, load_steps=1, max_step_cuts=0))
+    cut = run_deform(punch("saint-venant-kirchhoff", 3.5, load_steps=1))
+    assert cut.report.cuts >= 1 and 0.3 < min_jacobian(cut) < 0.6
+    with pytest.raises(SolverDivergence) as failure:
+        run_deform(punch("saint-venant-kirchhoff", 3.9))
+    match = re.match(r"Newton failed at load step (\d+) \(load fraction (0\.\d+)\) after 6 step cuts: ",
+                     str(failure.value))
+    assert match and int(match.group(1)) == 10 and 0.9 < float(match.group(2)) < 1.0
+
+
+def test_neo_hookean_solves_the_deeper_punch_without_cutting():
+    """8 mm (40 % of the block) in 10 load steps, no cut: ln J in the energy keeps det F away
+    from 0 (min 0.38) and the equilibrium residual is at Newton's tolerance."""
+    result = run_deform(punch("neo-hookean", 8.0))
+    assert result.report.cuts == 0
+    assert 0.2 < min_jacobian(result) < 0.5
+    assert result.report.steps[-1].residual < 1e-6
+    # the punch really went 8 mm down: the displacement at its centre
+    centre = result.model.shape_functions_at(np.array([[10.0, 20.0]])).values @ result.coefficients
+    assert centre[0, 1] == pytest.approx(-8.0, abs=1e-6)
+
+
+# --- 4. moment matrix ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dilation", [1.5, 2.0])
+def test_a_dilation_too_small_for_the_moment_matrix_is_refused_before_any_solve(dilation, monkeypatch):
+    """A quadratic basis needs 6 particles under every kernel; at an edge a support of
+    2 spacings reaches only two columns of particles (the third lies exactly on the support's
+    edge), so dilation 2 is too small there and 1.5 already inside. The model build raises a
+    ScenarioError naming dilation, spacing and orders; no tangent is ever assembled."""
+    import stitchplan.assembly as assembly
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("a solve started")
+
+    monkeypatch.setattr(assembly.Assembler, "update", no_solve)
+    scenario = needle_scene(spacing=4.0)
+    from dataclasses import replace
+
+    scenario = replace(scenario, discretization=replace(scenario.discretization, basis_order=2, dilation=dilation))
+    with pytest.raises(ScenarioError) as error:
+        run_insertion(scenario)
+    message = str(error.value)
+    assert message.startswith(f"discretization: dilation {dilation:g} with spacing 4 mm (basis order 2, "
+                              "quadrature order 2) gives a singular RK moment matrix")
+    assert "increase the dilation" in message
+
+
+def test_the_cli_turns_the_moment_matrix_error_into_one_line(tmp_path, write_scenario):
+    raw = {"tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": ["right"], "material": dict(PHANTOM)},
+           "discretization": {"spacing": 4.0, "dilation": 1.5, "basis_order": 2},
+           "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2}}
+    summary = tmp_path / "summary.json"
+    result = CliRunner().invoke(app, ["simulate", str(write_scenario(raw)), "--summary", str(summary)])
+    assert result.exit_code == 2 and len(result.output.strip().splitlines()) == 1
+    assert result.output.startswith("error: discretization: dilation 1.5 with spacing 4 mm (basis order 2")
+    assert not summary.exists()
+
+
+def test_a_linear_basis_at_dilation_one_is_refused_by_the_config():
+    with pytest.raises(ScenarioError, match=r"discretization.dilation: got 1.0, expected a number > 1"):
+        parse_scenario({"tissue": {"size": [40.0, 30.0], "thickness": 10.0, "material": dict(PHANTOM)},
+                        "discretization": {"dilation": 1.0}})

@@ -1,0 +1,309 @@
+"""`stitchplan study` and the auto discretization, on a tiny scene that runs in seconds:
+
+- the `study:` block is validated like the rest of the scenario (unknown keys, bad values
+  and a reference with more than one spacing refused, naming the field);
+- the CLI writes study.csv with every promised column, one row per run, the reference
+  last at zero deviation, a failing configuration (a quadratic basis with a dilation too
+  small for its moment matrix) recorded with its reason instead of dropped, and the PNG;
+- the Pareto front and the exit-point deviations on hand-made records;
+- graded particles: volumes tile the slab, the spacing is fine in the needle zone and the
+  2:1 balance holds, and the RK functions with per-particle supports reproduce linear
+  fields to round-off;
+- the auto discretization meets its accuracy against a finer run, says what it relied on
+  and what it chose, and runs once per scenario when simulate asks for it.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from stitchplan.cli import app
+from stitchplan.config import ScenarioError, parse_scenario, with_discretization
+from stitchplan.study import COLUMNS, StudyFamily, StudyRun, exit_deviations, pareto_front, plan_runs
+
+PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
+REQUIRED_COLUMNS = ("family", "spacing_mm", "dilation", "quadrature_order", "basis_order", "step_rad",
+                    "tip_tracking", "linear_solver", "wall_seconds", "particles", "exit_error_mm",
+                    "exit_deviation_mm", "status", "reason")
+
+
+def tiny_raw(study: dict | None = None, **needle) -> dict:
+    """40 x 30 mm phantom block clamped on the right, 8 mm needle entering (0, 22) cw in
+    0.4 rad steps (8 steps): a run on 5 mm particles takes a fraction of a second."""
+    raw = {"name": "tiny", "tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": ["right"],
+                                      "material": dict(PHANTOM)},
+           "discretization": {"spacing": 5.0},
+           "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.4, "friction": 0.0602,
+                      "cutting_force": 0.7, **needle}}
+    if study is not None:
+        raw["study"] = study
+    return raw
+
+
+SWEEP = {"spacing": [6.0, 5.0],
+         "families": [{"name": "uniform"},
+                      {"name": "graded x2", "grading": 2},
+                      {"name": "quadratic, dilation 1.5", "basis_order": 2, "dilation": 1.5}],
+         "reference": {"spacing": 3.0}}
+
+
+# --- the study block -----------------------------------------------------------------------
+
+
+def test_study_block_is_parsed_into_families_and_reference():
+    spec = parse_scenario(tiny_raw(SWEEP)).study
+    assert spec.spacing == (6.0, 5.0) and spec.repeats == 1
+    assert [f.name for f in spec.families] == ["uniform", "graded x2", "quadratic, dilation 1.5"]
+    assert spec.families[1].grading == 2 and spec.families[2].basis_order == 2
+    assert spec.reference.spacing == (3.0,) and spec.reference.name == "reference"
+    runs, reference, _ = plan_runs(parse_scenario(tiny_raw(SWEEP)))
+    assert len(runs) == 6 and reference.scenario.discretization.spacing == 3.0
+    graded = [r for r in runs if r.family == "graded x2"][0].scenario.discretization
+    assert (graded.spacing, graded.needle_spacing) == (12.0, 6.0)
+
+
+@pytest.mark.parametrize("study, fragment", [
+    ({"spacings": [4.0]}, "study: unknown key 'spacings', expected one of: spacing, families"),
+    ({"spacing": []}, "study.spacing: got [], expected a non-empty list of spacings (mm)"),
+    ({"spacing": [4.0, -1.0]}, "study.spacing[1]: got -1.0, expected a positive number (mm)"),
+    ({"families": [{"name": "a", "solver": "minres"}]}, "study.families[0]: unknown key 'solver'"),
+    ({"families": [{"tip_tracking": "newton"}]}, "study.families[0].tip_tracking: got 'newton', expected one of"),
+    ({"families": [{"grading": 3}]}, "study.families[0].grading: got 3, expected one of 2, 4, 8, 16"),
+    ({"families": [{"dilation": 0.9}]}, "dilation: got 0.9, expected a number > 1"),
+    ({"families": [{"name": "a"}, {"name": "a"}]}, "study.families: got ['a', 'a'], expected families with distinct names"),
+    ({"reference": {"spacing": [1.0, 2.0]}}, "study.reference.spacing: got [1.0, 2.0], expected one spacing (mm)"),
+    ({"repeats": 0}, "study.repeats: got 0, expected an integer between 1 and 20"),
+])
+def test_bad_study_blocks_are_refused_naming_the_field(study, fragment):
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(tiny_raw(study))
+    assert fragment in str(error.value)
+
+
+def test_quick_study_is_two_families_of_two_spacings_and_a_finer_reference():
+    runs, reference, _ = plan_runs(parse_scenario(tiny_raw(SWEEP)), quick=True)
+    assert len(runs) == 4 and {r.family for r in runs} == {"uniform", "graded x4"}
+    assert reference.spacing < min(r.spacing for r in runs)
+
+
+# --- the CLI on real files -------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def studied(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("study")
+    scenario = folder / "tiny.yaml"
+    scenario.write_text(yaml.safe_dump(tiny_raw(SWEEP), sort_keys=False))
+    result = CliRunner().invoke(app, ["study", str(scenario), "--out", str(folder / "out")])
+    with open(folder / "out" / "study.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    return folder, result, rows
+
+
+def test_study_csv_has_every_column_and_one_row_per_run(studied):
+    folder, result, rows = studied
+    assert result.exit_code == 0, result.output
+    assert list(rows[0]) == list(COLUMNS) and set(REQUIRED_COLUMNS) <= set(COLUMNS)
+    assert len(rows) == 3 * 2 + 1 and rows[-1]["family"] == "reference"
+    assert [r["family"] for r in rows[:-1]] == ["uniform"] * 2 + ["graded x2"] * 2 + ["quadratic, dilation 1.5"] * 2
+    ok = [r for r in rows if r["status"] == "ok"]
+    assert len(ok) == 5
+    for row in ok:
+        assert float(row["wall_seconds"]) > 0 and int(row["particles"]) > 0
+        assert math.isfinite(float(row["exit_error_mm"]))
+        assert float(row["deviation_mm"]) >= float(row["exit_deviation_mm"]) >= 0
+    assert float(rows[-1]["deviation_mm"]) == 0.0  # the reference against itself
+    assert any(float(r["deviation_mm"]) > 1e-4 for r in ok[:-1])  # coarser runs do differ
+    assert sum(r["pareto"] == "true" for r in rows) >= 1 and rows[-1]["pareto"] == "false"
+    assert "Pareto:" in result.output and "study: wrote" in result.output
+
+
+def test_a_failing_configuration_is_recorded_with_its_reason(studied):
+    _, _, rows = studied
+    failed = [r for r in rows if r["status"] == "failed"]
+    assert [r["family"] for r in failed] == ["quadratic, dilation 1.5"] * 2
+    for row in failed:
+        assert row["reason"].startswith("ScenarioError: discretization: dilation 1.5 with spacing")
+        assert "singular RK moment matrix" in row["reason"] and "basis order 2" in row["reason"]
+        assert row["deviation_mm"] == "nan" and row["pareto"] == "false"
+
+
+def test_study_writes_the_speed_accuracy_png(studied):
+    folder, _, _ = studied
+    png = (folder / "out" / "speed_accuracy.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+    assert not list((folder / "out").glob(".*"))  # no temporary files left behind
+
+
+def test_study_without_a_needle_is_one_error_line_and_no_output(tmp_path, write_scenario):
+    raw = tiny_raw()
+    del raw["needle"]
+    result = CliRunner().invoke(app, ["study", str(write_scenario(raw)), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2
+    assert result.output.strip() == "error: needle: missing, required by study (it sweeps the needle insertion)"
+    assert not (tmp_path / "out").exists()
+
+
+# --- Pareto front and deviations ------------------------------------------------------------
+
+
+def record(label: str, wall: float, deviation: float, status: str = "ok") -> StudyRun:
+    run = StudyRun("f", label, None, 1.0, wall_seconds=wall, status=status)
+    if status == "ok":
+        run.deviations = {"deviation_mm": deviation}
+    return run
+
+
+def test_pareto_front_keeps_the_runs_nothing_beats_in_both_time_and_deviation():
+    runs = [record("a", 1.0, 0.30), record("b", 2.0, 0.10), record("c", 3.0, 0.20), record("d", 4.0, 0.05),
+            record("e", 0.5, math.nan, "failed"), record("f", 2.0, 0.10)]
+    assert [r.label for r in pareto_front(runs)] == ["a", "b", "d"]
+
+
+def test_exit_deviations_in_the_spatial_the_material_frame_and_of_the_error_vector():
+    def fake(achieved_def, achieved, desired_def):
+        return SimpleNamespace(achieved_exit_def=np.array(achieved_def), achieved_exit=np.array(achieved),
+                               desired_exit_def=np.array(desired_def))
+
+    reference = fake([0.0, 10.0], [0.0, 10.5], [0.0, 9.5])
+    run = fake([0.0, 10.03], [0.0, 10.4], [0.04, 9.5])
+    deviation = exit_deviations(run, reference)
+    assert deviation["exit_deviation_mm"] == pytest.approx(0.03)
+    assert deviation["material_exit_deviation_mm"] == pytest.approx(0.1)
+    assert deviation["exit_error_deviation_mm"] == pytest.approx(0.05)
+    assert deviation["deviation_mm"] == pytest.approx(0.1)
+
+
+# --- graded particles --------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def graded():
+    from stitchplan.discretization import graded_particles
+
+    center, radius = np.array([0.0, 21.12]), 13.32  # SH 1/2 needle zone: 1.5 R about the centre
+    return graded_particles((100.0, 100.0), 6.0, 1.5, center, radius), center, radius
+
+
+def test_graded_particles_tile_the_slab_and_are_fine_in_the_needle_zone(graded):
+    particles, center, radius = graded
+    assert particles.volumes.sum() == pytest.approx(100.0 * 100.0, rel=1e-12)
+    assert particles.cells[:, 2:].prod(axis=1).sum() == pytest.approx(1e4, rel=1e-12)
+    assert particles.fine_spacing == pytest.approx(100 / 68) and particles.coarse_spacing == pytest.approx(100 / 17)
+    cell_centres = particles.cells[:, :2] + 0.5 * particles.cells[:, 2:]
+    in_zone = np.linalg.norm(cell_centres - center, axis=1) < radius
+    assert np.allclose(particles.cells[in_zone, 2], particles.fine_spacing)
+    far = np.linalg.norm(cell_centres - center, axis=1) > radius + 20.0
+    assert np.allclose(particles.cells[far, 2], particles.coarse_spacing)
+    assert len(particles.particles) < 0.2 * 69 * 69  # a uniform fine grid has 69^2 particles
+
+
+def test_graded_leaves_are_2_to_1_balanced(graded):
+    """Leaves that touch (edge or corner) differ by at most a factor 2 in size."""
+    cells = graded[0].cells
+    lo, hi = cells[:, :2], cells[:, :2] + cells[:, 2:]
+    gap = np.maximum(lo[:, None] - hi[None], lo[None] - hi[:, None]).max(axis=2)  # <= 0: touching
+    touching = gap <= 1e-9
+    ratio = cells[:, 2][:, None] / cells[:, 2][None]
+    assert ratio[touching].max() <= 2.0 + 1e-9
+
+
+def test_rk_functions_on_the_graded_set_reproduce_linear_fields(graded, rng):
+    """Partition of unity and linear reproduction to round-off, with each particle's support
+    the dilation times its local spacing (eq. 3.20)."""
+    from stitchplan.shape_functions import rk_shape_functions
+
+    particles = graded[0]
+    support = 2.0 * particles.local_spacing
+    points = rng.uniform([0.0, 0.0], [100.0, 100.0], size=(400, 2))
+    shape = rk_shape_functions(points, particles.particles, support, particles.volumes, 1, True)
+    field = 0.3 + 0.02 * particles.particles[:, 0] - 0.05 * particles.particles[:, 1]
+    np.testing.assert_allclose(shape.values.sum(axis=1).A1, 1.0, atol=1e-12)
+    np.testing.assert_allclose(shape.values @ field, 0.3 + 0.02 * points[:, 0] - 0.05 * points[:, 1], atol=1e-11)
+    np.testing.assert_allclose(shape.grad_x @ field, 0.02, atol=1e-11)
+    np.testing.assert_allclose(shape.grad_y @ field, -0.05, atol=1e-11)
+
+
+def test_needle_spacing_without_a_needle_is_refused():
+    from stitchplan.discretization import model_for_scenario
+
+    raw = tiny_raw()
+    del raw["needle"]
+    raw["discretization"]["needle_spacing"] = 2.0
+    with pytest.raises(ScenarioError, match="discretization.needle_spacing: needs a needle"):
+        model_for_scenario(parse_scenario(raw))
+
+
+@pytest.mark.parametrize("block, fragment", [
+    ({"spacing": 4.0, "needle_spacing": 5.0}, "discretization.needle_spacing: got 5.0, expected a spacing (mm) no larger than spacing = 4 mm"),
+    ({"accuracy": 0.0}, "discretization.accuracy: got 0.0, expected a positive number (mm, exit point)"),
+])
+def test_bad_graded_and_accuracy_fields_are_refused(block, fragment):
+    raw = tiny_raw()
+    raw["discretization"] = block
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(raw)
+    assert fragment in str(error.value)
+
+
+# --- the auto discretization ---------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def auto_choice():
+    from stitchplan.auto import choose_discretization
+
+    return choose_discretization(parse_scenario(tiny_raw(step=0.2)), accuracy=0.05)
+
+
+def test_auto_discretization_meets_its_accuracy_against_a_finer_run(auto_choice):
+    from stitchplan.simulation import run_insertion
+    from stitchplan.study import configure
+
+    assert auto_choice.estimate_mm <= 0.05 and auto_choice.verified
+    chosen = auto_choice.discretization
+    assert chosen.needle_spacing == auto_choice.needle_spacing and chosen.accuracy is None
+    finer = run_insertion(configure(auto_choice.scenario, StudyFamily("finer", grading=2),
+                                    chosen.needle_spacing / 3))
+    assert exit_deviations(auto_choice.result, finer)["deviation_mm"] <= 0.05
+    # the estimate rests on the last two resolutions of the ladder, both run
+    resolutions = [t for t in auto_choice.trials if t.role == "resolution" and t.status == "ok"]
+    assert len(resolutions) >= 2
+
+
+def test_auto_discretization_reports_its_estimate_and_choices(auto_choice):
+    message = auto_choice.message
+    assert message.startswith("auto discretization: accuracy 0.05 mm on the exit point; chose graded")
+    assert f"estimated error {auto_choice.estimate_mm:.3g} mm (runs at needle spacing" in message
+    assert "order 1 assumed; meets the target" in message
+    assert auto_choice.tip_tracking in ("auto", "levenberg-marquardt")
+    assert auto_choice.linear_solver in ("direct", "minres")
+    assert f"tip tracking {auto_choice.tip_tracking} (" in message
+    assert f"linear solver {auto_choice.linear_solver} (" in message
+    # every trial is recorded, the chosen run among them
+    assert auto_choice.result is next(t.result for t in auto_choice.trials if t.role == "chosen")
+
+
+def test_simulate_with_an_accuracy_uses_the_auto_discretization_once(monkeypatch):
+    from stitchplan import auto
+    from stitchplan.simulation import run_insertion
+
+    scenario = parse_scenario({**tiny_raw(step=0.2), "discretization": {"accuracy": 0.2}})
+    calls = []
+    original = auto.choose_discretization
+    monkeypatch.setattr(auto, "choose_discretization", lambda *a, **k: calls.append(1) or original(*a, **k))
+    first = run_insertion(scenario)
+    second = run_insertion(scenario)
+    assert len(calls) == 1
+    assert first.events[0].startswith("auto discretization: accuracy 0.2 mm") and first.events == second.events
+    assert first.scenario.discretization.accuracy is None
+    assert first.model.n_particles == second.model.n_particles
+    # an explicit spacing switches the auto discretization off
+    assert with_discretization(scenario, spacing=5.0).discretization.accuracy is None
