@@ -110,7 +110,7 @@ def graded_scenario(scenario: Scenario, needle_spacing: float, tip_tracking: str
     while grading > 1 and needle_spacing * grading > max(cap, needle_spacing):
         grading //= 2
     values = asdict(scenario.discretization)
-    values.update(accuracy=None, spacing=needle_spacing * grading,
+    values.update(accuracy=None, needle_refinement=None, spacing=needle_spacing * grading,
                   needle_spacing=needle_spacing if grading > 1 else None)
     needle = replace(scenario.needle, tip_tracking=tip_tracking, linear_solver=linear_solver)
     return replace(scenario, discretization=parse_discretization(values, "discretization"), needle=needle)

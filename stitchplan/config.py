@@ -49,6 +49,9 @@ class Discretization:
     # `needle_zone` needle radii of the needle centre, growing to `spacing` away from it
     needle_spacing: float | None = None
     needle_zone: float = 1.5
+    # needle_spacing = spacing / needle_refinement when no needle_spacing is given, so that
+    # `--spacing` refines the graded arrangement as a whole (the default for needle scenes)
+    needle_refinement: float | None = None
     # exit-point accuracy (mm): the auto discretization (stitchplan.auto) picks the rest
     accuracy: float | None = None
 
@@ -209,7 +212,8 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
     if raw is None:
         return Discretization()
     block = _mapping(raw, path, ("spacing", "dilation", "quadrature_order", "basis_order",
-                                 "cells_per_spacing", "needle_spacing", "needle_zone", "accuracy"))
+                                 "cells_per_spacing", "needle_spacing", "needle_zone", "needle_refinement",
+                                 "accuracy"))
     default = Discretization()
     dilation = _number(block.get("dilation", default.dilation), f"{path}.dilation", positive=True)
     if dilation <= 1.0:
@@ -217,6 +221,14 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
                     "a number > 1 (kernel support / spacing; at least ~1.5 for a linear basis)")
     spacing = _number(block.get("spacing", default.spacing), f"{path}.spacing", positive=True, unit="mm")
     needle_spacing = block.get("needle_spacing")
+    refinement = block.get("needle_refinement")
+    if refinement is not None:
+        refinement = _number(refinement, f"{path}.needle_refinement", positive=True)
+        if refinement < 1.0:
+            raise _fail(f"{path}.needle_refinement", refinement,
+                        "a number >= 1 (spacing / spacing at the needle)")
+        if needle_spacing is None and refinement > 1.0:
+            needle_spacing = spacing / refinement
     if needle_spacing is not None:
         needle_spacing = _number(needle_spacing, f"{path}.needle_spacing", positive=True, unit="mm")
         if needle_spacing > spacing:
@@ -237,6 +249,7 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
         needle_spacing=needle_spacing,
         needle_zone=_number(block.get("needle_zone", default.needle_zone), f"{path}.needle_zone",
                             positive=True, unit="needle radii"),
+        needle_refinement=refinement,
         accuracy=accuracy,
     )
 
@@ -322,15 +335,24 @@ def parse_solver(raw: Any, path: str = "solver") -> Solver:
     )
 
 
+# graded needle scenes: spacing at the needle = spacing / DEFAULT_NEEDLE_REFINEMENT
+DEFAULT_NEEDLE_REFINEMENT = 2.0
+
+
 def default_spacing(tissue: Tissue, needle: Needle | None) -> float:
-    """Spacing used when the scenario gives none: a twentieth of the smaller side for a
-    static load (within 1 % of the converged probe displacements on the shipped slab, see
-    benchmarks/), and at most a third of the needle radius when a needle is present (halving
-    it changes the SH 1/2 exit error by about 13 %, see benchmarks/results/simulate_convergence.md)."""
-    spacing = min(tissue.size) / 20.0
-    if needle is not None:
-        spacing = min(spacing, needle.radius / 3.0)
-    return spacing
+    """Spacing used when the scenario gives none.
+
+    Static loads: a twentieth of the smaller side (within 1 % of the converged probe
+    displacements on the shipped slab, see benchmarks/). Needle scenes: 2/5 of the needle
+    radius, at most a twentieth of the larger side and an eighth of the smaller one, graded
+    to half that around the needle (DEFAULT_NEEDLE_REFINEMENT: r/5 for the SH 1/2 needle);
+    halving both changes the SH 1/2 exit errors by at most ~7 %
+    (benchmarks/results/simulate_convergence.md), where a uniform r/3 grid changed by 13 %
+    with three times the particles.
+    """
+    if needle is None:
+        return min(tissue.size) / 20.0
+    return min(0.4 * needle.radius, max(tissue.size) / 20.0, min(tissue.size) / 8.0)
 
 
 def parse_planner(raw: Any, path: str = "planner") -> Planner:
@@ -383,9 +405,13 @@ def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
             raise _fail(f"probes[{i}]", [x, y], f"a point inside [0, {w:g}] x [0, {h:g}] mm")
     discretization = parse_discretization(block.get("discretization"))
     needle = parse_needle(block["needle"]) if block.get("needle") is not None else None
-    spacing_given = isinstance(block.get("discretization"), dict) and "spacing" in block["discretization"]
-    if not spacing_given:
-        discretization = replace(discretization, spacing=default_spacing(tissue, needle))
+    given = block.get("discretization") if isinstance(block.get("discretization"), dict) else {}
+    if "spacing" not in given:
+        spacing = default_spacing(tissue, needle)
+        refinement = discretization.needle_refinement
+        if needle is not None and refinement is None and discretization.needle_spacing is None:
+            refinement = DEFAULT_NEEDLE_REFINEMENT
+        discretization = parse_discretization({**given, "spacing": spacing, "needle_refinement": refinement})
     name = block.get("name", "")
     if not isinstance(name, str):
         raise _fail("name", name, "a string")
@@ -438,6 +464,8 @@ def with_discretization(scenario: Scenario, **overrides: float | int | None) -> 
     from dataclasses import asdict, replace
 
     values = asdict(scenario.discretization)
+    if values["needle_refinement"] is not None and overrides.get("needle_spacing") is None:
+        values["needle_spacing"] = None  # derived from the spacing: follow it
     values.update({k: v for k, v in overrides.items() if v is not None})
     if overrides.get("spacing") is not None and "accuracy" not in overrides:
         values["accuracy"] = None  # an explicit spacing replaces the auto discretization

@@ -16,7 +16,7 @@ from .boundary_conditions import EssentialBoundary, boundary_particles, transfor
 from .config import Discretization, Scenario, ScenarioError, Tissue
 from .material import NeoHookean, SaintVenantKirchhoff, make_material
 from .quadrature import cell_quadrature
-from .shape_functions import ShapeFunctions, SingularMomentMatrix, rk_shape_functions
+from .shape_functions import ShapeFunctions, SingularMomentMatrix, rk_shape_functions, rk_shape_pairs
 
 
 def grid_particles(size: tuple[float, float], spacing: float) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -166,6 +166,12 @@ class TissueModel:
         return rk_shape_functions(np.atleast_2d(points), self.particles, self.support, self.volumes,
                                   self.discretization.basis_order, gradients, self.tree,
                                   self.basis_scale)
+
+    def field_at(self, points: np.ndarray, coefficients: np.ndarray, gradients: bool = False):
+        """u(X) (n, 2) from particle coefficients (NP, 2) and, with gradients, du_i/dX_J (n, 2, 2)."""
+        pairs = rk_shape_pairs(np.atleast_2d(points), self.particles, self.support, self.volumes,
+                               self.discretization.basis_order, gradients, self.tree, self.basis_scale)
+        return pairs.field(coefficients)
 
     @property
     def basis_scale(self) -> float:

@@ -163,13 +163,21 @@ def levenberg_marquardt_tip(previous_tip: np.ndarray, center: np.ndarray, radius
     """Minimise C(X) = (|X + u(X) - O| - R)^2 + (|X - X_prev| - IS)^2 (eq. 3.68-3.69) by
     Levenberg-Marquardt from the start point of eq. 3.70. Returns (X, evaluations)."""
 
+    last: dict = {}
+
+    def evaluate(x):
+        # least_squares asks for the residuals and then the Jacobian at the same point
+        if last.get("x") is None or not np.array_equal(last["x"], x):
+            last["x"], last["value"] = np.array(x), displacement_and_gradient(x)
+        return last["value"]
+
     def residuals(x):
-        u, grad_u = displacement_and_gradient(x)
+        u, grad_u = evaluate(x)
         spatial = x + u - center
         return np.array([np.linalg.norm(spatial) - radius, np.linalg.norm(x - previous_tip) - insertion_step])
 
     def jacobian(x):
-        u, grad_u = displacement_and_gradient(x)
+        u, grad_u = evaluate(x)
         spatial = x + u - center
         normal = spatial / np.linalg.norm(spatial)
         chord = x - previous_tip

@@ -37,7 +37,7 @@ class PlannerSettings:
 
 
 def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = None):
-    """The centre update of Algorithm 2 as a callback for run_insertion.
+    """The centre update of Algorithm 2 and its predictor, as callbacks for run_insertion.
 
     Within a step the fixed point O = O(t_0) + u(X_exit; O) (eq. 4.1) is iterated until the
     centre moves less than `tolerance`. The plain iteration contracts by the factor
@@ -50,10 +50,23 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
     the tissue: the material enclosed by the arc and the free edge then follows the needle
     almost rigidly and no centre move changes their relative position.
     """
-    state = {"jacobian": np.zeros((2, 2))}
+    state = {"jacobian": np.zeros((2, 2)), "centers": []}
     shift = np.zeros(2) if offset is None else np.asarray(offset, dtype=float)
 
+    def predict(step: int, center: np.ndarray) -> np.ndarray:
+        """Start of the step's iterations: the centre extrapolated from the last two steps, so
+        the first mismatch is the change of the centre's velocity, not of its position."""
+        centers = state["centers"]
+        if len(centers) < 2:
+            return center
+        return center + (centers[-1] - centers[-2])
+
     def update(insertion: NeedleInsertion, step: int, rotation: float, center: np.ndarray):
+        new_center, iterations = iterate(insertion, step, rotation, center)
+        state["centers"].append(np.array(new_center, dtype=float))
+        return new_center, iterations
+
+    def iterate(insertion: NeedleInsertion, step: int, rotation: float, center: np.ndarray):
         origin = insertion.geometry.center - shift  # target: O - x_exit = O(t0) - X_exit - offset
         target = insertion.geometry.desired_exit
         jacobian = state["jacobian"]
@@ -119,7 +132,7 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
         state["jacobian"] = jacobian
         return restore_best(), settings.max_iterations
 
-    return update
+    return update, predict
 
 
 @dataclass
@@ -171,7 +184,8 @@ def run_plan(scenario: Scenario, settings: PlannerSettings | None = None, compar
     passes = []
     best = None
     for number in range(1, settings.max_passes + 1):
-        planned = run_insertion(scenario, center_update=exit_tracking_update(settings, offset),
+        update, predict = exit_tracking_update(settings, offset)
+        planned = run_insertion(scenario, center_update=update, center_predictor=predict,
                                 on_step=on_step, **options)
         mismatch = final_mismatch(planned)
         passes.append({"pass": number, "offset_mm": offset.copy(), "exit_error_mm": planned.exit_error_mm,

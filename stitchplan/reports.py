@@ -24,7 +24,8 @@ def discretization_summary(model) -> dict:
     d = model.discretization
     return {
         "particles": model.n_particles,
-        "spacing_mm": model.spacing,
+        "spacing_mm": float(model.support.max() / d.dilation),  # the coarsest, for graded particles
+        "needle_spacing_mm": model.spacing if d.needle_spacing is not None else None,
         "dilation": d.dilation,
         "quadrature_order": d.quadrature_order,
         "basis_order": d.basis_order,

@@ -71,6 +71,39 @@ def neighbour_pairs(
     return rows, cols, indptr
 
 
+@dataclass(frozen=True)
+class ShapePairs:
+    """RK shape functions as (point, particle) pair lists, grouped by point: the sparse
+    matrices' data before they are built. `grad` is (pairs, 2) or None."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    indptr: np.ndarray
+    values: np.ndarray
+    grad: np.ndarray | None
+
+    def field(self, coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """u(X) = sum_I N_I(X) d_I (n, 2) and, with gradients, du_i/dX_J (n, 2, 2).
+
+        Cheaper than building the sparse matrices when only a few points are evaluated once
+        (tip tracking evaluates one point per call)."""
+        starts = self.indptr[:-1]
+        d = coefficients[self.cols]  # (pairs, 2)
+        u = np.add.reduceat(self.values[:, None] * d, starts, axis=0)
+        if self.grad is None:
+            return u, None
+        grad = np.add.reduceat(d[:, :, None] * self.grad[:, None, :], starts, axis=0)
+        return u, grad
+
+    def matrices(self, n_points: int, n_particles: int) -> ShapeFunctions:
+        def csr(data: np.ndarray) -> sp.csr_matrix:
+            return sp.csr_matrix((data, self.cols, self.indptr), shape=(n_points, n_particles))
+
+        if self.grad is None:
+            return ShapeFunctions(csr(self.values))
+        return ShapeFunctions(csr(self.values), csr(self.grad[:, 0]), csr(self.grad[:, 1]))
+
+
 def rk_shape_functions(
     points: np.ndarray,
     particles: np.ndarray,
@@ -88,6 +121,22 @@ def rk_shape_functions(
     particles (basis_scale, default the mean support) so that reproduction holds when the
     supports vary between particles.
     """
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    pairs = rk_shape_pairs(points, particles, support, volumes, order, gradients, tree, basis_scale)
+    return pairs.matrices(len(points), len(particles))
+
+
+def rk_shape_pairs(
+    points: np.ndarray,
+    particles: np.ndarray,
+    support: np.ndarray,
+    volumes: np.ndarray,
+    order: int = 1,
+    gradients: bool = True,
+    tree: cKDTree | None = None,
+    basis_scale: float | None = None,
+) -> ShapePairs:
+    """The shape functions of `rk_shape_functions` as pair lists (same arguments)."""
     points = np.atleast_2d(np.asarray(points, dtype=float))
     rows, cols, indptr = neighbour_pairs(points, particles, support, tree)
     counts = np.diff(indptr)
@@ -122,13 +171,8 @@ def rk_shape_functions(
     b = np.linalg.solve(moment, np.broadcast_to(e1, (len(points), m))[..., None])[..., 0]  # (n, m)
     b_pair = b[rows]  # (pairs, m)
     shape = np.einsum("pm,pm->p", b_pair, h) * phi
-    n_particles = len(particles)
-
-    def csr(data: np.ndarray) -> sp.csr_matrix:
-        return sp.csr_matrix((data, cols, indptr), shape=(len(points), n_particles))
-
     if not gradients:
-        return ShapeFunctions(csr(shape))
+        return ShapePairs(rows, cols, indptr, shape, None)
 
     grads = []
     for k in range(2):
@@ -143,5 +187,5 @@ def rk_shape_functions(
             + np.einsum("pm,pm->p", b_pair, dh[:, :, k]) * phi
             + np.einsum("pm,pm->p", b_pair, h) * dphi[:, k]
         )
-        grads.append(csr(grad))
-    return ShapeFunctions(csr(shape), grads[0], grads[1])
+        grads.append(grad)
+    return ShapePairs(rows, cols, indptr, shape, np.stack(grads, axis=1))

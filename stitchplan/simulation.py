@@ -27,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.optimize
 import scipy.sparse as sp
 
 from .assembly import Assembler
@@ -153,13 +154,8 @@ class NeedleInsertion:
         # a probe outside the tissue (LM trying points past the exit) may lie outside every
         # kernel support: evaluate the field at the nearest tissue point instead
         points = np.clip(np.atleast_2d(points), [0.0, 0.0], self.size)
-        shape = self.model.shape_functions_at(points, gradients=gradient)
-        d = self.coefficients()
-        u = shape.values @ d
-        if not gradient:
-            return u
-        grad = np.stack([shape.grad_x @ d, shape.grad_y @ d], axis=2)  # (n, i, J)
-        return u, grad
+        u, grad = self.model.field_at(points, self.coefficients(), gradients=gradient)  # grad (n, i, J)
+        return (u, grad) if gradient else u
 
     def particle_displacements(self) -> np.ndarray:
         return self.particle_values @ self.coefficients()
@@ -388,21 +384,23 @@ class NeedleInsertion:
             self.timings["tip_tracking"] += time.perf_counter() - t0
 
     def locate_exit(self, rotation: float, method: str) -> tuple[np.ndarray, float]:
-        """Bisect the last step for the rotation where the tip's material point meets the boundary."""
-        low, high = 0.0, 1.0
-        point = self.points[-1]
-        for _ in range(60):
-            middle = 0.5 * (low + high)
-            step = middle * self.geometry.step
-            candidate, _ = self.track_tip(step, method)
-            if _outside_distance(candidate, self.size) > 0.0:
-                high = middle
-            else:
-                low, point = middle, candidate
-            if high - low < 1e-13:
-                break
+        """Root-find, over the fraction of the last step, where the tip's material point meets
+        the boundary: the signed distance to the boundary is continuous in the fraction, so
+        Brent's method needs ~10 tip trackings where bisection needs ~45."""
+        def signed_distance(fraction: float) -> float:
+            if fraction <= 0.0:
+                return _outside_distance(self.points[-1], self.size)
+            return _outside_distance(self.track_tip(fraction * self.geometry.step, method)[0], self.size)
+
+        if signed_distance(1.0) <= 0.0:  # the full step stays inside for this tracking method
+            fraction = 1.0
+        elif signed_distance(0.0) >= 0.0:
+            fraction = 0.0
+        else:
+            fraction = scipy.optimize.brentq(signed_distance, 0.0, 1.0, xtol=1e-13, rtol=1e-15)
+        point = self.points[-1] if fraction == 0.0 else self.track_tip(fraction * self.geometry.step, method)[0]
         point = np.clip(point, [0.0, 0.0], self.size)
-        return point, rotation + low * self.geometry.step
+        return point, rotation + fraction * self.geometry.step
 
 
 class _Fallback(Exception):
@@ -421,12 +419,15 @@ def run_insertion(
     condition_numbers: bool = False,
     on_step: Callable[[NeedleStep], None] | None = None,
     max_steps: int | None = None,
+    center_predictor: Callable[[int, np.ndarray], np.ndarray] | None = None,
 ) -> InsertionResult:
     """Insert the needle step by step until its tip leaves the tissue.
 
     center_update(insertion, step, rotation, center) -> (new centre, planner iterations) lets
     the planner move the centre after each step (Algorithm 2); center_path (n, 2) replays
-    prescribed centres, row n used for step n (row 0 is the entry centre).
+    prescribed centres, row n used for step n (row 0 is the entry centre);
+    center_predictor(step, centre) -> centre gives the planner's first guess for the
+    centre of a step, once the tip has advanced about the previous one.
     """
     auto_note = None
     if scenario.discretization.accuracy is not None:  # `discretization: {accuracy: ...}`
@@ -472,6 +473,9 @@ def run_insertion(
                 raise ScenarioError(f"centre path: {len(center_path)} rows end before the tip exits "
                                     f"(step {step}); expected one row per step")
             center = np.asarray(center_path[step], dtype=float)
+            insertion.center = center
+        elif center_predictor is not None:
+            center = np.asarray(center_predictor(step, center), dtype=float)
             insertion.center = center
         iterations, minres_its, violation = insertion.equilibrate(center, rotation, step)
         planner_iterations = 0

@@ -205,7 +205,7 @@ def default_reference(spacings: tuple[float, ...]) -> StudyFamily:
 def configure(scenario: Scenario, family: StudyFamily, spacing: float) -> Scenario:
     """The scenario with the family's choices at `spacing` (mm at the needle)."""
     values = asdict(scenario.discretization)
-    values.update(accuracy=None, needle_spacing=None)
+    values.update(accuracy=None, needle_spacing=None, needle_refinement=None)
     for key in ("dilation", "quadrature_order", "basis_order", "cells_per_spacing"):
         if getattr(family, key) is not None:
             values[key] = getattr(family, key)

@@ -129,11 +129,11 @@ def test_default_spacing_is_a_twentieth_of_the_smaller_side(slab_raw):
     assert scenario.discretization.dilation == 2.0  # the other defaults stay
 
 
-def test_default_spacing_resolves_the_needle():
-    """With a needle the default spacing is tied to the radius (a few spacings per radius,
-    the exact fraction is documented in config.default_spacing), never coarser than the
-    static default, and a needle larger than the slab changes nothing."""
-    from stitchplan.config import Material, Tissue
+def test_default_spacing_resolves_the_needle(slab_raw):
+    """With a needle the default spacing is tied to the radius and graded finer around the
+    needle (the fractions are documented in config.default_spacing); with a needle larger than
+    the slab the spacing is the static one, and at least eight spacings cross the smaller side."""
+    from stitchplan.config import DEFAULT_NEEDLE_REFINEMENT, Material, Tissue
 
     tissue = Tissue((100.0, 100.0), 10.0, Material(), ("right",))
 
@@ -144,9 +144,26 @@ def test_default_spacing_resolves_the_needle():
     static = default_spacing(tissue, None)
     sh_needle = default_spacing(tissue, needle(8.88))  # ETHICON SH
     assert sh_needle < static
-    assert 8.88 / sh_needle >= 3.0  # at least three spacings across the radius
+    assert 8.88 / sh_needle >= 2.0  # at least two coarse spacings across the radius
     assert default_spacing(tissue, needle(4.44)) == pytest.approx(sh_needle / 2)
     assert default_spacing(tissue, needle(400.0)) == pytest.approx(static)
+    narrow = Tissue((100.0, 30.0), 10.0, Material(), ("right",))
+    assert default_spacing(narrow, needle(400.0)) == pytest.approx(30.0 / 8)
+
+    slab_raw["needle"] = {"radius": 8.88, "entry": [0.0, 30.0], "turn": "cw", "step": 0.08,
+                          "friction": 0.06, "cutting_force": 0.7}
+    d = parse_scenario(slab_raw).discretization
+    assert d.spacing == pytest.approx(sh_needle)
+    assert d.needle_spacing == pytest.approx(sh_needle / DEFAULT_NEEDLE_REFINEMENT)
+    assert 8.88 / d.needle_spacing >= 4.0  # at least four spacings across the radius at the needle
+    # --spacing refines the graded arrangement as a whole
+    halved = with_discretization(parse_scenario(slab_raw), spacing=sh_needle / 2).discretization
+    assert (halved.spacing, halved.needle_spacing) == pytest.approx((sh_needle / 2, d.needle_spacing / 2))
+    # a spacing given in the file means a uniform grid unless the file asks for grading
+    slab_raw["discretization"] = {"spacing": 3.0}
+    assert parse_scenario(slab_raw).discretization.needle_spacing is None
+    slab_raw["discretization"] = {"spacing": 3.0, "needle_refinement": 3}
+    assert parse_scenario(slab_raw).discretization.needle_spacing == pytest.approx(1.0)
 
 
 def test_given_spacing_wins_and_overrides_are_validated(slab_raw):

@@ -161,6 +161,22 @@ def test_eq_4_2_failure_is_an_event_and_a_note(planned):
     assert any(EQ_42.search(line) for line in notes), result.output
 
 
+def test_no_compare_skips_the_unplanned_run_and_plans_the_same_trajectory(tmp_path):
+    """--no-compare drops the fixed-centre reference run: no unplanned figures in the summary,
+    and the exported centres are those of the compared run when the passes stop alike."""
+    scenario = write(tmp_path, small_raw())
+    exports = {}
+    for flag in ("--compare", "--no-compare"):
+        export, summary_path = tmp_path / f"trajectory{flag}.csv", tmp_path / f"summary{flag}.json"
+        result = invoke("plan", scenario, "--export", export, "--summary", summary_path, flag)
+        assert result.exit_code == 0, result.output
+        summary = json.loads(summary_path.read_text())
+        assert (summary["unplanned_exit_error_mm"] is None) == (flag == "--no-compare")
+        assert ("unplanned" in result.output.splitlines()[0]) == (flag == "--compare")
+        exports[flag] = read_trajectory(export)[1]
+    np.testing.assert_allclose(exports["--no-compare"], exports["--compare"], atol=1e-9)
+
+
 def test_base_transform_from_the_scenario_file(tmp_path):
     """robot.base_transform (180 deg: (x, y) -> (-x, -y)) and robot.angular_speed, no options."""
     scenario = write(tmp_path, small_raw(robot={"base_transform": {"rotation_deg": 180.0, "translation": [5.0, -3.0]},
