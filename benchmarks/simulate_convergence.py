@@ -1,20 +1,22 @@
 """Exit error of the unplanned needle insertion (`stitchplan simulate`) against the particle
 spacing, and against the block size of the thesis's table 5.1.
 
-(a) configs/sh12_100x100.yaml at spacings from 1.5x the default (stitchplan.config.
-    default_spacing: min(W, H) / 20, at most r / 3 = 2.96 mm with the SH needle) down to
-    0.4x, with the relative change of exit_error_mm from the default to half of it, for
-    tip tracking Levenberg-Marquardt (the scenario's) and 'auto' (inverse gradient).
+(a) configs/sh12_100x100.yaml with its default discretization (stitchplan.config.
+    default_spacing: 2r/5 = 3.55 mm, graded to r/5 = 1.78 mm around the needle) refined as a
+    whole, `--spacing` from 1.5x the default down to 0.4x, with the relative change of
+    exit_error_mm from the default to half of it, for tip tracking Levenberg-Marquardt (the
+    scenario's) and 'auto' (inverse gradient); beside it uniform grids (needle_refinement 1)
+    at the same spacings near the needle, which is what the grading saves.
 (b) the four SH 1/2 blocks configs/sh12_100x100_mid.yaml, sh12_100x50.yaml, sh12_100x40.yaml,
     sh12_100x30.yaml (entry at mid-height + r, so the stitch is symmetric about mid-height)
-    at each file's default spacing, and all at one common spacing of 1.5 mm (the default of
-    the 30 mm block) to separate the block size from the discretization, beside the
-    thesis's unplanned exit errors (table 5.1: 1.89, 3.0, 3.58, 4.35 mm).
+    at each file's default discretization, halved, and all on one common uniform 1.5 mm grid
+    to separate the block size from the discretization, beside the thesis's unplanned exit
+    errors (table 5.1: 1.89, 3.0, 3.58, 4.35 mm).
 (c) configs/sh12_100x100.yaml with the slab 5, 10 (shipped) and 20 mm thick: how the units
     reading (forces as totals through the thickness) scales the exit error.
 
 Writes benchmarks/results/simulate_convergence.{csv,md,png} and prints the tables.
-About 5 minutes. Run from the repository root:  python benchmarks/simulate_convergence.py
+About 10 minutes. Run from the repository root:  python benchmarks/simulate_convergence.py
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from stitchplan.simulation import InsertionFailure, run_insertion  # noqa: E402
 
 CONFIGS = common.REPO_ROOT / "configs"
 SPACING_FACTORS = (1.5, 1.0, 0.85, 0.7, 0.6, 0.5, 0.4)  # x the default spacing
+UNIFORM_FACTORS = (1.0, 0.7, 0.5)  # uniform grids at these x the default spacing at the needle
 BLOCKS = (("sh12_100x100_mid", 1.89), ("sh12_100x50", 3.0), ("sh12_100x40", 3.58), ("sh12_100x30", 4.35))
 COMMON_SPACING = 1.5  # mm
 TRACKINGS = ("levenberg-marquardt", "auto")
@@ -47,12 +50,14 @@ def run(scenario, tracking: str | None = None) -> dict:
         result = run_insertion(scenario, tip_tracking=tracking)
     except InsertionFailure as failure:
         nan = float("nan")
-        return {**record, "spacing": scenario.discretization.spacing, "particles": "", "steps": "",
+        d = scenario.discretization
+        return {**record, "spacing": d.needle_spacing or d.spacing, "coarse": d.spacing, "particles": "", "steps": "",
                 "exit_error_mm": nan, "exit_error_material_mm": nan, "fallbacks": "",
                 "status": f"failed: {failure}", "wall": time.perf_counter() - start}
     return {
         **record,
         "spacing": result.model.spacing,
+        "coarse": float(result.model.support.max() / scenario.discretization.dilation),
         "particles": result.model.n_particles,
         "steps": len(result.steps),
         "exit_error_mm": result.exit_error_mm,
@@ -79,6 +84,17 @@ def main() -> None:
             print(f"(a) {tracking}, spacing {record['spacing']:.3f} mm ({factor:g} x default): "
                   f"{record['particles']} particles, exit error {record['exit_error_mm']:.4f} mm, "
                   f"{record['status']}, {record['wall']:.1f} s", flush=True)
+    fine_default = base.discretization.needle_spacing
+    uniform = []
+    for factor in UNIFORM_FACTORS:
+        record = run(with_discretization(base, spacing=factor * fine_default, needle_refinement=1.0))
+        record["factor"] = factor
+        uniform.append(record)
+        print(f"(a) uniform {record['spacing']:.3f} mm: {record['particles']} particles, exit error "
+              f"{record['exit_error_mm']:.4f} mm, {record['wall']:.1f} s", flush=True)
+        rows.append(["spacing (uniform)", "sh12_100x100", record["tip_tracking"], factor, record["spacing"],
+                     record["particles"], record["steps"], record["exit_error_mm"], record["exit_error_material_mm"],
+                     "", "", "", record["status"], record["wall"]])
     lm = {r["factor"]: r for r in studies["levenberg-marquardt"]}
     ig = {r["factor"]: r for r in studies["auto"]}
     reference = lm[1.0]["exit_error_mm"]
@@ -97,11 +113,12 @@ def main() -> None:
     for name, thesis in BLOCKS:
         scenario = load_scenario(CONFIGS / f"{name}.yaml")
         at_default = run(scenario)
-        at_common = run(with_discretization(scenario, spacing=COMMON_SPACING))
-        block_runs.append((name, thesis, scenario.tissue.size[1], at_default, at_common))
+        at_half = run(with_discretization(scenario, spacing=scenario.discretization.spacing / 2))
+        at_common = run(with_discretization(scenario, spacing=COMMON_SPACING, needle_refinement=1.0))
+        block_runs.append((name, thesis, scenario.tissue.size[1], at_default, at_common, at_half))
         print(f"(b) {name}: exit error {at_default['exit_error_mm']:.4f} mm at {at_default['spacing']:.3f} mm, "
               f"{at_common['exit_error_mm']:.4f} mm at {at_common['spacing']:.3f} mm; thesis {thesis} mm", flush=True)
-        for label, record in (("default", at_default), ("common", at_common)):
+        for label, record in (("default", at_default), ("halved", at_half), ("common", at_common)):
             rows.append([f"block ({label} spacing)", name, record["tip_tracking"], "", record["spacing"],
                          record["particles"], record["steps"], record["exit_error_mm"],
                          record["exit_error_material_mm"], "", "", thesis, record["status"], record["wall"]])
@@ -126,46 +143,57 @@ def main() -> None:
     lines.append("# Exit error of `stitchplan simulate`: spacing, block size, thickness\n")
     lines.append(f"Generated by `python benchmarks/simulate_convergence.py` ({common.machine_note()}).\n")
     lines.append("## (a) configs/sh12_100x100.yaml against the particle spacing\n")
-    lines.append(f"Default spacing (`stitchplan.config.default_spacing`): {default:.3f} mm nominal "
-                 f"({lm[1.0]['spacing']:.3f} mm on the grid that ends on the edges). Direct solver. Tip tracking "
-                 "Levenberg-Marquardt (the scenario's default) and 'auto' (inverse gradient, falling back to LM).\n")
-    table = [[r["factor"], r["spacing"], r["particles"], r["steps"], r["exit_error_mm"], r["exit_error_material_mm"],
-              r["exit_error_mm"] / reference - 1.0, ig[r["factor"]]["exit_error_mm"],
+    lines.append(f"Default discretization (`stitchplan.config.default_spacing`): spacing {default:.3f} mm, graded to "
+                 f"{fine_default:.3f} mm within 1.5 needle radii of the needle centre; on the particle lattice "
+                 f"{lm[1.0]['coarse']:.3f} / {lm[1.0]['spacing']:.3f} mm. Each row refines the whole arrangement "
+                 "(`--spacing`). Direct solver. Tip tracking Levenberg-Marquardt (the scenario's default) and 'auto' "
+                 "(inverse gradient, falling back to LM).\n")
+    table = [[r["factor"], r["coarse"], r["spacing"], r["particles"], r["steps"], r["exit_error_mm"],
+              r["exit_error_material_mm"], r["exit_error_mm"] / reference - 1.0, ig[r["factor"]]["exit_error_mm"],
               ig[r["factor"]]["status"].split(":")[0],
               r["wall"]] for r in studies["levenberg-marquardt"]]
-    lines.append(common.markdown_table(["x default", "spacing (mm)", "particles", "steps", "exit error LM (mm)",
-                                        "material exit error LM (mm)", "change vs default (LM)",
+    lines.append(common.markdown_table(["x default", "spacing (mm)", "at the needle (mm)", "particles", "steps",
+                                        "exit error LM (mm)", "material exit error LM (mm)", "change vs default (LM)",
                                         "exit error auto (mm)", "auto run", "wall LM (s)"], table))
     lines.append("")
-    lines.append(f"**Halving the default spacing** ({lm[1.0]['spacing']:.3f} -> {lm[0.5]['spacing']:.3f} mm) "
-                 f"changes exit_error_mm from {reference:.4f} to {lm[0.5]['exit_error_mm']:.4f} mm: "
-                 f"**{100 * halving:+.1f} %** (Levenberg-Marquardt tracking). The finest run "
-                 f"({finest['spacing']:.3f} mm) gives {finest['exit_error_mm']:.4f} mm "
-                 f"({100 * (finest['exit_error_mm'] / reference - 1):+.1f} % from the default): the LM exit error "
-                 "settles from about 0.6 x the default spacing on; at the default spacing it is ~12 % below that value.\n")
-    lines.append(f"With tip tracking 'auto' the exit error does not converge: {ig[1.0]['exit_error_mm']:.4f} mm at the "
-                 f"default spacing, {ig[0.5]['exit_error_mm']:.4f} mm at half of it ({100 * auto_halving:+.1f} %), "
-                 "and it jumps between neighbouring spacings (table). The inverse gradient (eq. 3.66-3.67) steps "
-                 "with F^-1 at the tip, where the cutting force acts on one 0.71 mm segment (nearly a point load, "
-                 "whose displacement gradient is singular), so F at the tip depends on the discretization; "
-                 "Levenberg-Marquardt (eq. 3.68-3.69) uses only u and is stable. "
-                 + (f"At 1.5 x the default spacing the auto run {ig[1.5]['status']}: the needle points lie "
-                    "several to a particle spacing, their constraints are nearly dependent and the 1e-9 mm "
-                    "constraint tolerance cannot be met. " if ig[1.5]["status"] != "ok" else "") + "\n")
+    lines.append(f"**Halving the default spacing** ({lm[1.0]['coarse']:.3f} / {lm[1.0]['spacing']:.3f} -> "
+                 f"{lm[0.5]['coarse']:.3f} / {lm[0.5]['spacing']:.3f} mm) changes exit_error_mm from {reference:.4f} "
+                 f"to {lm[0.5]['exit_error_mm']:.4f} mm: **{100 * halving:+.1f} %** (Levenberg-Marquardt tracking). "
+                 f"The finest run ({finest['spacing']:.3f} mm at the needle) gives {finest['exit_error_mm']:.4f} mm "
+                 f"({100 * (finest['exit_error_mm'] / reference - 1):+.1f} % from the default).\n")
+    lines.append("Uniform grids at the same spacing as the graded one has at the needle (`needle_refinement: 1`): "
+                 "the grading costs little accuracy and saves most of the particles.\n")
+    lines.append(common.markdown_table(
+        ["spacing (mm)", "particles", "exit error (mm)", "graded run with this spacing at the needle (mm)",
+         "graded particles", "wall uniform (s)", "wall graded (s)"],
+        [[u["spacing"], u["particles"], u["exit_error_mm"], lm[u["factor"]]["exit_error_mm"],
+          lm[u["factor"]]["particles"], u["wall"], lm[u["factor"]]["wall"]] for u in uniform]))
+    lines.append("")
+    lines.append(f"With tip tracking 'auto' the exit error converges less well: {ig[1.0]['exit_error_mm']:.4f} mm "
+                 f"at the default, {ig[0.5]['exit_error_mm']:.4f} mm at half of it ({100 * auto_halving:+.1f} %). "
+                 "The inverse gradient (eq. 3.66-3.67) steps with F^-1 at the tip, where the cutting force acts on "
+                 "one 0.71 mm segment (nearly a point load, whose displacement gradient is singular), so F at the "
+                 "tip depends on the discretization; Levenberg-Marquardt (eq. 3.68-3.69) uses only u. "
+                 + (f"At 1.5 x the default spacing the auto run {ig[1.5]['status']}. " if ig[1.5]["status"] != "ok"
+                    else "") + "\n")
     lines.append("## (b) block size (thesis table 5.1, unplanned)\n")
     lines.append("The four SH 1/2 blocks enter the left edge at mid-height + 8.88 mm turning clockwise, so the "
-                 "desired exit is the mirror of the entry about mid-height (see the comments in the files). The "
-                 "default spacing is min(W, H) / 20 capped at r / 3, so it is finer for the narrower blocks; the "
-                 f"common-spacing column runs all four at {COMMON_SPACING} mm. Levenberg-Marquardt tracking.\n")
+                 "desired exit is the mirror of the entry about mid-height (see the comments in the files). Each "
+                 "runs at its default discretization (2r/5, graded to r/5 at the needle, at most an eighth of the "
+                 "smaller side), at half of it, and on a common uniform "
+                 f"{COMMON_SPACING} mm grid. Levenberg-Marquardt tracking.\n")
     first = block_runs[0]
     table = []
-    for name, thesis, height, at_default, at_common in block_runs:
-        table.append([name, f"100 x {height:g}", at_default["spacing"], at_default["particles"],
-                      at_default["exit_error_mm"], at_default["exit_error_material_mm"], at_common["exit_error_mm"],
-                      at_common["exit_error_mm"] / first[4]["exit_error_mm"], thesis, thesis / first[1]])
+    for name, thesis, height, at_default, at_common, at_half in block_runs:
+        table.append([name, f"100 x {height:g}", f"{at_default['coarse']:.3g} / {at_default['spacing']:.3g}",
+                      at_default["particles"], at_default["exit_error_mm"], at_default["exit_error_material_mm"],
+                      at_half["exit_error_mm"], at_half["exit_error_mm"] / at_default["exit_error_mm"] - 1.0,
+                      at_common["exit_error_mm"], at_common["exit_error_mm"] / first[4]["exit_error_mm"], thesis,
+                      thesis / first[1]])
     lines.append(common.markdown_table(
-        ["scenario", "block (mm)", "default spacing (mm)", "particles", "exit error (mm)",
-         "material exit error (mm)", f"exit error at {COMMON_SPACING} mm", "ratio to 100 x 100 (common)",
+        ["scenario", "block (mm)", "default spacing / at needle (mm)", "particles", "exit error (mm)",
+         "material exit error (mm)", "exit error, halved", "change when halved",
+         f"exit error, uniform {COMMON_SPACING} mm", "ratio to 100 x 100 (uniform)",
          "thesis unplanned (mm)", "thesis ratio"], table))
     lines.append("")
     grows_default = all(b[3]["exit_error_mm"] < a[3]["exit_error_mm"] for a, b in zip(block_runs[1:], block_runs[:-1]))
@@ -174,7 +202,7 @@ def main() -> None:
                  f"narrows at the default spacings, and {'grows' if grows_common else 'does not grow monotonically'} "
                  "at the common spacing, as in the thesis (ratios 1 : "
                  + " : ".join(f"{b[4]['exit_error_mm'] / first[4]['exit_error_mm']:.2f}" for b in block_runs[1:])
-                 + " here against 1 : " + " : ".join(f"{b[1] / first[1]:.2f}" for b in block_runs[1:])
+                 + " on the uniform grid here against 1 : " + " : ".join(f"{b[1] / first[1]:.2f}" for b in block_runs[1:])
                  + f" in the thesis). The millimetres are about "
                  f"{sum(b[1] / b[3]['exit_error_mm'] for b in block_runs) / len(block_runs):.1f}x smaller than the "
                  "thesis's: see (c).\n")
@@ -202,17 +230,20 @@ def main() -> None:
     done = [r for r in studies["levenberg-marquardt"] if r["status"] == "ok"]
     left.plot([r["spacing"] for r in done], [r["exit_error_material_mm"] for r in done], "s--",
               label="material exit error, levenberg-marquardt")
+    left.plot([u["spacing"] for u in uniform], [u["exit_error_mm"] for u in uniform], "x-.", color="grey",
+              label="exit error, uniform grid, levenberg-marquardt")
     left.axvline(lm[1.0]["spacing"], color="grey", lw=0.8, ls=":")
-    left.set_xlabel("particle spacing (mm)")
+    left.set_xlabel("particle spacing at the needle (mm)")
     left.set_ylabel("exit error (mm)")
     left.set_title("sh12_100x100: exit error vs spacing")
     left.invert_xaxis()
     left.legend(fontsize=8, loc="lower left")
     heights = [b[2] for b in block_runs]
     width = 2.5
-    right.bar(np.array(heights) - width, [b[3]["exit_error_mm"] for b in block_runs], width, label="default spacing")
-    right.bar(np.array(heights), [b[4]["exit_error_mm"] for b in block_runs], width,
-              label=f"{COMMON_SPACING} mm spacing")
+    right.bar(np.array(heights) - width, [b[3]["exit_error_mm"] for b in block_runs], width, label="default")
+    right.bar(np.array(heights), [b[5]["exit_error_mm"] for b in block_runs], width, label="default halved")
+    right.bar(np.array(heights) + width, [b[4]["exit_error_mm"] for b in block_runs], width,
+              label=f"uniform {COMMON_SPACING} mm")
     twin = right.twinx()
     twin.plot(heights, [b[1] for b in block_runs], "kD--", label="thesis table 5.1 (right axis)")
     twin.set_ylabel("thesis unplanned exit error (mm)")
