@@ -10,6 +10,12 @@ the thesis's phantom moduli plus 0.05 mm Gaussian noise (seeded). Target: < 30 s
 
 from __future__ import annotations
 
+import os
+
+# single-threaded BLAS, as the `stitchplan` command sets it (and for both codes compared):
+# the numerics are sparse and small-dense, and BLAS threads only compete on 2 cores
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import tempfile
 import time

@@ -19,6 +19,12 @@ Run from the repository root:  python benchmarks/deform_speed.py
 
 from __future__ import annotations
 
+import os
+
+# single-threaded BLAS, as the `stitchplan` command sets it (and for both codes compared):
+# the numerics are sparse and small-dense, and BLAS threads only compete on 2 cores
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import statistics
 

@@ -18,6 +18,12 @@ the tables. About 10 minutes. Run from the repository root:
 
 from __future__ import annotations
 
+import os
+
+# single-threaded BLAS, as the `stitchplan` command sets it (and for both codes compared):
+# the numerics are sparse and small-dense, and BLAS threads only compete on 2 cores
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import statistics
 import sys
 import time
