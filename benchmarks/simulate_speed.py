@@ -144,7 +144,8 @@ def main() -> None:
              "## Where MINRES stagnates (one run each)\n",
              common.markdown_table(["spacing (mm)", "particles", "solver", "status", "wall (s)", "Newton its",
                                     "MINRES its", "fallbacks", "exit error (mm)"],
-                                   [[r["nominal"], r["particles"], r["solver"], r["status"].split(":")[0], r["wall"],
+                                   [[f"{r['nominal']:g}" + (" (default, graded)" if r["nominal"] == default else " (uniform)"),
+                                     r["particles"], r["solver"], r["status"].split(":")[0], r["wall"],
                                      r["newton"],
                                      r["minres"], r["fallbacks"], r["exit_error"]] for r in sweep]),
              ""]

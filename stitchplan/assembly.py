@@ -5,6 +5,9 @@ With the gradient operator B (4 nq x 2 n_free) of the discretized tissue,
     f_int = B^T (w P)              P = F S, first Piola-Kirchhoff stress
     K     = B^T diag(w A) B        A_iJkL = dP_iJ / dF_kL = K_H + K_G of eq. 3.45-3.53
 
+With variationally consistent integration the test side uses corrected gradients B~
+(TissueModel.test_gradient): f_int = B~^T (w P), K = B~^T diag(w A) B.
+
 B is built once per discretization; the block-diagonal material-point stiffness diag(w A)
 keeps a fixed sparsity pattern and only its values are refilled. Newton iterations
 mostly need K only as a product K v = B^T (diag(w A) (B v)), three sparse mat-vecs; the
@@ -25,7 +28,8 @@ class Assembler:
     def __init__(self, model: TissueModel):
         self.model = model
         self.gradient = model.gradient
-        self.gradient_t = model.gradient.T.tocsr()
+        test = model.gradient if model.test_gradient is None else model.test_gradient
+        self.gradient_t = test.T.tocsr()  # B^T, or B~^T of the corrected test functions
         n_points = len(model.quadrature_weights)
         # block-diagonal (4 x 4 per point) as CSR with a fixed pattern: data order is (q, r, c)
         cols = (4 * np.arange(n_points)[:, None, None] + np.zeros((1, 4, 1), int) + np.arange(4)).ravel()

@@ -380,7 +380,7 @@ class ExperimentModel:
             problem.load_fraction = 1.0
             warm = replace(settings, max_iterations=min(settings.max_iterations, 15))
             try:
-                x, iterations, _, _ = newton(problem, nearest[1].ravel(), warm, reference,
+                x, iterations, *_ = newton(problem, nearest[1].ravel(), warm, reference,
                                              self.model.spacing, self.linear)
                 self.newton_iterations += iterations
                 free = x.reshape(-1, 2)

@@ -17,6 +17,7 @@ EDGES = ("left", "right", "bottom", "top")
 MATERIAL_MODELS = ("saint-venant-kirchhoff", "neo-hookean")
 TIP_TRACKING = ("auto", "inverse-gradient", "levenberg-marquardt")
 LINEAR_SOLVERS = ("direct", "minres")
+INTEGRATIONS = ("gauss", "vci")
 
 
 class ScenarioError(ValueError):
@@ -52,6 +53,10 @@ class Discretization:
     # needle_spacing = spacing / needle_refinement when no needle_spacing is given, so that
     # `--spacing` refines the graded arrangement as a whole (the default for needle scenes)
     needle_refinement: float | None = None
+    # "gauss": Galerkin with background-cell Gauss quadrature; "vci": the test-function
+    # gradients corrected so that the quadrature satisfies the divergence theorem
+    # (variationally consistent integration; passes the linear patch test; deform only)
+    integration: str = "gauss"
     # exit-point accuracy (mm): the auto discretization (stitchplan.auto) picks the rest
     accuracy: float | None = None
 
@@ -213,7 +218,7 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
         return Discretization()
     block = _mapping(raw, path, ("spacing", "dilation", "quadrature_order", "basis_order",
                                  "cells_per_spacing", "needle_spacing", "needle_zone", "needle_refinement",
-                                 "accuracy"))
+                                 "integration", "accuracy"))
     default = Discretization()
     dilation = _number(block.get("dilation", default.dilation), f"{path}.dilation", positive=True)
     if dilation <= 1.0:
@@ -250,6 +255,7 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
         needle_zone=_number(block.get("needle_zone", default.needle_zone), f"{path}.needle_zone",
                             positive=True, unit="needle radii"),
         needle_refinement=refinement,
+        integration=_choice(block.get("integration", default.integration), f"{path}.integration", INTEGRATIONS),
         accuracy=accuracy,
     )
 

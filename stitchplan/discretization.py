@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from .boundary_conditions import EssentialBoundary, boundary_particles, transformation
 from .config import Discretization, Scenario, ScenarioError, Tissue
 from .material import NeoHookean, SaintVenantKirchhoff, make_material
-from .quadrature import cell_quadrature
+from .quadrature import cell_quadrature, natural_boundary_quadrature
 from .shape_functions import ShapeFunctions, SingularMomentMatrix, rk_shape_functions, rk_shape_pairs
 
 
@@ -153,6 +153,13 @@ class TissueModel:
     boundary: EssentialBoundary
     gradient: sp.csr_matrix  # (4 nq, 2 n_free)
     spacing: float
+    # gradients of the test functions when they differ from the trial ones (integration
+    # "vci"); None: Galerkin, test = trial, symmetric tangent
+    test_gradient: sp.csr_matrix | None = None
+
+    @property
+    def symmetric(self) -> bool:
+        return self.test_gradient is None
 
     @property
     def n_particles(self) -> int:
@@ -235,7 +242,20 @@ def build_tissue_model(
             f"{discretization.quadrature_order}) gives a singular RK moment matrix ({error})"
         ) from None
     boundary = transformation(at_boundary, constrained, len(particles))
-    gradient = _gradient_operator(shape, boundary.free_map)
+    free_map = boundary.free_map
+    grad_x, grad_y = shape.grad_x @ free_map, shape.grad_y @ free_map
+    gradient = _gradient_operator(grad_x, grad_y)
+    test_gradient = None
+    if discretization.integration == "vci":
+        essential = [(np.asarray(a, float), np.asarray(b, float)) for a, b in prescribed_segments]
+        essential += [_edge_segment(tissue.size, edge) for edge in tissue.clamped]
+        boundary_points, normals, boundary_weights = natural_boundary_quadrature(
+            tissue.size, essential, spacing, discretization.quadrature_order + 2)
+        at_natural = (rk_shape_functions(boundary_points, particles, support, volumes, order, False, tree,
+                                         float(support.mean())).values @ free_map
+                      if len(boundary_points) else sp.csr_matrix((0, free_map.shape[1])))
+        test_gradient = _gradient_operator(*consistent_test_gradients(
+            shape.values @ free_map, grad_x, grad_y, weights, at_natural, normals, boundary_weights))
     return TissueModel(
         tissue=tissue,
         discretization=discretization,
@@ -250,6 +270,7 @@ def build_tissue_model(
         boundary=boundary,
         gradient=gradient,
         spacing=spacing,
+        test_gradient=test_gradient,
     )
 
 
@@ -270,11 +291,54 @@ def needle_zone_for(scenario: Scenario) -> tuple[tuple[float, float], float] | N
     return tuple(geometry.center), scenario.discretization.needle_zone * geometry.radius
 
 
-def _gradient_operator(shape: ShapeFunctions, free_map: sp.csr_matrix) -> sp.csr_matrix:
-    """Rows (q, 2 i + J) -> d u_i / d X_J, columns interleaved free dofs (2 p + i)."""
-    n_points = shape.values.shape[0]
-    n_free = free_map.shape[1]
-    blocks = [(shape.grad_x @ free_map).tocoo(), (shape.grad_y @ free_map).tocoo()]
+def _edge_segment(size: tuple[float, float], edge: str) -> tuple[np.ndarray, np.ndarray]:
+    width, height = size
+    ends = {"left": ((0.0, 0.0), (0.0, height)), "right": ((width, 0.0), (width, height)),
+            "bottom": ((0.0, 0.0), (width, 0.0)), "top": ((0.0, height), (width, height))}[edge]
+    return np.asarray(ends[0]), np.asarray(ends[1])
+
+
+def consistent_test_gradients(values: sp.csr_matrix, grad_x: sp.csr_matrix, grad_y: sp.csr_matrix,
+                              weights: np.ndarray, at_natural: sp.csr_matrix, normals: np.ndarray,
+                              boundary_weights: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """Variationally consistent integration (VCI) of the free test functions Psi_J = N T_J.
+
+    Gauss quadrature of the rational RK functions breaks the divergence theorem
+    int grad Psi_J dOmega = int_Gamma Psi_J N dGamma, and the transformed functions do not
+    vanish on the essential boundary between the boundary particles; both make the linear
+    patch test fail. The corrected gradients grad Psi_J + xi_J Psi_J, with one constant
+    vector xi_J per free function, satisfy the discrete divergence theorem with the
+    boundary integral taken over the natural boundary only (where a test function of the
+    exact weak form may be non-zero):
+
+        sum_q (grad Psi_J + xi_J Psi_J)(X_q) w_q = sum_b Psi_J(X_b) N_b w_b.
+
+    A constant stress then leaves no residual at the free coefficients, so a linear field
+    prescribed on the whole boundary is the discrete solution (to round-off). Only the
+    test side is corrected (Petrov-Galerkin): the trial gradients keep reproducing linear
+    fields exactly, and the tangent B_test^T A B is no longer symmetric.
+    Arguments: (nq, n_free) matrices at the quadrature points, their area weights (nq,), the
+    functions at the natural-boundary points (nb, n_free), outward normals (nb, 2) and
+    lengths (nb,). Returns the corrected (grad_x, grad_y).
+    """
+    mass = values.T @ weights  # sum_q Psi_J w_q
+    if np.any(mass <= 1e-6 * np.abs(mass).max()):
+        bad = int(np.argmin(mass))
+        raise ScenarioError(f"discretization.integration: vci needs test functions with a positive "
+                            f"integral; free function {bad} has {mass[bad]:.3g} mm^2 (use integration: gauss)")
+    corrected = []
+    for k, grad in enumerate((grad_x, grad_y)):
+        target = at_natural.T @ (normals[:, k] * boundary_weights)
+        xi = (target - grad.T @ weights) / mass
+        corrected.append((grad + values @ sp.diags(xi)).tocsr())
+    return corrected[0], corrected[1]
+
+
+def _gradient_operator(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matrix:
+    """Rows (q, 2 i + J) -> d u_i / d X_J, columns interleaved free dofs (2 p + i), from the
+    (nq, n_free) gradient matrices of the free functions."""
+    n_points, n_free = grad_x.shape
+    blocks = [grad_x.tocoo(), grad_y.tocoo()]
     rows, cols, vals = [], [], []
     for component in range(2):  # i
         for direction, block in enumerate(blocks):  # J

@@ -41,3 +41,51 @@ def segment_quadrature(
     points = start + t[:, None] * (end - start)
     weights = np.tile(w, pieces) * length / pieces
     return points, weights
+
+
+def natural_boundary_quadrature(
+    size: tuple[float, float], essential: list[tuple[np.ndarray, np.ndarray]], interval: float, order: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss rule on the rectangle's boundary minus the `essential` pieces (segments along its
+    edges: clamped edges, prescribed-displacement segments).
+
+    Each edge is cut at its ends, every `interval` mm and at the ends of the essential pieces
+    on it; intervals whose midpoint lies on an essential piece are dropped. Returns points
+    (n, 2), outward unit normals (n, 2) and weights (n,) (lengths, mm).
+    """
+    width, height = size
+    tol = 1e-9 * max(size)
+    edges = (  # start, end, outward normal
+        ((0.0, 0.0), (width, 0.0), (0.0, -1.0)),
+        ((width, 0.0), (width, height), (1.0, 0.0)),
+        ((width, height), (0.0, height), (0.0, 1.0)),
+        ((0.0, height), (0.0, 0.0), (-1.0, 0.0)),
+    )
+    s, w = gauss_legendre(order)
+    points, normals, weights = [], [], []
+    for start, end, normal in edges:
+        start, end = np.asarray(start), np.asarray(end)
+        length = float(np.linalg.norm(end - start))
+        direction = (end - start) / length
+        cuts = [np.linspace(0.0, length, max(int(np.ceil(length / interval - 1e-9)), 1) + 1)]
+        pieces = []
+        for a, b in essential:
+            ta, tb = (float((np.asarray(p, float) - start) @ direction) for p in (a, b))
+            off = max(abs(float(direction[0] * (p[1] - start[1]) - direction[1] * (p[0] - start[0])))
+                      for p in (a, b))
+            if off <= tol:  # the piece lies on this edge
+                low, high = sorted((ta, tb))
+                pieces.append((low, high))
+                cuts.append(np.clip([low, high], 0.0, length))
+        breaks = np.unique(np.round(np.concatenate(cuts) / tol) * tol)
+        left, right = breaks[:-1], breaks[1:]
+        middle = 0.5 * (left + right)
+        keep = right - left > tol
+        for low, high in pieces:
+            keep &= ~((middle >= low - tol) & (middle <= high + tol))
+        left, right = left[keep], right[keep]
+        t = (left[:, None] + s[None, :] * (right - left)[:, None]).ravel()
+        points.append(start + t[:, None] * direction)
+        normals.append(np.broadcast_to(np.asarray(normal, float), (len(t), 2)))
+        weights.append((w[None, :] * (right - left)[:, None]).ravel())
+    return np.concatenate(points), np.concatenate(normals), np.concatenate(weights)

@@ -104,25 +104,11 @@ class ShapePairs:
         return ShapeFunctions(csr(self.values), csr(self.grad[:, 0]), csr(self.grad[:, 1]))
 
 
-def rk_shape_functions(
-    points: np.ndarray,
-    particles: np.ndarray,
-    support: np.ndarray,
-    volumes: np.ndarray,
-    order: int = 1,
-    gradients: bool = True,
-    tree: cKDTree | None = None,
-    basis_scale: float | None = None,
-) -> ShapeFunctions:
-    """N_I(X) = H(0)^T M(X)^-1 H((X - X_I)/a) phi_a(X - X_I) dV_I (eq. 3.19-3.20) and grad N_I.
-
-    points (n, 2) evaluation points; particles (NP, 2); support (NP,) kernel half-widths a_I;
-    volumes (NP,) particle volumes dV_I. The basis argument is scaled by one length for all
-    particles (basis_scale, default the mean support) so that reproduction holds when the
-    supports vary between particles.
-    """
+def rk_shape_functions(points: np.ndarray, particles: np.ndarray, *args, **kwargs) -> ShapeFunctions:
+    """The RK shape functions of `rk_shape_pairs` (same arguments) as sparse
+    (n_points x n_particles) matrices."""
     points = np.atleast_2d(np.asarray(points, dtype=float))
-    pairs = rk_shape_pairs(points, particles, support, volumes, order, gradients, tree, basis_scale)
+    pairs = rk_shape_pairs(points, particles, *args, **kwargs)
     return pairs.matrices(len(points), len(particles))
 
 
@@ -136,7 +122,13 @@ def rk_shape_pairs(
     tree: cKDTree | None = None,
     basis_scale: float | None = None,
 ) -> ShapePairs:
-    """The shape functions of `rk_shape_functions` as pair lists (same arguments)."""
+    """N_I(X) = H(0)^T M(X)^-1 H((X - X_I)/a) phi_a(X - X_I) dV_I (eq. 3.19-3.20) and grad N_I.
+
+    points (n, 2) evaluation points; particles (NP, 2); support (NP,) kernel half-widths a_I;
+    volumes (NP,) particle volumes dV_I. The basis argument is scaled by one length for all
+    particles (basis_scale, default the mean support) so that reproduction holds when the
+    supports vary between particles.
+    """
     points = np.atleast_2d(np.asarray(points, dtype=float))
     rows, cols, indptr = neighbour_pairs(points, particles, support, tree)
     counts = np.diff(indptr)

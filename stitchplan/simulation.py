@@ -111,6 +111,10 @@ class NeedleInsertion:
                  condition_numbers: bool = False):
         if scenario.needle is None:
             raise ScenarioError("needle: missing, required by simulate and plan")
+        if scenario.discretization.integration != "gauss":
+            raise ScenarioError(f"discretization.integration: got {scenario.discretization.integration!r}, "
+                                "expected 'gauss' for simulate and plan (the needle's saddle-point solvers "
+                                "need the symmetric Galerkin tangent; vci is for deform and calibrate)")
         self.scenario = scenario
         self.needle = scenario.needle
         self.size = scenario.tissue.size

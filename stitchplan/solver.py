@@ -98,6 +98,27 @@ def preconditioned_cg(
     return None, max_iterations
 
 
+def preconditioned_gmres(
+    operator: Callable[[np.ndarray], np.ndarray],
+    preconditioner: Callable[[np.ndarray], np.ndarray],
+    rhs: np.ndarray,
+    rtol: float,
+    max_iterations: int,
+) -> tuple[np.ndarray | None, int]:
+    """GMRES (Krylov spaces of up to max_iterations, at most three cycles: scipy may end a cycle
+    early on its preconditioned residual estimate) for nonsymmetric tangents; returns
+    (None, its) unless the true residual reaches ~rtol |rhs|."""
+    n = len(rhs)
+    count = [0]
+    a = spla.LinearOperator((n, n), matvec=operator, dtype=float)
+    m = spla.LinearOperator((n, n), matvec=preconditioner, dtype=float)
+    x, info = spla.gmres(a, rhs, M=m, rtol=rtol, atol=0.0, restart=max_iterations, maxiter=3,
+                         callback=lambda _r: count.__setitem__(0, count[0] + 1), callback_type="pr_norm")
+    if info != 0 or np.linalg.norm(rhs - operator(x)) > 10 * rtol * np.linalg.norm(rhs):
+        return None, count[0]
+    return x, count[0]
+
+
 class TangentSolver:
     """Solves K dx = -r for the successive tangents of a Newton run.
 
@@ -121,8 +142,12 @@ class TangentSolver:
 
     def solve(self, problem, rhs: np.ndarray) -> np.ndarray:
         if self.mode == "pcg" and self.factor is not None:
-            x, iterations = preconditioned_cg(problem.tangent_product, self.factor.solve, rhs,
-                                              self.rtol, self.refactor_after)
+            if getattr(problem, "symmetric", True):
+                x, iterations = preconditioned_cg(problem.tangent_product, self.factor.solve, rhs,
+                                                  self.rtol, self.refactor_after)
+            else:  # Petrov-Galerkin tangent (integration "vci"): GMRES, same preconditioner
+                x, iterations = preconditioned_gmres(problem.tangent_product, self.factor.solve, rhs,
+                                                     self.rtol, self.refactor_after)
             self.krylov_iterations += iterations
             if x is not None:
                 return x
@@ -143,7 +168,7 @@ def newton(
     Converged when |r| <= residual_tolerance * max(reference, |r_0|) and the last increment
     |dx|_inf <= increment_tolerance * (|x|_inf + length_scale), or the residual is 1000x
     below its tolerance. Raises InvertedMaterial or SolverDivergence; the caller cuts the step.
-    Returns (x, iterations, |r|, |dx|_inf).
+    Returns (x, iterations, |r|, |dx|_inf, |r_0|).
     """
     x = start.copy()
     increment_norm = np.inf
@@ -154,10 +179,11 @@ def newton(
         if not np.isfinite(residual_norm):
             raise SolverDivergence(f"residual is not finite after {iteration} iterations")
         if iteration == 0:
+            initial = residual_norm
             tolerance = settings.residual_tolerance * max(reference_force, residual_norm, 1e-300)
         small_step = increment_norm <= settings.increment_tolerance * (np.abs(x).max() + length_scale)
         if residual_norm <= tolerance and (small_step or residual_norm <= 1e-3 * tolerance):
-            return x, iteration, residual_norm, increment_norm
+            return x, iteration, residual_norm, increment_norm, initial
         if iteration == settings.max_iterations:
             break
         delta = linear.solve(problem, -residual)
@@ -180,6 +206,7 @@ class StaticProblem:
         self.external_force = external_force
         self.prescribed = prescribed
         self.load_fraction = 0.0
+        self.symmetric = model.symmetric
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         coefficients = self.model.coefficients(x.reshape(-1, 2), self.load_fraction * self.prescribed)
@@ -222,6 +249,9 @@ def solve_static(
     previous_increment = np.zeros_like(free)
     report = NewtonReport()
     reference_force = float(np.linalg.norm(external_force))
+    # largest out-of-balance force a step started from: the force scale of displacement
+    # control, where a step whose predictor is already exact starts at round-off
+    out_of_balance = 0.0
     fraction = 0.0
     nominal = 1.0 / load_steps
 
@@ -235,8 +265,9 @@ def solve_static(
             problem.load_fraction = trial
             start = free + scale * previous_increment  # secant predictor
             try:
-                x, its, residual, increment = newton(problem, start.ravel(), settings,
-                                                     trial * reference_force, model.spacing, linear)
+                x, its, residual, increment, initial = newton(
+                    problem, start.ravel(), settings, max(trial * reference_force, out_of_balance),
+                    model.spacing, linear)
             except (SolverDivergence, InvertedMaterial) as failure:
                 if cuts >= settings.max_step_cuts:
                     raise SolverDivergence(
@@ -248,6 +279,7 @@ def solve_static(
                 previous_increment = np.zeros_like(free)
                 log.info("load step %d: cutting to %.4g (%s)", step, size, failure)
                 continue
+            out_of_balance = max(out_of_balance, initial)
             new_free = x.reshape(-1, 2)
             previous_increment = (new_free - free) / scale
             free = new_free

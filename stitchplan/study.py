@@ -168,8 +168,10 @@ def parse_study(raw: Any, path: str = "study") -> StudySpec:
 
 
 def default_spacings(scenario: Scenario, quick: bool = False) -> tuple[float, ...]:
-    """Around the scenario's spacing h: from 1.6 h down to 0.7 h (quick: 1.4 h and h)."""
-    h = scenario.discretization.spacing
+    """Around the scenario's spacing at the needle h (its spacing on a uniform grid): from
+    1.6 h down to 0.7 h (quick: 1.4 h and h)."""
+    d = scenario.discretization
+    h = d.needle_spacing if d.needle_spacing is not None else d.spacing
     factors = (1.4, 1.0) if quick else (1.6, 1.35, 1.15, 1.0, 0.85, 0.7)
     return tuple(round(h * f, 3) for f in factors)
 

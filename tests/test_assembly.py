@@ -23,10 +23,11 @@ CASES = [
 
 
 def small_model(material: str, basis_order: int = 1, dilation: float = 2.0, clamped=("left",),
-                segments=(RIGHT_EDGE,)):
+                segments=(RIGHT_EDGE,), integration: str = "gauss"):
     """9 x 5 particles, clamped left edge and a prescribed right edge: 35 free particles."""
     tissue = Tissue(SIZE, 2.0, Material(material, 0.5, 0.3), tuple(clamped))
-    discretization = Discretization(spacing=2.5, dilation=dilation, basis_order=basis_order)
+    discretization = Discretization(spacing=2.5, dilation=dilation, basis_order=basis_order,
+                                    integration=integration)
     return build_tissue_model(tissue, discretization, tuple(segments))
 
 
@@ -48,9 +49,14 @@ def internal_force(model, assembler, free, prescribed):
     return assembler.update(model.deformation_gradient(coefficients))
 
 
-@pytest.mark.parametrize("material, basis_order, dilation", CASES)
-def test_tangent_matches_finite_differences_of_internal_force(material, basis_order, dilation, rng):
-    model = small_model(material, basis_order, dilation)
+@pytest.mark.parametrize("material, basis_order, dilation, integration", [
+    *[pytest.param(*case.values, "gauss", id=case.id) for case in CASES],
+    pytest.param("saint-venant-kirchhoff", 1, 2.0, "vci", id="svk-linear-vci"),
+    pytest.param("neo-hookean", 1, 2.0, "vci", id="neo-hookean-linear-vci"),
+])
+def test_tangent_matches_finite_differences_of_internal_force(material, basis_order, dilation, integration, rng):
+    """K = dF_int/dd, also for the nonsymmetric Petrov-Galerkin tangent of integration vci."""
+    model = small_model(material, basis_order, dilation, integration=integration)
     assembler = Assembler(model)
     free, prescribed = moderate_state(model, rng)
     deformation_gradient = model.deformation_gradient(model.coefficients(free.reshape(-1, 2), prescribed))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from stitchplan.discretization import grid_particles
-from stitchplan.shape_functions import SingularMomentMatrix, rk_shape_functions
+from stitchplan.shape_functions import SingularMomentMatrix, rk_shape_functions, rk_shape_pairs
 
 SIZE = (10.0, 8.0)  # mm
 SPACING = 2.0  # mm -> 6 x 5 particles
@@ -108,6 +108,23 @@ def test_gradients_match_central_finite_differences(order, dilation, rng):
         scale = np.abs(grad.toarray()).max()
         assert scale > 0.05  # the comparison is not trivially between zeros
         np.testing.assert_allclose(grad.toarray(), finite_difference, rtol=0, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("order, dilation", CASES)
+def test_direct_field_evaluation_equals_the_sparse_matrices(order, dilation, rng):
+    """ShapePairs.field (tip tracking's path, no sparse matrices) gives u and du/dX exactly as
+    the stored sparse matrices do, for a random coefficient field."""
+    particles, support, volumes = particle_grid(dilation)
+    points = evaluation_points(rng)
+    coefficients = rng.normal(size=(len(particles), 2))
+    shape = rk_shape_functions(points, particles, support, volumes, order, gradients=True)
+    u, grad = rk_shape_pairs(points, particles, support, volumes, order, gradients=True).field(coefficients)
+    np.testing.assert_allclose(u, shape.values @ coefficients, rtol=0, atol=ROUND_OFF)
+    np.testing.assert_allclose(grad, np.stack([shape.grad_x @ coefficients, shape.grad_y @ coefficients], axis=2),
+                               rtol=0, atol=ROUND_OFF)
+    u_only, none = rk_shape_pairs(points, particles, support, volumes, order, gradients=False).field(coefficients)
+    assert none is None
+    np.testing.assert_allclose(u_only, u, rtol=0, atol=ROUND_OFF)
 
 
 def test_too_few_particles_for_the_basis_is_reported():
