@@ -20,7 +20,8 @@ One run of this script:
      mesh size / particle spacing was last halved (stated in the output);
   2. timing, interleaved over repetitions (medians): skfem meshes from coarse to fine (wall time
      of mesh + basis + assembly + solves + probes, imports excluded), and stitchplan's
-     `run_deform` wall_seconds at its default discretization (and a few other spacings);
+     `run_deform` wall_seconds at its default discretization (and a few other spacings, and
+     with integration: vci);
   3. the cheapest skfem mesh with max probe error <= 1 % of the largest probe displacement,
      and the ratio skfem time / stitchplan default time.
 
@@ -79,6 +80,7 @@ SKFEM_SWEEP = {  # cells per side (the mesh lines at the load-segment ends are a
 SKFEM_REFERENCE = ("Q2-quad", 80)
 STITCHPLAN_REFERENCE = (2.0, 1.0)  # spacings (mm): the fine run and the one before it (h halved)
 STITCHPLAN_EXTRA_SPACINGS = (10.0, 4.0, 2.5)  # timed besides the default, for error vs time
+STITCHPLAN_VCI_SPACINGS = (10.0, 5.0, 2.5)  # integration: vci, for its cost against Gauss
 LINEAR_SOLVER = solver_direct_scipy(permc_spec="MMD_AT_PLUS_A")
 
 
@@ -231,8 +233,8 @@ def solve_skfem(scenario: Scenario, element: str, cells: int) -> SkfemRun:
 # --- the benchmark ------------------------------------------------------------------------
 
 
-def stitchplan_run(scenario: Scenario, spacing: float | None):
-    chosen = scenario if spacing is None else with_discretization(scenario, spacing=spacing)
+def stitchplan_run(scenario: Scenario, spacing: float | None, integration: str = "gauss"):
+    chosen = with_discretization(scenario, spacing=spacing, integration=integration)
     return run_deform(chosen)
 
 
@@ -280,6 +282,7 @@ def main() -> None:
 
     # 2. timing, interleaved ------------------------------------------------------------
     configs = [("stitchplan", None)] + [("stitchplan", s) for s in STITCHPLAN_EXTRA_SPACINGS]
+    configs += [("stitchplan vci", s) for s in STITCHPLAN_VCI_SPACINGS]
     configs += [(element, cells) for element, sizes in SKFEM_SWEEP.items() for cells in sizes]
     solve_skfem(base, "P2-tri", 4)  # warm-up (first-call costs of both libraries), not timed
     stitchplan_run(base, None)
@@ -289,8 +292,8 @@ def main() -> None:
         print(f"timing repetition {repeat + 1}/{args.repeats} ...", flush=True)
         for config in configs:
             code, size = config
-            if code == "stitchplan":
-                result = stitchplan_run(base, size)
+            if code.startswith("stitchplan"):
+                result = stitchplan_run(base, size, "vci" if code.endswith("vci") else "gauss")
                 samples[config].append(result.wall_seconds)
             else:
                 result = solve_skfem(base, code, size)
@@ -302,14 +305,16 @@ def main() -> None:
         code, size = config
         result = last[config]
         seconds = statistics.median(samples[config])
-        if code == "stitchplan":
+        if code.startswith("stitchplan"):
             spacing = default_spacing if size is None else size
             error = common.max_probe_error(result.probe_displacements, reference)
-            rows.append({"code": "stitchplan", "discretization":
-                         f"spacing {spacing:g} mm" + (" (default)" if size is None else ""),
+            vci = code.endswith("vci")
+            rows.append({"code": code, "discretization":
+                         f"spacing {spacing:g} mm" + (", integration vci" if vci else "")
+                         + (" (default)" if size is None and not vci else ""),
                          "size_mm": result.model.spacing, "unknowns": 2 * result.model.n_free,
                          "newton": result.report.iterations, "seconds": seconds,
-                         "samples": samples[config], "error": error, "default": size is None,
+                         "samples": samples[config], "error": error, "default": size is None and not vci,
                          "probes": result.probe_displacements})
         else:
             error = common.max_probe_error(result.probe_displacements, reference)
@@ -406,7 +411,8 @@ def main() -> None:
     print(summary)
 
     figure, axis = plt.subplots(figsize=(6, 4.5))
-    for code, marker in (("skfem P2-tri", "s-"), ("skfem Q2-quad", "d-"), ("stitchplan", "o-")):
+    for code, marker in (("skfem P2-tri", "s-"), ("skfem Q2-quad", "d-"), ("stitchplan", "o-"),
+                         ("stitchplan vci", "^--")):
         chosen = sorted((r for r in rows if r["code"] == code), key=lambda r: -r["size_mm"])
         axis.loglog([r["seconds"] for r in chosen], [100 * r["error"] for r in chosen], marker,
                     label=code)

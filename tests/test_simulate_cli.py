@@ -127,6 +127,17 @@ def test_bad_needle_geometry_is_one_error_line_and_no_output(tmp_path, write_sce
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]
 
 
+def test_vci_integration_is_refused_for_the_needle(tmp_path, write_scenario):
+    raw = scene_raw()
+    raw["discretization"] = {**raw.get("discretization", {}), "integration": "vci"}
+    scenario = write_scenario(raw, "scene.yaml")
+    result = invoke(scenario, "--summary", tmp_path / "summary.json")
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: discretization.integration: got 'vci', expected 'gauss'")
+    assert not (tmp_path / "summary.json").exists()
+
+
 def test_bad_tip_tracking_option_is_refused(tmp_path, write_scenario):
     scenario = write_scenario(scene_raw(), "scene.yaml")
     result = invoke(scenario, "--summary", tmp_path / "summary.json", "--tip-tracking", "newton")
