@@ -101,6 +101,14 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> s
     return "\n".join(lines)
 
 
+def write_report(name: str, lines: Sequence[str]) -> None:
+    """Write the markdown report results/<name> and print it."""
+    text = "\n".join(lines)
+    results_path(name).write_text(text)
+    print()
+    print(text)
+
+
 def machine_note() -> str:
     import numpy
     import scipy

@@ -111,10 +111,7 @@ def main() -> None:
     lines.append(common.markdown_table(["spacing (mm)", "gauss error", "gauss local slope", "vci error",
                                         "vci local slope"], rows))
     lines.append("")
-    text = "\n".join(lines)
-    common.results_path("patch_test.md").write_text(text)
-    print()
-    print(text)
+    common.write_report("patch_test.md", lines)
 
 
 if __name__ == "__main__":

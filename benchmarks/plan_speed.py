@@ -96,10 +96,7 @@ def main() -> None:
              "",
              "The comparison run is the same insertion with the centre fixed; `--no-compare` skips it when only "
              "the trajectory is needed.\n"]
-    text = "\n".join(lines)
-    common.results_path("plan_speed.md").write_text(text)
-    print()
-    print(text)
+    common.write_report("plan_speed.md", lines)
 
 
 if __name__ == "__main__":
