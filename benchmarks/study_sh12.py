@@ -115,7 +115,7 @@ def main() -> None:
              "exit-error-vector deviations from it (stitchplan.study).", "",
              "## Pareto front", "", common.markdown_table(header, pareto_rows), "",
              "## Families", "",
-             common.markdown_table(["family", "runs", "failed", f"best deviation (mm)",
+             common.markdown_table(["family", "runs", "failed", "best deviation (mm)",
                                     f"cheapest run within {ACCURACY} mm", "failures"], families), ""]
 
     choice = study.auto

@@ -61,6 +61,14 @@ def edge_mask(points: np.ndarray, size: tuple[float, float], edge: str, tol: flo
     return np.abs(points[:, coordinate] - value) <= tol
 
 
+def edge_segment(size: tuple[float, float], edge: str) -> tuple[np.ndarray, np.ndarray]:
+    """End points of a named edge of [0, W] x [0, H]."""
+    width, height = size
+    ends = {"left": ((0.0, 0.0), (0.0, height)), "right": ((width, 0.0), (width, height)),
+            "bottom": ((0.0, 0.0), (width, 0.0)), "top": ((0.0, height), (width, height))}[edge]
+    return np.asarray(ends[0]), np.asarray(ends[1])
+
+
 def boundary_particles(
     particles: np.ndarray,
     tissue: Tissue,

@@ -7,7 +7,7 @@ refused so a misspelt option never silently falls back to a default.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +59,17 @@ class Discretization:
     integration: str = "gauss"
     # exit-point accuracy (mm): the auto discretization (stitchplan.auto) picks the rest
     accuracy: float | None = None
+
+    def as_input(self) -> dict:
+        """The block as a scenario file would give it: parse_discretization(d.as_input())
+        returns d, and a needle spacing derived from needle_refinement stays derived, so it
+        follows a changed spacing."""
+        from dataclasses import asdict
+
+        values = asdict(self)
+        if self.needle_refinement is not None:
+            values["needle_spacing"] = None
+        return values
 
 
 @dataclass(frozen=True)
@@ -467,11 +478,9 @@ def load_scenario(path: str | Path) -> Scenario:
 
 def with_discretization(scenario: Scenario, **overrides: float | int | None) -> Scenario:
     """Copy of the scenario with discretization fields replaced (None values ignored)."""
-    from dataclasses import asdict, replace
+    from dataclasses import replace
 
-    values = asdict(scenario.discretization)
-    if values["needle_refinement"] is not None and overrides.get("needle_spacing") is None:
-        values["needle_spacing"] = None  # derived from the spacing: follow it
+    values = scenario.discretization.as_input()
     values.update({k: v for k, v in overrides.items() if v is not None})
     if overrides.get("spacing") is not None and "accuracy" not in overrides:
         values["accuracy"] = None  # an explicit spacing replaces the auto discretization

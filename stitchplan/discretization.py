@@ -12,11 +12,12 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .boundary_conditions import EssentialBoundary, boundary_particles, transformation
+from .boundary_conditions import EssentialBoundary, boundary_particles, edge_segment, transformation
 from .config import Discretization, Scenario, ScenarioError, Tissue
 from .material import NeoHookean, SaintVenantKirchhoff, make_material
 from .quadrature import cell_quadrature, natural_boundary_quadrature
-from .shape_functions import ShapeFunctions, SingularMomentMatrix, rk_shape_functions, rk_shape_pairs
+from .shape_functions import (ShapeFunctions, ShapePairs, SingularMomentMatrix, rk_shape_functions,
+                              rk_shape_pairs)
 
 
 def grid_particles(size: tuple[float, float], spacing: float) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -169,16 +170,17 @@ class TissueModel:
     def n_free(self) -> int:
         return self.boundary.n_free
 
+    def _shape_pairs(self, points: np.ndarray, gradients: bool) -> ShapePairs:
+        return rk_shape_pairs(points, self.particles, self.support, self.volumes,
+                              self.discretization.basis_order, gradients, self.tree, self.basis_scale)
+
     def shape_functions_at(self, points: np.ndarray, gradients: bool = False) -> ShapeFunctions:
-        return rk_shape_functions(np.atleast_2d(points), self.particles, self.support, self.volumes,
-                                  self.discretization.basis_order, gradients, self.tree,
-                                  self.basis_scale)
+        points = np.atleast_2d(points)
+        return self._shape_pairs(points, gradients).matrices(len(points), self.n_particles)
 
     def field_at(self, points: np.ndarray, coefficients: np.ndarray, gradients: bool = False):
         """u(X) (n, 2) from particle coefficients (NP, 2) and, with gradients, du_i/dX_J (n, 2, 2)."""
-        pairs = rk_shape_pairs(np.atleast_2d(points), self.particles, self.support, self.volumes,
-                               self.discretization.basis_order, gradients, self.tree, self.basis_scale)
-        return pairs.field(coefficients)
+        return self._shape_pairs(np.atleast_2d(points), gradients).field(coefficients)
 
     @property
     def basis_scale(self) -> float:
@@ -248,7 +250,7 @@ def build_tissue_model(
     test_gradient = None
     if discretization.integration == "vci":
         essential = [(np.asarray(a, float), np.asarray(b, float)) for a, b in prescribed_segments]
-        essential += [_edge_segment(tissue.size, edge) for edge in tissue.clamped]
+        essential += [edge_segment(tissue.size, edge) for edge in tissue.clamped]
         boundary_points, normals, boundary_weights = natural_boundary_quadrature(
             tissue.size, essential, spacing, discretization.quadrature_order + 2)
         at_natural = (rk_shape_functions(boundary_points, particles, support, volumes, order, False, tree,
@@ -289,13 +291,6 @@ def needle_zone_for(scenario: Scenario) -> tuple[tuple[float, float], float] | N
 
     geometry = needle_geometry(scenario.needle, scenario.tissue.size)
     return tuple(geometry.center), scenario.discretization.needle_zone * geometry.radius
-
-
-def _edge_segment(size: tuple[float, float], edge: str) -> tuple[np.ndarray, np.ndarray]:
-    width, height = size
-    ends = {"left": ((0.0, 0.0), (0.0, height)), "right": ((width, 0.0), (width, height)),
-            "bottom": ((0.0, 0.0), (width, 0.0)), "top": ((0.0, height), (width, height))}[edge]
-    return np.asarray(ends[0]), np.asarray(ends[1])
 
 
 def consistent_test_gradients(values: sp.csr_matrix, grad_x: sp.csr_matrix, grad_y: sp.csr_matrix,

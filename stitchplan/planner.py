@@ -53,7 +53,7 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
     state = {"jacobian": np.zeros((2, 2)), "centers": []}
     shift = np.zeros(2) if offset is None else np.asarray(offset, dtype=float)
 
-    def predict(step: int, center: np.ndarray) -> np.ndarray:
+    def predict(center: np.ndarray) -> np.ndarray:
         """Start of the step's iterations: the centre extrapolated from the last two steps, so
         the first mismatch is the change of the centre's velocity, not of its position."""
         centers = state["centers"]

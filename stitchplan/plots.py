@@ -167,9 +167,7 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, ax=
     chosen = steps or [len(result.steps)]
     chosen = [min(max(int(s), 0), len(result.steps)) for s in chosen]
     if ax is None:
-        fig, axes = _figure(5.5 * len(chosen), 5.5)
-        import matplotlib.pyplot as plt  # noqa: F401
-
+        fig, _ = _figure(5.5 * len(chosen), 5.5)
         fig.clf()
         axes = [fig.add_subplot(1, len(chosen), i + 1) for i in range(len(chosen))]
     else:

@@ -33,10 +33,10 @@ import scipy.sparse as sp
 from .assembly import Assembler
 from .config import Scenario, ScenarioError
 from .discretization import TissueModel, build_tissue_model, needle_zone_for
-from .needle import (NeedleGeometry, TipTrackingJump, inside, inverse_gradient_step,
+from .needle import (NeedleGeometry, TipTrackingJump, inverse_gradient_step,
                      levenberg_marquardt_tip, needle_geometry)
 from .saddle_point import SaddlePointSolver, condition_numbers
-from .solver import InvertedMaterial, SolverDivergence, checked_deformation_gradient, factorize
+from .solver import InvertedMaterial, checked_deformation_gradient, factorize
 
 log = logging.getLogger(__name__)
 
@@ -391,10 +391,12 @@ class NeedleInsertion:
         """Root-find, over the fraction of the last step, where the tip's material point meets
         the boundary: the signed distance to the boundary is continuous in the fraction, so
         Brent's method needs ~10 tip trackings where bisection needs ~45."""
+        tracked = {0.0: self.points[-1]}  # fraction -> tip point, each tracked once
+
         def signed_distance(fraction: float) -> float:
-            if fraction <= 0.0:
-                return _outside_distance(self.points[-1], self.size)
-            return _outside_distance(self.track_tip(fraction * self.geometry.step, method)[0], self.size)
+            if fraction not in tracked:
+                tracked[fraction] = self.track_tip(fraction * self.geometry.step, method)[0]
+            return _outside_distance(tracked[fraction], self.size)
 
         if signed_distance(1.0) <= 0.0:  # the full step stays inside for this tracking method
             fraction = 1.0
@@ -402,8 +404,8 @@ class NeedleInsertion:
             fraction = 0.0
         else:
             fraction = scipy.optimize.brentq(signed_distance, 0.0, 1.0, xtol=1e-13, rtol=1e-15)
-        point = self.points[-1] if fraction == 0.0 else self.track_tip(fraction * self.geometry.step, method)[0]
-        point = np.clip(point, [0.0, 0.0], self.size)
+        signed_distance(fraction)  # brentq's root is one of its evaluations; tracked if not
+        point = np.clip(tracked[fraction], [0.0, 0.0], self.size)
         return point, rotation + fraction * self.geometry.step
 
 
@@ -423,14 +425,14 @@ def run_insertion(
     condition_numbers: bool = False,
     on_step: Callable[[NeedleStep], None] | None = None,
     max_steps: int | None = None,
-    center_predictor: Callable[[int, np.ndarray], np.ndarray] | None = None,
+    center_predictor: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> InsertionResult:
     """Insert the needle step by step until its tip leaves the tissue.
 
     center_update(insertion, step, rotation, center) -> (new centre, planner iterations) lets
     the planner move the centre after each step (Algorithm 2); center_path (n, 2) replays
     prescribed centres, row n used for step n (row 0 is the entry centre);
-    center_predictor(step, centre) -> centre gives the planner's first guess for the
+    center_predictor(centre) -> centre gives the planner's first guess for the
     centre of a step, once the tip has advanced about the previous one.
     """
     auto_note = None
@@ -479,7 +481,7 @@ def run_insertion(
             center = np.asarray(center_path[step], dtype=float)
             insertion.center = center
         elif center_predictor is not None:
-            center = np.asarray(center_predictor(step, center), dtype=float)
+            center = np.asarray(center_predictor(center), dtype=float)
             insertion.center = center
         iterations, minres_its, violation = insertion.equilibrate(center, rotation, step)
         planner_iterations = 0
