@@ -30,7 +30,7 @@ def results_path(name: str) -> Path:
 
 def load_slab_scenario():
     """The shipped slab scenario, parsed exactly as `stitchplan deform` parses it."""
-    from stitchplan.config import load_scenario
+    from stitchplan.config.scenario import load_scenario
 
     return load_scenario(SCENARIO_PATH)
 

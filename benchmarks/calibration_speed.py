@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stitchplan.calibration import calibrate_material, simulate_markers
-from stitchplan.config import Discretization, Load, Material, Tissue, default_spacing
-from stitchplan.io import write_csv, write_yaml
+from stitchplan.calibration.core import calibrate_material, simulate_markers
+from stitchplan.config.scenario import Discretization, Load, Material, Tissue, default_spacing
+from stitchplan.io.files import write_csv, write_yaml
 
 TRUE = Material("saint-venant-kirchhoff", 0.189151, 0.147688)
 TISSUE = Tissue((100.0, 100.0), 10.0, TRUE, ("right",))

@@ -28,8 +28,8 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 import _common as common  # noqa: E402
-from stitchplan.config import with_discretization  # noqa: E402
-from stitchplan.deform import run_deform  # noqa: E402
+from stitchplan.config.scenario import with_discretization  # noqa: E402
+from stitchplan.tissue.deform import run_deform  # noqa: E402
 
 SPACINGS = (10.0, 5.0, 4.0, 2.5, 2.0, 1.25, 1.0)
 DILATION = 2.0

@@ -22,10 +22,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import _common as common  # noqa: E402
-from stitchplan.config import Discretization, Material, Solver, Tissue  # noqa: E402
-from stitchplan.deform import interpolate  # noqa: E402
-from stitchplan.discretization import build_tissue_model  # noqa: E402
-from stitchplan.solver import solve_static  # noqa: E402
+from stitchplan.config.scenario import Discretization, Material, Solver, Tissue  # noqa: E402
+from stitchplan.tissue.deform import interpolate  # noqa: E402
+from stitchplan.tissue.model import build_tissue_model  # noqa: E402
+from stitchplan.tissue.solver import solve_static  # noqa: E402
 
 PATCH = (40.0, 30.0)
 SQUARE = (40.0, 40.0)

@@ -28,8 +28,8 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
-from stitchplan.config import load_scenario  # noqa: E402
-from stitchplan.planner import run_plan  # noqa: E402
+from stitchplan.config.scenario import load_scenario  # noqa: E402
+from stitchplan.planning.planner import run_plan  # noqa: E402
 
 SCENES = ("sh12_100x100", "sh12_100x100_mid", "sh12_100x50", "sh12_100x40", "sh12_100x30")
 REPEATS = 3

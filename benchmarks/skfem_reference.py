@@ -65,8 +65,8 @@ from skfem import (  # noqa: E402
 from skfem.helpers import ddot, dot, grad, identity, trace, transpose  # noqa: E402
 
 import _common as common  # noqa: E402
-from stitchplan.config import Scenario, with_discretization  # noqa: E402
-from stitchplan.deform import run_deform  # noqa: E402
+from stitchplan.config.scenario import Scenario, with_discretization  # noqa: E402
+from stitchplan.tissue.deform import run_deform  # noqa: E402
 
 ELEMENTS = {
     # name: (mesh class, scalar element, quadrature order passed to Basis)
@@ -193,7 +193,7 @@ def solve_skfem(scenario: Scenario, element: str, cells: int) -> SkfemRun:
                if tissue.clamped else np.zeros(0, dtype=np.int64))
     free = basis.complement_dofs(clamped)
 
-    # load-stepped full Newton, same predictor and stopping test as stitchplan.solver.newton
+    # load-stepped full Newton, same predictor and stopping test as stitchplan.tissue.solver.newton
     settings = scenario.solver
     h_mesh = max(width, height) / cells
     u = np.zeros(basis.N)

@@ -1,6 +1,6 @@
 """Speed against accuracy on the shipped SH 1/2 scene (configs/sh12_100x100.yaml).
 
-The study of `stitchplan study` (stitchplan.study) with the sweep below: a uniform family
+The study of `stitchplan study` (stitchplan.study.sweep) with the sweep below: a uniform family
 over the particle spacing, a graded family (needle spacing within 1.5 needle radii of the
 needle centre, 4x coarser away from it), and seven method families on the graded
 particles, each differing from it in one choice (tip tracking, linear solver, dilation x2,
@@ -30,10 +30,10 @@ import time
 from dataclasses import replace
 
 import _common as common
-from stitchplan.config import load_scenario
-from stitchplan.io import write_text
-from stitchplan.simulation import run_insertion
-from stitchplan.study import parse_study, run_study, write_study_outputs
+from stitchplan.config.scenario import load_scenario
+from stitchplan.io.files import write_text
+from stitchplan.needle.insertion import run_insertion
+from stitchplan.study.sweep import parse_study, run_study, write_study_outputs
 
 SCENARIO = common.REPO_ROOT / "configs" / "sh12_100x100.yaml"
 OUT = common.RESULTS_DIR / "study_sh12"
@@ -112,7 +112,7 @@ def main() -> None:
              f"Reference (finest run): {study.reference.label}, {study.reference.particles} particles, "
              f"{study.reference.wall_seconds:.1f} s, exit error {study.reference.result.exit_error_mm:.4f} mm. "
              "`deviation` is the largest of the spatial achieved-exit, material achieved-exit and "
-             "exit-error-vector deviations from it (stitchplan.study).", "",
+             "exit-error-vector deviations from it (stitchplan.study.sweep).", "",
              "## Pareto front", "", common.markdown_table(header, pareto_rows), "",
              "## Families", "",
              common.markdown_table(["family", "runs", "failed", "best deviation (mm)",

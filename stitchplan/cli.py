@@ -43,8 +43,8 @@ def user_errors(command: Callable) -> Callable:
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         from .config import ScenarioError
-        from .simulation import InsertionFailure
-        from .solver import SolverDivergence
+        from .needle.insertion import InsertionFailure
+        from .tissue.solver import SolverDivergence
 
         try:
             return command(*args, **kwargs)
@@ -109,9 +109,9 @@ def deform(
     _setup_logging(verbose)
     _check_outputs(probes_out, reactions_out, summary, out, plot)
     scenario = _load(scenario_path, spacing, dilation)
-    from . import reports
-    from .deform import run_deform
-    from .progress import progress_bar
+    from .io import reports
+    from .tissue.deform import run_deform
+    from .io.progress import progress_bar
 
     with progress_bar("load steps", scenario.load_steps) as advance:
         result = run_deform(scenario, on_step=lambda step, record: advance())
@@ -140,7 +140,7 @@ def calibrate_material(
     _setup_logging(verbose)
     _check_outputs(out, None if plot_dir is None else plot_dir / "cost_surface.png")
     from . import calibration
-    from .progress import progress_bar
+    from .io.progress import progress_bar
 
     result = calibration.calibrate_material(calibration_path, spacing, dilation, progress=progress_bar)
     calibration.write_material_outputs(result, out, plot_dir)
@@ -222,10 +222,10 @@ def simulate(
     _choice_option(tip_tracking, "--tip-tracking", TIP_TRACKING)
     steps_to_plot = _parse_steps(plot_steps)
     scenario = _load(scenario_path, spacing, dilation)
-    from . import reports
-    from .progress import progress_bar
-    from .simulation import run_insertion
-    from .trajectory import read_center_path
+    from .io import reports
+    from .io.progress import progress_bar
+    from .needle.insertion import run_insertion
+    from .planning.trajectory import read_center_path
 
     path = read_center_path(center_path) if center_path is not None else None
     with progress_bar("needle steps", _expected_steps(scenario)) as advance:
@@ -244,7 +244,7 @@ def simulate(
 
 def _expected_steps(scenario) -> int:
     from .config import ScenarioError
-    from .needle import needle_geometry
+    from .needle.geometry import needle_geometry
 
     if scenario.needle is None:
         raise ScenarioError("needle: missing, required by simulate and plan")
@@ -317,9 +317,9 @@ def plan(
         robot = replace(robot, angular_speed=angular_speed)
     scenario = replace(scenario, robot=robot,
                        planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
-    from . import reports
-    from .planner import PlannerSettings, run_plan
-    from .progress import progress_bar
+    from .io import reports
+    from .planning.planner import PlannerSettings, run_plan
+    from .io.progress import progress_bar
 
     settings = PlannerSettings(scenario.planner.tolerance, scenario.planner.max_iterations,
                                scenario.planner.strict, scenario.planner.exit_tolerance,
@@ -356,8 +356,8 @@ def study(
         raise ScenarioError(f"--out: {out} is a file, expected a folder")
     _check_outputs(out / "study.csv")
     scenario = _load(scenario_path, None, None)
-    from .progress import progress_bar
-    from .study import run_study, study_size, summary_lines, write_study_outputs
+    from .io.progress import progress_bar
+    from .study.sweep import run_study, study_size, summary_lines, write_study_outputs
 
     with progress_bar("study runs", study_size(scenario, quick)) as advance:
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label))

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stitchplan.assembly import Assembler
-from stitchplan.config import Discretization, Material, Tissue
-from stitchplan.discretization import build_tissue_model
+from stitchplan.tissue.assembly import Assembler
+from stitchplan.config.scenario import Discretization, Material, Tissue
+from stitchplan.tissue.model import build_tissue_model
 
 SIZE = (20.0, 10.0)  # mm
 RIGHT_EDGE = ((20.0, 0.0), (20.0, 10.0))  # prescribed-displacement segment

@@ -17,9 +17,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from stitchplan import calibration
+from stitchplan.calibration import core as calibration
 from stitchplan.cli import app
-from stitchplan.config import (
+from stitchplan.config.scenario import (
     Discretization,
     Load,
     Material,
@@ -96,7 +96,7 @@ def run(*args):
 
 def test_forward_model_is_the_deform_solve_at_the_markers():
     """simulate_markers = X + u(X) of `stitchplan deform` (probes = markers, deform.interpolate)."""
-    from stitchplan.deform import run_deform
+    from stitchplan.tissue.deform import run_deform
 
     markers = random_markers(np.random.default_rng(1), 12)
     loads = LOADS["left-pull"]
@@ -183,7 +183,7 @@ def test_identifiability_warning_on_displacement_only_data(tmp_path, caplog):
     rng = np.random.default_rng(5)
     path = write_calibration(tmp_path, [DISPLACED], rng=rng, noise=0.05)
     out = tmp_path / "fitted.yaml"
-    with caplog.at_level(logging.WARNING, logger="stitchplan.calibration"):
+    with caplog.at_level(logging.WARNING, logger="stitchplan.calibration.core"):
         result = run("calibrate", "material", path, "--out", out)
     assert result.exit_code == 0, result.output
     assert "NOT identifiable" in result.output

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from stitchplan.config import (
+from stitchplan.config.scenario import (
     Needle,
     ScenarioError,
     default_spacing,
@@ -133,7 +133,7 @@ def test_default_spacing_resolves_the_needle(slab_raw):
     """With a needle the default spacing is tied to the radius and graded finer around the
     needle (the fractions are documented in config.default_spacing); with a needle larger than
     the slab the spacing is the static one, and at least eight spacings cross the smaller side."""
-    from stitchplan.config import DEFAULT_NEEDLE_REFINEMENT, Material, Tissue
+    from stitchplan.config.scenario import DEFAULT_NEEDLE_REFINEMENT, Material, Tissue
 
     tissue = Tissue((100.0, 100.0), 10.0, Material(), ("right",))
 

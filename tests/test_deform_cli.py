@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from stitchplan.assembly import Assembler
-from stitchplan.boundary_conditions import CLAMPED
+from stitchplan.tissue.assembly import Assembler
+from stitchplan.tissue.boundary_conditions import CLAMPED
 from stitchplan.cli import app
-from stitchplan.config import load_scenario, parse_scenario
-from stitchplan.deform import external_forces, run_deform, to_free
-from stitchplan.material import first_piola_and_tangent
+from stitchplan.config.scenario import load_scenario, parse_scenario
+from stitchplan.tissue.deform import external_forces, run_deform, to_free
+from stitchplan.tissue.material import first_piola_and_tangent
 
 PROBE_COUNT = 6  # probes in configs/slab_edge_load.yaml
 

@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_bvp
 
-from stitchplan.config import Discretization, Load, Material, Scenario, Tissue
-from stitchplan.deform import run_deform
+from stitchplan.config.scenario import Discretization, Load, Material, Scenario, Tissue
+from stitchplan.tissue.deform import run_deform
 
 LENGTH, DEPTH, THICKNESS = 100.0, 5.0, 10.0  # mm
 LAME_MU = 1.0  # MPa

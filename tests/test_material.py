@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stitchplan.material import (
+from stitchplan.tissue.material import (
     NeoHookean,
     SaintVenantKirchhoff,
     first_piola_and_tangent,

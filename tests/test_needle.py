@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from stitchplan.config import Needle, ScenarioError, load_scenario, parse_scenario
-from stitchplan.needle import (TipTrackingJump, inside, inverse_gradient_step, levenberg_marquardt_tip,
+from stitchplan.config.scenario import Needle, ScenarioError, load_scenario, parse_scenario
+from stitchplan.needle.geometry import (TipTrackingJump, inside, inverse_gradient_step, levenberg_marquardt_tip,
                                needle_geometry)
 
 from conftest import CONFIGS

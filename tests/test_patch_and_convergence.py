@@ -30,13 +30,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stitchplan.assembly import Assembler
-from stitchplan.config import Discretization, Material, Solver, Tissue
-from stitchplan.deform import interpolate
-from stitchplan.discretization import build_tissue_model
-from stitchplan.material import first_piola_and_tangent
-from stitchplan.quadrature import segment_quadrature
-from stitchplan.solver import solve_static
+from stitchplan.tissue.assembly import Assembler
+from stitchplan.config.scenario import Discretization, Material, Solver, Tissue
+from stitchplan.tissue.deform import interpolate
+from stitchplan.tissue.model import build_tissue_model
+from stitchplan.tissue.material import first_piola_and_tangent
+from stitchplan.tissue.quadrature import segment_quadrature
+from stitchplan.tissue.solver import solve_static
 
 PATCH_SIZE = (40.0, 30.0)  # mm
 SMALL_GRADIENT = 1e-3 * np.array([[1.0, -0.7], [0.4, 0.6]])  # A of u = A X + c

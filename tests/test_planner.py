@@ -19,10 +19,10 @@ import re
 import numpy as np
 import pytest
 
-from stitchplan.config import Planner, Robot, parse_scenario
-from stitchplan.planner import PlannerSettings, exit_tracking_update, final_mismatch, run_plan
-from stitchplan.simulation import run_insertion
-from stitchplan.trajectory import to_base_frame, trajectory_table
+from stitchplan.config.scenario import Planner, Robot, parse_scenario
+from stitchplan.planning.planner import PlannerSettings, exit_tracking_update, final_mismatch, run_plan
+from stitchplan.needle.insertion import run_insertion
+from stitchplan.planning.trajectory import to_base_frame, trajectory_table
 
 RADIUS = 8.88
 STEP_EVENT = re.compile(r"at step (\d+) \(needle rotation")

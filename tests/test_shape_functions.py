@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stitchplan.discretization import grid_particles
-from stitchplan.shape_functions import SingularMomentMatrix, rk_shape_functions, rk_shape_pairs
+from stitchplan.tissue.model import grid_particles
+from stitchplan.tissue.shape_functions import SingularMomentMatrix, rk_shape_functions, rk_shape_pairs
 
 SIZE = (10.0, 8.0)  # mm
 SPACING = 2.0  # mm -> 6 x 5 particles

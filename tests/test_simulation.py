@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stitchplan.config import load_scenario, parse_scenario
-from stitchplan.simulation import CONSTRAINT_TOLERANCE, InsertionFailure, NeedleInsertion, run_insertion
+from stitchplan.config.scenario import load_scenario, parse_scenario
+from stitchplan.needle.insertion import CONSTRAINT_TOLERANCE, InsertionFailure, NeedleInsertion, run_insertion
 
 from conftest import CONFIGS
 
@@ -350,7 +350,7 @@ def test_shipped_sh12_block_series_exit_error_grows_as_the_block_narrows():
 
 def dense_rest_stiffness(insertion: NeedleInsertion) -> np.ndarray:
     """K0, the tangent at zero deformation, as a dense matrix."""
-    from stitchplan.assembly import Assembler
+    from stitchplan.tissue.assembly import Assembler
 
     assembler = Assembler(insertion.model)
     assembler.update(np.tile(np.eye(2), (len(insertion.model.quadrature_weights), 1, 1)))
@@ -413,7 +413,7 @@ def test_condition_numbers_match_generalised_eigenvalues():
     P = diag(K0, G^T K0^-1 G), against dense (generalised) symmetric eigenvalue problems."""
     import scipy.linalg
 
-    from stitchplan.simulation import insertion_condition_numbers
+    from stitchplan.needle.insertion import insertion_condition_numbers
 
     insertion = started(small_scene(spacing=5.0, linear_solver="minres"), steps=3)
     saddle_cond, preconditioned_cond = insertion_condition_numbers(insertion, 0.6)

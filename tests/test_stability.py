@@ -26,12 +26,12 @@ import pytest
 from typer.testing import CliRunner
 
 from stitchplan.cli import app
-from stitchplan.config import ScenarioError, parse_scenario
-from stitchplan.deform import run_deform
-from stitchplan.material import determinant
-from stitchplan.simulation import InsertionFailure, run_insertion
-from stitchplan.solver import SolverDivergence
-from stitchplan.study import exit_deviations
+from stitchplan.config.scenario import ScenarioError, parse_scenario
+from stitchplan.tissue.deform import run_deform
+from stitchplan.tissue.material import determinant
+from stitchplan.needle.insertion import InsertionFailure, run_insertion
+from stitchplan.tissue.solver import SolverDivergence
+from stitchplan.study.sweep import exit_deviations
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 
@@ -131,7 +131,7 @@ def test_a_stagnating_minres_falls_back_to_the_direct_solve(monkeypatch):
     """With its iteration budget cut to 3, MINRES cannot converge: every Newton step falls
     back to the direct solve, each fallback is an event naming the step and angle, and the
     insertion is the direct one (exit to 1e-7 mm)."""
-    import stitchplan.simulation as simulation
+    import stitchplan.needle.insertion as simulation
 
     original = simulation.SaddlePointSolver
 
@@ -205,7 +205,7 @@ def test_a_dilation_too_small_for_the_moment_matrix_is_refused_before_any_solve(
     2 spacings reaches only two columns of particles (the third lies exactly on the support's
     edge), so dilation 2 is too small there and 1.5 already inside. The model build raises a
     ScenarioError naming dilation, spacing and orders; no tangent is ever assembled."""
-    import stitchplan.assembly as assembly
+    import stitchplan.tissue.assembly as assembly
 
     def no_solve(*args, **kwargs):
         raise AssertionError("a solve started")

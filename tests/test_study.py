@@ -25,8 +25,8 @@ import yaml
 from typer.testing import CliRunner
 
 from stitchplan.cli import app
-from stitchplan.config import ScenarioError, parse_scenario, with_discretization
-from stitchplan.study import COLUMNS, StudyFamily, StudyRun, exit_deviations, pareto_front, plan_runs
+from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discretization
+from stitchplan.study.sweep import COLUMNS, StudyFamily, StudyRun, exit_deviations, pareto_front, plan_runs
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 REQUIRED_COLUMNS = ("family", "spacing_mm", "dilation", "quadrature_order", "basis_order", "step_rad",
@@ -186,7 +186,7 @@ def test_exit_deviations_in_the_spatial_the_material_frame_and_of_the_error_vect
 
 @pytest.fixture(scope="module")
 def graded():
-    from stitchplan.discretization import graded_particles
+    from stitchplan.tissue.model import graded_particles
 
     center, radius = np.array([0.0, 21.12]), 13.32  # SH 1/2 needle zone: 1.5 R about the centre
     return graded_particles((100.0, 100.0), 6.0, 1.5, center, radius), center, radius
@@ -218,7 +218,7 @@ def test_graded_leaves_are_2_to_1_balanced(graded):
 def test_rk_functions_on_the_graded_set_reproduce_linear_fields(graded, rng):
     """Partition of unity and linear reproduction to round-off, with each particle's support
     the dilation times its local spacing (eq. 3.20)."""
-    from stitchplan.shape_functions import rk_shape_functions
+    from stitchplan.tissue.shape_functions import rk_shape_functions
 
     particles = graded[0]
     support = 2.0 * particles.local_spacing
@@ -232,7 +232,7 @@ def test_rk_functions_on_the_graded_set_reproduce_linear_fields(graded, rng):
 
 
 def test_needle_spacing_without_a_needle_is_refused():
-    from stitchplan.discretization import model_for_scenario
+    from stitchplan.tissue.model import model_for_scenario
 
     raw = tiny_raw()
     del raw["needle"]
@@ -259,14 +259,14 @@ def test_bad_graded_and_accuracy_fields_are_refused(block, fragment):
 
 @pytest.fixture(scope="module")
 def auto_choice():
-    from stitchplan.auto import choose_discretization
+    from stitchplan.study.auto import choose_discretization
 
     return choose_discretization(parse_scenario(tiny_raw(step=0.2)), accuracy=0.05)
 
 
 def test_auto_discretization_meets_its_accuracy_against_a_finer_run(auto_choice):
-    from stitchplan.simulation import run_insertion
-    from stitchplan.study import configure
+    from stitchplan.needle.insertion import run_insertion
+    from stitchplan.study.sweep import configure
 
     assert auto_choice.estimate_mm <= 0.05 and auto_choice.verified
     chosen = auto_choice.discretization
@@ -293,8 +293,8 @@ def test_auto_discretization_reports_its_estimate_and_choices(auto_choice):
 
 
 def test_simulate_with_an_accuracy_uses_the_auto_discretization_once(monkeypatch):
-    from stitchplan import auto
-    from stitchplan.simulation import run_insertion
+    from stitchplan.study import auto as auto
+    from stitchplan.needle.insertion import run_insertion
 
     scenario = parse_scenario({**tiny_raw(step=0.2), "discretization": {"accuracy": 0.2}})
     calls = []

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import Material
+from ..config import Material
 
 IDENTITY = np.eye(2)
 

@@ -451,7 +451,7 @@ def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
 def _parse_study(raw: Any):
     if raw is None:
         return None
-    from .study import parse_study  # the study block is validated where it is used
+    from ..study.sweep import parse_study  # the study block is validated where it is used
 
     return parse_study(raw)
 

@@ -11,8 +11,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .assembly import Assembler
-from .config import Solver
-from .discretization import TissueModel
+from ..config import Solver
+from .model import TissueModel
 from .material import determinant
 
 log = logging.getLogger(__name__)

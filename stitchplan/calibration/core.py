@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import (
+from ..config import (
     MATERIAL_MODELS,
     Discretization,
     Load,
@@ -307,7 +307,7 @@ def _start_point(fit: FitSettings) -> tuple[float, float]:
 
 
 def material_class(model: str):
-    from .material import NeoHookean, SaintVenantKirchhoff
+    from ..tissue.material import NeoHookean, SaintVenantKirchhoff
 
     return SaintVenantKirchhoff if model == "saint-venant-kirchhoff" else NeoHookean
 
@@ -321,11 +321,11 @@ class ExperimentModel:
 
     def __init__(self, tissue: Tissue, discretization: Discretization, experiment: Experiment,
                  model_name: str, settings: Solver, shared: dict | None = None):
-        from .assembly import Assembler
-        from .config import Scenario
-        from .deform import external_forces, prescribed_displacements, to_free
-        from .discretization import model_for_scenario
-        from .solver import TangentSolver
+        from ..tissue.assembly import Assembler
+        from ..config import Scenario
+        from ..tissue.deform import external_forces, prescribed_displacements, to_free
+        from ..tissue.model import model_for_scenario
+        from ..tissue.solver import TangentSolver
 
         self.experiment = experiment
         self.settings = settings
@@ -356,7 +356,7 @@ class ExperimentModel:
         reference = float(np.linalg.norm(self.external))
         if reference > 0.0:
             return reference
-        from .solver import InvertedMaterial
+        from ..tissue.solver import InvertedMaterial
 
         steps = self.experiment.load_steps
         problem.load_fraction = 1.0 / steps
@@ -367,7 +367,7 @@ class ExperimentModel:
 
     def _solve(self, theta: np.ndarray, settings: Solver) -> np.ndarray:
         """Free coefficients (n_free, 2) of the equilibrium for the moduli theta."""
-        from .solver import InvertedMaterial, SolverDivergence, StaticProblem, newton, solve_static
+        from ..tissue.solver import InvertedMaterial, SolverDivergence, StaticProblem, newton, solve_static
 
         self.model.material = self.material_class(float(theta[0]), float(theta[1]))
         self.solves += 1
@@ -416,7 +416,7 @@ class ExperimentModel:
 
     def _sensitivity(self, coefficients: np.ndarray) -> np.ndarray:
         """dq/dtheta from K dd/dtheta = -B^T (w F S_theta) at the converged state."""
-        from .solver import factorize
+        from ..tissue.solver import factorize
 
         model = self.model
         deformation_gradient = model.deformation_gradient(coefficients)  # (nq, 2, 2)
@@ -541,7 +541,7 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
     """f on the grid, from the stiffest corner towards the softest in a serpentine, so each
     solve warm-starts from a neighbour that deformed less. Under force loads a point softer
     in both moduli than one that failed is not tried: it would deform even more."""
-    from .solver import SolverDivergence
+    from ..tissue.solver import SolverDivergence
 
     lambdas, mus = grid_axes(fit)
     cost = np.full((len(lambdas), len(mus)), np.nan)
@@ -603,7 +603,7 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
     """
     from scipy.optimize import least_squares
 
-    from .solver import SolverDivergence
+    from ..tissue.solver import SolverDivergence
 
     start = time.perf_counter()
     fit = problem.fit
@@ -850,7 +850,7 @@ def material_report(result: MaterialFit) -> dict:
             "residual_std_mm": _round(float(e.std(ddof=1)) if len(e) > 1 else 0.0),
             "residual_max_mm": _round(float(e.max())),
         })
-    from . import __version__
+    from .. import __version__
 
     return {
         "material": {
@@ -909,7 +909,7 @@ def material_report(result: MaterialFit) -> dict:
 
 
 def material_plots(result: MaterialFit, folder: str | Path) -> list[Path]:
-    from .plots import plot_cost_surface, plot_marker_residuals
+    from ..io.plots import plot_cost_surface, plot_marker_residuals
 
     folder = Path(folder)
     grid, problem = result.grid, result.problem
@@ -928,7 +928,7 @@ def material_plots(result: MaterialFit, folder: str | Path) -> list[Path]:
 def write_material_outputs(result: MaterialFit, out: str | Path,
                            plot_dir: str | Path | None = None) -> None:
     """Plots first, then the fitted YAML (atomically), so fitted.yaml appears only on success."""
-    from .io import write_yaml
+    from ..io.files import write_yaml
 
     if plot_dir is not None:
         material_plots(result, plot_dir)
@@ -951,7 +951,7 @@ def material_summary_line(result: MaterialFit) -> str:
 def needle_report(result: NeedleFit) -> dict:
     """needle.yaml: `friction` and `cutting_force` paste into a scenario's needle block."""
     fit, background = result.tissue_fit, result.background
-    from . import __version__
+    from .. import __version__
 
     return {
         "friction": _round(result.friction),
@@ -980,10 +980,10 @@ def needle_report(result: NeedleFit) -> dict:
 
 
 def write_needle_outputs(result: NeedleFit, out: str | Path, plot: str | Path | None = None) -> None:
-    from .io import write_yaml
+    from ..io.files import write_yaml
 
     if plot is not None:
-        from .plots import plot_needle_forces
+        from ..io.plots import plot_needle_forces
 
         plot_needle_forces(plot, result.air, result.tissue, result.background.intercept,
                            result.background.slope, result.inserted_length, result.corrected,

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .discretization import TissueModel
+from .model import TissueModel
 from .material import first_piola_and_tangent, matmul22
 
 

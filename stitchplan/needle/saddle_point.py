@@ -29,7 +29,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .solver import factorize
+from ..tissue.solver import factorize
 
 log = logging.getLogger(__name__)
 

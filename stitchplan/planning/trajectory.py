@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Robot, ScenarioError
-from .simulation import InsertionResult
+from ..config import Robot, ScenarioError
+from ..needle.insertion import InsertionResult
 
 COLUMNS = ["step", "angle_rad", "center_x_mm", "center_y_mm", "tip_x_mm", "tip_y_mm"]
 BASE_COLUMNS = ["base_center_x_mm", "base_center_y_mm", "base_tip_x_mm", "base_tip_y_mm"]

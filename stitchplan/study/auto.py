@@ -40,7 +40,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 
-from .config import Scenario, ScenarioError, parse_discretization
+from ..config import Scenario, ScenarioError, parse_discretization
 
 log = logging.getLogger(__name__)
 
@@ -117,8 +117,8 @@ def graded_scenario(scenario: Scenario, needle_spacing: float, tip_tracking: str
 
 
 def _run(trial: Trial) -> Trial:
-    from .simulation import run_insertion
-    from .study import RUN_FAILURES
+    from ..needle.insertion import run_insertion
+    from .sweep import RUN_FAILURES
 
     start, cpu = time.perf_counter(), time.process_time()
     try:
@@ -135,7 +135,7 @@ def _run(trial: Trial) -> Trial:
 
 
 def _deviation(a, b) -> float:
-    from .study import exit_deviations
+    from .sweep import exit_deviations
 
     return exit_deviations(a.result, b.result)["deviation_mm"]
 

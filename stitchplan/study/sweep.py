@@ -44,7 +44,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from .config import (LINEAR_SOLVERS, TIP_TRACKING, Scenario, ScenarioError, _choice, _fail, _integer,
+from ..config import (LINEAR_SOLVERS, TIP_TRACKING, Scenario, ScenarioError, _choice, _fail, _integer,
                      _mapping, _number, parse_discretization)
 
 log = logging.getLogger(__name__)
@@ -268,7 +268,7 @@ def count_particles(scenario: Scenario) -> int:
     """Particles of the scenario's discretization, without building shape functions."""
     import numpy as np
 
-    from .discretization import graded_particles, grid_particles, needle_zone_for
+    from ..tissue.model import graded_particles, grid_particles, needle_zone_for
 
     d = scenario.discretization
     zone = needle_zone_for(scenario)
@@ -281,7 +281,7 @@ def count_particles(scenario: Scenario) -> int:
 def run_once(run: StudyRun, repeats: int = 1) -> StudyRun:
     """Run the insertion (`repeats` times for the timing median); a failure is recorded
     with its reason, never raised."""
-    from .simulation import run_insertion
+    from ..needle.insertion import run_insertion
 
     try:
         run.particles = count_particles(run.scenario)
@@ -436,8 +436,8 @@ def study_size(scenario: Scenario, quick: bool = False) -> int:
 
 def write_study_outputs(result: StudyResult, out: Path) -> tuple[Path, Path]:
     """out/study.csv (one row per run) and out/speed_accuracy.png."""
-    from .io import write_csv
-    from .plots import plot_speed_accuracy
+    from ..io.files import write_csv
+    from ..io.plots import plot_speed_accuracy
 
     out = Path(out)
     csv_path, png_path = out / "study.csv", out / "speed_accuracy.png"

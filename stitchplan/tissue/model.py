@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .boundary_conditions import EssentialBoundary, boundary_particles, edge_segment, transformation
-from .config import Discretization, Scenario, ScenarioError, Tissue
+from ..config import Discretization, Scenario, ScenarioError, Tissue
 from .material import NeoHookean, SaintVenantKirchhoff, make_material
 from .quadrature import cell_quadrature, natural_boundary_quadrature
 from .shape_functions import (ShapeFunctions, ShapePairs, SingularMomentMatrix, rk_shape_functions,
@@ -287,7 +287,7 @@ def needle_zone_for(scenario: Scenario) -> tuple[tuple[float, float], float] | N
     the needle, else None."""
     if scenario.needle is None or scenario.discretization.needle_spacing is None:
         return None
-    from .needle import needle_geometry
+    from ..needle.geometry import needle_geometry
 
     geometry = needle_geometry(scenario.needle, scenario.tissue.size)
     return tuple(geometry.center), scenario.discretization.needle_zone * geometry.radius

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .assembly import Assembler
-from .config import Scenario
-from .discretization import TissueModel, model_for_scenario
+from ..config import Scenario
+from .model import TissueModel, model_for_scenario
 from .quadrature import segment_quadrature
 from .solver import NewtonReport, StepRecord, solve_static
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .io import write_csv, write_hdf5, write_json
+from .. import __version__
+from .files import write_csv, write_hdf5, write_json
 
 
 def run_attributes(command: str, scenario) -> dict:
@@ -198,7 +198,7 @@ def write_insertion_outputs(result, command: str, out: Path | None = None,
 def write_plan_outputs(result, export: Path, out: Path | None = None, summary: Path | None = None,
                        plot: Path | None = None) -> None:
     """trajectory.csv (atomic), summary JSON, HDF5 run log and the planned-vs-unplanned PNG."""
-    from .trajectory import trajectory_table
+    from ..planning.trajectory import trajectory_table
 
     planned, unplanned = result.planned, result.unplanned
     columns, table = trajectory_table(planned, planned.scenario.robot)

@@ -30,13 +30,13 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse as sp
 
-from .assembly import Assembler
-from .config import Scenario, ScenarioError
-from .discretization import TissueModel, build_tissue_model, needle_zone_for
-from .needle import (NeedleGeometry, TipTrackingJump, inverse_gradient_step,
+from ..tissue.assembly import Assembler
+from ..config import Scenario, ScenarioError
+from ..tissue.model import TissueModel, build_tissue_model, needle_zone_for
+from .geometry import (NeedleGeometry, TipTrackingJump, inverse_gradient_step,
                      levenberg_marquardt_tip, needle_geometry)
 from .saddle_point import SaddlePointSolver, condition_numbers
-from .solver import InvertedMaterial, checked_deformation_gradient, factorize
+from ..tissue.solver import InvertedMaterial, checked_deformation_gradient, factorize
 
 log = logging.getLogger(__name__)
 
@@ -437,7 +437,7 @@ def run_insertion(
     """
     auto_note = None
     if scenario.discretization.accuracy is not None:  # `discretization: {accuracy: ...}`
-        from .auto import resolve_accuracy
+        from ..study.auto import resolve_accuracy
 
         scenario, auto_note = resolve_accuracy(scenario, tip_tracking=tip_tracking,
                                                linear_solver=linear_solver)

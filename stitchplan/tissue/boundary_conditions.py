@@ -18,7 +18,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-from .config import Tissue
+from ..config import Tissue
 
 CLAMPED = -1
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import Scenario
-from .simulation import InsertionFailure, InsertionResult, NeedleInsertion, run_insertion
+from ..config import Scenario
+from ..needle.insertion import InsertionFailure, InsertionResult, NeedleInsertion, run_insertion
 
 log = logging.getLogger(__name__)
 
