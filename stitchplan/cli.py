@@ -227,11 +227,16 @@ def simulate(
     from .needle.insertion import run_insertion
     from .planning.trajectory import read_center_path
 
+    from .study.auto import resolve_accuracy
+
     path = read_center_path(center_path) if center_path is not None else None
+    scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver)
     with progress_bar("needle steps", _expected_steps(scenario)) as advance:
         result = run_insertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking,
                                condition_numbers=condition_numbers, center_path=path,
                                on_step=lambda record: advance())
+    if auto_note is not None:
+        result.events.insert(0, auto_note)
     reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
                                     plot_steps=steps_to_plot)
     typer.echo(
@@ -243,13 +248,9 @@ def simulate(
 
 
 def _expected_steps(scenario) -> int:
-    from .config import ScenarioError
-    from .needle.geometry import needle_geometry
+    from .needle.geometry import scenario_needle
 
-    if scenario.needle is None:
-        raise ScenarioError("needle: missing, required by simulate and plan")
-    geometry = needle_geometry(scenario.needle, scenario.tissue.size)
-    return int(geometry.exit_rotation / geometry.step) + 1
+    return scenario_needle(scenario).expected_steps
 
 
 def _echo_events(events: list[str], shown: int = 3) -> None:
@@ -324,10 +325,15 @@ def plan(
     settings = PlannerSettings(scenario.planner.tolerance, scenario.planner.max_iterations,
                                scenario.planner.strict, scenario.planner.exit_tolerance,
                                scenario.planner.max_passes)
+    from .study.auto import resolve_accuracy
+
+    scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver)
     expected = _expected_steps(scenario)
     with progress_bar("planned steps", (2 if compare else 1) * expected) as advance:
         result = run_plan(scenario, settings, compare=compare, linear_solver=linear_solver,
                           tip_tracking=tip_tracking, on_step=lambda record: advance())
+    if auto_note is not None:
+        result.planned.events.insert(0, auto_note)
     reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot)
     planned, unplanned = result.planned, result.unplanned
     versus = f" vs {unplanned.exit_error_mm:.4f} mm unplanned" if unplanned is not None else ""

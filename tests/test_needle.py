@@ -10,8 +10,15 @@ import numpy as np
 import pytest
 
 from stitchplan.config.scenario import Needle, ScenarioError, load_scenario, parse_scenario
-from stitchplan.needle.geometry import (TipTrackingJump, inside, inverse_gradient_step, levenberg_marquardt_tip,
-                               needle_geometry)
+from stitchplan.errors import TipTrackingJump
+from stitchplan.geometry import Rectangle
+from stitchplan.needle.geometry import needle_geometry
+from stitchplan.needle.tip_tracking import inverse_gradient_step, levenberg_marquardt_tip
+
+
+def inside(points, size, tol=0.0):
+    return Rectangle.of_size(size).contains(points, tol)
+
 
 from conftest import CONFIGS
 
@@ -46,7 +53,7 @@ CASES = [
 
 @pytest.mark.parametrize("edge,entry,turn,center,exit_point", CASES, ids=[f"{c[0]}-{c[2]}" for c in CASES])
 def test_centre_and_desired_exit_on_every_edge(edge, entry, turn, center, exit_point):
-    geometry = needle_geometry(make_needle(entry, turn), SIZE)
+    geometry = needle_geometry(make_needle(entry, turn), Rectangle.of_size(SIZE))
     assert geometry.entry_edge == edge
     np.testing.assert_allclose(geometry.center, center, atol=1e-12)
     np.testing.assert_allclose(geometry.desired_exit, exit_point, atol=1e-12)
@@ -68,7 +75,7 @@ def test_centre_and_desired_exit_on_every_edge(edge, entry, turn, center, exit_p
 def test_desired_exit_where_the_circle_first_leaves_through_another_edge():
     """A 20 mm needle turning cw from (0, 30) of a 100 x 100 block (configs/needle20_entry30.yaml)
     leaves through the bottom edge at x = sqrt(20^2 - 10^2), a third of a turn after entry."""
-    geometry = needle_geometry(make_needle((0.0, 30.0), "cw", radius=20.0), (100.0, 100.0))
+    geometry = needle_geometry(make_needle((0.0, 30.0), "cw", radius=20.0), Rectangle.of_size((100.0, 100.0)))
     np.testing.assert_allclose(geometry.center, [0.0, 10.0], atol=1e-12)
     np.testing.assert_allclose(geometry.desired_exit, [math.sqrt(300.0), 0.0], atol=1e-9)
     assert geometry.exit_rotation == pytest.approx(2 * math.pi / 3, abs=1e-12)
@@ -83,14 +90,14 @@ def test_desired_exit_where_the_circle_first_leaves_through_another_edge():
 ])
 def test_entry_off_the_boundary_or_at_a_corner_is_refused(entry, fragment):
     with pytest.raises(ScenarioError) as error:
-        needle_geometry(make_needle(entry), SIZE)
+        needle_geometry(make_needle(entry), Rectangle.of_size(SIZE))
     assert fragment in str(error.value)
 
 
 def test_arc_too_short_to_exit_is_refused():
     """A quarter-circle needle cannot bring the tip back out of a half-circle stitch."""
     with pytest.raises(ScenarioError) as error:
-        needle_geometry(make_needle((0.0, 20.0), arc=math.pi / 2), SIZE)
+        needle_geometry(make_needle((0.0, 20.0), arc=math.pi / 2), Rectangle.of_size(SIZE))
     message = str(error.value)
     assert message.startswith("needle:") and "leaves after 3.142 rad" in message
     assert "expected an exit within its arc of 1.571 rad" in message
@@ -99,7 +106,7 @@ def test_arc_too_short_to_exit_is_refused():
 def test_exit_within_two_steps_is_refused():
     """An entry 0.5 mm from the bottom corner turning towards it exits almost at once."""
     with pytest.raises(ScenarioError, match="expected at least two steps of 0.4 rad"):
-        needle_geometry(make_needle((0.0, 0.5), "cw", step=0.4), SIZE)
+        needle_geometry(make_needle((0.0, 0.5), "cw", step=0.4), Rectangle.of_size(SIZE))
 
 
 def needle_raw(**changes) -> dict:
@@ -196,7 +203,7 @@ def test_shipped_needle20_scenarios(entry_y):
     assert (needle.radius, needle.step, needle.friction, needle.cutting_force) == (20.0, 0.1, 0.02, 0.03)
     assert needle.turn == "cw" and needle.tip_tracking == "auto" and needle.arc == pytest.approx(math.pi)
     assert scenario.tissue.size == (100.0, 100.0) and scenario.tissue.clamped == ("right",)
-    geometry = needle_geometry(needle, scenario.tissue.size)
+    geometry = needle_geometry(needle, Rectangle.of_size(scenario.tissue.size))
     np.testing.assert_allclose(geometry.desired_exit, [NEEDLE20[entry_y], 0.0], atol=1e-9)
     assert f"({NEEDLE20[entry_y]:.2f}, 0) on the bottom edge" in scenario.source_text
 
@@ -214,7 +221,7 @@ def test_shipped_sh12_block_series_follows_one_entry_rule(name, height):
     from dataclasses import replace
 
     assert scenario.needle == replace(reference.needle, entry=scenario.needle.entry)
-    geometry = needle_geometry(scenario.needle, scenario.tissue.size)
+    geometry = needle_geometry(scenario.needle, Rectangle.of_size(scenario.tissue.size))
     assert scenario.needle.entry == pytest.approx((0.0, height / 2 + 8.88))
     np.testing.assert_allclose(geometry.center, [0.0, height / 2], atol=1e-12)
     np.testing.assert_allclose(geometry.desired_exit, [0.0, height / 2 - 8.88], atol=1e-9)

@@ -26,7 +26,8 @@ from typer.testing import CliRunner
 
 from stitchplan.cli import app
 from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discretization
-from stitchplan.study.sweep import COLUMNS, StudyFamily, StudyRun, exit_deviations, pareto_front, plan_runs
+from stitchplan.config.study import StudyFamily
+from stitchplan.study.sweep import COLUMNS, StudyRun, exit_deviations, pareto_front, plan_runs
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 REQUIRED_COLUMNS = ("family", "spacing_mm", "dilation", "quadrature_order", "basis_order", "step_rad",
@@ -130,7 +131,7 @@ def test_a_failing_configuration_is_recorded_with_its_reason(studied):
     failed = [r for r in rows if r["status"] == "failed"]
     assert [r["family"] for r in failed] == ["quadratic, dilation 1.5"] * 2
     for row in failed:
-        assert row["reason"].startswith("ScenarioError: discretization: dilation 1.5 with spacing")
+        assert row["reason"].startswith("InputError: discretization: dilation 1.5 with spacing")
         assert "singular RK moment matrix" in row["reason"] and "basis order 2" in row["reason"]
         assert row["deviation_mm"] == "nan" and row["pareto"] == "false"
 
@@ -292,19 +293,19 @@ def test_auto_discretization_reports_its_estimate_and_choices(auto_choice):
     assert auto_choice.result is next(t.result for t in auto_choice.trials if t.role == "chosen")
 
 
-def test_simulate_with_an_accuracy_uses_the_auto_discretization_once(monkeypatch):
-    from stitchplan.study import auto as auto
+def test_an_accuracy_is_resolved_once_before_the_run():
+    from stitchplan.errors import InputError
     from stitchplan.needle.insertion import run_insertion
+    from stitchplan.study.auto import resolve_accuracy
 
     scenario = parse_scenario({**tiny_raw(step=0.2), "discretization": {"accuracy": 0.2}})
-    calls = []
-    original = auto.choose_discretization
-    monkeypatch.setattr(auto, "choose_discretization", lambda *a, **k: calls.append(1) or original(*a, **k))
-    first = run_insertion(scenario)
-    second = run_insertion(scenario)
-    assert len(calls) == 1
-    assert first.events[0].startswith("auto discretization: accuracy 0.2 mm") and first.events == second.events
-    assert first.scenario.discretization.accuracy is None
+    with pytest.raises(InputError, match="discretization.accuracy: got an accuracy target"):
+        run_insertion(scenario)  # the run itself never starts a selection
+    resolved, note = resolve_accuracy(scenario)
+    assert note.startswith("auto discretization: accuracy 0.2 mm")
+    assert resolved.discretization.accuracy is None
+    first, second = run_insertion(resolved), run_insertion(resolved)
     assert first.model.n_particles == second.model.n_particles
+    assert first.exit_error_mm == second.exit_error_mm
     # an explicit spacing switches the auto discretization off
     assert with_discretization(scenario, spacing=5.0).discretization.accuracy is None

@@ -209,11 +209,6 @@ def parse_fit(raw: Any, path: str = "fit") -> FitSettings:
     )
 
 
-def _inside(points: np.ndarray, size: tuple[float, float]) -> np.ndarray:
-    tol = 1e-9 * max(size)
-    return ((points >= -tol) & (points <= np.asarray(size) + tol)).all(axis=1)
-
-
 def parse_experiment(raw: Any, tissue: Tissue, folder: Path, path: str) -> Experiment:
     block = _mapping(raw, path, EXPERIMENT_KEYS)
     loads = parse_loads(_required(block, "loads", path), tissue.size, f"{path}.loads")
@@ -230,7 +225,7 @@ def parse_experiment(raw: Any, tissue: Tissue, folder: Path, path: str) -> Exper
     if len(lines) == 0:
         raise ScenarioError(f"{path}.markers: {markers_path}: no marker rows, expected at least one")
     rest = np.stack([data["x"], data["y"]], axis=1)
-    outside = np.flatnonzero(~_inside(rest, tissue.size))
+    outside = np.flatnonzero(~tissue.domain.contains(rest))
     if len(outside):
         k = outside[0]
         raise ScenarioError(

@@ -12,16 +12,14 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from ..errors import ScenarioError
+from ..geometry import EDGE_NAMES, Rectangle
 
-EDGES = ("left", "right", "bottom", "top")
+EDGES = EDGE_NAMES
 MATERIAL_MODELS = ("saint-venant-kirchhoff", "neo-hookean")
 TIP_TRACKING = ("auto", "inverse-gradient", "levenberg-marquardt")
 LINEAR_SOLVERS = ("direct", "minres")
 INTEGRATIONS = ("gauss", "vci")
-
-
-class ScenarioError(ValueError):
-    """A scenario or input file that cannot be used; the message is one line for the user."""
 
 
 @dataclass(frozen=True)
@@ -37,6 +35,10 @@ class Tissue:
     thickness: float
     material: Material
     clamped: tuple[str, ...]
+
+    @property
+    def domain(self) -> Rectangle:
+        return Rectangle.of_size(self.size)
 
 
 @dataclass(frozen=True)
@@ -297,20 +299,12 @@ def parse_needle(raw: Any, path: str = "needle") -> Needle:
     )
 
 
-def _on_boundary(point: tuple[float, float], size: tuple[float, float], tol: float) -> bool:
-    x, y = point
-    w, h = size
-    inside = -tol <= x <= w + tol and -tol <= y <= h + tol
-    return inside and min(abs(x), abs(x - w), abs(y), abs(y - h)) <= tol
-
-
 def parse_loads(raw: Any, size: tuple[float, float], path: str = "loads") -> tuple[Load, ...]:
     if raw is None:
         return ()
     if not isinstance(raw, (list, tuple)):
         raise _fail(path, raw, "a list of loads")
     loads = []
-    tol = 1e-9 * max(size)
     for i, item in enumerate(raw):
         item_path = f"{path}[{i}]"
         block = _mapping(item, item_path, ("segment", "force", "displacement"))
@@ -319,9 +313,7 @@ def parse_loads(raw: Any, size: tuple[float, float], path: str = "loads") -> tup
             raise _fail(f"{item_path}.segment", segment, "two points [[x0, y0], [x1, y1]] (mm)")
         p0 = _point(segment[0], f"{item_path}.segment[0]")
         p1 = _point(segment[1], f"{item_path}.segment[1]")
-        same_edge = (abs(p0[0] - p1[0]) <= tol and (abs(p0[0]) <= tol or abs(p0[0] - size[0]) <= tol)) or (
-            abs(p0[1] - p1[1]) <= tol and (abs(p0[1]) <= tol or abs(p0[1] - size[1]) <= tol))
-        if not (_on_boundary(p0, size, tol) and _on_boundary(p1, size, tol) and same_edge) or p0 == p1:
+        if Rectangle.of_size(size).segment_edge(p0, p1) is None:
             raise _fail(f"{item_path}.segment", [list(p0), list(p1)],
                         f"a non-empty straight piece of one edge of the {size[0]:g} x {size[1]:g} mm tissue")
         has_force, has_disp = "force" in block, "displacement" in block
@@ -451,7 +443,7 @@ def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
 def _parse_study(raw: Any):
     if raw is None:
         return None
-    from ..study.sweep import parse_study  # the study block is validated where it is used
+    from .study import parse_study
 
     return parse_study(raw)
 

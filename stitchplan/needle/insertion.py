@@ -32,9 +32,11 @@ import scipy.sparse as sp
 
 from ..tissue.assembly import Assembler
 from ..config import Scenario, ScenarioError
-from ..tissue.model import TissueModel, build_tissue_model, needle_zone_for
-from .geometry import (NeedleGeometry, TipTrackingJump, inverse_gradient_step,
-                     levenberg_marquardt_tip, needle_geometry)
+from ..errors import InsertionFailure
+from ..tissue.model import TissueModel, build_tissue_model
+from ..errors import InputError, TipTrackingJump
+from .geometry import NeedleGeometry, needle_zone, scenario_needle
+from .tip_tracking import inverse_gradient_step, levenberg_marquardt_tip
 from .saddle_point import SaddlePointSolver, condition_numbers
 from ..tissue.solver import InvertedMaterial, checked_deformation_gradient, factorize
 
@@ -95,14 +97,6 @@ class InsertionResult:
         return float(np.linalg.norm(self.achieved_exit - self.desired_exit))
 
 
-class InsertionFailure(RuntimeError):
-    """A numerical method failed during the insertion; the message says at which step and angle."""
-
-
-def _outside_distance(point: np.ndarray, size: tuple[float, float]) -> float:
-    return float(max(-point[0], point[0] - size[0], -point[1], point[1] - size[1]))
-
-
 class NeedleInsertion:
     """State and steps of one insertion; `run` drives it to the exit."""
 
@@ -117,12 +111,12 @@ class NeedleInsertion:
                                 "need the symmetric Galerkin tangent; vci is for deform and calibrate)")
         self.scenario = scenario
         self.needle = scenario.needle
-        self.size = scenario.tissue.size
-        self.geometry = needle_geometry(self.needle, self.size)
+        self.domain = scenario.tissue.domain
+        self.geometry = scenario_needle(scenario)
         self.timings = {"discretization": 0.0, "assembly": 0.0, "solve": 0.0, "tip_tracking": 0.0}
         start = time.perf_counter()
         self.model = model or build_tissue_model(scenario.tissue, scenario.discretization,
-                                                 needle_zone=needle_zone_for(scenario))
+                                                 needle_zone=needle_zone(scenario))
         self.particle_values = self.model.shape_functions_at(self.model.particles).values
         self.timings["discretization"] += time.perf_counter() - start
         self.assembler = Assembler(self.model)
@@ -157,7 +151,7 @@ class NeedleInsertion:
     def displacement(self, points: np.ndarray, gradient: bool = False):
         # a probe outside the tissue (LM trying points past the exit) may lie outside every
         # kernel support: evaluate the field at the nearest tissue point instead
-        points = np.clip(np.atleast_2d(points), [0.0, 0.0], self.size)
+        points = self.domain.clip(np.atleast_2d(points))
         u, grad = self.model.field_at(points, self.coefficients(), gradients=gradient)  # grad (n, i, J)
         return (u, grad) if gradient else u
 
@@ -396,7 +390,7 @@ class NeedleInsertion:
         def signed_distance(fraction: float) -> float:
             if fraction not in tracked:
                 tracked[fraction] = self.track_tip(fraction * self.geometry.step, method)[0]
-            return _outside_distance(tracked[fraction], self.size)
+            return self.domain.outside_distance(tracked[fraction])
 
         if signed_distance(1.0) <= 0.0:  # the full step stays inside for this tracking method
             fraction = 1.0
@@ -405,7 +399,7 @@ class NeedleInsertion:
         else:
             fraction = scipy.optimize.brentq(signed_distance, 0.0, 1.0, xtol=1e-13, rtol=1e-15)
         signed_distance(fraction)  # brentq's root is one of its evaluations; tracked if not
-        point = np.clip(tracked[fraction], [0.0, 0.0], self.size)
+        point = self.domain.clip(tracked[fraction])
         return point, rotation + fraction * self.geometry.step
 
 
@@ -435,17 +429,12 @@ def run_insertion(
     center_predictor(centre) -> centre gives the planner's first guess for the
     centre of a step, once the tip has advanced about the previous one.
     """
-    auto_note = None
-    if scenario.discretization.accuracy is not None:  # `discretization: {accuracy: ...}`
-        from ..study.auto import resolve_accuracy
-
-        scenario, auto_note = resolve_accuracy(scenario, tip_tracking=tip_tracking,
-                                               linear_solver=linear_solver)
+    if scenario.discretization.accuracy is not None:
+        raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
+                         "chosen before the run (stitchplan.study.auto.resolve_accuracy)")
     wall_start = time.perf_counter()
     insertion = NeedleInsertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking,
                                 condition_numbers=condition_numbers)
-    if auto_note is not None:
-        insertion.events.append(auto_note)
     geometry = insertion.geometry
     insertion.add_point(geometry.entry.copy())
     desired_exit = geometry.desired_exit
@@ -462,7 +451,7 @@ def run_insertion(
         rotation = step * geometry.step
         insertion.center = center  # the tip advances about the centre of the previous step
         point, method_used = insertion.track(geometry.step, step, rotation)
-        if _outside_distance(point, insertion.size) > 0.0:
+        if insertion.domain.outside_distance(point) > 0.0:
             method = "levenberg-marquardt" if method_used == "levenberg-marquardt" else insertion.tip_tracking
             if method == "auto":
                 method = "inverse-gradient"

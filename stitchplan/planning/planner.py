@@ -17,13 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Scenario
+from ..errors import PlanningFailure
 from ..needle.insertion import InsertionFailure, InsertionResult, NeedleInsertion, run_insertion
 
 log = logging.getLogger(__name__)
-
-
-class PlanningFailure(InsertionFailure):
-    """The planner's convergence condition (eq. 4.2) fails."""
 
 
 @dataclass(frozen=True)

@@ -259,17 +259,12 @@ def choose_discretization(scenario: Scenario, accuracy: float, tip_tracking: str
         verified=verified)
 
 
-_CHOICES: dict = {}
-
-
 def resolve_accuracy(scenario: Scenario, tip_tracking: str | None = None,
-                     linear_solver: str | None = None) -> tuple[Scenario, str]:
+                     linear_solver: str | None = None) -> tuple[Scenario, str | None]:
     """The scenario with the auto discretization in place of `accuracy`, and the note that
-    says what was chosen and why. Choices are remembered per scenario in this process, so
-    `plan` (several insertions of one scene) selects once."""
-    key = (scenario, tip_tracking, linear_solver)
-    if key not in _CHOICES:
-        choice = choose_discretization(scenario, scenario.discretization.accuracy, tip_tracking, linear_solver)
-        _CHOICES[key] = choice
-    choice = _CHOICES[key]
+    says what was chosen and why (None when the scenario gives no accuracy). Called once,
+    before a run: every insertion of a `plan` then uses the same model."""
+    if scenario.discretization.accuracy is None:
+        return scenario, None
+    choice = choose_discretization(scenario, scenario.discretization.accuracy, tip_tracking, linear_solver)
     return replace(choice.scenario, source_text=scenario.source_text, name=scenario.name), choice.message

@@ -19,6 +19,8 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from ..config import Tissue
+from ..errors import InputError
+from ..geometry import on_segment
 
 CLAMPED = -1
 
@@ -46,29 +48,6 @@ class EssentialBoundary:
         return self.free_map @ free + self.prescribed_map @ prescribed
 
 
-def _on_segment(points: np.ndarray, start: np.ndarray, end: np.ndarray, tol: float) -> np.ndarray:
-    direction = end - start
-    length = np.linalg.norm(direction)
-    rel = points - start
-    along = rel @ direction / length
-    across = np.abs(rel[:, 0] * direction[1] - rel[:, 1] * direction[0]) / length
-    return (across <= tol) & (along >= -tol) & (along <= length + tol)
-
-
-def edge_mask(points: np.ndarray, size: tuple[float, float], edge: str, tol: float) -> np.ndarray:
-    width, height = size
-    coordinate, value = {"left": (0, 0.0), "right": (0, width), "bottom": (1, 0.0), "top": (1, height)}[edge]
-    return np.abs(points[:, coordinate] - value) <= tol
-
-
-def edge_segment(size: tuple[float, float], edge: str) -> tuple[np.ndarray, np.ndarray]:
-    """End points of a named edge of [0, W] x [0, H]."""
-    width, height = size
-    ends = {"left": ((0.0, 0.0), (0.0, height)), "right": ((width, 0.0), (width, height)),
-            "bottom": ((0.0, 0.0), (width, 0.0)), "top": ((0.0, height), (width, height))}[edge]
-    return np.asarray(ends[0]), np.asarray(ends[1])
-
-
 def boundary_particles(
     particles: np.ndarray,
     tissue: Tissue,
@@ -79,15 +58,16 @@ def boundary_particles(
 
     A particle that is both clamped and on a segment stays clamped: the clamp holds the corner.
     """
-    tol = 1e-9 * max(tissue.size)
+    domain = tissue.domain
+    tol = domain.tolerance
     group = np.full(len(particles), -2)
     for k, (start, end) in enumerate(prescribed_segments):
-        group[_on_segment(particles, np.asarray(start), np.asarray(end), tol)] = k
+        group[on_segment(particles, start, end, tol)] = k
     for edge in tissue.clamped:
-        group[edge_mask(particles, tissue.size, edge, tol)] = CLAMPED
+        group[domain.edge_mask(particles, edge, tol)] = CLAMPED
     for k, (start, end) in enumerate(prescribed_segments):
         if not np.any(group == k):
-            raise ValueError(
+            raise InputError(
                 f"loads: the displacement segment {list(start)}-{list(end)} holds no particle at "
                 f"spacing {spacing:g} mm: lengthen it or refine the spacing"
             )

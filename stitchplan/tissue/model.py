@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .boundary_conditions import EssentialBoundary, boundary_particles, edge_segment, transformation
+from .boundary_conditions import EssentialBoundary, boundary_particles, transformation
 from ..config import Discretization, Scenario, ScenarioError, Tissue
 from .material import NeoHookean, SaintVenantKirchhoff, make_material
 from .quadrature import cell_quadrature, natural_boundary_quadrature
@@ -250,7 +250,7 @@ def build_tissue_model(
     test_gradient = None
     if discretization.integration == "vci":
         essential = [(np.asarray(a, float), np.asarray(b, float)) for a, b in prescribed_segments]
-        essential += [edge_segment(tissue.size, edge) for edge in tissue.clamped]
+        essential += [tissue.domain.edge(edge) for edge in tissue.clamped]
         boundary_points, normals, boundary_weights = natural_boundary_quadrature(
             tissue.size, essential, spacing, discretization.quadrature_order + 2)
         at_natural = (rk_shape_functions(boundary_points, particles, support, volumes, order, False, tree,
@@ -276,21 +276,12 @@ def build_tissue_model(
     )
 
 
-def model_for_scenario(scenario: Scenario) -> TissueModel:
+def model_for_scenario(scenario: Scenario,
+                       needle_zone: tuple[tuple[float, float], float] | None = None) -> TissueModel:
+    """The model of a scenario's tissue with its displacement segments held; `needle_zone`
+    (centre, radius) is where graded particles refine (stitchplan.needle.geometry.needle_zone)."""
     segments = tuple(load.segment for load in scenario.loads if load.displacement is not None)
-    return build_tissue_model(scenario.tissue, scenario.discretization, segments,
-                              needle_zone_for(scenario))
-
-
-def needle_zone_for(scenario: Scenario) -> tuple[tuple[float, float], float] | None:
-    """(needle centre at entry, needle_zone x radius) when the particles are graded toward
-    the needle, else None."""
-    if scenario.needle is None or scenario.discretization.needle_spacing is None:
-        return None
-    from ..needle.geometry import needle_geometry
-
-    geometry = needle_geometry(scenario.needle, scenario.tissue.size)
-    return tuple(geometry.center), scenario.discretization.needle_zone * geometry.radius
+    return build_tissue_model(scenario.tissue, scenario.discretization, segments, needle_zone)
 
 
 def consistent_test_gradients(values: sp.csr_matrix, grad_x: sp.csr_matrix, grad_y: sp.csr_matrix,

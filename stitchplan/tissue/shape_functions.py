@@ -15,10 +15,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .kernel import tensor_kernel
-
-
-class SingularMomentMatrix(ValueError):
-    """The moment matrix M(X) of eq. 3.20 is singular: too few particles cover a point."""
+from ..errors import SingularMomentMatrix
 
 
 @dataclass(frozen=True)

@@ -12,18 +12,11 @@ import scipy.sparse.linalg as spla
 
 from .assembly import Assembler
 from ..config import Solver
+from ..errors import InvertedMaterial, SolverDivergence
 from .model import TissueModel
 from .material import determinant
 
 log = logging.getLogger(__name__)
-
-
-class SolverDivergence(RuntimeError):
-    """Newton failed even after cutting the load step; the message says where."""
-
-
-class InvertedMaterial(ArithmeticError):
-    """det F <= 0 at a quadrature point: the trial state is not admissible."""
 
 
 @dataclass
