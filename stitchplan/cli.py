@@ -253,9 +253,9 @@ def _expected_steps(scenario) -> int:
     return scenario_needle(scenario).expected_steps
 
 
-def _echo_events(events: list[str], shown: int = 3) -> None:
+def _echo_events(events, shown: int = 3) -> None:
     for event in events[:shown]:
-        typer.echo(f"note: {event}", err=True)
+        typer.echo(f"note: {event.message}", err=True)
     if len(events) > shown:
         typer.echo(f"note: {len(events) - shown} more notes in the summary and run log", err=True)
 

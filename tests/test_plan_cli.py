@@ -152,11 +152,12 @@ def test_eq_4_2_failure_is_an_event_and_a_note(planned):
     non-strict run records it, names step and angle, prints a note and still exports."""
     folder, result, summary = planned
     assert result.exit_code == 0, result.output
-    failures = [EQ_42.search(event) for event in summary["events"]]
-    failures = [(int(m.group(1)), float(m.group(2))) for m in failures if m]
+    failures = [e for e in summary["events"] if e["kind"] == "planner-eq42-failed"]
     assert failures, summary["events"]
-    for step, rotation in failures:
-        assert 1 <= step <= summary["steps"] and rotation == pytest.approx(0.16 * step, abs=5e-4)
+    for event in failures:
+        assert 1 <= event["step"] <= summary["steps"]
+        assert event["angle_rad"] == pytest.approx(0.16 * event["step"], abs=5e-4)
+        assert f"at step {event['step']} (needle rotation {event['angle_rad']:.3f} rad)" in event["message"]
     notes = [line for line in result.output.splitlines() if line.startswith("note: ")]
     assert any(EQ_42.search(line) for line in notes), result.output
 

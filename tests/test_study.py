@@ -302,7 +302,8 @@ def test_an_accuracy_is_resolved_once_before_the_run():
     with pytest.raises(InputError, match="discretization.accuracy: got an accuracy target"):
         run_insertion(scenario)  # the run itself never starts a selection
     resolved, note = resolve_accuracy(scenario)
-    assert note.startswith("auto discretization: accuracy 0.2 mm")
+    assert note.kind.value == "auto-discretization"
+    assert note.message.startswith("auto discretization: accuracy 0.2 mm")
     assert resolved.discretization.accuracy is None
     first, second = run_insertion(resolved), run_insertion(resolved)
     assert first.model.n_particles == second.model.n_particles

@@ -118,7 +118,7 @@ def insertion_summary(result) -> dict:
         "minres_iterations": int(sum(s.minres_iterations for s in steps)),
         "max_constraint_violation_mm": max((s.constraint_violation for s in steps), default=0.0),
         "tip_tracking": sorted({s.tracking for s in steps}),
-        "events": result.events,
+        "events": [event.as_record() for event in result.events],
         "solver": result.solver_counts,
         "timings_seconds": result.timings,
         "discretization": discretization_summary(result.model),
@@ -169,7 +169,12 @@ def insertion_datasets(result) -> dict[str, dict]:
             "condition_preconditioned": column("condition_preconditioned"),
         },
         "particles": {"reference": result.model.particles, "displacement": result.displacements},
-        "solver": {"events": "\n".join(result.events)},
+        "events": {
+            "kind": "\n".join(event.kind.value for event in result.events),
+            "step": np.asarray([-1 if e.step is None else e.step for e in result.events], dtype=int),
+            "angle_rad": np.asarray([np.nan if e.angle_rad is None else e.angle_rad for e in result.events]),
+            "message": "\n".join(event.message for event in result.events),
+        },
     }
 
 

@@ -35,6 +35,7 @@ from ..config import Scenario, ScenarioError
 from ..errors import InsertionFailure
 from ..tissue.model import TissueModel, build_tissue_model
 from ..errors import InputError, TipTrackingJump
+from ..events import Event, EventKind
 from .geometry import NeedleGeometry, needle_zone, scenario_needle
 from .tip_tracking import inverse_gradient_step, levenberg_marquardt_tip
 from .saddle_point import SaddlePointSolver, condition_numbers
@@ -85,7 +86,7 @@ class InsertionResult:
     exit_rotation: float
     wall_seconds: float
     timings: dict[str, float]
-    events: list[str] = field(default_factory=list)
+    events: list[Event] = field(default_factory=list)
     solver_counts: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -133,7 +134,7 @@ class NeedleInsertion:
         self.segment_points = np.zeros((0, 2))  # Gauss points on Gamma_N, reference, 2 per segment
         self.segment_rows = sp.csr_matrix((0, n_free))  # N(X_s) T at those points
         self.center = self.geometry.center.copy()
-        self.events: list[str] = []
+        self.events: list[Event] = []
         stiffness_factor = None
         if self.linear_method == "minres":
             start = time.perf_counter()
@@ -291,7 +292,7 @@ class NeedleInsertion:
                     self.saddle.fallbacks += 1
                     message = (f"MINRES stagnated after {its} iterations at step {step} (needle rotation "
                                f"{rotation:.3f} rad): fell back to the direct solve")
-                    self.events.append(message)
+                    self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
                     log.warning(message)
             if solution is None:
                 # keep the factor of K while Newton contracts fast; renew it when it slows
@@ -372,7 +373,7 @@ class NeedleInsertion:
         except _Fallback as jump:
             message = (f"inverse-gradient tip tracking jumped at step {step} (needle rotation "
                        f"{rotation:.3f} rad): {jump}; fell back to Levenberg-Marquardt")
-            self.events.append(message)
+            self.events.append(Event(EventKind.TIP_TRACKING_FALLBACK, message, step, rotation))
             log.warning(message)
             return self.track_tip(rotation_step, "levenberg-marquardt")
         except TipTrackingJump as jump:

@@ -18,7 +18,8 @@ import numpy as np
 
 from ..config import Scenario
 from ..errors import PlanningFailure
-from ..needle.insertion import InsertionFailure, InsertionResult, NeedleInsertion, run_insertion
+from ..events import Event, EventKind
+from ..needle.insertion import InsertionResult, NeedleInsertion, run_insertion
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +115,7 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
                 if settings.strict:
                     raise PlanningFailure(  # strict: nothing is kept, drop that clause
                         message.replace("planning: ", "planning failed: ", 1).split("; the step keeps")[0])
-                insertion.events.append(message)
+                insertion.events.append(Event(EventKind.PLANNER_EQ42_FAILED, message, step, rotation))
                 log.warning(message)
                 state["jacobian"] = np.zeros((2, 2))
                 return restore_best(), iteration
@@ -124,7 +125,7 @@ def exit_tracking_update(settings: PlannerSettings, offset: np.ndarray | None = 
                    f"the step keeps the best centre tried (mismatch {best[0]:.3g} mm)")
         if settings.strict:
             raise PlanningFailure(message.replace("planning: ", "planning failed: ", 1).split("; the step keeps")[0])
-        insertion.events.append(message)
+        insertion.events.append(Event(EventKind.PLANNER_NOT_CONVERGED, message, step, rotation))
         log.warning(message)
         state["jacobian"] = jacobian
         return restore_best(), settings.max_iterations

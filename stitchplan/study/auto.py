@@ -41,6 +41,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 
 from ..config import Scenario, ScenarioError, parse_discretization
+from ..events import Event, EventKind
 
 log = logging.getLogger(__name__)
 
@@ -179,7 +180,8 @@ def choose_discretization(scenario: Scenario, accuracy: float, tip_tracking: str
         tracking, reasons["tip_tracking"] = tip_tracking, "given"
     else:
         trial = run("tip tracking", h, "auto", solver)
-        events = trial.result.events if trial.status == "ok" else []
+        events = ([e for e in trial.result.events if e.kind is EventKind.TIP_TRACKING_FALLBACK]
+                  if trial.status == "ok" else [])
         if trial.status != "ok":
             reasons["tip_tracking"] = f"inverse gradient failed at h={h:g} mm: {trial.reason.split(':')[0]}"
         elif events:
@@ -260,11 +262,12 @@ def choose_discretization(scenario: Scenario, accuracy: float, tip_tracking: str
 
 
 def resolve_accuracy(scenario: Scenario, tip_tracking: str | None = None,
-                     linear_solver: str | None = None) -> tuple[Scenario, str | None]:
+                     linear_solver: str | None = None) -> tuple[Scenario, Event | None]:
     """The scenario with the auto discretization in place of `accuracy`, and the note that
     says what was chosen and why (None when the scenario gives no accuracy). Called once,
     before a run: every insertion of a `plan` then uses the same model."""
     if scenario.discretization.accuracy is None:
         return scenario, None
     choice = choose_discretization(scenario, scenario.discretization.accuracy, tip_tracking, linear_solver)
-    return replace(choice.scenario, source_text=scenario.source_text, name=scenario.name), choice.message
+    note = Event(EventKind.AUTO_DISCRETIZATION, choice.message)
+    return replace(choice.scenario, source_text=scenario.source_text, name=scenario.name), note

@@ -46,8 +46,6 @@ from typing import Any
 
 from ..config import Scenario, ScenarioError, parse_discretization
 from ..config.study import StudyFamily, StudySpec
-from ..config import (
-                     _mapping, _number, parse_discretization)
 
 log = logging.getLogger(__name__)
 

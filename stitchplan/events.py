@@ -1,0 +1,34 @@
+"""Typed records of what happened during a run that a user should know about: a method that
+fell back to another, a planner step that could not meet eq. 4.2, the discretization the
+auto choice made. Results, summaries and the HDF5 log carry them as records; tests assert
+on their fields, and the message is the sentence a person reads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from enum import Enum
+
+
+class EventKind(str, Enum):
+    TIP_TRACKING_FALLBACK = "tip-tracking-fallback"  # inverse gradient jumped; Levenberg-Marquardt used
+    MINRES_FALLBACK = "minres-fallback"  # MINRES stagnated; direct solve used
+    PLANNER_EQ42_FAILED = "planner-eq42-failed"  # moving the centre moved the exit as much (eq. 4.2)
+    PLANNER_NOT_CONVERGED = "planner-not-converged"  # centre iterations ran out within a step
+    AUTO_DISCRETIZATION = "auto-discretization"  # what the accuracy target chose, and why
+
+
+@dataclass(frozen=True)
+class Event:
+    kind: EventKind
+    message: str
+    step: int | None = None  # needle step (None: before or outside the steps)
+    angle_rad: float | None = None  # needle rotation since entry at that step
+
+    def as_record(self) -> dict:
+        record = asdict(self)
+        record["kind"] = self.kind.value
+        return record
+
+    def __str__(self) -> str:
+        return self.message
