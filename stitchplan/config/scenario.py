@@ -73,6 +73,14 @@ class Discretization:
             values["needle_spacing"] = None
         return values
 
+    def replaced(self, path: str = "discretization", **changes) -> Discretization:
+        """A validated copy with `changes` applied (None is a value here: needle_spacing=None
+        makes the particles uniform). A needle spacing derived from needle_refinement follows
+        a changed spacing unless needle_spacing is given; `path` names the block in errors."""
+        values = self.as_input()
+        values.update(changes)
+        return parse_discretization(values, path)
+
 
 @dataclass(frozen=True)
 class Needle:
@@ -472,8 +480,7 @@ def with_discretization(scenario: Scenario, **overrides: float | int | None) -> 
     """Copy of the scenario with discretization fields replaced (None values ignored)."""
     from dataclasses import replace
 
-    values = scenario.discretization.as_input()
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    if overrides.get("spacing") is not None and "accuracy" not in overrides:
-        values["accuracy"] = None  # an explicit spacing replaces the auto discretization
-    return replace(scenario, discretization=parse_discretization(values))
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    if "spacing" in changes and "accuracy" not in overrides:
+        changes["accuracy"] = None  # an explicit spacing replaces the auto discretization
+    return replace(scenario, discretization=scenario.discretization.replaced(**changes))
