@@ -23,8 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from stitchplan.calibration.core import calibrate_material, simulate_markers
-from stitchplan.config.scenario import Discretization, Load, Material, Tissue, default_spacing
+from stitchplan.calibration import calibrate_material, simulate_markers
+from stitchplan.config.scenario import (
+    Discretization,
+    Load,
+    Material,
+    Tissue,
+    default_spacing,
+)
 from stitchplan.io.files import write_csv, write_yaml
 
 TRUE = Material("saint-venant-kirchhoff", 0.189151, 0.147688)

@@ -38,7 +38,8 @@ import numpy as np  # noqa: E402
 
 import _common as common  # noqa: E402
 from stitchplan.config.scenario import default_spacing, load_scenario, with_discretization  # noqa: E402
-from stitchplan.needle.insertion import InsertionFailure, run_insertion  # noqa: E402
+from stitchplan.errors import InsertionFailure  # noqa: E402
+from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
 CONFIGS = common.REPO_ROOT / "configs"
 SPACING_FACTORS = (1.5, 1.0, 0.85, 0.7, 0.6, 0.5, 0.4)  # x the default spacing

@@ -35,7 +35,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 import _common as common  # noqa: E402
 from stitchplan.config.scenario import default_spacing, load_scenario, with_discretization  # noqa: E402
-from stitchplan.needle.insertion import InsertionFailure, run_insertion  # noqa: E402
+from stitchplan.errors import InsertionFailure  # noqa: E402
+from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
 SCENARIO = common.REPO_ROOT / "configs" / "sh12_100x100.yaml"
 REPEATS = 3

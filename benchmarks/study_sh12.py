@@ -31,10 +31,11 @@ from dataclasses import replace
 
 import _common as common
 from stitchplan.config.scenario import load_scenario
-from stitchplan.io.files import write_text
-from stitchplan.needle.insertion import run_insertion
 from stitchplan.config.study import parse_study
-from stitchplan.study.sweep import run_study, write_study_outputs
+from stitchplan.io.files import write_text
+from stitchplan.io.study_reports import write_study_outputs
+from stitchplan.needle.insertion import run_insertion
+from stitchplan.study.sweep import run_study
 
 SCENARIO = common.REPO_ROOT / "configs" / "sh12_100x100.yaml"
 OUT = common.RESULTS_DIR / "study_sh12"

@@ -1,8 +1,5 @@
 """stitchplan: curved suture needle insertion simulation and trajectory planning."""
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("stitchplan")
-except PackageNotFoundError:  # running from a source tree without installation
-    __version__ = "0.1.0"
+# the one place the version is written: pyproject.toml reads it ([tool.setuptools.dynamic]),
+# run logs record it, `stitchplan --version` prints it
+__version__ = "0.2.0"

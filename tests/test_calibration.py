@@ -17,7 +17,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from stitchplan.calibration import core as calibration
+from stitchplan import calibration
 from stitchplan.cli import app
 from stitchplan.config.scenario import (
     Discretization,
@@ -183,7 +183,7 @@ def test_identifiability_warning_on_displacement_only_data(tmp_path, caplog):
     rng = np.random.default_rng(5)
     path = write_calibration(tmp_path, [DISPLACED], rng=rng, noise=0.05)
     out = tmp_path / "fitted.yaml"
-    with caplog.at_level(logging.WARNING, logger="stitchplan.calibration.core"):
+    with caplog.at_level(logging.WARNING, logger="stitchplan.calibration"):
         result = run("calibrate", "material", path, "--out", out)
     assert result.exit_code == 0, result.output
     assert "NOT identifiable" in result.output
@@ -387,3 +387,52 @@ def test_shipped_example_inputs_load_and_outputs_match_the_truth():
     assert result.cutting_force == pytest.approx(shipped["cutting_force"], rel=1e-5)
     assert abs(result.friction - FRICTION) < 3 * result.standard_uncertainty[0]
     assert abs(result.cutting_force - CUTTING) < 3 * result.standard_uncertainty[1]
+
+
+# --- layering -------------------------------------------------------------------------
+
+PACKAGE = Path(__file__).resolve().parents[1] / "stitchplan"
+ABOVE_CALIBRATION = ("stitchplan.study", "stitchplan.io", "stitchplan.cli")
+
+
+def _imported_modules(path: Path) -> set[str]:
+    """Absolute names of every module a file imports, at module or function level."""
+    import ast
+
+    package = "stitchplan." + ".".join(path.relative_to(PACKAGE).parent.parts)
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package.rstrip(".").split(".")
+            base = base[:len(base) - node.level + 1] if node.level else []
+            module = ".".join(base + ([node.module] if node.module else []))
+            names.update([module] + [f"{module}.{alias.name}" for alias in node.names])
+    return names
+
+
+@pytest.mark.parametrize("path", sorted((PACKAGE / "calibration").glob("*.py")), ids=lambda p: p.name)
+def test_calibration_imports_no_layer_above_it(path):
+    upward = {name for name in _imported_modules(path)
+              if any(name == top or name.startswith(top + ".") for top in ABOVE_CALIBRATION)}
+    assert not upward, f"{path.name} imports {sorted(upward)}"
+
+
+def test_needle_report_carries_the_fit_and_rounds_it(tmp_path):
+    from stitchplan.io.calibration_reports import (
+        needle_report,
+        needle_summary_line,
+        write_needle_outputs,
+    )
+
+    air, tissue = write_recordings(tmp_path)
+    result = calibration.calibrate_needle(air, tissue, RADIUS)
+    report = needle_report(result)
+    assert report["friction"] == pytest.approx(result.friction, rel=1e-5)
+    assert report["cutting_force"] == pytest.approx(result.cutting_force, rel=1e-5)
+    assert report["diagnostics"]["air"] == str(air)
+    assert f"friction {result.friction:.6g}" in needle_summary_line(result)
+    out = tmp_path / "needle.yaml"
+    write_needle_outputs(result, out)
+    assert yaml.safe_load(out.read_text())["friction"] == report["friction"]

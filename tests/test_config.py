@@ -38,7 +38,7 @@ BAD_SCENARIOS = [
      ["tissue.thickness", "missing", "required"]),
     ("missing lame_mu", lambda r: drop(r, ("tissue", "material", "lame_mu")),
      ["tissue.material.lame_mu", "missing", "required"]),
-    ("missing tissue", lambda r: drop(r, ("tissue",)), ["scenario.tissue", "missing", "required"]),
+    ("missing tissue", lambda r: drop(r, ("tissue",)), ["tissue: missing", "required", "size, thickness"]),
     ("unknown top-level key", lambda r: set_in(r, ("load_step",), 5),
      ["scenario", "unknown key 'load_step'", "load_steps"]),
     ("unknown tissue key", lambda r: set_in(r, ("tissue", "colour"), "red"),
@@ -63,6 +63,8 @@ BAD_SCENARIOS = [
      ["loads[0]", "exactly one of 'force' (N) or 'displacement' (mm)", "['displacement', 'force']"]),
     ("neither force nor displacement", lambda r: drop(r, ("loads", 0, "force")),
      ["loads[0]", "exactly one of", "neither"]),
+    ("null force", lambda r: set_in(r, ("loads", 0, "force"), None), ["loads[0]", "exactly one of", "neither"]),
+    ("a key that is not a string", lambda r: set_in(r, (1,), 2), ["scenario: unknown key 1", "load_steps"]),
     ("probe outside", lambda r: set_in(r, ("probes",), [[0.0, 50.0], [120.0, 50.0]]),
      ["probes[1]", "[120.0, 50.0]", "inside [0, 100] x [0, 100] mm"]),
     ("probe below", lambda r: set_in(r, ("probes",), [[50.0, -0.5]]),
@@ -174,3 +176,259 @@ def test_given_spacing_wins_and_overrides_are_validated(slab_raw):
     assert overridden.discretization.spacing == 4.0 and overridden.discretization.dilation == 2.0
     with pytest.raises(ScenarioError, match=r"spacing: got -4\.0, expected a positive number"):
         with_discretization(scenario, spacing=-4.0)
+
+
+# --- every problem of a file at once -------------------------------------------------------
+
+
+def test_every_problem_of_a_file_is_reported_together(slab_raw):
+    """One InputError: a line per problem, in the order of the file's blocks, each naming the
+    field, the value as given and what was expected; str() is the lines joined."""
+    slab_raw["tissue"]["thickness"] = -1
+    slab_raw["tissue"]["material"]["model"] = "mooney-rivlin"
+    slab_raw["tissue"]["clamped"] = ["right", "right"]
+    slab_raw["loads"][0]["segment"] = [[10.0, 40.0], [10.0, 60.0]]
+    slab_raw["loads"].append({"segment": [[0.0, 0.0], [0.0, 10.0]]})
+    slab_raw["probes"][2] = [25.0, 150.0]
+    slab_raw["load_steps"] = 2.5
+    slab_raw["discretization"] = {"spacing": 2.0, "needle_spacing": 3.0, "dilation": 0.9}
+    slab_raw["colour"] = "red"
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    lines = error.value.lines
+    assert str(error.value) == "\n".join(lines)
+    assert lines == [
+        "tissue.thickness: got -1, expected a positive number (mm)",
+        "tissue.material.model: got 'mooney-rivlin', expected one of saint-venant-kirchhoff, neo-hookean",
+        "tissue.clamped: got ['right', 'right'], expected each edge at most once",
+        ("discretization.dilation: got 0.9, expected a number > 1 (kernel support / spacing; "
+         "at least ~1.5 for a linear basis)"),
+        ("loads[0].segment: got [[10.0, 40.0], [10.0, 60.0]], expected a non-empty straight piece of "
+         "one edge of the 100 x 100 mm tissue"),
+        "loads[1]: got neither, expected exactly one of 'force' (N) or 'displacement' (mm)",
+        "load_steps: got 2.5, expected an integer between 1 and 10000",
+        "probes[2]: got [25.0, 150.0], expected a point inside [0, 100] x [0, 100] mm",
+        ("scenario: unknown key 'colour', expected one of: name, tissue, discretization, needle, loads, "
+         "load_steps, probes, solver, planner, robot, study"),
+    ]
+
+
+def test_a_block_check_runs_once_its_fields_are_valid(slab_raw):
+    """needle_spacing <= spacing is a check of the whole block: reported once the block's own
+    fields are valid, with the field it concerns."""
+    slab_raw["discretization"] = {"spacing": 2.0, "needle_spacing": 3}
+    with pytest.raises(ScenarioError, match=r"^discretization.needle_spacing: got 3(\.0)?, expected a "
+                                            r"spacing \(mm\) no larger than spacing = 2 mm$"):
+        parse_scenario(slab_raw)
+
+
+def test_the_file_path_starts_every_line(write_scenario, slab_raw):
+    slab_raw["tissue"]["thickness"] = -1
+    slab_raw["tissue"]["size"] = [100.0, "wide"]
+    path = write_scenario(slab_raw, "scene.yaml")
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(path)
+    assert error.value.lines == [f"{path}: tissue.size[1]: got 'wide', expected a positive number (mm)",
+                                 f"{path}: tissue.thickness: got -1, expected a positive number (mm)"]
+
+
+@pytest.mark.parametrize("value, shown", [
+    (float("nan"), "nan"), (float("inf"), "inf"), (True, "True"), ("10", "'10'"), (None, "None"),
+    ([10.0], "[10.0]"),
+])
+def test_numbers_are_finite_numbers(slab_raw, value, shown):
+    slab_raw["tissue"]["thickness"] = value
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert str(error.value) == f"tissue.thickness: got {shown}, expected a positive number (mm)"
+
+
+@pytest.mark.parametrize("text, shown", [(".nan", "nan"), ("-.inf", "-inf"), ("yes", "True"), ("'3'", "'3'")])
+def test_yaml_spellings_of_non_numbers_are_refused(write_scenario, slab_raw, text, shown):
+    path = write_scenario(slab_raw)
+    path.write_text(path.read_text().replace("thickness: 10.0", f"thickness: {text}"))
+    with pytest.raises(ScenarioError, match=rf"tissue.thickness: got {shown}, expected a positive"):
+        load_scenario(path)
+
+
+@pytest.mark.parametrize("value", [2.0, True, "2", 0, 11])
+def test_integers_are_integers(slab_raw, value):
+    slab_raw["discretization"] = {"quadrature_order": value}
+    with pytest.raises(ScenarioError, match="discretization.quadrature_order: got .*, expected an integer "
+                                            "between 1 and 10"):
+        parse_scenario(slab_raw)
+
+
+def test_unknown_key_suggests_the_close_one(slab_raw):
+    slab_raw["tissue"]["thicknes"] = slab_raw["tissue"].pop("thickness")
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert error.value.lines == [
+        "tissue.thickness: missing, required: a positive number (mm)",
+        ("tissue: unknown key 'thicknes', expected one of: size, thickness, material, clamped "
+         "(did you mean 'thickness'?)"),
+    ]
+
+
+def test_long_values_are_shortened(slab_raw):
+    slab_raw["tissue"]["clamped"] = "right " * 100
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    line = str(error.value)
+    assert line.startswith("tissue.clamped: got 'right right") and " ..., expected a list of edges" in line
+    assert len(line) < 160
+
+
+def test_a_null_block_keeps_the_defaults(slab_raw):
+    slab_raw.update(solver=None, planner=None, robot=None, study=None, needle=None, discretization=None)
+    scenario = parse_scenario(slab_raw)
+    assert scenario.needle is None and scenario.study is None
+    assert scenario.discretization.spacing == pytest.approx(5.0)  # min(W, H) / 20
+
+
+def test_robot_block_reads_the_base_transform(slab_raw):
+    from stitchplan.config import Robot
+
+    slab_raw["robot"] = {"base_transform": {"rotation_deg": 90, "translation": [400, 120]}, "angular_speed": 0.5}
+    assert parse_scenario(slab_raw).robot == Robot(90.0, (400.0, 120.0), 0.5, given=True)
+    slab_raw["robot"] = {"angular_speed": 0.5}
+    assert parse_scenario(slab_raw).robot == Robot(angular_speed=0.5)
+    slab_raw["robot"] = {"rotation_deg": 90}
+    with pytest.raises(ScenarioError, match="robot: unknown key 'rotation_deg', expected one of: "
+                                            "base_transform, angular_speed"):
+        parse_scenario(slab_raw)
+
+
+# --- typed objects: construction validates, replace and asdict work ------------------------------
+
+
+def test_blocks_are_typed_frozen_hashable_and_replace_revalidates(slab_raw):
+    import dataclasses
+    import pickle
+
+    from pydantic import ValidationError
+
+    scenario = parse_scenario(slab_raw)
+    assert isinstance(scenario.tissue.size, tuple) and all(type(v) is float for v in scenario.tissue.size)
+    assert all(type(v) is float for p in scenario.probes for v in p)
+    assert type(scenario.load_steps) is int and isinstance(scenario.loads, tuple)
+    assert scenario.tissue.domain.size == (100.0, 100.0)
+    assert hash(scenario) == hash(parse_scenario(slab_raw))
+    assert pickle.loads(pickle.dumps(scenario)) == scenario
+    assert dataclasses.asdict(scenario.tissue)["material"]["lame_mu"] == pytest.approx(0.147688)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        scenario.tissue.thickness = 1.0
+    thinner = dataclasses.replace(scenario, tissue=dataclasses.replace(scenario.tissue, thickness=5.0))
+    assert thinner.tissue.thickness == 5.0 and thinner.loads == scenario.loads
+    with pytest.raises(ValidationError):
+        dataclasses.replace(scenario.tissue, thickness=-5.0)
+    with pytest.raises(ValidationError):  # the loads no longer on an edge of the smaller tissue
+        dataclasses.replace(scenario, tissue=dataclasses.replace(scenario.tissue, size=(50.0, 50.0)))
+
+
+def test_a_load_constructed_in_python_needs_exactly_one_kind():
+    from pydantic import ValidationError
+
+    from stitchplan.config import Load
+
+    assert Load(((0.0, 0.0), (0.0, 1.0)), force=(1, 2)).force == (1.0, 2.0)
+    for kinds in ({}, {"force": (1.0, 0.0), "displacement": (0.0, 1.0)}):
+        with pytest.raises(ValidationError, match="exactly one of 'force'"):
+            Load(((0.0, 0.0), (0.0, 1.0)), **kinds)
+
+
+def test_replaced_is_a_validated_copy_and_as_input_round_trips():
+    from stitchplan.config import Discretization, parse_discretization
+
+    graded = parse_discretization({"spacing": 4.0, "needle_refinement": 2})
+    assert graded.needle_spacing == 2.0
+    assert parse_discretization(graded.as_input()) == graded
+    assert graded.replaced(spacing=2.0).needle_spacing == 1.0  # derived: follows the spacing
+    assert graded.replaced(needle_spacing=None, needle_refinement=None).needle_spacing is None
+    assert Discretization(spacing=3.0).replaced(dilation=1.5) == Discretization(spacing=3.0, dilation=1.5)
+    with pytest.raises(ScenarioError) as error:
+        graded.replaced(path="study 'a'", dilation=0.5, basis_order=3)
+    assert error.value.lines == [
+        ("study 'a'.dilation: got 0.5, expected a number > 1 (kernel support / spacing; "
+         "at least ~1.5 for a linear basis)"),
+        "study 'a'.basis_order: got 3, expected an integer between 1 and 2"]
+
+
+# --- YAML reading ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("tissue: {size: [1, 2]}\nname: a\ntissue: {}\n",
+     "line 3: duplicate key 'tissue' (first given at line 1), expected each key once"),
+    ("tissue: {size: [1, 2], size: [3, 4]}\n", "line 1: duplicate key 'size' (first given at line 1)"),
+    ("a: &a [*a]\n", "line 1: a recursive YAML alias, expected plain data"),
+    ("b: &b [1]\nc: [" + ", ".join(["*b"] * 101) + "]\n", "line 2: more than 100 YAML aliases"),
+    ("tissue: !!python/object:os.system {}\n", "not valid YAML at line 1"),
+])
+def test_yaml_files_are_plain_data(tmp_path, text, fragment):
+    path = tmp_path / "scene.yaml"
+    path.write_text(text)
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(path)
+    assert error.value.lines == [f"{path}: " + str(error.value).split(": ", 1)[1]]
+    assert str(error.value).startswith(f"{path}: ") and fragment in str(error.value)
+
+
+def test_an_alias_bomb_is_one_short_line(tmp_path):
+    """Nine levels of ten aliases would expand to 10^10 values: refused before they are built."""
+    import time
+
+    lines = ["a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 10)]
+    path = tmp_path / "bomb.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    start = time.perf_counter()
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(path)
+    assert time.perf_counter() - start < 1.0
+    assert str(error.value) == f"{path}: line 5: YAML aliases expand to more than 100000 values, expected plain data"
+
+
+def test_a_few_aliases_and_merge_keys_are_fine(tmp_path, slab_raw):
+    path = tmp_path / "scene.yaml"
+    path.write_text("tissue:\n  size: &square [100.0, 100.0]\n  thickness: 10.0\n"
+                    "  material: &phantom {lame_lambda: 0.19, lame_mu: 0.15}\n"
+                    "probes: [[0.0, 50.0]]\n"
+                    "loads:\n  - &pull {segment: [[0.0, 40.0], [0.0, 60.0]], force: [1.0, 0.0]}\n"
+                    "  - {<<: *pull, force: [2.0, 0.0]}\n")
+    scenario = load_scenario(path)
+    assert [load.force for load in scenario.loads] == [(1.0, 0.0), (2.0, 0.0)]
+
+
+def test_a_file_that_is_not_utf8_is_named(tmp_path):
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes("name: café\n".encode("latin-1"))
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(path)
+    assert str(error.value) == f"{path}: not UTF-8 text (byte 0xe9 at offset 9), expected a YAML text file"
+
+
+def test_a_utf8_byte_order_mark_is_fine(tmp_path, slab_path):
+    path = tmp_path / "bom.yaml"
+    path.write_bytes(b"\xef\xbb\xbf" + slab_path.read_bytes())
+    assert load_scenario(path).tissue.size == (100.0, 100.0)
+
+
+# --- the config layer stands on errors and geometry only ------------------------------------------
+
+
+def test_config_imports_no_layer_above_it():
+    """Importing stitchplan.config (each of its modules first, so a cycle would show) loads no
+    stitchplan module outside errors, geometry and config."""
+    import subprocess
+    import sys
+
+    modules = ["fields", "messages", "yaml_files", "blocks", "study", "scenario", "schema", "calibration"]
+    for module in modules:
+        code = (f"import sys, stitchplan.config.{module}\n"
+                "print(sorted(m for m in sys.modules if m.startswith('stitchplan')))")
+        loaded = eval(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                     check=True).stdout)
+        outside = [m for m in loaded if m not in ("stitchplan", "stitchplan.errors", "stitchplan.geometry")
+                   and not m.startswith("stitchplan.config")]
+        assert outside == [], (module, outside)

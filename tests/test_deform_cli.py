@@ -207,6 +207,10 @@ BAD_INPUTS = [
     ("segment without particles",
      lambda r: with_changes(r, loads=[{"segment": [[0.0, 41.0], [0.0, 44.0]], "displacement": [1.0, 0.0]}]),
      [], ["loads", "holds no particle", "5 mm"]),
+]
+
+# the same, for a numerical method failing on an accepted input: exit code 1
+NUMERICAL_FAILURES = [
     ("unconvergeable solve",
      lambda r: with_changes(r, loads=[{"segment": [[0.0, 40.0], [0.0, 60.0]], "force": [-300.0, 100.0]}],
                             load_steps=1, solver={"max_iterations": 1, "max_step_cuts": 0}),
@@ -214,21 +218,34 @@ BAD_INPUTS = [
 ]
 
 
-@pytest.mark.parametrize("build, options, fragments", [pytest.param(b, o, f, id=i) for i, b, o, f in BAD_INPUTS])
-def test_bad_input_exits_2_with_one_error_line_and_no_output(tmp_path, slab_raw, write_scenario, build,
-                                                              options, fragments):
+@pytest.mark.parametrize("build, options, fragments, code", [
+    *(pytest.param(b, o, f, 2, id=i) for i, b, o, f in BAD_INPUTS),
+    *(pytest.param(b, o, f, 1, id=i) for i, b, o, f in NUMERICAL_FAILURES),
+])
+def test_bad_input_exits_with_one_error_line_and_no_output(tmp_path, slab_raw, write_scenario, build,
+                                                            options, fragments, code):
     scenario = tmp_path / "absent.yaml" if build is None else write_scenario(build(slab_raw))
     before = sorted(p.name for p in tmp_path.iterdir())
     result = invoke(scenario, *options, "--probes-out", tmp_path / "probes.csv", "--reactions-out",
                     tmp_path / "reactions.csv", "--summary", tmp_path / "summary.json",
                     "--out", tmp_path / "run.h5")
-    assert result.exit_code == 2
+    assert result.exit_code == code
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ")
     assert "Traceback" not in result.output
     for fragment in fragments:
         assert fragment in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no temporary file
+
+
+def test_spacing_option_is_named_once(slab_path):
+    """--spacing 0 names the option, not `--spacing.spacing`; a value that is not a number too."""
+    for value, expected in (("0", "error: --spacing: got 0.0, expected a positive number (mm)"),
+                            ("abc", "error: --spacing: got 'abc', expected a number")):
+        result = invoke(slab_path, "--spacing", value)
+        assert result.exit_code == 2
+        assert result.stderr.strip() == expected
+        assert result.stdout == ""
 
 
 def test_output_under_a_file_is_refused_before_solving(slab_path, tmp_path):

@@ -65,9 +65,10 @@ def read_trajectory(path: Path) -> tuple[list[str], np.ndarray]:
     return rows[0], np.asarray(rows[1:], dtype=float)
 
 
-def one_error_line(result) -> str:
-    """The single line a user error prints; the run must end with exit code 2, no traceback."""
-    assert result.exit_code == 2, result.output
+def one_error_line(result, code: int = 2) -> str:
+    """The single line an error prints; the run must end with exit code `code` (2: unusable
+    input, 1: a numerical method failed), no traceback."""
+    assert result.exit_code == code, result.output
     assert "Traceback" not in result.output
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: "), result.output
@@ -120,7 +121,7 @@ def test_plan_exports_the_documented_columns_one_row_per_step(planned):
 def test_plan_summary_compares_planned_and_unplanned(planned):
     folder, result, summary = planned
     assert result.exit_code == 0, result.output
-    assert re.match(r"plan: \d+ steps, exit error \d\.\d{4} mm planned vs \d\.\d{4} mm unplanned", result.output)
+    assert re.match(r"plan: \d+ steps, exit error \d\.\d{4} mm planned vs \d\.\d{4} mm unplanned", result.stdout)
     for key in ("desired_exit", "desired_exit_def", "achieved_exit_def", "achieved_exit", "exit_error_mm",
                 "exit_error_material_mm", "steps", "particles", "wall_seconds", "unplanned_exit_error_mm"):
         assert key in summary, key
@@ -173,9 +174,23 @@ def test_no_compare_skips_the_unplanned_run_and_plans_the_same_trajectory(tmp_pa
         assert result.exit_code == 0, result.output
         summary = json.loads(summary_path.read_text())
         assert (summary["unplanned_exit_error_mm"] is None) == (flag == "--no-compare")
-        assert ("unplanned" in result.output.splitlines()[0]) == (flag == "--compare")
+        assert ("unplanned" in result.stdout.splitlines()[0]) == (flag == "--compare")
         exports[flag] = read_trajectory(export)[1]
     np.testing.assert_allclose(exports["--no-compare"], exports["--compare"], atol=1e-9)
+
+
+def test_quiet_plan_prints_only_its_result_line(tmp_path):
+    """-q: the small scene's eq. 4.2 failures leave no note and no warning on stderr; they
+    stay in the summary, and the trajectory is exported."""
+    scenario = write(tmp_path, small_raw())
+    export, summary_path = tmp_path / "trajectory.csv", tmp_path / "summary.json"
+    result = invoke("plan", scenario, "--export", export, "--summary", summary_path, "--no-compare", "-q")
+    assert result.exit_code == 0, result.output
+    assert result.stderr == ""
+    assert result.stdout.startswith("plan: ") and len(result.stdout.splitlines()) == 1
+    events = json.loads(summary_path.read_text())["events"]
+    assert any(e["kind"] == "planner-eq42-failed" for e in events)  # there was something to keep quiet
+    assert export.exists()
 
 
 def test_base_transform_from_the_scenario_file(tmp_path):
@@ -205,7 +220,7 @@ def test_strict_planning_fails_with_one_line_naming_the_step(tmp_path, how):
         scenario, options, rotation_step = write(tmp_path, small_raw(planner={"strict": True})), [], 0.3
     export = tmp_path / "trajectory.csv"
     result = invoke("plan", scenario, "--export", export, "--summary", tmp_path / "summary.json", *options)
-    line = one_error_line(result)
+    line = one_error_line(result, code=1)  # a numerical failure, not a bad input
     assert line.startswith("error: planning failed: ")
     match = EQ_42.search(line)
     assert match, line
@@ -264,7 +279,11 @@ def test_bad_scenario_for_plan(tmp_path, raw, fragments):
 @pytest.mark.parametrize("text,fragments", [
     ("step,x,y\n0,0,19.12\n", ["path.csv: columns ['step', 'x', 'y'] lack ['center_x_mm', 'center_y_mm']",
                                "expected at least step, center_x_mm, center_y_mm"]),
-    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv", "not a number"]),
+    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv: row 2, center_y_mm = 'abc' is not a number"]),
+    ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0\n", ["path.csv: row 3, center_y_mm: missing"]),
+    ("step,center_x_mm,center_y_mm\n0,inf,9.12\n", ["path.csv: row 2, center_x_mm = 'inf' is not a finite number"]),
+    ("", ["path.csv: columns [] lack ['step', 'center_x_mm', 'center_y_mm']"]),
+    ("step,center_x_mm,center_y_mm\n", ["path.csv: no rows below the header"]),
     ("step,center_x_mm,center_y_mm\n1,0,9.12\n2,0,9.12\n", ["path.csv: steps [1, 2]", "expected 0, 1, 2"]),
     ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0,9.12\n", ["centre path: 2 rows end before the tip exits",
                                                             "expected one row per step"]),

@@ -18,9 +18,9 @@ import math
 import numpy as np
 import pytest
 
-from stitchplan.config.scenario import Planner, Robot, parse_scenario
-from stitchplan.planning.planner import PlannerSettings, exit_tracking_update, final_mismatch, run_plan
+from stitchplan.config.scenario import Robot, parse_scenario
 from stitchplan.needle.insertion import run_insertion
+from stitchplan.planning.planner import ExitTracker, final_mismatch, run_plan
 from stitchplan.planning.trajectory import to_base_frame, trajectory_table
 
 RADIUS = 8.88
@@ -82,10 +82,7 @@ def two_passes():
     return run_plan(parse_scenario(raw), compare=False)
 
 
-def test_settings_come_from_the_scenario_and_match_the_config_defaults(two_passes):
-    defaults = Planner()
-    assert PlannerSettings() == PlannerSettings(defaults.tolerance, defaults.max_iterations, defaults.strict,
-                                                defaults.exit_tolerance, defaults.max_passes)
+def test_passes_come_from_the_scenario_planner(two_passes):
     assert two_passes.unplanned is None
     assert [p["pass"] for p in two_passes.passes] == [1, 2]  # max_passes from the scenario
 
@@ -116,7 +113,7 @@ def test_centre_solves_the_fixed_point_of_eq_4_1_where_eq_4_2_holds(two_passes):
         if record.step in flagged:
             continue
         mismatch = planned.geometry.center - best["offset_mm"] + record.exit_displacement - record.center
-        assert np.linalg.norm(mismatch) <= PlannerSettings().tolerance, (record.step, mismatch)
+        assert np.linalg.norm(mismatch) <= planned.scenario.planner.tolerance, (record.step, mismatch)
         checked += 1
     assert checked >= len(planned.steps) // 2
 
@@ -126,12 +123,9 @@ def test_extrapolated_start_saves_centre_iterations_and_reaches_the_same_centres
     centre iterations than starting from the previous centre, for the same trajectory to
     within the planner's tolerance where eq. 4.2 holds (one pass on the 40 x 40 mm scene)."""
     scenario = parse_scenario(scene((40.0, 40.0), (0.0, 28.0), "cw", ["right"]))
-    settings = PlannerSettings()
-    runs = {}
-    for predicted in (False, True):
-        update, predict = exit_tracking_update(settings)
-        runs[predicted] = run_insertion(scenario, center_update=update,
-                                        center_predictor=predict if predicted else None)
+    settings = scenario.planner
+    runs = {predicted: run_insertion(scenario, control=ExitTracker(settings, extrapolate=predicted))
+            for predicted in (False, True)}
     iterations = {k: sum(s.planner_iterations for s in r.steps) for k, r in runs.items()}
     assert iterations[True] < iterations[False], iterations
     flagged = {e.step for r in runs.values() for e in r.events if e.step is not None}

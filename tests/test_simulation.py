@@ -15,14 +15,15 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
-from stitchplan.events import EventKind
-
 from stitchplan.config.scenario import load_scenario, parse_scenario
-from stitchplan.needle.insertion import CONSTRAINT_TOLERANCE, InsertionFailure, NeedleInsertion, run_insertion
+from stitchplan.errors import InsertionFailure
+from stitchplan.events import EventKind
+from stitchplan.needle.equilibrium import CONSTRAINT_TOLERANCE, NeedleInsertion
+from stitchplan.needle.insertion import FixedCenter, run_insertion
+from stitchplan.needle.tip_tracking import track_step
 
 from conftest import CONFIGS
 
@@ -45,9 +46,9 @@ def advance(insertion: NeedleInsertion, steps: int) -> None:
     geometry = insertion.geometry
     for step in range(1, steps + 1):
         rotation = step * geometry.step
-        point, _ = insertion.track(geometry.step, step, rotation)
+        point, _ = track_step(insertion, step, rotation)
         insertion.add_point(point)
-        insertion.equilibrate(insertion.center, rotation, step)
+        insertion.equilibrate(rotation, step)
 
 
 def started(scenario, steps: int = 0, **options) -> NeedleInsertion:
@@ -55,6 +56,13 @@ def started(scenario, steps: int = 0, **options) -> NeedleInsertion:
     insertion.add_point(insertion.geometry.entry.copy())
     advance(insertion, steps)
     return insertion
+
+
+def linearised(insertion: NeedleInsertion, free, multipliers, center):
+    """The residuals of eq. 3.62 at a state, with G and the constraint curvature H there."""
+    state = insertion.residuals(free, multipliers, center)
+    coupling = insertion.coupling
+    return state, coupling.constraint_matrix(state.normal), coupling.curvature(multipliers, state.normal, state.rho)
 
 
 def on_edge_distance(point, size) -> float:
@@ -68,13 +76,15 @@ def direct_run():
     converged step's needle-point distances to the needle, recomputed from the state."""
     distances = []
 
-    def inspect(insertion, step, rotation, center):
-        coefficients = insertion.model.boundary.free_map @ insertion.free  # (NP, 2)
-        u = insertion.model.shape_functions_at(insertion.points).values @ coefficients  # (k, 2)
-        distances.append(np.linalg.norm(insertion.points + u - center, axis=1) - insertion.geometry.radius)
-        return center, 0
+    class Inspect(FixedCenter):
+        def correct(self, insertion, step, rotation):
+            coefficients = insertion.model.boundary.free_map @ insertion.free  # (NP, 2)
+            u = insertion.model.shape_functions_at(insertion.points).values @ coefficients  # (k, 2)
+            distances.append(np.linalg.norm(insertion.points + u - insertion.center, axis=1)
+                             - insertion.geometry.radius)
+            return 0
 
-    result = run_insertion(small_scene(), center_update=inspect, linear_solver="direct",
+    result = run_insertion(small_scene(), control=Inspect(), linear_solver="direct",
                            tip_tracking="levenberg-marquardt")
     return result, distances
 
@@ -83,20 +93,20 @@ def direct_run():
 
 
 def test_constraint_rows_match_finite_differences(rng):
-    """G (n_dof x k) built in _state equals the central difference of the violation
+    """G (n_dof x k) of the coupling equals the central difference of the violation
     g_k = |X_k + u(X_k) - C| - R with respect to the free coefficients, in random directions
     and along single coefficients of the needle points' neighbourhood (h = 1e-6 mm: the
     truncation error h^2 |g''| ~ 1e-13 and round-off 1e-16 / h ~ 1e-10 stay below 1e-8)."""
     insertion = started(small_scene(), steps=4)
     free = insertion.free + 0.05 * rng.standard_normal(insertion.free.shape)
     multipliers = rng.standard_normal(len(insertion.points))
-    center, rotation = insertion.center, 4 * insertion.geometry.step
-    _, violation, constraints, _, _, _ = insertion._state(free, multipliers, center, rotation)
-    assert constraints.shape == (free.size, 5) and len(violation) == 5
+    center = insertion.center
+    state, constraints, _ = linearised(insertion, free, multipliers, center)
+    assert constraints.shape == (free.size, 5) and len(state.violation) == 5
     dense = constraints.toarray()
 
     def violation_at(vector):
-        return insertion._state(vector.reshape(free.shape), multipliers, center, rotation)[1]
+        return insertion.residuals(vector.reshape(free.shape), multipliers, center).violation
 
     h = 1e-6
     directions = list(rng.standard_normal((6, free.size)))
@@ -115,14 +125,14 @@ def test_tangent_matches_finite_differences_of_the_residual(rng):
     insertion = started(small_scene(friction=0.0, cutting_force=0.0), steps=3)
     free = 0.05 * rng.standard_normal(insertion.free.shape)
     multipliers = 0.1 * rng.standard_normal(len(insertion.points))
-    center, rotation = insertion.center, 0.6
-    _, _, constraints, curvature, force, _ = insertion._state(free, multipliers, center, rotation)
-    assert force == 0.0
+    center = insertion.center
+    state, constraints, curvature = linearised(insertion, free, multipliers, center)
+    assert state.needle_force == 0.0
     tangent = insertion.assembler.tangent_matrix() + curvature
     assert abs(curvature).sum() > 0.0
 
     def residual(vector, lam):
-        return insertion._state(vector.reshape(free.shape), lam, center, rotation)[0]
+        return insertion.residuals(vector.reshape(free.shape), lam, center).residual
 
     h = 1e-6
     for direction in rng.standard_normal((4, free.size)):
@@ -232,7 +242,7 @@ def ramped_magnitudes(insertion: NeedleInsertion, force: float) -> tuple[np.ndar
     """Algorithm 1's split of the insertion force F (N) over the Gauss points of Gamma_N:
     friction up to its full value (friction x inserted length) spread evenly over the
     segments, the remainder to the tip segment. Returns (per Gauss point magnitudes, tip force)."""
-    segments = len(insertion.segment_points) // 2
+    segments = len(insertion.coupling.segment_points) // 2
     friction_capacity = insertion.needle.friction * insertion.geometry.insertion_step * segments
     friction = min(force, friction_capacity)
     per_segment = np.full(segments, friction / segments)
@@ -248,19 +258,19 @@ def algorithm_1(scenario, increment: float, steps: int):
     insertion = started(scenario)
     geometry, threshold = insertion.geometry, scenario.needle.cutting_force
     force, added = 0.0, []
-    point, _ = insertion.track(geometry.step, 1, geometry.step)
+    point, _ = track_step(insertion, 1, geometry.step)
     insertion.add_point(point)
     for step in range(1, steps + 1):
         rotation = step * geometry.step
         while True:
             force += increment
             magnitudes, tip_force = ramped_magnitudes(insertion, force)
-            insertion._needle_load_magnitudes = lambda m=magnitudes: m
-            insertion.equilibrate(insertion.center, rotation, step)
+            insertion.coupling.load_magnitudes = lambda m=magnitudes: m
+            insertion.equilibrate(rotation, step)
             if tip_force >= threshold - 1e-12:
                 break
         added.append((force, insertion.particle_displacements(), insertion.points.copy()))
-        point, _ = insertion.track(geometry.step, step + 1, rotation + geometry.step)
+        point, _ = track_step(insertion, step + 1, rotation + geometry.step)
         insertion.add_point(point)
     return added
 
@@ -269,10 +279,10 @@ def tip_force_sensitivity(scenario, extra: float = 0.01) -> float:
     """max |du| (mm) per newton of extra tip force at the first step's direct state."""
     probe = started(scenario, steps=1)
     before = probe.particle_displacements()
-    magnitudes = probe._needle_load_magnitudes().copy()
+    magnitudes = probe.coupling.load_magnitudes().copy()
     magnitudes[-2:] += 0.5 * extra  # the tip segment's two Gauss points
-    probe._needle_load_magnitudes = lambda: magnitudes
-    probe.equilibrate(probe.center, probe.geometry.step, 1)
+    probe.coupling.load_magnitudes = lambda: magnitudes
+    probe.equilibrate(probe.geometry.step, 1)
     return float(np.abs(probe.particle_displacements() - before).max()) / extra
 
 
@@ -361,15 +371,17 @@ def dense_rest_stiffness(insertion: NeedleInsertion) -> np.ndarray:
 
 def test_schur_preconditioner_stays_positive_definite_with_nearly_dependent_points():
     """60 needle points 0.16 mm apart on a 4 mm particle grid make S = G^T K0^-1 G nearly
-    singular (cond > 1e8). The bordered Cholesky factor still reproduces S to 1e-8 of its
-    norm (it factors S + 1e-10 diag S) with positive pivots, so S^-1 x stays an SPD map."""
+    singular (cond > 1e8). The Cholesky factor bordered row by row still reproduces S to 1e-8
+    of its norm (it factors S + 1e-12 diag S) with positive pivots, so S^-1 x stays an SPD map."""
     scenario = small_scene(step=0.02, linear_solver="minres")
     insertion = NeedleInsertion(scenario)
     for rotation in np.arange(60) * 0.02:
         insertion.add_point(insertion.geometry.tip(rotation))
+    state, constraints, _ = linearised(insertion, insertion.free, insertion.multipliers, insertion.center)
     schur = insertion.saddle.schur
+    schur.refresh(constraints, insertion.coupling.expanded_rows, state.normal)
     k0 = dense_rest_stiffness(insertion)
-    g = schur.constraints
+    g = constraints.toarray()
     exact = g.T @ np.linalg.solve(k0, g)
     assert np.linalg.cond(exact) > 1e8
     lower = schur.cholesky
@@ -385,11 +397,11 @@ def test_minres_solution_meets_its_true_residual_tolerance(rng):
     norm that can pass at 1e-4 ... 1 on these systems)."""
     insertion = started(small_scene(linear_solver="minres"), steps=5)
     free, multipliers = insertion.free + 0.02 * rng.standard_normal(insertion.free.shape), insertion.multipliers
-    residual, violation, constraints, curvature, _, _ = insertion._state(free, multipliers, insertion.center, 1.0)
-    rhs = -np.concatenate([residual, violation])
+    state, constraints, curvature = linearised(insertion, free, multipliers, insertion.center)
+    rhs = -np.concatenate([state.residual, state.violation])
     solver = insertion.saddle
     solution, iterations = solver.solve_minres(lambda v: insertion.assembler.tangent_product(v) + curvature @ v,
-                                               constraints, rhs, insertion._expanded, insertion._normals)
+                                               constraints, rhs, insertion.coupling.expanded_rows, state.normal)
     assert solution is not None and 0 < iterations <= solver.minres_maxiter
     n = constraints.shape[0]
     tangent = insertion.assembler.tangent_matrix() + curvature
@@ -411,17 +423,16 @@ def test_stagnating_minres_falls_back_to_the_direct_solve_and_says_so():
     assert insertion.last_violation <= CONSTRAINT_TOLERANCE
 
 
-def test_condition_numbers_match_generalised_eigenvalues():
-    """insertion_condition_numbers: cond of the saddle matrix A, and of P^-1 A with
-    P = diag(K0, G^T K0^-1 G), against dense (generalised) symmetric eigenvalue problems."""
+@pytest.mark.parametrize("linear_solver", ["minres", "direct"])
+def test_condition_numbers_match_generalised_eigenvalues(linear_solver):
+    """NeedleInsertion.condition_numbers: cond of the saddle matrix A, and of P^-1 A with
+    P = diag(K0, G^T K0^-1 G), against dense (generalised) symmetric eigenvalue problems,
+    with either linear solver (the direct one builds K0 only for this)."""
     import scipy.linalg
 
-    from stitchplan.needle.insertion import insertion_condition_numbers
-
-    insertion = started(small_scene(spacing=5.0, linear_solver="minres"), steps=3)
-    saddle_cond, preconditioned_cond = insertion_condition_numbers(insertion, 0.6)
-    _, _, constraints, curvature, _, _ = insertion._state(insertion.free, insertion.multipliers,
-                                                         insertion.center, 0.6)
+    insertion = started(small_scene(spacing=5.0, linear_solver=linear_solver), steps=3)
+    saddle_cond, preconditioned_cond = insertion.condition_numbers()
+    _, constraints, curvature = linearised(insertion, insertion.free, insertion.multipliers, insertion.center)
     g = constraints.toarray()
     n, k = g.shape
     stiffness = insertion.assembler.tangent_matrix().toarray() + curvature.toarray()

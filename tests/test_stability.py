@@ -23,17 +23,17 @@ import re
 
 import numpy as np
 import pytest
-
-from stitchplan.events import EventKind
 from typer.testing import CliRunner
 
 from stitchplan.cli import app
 from stitchplan.config.scenario import ScenarioError, parse_scenario
+from stitchplan.errors import InsertionFailure
+from stitchplan.events import EventKind
+from stitchplan.needle.insertion import run_insertion
+from stitchplan.study.sweep import exit_deviations
 from stitchplan.tissue.deform import run_deform
 from stitchplan.tissue.material import determinant
-from stitchplan.needle.insertion import InsertionFailure, run_insertion
 from stitchplan.tissue.solver import SolverDivergence
-from stitchplan.study.sweep import exit_deviations
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 
@@ -133,17 +133,17 @@ def test_a_stagnating_minres_falls_back_to_the_direct_solve(monkeypatch):
     """With its iteration budget cut to 3, MINRES cannot converge: every Newton step falls
     back to the direct solve, each fallback is an event naming the step and angle, and the
     insertion is the direct one (exit to 1e-7 mm)."""
-    import stitchplan.needle.insertion as simulation
+    from stitchplan.needle import equilibrium
 
-    original = simulation.SaddlePointSolver
+    original = equilibrium.SaddlePointSolver
 
-    def starved(method, stiffness_factor=None, **options):
-        return original(method, stiffness_factor, **{**options, "minres_maxiter": 3})
+    def starved(stiffness_at_rest, **options):
+        return original(stiffness_at_rest, **{**options, "minres_maxiter": 3})
 
-    monkeypatch.setattr(simulation, "SaddlePointSolver", starved)
+    monkeypatch.setattr(equilibrium, "SaddlePointSolver", starved)
     scenario = needle_scene()
     fallback = run_insertion(scenario, linear_solver="minres", tip_tracking="levenberg-marquardt")
-    monkeypatch.setattr(simulation, "SaddlePointSolver", original)
+    monkeypatch.setattr(equilibrium, "SaddlePointSolver", original)
     direct = run_insertion(scenario, linear_solver="direct", tip_tracking="levenberg-marquardt")
     assert fallback.solver_counts["minres_fallbacks"] == len(fallback.events) > 0
     assert fallback.events[0].kind is EventKind.MINRES_FALLBACK and fallback.events[0].step == 1
@@ -206,7 +206,7 @@ def test_a_dilation_too_small_for_the_moment_matrix_is_refused_before_any_solve(
     2 spacings reaches only two columns of particles (the third lies exactly on the support's
     edge), so dilation 2 is too small there and 1.5 already inside. The model build raises a
     ScenarioError naming dilation, spacing and orders; no tangent is ever assembled."""
-    import stitchplan.tissue.assembly as assembly
+    from stitchplan.tissue import assembly
 
     def no_solve(*args, **kwargs):
         raise AssertionError("a solve started")

@@ -27,7 +27,9 @@ from typer.testing import CliRunner
 from stitchplan.cli import app
 from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discretization
 from stitchplan.config.study import StudyFamily
-from stitchplan.study.sweep import COLUMNS, StudyRun, exit_deviations, pareto_front, plan_runs
+from stitchplan.io.study_reports import COLUMNS
+from stitchplan.study.runner import exit_deviations
+from stitchplan.study.sweep import StudyRun, pareto_front, plan_runs
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 REQUIRED_COLUMNS = ("family", "spacing_mm", "dilation", "quadrature_order", "basis_order", "step_rad",
@@ -276,7 +278,7 @@ def test_auto_discretization_meets_its_accuracy_against_a_finer_run(auto_choice)
                                     chosen.needle_spacing / 3))
     assert exit_deviations(auto_choice.result, finer)["deviation_mm"] <= 0.05
     # the estimate rests on the last two resolutions of the ladder, both run
-    resolutions = [t for t in auto_choice.trials if t.role == "resolution" and t.status == "ok"]
+    resolutions = [t for t in auto_choice.trials if t.family == "resolution" and t.status == "ok"]
     assert len(resolutions) >= 2
 
 
@@ -290,7 +292,7 @@ def test_auto_discretization_reports_its_estimate_and_choices(auto_choice):
     assert f"tip tracking {auto_choice.tip_tracking} (" in message
     assert f"linear solver {auto_choice.linear_solver} (" in message
     # every trial is recorded, the chosen run among them
-    assert auto_choice.result is next(t.result for t in auto_choice.trials if t.role == "chosen")
+    assert auto_choice.result is next(t.result for t in auto_choice.trials if t.family == "chosen")
 
 
 def test_an_accuracy_is_resolved_once_before_the_run():

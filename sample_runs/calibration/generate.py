@@ -2,7 +2,7 @@
 
 Nothing here was measured. The marker files are the deformed positions that stitchplan's
 own forward model (the static solver behind `stitchplan deform`, via
-stitchplan.calibration.core.simulate_markers) predicts for known Lamé moduli, plus Gaussian
+stitchplan.calibration.simulate_markers) predicts for known Lamé moduli, plus Gaussian
 noise; the force recordings are straight lines with known friction and cutting force plus
 Gaussian noise. Fitting them back shows how well the calibration recovers known values.
 
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stitchplan.calibration.core import simulate_markers
+from stitchplan.calibration import simulate_markers
 from stitchplan.config.scenario import Discretization, Load, Material, Tissue
 from stitchplan.io.files import write_text
 

@@ -1,4 +1,50 @@
-"""Model parameters fitted to measurements: Lame moduli from markers, needle friction and
-cutting force from force recordings."""
+"""Model parameters fitted to measurements: Lame moduli from marker displacements (thesis
+appendix A.2), needle friction and cutting force from force recordings (section 5.2).
 
-from .core import *  # noqa: F401,F403
+Modules, in the order data flows through them:
+
+- tables: numeric CSV tables with a fixed header (marker files, force recordings);
+- inputs: the calibration YAML and its experiments as typed inputs;
+- forward: the static forward model of one experiment and its exact sensitivities;
+- material_fit: grid search, least squares and statistics for (lambda, mu);
+- needle_fit: background and tissue lines for friction and cutting force.
+
+Reports and plots of the results are written by stitchplan.io.calibration_reports.
+"""
+
+from .forward import ExperimentModel, simulate_markers
+from .inputs import (
+    Experiment,
+    FitSettings,
+    MaterialCalibration,
+    load_material_calibration,
+    parse_material_calibration,
+)
+from .material_fit import (
+    CORRELATION_LIMIT,
+    POORLY_DETERMINED,
+    GridSearch,
+    MarkerMisfit,
+    MaterialFit,
+    Progress,
+    calibrate_material,
+    fit_material,
+    no_progress,
+)
+from .needle_fit import (
+    LineFit,
+    NeedleFit,
+    calibrate_needle,
+    fit_line,
+    fit_needle,
+    read_force_recording,
+)
+from .tables import read_columns
+
+__all__ = [
+    "CORRELATION_LIMIT", "POORLY_DETERMINED", "Experiment", "ExperimentModel", "FitSettings",
+    "GridSearch", "LineFit", "MarkerMisfit", "MaterialCalibration", "MaterialFit", "NeedleFit",
+    "Progress", "calibrate_material", "calibrate_needle", "fit_line", "fit_material", "fit_needle",
+    "load_material_calibration", "no_progress", "parse_material_calibration", "read_columns",
+    "read_force_recording", "simulate_markers",
+]

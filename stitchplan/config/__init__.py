@@ -1,9 +1,79 @@
-"""Scenario files: YAML in, validated typed configuration out."""
+"""Input files: YAML in, validated typed configuration out.
 
-from .scenario import *  # noqa: F401,F403
-from .scenario import _point, _required  # noqa: F401
-from .scenario import (DEFAULT_NEEDLE_REFINEMENT, EDGES, INTEGRATIONS, LINEAR_SOLVERS,  # noqa: F401
-                       MATERIAL_MODELS, TIP_TRACKING, Discretization, Load, Material, Needle, Planner,
-                       Robot, Scenario, ScenarioError, Solver, Tissue, _choice, _fail, _integer, _mapping,
-                       _number, default_spacing, load_scenario, parse_discretization, parse_scenario,
-                       read_yaml, with_discretization)
+Modules, each importing only those before it (and stitchplan.errors, stitchplan.geometry):
+
+- messages: validation errors as lines, `<field>: got <value>, expected <what>`;
+- fields: finite numbers with bounds and units, integers, choices, points;
+- yaml_files: reading YAML (duplicate keys, alias bombs and non-UTF-8 text refused);
+- blocks: tissue, material, discretization, needle, loads, solver, planner, robot;
+- study: the optional `study:` block;
+- scenario: the scenario file and Scenario, default spacing, load_scenario;
+- schema: the JSON Schema of scenario files;
+- calibration: the `calibrate material` input file.
+"""
+
+from .blocks import (
+    Discretization,
+    Load,
+    Material,
+    Needle,
+    Planner,
+    Robot,
+    Solver,
+    Tissue,
+    parse_discretization,
+)
+from .calibration import CalibrationFile, parse_calibration
+from .fields import EDGES, INTEGRATIONS, LINEAR_SOLVERS, MATERIAL_MODELS, TIP_TRACKING
+from .messages import input_error
+from .scenario import (
+    DEFAULT_NEEDLE_REFINEMENT,
+    Scenario,
+    ScenarioError,
+    ScenarioFile,
+    default_spacing,
+    load_scenario,
+    parse_material,
+    parse_needle,
+    parse_scenario,
+    with_discretization,
+)
+from .schema import scenario_schema
+from .study import StudyFamily, StudySpec, parse_study
+from .yaml_files import read_yaml
+
+__all__ = [
+    "DEFAULT_NEEDLE_REFINEMENT",
+    "EDGES",
+    "INTEGRATIONS",
+    "LINEAR_SOLVERS",
+    "MATERIAL_MODELS",
+    "TIP_TRACKING",
+    "CalibrationFile",
+    "Discretization",
+    "Load",
+    "Material",
+    "Needle",
+    "Planner",
+    "Robot",
+    "Scenario",
+    "ScenarioError",
+    "ScenarioFile",
+    "Solver",
+    "StudyFamily",
+    "StudySpec",
+    "Tissue",
+    "default_spacing",
+    "input_error",
+    "load_scenario",
+    "parse_calibration",
+    "parse_discretization",
+    "parse_material",
+    "parse_needle",
+    "parse_scenario",
+    "parse_study",
+    "read_yaml",
+    "scenario_schema",
+    "with_discretization",
+]
+

@@ -3,108 +3,107 @@ swept by `stitchplan study` (see stitchplan.study.sweep)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
 from typing import Any
 
-from .scenario import (LINEAR_SOLVERS, TIP_TRACKING, _choice, _fail, _integer, _mapping, _number,
-                       parse_discretization)
+from pydantic import field_validator, model_validator
 
-FAMILY_KEYS = ("name", "spacing", "grading", "dilation", "quadrature_order", "basis_order",
-               "cells_per_spacing", "step", "tip_tracking", "linear_solver")
-STUDY_KEYS = ("spacing", "families", "reference", "repeats")
+from .blocks import block
+from .fields import (
+    BasisOrder,
+    CellsPerSpacing,
+    Dilation,
+    LinearSolver,
+    NeedleStep,
+    NonEmptyName,
+    PositiveMM,
+    QuadratureOrder,
+    TipTracking,
+    choice,
+    described,
+    integer,
+    problem,
+    sequence,
+)
+from .messages import validate
+
 GRADINGS = (2, 4, 8, 16)
 
+Spacings = sequence(PositiveMM, "a non-empty list of spacings (mm)", min_length=1)
 
-@dataclass(frozen=True)
+
+def _as_list(value: Any) -> Any:
+    return value if isinstance(value, (list, tuple)) or value is None else [value]
+
+
+@block()
 class StudyFamily:
     """Method choices held fixed along a family; None keeps the scenario's choice."""
 
-    name: str
-    spacing: tuple[float, ...] | None = None  # mm at the needle; None: the study's list
-    grading: int | None = None  # coarse / needle spacing (graded particles); None: uniform
-    dilation: float | None = None
-    quadrature_order: int | None = None
-    basis_order: int | None = None
-    cells_per_spacing: int | None = None
-    step: float | None = None  # rad per needle step
-    tip_tracking: str | None = None
-    linear_solver: str | None = None
+    name: described(NonEmptyName, "label of the family in study.csv")
+    spacing: described(Spacings | None, "mm at the needle (one number or a list); default: the "
+                                 "study's list") = None
+    grading: described(choice(GRADINGS, "one of 2, 4, 8, 16 (coarse spacing / needle spacing)") | None,
+                       "coarse spacing / needle spacing (graded particles); default uniform") = None
+    dilation: described(Dilation | None, "kernel support / spacing") = None
+    quadrature_order: described(QuadratureOrder | None, "Gauss points per direction per cell") = None
+    basis_order: described(BasisOrder | None, "1 linear, 2 quadratic RK basis") = None
+    cells_per_spacing: described(CellsPerSpacing | None, "background cells per particle spacing") = None
+    step: described(NeedleStep | None, "rad per needle step") = None
+    tip_tracking: described(TipTracking | None, "tip tracking of the needle") = None
+    linear_solver: described(LinearSolver | None, "linear solver of the needle steps") = None
+
+    @field_validator("spacing", mode="before")
+    @classmethod
+    def _one_or_more(cls, value: Any) -> Any:
+        return _as_list(value)
 
 
-@dataclass(frozen=True)
+@block(title="study")
 class StudySpec:
-    spacing: tuple[float, ...] | None = None  # None: default_spacings(scenario)
-    families: tuple[StudyFamily, ...] | None = None  # None: default_families()
-    reference: StudyFamily | None = None  # None: default_reference(...)
-    repeats: int = 1
+    spacing: described(Spacings | None, "mm at the needle, swept in every family; default: around "
+                                 "the scenario's spacing") = None
+    families: described(sequence(StudyFamily, "a non-empty list of families", min_length=1) | None,
+                        "default: eight families, each changing one choice") = None
+    reference: described(StudyFamily | None, "the finest run: one spacing") = None
+    repeats: described(integer(1, 20), "timing: median of this many runs") = 1
 
+    @model_validator(mode="before")
+    @classmethod
+    def _names(cls, data: Any) -> Any:
+        """Families without a name are 'family 1', 'family 2', ...; the reference is 'reference'."""
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        if isinstance(data.get("families"), list):
+            data["families"] = [{"name": f"family {i + 1}", **item} if isinstance(item, dict) else item
+                                for i, item in enumerate(data["families"])]
+        if isinstance(data.get("reference"), dict):
+            data["reference"] = {**data["reference"], "name": "reference"}
+        return data
 
-def _spacings(value: Any, path: str) -> tuple[float, ...]:
-    if not isinstance(value, (list, tuple)) or not value:
-        raise _fail(path, value, "a non-empty list of spacings (mm)")
-    return tuple(_number(v, f"{path}[{i}]", positive=True, unit="mm") for i, v in enumerate(value))
+    @field_validator("families")
+    @classmethod
+    def _distinct(cls, families: tuple[StudyFamily, ...] | None):
+        names = [family.name for family in families or ()]
+        if len(set(names)) != len(names):
+            raise problem("families with distinct names", value=names)
+        return families
 
-
-def parse_family(raw: Any, path: str, default_name: str = "") -> StudyFamily:
-    block = _mapping(raw, path, FAMILY_KEYS)
-    name = block.get("name", default_name)
-    if not isinstance(name, str) or not name:
-        raise _fail(f"{path}.name", name, "a non-empty string")
-    spacing = block.get("spacing")
-    if spacing is not None:
-        spacing = _spacings(spacing if isinstance(spacing, (list, tuple)) else [spacing], f"{path}.spacing")
-    grading = block.get("grading")
-    if grading is not None and grading not in GRADINGS:
-        raise _fail(f"{path}.grading", grading, "one of " + ", ".join(map(str, GRADINGS))
-                    + " (coarse spacing / needle spacing)")
-    step = block.get("step")
-    if step is not None:
-        step = _number(step, f"{path}.step", positive=True, unit="rad")
-        if step > 0.5:
-            raise _fail(f"{path}.step", step, "a positive angle of at most 0.5 rad per step")
-    family = StudyFamily(
-        name=name, spacing=spacing, grading=grading,
-        dilation=None if "dilation" not in block else _number(block["dilation"], f"{path}.dilation", positive=True),
-        quadrature_order=None if "quadrature_order" not in block else _integer(
-            block["quadrature_order"], f"{path}.quadrature_order", 1, 10),
-        basis_order=None if "basis_order" not in block else _integer(block["basis_order"], f"{path}.basis_order", 1, 2),
-        cells_per_spacing=None if "cells_per_spacing" not in block else _integer(
-            block["cells_per_spacing"], f"{path}.cells_per_spacing", 1, 4),
-        step=step,
-        tip_tracking=None if "tip_tracking" not in block else _choice(
-            block["tip_tracking"], f"{path}.tip_tracking", TIP_TRACKING),
-        linear_solver=None if "linear_solver" not in block else _choice(
-            block["linear_solver"], f"{path}.linear_solver", LINEAR_SOLVERS),
-    )
-    if family.dilation is not None:  # the same checks as the discretization block
-        parse_discretization({"dilation": family.dilation}, path)
-    return family
+    @field_validator("reference")
+    @classmethod
+    def _one_spacing(cls, reference: StudyFamily | None):
+        if reference is not None and (reference.spacing is None or len(reference.spacing) != 1):
+            raise problem("one spacing (mm): the reference is a single, finest run", field="spacing",
+                          value=reference.spacing)
+        return reference
 
 
 def parse_study(raw: Any, path: str = "study") -> StudySpec:
     """The optional `study:` block of a scenario (see the module docstring)."""
-    if raw is None:
-        return StudySpec()
-    block = _mapping(raw, path, STUDY_KEYS)
-    spacing = _spacings(block["spacing"], f"{path}.spacing") if "spacing" in block else None
-    families = None
-    if "families" in block:
-        items = block["families"]
-        if not isinstance(items, (list, tuple)) or not items:
-            raise _fail(f"{path}.families", items, "a non-empty list of families")
-        families = tuple(parse_family(item, f"{path}.families[{i}]", f"family {i + 1}")
-                         for i, item in enumerate(items))
-        names = [f.name for f in families]
-        if len(set(names)) != len(names):
-            raise _fail(f"{path}.families", names, "families with distinct names")
-    reference = None
-    if "reference" in block:
-        reference = parse_family(block["reference"], f"{path}.reference", "reference")
-        if reference.spacing is None or len(reference.spacing) != 1:
-            raise _fail(f"{path}.reference.spacing", block["reference"].get("spacing"),
-                        "one spacing (mm): the reference is a single, finest run")
-        reference = replace(reference, name="reference")
-    repeats = _integer(block.get("repeats", 1), f"{path}.repeats", 1, 20)
-    return StudySpec(spacing, families, reference, repeats)
+    return StudySpec() if raw is None else validate(StudySpec, raw, path)
 
 
+def parse_family(raw: Any, path: str, default_name: str = "") -> StudyFamily:
+    if isinstance(raw, dict) and default_name:
+        raw = {"name": default_name, **raw}
+    return validate(StudyFamily, raw, path)

@@ -18,14 +18,37 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
+
+
+def check_output_paths(*paths: str | Path | None) -> None:
+    """Refuse, before any work, an output that cannot be written: a file standing where a
+    folder must be, a folder given as the file name, a folder without write permission."""
+    for path in paths:
+        if path is None:
+            continue
+        path = Path(path)
+        if path.is_dir():
+            raise InputError(f"{path}: is a folder, expected a file name")
+        for parent in path.resolve().parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise InputError(f"{path}: cannot write, {parent} is not a folder")
+                if not os.access(parent, os.W_OK | os.X_OK):
+                    raise InputError(f"{path}: cannot write, no permission to write in {parent}")
+                break
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     """Yields a temporary path next to `path`; renames it onto `path` if the block succeeds."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp",
-                                         dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp",
+                                             dir=path.parent)
+    except OSError as error:
+        raise InputError(f"{path}: cannot write ({error.strerror or error})") from None
     os.close(handle)
     try:
         yield Path(temporary)

@@ -99,6 +99,27 @@ def write_deform_outputs(result, probes_out: Path | None = None, reactions_out: 
                       title=f"{result.scenario.name or 'deform'}: deformed particles")
 
 
+def deform_line(result) -> str:
+    """The line `stitchplan deform` prints when it is done."""
+    return (f"deform: {result.model.n_particles} particles, {result.scenario.load_steps} load steps, "
+            f"{result.report.iterations} Newton iterations, {result.wall_seconds:.3f} s")
+
+
+def insertion_line(result, command: str = "simulate") -> str:
+    """The line `stitchplan simulate` prints when it is done."""
+    return (f"{command}: {len(result.steps)} steps, {result.model.n_particles} particles, exit error "
+            f"{result.exit_error_mm:.4f} mm (material {result.exit_error_material_mm:.4f} mm), "
+            f"{result.wall_seconds:.2f} s")
+
+
+def plan_line(result, export: Path) -> str:
+    """The line `stitchplan plan` prints when it is done."""
+    planned, unplanned = result.planned, result.unplanned
+    versus = f" vs {unplanned.exit_error_mm:.4f} mm unplanned" if unplanned is not None else ""
+    return (f"plan: {len(planned.steps)} steps, exit error {planned.exit_error_mm:.4f} mm planned{versus}, "
+            f"{planned.wall_seconds:.2f} s planned run; trajectory written to {export}")
+
+
 def insertion_summary(result) -> dict:
     steps = result.steps
     return {

@@ -1,0 +1,10 @@
+"""The needle layer: a rigid circular needle driven through the tissue (thesis section 3.1.5).
+
+- geometry: the needle at entry (centre, turning sense, desired exit);
+- coupling: its loads and constraints on the needle track Gamma_N (eq. 3.58-3.65);
+- saddle_point: the linear solves of the constrained equilibrium (eq. 3.62, 3.71-3.74);
+- equilibrium: the state of one insertion and its Newton equilibrium (NeedleInsertion);
+- tip_tracking: the material point the tip reaches in a step, and the exit (eq. 3.66-3.70);
+- insertion: run_insertion, Algorithm 1 step by step;
+- results: the typed records of a run.
+"""

@@ -9,11 +9,11 @@ multipliers, G the constraint rows (eq. 3.65). Two solvers:
 - direct: sparse LU of the whole saddle matrix, kept while Newton converges fast
   (a modified Newton step) and renewed when it slows down or the system grows;
 - minres: MINRES with the block-diagonal preconditioner diag(K0^-1, S^-1) of eq. 3.71-3.72,
-  K0 the tangent at zero deformation (factorized once) and S = G^T K0^-1 G updated by
-  bordering as needle points are added (eq. 3.73-3.74): K0^-1 N^T is solved once per point,
-  S is re-formed with the current normals each Newton iteration and kept as a Cholesky
-  factor. A MINRES run that stagnates, or whose true residual misses its tolerance, falls
-  back to the direct solve and says so.
+  K0 the tangent at zero deformation (factorized once, on first use) and S = G^T K0^-1 G:
+  K0^-1 N^T is solved once per needle point, S is re-formed with the current normals each
+  Newton iteration and kept as a Cholesky factor, built row by row as eq. 3.73-3.74 border
+  S. A MINRES run that stagnates, or whose true residual misses its tolerance, falls back
+  to the direct solve and says so.
 
 The thesis writes the Schur block as G^T K G; the preconditioner here uses G^T K0^-1 G,
 the Schur complement of the saddle matrix, which is what makes diag(K, S) an optimal
@@ -22,7 +22,7 @@ preconditioner (Murphy, Golub and Wathen 2000).
 
 from __future__ import annotations
 
-import logging
+from collections.abc import Callable
 
 import numpy as np
 import scipy.linalg
@@ -31,13 +31,11 @@ import scipy.sparse.linalg as spla
 
 from ..tissue.solver import factorize
 
-log = logging.getLogger(__name__)
-
 
 class SchurPreconditioner:
-    """S^-1 for S = G^T K0^-1 G, grown one constraint at a time (eq. 3.73-3.74).
+    """S^-1 for S = G^T K0^-1 G, factored by bordering one constraint at a time (eq. 3.73-3.74).
 
-    S is kept as its Cholesky factor L (S = L L^T), bordered by one row per new constraint.
+    S is kept as its Cholesky factor L (S = L L^T), bordered by one row per constraint.
     Needle points a fraction of the particle spacing apart make S very ill-conditioned
     (cond ~1e10 on the SH 1/2 scenario); bordering the explicit inverse S^-1 then loses all
     accuracy after ~30 points and turns indefinite, which breaks MINRES. Bordering the
@@ -45,8 +43,8 @@ class SchurPreconditioner:
     S^-1 by two triangular solves keeps the preconditioner symmetric positive definite.
     """
 
-    def __init__(self, stiffness_factor):
-        self.stiffness_factor = stiffness_factor
+    def __init__(self, stiffness_at_rest):
+        self.stiffness_at_rest = stiffness_at_rest  # factor of K0
         self.columns = np.zeros((0, 0))  # K0^-1 G, (n, k)
         self.constraints = np.zeros((0, 0))  # G, (n, k)
         self.cholesky = np.zeros((0, 0))  # L, lower triangular, S = L L^T, (k, k)
@@ -55,11 +53,6 @@ class SchurPreconditioner:
     @property
     def size(self) -> int:
         return self.cholesky.shape[0]
-
-    @property
-    def inverse(self) -> np.ndarray:
-        """S^-1 as a dense (k, k) matrix (for inspection; the solver applies `solve`)."""
-        return self.solve(np.eye(self.size))
 
     def solve(self, x: np.ndarray) -> np.ndarray:
         """S^-1 x by forward and back substitution with L."""
@@ -82,40 +75,28 @@ class SchurPreconditioner:
         grown[k, k] = d
         self.cholesky = grown
 
-    def add(self, column: np.ndarray) -> None:
-        """Border S with one more constraint column g: v = G_k^T K0^-1 g, alpha = g^T K0^-1 g."""
-        solved = self.stiffness_factor.solve(column)
-        v = self.constraints.T @ solved if self.size else np.zeros(0)
-        alpha = float(column @ solved)
-        self.constraints = column[:, None] if self.constraints.size == 0 else np.hstack(
-            [self.constraints, column[:, None]])
-        self.columns = solved[:, None] if self.columns.size == 0 else np.hstack([self.columns, solved[:, None]])
-        self._border(v, alpha)  # eq. 3.73-3.74, on the Cholesky factor
-
     def refresh(self, constraints: sp.spmatrix, expanded_rows: sp.csr_matrix, normals: np.ndarray) -> None:
         """Re-form S = G^T K0^-1 G with the current normals (each Newton iteration).
 
-        The columns bordered in by `add` carry each point's normal at the moment it was
-        added; as the tissue slides along the needle the normals turn, and with nearly
-        dependent constraints the stale S is a poor preconditioner (10x more MINRES
-        iterations and direct fallbacks on the SH 1/2 scenario). K0^-1 N^T (two directions
-        per point) is solved once per point and cached, so only the k x k matrix S and its
-        Cholesky factor are renewed: G = N^T n gives K0^-1 G = (K0^-1 N^T) n.
+        As the tissue slides along the needle the normals turn, and with nearly dependent
+        constraints an S formed with the normals each point had when it was added is a poor
+        preconditioner (10x more MINRES iterations and direct fallbacks on the SH 1/2
+        scenario). K0^-1 N^T (two directions per point) is solved once per point and cached,
+        so only the k x k matrix S and its Cholesky factor are renewed: G = N^T n gives
+        K0^-1 G = (K0^-1 N^T) n.
         """
         n, k = constraints.shape
         solved = self._solved_rows if self._solved_rows.shape[0] == n else np.zeros((n, 0))
         if solved.shape[1] < 2 * k:
-            new = self.stiffness_factor.solve(expanded_rows[solved.shape[1]: 2 * k].T.toarray())
+            new = self.stiffness_at_rest.solve(expanded_rows[solved.shape[1]: 2 * k].T.toarray())
             solved = np.hstack([solved, new.reshape(n, -1)])
             self._solved_rows = solved
-        self.columns = np.einsum("nkd,kd->nk", solved[:, : 2 * k].reshape(n, k, 2), normals)  # K0^-1 G
-        self.constraints = constraints.toarray()
-        self.keep(np.arange(k))
+        self.factor(constraints.toarray(), np.einsum("nkd,kd->nk", solved[:, : 2 * k].reshape(n, k, 2), normals))
 
-    def keep(self, active: np.ndarray) -> None:
-        """Drop constraints (refactors S from the stored columns)."""
-        self.constraints = self.constraints[:, active]
-        self.columns = self.columns[:, active]
+    def factor(self, constraints: np.ndarray, columns: np.ndarray) -> None:
+        """Keep G and K0^-1 G (n, k), column-major (a contiguous column per constraint), and
+        factor S = G^T K0^-1 G into L, bordering one constraint at a time."""
+        self.constraints, self.columns = np.asfortranarray(constraints), np.asfortranarray(columns)
         schur = self.constraints.T @ self.columns
         self.cholesky = np.zeros((0, 0))
         for j in range(schur.shape[0]):
@@ -123,41 +104,54 @@ class SchurPreconditioner:
 
 
 class SaddlePointSolver:
-    def __init__(self, method: str, stiffness_factor=None, minres_rtol: float = 1e-10,
+    """Solves of eq. 3.62 for one insertion, with the factors and caches they keep between
+    Newton iterations, and counts of the work done.
+
+    `stiffness_at_rest` returns K0, the tangent at zero deformation; it is factorized the
+    first time the MINRES preconditioner or a condition number needs it, and kept.
+    """
+
+    def __init__(self, stiffness_at_rest: Callable[[], sp.spmatrix], minres_rtol: float = 1e-10,
                  minres_maxiter: int = 400, minres_restarts: int = 4, minres_true_rtol: float = 1e-6):
-        self.method = method
-        self.stiffness_factor = stiffness_factor
-        self.schur = SchurPreconditioner(stiffness_factor) if method == "minres" else None
+        self._assemble_at_rest = stiffness_at_rest
+        self._at_rest_factor = None
+        self._schur: SchurPreconditioner | None = None
         self.minres_rtol = minres_rtol
         self.minres_maxiter = minres_maxiter
         self.minres_restarts = minres_restarts  # restarts on the true residual, same budget
         # |b - A x| / |b| a MINRES solution must reach: inexact Newton then contracts by ~1e-6
         # per iteration; 1e-8 costs a third more MINRES iterations on the SH 1/2 scenario
         self.minres_true_rtol = minres_true_rtol
-        self._factor = None
+        self._factor = None  # LU of K + H for the direct solves
+        self._solved_rows = np.zeros((0, 0))  # (K + H)^-1 N^T for that factor, (n, 2k)
         self.factorizations = 0
         self.minres_iterations = 0
         self.fallbacks = 0
-        self.last_minres_iterations = 0
 
-    def invalidate(self) -> None:
-        self._factor = None
+    @property
+    def stiffness_at_rest(self):
+        """The factor of K0 (eq. 3.72)."""
+        if self._at_rest_factor is None:
+            self._at_rest_factor = factorize(self._assemble_at_rest())
+        return self._at_rest_factor
 
-    @staticmethod
-    def saddle_matrix(stiffness: sp.spmatrix, constraints: sp.spmatrix) -> sp.csc_matrix:
-        k = constraints.shape[1]
-        return sp.bmat([[stiffness, constraints], [constraints.T, sp.csr_matrix((k, k))]], format="csc")
+    @property
+    def schur(self) -> SchurPreconditioner:
+        """The S^-1 block of the MINRES preconditioner."""
+        if self._schur is None:
+            self._schur = SchurPreconditioner(self.stiffness_at_rest)
+        return self._schur
 
-    def solve_direct(self, stiffness, constraints: sp.spmatrix, rhs: np.ndarray,
-                     refactor: bool, expanded_rows: sp.csr_matrix | None = None,
-                     normals: np.ndarray | None = None) -> np.ndarray:
+    def solve_direct(self, stiffness: Callable[[], sp.spmatrix], constraints: sp.spmatrix, rhs: np.ndarray,
+                     refactor: bool, expanded_rows: sp.csr_matrix, normals: np.ndarray) -> np.ndarray:
         """Block elimination with a sparse LU of K + H (renewed when `refactor` or missing):
 
             a = K^-1 (-r_u),  S = G^T K^-1 G,  dl = S^-1 (G^T a + g),  dd = a - K^-1 G dl
 
         G^T dd = -g holds exactly even with an older factor of K, so the constraints
         converge at once; an older K only slows the equilibrium residual (modified Newton).
-        `stiffness` is a callable returning the current K + H when a factor is needed.
+        `stiffness` returns the current K + H when a factor is needed; G = N^T n per point,
+        with N the `expanded_rows` and n the `normals`.
         """
         n, k = constraints.shape
         if refactor or self._factor is None:
@@ -167,17 +161,14 @@ class SaddlePointSolver:
         a = self._factor.solve(rhs[:n])
         if k == 0:
             return a
-        if expanded_rows is not None:
-            # G = N^T n per point: cache K^-1 N^T (both directions) for this factor, so only
-            # the rows of newly added points cost a solve
-            have = self._solved_rows.shape[1]
-            if have < expanded_rows.shape[0]:
-                new = self._factor.solve(expanded_rows[have:].T.toarray())
-                self._solved_rows = np.hstack([self._solved_rows, new])
-            rows = self._solved_rows[:, : 2 * k].reshape(n, k, 2)
-            solved = np.einsum("nkd,kd->nk", rows, normals)  # K^-1 G, (n, k)
-        else:
-            solved = self._factor.solve(constraints.toarray())  # K^-1 G, (n, k)
+        # cache K^-1 N^T (both directions) for this factor, so only the rows of newly added
+        # points cost a solve
+        have = self._solved_rows.shape[1]
+        if have < expanded_rows.shape[0]:
+            new = self._factor.solve(expanded_rows[have:].T.toarray())
+            self._solved_rows = np.hstack([self._solved_rows, new])
+        rows = self._solved_rows[:, : 2 * k].reshape(n, k, 2)
+        solved = np.einsum("nkd,kd->nk", rows, normals)  # K^-1 G, (n, k)
         schur = constraints.T @ solved
         right = constraints.T @ a - rhs[n:]
         try:
@@ -186,22 +177,21 @@ class SaddlePointSolver:
             multipliers = np.linalg.lstsq(schur, right, rcond=1e-13)[0]
         return np.concatenate([a - solved @ multipliers, multipliers])
 
-    def solve_minres(self, stiffness_product, constraints: sp.spmatrix, rhs: np.ndarray,
-                     expanded_rows: sp.csr_matrix | None = None,
-                     normals: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
-        """MINRES on the saddle system with diag(K0^-1, S^-1); with `expanded_rows` (N per
-        point, interleaved) and the current `normals`, S is re-formed from the current G
-        (SchurPreconditioner.refresh), otherwise the bordered S of `add` is used."""
+    def solve_minres(self, stiffness_product: Callable[[np.ndarray], np.ndarray], constraints: sp.spmatrix,
+                     rhs: np.ndarray, expanded_rows: sp.csr_matrix,
+                     normals: np.ndarray) -> tuple[np.ndarray | None, int]:
+        """MINRES on the saddle system with diag(K0^-1, S^-1), S re-formed from the current
+        G = N^T n (SchurPreconditioner.refresh). Returns (solution or None, iterations)."""
         n, k = constraints.shape
         g_t = constraints.T.tocsr()
-        if expanded_rows is not None and k:
+        if k:
             self.schur.refresh(constraints, expanded_rows, normals)
 
         def matvec(x):
             return np.concatenate([stiffness_product(x[:n]) + constraints @ x[n:], g_t @ x[:n]])
 
         def precondition(x):
-            return np.concatenate([self.stiffness_factor.solve(x[:n]), self.schur.solve(x[n:])])
+            return np.concatenate([self.stiffness_at_rest.solve(x[:n]), self.schur.solve(x[n:])])
 
         operator = spla.LinearOperator((n + k, n + k), matvec=matvec, dtype=float)
         preconditioner = spla.LinearOperator((n + k, n + k), matvec=precondition, dtype=float)
@@ -224,30 +214,32 @@ class SaddlePointSolver:
                 break
             solution = solution + correction
         self.minres_iterations += count[0]
-        self.last_minres_iterations = count[0]
         return (solution if converged else None), count[0]
 
 
-def condition_numbers(stiffness: sp.spmatrix, constraints: sp.spmatrix, stiffness_factor,
-                      schur_inverse: np.ndarray | None = None) -> tuple[float, float]:
+def saddle_matrix(stiffness: sp.spmatrix, constraints: sp.spmatrix) -> sp.csc_matrix:
+    """[[K + H, G], [G^T, 0]] of eq. 3.62."""
+    k = constraints.shape[1]
+    return sp.bmat([[stiffness, constraints], [constraints.T, sp.csr_matrix((k, k))]], format="csc")
+
+
+def condition_numbers(stiffness: sp.spmatrix, constraints: sp.spmatrix, stiffness_at_rest) -> tuple[float, float]:
     """cond of the saddle matrix and of the block-preconditioned one (dense; small systems only).
 
-    The preconditioner is P = diag(K0, S), S = G^T K0^-1 G, as MINRES uses it. S is formed
-    here and applied through its Cholesky factor: with needle points closer than the particle
-    spacing S is so ill-conditioned that an explicit inverse (the old `schur_inverse`
-    argument, now ignored) is not positive definite in floating point.
+    The preconditioner is P = diag(K0, S), S = G^T K0^-1 G, as MINRES uses it; S is applied
+    through its Cholesky factor, which stays positive definite where an explicit inverse
+    would not (needle points closer than the particle spacing).
     """
-    saddle = SaddlePointSolver.saddle_matrix(stiffness, constraints).toarray()
+    saddle = saddle_matrix(stiffness, constraints).toarray()
     eigenvalues = np.abs(np.linalg.eigvalsh(saddle))
     n, k = constraints.shape
-    k0_inverse = stiffness_factor.solve(np.eye(n))
+    k0_inverse = stiffness_at_rest.solve(np.eye(n))
     # P^-1 = Z Z^T with Z = diag(C, L^-T), K0^-1 = C C^T and S = L L^T; the eigenvalues of
     # P^-1 A equal those of Z^T A Z
     c = np.linalg.cholesky(0.5 * (k0_inverse + k0_inverse.T))
     g = constraints.toarray()
-    schur = SchurPreconditioner(stiffness_factor)
-    schur.constraints, schur.columns = g, k0_inverse @ g
-    schur.keep(np.arange(k))
+    schur = SchurPreconditioner(stiffness_at_rest)
+    schur.factor(g, k0_inverse @ g)
     off = scipy.linalg.solve_triangular(schur.cholesky, (g.T @ c), lower=True).T if k else np.zeros((n, 0))
     top = c.T @ saddle[:n, :n] @ c
     transformed = np.block([[top, off], [off.T, np.zeros((k, k))]])

@@ -8,14 +8,12 @@ same points in the robot base frame and a timestamp from the needle's angular sp
 
 from __future__ import annotations
 
-import csv
 import math
-from pathlib import Path
 
 import numpy as np
 
-from ..config import Robot, ScenarioError
-from ..needle.insertion import InsertionResult
+from ..config import Robot
+from ..needle.results import InsertionResult
 
 COLUMNS = ["step", "angle_rad", "center_x_mm", "center_y_mm", "tip_x_mm", "tip_y_mm"]
 BASE_COLUMNS = ["base_center_x_mm", "base_center_y_mm", "base_tip_x_mm", "base_tip_y_mm"]
@@ -48,27 +46,3 @@ def to_base_frame(points: np.ndarray, robot: Robot) -> np.ndarray:
     rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
     return points @ rotation.T + np.asarray(robot.translation)
 
-
-def read_center_path(path: str | Path) -> np.ndarray:
-    """Centres (n, 2) from a trajectory CSV (columns step, center_x_mm, center_y_mm), row n = step n."""
-    path = Path(path)
-    try:
-        with path.open(newline="") as handle:
-            reader = csv.DictReader(handle)
-            header = reader.fieldnames or []
-            needed = ["step", "center_x_mm", "center_y_mm"]
-            missing = [c for c in needed if c not in header]
-            if missing:
-                raise ScenarioError(f"{path}: columns {header} lack {missing}; expected at least "
-                                    f"{', '.join(needed)} (a trajectory written by `stitchplan plan`)")
-            rows = list(reader)
-    except OSError as error:
-        raise ScenarioError(f"{path}: cannot be read ({error.strerror or error})") from None
-    try:
-        steps = [int(float(r["step"])) for r in rows]
-        centers = np.array([[float(r["center_x_mm"]), float(r["center_y_mm"])] for r in rows])
-    except (TypeError, ValueError):
-        raise ScenarioError(f"{path}: a step or centre value is not a number; expected numbers") from None
-    if not rows or steps != list(range(len(rows))):
-        raise ScenarioError(f"{path}: steps {steps[:5]}... expected 0, 1, 2, ... one row per step")
-    return centers

@@ -1,11 +1,11 @@
 """Models no bigger than the scene needs: the auto discretization.
 
 `discretization: {accuracy: 0.05}` asks for the cheapest model whose exit point lies within
-0.05 mm of the converged one. The exit point is measured as in stitchplan.study: the
-largest of the deviations of the spatial achieved exit, the material (reference) achieved
-exit and the exit-error vector.
+0.05 mm of the converged one. The exit point is measured as in stitchplan.study.sweep
+(stitchplan.study.runner.exit_deviations): the largest of the deviations of the spatial
+achieved exit, the material (reference) achieved exit and the exit-error vector.
 
-The candidates are particle sets graded toward the needle (discretization.graded_particles):
+The candidates are particle sets graded toward the needle (stitchplan.tissue.model.graded_particles):
 spacing h within `needle_zone` (1.5) needle radii of the needle centre, growing away from it
 to `grading` x h (4, capped at a fifth of the tissue's smaller side), each particle's kernel
 support following its local spacing. The exit error is dominated by the resolution where
@@ -31,40 +31,34 @@ Methods, chosen on the first (cheapest) pair's discretization, the cheaper where
   faster; otherwise `levenberg-marquardt`;
 - linear solver: `minres` when it needs no fallback to the direct solve, agrees with it
   (accuracy/10) and is at least 20 % faster; otherwise `direct`.
+
+The steps, in order: `first_resolution` (the safe methods at R/3, halved until a run
+succeeds), `choose_tip_tracking`, `choose_linear_solver`, `estimate_error` (the resolution
+ladder), `pick_resolution` (the final pick). Every run is an InsertionRun whose `family`
+says what it was run for: "resolution", "tip tracking", "linear solver" or "chosen".
 """
 
 from __future__ import annotations
 
 import logging
-import math
-import time
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
-from ..config import Scenario, ScenarioError, parse_discretization
+from ..config import Scenario
+from ..errors import InputError
 from ..events import Event, EventKind
+from .runner import InsertionRun, events_of, exit_deviations, run_timed
+
+if TYPE_CHECKING:
+    from ..needle.results import InsertionResult
 
 log = logging.getLogger(__name__)
 
 ASSUMED_ORDER = 1.0  # convergence order of the exit point in the needle spacing (conservative)
 GRADING = 4  # coarse / needle spacing
 MAX_HALVINGS = 5
-
-
-@dataclass
-class Trial:
-    """One run of the selection."""
-
-    role: str  # "resolution", "tip tracking", "linear solver", "chosen"
-    scenario: Scenario
-    needle_spacing: float
-    tip_tracking: str
-    linear_solver: str
-    particles: int = 0
-    wall_seconds: float = math.nan
-    cpu_seconds: float = math.nan
-    status: str = "ok"
-    reason: str = ""
-    result: object = None
+SAFE_TRACKING, SAFE_SOLVER = "levenberg-marquardt", "direct"
 
 
 @dataclass
@@ -76,10 +70,10 @@ class AutoChoice:
     needle_spacing: float
     tip_tracking: str
     linear_solver: str
-    result: object  # InsertionResult of the chosen configuration
+    result: InsertionResult  # of the chosen configuration
     cpu_seconds: float
     selection_seconds: float  # wall time of every trial run, the chosen one included
-    trials: list[Trial] = field(default_factory=list)
+    trials: list[InsertionRun] = field(default_factory=list)
     reasons: dict[str, str] = field(default_factory=dict)
     verified: bool = True  # False when the ladder ran out before the estimate met the accuracy
 
@@ -110,155 +104,183 @@ def graded_scenario(scenario: Scenario, needle_spacing: float, tip_tracking: str
     grading = GRADING
     while grading > 1 and needle_spacing * grading > max(cap, needle_spacing):
         grading //= 2
-    values = asdict(scenario.discretization)
-    values.update(accuracy=None, needle_refinement=None, spacing=needle_spacing * grading,
-                  needle_spacing=needle_spacing if grading > 1 else None)
+    discretization = scenario.discretization.replaced(
+        accuracy=None, needle_refinement=None, spacing=needle_spacing * grading,
+        needle_spacing=needle_spacing if grading > 1 else None)
     needle = replace(scenario.needle, tip_tracking=tip_tracking, linear_solver=linear_solver)
-    return replace(scenario, discretization=parse_discretization(values, "discretization"), needle=needle)
+    return replace(scenario, discretization=discretization, needle=needle)
 
 
-def _run(trial: Trial) -> Trial:
-    from ..needle.insertion import run_insertion
-    from .sweep import RUN_FAILURES
+class Trials:
+    """The selection's runs, each configuration run at most once."""
 
-    start, cpu = time.perf_counter(), time.process_time()
-    try:
-        trial.result = run_insertion(trial.scenario)
-    except RUN_FAILURES as error:
-        trial.status, trial.reason = "failed", f"{type(error).__name__}: {error}"
-        trial.wall_seconds = time.perf_counter() - start
-        trial.cpu_seconds = time.process_time() - cpu
+    def __init__(self, scenario: Scenario, on_trial: Callable[[InsertionRun], None] | None = None):
+        self.scenario = scenario
+        self.on_trial = on_trial
+        self.runs: list[InsertionRun] = []
+
+    def run(self, purpose: str, h: float, tracking: str, solver: str) -> InsertionRun:
+        """The graded scenario at needle spacing h with these methods, run (or the earlier
+        run of the same configuration)."""
+        for done in self.runs:
+            if (done.spacing, done.tip_tracking, done.linear_solver) == (h, tracking, solver):
+                return done
+        trial = run_timed(InsertionRun(purpose, f"{purpose} h={h:g} {tracking}/{solver}",
+                                       graded_scenario(self.scenario, h, tracking, solver), h))
+        self.runs.append(trial)
+        log.info("auto discretization: %s run h=%.3g mm %s/%s: %s %.2f s", purpose, h, tracking, solver,
+                 trial.status, trial.wall_seconds)
+        if self.on_trial is not None:
+            self.on_trial(trial)
         return trial
-    trial.wall_seconds = trial.result.wall_seconds
-    trial.cpu_seconds = time.process_time() - cpu
-    trial.particles = trial.result.model.n_particles
-    return trial
 
 
-def _deviation(a, b) -> float:
-    from .sweep import exit_deviations
-
+def _deviation(a: InsertionRun, b: InsertionRun) -> float:
     return exit_deviations(a.result, b.result)["deviation_mm"]
 
 
+# --- the steps ---------------------------------------------------------------------------
+
+
+def first_resolution(trials: Trials, radius: float) -> tuple[float, InsertionRun]:
+    """The first needle spacing h (R/3, halved up to MAX_HALVINGS times until a run
+    succeeds) and its run with the safe methods."""
+    h = round(radius / 3.0, 4)
+    safe = trials.run("resolution", h, SAFE_TRACKING, SAFE_SOLVER)
+    while not safe.ok and h > radius / 3.0 / 2 ** MAX_HALVINGS:
+        h = round(h / 2, 4)
+        safe = trials.run("resolution", h, SAFE_TRACKING, SAFE_SOLVER)
+    if not safe.ok:
+        raise InputError(f"discretization.accuracy: no auto discretization runs ({safe.reason})")
+    return h, safe
+
+
+def choose_tip_tracking(trials: Trials, h: float, safe: InsertionRun, accuracy: float) -> tuple[str, str]:
+    """`auto` when the inverse gradient needs no fallback at h, its exit lies within
+    accuracy/4 of Levenberg-Marquardt's (the `safe` run) and it is faster; with the reason."""
+    trial = trials.run("tip tracking", h, "auto", SAFE_SOLVER)
+    if not trial.ok:
+        reason = f"inverse gradient failed at h={h:g} mm: {trial.reason.split(':')[0]}"
+    elif fallbacks := events_of(trial.result, EventKind.TIP_TRACKING_FALLBACK):
+        reason = f"inverse gradient needed {len(fallbacks)} fallbacks at h={h:g} mm"
+    elif (gap := _deviation(trial, safe)) > accuracy / 4:
+        reason = f"inverse gradient's exit {gap:.3g} mm from Levenberg-Marquardt's"
+    elif trial.wall_seconds >= safe.wall_seconds:
+        reason = "inverse gradient not faster"
+    else:
+        return "auto", (f"inverse gradient safe: exit within {gap:.2g} mm of Levenberg-Marquardt's, "
+                        f"{safe.wall_seconds / trial.wall_seconds:.2g}x faster")
+    return SAFE_TRACKING, "safe choice; " + reason
+
+
+def choose_linear_solver(trials: Trials, h: float, tracking: str, accuracy: float) -> tuple[str, str]:
+    """`minres` when it needs no fallback to the direct solve at h, agrees with it
+    (accuracy/10) and is at least 20 % faster; with the reason."""
+    direct = trials.run("resolution", h, tracking, "direct")
+    if not direct.ok:  # the ladder's first run then says why
+        return "direct", f"the direct solve failed at h={h:g} mm: {direct.reason.split(':')[0]}"
+    trial = trials.run("linear solver", h, tracking, "minres")
+    if not trial.ok:
+        return "direct", f"MINRES failed at h={h:g} mm: {trial.reason.split(':')[0]}"
+    if events_of(trial.result, EventKind.MINRES_FALLBACK):
+        return "direct", f"MINRES fell back to the direct solve at h={h:g} mm"
+    if _deviation(trial, direct) > accuracy / 10:
+        return "direct", "MINRES and the direct solve disagree"
+    if trial.wall_seconds > 0.8 * direct.wall_seconds:
+        return "direct", (f"direct faster: {direct.wall_seconds:.2f} s against MINRES "
+                          f"{trial.wall_seconds:.2f} s at h={h:g} mm")
+    return "minres", f"MINRES {direct.wall_seconds / trial.wall_seconds:.2g}x faster than direct at h={h:g} mm"
+
+
+@dataclass
+class ErrorEstimate:
+    """e(h') ~ constant h'^p from the pair of runs at h and h/2 (module docstring)."""
+
+    h: float  # needle spacing of the pair's coarser run, mm
+    fine: InsertionRun  # the run at h/2
+    difference: float  # mm, between the pair's exit points
+    constant: float  # C of e(h') ~ C h'^p
+    first: bool  # the ladder's first pair (the ladder may then reach up to 2 h)
+
+    def at(self, spacing: float) -> float:
+        return self.constant * spacing ** ASSUMED_ORDER
+
+    @property
+    def basis(self) -> str:
+        return (f"runs at needle spacing {self.h:.3g} and {self.h / 2:.3g} mm differ by {self.difference:.3g} mm, "
+                f"order {ASSUMED_ORDER:g} assumed")
+
+
+def estimate_error(trials: Trials, h: float, tracking: str, solver: str, accuracy: float) -> ErrorEstimate:
+    """The resolution ladder: pairs (h, h/2) with the chosen methods, halved while the
+    accuracy lies beyond one more halving (e(h/4) > accuracy), at most MAX_HALVINGS times."""
+    coarse = trials.run("resolution", h, tracking, solver)
+    if not coarse.ok:
+        raise InputError(f"discretization.accuracy: the auto discretization's first run failed ({coarse.reason})")
+    estimate = None
+    first = True
+    for _ in range(MAX_HALVINGS):
+        fine = trials.run("resolution", round(h / 2, 4), tracking, solver)
+        if not fine.ok:
+            break
+        difference = _deviation(coarse, fine)
+        constant = difference / (h ** ASSUMED_ORDER * (1.0 - 2.0 ** -ASSUMED_ORDER))  # e(h') ~ C h'^p
+        estimate = ErrorEstimate(h, fine, difference, constant, first)
+        # extrapolate at most one halving beyond the pair; halve the pair when the target lies further
+        if estimate.at(h / 4) <= accuracy:
+            break
+        h, coarse, first = h / 2, fine, False
+    if estimate is None:
+        raise InputError(f"discretization.accuracy: no two resolutions ran to estimate the error "
+                            f"(h = {h / 2:.3g} mm: {fine.reason})")
+    return estimate
+
+
+def pick_resolution(trials: Trials, estimate: ErrorEstimate, tracking: str, solver: str,
+                    accuracy: float) -> InsertionRun:
+    """The run at the largest spacing on a 2^(1/4) ladder whose estimated error meets the
+    accuracy: between h/2 and h/4, or up to 2h coarser than the pair when it is the first
+    one. Falls back to the pair's finer run when that run fails."""
+    h = estimate.h
+    ladder = tuple(2.0 ** (-k / 4) for k in range(-4 if estimate.first else 0, 9))
+    target = next((round(h * f, 4) for f in ladder if estimate.at(h * f) <= accuracy), round(h / 4, 4))
+    candidate = trials.run("chosen", target, tracking, solver)
+    chosen = candidate if candidate.ok else estimate.fine
+    if chosen.family == "resolution":
+        chosen.family = "chosen"
+    return chosen
+
+
+# --- the selection -------------------------------------------------------------------------
+
+
 def choose_discretization(scenario: Scenario, accuracy: float, tip_tracking: str | None = None,
-                          linear_solver: str | None = None, on_trial=None) -> AutoChoice:
+                          linear_solver: str | None = None,
+                          on_trial: Callable[[InsertionRun], None] | None = None) -> AutoChoice:
     """The cheapest graded discretization (and methods) whose estimated exit-point error is
     at most `accuracy` mm; see the module docstring. Explicit tip_tracking/linear_solver are
     kept as given."""
     if scenario.needle is None:
-        raise ScenarioError("discretization.accuracy: needs a needle (the accuracy is on its exit point)")
+        raise InputError("discretization.accuracy: needs a needle (the accuracy is on its exit point)")
     if not accuracy > 0:
-        raise ScenarioError(f"discretization.accuracy: got {accuracy!r}, expected a positive distance (mm)")
-    trials: list[Trial] = []
-    reasons: dict[str, str] = {}
-
-    def run(role: str, h: float, tracking: str, solver: str) -> Trial:
-        for done in trials:  # same configuration already run
-            if (done.needle_spacing, done.tip_tracking, done.linear_solver) == (h, tracking, solver):
-                return done
-        trial = _run(Trial(role, graded_scenario(scenario, h, tracking, solver), h, tracking, solver))
-        trials.append(trial)
-        log.info("auto discretization: %s run h=%.3g mm %s/%s: %s %.2f s", role, h, tracking, solver,
-                 trial.status, trial.wall_seconds)
-        if on_trial is not None:
-            on_trial(trial)
-        return trial
-
-    radius = scenario.needle.radius
-    h = round(radius / 3.0, 4)
-    tracking, solver = "levenberg-marquardt", "direct"  # the safe pair, used for the ladder
-    coarse = run("resolution", h, tracking, solver)
-    while not coarse.status == "ok" and h > radius / 3.0 / 2 ** MAX_HALVINGS:
-        h = round(h / 2, 4)
-        coarse = run("resolution", h, tracking, solver)
-    if coarse.status != "ok":
-        raise ScenarioError(f"discretization.accuracy: no auto discretization runs ({coarse.reason})")
-
+        raise InputError(f"discretization.accuracy: got {accuracy!r}, expected a positive distance (mm)")
+    trials = Trials(scenario, on_trial)
+    h, safe = first_resolution(trials, scenario.needle.radius)
     # methods, on the cheapest pair's discretization
-    if tip_tracking is not None:
-        tracking, reasons["tip_tracking"] = tip_tracking, "given"
-    else:
-        trial = run("tip tracking", h, "auto", solver)
-        events = ([e for e in trial.result.events if e.kind is EventKind.TIP_TRACKING_FALLBACK]
-                  if trial.status == "ok" else [])
-        if trial.status != "ok":
-            reasons["tip_tracking"] = f"inverse gradient failed at h={h:g} mm: {trial.reason.split(':')[0]}"
-        elif events:
-            reasons["tip_tracking"] = f"inverse gradient needed {len(events)} fallbacks at h={h:g} mm"
-        else:
-            gap = _deviation(trial, coarse)
-            if gap > accuracy / 4:
-                reasons["tip_tracking"] = f"inverse gradient's exit {gap:.3g} mm from Levenberg-Marquardt's"
-            elif trial.wall_seconds >= coarse.wall_seconds:
-                reasons["tip_tracking"] = "inverse gradient not faster"
-            else:
-                tracking = "auto"
-                reasons["tip_tracking"] = (f"inverse gradient safe: exit within {gap:.2g} mm of "
-                                           f"Levenberg-Marquardt's, {coarse.wall_seconds / trial.wall_seconds:.2g}x faster")
-        if tracking == "levenberg-marquardt":
-            reasons["tip_tracking"] = "safe choice; " + reasons["tip_tracking"]
-    base = run("resolution", h, tracking, "direct")
-    if linear_solver is not None:
-        solver, reasons["linear_solver"] = linear_solver, "given"
-    else:
-        trial = run("linear solver", h, tracking, "minres")
-        if trial.status != "ok":
-            reasons["linear_solver"] = f"MINRES failed at h={h:g} mm: {trial.reason.split(':')[0]}"
-        elif trial.result.solver_counts.get("minres_fallbacks", 0):
-            reasons["linear_solver"] = f"MINRES fell back to the direct solve at h={h:g} mm"
-        elif _deviation(trial, base) > accuracy / 10:
-            reasons["linear_solver"] = "MINRES and the direct solve disagree"
-        elif trial.wall_seconds > 0.8 * base.wall_seconds:
-            reasons["linear_solver"] = (f"direct faster: {base.wall_seconds:.2f} s against MINRES "
-                                        f"{trial.wall_seconds:.2f} s at h={h:g} mm")
-        else:
-            solver = "minres"
-            reasons["linear_solver"] = (f"MINRES {base.wall_seconds / trial.wall_seconds:.2g}x faster "
-                                        f"than direct at h={h:g} mm")
-
-    # resolution ladder with the chosen methods
-    coarse = run("resolution", h, tracking, solver)
-    if coarse.status != "ok":
-        raise ScenarioError(f"discretization.accuracy: the auto discretization's first run failed ({coarse.reason})")
-    pair = None
-    first = True
-    for _ in range(MAX_HALVINGS):
-        fine = run("resolution", round(h / 2, 4), tracking, solver)
-        if fine.status != "ok":
-            break
-        difference = _deviation(coarse, fine)
-        constant = difference / (h ** ASSUMED_ORDER * (1.0 - 2.0 ** -ASSUMED_ORDER))  # e(h') ~ C h'^p
-        pair = (h, fine, difference, constant, first)
-        # extrapolate at most one halving beyond the pair; halve the pair when the target lies further
-        if constant * (h / 4) ** ASSUMED_ORDER <= accuracy:
-            break
-        h, coarse, first = h / 2, fine, False
-    if pair is None:
-        raise ScenarioError(f"discretization.accuracy: no two resolutions ran to estimate the error "
-                            f"(h = {h / 2:.3g} mm: {fine.reason})")
-    h, fine, difference, constant, first = pair
-    basis = (f"runs at needle spacing {h:.3g} and {h / 2:.3g} mm differ by {difference:.3g} mm, "
-             f"order {ASSUMED_ORDER:g} assumed")
-    verified = constant * (h / 4) ** ASSUMED_ORDER <= accuracy
-    chosen = fine
-    # the largest spacing on a 2^(1/4) ladder whose estimated error meets the accuracy:
-    # between h/2 and h/4, or up to 2h coarser than the pair when it is the first one
-    ladder = tuple(2.0 ** (-k / 4) for k in range(-4 if first else 0, 9))
-    target = next((round(h * f, 4) for f in ladder if constant * (h * f) ** ASSUMED_ORDER <= accuracy),
-                  round(h / 4, 4))
-    candidate = run("chosen", target, tracking, solver)
-    if candidate.status == "ok":
-        chosen = candidate
-    estimate = constant * chosen.needle_spacing ** ASSUMED_ORDER
-    if chosen.role == "resolution":
-        chosen.role = "chosen"
+    tracking, tracking_reason = ((tip_tracking, "given") if tip_tracking is not None
+                                 else choose_tip_tracking(trials, h, safe, accuracy))
+    solver, solver_reason = ((linear_solver, "given") if linear_solver is not None
+                             else choose_linear_solver(trials, h, tracking, accuracy))
+    # resolution ladder with the chosen methods, then the final pick
+    estimate = estimate_error(trials, h, tracking, solver, accuracy)
+    chosen = pick_resolution(trials, estimate, tracking, solver, accuracy)
     return AutoChoice(
-        accuracy=accuracy, estimate_mm=estimate, estimate_basis=basis, scenario=chosen.scenario,
-        needle_spacing=chosen.needle_spacing, tip_tracking=tracking, linear_solver=solver,
+        accuracy=accuracy, estimate_mm=estimate.at(chosen.spacing), estimate_basis=estimate.basis,
+        scenario=chosen.scenario, needle_spacing=chosen.spacing, tip_tracking=tracking, linear_solver=solver,
         result=chosen.result, cpu_seconds=chosen.cpu_seconds,
-        selection_seconds=sum(t.wall_seconds for t in trials), trials=trials, reasons=reasons,
-        verified=verified)
+        selection_seconds=sum(t.wall_seconds for t in trials.runs), trials=trials.runs,
+        reasons={"tip_tracking": tracking_reason, "linear_solver": solver_reason},
+        verified=estimate.at(estimate.h / 4) <= accuracy)
 
 
 def resolve_accuracy(scenario: Scenario, tip_tracking: str | None = None,

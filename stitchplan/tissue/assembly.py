@@ -39,7 +39,6 @@ class Assembler:
         )
         self._deformation_gradient: np.ndarray | None = None
         self._tangent_current = False
-        self.tangent_assemblies = 0
         self.tangent_products = 0
 
     def update(self, deformation_gradient: np.ndarray) -> np.ndarray:
@@ -73,7 +72,6 @@ class Assembler:
     def tangent_matrix(self) -> sp.csr_matrix:
         """Explicit K at the last update (eq. 3.45)."""
         self._refresh_tangent()
-        self.tangent_assemblies += 1
         return (self.gradient_t @ (self._pointwise @ self.gradient)).tocsr()
 
     def force_and_tangent(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:

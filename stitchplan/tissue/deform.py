@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -13,6 +14,8 @@ from ..config import Scenario
 from .model import TissueModel, model_for_scenario
 from .quadrature import segment_quadrature
 from .solver import NewtonReport, StepRecord, solve_static
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -105,9 +108,18 @@ def run_deform(
     full_external = external_forces(model, scenario)
     prescribed = prescribed_displacements(model, scenario)
     assembler = Assembler(model)
+    log.info("deform: %d particles, %d load steps", model.n_particles, scenario.load_steps)
+
+    def step_done(step: int, record: StepRecord) -> None:
+        log.info("load step %d/%d: load fraction %.3f, %d Newton iterations, %d step cuts, residual %.2e N",
+                 step, scenario.load_steps, record.load_fraction, record.iterations, record.cuts,
+                 record.residual)
+        if on_step is not None:
+            on_step(step, record)
+
     solve_start = time.perf_counter()
     solution = solve_static(model, to_free(model, full_external), prescribed, scenario.load_steps,
-                            scenario.solver, assembler, on_step)
+                            scenario.solver, assembler, step_done)
     timings["solve"] = time.perf_counter() - solve_start
     probes = np.asarray(scenario.probes, dtype=float).reshape(-1, 2)
     probe_displacements = interpolate(model, solution.coefficients, probes)

@@ -155,7 +155,7 @@ def newton(
     reference_force: float,
     length_scale: float,
     linear: TangentSolver,
-) -> tuple[np.ndarray, int, float, float]:
+) -> tuple[np.ndarray, int, float, float, float]:
     """Newton iterations on problem.residual(x) = 0 from `start`.
 
     Converged when |r| <= residual_tolerance * max(reference, |r_0|) and the last increment
@@ -174,6 +174,8 @@ def newton(
         if iteration == 0:
             initial = residual_norm
             tolerance = settings.residual_tolerance * max(reference_force, residual_norm, 1e-300)
+        log.debug("Newton iteration %d: residual %.3e N (tolerance %.3e N)", iteration, residual_norm,
+                  tolerance)
         small_step = increment_norm <= settings.increment_tolerance * (np.abs(x).max() + length_scale)
         if residual_norm <= tolerance and (small_step or residual_norm <= 1e-3 * tolerance):
             return x, iteration, residual_norm, increment_norm, initial

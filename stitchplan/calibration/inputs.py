@@ -1,0 +1,144 @@
+"""Typed inputs of the material calibration and their readers (thesis appendix A.2): the
+calibration YAML, its experiments and their marker CSV files."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import (
+    Discretization,
+    Load,
+    Material,
+    Solver,
+    Tissue,
+    input_error,
+    read_yaml,
+)
+from ..config.calibration import (
+    GRID_SCALES,
+    CalibrationFile,
+    ExperimentBlock,
+    FitBlock,
+    parse_calibration,
+)
+from ..errors import InputError
+from .tables import read_columns
+
+MARKER_COLUMNS = ("x", "y", "x_def", "y_def")
+__all__ = ["GRID_SCALES", "MARKER_COLUMNS", "Experiment", "FitSettings", "MaterialCalibration",
+           "load_material_calibration", "parse_material_calibration"]
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One loading of the slab and the markers measured under it."""
+
+    name: str
+    loads: tuple[Load, ...]
+    load_steps: int
+    markers: np.ndarray  # (n, 2) rest positions X_i, mm
+    measured: np.ndarray  # (n, 2) measured deformed positions p_i, mm
+    source: str = ""
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    model: str
+    lame_lambda: tuple[float, float]  # search range, MPa
+    lame_mu: tuple[float, float]
+    grid_points: int = 6  # per axis
+    grid_scale: str = "log"
+    max_evaluations: int = 40  # forward evaluations allowed to the least-squares refinement
+
+
+@dataclass(frozen=True)
+class MaterialCalibration:
+    tissue: Tissue
+    experiments: tuple[Experiment, ...]
+    fit: FitSettings
+    discretization: Discretization
+    solver: Solver = field(default_factory=Solver)
+    name: str = ""
+    source: str = ""
+
+    @property
+    def n_markers(self) -> int:
+        return sum(len(e.markers) for e in self.experiments)
+
+
+def fit_settings(fit: FitBlock) -> FitSettings:
+    return FitSettings(fit.model, fit.lame_lambda, fit.lame_mu, fit.grid, fit.grid_scale, fit.max_evaluations)
+
+
+def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: str) -> Experiment:
+    """The experiment with its marker file (relative to `folder`) read and checked."""
+    markers_path = folder / block.markers
+    data, lines = read_columns(markers_path, MARKER_COLUMNS, f"{path}.markers")
+    if len(lines) == 0:
+        raise InputError(f"{path}.markers: {markers_path}: no marker rows, expected at least one")
+    rest = np.stack([data["x"], data["y"]], axis=1)
+    outside = np.flatnonzero(~tissue.domain.contains(rest))
+    if len(outside):
+        k = outside[0]
+        raise InputError(
+            f"{path}.markers: {markers_path} line {lines[k]}: rest position "
+            f"({rest[k, 0]:g}, {rest[k, 1]:g}) mm, expected a point inside "
+            f"[0, {tissue.size[0]:g}] x [0, {tissue.size[1]:g}] mm")
+    return Experiment(
+        name=block.name,
+        loads=block.loads,
+        load_steps=block.load_steps,
+        markers=rest,
+        measured=np.stack([data["x_def"], data["y_def"]], axis=1),
+        source=str(markers_path),
+    )
+
+
+def parse_material_calibration(raw: Any, folder: Path, source: str = "") -> MaterialCalibration:
+    """The calibration of a file's data (stitchplan.config.calibration validates it; every
+    problem of the file and of its marker files is reported at once)."""
+    spec: CalibrationFile = parse_calibration(raw)
+    fit = fit_settings(spec.fit)
+    tissue = spec.tissue.tissue(Material(fit.model, *_start_point(fit)))
+    experiments, problems = [], []
+    for i, block in enumerate(spec.experiments):
+        try:
+            experiments.append(read_experiment(block, tissue, folder, f"experiments[{i}]"))
+        except InputError as error:
+            problems += getattr(error, "lines", [str(error)])
+    if problems:
+        raise input_error(problems)
+    if sum(len(e.markers) for e in experiments) < 2:
+        raise InputError("experiments: 1 marker in all, expected at least 2 (4 coordinates "
+                         "for 2 parameters and their uncertainty)")
+    return MaterialCalibration(tissue, tuple(experiments), fit, spec.discretization or Discretization(),
+                               spec.solver or Solver(), spec.name, source)
+
+
+def load_material_calibration(path: str | Path, spacing: float | None = None,
+                              dilation: float | None = None) -> MaterialCalibration:
+    """Read and validate a calibration YAML; marker files are relative to it. `spacing` and
+    `dilation` override its discretization (the CLI options)."""
+    path = Path(path)
+    raw, _ = read_yaml(path)
+    try:
+        problem = parse_material_calibration(raw, path.parent, str(path))
+    except InputError as error:
+        raise input_error([f"{path}: {line}" for line in getattr(error, "lines", [str(error)])]) from None
+    overrides = {k: v for k, v in {"spacing": spacing, "dilation": dilation}.items() if v is not None}
+    if overrides:
+        problem = replace(problem, discretization=problem.discretization.replaced(**overrides))
+    return problem
+
+
+def _start_point(fit: FitSettings) -> tuple[float, float]:
+    """Geometric (or arithmetic) middle of the search ranges."""
+    def mid(low: float, high: float) -> float:
+        return math.sqrt(low * high) if fit.grid_scale == "log" else 0.5 * (low + high)
+
+    return mid(*fit.lame_lambda), mid(*fit.lame_mu)

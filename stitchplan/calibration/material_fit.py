@@ -1,0 +1,337 @@
+"""Lamé moduli fitted to marker displacements (thesis appendix A.2). The moduli minimise
+
+    f(lambda, mu) = sum_i |p_i - q_i(lambda, mu)|^2                          (eq. A.3)
+
+over the markers of all experiments: p_i measured deformed positions, q_i the simulated ones
+(calibration.forward). A coarse grid over the search ranges finds the basin; bounded least
+squares (scipy's trust-region reflective method) refines it with the exact Jacobian; the
+statistics at the optimum say how well each modulus is determined.
+
+Both material models have a PK2 stress linear in the moduli, so scaling both moduli by c is
+the same as dividing the forces by c: with displacement-controlled loading alone only
+lambda/mu can be identified, and the fit says so.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, SolverDivergence
+from .forward import ExperimentModel
+from .inputs import FitSettings, MaterialCalibration, load_material_calibration
+
+log = logging.getLogger(__name__)
+
+CORRELATION_LIMIT = 0.999  # |corr(lambda, mu)| above this: the data cannot separate them
+POORLY_DETERMINED = 0.25  # relative standard uncertainty above which a modulus gets a warning
+MODULI = ("lame_lambda", "lame_mu")
+
+Progress = Callable[[str, int | None], contextlib.AbstractContextManager]
+
+
+@contextlib.contextmanager
+def no_progress(label: str, total: int | None) -> Iterator[Callable[..., None]]:
+    yield lambda *args, **kwargs: None
+
+
+class MarkerMisfit:
+    """Residual r = p - q over all markers of all experiments, as a function of theta."""
+
+    def __init__(self, problem: MaterialCalibration):
+        shared: dict = {}
+        self.experiments = [ExperimentModel(problem.tissue, problem.discretization, e, problem.fit.model,
+                                            problem.solver, shared) for e in problem.experiments]
+        self.measured = np.concatenate([e.measured for e in problem.experiments])  # (n, 2)
+        self._cache: dict[tuple[float, float], tuple[np.ndarray, np.ndarray | None, list]] = {}
+        self.evaluations: list[np.ndarray] = []
+        self.particles = self.experiments[0].model.n_particles
+
+    @property
+    def force_controlled(self) -> bool:
+        """Every experiment carries a force load: a softer material deforms more."""
+        return all(any(load.force is not None for load in e.experiment.loads) for e in self.experiments)
+
+    def evaluate(self, theta: np.ndarray, jacobian: bool = False, quick: bool = False):
+        """(r (2n,), dr/dtheta (2n, 2) or None, simulated positions per experiment)."""
+        key = (float(theta[0]), float(theta[1]))
+        cached = self._cache.get(key)
+        if cached is not None and (cached[1] is not None or not jacobian):
+            return cached
+        self.evaluations.append(np.array(key))
+        predictions = [e.predict(np.array(key), jacobian, quick) for e in self.experiments]
+        simulated = [q for q, _ in predictions]
+        residual = (self.measured - np.concatenate(simulated)).ravel()
+        derivative = -np.concatenate([dq for _, dq in predictions]).reshape(-1, 2) if jacobian else None
+        self._cache[key] = (residual, derivative, simulated)
+        return self._cache[key]
+
+    @property
+    def solves(self) -> int:
+        return sum(e.solves for e in self.experiments)
+
+    @property
+    def cold_starts(self) -> int:
+        return sum(e.cold_starts for e in self.experiments)
+
+    @property
+    def newton_iterations(self) -> int:
+        return sum(e.newton_iterations for e in self.experiments)
+
+
+# --- grid search ----------------------------------------------------------------------
+
+
+@dataclass
+class GridSearch:
+    lame_lambda: np.ndarray  # (n,)
+    lame_mu: np.ndarray  # (m,)
+    cost: np.ndarray  # (n, m) f = sum |p - q|^2, mm^2; nan where the solve failed
+    best: tuple[float, float]
+    failed: int
+
+
+def grid_axes(fit: FitSettings) -> tuple[np.ndarray, np.ndarray]:
+    space = np.geomspace if fit.grid_scale == "log" else np.linspace
+    return space(*fit.lame_lambda, fit.grid_points), space(*fit.lame_mu, fit.grid_points)
+
+
+def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., None]) -> GridSearch:
+    """f on the grid, from the stiffest corner towards the softest in a serpentine, so each
+    solve warm-starts from a neighbour that deformed less. Under force loads a point softer
+    in both moduli than one that failed is not tried: it would deform even more."""
+    lambdas, mus = grid_axes(fit)
+    cost = np.full((len(lambdas), len(mus)), np.nan)
+    failures: list[tuple[int, int]] = []
+    for step, i in enumerate(reversed(range(len(lambdas)))):
+        for j in (reversed(range(len(mus))) if step % 2 == 0 else range(len(mus))):
+            if misfit.force_controlled and any(i <= a and j <= b for a, b in failures):
+                advance()
+                continue
+            try:
+                residual, _, _ = misfit.evaluate(np.array([lambdas[i], mus[j]]), quick=True)
+                cost[i, j] = residual @ residual
+            except SolverDivergence as failure:
+                failures.append((i, j))
+                log.info("grid point lambda=%.4g mu=%.4g: no solution (%s)", lambdas[i], mus[j], failure)
+            advance()
+    failed = int(np.isnan(cost).sum())
+    if failed == cost.size:
+        raise InputError(
+            f"fit: the static solve failed at all {cost.size} grid points of lame_lambda "
+            f"{list(fit.lame_lambda)}, lame_mu {list(fit.lame_mu)} MPa; expected ranges where the "
+            "tissue can carry the loads (raise the lower bounds or reduce the loads)")
+    i, j = np.unravel_index(np.nanargmin(cost), cost.shape)
+    if failed:
+        log.info("grid: %d of %d points without a static solution (too soft for the loads)",
+                 failed, cost.size)
+    return GridSearch(lambdas, mus, cost, (float(lambdas[i]), float(mus[j])), failed)
+
+
+# --- least-squares refinement ---------------------------------------------------------
+
+
+@dataclass
+class Refinement:
+    """The bounded least-squares run from the grid's best point."""
+
+    solution: object  # scipy.optimize.OptimizeResult
+    failed_solves: int  # trial points where the static solve failed
+
+    @property
+    def optimizer(self) -> dict:
+        s = self.solution
+        return {"method": "trf", "status": int(s.status), "message": s.message,
+                "evaluations": int(s.nfev), "jacobian_evaluations": int(s.njev or 0),
+                "failed_solves": self.failed_solves}
+
+
+def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: tuple[float, float],
+           advance: Callable[..., None]) -> Refinement:
+    """Bounded trust-region least squares on r(theta) with the exact Jacobian. A trial point
+    whose static solve fails gets a large constant residual, which the method steps back from."""
+    from scipy.optimize import least_squares
+
+    fit = problem.fit
+    rest = np.concatenate([e.markers for e in problem.experiments])
+    measured_scale = float(np.abs(misfit.measured - rest).max())
+    penalty = 10.0 * (measured_scale + 1.0)  # residual returned where a trial point cannot be solved
+    failures = 0
+
+    def residual(theta: np.ndarray) -> np.ndarray:
+        nonlocal failures
+        advance()
+        try:
+            return misfit.evaluate(theta, jacobian=True)[0]
+        except SolverDivergence:
+            failures += 1
+            return np.full(2 * len(misfit.measured), penalty)
+
+    def jacobian(theta: np.ndarray, *_: object) -> np.ndarray:
+        return misfit.evaluate(theta, jacobian=True)[1]
+
+    lower = np.array([fit.lame_lambda[0], fit.lame_mu[0]])
+    upper = np.array([fit.lame_lambda[1], fit.lame_mu[1]])
+    solution = least_squares(residual, np.array(start), jac=jacobian, bounds=(lower, upper),
+                             method="trf", x_scale="jac", ftol=1e-10, xtol=1e-9, gtol=1e-10,
+                             max_nfev=fit.max_evaluations)
+    return Refinement(solution, failures)
+
+
+# --- statistics and identifiability ---------------------------------------------------
+
+
+@dataclass
+class Statistics:
+    uncertainty: tuple[float | None, float | None]  # standard uncertainties, MPa
+    correlation: float  # of the two estimates
+    ratio_uncertainty: float | None  # of lambda/mu
+
+    @property
+    def identifiable(self) -> bool:
+        return abs(self.correlation) < CORRELATION_LIMIT and self.uncertainty[0] is not None
+
+
+def statistics(residual: np.ndarray, jacobian: np.ndarray, theta: np.ndarray) -> Statistics:
+    """Standard uncertainties sigma^2 (J^T J)^-1, sigma^2 = |r|^2 / (m - 2), and the
+    correlation of the two estimates (= minus the cosine between the Jacobian's columns)."""
+    m = len(residual)
+    sigma2 = float(residual @ residual) / max(m - 2, 1)
+    normal = jacobian.T @ jacobian
+    scale = np.sqrt(np.diag(normal))
+    if np.any(scale == 0.0):
+        return Statistics((None, None), float("nan"), None)
+    scaled = normal / np.outer(scale, scale)  # unit diagonal
+    correlation = float(-scaled[0, 1])
+    uncertainty: tuple[float | None, float | None] = (None, None)
+    if np.linalg.cond(scaled) < 1e12:
+        covariance = sigma2 * np.linalg.inv(scaled) / np.outer(scale, scale)
+        uncertainty = tuple(float(math.sqrt(v)) for v in np.diag(covariance))
+    # lambda/mu is determined even when the pair is not: its gradient is orthogonal to the
+    # scaling direction theta that the data cannot see, so the pseudo-inverse is exact there
+    covariance = sigma2 * np.linalg.pinv(scaled, rcond=1e-9) / np.outer(scale, scale)
+    gradient = np.array([1.0 / theta[1], -theta[0] / theta[1] ** 2])
+    ratio_variance = float(gradient @ covariance @ gradient)
+    return Statistics(uncertainty, correlation, math.sqrt(max(ratio_variance, 0.0)))
+
+
+def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
+                 refinement: Refinement) -> list[str]:
+    """What a user should know about the fitted moduli, most serious first."""
+    identifiable = stats.identifiable
+    warnings: list[str] = []
+    if not identifiable:
+        warnings.append(
+            f"the data cannot separate lame_lambda and lame_mu (correlation of the estimates "
+            f"{stats.correlation:+.4f}): only lame_lambda/lame_mu = {theta[0] / theta[1]:.4g} is "
+            "determined, as when every load is a prescribed displacement (scaling both moduli then "
+            "moves no marker); add a force-controlled experiment")
+    for k, (name, (lo, hi)) in enumerate(zip(MODULI, (fit.lame_lambda, fit.lame_mu))):
+        margin = 1e-6 * (hi - lo)
+        if identifiable and (theta[k] <= lo + margin or theta[k] >= hi - margin):
+            warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the bound of its search range "
+                            f"[{lo:g}, {hi:g}]: widen fit.{name}")
+    if refinement.failed_solves:
+        warnings.append(f"least squares tried {refinement.failed_solves} parameter point(s) where "
+                        "the static solve failed (too soft for the loads): the optimum may lie at "
+                        "the edge of the solvable materials; check the cost surface plot")
+    for k, name in enumerate(MODULI):
+        u = stats.uncertainty[k]
+        if identifiable and u is not None and u > POORLY_DETERMINED * theta[k]:
+            warnings.append(f"{name} is poorly determined: standard uncertainty {u:.3g} MPa is "
+                            f"{100 * u / theta[k]:.0f} % of its value; add markers or experiments")
+    if refinement.solution.status == 0:
+        warnings.append(f"least squares stopped after {refinement.solution.nfev} evaluations "
+                        f"(fit.max_evaluations) before converging")
+    return warnings
+
+
+# --- the fit --------------------------------------------------------------------------
+
+
+@dataclass
+class MaterialFit:
+    problem: MaterialCalibration
+    lame_lambda: float
+    lame_mu: float
+    standard_uncertainty: tuple[float | None, float | None]  # MPa
+    correlation: float  # of the two estimates
+    lambda_over_mu: float
+    lambda_over_mu_uncertainty: float | None
+    identifiable: bool
+    residuals: list[np.ndarray]  # per experiment (n_e, 2): p - q, mm
+    simulated: list[np.ndarray]  # per experiment (n_e, 2): q at the optimum
+    grid: GridSearch
+    path: np.ndarray  # (k, 2) parameter points the refinement evaluated, in order
+    cost: float  # f at the optimum, mm^2
+    optimizer: dict
+    forward_solves: int
+    grid_solves: int
+    cold_starts: int
+    newton_iterations: int
+    particles: int
+    wall_seconds: float
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def distances(self) -> np.ndarray:
+        """|p_i - q_i| over all markers (n,), mm."""
+        return np.linalg.norm(np.concatenate(self.residuals), axis=1)
+
+
+def fit_material(problem: MaterialCalibration, progress: Progress = no_progress) -> MaterialFit:
+    """Grid search then bounded least squares on f(lambda, mu) (eq. A.3).
+
+    `progress(label, total)` is a context manager yielding advance(); pass
+    stitchplan.io.progress.progress_bar for a bar on the terminal.
+    """
+    start = time.perf_counter()
+    misfit = MarkerMisfit(problem)
+    with progress("grid search", problem.fit.grid_points ** 2) as advance:
+        grid = grid_search(misfit, problem.fit, advance)
+    grid_solves, grid_evaluations = misfit.solves, len(misfit.evaluations)
+    with progress("least squares", None) as advance:
+        refinement = refine(misfit, problem, grid.best, advance)
+    theta = refinement.solution.x
+    r, jac, simulated = misfit.evaluate(theta, jacobian=True)
+    stats = statistics(r, jac, theta)
+    warnings = fit_warnings(theta, stats, problem.fit, refinement)
+    for message in warnings:
+        log.warning(message)
+    sizes = np.cumsum([len(e.markers) for e in problem.experiments])[:-1]
+    return MaterialFit(
+        problem=problem,
+        lame_lambda=float(theta[0]),
+        lame_mu=float(theta[1]),
+        standard_uncertainty=stats.uncertainty,
+        correlation=stats.correlation,
+        lambda_over_mu=float(theta[0] / theta[1]),
+        lambda_over_mu_uncertainty=stats.ratio_uncertainty,
+        identifiable=stats.identifiable,
+        residuals=np.split(r.reshape(-1, 2), sizes),
+        simulated=simulated,
+        grid=grid,
+        path=np.array(misfit.evaluations[grid_evaluations:]).reshape(-1, 2),
+        cost=float(r @ r),
+        optimizer=refinement.optimizer,
+        forward_solves=misfit.solves,
+        grid_solves=grid_solves,
+        cold_starts=misfit.cold_starts,
+        newton_iterations=misfit.newton_iterations,
+        particles=misfit.particles,
+        wall_seconds=time.perf_counter() - start,
+        warnings=warnings,
+    )
+
+
+def calibrate_material(path: str | Path, spacing: float | None = None, dilation: float | None = None,
+                       progress: Progress = no_progress) -> MaterialFit:
+    """`stitchplan calibrate material`: load, validate and fit."""
+    return fit_material(load_material_calibration(path, spacing, dilation), progress)

@@ -1,0 +1,155 @@
+"""Needle friction and cutting force from force recordings (thesis section 5.2).
+
+The force needed to turn the needle in air is fitted by a line in the angle (bearing
+friction, cable drag: the background); subtracted from the recording in tissue it leaves
+the tissue's share, fitted by a line in the inserted length radius x angle:
+slope = friction (N/mm), intercept = cutting force (N).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .tables import read_columns
+
+log = logging.getLogger(__name__)
+
+FORCE_COLUMNS = ("angle_rad", "force_N")
+MIN_FORCE_SAMPLES = 5
+MIN_ANGLE_SPAN = 0.1  # rad: less than ~6 degrees of rotation cannot separate slope and offset
+MIN_R_SQUARED = 0.9  # below this the corrected force is not a line in the inserted length
+
+
+@dataclass
+class LineFit:
+    """y = intercept + slope x by least squares, with standard errors from the residuals."""
+
+    intercept: float
+    slope: float
+    covariance: np.ndarray  # (2, 2) of (intercept, slope)
+    residual_std: float  # sqrt(SSR / (n - 2))
+    r_squared: float
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return self.intercept + self.slope * np.asarray(x)
+
+
+def fit_line(x: np.ndarray, y: np.ndarray) -> LineFit:
+    design = np.stack([np.ones_like(x), x], axis=1)  # (n, 2)
+    coefficients, *_ = np.linalg.lstsq(design, y, rcond=None)
+    residual = y - design @ coefficients
+    ssr = float(residual @ residual)
+    sigma2 = ssr / max(len(x) - 2, 1)
+    sst = float(np.sum((y - y.mean()) ** 2))
+    return LineFit(float(coefficients[0]), float(coefficients[1]),
+                   sigma2 * np.linalg.inv(design.T @ design), math.sqrt(sigma2),
+                   1.0 - ssr / sst if sst > 0 else 1.0)
+
+
+@dataclass
+class NeedleFit:
+    radius: float  # mm
+    friction: float  # N/mm
+    cutting_force: float  # N
+    standard_uncertainty: tuple[float, float]  # (friction, cutting_force)
+    tissue_fit: LineFit  # corrected force (N) against inserted length (mm)
+    background: LineFit  # air force (N) against angle (rad)
+    air: np.ndarray  # (n, 2) angle, force
+    tissue: np.ndarray  # (n, 2) angle, force
+    corrected: np.ndarray  # (n,) tissue force minus background, N
+    inserted_length: np.ndarray  # (n,) radius x angle, mm
+    warnings: list[str] = field(default_factory=list)
+    sources: tuple[str, str] = ("", "")
+
+
+def fit_needle(air_angle: np.ndarray, air_force: np.ndarray, tissue_angle: np.ndarray,
+               tissue_force: np.ndarray, radius: float) -> NeedleFit:
+    """Background line in air, subtracted at the tissue angles; line against radius x angle.
+
+    The uncertainties combine the scatter of both recordings: the background's coefficient
+    covariance is carried through the linear map from background line to (cutting, friction).
+    """
+    background = fit_line(air_angle, air_force)
+    corrected = tissue_force - background(tissue_angle)
+    length = radius * tissue_angle
+    tissue_fit = fit_line(length, corrected)
+    design = np.stack([np.ones_like(length), length], axis=1)
+    projector = np.linalg.solve(design.T @ design, design.T)  # (2, n): data -> (intercept, slope)
+    carried = projector @ np.stack([np.ones_like(tissue_angle), tissue_angle], axis=1)  # (2, 2)
+    covariance = tissue_fit.covariance + carried @ background.covariance @ carried.T
+    warnings = needle_warnings(air_angle, tissue_angle, tissue_fit)
+    for message in warnings:
+        log.warning(message)
+    return NeedleFit(
+        radius=radius, friction=tissue_fit.slope, cutting_force=tissue_fit.intercept,
+        standard_uncertainty=(math.sqrt(covariance[1, 1]), math.sqrt(covariance[0, 0])),
+        tissue_fit=tissue_fit, background=background,
+        air=np.stack([air_angle, air_force], axis=1),
+        tissue=np.stack([tissue_angle, tissue_force], axis=1),
+        corrected=corrected, inserted_length=length, warnings=warnings,
+    )
+
+
+def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit: LineFit) -> list[str]:
+    """Extrapolated background, a poor line, negative values."""
+    friction, cutting = tissue_fit.slope, tissue_fit.intercept
+    warnings = []
+    span = air_angle[-1] - air_angle[0]
+    if tissue_angle[0] < air_angle[0] - 0.01 * span or tissue_angle[-1] > air_angle[-1] + 0.01 * span:
+        warnings.append(
+            f"the tissue recording ({tissue_angle[0]:.3g} to {tissue_angle[-1]:.3g} rad) reaches beyond "
+            f"the air recording ({air_angle[0]:.3g} to {air_angle[-1]:.3g} rad): the background is "
+            "extrapolated there")
+    if tissue_fit.r_squared < MIN_R_SQUARED:
+        warnings.append(f"the corrected force is far from linear in the inserted length "
+                        f"(R^2 = {tissue_fit.r_squared:.3f}); check the recordings")
+    if friction < 0 or cutting < 0:
+        warnings.append(f"negative fitted value (friction {friction:.4g} N/mm, cutting force "
+                        f"{cutting:.4g} N): a scenario's needle block refuses negative values")
+    return warnings
+
+
+def read_force_recording(path: str | Path, label: str) -> tuple[np.ndarray, np.ndarray]:
+    """angle_rad, force_N of a recording; at least MIN_FORCE_SAMPLES rows, angles strictly
+    increasing over at least MIN_ANGLE_SPAN rad."""
+    data, lines = read_columns(path, FORCE_COLUMNS, label)
+    angle, force = data["angle_rad"], data["force_N"]
+    if len(angle) < MIN_FORCE_SAMPLES:
+        raise InputError(f"{label}: {path}: {len(angle)} samples, expected at least "
+                         f"{MIN_FORCE_SAMPLES}")
+    steps = np.diff(angle)
+    if np.any(steps <= 0):
+        k = int(np.argmax(steps <= 0)) + 1
+        raise InputError(f"{label}: {path} line {lines[k]}: angle_rad {angle[k]:g} after "
+                         f"{angle[k - 1]:g}, expected strictly increasing angles")
+    span = float(angle[-1] - angle[0])
+    if span < MIN_ANGLE_SPAN:
+        raise InputError(f"{label}: {path}: angle_rad spans {span:.3g} rad, expected at least "
+                         f"{MIN_ANGLE_SPAN:g} rad")
+    return angle, force
+
+
+def _positive_radius(radius: object) -> float:
+    number = isinstance(radius, (int, float)) and not isinstance(radius, bool)
+    if not (number and math.isfinite(radius) and radius > 0):
+        raise InputError(f"--radius: got {radius!r}, expected a positive number (mm)")
+    return float(radius)
+
+
+def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> NeedleFit:
+    """`stitchplan calibrate needle`: read both recordings, validate and fit."""
+    radius = _positive_radius(radius)
+    air_angle, air_force = read_force_recording(air, "--air")
+    tissue_angle, tissue_force = read_force_recording(tissue, "--tissue")
+    if tissue_angle[0] < 0:
+        raise InputError(f"--tissue: {tissue}: first angle_rad {tissue_angle[0]:g}, expected "
+                         "angles >= 0 rad (rotation since the tip touched the tissue)")
+    result = fit_needle(air_angle, air_force, tissue_angle, tissue_force, radius)
+    result.sources = (str(air), str(tissue))
+    return result

@@ -1,0 +1,54 @@
+"""Numeric CSV tables with a fixed header: the marker files and force recordings."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+
+def read_columns(path: str | Path, columns: tuple[str, ...],
+                 label: str = "") -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Read a numeric CSV whose header is exactly `columns` (any order).
+
+    Lines starting with '#' and blank lines are skipped (data files may carry a comment
+    header). Returns ({column: values (n,)}, file line number of each row (n,)).
+    Every problem is an InputError naming the file (and `label`, e.g. the YAML field).
+    """
+    where = f"{label}: {path}" if label else f"{path}"
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as handle:
+            lines = [(number, line) for number, line in enumerate(handle, start=1)
+                     if line.strip() and not line.lstrip().startswith("#")]
+    except FileNotFoundError:
+        raise InputError(f"{where}: file not found") from None
+    except (OSError, UnicodeDecodeError) as error:
+        reason = getattr(error, "strerror", None) or type(error).__name__
+        raise InputError(f"{where}: cannot be read ({reason})") from None
+    if not lines:
+        raise InputError(f"{where}: empty, expected a header {','.join(columns)} and data rows")
+    rows = list(csv.reader(line for _, line in lines))
+    header = [name.strip() for name in rows[0]]
+    if sorted(header) != sorted(columns):
+        raise InputError(f"{where}: columns {','.join(header)!r}, expected exactly "
+                            f"{','.join(columns)!r}")
+    values = np.empty((len(rows) - 1, len(header)))
+    for r, (row, (number, _)) in enumerate(zip(rows[1:], lines[1:])):
+        if len(row) != len(header):
+            raise InputError(f"{where} line {number}: {len(row)} values, expected "
+                                f"{len(header)} ({','.join(header)})")
+        for c, text in enumerate(row):
+            try:
+                value = float(text)
+            except ValueError:
+                value = math.nan
+            if not math.isfinite(value):
+                raise InputError(f"{where} line {number}, column {header[c]}: got "
+                                    f"{text.strip()!r}, expected a finite number")
+            values[r, c] = value
+    line_numbers = np.array([number for number, _ in lines[1:]], dtype=int)
+    return {name: values[:, c] for c, name in enumerate(header)}, line_numbers

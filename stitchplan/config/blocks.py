@@ -1,0 +1,309 @@
+"""The blocks of a scenario file (tissue, material, discretization, needle, loads, solver,
+planner, robot) as validated, frozen dataclasses.
+
+They are pydantic dataclasses: constructing one validates it, `dataclasses.replace` gives a
+validated copy, `asdict` and hashing work as for plain dataclasses. Units as in
+SCENARIO.md: mm, N, MPa, rad.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import asdict
+from typing import Any
+
+from pydantic import (
+    ConfigDict,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+from pydantic.dataclasses import dataclass
+
+from ..geometry import Rectangle
+from .fields import (
+    BLOCK,
+    EDGES,
+    INTEGRATIONS,
+    MATERIAL_MODELS,
+    TURNS,
+    BasisOrder,
+    CellsPerSpacing,
+    Dilation,
+    Flag,
+    LinearSolver,
+    NeedleStep,
+    Point,
+    Positive,
+    PositiveMM,
+    QuadratureOrder,
+    TipTracking,
+    choice,
+    described,
+    integer,
+    number,
+    pair,
+    problem,
+    sequence,
+)
+from .messages import combined, validate
+
+
+def _file_schema(required: tuple[str, ...], schema: dict) -> None:
+    """Fields a file must give although Python callers may leave them to their defaults."""
+    if required:
+        schema["required"] = sorted(set(schema.get("required", [])) | set(required))
+        for name in required:
+            schema["properties"][name].pop("default", None)
+
+
+def _required_in_files(names: tuple[str, ...]):
+    def check(cls, data: Any, handler):
+        missing = [name for name in names if isinstance(data, dict) and name not in data]
+        if not missing:
+            return handler(data)
+        try:
+            handler(data)
+            errors = []
+        except ValidationError as error:
+            errors = error.errors()
+        errors += [{"type": "missing", "loc": (name,), "msg": "Field required", "input": data}
+                   for name in missing]
+        raise combined(errors)
+
+    return model_validator(mode="wrap")(check)
+
+
+def block(*, file_required: tuple[str, ...] = (), title: str | None = None, **options):
+    """A frozen pydantic dataclass refusing unknown keys and non-finite numbers.
+    `file_required`: keys a file must give although the class has defaults for them."""
+
+    def make(cls):
+        if file_required:
+            cls._file_required = _required_in_files(file_required)
+        config = ConfigDict(**BLOCK, json_schema_extra=functools.partial(_file_schema, file_required))
+        if title:
+            config["title"] = title
+        return dataclass(frozen=True, config=config, **options)(cls)
+
+    return make
+
+
+@block(file_required=("lame_lambda", "lame_mu"))
+class Material:
+    """Defaults (the thesis's phantom) for Python callers; a file must give both moduli."""
+
+    model: described(choice(MATERIAL_MODELS), "constitutive law") = "saint-venant-kirchhoff"
+    lame_lambda: described(number("a non-negative number (MPa)", ge=0), "Lamé lambda, MPa") = 0.189151
+    lame_mu: described(number("a positive number (MPa)", gt=0), "Lamé mu (shear modulus), MPa") = 0.147688
+
+
+Size = pair("a pair [W, H] of positive numbers (mm)", PositiveMM)
+Edges = sequence(choice(EDGES), "a list of edges among " + ", ".join(EDGES))
+
+
+@block()
+class Tissue:
+    size: described(Size, "[W, H] mm: the rectangle [0, W] x [0, H]")
+    thickness: described(PositiveMM, "out-of-plane thickness t, mm (file forces are totals over t)")
+    material: described(Material, "hyperelastic material")
+    clamped: described(Edges, "edges held fixed: any of " + ", ".join(EDGES)) = ()
+
+    @field_validator("clamped")
+    @classmethod
+    def _each_edge_once(cls, clamped: tuple[str, ...]) -> tuple[str, ...]:
+        if len(set(clamped)) != len(clamped):
+            raise problem("each edge at most once")
+        return clamped
+
+    @property
+    def domain(self) -> Rectangle:
+        return Rectangle.of_size(self.size)
+
+
+@block(title="discretization")
+class Discretization:
+    spacing: described(PositiveMM, "particle spacing, mm; default min(W, H)/20, with a needle 2r/5 "
+                                   "(at most max(W, H)/20 and min(W, H)/8)") = 5.0
+    dilation: described(Dilation, "kernel support a = dilation x spacing") = 2.0
+    quadrature_order: described(QuadratureOrder, "Gauss points per direction per background cell") = 2
+    basis_order: described(BasisOrder, "1 linear, 2 quadratic RK basis") = 1
+    cells_per_spacing: described(CellsPerSpacing, "background cells per particle spacing") = 1
+    # graded particles (see discretization.graded_particles): `needle_spacing` within
+    # `needle_zone` needle radii of the needle centre, growing to `spacing` away from it
+    needle_spacing: described(PositiveMM | None, "particle spacing near the needle, mm (graded "
+                                          "particles); at most spacing") = None
+    needle_zone: described(number("a positive number (needle radii)", gt=0),
+                           "graded zone around the needle centre, needle radii") = 1.5
+    # needle_spacing = spacing / needle_refinement when no needle_spacing is given, so that
+    # `--spacing` refines the graded arrangement as a whole (the default for needle scenes)
+    needle_refinement: described(number("a number >= 1 (spacing / spacing at the needle)", ge=1) | None,
+                                 "needle_spacing = spacing / needle_refinement; default 2 with a "
+                                 "needle and no spacing") = None
+    # "gauss": Galerkin with background-cell Gauss quadrature; "vci": the test-function
+    # gradients corrected so that the quadrature satisfies the divergence theorem
+    # (variationally consistent integration; passes the linear patch test; deform only)
+    integration: described(choice(INTEGRATIONS), "gauss, or vci (variationally consistent; "
+                                                 "deform and calibrate)") = "gauss"
+    # exit-point accuracy (mm): the auto discretization (stitchplan.study.auto) picks the rest
+    accuracy: described(number("a positive number (mm, exit point)", gt=0) | None,
+                        "exit-point accuracy, mm: simulate and plan choose the discretization") = None
+
+    @model_validator(mode="after")
+    def _graded(self, info: ValidationInfo) -> Discretization:
+        if self.needle_spacing is None and self.needle_refinement is not None and self.needle_refinement > 1:
+            object.__setattr__(self, "needle_spacing", self.spacing / self.needle_refinement)
+        spacing_known = not (info.context or {}).get("default_spacing_unknown")
+        if spacing_known and self.needle_spacing is not None and self.needle_spacing > self.spacing:
+            raise problem(f"a spacing (mm) no larger than spacing = {self.spacing:g} mm",
+                          field="needle_spacing", value=self.needle_spacing)
+        return self
+
+    def as_input(self) -> dict:
+        """The block as a scenario file would give it: parse_discretization(d.as_input())
+        returns d, and a needle spacing derived from needle_refinement stays derived, so it
+        follows a changed spacing."""
+        values = asdict(self)
+        if self.needle_refinement is not None:
+            values["needle_spacing"] = None
+        return values
+
+    def replaced(self, path: str = "discretization", **changes) -> Discretization:
+        """A validated copy with `changes` applied (None is a value here: needle_spacing=None
+        makes the particles uniform). A needle spacing derived from needle_refinement follows
+        a changed spacing unless needle_spacing is given; `path` names the block in errors."""
+        return parse_discretization({**self.as_input(), **changes}, path)
+
+
+def default_spacing_of(size: tuple[float, float], radius: float | None) -> float:
+    """The spacing of a file that gives none (see scenario.default_spacing): a twentieth of
+    the smaller side; with a needle of `radius` 2/5 of it, at most a twentieth of the larger
+    side and an eighth of the smaller one."""
+    if radius is None:
+        return min(size) / 20.0
+    return min(0.4 * radius, max(size) / 20.0, min(size) / 8.0)
+
+
+def parse_discretization(raw: Any, path: str = "discretization") -> Discretization:
+    """The `discretization:` block (None: the defaults); errors name fields below `path`."""
+    return Discretization() if raw is None else validate(Discretization, raw, path)
+
+
+@block(kw_only=True)
+class Needle:
+    radius: described(PositiveMM, "needle radius, mm")
+    arc: described(number("a positive angle of at most 2*pi rad", gt=0, le=2 * math.pi),
+                   "rad swept by the needle body (1/2 circle = pi)") = math.pi
+    entry: described(Point, "reference point on the boundary where the tip enters, mm")
+    turn: described(choice(TURNS), "cw or ccw: the way the tip turns after entry")
+    step: described(NeedleStep, "rad of needle rotation per step")
+    friction: described(number("a non-negative number (N/mm)", ge=0),
+                        "N per mm of needle inside the tissue") = 0.0
+    cutting_force: described(number("a non-negative number (N)", ge=0), "N at the tip needed to cut") = 0.0
+    tip_tracking: described(TipTracking, "levenberg-marquardt, inverse-gradient (strict) or auto "
+                                         "(inverse-gradient, LM fallback)") = "levenberg-marquardt"
+    linear_solver: described(LinearSolver, "direct or minres") = "direct"
+
+
+@block()
+class Load:
+    segment: described(pair("two points [[x0, y0], [x1, y1]] (mm)", Point),
+                       "straight piece of one edge, mm")
+    force: described(pair("a pair [fx, fy] of numbers (N)", number("a number (N)")) | None,
+                     "N total, spread uniformly over the segment") = None
+    displacement: described(pair("a pair [ux, uy] of numbers (mm)") | None,
+                            "mm, prescribed on the segment") = None
+
+    @field_validator("segment")
+    @classmethod
+    def _on_one_edge(cls, segment, info: ValidationInfo):
+        domain = (info.context or {}).get("domain")
+        if domain is not None and domain.segment_edge(*segment) is None:
+            raise problem(segment_expectation(domain))
+        return segment
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _force_or_displacement(cls, data: Any, handler):
+        if not isinstance(data, dict):  # constructed in Python
+            load = handler(data)
+            if (load.force is None) == (load.displacement is None):
+                raise problem(ONE_KIND, value=Shown("both" if load.force else "neither"))
+            return load
+        given = [key for key in ("displacement", "force") if data.get(key) is not None]
+        if len(given) == 1:
+            return handler(data)
+        try:
+            handler(data)
+            errors = []
+        except ValidationError as error:
+            errors = error.errors()
+        raise combined([*errors, problem(ONE_KIND, value=given or Shown("neither"))])
+
+
+ONE_KIND = "exactly one of 'force' (N) or 'displacement' (mm)"
+
+
+class Shown(str):
+    """A value shown as it reads (no quotes) in an error line."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+def segment_expectation(domain: Rectangle) -> str:
+    return f"a non-empty straight piece of one edge of the {domain.describe()}"
+
+
+@block(title="solver")
+class Solver:
+    residual_tolerance: described(Positive, "Newton: force residual tolerance (relative)") = 1e-8
+    increment_tolerance: described(Positive, "Newton: increment tolerance (relative)") = 1e-8
+    max_iterations: described(integer(1, 500), "Newton iterations per load step") = 25
+    max_step_cuts: described(integer(0, 30), "halvings of a load step that fails to converge") = 6
+
+
+@block(title="planner")
+class Planner:
+    tolerance: described(PositiveMM, "planner convergence tolerance, mm") = 1e-3
+    max_iterations: described(integer(1, 1000), "planner iterations per step") = 10
+    strict: described(Flag, "fail instead of warning when the planner does not converge") = False
+    exit_tolerance: described(PositiveMM, "exit-point tolerance of the planner passes, mm") = 0.005
+    max_passes: described(integer(1, 20), "planner passes over the whole insertion") = 4
+
+
+AngularSpeed = described(number("a positive number (rad/s)", gt=0) | None,
+                         "rad/s of needle rotation: adds time_s to trajectory.csv")
+Rotation = described(number("a number (deg)"), "rotation of the tissue frame in the base frame, deg")
+Translation = described(Point, "tissue origin in the base frame, mm")
+
+
+@block()
+class Robot:
+    """Tissue frame -> robot base frame: p_base = R(rotation) p_tissue + translation."""
+
+    rotation_deg: Rotation = 0.0
+    translation: Translation = (0.0, 0.0)
+    angular_speed: AngularSpeed = None
+    given: Flag = False
+
+
+@block(title="base_transform")
+class BaseTransform:
+    rotation_deg: Rotation = 0.0
+    translation: Translation = (0.0, 0.0)
+
+
+@block(title="robot")
+class RobotBlock:
+    """The `robot:` block of a file, as Robot holds it."""
+
+    base_transform: described(BaseTransform | None, "p_base = R(rotation_deg) p + translation") = None
+    angular_speed: AngularSpeed = None
+
+    def robot(self) -> Robot:
+        transform = self.base_transform or BaseTransform()
+        return Robot(transform.rotation_deg, transform.translation, self.angular_speed,
+                     given=self.base_transform is not None)

@@ -1,0 +1,164 @@
+"""The input file of `stitchplan calibrate material` (thesis appendix A.2; docs SCENARIO.md,
+"Calibration inputs"): the tissue without its moduli, the experiments (loads and a marker
+CSV each) and the search ranges of the fit. Validated like a scenario: every problem of the
+file at once. Reading the marker CSVs is stitchplan.calibration.inputs' part."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from pydantic import (
+    AfterValidator,
+    Field,
+    Strict,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from ..geometry import Rectangle
+from .blocks import (
+    Discretization,
+    Edges,
+    Load,
+    Material,
+    Shown,
+    Size,
+    Solver,
+    Tissue,
+    block,
+    default_spacing_of,
+)
+from .fields import (
+    MATERIAL_MODELS,
+    Name,
+    PositiveMM,
+    choice,
+    described,
+    expecting,
+    integer,
+    number,
+    problem,
+    sequence,
+)
+from .messages import combined, valid_or_none, validate
+
+GRID_SCALES = ("log", "linear")
+MarkerFile = Annotated[str, Strict(), Field(min_length=1),
+                       expecting("a CSV file name (relative to the YAML file)")]
+NO_MATERIAL = ("no material in a calibration file (the moduli are what is fitted; choose the "
+               "model with fit.model)")
+
+
+def _increasing(expected: str):
+    def check(pair: tuple[float, float]) -> tuple[float, float]:
+        if not pair[0] < pair[1]:
+            raise problem(expected)
+        return pair
+
+    return AfterValidator(check)
+
+
+def _search_range(low_expected: str, **low_bound: float) -> Any:
+    expected = f"[low, high] with {'0 <' if 'gt' in low_bound else '0 <='} low < high (MPa)"
+    low = number(low_expected, **low_bound)
+    high = number("a positive number (MPa)", gt=0)
+    return Annotated[tuple[low, high], expecting(expected, items=True, length=2), _increasing(expected)]
+
+
+@block(title="tissue")
+class CalibrationTissue:
+    """The tissue of a calibration: a scenario's tissue without its material."""
+
+    size: described(Size, "[W, H] mm: the rectangle [0, W] x [0, H]")
+    thickness: described(PositiveMM, "out-of-plane thickness t, mm")
+    clamped: described(Edges, "edges held fixed") = ()
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _no_material(cls, data: Any, handler):
+        if not (isinstance(data, dict) and "material" in data):
+            return handler(data)
+        material = data["material"]
+        try:
+            handler({key: value for key, value in data.items() if key != "material"})
+            errors = []
+        except ValidationError as error:
+            errors = error.errors()
+        raise combined([*errors, problem(NO_MATERIAL, field="material", value=material)])
+
+    def tissue(self, material: Material) -> Tissue:
+        return Tissue(self.size, self.thickness, material, self.clamped)
+
+
+@block(kw_only=True, title="experiment")
+class ExperimentBlock:
+    name: described(Name, "optional label") = ""
+    loads: described(sequence(Load, "a non-empty list of loads (force or displacement)", min_length=1),
+                     "the loads of this experiment, as in a scenario")
+    markers: described(MarkerFile, "CSV file x,y,x_def,y_def (mm), relative to the YAML file")
+    load_steps: described(integer(1, 10000), "load increments") = 10
+
+    @field_validator("loads")
+    @classmethod
+    def _held_in_place(cls, loads: tuple[Load, ...], info: ValidationInfo):
+        clamped = (info.context or {}).get("clamped", True)
+        if not clamped and all(load.displacement is None for load in loads):
+            raise problem("tissue.clamped or a displacement load to hold the slab in place",
+                          value=Shown("only forces on a tissue with no clamped edge"))
+        return loads
+
+
+@block(title="fit")
+class FitBlock:
+    lame_lambda: described(_search_range("a non-negative number (MPa)", ge=0),
+                           "search range [low, high] of lame_lambda, MPa")
+    lame_mu: described(_search_range("a positive number (MPa)", gt=0),
+                       "search range [low, high] of lame_mu, MPa")
+    model: described(choice(MATERIAL_MODELS), "constitutive law fitted") = "saint-venant-kirchhoff"
+    grid: described(integer(2, 50), "grid points per axis of the initial search") = 6
+    grid_scale: described(choice(GRID_SCALES) | None,
+                          "log or linear grid; default log unless the lame_lambda range starts at 0") = None
+    max_evaluations: described(integer(2, 1000), "forward evaluations of the least-squares refinement") = 40
+
+    @model_validator(mode="after")
+    def _scale(self) -> FitBlock:
+        if self.grid_scale is None:
+            object.__setattr__(self, "grid_scale", "log" if self.lame_lambda[0] > 0 else "linear")
+        elif self.grid_scale == "log" and self.lame_lambda[0] <= 0:
+            raise problem("linear when the lame_lambda range starts at 0 (a log grid needs positive bounds)",
+                          field="grid_scale", value=self.grid_scale)
+        return self
+
+
+@block(kw_only=True, title="stitchplan material calibration")
+class CalibrationFile:
+    """A `calibrate material` input file as written."""
+
+    name: described(Name, "optional label") = ""
+    tissue: described(CalibrationTissue, "the slab: size, thickness, clamped edges (no material)")
+    experiments: described(sequence(ExperimentBlock, "a non-empty list of experiments", min_length=1),
+                           "loadings of the slab and their marker files")
+    fit: described(FitBlock, "search ranges and settings of the fit")
+    discretization: described(Discretization | None, "optional; default spacing min(W, H)/20") = None
+    solver: described(Solver | None, "Newton settings") = None
+
+
+def parse_calibration(raw: Any) -> CalibrationFile:
+    """The validated calibration file; an InputError lists every problem of it. Without a
+    spacing the discretization gets a twentieth of the smaller side."""
+    context: dict[str, Any] = {"domain": None}
+    if isinstance(raw, dict):
+        tissue = raw.get("tissue")
+        size = valid_or_none(Size, tissue.get("size")) if isinstance(tissue, dict) else None
+        context["domain"] = None if size is None else Rectangle.of_size(size)
+        context["clamped"] = not isinstance(tissue, dict) or bool(tissue.get("clamped"))
+        given = raw.get("discretization")
+        given = {} if given is None else given
+        if isinstance(given, dict) and "spacing" not in given:
+            if size is None:
+                context["default_spacing_unknown"] = True
+            else:
+                raw = {**raw, "discretization": {**given, "spacing": default_spacing_of(size, None)}}
+    return validate(CalibrationFile, raw, "", root="calibration", context=context)

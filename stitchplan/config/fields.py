@@ -1,0 +1,126 @@
+"""Field types shared by the config blocks: finite numbers with their bounds and units,
+integers, fixed choices and points. Each type carries the text of its error message
+("expected a positive number (mm)"), so that every problem of a file reads the same way
+(see stitchplan.config.messages)."""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Callable
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    WrapValidator,
+)
+from pydantic_core import PydanticCustomError
+
+from ..geometry import EDGE_NAMES
+from .messages import combined
+
+EDGES = EDGE_NAMES
+MATERIAL_MODELS = ("saint-venant-kirchhoff", "neo-hookean")
+TIP_TRACKING = ("auto", "inverse-gradient", "levenberg-marquardt")
+LINEAR_SOLVERS = ("direct", "minres")
+INTEGRATIONS = ("gauss", "vci")
+TURNS = ("cw", "ccw")
+
+# every block: unknown keys refused, no nan or inf anywhere
+BLOCK = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+NOT_GIVEN = object()
+
+
+def problem(expected: str, field: str | None = None, value: Any = NOT_GIVEN) -> PydanticCustomError:
+    """The error of a check: `expected` completes "<field>: got <value>, expected ...".
+    `field` names a field below the validated one (a check of a whole block reporting on one
+    of its fields); `value` replaces the input as the value shown."""
+    context: dict[str, Any] = {"expected": expected}
+    if field is not None:
+        context["field"] = field
+    if value is not NOT_GIVEN:
+        context["value"] = value
+    return PydanticCustomError("expected", "expected {expected}", context)
+
+
+def expecting(expected: str, *, items: bool = False, length: int | None = None) -> WrapValidator:
+    """A wrap validator turning any error of the value into one `expected` error.
+
+    items=True keeps the errors of a sequence's items (their own field paths and texts) and
+    replaces those of the sequence itself only when no item failed; `length` checks a fixed
+    length first (a pair)."""
+
+    def validate(value: Any, handler: Callable[[Any], Any]) -> Any:
+        if length is not None and (not isinstance(value, (list, tuple)) or len(value) != length):
+            raise problem(expected)
+        try:
+            return handler(value)
+        except ValidationError as error:
+            item_errors = [e for e in error.errors() if e["loc"]]
+            if items and item_errors:  # a list too short after dropping bad items: those count
+                raise combined(item_errors) from None
+            raise problem(expected) from None
+
+    validate.expected = expected  # read by the message of a missing field
+    return WrapValidator(validate)
+
+
+def number(expected: str, **bounds: float) -> Any:
+    """A finite float (ints accepted, bools and strings refused) within `bounds` (gt, ge, lt, le)."""
+    return Annotated[float, Strict(), Field(allow_inf_nan=False, **bounds), expecting(expected)]
+
+
+def _whole(value: Any) -> int:
+    if isinstance(value, bool):
+        raise problem("an integer")
+    try:
+        return operator.index(value)  # int and numpy integers; floats and strings refused
+    except TypeError:
+        raise problem("an integer") from None
+
+
+def integer(low: int, high: int) -> Any:
+    return Annotated[int, Field(ge=low, le=high), BeforeValidator(_whole),
+                     expecting(f"an integer between {low} and {high}")]
+
+
+def choice(values: tuple, expected: str | None = None) -> Any:
+    expected = expected or "one of " + ", ".join(map(str, values))
+    return Annotated[Literal[values], expecting(expected)]
+
+
+def described(kind: Any, description: str) -> Any:
+    """`kind` with a description for the JSON Schema."""
+    return Annotated[kind, Field(description=description)]
+
+
+Number = number("a number (mm)")
+Positive = number("a positive number", gt=0)
+PositiveMM = number("a positive number (mm)", gt=0)
+Point = Annotated[tuple[Number, Number], expecting("a pair [x, y] of numbers (mm)", items=True, length=2)]
+Name = Annotated[str, Strict(), expecting("a string")]
+NonEmptyName = Annotated[str, Strict(), Field(min_length=1), expecting("a non-empty string")]
+Flag = Annotated[bool, Strict(), expecting("true or false")]
+
+# shared by the discretization, the needle and the families of a study
+Dilation = number("a number > 1 (kernel support / spacing; at least ~1.5 for a linear basis)", gt=1)
+QuadratureOrder = integer(1, 10)
+BasisOrder = integer(1, 2)
+CellsPerSpacing = integer(1, 4)
+NeedleStep = number("a positive angle of at most 0.5 rad per step", gt=0, le=0.5)
+TipTracking = choice(TIP_TRACKING)
+LinearSolver = choice(LINEAR_SOLVERS)
+
+
+def pair(expected: str, item: Any = Number) -> Any:
+    """A pair [a, b] of `item`s; `expected` describes the pair as a whole."""
+    return Annotated[tuple[item, item], expecting(expected, items=True, length=2)]
+
+
+def sequence(item: Any, expected: str, min_length: int = 0) -> Any:
+    """A list of `item`s, held as a tuple; `expected` describes the list as a whole."""
+    return Annotated[tuple[item, ...], Field(min_length=min_length), expecting(expected, items=True)]

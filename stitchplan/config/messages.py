@@ -1,0 +1,179 @@
+"""Validation errors as the user reads them: every problem of a file, one line each,
+`<field>: got <value>, expected <what>`, in one InputError."""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import types
+import typing
+from typing import Any
+
+from pydantic import TypeAdapter, ValidationError
+from pydantic_core import PydanticCustomError
+
+from ..errors import InputError
+
+MAX_VALUE_CHARS = 60
+MAPPING_ERRORS = ("dataclass_type", "dataclass_exact_type", "model_type", "dict_type",
+                  "model_attributes_type")
+
+
+def input_error(lines: list[str]) -> InputError:
+    """One InputError for all `lines`: str() joins them, `.lines` keeps them apart."""
+    error = InputError("\n".join(lines))
+    error.lines = list(lines)
+    return error
+
+
+@functools.cache
+def adapter(kind: Any) -> TypeAdapter:
+    return TypeAdapter(kind)
+
+
+def validate(kind: Any, raw: Any, path: str = "", root: str | None = None,
+             context: dict | None = None) -> Any:
+    """`raw` validated as `kind`, or an InputError listing every problem. Field paths start
+    at `path` (a block's name, "" for a whole file); `root` names the value itself (default:
+    `path`)."""
+    try:
+        return adapter(kind).validate_python(raw, context=context)
+    except ValidationError as error:
+        raise input_error(error_lines(error, kind, path, root or path or "value")) from None
+
+
+def valid_or_none(kind: Any, raw: Any) -> Any:
+    """`raw` as `kind`, or None when it is not valid (its own errors are reported elsewhere)."""
+    try:
+        return adapter(kind).validate_python(raw)
+    except ValidationError:
+        return None
+
+
+def combined(errors: list, title: str = "config") -> ValidationError:
+    """One ValidationError from pydantic's error dicts and `problem(...)`s (errors of the
+    validated value itself) together: a validator adding its own problems to those of the
+    fields raises this, and pydantic places them below the validator's own path."""
+    details = []
+    for error in errors:
+        if isinstance(error, PydanticCustomError):
+            error = {"type": error, "loc": (), "input": None}
+        elif not isinstance(error["type"], PydanticCustomError):
+            error = {**error, "type": PydanticCustomError(error["type"], error["msg"], error.get("ctx"))}
+        details.append({key: error[key] for key in ("type", "loc", "input")})
+    return ValidationError.from_exception_data(title, details)
+
+
+# --- one line per error ------------------------------------------------------------------
+
+
+def short(value: Any) -> str:
+    """The value as given, on one short line (tuples shown as the lists a file gives)."""
+    def plain(v: Any) -> Any:
+        if isinstance(v, (tuple, list)):
+            return [plain(item) for item in v]
+        if isinstance(v, dict):
+            return {k: plain(item) for k, item in v.items()}
+        return v
+
+    text = " ".join(repr(plain(value)).split())
+    return text if len(text) <= MAX_VALUE_CHARS else text[:MAX_VALUE_CHARS - 4] + " ..."
+
+
+def field_path(base: str, loc: tuple) -> str:
+    path = base
+    for key in loc:
+        if isinstance(key, int):
+            path += f"[{key}]"
+        else:
+            path = f"{path}.{key}" if path else str(key)
+    return path
+
+
+def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "value") -> list[str]:
+    lines = []
+    for e in error.errors(include_url=False):
+        loc, ctx = tuple(e["loc"]), e.get("ctx") or {}
+        if "field" in ctx:
+            loc += tuple(ctx["field"].split("."))
+        path = field_path(base, loc) or root
+        value = ctx.get("value", e.get("input"))
+        if e["type"] == "expected":
+            lines.append(f"{path}: got {short(value)}, expected {ctx['expected']}")
+        elif e["type"] == "missing":
+            what = expected_of(kind, loc)
+            lines.append(f"{path}: missing, required" + (f": {what}" if what else ""))
+        elif e["type"] in ("extra_forbidden", "unexpected_keyword_argument", "invalid_key"):
+            lines.append(_unknown_key(kind, loc, field_path(base, loc[:-1]) or root))
+        elif e["type"] in MAPPING_ERRORS:
+            keys = _keys(_block_at(kind, loc))
+            what = "a mapping" + (f" with keys among: {', '.join(keys)}" if keys else "")
+            lines.append(f"{path}: got {short(value)}, expected {what}")
+        else:
+            what = e["msg"].removeprefix("Input should be ").removeprefix("Value error, ")
+            lines.append(f"{path}: got {short(value)}, expected {what}")
+    return lines
+
+
+def _unknown_key(kind: Any, loc: tuple, parent: str) -> str:
+    key, allowed = loc[-1], _keys(_block_at(kind, loc[:-1]))
+    line = f"{parent}: unknown key {key!r}, expected one of: {', '.join(allowed)}"
+    close = difflib.get_close_matches(str(key), allowed, n=1)
+    return line + (f" (did you mean {close[0]!r}?)" if close else "")
+
+
+# --- what the models expect at a field path -------------------------------------------------
+
+
+def _keys(block: Any) -> list[str]:
+    fields = getattr(block, "__pydantic_fields__", None)
+    return list(fields) if fields else []
+
+
+def _strip(kind: Any) -> Any:
+    """The type inside Optional[...] and Annotated[...]."""
+    while True:
+        if typing.get_origin(kind) is typing.Annotated:
+            kind = typing.get_args(kind)[0]
+        elif typing.get_origin(kind) in (typing.Union, types.UnionType):
+            args = [a for a in typing.get_args(kind) if a is not type(None)]
+            if len(args) != 1:
+                return kind
+            kind = args[0]
+        else:
+            return kind
+
+
+def _block_at(kind: Any, loc: tuple) -> Any:
+    """The type at `loc` below `kind` (a pydantic dataclass or model, or a container of them)."""
+    for key in loc:
+        kind = _strip(kind)
+        fields = getattr(kind, "__pydantic_fields__", None)
+        if isinstance(key, str) and fields and key in fields:
+            kind = fields[key].annotation
+        elif isinstance(key, int) and typing.get_origin(kind) in (tuple, list):
+            args = typing.get_args(kind)
+            kind = args[0] if len(args) == 2 and args[1] is Ellipsis else args[min(key, len(args) - 1)]
+        else:
+            return None
+    return _strip(kind)
+
+
+def expected_of(kind: Any, loc: tuple) -> str | None:
+    """The "expected ..." text of the field at `loc`, if its type carries one."""
+    if not loc:
+        return None
+    parent = _block_at(kind, loc[:-1])
+    fields = getattr(parent, "__pydantic_fields__", None) or {}
+    info = fields.get(loc[-1]) if isinstance(loc[-1], str) else None
+    if info is None:
+        return None
+    for item in info.metadata:
+        text = getattr(getattr(item, "func", None), "expected", None)
+        if text:
+            return text
+    block = _block_at(kind, loc)
+    if dataclasses.is_dataclass(block):
+        return "a mapping with keys among: " + ", ".join(_keys(block))
+    return info.description

@@ -1,0 +1,203 @@
+"""Reports, plots and summary lines of `stitchplan calibrate`: fitted.yaml and its plots for
+the Lamé moduli, needle.yaml and its plot for friction and cutting force."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .. import __version__
+from .files import write_yaml
+
+if TYPE_CHECKING:
+    from ..calibration import MaterialFit, NeedleFit
+
+MATERIAL_HEADER = ("# stitchplan calibrate material: Lame moduli fitted to marker displacements\n"
+                   "# (thesis eq. A.3). Paste the `material:` block into a scenario's `tissue:` block.\n")
+NEEDLE_HEADER = ("# stitchplan calibrate needle: friction (N/mm) and cutting force (N) from force\n"
+                 "# recordings (thesis section 5.2). Paste both into a scenario's `needle:` block.\n")
+
+
+def _round(value: float | None, digits: int = 6) -> float | None:
+    return None if value is None or not math.isfinite(value) else float(f"{value:.{digits}g}")
+
+
+def _created() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def _spread(values: np.ndarray) -> float:
+    """Sample standard deviation, 0 for a single value."""
+    return float(values.std(ddof=1)) if len(values) > 1 else 0.0
+
+
+# --- material -------------------------------------------------------------------------
+
+
+def material_report(result: MaterialFit) -> dict:
+    """fitted.yaml: `material:` pastes into a scenario's tissue block; `fit:` says how well
+    the moduli are determined; `diagnostics:` how the fit ran."""
+    distances = result.distances
+    return {
+        "material": {
+            "model": result.problem.fit.model,
+            "lame_lambda": _round(result.lame_lambda),
+            "lame_mu": _round(result.lame_mu),
+        },
+        # the same figures at the top level, as SCENARIO.md names them
+        "lame_lambda": _round(result.lame_lambda),
+        "lame_mu": _round(result.lame_mu),
+        "residual_mean_mm": _round(float(distances.mean())),
+        "residual_std_mm": _round(_spread(distances)),
+        "fit": _material_quality(result),
+        "diagnostics": _material_diagnostics(result),
+    }
+
+
+def _material_quality(result: MaterialFit) -> dict:
+    distances = result.distances
+    per_experiment = []
+    for k, (experiment, residual) in enumerate(zip(result.problem.experiments, result.residuals)):
+        e = np.linalg.norm(residual, axis=1)
+        per_experiment.append({
+            "name": experiment.name or f"experiments[{k}]",
+            "markers": len(e),
+            "residual_mean_mm": _round(float(e.mean())),
+            "residual_std_mm": _round(_spread(e)),
+            "residual_max_mm": _round(float(e.max())),
+        })
+    return {
+        "residual_mean_mm": _round(float(distances.mean())),
+        "residual_std_mm": _round(_spread(distances)),
+        "residual_max_mm": _round(float(distances.max())),
+        "residual_rms_mm": _round(math.sqrt(result.cost / len(distances))),
+        "cost_mm2": _round(result.cost),
+        "standard_uncertainty": {
+            "lame_lambda": _round(result.standard_uncertainty[0], 3),
+            "lame_mu": _round(result.standard_uncertainty[1], 3),
+        },
+        "correlation": _round(result.correlation, 4),
+        "lambda_over_mu": _round(result.lambda_over_mu),
+        "lambda_over_mu_uncertainty": _round(result.lambda_over_mu_uncertainty, 3),
+        "identifiable": result.identifiable,
+        "warnings": list(result.warnings),
+        "markers": len(distances),
+        "experiments": per_experiment,
+    }
+
+
+def _material_diagnostics(result: MaterialFit) -> dict:
+    problem, grid, d = result.problem, result.grid, result.problem.discretization
+    return {
+        "forward_solves": result.forward_solves,
+        "grid_forward_solves": result.grid_solves,
+        "refinement_forward_solves": result.forward_solves - result.grid_solves,
+        "cold_starts": result.cold_starts,
+        "newton_iterations": result.newton_iterations,
+        "wall_seconds": round(result.wall_seconds, 3),
+        "search_range": {"lame_lambda": list(problem.fit.lame_lambda),
+                         "lame_mu": list(problem.fit.lame_mu)},
+        "grid": {
+            "points_per_axis": problem.fit.grid_points,
+            "scale": problem.fit.grid_scale,
+            "best": {"lame_lambda": _round(grid.best[0]), "lame_mu": _round(grid.best[1]),
+                     "cost_mm2": _round(float(np.nanmin(grid.cost)))},
+            "failed_points": grid.failed,
+        },
+        "least_squares": {**result.optimizer, "start": [_round(v) for v in grid.best]},
+        "discretization": {"particles": result.particles, "spacing_mm": d.spacing,
+                           "dilation": d.dilation, "quadrature_order": d.quadrature_order,
+                           "basis_order": d.basis_order},
+        "source": problem.source,
+        "stitchplan_version": __version__,
+        "created_utc": _created(),
+    }
+
+
+def material_plots(result: MaterialFit, folder: str | Path) -> list[Path]:
+    """cost_surface.png (grid, start and optimum, refinement path) and marker_residuals.png."""
+    from .plots import plot_cost_surface, plot_marker_residuals
+
+    folder = Path(folder)
+    grid, problem = result.grid, result.problem
+    paths = [folder / "cost_surface.png", folder / "marker_residuals.png"]
+    plot_cost_surface(paths[0], grid.lame_lambda, grid.lame_mu, grid.cost, grid.best,
+                      (result.lame_lambda, result.lame_mu), result.path,
+                      log_axes=problem.fit.grid_scale == "log")
+    plot_marker_residuals(
+        paths[1], problem.tissue.size,
+        [e.markers for e in problem.experiments], [e.measured for e in problem.experiments],
+        result.simulated, [[load.segment for load in e.loads] for e in problem.experiments],
+        [e.name or f"experiments[{k}]" for k, e in enumerate(problem.experiments)])
+    return paths
+
+
+def write_material_outputs(result: MaterialFit, out: str | Path,
+                           plot_dir: str | Path | None = None) -> None:
+    """Plots first, then the fitted YAML (atomically), so fitted.yaml appears only on success."""
+    if plot_dir is not None:
+        material_plots(result, plot_dir)
+    write_yaml(out, material_report(result), MATERIAL_HEADER)
+
+
+def material_summary_line(result: MaterialFit) -> str:
+    u = result.standard_uncertainty
+    spread = [f" +- {value:.2g}" if value is not None else "" for value in u]
+    flag = "" if result.identifiable else " (NOT identifiable: see warnings)"
+    return (f"calibrate material: lame_lambda {result.lame_lambda:.6g}{spread[0]} MPa, lame_mu "
+            f"{result.lame_mu:.6g}{spread[1]} MPa{flag}; marker residual "
+            f"{result.distances.mean():.4g} +- {_spread(result.distances):.2g} mm; "
+            f"{result.forward_solves} forward solves, {result.wall_seconds:.2f} s")
+
+
+# --- needle ---------------------------------------------------------------------------
+
+
+def needle_report(result: NeedleFit) -> dict:
+    """needle.yaml: `friction` and `cutting_force` paste into a scenario's needle block."""
+    fit, background = result.tissue_fit, result.background
+    return {
+        "friction": _round(result.friction),
+        "cutting_force": _round(result.cutting_force),
+        "diagnostics": {
+            "radius_mm": result.radius,
+            "standard_uncertainty": {"friction": _round(result.standard_uncertainty[0], 3),
+                                     "cutting_force": _round(result.standard_uncertainty[1], 3)},
+            "r_squared": _round(fit.r_squared),
+            "residual_std_N": _round(fit.residual_std, 4),
+            "samples": {"air": len(result.air), "tissue": len(result.tissue)},
+            "inserted_length_mm": [_round(float(result.inserted_length.min())),
+                                   _round(float(result.inserted_length.max()))],
+            "background": {"offset_N": _round(background.intercept),
+                           "slope_N_per_rad": _round(background.slope),
+                           "residual_std_N": _round(background.residual_std, 4),
+                           "angle_range_rad": [_round(float(result.air[0, 0])),
+                                               _round(float(result.air[-1, 0]))]},
+            "warnings": list(result.warnings),
+            "air": result.sources[0],
+            "tissue": result.sources[1],
+            "stitchplan_version": __version__,
+            "created_utc": _created(),
+        },
+    }
+
+
+def write_needle_outputs(result: NeedleFit, out: str | Path, plot: str | Path | None = None) -> None:
+    """The plot first, then needle.yaml (atomically)."""
+    if plot is not None:
+        from .plots import plot_needle_forces
+
+        plot_needle_forces(plot, result.air, result.tissue, result.background.intercept,
+                           result.background.slope, result.inserted_length, result.corrected,
+                           result.friction, result.cutting_force)
+    write_yaml(out, needle_report(result), NEEDLE_HEADER)
+
+
+def needle_summary_line(result: NeedleFit) -> str:
+    u = result.standard_uncertainty
+    return (f"calibrate needle: friction {result.friction:.6g} +- {u[0]:.2g} N/mm, cutting_force "
+            f"{result.cutting_force:.6g} +- {u[1]:.2g} N (R^2 {result.tissue_fit.r_squared:.4f})")

@@ -1,0 +1,59 @@
+"""The files and lines of `stitchplan study`: study.csv (one row per run), speed_accuracy.png
+and the summary printed by the command. The study itself is stitchplan.study.sweep."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from ..study.sweep import StudyResult, StudyRun
+from .files import write_csv
+from .plots import plot_speed_accuracy
+
+COLUMNS = ("family", "label", "spacing_mm", "coarse_spacing_mm", "grading", "dilation",
+           "quadrature_order", "basis_order", "step_rad", "tip_tracking", "linear_solver", "particles",
+           "wall_seconds", "cpu_seconds", "steps", "newton_iterations", "minres_iterations", "events",
+           "exit_error_mm", "achieved_exit_def_x", "achieved_exit_def_y", "achieved_exit_x",
+           "achieved_exit_y", "exit_deviation_mm", "material_exit_deviation_mm",
+           "exit_error_deviation_mm", "deviation_mm", "pareto", "status", "reason")
+DEVIATIONS = ("exit_deviation_mm", "material_exit_deviation_mm", "exit_error_deviation_mm", "deviation_mm")
+
+
+def study_row(run: StudyRun) -> list:
+    """The run's row of study.csv, in COLUMNS order (nan where a failed run has no value)."""
+    d, needle = run.scenario.discretization, run.scenario.needle
+    r = run.result
+    grading = round(d.spacing / d.needle_spacing) if d.needle_spacing else 1
+    steps = r.steps if r is not None else []
+    nan2 = (math.nan, math.nan)
+    return [
+        run.family, run.label, run.spacing, d.spacing, grading, d.dilation, d.quadrature_order,
+        d.basis_order, needle.step, needle.tip_tracking, needle.linear_solver, run.particles,
+        run.wall_seconds, run.cpu_seconds, len(steps), sum(s.newton_iterations for s in steps),
+        sum(s.minres_iterations for s in steps), len(r.events) if r is not None else 0,
+        r.exit_error_mm if r is not None else math.nan,
+        *(r.achieved_exit_def if r is not None else nan2), *(r.achieved_exit if r is not None else nan2),
+        *(run.deviations.get(key, math.nan) for key in DEVIATIONS),
+        str(run.pareto).lower(), run.status, run.reason,
+    ]
+
+
+def write_study_outputs(result: StudyResult, out: str | Path) -> tuple[Path, Path]:
+    """out/study.csv (one row per run) and out/speed_accuracy.png, each written atomically."""
+    out = Path(out)
+    csv_path, png_path = out / "study.csv", out / "speed_accuracy.png"
+    write_csv(csv_path, COLUMNS, [study_row(run) for run in result.runs])
+    plot_speed_accuracy(png_path, result)
+    return csv_path, png_path
+
+
+def summary_lines(result: StudyResult) -> list[str]:
+    """What `stitchplan study` prints: the counts, the reference, the Pareto front, the notes."""
+    ok = [r for r in result.runs if r.ok]
+    lines = [f"study: {len(result.runs)} runs ({len(ok)} ok, {len(result.runs) - len(ok)} failed); "
+             f"reference {result.reference.label}: {result.reference.particles} particles, "
+             f"{result.reference.wall_seconds:.2f} s"]
+    for run in sorted(result.front, key=lambda r: r.wall_seconds):
+        lines.append(f"  Pareto: {run.label:32s} {run.particles:6d} particles {run.wall_seconds:7.2f} s  "
+                     f"deviation {run.deviation_mm:.4f} mm")
+    return lines + [f"note: {note}" for note in result.notes]

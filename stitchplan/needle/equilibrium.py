@@ -1,0 +1,246 @@
+"""The state of one needle insertion and its constrained equilibrium (thesis eq. 3.59-3.65).
+
+The state is the tissue's free coefficients, the needle track Gamma_N with one multiplier
+per needle point, and the needle centre C. After each needle point is added, Newton
+brings the tissue to equilibrium on the saddle-point system of eq. 3.62,
+
+    r_u = f_int(d) - f_needle(d) + G(d) lambda = 0,    g_k(d) = |x_k - C| - R = 0,
+
+under friction along the inserted needle and the cutting force at its tip (needle/coupling.py).
+
+Algorithm 1 raises the insertion force in small increments until the tip force reaches the
+cutting threshold, then adds a point. In the quasi-static limit the state at which each
+point is added is the one solved here directly: friction over the inserted length plus the
+threshold force at the tip (tests/test_simulation.py checks the two agree).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..config import Scenario
+from ..errors import InputError, InsertionFailure, InvertedMaterial
+from ..events import Event, EventKind
+from ..tissue.assembly import Assembler
+from ..tissue.model import build_tissue_model
+from ..tissue.solver import checked_deformation_gradient
+from .coupling import NeedleCoupling
+from .geometry import needle_zone, scenario_needle
+from .saddle_point import SaddlePointSolver, condition_numbers
+
+log = logging.getLogger(__name__)
+
+CONSTRAINT_TOLERANCE = 1e-9  # mm, needle points on the needle after each converged step
+
+
+@dataclass(frozen=True)
+class Residuals:
+    """The residuals of eq. 3.62 at one state, with what their linearisation needs."""
+
+    residual: np.ndarray  # r_u = f_int - f_needle + G lambda, (2 n_free,)
+    violation: np.ndarray  # g_k = |x_k - C| - R, (k,)
+    normal: np.ndarray  # n_k, (k, 2)
+    rho: np.ndarray  # |x_k - C|, (k,)
+    needle_force: float  # |f_needle|, N
+
+    @property
+    def worst_violation(self) -> float:
+        return float(np.abs(self.violation).max()) if len(self.violation) else 0.0
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What `restore` brings back: the tissue, the multipliers and the centre of one state."""
+
+    free: np.ndarray
+    multipliers: np.ndarray
+    center: np.ndarray
+    violation: float
+
+
+class NeedleInsertion:
+    """The state of one insertion and the steps that change it: `add_point`, `equilibrate`,
+    `move_center`; `center_sensitivity` linearises the equilibrium in the centre."""
+
+    def __init__(self, scenario: Scenario, linear_solver: str | None = None, tip_tracking: str | None = None):
+        self.geometry = scenario_needle(scenario)  # refuses a scenario without a needle
+        if scenario.discretization.integration != "gauss":
+            raise InputError(f"discretization.integration: got {scenario.discretization.integration!r}, "
+                             "expected 'gauss' for simulate and plan (the needle's saddle-point solvers "
+                             "need the symmetric Galerkin tangent; vci is for deform and calibrate)")
+        self.scenario = scenario
+        self.needle = scenario.needle
+        self.domain = scenario.tissue.domain
+        self.linear_method = linear_solver or self.needle.linear_solver
+        self.tip_tracking = tip_tracking or self.needle.tip_tracking
+        self.timings = {"discretization": 0.0, "assembly": 0.0, "solve": 0.0, "tip_tracking": 0.0}
+        self.events: list[Event] = []
+        start = time.perf_counter()
+        self.model = build_tissue_model(scenario.tissue, scenario.discretization, needle_zone=needle_zone(scenario))
+        self.particle_values = self.model.shape_functions_at(self.model.particles).values
+        self.timings["discretization"] += time.perf_counter() - start
+        self.assembler = Assembler(self.model)
+        self.coupling = NeedleCoupling(self.model, self.geometry, self.needle)
+        self.saddle = SaddlePointSolver(self._stiffness_at_rest)
+        self.free = np.zeros((self.model.n_free, 2))
+        self.multipliers = np.zeros(0)
+        self.center = self.geometry.center.copy()
+        self.last_violation = 0.0  # max |g_k| of the last converged equilibrium, mm
+
+    def _stiffness_at_rest(self) -> sp.csr_matrix:
+        """K0, the tangent at zero deformation (eq. 3.72), from an assembler of its own so the
+        current tangent is left alone."""
+        assembler = Assembler(self.model)
+        assembler.update(np.tile(np.eye(2), (len(self.model.quadrature_weights), 1, 1)))
+        return assembler.tangent_matrix()
+
+    # --- fields ------------------------------------------------------------------------------
+
+    @property
+    def points(self) -> np.ndarray:
+        """Gamma_N, the needle points in the reference configuration, (k, 2)."""
+        return self.coupling.points
+
+    def coefficients(self) -> np.ndarray:
+        return self.model.boundary.free_map @ self.free
+
+    def displacement(self, points: np.ndarray, gradient: bool = False):
+        """u (n, 2) at reference points, and with `gradient` also grad u (n, i, J)."""
+        # a probe outside the tissue (LM trying points past the exit) may lie outside every
+        # kernel support: evaluate the field at the nearest tissue point instead
+        points = self.domain.clip(np.atleast_2d(points))
+        u, grad = self.model.field_at(points, self.coefficients(), gradients=gradient)
+        return (u, grad) if gradient else u
+
+    def particle_displacements(self) -> np.ndarray:
+        return self.particle_values @ self.coefficients()
+
+    # --- state -------------------------------------------------------------------------------
+
+    def snapshot(self) -> Snapshot:
+        return Snapshot(self.free.copy(), self.multipliers.copy(), self.center.copy(), self.last_violation)
+
+    def restore(self, snapshot: Snapshot) -> None:
+        self.free, self.multipliers = snapshot.free, snapshot.multipliers
+        self.center, self.last_violation = snapshot.center, snapshot.violation
+
+    def move_center(self, center: np.ndarray) -> None:
+        """Place the needle centre; the tissue follows at the next `equilibrate`."""
+        self.center = np.asarray(center, dtype=float)
+
+    def add_point(self, reference_point: np.ndarray) -> None:
+        """Append a needle point to Gamma_N, with a zero multiplier."""
+        self.coupling.add(reference_point)
+        self.multipliers = np.append(self.multipliers, 0.0)
+
+    # --- equilibrium -------------------------------------------------------------------------
+
+    def residuals(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray) -> Residuals:
+        """r_u and g of eq. 3.62 at (free (n_free, 2), multipliers, centre)."""
+        coefficients = self.model.boundary.free_map @ free
+        internal = self.assembler.update(checked_deformation_gradient(self.model, coefficients))
+        constraints = self.coupling.constraint_values(free, center)
+        needle_force = self.coupling.needle_force(free, center)
+        residual = internal - needle_force + self.coupling.constraint_force(multipliers, constraints.normal)
+        return Residuals(residual, constraints.violation, constraints.normal, constraints.rho,
+                         float(np.linalg.norm(needle_force)))
+
+    def _stiffness(self, multipliers: np.ndarray, state: Residuals):
+        """K + H at the state the assembler was last updated to, built when a solver asks."""
+        return lambda: self.assembler.tangent_matrix() + self.coupling.curvature(multipliers, state.normal, state.rho)
+
+    def equilibrate(self, rotation: float, step: int) -> tuple[int, int, float]:
+        """Newton on the saddle-point system (eq. 3.62) about the current centre.
+        Returns (Newton iterations, MINRES iterations, max |g_k| in mm)."""
+        settings = self.scenario.solver
+        free, multipliers = self.free.ravel().copy(), self.multipliers.copy()
+        n_dof = len(free)
+        minres_total = 0
+        previous = math.inf  # convergence measure at the last refactorization
+        for iteration in range(settings.max_iterations + 1):
+            state = self._timed_residuals(free.reshape(-1, 2), multipliers, rotation, step)
+            residual_norm, worst = float(np.linalg.norm(state.residual)), state.worst_violation
+            if (residual_norm <= settings.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
+                    and worst <= CONSTRAINT_TOLERANCE):
+                self.free, self.multipliers, self.last_violation = free.reshape(-1, 2), multipliers, worst
+                return iteration, minres_total, worst
+            if iteration == settings.max_iterations or not np.isfinite(residual_norm):
+                break
+            rhs = -np.concatenate([state.residual, state.violation])
+            t0 = time.perf_counter()
+            constraints = self.coupling.constraint_matrix(state.normal)
+            solution = None
+            if self.linear_method == "minres":
+                solution, its = self._minres_step(state, multipliers, constraints, rhs, rotation, step)
+                minres_total += its
+            if solution is None:
+                # keep the factor of K while Newton contracts fast; renew it when it slows
+                measure = residual_norm / max(state.needle_force, 1e-12) + worst
+                solution = self.saddle.solve_direct(self._stiffness(multipliers, state), constraints, rhs,
+                                                    measure > 0.2 * previous, self.coupling.expanded_rows,
+                                                    state.normal)
+                previous = measure
+            self.timings["solve"] += time.perf_counter() - t0
+            free = free + solution[:n_dof]
+            multipliers = multipliers + solution[n_dof:]
+        raise InsertionFailure(
+            f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
+            f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} iterations")
+
+    def _timed_residuals(self, free: np.ndarray, multipliers: np.ndarray, rotation: float, step: int) -> Residuals:
+        t0 = time.perf_counter()
+        try:
+            return self.residuals(free, multipliers, self.center)
+        except InvertedMaterial as error:
+            raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): {error}") from None
+        finally:
+            self.timings["assembly"] += time.perf_counter() - t0
+
+    def _minres_step(self, state: Residuals, multipliers: np.ndarray, constraints: sp.csr_matrix,
+                     rhs: np.ndarray, rotation: float, step: int) -> tuple[np.ndarray | None, int]:
+        """A Newton step by MINRES; None (and an event) when it stagnates."""
+        curvature = self.coupling.curvature(multipliers, state.normal, state.rho)
+        solution, its = self.saddle.solve_minres(
+            lambda v: self.assembler.tangent_product(v) + curvature @ v, constraints, rhs,
+            self.coupling.expanded_rows, state.normal)
+        if solution is None:
+            self.saddle.fallbacks += 1
+            message = (f"MINRES stagnated after {its} iterations at step {step} (needle rotation "
+                       f"{rotation:.3f} rad): fell back to the direct solve")
+            self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
+            log.warning(message)
+        return solution, its
+
+    def center_sensitivity(self, point: np.ndarray) -> np.ndarray:
+        """d u(point) / d C (2 x 2) of the constrained equilibrium at the current state.
+
+        Differentiating eq. 3.62's residuals with respect to the needle centre C:
+        K du + G dl = -d r_u/dC dC with d r_u/dC = -sum_k lambda_k N_k^T (I - n_k n_k^T) / rho_k,
+        and G^T du = -d g/dC dC with d g_k/dC = -n_k^T; solved with the current factor of K.
+        """
+        state = self.residuals(self.free, self.multipliers, self.center)
+        constraints = self.coupling.constraint_matrix(state.normal)
+        force_change = self.coupling.center_derivative(self.multipliers, state.normal, state.rho)  # (2 n_free, 2)
+        row = self.model.shape_functions_at(point[None]).values @ self.model.boundary.free_map
+        n_dof = 2 * self.model.n_free
+        columns = []
+        for j in range(2):
+            rhs = -np.concatenate([force_change[:, j], -state.normal[:, j]])
+            solution = self.saddle.solve_direct(self._stiffness(self.multipliers, state), constraints, rhs, False,
+                                                self.coupling.expanded_rows, state.normal)
+            columns.append((row @ solution[:n_dof].reshape(-1, 2))[0])
+        return np.column_stack(columns)
+
+    def condition_numbers(self) -> tuple[float, float]:
+        """cond of the saddle matrix at the current state, and of the block-preconditioned one
+        (figures 5.2-5.8); dense, for small systems."""
+        state = self.residuals(self.free, self.multipliers, self.center)
+        stiffness = self._stiffness(self.multipliers, state)()
+        return condition_numbers(stiffness, self.coupling.constraint_matrix(state.normal),
+                                 self.saddle.stiffness_at_rest)

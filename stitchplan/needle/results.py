@@ -1,0 +1,65 @@
+"""Typed records of an insertion: one per needle step, and the whole run (what the writers,
+the planner and the studies read)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import Scenario
+from ..events import Event
+from ..tissue.model import TissueModel
+from .geometry import NeedleGeometry
+
+
+@dataclass
+class NeedleStep:
+    step: int
+    rotation: float  # rad since entry
+    center: np.ndarray  # (2,) needle centre, spatial
+    needle_tip: np.ndarray  # (2,) rigid needle tip, spatial
+    tip_reference: np.ndarray  # (2,) tip material point, reference
+    tip_spatial: np.ndarray  # (2,) tip material point, spatial
+    needle_points: int
+    friction_force: float  # N, total along the needle
+    cutting_force: float  # N
+    newton_iterations: int
+    minres_iterations: int
+    constraint_violation: float  # mm, max |g_k|
+    tracking: str
+    exit_displacement: np.ndarray  # (2,) u at the desired exit point
+    planner_iterations: int = 0
+    condition_saddle: float = float("nan")
+    condition_preconditioned: float = float("nan")
+
+    @property
+    def insertion_force(self) -> float:
+        return self.friction_force + self.cutting_force
+
+
+@dataclass
+class InsertionResult:
+    scenario: Scenario
+    model: TissueModel
+    geometry: NeedleGeometry
+    steps: list[NeedleStep]
+    displacements: np.ndarray  # (n_steps + 1, NP, 2) particle displacements, step 0 = rest
+    needle_points: np.ndarray  # (k, 2) reference trajectory Gamma_N at exit
+    desired_exit: np.ndarray
+    desired_exit_def: np.ndarray
+    achieved_exit: np.ndarray
+    achieved_exit_def: np.ndarray
+    exit_rotation: float
+    wall_seconds: float
+    timings: dict[str, float]
+    events: list[Event] = field(default_factory=list)
+    solver_counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def exit_error_mm(self) -> float:
+        return float(np.linalg.norm(self.achieved_exit_def - self.desired_exit_def))
+
+    @property
+    def exit_error_material_mm(self) -> float:
+        return float(np.linalg.norm(self.achieved_exit - self.desired_exit))

@@ -1,0 +1,130 @@
+"""One configured insertion, run and timed: what the study's sweep (stitchplan.study.sweep)
+and the auto discretization's selection (stitchplan.study.auto) both do, many times.
+
+A run that fails is recorded with its reason, never raised: a sweep wants every row, and
+the selection wants to know which configurations it cannot use. Only the failures a
+configuration can cause are caught (RUN_FAILURES); anything else is a bug and escapes.
+
+Exit points are compared with `exit_deviations`; see stitchplan.study.sweep for why three
+ways.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import statistics
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..config import Scenario
+from ..errors import StitchplanError
+from ..events import Event, EventKind
+from ..needle.geometry import needle_zone
+from ..needle.insertion import run_insertion
+from ..tissue.model import graded_particles, grid_particles
+
+if TYPE_CHECKING:
+    from ..needle.results import InsertionResult
+
+log = logging.getLogger(__name__)
+
+# what a run may end with because of its configuration:
+RUN_FAILURES = (
+    # the project's own errors: a discretization the scenario checks refuse (InputError, e.g. a
+    # quadratic basis with too small a dilation) and numerical failures of an accepted one
+    # (SolverDivergence, InvertedMaterial, SingularMomentMatrix, TipTrackingJump, InsertionFailure)
+    StitchplanError,
+    # dense linear algebra on a degenerate model: numpy's solves and factorizations
+    np.linalg.LinAlgError,
+    # SuperLU (scipy.sparse.linalg.splu) raises a bare RuntimeError on an exactly singular factor
+    # (too few particles or quadrature points to pin the tissue down)
+    RuntimeError,
+    # a model too fine for the machine: the sweep records it and goes on with the coarser runs
+    MemoryError,
+)
+
+
+@dataclass
+class InsertionRun:
+    """One configured insertion of a study or of the auto selection, with its timing and
+    outcome (filled in by `run_timed`)."""
+
+    family: str  # the sweep's method family; the auto selection's purpose ("resolution", ...)
+    label: str
+    scenario: Scenario
+    spacing: float  # particle spacing at the needle, mm
+    particles: int = 0
+    wall_seconds: float = math.nan  # the insertion's own wall time (median over repeats)
+    cpu_seconds: float = math.nan
+    status: str = "ok"  # "ok" or "failed"
+    reason: str = ""  # "<exception type>: <message>" when failed
+    result: InsertionResult | None = None  # when ok
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def tip_tracking(self) -> str:
+        return self.scenario.needle.tip_tracking
+
+    @property
+    def linear_solver(self) -> str:
+        return self.scenario.needle.linear_solver
+
+
+def count_particles(scenario: Scenario) -> int:
+    """Particles of the scenario's discretization, without building shape functions."""
+    d = scenario.discretization
+    zone = needle_zone(scenario)
+    if zone is not None:
+        return len(graded_particles(scenario.tissue.size, d.spacing, d.needle_spacing,
+                                    np.asarray(zone[0]), zone[1]).particles)
+    return len(grid_particles(scenario.tissue.size, d.spacing)[0])
+
+
+def run_timed(run: InsertionRun, repeats: int = 1) -> InsertionRun:
+    """Run the insertion (`repeats` times for the timing medians) and fill in `run`; a
+    failure (RUN_FAILURES) is recorded with its reason, never raised. Returns `run`."""
+    try:
+        run.particles = count_particles(run.scenario)  # known even when the run fails
+    except RUN_FAILURES:
+        run.particles = 0
+    walls, cpus = [], []
+    for _ in range(repeats):
+        start, cpu = time.perf_counter(), time.process_time()
+        try:
+            result = run_insertion(run.scenario)
+        except RUN_FAILURES as error:
+            run.status, run.reason = "failed", f"{type(error).__name__}: {error}"
+            run.wall_seconds = time.perf_counter() - start
+            run.cpu_seconds = time.process_time() - cpu
+            run.result = None
+            log.info("run %s failed: %s", run.label, run.reason)
+            return run
+        walls.append(result.wall_seconds)
+        cpus.append(time.process_time() - cpu)
+        run.result = result
+    run.particles = run.result.model.n_particles
+    run.wall_seconds, run.cpu_seconds = statistics.median(walls), statistics.median(cpus)
+    return run
+
+
+def exit_deviations(result, reference) -> dict[str, float]:
+    """Distances (mm) between the exit points of two insertions: the spatial achieved exit,
+    the material achieved exit, the exit-error vector, and the largest of the three."""
+    spatial = float(np.linalg.norm(result.achieved_exit_def - reference.achieved_exit_def))
+    material = float(np.linalg.norm(result.achieved_exit - reference.achieved_exit))
+    error = float(np.linalg.norm((result.achieved_exit_def - result.desired_exit_def)
+                                 - (reference.achieved_exit_def - reference.desired_exit_def)))
+    return {"exit_deviation_mm": spatial, "material_exit_deviation_mm": material,
+            "exit_error_deviation_mm": error, "deviation_mm": max(spatial, material, error)}
+
+
+def events_of(result: InsertionResult, kind: EventKind) -> list[Event]:
+    """The run's events of one kind (e.g. EventKind.MINRES_FALLBACK), in order."""
+    return [event for event in result.events if event.kind is kind]

@@ -1,0 +1,275 @@
+"""The command line as a tool: version, `python -m stitchplan`, instant `--help`, choices in the
+help, the schema command, logging levels, and the error contract: usage errors and the
+project's input errors are `error:` lines with exit code 2, numerical failures one line with
+exit code 1, and anything else a bug that shows its traceback."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+import stitchplan
+from stitchplan import cli
+from stitchplan.cli import app
+from stitchplan.errors import InputError, NumericalFailure
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+HEAVY = ("numpy", "scipy", "h5py", "matplotlib")
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def run_module(*args, **options) -> subprocess.CompletedProcess:
+    """`python -m stitchplan ARGS` in a fresh interpreter."""
+    return subprocess.run([sys.executable, "-m", "stitchplan", *map(str, args)], capture_output=True,
+                          text=True, **options)
+
+
+def one_error_line(result, code: int) -> str:
+    assert result.exit_code == code, result.output
+    assert result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert "Traceback" not in result.output and "╭" not in result.output  # no rich box
+    return lines[0]
+
+
+# --- version, python -m, start-up ------------------------------------------------------------
+
+
+def test_version_option_prints_the_package_version():
+    result = invoke("--version")
+    assert result.exit_code == 0
+    assert result.stdout == f"stitchplan {stitchplan.__version__}\n"
+    assert stitchplan.__version__ == "0.2.0"
+
+
+def test_pyproject_takes_its_version_from_the_package():
+    project = tomllib.loads((REPOSITORY / "pyproject.toml").read_text())
+    assert "version" not in project["project"] and "version" in project["project"]["dynamic"]
+    assert project["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "stitchplan.__version__"}
+    assert project["project"]["scripts"]["stitchplan"] == "stitchplan.cli:main"
+
+
+def test_python_dash_m_works_like_the_command():
+    help_run = run_module("--help")
+    assert help_run.returncode == 0, help_run.stderr
+    for command in ("deform", "simulate", "plan", "calibrate", "study", "schema"):
+        assert command in help_run.stdout
+    assert "Exit codes" in help_run.stdout and "--install-completion" in help_run.stdout
+    version_run = run_module("--version")
+    assert (version_run.returncode, version_run.stdout) == (0, f"stitchplan {stitchplan.__version__}\n")
+
+
+def test_help_and_version_import_no_numerics(tmp_path):
+    """--help (top level and of a command) and --version load none of numpy, scipy, h5py,
+    matplotlib: the modules loaded are listed by the interpreter that ran them."""
+    listing = tmp_path / "modules.json"
+    script = (
+        "import json, sys\n"
+        "from stitchplan.cli import app\n"
+        "for args in (['--help'], ['--version'], ['plan', '--help'], ['simulate', '--help'],\n"
+        "             ['calibrate', 'material', '--help']):\n"
+        "    try:\n"
+        "        app(args)\n"
+        "    except SystemExit as done:\n"
+        "        assert done.code == 0, (args, done.code)\n"
+        f"open({str(listing)!r}, 'w').write(json.dumps(sorted(sys.modules)))\n"
+    )
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    loaded = {name.split(".")[0] for name in json.loads(listing.read_text())}
+    assert "stitchplan" in loaded and "typer" in loaded  # the listing is real
+    assert not loaded & set(HEAVY), sorted(loaded & set(HEAVY))
+
+
+# --- choices -------------------------------------------------------------------------------------
+
+
+def test_choice_enums_equal_the_config_choices():
+    from stitchplan.config import LINEAR_SOLVERS, TIP_TRACKING
+
+    assert tuple(choice.value for choice in cli.LinearSolver) == tuple(LINEAR_SOLVERS)
+    assert tuple(choice.value for choice in cli.TipTracking) == tuple(TIP_TRACKING)
+
+
+@pytest.mark.parametrize("command", ["simulate", "plan"])
+def test_help_lists_the_choices(command):
+    result = CliRunner().invoke(app, [command, "--help"], env={"COLUMNS": "250"})  # no wrapping
+    assert result.exit_code == 0
+    assert "<direct|minres>" in result.stdout
+    assert "<auto|inverse-gradient|levenberg-marquardt>" in result.stdout
+
+
+def test_choice_option_reaches_the_command_as_its_value(monkeypatch, tmp_path):
+    """--linear-solver minres arrives at the numerics as the string 'minres'."""
+    seen = {}
+
+    def fake_resolve(scenario, tip_tracking, linear_solver):
+        seen.update(tip_tracking=tip_tracking, linear_solver=linear_solver)
+        raise NumericalFailure("stop here")
+
+    monkeypatch.setattr("stitchplan.study.auto.resolve_accuracy", fake_resolve)
+    scenario = write_needle_scene(tmp_path)
+    result = invoke("simulate", scenario, "--linear-solver", "minres", "--tip-tracking", "inverse-gradient")
+    assert one_error_line(result, 1) == "error: stop here"
+    assert seen == {"tip_tracking": "inverse-gradient", "linear_solver": "minres"}
+    assert type(seen["linear_solver"]) is str
+
+
+# --- usage errors --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("args,expected", [
+    (["deform", "{scenario}", "--spacing", "abc"], "error: --spacing: got 'abc', expected a number"),
+    (["deform", "{scenario}", "--spacing", "0"], "error: --spacing: got 0.0, expected a positive number (mm)"),
+    (["deform", "{scenario}", "--dilation", "nan"], "error: --dilation: got nan, expected a number > 1"),
+    (["simulate", "{scenario}", "--linear-solver", "lu"],
+     "error: --linear-solver: got 'lu', expected one of direct, minres"),
+    (["plan", "{scenario}"], "error: missing option '--export'; see 'stitchplan plan --help'"),
+    (["deform", "{scenario}", "--unknown"], "error: no such option: --unknown"),
+    (["deform"], "error: missing argument 'SCENARIO'; see 'stitchplan deform --help'"),
+    (["deform", "{scenario}", "-v", "-q"], "error: -v/--verbose and -q/--quiet: got both"),
+    (["frobnicate"], "error: no such command 'frobnicate'"),
+])
+def test_usage_error_is_one_line_with_exit_code_2(slab_path, args, expected):
+    result = CliRunner().invoke(app, [a.format(scenario=slab_path) for a in args], prog_name="stitchplan")
+    line = one_error_line(result, 2)
+    assert line.startswith(expected), line
+    assert line.count("--spacing") <= 1
+
+
+def test_usage_error_from_the_console_entry_point(tmp_path):
+    """The real entry point (no CliRunner): a missing required option is one line on stderr."""
+    run = run_module("plan", tmp_path / "scene.yaml")
+    assert run.returncode == 2
+    assert run.stdout == ""
+    assert run.stderr.splitlines() == ["error: missing option '--export'; see 'python -m stitchplan plan --help'"]
+
+
+# --- the project's errors and bugs ---------------------------------------------------------------
+
+
+def write_needle_scene(folder: Path) -> Path:
+    import yaml
+
+    path = folder / "scene.yaml"
+    path.write_text(yaml.safe_dump({
+        "tissue": {"size": [20.0, 20.0], "thickness": 10.0, "clamped": ["right"],
+                   "material": {"lame_lambda": 0.189151, "lame_mu": 0.147688}},
+        "discretization": {"spacing": 5.0},
+        "needle": {"radius": 8.88, "entry": [0.0, 18.0], "turn": "cw", "step": 0.3,
+                   "friction": 0.0602, "cutting_force": 0.7}}))
+    return path
+
+
+def test_input_error_exits_2_naming_the_file(tmp_path):
+    result = invoke("deform", tmp_path / "absent.yaml", "--summary", tmp_path / "summary.json")
+    line = one_error_line(result, 2)
+    assert "absent.yaml" in line and "cannot be read" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("how", ["lines", "newlines"])
+def test_input_error_with_several_lines_prints_each_as_an_error_line(monkeypatch, slab_path, how):
+    problems = ["tissue.thickness: got -1.0, expected a positive number (mm)",
+                "needle.step: got 0, expected a positive number (rad)"]
+
+    def fail(*args, **kwargs):
+        error = InputError("\n".join(problems))
+        if how == "lines":
+            error = InputError(f"{len(problems)} problems")
+            error.lines = problems
+        raise error
+
+    monkeypatch.setattr("stitchplan.tissue.deform.run_deform", fail)
+    result = invoke("deform", slab_path)
+    assert result.exit_code == 2
+    assert result.stderr.splitlines() == [f"error: {problem}" for problem in problems]
+    assert result.stdout == ""
+
+
+def test_numerical_failure_exits_1_with_one_line_and_no_output(monkeypatch, slab_path, tmp_path):
+    def fail(*args, **kwargs):
+        raise NumericalFailure("Newton failed at load step 3 (load fraction 0.3000) after 4 step cuts")
+
+    monkeypatch.setattr("stitchplan.tissue.deform.run_deform", fail)
+    result = invoke("deform", slab_path, "--probes-out", tmp_path / "probes.csv", "--summary",
+                    tmp_path / "summary.json")
+    line = one_error_line(result, 1)
+    assert line == "error: Newton failed at load step 3 (load fraction 0.3000) after 4 step cuts"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["slab_edge_load.yaml"]
+
+
+@pytest.mark.parametrize("bug", [ZeroDivisionError("division by zero"), ValueError("operands could not be broadcast"),
+                                 KeyError("spacing")])
+def test_an_unexpected_exception_is_not_swallowed(monkeypatch, slab_path, bug):
+    """Anything but the project's own errors is a bug: it propagates (CliRunner keeps it) and the
+    command fails; it is not turned into an `error:` line."""
+    def fail(*args, **kwargs):
+        raise bug
+
+    monkeypatch.setattr("stitchplan.tissue.deform.run_deform", fail)
+    result = invoke("deform", slab_path)
+    assert result.exit_code != 0
+    assert result.exception is bug
+    assert "error:" not in result.output
+
+
+def test_an_unexpected_exception_shows_its_traceback(slab_path):
+    """In a real process the bug ends with Python's traceback and a non-zero exit code."""
+    script = ("import sys\n"
+              "import stitchplan.tissue.deform as deform\n"
+              "def broken(*args, **kwargs):\n"
+              "    raise ZeroDivisionError('a bug')\n"
+              "deform.run_deform = broken\n"
+              "from stitchplan.cli import main\n"
+              f"sys.argv = ['stitchplan', 'deform', {str(slab_path)!r}]\n"
+              "main()\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 1
+    assert "Traceback (most recent call last)" in run.stderr
+    assert run.stderr.strip().splitlines()[-1] == "ZeroDivisionError: a bug"
+    assert "error:" not in run.stderr
+
+
+# --- logging -------------------------------------------------------------------------------------
+
+
+def test_verbosity_levels_of_deform(slab_path):
+    """Default: nothing on stderr for a clean run; -v: the load steps with their Newton
+    iterations (INFO); -vv: every Newton iteration (DEBUG); -q: nothing but errors."""
+    runs = {flags: invoke("deform", slab_path, "--spacing", "10", *flags)
+            for flags in ((), ("-v",), ("-vv",), ("-q",))}
+    for flags, result in runs.items():
+        assert result.exit_code == 0, (flags, result.output)
+        assert result.stdout.startswith("deform: 121 particles, 10 load steps")
+    assert runs[()].stderr == "" and runs[("-q",)].stderr == ""
+    info = runs[("-v",)].stderr.splitlines()
+    steps = [line for line in info if ": load step " in line]
+    assert len(steps) == 10 and all(line.startswith("INFO stitchplan.tissue.deform: ") for line in steps)
+    assert "load step 10/10: load fraction 1.000" in steps[-1] and "Newton iterations" in steps[-1]
+    assert not any(line.startswith("DEBUG") for line in info)
+    debug = runs[("-vv",)].stderr.splitlines()
+    assert sum("Newton iteration 1:" in line for line in debug) >= 10  # at least one per load step
+    assert all(line.startswith(("INFO ", "DEBUG ")) for line in debug)
+
+
+# --- schema --------------------------------------------------------------------------------------
+
+
+def test_schema_prints_the_json_schema_of_scenario_files():
+    result = invoke("schema")
+    assert result.exit_code == 0, result.output
+    schema = json.loads(result.stdout)
+    assert isinstance(schema, dict)
+    assert {"tissue", "needle", "loads"} <= set(schema["properties"])
+    assert "tissue" in schema.get("required", [])

@@ -1,0 +1,174 @@
+"""The JSON Schema of scenario files (`stitchplan schema`): it names every key a file may
+have, refuses unknown ones, lists the choices, says each field's unit, and the shipped
+scenarios satisfy it (checked by a small validator of the schema subset below, and by
+jsonschema when it is installed)."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from stitchplan.config import (
+    EDGES,
+    INTEGRATIONS,
+    LINEAR_SOLVERS,
+    MATERIAL_MODELS,
+    TIP_TRACKING,
+    load_scenario,
+    scenario_schema,
+)
+
+CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
+TOP_LEVEL = ["name", "tissue", "discretization", "needle", "loads", "load_steps", "probes", "solver",
+             "planner", "robot", "study"]
+
+
+@pytest.fixture(scope="module")
+def schema() -> dict:
+    return scenario_schema()
+
+
+def resolve(schema: dict, node: dict) -> dict:
+    while "$ref" in node:
+        node = schema["$defs"][node["$ref"].rsplit("/", 1)[1]]
+    return node
+
+
+def problems(schema: dict, node: dict, value, path: str = "scenario") -> list[str]:
+    """Where `value` breaks `node`: the keywords pydantic's schemas use ($ref, anyOf, type,
+    enum, properties, required, additionalProperties, items, prefixItems, min/maxItems,
+    minimum, maximum, exclusiveMinimum, minLength)."""
+    node = resolve(schema, node)
+    if "anyOf" in node:
+        options = [problems(schema, option, value, path) for option in node["anyOf"]
+                   if value is None or option.get("type") != "null"]
+        return [] if any(not found for found in options) else min(options, key=len)
+    kinds = {"object": dict, "array": list, "string": str, "boolean": bool, "null": type(None)}
+    kind = node.get("type")
+    if kind in ("number", "integer"):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not ok or (kind == "integer" and not isinstance(value, int)):
+            return [f"{path}: not {kind}"]
+    elif kind is not None and not isinstance(value, kinds[kind]):
+        return [f"{path}: not {kind}"]
+    found = []
+    if "enum" in node and value not in node["enum"]:
+        found.append(f"{path}: {value!r} not in {node['enum']}")
+    for keyword, broken in (("minimum", lambda b: value < b), ("maximum", lambda b: value > b),
+                            ("exclusiveMinimum", lambda b: value <= b),
+                            ("minLength", lambda b: len(value) < b),
+                            ("minItems", lambda b: len(value) < b), ("maxItems", lambda b: len(value) > b)):
+        if keyword in node and broken(node[keyword]):
+            found.append(f"{path}: breaks {keyword} {node[keyword]}")
+    if isinstance(value, dict):
+        properties = node.get("properties", {})
+        found += [f"{path}.{key}: required" for key in node.get("required", []) if key not in value]
+        for key, item in value.items():
+            if key in properties:
+                found += problems(schema, properties[key], item, f"{path}.{key}")
+            elif node.get("additionalProperties") is False:
+                found.append(f"{path}.{key}: unknown key")
+    if isinstance(value, list):
+        prefix = node.get("prefixItems", [])
+        for i, item in enumerate(value):
+            item_schema = prefix[i] if i < len(prefix) else node.get("items")
+            if item_schema is not None:
+                found += problems(schema, item_schema, item, f"{path}[{i}]")
+    return found
+
+
+def objects(schema: dict):
+    """Every object schema: the root and each definition."""
+    yield "scenario", schema
+    yield from schema["$defs"].items()
+
+
+def test_schema_is_json_with_a_title_and_every_top_level_key(schema):
+    assert json.loads(json.dumps(schema)) == schema
+    assert schema["title"] == "stitchplan scenario" and "2020-12" in schema["$schema"]
+    assert list(schema["properties"]) == TOP_LEVEL
+    assert schema["required"] == ["tissue"]
+
+
+def test_every_block_refuses_unknown_keys_and_describes_its_fields(schema):
+    for name, node in objects(schema):
+        assert node["type"] == "object" and node["additionalProperties"] is False, name
+        for key, field in node["properties"].items():
+            assert field.get("description"), f"{name}.{key} has no description"
+
+
+@pytest.mark.parametrize("path, choices", [
+    (("tissue", "material", "model"), MATERIAL_MODELS),
+    (("tissue", "clamped", "items"), EDGES),
+    (("needle", "turn"), ("cw", "ccw")),
+    (("needle", "tip_tracking"), TIP_TRACKING),
+    (("needle", "linear_solver"), LINEAR_SOLVERS),
+    (("discretization", "integration"), INTEGRATIONS),
+])
+def test_choices_are_enums(schema, path, choices):
+    node = schema
+    for key in path:
+        node = resolve(schema, node)
+        node = node["items"] if key == "items" else node["properties"][key]
+        if "anyOf" in node:
+            node = next(option for option in node["anyOf"] if option.get("type") != "null")
+    assert sorted(resolve(schema, node)["enum"]) == sorted(choices)
+
+
+@pytest.mark.parametrize("path, unit", [
+    (("tissue", "size"), "mm"), (("tissue", "thickness"), "mm"), (("tissue", "material", "lame_mu"), "MPa"),
+    (("needle", "step"), "rad"), (("needle", "friction"), "N per mm"), (("needle", "cutting_force"), "N"),
+    (("discretization", "spacing"), "mm"),
+])
+def test_descriptions_give_units(schema, path, unit):
+    node = schema
+    for key in path:
+        node = resolve(schema, node)
+        if "anyOf" in node:
+            node = next(option for option in node["anyOf"] if option.get("type") != "null")
+        node = resolve(schema, node)["properties"][key]
+    assert unit in node["description"]
+
+
+def test_file_required_keys_have_no_default(schema):
+    material = schema["$defs"]["Material"]
+    assert set(material["required"]) == {"lame_lambda", "lame_mu"}
+    assert "default" not in material["properties"]["lame_mu"]
+    assert {"radius", "entry", "turn", "step"} <= set(schema["$defs"]["Needle"]["required"])
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
+def test_shipped_scenarios_satisfy_the_schema_and_the_models(schema, path):
+    load_scenario(path)
+    assert problems(schema, schema, yaml.safe_load(path.read_text())) == []
+
+
+def test_the_check_refuses_what_the_schema_forbids(schema, slab_raw):
+    """The validator above can fail: unknown keys, choices, bounds, types."""
+    raw = copy.deepcopy(slab_raw)
+    raw["colour"] = "red"
+    raw["tissue"]["material"]["model"] = "mooney-rivlin"
+    raw["tissue"]["thickness"] = -1.0
+    raw["load_steps"] = "ten"
+    raw["needle"] = {"radius": 8.88, "entry": [0.0, 30.0], "turn": "up", "step": 0.8}
+    assert sorted(problems(schema, schema, raw)) == [
+        "scenario.colour: unknown key",
+        "scenario.load_steps: not integer",
+        "scenario.needle.step: breaks maximum 0.5",
+        "scenario.needle.turn: 'up' not in ['cw', 'ccw']",
+        "scenario.tissue.material.model: 'mooney-rivlin' not in ['saint-venant-kirchhoff', 'neo-hookean']",
+        "scenario.tissue.thickness: breaks exclusiveMinimum 0",
+    ]
+
+
+def test_jsonschema_agrees_when_installed(schema, slab_raw):
+    jsonschema = pytest.importorskip("jsonschema")
+    for path in CONFIGS:
+        jsonschema.validate(yaml.safe_load(path.read_text()), schema)
+    slab_raw["tissue"]["colour"] = "red"
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(slab_raw, schema)
