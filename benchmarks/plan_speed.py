@@ -55,7 +55,7 @@ def command_seconds(arguments: list[str]) -> float:
     with tempfile.TemporaryDirectory() as folder:
         for _ in range(REPEATS):
             start = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "stitchplan.cli", "plan", *arguments,
+            subprocess.run([sys.executable, "-m", "stitchplan", "plan", *arguments,
                             "--export", str(Path(folder) / "trajectory.csv")],
                            check=True, capture_output=True)
             samples.append(time.perf_counter() - start)

@@ -214,7 +214,7 @@ class NeedleInsertion:
             message = (f"MINRES stagnated after {its} iterations at step {step} (needle rotation "
                        f"{rotation:.3f} rad): fell back to the direct solve")
             self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
-            log.warning(message)
+            log.info(message)  # the user sees it once, as a `note:` from the event
         return solution, its
 
     def center_sensitivity(self, point: np.ndarray) -> np.ndarray:

@@ -136,7 +136,7 @@ def track_step(insertion: NeedleInsertion, step: int, rotation: float) -> tuple[
                 raise InsertionFailure(jumped) from None
             message = f"{jumped}; fell back to Levenberg-Marquardt"
             insertion.events.append(Event(EventKind.TIP_TRACKING_FALLBACK, message, step, rotation))
-            log.warning(message)
+            log.info(message)  # the user sees it once, as a `note:` from the event
             return track_tip(insertion, rotation_step, LEVENBERG_MARQUARDT), LEVENBERG_MARQUARDT
     finally:
         insertion.timings["tip_tracking"] += time.perf_counter() - t0

@@ -133,7 +133,7 @@ class ExitTracker:
             raise PlanningFailure(f"planning failed: {reason}")
         message = f"planning: {reason}; the step keeps the best centre tried (mismatch {best.mismatch:.3g} mm)"
         insertion.events.append(Event(kind, message, step, rotation))
-        log.warning(message)
+        log.info(message)  # the user sees it once, as a `note:` from the event
         insertion.restore(best.state)
 
 

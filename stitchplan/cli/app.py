@@ -1,0 +1,146 @@
+"""The `stitchplan` command group: the app, its error handling and exit codes.
+
+Errors end as `error:` lines with the exit codes of EXIT_CODES; anything else is a bug and
+shows its traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable
+from enum import Enum
+from typing import Any
+
+import typer
+from typer.core import TyperGroup
+
+from .. import __version__
+
+# the numerics are sparse and small-dense; BLAS threads only compete with each other on a
+# busy machine (set the variable yourself to override)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+EXIT_CODES = (
+    "Exit codes: 0 done; 1 a numerical method failed on an accepted input (one `error:` line "
+    "says what and where); 2 unusable input: a scenario field, an option or an input file "
+    "(`error:` lines name it, the value received and what was expected). A traceback is a bug "
+    "in stitchplan (exit code 1): please report it."
+)
+
+
+class Commands(TyperGroup):
+    """The app's command group. Run standalone (the `stitchplan` script, `python -m
+    stitchplan`, typer's CliRunner) it runs the commands with click's own error handling
+    off and reports the errors a user can act on as `error:` lines (see `exit_code`)."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        run = super().main
+        if not standalone_mode:
+            return run(args, prog_name, complete_var, standalone_mode=False, **extra)
+        sys.exit(exit_code(lambda: run(args, prog_name, complete_var, standalone_mode=False, **extra)))
+
+
+app = typer.Typer(
+    cls=Commands,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,  # a bug shows Python's plain traceback
+    help="Simulate curved suture needle insertion into deformable tissue and plan the "
+    "needle-centre trajectory that compensates the deformation.",
+    epilog=EXIT_CODES,
+)
+calibrate_app = typer.Typer(no_args_is_help=True, help="Fit model parameters to measurements.")
+app.add_typer(calibrate_app, name="calibrate")
+
+
+def main() -> None:
+    """Console entry point of `stitchplan` and `python -m stitchplan`."""
+    app()
+
+
+# --- errors ----------------------------------------------------------------------------------
+
+
+def exit_code(run: Callable[[], Any]) -> int:
+    """Run the app (click's standalone mode off) and return its exit code. The project's own
+    errors (stitchplan.errors) and click's usage errors become `error:` lines on stderr; any
+    other exception propagates with its traceback."""
+    from ..errors import StitchplanError  # no imports of its own: stays instant
+
+    click_errors = sys.modules[typer.BadParameter.__module__]  # click's, or typer's copy of it
+    try:
+        result = run()
+    except StitchplanError as error:
+        _echo_errors(getattr(error, "lines", None) or str(error).splitlines() or [type(error).__name__])
+        return error.exit_code
+    except click_errors.UsageError as error:
+        if type(error).__name__ == "NoArgsIsHelpError":  # bare `stitchplan`: the help was the answer
+            if error.format_message().strip():  # typer's rich help has already been printed
+                error.show()
+            return error.exit_code
+        _echo_errors([usage_message(error, click_errors)])
+        return error.exit_code
+    except (typer.Abort, getattr(click_errors, "Abort", typer.Abort)):
+        _echo_errors(["aborted"])
+        return 1
+    except click_errors.ClickException as error:
+        _echo_errors([error.format_message()])
+        return error.exit_code
+    return result if isinstance(result, int) else 0  # click returns typer.Exit's code
+
+
+def _echo_errors(lines: list[str]) -> None:
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+
+
+# what typer's value checks expected, by pydantic error type
+_EXPECTED = {"float_parsing": "a number", "float_type": "a number", "int_parsing": "an integer",
+             "int_from_float": "an integer", "bool_parsing": "true or false",
+             "finite_number": "a finite number"}
+
+
+def usage_message(error, click_errors) -> str:
+    """One line in the project's style: `--spacing: got 'abc', expected a number`."""
+    param = getattr(error, "param", None)
+    if (isinstance(error, click_errors.BadParameter) and param is not None
+            and not isinstance(error, click_errors.MissingParameter)):
+        name = "/".join(param.opts) if getattr(param, "opts", None) else param.human_readable_name
+        return f"{name}: {_bad_value(error)}"
+    message = error.format_message().strip().rstrip(".")
+    message = message[:1].lower() + message[1:]
+    ctx = getattr(error, "ctx", None)
+    return f"{message}; see '{ctx.command_path} --help'" if ctx is not None else message
+
+
+def _bad_value(error) -> str:
+    message = error.message.removeprefix("Value error, ")
+    issues = error.__cause__.errors() if hasattr(error.__cause__, "errors") else []  # pydantic
+    if not issues or "input" not in issues[0]:
+        return message
+    choices = _choices(error.param)
+    expected = "one of " + ", ".join(choices) if choices else _EXPECTED.get(issues[0].get("type"))
+    return f"got {issues[0]['input']!r}, expected {expected}" if expected else message
+
+
+def _choices(param) -> list[str]:
+    """The allowed values of a choice parameter (typer's descriptor, or click's Choice type)."""
+    choices = (getattr(getattr(param, "type_descriptor", None), "choices", None)
+               or getattr(getattr(param, "type", None), "choices", None) or ())
+    return [choice.value if isinstance(choice, Enum) else str(choice) for choice in choices]
+
+
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"stitchplan {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
+    pass
