@@ -13,6 +13,10 @@ The scikit-fem model solves the same problem as stitchplan:
     with the MMD_AT_PLUS_A ordering that stitchplan also uses);
   * probe displacements by interpolation (Basis.probes).
 Everything is per unit thickness (thickness cancels between f_int and the traction).
+`solve_skfem` also takes prescribed-displacement segments (Dirichlet values on every dof of
+the segment's facets, scaled with the load fraction), grades the mesh toward the segment
+ends inside an edge (`grading` levels) and returns the segments' reactions; the load-segment
+comparison in benchmarks/deform_segments.py uses that.
 
 One run of this script:
   1. verification: a fine skfem solve (Q2, h = 1.25 mm) against a fine stitchplan solve
@@ -131,14 +135,22 @@ def dead_traction(v, w):
 # --- the model ------------------------------------------------------------------------------
 
 
-def mesh_lines(length: float, cells: int, breaks: list[float]) -> np.ndarray:
-    """Roughly `cells` uniform intervals on [0, length] that keep every break point as a node."""
+def mesh_lines(length: float, cells: int, breaks: list[float], graded: list[float] = (),
+               levels: int = 0) -> np.ndarray:
+    """Roughly `cells` uniform intervals on [0, length] that keep every break point as a node;
+    with `levels`, lines at distances h/2, h/4, ..., h/2^levels on both sides of each `graded`
+    point (geometric grading toward the singular points, h = length / cells)."""
     knots = np.unique(np.clip([0.0, length, *breaks], 0.0, length))
     pieces = []
     for a, b in zip(knots[:-1], knots[1:]):
         n = max(1, int(round(cells * (b - a) / length)))
         pieces.append(np.linspace(a, b, n + 1)[:-1])
-    return np.append(np.concatenate(pieces), length)
+    lines = np.append(np.concatenate(pieces), length)
+    h = length / cells
+    extra = [p + s * h / 2**k for p in graded for k in range(1, levels + 1) for s in (-1.0, 1.0)]
+    extra = [x for x in extra if 0.0 < x < length]
+    lines = np.unique(np.concatenate([lines, extra]))
+    return lines[np.concatenate([[True], np.diff(lines) > 1e-9 * length])]
 
 
 @dataclass
@@ -150,29 +162,39 @@ class SkfemRun:
     probe_displacements: np.ndarray
     newton_iterations: int
     seconds: float
+    reactions: np.ndarray | None = None  # (n_loads, 2) N, as stitchplan's reactions.csv
 
 
-def solve_skfem(scenario: Scenario, element: str, cells: int) -> SkfemRun:
-    """Build the mesh and bases, run the load-stepped Newton solve, interpolate the probes."""
+def solve_skfem(scenario: Scenario, element: str, cells: int, grading: int = 0) -> SkfemRun:
+    """Build the mesh and bases, run the load-stepped Newton solve, interpolate the probes.
+
+    Force segments are dead tractions, displacement segments Dirichlet conditions on every
+    dof of the segment's facets (nodes and edge midpoints), scaled with the load fraction;
+    `grading` adds that many geometric levels of mesh lines around the segment ends that lie
+    inside an edge (the singular points)."""
     start = time.perf_counter()
     tissue, material = scenario.tissue, scenario.tissue.material
     if material.model != "saint-venant-kirchhoff":
         raise ValueError("this reference implements St. Venant-Kirchhoff only")
-    if any(load.displacement is not None for load in scenario.loads):
-        raise ValueError("this reference implements force (dead traction) loads only")
     width, height = tissue.size
     tol = 1e-9 * max(width, height)
 
     x_breaks = [p[0] for load in scenario.loads for p in load.segment]
     y_breaks = [p[1] for load in scenario.loads for p in load.segment]
+    domain = tissue.domain
+    singular = [p for load in scenario.loads for p in load.segment if len(domain.edges_at(p)) == 1]
     mesh_class, scalar_element, intorder = ELEMENTS[element]
-    mesh = mesh_class.init_tensor(mesh_lines(width, cells, x_breaks),
-                                  mesh_lines(height, cells, y_breaks))
+    mesh = mesh_class.init_tensor(
+        mesh_lines(width, cells, x_breaks, [p[0] for p in singular], grading),
+        mesh_lines(height, cells, y_breaks, [p[1] for p in singular], grading))
     vector_element = ElementVector(scalar_element())
     basis = Basis(mesh, vector_element, intorder=intorder)
 
-    # dead traction per unit thickness on each loaded segment, assembled once
+    # dead traction per unit thickness on each loaded segment, assembled once; the dofs of
+    # each displacement segment with their final values
     external = np.zeros(basis.N)
+    final = np.zeros(basis.N)
+    held = []  # per load: (x dofs, y dofs) of a displacement segment, else None
     for load in scenario.loads:
         (x0, y0), (x1, y1) = load.segment
         lo, hi = np.minimum([x0, y0], [x1, y1]), np.maximum([x0, y0], [x1, y1])
@@ -183,7 +205,15 @@ def solve_skfem(scenario: Scenario, element: str, cells: int) -> SkfemRun:
             return ((across <= tol) & (x[0] >= lo[0] - tol) & (x[0] <= hi[0] + tol)
                     & (x[1] >= lo[1] - tol) & (x[1] <= hi[1] + tol))
 
-        facet_basis = FacetBasis(mesh, vector_element, facets=mesh.facets_satisfying(on_segment))
+        facets = mesh.facets_satisfying(on_segment)
+        if load.displacement is not None:
+            dofs = basis.get_dofs(facets=facets)
+            x_dofs, y_dofs = dofs.all(["u^1"]), dofs.all(["u^2"])
+            final[x_dofs], final[y_dofs] = load.displacement
+            held.append((x_dofs, y_dofs))
+            continue
+        held.append(None)
+        facet_basis = FacetBasis(mesh, vector_element, facets=facets)
         h0 = np.asarray(load.force) / (length * tissue.thickness)
         external += asm(dead_traction, facet_basis, h0=h0[:, None, None])
 
@@ -191,7 +221,9 @@ def solve_skfem(scenario: Scenario, element: str, cells: int) -> SkfemRun:
                  "bottom": lambda x: np.abs(x[1]) <= tol, "top": lambda x: np.abs(x[1] - height) <= tol}
     clamped = (np.unique(np.concatenate([basis.get_dofs(edge_test[e]).all() for e in tissue.clamped]))
                if tissue.clamped else np.zeros(0, dtype=np.int64))
-    free = basis.complement_dofs(clamped)
+    prescribed = np.unique(np.concatenate([clamped, *[np.concatenate(h) for h in held if h is not None]]))
+    final[clamped] = 0.0  # the clamp holds a corner it shares with a displacement segment
+    free = basis.complement_dofs(prescribed)
 
     # load-stepped full Newton, same predictor and stopping test as stitchplan.tissue.solver.newton
     settings = scenario.solver
@@ -204,6 +236,7 @@ def solve_skfem(scenario: Scenario, element: str, cells: int) -> SkfemRun:
         fraction = step / scenario.load_steps
         step_start = u.copy()
         u = u + previous_increment
+        u[prescribed] = fraction * final[prescribed]
         increment_norm = np.inf
         for iteration in range(settings.max_iterations + 1):
             first_piola, tangent = svk_response(basis.interpolate(u).grad, material.lame_lambda,
@@ -226,8 +259,15 @@ def solve_skfem(scenario: Scenario, element: str, cells: int) -> SkfemRun:
 
     probes = np.asarray(scenario.probes, dtype=float).reshape(-1, 2)
     values = (basis.probes(probes.T) @ u).reshape(2, -1).T
+    # reactions: minus the internal force (x thickness) at a segment's dofs; a force
+    # segment's is minus its load, as in stitchplan
+    first_piola, _ = svk_response(basis.interpolate(u).grad, material.lame_lambda, material.lame_mu)
+    internal = asm(internal_force, basis, P=first_piola) * tissue.thickness
+    reactions = np.array([-np.asarray(load.force, float) if dofs is None else
+                          [-internal[dofs[0]].sum(), -internal[dofs[1]].sum()]
+                          for load, dofs in zip(scenario.loads, held)])
     seconds = time.perf_counter() - start
-    return SkfemRun(element, cells, basis.N, mesh.nelements, values, iterations, seconds)
+    return SkfemRun(element, cells, basis.N, mesh.nelements, values, iterations, seconds, reactions)
 
 
 # --- the benchmark ------------------------------------------------------------------------

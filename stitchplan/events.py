@@ -16,6 +16,7 @@ class EventKind(str, Enum):
     PLANNER_EQ42_FAILED = "planner-eq42-failed"  # moving the centre moved the exit as much (eq. 4.2)
     PLANNER_NOT_CONVERGED = "planner-not-converged"  # centre iterations ran out within a step
     AUTO_DISCRETIZATION = "auto-discretization"  # what the accuracy target chose, and why
+    ACCURACY_CHECK = "accuracy-check"  # an exit error estimate or a plan's verification could not be made
 
 
 @dataclass(frozen=True)

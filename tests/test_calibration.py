@@ -270,7 +270,7 @@ def assert_refused(result, out, *fragments):
 
 BAD_RECORDINGS = {
     "wrong columns": ("angle,force\n" + "".join(f"{0.1 * i},{i}\n" for i in range(10)),
-                      ["columns 'angle,force'", "angle_rad,force_N"]),
+                      ["columns: got 'angle,force'", "angle_rad,force_N"]),
     "too short": ("angle_rad,force_N\n" + "".join(f"{0.1 * i},{i}\n" for i in range(4)),
                   ["4 samples", "at least 5"]),
     "not increasing": ("angle_rad,force_N\n0,1\n0.1,1\n0.3,1\n0.2,1\n0.4,1\n0.5,1\n",
@@ -278,7 +278,7 @@ BAD_RECORDINGS = {
     "non-numeric": ("angle_rad,force_N\n0,1\n0.1,1\n0.2,abc\n0.3,1\n0.4,1\n",
                     ["line 4", "force_N", "'abc'", "finite number"]),
     "short span": ("angle_rad,force_N\n" + "".join(f"{0.01 * i},{i}\n" for i in range(6)),
-                   ["spans 0.05 rad", "at least 0.1 rad"]),
+                   ["span of 0.05 rad", "at least 0.1 rad"]),
 }
 
 

@@ -392,12 +392,13 @@ def test_an_alias_bomb_is_one_short_line(tmp_path):
 def test_a_few_aliases_and_merge_keys_are_fine(tmp_path, slab_raw):
     path = tmp_path / "scene.yaml"
     path.write_text("tissue:\n  size: &square [100.0, 100.0]\n  thickness: 10.0\n"
-                    "  material: &phantom {lame_lambda: 0.19, lame_mu: 0.15}\n"
+                    "  material: &phantom {lame_lambda: 0.19, lame_mu: 0.15}\n  clamped: [right]\n"
                     "probes: [[0.0, 50.0]]\n"
                     "loads:\n  - &pull {segment: [[0.0, 40.0], [0.0, 60.0]], force: [1.0, 0.0]}\n"
-                    "  - {<<: *pull, force: [2.0, 0.0]}\n")
+                    "  - {<<: *pull, segment: [[0.0, 60.0], [0.0, 70.0]], force: [2.0, 0.0]}\n")
     scenario = load_scenario(path)
     assert [load.force for load in scenario.loads] == [(1.0, 0.0), (2.0, 0.0)]
+    assert scenario.loads[1].segment == ((0.0, 60.0), (0.0, 70.0))
 
 
 def test_a_file_that_is_not_utf8_is_named(tmp_path):

@@ -65,9 +65,9 @@ def test_shipped_slab_clamp_carries_the_applied_load(slab_path):
     ux, uy = result.probe_displacements[0]  # (0, 50), middle of the loaded segment
     assert ux < -0.5 and uy > 0.5
     # the probe displacement is the RK interpolant, not the coefficient of the particle at
-    # (0, 50) (grid index 0 * 21 + 10): RK functions lack the Kronecker-delta property
-    np.testing.assert_array_equal(result.model.particles[10], [0.0, 50.0])
-    assert np.abs(result.probe_displacements[0] - result.coefficients[10]).max() > 1e-6
+    # (0, 50): RK functions lack the Kronecker-delta property
+    at_probe = int(np.flatnonzero(np.all(result.model.particles == [0.0, 50.0], axis=1))[0])
+    assert np.abs(result.probe_displacements[0] - result.coefficients[at_probe]).max() > 1e-6
 
 
 @pytest.fixture
@@ -138,7 +138,8 @@ def test_deform_writes_probes_reactions_summary_and_run_log(slab_path, tmp_path)
 
     report = json.loads(summary.read_text())
     assert {"particles", "load_steps", "newton_iterations", "wall_seconds"} <= report.keys()
-    assert report["particles"] == 21 * 21  # default spacing 100/20 = 5 mm
+    # default spacing 100/20 = 5 mm, plus the particles graded toward the two segment ends
+    assert 21 * 21 < report["particles"] < 2 * 21 * 21
     assert report["load_steps"] == 10
     assert report["newton_iterations"] >= report["load_steps"]
     assert report["wall_seconds"] > 0
@@ -157,7 +158,9 @@ def test_spacing_option_overrides_the_scenario(slab_path, tmp_path):
     summary = tmp_path / "summary.json"
     result = invoke(slab_path, "--spacing", "10", "--summary", summary)
     assert result.exit_code == 0, result.output
-    assert json.loads(summary.read_text())["particles"] == 11 * 11
+    # the 10 mm grid (11 x 11) plus the particles graded toward the segment ends, fewer than
+    # the default 5 mm grid alone
+    assert 11 * 11 < json.loads(summary.read_text())["particles"] < 21 * 21
 
 
 def test_vci_integration_runs_deform_and_agrees_with_gauss(slab_path, tmp_path):
@@ -204,9 +207,6 @@ BAD_INPUTS = [
      ["tissue.material.lame_mu", "-0.2", "positive"]),
     ("zero spacing option", lambda r: r, ["--spacing", "0"], ["--spacing", "0.0", "positive number"]),
     ("small dilation option", lambda r: r, ["--dilation", "0.5"], ["--dilation", "0.5", "> 1"]),
-    ("segment without particles",
-     lambda r: with_changes(r, loads=[{"segment": [[0.0, 41.0], [0.0, 44.0]], "displacement": [1.0, 0.0]}]),
-     [], ["loads", "holds no particle", "5 mm"]),
 ]
 
 # the same, for a numerical method failing on an accepted input: exit code 1

@@ -126,6 +126,8 @@ def needle_raw(**changes) -> dict:
     ("friction", -0.1, "needle.friction: got -0.1, expected a non-negative number (N/mm)"),
     ("tip_tracking", "newton", "needle.tip_tracking: got 'newton', expected one of auto"),
     ("entry", [0.0], "needle.entry: got [0.0], expected a pair [x, y] of numbers (mm)"),
+    ("coupling", "springs", "needle.coupling: got 'springs', expected one of mortar, points"),
+    ("cutting_length", 0.0, "needle.cutting_length: got 0.0, expected a positive number (mm)"),
 ])
 def test_bad_needle_fields_are_refused_by_the_config(field, value, fragment):
     with pytest.raises(ScenarioError) as error:

@@ -130,7 +130,11 @@ def test_plan_summary_compares_planned_and_unplanned(planned):
         math.dist(summary["achieved_exit_def"], summary["desired_exit_def"]), rel=1e-12)
     unplanned = summary["unplanned_exit_error_mm"]
     assert unplanned > 0.05  # the scene deforms enough for the comparison to mean something
-    assert summary["exit_error_mm"] < 0.05 and summary["exit_error_mm"] < 0.05 * unplanned
+    # the trajectory is aimed at the refined model that verifies it (planning.verification):
+    # there it hits; on this 4 mm model the exit error is then about the models' offset
+    verified = summary["verified_exit_error_mm"]
+    assert verified < 0.05 and verified < 0.05 * unplanned
+    assert summary["exit_error_mm"] <= verified + 2 * summary["exit_error_estimate_mm"]
     assert (folder / "run.h5").stat().st_size > 0
 
 
@@ -279,14 +283,14 @@ def test_bad_scenario_for_plan(tmp_path, raw, fragments):
 @pytest.mark.parametrize("text,fragments", [
     ("step,x,y\n0,0,19.12\n", ["path.csv: columns ['step', 'x', 'y'] lack ['center_x_mm', 'center_y_mm']",
                                "expected at least step, center_x_mm, center_y_mm"]),
-    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv: row 2, center_y_mm = 'abc' is not a number"]),
+    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv: row 2, center_y_mm: got 'abc', expected a number"]),
     ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0\n", ["path.csv: row 3, center_y_mm: missing"]),
-    ("step,center_x_mm,center_y_mm\n0,inf,9.12\n", ["path.csv: row 2, center_x_mm = 'inf' is not a finite number"]),
+    ("step,center_x_mm,center_y_mm\n0,inf,9.12\n", ["path.csv: row 2, center_x_mm: got 'inf', expected a finite number"]),
     ("", ["path.csv: columns [] lack ['step', 'center_x_mm', 'center_y_mm']"]),
     ("step,center_x_mm,center_y_mm\n", ["path.csv: no rows below the header"]),
-    ("step,center_x_mm,center_y_mm\n1,0,9.12\n2,0,9.12\n", ["path.csv: steps [1, 2]", "expected 0, 1, 2"]),
-    ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0,9.12\n", ["centre path: 2 rows end before the tip exits",
-                                                            "expected one row per step"]),
+    ("step,center_x_mm,center_y_mm\n1,0,9.12\n2,0,9.12\n", ["path.csv: step: got [1, 2]", "expected 0, 1, 2"]),
+    ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0,9.12\n", ["path.csv: rows: got 2, expected",
+                                                            "as `stitchplan plan` exports them"]),
 ])
 def test_bad_center_path_for_simulate(tmp_path, text, fragments):
     scenario = write(tmp_path, small_raw())

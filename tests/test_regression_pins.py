@@ -1,6 +1,6 @@
 """Pinned results of every shipped scenario, driven through the commands themselves.
 
-These values were produced at 19ff45d (before the package was split into layers) by
+The first values were produced at 19ff45d (before the package was split into layers) by
 `stitchplan plan CONFIG --export ... --summary ...`, `stitchplan deform` and
 `stitchplan calibrate material` on the shipped files, so any restructuring that changes a
 result fails here. They pin behaviour, not accuracy: a change that makes the model more
@@ -31,29 +31,38 @@ from stitchplan.cli import app
 
 from conftest import CONFIGS, REPOSITORY
 
-# scene: (steps, particles, unplanned exit error mm, planned exit error mm)
+# scene: (steps, particles, unplanned exit error mm, planned exit error mm with --no-verify)
+# Re-pinned when the needle coupling became a mortar multiplier field with the cutting force
+# over the last 3 mm of needle (needle.coupling: mortar; benchmarks/results/needle_coupling.md)
+# and the planner limited each step's centre move (0.28 mm) and second difference (0.14 mm):
+# unplanned errors moved by +3.5 to +8.5 % on the SH 1/2 blocks and +32 to +51 % (0.005 mm)
+# on the 20 mm needle, planned ones stay below 0.0025 mm. Step and particle counts unchanged.
 NEEDLE_SCENES = {
-    "sh12_100x100": (39, 979, 0.44048060898425023, 0.0013725108379668185),
-    "sh12_100x100_mid": (39, 976, 0.3353466460243176, 0.0008165483161115336),
-    "sh12_100x50": (39, 570, 0.4502272293180277, 0.0007649592856109411),
-    "sh12_100x40": (39, 479, 0.5120957942150287, 0.0005180563770020412),
-    "sh12_100x30": (39, 382, 0.6297653360054635, 0.0005125964826848948),
-    "needle20_entry30": (20, 622, 0.01634742102105205, 0.00041285229270279566),
-    "needle20_entry25": (18, 600, 0.01339110404666896, 0.0011592337979915751),
-    "needle20_entry20": (15, 578, 0.011273591665165911, 0.001491691541293541),
-    "needle20_entry18": (14, 569, 0.010324583740310781, 0.0011423680193773612),
+    "sh12_100x100": (39, 979, 0.463900743819185, 0.0004304634449538232),
+    "sh12_100x100_mid": (39, 976, 0.3503305174827064, 2.4983576491575226e-05),
+    "sh12_100x50": (39, 570, 0.47392718492883024, 0.001960432390493724),
+    "sh12_100x40": (39, 479, 0.5426787188921418, 0.0022112722258018757),
+    "sh12_100x30": (39, 382, 0.6834936672370162, 0.0003412269064927835),
+    "needle20_entry30": (20, 622, 0.02151473727596328, 0.0002764659262456114),
+    "needle20_entry25": (18, 600, 0.018425354376392204, 3.012775860120607e-06),
+    "needle20_entry20": (15, 578, 0.01636800750610948, 5.22833298703279e-05),
+    "needle20_entry18": (14, 569, 0.015559683100830463, 0.00010135123027434702),
 }
 
+# static scenes re-pinned when load segments got a particle on each end and particles graded
+# toward the segment ends (tests/test_segments.py, benchmarks/results/deform_segments.md): the
+# slab's probes moved by at most 0.009 mm, the fitted moduli by 1.7e-4 and 4e-6 MPa; needle
+# scenes (no load segments) are unchanged
 SLAB_PROBES = np.array([
-    [0, 50, -1.35485138, 1.79257043],
-    [0, 20, -0.87308038, 1.46369531],
-    [25, 50, -0.762815644, 1.1046041],
-    [50, 50, -0.415735461, 0.623468004],
-    [50, 90, 0.101955562, 0.496815],
-    [75, 25, -0.280741479, 0.329854785],
+    [0, 50, -1.36386595, 1.79477693],
+    [0, 20, -0.872886815, 1.46409331],
+    [25, 50, -0.763060905, 1.10446388],
+    [50, 50, -0.415764045, 0.623465084],
+    [50, 90, 0.101934359, 0.49680446],
+    [75, 25, -0.280734118, 0.329852297],
 ])
 
-CALIBRATION = {"lame_lambda": 0.187319, "lame_mu": 0.147882}
+CALIBRATION = {"lame_lambda": 0.187484, "lame_mu": 0.147878}
 
 runner = CliRunner()
 
@@ -69,17 +78,16 @@ def test_planned_and_unplanned_exit_of_each_shipped_scene(scene, tmp_path):
     steps, particles, unplanned, planned = NEEDLE_SCENES[scene]
     summary = tmp_path / "summary.json"
     invoke("plan", CONFIGS / f"{scene}.yaml", "--export", tmp_path / "t.csv", "--summary", summary,
-           "--no-verify") if _has_verify() else invoke(
-        "plan", CONFIGS / f"{scene}.yaml", "--export", tmp_path / "t.csv", "--summary", summary)
+           "--no-verify")
     record = json.loads(summary.read_text())
     assert (record["steps"], record["particles"]) == (steps, particles)
     assert record["unplanned_exit_error_mm"] == pytest.approx(unplanned, abs=1e-6)
     assert record["exit_error_mm"] == pytest.approx(planned, abs=2e-4)
     assert record["exit_error_mm"] <= 0.005
-
-
-def _has_verify() -> bool:
-    return "--no-verify" in runner.invoke(app, ["plan", "--help"]).output
+    # a path a robot can follow: per 0.08 rad, centre moves <= 0.3 mm, second differences <= 0.15 mm
+    scale = yaml.safe_load((CONFIGS / f"{scene}.yaml").read_text())["needle"]["step"] / 0.08
+    assert record["max_center_step_mm"] <= 0.3 * scale
+    assert record["max_center_second_difference_mm"] <= 0.15 * scale
 
 
 def test_slab_probes_pinned(tmp_path):

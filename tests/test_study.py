@@ -246,7 +246,7 @@ def test_needle_spacing_without_a_needle_is_refused():
 
 @pytest.mark.parametrize("block, fragment", [
     ({"spacing": 4.0, "needle_spacing": 5.0}, "discretization.needle_spacing: got 5.0, expected a spacing (mm) no larger than spacing = 4 mm"),
-    ({"accuracy": 0.0}, "discretization.accuracy: got 0.0, expected a positive number (mm, exit point)"),
+    ({"accuracy": 0.0}, "discretization.accuracy: got 0.0, expected a number >= 0.001 (mm, exit point"),
     ({"needle_refinement": 0.5}, "discretization.needle_refinement: got 0.5, expected a number >= 1"),
 ])
 def test_bad_graded_and_accuracy_fields_are_refused(block, fragment):

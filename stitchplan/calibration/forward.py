@@ -59,8 +59,9 @@ class ExperimentModel:
         self.model_name = model_name
         self.scenario = Scenario(tissue=tissue, discretization=discretization, loads=experiment.loads,
                                  load_steps=experiment.load_steps, solver=settings)
-        # experiments with the same displacement segments share one discretization
-        key = tuple(load.segment for load in experiment.loads if load.displacement is not None)
+        # experiments with the same load segments (of the same kinds) share one discretization:
+        # every segment end is a particle, and displacement segments are held
+        key = tuple((load.segment, load.displacement is not None) for load in experiment.loads)
         shared = {} if shared is None else shared
         if key not in shared:
             model = model_for_scenario(self.scenario)

@@ -24,6 +24,13 @@ FORCE_COLUMNS = ("angle_rad", "force_N")
 MIN_FORCE_SAMPLES = 5
 MIN_ANGLE_SPAN = 0.1  # rad: less than ~6 degrees of rotation cannot separate slope and offset
 MIN_R_SQUARED = 0.9  # below this the corrected force is not a line in the inserted length
+# |force| bound of a recording (N). The forces that turn a suture needle are a few N (the
+# thesis's SH 1/2 needle: 0.7 N cutting + 0.06 N/mm friction over a 28 mm arc, ~2.4 N; the
+# shipped recordings stay below 2 N); 100 N (~10 kg weight) is 40 times that, far beyond what
+# a surgeon's hand or a needle driver applies to a needle of under a millimetre's wire. A
+# larger value is a unit slip (mN recorded as N) or a corrupt file, and a fit to it would
+# only overflow.
+MAX_FORCE_N = 100.0
 
 
 @dataclass
@@ -120,18 +127,24 @@ def read_force_recording(path: str | Path, label: str) -> tuple[np.ndarray, np.n
     increasing over at least MIN_ANGLE_SPAN rad."""
     data, lines = read_columns(path, FORCE_COLUMNS, label)
     angle, force = data["angle_rad"], data["force_N"]
+    beyond = np.flatnonzero(np.abs(force) > MAX_FORCE_N)
+    if len(beyond):
+        k = beyond[0]
+        raise InputError(f"{label}: {path}: line {lines[k]}, force_N: got {force[k]:g}, expected "
+                         f"|force| <= {MAX_FORCE_N:g} N (a suture needle is turned by a few N; "
+                         "is the recording in mN?)")
     if len(angle) < MIN_FORCE_SAMPLES:
-        raise InputError(f"{label}: {path}: {len(angle)} samples, expected at least "
+        raise InputError(f"{label}: {path}: rows: got {len(angle)} samples, expected at least "
                          f"{MIN_FORCE_SAMPLES}")
     steps = np.diff(angle)
     if np.any(steps <= 0):
         k = int(np.argmax(steps <= 0)) + 1
-        raise InputError(f"{label}: {path} line {lines[k]}: angle_rad {angle[k]:g} after "
+        raise InputError(f"{label}: {path}: line {lines[k]}, angle_rad: got {angle[k]:g} after "
                          f"{angle[k - 1]:g}, expected strictly increasing angles")
     span = float(angle[-1] - angle[0])
     if span < MIN_ANGLE_SPAN:
-        raise InputError(f"{label}: {path}: angle_rad spans {span:.3g} rad, expected at least "
-                         f"{MIN_ANGLE_SPAN:g} rad")
+        raise InputError(f"{label}: {path}: angle_rad: got a span of {span:.3g} rad, expected at "
+                         f"least {MIN_ANGLE_SPAN:g} rad")
     return angle, force
 
 
@@ -148,7 +161,7 @@ def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> Need
     air_angle, air_force = read_force_recording(air, "--air")
     tissue_angle, tissue_force = read_force_recording(tissue, "--tissue")
     if tissue_angle[0] < 0:
-        raise InputError(f"--tissue: {tissue}: first angle_rad {tissue_angle[0]:g}, expected "
+        raise InputError(f"--tissue: {tissue}: angle_rad: got {tissue_angle[0]:g} first, expected "
                          "angles >= 0 rad (rotation since the tip touched the tissue)")
     result = fit_needle(air_angle, air_force, tissue_angle, tissue_force, radius)
     result.sources = (str(air), str(tissue))

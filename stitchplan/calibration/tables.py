@@ -34,21 +34,21 @@ def read_columns(path: str | Path, columns: tuple[str, ...],
     rows = list(csv.reader(line for _, line in lines))
     header = [name.strip() for name in rows[0]]
     if sorted(header) != sorted(columns):
-        raise InputError(f"{where}: columns {','.join(header)!r}, expected exactly "
-                            f"{','.join(columns)!r}")
+        raise InputError(f"{where}: columns: got {','.join(header)!r}, expected exactly "
+                         f"{','.join(columns)!r}")
     values = np.empty((len(rows) - 1, len(header)))
     for r, (row, (number, _)) in enumerate(zip(rows[1:], lines[1:])):
         if len(row) != len(header):
-            raise InputError(f"{where} line {number}: {len(row)} values, expected "
-                                f"{len(header)} ({','.join(header)})")
+            raise InputError(f"{where}: line {number}: got {len(row)} values, expected "
+                             f"{len(header)} ({','.join(header)})")
         for c, text in enumerate(row):
             try:
                 value = float(text)
             except ValueError:
                 value = math.nan
             if not math.isfinite(value):
-                raise InputError(f"{where} line {number}, column {header[c]}: got "
-                                    f"{text.strip()!r}, expected a finite number")
+                raise InputError(f"{where}: line {number}, {header[c]}: got "
+                                 f"{text.strip()!r}, expected a finite number")
             values[r, c] = value
     line_numbers = np.array([number for number, _ in lines[1:]], dtype=int)
     return {name: values[:, c] for c, name in enumerate(header)}, line_numbers

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable
+from contextvars import ContextVar
 from enum import Enum
 from typing import Any
 
@@ -29,10 +30,18 @@ EXIT_CODES = (
 )
 
 
+COMMAND_LINE: ContextVar[list[str] | None] = ContextVar("COMMAND_LINE", default=None)
+
+
 class Commands(TyperGroup):
     """The app's command group. Run standalone (the `stitchplan` script, `python -m
     stitchplan`, typer's CliRunner) it runs the commands with click's own error handling
     off and reports the errors a user can act on as `error:` lines (see `exit_code`)."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        """Keeps the command line (argv as a list) in COMMAND_LINE for the outputs' provenance."""
+        COMMAND_LINE.set([info_name or "stitchplan", *args])
+        return super().make_context(info_name, args, parent=parent, **extra)
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         run = super().main

@@ -8,7 +8,8 @@ from typing import Optional
 import typer
 
 from .app import calibrate_app
-from .options import DilationOption, QuietOption, SpacingOption, VerboseOption, _check_outputs, _setup_logging
+from .options import (DilationOption, MaxParticlesOption, NoResourceCheckOption, QuietOption, SpacingOption,
+                      VerboseOption, _argv, _check_outputs, _guard_calibration, _limits, _setup_logging)
 
 
 @calibrate_app.command("material")
@@ -21,18 +22,25 @@ def calibrate_material(
         None, "--plot-dir", help="Folder for cost_surface.png and marker_residuals.png."),
     spacing: Optional[float] = SpacingOption,
     dilation: Optional[float] = DilationOption,
+    max_particles: Optional[int] = MaxParticlesOption,
+    no_resource_check: bool = NoResourceCheckOption,
     verbose: int = VerboseOption,
     quiet: bool = QuietOption,
 ) -> None:
     """Fit lame_lambda and lame_mu to marker displacements (grid search, then least squares)."""
     _setup_logging(verbose, quiet)
-    _check_outputs(out, None if plot_dir is None else plot_dir / "cost_surface.png")
     from .. import calibration
-    from ..io.calibration_reports import material_summary_line, write_material_outputs
+    from ..io.calibration_reports import material_outputs, material_summary_line, write_material_outputs
     from ..io.progress import progress_bar
 
-    result = calibration.calibrate_material(calibration_path, spacing, dilation, progress=progress_bar)
-    write_material_outputs(result, out, plot_dir)
+    outputs = material_outputs(out, plot_dir)
+    _check_outputs(outputs, {"CALIBRATION": calibration_path})
+    problem = calibration.load_material_calibration(calibration_path, spacing, dilation)
+    _guard_calibration(calibration_path, problem, _limits(max_particles, no_resource_check))
+    _check_outputs(outputs, {f"markers of experiments[{k}]": experiment.source
+                             for k, experiment in enumerate(problem.experiments)})
+    result = calibration.fit_material(problem, progress=progress_bar)
+    write_material_outputs(result, out, plot_dir, command=_argv())
     typer.echo(material_summary_line(result))
 
 
@@ -49,10 +57,10 @@ def calibrate_needle(
 ) -> None:
     """Fit needle friction (N/mm) and cutting force (N) to force recordings in air and tissue."""
     _setup_logging(verbose, quiet)
-    _check_outputs(out, plot)
+    _check_outputs({"--out": out, "--plot": plot}, {"--air": air, "--tissue": tissue})
     from .. import calibration
     from ..io.calibration_reports import needle_summary_line, write_needle_outputs
 
     result = calibration.calibrate_needle(air, tissue, radius)
-    write_needle_outputs(result, out, plot)
+    write_needle_outputs(result, out, plot, command=_argv())
     typer.echo(needle_summary_line(result))

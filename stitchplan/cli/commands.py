@@ -13,8 +13,10 @@ import typer
 from .app import app
 from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOption, ScenarioArgument,
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
-                      _check_outputs, _echo_events, _expected_steps, _load, _parse_base_transform,
-                      _parse_steps, _setup_logging, _value)
+                      MaxParticlesOption, NoResourceCheckOption, _check_outputs, _check_plot_steps,
+                      _echo_events, _expected_steps, _guard, _limits, _load, _needle_geometry,
+                      _parse_base_transform,
+                      _parse_steps, _plot_steps_note, _provenance, _setup_logging, _value)
 
 
 @app.command()
@@ -26,15 +28,29 @@ def deform(
     summary: Optional[Path] = SummaryOption,
     out: Optional[Path] = typer.Option(None, "--out", help="HDF5 run log."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="PNG of the deformed tissue."),
+    plot_scale: float = typer.Option(
+        1.0, "--plot-scale", help="Draw displacements K times enlarged in --plot (colours, numbers true)."),
     spacing: Optional[float] = SpacingOption,
     dilation: Optional[float] = DilationOption,
+    max_particles: Optional[int] = MaxParticlesOption,
+    no_resource_check: bool = NoResourceCheckOption,
     verbose: int = VerboseOption,
     quiet: bool = QuietOption,
 ) -> None:
     """Static large-deformation solve of the slab under the scenario's `loads`."""
+    from ..errors import InputError
+
     _setup_logging(verbose, quiet)
-    _check_outputs(probes_out, reactions_out, summary, out, plot)
+    if not 0 < plot_scale < math.inf:  # also refuses nan
+        raise InputError(f"--plot-scale: got {plot_scale!r}, expected a positive number (1 = true scale)")
+    _check_outputs({"--probes-out": probes_out, "--reactions-out": reactions_out, "--summary": summary,
+                    "--out": out, "--plot": plot}, {"SCENARIO": scenario_path})
     scenario = _load(scenario_path, spacing, dilation)
+    from ..config.scenario import require_loads
+
+    require_loads(scenario, scenario_path)
+    _guard(scenario_path, _limits(max_particles, no_resource_check), ("deform", scenario, "deform", 1))
+    provenance = _provenance(scenario_path)
     from ..io import reports
     from ..io.progress import progress_bar
     from ..tissue.deform import run_deform
@@ -42,7 +58,8 @@ def deform(
     with progress_bar("load steps", scenario.load_steps) as advance:
         result = run_deform(scenario, on_step=lambda step, record: advance())
     reports.write_deform_outputs(result, probes_out=probes_out, reactions_out=reactions_out,
-                                 summary=summary, out=out, plot=plot)
+                                 summary=summary, out=out, plot=plot, provenance=provenance,
+                                 plot_scale=plot_scale)
     typer.echo(reports.deform_line(result))
 
 
@@ -61,6 +78,11 @@ def simulate(
                                            help="Record condition numbers per step (dense; small models)."),
     center_path: Optional[Path] = typer.Option(
         None, "--center-path", help="Replay needle centres from a trajectory CSV (row n = step n)."),
+    estimate: bool = typer.Option(
+        True, "--estimate/--no-estimate",
+        help="Estimate the exit point's discretization error from a second run at twice the spacing."),
+    max_particles: Optional[int] = MaxParticlesOption,
+    no_resource_check: bool = NoResourceCheckOption,
     verbose: int = VerboseOption,
     quiet: bool = QuietOption,
 ) -> None:
@@ -69,27 +91,37 @@ def simulate(
     Thesis Algorithm 1. With --center-path the centre follows a trajectory instead (replay).
     """
     _setup_logging(verbose, quiet)
-    _check_outputs(out, summary, plot)
+    _check_outputs({"--out": out, "--summary": summary, "--plot": plot},
+                   {"SCENARIO": scenario_path, "--center-path": center_path})
     steps_to_plot = _parse_steps(plot_steps)
     scenario = _load(scenario_path, spacing, dilation)
+    provenance = _provenance(scenario_path)
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.readers import read_center_path
-    from ..needle.insertion import run_insertion
+    from ..planning.verification import simulate_with_estimate
     from ..study.auto import resolve_accuracy
 
     linear_solver, tip_tracking = _value(linear_solver), _value(tip_tracking)
-    path = read_center_path(center_path) if center_path is not None else None
-    scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver)
+    geometry = _needle_geometry(scenario_path, scenario)
+    path = read_center_path(center_path, geometry) if center_path is not None else None
+    _check_plot_steps(steps_to_plot, scenario)
+    limits = _limits(max_particles, no_resource_check)
+    if scenario.discretization.accuracy is None:
+        _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1))
+    scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
+                                           max_particles=None if limits is None else limits.max_particles)
     with progress_bar("needle steps", _expected_steps(scenario)) as advance:
-        result = run_insertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking,
-                               condition_numbers=condition_numbers, center_path=path,
-                               on_step=lambda record: advance())
+        result, error_estimate = simulate_with_estimate(
+            scenario, center_path=path, estimate=estimate, linear_solver=linear_solver,
+            tip_tracking=tip_tracking, condition_numbers=condition_numbers, on_step=lambda record: advance())
     if auto_note is not None:
         result.events.insert(0, auto_note)
     reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
-                                    plot_steps=steps_to_plot)
+                                    plot_steps=steps_to_plot, provenance=provenance,
+                                    extra_summary=reports.exit_estimate_summary(error_estimate))
     typer.echo(reports.insertion_line(result, "simulate"))
+    _plot_steps_note(steps_to_plot, result, quiet)
     _echo_events(result.events, quiet)
 
 
@@ -108,28 +140,36 @@ def plan(
     compare: bool = typer.Option(
         True, "--compare/--no-compare",
         help="Also run the unplanned insertion (fixed centre) and report its exit error."),
+    verify: bool = typer.Option(
+        True, "--verify/--no-verify",
+        help="Replay the trajectory on a model of half the spacing, re-aiming if it misses there."),
     spacing: Optional[float] = SpacingOption,
     dilation: Optional[float] = DilationOption,
     linear_solver: Optional[LinearSolver] = LinearSolverOption,
     tip_tracking: Optional[TipTracking] = TipTrackingOption,
+    max_particles: Optional[int] = MaxParticlesOption,
+    no_resource_check: bool = NoResourceCheckOption,
     verbose: int = VerboseOption,
     quiet: bool = QuietOption,
 ) -> None:
     """Plan and export the needle-centre trajectory that brings the tip out at the desired exit.
 
-    Thesis Algorithm 2. By default also runs the unplanned insertion for comparison.
+    Thesis Algorithm 2. By default also runs the unplanned insertion for comparison, and
+    replays the trajectory on a model of half the particle spacing (verified exit error).
     """
     from dataclasses import replace
 
     from ..errors import InputError
 
     _setup_logging(verbose, quiet)
-    _check_outputs(export, out, summary, plot)
+    _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot},
+                   {"SCENARIO": scenario_path})
     linear_solver, tip_tracking = _value(linear_solver), _value(tip_tracking)
     if angular_speed is not None and not 0 < angular_speed < math.inf:  # also refuses nan
         raise InputError(f"--angular-speed: got {angular_speed!r}, expected a positive speed in rad/s")
     transform = _parse_base_transform(base_transform)
     scenario = _load(scenario_path, spacing, dilation)
+    provenance = _provenance(scenario_path)
     robot = scenario.robot
     if transform is not None:
         robot = replace(robot, rotation_deg=transform[0], translation=transform[1], given=True)
@@ -138,19 +178,34 @@ def plan(
     scenario = replace(scenario, robot=robot,
                        planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
     from ..io import reports
-    from ..planning.planner import run_plan
+    from ..planning.verification import plan_verified
     from ..io.progress import progress_bar
 
+    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, rescaled
     from ..study.auto import resolve_accuracy
 
-    scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver)
+    limits = _limits(max_particles, no_resource_check)
+
+    def guard(scenario) -> None:
+        _guard(scenario_path, limits, ("insertion", scenario, "plan", PLAN_RUNS + compare),
+               *([("insertion", rescaled(scenario, 0.5), "plan verification", VERIFICATION_RUNS)]
+                 if verify else []))
+
+    _needle_geometry(scenario_path, scenario)  # a needle that cannot enter or exit, with the file named
+    if scenario.discretization.accuracy is None:
+        guard(scenario)
+    scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
+                                           max_particles=None if limits is None else limits.max_particles)
+    if auto_note is not None:
+        guard(scenario)  # the verification model of the chosen discretization
     expected = _expected_steps(scenario)
     with progress_bar("planned steps", (2 if compare else 1) * expected) as advance:
-        result = run_plan(scenario, compare=compare, linear_solver=linear_solver,
-                          tip_tracking=tip_tracking, on_step=lambda record: advance())
+        result = plan_verified(scenario, compare=compare, verify=verify, linear_solver=linear_solver,
+                               tip_tracking=tip_tracking, on_step=lambda record: advance())
     if auto_note is not None:
         result.planned.events.insert(0, auto_note)
-    reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot)
+    reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot,
+                               provenance=provenance)
     typer.echo(reports.plan_line(result, export))
     _echo_events(result.planned.events, quiet)
 
@@ -160,6 +215,8 @@ def study(
     scenario_path: Path = ScenarioArgument,
     out: Path = typer.Option(..., "--out", help="Folder for study.csv and speed_accuracy.png."),
     quick: bool = typer.Option(False, "--quick", help="A tiny sweep: two families, two spacings."),
+    max_particles: Optional[int] = MaxParticlesOption,
+    no_resource_check: bool = NoResourceCheckOption,
     verbose: int = VerboseOption,
     quiet: bool = QuietOption,
 ) -> None:
@@ -173,12 +230,16 @@ def study(
     _setup_logging(verbose, quiet)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out: {out} is a file, expected a folder")
-    _check_outputs(out / "study.csv")
+    from ..io.study_reports import study_outputs, summary_lines, write_study_outputs
+
+    _check_outputs(study_outputs(out), {"SCENARIO": scenario_path})
     scenario = _load(scenario_path, None, None)
     from ..io.progress import progress_bar
-    from ..io.study_reports import summary_lines, write_study_outputs
-    from ..study.sweep import run_study, study_size
+    from ..study.sweep import plan_runs, run_study, study_size
 
+    runs, reference, repeats = plan_runs(scenario, quick)
+    _guard(scenario_path, _limits(max_particles, no_resource_check),
+           *[("insertion", run.scenario, f"study run {run.label!r}", repeats) for run in [*runs, reference]])
     with progress_bar("study runs", study_size(scenario, quick)) as advance:
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label))
     csv_path, png_path = write_study_outputs(result, out)

@@ -70,11 +70,26 @@ def _load(scenario_path: Path, spacing: Optional[float], dilation: Optional[floa
     return with_discretization(load_scenario(scenario_path), spacing=spacing, dilation=dilation)
 
 
-def _check_outputs(*paths: Optional[Path]) -> None:
-    """Fail before any work if an output cannot be written."""
-    from ..io.files import check_output_paths
+def _check_outputs(outputs: dict[str, Optional[Path]], inputs: Optional[dict[str, Optional[Path]]] = None) -> None:
+    """Fail before any work if an output cannot be written or is the same file as another
+    output or an input: `{option: path}` each (None: not given)."""
+    from ..io.files import check_outputs
 
-    check_output_paths(*paths)
+    check_outputs(outputs, inputs)
+
+
+def _provenance(scenario_path: Optional[Path] = None) -> dict:
+    """Version, command line (argv), scenario path and SHA-256, time: for the summaries."""
+    from ..io.files import provenance
+
+    return provenance(_argv(), scenario_path)
+
+
+def _argv() -> Optional[list[str]]:
+    """The command line as a list (kept by cli.app.Commands), None outside a command."""
+    from .app import COMMAND_LINE
+
+    return COMMAND_LINE.get()
 
 
 def _value(choice: Optional[Enum]) -> Optional[str]:
@@ -105,6 +120,94 @@ def _expected_steps(scenario) -> int:
     from ..needle.geometry import scenario_needle
 
     return scenario_needle(scenario).expected_steps
+
+
+def _needle_geometry(scenario_path: Path, scenario):
+    """The scenario's needle geometry; a needle that cannot enter or exit is refused with
+    the file named."""
+    from ..config import input_error
+    from ..errors import InputError
+    from ..needle.geometry import scenario_needle
+
+    try:
+        return scenario_needle(scenario)
+    except InputError as error:
+        raise input_error([f"{scenario_path}: {line}" for line in getattr(error, "lines", [str(error)])]) from None
+
+
+def _check_plot_steps(steps: Optional[list[int]], scenario) -> None:
+    """--plot-steps within the run: 0 (the entry) to the last step before the undeformed
+    circle's exit (the needle geometry knows it before the run)."""
+    from ..errors import InputError
+
+    if not steps:
+        return
+    last = _expected_steps(scenario) - 1
+    outside = [step for step in steps if not 0 <= step <= last]
+    if outside:
+        raise InputError(f"--plot-steps: got {','.join(map(str, outside))}, expected steps between 0 "
+                         f"(the entry) and {last} (the needle's last step before its tip exits)")
+
+
+def _plot_steps_note(steps: Optional[list[int]], result, quiet: bool) -> None:
+    """A note when the run ended before a requested step (the plot then draws its last)."""
+    late = [step for step in steps or () if step > len(result.steps)]
+    if late and not quiet:
+        typer.echo(f"note: --plot-steps {','.join(map(str, late))}: the tip left the tissue after step "
+                   f"{len(result.steps)}; drew step {len(result.steps)} instead", err=True)
+
+
+def _max_particles(value: Optional[int]) -> Optional[int]:
+    if value is not None and value < 1:
+        raise typer.BadParameter(f"got {value!r}, expected a positive number of particles")
+    return value
+
+
+MaxParticlesOption = typer.Option(
+    None, "--max-particles", callback=_max_particles, metavar="N",
+    help="Refuse models of more than N particles (default 50000; see README: resource guard).")
+NoResourceCheckOption = typer.Option(
+    False, "--no-resource-check",
+    help="Run even when the estimated particles, needle steps, kernel neighbours or memory pass "
+    "the resource guard's limits.")
+
+
+def _limits(max_particles: Optional[int], no_resource_check: bool):
+    """The resource guard's limits (None: no check)."""
+    if no_resource_check:
+        return None
+    from ..resources import Limits
+
+    return Limits() if max_particles is None else Limits(max_particles=max_particles)
+
+
+def _guard(scenario_path: Path, limits, *runs: tuple) -> None:
+    """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
+    (kind, scenario, label, count) with kind "deform" or "insertion". Lines name the file."""
+    if limits is None:
+        return
+    from ..config import input_error
+    from ..errors import InputError
+    from ..resources import check_resources, estimate
+
+    try:
+        check_resources([estimate(scenario, kind, label, count) for kind, scenario, label, count in runs],
+                        limits)
+    except InputError as error:
+        raise input_error([f"{scenario_path}: {line}" for line in getattr(error, "lines", [str(error)])]) from None
+
+
+def _guard_calibration(calibration_path: Path, problem, limits) -> None:
+    """The resource guard on the forward model of each experiment of a material calibration
+    (run once per forward evaluation of the fit: grid^2 + max_evaluations times)."""
+    from ..config import Scenario
+
+    fit = problem.fit
+    evaluations = fit.grid_points ** 2 + fit.max_evaluations
+    _guard(calibration_path, limits, *[
+        ("deform", Scenario(tissue=problem.tissue, discretization=problem.discretization, loads=experiment.loads,
+                            load_steps=experiment.load_steps), f"experiments[{k}]", evaluations)
+        for k, experiment in enumerate(problem.experiments)])
 
 
 def _echo_events(events, quiet: bool, shown: int = 3) -> None:

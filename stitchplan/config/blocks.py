@@ -13,6 +13,7 @@ import math
 from dataclasses import asdict
 from typing import Any
 
+import numpy as np
 from pydantic import (
     ConfigDict,
     ValidationError,
@@ -142,13 +143,22 @@ class Discretization:
     needle_refinement: described(number("a number >= 1 (spacing / spacing at the needle)", ge=1) | None,
                                  "needle_spacing = spacing / needle_refinement; default 2 with a "
                                  "needle and no spacing") = None
+    # particles graded toward the ends of load segments inside an edge, where the solution
+    # is singular (stitchplan.tissue.model.end_spacing): leaf side there spacing / 2^levels,
+    # levels = segment_end_levels at the default spacing, one more per halving; 0: none
+    segment_end_levels: described(integer(0, 8), "particle refinement levels at load-segment "
+                                                 "ends (at the default spacing; one more per "
+                                                 "halving of the spacing); 0: none") = 3
     # "gauss": Galerkin with background-cell Gauss quadrature; "vci": the test-function
     # gradients corrected so that the quadrature satisfies the divergence theorem
     # (variationally consistent integration; passes the linear patch test; deform only)
     integration: described(choice(INTEGRATIONS), "gauss, or vci (variationally consistent; "
                                                  "deform and calibrate)") = "gauss"
     # exit-point accuracy (mm): the auto discretization (stitchplan.study.auto) picks the rest
-    accuracy: described(number("a positive number (mm, exit point)", gt=0) | None,
+    # at least a micrometre: the planner's own tolerance is 1e-3 mm and no robot places a
+    # needle closer than that, so a finer target only runs the auto search to its limits
+    accuracy: described(number("a number >= 0.001 (mm, exit point; a micrometre is the finest target)",
+                               ge=1e-3) | None,
                         "exit-point accuracy, mm: simulate and plan choose the discretization") = None
 
     @model_validator(mode="after")
@@ -205,6 +215,11 @@ class Needle:
     tip_tracking: described(TipTracking, "levenberg-marquardt, inverse-gradient (strict) or auto "
                                          "(inverse-gradient, LM fallback)") = "levenberg-marquardt"
     linear_solver: described(LinearSolver, "direct or minres") = "direct"
+    coupling: described(choice(("mortar", "points")),
+                        "mortar (multiplier field on the track, loads spread along it) or points "
+                        "(the thesis's one constraint per needle point)") = "mortar"
+    cutting_length: described(PositiveMM, "mm of needle behind the tip that carries the cutting "
+                                          "force (mortar coupling)") = 3.0
 
 
 @block()
@@ -255,6 +270,56 @@ class Shown(str):
 
 def segment_expectation(domain: Rectangle) -> str:
     return f"a non-empty straight piece of one edge of the {domain.describe()}"
+
+
+def shared_length(a, b, tol: float) -> float:
+    """Length (mm) two straight segments a, b (pairs of points) have in common: > 0 only
+    when they are collinear and overlap by more than a point."""
+    start, end = np.asarray(a[0], float), np.asarray(a[1], float)
+    length = float(np.linalg.norm(end - start))
+    if length == 0.0:
+        return 0.0
+    direction = (end - start) / length
+    relative = np.asarray(b, float) - start  # (2, 2)
+    across = np.abs(relative[:, 0] * direction[1] - relative[:, 1] * direction[0])
+    if np.any(across > tol):
+        return 0.0
+    along = np.sort(relative @ direction)
+    return max(0.0, min(length, along[1]) - max(0.0, along[0]))
+
+
+def load_problems(loads, clamped: tuple[str, ...], domain: Rectangle | None, path: str = "loads") -> list:
+    """The loads' conflicts with each other and with the clamped edges, as problems naming
+    `path[i].segment`: a load on a clamped edge (the clamp holds every particle there, so
+    a force would be dropped and a displacement overruled), and two loads sharing more than
+    a point of the boundary (one would silently win)."""
+    if domain is None:
+        return []
+    tol = domain.tolerance
+    problems = []
+    clamped_edges = [(name, domain.edge(name)) for name in clamped]
+    for i, load in enumerate(loads):
+        segment = [list(point) for point in load.segment]
+        on_clamp = [name for name, edge in clamped_edges if shared_length(edge, load.segment, tol) > tol]
+        if on_clamp:
+            problems.append(problem(
+                f"a segment off the clamped edges (the {on_clamp[0]} edge is clamped: it neither "
+                f"moves nor takes a load; remove it from tissue.clamped or move the load)",
+                field=f"{path}[{i}].segment", value=segment))
+            continue
+        for j in range(i):
+            common = shared_length(loads[j].segment, load.segment, tol)
+            if common > tol:
+                other = [list(point) for point in loads[j].segment]
+                problems.append(problem(
+                    f"a segment sharing at most an end point with {path}[{j}].segment {other} "
+                    f"(they share {common:.4g} mm; one load would overrule the other there)",
+                    field=f"{path}[{i}].segment", value=segment))
+    return problems
+
+
+HELD = ("at least one clamped edge or a displacement load: forces alone leave the slab free "
+        "to move and turn rigidly (no unique solution)")
 
 
 @block(title="solver")

@@ -29,6 +29,7 @@ from .blocks import (
     Tissue,
     block,
     default_spacing_of,
+    load_problems,
 )
 from .fields import (
     MATERIAL_MODELS,
@@ -109,6 +110,14 @@ class ExperimentBlock:
                           value=Shown("only forces on a tissue with no clamped edge"))
         return loads
 
+    @model_validator(mode="after")
+    def _loads_and_clamps_agree(self, info: ValidationInfo) -> ExperimentBlock:
+        context = info.context or {}
+        problems = load_problems(self.loads, context.get("clamped_edges") or (), context.get("domain"))
+        if problems:
+            raise combined(problems)
+        return self
+
 
 @block(title="fit")
 class FitBlock:
@@ -154,6 +163,8 @@ def parse_calibration(raw: Any) -> CalibrationFile:
         size = valid_or_none(Size, tissue.get("size")) if isinstance(tissue, dict) else None
         context["domain"] = None if size is None else Rectangle.of_size(size)
         context["clamped"] = not isinstance(tissue, dict) or bool(tissue.get("clamped"))
+        if isinstance(tissue, dict):
+            context["clamped_edges"] = valid_or_none(Edges, tissue.get("clamped", ()))
         given = raw.get("discretization")
         given = {} if given is None else given
         if isinstance(given, dict) and "spacing" not in given:

@@ -17,6 +17,7 @@ from pydantic import AfterValidator, ValidationInfo, model_validator
 from ..errors import InputError, ScenarioError
 from ..geometry import Rectangle
 from .blocks import (
+    HELD,
     Discretization,
     Load,
     Material,
@@ -29,6 +30,7 @@ from .blocks import (
     Tissue,
     block,
     default_spacing_of,
+    load_problems,
     parse_discretization,
     segment_expectation,
 )
@@ -46,7 +48,7 @@ from .fields import (
     problem,
     sequence,
 )
-from .messages import input_error, valid_or_none, validate
+from .messages import combined, input_error, valid_or_none, validate
 from .study import StudySpec
 from .yaml_files import read_yaml
 
@@ -129,6 +131,16 @@ class ScenarioFile:
     robot: described(RobotBlock | None, "robot base frame and needle speed for trajectory.csv") = None
     study: described(StudySpec | None, "sweep of discretizations and methods for `stitchplan study`") = None
 
+    @model_validator(mode="after")
+    def _loads_and_clamps_agree(self) -> ScenarioFile:
+        """Loads off the clamped edges and apart from each other; a slab held in place."""
+        problems = load_problems(self.loads, self.tissue.clamped, self.tissue.domain)
+        if not self.tissue.clamped and all(load.displacement is None for load in self.loads):
+            problems.append(problem(HELD, field="tissue.clamped", value=list(self.tissue.clamped)))
+        if problems:
+            raise combined(problems)
+        return self
+
     def scenario(self, source_text: str = "") -> Scenario:
         return Scenario(
             tissue=self.tissue,
@@ -199,6 +211,13 @@ def load_scenario(path: str | Path) -> Scenario:
         return parse_scenario(raw, text)
     except InputError as error:
         raise input_error([f"{path}: {line}" for line in error.lines]) from None
+
+
+def require_loads(scenario: Scenario, source: str | Path) -> None:
+    """deform needs loads: without any the slab stays at rest (one line naming the file)."""
+    if not scenario.loads:
+        raise input_error([(f"{source}: loads: got none, expected at least one load (force or "
+                            "displacement) for deform; without loads the slab stays at rest")])
 
 
 def parse_material(raw: Any, path: str = "tissue.material") -> Material:

@@ -3,7 +3,6 @@ the Lamé moduli, needle.yaml and its plot for friction and cutting force."""
 
 from __future__ import annotations
 
-import datetime as _dt
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -11,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import __version__
-from .files import write_yaml
+from .files import OutputSet, sha256, utc_now, write_yaml
 
 if TYPE_CHECKING:
     from ..calibration import MaterialFit, NeedleFit
@@ -20,6 +19,7 @@ MATERIAL_HEADER = ("# stitchplan calibrate material: Lame moduli fitted to marke
                    "# (thesis eq. A.3). Paste the `material:` block into a scenario's `tissue:` block.\n")
 NEEDLE_HEADER = ("# stitchplan calibrate needle: friction (N/mm) and cutting force (N) from force\n"
                  "# recordings (thesis section 5.2). Paste both into a scenario's `needle:` block.\n")
+MATERIAL_PLOTS = ("cost_surface.png", "marker_residuals.png")  # written into --plot-dir
 
 
 def _round(value: float | None, digits: int = 6) -> float | None:
@@ -27,7 +27,18 @@ def _round(value: float | None, digits: int = 6) -> float | None:
 
 
 def _created() -> str:
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+    return utc_now()
+
+
+def _inputs(paths: list[str]) -> dict:
+    """{path: SHA-256} of the files a fit read (the file as it is when the report is made)."""
+    digests = {}
+    for path in paths:
+        try:
+            digests[path] = sha256(path)
+        except OSError:
+            digests[path] = None
+    return digests
 
 
 def _spread(values: np.ndarray) -> float:
@@ -38,7 +49,7 @@ def _spread(values: np.ndarray) -> float:
 # --- material -------------------------------------------------------------------------
 
 
-def material_report(result: MaterialFit) -> dict:
+def material_report(result: MaterialFit, command: list[str] | None = None) -> dict:
     """fitted.yaml: `material:` pastes into a scenario's tissue block; `fit:` says how well
     the moduli are determined; `diagnostics:` how the fit ran."""
     distances = result.distances
@@ -54,7 +65,9 @@ def material_report(result: MaterialFit) -> dict:
         "residual_mean_mm": _round(float(distances.mean())),
         "residual_std_mm": _round(_spread(distances)),
         "fit": _material_quality(result),
-        "diagnostics": _material_diagnostics(result),
+        "diagnostics": {**_material_diagnostics(result), "command": command,
+                        "input_sha256": _inputs([result.problem.source]
+                                                + [e.source for e in result.problem.experiments])},
     }
 
 
@@ -119,29 +132,43 @@ def _material_diagnostics(result: MaterialFit) -> dict:
 
 
 def material_plots(result: MaterialFit, folder: str | Path) -> list[Path]:
-    """cost_surface.png (grid, start and optimum, refinement path) and marker_residuals.png."""
-    from .plots import plot_cost_surface, plot_marker_residuals
-
+    """cost_surface.png (grid, start and optimum, refinement path) and marker_residuals.png,
+    both or neither."""
     folder = Path(folder)
-    grid, problem = result.grid, result.problem
-    paths = [folder / "cost_surface.png", folder / "marker_residuals.png"]
-    plot_cost_surface(paths[0], grid.lame_lambda, grid.lame_mu, grid.cost, grid.best,
-                      (result.lame_lambda, result.lame_mu), result.path,
-                      log_axes=problem.fit.grid_scale == "log")
-    plot_marker_residuals(
-        paths[1], problem.tissue.size,
-        [e.markers for e in problem.experiments], [e.measured for e in problem.experiments],
-        result.simulated, [[load.segment for load in e.loads] for e in problem.experiments],
-        [e.name or f"experiments[{k}]" for k, e in enumerate(problem.experiments)])
+    paths = [folder / name for name in MATERIAL_PLOTS]
+    with OutputSet({str(path): path for path in paths}).staged() as files:
+        _material_plots_to(result, *files.values())
     return paths
 
 
+def _material_plots_to(result: MaterialFit, cost_path: Path, residuals_path: Path) -> None:
+    from .calibration_plots import plot_cost_surface, plot_marker_residuals
+
+    grid, problem = result.grid, result.problem
+    plot_cost_surface(cost_path, grid.lame_lambda, grid.lame_mu, grid.cost, grid.best,
+                      (result.lame_lambda, result.lame_mu), result.path,
+                      log_axes=problem.fit.grid_scale == "log", name=problem.name,
+                      residual=(float(result.distances.mean()), _spread(result.distances)),
+                      uncertainty=result.standard_uncertainty)
+    plot_marker_residuals(residuals_path, problem.tissue, problem.experiments, result.simulated,
+                          name=problem.name)
+
+
+def material_outputs(out: str | Path, plot_dir: str | Path | None = None) -> dict[str, Path | None]:
+    """The files `calibrate material` writes, by label."""
+    plots = {} if plot_dir is None else {f"--plot-dir ({name})": Path(plot_dir) / name
+                                         for name in MATERIAL_PLOTS}
+    return {"--out": Path(out), **plots}
+
+
 def write_material_outputs(result: MaterialFit, out: str | Path,
-                           plot_dir: str | Path | None = None) -> None:
-    """Plots first, then the fitted YAML (atomically), so fitted.yaml appears only on success."""
-    if plot_dir is not None:
-        material_plots(result, plot_dir)
-    write_yaml(out, material_report(result), MATERIAL_HEADER)
+                           plot_dir: str | Path | None = None, command: list[str] | None = None) -> None:
+    """fitted.yaml and the plots: all of them or none (an OutputSet)."""
+    outputs = material_outputs(out, plot_dir)
+    with OutputSet(outputs).staged() as files:
+        if plot_dir is not None:
+            _material_plots_to(result, *(files[label] for label in list(outputs)[1:]))
+        write_yaml(files["--out"], material_report(result, command), MATERIAL_HEADER)
 
 
 def material_summary_line(result: MaterialFit) -> str:
@@ -157,7 +184,7 @@ def material_summary_line(result: MaterialFit) -> str:
 # --- needle ---------------------------------------------------------------------------
 
 
-def needle_report(result: NeedleFit) -> dict:
+def needle_report(result: NeedleFit, command: list[str] | None = None) -> dict:
     """needle.yaml: `friction` and `cutting_force` paste into a scenario's needle block."""
     fit, background = result.tissue_fit, result.background
     return {
@@ -181,20 +208,26 @@ def needle_report(result: NeedleFit) -> dict:
             "air": result.sources[0],
             "tissue": result.sources[1],
             "stitchplan_version": __version__,
+            "command": command,
+            "input_sha256": _inputs(list(result.sources)),
             "created_utc": _created(),
         },
     }
 
 
-def write_needle_outputs(result: NeedleFit, out: str | Path, plot: str | Path | None = None) -> None:
-    """The plot first, then needle.yaml (atomically)."""
-    if plot is not None:
-        from .plots import plot_needle_forces
+def write_needle_outputs(result: NeedleFit, out: str | Path, plot: str | Path | None = None,
+                         command: list[str] | None = None) -> None:
+    """needle.yaml and the plot: both or neither (an OutputSet)."""
+    with OutputSet({"--out": out, "--plot": plot}).staged() as files:
+        _write_needle_files(result, files["--out"], files.get("--plot"), command)
 
-        plot_needle_forces(plot, result.air, result.tissue, result.background.intercept,
-                           result.background.slope, result.inserted_length, result.corrected,
-                           result.friction, result.cutting_force)
-    write_yaml(out, needle_report(result), NEEDLE_HEADER)
+
+def _write_needle_files(result: NeedleFit, out: Path, plot: Path | None, command: list[str] | None) -> None:
+    if plot is not None:
+        from .calibration_plots import plot_needle_forces
+
+        plot_needle_forces(plot, result)
+    write_yaml(out, needle_report(result, command), NEEDLE_HEADER)
 
 
 def needle_summary_line(result: NeedleFit) -> str:

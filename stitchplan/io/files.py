@@ -1,18 +1,33 @@
-"""Writers for results: CSV, JSON, YAML and HDF5, each written atomically.
+"""Writing results: every command's outputs as one all-or-nothing set, and the writers of
+CSV, JSON, YAML and HDF5.
 
-A file a robot or a script may pick up is written to a temporary file in the same folder
-and renamed into place, so a failed run never leaves a half-written output behind.
+`OutputSet` is the transaction of one command. Before the run, `check()` makes sure every
+output can be created (its folder exists or can be made and takes new files, the target is
+not a folder or a device, an existing target may be written) and that no two outputs, and no
+output and an input, are the same file. After the run, `staged()` hands the writers
+temporary paths beside their targets and renames them all into place only when every writer
+succeeded; if a rename fails, the ones before it are undone. So a failed run creates,
+replaces or deletes none of the user's files, and a robot never picks up a half-written or
+mismatched trajectory. Any OS error becomes one InputError line naming the file (exit 2).
+
+The writers below write to the path they are given: inside `staged()`, a temporary. (A
+script writing one file the same way: `with OutputSet({"out": path}).staged() as files:
+write_csv(files["out"], ...)`.)
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import datetime as _dt
+import hashlib
 import io
 import json
 import os
+import shutil
+import stat
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,53 +35,259 @@ import numpy as np
 
 from ..errors import InputError
 
+HDF5_SCHEMA_VERSION = 2  # 2: `units` on every dataset, provenance and library versions on the file
 
-def check_output_paths(*paths: str | Path | None) -> None:
-    """Refuse, before any work, an output that cannot be written: a file standing where a
-    folder must be, a folder given as the file name, a folder without write permission."""
-    for path in paths:
-        if path is None:
-            continue
-        path = Path(path)
-        if path.is_dir():
-            raise InputError(f"{path}: is a folder, expected a file name")
-        for parent in path.resolve().parents:
-            if parent.exists():
-                if not parent.is_dir():
-                    raise InputError(f"{path}: cannot write, {parent} is not a folder")
-                if not os.access(parent, os.W_OK | os.X_OK):
-                    raise InputError(f"{path}: cannot write, no permission to write in {parent}")
-                break
+PathLike = str | Path
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
-    """Yields a temporary path next to `path`; renames it onto `path` if the block succeeds."""
-    path = Path(path)
+class OutputSet:
+    """The outputs of one command, `{label: path}` (None entries are ignored), and the input
+    files they must not overwrite. Labels name the option in messages (`--export`)."""
+
+    def __init__(self, outputs: Mapping[str, PathLike | None],
+                 inputs: Mapping[str, PathLike | None] | None = None):
+        self.outputs = {label: Path(path) for label, path in outputs.items() if path is not None}
+        self.inputs = {label: Path(path) for label, path in (inputs or {}).items() if path is not None}
+
+    def check(self) -> OutputSet:
+        """Raise one InputError listing every output that cannot be written or coincides with
+        another output or an input; nothing is created."""
+        lines, blocked = [], set()  # folders already reported: one line for all their files
+        for label, path in self.outputs.items():
+            line = _file_problem(label, path)
+            folder = _target(path).parent
+            if line is None and folder not in blocked:
+                line = _folder_problem(label, path)
+                if line is not None:
+                    blocked.add(folder)
+            if line is not None:
+                lines.append(line)
+        labels = list(self.outputs)
+        for i, label in enumerate(labels):
+            path = self.outputs[label]
+            for other in labels[:i]:
+                if _same_file(path, self.outputs[other]):
+                    lines.append(f"{label}: got {path}, expected a file other than {other} "
+                                 f"({self.outputs[other]})")
+                    break
+            for other, source in self.inputs.items():
+                if _same_file(path, source):
+                    lines.append(f"{label}: got {path}, expected a file other than the input "
+                                 f"{other} ({source})")
+        if lines:
+            error = InputError("\n".join(lines))
+            error.lines = lines
+            raise error
+        return self
+
+    @contextlib.contextmanager
+    def staged(self) -> Iterator[dict[str, Path]]:
+        """`{label: temporary path}` for the writers; on success every temporary is renamed
+        onto its target, on any failure all are removed and folders made for them too."""
+        self.check()
+        targets = {label: _target(path) for label, path in self.outputs.items()}
+        temporaries: dict[str, Path] = {}
+        made: list[Path] = []
+        done = False
+        try:
+            for label, target in targets.items():
+                made += _make_folders(target.parent, self.outputs[label], label)
+                temporaries[label] = _temporary(target, self.outputs[label], label)
+            try:
+                yield dict(temporaries)
+            except OSError as error:
+                raise _os_error(error, temporaries, self.outputs) from None
+            _rename_all(temporaries, targets, self.outputs)
+            done = True
+        finally:
+            for temporary in temporaries.values():
+                with contextlib.suppress(OSError):
+                    os.unlink(temporary)
+            if not done:
+                for folder in reversed(made):
+                    with contextlib.suppress(OSError):
+                        folder.rmdir()
+
+
+def check_outputs(outputs: Mapping[str, PathLike | None],
+                  inputs: Mapping[str, PathLike | None] | None = None) -> OutputSet:
+    """Before any work: the command's outputs can all be written and overwrite no input."""
+    return OutputSet(outputs, inputs).check()
+
+
+# --- the checks ----------------------------------------------------------------------------
+
+
+def _target(path: Path) -> Path:
+    """Where the file lands: a symbolic link's file, so the link itself stays."""
+    return path.resolve()
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    if _target(a) == _target(b):
+        return True
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp",
-                                             dir=path.parent)
+        return os.path.samefile(a, b)  # hard links, bind mounts
+    except OSError:  # one of them does not exist yet
+        return False
+
+
+def _file_problem(label: str, path: Path) -> str | None:
+    """What about the target itself stops `path` from being written, or None."""
+    target = _target(path)
+    if target.is_dir():
+        return f"{label}: got {path}, a folder; expected a file name"
+    if target.exists() or target.is_symlink():
+        if not target.is_file():
+            return f"{label}: got {path}, not a regular file; expected a file name"
+        if not os.access(target, os.W_OK):
+            return f"{label}: cannot write {path}: the file is read-only"
+    return None
+
+
+def _folder_problem(label: str, path: Path) -> str | None:
+    """What about its folder stops `path` from being written, or None."""
+    target = _target(path)
+    folder = next(parent for parent in target.parents if parent.exists() or parent == parent.parent)
+    if not folder.is_dir():
+        return f"{label}: cannot write {path}: {folder} is not a folder"
+    try:  # the real test: a new file in the folder that exists (as root, permissions pass)
+        handle, probe = tempfile.mkstemp(prefix=".stitchplan-probe.", dir=folder)
+        os.close(handle)
+        os.unlink(probe)
     except OSError as error:
-        raise InputError(f"{path}: cannot write ({error.strerror or error})") from None
-    os.close(handle)
+        return f"{label}: cannot write {path}: cannot create a file in {folder} ({error.strerror or error})"
+    return None
+
+
+# --- staging and renaming ------------------------------------------------------------------
+
+
+def _make_folders(folder: Path, path: Path, label: str) -> list[Path]:
+    """Create `folder` and its missing parents; returns those created, outermost first."""
+    missing = [p for p in [folder, *folder.parents] if not p.exists()][::-1]
     try:
-        yield Path(temporary)
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise InputError(f"{label}: cannot write {path}: {error.strerror or error} ({folder})") from None
+    return missing
+
+
+def _temporary(target: Path, path: Path, label: str) -> Path:
+    try:
+        handle, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as error:
+        raise InputError(f"{label}: cannot write {path}: {error.strerror or error}") from None
+    os.close(handle)
+    return Path(name)
+
+
+def _file_mode(target: Path) -> int:
+    """An existing target's permissions, else the usual mode of a new file (mkstemp gives 0600)."""
+    try:
+        return stat.S_IMODE(target.stat().st_mode)
+    except FileNotFoundError:
         umask = os.umask(0)
         os.umask(umask)
-        os.chmod(temporary, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
-        os.replace(temporary, path)
+        return 0o666 & ~umask
+
+
+def _rename_all(temporaries: dict[str, Path], targets: dict[str, Path], paths: dict[str, Path]) -> None:
+    """Rename each temporary onto its target; if one fails, put back what the earlier ones
+    replaced (from hard-linked or copied backups) and remove what they created."""
+    backups: dict[str, Path] = {}
+    renamed: list[str] = []
+    label = ""
+    try:
+        for label, temporary in temporaries.items():
+            target = targets[label]
+            os.chmod(temporary, _file_mode(target))
+            if target.exists():
+                backups[label] = _backup(target)
+            os.replace(temporary, target)
+            renamed.append(label)
+    except OSError as error:
+        for done in reversed(renamed):
+            with contextlib.suppress(OSError):
+                if done in backups:
+                    os.replace(backups.pop(done), targets[done])
+                else:
+                    os.unlink(targets[done])
+        raise InputError(f"{label}: cannot write {paths[label]}: {error.strerror or error}") from None
     finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
+        for backup in backups.values():
+            with contextlib.suppress(OSError):
+                os.unlink(backup)
 
 
-def write_text(path: str | Path, text: str) -> None:
-    with atomic_path(path) as temporary:
-        temporary.write_text(text)
+def _backup(target: Path) -> Path:
+    """A second name for the target's current content, in its folder."""
+    handle, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent)
+    os.close(handle)
+    try:
+        os.unlink(name)
+        os.link(target, name)  # the same inode: restoring it restores the file exactly
+    except OSError:
+        shutil.copy2(target, name)  # a file system without hard links
+    return Path(name)
 
 
-def write_csv(path: str | Path, columns: Sequence[str], rows: np.ndarray | Sequence[Sequence[Any]],
+def _os_error(error: OSError, temporaries: dict[str, Path], paths: dict[str, Path]) -> InputError:
+    """A writer's OS error as one line naming the output it was writing."""
+    where = str(getattr(error, "filename", "") or "")
+    for label, temporary in temporaries.items():
+        if where == str(temporary) or where.endswith(temporary.name):
+            return InputError(f"{label}: cannot write {paths[label]}: {error.strerror or error}")
+    names = ", ".join(str(path) for path in paths.values())
+    return InputError(f"cannot write the outputs ({names}): {error.strerror or error}")
+
+
+# --- provenance ----------------------------------------------------------------------------
+
+
+def sha256(path: PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def utc_now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def provenance(command: Sequence[str] | None = None, scenario: PathLike | None = None) -> dict:
+    """Who wrote a result and from what: version, the command line (argv as a list), the
+    scenario file and its SHA-256 (of the file as it was when the run started), the time."""
+    from .. import __version__
+
+    return {
+        "stitchplan_version": __version__,
+        "command": list(command) if command is not None else None,
+        "scenario": str(scenario) if scenario is not None else None,
+        "scenario_sha256": _sha256_or_none(scenario),
+        "created_utc": utc_now(),
+    }
+
+
+def _sha256_or_none(path: PathLike | None) -> str | None:
+    if path is None:
+        return None
+    try:
+        return sha256(path)
+    except OSError as error:
+        raise InputError(f"{path}: cannot be read ({error.strerror or error})") from None
+
+
+# --- writers -------------------------------------------------------------------------------
+
+
+def write_text(path: PathLike, text: str) -> None:
+    Path(path).write_text(text)
+
+
+def write_csv(path: PathLike, columns: Sequence[str], rows: np.ndarray | Sequence[Sequence[Any]],
               precision: int = 9) -> None:
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
@@ -96,35 +317,56 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def write_json(path: str | Path, data: dict) -> None:
+def write_json(path: PathLike, data: dict) -> None:
     write_text(path, json.dumps(_plain(data), indent=2) + "\n")
 
 
-def write_yaml(path: str | Path, data: dict, header: str = "") -> None:
+def write_yaml(path: PathLike, data: dict, header: str = "") -> None:
     import yaml
 
     write_text(path, header + yaml.safe_dump(_plain(data), sort_keys=False))
 
 
-def write_hdf5(path: str | Path, groups: dict[str, dict[str, Any]], attributes: dict[str, Any]) -> None:
-    """groups: {"group/sub": {"dataset": array, ...}}; attributes go on the root."""
-    import h5py
+def write_hdf5(path: PathLike, groups: dict[str, dict[str, Any]], attributes: dict[str, Any],
+               units: Mapping[str, str]) -> None:
+    """groups: {"group/sub": {"dataset": array, ...}}; attributes go on the root with the
+    schema version and the library versions. Every dataset gets a `units` attribute, looked
+    up in `units` as "group/dataset", then "dataset"; a dataset without one is a bug."""
+    import platform
 
-    with atomic_path(path, suffix=".h5") as temporary, h5py.File(temporary, "w") as handle:
+    import h5py
+    import scipy
+
+    with h5py.File(path, "w") as handle:
         for key, value in attributes.items():
             handle.attrs[key] = _attribute(value)
+        handle.attrs["schema_version"] = HDF5_SCHEMA_VERSION
+        handle.attrs["python_version"] = platform.python_version()
+        handle.attrs["numpy_version"] = np.__version__
+        handle.attrs["scipy_version"] = scipy.__version__
+        handle.attrs["h5py_version"] = h5py.__version__
         for group_name, datasets in groups.items():
             group = handle.require_group(group_name)
             for name, value in datasets.items():
                 if isinstance(value, str):
-                    group.create_dataset(name, data=value, dtype=h5py.string_dtype())
+                    dataset = group.create_dataset(name, data=value, dtype=h5py.string_dtype())
                 else:
                     data = np.asarray(value)
                     options = {"compression": "gzip", "compression_opts": 4} if data.size > 1000 else {}
-                    group.create_dataset(name, data=data, **options)
+                    dataset = group.create_dataset(name, data=data, **options)
+                dataset.attrs["units"] = _units(units, group_name, name)
+
+
+def _units(units: Mapping[str, str], group: str, name: str) -> str:
+    for key in (f"{group}/{name}", name):
+        if key in units:
+            return units[key]
+    raise KeyError(f"HDF5 dataset {group}/{name} has no units: add it to the writer's units table")
 
 
 def _attribute(value: Any) -> Any:
+    if value is None:
+        return "null"
     if isinstance(value, (dict, list, tuple)):
         return json.dumps(_plain(value))
     return value

@@ -1,276 +1,401 @@
-"""PNG figures: deformed tissue, needle paths, trajectories, calibration and studies."""
+"""PNG figures: deformed tissue, needle insertion, plan and study (the calibration figures
+are in `calibration_plots`).
+
+Every figure names its scenario and its key figure (exit error, probe displacement, fit
+residual) in the title, draws the tissue outline, clamps, loads and probes where they apply,
+keeps legends below the data, uses one colour scale per figure and units on every axis.
+Each plot function returns its (closed) matplotlib figure so tests can read it back. The
+shared drawing pieces live in `plot_elements`.
+"""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
 
-from .files import atomic_path
-
-
-def _figure(width: float = 6.0, height: float = 6.0):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt.subplots(figsize=(width, height))
+from .plot_elements import (
+    CMAP,
+    DEFORMED,
+    deformed_loops,
+    draw_clamps,
+    draw_loads,
+    draw_outline,
+    draw_probes,
+    frame,
+    label_mm,
+    legend_below,
+    magnitude_norm,
+    pyplot,
+    readable_log_axis,
+    title_above,
+)
 
 
 def save(fig, path: str | Path) -> None:
+    """Write the figure as PNG to `path` as given: the writers of io.reports and friends hand
+    the plots the temporaries of their OutputSet, which renames them only when all succeeded."""
     import matplotlib.pyplot as plt
 
-    with atomic_path(path, suffix=".png") as temporary:
-        fig.savefig(temporary, dpi=120, bbox_inches="tight", format="png")
-    plt.close(fig)
+    try:
+        fig.savefig(path, dpi=120, bbox_inches="tight", format="png")
+    finally:
+        plt.close(fig)
 
 
-def plot_deformed(path: str | Path, particles: np.ndarray, displacements: np.ndarray,
-                  title: str = "", ax=None, fig=None) -> None:
-    """Particles in the reference (grey) and deformed (coloured by |u|) configurations."""
-    if ax is None:
-        fig, ax = _figure()
-    magnitude = np.linalg.norm(displacements, axis=1)
-    deformed = particles + displacements
-    ax.scatter(particles[:, 0], particles[:, 1], s=3, c="0.85", label="reference")
-    points = ax.scatter(deformed[:, 0], deformed[:, 1], s=5, c=magnitude, cmap="viridis",
-                        label="deformed")
-    fig.colorbar(points, ax=ax, label="|u| (mm)", shrink=0.8)
+def _name(scenario, fallback: str) -> str:
+    return getattr(scenario, "name", "") or fallback
+
+
+# --- deform ---------------------------------------------------------------------------------
+
+
+def plot_deformed(path: str | Path, result, scale: float = 1.0):
+    """deformed.png of `stitchplan deform`: particles where the loads moved them, coloured by
+    |u|; the outline at rest and deformed, clamps, loads and probes. Positions are drawn with
+    the displacements `scale` times enlarged; colours and numbers stay true."""
+    from ..tissue.deform import interpolate
+
+    plt = pyplot()
+    scenario = result.scenario
+    tissue, domain = scenario.tissue, scenario.tissue.domain
+    particles, u = result.model.particles, result.particle_displacements  # (NP, 2)
+    size = float(max(domain.size))
+    magnitude = np.linalg.norm(u, axis=1)
+    fig, ax = plt.subplots(figsize=(7.5, 7.0))
+    draw_outline(ax, domain, particles, u, scale)
+    moved = particles + scale * u
+    dots = ax.scatter(*moved.T, s=8, c=magnitude, cmap=CMAP, norm=magnitude_norm(u), zorder=2)
+    fig.colorbar(dots, ax=ax, label="|u| displacement (mm)", shrink=0.8)
+
+    def move(points):
+        return points + scale * interpolate(result.model, result.coefficients, points)
+
+    ends = draw_loads(ax, scenario.loads, domain, 0.15 * size, move)
+    probes_moved = result.probes + scale * result.probe_displacements
+    draw_probes(ax, result.probes, probes_moved)
+    frame(ax, np.vstack([particles, moved, ends, probes_moved]), margin=0.08)
+    draw_clamps(ax, tissue, 0.025 * size)
+    label_mm(ax)
+    loads = len(scenario.loads)
+    title = (f"{_name(scenario, 'deform')}: deformed under {loads} load{'s' if loads != 1 else ''}"
+             f" ({scenario.load_steps} load steps)\nlargest |u| {magnitude.max():.3g} mm")
+    if len(result.probes):
+        at_probes = np.linalg.norm(result.probe_displacements, axis=1)
+        k = int(np.argmax(at_probes))
+        title += f"; probes: |u| up to {at_probes[k]:.3g} mm (P{k + 1})"
+    if scale != 1.0:
+        title += f"\ndisplacements drawn {scale:g}x enlarged (colours and numbers true)"
+    ax.set_title(title, fontsize=10)
+    legend = legend_below(fig, [ax], columns=3)
+    if len(result.probes):
+        rows = [f"P{k + 1} ({x:g}, {y:g}): u = ({ux:.4g}, {uy:.4g}) mm, |u| = {np.hypot(ux, uy):.4g} mm"
+                for k, ((x, y), (ux, uy)) in enumerate(zip(result.probes, result.probe_displacements))]
+        fig.canvas.draw()
+        below = legend.get_window_extent().transformed(fig.transFigure.inverted()).y0
+        fig.text(0.5, below - 0.01, "probes (reference point: displacement)\n" + "\n".join(rows),
+                 ha="center", va="top", fontsize=8, family="monospace")
+    save(fig, path)
+    return fig
+
+
+# --- needle insertion -----------------------------------------------------------------------
+
+
+def _needle_body(geometry, center, rotation: float) -> np.ndarray:
+    """The needle's arc (80, 2): from the tip back over `arc` rad along the circle."""
+    back = np.linspace(rotation, max(rotation - geometry.arc, rotation - 2 * np.pi), 80)
+    angles = geometry.start_angle + geometry.sense * back
+    return np.asarray(center) + geometry.radius * np.column_stack([np.cos(angles), np.sin(angles)])
+
+
+def _tip_path(run, step: int | None = None) -> np.ndarray:
+    """Tip positions (k, 2), spatial: the entry, each step's tip, and the exit when reached."""
+    step = len(run.steps) if step is None else step
+    tips = [np.asarray(run.geometry.entry, dtype=float)] + [s.tip_spatial for s in run.steps[:step]]
+    if step == len(run.steps) and run.achieved_exit_def is not None:
+        tips.append(np.asarray(run.achieved_exit_def))
+    return np.asarray(tips, dtype=float).reshape(-1, 2)
+
+
+def _state(run, step: int) -> tuple[np.ndarray, float]:
+    """Needle centre and rotation after `step` steps (step 0: at entry)."""
+    if step == 0:
+        return np.asarray(run.geometry.center), 0.0
+    record = run.steps[step - 1]
+    return np.asarray(record.center), float(record.rotation)
+
+
+def _interpolant(model, displacement: np.ndarray):
+    """u(X) at any reference points from the particle displacements u(X_I): the RK
+    coefficients d solve u(X_I) = sum_J N_J(X_I) d_J (a sparse, square system)."""
+    from scipy.sparse.linalg import splu
+
+    values = model.shape_functions_at(model.particles).values.tocsc()  # (NP, NP)
+    coefficients = splu(values).solve(np.ascontiguousarray(displacement, dtype=float))  # (NP, 2)
+    return lambda points: model.shape_functions_at(points).values @ coefficients
+
+
+def _boundary_near(domain, point: np.ndarray, reach: float) -> list[np.ndarray]:
+    """Pieces (k, 2) of the reference outline within `reach` of `point`, densely sampled."""
+    from .plot_elements import outline_loops
+
+    pieces = []
+    for loop in outline_loops(domain):
+        closed = np.vstack([loop, loop[:1]])
+        for a, b in itertools.pairwise(closed):
+            edge = b - a
+            length = float(np.hypot(*edge))
+            middle = float((point - a) @ edge) / length**2  # the nearest edge point's parameter
+            low, high = max(middle - reach / length, 0.0), min(middle + reach / length, 1.0)
+            if low >= high:
+                continue
+            line = a + np.linspace(low, high, 201)[:, None] * edge  # (201, 2)
+            line = line[np.linalg.norm(line - point, axis=1) <= reach]
+            if len(line) > 1:
+                pieces.append(line)
+    return pieces
+
+
+def _exit_zoom(ax, run, norm, colour: str, who: str, marker: str, desired_colour: str | None = None,
+               outline: dict | None = None, outline_label: str = "tissue outline, deformed") -> None:
+    """The exit seen closely, in mm from the run's desired exit (deformed): the tissue there
+    (the RK interpolant, not a polyline), the tip's last path, the desired and achieved exit
+    and the error between them. The window is sized to the error."""
+    desired, achieved = np.asarray(run.desired_exit_def), np.asarray(run.achieved_exit_def)
+    error = float(run.exit_error_mm)
+    half = max(1.3 * error, 2e-3)
+    centre = 0.5 * (desired + achieved) - desired
+    particles = run.model.particles
+    displacement = run.displacements[-1]
+    moved = particles + displacement - desired
+    near = np.all(np.abs(moved - centre) <= 1.5 * half, axis=1)
+    ax.scatter(*moved[near].T, s=40, c=np.linalg.norm(displacement[near], axis=1), cmap=CMAP, norm=norm)
+    pieces = _boundary_near(run.scenario.tissue.domain, np.asarray(run.desired_exit), 6 * half + 1e-9)
+    interpolant = _interpolant(run.model, displacement) if pieces else None
+    for k, piece in enumerate(pieces):
+        edge = piece + interpolant(piece) - desired
+        ax.plot(*edge.T, **(outline or DEFORMED), label=outline_label if k == 0 else None)
+    tips = _tip_path(run) - desired
+    ax.plot(*tips.T, ".-", color=colour, lw=1.2, ms=4)
+    ax.plot([0.0, achieved[0] - desired[0]], [0.0, achieved[1] - desired[1]], ":", color=colour, lw=1.2)
+    ax.plot(0.0, 0.0, "x", color=desired_colour or colour, ms=11, mew=2.5)
+    ax.plot(*(achieved - desired), marker, mfc="none", mec=colour, ms=11, mew=1.8)
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_aspect("equal")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_title(title)
-    ax.legend(loc="upper right", fontsize=8)
-    save(fig, path)
+    ax.ticklabel_format(useOffset=False)
+    ax.tick_params(labelsize=7)
+    ax.set_xlabel("x - x desired exit (mm)", fontsize=8)
+    ax.set_ylabel("y - y desired exit (mm)", fontsize=8)
+    ax.set_title(f"{who} exit: error {error:.3g} mm\n(zoom, {2 * half:.2g} mm wide)", fontsize=9, color=colour)
 
 
-def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.ndarray,
-                      cost: np.ndarray, grid_best: tuple[float, float], optimum: tuple[float, float],
-                      refinement: np.ndarray | None = None, log_axes: bool = True) -> None:
-    """Marker misfit f(lambda, mu) (eq. A.3) on the calibration grid, cost (n_lambda, n_mu) in
-    mm^2 with nan where the solve failed; the grid's best point, the least-squares path and
-    the optimum marked."""
-    from matplotlib.colors import LogNorm
-
-    def edges(centres: np.ndarray) -> np.ndarray:
-        """Cell edges halfway between grid points (geometric halfway on log axes)."""
-        t = np.log(centres) if log_axes else centres
-        middle = 0.5 * (t[1:] + t[:-1])
-        e = np.concatenate([[2 * t[0] - middle[0]], middle, [2 * t[-1] - middle[-1]]])
-        return np.exp(e) if log_axes else e
-
-    fig, ax = _figure(6.5, 5.0)
-    masked = np.ma.masked_invalid(cost.T)  # rows: mu, columns: lambda
-    positive = masked.compressed()
-    positive = positive[positive > 0]
-    norm = LogNorm(vmin=positive.min(), vmax=positive.max()) if len(positive) > 1 else None
-    mesh = ax.pcolormesh(edges(lame_lambda), edges(lame_mu), masked, shading="flat", cmap="viridis",
-                         norm=norm)
-    fig.colorbar(mesh, ax=ax, label="f = sum |p - q|^2 (mm^2)")
-    failed = np.argwhere(~np.isfinite(cost))
-    if len(failed):
-        ax.plot(lame_lambda[failed[:, 0]], lame_mu[failed[:, 1]], "x", color="0.4",
-                label="not solved (too soft for the loads)")
-    if refinement is not None and len(refinement):
-        ax.plot(refinement[:, 0], refinement[:, 1], ".-", color="white", lw=0.8, ms=3,
-                label="least-squares evaluations")
-    ax.plot(*grid_best, "s", mfc="none", mec="white", ms=10, label="grid best")
-    ax.plot(*optimum, "*", color="red", ms=14, label="fitted")
-    if log_axes:
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-    ax.set_xlabel("lame_lambda (MPa)")
-    ax.set_ylabel("lame_mu (MPa)")
-    ax.set_title(f"marker misfit: fitted lambda = {optimum[0]:.4g}, mu = {optimum[1]:.4g} MPa")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, fontsize=8, frameon=False)
-    save(fig, path)
+def _needle_frame(runs_and_steps, margin: float) -> np.ndarray:
+    """Points the needle views must hold: needle bodies, tip paths and exits."""
+    points = []
+    for run, step in runs_and_steps:
+        center, rotation = _state(run, step)
+        points += [_needle_body(run.geometry, center, rotation), _tip_path(run, step),
+                   np.asarray(run.desired_exit).reshape(1, 2)]
+        if run.desired_exit_def is not None:
+            points.append(np.asarray(run.desired_exit_def).reshape(1, 2))
+    return np.vstack(points)
 
 
-def plot_marker_residuals(path: str | Path, size: tuple[float, float], markers: list[np.ndarray],
-                          measured: list[np.ndarray], simulated: list[np.ndarray],
-                          segments: list[list], titles: list[str]) -> None:
-    """One panel per experiment: measured (p) and simulated (q) marker positions with the
-    residual p - q drawn as arrows, magnified so the largest is ~8 % of the tissue size."""
-    import matplotlib.pyplot as plt
-
-    n = len(markers)
-    columns = min(n, 3)
-    rows = -(-n // columns)
-    width, height = size
-    panel_height = 5.0 * max(height / width, 0.5)
-    fig, axes = plt.subplots(rows, columns, figsize=(5.0 * columns, panel_height * rows), squeeze=False)
-    largest = max(float(np.linalg.norm(p - q, axis=1).max()) for p, q in zip(measured, simulated))
-    magnify = 0.08 * max(size) / largest if largest > 0 else 1.0
-    for k, ax in enumerate(axes.ravel()):
-        if k >= n:
-            ax.axis("off")
-            continue
-        p, q = measured[k], simulated[k]
-        ax.add_patch(plt.Rectangle((0, 0), width, height, fill=False, ec="0.6", lw=0.8))
-        for start, end in segments[k]:
-            ax.plot([start[0], end[0]], [start[1], end[1]], "-", color="tab:red", lw=3)
-        ax.plot(markers[k][:, 0], markers[k][:, 1], ".", color="0.75", ms=4, label="rest")
-        ax.plot(q[:, 0], q[:, 1], "o", mfc="none", mec="tab:blue", ms=6, label="simulated q")
-        ax.plot(p[:, 0], p[:, 1], ".", color="black", ms=4, label="measured p")
-        ax.quiver(q[:, 0], q[:, 1], p[:, 0] - q[:, 0], p[:, 1] - q[:, 1], angles="xy",
-                  scale_units="xy", scale=1.0 / magnify, color="tab:orange", width=0.004,
-                  label=f"p - q (x {magnify:.3g})")
-        rms = float(np.sqrt(np.mean(np.sum((p - q) ** 2, axis=1))))
-        ax.set_title(f"{titles[k]}: rms residual {rms:.3g} mm", fontsize=9)
-        ax.set_aspect("equal")
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=4, fontsize=7, frameon=False)
-    save(fig, path)
-
-
-def plot_needle_forces(path: str | Path, air: np.ndarray, tissue: np.ndarray, background_offset: float,
-                       background_slope: float, inserted_length: np.ndarray, corrected: np.ndarray,
-                       friction: float, cutting_force: float) -> None:
-    """Left: both recordings (angle, force) and the background line. Right: tissue force
-    minus background against inserted length, with the fitted cutting force + friction x length."""
-    import matplotlib.pyplot as plt
-
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11.0, 4.5))
-    angles = np.linspace(min(air[0, 0], tissue[0, 0]), max(air[-1, 0], tissue[-1, 0]), 50)
-    left.plot(air[:, 0], air[:, 1], ".", ms=3, color="0.5", label="in air")
-    left.plot(tissue[:, 0], tissue[:, 1], ".", ms=3, color="tab:blue", label="into tissue")
-    left.plot(angles, background_offset + background_slope * angles, "-", color="black",
-              label=f"background {background_offset:.3g} + {background_slope:.3g} angle")
-    left.set_xlabel("needle rotation (rad)")
-    left.set_ylabel("force (N)")
-    left.legend(fontsize=8)
-    left.set_title("recordings")
-    length = np.linspace(0.0, inserted_length.max(), 50)
-    right.plot(inserted_length, corrected, ".", ms=3, color="tab:blue", label="tissue - background")
-    right.plot(length, cutting_force + friction * length, "-", color="tab:red",
-               label=f"{cutting_force:.4g} N + {friction:.4g} N/mm x length")
-    right.set_xlabel("inserted length radius x angle (mm)")
-    right.set_ylabel("force (N)")
-    right.legend(fontsize=8)
-    right.set_title("cutting force (intercept) and friction (slope)")
-    fig.tight_layout()
-    save(fig, path)
-
-
-def _needle_arc(ax, center, radius, start_angle, sense, rotation, arc, **style):
-    """The needle body: the arc from the tip back over `arc` rad (clipped at the start)."""
-    back = np.linspace(rotation, max(rotation - arc, rotation - 2 * np.pi), 80)
-    angles = start_angle + sense * back
-    ax.plot(center[0] + radius * np.cos(angles), center[1] + radius * np.sin(angles), **style)
-
-
-def plot_insertion(path: str | Path, result, steps: list[int] | None = None, ax=None, fig=None,
-                   title: str | None = None) -> None:
-    """Deformed particles, needle and tip path at the chosen steps (default: the last)."""
-    chosen = steps or [len(result.steps)]
-    chosen = [min(max(int(s), 0), len(result.steps)) for s in chosen]
-    if ax is None:
-        fig, _ = _figure(5.5 * len(chosen), 5.5)
-        fig.clf()
-        axes = [fig.add_subplot(1, len(chosen), i + 1) for i in range(len(chosen))]
-    else:
-        axes = [ax]
-    geometry = result.geometry
-    particles = result.model.particles
-    for ax, step in zip(axes, chosen):
+def plot_insertion(path: str | Path, result, steps: list[int] | None = None, estimate_mm: float | None = None):
+    """insertion.png of `stitchplan simulate`: the deformed tissue, needle and tip path at the
+    chosen steps (default: the last), one colour scale for all, and a zoom on the exit.
+    `estimate_mm`: the discretization error estimate of the exit point, for the title."""
+    plt = pyplot()
+    last = len(result.steps)
+    chosen = [min(max(int(s), 0), last) for s in (steps or [last])]
+    n = len(chosen)
+    fig = plt.figure(figsize=(4.4 * n + 5.0, 5.0))
+    grid = fig.add_gridspec(1, n + 2, width_ratios=[1.0] * n + [0.12, 0.85], wspace=0.12)
+    panels = [fig.add_subplot(grid[0, 0])]
+    panels += [fig.add_subplot(grid[0, k], sharex=panels[0], sharey=panels[0]) for k in range(1, n)]
+    zoom = fig.add_subplot(grid[0, n + 1])  # column n: room for the zoom's axis labels
+    axes = [[*panels, zoom]]
+    particles, geometry, tissue = result.model.particles, result.geometry, result.scenario.tissue
+    norm = magnitude_norm(*(result.displacements[s] for s in chosen), result.displacements[-1])
+    view = _needle_frame([(result, s) for s in chosen], 0.0)
+    for ax, step in zip(panels, chosen):
         displacement = result.displacements[step]
-        magnitude = np.linalg.norm(displacement, axis=1)
-        deformed = particles + displacement
-        points = ax.scatter(deformed[:, 0], deformed[:, 1], s=4, c=magnitude, cmap="viridis")
-        fig.colorbar(points, ax=ax, label="|u| (mm)", shrink=0.7)
-        record = result.steps[step - 1] if step > 0 else None
-        center = record.center if record is not None else geometry.center
-        rotation = record.rotation if record is not None else 0.0
-        _needle_arc(ax, center, geometry.radius, geometry.start_angle, geometry.sense, rotation,
-                    geometry.arc, color="crimson", lw=2, label="needle")
-        tips = np.array([s.tip_spatial for s in result.steps[:step]]) if step else np.zeros((0, 2))
-        if len(tips):
-            ax.plot(tips[:, 0], tips[:, 1], ".-", color="orange", ms=3, lw=1, label="tip path")
-        ax.plot(*result.desired_exit, "x", color="k", ms=9, mew=2, label="desired exit (reference)")
-        if step == len(result.steps):
-            ax.plot(*result.desired_exit_def, "+", color="blue", ms=11, mew=2, label="desired exit, deformed")
-            ax.plot(*result.achieved_exit_def, "o", mfc="none", color="crimson", ms=9, label="achieved exit")
-        zoom = 1.8 * geometry.radius
-        middle = geometry.center
-        ax.set_xlim(middle[0] - zoom, middle[0] + zoom)
-        ax.set_ylim(middle[1] - zoom, middle[1] + zoom)
-        ax.set_aspect("equal")
+        draw_outline(ax, tissue.domain, particles, displacement)
+        dots = ax.scatter(*(particles + displacement).T, s=6, c=np.linalg.norm(displacement, axis=1),
+                          cmap=CMAP, norm=norm, zorder=2)
+        center, rotation = _state(result, step)
+        ax.plot(*_needle_body(geometry, center, rotation).T, "-", color="crimson", lw=2.2, label="needle")
+        tips = _tip_path(result, step)
+        ax.plot(*tips.T, ".-", color="orange", ms=3, lw=1, label="tip path")
+        ax.plot(*result.desired_exit, "x", color="0.4", ms=8, mew=2, label="desired exit, at rest")
+        if step == last:
+            ax.plot(*result.desired_exit_def, "x", color="blue", ms=10, mew=2.5, label="desired exit, deformed")
+            ax.plot(*result.achieved_exit_def, "o", mfc="none", mec="crimson", ms=10, mew=1.8,
+                    label="achieved exit")
+        frame(ax, view, margin=0.08)
+        draw_clamps(ax, tissue, 0.1 * geometry.radius)
         ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        ax.set_title(title or f"step {step}, rotation {rotation:.2f} rad")
-        ax.legend(loc="upper right", fontsize=7)
+        if ax is panels[0]:
+            ax.set_ylabel("y (mm)")
+        else:
+            ax.tick_params(labelleft=False)
+        ax.set_title(f"step {step} of {last}, needle rotated {rotation:.2f} rad", fontsize=9)
+    _exit_zoom(zoom, result, norm, "crimson", "simulated", "o", desired_colour="blue")
+    fig.colorbar(dots, ax=list(axes[0]), label="|u| displacement (mm)", shrink=0.8, pad=0.02)
+    title_above(fig, axes[0], f"{_name(result.scenario, 'simulate')}: needle insertion without planning\n"
+                f"exit error {result.exit_error_mm:.3g} mm (material point "
+                f"{result.exit_error_material_mm:.3g} mm), {last} steps, "
+                f"{result.model.n_particles} particles"
+                + (f"\ndiscretization error of the exit about {estimate_mm:.2g} mm" if estimate_mm is not None
+                   else ""))
+    legend_below(fig, panels + [zoom], columns=5)
     save(fig, path)
+    return fig
 
 
-def plot_plan(path: str | Path, result) -> None:
-    """Planned and unplanned needle paths over the deformed tissue, desired exit marked
-    (thesis figures 5.9-5.15), and the centre trajectory O(t)."""
-    import matplotlib
+# --- plan -----------------------------------------------------------------------------------
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
+def _exit_direction(run) -> np.ndarray:
+    """Unit vector of the tip's last move: out of the tissue at the exit."""
+    tips = _tip_path(run)
+    move = tips[-1] - tips[-2]
+    length = float(np.hypot(*move))
+    return move / length if length > 0 else np.array([-1.0, 0.0])
+
+
+def _label_offsets(runs, outward: np.ndarray) -> dict[str, np.ndarray]:
+    """Where each run's exit-error label goes, in points from its desired exit: outside the
+    tissue (along `outward`) and, for two runs, apart along the boundary, the run whose
+    desired exit lies further along the boundary on that side."""
+    tangent = np.array([-outward[1], outward[0]])
+    apart = 16.0 if abs(tangent[1]) > abs(tangent[0]) else 60.0  # labels one above the other or side by side
+    order = np.argsort([np.asarray(run.desired_exit_def) @ tangent for run, *_ in runs])
+    sides = np.linspace(-1.0, 1.0, len(runs)) if len(runs) > 1 else np.zeros(1)
+    return {runs[k][1]: 30.0 * outward + sides[rank] * apart * tangent for rank, k in enumerate(order)}
+
+
+def _alignment(offset: np.ndarray) -> dict[str, str]:
+    """A label's anchor: the side of the text that faces the point it is `offset` from."""
+    return {"ha": "right" if offset[0] < -5 else "left" if offset[0] > 5 else "center",
+            "va": "top" if offset[1] < -5 else "bottom" if offset[1] > 5 else "center"}
+
+
+def _label_box(offset: np.ndarray, width: float = 110.0, height: float = 34.0) -> np.ndarray:
+    """Corners (4, 2), in points from the labelled point, of a two-line label at `offset`."""
+    anchor = _alignment(offset)
+    x0 = offset[0] - {"right": width, "left": 0.0, "center": width / 2}[anchor["ha"]]
+    y0 = offset[1] - {"top": height, "bottom": 0.0, "center": height / 2}[anchor["va"]]
+    return np.array([[x0, y0], [x0 + width, y0], [x0, y0 + height], [x0 + width, y0 + height]])
+
+
+def plot_plan(path: str | Path, result):
+    """plan.png of `stitchplan plan`: planned and unplanned paths over the planned run's
+    deformed tissue, each run's desired exit with its own error, zooms on both exits, and the
+    centre trajectory O(t) (thesis figures 5.9-5.15)."""
+    plt = pyplot()
     planned, unplanned = result.planned, result.unplanned
-    geometry = planned.geometry
-    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 5.5))
-    particles = planned.model.particles
-    deformed = particles + planned.displacements[-1]
-    magnitude = np.linalg.norm(planned.displacements[-1], axis=1)
-    points = left.scatter(deformed[:, 0], deformed[:, 1], s=4, c=magnitude, cmap="viridis")
-    fig.colorbar(points, ax=left, label="|u| planned (mm)", shrink=0.7)
-    tips = np.array([s.tip_spatial for s in planned.steps] + [planned.achieved_exit_def])
-    left.plot(tips[:, 0], tips[:, 1], "-", color="crimson", lw=2, label="planned tip path")
+    runs = [(planned, "planned", "crimson", "o")]
     if unplanned is not None:
-        tips_u = np.array([s.tip_spatial for s in unplanned.steps] + [unplanned.achieved_exit_def])
-        left.plot(tips_u[:, 0], tips_u[:, 1], "--", color="orange", lw=2, label="unplanned tip path")
-        left.plot(*unplanned.achieved_exit_def, "s", mfc="none", color="orange", ms=8,
-                  label=f"unplanned exit ({unplanned.exit_error_mm:.3f} mm off)")
-    last = planned.steps[-1]
-    _needle_arc(left, last.center, geometry.radius, geometry.start_angle, geometry.sense, last.rotation,
-                geometry.arc, color="crimson", lw=1, alpha=0.5)
-    left.plot(*planned.desired_exit_def, "x", color="k", ms=10, mew=2, label="desired exit (deformed)")
-    left.plot(*planned.achieved_exit_def, "o", mfc="none", color="crimson", ms=9,
-              label=f"planned exit ({planned.exit_error_mm:.3f} mm off)")
-    zoom = 1.8 * geometry.radius
-    left.set_xlim(geometry.center[0] - zoom, geometry.center[0] + zoom)
-    left.set_ylim(geometry.center[1] - zoom, geometry.center[1] + zoom)
-    left.set_aspect("equal")
-    left.set_xlabel("x (mm)")
-    left.set_ylabel("y (mm)")
-    left.set_title(f"{planned.scenario.name or 'plan'}: planned vs unplanned")
-    left.legend(loc="upper right", fontsize=7)
+        runs.append((unplanned, "unplanned", "darkorange", "s"))
+    geometry, tissue = planned.geometry, planned.scenario.tissue
+    particles = planned.model.particles
+    fig = plt.figure(figsize=(15.0, 6.4))
+    grid = fig.add_gridspec(2, 3, width_ratios=[2.1, 1.0, 1.5], wspace=0.35, hspace=0.45)
+    main = fig.add_subplot(grid[:, 0])
+    zooms = [fig.add_subplot(grid[k, 1]) for k in range(len(runs))]
+    trajectory = fig.add_subplot(grid[:, 2])
+    norm = magnitude_norm(*(run.displacements[-1] for run, *_ in runs))
+    displacement = planned.displacements[-1]
+    outlines = {"planned": DEFORMED, "unplanned": {"color": "darkorange", "ls": ":", "lw": 1.5}}
+    draw_outline(main, tissue.domain, particles, displacement, deformed_label="tissue outline, planned run")
+    if unplanned is not None:
+        for k, loop in enumerate(deformed_loops(tissue.domain, particles, unplanned.displacements[-1])):
+            main.plot(*loop.T, **outlines["unplanned"], label="tissue outline, unplanned run" if k == 0 else None)
+    dots = main.scatter(*(particles + displacement).T, s=6, c=np.linalg.norm(displacement, axis=1),
+                        cmap=CMAP, norm=norm, zorder=2)
+    outward = _exit_direction(planned)
+    offsets = _label_offsets(runs, outward)
+    for run, who, colour, marker in runs:
+        style = "-" if who == "planned" else "--"
+        main.plot(*_tip_path(run).T, style, color=colour, lw=2, label=f"{who} tip path")
+        center, rotation = _state(run, len(run.steps))
+        main.plot(*_needle_body(run.geometry, center, rotation).T, style, color=colour, lw=1, alpha=0.5)
+        main.plot(*run.desired_exit_def, "x", color=colour, ms=10, mew=2.5,
+                  label=f"{who} run: desired exit (deformed)")
+        main.plot(*run.achieved_exit_def, marker, mfc="none", mec=colour, ms=10, mew=1.8,
+                  label=f"{who} run: achieved exit")
+        offset = offsets[who]
+        main.annotate(f"{who} exit error\n{run.exit_error_mm:.3g} mm", run.desired_exit_def, xytext=offset,
+                      textcoords="offset points", fontsize=8, color=colour, zorder=6, **_alignment(offset),
+                      bbox={"boxstyle": "round", "fc": "white", "ec": colour, "alpha": 0.85},
+                      arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.8})
+    main.plot(*planned.desired_exit, "+", color="0.4", ms=9, mew=1.5, label="desired exit, at rest")
+    view = _needle_frame([(run, len(run.steps)) for run, *_ in runs], 0.0)
+    frame(main, view, margin=0.08)
+    for _ in range(2):  # widen the frame until the error labels (sized in points) fit inside
+        main.apply_aspect()
+        points_per_mm = main.get_window_extent().width / np.ptp(main.get_xlim()) * 72.0 / fig.dpi
+        labels = [np.asarray(run.desired_exit_def) + corner / points_per_mm
+                  for run, who, *_ in runs for corner in _label_box(offsets[who])]
+        frame(main, np.vstack([view, *labels]), margin=0.08)
+    draw_clamps(main, tissue, 0.1 * geometry.radius)
+    label_mm(main)
+    main.set_title("tip paths over the planned run's deformed tissue", fontsize=9)
+    fig.colorbar(dots, ax=main, label="|u| displacement (mm): planned run; zooms: each run", shrink=0.8,
+                 pad=0.02)
+    for ax, (run, who, colour, marker) in zip(zooms, runs):
+        _exit_zoom(ax, run, norm, colour, who, marker, outline=outlines[who],
+                   outline_label=f"tissue outline, {who} run")
     centers = result.center_trajectory
     rotation = np.arange(len(centers)) * geometry.step
-    right.plot(rotation, centers[:, 0] - centers[0, 0], label="O_x(t) - O_x(0)")
-    right.plot(rotation, centers[:, 1] - centers[0, 1], label="O_y(t) - O_y(0)")
-    right.set_xlabel("needle rotation (rad)")
-    right.set_ylabel("centre offset (mm)")
-    right.set_title("planned needle-centre trajectory O(t)")
-    right.grid(alpha=0.3)
-    right.legend()
+    trajectory.plot(rotation, centers[:, 0] - centers[0, 0], label="O_x(t) - O_x(0)")
+    trajectory.plot(rotation, centers[:, 1] - centers[0, 1], label="O_y(t) - O_y(0)")
+    trajectory.set_xlabel("needle rotation (rad)")
+    trajectory.set_ylabel("centre offset from the entry centre (mm)")
+    trajectory.set_title("planned needle-centre trajectory O(t)", fontsize=9)
+    trajectory.grid(alpha=0.3)
+    trajectory.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8, frameon=False)
+    headline = f"exit error {planned.exit_error_mm:.3g} mm planned"
+    if unplanned is not None:
+        headline += f" vs {unplanned.exit_error_mm:.3g} mm unplanned"
+    headline += f" ({len(planned.steps)} steps, {planned.model.n_particles} particles)"
+    checks = []
+    estimate = getattr(result, "estimate", None)
+    if estimate is not None:
+        checks.append(f"discretization error of the exit about {estimate.estimate_mm:.2g} mm")
+    verification = getattr(result, "verification", None)
+    if verification is not None and verification.result is not None:
+        checks.append(f"trajectory replayed on a refined model (spacing {verification.spacing_mm:.3g} mm): "
+                      f"exit error {verification.result.exit_error_mm:.3g} mm")
+    title_above(fig, [main, *zooms, trajectory],
+                f"{_name(planned.scenario, 'plan')}: {headline}" + "".join(f"\n{c}" for c in checks), fontsize=11)
+    legend_below(fig, [main, *zooms], columns=4)
     save(fig, path)
+    return fig
 
 
-def plot_speed_accuracy(path: str | Path, study) -> None:
+# --- study ----------------------------------------------------------------------------------
+
+
+def plot_speed_accuracy(path: str | Path, study):
     """Wall time against exit-point deviation from the study's finest run (log-log), one
     series per method family, the Pareto front joined and ringed; failed runs drawn as
     crosses at the right edge (deviation unknown). Left: `deviation_mm` (largest of the
     spatial, material and exit-error deviations); right: the spatial achieved exit alone."""
     import math
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     runs = [r for r in study.runs if r is not study.reference]
+    failures = [r for r in runs if not r.ok]
     families = list(dict.fromkeys(r.family for r in runs))
     colours = plt.get_cmap("tab10")
-    fig, axes = plt.subplots(1, 2, figsize=(13.0, 5.5))
-    panels = (("deviation_mm", "exit-point deviation from the finest run (mm)\n"
-               "largest of spatial, material and exit-error vector"),
+    fig, axes = plt.subplots(1, 2, figsize=(13.0, 5.8))
+    panels = (("deviation_mm", ("exit-point deviation from the finest run (mm)\n"
+               "largest of spatial, material and exit-error vector")),
               ("exit_deviation_mm", "achieved exit (spatial) deviation from the finest run (mm)"))
     accuracy = getattr(study.auto, "accuracy", None)
     for ax, (key, xlabel) in zip(axes, panels):
@@ -281,24 +406,23 @@ def plot_speed_accuracy(path: str | Path, study) -> None:
         times = [r.wall_seconds for r in done] or [r.wall_seconds for r in runs]
         low, high = min(times) / 1.5, max(times) * 1.5
 
-        def x_of(run):
+        def x_of(run, key=key, floor=floor):
             return max(run.deviations[key], floor)
 
         for k, family in enumerate(families):
             members = sorted((r for r in done if r.family == family), key=lambda r: r.spacing, reverse=True)
-            style = dict(color=colours(k % 10))
+            style = {"color": colours(k % 10)}
             if family == "auto":
-                style = dict(color="crimson", marker="*", ms=16, ls="none")
+                style = {"color": "crimson", "marker": "*", "ms": 16, "ls": "none"}
             else:
                 style.update(marker="o", ms=5, lw=0.8)
             if members:
                 ax.plot([x_of(r) for r in members], [r.wall_seconds for r in members], label=family, **style)
-            failed = [r for r in runs if r.family == family and not r.ok]
+            failed = [r for r in failures if r.family == family]
             if failed:  # times clipped to the successful runs' range (failures before a solve are instant)
                 ax.plot([top] * len(failed), [min(max(r.wall_seconds, low), high) for r in failed], "x",
-                        color=colours(k % 10),
-                        ms=8, mew=2, clip_on=False,
-                        label=f"{family}: {len(failed)} failed" if not members else None)
+                        color=colours(k % 10), ms=8, mew=2, clip_on=False,
+                        label=f"{family}: {len(failed)} failed (deviation unknown)")
         ordered = sorted(done, key=lambda r: (r.wall_seconds, r.deviations[key]))
         front, best = [], math.inf
         for run in ordered:
@@ -311,7 +435,7 @@ def plot_speed_accuracy(path: str | Path, study) -> None:
                 ms=11, label="Pareto front")
         if accuracy is not None and key == "deviation_mm":
             ax.axvline(accuracy, color="crimson", ls="--", lw=1, label=f"auto target {accuracy:g} mm")
-        if any(not r.ok for r in runs):
+        if failures:
             ax.axvline(top, color="0.6", lw=0.8, ls=":")
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -319,10 +443,22 @@ def plot_speed_accuracy(path: str | Path, study) -> None:
         ax.set_xlabel(xlabel)
         ax.set_ylabel("wall time (s)")
         ax.grid(alpha=0.3, which="both")
+        ax.get_xlim()  # settles the automatic x limits before the tick labels are chosen
+        readable_log_axis(ax.xaxis)
+        readable_log_axis(ax.yaxis)
     reference = study.reference
-    axes[0].set_title(f"{study.scenario.name or 'study'}: speed against accuracy\n"
-                      f"finest run: {reference.label}, {reference.particles} particles, "
-                      f"{reference.wall_seconds:.1f} s (crosses at the right: failed runs)", fontsize=9)
+    done = [r for r in runs if r.ok]
+    counts = f"{len(runs) + 1} runs" + (f", {len(failures)} failed (crosses at the right)" if failures else "")
+    best = min(done, key=lambda r: r.wall_seconds) if done else None
+    headline = (f"{_name(study.scenario, 'study')}: speed against accuracy of the needle insertion, {counts}\n"
+                f"deviations from the finest run {reference.label}: {reference.particles} particles, "
+                f"{reference.wall_seconds:.2f} s")
+    if best is not None:
+        headline += (f"; fastest run: {best.label}, {best.wall_seconds:.2f} s, "
+                     f"deviation {best.deviations.get('deviation_mm', math.nan):.3g} mm")
+    axes[0].set_title("exit point: spatial, material and exit-error vector", fontsize=9)
     axes[1].set_title("achieved exit, spatial position only (achieved_exit_def)", fontsize=9)
-    axes[0].legend(loc="upper center", bbox_to_anchor=(1.1, -0.16), ncol=5, fontsize=8, frameon=False)
+    title_above(fig, list(axes), headline)
+    legend_below(fig, list(axes), columns=6)
     save(fig, path)
+    return fig

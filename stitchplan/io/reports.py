@@ -2,21 +2,49 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
-from .files import write_csv, write_hdf5, write_json
+from .files import OutputSet, write_csv, write_hdf5, write_json
+from .files import provenance as make_provenance
+
+# units of the HDF5 run logs' datasets, by "group/name" or by name ("1": a pure number or a
+# count; "text": strings)
+HDF5_UNITS = {
+    "text": "text", "reference": "mm", "displacement": "mm", "coefficients": "mm", "support": "mm",
+    "force": "N", "load_fraction": "1", "newton_iterations": "1", "residual": "N", "increment": "mm",
+    "step_cuts": "1", "center_at_entry": "mm", "entry": "mm", "radius": "mm", "arc": "rad",
+    "step": "rad", "turn_sense": "1", "desired_exit": "mm", "desired_exit_def": "mm",
+    "achieved_exit": "mm", "achieved_exit_def": "mm", "exit_rotation": "rad",
+    "trajectory_reference": "mm", "steps/step": "1", "rotation": "rad", "center": "mm",
+    "needle_tip": "mm", "tip_reference": "mm", "tip_spatial": "mm", "needle_points": "1",
+    "insertion_force": "N", "friction_force": "N", "cutting_force": "N", "minres_iterations": "1",
+    "constraint_violation": "mm", "tracking": "text", "exit_displacement": "mm",
+    "planner_iterations": "1", "condition_saddle": "1", "condition_preconditioned": "1",
+    "events/kind": "text", "events/step": "1", "angle_rad": "rad", "message": "text",
+    "center_trajectory": "mm", "trajectory_columns": "text", "exit_error_mm": "mm",
+    "final_displacement": "mm",
+}
 
 
-def run_attributes(command: str, scenario) -> dict:
+def column_units(columns: list[str]) -> str:
+    """Units of a table's columns, comma-separated, from their names (`_mm`, `_rad`, `_s`)."""
+    suffixes = {"mm": "mm", "rad": "rad", "s": "s", "N": "N"}
+    return ",".join(suffixes.get(name.rsplit("_", 1)[-1], "1") for name in columns)
+
+
+def run_attributes(command: str, scenario, provenance: dict | None = None) -> dict:
+    """The run log's root attributes: the command's name and the provenance of the run."""
+    record = provenance or make_provenance()
     return {
-        "stitchplan_version": __version__,
+        "stitchplan_version": record["stitchplan_version"],
         "command": command,
+        "command_line": record["command"],
         "scenario_name": scenario.name,
-        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "scenario": record["scenario"],
+        "scenario_sha256": record["scenario_sha256"],
+        "created_utc": record["created_utc"],
     }
 
 
@@ -58,7 +86,21 @@ def deform_summary(result) -> dict:
 
 def write_deform_outputs(result, probes_out: Path | None = None, reactions_out: Path | None = None,
                          summary: Path | None = None, out: Path | None = None,
-                         plot: Path | None = None) -> None:
+                         plot: Path | None = None, provenance: dict | None = None,
+                         plot_scale: float = 1.0) -> None:
+    """All of deform's outputs, or none of them (an OutputSet); the PNG draws the
+    displacements `plot_scale` times enlarged."""
+    provenance = provenance or make_provenance()
+    outputs = OutputSet({"--probes-out": probes_out, "--reactions-out": reactions_out,
+                         "--summary": summary, "--out": out, "--plot": plot})
+    with outputs.staged() as files:
+        _write_deform_files(result, files, provenance, plot_scale)
+
+
+def _write_deform_files(result, files: dict[str, Path], provenance: dict, plot_scale: float = 1.0) -> None:
+    """Writes to the temporaries `files` of an OutputSet."""
+    probes_out, reactions_out, summary, out, plot = (
+        files.get(label) for label in ("--probes-out", "--reactions-out", "--summary", "--out", "--plot"))
     if probes_out is not None:
         rows = np.hstack([result.probes, result.probe_displacements])
         write_csv(probes_out, ["x", "y", "ux", "uy"], rows)
@@ -66,7 +108,7 @@ def write_deform_outputs(result, probes_out: Path | None = None, reactions_out: 
         rows = [[i, fx, fy] for i, (fx, fy) in enumerate(result.reactions.tolist())]
         write_csv(reactions_out, ["segment", "fx", "fy"], rows)
     if summary is not None:
-        write_json(summary, deform_summary(result))
+        write_json(summary, {**provenance, **deform_summary(result)})
     if out is not None:
         report = result.report
         write_hdf5(out, {
@@ -86,17 +128,16 @@ def write_deform_outputs(result, probes_out: Path | None = None, reactions_out: 
                 "increment": [s.increment for s in report.steps],
                 "step_cuts": [s.cuts for s in report.steps],
             },
-        }, {**run_attributes("deform", result.scenario), **{
+        }, {**run_attributes("deform", result.scenario, provenance), **{
             "wall_seconds": result.wall_seconds,
             "factorizations": report.factorizations,
             "krylov_iterations": report.krylov_iterations,
             "discretization": discretization_summary(result.model),
-        }})
+        }}, HDF5_UNITS)
     if plot is not None:
         from .plots import plot_deformed
 
-        plot_deformed(plot, result.model.particles, result.particle_displacements,
-                      title=f"{result.scenario.name or 'deform'}: deformed particles")
+        plot_deformed(plot, result, scale=plot_scale)
 
 
 def deform_line(result) -> str:
@@ -116,6 +157,9 @@ def plan_line(result, export: Path) -> str:
     """The line `stitchplan plan` prints when it is done."""
     planned, unplanned = result.planned, result.unplanned
     versus = f" vs {unplanned.exit_error_mm:.4f} mm unplanned" if unplanned is not None else ""
+    verification = getattr(result, "verification", None)
+    if verification is not None and verification.result is not None:
+        versus += f", {verification.exit_error_mm:.4f} mm verified at spacing {verification.spacing_mm:.3g} mm"
     return (f"plan: {len(planned.steps)} steps, exit error {planned.exit_error_mm:.4f} mm planned{versus}, "
             f"{planned.wall_seconds:.2f} s planned run; trajectory written to {export}")
 
@@ -143,6 +187,38 @@ def insertion_summary(result) -> dict:
         "solver": result.solver_counts,
         "timings_seconds": result.timings,
         "discretization": discretization_summary(result.model),
+    }
+
+
+def exit_estimate_summary(estimate) -> dict:
+    """`exit_error_estimate_mm` and how it was made (planning.verification.ExitEstimate)."""
+    return {"exit_error_estimate_mm": None if estimate is None else estimate.estimate_mm,
+            "exit_error_estimate": None if estimate is None else estimate.as_record()}
+
+
+def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
+    """The exit error estimate, the verification on the refined model and the smoothness of
+    the exported centre path `centers` (n, 2) of a PlanResult."""
+    from ..planning.planner import path_smoothness
+
+    verification = result.verification
+    replay = verification.result if verification is not None else None
+    max_step, max_second = path_smoothness(centers)
+    return {
+        **exit_estimate_summary(result.estimate),
+        "verified_exit_error_mm": replay.exit_error_mm if replay is not None else None,
+        "verification_spacing_mm": verification.spacing_mm if verification is not None else None,
+        "verification": None if verification is None else {
+            "spacing_mm": verification.spacing_mm,  # `--spacing` that reproduces the replay
+            "discretization": discretization_summary(replay.model) if replay is not None else None,
+            "achieved_exit_def": replay.achieved_exit_def if replay is not None else None,
+            "desired_exit_def": replay.desired_exit_def if replay is not None else None,
+            "exit_error_material_mm": replay.exit_error_material_mm if replay is not None else None,
+            "wall_seconds": replay.wall_seconds if replay is not None else None,
+            "rounds": verification.rounds,
+        },
+        "max_center_step_mm": max_step,
+        "max_center_second_difference_mm": max_second,
     }
 
 
@@ -202,30 +278,54 @@ def insertion_datasets(result) -> dict[str, dict]:
 def write_insertion_outputs(result, command: str, out: Path | None = None,
                             summary: Path | None = None, plot: Path | None = None,
                             plot_steps: list[int] | None = None, extra_summary: dict | None = None,
-                            extra_datasets: dict | None = None) -> None:
+                            extra_datasets: dict | None = None, provenance: dict | None = None) -> None:
+    """simulate's outputs, all or none (an OutputSet)."""
+    outputs = OutputSet({"--out": out, "--summary": summary, "--plot": plot})
+    with outputs.staged() as files:
+        _write_insertion_files(result, command, files.get("--out"), files.get("--summary"),
+                               files.get("--plot"), plot_steps, extra_summary, extra_datasets,
+                               provenance)
+
+
+def _write_insertion_files(result, command: str, out: Path | None, summary: Path | None,
+                           plot: Path | None, plot_steps: list[int] | None = None,
+                           extra_summary: dict | None = None, extra_datasets: dict | None = None,
+                           provenance: dict | None = None, units: dict | None = None) -> None:
+    """Writes to the temporaries of an OutputSet (simulate's or plan's)."""
+    provenance = provenance or make_provenance()
     if summary is not None:
-        write_json(summary, {**insertion_summary(result), **(extra_summary or {})})
+        write_json(summary, {**provenance, **insertion_summary(result), **(extra_summary or {})})
     if out is not None:
         datasets = insertion_datasets(result)
         for group, values in (extra_datasets or {}).items():
             datasets.setdefault(group, {}).update(values)
-        write_hdf5(out, datasets, {**run_attributes(command, result.scenario), **{
+        write_hdf5(out, datasets, {**run_attributes(command, result.scenario, provenance), **{
             "wall_seconds": result.wall_seconds,
             "timings_seconds": result.timings,
             "solver_counts": result.solver_counts,
             "discretization": discretization_summary(result.model),
-        }})
+        }}, {**HDF5_UNITS, **(units or {})})
     if plot is not None:
         from .plots import plot_insertion
 
-        plot_insertion(plot, result, plot_steps)
+        plot_insertion(plot, result, plot_steps,
+                       estimate_mm=(extra_summary or {}).get("exit_error_estimate_mm"))
 
 
 def write_plan_outputs(result, export: Path, out: Path | None = None, summary: Path | None = None,
-                       plot: Path | None = None) -> None:
-    """trajectory.csv (atomic), summary JSON, HDF5 run log and the planned-vs-unplanned PNG."""
+                       plot: Path | None = None, provenance: dict | None = None) -> None:
+    """trajectory.csv, summary JSON, HDF5 run log and the planned-vs-unplanned PNG: all of
+    them or none (an OutputSet), so a robot never picks up a trajectory whose run failed."""
+    outputs = OutputSet({"--export": export, "--out": out, "--summary": summary, "--plot": plot})
+    with outputs.staged() as files:
+        _write_plan_files(result, files, provenance or make_provenance())
+
+
+def _write_plan_files(result, files: dict[str, Path], provenance: dict) -> None:
+    """Writes to the temporaries `files` of an OutputSet."""
     from ..planning.trajectory import trajectory_table
 
+    export, out, summary, plot = (files.get(label) for label in ("--export", "--out", "--summary", "--plot"))
     planned, unplanned = result.planned, result.unplanned
     columns, table = trajectory_table(planned, planned.scenario.robot)
     rows = [[int(row[0])] + list(row[1:]) for row in table]
@@ -240,6 +340,7 @@ def write_plan_outputs(result, export: Path, out: Path | None = None, summary: P
         "planner_passes": result.passes,
         "trajectory_rows": len(rows),
         "trajectory_columns": columns,
+        **plan_accuracy_summary(result, table[:, 2:4]),
     }
     datasets = {
         "planner": {
@@ -261,8 +362,9 @@ def write_plan_outputs(result, export: Path, out: Path | None = None, summary: P
             "final_displacement": unplanned.displacements[-1],
         }
     write_csv(export, columns, rows)
-    write_insertion_outputs(planned, "plan", out=out, summary=summary, extra_summary=extra,
-                            extra_datasets=datasets)
+    _write_insertion_files(planned, "plan", out, summary, None, extra_summary=extra,
+                           extra_datasets=datasets, provenance=provenance,
+                           units={"planner/trajectory": column_units(columns)})
     if plot is not None:
         from .plots import plot_plan
 

@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 
 from ..study.sweep import StudyResult, StudyRun
-from .files import write_csv
+from .files import OutputSet, write_csv
 from .plots import plot_speed_accuracy
 
 COLUMNS = ("family", "label", "spacing_mm", "coarse_spacing_mm", "grading", "dilation",
@@ -38,13 +38,19 @@ def study_row(run: StudyRun) -> list:
     ]
 
 
+def study_outputs(out: str | Path) -> dict[str, Path]:
+    """The files `stitchplan study --out DIR` writes, by label."""
+    return {f"--out ({name})": Path(out) / name for name in ("study.csv", "speed_accuracy.png")}
+
+
 def write_study_outputs(result: StudyResult, out: str | Path) -> tuple[Path, Path]:
-    """out/study.csv (one row per run) and out/speed_accuracy.png, each written atomically."""
-    out = Path(out)
-    csv_path, png_path = out / "study.csv", out / "speed_accuracy.png"
-    write_csv(csv_path, COLUMNS, [study_row(run) for run in result.runs])
-    plot_speed_accuracy(png_path, result)
-    return csv_path, png_path
+    """out/study.csv (one row per run) and out/speed_accuracy.png: both or neither (an OutputSet)."""
+    outputs = study_outputs(out)
+    csv_label, png_label = outputs
+    with OutputSet(outputs).staged() as files:
+        write_csv(files[csv_label], COLUMNS, [study_row(run) for run in result.runs])
+        plot_speed_accuracy(files[png_label], result)
+    return outputs[csv_label], outputs[png_label]
 
 
 def summary_lines(result: StudyResult) -> list[str]:

@@ -1,15 +1,46 @@
 """The needle's hold on the tissue along its track Gamma_N (thesis eq. 3.58-3.65).
 
 Gamma_N is the sequence of material points the tip has reached, in the reference
-configuration. It carries
+configuration, joined by straight segments. It carries
 
 - friction `friction` N per mm of needle inside the tissue, along the needle (eq. 3.58):
-  a line load on Gamma_N, each segment between consecutive needle points carrying the
-  needle length R * step it stands for, integrated with two Gauss points (eq. 3.64);
-- the cutting force, spread over the tip segment ("the first segment of the needle");
-- one constraint per needle point keeping its spatial position on the needle circle,
-  written as the residual g_k = |x_k - C| - R that Newton drives to zero (eq. 3.59-3.65),
-  so the points do not drift off the needle over many steps.
+  a line load on Gamma_N, each segment carrying the needle length R * step it stands for,
+  integrated with two Gauss points (eq. 3.64);
+- the cutting force at the tip;
+- the constraint that keeps the track on the needle circle, g = |x(X) - C| - R = 0,
+  written as a residual that Newton drives to zero (eq. 3.59-3.65), so the track does not
+  drift off the needle over many steps.
+
+Two couplings (`needle.coupling`):
+
+- `points`, the thesis's: one multiplier per needle point, g_k = |x(X_k) - C| - R = 0, and
+  the cutting force on the tip segment. The multipliers are point forces R * step apart
+  and the cutting force acts on one step's length, so refining the particles below that
+  length resolves the log-singular displacement of a point force in 2D instead of
+  converging (benchmarks/results/needle_coupling.md).
+- `mortar`: a multiplier field mu(s) on Gamma_N, discretised independently of the needle
+  points: continuous and piecewise linear (MULTIPLIER_ORDER 1; 0 gives one constant per
+  element) on elements of whole segments at least MULTIPLIER_SPACINGS local particle
+  spacings long, counted from the tip (where the loads act) so a shorter remainder sits at
+  the entry. No more multipliers than the particles can resolve keeps the discrete inf-sup
+  condition (Babuska 1973, Brezzi 1974; mortar methods: Wohlmuth 2000; tests/
+  test_needle_coupling.py checks the normalised Schur complement). The constraint is
+  enforced weakly, g_j = int phi_j g(X(s)) ds / int phi_j ds = 0 per multiplier (two Gauss
+  points per segment), so lambda_j is a force. A Gauss point of a segment is asked to lie
+  on the chord between the needle points (see `target_radius`), not on the arc. The
+  cutting force is spread uniformly over `cutting_length` mm of needle behind the tip (a
+  physical length: the needle point's cutting edge and taper), not over one step.
+
+Both are written on one constraint quadrature: points X_q with shape-function rows N_q and
+a sparse weight matrix W (Q, m) whose columns sum to one, so that g_j = sum_q W_qj g_q and
+G_j = sum_q W_qj N_q^T n_q (the point coupling: the needle points with W = I).
+`weights_matrix` B (2Q, m), B[2q + d, j] = W_qj n_q,d, gives G = E^T B, E the interleaved
+rows of the quadrature points: the saddle-point solvers cache K^-1 E^T once per quadrature
+point and form K^-1 G = (K^-1 E^T) B.
+
+Loads follow Algorithm 1's ramp: within a step the load is (1 - beta) x the previous
+step's load + beta x this step's (the new segment's friction and the cutting force moved to
+the new tip), beta = `load_factor` raised to one by needle/equilibrium.py.
 
 Arrays: `free` (n_free, 2) free coefficients; generalised forces and G's rows are
 interleaved over (particle, direction), length 2 n_free.
@@ -22,116 +53,299 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 from ..config import Needle
 from ..tissue.model import TissueModel
 from .geometry import NeedleGeometry
 
 GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on [0, 1]
+MULTIPLIER_SPACINGS = 1.0  # mortar multiplier elements span at least this many local spacings
+MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous piecewise linear
+PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter remainder at the entry)
+POINTS, MORTAR = "points", "mortar"
+
+
+def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> list[int]:
+    """First segment of each mortar element: whole segments grouped until each group is at
+    least `needed` (the largest of its segments') long, counted from the tip or from the
+    entry; a shorter remainder joins its neighbour (one element while the track is shorter)."""
+    order = range(len(lengths) - 1, -1, -1) if from_tip else range(len(lengths))
+    groups, current, length, longest = [], [], 0.0, 0.0
+    for j in order:  # the track's segments: tens
+        current.append(j)
+        length, longest = length + lengths[j], max(longest, needed[j])
+        if length >= longest:
+            groups.append(current)
+            current, length, longest = [], 0.0, 0.0
+    if current:
+        if groups:
+            groups[-1].extend(current)
+        else:
+            groups.append(current)
+    return sorted(min(group) for group in groups)
 
 
 @dataclass(frozen=True)
 class ConstraintValues:
     """The needle constraints at one state (eq. 3.59-3.61)."""
 
-    violation: np.ndarray  # g_k = |x_k - C| - R, (k,)
-    normal: np.ndarray  # n_k = (x_k - C) / |x_k - C|, (k, 2)
-    rho: np.ndarray  # |x_k - C|, (k,)
+    violation: np.ndarray  # g_e = sum_q w_q (|x_q - C| - R), (m,)
+    normal: np.ndarray  # n_q = (x_q - C) / |x_q - C|, (Q, 2)
+    rho: np.ndarray  # |x_q - C|, (Q,)
+
+
+@dataclass(frozen=True)
+class LoadQuadrature:
+    """Points of Gamma_N carrying needle loads: reference points, their rows and forces (N)."""
+
+    points: np.ndarray  # (L, 2)
+    rows: sp.csr_matrix  # N(X_l) T, (L, n_free)
+    magnitudes: np.ndarray  # (L,)
 
 
 class NeedleCoupling:
     """Gamma_N with its shape-function rows, the needle loads and the constraints on it."""
 
-    def __init__(self, model: TissueModel, geometry: NeedleGeometry, needle: Needle):
+    def __init__(self, model: TissueModel, geometry: NeedleGeometry, needle: Needle, dilation: float = 2.0):
         self.model = model
         self.geometry = geometry
         self.needle = needle
+        self.kind = getattr(needle, "coupling", POINTS)
+        self.cutting_length = float(getattr(needle, "cutting_length", geometry.insertion_step))
         n_free = model.n_free
+        self._tree = cKDTree(model.particles)
+        self._spacing = model.support / dilation  # local particle spacing, (NP,)
         self.points = np.zeros((0, 2))  # Gamma_N, reference, (k, 2)
-        self.point_rows = sp.csr_matrix((0, n_free))  # N(X_k) T, (k, n_free)
-        self._point_rows_coo = self.point_rows.tocoo()
-        self.expanded_rows = self._expand(self.point_rows)  # N(X_k) T on interleaved dofs, (2k, 2 n_free)
-        self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, reference, 2 per segment
+        self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, 2 per segment
         self.segment_rows = sp.csr_matrix((0, n_free))  # N(X_s) T at those points
+        self._point_rows = sp.csr_matrix((0, n_free))
+        # the constraint quadrature (needle points or segment Gauss points) and its multipliers
+        self.quadrature_rows = sp.csr_matrix((0, n_free))  # N_q T, (Q, n_free)
+        self.expanded_rows = sp.csr_matrix((0, 2 * n_free))  # N_q T on interleaved dofs, (2Q, 2 n_free)
+        self.weights = sp.csr_matrix((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
+        self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
+        self.multiplier_count = 0
+        self.multiplier_nodes = np.zeros(0)  # mortar: arc length of each multiplier's node (element start)
+        self.loads = LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, n_free)), np.zeros(0))
+        self.previous_loads = self.loads
+        self.load_factor = 1.0  # beta of Algorithm 1's ramp within a step
+        # |x_q - C| the constraint asks of a quadrature point: the needle points lie on the
+        # circle; a Gauss point at t of a segment lies on the chord between two needle points
+        # one step apart, at sqrt(R^2 - t (1 - t) c^2) from C (c = 2 R sin(step / 2); t (1 - t)
+        # = 1/6 at both Gauss points). Asking R there would push the whole track outward
+        # by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm steps)
+        chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
+        self.target_radius = (geometry.radius if self.kind == POINTS
+                              else math.sqrt(geometry.radius**2 - chord**2 / 6.0))
+
+    # --- the track ------------------------------------------------------------------------
 
     def _rows_at(self, points: np.ndarray) -> sp.csr_matrix:
-        return self.model.shape_functions_at(points).values @ self.model.boundary.free_map
+        return (self.model.shape_functions_at(points).values @ self.model.boundary.free_map).tocsr()
 
     def _expand(self, rows: sp.csr_matrix) -> sp.csr_matrix:
-        """N T acting on interleaved dofs: rows (k, i), columns (p, i)."""
+        """N T acting on interleaved dofs: rows (q, i), columns (p, i)."""
         coo = rows.tocoo()
         return sp.csr_matrix(
             (np.concatenate([coo.data, coo.data]),
              (np.concatenate([2 * coo.row, 2 * coo.row + 1]), np.concatenate([2 * coo.col, 2 * coo.col + 1]))),
             shape=(2 * rows.shape[0], 2 * self.model.n_free))
 
-    def add(self, reference_point: np.ndarray) -> None:
-        """Append a needle point, and the Gauss points of the segment it closes."""
+    def local_spacing(self, points: np.ndarray) -> np.ndarray:
+        """Particle spacing at reference points: that of the nearest particle, (n,)."""
+        return self._spacing[self._tree.query(np.atleast_2d(points))[1]]
+
+    def add(self, reference_point: np.ndarray, multipliers: np.ndarray | None = None) -> np.ndarray:
+        """Append a needle point (and the segment it closes) to Gamma_N; returns the
+        multipliers carried over to the new constraint set (forces conserved, new ones 0)."""
+        multipliers = np.zeros(self.multiplier_count) if multipliers is None else multipliers
+        forces = self.weights @ multipliers if self.multiplier_count else np.zeros(self.weights.shape[0])  # (Q,)
         if len(self.points):
             new = self.points[-1] + GAUSS_POINTS[:, None] * (reference_point - self.points[-1])
             self.segment_points = np.vstack([self.segment_points, new])
             self.segment_rows = sp.vstack([self.segment_rows, self._rows_at(new)], format="csr")
-        row = self._rows_at(reference_point[None])
         self.points = np.vstack([self.points, reference_point])
-        self.point_rows = sp.vstack([self.point_rows, sp.csr_matrix(row)], format="csr")
-        self._point_rows_coo = self.point_rows.tocoo()
-        self.expanded_rows = self._expand(self.point_rows)
+        if self.kind == POINTS:
+            row = self._rows_at(reference_point[None])
+            self._point_rows = sp.vstack([self._point_rows, row], format="csr")
+            self.quadrature_rows = self._point_rows
+            self.expanded_rows = self._expand(self._point_rows)
+            self.weights = sp.identity(len(self.points), format="csr")
+            self._shares = self.weights
+            self.multiplier_count = len(self.points)
+            carried = np.append(multipliers, 0.0)
+        else:
+            if len(self.points) > 1:
+                self.quadrature_rows = self.segment_rows
+                self.expanded_rows = sp.vstack([self.expanded_rows, self._expand(self.segment_rows[-2:])],
+                                               format="csr")
+            self._partition()
+            forces = np.concatenate([forces, np.zeros(self._shares.shape[0] - len(forces))])
+            carried = self._shares.T @ forces
+        self.previous_loads, self.loads = self.loads, self._load_quadrature()
+        return carried
+
+    def _segment_lengths(self) -> np.ndarray:
+        return np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+
+    def _partition(self) -> None:
+        """Mortar elements: whole segments from the entry, each closed once it is at least
+        MULTIPLIER_SPACINGS local spacings long; a shorter remainder at the tip joins the
+        last closed element (one element while the track is shorter). The multipliers are
+        the nodal values of a continuous piecewise-linear field on the elements' ends
+        (MULTIPLIER_ORDER 1) or one constant per element (0).
+
+        `_shares` P (Q, m): the share phi_j(s_q) of quadrature point q in multiplier j (a
+        partition of unity); `weights` W (Q, m): P ds_q normalised per multiplier, so that
+        g_j = sum_q W_qj g_q is the phi_j-weighted mean violation."""
+        lengths = self._segment_lengths()
+        if not len(lengths):
+            self.weights = self._shares = sp.csr_matrix((0, 0))
+            self.multiplier_count = 0
+            return
+        needed = MULTIPLIER_SPACINGS * self.local_spacing(0.5 * (self.points[:-1] + self.points[1:]))
+        starts = _element_starts(lengths, needed, from_tip=PARTITION_FROM_TIP)
+        marks = np.zeros(len(lengths), dtype=int)
+        marks[starts[1:]] = 1
+        segment_element = np.cumsum(marks)  # (segments,)
+        arc = np.concatenate([[0.0], np.cumsum(lengths)])  # arc length at the needle points
+        nodes = np.append(arc[starts], arc[-1])  # element ends, (m_e + 1,)
+        s_q = (arc[:-1, None] + GAUSS_POINTS[None, :] * lengths[:, None]).ravel()  # (Q,)
+        ds = np.repeat(0.5 * lengths, 2)
+        element = np.repeat(segment_element, 2)
+        q = np.arange(len(s_q))
+        if MULTIPLIER_ORDER == 0:
+            shares = sp.csr_matrix((np.ones(len(q)), (q, element)), shape=(len(q), len(starts)))
+        else:
+            upper = (s_q - nodes[element]) / (nodes[element + 1] - nodes[element])
+            shares = sp.csr_matrix((np.concatenate([1.0 - upper, upper]),
+                                    (np.concatenate([q, q]), np.concatenate([element, element + 1]))),
+                                   shape=(len(q), len(starts) + 1))
+        self._shares = shares
+        self.multiplier_nodes = nodes if MULTIPLIER_ORDER == 1 else nodes[:-1]  # arc length, mm
+        weighted = shares.multiply(ds[:, None]).tocsc()
+        self.weights = (weighted @ sp.diags(1.0 / np.asarray(weighted.sum(axis=0)).ravel())).tocsr()
+        self.multiplier_count = shares.shape[1]
 
     # --- loads ------------------------------------------------------------------------------
 
+    def _load_quadrature(self) -> LoadQuadrature:
+        """Friction on every segment's Gauss points (eq. 3.58, 3.64) and the cutting force:
+        on the tip segment (points) or uniformly over the last `cutting_length` mm of needle
+        (mortar), two Gauss points per (part of a) segment."""
+        segments = len(self.points) - 1
+        if segments < 1:
+            return LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, self.model.n_free)), np.zeros(0))
+        step_length = self.geometry.insertion_step  # needle length per segment, mm
+        friction = np.full(2 * segments, 0.5 * self.needle.friction * step_length)
+        cutting = self.needle.cutting_force
+        if self.kind == POINTS or cutting == 0.0:
+            magnitudes = friction.copy()
+            magnitudes[-2:] += 0.5 * cutting
+            return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
+        zone = min(self.cutting_length, segments * step_length)
+        covered = np.clip(zone / step_length - np.arange(segments)[::-1], 0.0, 1.0)  # tip end of each segment
+        touched = np.flatnonzero(covered > 0.0)
+        start, end = self.points[touched], self.points[touched + 1]
+        fraction = covered[touched]
+        along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
+        cut_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
+        cut_magnitudes = np.repeat(0.5 * cutting * fraction * step_length / zone, 2)
+        return LoadQuadrature(np.vstack([self.segment_points, cut_points]),
+                              sp.vstack([self.segment_rows, self._rows_at(cut_points)], format="csr"),
+                              np.concatenate([friction, cut_magnitudes]))
+
     def load_magnitudes(self) -> np.ndarray:
-        """Force (N) carried by each Gauss point of Gamma_N: friction on every segment,
-        plus the cutting force on the tip segment (eq. 3.58, 3.64)."""
-        segments = len(self.segment_points) // 2
-        per_segment = np.full(segments, self.needle.friction * self.geometry.insertion_step)
-        if segments:
-            per_segment[-1] += self.needle.cutting_force
-        return np.repeat(0.5 * per_segment, 2)
+        """Force (N) carried by each load point at the full load of this step."""
+        return self.loads.magnitudes
+
+    def _force_of(self, loads: LoadQuadrature, free: np.ndarray, center: np.ndarray,
+                  factor: float) -> np.ndarray:
+        if factor == 0.0 or not len(loads.magnitudes):
+            return np.zeros(2 * self.model.n_free)
+        load_points = loads.points + loads.rows @ free  # spatial, (L, 2)
+        angles = np.arctan2(load_points[:, 1] - center[1], load_points[:, 0] - center[0])
+        tangent = self.geometry.tangent(angles)  # a_0, (L, 2)
+        return (loads.rows.T @ ((factor * loads.magnitudes)[:, None] * tangent)).ravel()
 
     def needle_force(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
         """f_needle (2 n_free,): the line loads along the direction of needle motion a_0 at
-        the spatial Gauss points (eq. 3.64)."""
-        load_points = self.segment_points + self.segment_rows @ free  # spatial, (2 segments, 2)
-        angles = np.arctan2(load_points[:, 1] - center[1], load_points[:, 0] - center[0])
-        tangent = self.geometry.tangent(angles)  # a_0, (2 segments, 2)
-        magnitude = self.load_magnitudes()
-        return (self.segment_rows.T @ (magnitude[:, None] * tangent)).ravel()
+        the spatial load points (eq. 3.64), ramped between the previous and this step's."""
+        beta = self.load_factor
+        return (self._force_of(self.loads, free, center, beta)
+                + self._force_of(self.previous_loads, free, center, 1.0 - beta))
+
+    def needle_force_center_derivative(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
+        """d f_needle / dC (2 n_free, 2): a_0 turns with the polar angle seen from C,
+        d a_0 / dC = sense unit(theta) t^T / rho with t = (-sin theta, cos theta)."""
+        columns = np.zeros((2 * self.model.n_free, 2))
+        for loads, factor in ((self.loads, self.load_factor), (self.previous_loads, 1.0 - self.load_factor)):
+            if factor == 0.0 or not len(loads.magnitudes):
+                continue
+            relative = loads.points + loads.rows @ free - center  # (L, 2)
+            rho = np.linalg.norm(relative, axis=1)
+            radial = relative / rho[:, None]
+            across = np.column_stack([-radial[:, 1], radial[:, 0]])
+            scale = factor * loads.magnitudes * self.geometry.sense / rho  # (L,)
+            for j in range(2):
+                columns[:, j] += (loads.rows.T @ ((scale * across[:, j])[:, None] * radial)).ravel()
+        return columns
 
     # --- constraints ------------------------------------------------------------------------
 
     def constraint_values(self, free: np.ndarray, center: np.ndarray) -> ConstraintValues:
-        spatial = self.points + self.point_rows @ free  # (k, 2)
+        spatial = self.quadrature_points() + self.quadrature_rows @ free  # (Q, 2)
         relative = spatial - center
         rho = np.linalg.norm(relative, axis=1)
-        return ConstraintValues(rho - self.geometry.radius, relative / rho[:, None], rho)
+        return ConstraintValues(self.weights.T @ (rho - self.target_radius), relative / rho[:, None], rho)
+
+    def quadrature_points(self) -> np.ndarray:
+        """X_q, the reference points of the constraint quadrature, (Q, 2)."""
+        return self.points if self.kind == POINTS else self.segment_points
+
+    def weights_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
+        """B (2Q, m): B[2q + d, j] = W_qj n_q,d, so that G = E^T B."""
+        coo = self.weights.tocoo()
+        return sp.csr_matrix((np.concatenate([coo.data * normal[coo.row, 0], coo.data * normal[coo.row, 1]]),
+                              (np.concatenate([2 * coo.row, 2 * coo.row + 1]), np.concatenate([coo.col, coo.col]))),
+                             shape=(2 * self.weights.shape[0], self.multiplier_count))
+
+    def _carried(self, multipliers: np.ndarray) -> np.ndarray:
+        """mu_q = sum_j W_qj lambda_j, the force weight of each quadrature point, (Q,)."""
+        if not self.multiplier_count:
+            return np.zeros(self.weights.shape[0])
+        return self.weights @ multipliers
 
     def constraint_force(self, multipliers: np.ndarray, normal: np.ndarray) -> np.ndarray:
-        """G lambda = N^T (lambda_k n_k), interleaved (2 n_free,)."""
-        return self.expanded_rows.T @ (multipliers[:, None] * normal).ravel()
+        """G lambda = sum_q N_q^T (mu_q n_q), interleaved (2 n_free,)."""
+        return self.expanded_rows.T @ (self._carried(multipliers)[:, None] * normal).ravel()
 
     def constraint_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
-        """G of eq. 3.65 for the residual form g_k = |x_k - C| - R: column k = N_k^T n_k."""
-        rows = self._point_rows_coo
-        return sp.csr_matrix(
-            (np.concatenate([rows.data * normal[rows.row, 0], rows.data * normal[rows.row, 1]]),
-             (np.concatenate([2 * rows.col, 2 * rows.col + 1]), np.concatenate([rows.row, rows.row]))),
-            shape=(2 * self.model.n_free, len(self.points)))
+        """G of eq. 3.65 for the residual form: column j = sum_q W_qj N_q^T n_q."""
+        return (self.expanded_rows.T @ self.weights_matrix(normal)).tocsr()
 
-    @staticmethod
-    def _projections(multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> np.ndarray:
-        """lambda_k (I - n_k n_k^T) / rho_k, (k, 2, 2)."""
-        return multipliers[:, None, None] * (np.eye(2) - normal[:, :, None] * normal[:, None, :]) / rho[:, None, None]
+    def constraint_center_derivative(self, normal: np.ndarray) -> np.ndarray:
+        """d g_j / dC = -sum_q W_qj n_q^T, (m, 2)."""
+        return -np.asarray(self.weights.T @ normal).reshape(self.multiplier_count, 2)
+
+    def _projections(self, multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> np.ndarray:
+        """mu_q (I - n_q n_q^T) / rho_q, (Q, 2, 2)."""
+        weight = self._carried(multipliers) / rho
+        return weight[:, None, None] * (np.eye(2) - normal[:, :, None] * normal[:, None, :])
 
     def curvature(self, multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> sp.csr_matrix:
-        """H = sum_k lambda_k d^2 g_k = N^T blockdiag(lambda_k (I - n_k n_k^T) / rho_k) N."""
-        k = len(self.points)
-        if k == 0:
+        """H = sum_e lambda_e d^2 g_e = E^T blockdiag(w_q lambda_e(q) (I - n_q n_q^T) / rho_q) E."""
+        q = self.weights.shape[0]
+        if q == 0 or self.multiplier_count == 0:
             return sp.csr_matrix((2 * self.model.n_free, 2 * self.model.n_free))
         blocks = self._projections(multipliers, normal, rho)
-        block_matrix = sp.bsr_matrix((blocks, np.arange(k), np.arange(k + 1)), shape=(2 * k, 2 * k)).tocsr()
+        block_matrix = sp.bsr_matrix((blocks, np.arange(q), np.arange(q + 1)), shape=(2 * q, 2 * q)).tocsr()
         return (self.expanded_rows.T @ block_matrix @ self.expanded_rows).tocsr()
 
     def center_derivative(self, multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> np.ndarray:
-        """d r_u / dC = -sum_k lambda_k N_k^T (I - n_k n_k^T) / rho_k, (2 n_free, 2)."""
-        blocks = self._projections(-multipliers, normal, rho)  # (k, i, j)
+        """d (G lambda) / dC = -sum_q w_q lambda_e(q) N_q^T (I - n_q n_q^T) / rho_q, (2 n_free, 2)."""
+        if not self.weights.shape[0] or self.multiplier_count == 0:
+            return np.zeros((2 * self.model.n_free, 2))
+        blocks = -self._projections(multipliers, normal, rho)  # (Q, i, j)
         return np.column_stack([self.expanded_rows.T @ blocks[:, :, j].ravel() for j in range(2)])

@@ -1,17 +1,24 @@
 """The state of one needle insertion and its constrained equilibrium (thesis eq. 3.59-3.65).
 
-The state is the tissue's free coefficients, the needle track Gamma_N with one multiplier
-per needle point, and the needle centre C. After each needle point is added, Newton
-brings the tissue to equilibrium on the saddle-point system of eq. 3.62,
+The state is the tissue's free coefficients, the needle track Gamma_N with its multipliers
+(one per needle point, or the nodal values of the mortar multiplier field) and the needle
+centre C. After each needle point is added, Newton brings the tissue to equilibrium on the
+saddle-point system of eq. 3.62,
 
-    r_u = f_int(d) - f_needle(d) + G(d) lambda = 0,    g_k(d) = |x_k - C| - R = 0,
+    r_u = f_int(d) - f_needle(d) + G(d) lambda = 0,    g(d) = 0,
 
 under friction along the inserted needle and the cutting force at its tip (needle/coupling.py).
 
-Algorithm 1 raises the insertion force in small increments until the tip force reaches the
-cutting threshold, then adds a point. In the quasi-static limit the state at which each
-point is added is the one solved here directly: friction over the inserted length plus the
-threshold force at the tip (tests/test_simulation.py checks the two agree).
+Algorithm 1's ramp: the step's load (the new segment's friction and the cutting force moved
+to the new tip) is first applied whole; when Newton fails (no convergence, or det F <= 0
+somewhere) the increment is halved down to RAMP_SMALLEST of the step's load, and doubled
+again after each success. Equilibrium of the hyperelastic tissue does not depend on the
+path, so a ramped step ends where the whole load would have (tests/test_simulation.py).
+A step whose load cannot be carried stops the run with an InsertionFailure naming the step,
+the angle and the share carried (for Saint Venant-Kirchhoff: its compression instability).
+
+Converged means |r_u| <= residual_tolerance x |f_needle| and every |g| <= 1e-9 R
+(CONSTRAINT_TOLERANCE relative to the needle radius).
 """
 
 from __future__ import annotations
@@ -36,7 +43,8 @@ from .saddle_point import SaddlePointSolver, condition_numbers
 
 log = logging.getLogger(__name__)
 
-CONSTRAINT_TOLERANCE = 1e-9  # mm, needle points on the needle after each converged step
+CONSTRAINT_TOLERANCE = 1e-9  # |g| / R: the track on the needle after each converged step
+RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
 
 
 @dataclass(frozen=True)
@@ -86,12 +94,14 @@ class NeedleInsertion:
         self.particle_values = self.model.shape_functions_at(self.model.particles).values
         self.timings["discretization"] += time.perf_counter() - start
         self.assembler = Assembler(self.model)
-        self.coupling = NeedleCoupling(self.model, self.geometry, self.needle)
+        self.coupling = NeedleCoupling(self.model, self.geometry, self.needle, scenario.discretization.dilation)
         self.saddle = SaddlePointSolver(self._stiffness_at_rest)
         self.free = np.zeros((self.model.n_free, 2))
         self.multipliers = np.zeros(0)
         self.center = self.geometry.center.copy()
-        self.last_violation = 0.0  # max |g_k| of the last converged equilibrium, mm
+        self.last_violation = 0.0  # max |g_e| of the last converged equilibrium, mm
+        self.constraint_tolerance = CONSTRAINT_TOLERANCE * self.geometry.radius  # mm
+        self.ramp_increments = 0  # load increments beyond the first, over the run
 
     def _stiffness_at_rest(self) -> sp.csr_matrix:
         """K0, the tangent at zero deformation (eq. 3.72), from an assembler of its own so the
@@ -135,9 +145,10 @@ class NeedleInsertion:
         self.center = np.asarray(center, dtype=float)
 
     def add_point(self, reference_point: np.ndarray) -> None:
-        """Append a needle point to Gamma_N, with a zero multiplier."""
-        self.coupling.add(reference_point)
-        self.multipliers = np.append(self.multipliers, 0.0)
+        """Append a needle point to Gamma_N; the multipliers carry over to the new constraint
+        set (a new one starts at zero). The step's load starts at the previous step's."""
+        self.multipliers = self.coupling.add(reference_point, self.multipliers)
+        self.coupling.load_factor = 0.0
 
     # --- equilibrium -------------------------------------------------------------------------
 
@@ -156,8 +167,55 @@ class NeedleInsertion:
         return lambda: self.assembler.tangent_matrix() + self.coupling.curvature(multipliers, state.normal, state.rho)
 
     def equilibrate(self, rotation: float, step: int) -> tuple[int, int, float]:
-        """Newton on the saddle-point system (eq. 3.62) about the current centre.
-        Returns (Newton iterations, MINRES iterations, max |g_k| in mm)."""
+        """Equilibrium under the step's full load about the current centre, reached by
+        Algorithm 1's ramp when the load is not yet carried: the cutting force and the added
+        friction (needle/coupling.py, load_factor beta) rise from the previous step's load in
+        increments, first the whole, halved when Newton fails (step cutting) down to
+        RAMP_SMALLEST, doubled again after a success. Returns (Newton iterations, MINRES
+        iterations, max |g_e| in mm) summed over the increments."""
+        coupling = self.coupling
+        if coupling.load_factor >= 1.0:
+            return self._newton(rotation, step)
+        increment, newton, minres = 1.0, 0, 0
+        carried = self.snapshot()
+        while coupling.load_factor < 1.0:
+            start = coupling.load_factor
+            coupling.load_factor = min(1.0, start + increment)
+            try:
+                its, minres_its, worst = self._newton(rotation, step)
+            except InsertionFailure as failure:
+                coupling.load_factor = start
+                self.restore(carried)
+                self.saddle.forget()  # the factor of a failed iterate is no start for the next
+                increment *= 0.5
+                log.info("step %d (needle rotation %.3f rad): Newton failed at %.0f %% of the step's load; "
+                         "the ramp goes on in increments of %.3g %%", step, rotation,
+                         100 * min(1.0, start + 2 * increment), 100 * increment)
+                if increment < RAMP_SMALLEST:
+                    raise InsertionFailure(self._ramp_failure(rotation, step, start, failure)) from None
+                self.ramp_increments += 1
+                continue
+            newton, minres = newton + its, minres + minres_its
+            carried = self.snapshot()
+            increment = min(1.0, 2.0 * increment)
+        return newton, minres, worst
+
+    def _ramp_failure(self, rotation: float, step: int, carried: float, failure: InsertionFailure) -> str:
+        """What went wrong when even the smallest load increment fails, and what to try."""
+        message = (f"step {step} (needle rotation {rotation:.3f} rad): the needle's load could not be "
+                   f"carried: {100 * carried:.0f} % of the step's cutting force and added friction held, "
+                   f"the next {100 * RAMP_SMALLEST:.2g} % increment failed ({failure})")
+        models = {self.scenario.tissue.material.model}
+        models |= {region.material.model for region in getattr(self.scenario.tissue, "regions", None) or []}
+        if "saint-venant-kirchhoff" in models:
+            message += ("; Saint Venant-Kirchhoff is unstable under strong compression (its stress "
+                        "turns back to zero as det F -> 0, so the tissue in front of the tip collapses): "
+                        "use `model: neo-hookean`, which stiffens instead")
+        return message
+
+    def _newton(self, rotation: float, step: int) -> tuple[int, int, float]:
+        """Newton on the saddle-point system (eq. 3.62) about the current centre at the
+        current load. Returns (Newton iterations, MINRES iterations, max |g_e| in mm)."""
         settings = self.scenario.solver
         free, multipliers = self.free.ravel().copy(), self.multipliers.copy()
         n_dof = len(free)
@@ -167,7 +225,7 @@ class NeedleInsertion:
             state = self._timed_residuals(free.reshape(-1, 2), multipliers, rotation, step)
             residual_norm, worst = float(np.linalg.norm(state.residual)), state.worst_violation
             if (residual_norm <= settings.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
-                    and worst <= CONSTRAINT_TOLERANCE):
+                    and worst <= self.constraint_tolerance):
                 self.free, self.multipliers, self.last_violation = free.reshape(-1, 2), multipliers, worst
                 return iteration, minres_total, worst
             if iteration == settings.max_iterations or not np.isfinite(residual_norm):
@@ -184,7 +242,7 @@ class NeedleInsertion:
                 measure = residual_norm / max(state.needle_force, 1e-12) + worst
                 solution = self.saddle.solve_direct(self._stiffness(multipliers, state), constraints, rhs,
                                                     measure > 0.2 * previous, self.coupling.expanded_rows,
-                                                    state.normal)
+                                                    self.coupling.weights_matrix(state.normal))
                 previous = measure
             self.timings["solve"] += time.perf_counter() - t0
             free = free + solution[:n_dof]
@@ -208,7 +266,7 @@ class NeedleInsertion:
         curvature = self.coupling.curvature(multipliers, state.normal, state.rho)
         solution, its = self.saddle.solve_minres(
             lambda v: self.assembler.tangent_product(v) + curvature @ v, constraints, rhs,
-            self.coupling.expanded_rows, state.normal)
+            self.coupling.expanded_rows, self.coupling.weights_matrix(state.normal))
         if solution is None:
             self.saddle.fallbacks += 1
             message = (f"MINRES stagnated after {its} iterations at step {step} (needle rotation "
@@ -217,23 +275,32 @@ class NeedleInsertion:
             log.info(message)  # the user sees it once, as a `note:` from the event
         return solution, its
 
-    def center_sensitivity(self, point: np.ndarray) -> np.ndarray:
+    def center_sensitivity(self, point: np.ndarray, refactor: bool = False) -> np.ndarray:
         """d u(point) / d C (2 x 2) of the constrained equilibrium at the current state.
 
         Differentiating eq. 3.62's residuals with respect to the needle centre C:
-        K du + G dl = -d r_u/dC dC with d r_u/dC = -sum_k lambda_k N_k^T (I - n_k n_k^T) / rho_k,
-        and G^T du = -d g/dC dC with d g_k/dC = -n_k^T; solved with the current factor of K.
+        K du + G dl = -d r_u/dC dC with
+        d r_u/dC = -sum_q w_q lambda_e(q) N_q^T (I - n_q n_q^T) / rho_q - d f_needle/dC
+        (the loads follow the needle's tangent, which turns with C), and G^T du = -d g/dC dC
+        with d g_e/dC = -sum_q w_q n_q^T. Solved with the current factor of K + H (an older
+        iterate's, as Newton keeps it), or a fresh one with `refactor`. The follower loads'
+        own stiffness d f_needle/dd is left out of K, as in Newton: it is of order
+        (needle force) / R against the tissue's stiffness.
         """
         state = self.residuals(self.free, self.multipliers, self.center)
-        constraints = self.coupling.constraint_matrix(state.normal)
-        force_change = self.coupling.center_derivative(self.multipliers, state.normal, state.rho)  # (2 n_free, 2)
+        coupling = self.coupling
+        constraints = coupling.constraint_matrix(state.normal)
+        force_change = (coupling.center_derivative(self.multipliers, state.normal, state.rho)
+                        - coupling.needle_force_center_derivative(self.free, self.center))  # (2 n_free, 2)
+        violation_change = coupling.constraint_center_derivative(state.normal)  # (m, 2)
         row = self.model.shape_functions_at(point[None]).values @ self.model.boundary.free_map
         n_dof = 2 * self.model.n_free
+        weights = coupling.weights_matrix(state.normal)
         columns = []
         for j in range(2):
-            rhs = -np.concatenate([force_change[:, j], -state.normal[:, j]])
-            solution = self.saddle.solve_direct(self._stiffness(self.multipliers, state), constraints, rhs, False,
-                                                self.coupling.expanded_rows, state.normal)
+            rhs = -np.concatenate([force_change[:, j], violation_change[:, j]])
+            solution = self.saddle.solve_direct(self._stiffness(self.multipliers, state), constraints, rhs,
+                                                refactor and j == 0, coupling.expanded_rows, weights)
             columns.append((row @ solution[:n_dof].reshape(-1, 2))[0])
         return np.column_stack(columns)
 

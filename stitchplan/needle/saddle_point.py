@@ -75,8 +75,10 @@ class SchurPreconditioner:
         grown[k, k] = d
         self.cholesky = grown
 
-    def refresh(self, constraints: sp.spmatrix, expanded_rows: sp.csr_matrix, normals: np.ndarray) -> None:
-        """Re-form S = G^T K0^-1 G with the current normals (each Newton iteration).
+    def refresh(self, constraints: sp.spmatrix, expanded_rows: sp.csr_matrix, weights: sp.spmatrix) -> None:
+        """Re-form S = G^T K0^-1 G with the current normals (each Newton iteration); G = E^T B
+        with E the `expanded_rows` of the constraint quadrature and B the `weights` matrix
+        (needle/coupling.py, NeedleCoupling.weights_matrix).
 
         As the tissue slides along the needle the normals turn, and with nearly dependent
         constraints an S formed with the normals each point had when it was added is a poor
@@ -85,13 +87,14 @@ class SchurPreconditioner:
         so only the k x k matrix S and its Cholesky factor are renewed: G = N^T n gives
         K0^-1 G = (K0^-1 N^T) n.
         """
-        n, k = constraints.shape
+        n = constraints.shape[0]
         solved = self._solved_rows if self._solved_rows.shape[0] == n else np.zeros((n, 0))
-        if solved.shape[1] < 2 * k:
-            new = self.stiffness_at_rest.solve(expanded_rows[solved.shape[1]: 2 * k].T.toarray())
+        q2 = expanded_rows.shape[0]
+        if solved.shape[1] < q2:
+            new = self.stiffness_at_rest.solve(expanded_rows[solved.shape[1]: q2].T.toarray())
             solved = np.hstack([solved, new.reshape(n, -1)])
             self._solved_rows = solved
-        self.factor(constraints.toarray(), np.einsum("nkd,kd->nk", solved[:, : 2 * k].reshape(n, k, 2), normals))
+        self.factor(constraints.toarray(), np.asarray(weights.T @ solved[:, :q2].T).T)
 
     def factor(self, constraints: np.ndarray, columns: np.ndarray) -> None:
         """Keep G and K0^-1 G (n, k), column-major (a contiguous column per constraint), and
@@ -135,6 +138,10 @@ class SaddlePointSolver:
             self._at_rest_factor = factorize(self._assemble_at_rest())
         return self._at_rest_factor
 
+    def forget(self) -> None:
+        """Drop the factor of K + H, so the next direct solve factorizes afresh."""
+        self._factor = None
+
     @property
     def schur(self) -> SchurPreconditioner:
         """The S^-1 block of the MINRES preconditioner."""
@@ -143,7 +150,7 @@ class SaddlePointSolver:
         return self._schur
 
     def solve_direct(self, stiffness: Callable[[], sp.spmatrix], constraints: sp.spmatrix, rhs: np.ndarray,
-                     refactor: bool, expanded_rows: sp.csr_matrix, normals: np.ndarray) -> np.ndarray:
+                     refactor: bool, expanded_rows: sp.csr_matrix, weights: sp.spmatrix) -> np.ndarray:
         """Block elimination with a sparse LU of K + H (renewed when `refactor` or missing):
 
             a = K^-1 (-r_u),  S = G^T K^-1 G,  dl = S^-1 (G^T a + g),  dd = a - K^-1 G dl
@@ -151,7 +158,7 @@ class SaddlePointSolver:
         G^T dd = -g holds exactly even with an older factor of K, so the constraints
         converge at once; an older K only slows the equilibrium residual (modified Newton).
         `stiffness` returns the current K + H when a factor is needed; G = N^T n per point,
-        with N the `expanded_rows` and n the `normals`.
+        with N the `expanded_rows` and B the `weights` (G = N^T B).
         """
         n, k = constraints.shape
         if refactor or self._factor is None:
@@ -167,8 +174,7 @@ class SaddlePointSolver:
         if have < expanded_rows.shape[0]:
             new = self._factor.solve(expanded_rows[have:].T.toarray())
             self._solved_rows = np.hstack([self._solved_rows, new])
-        rows = self._solved_rows[:, : 2 * k].reshape(n, k, 2)
-        solved = np.einsum("nkd,kd->nk", rows, normals)  # K^-1 G, (n, k)
+        solved = np.asarray(weights.T @ self._solved_rows[:, : expanded_rows.shape[0]].T).T  # K^-1 G, (n, k)
         schur = constraints.T @ solved
         right = constraints.T @ a - rhs[n:]
         try:
@@ -179,13 +185,13 @@ class SaddlePointSolver:
 
     def solve_minres(self, stiffness_product: Callable[[np.ndarray], np.ndarray], constraints: sp.spmatrix,
                      rhs: np.ndarray, expanded_rows: sp.csr_matrix,
-                     normals: np.ndarray) -> tuple[np.ndarray | None, int]:
+                     weights: sp.spmatrix) -> tuple[np.ndarray | None, int]:
         """MINRES on the saddle system with diag(K0^-1, S^-1), S re-formed from the current
         G = N^T n (SchurPreconditioner.refresh). Returns (solution or None, iterations)."""
         n, k = constraints.shape
         g_t = constraints.T.tocsr()
         if k:
-            self.schur.refresh(constraints, expanded_rows, normals)
+            self.schur.refresh(constraints, expanded_rows, weights)
 
         def matvec(x):
             return np.concatenate([stiffness_product(x[:n]) + constraints @ x[n:], g_t @ x[:n]])

@@ -6,6 +6,13 @@ again with the moved needle; within the step this repeats until the centre and t
 displacement agree to `tolerance`. The fixed-point iteration converges when the exit point
 moves less than the centre that drags it (eq. 4.2, ||du(X_exit)|| < ||dO||); when it does
 not, planning stops with a message naming the step instead of diverging silently.
+
+The centres are also a path a robot follows: each step's centre is kept within move limits
+(MoveLimits: the centre's move per step and the change of that move, its second
+difference) and the mismatch a limited step leaves is carried to the next steps, whose
+aim still holds it. Late in a stitch, where eq. 4.2 fails and no centre move changes the
+exit, the limits keep the centre from jumping between steps' best tries; the passes
+(run_plan) then correct the exit through the early, controllable steps.
 """
 
 from __future__ import annotations
@@ -22,8 +29,82 @@ from ..events import Event, EventKind
 from ..needle.equilibrium import NeedleInsertion, Snapshot
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
+from .trajectory import trajectory_table
 
 log = logging.getLogger(__name__)
+
+
+REFERENCE_STEP = 0.08  # rad per needle step at which the move limits below are stated
+MAX_CENTER_STEP = 0.28  # mm the centre moves per step at most (acceptance bound 0.3)
+MAX_SECOND_DIFFERENCE = 0.14  # mm the centre's move changes per step at most (bound 0.15)
+
+
+@dataclass(frozen=True)
+class MoveLimits:
+    """Bounds on the centre path O(t_n) (mm per needle step of `step` rad): |O_n - O_(n-1)|
+    <= step_mm and |O_n - 2 O_(n-1) + O_(n-2)| <= second_difference_mm. The bounds are stated
+    at REFERENCE_STEP and scale linearly with the needle step. The centre also brakes so
+    that it can stop at the exit step, which keeps the centre of the step before
+    (trajectory.py): |O_n - O_(n-1)| <= second_difference_mm x (steps left before the exit)."""
+
+    step_mm: float
+    second_difference_mm: float
+    last_step: int  # the last step before the undeformed circle's exit
+
+    @classmethod
+    def for_needle(cls, geometry) -> MoveLimits:
+        scale = geometry.step / REFERENCE_STEP
+        return cls(MAX_CENTER_STEP * scale, MAX_SECOND_DIFFERENCE * scale, geometry.expected_steps - 1)
+
+    def speed(self, step: int) -> float:
+        """The largest move at `step`, braking one step early (the tip may leave a step
+        before the undeformed circle would)."""
+        return min(self.step_mm, self.second_difference_mm * max(self.last_step - step, 1))
+
+    def project(self, candidate: np.ndarray, centers: list[np.ndarray], step: int) -> np.ndarray:
+        """The point nearest `candidate` within both discs: the move limit about O_(n-1) and
+        the second-difference limit about 2 O_(n-1) - O_(n-2)."""
+        previous = centers[-1]
+        if len(centers) < 2:
+            return _into_disc(np.asarray(candidate, dtype=float), previous, self.speed(step))
+        return _into_both(np.asarray(candidate, dtype=float), 2.0 * previous - centers[-2],
+                          self.second_difference_mm, previous, self.speed(step))
+
+
+def _into_disc(point: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:
+    offset = point - center
+    distance = float(np.linalg.norm(offset))
+    return point if distance <= radius else center + offset * (radius / distance)
+
+
+def _into_both(point: np.ndarray, center_a: np.ndarray, radius_a: float, center_b: np.ndarray,
+               radius_b: float) -> np.ndarray:
+    """The point of the intersection of two discs nearest `point`: a projection onto one
+    disc if it lies in the other, else the nearer crossing of the two circles (if the discs
+    do not meet, the point of disc a nearest disc b)."""
+    for (center, radius), (other, other_radius) in (((center_a, radius_a), (center_b, radius_b)),
+                                                    ((center_b, radius_b), (center_a, radius_a))):
+        projected = _into_disc(point, center, radius)
+        if np.linalg.norm(projected - other) <= other_radius * (1 + 1e-12):
+            return projected
+    axis = center_b - center_a
+    distance = float(np.linalg.norm(axis))
+    if distance >= radius_a + radius_b:
+        return center_a + axis * (radius_a / distance)
+    along = (radius_a ** 2 - radius_b ** 2 + distance ** 2) / (2.0 * distance)
+    across = np.sqrt(max(radius_a ** 2 - along ** 2, 0.0))
+    middle = center_a + axis * (along / distance)
+    normal = np.array([-axis[1], axis[0]]) / distance
+    crossings = (middle + across * normal, middle - across * normal)
+    return min(crossings, key=lambda crossing: float(np.linalg.norm(crossing - point)))
+
+
+def path_smoothness(centers: np.ndarray) -> tuple[float, float]:
+    """Largest centre move and largest second difference (mm) of a centre path (n, 2)."""
+    centers = np.asarray(centers, dtype=float)
+    moves = np.linalg.norm(np.diff(centers, axis=0), axis=1) if len(centers) > 1 else np.zeros(1)
+    second = np.linalg.norm(np.diff(centers, 2, axis=0), axis=1) if len(centers) > 2 else np.zeros(1)
+    return float(moves.max()), float(second.max())
 
 
 @dataclass(frozen=True)
@@ -48,27 +129,41 @@ class ExitTracker:
     centre tried and the failure is recorded as an event (raised with `strict`). That
     happens when the needle is deep in the tissue: the material enclosed by the arc and the
     free edge then follows the needle almost rigidly and no centre move changes their
-    relative position.
+    relative position. With `smooth` every centre tried lies within MoveLimits of the
+    centres before it (`limited_steps`: the steps a limit held back).
     """
 
-    def __init__(self, settings: Planner, offset: np.ndarray | None = None, extrapolate: bool = True):
+    def __init__(self, settings: Planner, offset: np.ndarray | None = None, extrapolate: bool = True,
+                 smooth: bool = True):
         self.settings = settings
         self.offset = np.zeros(2) if offset is None else np.asarray(offset, dtype=float)
         self.extrapolate = extrapolate
-        self.centers: list[np.ndarray] = []  # O(t_n) of the steps so far
+        self.smooth = smooth  # keep the centres within MoveLimits
+        self.limits: MoveLimits | None = None
+        self.centers: list[np.ndarray] = []  # O(t_n) of the steps so far, O(t_0) first
+        self.limited_steps: list[int] = []  # steps whose centre a move limit held back
 
     def predict(self, center: np.ndarray, step: int) -> np.ndarray:
         """The centre extrapolated from the last two steps (with `extrapolate`), so the first
         mismatch of a step is the change of the centre's velocity, not of its position."""
-        if not self.extrapolate or len(self.centers) < 2:
-            return center
-        return center + (self.centers[-1] - self.centers[-2])
+        if not self.centers:
+            self.centers.append(np.asarray(center, dtype=float).copy())  # O(t_0)
+        if self.extrapolate and len(self.centers) >= 3:  # from step 3: step 1's move is a jump
+            center = center + (self.centers[-1] - self.centers[-2])
+        return self._feasible(center, step)
 
     def correct(self, insertion: NeedleInsertion, step: int, rotation: float) -> int:
         """Iterate the step's centre (eq. 4.1); returns the iterations."""
+        if self.smooth and self.limits is None:
+            self.limits = MoveLimits.for_needle(insertion.geometry)
         iterations = self._iterate(insertion, step, rotation)
         self.centers.append(insertion.center.copy())
         return iterations
+
+    def _feasible(self, center: np.ndarray, step: int) -> np.ndarray:
+        if self.limits is None or not self.centers:
+            return center
+        return self.limits.project(center, self.centers, step)
 
     def _iterate(self, insertion: NeedleInsertion, step: int, rotation: float) -> int:
         settings = self.settings
@@ -80,8 +175,11 @@ class ExitTracker:
             center = insertion.center
             mismatch = origin + exit_displacement - center
             best = self._better(best, mismatch, insertion)
-            move = self._newton_move(insertion, mismatch, target)
+            wanted = self._newton_move(insertion, mismatch, target)
+            move = self._feasible(center + wanted, step) - center
             size = float(np.linalg.norm(move))
+            if size < float(np.linalg.norm(wanted)) - settings.tolerance and size <= settings.tolerance:
+                self.limited_steps.append(step)  # held at the limit: the mismatch carries to the next steps
             log.debug("planning step %d, iteration %d: mismatch %.3g mm, centre move %.3g mm",
                      step, iteration, float(np.linalg.norm(mismatch)), size)
             if size <= settings.tolerance:
@@ -142,12 +240,22 @@ class PlanResult:
     planned: InsertionResult
     unplanned: InsertionResult | None
     passes: list[dict]
+    shooting: PassOffsets | None = None  # where the passes ended, to continue from
+    verification: object | None = None  # planning.verification.Verification, when verified
+    estimate: object | None = None  # planning.verification.ExitEstimate of the planned run
 
     @property
     def center_trajectory(self) -> np.ndarray:
         """O(t_n) for n = 0 .. N (row 0: the entry centre)."""
         centers = [self.planned.geometry.center] + [s.center for s in self.planned.steps]
         return np.asarray(centers)
+
+    @property
+    def exported_centers(self) -> np.ndarray:
+        """The centre columns of trajectory.csv, as written: O(t_0) .. O(t_N) and the exit
+        step's row, which keeps O(t_N) (trajectory.py)."""
+        _, table = trajectory_table(self.planned, self.planned.scenario.robot)
+        return table[:, 2:4]
 
 
 def final_mismatch(result: InsertionResult) -> np.ndarray:
@@ -156,29 +264,57 @@ def final_mismatch(result: InsertionResult) -> np.ndarray:
     return result.geometry.center + last.exit_displacement - last.center
 
 
+def exit_error_vector(result: InsertionResult) -> np.ndarray:
+    """achieved_exit_def - desired_exit_def (mm)."""
+    return np.asarray(result.achieved_exit_def - result.desired_exit_def, dtype=float)
+
+
 class PassOffsets:
-    """The offsets c_k of the planning passes: c_1 = 0, c_{k+1} = c_k - S^-1 m_k, with m_k the
-    final mismatch of pass k and S a secant (Broyden) estimate of dm/dc started at I."""
+    """The offsets c_k of the planning passes, a secant search along the exit edge.
+
+    The exit error e = achieved_exit_def - desired_exit_def lies along the deformed edge at
+    the exit (both points are on it), so the passes solve one equation: t . (e(c) - aim) = 0
+    with c = s t, t the direction of the first pass's miss. Moving the aim of the centre by
+    c moves the exit by about -c along the edge (de/dc ~ -1, the start of the secant); the
+    slope is then the secant of the last two passes, kept within [-3, -1/3] so that a pass
+    held back by the move limits cannot send the next one far off.
+    """
 
     def __init__(self):
         self.offset = np.zeros(2)
-        self.sensitivity = np.eye(2)
-        self._previous: tuple[np.ndarray, np.ndarray] | None = None  # (c, m) of the last pass
+        self.direction: np.ndarray | None = None
+        self.slope = -1.0
+        self.last: tuple[float, np.ndarray] | None = None  # (s, e) of the last pass run
+        self._previous: tuple[float, float] | None = None  # (s, t . miss) of the pass before
 
-    def advance(self, mismatch: np.ndarray) -> None:
-        if self._previous is not None:  # Broyden update of dm/dc from the last two passes
-            change, response = self.offset - self._previous[0], mismatch - self._previous[1]
-            if change @ change > 0:
-                self.sensitivity = self.sensitivity + (np.outer(response - self.sensitivity @ change, change)
-                                                       / (change @ change))
-        self._previous = (self.offset.copy(), mismatch)
-        try:
-            self.offset = self.offset - np.linalg.solve(self.sensitivity, mismatch)
-        except np.linalg.LinAlgError:
-            self.offset = self.offset - mismatch
+    @property
+    def position(self) -> float:
+        return 0.0 if self.direction is None else float(self.direction @ self.offset)
+
+    def record(self, error: np.ndarray) -> None:
+        """The exit error vector of the pass run with the current offset."""
+        self.last = (self.position, np.asarray(error, dtype=float))
+
+    def advance(self, aim: np.ndarray) -> None:
+        """The offset of the next pass, aiming the exit error at `aim`."""
+        position, error = self.last
+        miss = error - aim
+        if self.direction is None:
+            norm = float(np.linalg.norm(miss))
+            if norm == 0.0:
+                return
+            self.direction = miss / norm
+        along = float(self.direction @ miss)
+        if self._previous is not None and position != self._previous[0]:
+            slope = (along - self._previous[1]) / (position - self._previous[0])
+            self.slope = float(np.clip(slope, -3.0, -1.0 / 3.0))
+        self._previous = (position, along)
+        self.offset = (position - along / self.slope) * self.direction
 
 
-def run_plan(scenario: Scenario, compare: bool = True, on_step=None, **options) -> PlanResult:
+def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
+             tolerance: float | None = None, shooting: PassOffsets | None = None, smooth: bool = True,
+             **options) -> PlanResult:
     """Planned insertion with the scenario's planner settings, and (compare=True) the
     unplanned one of the same scene; `options` go to run_insertion.
 
@@ -187,31 +323,39 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, **options) 
     follows the needle, and the loads can still shift the exit relative to the centre by a
     drift that no centre move undoes then. The planner therefore shoots over whole passes:
     pass k aims the centre at O(t0) + u(X_exit) - c_k (PassOffsets), so the early,
-    controllable steps pre-compensate the late drift. Passes stop when the planned exit
-    error is below exit_tolerance, or below 2 % of the unplanned error, or after max_passes;
-    the best pass is returned.
+    controllable steps pre-compensate the late drift. The passes aim the exit error vector
+    at `aim` (default zero; planning.verification aims it by a refined model's offset) and
+    stop when they are within `tolerance` of it (default exit_tolerance) or after
+    max_passes; the best pass is returned. `shooting` continues from an earlier plan's
+    passes; `smooth` keeps the centre path within MoveLimits.
     """
     settings = scenario.planner
     unplanned = run_insertion(scenario, on_step=on_step, **options) if compare else None
-    target = settings.exit_tolerance
-    if unplanned is not None:
-        target = max(target, 0.02 * unplanned.exit_error_mm)
+    aim = np.zeros(2) if aim is None else np.asarray(aim, dtype=float)
+    target = settings.exit_tolerance if tolerance is None else tolerance
     start = time.perf_counter()
-    offsets = PassOffsets()
+    offsets = shooting or PassOffsets()
+    if offsets.last is not None:  # continuing with another aim: re-aim from the last pass
+        offsets.advance(aim)
     passes = []
-    best = None
+    best, best_miss = None, np.inf
     for number in range(1, settings.max_passes + 1):
-        planned = run_insertion(scenario, control=ExitTracker(settings, offsets.offset), on_step=on_step,
-                                **options)
+        tracker = ExitTracker(settings, offsets.offset, smooth=smooth)
+        planned = run_insertion(scenario, control=tracker, on_step=on_step, **options)
         mismatch = final_mismatch(planned)
+        error = exit_error_vector(planned)
+        miss = float(np.linalg.norm(error - aim))
         passes.append({"pass": number, "offset_mm": offsets.offset.copy(), "exit_error_mm": planned.exit_error_mm,
-                       "final_mismatch_mm": mismatch, "wall_seconds": planned.wall_seconds})
-        log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm", number, *offsets.offset,
-                 planned.exit_error_mm)
-        if best is None or planned.exit_error_mm < best.exit_error_mm:
-            best = planned
-        if planned.exit_error_mm <= target:
+                       "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
+                       "limited_steps": tracker.limited_steps,
+                       "wall_seconds": planned.wall_seconds})
+        log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
+                 *offsets.offset, planned.exit_error_mm, miss)
+        if miss < best_miss:
+            best, best_miss = planned, miss
+        offsets.record(error)
+        if miss <= target:
             break
-        offsets.advance(mismatch)
+        offsets.advance(aim)
     best.wall_seconds = time.perf_counter() - start
-    return PlanResult(best, unplanned, passes)
+    return PlanResult(best, unplanned, passes, shooting=offsets)

@@ -17,6 +17,13 @@ from ..needle.results import InsertionResult
 
 COLUMNS = ["step", "angle_rad", "center_x_mm", "center_y_mm", "tip_x_mm", "tip_y_mm"]
 BASE_COLUMNS = ["base_center_x_mm", "base_center_y_mm", "base_tip_x_mm", "base_tip_y_mm"]
+DECIMALS_MM = 9  # coordinates are rounded to 1e-9 mm: no round-off noise (5e-16) for a robot
+
+
+def _clean(values: np.ndarray) -> np.ndarray:
+    """Rounded to DECIMALS_MM decimals (numpy divides by 10**9: the nearest double to the
+    decimal), with -0.0 made 0.0."""
+    return np.round(np.asarray(values, dtype=float), DECIMALS_MM) + 0.0
 
 
 def trajectory_table(result: InsertionResult, robot: Robot) -> tuple[list[str], np.ndarray]:
@@ -27,6 +34,9 @@ def trajectory_table(result: InsertionResult, robot: Robot) -> tuple[list[str], 
     steps = np.arange(len(centers))
     angles = steps * geometry.step
     tips = np.asarray([geometry.tip(a, c) for a, c in zip(angles, centers)])
+    if robot.given:
+        base_centers, base_tips = _clean(to_base_frame(centers, robot)), _clean(to_base_frame(tips, robot))
+    centers, tips = _clean(centers), _clean(tips)
     columns = list(COLUMNS)
     table = [steps, angles, centers[:, 0], centers[:, 1], tips[:, 0], tips[:, 1]]
     if robot.angular_speed is not None:
@@ -34,8 +44,6 @@ def trajectory_table(result: InsertionResult, robot: Robot) -> tuple[list[str], 
         table.append(angles / robot.angular_speed)
     if robot.given:
         columns += BASE_COLUMNS
-        base_centers = to_base_frame(centers, robot)
-        base_tips = to_base_frame(tips, robot)
         table += [base_centers[:, 0], base_centers[:, 1], base_tips[:, 0], base_tips[:, 1]]
     return columns, np.column_stack(table)
 

@@ -32,6 +32,12 @@ Methods, chosen on the first (cheapest) pair's discretization, the cheaper where
 - linear solver: `minres` when it needs no fallback to the direct solve, agrees with it
   (accuracy/10) and is at least 20 % faster; otherwise `direct`.
 
+Limits: no trial runs a model beyond the resource guard's particle limit
+(stitchplan.resources; `max_particles`, None for none). As soon as the first pair gives an
+error constant, an accuracy that even the finest allowed model cannot reach (e(h_floor) >
+accuracy, h_floor the finest needle spacing within the limit) is refused with the accuracy
+that model would reach, instead of a search that halves on into models no machine holds.
+
 The steps, in order: `first_resolution` (the safe methods at R/3, halved until a run
 succeeds), `choose_tip_tracking`, `choose_linear_solver`, `estimate_error` (the resolution
 ladder), `pick_resolution` (the final pick). Every run is an InsertionRun whose `family`
@@ -48,6 +54,7 @@ from typing import TYPE_CHECKING
 from ..config import Scenario
 from ..errors import InputError
 from ..events import Event, EventKind
+from ..resources import MAX_PARTICLES, model_size
 from .runner import InsertionRun, events_of, exit_deviations, run_timed
 
 if TYPE_CHECKING:
@@ -114,17 +121,45 @@ def graded_scenario(scenario: Scenario, needle_spacing: float, tip_tracking: str
 class Trials:
     """The selection's runs, each configuration run at most once."""
 
-    def __init__(self, scenario: Scenario, on_trial: Callable[[InsertionRun], None] | None = None):
+    def __init__(self, scenario: Scenario, on_trial: Callable[[InsertionRun], None] | None = None,
+                 max_particles: int | None = MAX_PARTICLES, accuracy: float | None = None):
         self.scenario = scenario
         self.on_trial = on_trial
+        self.max_particles = max_particles
+        self.accuracy = accuracy
         self.runs: list[InsertionRun] = []
+
+    def particles(self, h: float) -> int:
+        """The guard's particle count of the graded scenario at needle spacing h."""
+        return model_size(graded_scenario(self.scenario, h, SAFE_TRACKING, SAFE_SOLVER)).particles
+
+    def allowed(self, h: float) -> bool:
+        return self.max_particles is None or self.particles(h) <= self.max_particles
+
+    def finest_allowed(self, coarsest: float) -> float:
+        """The finest needle spacing (down to coarsest / 2^(MAX_HALVINGS + 2), the finest
+        the search may try) whose model stays within the particle limit."""
+        finest = coarsest / 2 ** (MAX_HALVINGS + 2)
+        if self.allowed(finest):
+            return finest
+        low, high = finest, coarsest  # low refused, high allowed (the caller ran it)
+        for _ in range(10):  # to ~0.5 % of the spacing range
+            middle = (low * high) ** 0.5
+            low, high = (low, middle) if self.allowed(middle) else (middle, high)
+        return high
 
     def run(self, purpose: str, h: float, tracking: str, solver: str) -> InsertionRun:
         """The graded scenario at needle spacing h with these methods, run (or the earlier
-        run of the same configuration)."""
+        run of the same configuration). A model beyond the particle limit is refused."""
         for done in self.runs:
             if (done.spacing, done.tip_tracking, done.linear_solver) == (h, tracking, solver):
                 return done
+        if not self.allowed(h):
+            raise InputError(
+                f"discretization.accuracy: got {self.accuracy:g} mm, expected an accuracy the model "
+                f"reaches within {self.max_particles} particles (the next trial, needle spacing "
+                f"{h:.3g} mm, needs about {self.particles(h)}): ask for a looser accuracy, or raise "
+                "--max-particles")
         trial = run_timed(InsertionRun(purpose, f"{purpose} h={h:g} {tracking}/{solver}",
                                        graded_scenario(self.scenario, h, tracking, solver), h))
         self.runs.append(trial)
@@ -226,6 +261,7 @@ def estimate_error(trials: Trials, h: float, tracking: str, solver: str, accurac
         difference = _deviation(coarse, fine)
         constant = difference / (h ** ASSUMED_ORDER * (1.0 - 2.0 ** -ASSUMED_ORDER))  # e(h') ~ C h'^p
         estimate = ErrorEstimate(h, fine, difference, constant, first)
+        unreachable(trials, estimate, accuracy)
         # extrapolate at most one halving beyond the pair; halve the pair when the target lies further
         if estimate.at(h / 4) <= accuracy:
             break
@@ -234,6 +270,22 @@ def estimate_error(trials: Trials, h: float, tracking: str, solver: str, accurac
         raise InputError(f"discretization.accuracy: no two resolutions ran to estimate the error "
                             f"(h = {h / 2:.3g} mm: {fine.reason})")
     return estimate
+
+
+def unreachable(trials: Trials, estimate: ErrorEstimate, accuracy: float) -> None:
+    """Refuse an accuracy the finest model within the particle limit does not reach by the
+    estimate (the search would otherwise halve on until it hits the limit or its last
+    halving)."""
+    if trials.max_particles is None:
+        return
+    floor = trials.finest_allowed(estimate.h)
+    reachable = estimate.at(floor)
+    if reachable > accuracy:
+        raise InputError(
+            f"discretization.accuracy: got {accuracy:g} mm, expected at least {reachable:.2g} mm: the "
+            f"finest model within {trials.max_particles} particles (needle spacing {floor:.3g} mm) "
+            f"reaches an estimated {reachable:.2g} mm ({estimate.basis}); ask for a looser accuracy, "
+            "or raise --max-particles")
 
 
 def pick_resolution(trials: Trials, estimate: ErrorEstimate, tracking: str, solver: str,
@@ -256,15 +308,16 @@ def pick_resolution(trials: Trials, estimate: ErrorEstimate, tracking: str, solv
 
 def choose_discretization(scenario: Scenario, accuracy: float, tip_tracking: str | None = None,
                           linear_solver: str | None = None,
-                          on_trial: Callable[[InsertionRun], None] | None = None) -> AutoChoice:
+                          on_trial: Callable[[InsertionRun], None] | None = None,
+                          max_particles: int | None = MAX_PARTICLES) -> AutoChoice:
     """The cheapest graded discretization (and methods) whose estimated exit-point error is
     at most `accuracy` mm; see the module docstring. Explicit tip_tracking/linear_solver are
-    kept as given."""
+    kept as given; no trial model exceeds `max_particles` (None: no limit)."""
     if scenario.needle is None:
         raise InputError("discretization.accuracy: needs a needle (the accuracy is on its exit point)")
     if not accuracy > 0:
         raise InputError(f"discretization.accuracy: got {accuracy!r}, expected a positive distance (mm)")
-    trials = Trials(scenario, on_trial)
+    trials = Trials(scenario, on_trial, max_particles, accuracy)
     h, safe = first_resolution(trials, scenario.needle.radius)
     # methods, on the cheapest pair's discretization
     tracking, tracking_reason = ((tip_tracking, "given") if tip_tracking is not None
@@ -284,12 +337,14 @@ def choose_discretization(scenario: Scenario, accuracy: float, tip_tracking: str
 
 
 def resolve_accuracy(scenario: Scenario, tip_tracking: str | None = None,
-                     linear_solver: str | None = None) -> tuple[Scenario, Event | None]:
+                     linear_solver: str | None = None,
+                     max_particles: int | None = MAX_PARTICLES) -> tuple[Scenario, Event | None]:
     """The scenario with the auto discretization in place of `accuracy`, and the note that
     says what was chosen and why (None when the scenario gives no accuracy). Called once,
     before a run: every insertion of a `plan` then uses the same model."""
     if scenario.discretization.accuracy is None:
         return scenario, None
-    choice = choose_discretization(scenario, scenario.discretization.accuracy, tip_tracking, linear_solver)
+    choice = choose_discretization(scenario, scenario.discretization.accuracy, tip_tracking, linear_solver,
+                                   max_particles=max_particles)
     note = Event(EventKind.AUTO_DISCRETIZATION, choice.message)
     return replace(choice.scenario, source_text=scenario.source_text, name=scenario.name), note

@@ -11,8 +11,9 @@ import numpy as np
 
 from .assembly import Assembler
 from ..config import Scenario
+from ..geometry import on_segment
 from .model import TissueModel, model_for_scenario
-from .quadrature import segment_quadrature
+from .quadrature import gauss_legendre
 from .solver import NewtonReport, StepRecord, solve_static
 
 log = logging.getLogger(__name__)
@@ -34,18 +35,39 @@ class DeformResult:
 
 def external_forces(model: TissueModel, scenario: Scenario) -> np.ndarray:
     """Dead loads on the reference segments, as full particle forces (NP, 2):
-    f_I = int_seg N_I(X) h0 dGamma with h0 = total force / segment length (eq. 3.57)."""
+    f_I = int_seg N_I(X) h0 dGamma with h0 = total force / segment length (eq. 3.57).
+
+    The integral runs over exactly the segment (its ends are particles), split at the
+    particles on it, where the RK functions change their form."""
     forces = np.zeros((model.n_particles, 2))
     for load in scenario.loads:
         if load.force is None:
             continue
         start, end = np.asarray(load.segment[0]), np.asarray(load.segment[1])
         length = float(np.linalg.norm(end - start))
-        pieces = max(int(np.ceil(length / model.spacing)) * 2, 2)
-        points, weights = segment_quadrature(start, end, pieces, order=3)
+        points, weights = load_quadrature(model, start, end)
         values = model.shape_functions_at(points).values  # (nqs, NP)
         forces += np.outer(values.T @ weights, np.asarray(load.force) / length)
     return forces
+
+
+def load_quadrature(model: TissueModel, start: np.ndarray, end: np.ndarray,
+                    order: int = 4, per_interval: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss rule on the segment start-end with breaks at the particles lying on it: `order`
+    points on each of `per_interval` pieces of every interval. Points (n, 2), lengths (n,)."""
+    length = float(np.linalg.norm(end - start))
+    tol = model.tissue.domain.tolerance
+    on = on_segment(model.particles, start, end, tol)
+    along = (model.particles[on] - start) @ (end - start) / length**2  # in [0, 1]
+    cuts = np.unique(np.clip(np.concatenate([[0.0, 1.0], along]), 0.0, 1.0))
+    cuts = cuts[np.concatenate([[True], np.diff(cuts) > tol / length])]
+    s, w = gauss_legendre(order)
+    sub = (np.arange(per_interval)[:, None] + s[None, :]).ravel() / per_interval  # (m,) in [0, 1]
+    sub_w = np.tile(w, per_interval) / per_interval
+    left, width = cuts[:-1], np.diff(cuts)
+    t = (left[:, None] + width[:, None] * sub[None, :]).ravel()
+    weights = (width[:, None] * sub_w[None, :]).ravel() * length
+    return start + t[:, None] * (end - start), weights
 
 
 def prescribed_displacements(model: TissueModel, scenario: Scenario) -> np.ndarray:

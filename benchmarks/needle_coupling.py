@@ -1,0 +1,194 @@
+"""Exit error of the unplanned insertion (`stitchplan simulate`) against the particle spacing,
+with the thesis's point coupling (`needle.coupling: points`) and the mortar coupling
+(`mortar`, the default): needle/coupling.py.
+
+Scenes: every shipped needle scene (configs/sh12_*.yaml, configs/needle20_entry*.yaml) and
+two soft ones, configs/sh12_100x100.yaml as a neo-Hookean slab 3 and 2.5 mm thick (the
+thesis's forces through a thin slab). Each at its default discretization (`--spacing` x 1),
+x 1/sqrt(2) and x 1/2, as `stitchplan simulate CONFIG --spacing ...` runs it. Reported per
+scene and coupling: the exit errors, the change from the default to half the spacing, whether
+the three levels are monotone, and the observed rate p from the three levels (spacing ratio
+r = sqrt(2)): p = log(|e1 - e0| / |e2 - e1|) / log(r).
+
+Writes benchmarks/results/needle_coupling.{csv,md,png}. Rows are appended to the CSV as they
+finish, so `--scenes` / `--couplings` / `--factors` can fill it in pieces; `--report` only
+rewrites the table and the chart from the CSV. About 30 minutes on one core for all of it.
+
+    python benchmarks/needle_coupling.py [--scenes sh12_100x100 soft_t3] [--couplings mortar]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import csv
+import math
+import time
+from dataclasses import replace
+
+import matplotlib
+
+matplotlib.use("Agg")
+import _common as common
+import matplotlib.pyplot as plt
+
+from stitchplan.config.scenario import load_scenario, with_discretization
+from stitchplan.errors import InsertionFailure
+from stitchplan.needle.insertion import run_insertion
+
+CONFIGS = common.REPO_ROOT / "configs"
+SHIPPED = ("sh12_100x100", "sh12_100x100_mid", "sh12_100x50", "sh12_100x40", "sh12_100x30",
+           "needle20_entry30", "needle20_entry25", "needle20_entry20", "needle20_entry18")
+SOFT = {"soft_t3": 3.0, "soft_t2.5": 2.5}  # configs/sh12_100x100.yaml, neo-Hookean, thickness mm
+FACTORS = (1.0, 1 / math.sqrt(2.0), 0.5)
+COUPLINGS = ("points", "mortar")
+FIELDS = ("scene", "coupling", "factor", "spacing_mm", "particles", "steps", "exit_error_mm", "seconds", "failure")
+
+
+def scene(name: str, coupling: str):
+    if name in SOFT:
+        base = load_scenario(CONFIGS / "sh12_100x100.yaml")
+        material = replace(base.tissue.material, model="neo-hookean")
+        base = replace(base, tissue=replace(base.tissue, thickness=SOFT[name], material=material))
+    else:
+        base = load_scenario(CONFIGS / f"{name}.yaml")
+    return replace(base, needle=replace(base.needle, coupling=coupling))
+
+
+def run(name: str, coupling: str, factor: float) -> dict:
+    base = scene(name, coupling)
+    spacing = base.discretization.spacing * factor
+    scenario = with_discretization(base, spacing=spacing)
+    start = time.perf_counter()
+    row = {"scene": name, "coupling": coupling, "factor": f"{factor:.4f}", "spacing_mm": f"{spacing:.4f}"}
+    try:
+        result = run_insertion(scenario)
+        row.update(particles=result.model.n_particles, steps=len(result.steps),
+                   exit_error_mm=f"{result.exit_error_mm:.6f}", failure="")
+    except InsertionFailure as failure:
+        row.update(particles="", steps="", exit_error_mm="", failure=str(failure)[:160].replace(",", ";"))
+    row["seconds"] = f"{time.perf_counter() - start:.1f}"
+    print(row, flush=True)
+    return row
+
+
+def read_rows(path) -> list[dict]:
+    if not path.exists():
+        return []
+    with path.open() as handle:
+        return list(csv.DictReader(handle))
+
+
+def append(path, row: dict) -> None:
+    new = not path.exists()
+    with path.open("a", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=FIELDS)
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """Per scene and coupling: errors at the three levels, change to half, monotone, rate."""
+    table = []
+    latest = {}
+    for row in rows:  # a later row of the same run replaces an earlier one
+        latest[row["scene"], row["coupling"], row["factor"]] = row
+    keys = sorted({(s, c) for s, c, _ in latest}, key=lambda k: (list(SHIPPED + tuple(SOFT)).index(k[0])
+                                                                  if k[0] in SHIPPED + tuple(SOFT) else 99, k[1]))
+    for name, coupling in keys:
+        levels = [latest.get((name, coupling, f"{f:.4f}")) for f in FACTORS]
+        errors = [float(r["exit_error_mm"]) if r and r["exit_error_mm"] else None for r in levels]
+        entry = {"scene": name, "coupling": coupling, "errors": errors,
+                 "failures": [r["failure"] if r else "not run" for r in levels]}
+        e0, e1, e2 = errors
+        entry["change"] = (e2 - e0) / e0 if e0 is not None and e2 is not None else None
+        if None not in errors:
+            d1, d2 = e1 - e0, e2 - e1
+            entry["monotone"] = d1 * d2 > 0 and abs(d2) < abs(d1)
+            entry["rate"] = (math.log(abs(d1) / abs(d2)) / math.log(math.sqrt(2.0))
+                             if entry["monotone"] and d2 else None)  # a rate only where one is observed
+        else:
+            entry["monotone"], entry["rate"] = None, None
+        table.append(entry)
+    return table
+
+
+def markdown(table: list[dict]) -> str:
+    def number(value, digits=4):
+        return "—" if value is None else f"{value:.{digits}f}"
+
+    lines = ["# Needle coupling: exit error against spacing, points vs mortar", "",
+             "`python benchmarks/needle_coupling.py` (results/needle_coupling.csv holds every run).",
+             "Exit error (mm) of `stitchplan simulate` at the default spacing h, h/sqrt(2), h/2;",
+             "change = e(h/2)/e(h) - 1; monotone: the differences keep their sign and shrink;",
+             "rate p from the three levels (ratio sqrt(2)), where they are monotone. soft_t*: configs/sh12_100x100.yaml as",
+             "neo-Hookean, thickness 3 / 2.5 mm. A failed run shows its InsertionFailure.", "",
+             "| scene | coupling | e(h) | e(h/√2) | e(h/2) | change | monotone | rate p |",
+             "|---|---|---|---|---|---|---|---|"]
+    for entry in table:
+        e = entry["errors"]
+        change = "—" if entry["change"] is None else f"{100 * entry['change']:+.2f} %"
+        monotone = {None: "—", True: "yes", False: "no"}[entry["monotone"]]
+        lines.append(f"| {entry['scene']} | {entry['coupling']} | {number(e[0])} | {number(e[1])} | "
+                     f"{number(e[2])} | {change} | {monotone} | {number(entry['rate'], 2)} |")
+    failures = [(entry["scene"], entry["coupling"], f, text) for entry in table
+                for f, text in zip(("h", "h/√2", "h/2"), entry["failures"]) if text]
+    if failures:
+        lines += ["", "Failed or missing runs:", ""]
+        lines += [f"- {scene_name} {coupling} at {f}: {text}" for scene_name, coupling, f, text in failures]
+    return "\n".join(lines) + "\n"
+
+
+def chart(rows: list[dict], path) -> None:
+    latest = {}
+    for row in rows:
+        latest[row["scene"], row["coupling"], row["factor"]] = row
+    scenes = [s for s in SHIPPED + tuple(SOFT) if any(k[0] == s for k in latest)]
+    columns = 4
+    figure, axes = plt.subplots(math.ceil(len(scenes) / columns), columns, figsize=(4 * columns, 3.2 * math.ceil(len(scenes) / columns)),
+                                squeeze=False)
+    for axis, name in zip(axes.ravel(), scenes):
+        for coupling, style in (("points", "o--"), ("mortar", "s-")):
+            points = sorted((float(r["spacing_mm"]), float(r["exit_error_mm"]))
+                            for (s, c, _), r in latest.items() if s == name and c == coupling and r["exit_error_mm"])
+            if points:
+                axis.plot(*zip(*points), style, label=coupling)
+        axis.set_title(name, fontsize=9)
+        axis.set_xlabel("spacing (mm)", fontsize=8)
+        axis.set_ylabel("exit error (mm)", fontsize=8)
+        axis.invert_xaxis()
+        axis.legend(fontsize=7)
+    for axis in axes.ravel()[len(scenes):]:
+        axis.axis("off")
+    figure.suptitle("Unplanned exit error under refinement: point constraints vs mortar coupling")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="*", default=list(SHIPPED) + list(SOFT))
+    parser.add_argument("--couplings", nargs="*", default=list(COUPLINGS))
+    parser.add_argument("--factors", nargs="*", type=float, default=list(FACTORS))
+    parser.add_argument("--report", action="store_true", help="only rewrite the table and chart")
+    options = parser.parse_args()
+    csv_path = common.results_path("needle_coupling.csv")
+    if not options.report:
+        for name in options.scenes:
+            for coupling in options.couplings:
+                for factor in options.factors:
+                    append(csv_path, run(name, coupling, factor))
+    rows = read_rows(csv_path)
+    text = markdown(summarise(rows))
+    common.results_path("needle_coupling.md").write_text(text)
+    chart(rows, common.results_path("needle_coupling.png"))
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

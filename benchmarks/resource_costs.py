@@ -1,0 +1,164 @@
+"""What runs cost: the constants of the resource guard (stitchplan/resources.py).
+
+Each case runs in a fresh Python process, so that its peak resident memory (ru_maxrss) is
+its own: deform on configs/slab_edge_load.yaml at several spacings (and one wider kernel,
+dilation 3), and the unplanned insertion (stitchplan.needle.run_insertion) on
+configs/sh12_100x100.yaml at its default and half spacing. For each case the guard's own
+estimate of the model (resources.model_size: particles, neighbours, quadrature points) is
+printed next to the measured wall time of the run (the result's wall_seconds) and peak
+memory.
+
+Fitted (least squares in log-log over the dilation-2 cases):
+
+  seconds / step = c_kind x (particles / 1000)^p x (neighbours / 16)^2 x (points / 4)
+  memory - baseline = m x (particles / 1000)^q x (neighbours / 16) x (points / 4)
+
+and the guard's prediction is compared with each measured case (ratio), the dilation-3
+case included (it checks the neighbour scaling, which the fit did not see).
+
+Writes benchmarks/results/resource_costs.{md,csv} and prints them.
+Run from the repository root:  python benchmarks/resource_costs.py
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import _common as common  # noqa: E402
+
+SLAB = common.REPO_ROOT / "configs" / "slab_edge_load.yaml"
+NEEDLE = common.REPO_ROOT / "configs" / "sh12_100x100.yaml"
+# (kind, scenario, spacing or None for the default, dilation)
+CASES = (
+    ("deform", SLAB, 5.0, 2.0),
+    ("deform", SLAB, 2.5, 2.0),
+    ("deform", SLAB, 1.5, 2.0),
+    ("deform", SLAB, 1.0, 2.0),
+    ("deform", SLAB, 2.5, 3.0),
+    ("insertion", NEEDLE, None, 2.0),
+    ("insertion", NEEDLE, 1.786, 2.0),
+)
+
+CHILD = r"""
+import json, resource, sys, time
+from stitchplan.config import load_scenario, with_discretization
+from stitchplan import resources
+kind, path, spacing, dilation = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
+scenario = with_discretization(load_scenario(path), spacing=None if spacing == "none" else float(spacing),
+                               dilation=dilation)
+size = resources.model_size(scenario)
+row = {"particles_estimated": size.particles, "neighbours": size.neighbours,
+       "points_per_particle": size.points_per_particle}
+if kind == "baseline":
+    from stitchplan.tissue.deform import run_deform
+    from stitchplan.needle import insertion
+    row.update(wall=0.0, steps=1, particles=0)
+elif kind == "deform":
+    from stitchplan.tissue.deform import run_deform
+    result = run_deform(scenario)
+    row.update(wall=result.wall_seconds, steps=scenario.load_steps, particles=result.model.n_particles)
+else:
+    from stitchplan.needle.insertion import run_insertion
+    result = run_insertion(scenario)
+    row.update(wall=result.wall_seconds, steps=len(result.steps) + 1, particles=result.model.n_particles)
+row["peak_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0
+print(json.dumps(row))
+"""
+
+
+def run_case(kind: str, path, spacing, dilation: float) -> dict:
+    args = [sys.executable, "-c", CHILD, kind, str(path), "none" if spacing is None else str(spacing), str(dilation)]
+    done = subprocess.run(args, capture_output=True, text=True, cwd=common.REPO_ROOT, check=False)
+    if done.returncode != 0:
+        return {"failed": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "failed"}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    from stitchplan import resources
+
+    baseline = run_case("baseline", SLAB, 5.0, 2.0)["peak_bytes"]
+    rows = []
+    for kind, path, spacing, dilation in CASES:
+        result = run_case(kind, path, spacing, dilation)
+        result.update(kind=kind, scene=path.stem, spacing=spacing or "default", dilation=dilation)
+        rows.append(result)
+        print(result, flush=True)
+    ok = [r for r in rows if "failed" not in r]
+    fit = [r for r in ok if r["dilation"] == 2.0]
+
+    def relative(r):
+        return (r["particles"] / resources.REFERENCE_PARTICLES,
+                min(r["neighbours"], r["particles"]) / resources.REFERENCE_NEIGHBOURS,
+                r["points_per_particle"] / resources.REFERENCE_POINTS_PER_PARTICLE)
+
+    # time: log(t / (steps n^2 q)) = log c_kind + p log P, one c per kind, a common p
+    design, target = [], []
+    for r in fit:
+        p, n, q = relative(r)
+        design.append([np.log(p), r["kind"] == "deform", r["kind"] == "insertion"])
+        target.append(np.log(r["wall"] / (r["steps"] * n ** 2 * q)))
+    coefficients, *_ = np.linalg.lstsq(np.asarray(design, float), np.asarray(target), rcond=None)
+    time_exponent = float(coefficients[0])
+    per_step = {"deform": float(np.exp(coefficients[1])) / resources.REFERENCE_PARTICLES,
+                "insertion": float(np.exp(coefficients[2])) / resources.REFERENCE_PARTICLES}
+    # memory above the baseline: log(m / (n q)) = log m0 + q log P
+    x = [np.log(relative(r)[0]) for r in fit]
+    y = [np.log(max(r["peak_bytes"] - baseline, 1e6) / (relative(r)[1] * relative(r)[2])) for r in fit]
+    memory_exponent, log_m = np.polyfit(x, y, 1)
+    per_particle = float(np.exp(log_m)) / resources.REFERENCE_PARTICLES
+
+    header = ["kind", "scene", "spacing (mm)", "dilation", "particles", "guard's count", "steps",
+              "wall (s)", "peak memory (MB)", "guard: time (s)", "guard: memory (MB)",
+              "time ratio", "memory ratio"]
+    table = []
+    for r in rows:
+        if "failed" in r:
+            table.append([r["kind"], r["scene"], r["spacing"], r["dilation"], "failed: " + r["failed"]]
+                         + [""] * (len(header) - 5))
+            continue
+        _, n, q = relative(r)
+        p = r["particles_estimated"] / resources.REFERENCE_PARTICLES  # the guard predicts from its count
+        predicted_time = per_step[r["kind"]] * resources.REFERENCE_PARTICLES * p ** time_exponent * n ** 2 * q * r["steps"]
+        predicted_memory = baseline + per_particle * resources.REFERENCE_PARTICLES * p ** memory_exponent * n * q
+        table.append([r["kind"], r["scene"], r["spacing"], r["dilation"], r["particles"], r["particles_estimated"],
+                      r["steps"], r["wall"], r["peak_bytes"] / 1e6, predicted_time, predicted_memory / 1e6,
+                      r["wall"] / predicted_time, r["peak_bytes"] / predicted_memory])
+    common.write_csv(common.results_path("resource_costs.csv"), header, table)
+    lines = [
+        "# What runs cost: the resource guard's constants",
+        "",
+        f"Generated by `python benchmarks/resource_costs.py` ({common.machine_note()}). Each case "
+        "runs in its own process; peak memory is its ru_maxrss. The machine is shared: wall "
+        "times vary by tens of percent between runs.",
+        "",
+        common.markdown_table(header, table),
+        "",
+        f"Baseline (interpreter with stitchplan, numpy and scipy loaded): {baseline / 1e6:.0f} MB.",
+        "",
+        "Fitted over the dilation-2 cases (time per step per reference particle, at 1000 particles, "
+        "16 neighbours, 4 quadrature points per particle):",
+        "",
+        f"- SECONDS_PER_PARTICLE_STEP: deform {per_step['deform']:.3g} s, insertion {per_step['insertion']:.3g} s",
+        f"- TIME_EXPONENT: {time_exponent:.3g}",
+        f"- MEMORY_PER_PARTICLE: {per_particle:.3g} bytes, MEMORY_EXPONENT: {memory_exponent:.3g}",
+        f"- BASE_MEMORY: {baseline:.3g} bytes",
+        "",
+        "The guard's predictions use its own particle count (resources.model_size, made before "
+        "anything is built); the fit uses the particles the run had. The ratios compare each measured "
+        "case with the prediction (1 = exact); the dilation-3 case was not fitted and checks the "
+        "(neighbours/16)^2 time and (neighbours/16) memory scaling.",
+    ]
+    common.write_report("resource_costs.md", lines)
+
+
+if __name__ == "__main__":
+    main()

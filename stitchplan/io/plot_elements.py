@@ -1,0 +1,285 @@
+"""Pieces every figure draws the same way: the tissue outline at rest and deformed, clamped
+edges hatched, loads as arrows on their segments, probes, one colour scale per figure,
+legends below the data and log axes labelled with plain numbers.
+
+Points are (n, 2) arrays in mm; the figures themselves live in `plots`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+REST = {"color": "0.45", "ls": "--", "lw": 0.9}
+DEFORMED = {"color": "black", "lw": 1.3}
+FORCE_COLOUR, DISPLACEMENT_COLOUR = "tab:red", "tab:purple"
+CMAP = "viridis"
+
+
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend (imported on first use)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+# --- the tissue outline ---------------------------------------------------------------------
+
+
+def outline_loops(domain) -> list[np.ndarray]:
+    """Closed reference outlines, outer first then holes; each (k, 2) vertices, first not
+    repeated. A domain with an `outline` polygon (and `holes` polygons) gives those; the
+    rectangle its four corners."""
+    outline = getattr(domain, "outline", None)
+    if outline is not None:
+        loops = [np.asarray(outline, dtype=float)]
+        for hole in getattr(domain, "holes", ()) or ():
+            vertices = np.asarray(getattr(hole, "vertices", hole), dtype=float)
+            if vertices.ndim == 2 and len(vertices) >= 3:
+                loops.append(vertices)
+        return loops
+    w, h = domain.size
+    return [np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])]
+
+
+def _closed(loop: np.ndarray) -> np.ndarray:
+    return np.vstack([loop, loop[:1]])
+
+
+def _along_loop(points: np.ndarray, loop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance of each point (n, 2) to the closed polygon `loop` and the arc length of its
+    nearest polygon point, measured from the first vertex."""
+    distance = np.full(len(points), np.inf)
+    arc = np.zeros(len(points))
+    start_length = 0.0
+    closed = _closed(loop)
+    for a, b in itertools.pairwise(closed):  # the polygon's edges: a handful
+        edge = b - a
+        length = float(np.hypot(*edge))
+        if length == 0.0:
+            continue
+        t = np.clip((points - a) @ edge / length**2, 0.0, 1.0)  # (n,)
+        d = np.linalg.norm(points - (a + t[:, None] * edge), axis=1)
+        closer = d < distance
+        distance[closer] = d[closer]
+        arc[closer] = start_length + t[closer] * length
+        start_length += length
+    return distance, arc
+
+
+def deformed_loops(domain, particles: np.ndarray, displacement: np.ndarray,
+                   scale: float = 1.0) -> list[np.ndarray]:
+    """The deformed outline: the particles on each reference loop, in order along it, moved
+    by `scale` x their displacement (the RK interpolant at the particles); closed polylines."""
+    extent = float(np.ptp(particles, axis=0).max()) or 1.0
+    loops = []
+    for loop in outline_loops(domain):
+        distance, arc = _along_loop(particles, loop)
+        on = distance <= 1e-6 * extent
+        if on.sum() < 3:
+            continue
+        order = np.argsort(arc[on], kind="stable")
+        moved = (particles[on] + scale * displacement[on])[order]
+        loops.append(_closed(moved))
+    return loops
+
+
+def draw_outline(ax, domain, particles: np.ndarray | None = None, displacement: np.ndarray | None = None,
+                 scale: float = 1.0, deformed_label: str = "tissue outline, deformed") -> None:
+    """Reference outline dashed grey; with `displacement`, the deformed outline solid black."""
+    for k, loop in enumerate(outline_loops(domain)):
+        ax.plot(*_closed(loop).T, **REST, label="tissue at rest" if k == 0 else None)
+    if displacement is not None:
+        for k, loop in enumerate(deformed_loops(domain, particles, displacement, scale)):
+            ax.plot(*loop.T, **DEFORMED, label=deformed_label if k == 0 else None)
+
+
+# --- boundary conditions --------------------------------------------------------------------
+
+
+def clamped_segments(tissue) -> list[tuple[np.ndarray, np.ndarray]]:
+    """End points of every clamped piece of the boundary: named edges or `segment`s."""
+    pieces = []
+    for item in tissue.clamped:
+        if isinstance(item, str):
+            pieces.append(tissue.domain.edge(item))
+        else:
+            start, end = getattr(item, "segment", item)
+            pieces.append((np.asarray(start, dtype=float), np.asarray(end, dtype=float)))
+    return pieces
+
+
+def outward_normal(domain, start, end) -> np.ndarray:
+    """Unit normal of the boundary segment start-end pointing out of the tissue."""
+    start, end = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
+    direction = end - start
+    normal = np.array([direction[1], -direction[0]]) / np.hypot(*direction)
+    extent = max(domain.size) if hasattr(domain, "size") else np.hypot(*direction)
+    ahead = 0.5 * (start + end) + 1e-3 * extent * normal
+    return normal if not bool(domain.contains(ahead)) else -normal
+
+
+def draw_clamps(ax, tissue, width: float) -> None:
+    """Clamped edges: a hatched strip `width` mm wide outside the tissue along each. Call it
+    after the limits are set: strips outside the view are left out (and out of the legend)."""
+    from matplotlib.patches import Polygon
+
+    (x0, x1), (y0, y1) = sorted(ax.get_xlim()), sorted(ax.get_ylim())
+    shown = 0
+    for start, end in clamped_segments(tissue):
+        n = width * outward_normal(tissue.domain, start, end)
+        strip = np.array([start, end, end + n, start + n])
+        low, high = strip.min(axis=0), strip.max(axis=0)
+        if high[0] < x0 or low[0] > x1 or high[1] < y0 or low[1] > y1:
+            continue
+        ax.add_patch(Polygon(strip, closed=True, fill=False, hatch="////", edgecolor="0.3", lw=0.0,
+                             label="clamped edge" if shown == 0 else None))
+        ax.plot([start[0], end[0]], [start[1], end[1]], "-", color="0.3", lw=2.0)
+        shown += 1
+
+
+def draw_loads(ax, loads, domain, arrow: float, move: Callable[[np.ndarray], np.ndarray] | None = None,
+               ) -> np.ndarray:
+    """Each load's segment drawn thick (red: force, purple: prescribed displacement) where
+    `move` puts its points (default: at rest), and an arrow `arrow` mm long at its middle in
+    the load's direction, outside the tissue, labelled with its size. Returns the end points
+    of the arrows (k, 2), so the caller can keep them in the frame."""
+    move = move or (lambda points: points)
+    ends, labelled = [], set()
+    for k, load in enumerate(loads):
+        start, end = (np.asarray(p, dtype=float) for p in load.segment)
+        points = move(start + np.linspace(0.0, 1.0, 21)[:, None] * (end - start))  # (21, 2)
+        is_force = load.force is not None
+        vector = np.asarray(load.force if is_force else load.displacement, dtype=float)
+        colour = FORCE_COLOUR if is_force else DISPLACEMENT_COLOUR
+        kind = "load: force (N, total)" if is_force else "load: prescribed displacement (mm)"
+        ax.plot(*points.T, "-", color=colour, lw=3.5, solid_capstyle="butt", zorder=3,
+                label=None if kind in labelled else kind)
+        labelled.add(kind)
+        size = float(np.hypot(*vector))
+        middle = points[len(points) // 2]
+        if size == 0.0:
+            continue
+        direction = vector / size
+        outward = outward_normal(domain, start, end)
+        if direction @ outward >= 0.0:  # pulling: the arrow leaves the segment
+            tail, head, away = middle, middle + arrow * direction, direction
+        else:  # pushing: the arrow arrives at the segment from outside
+            tail, head, away = middle - arrow * direction, middle, -direction
+        far = middle + arrow * away
+        ax.annotate("", xy=head, xytext=tail,
+                    arrowprops={"arrowstyle": "-|>", "color": colour, "lw": 2.0, "mutation_scale": 14}, zorder=4)
+        unit = "N" if is_force else "mm"
+        text = f"{'F' if is_force else 'u'}{k + 1} = ({vector[0]:.3g}, {vector[1]:.3g}) {unit}"
+        ha = "right" if away[0] < -0.3 else "left" if away[0] > 0.3 else "center"
+        va = "top" if away[1] < -0.3 else "bottom" if away[1] > 0.3 else "center"
+        ax.annotate(text, far, xytext=6 * away, textcoords="offset points", fontsize=8, color=colour,
+                    ha=ha, va=va, zorder=5, bbox={"boxstyle": "round", "fc": "white", "ec": colour, "alpha": 0.9})
+        room = {"right": -2.3, "left": 2.3, "center": 0.0}[ha], {"top": -0.6, "bottom": 0.6, "center": 0.0}[va]
+        reach = far + arrow * np.asarray(room)  # room for the label (about 2.3 arrows wide)
+        ends += [tail, head, reach]
+    return np.asarray(ends).reshape(-1, 2)
+
+
+def draw_probes(ax, reference: np.ndarray, displaced: np.ndarray | None = None) -> None:
+    """Probes: open circle at rest, filled where they moved to, joined; numbered P1, P2, ..."""
+    if len(reference) == 0:
+        return
+    ax.plot(*reference.T, "o", mfc="none", mec="black", ms=7, mew=1.2, zorder=4, label="probe at rest")
+    where = reference
+    if displaced is not None:
+        for a, b in zip(reference, displaced):
+            ax.plot([a[0], b[0]], [a[1], b[1]], "-", color="black", lw=0.8, zorder=4)
+        ax.plot(*displaced.T, "o", color="white", mec="crimson", ms=6, mew=1.8, zorder=4,
+                label="probe, displaced")
+        where = displaced
+    for k, point in enumerate(where):
+        ax.annotate(f"P{k + 1}", point, xytext=(5, 5), textcoords="offset points", fontsize=8,
+                    color="crimson", fontweight="bold")
+
+
+# --- scales, legends, axes -----------------------------------------------------------------
+
+
+def magnitude_norm(*fields: np.ndarray):
+    """One colour scale for |u| over all the (n, 2) displacement fields a figure shows."""
+    from matplotlib.colors import Normalize
+
+    top = max((float(np.linalg.norm(f, axis=-1).max()) for f in fields if f.size), default=0.0)
+    return Normalize(vmin=0.0, vmax=top if top > 0 else 1.0)
+
+
+def legend_below(fig, axes, columns: int = 4, gap: float = 0.01, **options):
+    """One legend for the figure, just under the lowest of `axes` (their tick labels
+    included), with the entries of all of them once each."""
+    handles, labels = [], []
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            if label not in labels and not label.startswith("_"):
+                handles.append(handle)
+                labels.append(label)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    boxes = np.array([fig.transFigure.inverted().transform(ax.get_tightbbox(renderer).get_points())
+                      for ax in axes])  # (n_axes, 2 corners, 2)
+    middle = 0.5 * (boxes[:, 0, 0].min() + boxes[:, 1, 0].max())
+    return fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(middle, boxes[:, 0, 1].min() - gap),
+                      ncol=columns, fontsize=8, frameon=False, **options)
+
+
+def title_above(fig, axes, text: str, gap: float = 0.015, fontsize: float = 10):
+    """The figure's title just above the highest of `axes` (their titles included)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    tops = [fig.transFigure.inverted().transform(ax.get_tightbbox(renderer).get_points())[1, 1]
+            for ax in axes]
+    return fig.suptitle(text, y=max(tops) + gap, va="bottom", fontsize=fontsize)
+
+
+def readable_log_axis(axis) -> None:
+    """Log axis ticks as plain numbers (0.03, 0.5, 2) instead of 3 x 10^-2; minor ticks
+    labelled (at 2, 3, 5, or more on a short axis) only when fewer than two powers of ten
+    are in view. Call it once the limits are final."""
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    def plain(value, _position=None):
+        return f"{value:.3g}"
+
+    low, high = sorted(axis.get_view_interval())
+    axis.set_major_formatter(FuncFormatter(plain))
+    if low <= 0:
+        return
+    powers = math.floor(math.log10(high)) - math.ceil(math.log10(low)) + 1  # labelled major ticks
+    if powers >= 2:
+        axis.set_minor_formatter(NullFormatter())
+        return
+    span = math.log10(high / low)
+    leads = (2, 3, 5) if span > 0.5 else (2, 3, 4, 5, 6, 8) if span > 0.3 else tuple(range(1, 10))
+
+    def some(value, _position=None):
+        lead = round(value / 10 ** math.floor(math.log10(value) + 1e-9))
+        return plain(value) if lead in leads else ""
+
+    axis.set_minor_formatter(FuncFormatter(some))
+
+
+def frame(ax, points: np.ndarray, margin: float = 0.06, floor: float = 0.0) -> None:
+    """Limits that hold all `points` (n, 2) with a margin of the larger side, equal aspect."""
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    low, high = points.min(axis=0), points.max(axis=0)
+    pad = max(margin * float((high - low).max()), floor)
+    ax.set_xlim(low[0] - pad, high[0] + pad)
+    ax.set_ylim(low[1] - pad, high[1] + pad)
+    ax.set_aspect("equal")
+
+
+def label_mm(ax) -> None:
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")

@@ -1,0 +1,205 @@
+"""How far to trust an exit point: discretization error estimates, and plans checked on a
+refined model.
+
+Error estimate (Richardson). Two runs of the same needle-centre path at particle spacings
+h and h' = h/2 (or 2h) give d = the largest of the deviations of the spatial achieved exit,
+the material achieved exit and the exit-error vector (as stitchplan.study measures exit
+points). With x(h) - x* ~ C h^p,
+
+    e(h) = d / (1 - 2^-p)   from (h, h/2),        e(h) = d / (2^p - 1)   from (h, 2h).
+
+p = ASSUMED_ORDER = 1, the safe side: the exit point converges about that fast or slower
+on the shipped scenes, where a cutting force concentrated at the tip makes the absolute
+exit position converge slowly; the exit *error* (achieved minus desired, both moved alike)
+converges much faster, and the deviations say which part moved (`ExitEstimate.deviations`).
+
+Verified plans (`plan_verified`). The planner's own exit error is measured on the model it
+planned on; `plan` therefore replays the exported trajectory (the centre column of
+trajectory.csv, row n at step n) on a model with half the particle spacing and reports
+that replay's exit error. When it exceeds VERIFIED_FACTOR x exit_tolerance, the offset
+between the two models' exit-error vectors for the same trajectory, delta = e_refined -
+e_base, is the base model's bias: the planner's passes are aimed at e_base = -delta
+(shooting with the refined model's mismatch; planning.planner.run_plan `aim`, continuing the
+secant of the earlier passes) and the new trajectory is replayed again. At most
+MAX_CORRECTIONS such rounds; the trajectory with the smallest verified error is the one
+exported and reported (its `wall_seconds` then counts the passes of every round; the
+replays' times are in the verification rounds). The trajectory is judged on the finer
+model: where the two models disagree by more than exit_tolerance, the planned (base-model)
+exit error of a corrected plan is about |delta|, and `exit_error_estimate_mm` says so too.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import Scenario, with_discretization
+from ..errors import InputError, NumericalFailure
+from ..events import Event, EventKind
+from ..needle.insertion import run_insertion
+from ..needle.results import InsertionResult
+from .planner import PlanResult, exit_error_vector, run_plan
+
+log = logging.getLogger(__name__)
+
+ASSUMED_ORDER = 1.0  # convergence order of the exit point in the particle spacing (conservative)
+VERIFICATION_FACTOR = 0.5  # refined spacing / planning spacing
+VERIFIED_FACTOR = 1.5  # a verified exit error within 1.5 x exit_tolerance needs no correction
+AIMED_TOLERANCE_FRACTION = 0.4  # passes with an aim stop within this x exit_tolerance of it
+MAX_CORRECTIONS = 2
+
+
+@dataclass
+class ExitEstimate:
+    """Estimated discretization error of a run's exit point (mm), from a second run of the
+    same centre path at `other_spacing_mm`."""
+
+    estimate_mm: float
+    basis: str  # "refined" (h/2) or "coarse" (2h)
+    order: float
+    other_spacing_mm: float  # nominal spacing of the second run
+    other_particles: int
+    deviations: dict[str, float]  # mm, between the two runs
+
+    def as_record(self) -> dict:
+        return {"estimate_mm": self.estimate_mm, "basis": self.basis, "assumed_order": self.order,
+                "other_spacing_mm": self.other_spacing_mm, "other_particles": self.other_particles,
+                **self.deviations}
+
+
+@dataclass
+class Verification:
+    """The exported trajectory replayed on the refined model."""
+
+    spacing_mm: float  # nominal spacing of the refined model
+    result: InsertionResult | None  # the replay (None: it could not be replayed)
+    rounds: list[dict] = field(default_factory=list)  # per planning round: planned and verified errors
+
+    @property
+    def exit_error_mm(self) -> float | None:
+        return None if self.result is None else self.result.exit_error_mm
+
+
+def exit_deviations(result: InsertionResult, reference: InsertionResult) -> dict[str, float]:
+    """Distances (mm) between the exit points of two runs: spatial achieved exit, material
+    achieved exit, exit-error vector, and the largest of the three."""
+    spatial = float(np.linalg.norm(result.achieved_exit_def - reference.achieved_exit_def))
+    material = float(np.linalg.norm(result.achieved_exit - reference.achieved_exit))
+    error = float(np.linalg.norm(exit_error_vector(result) - exit_error_vector(reference)))
+    return {"exit_deviation_mm": spatial, "material_exit_deviation_mm": material,
+            "exit_error_deviation_mm": error, "deviation_mm": max(spatial, material, error)}
+
+
+def rescaled(scenario: Scenario, factor: float) -> Scenario:
+    """The scenario with every particle spacing scaled by `factor` (a graded arrangement
+    scales as a whole)."""
+    discretization = scenario.discretization
+    changes = {"spacing": discretization.spacing * factor}
+    if discretization.needle_spacing is not None and discretization.needle_refinement is None:
+        changes["needle_spacing"] = discretization.needle_spacing * factor
+    return with_discretization(scenario, **changes)
+
+
+def estimate_from(result: InsertionResult, other: InsertionResult, factor: float, other_spacing: float) -> ExitEstimate:
+    """Richardson estimate of `result`'s exit error from a run at `factor` x its spacing."""
+    deviations = exit_deviations(result, other)
+    ratio = 2.0 ** ASSUMED_ORDER
+    if factor < 1.0:  # other is the finer run
+        estimate = deviations["deviation_mm"] / (1.0 - 1.0 / ratio)
+        basis = "refined"
+    else:
+        estimate = deviations["deviation_mm"] / (ratio - 1.0)
+        basis = "coarse"
+    return ExitEstimate(estimate, basis, ASSUMED_ORDER, other_spacing, other.model.n_particles, deviations)
+
+
+def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path: np.ndarray | None = None,
+                        **options) -> ExitEstimate | None:
+    """The exit error estimate of `result` from a coarser run (2h) of the same centre path
+    (`center_path` rows as run_insertion takes them; None: the needle centre stays fixed).
+    None, with an event on `result`, when the coarse model cannot run the insertion."""
+    options = {key: value for key, value in options.items() if key not in ("on_step", "condition_numbers")}
+    try:
+        coarse = rescaled(scenario, 2.0)
+        other = run_insertion(coarse, center_path=center_path, **options)
+    except (InputError, NumericalFailure) as error:
+        message = f"exit error estimate: the model at twice the spacing failed ({error}); no estimate"
+        result.events.append(Event(EventKind.ACCURACY_CHECK, message))
+        log.info(message)
+        return None
+    return estimate_from(result, other, 2.0, coarse.discretization.spacing)
+
+
+def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = None, estimate: bool = True,
+                           on_step=None, **options) -> tuple[InsertionResult, ExitEstimate | None]:
+    """run_insertion, and (with `estimate`) its exit error estimate from a run at 2h."""
+    result = run_insertion(scenario, center_path=center_path, on_step=on_step, **options)
+    if not estimate:
+        return result, None
+    return result, estimate_exit_error(scenario, result, center_path, **options)
+
+
+def replay(scenario: Scenario, centers: np.ndarray, **options) -> InsertionResult | None:
+    """The centre path replayed; None when the tip does not leave the tissue within it."""
+    try:
+        return run_insertion(scenario, center_path=centers, **options)
+    except InputError as error:  # the path ends before the tip exits on this model
+        log.info("verification replay: %s", error)
+        return None
+
+
+def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True, on_step=None,
+                  **options) -> PlanResult:
+    """run_plan, then (with `verify`) the exported trajectory replayed on the refined model
+    and, where needed, the passes re-aimed by the refined model's offset (module docstring).
+    The plan's `verification` is set (with `verify`), and its `estimate`, the exit error
+    estimate of the planned run: from the refined replay, or without `verify` from a replay
+    of the trajectory at 2h."""
+    result = run_plan(scenario, compare=compare, on_step=on_step, **options)
+    if not verify:
+        result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, **options)
+        return result
+    settings = scenario.planner
+    fine = rescaled(scenario, VERIFICATION_FACTOR)
+    spacing = fine.discretization.spacing
+    rounds, best, replayed = [], None, None  # best: (verified error, plan, replay)
+    for record in result.passes:
+        record["round"] = 1
+    planning_seconds = result.planned.wall_seconds
+    for correction in range(MAX_CORRECTIONS + 1):
+        if correction:
+            offset = exit_error_vector(replayed) - exit_error_vector(result.planned)
+            aim = -offset
+            log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at (%.4g, %.4g) mm",
+                     *offset, *aim)
+            again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
+                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, **options)
+            planning_seconds += again.planned.wall_seconds
+            for record in again.passes:
+                record["round"] = correction + 1
+            result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
+        replayed = replay(fine, result.exported_centers, **options)
+        verified = np.inf if replayed is None else replayed.exit_error_mm
+        rounds.append({"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
+                       "verified_exit_error_mm": None if replayed is None else verified,
+                       "replay_wall_seconds": None if replayed is None else replayed.wall_seconds})
+        log.info("verification round %d: planned exit error %.4g mm, on the refined model %.4g mm",
+                 correction + 1, result.planned.exit_error_mm, verified)
+        if best is None or verified < best[0]:
+            best = (verified, result, replayed)
+        if replayed is None or verified <= VERIFIED_FACTOR * settings.exit_tolerance:
+            break
+    verified, result, replayed = best
+    result.planned.wall_seconds = planning_seconds  # every pass of every round
+    result.verification = Verification(spacing, replayed, rounds)
+    if replayed is None:
+        message = ("verification: the exported trajectory ends before the tip leaves the refined model "
+                   f"(spacing {spacing:.4g} mm); verified exit error unknown")
+        result.planned.events.append(Event(EventKind.ACCURACY_CHECK, message))
+        log.info(message)
+        result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, **options)
+    else:
+        result.estimate = estimate_from(result.planned, replayed, VERIFICATION_FACTOR, spacing)
+    return result

@@ -1,0 +1,389 @@
+"""Every bad input refused up front: exit code 2, one `error:` line per problem naming the file
+and the field (or the option), the value received and what was expected, and no output file.
+
+Each case runs the real command (typer's CliRunner) on small files in tmp_path and is refused
+before any model is built: the whole module runs in a few seconds. Also here: the resource
+guard's estimates against what the model builds, the exported trajectories of the shipped
+scenes replaying through the centre-path checks, and the auto discretization refusing an
+accuracy its particle limit cannot reach.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from stitchplan.cli.app import app
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+PHANTOM = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}
+# 40 x 20 mm block clamped on the right, SH needle (r 8.88 mm) entering (0, 12) cw in 0.2 rad
+# steps (10 until the tip exits), a force on the left edge: every command accepts it as it stands
+BASE = {
+    "name": "small",
+    "tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": dict(PHANTOM), "clamped": ["right"]},
+    "discretization": {"spacing": 5.0},
+    "needle": {"radius": 8.88, "entry": [0.0, 12.0], "turn": "cw", "step": 0.2, "friction": 0.0602,
+               "cutting_force": 0.7},
+    "loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [-1.0, 0.5]}],
+    "probes": [[10.0, 10.0]],
+}
+OUTPUTS = {  # output options of each command, all in tmp_path
+    "deform": ["--probes-out", "probes.csv", "--reactions-out", "reactions.csv", "--summary", "summary.json"],
+    "simulate": ["--summary", "summary.json", "--out", "run.h5"],
+    "plan": ["--export", "trajectory.csv", "--summary", "summary.json"],
+}
+
+
+def invoke(folder: Path, *args: str):
+    """Run `stitchplan ARGS` with paths relative to `folder` (outputs land there)."""
+    return CliRunner().invoke(app, [str(folder / a) if _is_file(a) else a for a in args])
+
+
+def _is_file(arg: str) -> bool:
+    return arg.endswith((".yaml", ".csv", ".json", ".h5", ".png"))
+
+
+def error_lines(result) -> list[str]:
+    """The error lines of a refused command: exit 2, nothing on stdout, only `error:` lines."""
+    assert result.exit_code == 2, result.output
+    assert result.stdout == ""
+    assert "Traceback" not in result.output
+    lines = result.stderr.splitlines()
+    assert lines and all(line.startswith("error: ") for line in lines), result.stderr
+    return lines
+
+
+def assert_refused(result, folder: Path, inputs: set[str], expected: list[list[str]]) -> None:
+    """One line per problem, each with its fragments (file, field, value, expectation), and
+    no file besides the inputs."""
+    lines = error_lines(result)
+    assert len(lines) == len(expected), lines
+    for line, fragments in zip(lines, expected):
+        for fragment in fragments:
+            assert fragment in line, (fragment, line)
+    assert {p.name for p in folder.iterdir()} == inputs
+
+
+def scene(**changes) -> dict:
+    """BASE with nested keys replaced: scene(needle__radius=-1); a value None deletes the key."""
+    raw = copy.deepcopy(BASE)
+    for path, value in changes.items():
+        *parents, key = path.split("__")
+        block = raw
+        for parent in parents:
+            block = block[parent]
+        if value is None:
+            del block[key]
+        else:
+            block[key] = value
+    return raw
+
+
+def write_scene(folder: Path, raw: dict | str | bytes, name: str = "scene.yaml") -> Path:
+    path = folder / name
+    if isinstance(raw, bytes):
+        path.write_bytes(raw)
+    else:
+        path.write_text(raw if isinstance(raw, str) else yaml.safe_dump(raw, sort_keys=False))
+    return path
+
+
+# --- the scenario file ----------------------------------------------------------------------------
+
+CLAMPED_ALL = ["left", "right", "bottom", "top"]
+RIGHT_SEGMENT = [[40.0, 5.0], [40.0, 15.0]]
+TEXT = yaml.safe_dump(BASE, sort_keys=False)
+
+SCENARIO_CASES = {
+    # what the config refused already
+    "missing key": ("deform", scene(tissue__thickness=None), [["scene.yaml: tissue.thickness: missing"]]),
+    "unknown key": ("deform", scene(tissue__colour="red"), [["scene.yaml: tissue: unknown key 'colour'"]]),
+    "negative radius": ("simulate", scene(needle__radius=-1.0),
+                        [["scene.yaml: needle.radius: got -1.0, expected a positive number (mm)"]]),
+    "two problems, two lines": ("simulate", scene(needle__radius=-1.0, tissue__colour="red"),
+                                [["tissue: unknown key 'colour'"], ["needle.radius: got -1.0"]]),
+    "entry off the boundary": ("simulate", scene(needle__entry=[5.0, 12.0]),
+                               [["scene.yaml: needle.entry: got [5.0, 12.0]", "on the boundary"]]),
+    "needle never leaves": ("plan", scene(needle__arc=0.5),
+                            [["scene.yaml: needle: the 8.88 mm needle", "expected an exit within its arc"]]),
+    "duplicate YAML key": ("deform", TEXT + "name: again\n", [["scene.yaml: line", "duplicate key 'name'"]]),
+    "alias bomb": ("deform", "a: &a [x, x, x, x, x, x, x, x, x, x]\n"
+                   + "".join(f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+                             for p, c in zip("abcde", "bcdef")), [["scene.yaml: line", "YAML alias"]]),
+    "binary file": ("simulate", b"\x89PNG\r\n\x1a\n\x00\xff\xfe", [["scene.yaml: not UTF-8 text"]]),
+    # loads against clamps and each other
+    "force on a clamped edge": ("deform", scene(loads=BASE["loads"] + [{"segment": RIGHT_SEGMENT, "force": [1.0, 0.0]}]),
+                                [["scene.yaml: loads[1].segment: got [[40.0, 5.0], [40.0, 15.0]]",
+                                  "expected a segment off the clamped edges (the right edge is clamped"]]),
+    "displacement on a clamped edge": ("deform", scene(loads=BASE["loads"] + [{"segment": RIGHT_SEGMENT,
+                                                                               "displacement": [1.0, 0.0]}]),
+                                       [["scene.yaml: loads[1].segment", "off the clamped edges"]]),
+    "every edge clamped, force load": ("deform", scene(tissue__clamped=CLAMPED_ALL),
+                                       [["scene.yaml: loads[0].segment", "the left edge is clamped"]]),
+    "overlapping segments": ("deform", scene(loads=BASE["loads"] + [{"segment": [[0.0, 12.0], [0.0, 18.0]],
+                                                                     "displacement": [1.0, 0.0]}]),
+                             [["scene.yaml: loads[1].segment: got [[0.0, 12.0], [0.0, 18.0]]",
+                               "sharing at most an end point with loads[0].segment", "share 3 mm"]]),
+    # a slab nothing holds, for every command that solves
+    **{f"nothing holds the slab ({command})": (command, scene(tissue__clamped=[]),
+                                               [["scene.yaml: tissue.clamped: got [], expected at least one",
+                                                 "clamped edge or a displacement load"]])
+       for command in ("deform", "simulate", "plan")},
+    "deform without loads": ("deform", scene(loads=None),
+                             [["scene.yaml: loads: got none, expected at least one load"]]),
+    # resources
+    "accuracy no model reaches": ("simulate", scene(discretization={"accuracy": 1e-9}),
+                                  [["scene.yaml: discretization.accuracy: got 1e-09, expected a number >= 0.001"]]),
+    "three million needle steps": ("simulate", scene(needle__step=1e-6),
+                                   [["scene.yaml: needle.step: got 1e-06 rad", "at most 2000 needle steps",
+                                     "--no-resource-check"]]),
+}
+
+
+@pytest.mark.parametrize("case", list(SCENARIO_CASES))
+def test_a_bad_scenario_is_refused_up_front(tmp_path, case):
+    command, raw, expected = SCENARIO_CASES[case]
+    write_scene(tmp_path, raw)
+    result = invoke(tmp_path, command, "scene.yaml", *OUTPUTS[command])
+    assert_refused(result, tmp_path, {"scene.yaml"}, expected)
+
+
+OPTION_CASES = {
+    "spacing 0.1": ("deform", ["--spacing", "0.1"],
+                                          [["scene.yaml: discretization.spacing: got 0.1 mm",
+                                            "at most 50000 particles", "about 80601 particles", "--max-particles"]]),
+    "spacing 0.01": ("deform", ["--spacing", "0.01"], [["discretization.spacing: got 0.01 mm", "about 8006001 particles"]]),
+    "dilation 1e6": ("deform", ["--dilation", "1e6"],
+                     [["scene.yaml: discretization.dilation: got 1e+06, expected at most 10"]]),
+    "max particles below the model": ("simulate", ["--max-particles", "20"],
+                                      [["discretization.spacing: got 5 mm", "at most 20 particles"]]),
+    "max particles not positive": ("deform", ["--max-particles", "0"], [["--max-particles: got 0"]]),
+    "plot step beyond the run": ("simulate", ["--plot-steps", "3,99"],
+                                 [["--plot-steps: got 99, expected steps between 0 (the entry) and 9"]]),
+    "negative plot step": ("simulate", ["--plot-steps", "-1"], [["--plot-steps: got -1"]]),
+}
+
+
+@pytest.mark.parametrize("case", list(OPTION_CASES))
+def test_a_bad_option_is_refused_up_front(tmp_path, case):
+    command, options, expected = OPTION_CASES[case]
+    write_scene(tmp_path, BASE)
+    result = invoke(tmp_path, command, "scene.yaml", *OUTPUTS[command], *options)
+    assert_refused(result, tmp_path, {"scene.yaml"}, expected)
+
+
+def test_a_study_too_large_for_the_machine_is_refused_before_its_first_run(tmp_path):
+    """Each run of the sweep past the limits is one line (here the 0.05 mm run and the
+    reference at 0.05 mm), before any run starts and before the output folder exists."""
+    raw = scene(loads=None, probes=None)
+    raw["study"] = {"spacing": [4.0, 0.05], "families": [{"name": "uniform"}], "reference": {"spacing": [0.05]}}
+    write_scene(tmp_path, raw)
+    result = CliRunner().invoke(app, ["study", str(tmp_path / "scene.yaml"), "--out", str(tmp_path / "out")])
+    assert_refused(result, tmp_path, {"scene.yaml"},
+                   [["scene.yaml: discretization.spacing: got 0.05 mm", "study run 'uniform h=0.05'"],
+                    ["scene.yaml: discretization.spacing: got 0.05 mm", "study run 'reference h=0.05'"]])
+
+
+# --- centre paths (simulate --center-path) ------------------------------------------------------
+
+
+def center_rows(count: int, shift=(0.0, 0.0), first=(0.0, 3.12)) -> str:
+    """A centre path of `count` rows: row 0 at `first` (the small scene's entry centre by
+    default), the others at the entry centre plus `shift`."""
+    rows = ["step,center_x_mm,center_y_mm", f"0,{first[0]:g},{first[1]:g}"]
+    rows += [f"{step},{shift[0]:g},{3.12 + shift[1]:g}" for step in range(1, count)]
+    return "\n".join(rows) + "\n"
+
+
+PATH_CASES = {
+    "nan": ("step,center_x_mm,center_y_mm\n0,0,3.12\n1,nan,3.12\n",
+            [["path.csv: row 3, center_x_mm: got 'nan', expected a finite number"]]),
+    "wrong columns": ("step,x,y\n0,0,3.12\n", [["path.csv: columns ['step', 'x', 'y'] lack"]]),
+    "steps not 0, 1, 2": ("step,center_x_mm,center_y_mm\n1,0,3.12\n2,0,3.12\n",
+                          [["path.csv: step: got [1, 2], expected 0, 1, 2"]]),
+    "200 rows for a 10-step run": (center_rows(200), [["path.csv: rows: got 200, expected 8 to 14"]]),
+    "too few rows": (center_rows(3), [["path.csv: rows: got 3, expected 8 to 14"]]),
+    "centres 500 mm away": (center_rows(11, shift=(500.0, 0.0)),
+                            [["path.csv: row 3, center_x_mm, center_y_mm: got [500, 3.12]",
+                              "from the entry centre [0, 3.12]; expected at most 3 needle radii"]]),
+    "row 0 not at the entry centre": (center_rows(11, first=(1.0, 3.12)),
+                                      [["path.csv: row 2, center_x_mm, center_y_mm: got [1, 3.12]",
+                                        "expected the needle centre at entry [0, 3.12]"]]),
+    "binary": (b"\x00\xff\xfe\x89", [["path.csv: not a text file"]]),
+}
+
+
+@pytest.mark.parametrize("case", list(PATH_CASES))
+def test_a_bad_center_path_is_refused_up_front(tmp_path, case):
+    text, expected = PATH_CASES[case]
+    write_scene(tmp_path, BASE)
+    write_scene(tmp_path, text, "path.csv")
+    result = invoke(tmp_path, "simulate", "scene.yaml", "--center-path", "path.csv", *OUTPUTS["simulate"])
+    assert_refused(result, tmp_path, {"scene.yaml", "path.csv"}, expected)
+
+
+def test_the_shipped_trajectories_fit_their_needles():
+    """Every trajectory `plan` exported for a shipped scene (N + 2 rows) passes the checks a
+    replay makes, and sits inside the row range with room on both sides."""
+    from stitchplan.config import load_scenario
+    from stitchplan.io.readers import expected_rows, read_center_path
+    from stitchplan.needle.geometry import scenario_needle
+
+    paths = sorted((REPOSITORY / "sample_runs").glob("*/trajectory.csv"))
+    assert paths
+    for path in paths:
+        geometry = scenario_needle(load_scenario(REPOSITORY / "configs" / f"{path.parent.name}.yaml"))
+        centers = read_center_path(path, geometry)
+        _, fewest, most = expected_rows(geometry)
+        assert fewest < len(centers) < most
+        np.testing.assert_allclose(centers[0], geometry.center, atol=1e-6)
+
+
+# --- calibration inputs ---------------------------------------------------------------------------
+
+
+def recording(angles: np.ndarray, forces: np.ndarray) -> str:
+    return "angle_rad,force_N\n" + "".join(f"{a:.6g},{f!s}\n" for a, f in zip(angles, forces))
+
+
+ANGLES = np.linspace(0.0, 2.0, 12)
+AIR = recording(ANGLES, 0.12 + 0.035 * ANGLES)
+RECORDING_CASES = {
+    "forces of 1e308 N": (recording(ANGLES, np.full(12, 1e308)),
+                          [["--tissue: ", "tissue.csv: line 2, force_N: got 1e+308, expected |force| <= 100 N"]]),
+    "a force of a kN": (recording(ANGLES, np.r_[np.full(11, 1.0), 1500.0]),
+                        [["tissue.csv: line 13, force_N: got 1500"]]),
+    "nan": (recording(ANGLES, ["0.8", "0.9", "nan", *["1.0"] * 9]),
+            [["tissue.csv: line 4, force_N: got 'nan', expected a finite number"]]),
+    "wrong columns": ("angle,force\n0,1\n", [["tissue.csv: columns: got 'angle,force', expected exactly"]]),
+    "binary": (b"\xff\xfe\x00\x01", [["--tissue: ", "tissue.csv: cannot be read"]]),
+}
+
+
+@pytest.mark.parametrize("case", list(RECORDING_CASES))
+def test_a_bad_force_recording_is_refused(tmp_path, case):
+    text, expected = RECORDING_CASES[case]
+    write_scene(tmp_path, AIR, "air.csv")
+    write_scene(tmp_path, text, "tissue.csv")
+    result = invoke(tmp_path, "calibrate", "needle", "--air", "air.csv", "--tissue", "tissue.csv",
+                    "--radius", "8.88", "--out", "needle.yaml", "--plot", "forces.png")
+    assert_refused(result, tmp_path, {"air.csv", "tissue.csv"}, expected)
+
+
+def test_a_marker_file_with_nan_is_refused(tmp_path):
+    calibration = {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "clamped": ["right"]},
+                   "experiments": [{"loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.0]}],
+                                    "markers": "markers.csv"}],
+                   "fit": {"lame_lambda": [0.05, 1.0], "lame_mu": [0.05, 1.0]}}
+    write_scene(tmp_path, calibration, "calibration.yaml")
+    write_scene(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,nan,10\n", "markers.csv")
+    result = invoke(tmp_path, "calibrate", "material", "calibration.yaml", "--out", "fitted.yaml")
+    assert_refused(result, tmp_path, {"calibration.yaml", "markers.csv"},
+                   [["calibration.yaml: experiments[0].markers: ", "markers.csv: line 3, x_def: got 'nan'"]])
+
+
+def test_a_calibration_too_fine_for_the_machine_is_refused(tmp_path):
+    calibration = {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "clamped": ["right"]},
+                   "experiments": [{"loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.0]}],
+                                    "markers": "markers.csv"}],
+                   "fit": {"lame_lambda": [0.05, 1.0], "lame_mu": [0.05, 1.0], "grid": 3, "max_evaluations": 4}}
+    write_scene(tmp_path, calibration, "calibration.yaml")
+    write_scene(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n", "markers.csv")
+    result = invoke(tmp_path, "calibrate", "material", "calibration.yaml", "--out", "fitted.yaml", "--spacing", "0.1")
+    assert_refused(result, tmp_path, {"calibration.yaml", "markers.csv"},
+                   [["calibration.yaml: discretization.spacing: got 0.1 mm", "experiments[0]: about 80601 particles",
+                     "in each of 13 runs"]])
+
+
+def test_calibration_loads_meet_the_same_checks(tmp_path):
+    """A calibration experiment's load on the clamped edge or over another load is refused
+    like a scenario's."""
+    calibration = {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "clamped": ["right"]},
+                   "experiments": [{"loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.0]},
+                                              {"segment": [[0.0, 10.0], [0.0, 20.0]], "force": [1.0, 0.0]},
+                                              {"segment": RIGHT_SEGMENT, "displacement": [1.0, 0.0]}],
+                                    "markers": "markers.csv"}],
+                   "fit": {"lame_lambda": [0.05, 1.0], "lame_mu": [0.05, 1.0]}}
+    write_scene(tmp_path, calibration, "calibration.yaml")
+    write_scene(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n", "markers.csv")
+    result = invoke(tmp_path, "calibrate", "material", "calibration.yaml", "--out", "fitted.yaml")
+    assert_refused(result, tmp_path, {"calibration.yaml", "markers.csv"},
+                   [["experiments[0].loads[1].segment", "share 5 mm"],
+                    ["experiments[0].loads[2].segment", "the right edge is clamped"]])
+
+
+# --- the resource guard ------------------------------------------------------------------------
+
+
+def test_the_guard_counts_the_particles_the_needle_model_builds():
+    """The guard's count (before anything is built) is the model's own: uniform grids and the
+    needle-graded arrangement of the tiny needle scene, at two spacings; and the estimate used
+    when the graded lattice is too large to count lies within 25 % of the count."""
+    from dataclasses import replace
+
+    from stitchplan.config import parse_scenario, with_discretization
+    from stitchplan.needle.geometry import needle_zone
+    from stitchplan.resources import _graded_estimate, model_size
+    from stitchplan.tissue.model import model_for_scenario
+
+    base = parse_scenario(scene(loads=None, probes=None, discretization=None))  # graded default
+    for scenario in (base, with_discretization(base, spacing=2.0),
+                     replace(base, discretization=base.discretization.replaced(needle_spacing=None))):
+        size = model_size(scenario)
+        model = model_for_scenario(scenario, needle_zone(scenario))
+        assert size.exact and size.particles == model.n_particles
+        d = scenario.discretization
+        if d.needle_spacing is not None:
+            approximate = _graded_estimate(scenario.tissue.size, d.spacing, d.needle_spacing, needle_zone(scenario))
+            assert abs(approximate / size.particles - 1) < 0.25
+
+
+def test_the_guard_scales_memory_and_time_with_particles_and_neighbours():
+    """Halving the spacing about quadruples the particles and grows the estimated memory and
+    time faster still (superlinear fits); dilation 3 costs (36/16)^2 the time of dilation 2
+    and 36/16 the memory above the interpreter's; a small machine refuses what a large one
+    runs."""
+    from stitchplan.config import parse_scenario, with_discretization
+    from stitchplan.errors import InputError
+    from stitchplan.resources import BASE_MEMORY, Limits, check_resources, estimate
+
+    base = parse_scenario(scene(discretization={"spacing": 2.0}))
+    coarse, fine = estimate(base, "deform"), estimate(with_discretization(base, spacing=1.0), "deform")
+    ratio = fine.size.particles / coarse.size.particles
+    assert ratio > 3.5
+    assert fine.memory_bytes - BASE_MEMORY > ratio * (coarse.memory_bytes - BASE_MEMORY)
+    assert fine.seconds > ratio * coarse.seconds
+    wide = estimate(with_discretization(base, dilation=3.0), "deform")
+    assert math.isclose(wide.seconds / coarse.seconds, (36 / 16) ** 2)
+    assert math.isclose((wide.memory_bytes - BASE_MEMORY) / (coarse.memory_bytes - BASE_MEMORY), 36 / 16)
+    check_resources([fine], Limits(), memory=64e9)
+    with pytest.raises(InputError, match=r"discretization.spacing: got 1 mm, expected a model within 50% "
+                                         r"of the 100 MB of memory available"):
+        check_resources([fine], Limits(), memory=100e6)
+
+
+def test_an_accuracy_beyond_the_particle_limit_is_refused_after_the_first_pair():
+    """The auto discretization stops as soon as its first two resolutions show that the finest
+    model within the particle limit misses the accuracy, saying what that model reaches."""
+    from stitchplan.config import parse_scenario
+    from stitchplan.errors import InputError
+    from stitchplan.study.auto import Trials, choose_discretization
+
+    scenario = parse_scenario(scene(loads=None, probes=None, needle__step=0.4))
+    first = round(scenario.needle.radius / 3.0, 4)
+    limit = Trials(scenario).particles(round(first / 2, 4))  # the first pair fits, no finer model
+    seen = []
+    with pytest.raises(InputError) as error:
+        choose_discretization(scenario, accuracy=0.001, max_particles=limit, on_trial=seen.append)
+    message = str(error.value)
+    assert message.startswith("discretization.accuracy: got 0.001 mm, expected at least ")
+    assert f"within {limit} particles" in message and "raise --max-particles" in message
+    assert max(run.particles for run in seen) <= limit
+    assert {run.spacing for run in seen} <= {first, round(first / 2, 4)}

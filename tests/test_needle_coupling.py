@@ -1,0 +1,141 @@
+"""The mortar needle coupling (needle/coupling.py) on small scenes:
+
+- its multiplier elements: whole track segments, each at least the local particle spacing
+  long, no more multipliers than the track's length in spacings plus one (the inf-sup
+  bound), weights that make g_j a weighted mean of the violation and a partition of unity;
+- its loads: friction x needle length on every segment, the cutting force spread over
+  `cutting_length` mm of needle behind the tip, in total the insertion force;
+- the multiplier field it converges to is smooth (no checkerboard: the inf-sup condition
+  holds) and the track stays on the needle between the needle points;
+- `center_sensitivity` (the planner's Jacobian) against central finite differences of the
+  re-equilibrated state, for both couplings.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_simulation import advance_one, dense_rest_stiffness, small_scene, started
+
+from stitchplan.needle.coupling import MULTIPLIER_ORDER, MULTIPLIER_SPACINGS
+from stitchplan.needle.equilibrium import NeedleInsertion
+
+
+@pytest.fixture(scope="module")
+def mortar():
+    """The small scene on a 2 mm grid (the 1.6 mm steps shorter than the spacing), 6 steps."""
+    return started(small_scene(spacing=2.0, coupling="mortar"), steps=6)
+
+
+def test_multiplier_elements_span_whole_segments_at_least_a_spacing_long(mortar):
+    coupling = mortar.coupling
+    segments = len(coupling.points) - 1
+    lengths = np.linalg.norm(np.diff(coupling.points, axis=0), axis=1)
+    shares = coupling._shares.toarray()  # (Q, m): phi_j at each Gauss point
+    assert shares.shape == (2 * segments, coupling.multiplier_count)
+    np.testing.assert_allclose(shares.sum(axis=1), 1.0, atol=1e-14)  # partition of unity
+    weights = coupling.weights.toarray()
+    np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-14)  # g_j: a weighted mean
+    # the nodes of the piecewise-linear field sit at needle points, at least a spacing apart
+    arc = np.concatenate([[0.0], np.cumsum(lengths)])
+    nodes = coupling.multiplier_nodes
+    assert np.all(np.min(np.abs(nodes[:, None] - arc[None, :]), axis=1) <= 1e-12)
+    spacing = coupling.local_spacing(coupling.points).max()
+    assert np.all(np.diff(nodes) >= MULTIPLIER_SPACINGS * spacing - 1e-9)
+    # inf-sup bound: no more multipliers than the spacings along the track, plus one
+    assert 2 <= coupling.multiplier_count <= arc[-1] / (MULTIPLIER_SPACINGS * spacing) + 1
+
+
+def test_loads_add_up_to_friction_and_cutting_force_and_the_cut_sits_behind_the_tip(mortar):
+    coupling, needle, geometry = mortar.coupling, mortar.needle, mortar.geometry
+    segments = len(coupling.points) - 1
+    loads = coupling.loads
+    total = needle.friction * geometry.insertion_step * segments + needle.cutting_force
+    assert loads.magnitudes.sum() == pytest.approx(total, rel=1e-12)
+    # the cutting points lie on the last ceil(cutting_length / (R step)) segments of the track
+    cut = loads.points[2 * segments:]
+    covered = int(np.ceil(needle.cutting_length / geometry.insertion_step - 1e-9))
+    assert len(cut) == 2 * covered
+    start, end = coupling.points[-covered - 1:-1], coupling.points[-covered:]
+    for point in cut:
+        t = np.einsum("ij,ij->i", point - start, end - start) / np.einsum("ij,ij->i", end - start, end - start)
+        off = np.linalg.norm(start + t[:, None] * (end - start) - point, axis=1)
+        assert np.any((off <= 1e-9) & (t >= 0.0) & (t <= 1.0))
+    np.testing.assert_allclose(loads.magnitudes[2 * segments:].sum(), needle.cutting_force, rtol=1e-12)
+
+
+def test_the_track_stays_on_the_needle_between_the_multiplier_nodes():
+    """After 10 steps on a 1 mm grid every needle point is within a hundredth of the spacing
+    of the needle, though only the weighted means of the violation are held to zero."""
+    insertion = started(small_scene(spacing=1.0, coupling="mortar"), steps=10)
+    u = insertion.displacement(insertion.points)
+    distance = np.abs(np.linalg.norm(insertion.points + u - insertion.center, axis=1) - insertion.geometry.radius)
+    assert distance.max() <= 0.01 * 1.0
+    assert insertion.last_violation <= insertion.constraint_tolerance
+
+
+def normalised_schur_minimum(insertion: NeedleInsertion) -> float:
+    """Smallest eigenvalue of D^-1/2 S D^-1/2, S = G^T K0^-1 G, D = diag S: the discrete
+    inf-sup constant squared (up to scaling). It stays away from zero for a multiplier
+    space the particles can resolve and drops to round-off when they cannot."""
+    state = insertion.residuals(insertion.free, insertion.multipliers, insertion.center)
+    g = insertion.coupling.constraint_matrix(state.normal).toarray()
+    schur = g.T @ np.linalg.solve(dense_rest_stiffness(insertion), g)
+    scale = 1.0 / np.sqrt(np.diag(schur))
+    return float(np.linalg.eigvalsh(scale[:, None] * schur * scale[None, :]).min())
+
+
+def test_inf_sup_the_mortar_multipliers_stay_resolvable_where_needle_points_do_not():
+    """Needle points 0.4 mm apart (step 0.05 rad) on 2 mm and 1 mm grids: the point coupling's
+    normalised Schur complement is singular to round-off (1e-12 and 3e-8: its multipliers are
+    closer than the particles resolve); the mortar coupling's smallest eigenvalue is 6e-3
+    and 4e-3 with 5 and 9 multipliers, above 1e-3 and losing less than half of itself as
+    the spacing halves and the multipliers double (an unstable space loses orders of
+    magnitude)."""
+    minimum = {}
+    for spacing in (2.0, 1.0):
+        for coupling in ("points", "mortar"):  # 1271 particles at 1 mm: dense K0 solves of ~2 s
+            insertion = NeedleInsertion(small_scene(step=0.05, spacing=spacing, coupling=coupling))
+            for rotation in np.arange(25) * 0.05:
+                insertion.add_point(insertion.geometry.tip(rotation))
+            minimum[coupling, spacing] = normalised_schur_minimum(insertion)
+    assert max(minimum["points", 2.0], minimum["points", 1.0]) < 1e-6
+    assert min(minimum["mortar", 2.0], minimum["mortar", 1.0]) > 1e-3
+    assert minimum["mortar", 1.0] > 0.5 * minimum["mortar", 2.0]
+
+
+@pytest.mark.parametrize("coupling", ["points", "mortar"])
+def test_center_sensitivity_matches_finite_differences(coupling):
+    """d u(X_exit) / dC, the planner's Jacobian, against central differences of the
+    re-equilibrated state (centre moved by +-1e-4 mm): within 1e-3 of its norm (observed
+    1.7e-4 points, 1.1e-4 mortar). The sensitivity leaves out only the follower loads' own
+    stiffness (d f_needle / du, of order the needle force over R), as Newton does."""
+    insertion = started(small_scene(coupling=coupling, spacing=2.0), steps=5)
+    target = insertion.geometry.desired_exit
+    jacobian = insertion.center_sensitivity(target, refactor=True)
+    base = insertion.snapshot()
+    h = 1e-4
+    columns = []
+    for j in range(2):
+        values = []
+        for sign in (1.0, -1.0):
+            insertion.restore(base)
+            insertion.move_center(base.center + sign * h * np.eye(2)[j])
+            insertion.equilibrate(5 * insertion.geometry.step, 5)
+            values.append(insertion.displacement(target)[0])
+        columns.append((values[0] - values[1]) / (2 * h))
+    difference = np.column_stack(columns)
+    assert np.linalg.norm(difference) > 0.05  # the exit follows the centre visibly
+    assert np.linalg.norm(jacobian - difference) <= 1e-3 * np.linalg.norm(difference)
+
+
+def test_the_mortar_coupling_adds_a_multiplier_only_once_a_spacing_of_track_has_grown():
+    """On a 4 mm grid with 1.6 mm steps the multiplier count grows about every third step
+    (track length / spacing + 1), not with every needle point as the point coupling's does."""
+    insertion = started(small_scene(spacing=4.0, coupling="mortar"))
+    counts = []
+    for step in range(1, 9):
+        advance_one(insertion, step)
+        counts.append(insertion.coupling.multiplier_count)
+    assert counts == sorted(counts) and counts[0] == 1 + (MULTIPLIER_ORDER == 1)
+    assert counts[-1] <= 8 * 1.6 / (MULTIPLIER_SPACINGS * 4.0) + 2 < 9

@@ -1,0 +1,401 @@
+"""All-or-nothing outputs and their provenance.
+
+Every command checks its outputs before computing (writable, not a folder or a device, no two
+the same file, none an input), writes them to temporaries and renames them only when all
+succeeded, so a failed run creates, replaces or deletes none of the user's files. The suite
+runs as root, where a folder's permissions do not stop writes: unwritable outputs here are
+paths under an existing *file*, /proc, or an `os.replace` made to fail mid-way.
+
+Summaries carry the version, the command line, the scenario and its SHA-256 and the time;
+every HDF5 dataset says its units; the trajectory a robot reads has no round-off noise.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+import stitchplan
+from stitchplan.cli import app
+from stitchplan.errors import InputError
+from stitchplan.io import files
+from stitchplan.io.files import OutputSet
+
+RADIUS = 8.0
+
+
+def block_raw(**extra) -> dict:
+    """20 x 20 mm block, 5 mm spacing, an 8 mm needle in 0.3 rad steps (a run of ~1 s), with a
+    load and a probe for deform."""
+    return {"name": "outputs",
+            "tissue": {"size": [20.0, 20.0], "thickness": 10.0, "clamped": ["right"],
+                       "material": {"lame_lambda": 0.189151, "lame_mu": 0.147688}},
+            "discretization": {"spacing": 5.0},
+            "needle": {"radius": RADIUS, "entry": [0.0, 18.0], "turn": "cw", "step": 0.3,
+                       "friction": 0.0602, "cutting_force": 0.7},
+            "loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.5]}],
+            "load_steps": 2,
+            "probes": [[0.0, 10.0], [10.0, 10.0]],
+            "planner": {"max_passes": 1},
+            **extra}
+
+
+@pytest.fixture
+def scene(tmp_path) -> Path:
+    path = tmp_path / "scene.yaml"
+    path.write_text("# outputs test\n" + yaml.safe_dump(block_raw(), sort_keys=False))
+    return path
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def one_error_line(result, code: int = 2) -> str:
+    assert result.exit_code == code, result.output
+    assert "Traceback" not in result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    return lines[0]
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file under `folder` (hidden temporaries included) with its bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def existing_outputs(folder: Path, *names: str) -> dict[str, bytes]:
+    """Pre-existing outputs of an earlier run, each with distinct content."""
+    for name in names:
+        (folder / name).write_bytes(f"earlier {name}\n".encode())
+    return snapshot(folder)
+
+
+# --- the transaction itself --------------------------------------------------------------
+
+
+def test_check_lists_every_problem_and_creates_nothing(tmp_path):
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file, not a folder")
+    before = snapshot(tmp_path)
+    with pytest.raises(InputError) as caught:
+        OutputSet({"--out": blocker / "run.h5", "--plot": tmp_path, "--summary": "/dev/null",
+                   "--export": tmp_path / "new" / "t.csv", "--probes-out": tmp_path / "new" / "t.csv"},
+                  {"SCENARIO": blocker}).check()
+    lines = caught.value.lines
+    assert lines[0] == f"--out: cannot write {blocker / 'run.h5'}: {blocker} is not a folder"
+    assert lines[1] == f"--plot: got {tmp_path}, a folder; expected a file name"
+    assert lines[2] == "--summary: got /dev/null, not a regular file; expected a file name"
+    assert lines[3] == (f"--probes-out: got {tmp_path / 'new' / 't.csv'}, expected a file other than "
+                        f"--export ({tmp_path / 'new' / 't.csv'})")
+    assert len(lines) == 4
+    assert snapshot(tmp_path) == before and not (tmp_path / "new").exists()
+
+
+def test_coinciding_files_are_found_through_links_and_spellings(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a.csv").write_text("x\n")
+    os.link(tmp_path / "a.csv", tmp_path / "hard.csv")
+    (tmp_path / "soft.csv").symlink_to(tmp_path / "a.csv")
+    for other in ("./a.csv", tmp_path / "sub" / ".." / "a.csv", "hard.csv", "soft.csv"):
+        with pytest.raises(InputError, match="expected a file other than the input SCENARIO"):
+            OutputSet({"--out": other}, {"SCENARIO": "a.csv"}).check()
+    OutputSet({"--out": "b.csv"}, {"SCENARIO": "a.csv"}).check()  # a different file is fine
+
+
+def test_a_failing_writer_leaves_every_file_as_it_was(tmp_path):
+    before = existing_outputs(tmp_path, "t.csv", "summary.json")
+    outputs = OutputSet({"--export": tmp_path / "t.csv", "--summary": tmp_path / "summary.json",
+                         "--out": tmp_path / "logs" / "deep" / "run.h5"})
+    with pytest.raises(RuntimeError, match="writer failed"), outputs.staged() as staged:
+        staged["--export"].write_text("new trajectory\n")
+        raise RuntimeError("writer failed")
+    assert snapshot(tmp_path) == before  # no temporaries left, nothing replaced
+    assert not (tmp_path / "logs").exists()  # the folders made for the outputs are gone too
+
+
+def test_an_os_error_while_writing_is_one_line_naming_the_output(tmp_path):
+    before = existing_outputs(tmp_path, "t.csv")
+    outputs = OutputSet({"--export": tmp_path / "t.csv", "--summary": tmp_path / "s.json"})
+    with pytest.raises(InputError) as caught, outputs.staged() as staged:
+        raise OSError(28, "No space left on device", str(staged["--summary"]))
+    assert str(caught.value) == f"--summary: cannot write {tmp_path / 's.json'}: No space left on device"
+    assert snapshot(tmp_path) == before
+
+
+def test_a_failed_rename_puts_back_the_files_already_replaced(tmp_path, monkeypatch):
+    """The second of three renames fails: the first target gets its old content back, the
+    third is never touched, a new file the first rename created is removed."""
+    before = existing_outputs(tmp_path, "t.csv", "summary.json", "run.h5")
+    replace = os.replace
+    for new_first in (False, True):
+        first = tmp_path / ("fresh.csv" if new_first else "t.csv")
+        outputs = OutputSet({"--export": first, "--summary": tmp_path / "summary.json",
+                             "--out": tmp_path / "run.h5"})
+        calls = []
+
+        def failing_replace(source, target, calls=calls):
+            calls.append(target)
+            if len(calls) == 2:
+                raise OSError(5, "Input/output error", str(target))
+            return replace(source, target)
+
+        monkeypatch.setattr(os, "replace", failing_replace)
+        with (pytest.raises(InputError, match="--summary: cannot write .*Input/output error"),
+              outputs.staged() as staged):
+            for temporary in staged.values():
+                temporary.write_text("new\n")
+        monkeypatch.setattr(os, "replace", replace)
+        assert snapshot(tmp_path) == before
+
+
+def test_success_renames_all_and_keeps_an_existing_files_mode(tmp_path):
+    existing_outputs(tmp_path, "t.csv")
+    os.chmod(tmp_path / "t.csv", 0o640)
+    outputs = OutputSet({"--export": tmp_path / "t.csv", "--out": tmp_path / "new" / "run.h5"})
+    with outputs.staged() as staged:
+        for label, temporary in staged.items():
+            assert temporary.parent == outputs.outputs[label].parent  # beside the target
+            temporary.write_text(label)
+    assert snapshot(tmp_path) == {"t.csv": b"--export", "new/run.h5": b"--out"}
+    assert (tmp_path / "t.csv").stat().st_mode & 0o777 == 0o640
+
+
+# --- every command: unwritable outputs and coincidences are refused before any work -------
+
+
+def _commands(folder: Path, scene: Path) -> dict[str, list]:
+    """Each command with its usual outputs in `folder` (all pre-existing in the tests)."""
+    air, tissue = folder / "air.csv", folder / "tissue.csv"
+    for path, force in ((air, "0.1"), (tissue, "0.9")):
+        path.write_text("angle_rad,force_N\n" + "".join(f"{a / 10},{force}\n" for a in range(10)))
+    (folder / "markers.csv").write_text("x,y,x_def,y_def\n10,10,10.1,10\n15,5,15.1,5\n")
+    calibration = folder / "calib.yaml"
+    calibration.write_text(yaml.safe_dump({
+        "tissue": {"size": [20.0, 20.0], "thickness": 10.0, "clamped": ["right"]},
+        "experiments": [{"loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.5]}],
+                         "markers": "markers.csv"}],
+        "fit": {"lame_lambda": [0.05, 1.0], "lame_mu": [0.05, 1.0], "grid": 3, "max_evaluations": 10},
+        "discretization": {"spacing": 5.0}}))  # a fit of ~0.5 s
+    return {
+        "deform": ["deform", scene, "--probes-out", folder / "probes.csv", "--reactions-out",
+                   folder / "reactions.csv", "--summary", folder / "summary.json"],
+        "simulate": ["simulate", scene, "--out", folder / "run.h5", "--summary", folder / "summary.json"],
+        "plan": ["plan", scene, "--export", folder / "trajectory.csv", "--summary", folder / "summary.json"],
+        "calibrate material": ["calibrate", "material", calibration, "--out", folder / "fitted.yaml"],
+        "calibrate needle": ["calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", 8.88,
+                             "--out", folder / "needle.yaml"],
+        "study": ["study", scene, "--quick", "--out", folder],
+    }
+
+
+OUTPUT_NAMES = ("probes.csv", "reactions.csv", "summary.json", "run.h5", "trajectory.csv",
+                "fitted.yaml", "needle.yaml", "study.csv", "speed_accuracy.png")
+
+
+@pytest.mark.parametrize("command", ["deform", "simulate", "plan", "calibrate material",
+                                     "calibrate needle", "study"])
+@pytest.mark.parametrize("where", ["under a file", "/proc"])
+def test_an_unwritable_output_leaves_every_earlier_output_byte_identical(tmp_path, scene, command, where):
+    args = _commands(tmp_path, scene)[command]
+    before = existing_outputs(tmp_path, *OUTPUT_NAMES)
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file\n")
+    before[blocker.name] = blocker.read_bytes()
+    bad = blocker / "plot.png" if where == "under a file" else Path("/proc/stitchplan-test.png")
+    if command == "study":  # its folder holds every output
+        args[args.index("--out") + 1] = bad.parent / "study"
+    else:
+        args += ["--plot", bad] if command != "calibrate material" else ["--plot-dir", bad.parent / "plots"]
+    line = one_error_line(invoke(*args))
+    assert "cannot write" in line and str(bad.parent) in line
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("command, first, second", [
+    ("deform", "--probes-out", "--reactions-out"),
+    ("deform", "--summary", "--probes-out"),
+    ("simulate", "--out", "--summary"),
+    ("plan", "--export", "--summary"),
+])
+def test_two_outputs_on_one_file_are_refused_naming_both(tmp_path, scene, command, first, second):
+    args = _commands(tmp_path, scene)[command]
+    args = [a for a in args[:2]] + [first, tmp_path / "same.csv", second, tmp_path / "same.csv"]
+    before = snapshot(tmp_path)
+    line = one_error_line(invoke(*args))
+    same = tmp_path / "same.csv"
+    assert line in (f"error: {second}: got {same}, expected a file other than {first} ({same})",
+                    f"error: {first}: got {same}, expected a file other than {second} ({same})")
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("command, option, input_label, input_name", [
+    ("deform", "--summary", "SCENARIO", "scene.yaml"),
+    ("simulate", "--out", "SCENARIO", "scene.yaml"),
+    ("plan", "--export", "SCENARIO", "scene.yaml"),
+    ("calibrate material", "--out", "CALIBRATION", "calib.yaml"),
+    ("calibrate material", "--out", "markers of experiments[0]", "markers.csv"),
+    ("calibrate needle", "--out", "--tissue", "tissue.csv"),
+])
+def test_an_output_on_an_input_is_refused_naming_both(tmp_path, scene, command, option, input_label,
+                                                      input_name):
+    args = _commands(tmp_path, scene)[command]
+    args[args.index(option) + 1] = tmp_path / input_name
+    before = snapshot(tmp_path)
+    line = one_error_line(invoke(*args))
+    assert line.startswith(f"error: {option}: got {tmp_path / input_name}, expected a file other than "
+                           f"the input {input_label} (")
+    assert snapshot(tmp_path) == before
+
+
+def test_simulate_refuses_to_overwrite_its_center_path(tmp_path, scene):
+    path = tmp_path / "trajectory.csv"
+    path.write_text("step,angle_rad,center_x_mm,center_y_mm\n0,0,0,10\n")
+    line = one_error_line(invoke("simulate", scene, "--center-path", path, "--summary", path))
+    assert "the input --center-path" in line
+    assert path.read_text().startswith("step,")
+
+
+def test_study_refuses_a_folder_whose_study_csv_is_the_scenario(tmp_path):
+    scenario = tmp_path / "study.csv"
+    scenario.write_text(yaml.safe_dump(block_raw()))
+    line = one_error_line(invoke("study", scenario, "--quick", "--out", tmp_path))
+    assert "expected a file other than the input SCENARIO" in line
+
+
+# --- a failure after the computation: nothing of the run lands -----------------------------
+
+
+def test_deform_failing_at_its_last_rename_replaces_nothing(tmp_path, scene, monkeypatch):
+    before = existing_outputs(tmp_path, "probes.csv", "summary.json")
+    replace, calls = os.replace, []
+
+    def failing_replace(source, target):
+        calls.append(target)
+        if Path(target).name == "run.h5":
+            raise OSError(30, "Read-only file system", str(target))
+        return replace(source, target)
+
+    monkeypatch.setattr(os, "replace", failing_replace)
+    result = invoke("deform", scene, "--probes-out", tmp_path / "probes.csv", "--summary",
+                    tmp_path / "summary.json", "--reactions-out", tmp_path / "reactions.csv",
+                    "--out", tmp_path / "run.h5")
+    monkeypatch.setattr(os, "replace", replace)
+    line = one_error_line(result)
+    assert line == f"error: --out: cannot write {tmp_path / 'run.h5'}: Read-only file system"
+    assert len(calls) >= 4  # the earlier three were renamed, then undone
+    assert snapshot(tmp_path) == before
+
+
+# --- provenance --------------------------------------------------------------------------
+
+
+def _check_provenance(record: dict, args: list, scene: Path) -> None:
+    assert record["stitchplan_version"] == stitchplan.__version__
+    assert record["command"][1:] == list(map(str, args))  # [0]: the program as invoked
+    assert record["scenario"] == str(scene)
+    assert record["scenario_sha256"] == hashlib.sha256(scene.read_bytes()).hexdigest()
+    assert record["created_utc"].endswith("+00:00")
+
+
+def test_deform_summary_and_run_log_carry_provenance_and_units(tmp_path, scene):
+    args = ["deform", scene, "--summary", tmp_path / "summary.json", "--out", tmp_path / "run.h5"]
+    result = invoke(*args)
+    assert result.exit_code == 0, result.output
+    _check_provenance(json.loads((tmp_path / "summary.json").read_text()), args, scene)
+    _check_run_log(tmp_path / "run.h5", scene, "deform")
+
+
+def _check_run_log(path: Path, scene: Path, command: str) -> dict[str, str]:
+    units = {}
+    with h5py.File(path) as log:
+        assert log.attrs["schema_version"] == files.HDF5_SCHEMA_VERSION
+        assert log.attrs["command"] == command
+        assert log.attrs["scenario_sha256"] == hashlib.sha256(scene.read_bytes()).hexdigest()
+        for name in ("python_version", "numpy_version", "scipy_version", "h5py_version"):
+            assert log.attrs[name]
+        assert log.attrs["numpy_version"] == np.__version__
+        log.visititems(lambda name, item: units.update({name: item.attrs.get("units")})
+                       if isinstance(item, h5py.Dataset) else None)
+    assert units and all(isinstance(u, str) and u for u in units.values()), units
+    return units
+
+
+def test_plan_summary_run_log_and_a_trajectory_without_round_off(tmp_path, scene):
+    args = ["plan", scene, "--export", tmp_path / "trajectory.csv", "--summary", tmp_path / "summary.json",
+            "--out", tmp_path / "run.h5", "--no-compare", "--angular-speed", "0.5"]
+    result = invoke(*args)
+    assert result.exit_code == 0, result.output
+    _check_provenance(json.loads((tmp_path / "summary.json").read_text()), args, scene)
+    units = _check_run_log(tmp_path / "run.h5", scene, "plan")
+    assert units["steps/center"] == "mm" and units["steps/rotation"] == "rad"
+    assert units["planner/trajectory"] == "1,rad,mm,mm,mm,mm,s"
+    with (tmp_path / "trajectory.csv").open(newline="") as handle:
+        rows = list(csv.reader(handle))
+    assert rows[1][:2] == ["0", "0"]
+    # the tip at entry is the entry point, (0, 18) exactly; no 5e-16 or -0 in any cell
+    assert [float(v) for v in rows[1][4:6]] == [0.0, 18.0]
+    cells = [cell for row in rows[1:] for cell in row[2:6]]
+    assert not any(cell.startswith("-0") and float(cell) == 0 for cell in cells)
+    values = np.asarray(cells, dtype=float)
+    assert np.all((values == 0) | (np.abs(values) >= 1e-9))
+
+
+def test_simulate_run_log_has_units_on_every_dataset(tmp_path, scene):
+    args = ["simulate", scene, "--out", tmp_path / "run.h5", "--summary", tmp_path / "summary.json"]
+    assert invoke(*args).exit_code == 0
+    _check_provenance(json.loads((tmp_path / "summary.json").read_text()), args, scene)
+    units = _check_run_log(tmp_path / "run.h5", scene, "simulate")
+    assert units["steps/friction_force"] == "N" and units["needle/arc"] == "rad"
+    assert units["scenario/text"] == "text" and units["steps/newton_iterations"] == "1"
+
+
+def test_calibrate_needle_records_command_and_input_digests(tmp_path, scene):
+    args = _commands(tmp_path, scene)["calibrate needle"]
+    result = invoke(*args)
+    assert result.exit_code == 0, result.output
+    diagnostics = yaml.safe_load((tmp_path / "needle.yaml").read_text())["diagnostics"]
+    assert diagnostics["command"][1:] == list(map(str, args))
+    assert diagnostics["stitchplan_version"] == stitchplan.__version__
+    for name in ("air.csv", "tissue.csv"):
+        path = tmp_path / name
+        assert diagnostics["input_sha256"][str(path)] == hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_calibrate_material_records_command_and_input_digests(tmp_path, scene):
+    args = _commands(tmp_path, scene)["calibrate material"] + ["--plot-dir", tmp_path / "plots"]
+    result = invoke(*args)
+    assert result.exit_code == 0, result.output
+    diagnostics = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["diagnostics"]
+    assert diagnostics["command"][1:] == list(map(str, args))
+    for name in ("calib.yaml", "markers.csv"):
+        path = tmp_path / name
+        assert diagnostics["input_sha256"][str(path)] == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == ["cost_surface.png", "marker_residuals.png"]
+
+
+def test_calibrate_needle_failing_at_its_yaml_leaves_no_plot(tmp_path, scene, monkeypatch):
+    """The old order wrote forces.png, then failed on needle.yaml and left the plot behind."""
+    args = _commands(tmp_path, scene)["calibrate needle"] + ["--plot", tmp_path / "forces.png"]
+    before = snapshot(tmp_path)
+    replace = os.replace
+
+    def failing_replace(source, target):
+        if Path(target).name == "needle.yaml":
+            raise OSError(13, "Permission denied", str(target))
+        return replace(source, target)
+
+    monkeypatch.setattr(os, "replace", failing_replace)
+    line = one_error_line(invoke(*args))
+    monkeypatch.setattr(os, "replace", replace)
+    assert line == f"error: --out: cannot write {tmp_path / 'needle.yaml'}: Permission denied"
+    assert snapshot(tmp_path) == before

@@ -1,0 +1,283 @@
+"""The figures tell the truth: every plot function runs on a small input, writes a PNG and
+returns its figure, which these tests read back: the key figure in the title, one colour
+scale per figure, units on the axes, legends below the data, the tissue, clamps, loads and
+probes where they are, and each run's exit error next to its own desired exit."""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from stitchplan.cli import app
+from stitchplan.config.scenario import parse_scenario
+from stitchplan.io import calibration_plots, plots
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+PNG = b"\x89PNG\r\n\x1a\n"
+MATERIAL = {"lame_lambda": 0.189151, "lame_mu": 0.147688}
+
+
+def is_png(path: Path) -> bool:
+    return path.read_bytes()[:8] == PNG
+
+
+def colour_bars(fig) -> list:
+    return [ax for ax in fig.axes if hasattr(ax, "_colorbar")]
+
+
+def data_axes(fig) -> list:
+    return [ax for ax in fig.axes if not hasattr(ax, "_colorbar") and ax.axison]
+
+
+UNIT = re.compile(r"\((mm|mm²|s|N|MPa|rad|N/mm)\)")
+
+
+def has_unit(label: str) -> bool:
+    """A unit in brackets: x (mm), wall time (s), ..."""
+    return UNIT.search(label) is not None
+
+
+def shows_y_values(ax) -> bool:
+    return ax.yaxis.get_tick_params().get("labelleft", True)
+
+
+def title_of(fig) -> str:
+    return " ".join([fig._suptitle.get_text() if fig._suptitle else ""] + [ax.get_title() for ax in fig.axes])
+
+
+def assert_readable(fig, colour_bar_count: int = 1) -> None:
+    """Units on every axis and colour bar, the number of colour bars, legends below the data."""
+    assert len(colour_bars(fig)) == colour_bar_count
+    for ax in data_axes(fig):
+        assert has_unit(ax.get_xlabel()), ax.get_xlabel()
+        assert has_unit(ax.get_ylabel()) or not shows_y_values(ax), ax.get_ylabel()  # panels sharing y
+    for bar in colour_bars(fig):
+        assert has_unit(bar.get_ylabel()), bar.get_ylabel()
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)  # the saved figure is closed: a canvas to measure it on
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    bottom = min(ax.get_window_extent(renderer).y0 for ax in data_axes(fig))
+    for legend in fig.legends:
+        assert legend.get_window_extent(renderer).y1 <= bottom + 1.0  # below every axes box
+
+
+def marker_at(ax, point, tolerance: float = 1e-9) -> bool:
+    """A line of `ax` has a vertex at `point`."""
+    return any(np.min(np.linalg.norm(line.get_xydata() - np.asarray(point), axis=1)) <= tolerance
+               for line in ax.get_lines() if len(line.get_xydata()))
+
+
+# --- deform ---------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def deformed():
+    from stitchplan.tissue.deform import run_deform
+
+    raw = {"name": "small-slab", "tissue": {"size": [40.0, 20.0], "thickness": 10.0, "clamped": ["right"],
+                                           "material": MATERIAL},
+           "discretization": {"spacing": 4.0}, "load_steps": 2,
+           "loads": [{"segment": [[0.0, 6.0], [0.0, 14.0]], "force": [-1.0, 0.5]}],
+           "probes": [[0.0, 10.0], [20.0, 10.0]]}
+    return run_deform(parse_scenario(raw))
+
+
+def test_deformed_plot_draws_outline_clamps_loads_and_probes_at_the_chosen_scale(deformed, tmp_path):
+    scale = 3.0
+    fig = plots.plot_deformed(tmp_path / "deformed.png", deformed, scale=scale)
+    assert is_png(tmp_path / "deformed.png")
+    assert_readable(fig)
+    ax = data_axes(fig)[0]
+    title = ax.get_title()
+    largest = np.linalg.norm(deformed.particle_displacements, axis=1).max()
+    assert "small-slab" in title and f"{largest:.3g} mm" in title and "3x enlarged" in title
+    # the deformed outline runs through particles moved by 3 u, and the clamped edge stays put
+    moved = deformed.model.particles + scale * deformed.particle_displacements
+    outline = next(line for line in ax.get_lines() if line.get_label() == "tissue outline, deformed")
+    vertices = outline.get_xydata()
+    assert len(vertices) >= 4
+    assert np.max(np.min(np.linalg.norm(vertices[:, None] - moved[None], axis=2), axis=1)) < 1e-9
+    assert np.all(np.abs(vertices[np.isclose(vertices[:, 0], 40.0), 0] - 40.0) < 1e-12)
+    labels = [handle_label for handle_label in ax.get_legend_handles_labels()[1]]
+    assert {"clamped edge", "load: force (N, total)", "probe at rest", "probe, displaced"} <= set(labels)
+    displaced = deformed.probes + scale * deformed.probe_displacements
+    assert all(marker_at(ax, point) for point in displaced)
+    assert any("F1 = (-1, 0.5) N" in text.get_text() for text in ax.texts)
+
+
+def test_exit_zoom_outline_is_the_rk_interpolant_recovered_from_particle_displacements(deformed):
+    """The zooms draw the tissue edge with u(X) rebuilt from u(X_I) (insertion results keep
+    particle displacements only): at the probes it must equal deform's own interpolant."""
+    interpolant = plots._interpolant(deformed.model, deformed.particle_displacements)
+    assert np.allclose(interpolant(deformed.probes), deformed.probe_displacements, rtol=0.0, atol=1e-12)
+
+
+def test_deformed_plot_at_true_scale_says_nothing_about_enlargement(deformed, tmp_path):
+    fig = plots.plot_deformed(tmp_path / "deformed.png", deformed)
+    assert "enlarged" not in data_axes(fig)[0].get_title()
+
+
+def test_deform_plot_scale_option(slab_path, tmp_path):
+    runner = CliRunner()
+    bad = runner.invoke(app, ["deform", str(slab_path), "--plot", str(tmp_path / "bad.png"), "--plot-scale", "0"])
+    assert bad.exit_code == 2
+    assert "--plot-scale" in bad.output and "got 0.0" in bad.output
+    assert not (tmp_path / "bad.png").exists()
+    good = runner.invoke(app, ["deform", str(slab_path), "--plot", str(tmp_path / "d.png"), "--plot-scale", "5"])
+    assert good.exit_code == 0, good.output
+    assert is_png(tmp_path / "d.png")
+
+
+# --- needle insertion and plan --------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def plan_result():
+    from stitchplan.planning.planner import run_plan
+
+    raw = {"name": "tiny-needle",
+           "tissue": {"size": [30.0, 24.0], "thickness": 10.0, "clamped": ["right"],
+                      "material": MATERIAL},
+           "discretization": {"spacing": 4.0},
+           "needle": {"radius": 6.0, "entry": [0.0, 16.0], "turn": "cw", "step": 0.3,
+                      "friction": 0.0602, "cutting_force": 0.7}}
+    return run_plan(parse_scenario(raw), compare=True)
+
+
+def test_insertion_plot_shares_one_colour_scale_and_zooms_on_the_exit(plan_result, tmp_path):
+    run = plan_result.unplanned
+    fig = plots.plot_insertion(tmp_path / "insertion.png", run, [2, 5, len(run.steps)])
+    assert is_png(tmp_path / "insertion.png")
+    assert_readable(fig)
+    assert "tiny-needle" in fig._suptitle.get_text()
+    assert f"exit error {run.exit_error_mm:.3g} mm" in fig._suptitle.get_text()
+    norms = {(c.norm.vmin, c.norm.vmax) for ax in data_axes(fig) for c in ax.collections if c.get_array() is not None}
+    largest = max(np.linalg.norm(run.displacements[s], axis=1).max() for s in (2, 5, len(run.steps)))
+    assert len(norms) == 1  # one colour scale for every panel, the zoom included
+    assert next(iter(norms)) == (0.0, pytest.approx(largest))
+    zoom = data_axes(fig)[-1]
+    achieved = np.asarray(run.achieved_exit_def) - run.desired_exit_def
+    (x0, x1), (y0, y1) = zoom.get_xlim(), zoom.get_ylim()
+    assert x0 < 0 < x1 and y0 < 0 < y1 and x0 < achieved[0] < x1 and y0 < achieved[1] < y1
+    assert x1 - x0 < 3 * run.exit_error_mm + 0.01  # sized to the error, so the error shows
+
+
+def test_plan_plot_marks_each_runs_error_at_its_own_desired_exit(plan_result, tmp_path):
+    fig = plots.plot_plan(tmp_path / "plan.png", plan_result)
+    assert is_png(tmp_path / "plan.png")
+    assert_readable(fig)
+    planned, unplanned = plan_result.planned, plan_result.unplanned
+    headline = fig._suptitle.get_text()
+    assert "tiny-needle" in headline
+    assert f"{planned.exit_error_mm:.3g} mm planned" in headline
+    assert f"{unplanned.exit_error_mm:.3g} mm unplanned" in headline
+    main, zoom_planned, zoom_unplanned, trajectory = data_axes(fig)
+    for run, who in ((planned, "planned"), (unplanned, "unplanned")):
+        assert marker_at(main, run.desired_exit_def) and marker_at(main, run.achieved_exit_def)
+        note = next(t for t in main.texts if t.get_text().startswith(who))
+        assert f"{run.exit_error_mm:.3g} mm" in note.get_text()
+        assert np.allclose(note.xy, run.desired_exit_def)
+    for zoom, run in ((zoom_planned, planned), (zoom_unplanned, unplanned)):
+        width = np.diff(zoom.get_xlim())[0]
+        assert run.exit_error_mm < width < 3 * run.exit_error_mm + 0.01
+        assert marker_at(zoom, np.asarray(run.achieved_exit_def) - run.desired_exit_def)
+    assert "O(t)" in trajectory.get_title()
+
+
+# --- calibration ----------------------------------------------------------------------------
+
+
+def test_cost_surface_names_the_fit_and_keeps_white_marks_visible_in_the_legend(tmp_path):
+    lam, mu = np.geomspace(0.01, 2.0, 4), np.geomspace(0.01, 2.0, 4)
+    cost = np.add.outer(np.log(lam / 0.2) ** 2, np.log(mu / 0.15) ** 2) + 0.5
+    cost[0, 0] = np.nan
+    fig = calibration_plots.plot_cost_surface(tmp_path / "cost.png", lam, mu, cost, (0.19, 0.17), (0.2, 0.15),
+                                  np.array([[0.19, 0.17], [0.2, 0.15]]), name="calib",
+                                  residual=(0.057, 0.027), uncertainty=(0.013, None))
+    assert is_png(tmp_path / "cost.png")
+    assert_readable(fig)
+    title = data_axes(fig)[0].get_title()
+    assert "calib" in title and "0.057 ± 0.027 mm" in title and "0.2 ± 0.013 MPa" in title
+    legend = fig.legends[0]
+    for handle, text in zip(legend.legend_handles, legend.get_texts()):
+        if handle.get_color() == "white" or text.get_text().startswith("grid best"):
+            assert handle.get_path_effects(), text.get_text()  # a dark edge around the white
+    ax = data_axes(fig)[0]
+    assert ax.xaxis.get_major_formatter()(0.1) == "0.1"  # plain numbers on log axes
+
+
+def test_marker_residuals_draw_the_tissue_clamps_and_loads(tmp_path):
+    scenario = parse_scenario({"tissue": {"size": [50.0, 30.0], "thickness": 10.0, "clamped": ["right"],
+                                          "material": MATERIAL},
+                               "loads": [{"segment": [[0.0, 10.0], [0.0, 20.0]], "force": [1.0, 0.0]}]})
+    markers = np.array([[10.0, 10.0], [20.0, 15.0], [30.0, 20.0]])
+    measured = markers + [0.5, 0.1]
+    experiment = SimpleNamespace(name="pull", markers=markers, measured=measured, loads=scenario.loads)
+    simulated = [measured + [[0.02, 0.0], [0.0, -0.01], [0.01, 0.01]]]
+    fig = calibration_plots.plot_marker_residuals(tmp_path / "markers.png", scenario.tissue, [experiment], simulated,
+                                      name="calib")
+    assert is_png(tmp_path / "markers.png")
+    assert_readable(fig, colour_bar_count=0)
+    assert "calib" in fig._suptitle.get_text() and "largest 0.02 mm" in fig._suptitle.get_text()
+    labels = data_axes(fig)[0].get_legend_handles_labels()[1]
+    assert {"tissue at rest", "clamped edge", "load: force (N, total)"} <= set(labels)
+
+
+def test_needle_forces_title_carries_the_fit(tmp_path):
+    from stitchplan.calibration import calibrate_needle
+
+    folder = REPOSITORY / "sample_runs" / "calibration"
+    result = calibrate_needle(folder / "air.csv", folder / "tissue.csv", 8.88)
+    fig = calibration_plots.plot_needle_forces(tmp_path / "forces.png", result)
+    assert is_png(tmp_path / "forces.png")
+    assert_readable(fig, colour_bar_count=0)
+    headline = fig._suptitle.get_text()
+    assert f"friction {result.friction:.4g}" in headline and f"cutting force {result.cutting_force:.4g}" in headline
+
+
+# --- study ----------------------------------------------------------------------------------
+
+
+def fake_study(failed: bool):
+    """A study record with four runs (no insertions needed by the plot)."""
+    from stitchplan.study.sweep import StudyResult, StudyRun
+
+    scenario = parse_scenario({"name": "sweep", "tissue": {"size": [30.0, 20.0], "thickness": 10.0, "clamped": ["left"],
+                                                           "material": MATERIAL}})
+
+    def run(family, spacing, seconds, deviation, status="ok"):
+        deviations = {"deviation_mm": deviation, "exit_deviation_mm": deviation / 2} if status == "ok" else {}
+        return StudyRun(family=family, label=f"{family} h={spacing}", scenario=scenario, spacing=spacing,
+                        particles=int(1000 / spacing), wall_seconds=seconds, status=status,
+                        deviations=deviations)
+
+    reference = run("reference", 0.5, 9.0, 0.0)
+    runs = [run("uniform", 2.0, 0.6, 0.07), run("uniform", 1.0, 1.3, 0.03), run("graded x4", 2.0, 0.7, 0.04),
+            run("graded x4", 1.0, 0.9, math.nan, "failed" if failed else "ok")]
+    if not failed:
+        runs[-1].deviations = {"deviation_mm": 0.02, "exit_deviation_mm": 0.01}
+    return StudyResult(scenario=scenario, runs=[*runs, reference], reference=reference)
+
+
+@pytest.mark.parametrize("failed", [False, True])
+def test_speed_accuracy_mentions_failures_only_when_there_are_some(failed, tmp_path):
+    fig = plots.plot_speed_accuracy(tmp_path / "speed.png", fake_study(failed))
+    assert is_png(tmp_path / "speed.png")
+    assert_readable(fig, colour_bar_count=0)
+    headline = fig._suptitle.get_text()
+    assert "sweep" in headline and "5 runs" in headline
+    assert ("1 failed" in headline) == failed
+    assert "failed" in headline or not failed
+    for ax in data_axes(fig):
+        for axis in (ax.xaxis, ax.yaxis):
+            assert axis.get_major_formatter()(0.01) == "0.01"
+            shown = [label.get_text() for label in axis.get_ticklabels(minor=True) if label.get_text()]
+            assert all("10^" not in text and "$" not in text for text in shown)
