@@ -16,6 +16,6 @@ for scene in sh12_100x100 sh12_100x100_mid sh12_100x50 sh12_100x40 sh12_100x30; 
 done
 
 stitchplan simulate configs/sh12_100x100.yaml --summary $out/sh12_100x100/simulate_summary.json \
-  --out $out/sh12_100x100/simulate.h5 --plot $out/sh12_100x100/simulate.png --plot-steps 10,25,39
+  --out $out/sh12_100x100/simulate.h5 --plot $out/sh12_100x100/simulate.png --plot-steps 10,25,37
 
 python sample_runs/plan_table.py > $out/plan_table.md

@@ -55,7 +55,7 @@ import numpy as np
 from .config import Scenario
 from .errors import InputError
 from .needle.geometry import needle_zone, scenario_needle
-from .tissue.model import graded_particles
+from .tissue.particles import graded_particles
 
 log = logging.getLogger(__name__)
 
@@ -143,10 +143,10 @@ def model_size(scenario: Scenario) -> ModelSize:
 def _particles(scenario: Scenario) -> tuple[int, bool]:
     d, (width, height) = scenario.discretization, scenario.tissue.size
     zone = needle_zone(scenario)
-    if zone is None:  # the uniform grid of tissue.model.grid_particles
+    if zone is None:  # the uniform grid of tissue.particles.grid_particles
         nx, ny = max(round(width / d.spacing), 1), max(round(height / d.spacing), 1)
         # load segments add grid lines through their ends and a grading toward them
-        # (tissue.model.end_zones): the grid is then a lower bound (~5-30 % below)
+        # (tissue.particles.end_zones): the grid is then a lower bound (~5-30 % below)
         return (nx + 1) * (ny + 1), not scenario.loads
     lattice = (width / d.needle_spacing) * (height / d.needle_spacing)
     if lattice <= COUNT_EXACTLY_UP_TO:
@@ -157,7 +157,7 @@ def _particles(scenario: Scenario) -> tuple[int, bool]:
 
 
 def _graded_estimate(size, spacing: float, fine: float, zone, growth: float = 0.5, samples: int = 400) -> int:
-    """Particles of a graded set (tissue.model.graded_particles: side `fine` within the zone,
+    """Particles of a graded set (tissue.particles.graded_particles: side `fine` within the zone,
     growing by `growth` mm per mm beyond it up to `spacing`) as the integral of
     1 / side^2 over the slab, on a samples x samples grid."""
     width, height = size

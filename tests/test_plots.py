@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from stitchplan.cli import app
 from stitchplan.config.scenario import parse_scenario
-from stitchplan.io import calibration_plots, plots
+from stitchplan.io import calibration_plots, needle_plots, plots
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -116,7 +116,7 @@ def test_deformed_plot_draws_outline_clamps_loads_and_probes_at_the_chosen_scale
 def test_exit_zoom_outline_is_the_rk_interpolant_recovered_from_particle_displacements(deformed):
     """The zooms draw the tissue edge with u(X) rebuilt from u(X_I) (insertion results keep
     particle displacements only): at the probes it must equal deform's own interpolant."""
-    interpolant = plots._interpolant(deformed.model, deformed.particle_displacements)
+    interpolant = needle_plots._interpolant(deformed.model, deformed.particle_displacements)
     assert np.allclose(interpolant(deformed.probes), deformed.probe_displacements, rtol=0.0, atol=1e-12)
 
 
@@ -154,7 +154,7 @@ def plan_result():
 
 def test_insertion_plot_shares_one_colour_scale_and_zooms_on_the_exit(plan_result, tmp_path):
     run = plan_result.unplanned
-    fig = plots.plot_insertion(tmp_path / "insertion.png", run, [2, 5, len(run.steps)])
+    fig = needle_plots.plot_insertion(tmp_path / "insertion.png", run, [2, 5, len(run.steps)])
     assert is_png(tmp_path / "insertion.png")
     assert_readable(fig)
     assert "tiny-needle" in fig._suptitle.get_text()
@@ -171,7 +171,7 @@ def test_insertion_plot_shares_one_colour_scale_and_zooms_on_the_exit(plan_resul
 
 
 def test_plan_plot_marks_each_runs_error_at_its_own_desired_exit(plan_result, tmp_path):
-    fig = plots.plot_plan(tmp_path / "plan.png", plan_result)
+    fig = needle_plots.plot_plan(tmp_path / "plan.png", plan_result)
     assert is_png(tmp_path / "plan.png")
     assert_readable(fig)
     planned, unplanned = plan_result.planned, plan_result.unplanned

@@ -2,7 +2,7 @@
 converges at the smooth-solution rate although the solution is singular at the segment ends.
 
 Every segment end is a particle (grid lines through the ends), the particles are graded
-toward the ends inside an edge (stitchplan.tissue.model.end_zones), force segments are
+toward the ends inside an edge (stitchplan.tissue.particles.end_zones), force segments are
 integrated over exactly their length, and displacement segments are held at every particle
 on them by the transformation method. benchmarks/deform_segments.py compares the same
 treatment with scikit-fem on the 100 x 60 mm slab.

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stitchplan.tissue.model import grid_particles
+from stitchplan.tissue.particles import grid_particles
 from stitchplan.tissue.shape_functions import SingularMomentMatrix, rk_shape_functions, rk_shape_pairs
 
 SIZE = (10.0, 8.0)  # mm

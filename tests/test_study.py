@@ -189,7 +189,7 @@ def test_exit_deviations_in_the_spatial_the_material_frame_and_of_the_error_vect
 
 @pytest.fixture(scope="module")
 def graded():
-    from stitchplan.tissue.model import graded_particles
+    from stitchplan.tissue.particles import graded_particles
 
     center, radius = np.array([0.0, 21.12]), 13.32  # SH 1/2 needle zone: 1.5 R about the centre
     return graded_particles((100.0, 100.0), 6.0, 1.5, center, radius), center, radius

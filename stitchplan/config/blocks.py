@@ -144,7 +144,7 @@ class Discretization:
                                  "needle_spacing = spacing / needle_refinement; default 2 with a "
                                  "needle and no spacing") = None
     # particles graded toward the ends of load segments inside an edge, where the solution
-    # is singular (stitchplan.tissue.model.end_spacing): leaf side there spacing / 2^levels,
+    # is singular (stitchplan.tissue.particles.end_spacing): leaf side there spacing / 2^levels,
     # levels = segment_end_levels at the default spacing, one more per halving; 0: none
     segment_end_levels: described(integer(0, 8), "particle refinement levels at load-segment "
                                                  "ends (at the default spacing; one more per "

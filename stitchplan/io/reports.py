@@ -306,7 +306,7 @@ def _write_insertion_files(result, command: str, out: Path | None, summary: Path
             "discretization": discretization_summary(result.model),
         }}, {**HDF5_UNITS, **(units or {})})
     if plot is not None:
-        from .plots import plot_insertion
+        from .needle_plots import plot_insertion
 
         plot_insertion(plot, result, plot_steps,
                        estimate_mm=(extra_summary or {}).get("exit_error_estimate_mm"))
@@ -366,6 +366,6 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict) -> None:
                            extra_datasets=datasets, provenance=provenance,
                            units={"planner/trajectory": column_units(columns)})
     if plot is not None:
-        from .plots import plot_plan
+        from .needle_plots import plot_plan
 
         plot_plan(plot, result)

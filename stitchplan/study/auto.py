@@ -5,7 +5,7 @@
 (stitchplan.study.runner.exit_deviations): the largest of the deviations of the spatial
 achieved exit, the material (reference) achieved exit and the exit-error vector.
 
-The candidates are particle sets graded toward the needle (stitchplan.tissue.model.graded_particles):
+The candidates are particle sets graded toward the needle (stitchplan.tissue.particles.graded_particles):
 spacing h within `needle_zone` (1.5) needle radii of the needle centre, growing away from it
 to `grading` x h (4, capped at a fifth of the tissue's smaller side), each particle's kernel
 support following its local spacing. The exit error is dominated by the resolution where

@@ -25,7 +25,7 @@ from ..errors import StitchplanError
 from ..events import Event, EventKind
 from ..needle.geometry import needle_zone
 from ..needle.insertion import run_insertion
-from ..tissue.model import graded_particles, grid_particles
+from ..tissue.particles import graded_particles, grid_particles
 
 if TYPE_CHECKING:
     from ..needle.results import InsertionResult

@@ -1,0 +1,245 @@
+"""Particles of the tissue model: a uniform grid whose lines pass through every load
+segment's ends, or particles graded toward refinement zones (the needle, segment ends) on
+a 2:1-balanced quadtree, with the background cells their quadrature lives on."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Discretization, Tissue
+from ..config.blocks import default_spacing_of
+from .quadrature import cell_quadrature
+
+log = logging.getLogger(__name__)
+
+
+def grid_lines(length: float, spacing: float, breaks=()) -> np.ndarray:
+    """Grid lines on [0, length], about `spacing` apart, with a line at every break point
+    (the ends of load segments): each piece between breaks is divided evenly. Without breaks
+    it is the uniform grid that ends exactly on both edges."""
+    cells = max(int(round(length / spacing)), 1)
+    tol = 1e-9 * length
+    knots = np.unique(np.clip(np.asarray([0.0, length, *breaks], dtype=float), 0.0, length))
+    knots = knots[np.concatenate([[True], np.diff(knots) > tol])]
+    knots[-1] = length
+    if len(knots) == 2:
+        return np.linspace(0.0, length, cells + 1)
+    pieces = [np.linspace(a, b, max(int(round(cells * (b - a) / length)), 1) + 1)[:-1]
+              for a, b in zip(knots[:-1], knots[1:])]
+    return np.append(np.concatenate(pieces), length)
+
+
+def segment_breaks(segments) -> tuple[list[float], list[float]]:
+    """x and y coordinates of the end points of boundary segments: the grid lines that put a
+    particle on each segment end."""
+    ends = np.asarray([point for segment in segments for point in segment], dtype=float).reshape(-1, 2)
+    return list(ends[:, 0]), list(ends[:, 1])
+
+
+def grid_particles(size: tuple[float, float], spacing: float,
+                   breaks: tuple = ((), ())) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Particles on a tensor grid covering [0, W] x [0, H], and their tributary areas.
+
+    The lines are ~`spacing` apart, adjusted so the grid ends exactly on the edges and has a
+    line through every break (x breaks, y breaks; see grid_lines).
+    Returns particles (NP, 2), volumes (NP,), dx, dy (the largest line intervals).
+    """
+    x, y = grid_lines(size[0], spacing, breaks[0]), grid_lines(size[1], spacing, breaks[1])
+    particles = np.stack(np.meshgrid(x, y, indexing="ij"), axis=-1).reshape(-1, 2)
+    wx, wy = _tributary(x), _tributary(y)
+    volumes = np.outer(wx, wy).ravel()
+    return particles, volumes, float(np.diff(x).max()), float(np.diff(y).max())
+
+
+def _tributary(lines: np.ndarray) -> np.ndarray:
+    """Half of each adjacent interval, per line."""
+    half = 0.5 * np.diff(lines)
+    return np.concatenate([half, [0.0]]) + np.concatenate([[0.0], half])
+
+
+@dataclass(frozen=True)
+class GradedParticles:
+    """Particles at the corners of the leaf cells of a balanced quadtree over the slab."""
+
+    particles: np.ndarray  # (NP, 2)
+    volumes: np.ndarray  # (NP,) tributary areas: a quarter of each adjacent leaf cell
+    local_spacing: np.ndarray  # (NP,) largest side of the leaf cells meeting at the particle
+    cells: np.ndarray  # (nc, 4) leaf cells: x0, y0, width, height (mm)
+    fine_spacing: float  # leaf side near the needle (mm)
+    coarse_spacing: float  # leaf side far from it (mm)
+
+
+@dataclass(frozen=True)
+class RefinementZone:
+    """Leaf cells of side ~`spacing` within `radius` of `center` (a disk; radius 0: a point)."""
+
+    center: np.ndarray  # (2,)
+    radius: float
+    spacing: float
+
+
+def graded_particles(size: tuple[float, float], spacing: float, fine_spacing: float,
+                     center: np.ndarray, radius: float, growth: float = 0.5,
+                     points: tuple[RefinementZone, ...] = (), breaks: tuple = ((), ())) -> GradedParticles:
+    """A particle set graded toward a disk (the needle's zone): leaf cells of side
+    ~`fine_spacing` within `radius` of `center`, the side allowed to grow by `growth` mm per
+    mm of distance beyond it, up to ~`spacing` (coarse side = fine x 2^L, L the nearest
+    integer); neighbouring leaves differ by at most one level (2:1 balance), so the local
+    spacing, and with it the kernel support, varies smoothly. `points` adds further zones
+    (the ends of load segments) graded the same way, `breaks` grid lines of the coarse
+    lattice (see grid_lines).
+
+    Particles sit at the leaf corners (hanging corners included, as meshfree allows), with
+    volume a quarter of each adjacent leaf, so the volumes sum to the slab's area.
+    """
+    zones = (RefinementZone(np.asarray(center, dtype=float), float(radius), fine_spacing), *points)
+    levels = max(int(round(np.log2(spacing / fine_spacing))), 0)
+    return graded_lattice(size, fine_spacing * 2**levels, zones, growth, breaks)
+
+
+MAX_LATTICE_CELLS = 4_000_000  # finest-lattice cells of graded_lattice (a few hundred MB of work arrays)
+
+
+def graded_lattice(size: tuple[float, float], base: float, zones: tuple[RefinementZone, ...],
+                   growth: float = 0.5, breaks: tuple = ((), ())) -> GradedParticles:
+    """The quadtree behind graded_particles: coarse lattice lines ~`base` apart through the
+    breaks (grid_lines), each coarse cell split into 2^l x 2^l leaves where a zone asks for
+    it (leaf side <= zone spacing + growth x distance to the zone), 2:1 balanced."""
+    from scipy.ndimage import maximum_filter
+
+    width, height = size
+    levels = max([max(int(round(np.log2(base / zone.spacing))), 0) for zone in zones] + [0])
+    coarse_x, coarse_y = grid_lines(width, base, breaks[0]), grid_lines(height, base, breaks[1])
+    nx0, ny0 = len(coarse_x) - 1, len(coarse_y) - 1
+    # the finest lattice is held as dense arrays: cap its size (memory), coarser at the zones
+    cap = max(int(np.floor(0.5 * np.log2(MAX_LATTICE_CELLS / (nx0 * ny0)))), 0)
+    if levels > cap:
+        log.info("graded particles: %d refinement levels capped at %d (at most %d lattice cells); "
+                 "the finest spacing is %.3g mm instead of %.3g mm", levels, cap, MAX_LATTICE_CELLS,
+                 base / 2**cap, base / 2**levels)
+        levels = cap
+    n = 2**levels
+    fx, fy = nx0 * n, ny0 * n  # finest lattice: fx x fy cells
+    (xs, step_x), (ys, step_y) = _subdivided(coarse_x, n), _subdivided(coarse_y, n)  # (fx + 1,), (fy + 1,)
+    xc, yc = _middles(xs, step_x), _middles(ys, step_y)
+    # side of the coarse cell holding each finest cell, (fx, fy)
+    side0 = (max(width / nx0, height / ny0) if step_x and step_y else
+             np.maximum(np.repeat(np.diff(coarse_x), n)[:, None], np.repeat(np.diff(coarse_y), n)[None, :]))
+    target = np.full((fx, fy), np.inf)
+    for zone in zones:
+        distance = np.hypot(xc[:, None] - zone.center[0], yc[None, :] - zone.center[1]) - zone.radius
+        target = np.minimum(target, zone.spacing * (1.0 + 1e-9) + growth * np.maximum(distance, 0.0))
+    with np.errstate(divide="ignore"):  # no zone: target inf, no refinement
+        required = np.clip(np.ceil(np.log2(side0 / target)), 0, levels).astype(int)
+
+    def leaf_levels(required: np.ndarray) -> np.ndarray:
+        """Level of the leaf holding each finest cell: the smallest l whose level-l ancestor
+        needs no split (no finest cell inside asks for more than l)."""
+        leaf = np.full_like(required, levels)
+        for level in range(levels - 1, -1, -1):
+            b = 2 ** (levels - level)
+            block = required.reshape(fx // b, b, fy // b, b).max(axis=(1, 3))
+            leaf = np.where(np.repeat(np.repeat(block, b, 0), b, 1) <= level, level, leaf)
+        return leaf
+
+    leaf = leaf_levels(required)
+    while True:  # 2:1 balance: a leaf's neighbours are at most one level coarser
+        balanced = np.maximum(required, maximum_filter(leaf, size=3, mode="nearest") - 1)
+        if np.array_equal(balanced, required):
+            break
+        required = balanced
+        leaf = leaf_levels(required)
+
+    corners, sides = [], []
+    i, j = np.meshgrid(np.arange(fx), np.arange(fy), indexing="ij")
+    for level in range(levels + 1):
+        b = 2 ** (levels - level)
+        first = (leaf == level) & (i % b == 0) & (j % b == 0)
+        corners.append(np.stack([i[first], j[first]], axis=1))
+        sides.append(np.full(int(first.sum()), b))
+    corner = np.concatenate(corners)  # (nc, 2) lower-left corner on the finest lattice
+    side = np.concatenate(sides)  # (nc,) in finest cells
+    offsets = np.array([[0, 0], [1, 0], [0, 1], [1, 1]])
+    lattice = corner[:, None, :] + offsets[None] * side[:, None, None]  # (nc, 4, 2)
+    keys = lattice[..., 0] * (fy + 1) + lattice[..., 1]
+    unique, inverse = np.unique(keys.ravel(), return_inverse=True)
+    particles = np.stack([xs[unique // (fy + 1)], ys[unique % (fy + 1)]], axis=1)
+    cell_w, x0 = _extent(xs, step_x, corner[:, 0], side)
+    cell_h, y0 = _extent(ys, step_y, corner[:, 1], side)
+    volumes = np.zeros(len(unique))
+    np.add.at(volumes, inverse, np.repeat(cell_w * cell_h / 4.0, 4))
+    local = np.zeros(len(unique))
+    np.maximum.at(local, inverse, np.repeat(np.maximum(cell_w, cell_h), 4))
+    cells = np.column_stack([x0, y0, cell_w, cell_h])
+    fine = max(step_x or float(np.diff(xs).max()), step_y or float(np.diff(ys).max()))
+    coarse = fine * n if step_x and step_y else max(float(np.diff(coarse_x).max()),
+                                                    float(np.diff(coarse_y).max()))
+    return GradedParticles(particles, volumes, local, cells, fine, coarse)
+
+
+def _subdivided(lines: np.ndarray, n: int) -> tuple[np.ndarray, float | None]:
+    """Every interval of `lines` split into n equal parts, and the common step when the result
+    is uniform (then computed as i / N x length, the same numbers as the uniform lattice)."""
+    if len(lines) > 2 and not np.allclose(np.diff(lines), lines[1] - lines[0], rtol=1e-12, atol=0.0):
+        parts = [a + (b - a) * np.arange(n) / n for a, b in zip(lines[:-1], lines[1:])]
+        return np.append(np.concatenate(parts), lines[-1]), None
+    cells = n * (len(lines) - 1)
+    return np.arange(cells + 1) / cells * lines[-1], lines[-1] / cells
+
+
+def _middles(lines: np.ndarray, step: float | None) -> np.ndarray:
+    return 0.5 * (lines[:-1] + lines[1:]) if step is None else (np.arange(len(lines) - 1) + 0.5) * step
+
+
+def _extent(lines: np.ndarray, step: float | None, first: np.ndarray, count: np.ndarray):
+    """Width and start of the cells spanning `count` lattice intervals from line `first`."""
+    if step is None:
+        return lines[first + count] - lines[first], lines[first]
+    return count * step, first * step
+
+
+END_GROWTH = 0.5  # mm of leaf side per mm of distance from a graded segment end
+
+
+def end_spacing(spacing: float, reference: float, reference_levels: int = 3) -> float:
+    """Leaf side at the end of a load segment for a coarse `spacing`.
+
+    The solution is singular at a segment end (the traction or the displacement jumps along
+    the edge), so uniform refinement converges only like h^(~1) there and pollutes the whole
+    field. Here the end's leaf side falls like spacing^2 (the grading that restores the
+    smooth-solution rate for an r^(1/2) singularity with a linear basis):
+    spacing / 2^reference_levels at the `reference` spacing (the scene's default,
+    min(W, H)/20), one level more per halving of the spacing and one less per doubling
+    (discretization.segment_end_levels; benchmarks/deform_segments.py).
+    """
+    levels = max(reference_levels + int(round(np.log2(reference / spacing))), 0)
+    return spacing / 2**levels
+
+
+def end_zones(tissue: Tissue, segments, discretization: Discretization) -> tuple[RefinementZone, ...]:
+    """Refinement zones (points) at the load-segment ends that lie inside an edge (corners
+    are left as they are); none with discretization.segment_end_levels 0."""
+    if discretization.segment_end_levels == 0:
+        return ()
+    domain = tissue.domain
+    fine = end_spacing(discretization.spacing, default_spacing_of(tissue.size, None),
+                       discretization.segment_end_levels)
+    zones = []
+    for segment in segments:
+        for point in segment:
+            if len(domain.edges_at(point)) == 1:
+                zones.append(RefinementZone(np.asarray(point, dtype=float), 0.0, fine))
+    return tuple(zones)
+
+
+def leaf_quadrature(cells: np.ndarray, order: int, subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss rule of `order` points per direction on each of subdivisions^2 sub-cells of every
+    leaf cell (nc, 4: x0, y0, width, height). Returns points (n, 2), weights (n,) (mm^2)."""
+    unit_points, unit_weights = cell_quadrature((1.0, 1.0), (subdivisions, subdivisions), order)
+    origin, extent = cells[:, None, :2], cells[:, None, 2:]  # (nc, 1, 2)
+    points = origin + unit_points[None] * extent  # (nc, g, 2)
+    weights = unit_weights[None] * (cells[:, 2] * cells[:, 3])[:, None]
+    return points.reshape(-1, 2), weights.ravel()
