@@ -63,6 +63,12 @@ GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on
 MULTIPLIER_SPACINGS = 1.0  # mortar multiplier elements span at least this many local spacings
 MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous piecewise linear
 PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter remainder at the entry)
+# mortar element ends: "arc", at exact arc lengths MULTIPLIER_SPACINGS local spacings apart
+# (counted from the tip in the track's length measured in local spacings), so the multiplier
+# resolution follows the spacing smoothly; "segments", at needle points (whole segments)
+ELEMENT_ENDS = "arc"
+MULTIPLIER_LENGTH = 2.5  # mm: arc ends are at least this far apart (a fixed resolution of the hold)
+QUADRATURE_PER_ELEMENT = 2.0  # arc ends: constraint Gauss points per segment >= this x segment / element
 POINTS, MORTAR = "points", "mortar"
 
 
@@ -127,6 +133,12 @@ class NeedleCoupling:
         self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
         self.multiplier_count = 0
         self.multiplier_nodes = np.zeros(0)  # mortar: arc length of each multiplier's node (element start)
+        # mortar constraint quadrature (ELEMENT_ENDS "arc"): Gauss points of each segment, fixed
+        # when the segment is added (so the solvers' cached K^-1 E^T columns stay valid)
+        self._constraint_points = np.zeros((0, 2))  # X_q, (Q, 2)
+        self._constraint_segment = np.zeros(0, dtype=int)  # segment of each point, (Q,)
+        self._constraint_along = np.zeros(0)  # t_q in [0, 1] along its segment, (Q,)
+        self._constraint_length = np.zeros(0)  # ds_q: Gauss weight x segment length, mm, (Q,)
         self.loads = LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, n_free)), np.zeros(0))
         self.previous_loads = self.loads
         self.load_factor = 1.0  # beta of Algorithm 1's ramp within a step
@@ -135,9 +147,11 @@ class NeedleCoupling:
         # one step apart, at sqrt(R^2 - t (1 - t) c^2) from C (c = 2 R sin(step / 2); t (1 - t)
         # = 1/6 at both Gauss points). Asking R there would push the whole track outward
         # by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm steps)
-        chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
+        self._chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
+        self.arc_ends = self.kind == MORTAR and ELEMENT_ENDS == "arc"
         self.target_radius = (geometry.radius if self.kind == POINTS
-                              else math.sqrt(geometry.radius**2 - chord**2 / 6.0))
+                              else np.zeros(0) if self.arc_ends
+                              else math.sqrt(geometry.radius**2 - self._chord**2 / 6.0))
 
     # --- the track ------------------------------------------------------------------------
 
@@ -176,7 +190,9 @@ class NeedleCoupling:
             self.multiplier_count = len(self.points)
             carried = np.append(multipliers, 0.0)
         else:
-            if len(self.points) > 1:
+            if len(self.points) > 1 and self.arc_ends:
+                self._add_constraint_points()
+            elif len(self.points) > 1:
                 self.quadrature_rows = self.segment_rows
                 self.expanded_rows = sp.vstack([self.expanded_rows, self._expand(self.segment_rows[-2:])],
                                                format="csr")
@@ -188,6 +204,41 @@ class NeedleCoupling:
 
     def _segment_lengths(self) -> np.ndarray:
         return np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+
+    def _add_constraint_points(self) -> None:
+        """Gauss points of the new segment for the constraint: at least two, and at least
+        QUADRATURE_PER_ELEMENT per multiplier element length over the segment (a 2 mm segment
+        against 1.25 mm elements gets 4), so every element holds Gauss points and the hat
+        functions' kinks inside a segment are integrated closely. Each asks |x - C| of a point
+        at t on the chord between two needle points: sqrt(R^2 - t (1 - t) c^2)."""
+        start, end = self.points[-2], self.points[-1]
+        length = float(np.linalg.norm(end - start))
+        element = max(MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0]), MULTIPLIER_LENGTH)
+        count = max(2, math.ceil(QUADRATURE_PER_ELEMENT * length / element - 1e-9))
+        abscissae, gauss_weights = np.polynomial.legendre.leggauss(count)
+        along, ds = 0.5 * (abscissae + 1.0), 0.5 * gauss_weights * length
+        new = start + along[:, None] * (end - start)  # (count, 2)
+        rows = self._rows_at(new)
+        self._constraint_points = np.vstack([self._constraint_points, new])
+        self._constraint_segment = np.append(self._constraint_segment, np.full(count, len(self.points) - 2))
+        self._constraint_along = np.append(self._constraint_along, along)
+        self._constraint_length = np.append(self._constraint_length, ds)
+        radius = self.geometry.radius
+        self.target_radius = np.append(self.target_radius, np.sqrt(radius**2 - along * (1 - along) * self._chord**2))
+        self.quadrature_rows = sp.vstack([self.quadrature_rows, rows], format="csr")
+        self.expanded_rows = sp.vstack([self.expanded_rows, self._expand(rows)], format="csr")
+
+    def _arc_nodes(self, lengths: np.ndarray, arc: np.ndarray) -> np.ndarray:
+        """Element ends at exact arc lengths: the track measured in local spacings,
+        tau(s) = int ds / (MULTIPLIER_SPACINGS h(s)) (h per segment, at its midpoint), cut at
+        tau_tip - k for k = 0, 1, ..., the remainder (< 1) joining the element at the entry
+        (one element while the track is shorter than one). Arc length of the ends, (m_e + 1,)."""
+        spacing = np.maximum(MULTIPLIER_SPACINGS * self.local_spacing(0.5 * (self.points[:-1] + self.points[1:])),
+                             MULTIPLIER_LENGTH)
+        tau = np.concatenate([[0.0], np.cumsum(lengths / spacing)])  # at the needle points
+        count = max(int(math.floor(tau[-1] + 1e-9)), 1)
+        cuts = tau[-1] - np.arange(count - 1, 0, -1, dtype=float)  # interior ends, increasing
+        return np.concatenate([[0.0], np.interp(cuts, tau, arc), [arc[-1]]])
 
     def _partition(self) -> None:
         """Mortar elements: whole segments from the entry, each closed once it is at least
@@ -204,24 +255,31 @@ class NeedleCoupling:
             self.weights = self._shares = sp.csr_matrix((0, 0))
             self.multiplier_count = 0
             return
-        needed = MULTIPLIER_SPACINGS * self.local_spacing(0.5 * (self.points[:-1] + self.points[1:]))
-        starts = _element_starts(lengths, needed, from_tip=PARTITION_FROM_TIP)
-        marks = np.zeros(len(lengths), dtype=int)
-        marks[starts[1:]] = 1
-        segment_element = np.cumsum(marks)  # (segments,)
         arc = np.concatenate([[0.0], np.cumsum(lengths)])  # arc length at the needle points
-        nodes = np.append(arc[starts], arc[-1])  # element ends, (m_e + 1,)
-        s_q = (arc[:-1, None] + GAUSS_POINTS[None, :] * lengths[:, None]).ravel()  # (Q,)
-        ds = np.repeat(0.5 * lengths, 2)
-        element = np.repeat(segment_element, 2)
+        if self.arc_ends:
+            nodes = self._arc_nodes(lengths, arc)  # element ends, (m_e + 1,)
+            segment = self._constraint_segment
+            s_q = arc[segment] + self._constraint_along * lengths[segment]  # (Q,)
+            ds = self._constraint_length
+            element = np.clip(np.searchsorted(nodes, s_q, side="right") - 1, 0, len(nodes) - 2)
+        else:
+            needed = MULTIPLIER_SPACINGS * self.local_spacing(0.5 * (self.points[:-1] + self.points[1:]))
+            starts = _element_starts(lengths, needed, from_tip=PARTITION_FROM_TIP)
+            marks = np.zeros(len(lengths), dtype=int)
+            marks[starts[1:]] = 1
+            nodes = np.append(arc[starts], arc[-1])  # element ends, (m_e + 1,)
+            s_q = (arc[:-1, None] + GAUSS_POINTS[None, :] * lengths[:, None]).ravel()  # (Q,)
+            ds = np.repeat(0.5 * lengths, 2)
+            element = np.repeat(np.cumsum(marks), 2)  # (Q,)
+        elements = len(nodes) - 1
         q = np.arange(len(s_q))
         if MULTIPLIER_ORDER == 0:
-            shares = sp.csr_matrix((np.ones(len(q)), (q, element)), shape=(len(q), len(starts)))
+            shares = sp.csr_matrix((np.ones(len(q)), (q, element)), shape=(len(q), elements))
         else:
             upper = (s_q - nodes[element]) / (nodes[element + 1] - nodes[element])
             shares = sp.csr_matrix((np.concatenate([1.0 - upper, upper]),
                                     (np.concatenate([q, q]), np.concatenate([element, element + 1]))),
-                                   shape=(len(q), len(starts) + 1))
+                                   shape=(len(q), elements + 1))
         self._shares = shares
         self.multiplier_nodes = nodes if MULTIPLIER_ORDER == 1 else nodes[:-1]  # arc length, mm
         weighted = shares.multiply(ds[:, None]).tocsc()
@@ -302,7 +360,9 @@ class NeedleCoupling:
 
     def quadrature_points(self) -> np.ndarray:
         """X_q, the reference points of the constraint quadrature, (Q, 2)."""
-        return self.points if self.kind == POINTS else self.segment_points
+        if self.kind == POINTS:
+            return self.points
+        return self._constraint_points if self.arc_ends else self.segment_points
 
     def weights_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
         """B (2Q, m): B[2q + d, j] = W_qj n_q,d, so that G = E^T B."""
