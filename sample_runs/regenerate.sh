@@ -19,3 +19,12 @@ stitchplan simulate configs/sh12_100x100.yaml --summary $out/sh12_100x100/simula
   --out $out/sh12_100x100/simulate.h5 --plot $out/sh12_100x100/simulate.png --plot-steps 10,25,37
 
 python sample_runs/plan_table.py > $out/plan_table.md
+
+# calibration example: refit the shipped synthetic data (python sample_runs/calibration/generate.py
+# remakes the data itself, seeded)
+(cd $out/calibration
+ stitchplan calibrate material calibration.yaml --out fitted.yaml --plot-dir plots
+ stitchplan calibrate material displacement_only.yaml --out fitted_displacement_only.yaml \
+   --plot-dir plots_displacement_only
+ stitchplan calibrate needle --air air.csv --tissue tissue.csv --radius 8.88 --out needle.yaml \
+   --plot forces.png)

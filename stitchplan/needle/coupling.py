@@ -68,7 +68,8 @@ PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter r
 # resolution follows the spacing smoothly; "segments", at needle points (whole segments)
 ELEMENT_ENDS = "arc"
 MULTIPLIER_LENGTH = 2.5  # mm: arc ends are at least this far apart (a fixed resolution of the hold)
-QUADRATURE_PER_ELEMENT = 2.0  # arc ends: constraint Gauss points per segment >= this x segment / element
+QUADRATURE_PER_ELEMENT = 2.0
+CUTTING_PROFILE = "uniform"  # mortar: the cutting force's density over cutting_length, "uniform" or "hat"  # arc ends: constraint Gauss points per segment >= this x segment / element
 POINTS, MORTAR = "points", "mortar"
 
 
@@ -303,6 +304,8 @@ class NeedleCoupling:
             magnitudes[-2:] += 0.5 * cutting
             return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
         zone = min(self.cutting_length, segments * step_length)
+        if CUTTING_PROFILE == "hat":
+            return self._hat_cutting(friction, zone, step_length)
         covered = np.clip(zone / step_length - np.arange(segments)[::-1], 0.0, 1.0)  # tip end of each segment
         touched = np.flatnonzero(covered > 0.0)
         start, end = self.points[touched], self.points[touched + 1]
@@ -313,6 +316,26 @@ class NeedleCoupling:
         return LoadQuadrature(np.vstack([self.segment_points, cut_points]),
                               sp.vstack([self.segment_rows, self._rows_at(cut_points)], format="csr"),
                               np.concatenate([friction, cut_magnitudes]))
+
+    def _hat_cutting(self, friction: np.ndarray, zone: float, step_length: float) -> LoadQuadrature:
+        """The cutting force as a hat-shaped line load over the last `zone` mm of needle:
+        density 4 F min(d, zone - d) / zone^2 at needle length d behind the tip, zero at the
+        tip and at the back of the zone, its centroid zone / 2 behind the tip as the uniform
+        spread's. Continuous, so the displacement near the tip has no log-singular gradient
+        from a load that stops abruptly. Two Gauss points per piece between the segment ends
+        and the peak (exact for the piecewise-linear density)."""
+        breaks = np.unique(np.concatenate([np.arange(0.0, zone, step_length), [0.5 * zone, zone]]))
+        left, width = breaks[:-1], np.diff(breaks)
+        d = (left[:, None] + GAUSS_POINTS[None, :] * width[:, None]).ravel()  # needle length behind the tip
+        density = 4.0 * self.needle.cutting_force * np.minimum(d, zone - d) / zone**2
+        magnitudes = density * np.repeat(0.5 * width, 2)
+        back = np.minimum((d / step_length).astype(int), len(self.points) - 2)  # segments from the tip
+        end, start = self.points[-1 - back], self.points[-2 - back]
+        t = (d - back * step_length) / step_length  # from the segment's tip end
+        cut_points = end + t[:, None] * (start - end)
+        return LoadQuadrature(np.vstack([self.segment_points, cut_points]),
+                              sp.vstack([self.segment_rows, self._rows_at(cut_points)], format="csr"),
+                              np.concatenate([friction, magnitudes]))
 
     def load_magnitudes(self) -> np.ndarray:
         """Force (N) carried by each load point at the full load of this step."""
