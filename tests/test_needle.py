@@ -128,6 +128,7 @@ def needle_raw(**changes) -> dict:
     ("entry", [0.0], "needle.entry: got [0.0], expected a pair [x, y] of numbers (mm)"),
     ("coupling", "springs", "needle.coupling: got 'springs', expected one of mortar, points"),
     ("cutting_length", 0.0, "needle.cutting_length: got 0.0, expected a positive number (mm)"),
+    ("multiplier_ends", "curved", "needle.multiplier_ends: got 'curved', expected one of segments, arc"),
 ])
 def test_bad_needle_fields_are_refused_by_the_config(field, value, fragment):
     with pytest.raises(ScenarioError) as error:

@@ -8,7 +8,8 @@
 - the multiplier field it converges to is smooth (no checkerboard: the inf-sup condition
   holds) and the track stays on the needle between the needle points;
 - `center_sensitivity` (the planner's Jacobian) against central finite differences of the
-  re-equilibrated state, for both couplings.
+  re-equilibrated state, for both couplings and the mortar's arc-length element ends;
+- `multiplier_ends: arc`: element ends at exact arc lengths a local spacing apart.
 """
 
 from __future__ import annotations
@@ -44,6 +45,37 @@ def test_multiplier_elements_span_whole_segments_at_least_a_spacing_long(mortar)
     assert np.all(np.diff(nodes) >= MULTIPLIER_SPACINGS * spacing - 1e-9)
     # inf-sup bound: no more multipliers than the spacings along the track, plus one
     assert 2 <= coupling.multiplier_count <= arc[-1] / (MULTIPLIER_SPACINGS * spacing) + 1
+
+
+def test_arc_ends_cut_the_track_every_local_spacing_from_the_tip():
+    """`multiplier_ends: arc` on a 2 mm grid with 1.6 mm steps, 6 steps: the element ends sit at exact arc lengths one local spacing apart counted from the
+    tip (not at needle points), the remainder (< 1 spacing) joins the element at the entry;
+    each multiplier's weights are a phi_j-weighted mean over Gauss points it covers; every
+    segment carries at least two constraint Gauss points and a segment longer than half an
+    element more."""
+    insertion = started(small_scene(spacing=2.0, coupling="mortar", multiplier_ends="arc"), steps=6)
+    coupling = insertion.coupling
+    lengths = np.linalg.norm(np.diff(coupling.points, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(lengths)])
+    spacing = coupling.local_spacing(0.5 * (coupling.points[:-1] + coupling.points[1:]))
+    assert np.ptp(spacing) == 0.0  # one spacing along this track: element lengths are exact
+    nodes = coupling.multiplier_nodes
+    assert nodes[0] == 0.0 and nodes[-1] == pytest.approx(arc[-1], abs=1e-12)
+    np.testing.assert_allclose(np.diff(nodes)[1:], MULTIPLIER_SPACINGS * spacing[0], rtol=1e-12)
+    assert MULTIPLIER_SPACINGS * spacing[0] <= nodes[1] < 2 * MULTIPLIER_SPACINGS * spacing[0]
+    assert np.min(np.abs(nodes[1:-1, None] - arc[None, :])) > 1e-3  # cut inside segments here
+    assert coupling.multiplier_count == len(nodes) == int(arc[-1] / (MULTIPLIER_SPACINGS * spacing[0])) + 1
+    shares, weights = coupling._shares.toarray(), coupling.weights.toarray()
+    np.testing.assert_allclose(shares.sum(axis=1), 1.0, atol=1e-14)
+    np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-14)
+    assert np.all((shares > 0).sum(axis=0) >= 2)  # every hat holds Gauss points
+    per_segment = np.bincount(coupling._constraint_segment)
+    assert len(per_segment) == len(lengths) and per_segment.min() >= 2
+    assert coupling.quadrature_points().shape == (per_segment.sum(), 2)
+    # the Gauss weights integrate each segment's length exactly
+    np.testing.assert_allclose(np.bincount(coupling._constraint_segment, coupling._constraint_length), lengths,
+                               rtol=1e-12)
+    assert insertion.last_violation <= insertion.constraint_tolerance
 
 
 def test_loads_add_up_to_friction_and_cutting_force_and_the_cut_sits_behind_the_tip(mortar):
@@ -104,13 +136,14 @@ def test_inf_sup_the_mortar_multipliers_stay_resolvable_where_needle_points_do_n
     assert minimum["mortar", 1.0] > 0.5 * minimum["mortar", 2.0]
 
 
-@pytest.mark.parametrize("coupling", ["points", "mortar"])
+@pytest.mark.parametrize("coupling", ["points", "mortar", "mortar-arc"])
 def test_center_sensitivity_matches_finite_differences(coupling):
     """d u(X_exit) / dC, the planner's Jacobian, against central differences of the
     re-equilibrated state (centre moved by +-1e-4 mm): within 1e-3 of its norm (observed
     1.7e-4 points, 1.1e-4 mortar). The sensitivity leaves out only the follower loads' own
     stiffness (d f_needle / du, of order the needle force over R), as Newton does."""
-    insertion = started(small_scene(coupling=coupling, spacing=2.0), steps=5)
+    options = {"coupling": "mortar", "multiplier_ends": "arc"} if coupling == "mortar-arc" else {"coupling": coupling}
+    insertion = started(small_scene(spacing=2.0, **options), steps=5)
     target = insertion.geometry.desired_exit
     jacobian = insertion.center_sensitivity(target, refactor=True)
     base = insertion.snapshot()

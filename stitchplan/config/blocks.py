@@ -220,6 +220,10 @@ class Needle:
                         "(the thesis's one constraint per needle point)") = "mortar"
     cutting_length: described(PositiveMM, "mm of needle behind the tip that carries the cutting "
                                           "force (mortar coupling)") = 3.0
+    multiplier_ends: described(choice(("segments", "arc")),
+                               "mortar coupling: multiplier elements of whole track segments "
+                               "(segments) or cut at exact arc lengths one local spacing apart "
+                               "(arc)") = "segments"
 
 
 @block()

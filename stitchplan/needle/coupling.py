@@ -31,6 +31,14 @@ Two couplings (`needle.coupling`):
   cutting force is spread uniformly over `cutting_length` mm of needle behind the tip (a
   physical length: the needle point's cutting edge and taper), not over one step.
 
+  `needle.multiplier_ends: arc` cuts the elements at exact arc lengths instead: the track
+  measured in local spacings, cut every MULTIPLIER_SPACINGS from the tip, so the element
+  length is c h and follows the spacing smoothly (whole segments jump: 3 then 2 segments of
+  0.71 mm on the SH 1/2 scenes); its constraint has its own Gauss points per segment (at
+  least two, more where an element is shorter than a segment). It does not converge better
+  (benchmarks/results/needle_coupling.md): most of the change under refinement comes from
+  the tissue's response to the cutting force, not from the multiplier space.
+
 Both are written on one constraint quadrature: points X_q with shape-function rows N_q and
 a sparse weight matrix W (Q, m) whose columns sum to one, so that g_j = sum_q W_qj g_q and
 G_j = sum_q W_qj N_q^T n_q (the point coupling: the needle points with W = I).
@@ -63,14 +71,9 @@ GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on
 MULTIPLIER_SPACINGS = 1.0  # mortar multiplier elements span at least this many local spacings
 MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous piecewise linear
 PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter remainder at the entry)
-# mortar element ends: "arc", at exact arc lengths MULTIPLIER_SPACINGS local spacings apart
-# (counted from the tip in the track's length measured in local spacings), so the multiplier
-# resolution follows the spacing smoothly; "segments", at needle points (whole segments)
-ELEMENT_ENDS = "arc"
-MULTIPLIER_LENGTH = 2.5  # mm: arc ends are at least this far apart (a fixed resolution of the hold)
-QUADRATURE_PER_ELEMENT = 2.0
-CUTTING_PROFILE = "uniform"  # mortar: the cutting force's density over cutting_length, "uniform" or "hat"  # arc ends: constraint Gauss points per segment >= this x segment / element
+QUADRATURE_PER_ELEMENT = 2.0  # arc element ends: constraint Gauss points per segment >= this x segment / element
 POINTS, MORTAR = "points", "mortar"
+SEGMENT_ENDS, ARC_ENDS = "segments", "arc"  # `needle.multiplier_ends`: mortar element ends at needle points or exact arc lengths
 
 
 def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> list[int]:
@@ -134,7 +137,7 @@ class NeedleCoupling:
         self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
         self.multiplier_count = 0
         self.multiplier_nodes = np.zeros(0)  # mortar: arc length of each multiplier's node (element start)
-        # mortar constraint quadrature (ELEMENT_ENDS "arc"): Gauss points of each segment, fixed
+        # mortar constraint quadrature (multiplier_ends "arc"): Gauss points of each segment, fixed
         # when the segment is added (so the solvers' cached K^-1 E^T columns stay valid)
         self._constraint_points = np.zeros((0, 2))  # X_q, (Q, 2)
         self._constraint_segment = np.zeros(0, dtype=int)  # segment of each point, (Q,)
@@ -149,7 +152,7 @@ class NeedleCoupling:
         # = 1/6 at both Gauss points). Asking R there would push the whole track outward
         # by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm steps)
         self._chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
-        self.arc_ends = self.kind == MORTAR and ELEMENT_ENDS == "arc"
+        self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
         self.target_radius = (geometry.radius if self.kind == POINTS
                               else np.zeros(0) if self.arc_ends
                               else math.sqrt(geometry.radius**2 - self._chord**2 / 6.0))
@@ -214,7 +217,7 @@ class NeedleCoupling:
         at t on the chord between two needle points: sqrt(R^2 - t (1 - t) c^2)."""
         start, end = self.points[-2], self.points[-1]
         length = float(np.linalg.norm(end - start))
-        element = max(MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0]), MULTIPLIER_LENGTH)
+        element = MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0])
         count = max(2, math.ceil(QUADRATURE_PER_ELEMENT * length / element - 1e-9))
         abscissae, gauss_weights = np.polynomial.legendre.leggauss(count)
         along, ds = 0.5 * (abscissae + 1.0), 0.5 * gauss_weights * length
@@ -234,10 +237,9 @@ class NeedleCoupling:
         tau(s) = int ds / (MULTIPLIER_SPACINGS h(s)) (h per segment, at its midpoint), cut at
         tau_tip - k for k = 0, 1, ..., the remainder (< 1) joining the element at the entry
         (one element while the track is shorter than one). Arc length of the ends, (m_e + 1,)."""
-        spacing = np.maximum(MULTIPLIER_SPACINGS * self.local_spacing(0.5 * (self.points[:-1] + self.points[1:])),
-                             MULTIPLIER_LENGTH)
+        spacing = MULTIPLIER_SPACINGS * self.local_spacing(0.5 * (self.points[:-1] + self.points[1:]))
         tau = np.concatenate([[0.0], np.cumsum(lengths / spacing)])  # at the needle points
-        count = max(int(math.floor(tau[-1] + 1e-9)), 1)
+        count = max(math.floor(tau[-1] + 1e-9), 1)
         cuts = tau[-1] - np.arange(count - 1, 0, -1, dtype=float)  # interior ends, increasing
         return np.concatenate([[0.0], np.interp(cuts, tau, arc), [arc[-1]]])
 
@@ -304,8 +306,6 @@ class NeedleCoupling:
             magnitudes[-2:] += 0.5 * cutting
             return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
         zone = min(self.cutting_length, segments * step_length)
-        if CUTTING_PROFILE == "hat":
-            return self._hat_cutting(friction, zone, step_length)
         covered = np.clip(zone / step_length - np.arange(segments)[::-1], 0.0, 1.0)  # tip end of each segment
         touched = np.flatnonzero(covered > 0.0)
         start, end = self.points[touched], self.points[touched + 1]
@@ -316,26 +316,6 @@ class NeedleCoupling:
         return LoadQuadrature(np.vstack([self.segment_points, cut_points]),
                               sp.vstack([self.segment_rows, self._rows_at(cut_points)], format="csr"),
                               np.concatenate([friction, cut_magnitudes]))
-
-    def _hat_cutting(self, friction: np.ndarray, zone: float, step_length: float) -> LoadQuadrature:
-        """The cutting force as a hat-shaped line load over the last `zone` mm of needle:
-        density 4 F min(d, zone - d) / zone^2 at needle length d behind the tip, zero at the
-        tip and at the back of the zone, its centroid zone / 2 behind the tip as the uniform
-        spread's. Continuous, so the displacement near the tip has no log-singular gradient
-        from a load that stops abruptly. Two Gauss points per piece between the segment ends
-        and the peak (exact for the piecewise-linear density)."""
-        breaks = np.unique(np.concatenate([np.arange(0.0, zone, step_length), [0.5 * zone, zone]]))
-        left, width = breaks[:-1], np.diff(breaks)
-        d = (left[:, None] + GAUSS_POINTS[None, :] * width[:, None]).ravel()  # needle length behind the tip
-        density = 4.0 * self.needle.cutting_force * np.minimum(d, zone - d) / zone**2
-        magnitudes = density * np.repeat(0.5 * width, 2)
-        back = np.minimum((d / step_length).astype(int), len(self.points) - 2)  # segments from the tip
-        end, start = self.points[-1 - back], self.points[-2 - back]
-        t = (d - back * step_length) / step_length  # from the segment's tip end
-        cut_points = end + t[:, None] * (start - end)
-        return LoadQuadrature(np.vstack([self.segment_points, cut_points]),
-                              sp.vstack([self.segment_rows, self._rows_at(cut_points)], format="csr"),
-                              np.concatenate([friction, magnitudes]))
 
     def load_magnitudes(self) -> np.ndarray:
         """Force (N) carried by each load point at the full load of this step."""
