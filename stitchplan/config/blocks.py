@@ -60,19 +60,24 @@ def _file_schema(required: tuple[str, ...], schema: dict) -> None:
             schema["properties"][name].pop("default", None)
 
 
+def _field_errors(handler, data: Any) -> list:
+    """The field-level errors of `data` (none when its fields validate), so that a block-level
+    problem is reported together with them rather than instead of them."""
+    try:
+        handler(data)
+    except ValidationError as error:
+        return error.errors()
+    return []
+
+
 def _required_in_files(names: tuple[str, ...]):
     def check(cls, data: Any, handler):
         missing = [name for name in names if isinstance(data, dict) and name not in data]
         if not missing:
             return handler(data)
-        try:
-            handler(data)
-            errors = []
-        except ValidationError as error:
-            errors = error.errors()
-        errors += [{"type": "missing", "loc": (name,), "msg": "Field required", "input": data}
-                   for name in missing]
-        raise combined(errors)
+        raise combined(_field_errors(handler, data)
+                       + [{"type": "missing", "loc": (name,), "msg": "Field required", "input": data}
+                          for name in missing])
 
     return model_validator(mode="wrap")(check)
 
@@ -254,12 +259,7 @@ class Load:
         given = [key for key in ("displacement", "force") if data.get(key) is not None]
         if len(given) == 1:
             return handler(data)
-        try:
-            handler(data)
-            errors = []
-        except ValidationError as error:
-            errors = error.errors()
-        raise combined([*errors, problem(ONE_KIND, value=given or Shown("neither"))])
+        raise combined([*_field_errors(handler, data), problem(ONE_KIND, value=given or Shown("neither"))])
 
 
 ONE_KIND = "exactly one of 'force' (N) or 'displacement' (mm)"

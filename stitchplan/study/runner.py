@@ -23,9 +23,8 @@ import numpy as np
 from ..config import Scenario
 from ..errors import StitchplanError
 from ..events import Event, EventKind
-from ..needle.geometry import needle_zone
 from ..needle.insertion import run_insertion
-from ..tissue.particles import graded_particles, grid_particles
+from ..resources import model_size
 
 if TYPE_CHECKING:
     from ..needle.results import InsertionResult
@@ -78,13 +77,9 @@ class InsertionRun:
 
 
 def count_particles(scenario: Scenario) -> int:
-    """Particles of the scenario's discretization, without building shape functions."""
-    d = scenario.discretization
-    zone = needle_zone(scenario)
-    if zone is not None:
-        return len(graded_particles(scenario.tissue.size, d.spacing, d.needle_spacing,
-                                    np.asarray(zone[0]), zone[1]).particles)
-    return len(grid_particles(scenario.tissue.size, d.spacing)[0])
+    """Particles of the scenario's discretization, without building shape functions (the
+    resource guard's count: exact for the needle scenes a study runs)."""
+    return model_size(scenario).particles
 
 
 def run_timed(run: InsertionRun, repeats: int = 1) -> InsertionRun:
