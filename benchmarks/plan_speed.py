@@ -1,14 +1,19 @@
-"""Speed of the planner (`stitchplan plan`) on the shipped SH 1/2 scenes.
+"""Speed of the planner (`stitchplan plan`) on every shipped needle scene, before and after.
 
-1. In process, median of 3 after a warm-up: the planned run's wall time (`wall_seconds` of
-   the plan summary: every pass of Algorithm 2 from the loaded scenario to the result) and
-   its split over discretization, assembly, solve and tip tracking, with the planned exit
-   error and the planner's iteration counts, for each configs/sh12_*.yaml.
-2. The whole command as a user runs it on configs/sh12_100x100.yaml (process start-up,
-   imports and file writing included), median of 3: `plan --export` with the unplanned
-   comparison run (the default) and with `--no-compare`.
+1. Side by side in one run: the planned run of `plan CONFIG --no-compare` at BASELINE (the
+   code before the speed work, extracted with `git archive` into a temporary folder) and of
+   `plan CONFIG --no-compare --no-verify` now (the same planned run: BASELINE had no
+   verification), REPEATS times each, alternating so both see the same machine load. The
+   planned run's time is the summary's `wall_seconds` (from the loaded scenario to the
+   result, every pass); the whole command's process wall time is reported too. Now also:
+   the distribution of the needle steps' wall times, every Newton iteration, equilibrium
+   solves, factorizations and linear solves (from the summary).
+2. Where it comes from, in process on configs/sh12_100x100.yaml: the planned run with each
+   lever switched back off in turn (Anderson mixing, SuperLU's symmetric mode, the stale
+   centre columns), median of REPEATS.
+3. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS.
 
-Writes benchmarks/results/plan_speed.{csv,md} and prints the tables. About 2 minutes.
+Writes benchmarks/results/plan_speed.{csv,md} and prints the tables. About 6 minutes.
 Run from the repository root:  python benchmarks/plan_speed.py
 """
 
@@ -19,6 +24,7 @@ import os
 # single-threaded BLAS, as the `stitchplan` command sets it
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import json  # noqa: E402
 import logging  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
@@ -28,74 +34,174 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
-from stitchplan.config.scenario import load_scenario  # noqa: E402
-from stitchplan.planning.planner import run_plan  # noqa: E402
 
-SCENES = ("sh12_100x100", "sh12_100x100_mid", "sh12_100x50", "sh12_100x40", "sh12_100x30")
+BASELINE = "19ff45d"
+SCENES = ("sh12_100x100", "sh12_100x100_mid", "sh12_100x50", "sh12_100x40", "sh12_100x30",
+          "needle20_entry30", "needle20_entry25", "needle20_entry20", "needle20_entry18")
 REPEATS = 3
-PHASES = ("discretization", "assembly", "solve", "tip_tracking")
+STARTUP_REPEATS = 7
+RUNNER = "import sys; from stitchplan.cli import main; sys.argv[0] = 'stitchplan'; main()"
 
 
-def planned_runs(scene: str) -> dict:
-    scenario = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml")
-    results = [run_plan(scenario, compare=False) for _ in range(REPEATS)]
-    last = results[-1].planned
-    return {
-        "scene": scene, "particles": last.model.n_particles, "steps": len(last.steps),
-        "wall": statistics.median(r.planned.wall_seconds for r in results),
-        **{p: statistics.median(r.planned.timings[p] for r in results) for p in PHASES},
-        "passes": len(results[-1].passes), "planner_iterations": sum(s.planner_iterations for s in last.steps),
-        "newton": sum(s.newton_iterations for s in last.steps), "exit_error": last.exit_error_mm,
+def run_plan_command(source: Path, scene: str, options: list[str], folder: Path) -> dict:
+    """One `stitchplan plan` process of the code in `source`; its summary and wall time."""
+    summary = folder / "summary.json"
+    environment = {**os.environ, "PYTHONPATH": str(source)}
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-c", RUNNER, "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
+                    *options, "--export", str(folder / "trajectory.csv"), "--summary", str(summary), "-q"],
+                   check=True, capture_output=True, env=environment, cwd=source)
+    seconds = time.perf_counter() - start
+    record = json.loads(summary.read_text())
+    record["command_seconds"] = seconds
+    return record
+
+
+def compare_revisions(baseline: Path) -> list[dict]:
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        for scene in SCENES:
+            before, after = [], []
+            for _ in range(REPEATS):
+                before.append(run_plan_command(baseline, scene, ["--no-compare"], folder))
+                after.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify"], folder))
+            last = after[-1]
+            steps = last["timings_seconds"]["steps"]
+            row = {
+                "scene": scene, "particles": last["particles"], "steps": last["steps"],
+                "baseline_planned_s": statistics.median(r["wall_seconds"] for r in before),
+                "planned_s": statistics.median(r["wall_seconds"] for r in after),
+                "baseline_command_s": statistics.median(r["command_seconds"] for r in before),
+                "command_s": statistics.median(r["command_seconds"] for r in after),
+                "step_median_ms": 1e3 * steps["median"], "step_p90_ms": 1e3 * steps["p90"],
+                "step_max_ms": 1e3 * steps["max"],
+                "passes": len(last["planner_passes"]), "baseline_passes": len(before[-1]["planner_passes"]),
+                "newton": last["newton_iterations"], "solves": last["equilibrium_solves"],
+                "factorizations": last["solver"]["factorizations"], "linear_solves": last["solver"]["linear_solves"],
+                "baseline_exit_mm": before[-1]["exit_error_mm"], "exit_mm": last["exit_error_mm"],
+                "backend": last["solver"]["linear_solver_backend"],
+            }
+            row["speedup"] = row["baseline_planned_s"] / row["planned_s"]
+            rows.append(row)
+            print(f"{scene}: planned run {row['baseline_planned_s']:.2f} s at {BASELINE} -> {row['planned_s']:.2f} s "
+                  f"({row['speedup']:.1f}x), steps median {row['step_median_ms']:.1f} ms, p90 "
+                  f"{row['step_p90_ms']:.1f} ms; whole command {row['command_s']:.2f} s", flush=True)
+    return rows
+
+
+def levers() -> list[tuple[str, float, int, int]]:
+    """The planned run on sh12_100x100 with each lever off in turn: (label, median s, Newton
+    iterations, linear solves)."""
+    import stitchplan.needle.equilibrium as equilibrium
+    import stitchplan.needle.saddle_point as saddle_point
+    import stitchplan.tissue.solver as solver
+    from stitchplan.config.scenario import load_scenario
+    from stitchplan.planning.planner import run_plan
+
+    logging.getLogger("stitchplan").setLevel(logging.ERROR)
+    scenario = load_scenario(common.REPO_ROOT / "configs" / "sh12_100x100.yaml")
+    symmetric = solver.factorize
+
+    def general_lu(matrix):
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+        return spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A")
+
+    settings = {
+        "all levers (now)": {},
+        "without Anderson mixing": {"ANDERSON_DEPTH": 0},
+        "centre columns re-solved every iteration": {"STALE_CENTER_MOVES": 0.0},
+        "SuperLU without symmetric mode": {"factorize": general_lu},
     }
+    rows = []
+    run_plan(scenario, compare=False)  # warm-up
+    for label, changes in settings.items():
+        saved = {name: getattr(equilibrium, name) for name in changes if name != "factorize"}
+        for name, value in changes.items():
+            if name == "factorize":
+                saddle_point.factorize = value
+            else:
+                setattr(equilibrium, name, value)
+        try:
+            results = [run_plan(scenario, compare=False) for _ in range(REPEATS)]
+        finally:
+            for name, value in saved.items():
+                setattr(equilibrium, name, value)
+            saddle_point.factorize = symmetric
+        planned = results[-1].planned
+        rows.append((label, statistics.median(r.planned.wall_seconds for r in results),
+                     sum(s.newton_iterations for s in planned.steps), planned.solver_counts["linear_solves"]))
+        print(f"{label}: {rows[-1][1]:.2f} s, {rows[-1][2]} Newton iterations", flush=True)
+    return rows
 
 
-def command_seconds(arguments: list[str]) -> float:
-    """Median wall time of the whole `stitchplan plan` process."""
-    samples = []
-    with tempfile.TemporaryDirectory() as folder:
-        for _ in range(REPEATS):
+def startup() -> dict[str, float]:
+    seconds = {}
+    for arguments in (["--help"], ["--version"]):
+        samples = []
+        for _ in range(STARTUP_REPEATS):
             start = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "stitchplan", "plan", *arguments,
-                            "--export", str(Path(folder) / "trajectory.csv")],
-                           check=True, capture_output=True)
+            subprocess.run([sys.executable, "-m", "stitchplan", *arguments], check=True, capture_output=True,
+                           cwd=common.REPO_ROOT)
             samples.append(time.perf_counter() - start)
-    return statistics.median(samples)
+        seconds["stitchplan " + " ".join(arguments)] = statistics.median(samples)
+    return seconds
 
 
 def main() -> None:
-    logging.getLogger("stitchplan").setLevel(logging.ERROR)  # eq. 4.2 events are expected
-    run_plan(load_scenario(common.REPO_ROOT / "configs" / "sh12_100x40.yaml"), compare=False)  # warm-up
-    runs = []
-    for scene in SCENES:
-        record = planned_runs(scene)
-        runs.append(record)
-        print(f"{scene}: planned run {record['wall']:.2f} s (median of {REPEATS}), exit error "
-              f"{record['exit_error']:.4f} mm", flush=True)
-    default = str(common.REPO_ROOT / "configs" / "sh12_100x100.yaml")
-    whole = {"plan (with the unplanned comparison)": command_seconds([default]),
-             "plan --no-compare": command_seconds([default, "--no-compare"])}
-    for label, seconds in whole.items():
-        print(f"{label}: {seconds:.2f} s whole command (median of {REPEATS})", flush=True)
+    with tempfile.TemporaryDirectory() as extracted:
+        baseline = Path(extracted)
+        archive = subprocess.run(["git", "archive", BASELINE], check=True, capture_output=True,
+                                 cwd=common.REPO_ROOT).stdout
+        subprocess.run(["tar", "-x", "-C", str(baseline)], input=archive, check=True)
+        rows = compare_revisions(baseline)
+    lever_rows = levers()
+    start_up = startup()
+    for label, seconds in start_up.items():
+        print(f"{label}: {seconds:.3f} s", flush=True)
 
-    header = ["scene", "particles", "steps", "planned_wall_seconds", *[f"{p}_seconds" for p in PHASES],
-              "passes", "planner_iterations", "newton_iterations", "planned_exit_error_mm"]
-    common.write_csv(common.results_path("plan_speed.csv"), header,
-                     [[r["scene"], r["particles"], r["steps"], r["wall"], *[r[p] for p in PHASES], r["passes"],
-                       r["planner_iterations"], r["newton"], r["exit_error"]] for r in runs])
-    lines = ["# Speed of `stitchplan plan`\n",
-             f"Generated by `python benchmarks/plan_speed.py` ({common.machine_note()}).\n",
-             f"## Planned run (summary `wall_seconds`, median of {REPEATS}, default discretization)\n",
-             common.markdown_table(["scene", "particles", "steps", "planned run (s)", *[f"{p} (s)" for p in PHASES],
-                                    "passes", "planner iterations", "Newton iterations", "planned exit error (mm)"],
-                                   [[r["scene"], r["particles"], r["steps"], r["wall"], *[r[p] for p in PHASES],
-                                     r["passes"], r["planner_iterations"], r["newton"], r["exit_error"]]
-                                    for r in runs]),
-             "",
-             f"## Whole command on configs/sh12_100x100.yaml (process wall time, median of {REPEATS})\n",
-             common.markdown_table(["command", "wall (s)"], [[k, v] for k, v in whole.items()]),
-             "",
-             "The comparison run is the same insertion with the centre fixed; `--no-compare` skips it when only "
-             "the trajectory is needed.\n"]
+    header = ["scene", "particles", "steps", "baseline_planned_s", "planned_s", "speedup", "step_median_ms",
+              "step_p90_ms", "step_max_ms", "newton", "solves", "factorizations", "linear_solves", "passes",
+              "baseline_passes", "baseline_exit_mm", "exit_mm", "baseline_command_s", "command_s"]
+    common.write_csv(common.results_path("plan_speed.csv"), header, [[r[k] for k in header] for r in rows])
+    load = os.getloadavg()[0]
+    lines = [
+        "# Speed of `stitchplan plan`\n",
+        f"Generated by `python benchmarks/plan_speed.py` ({common.machine_note()}; load average "
+        f"{load:.1f} at the end). Linear solver: {rows[0]['backend']}.\n",
+        f"## Planned run before ({BASELINE}) and now, side by side (median of {REPEATS})\n",
+        f"The planned run is the summary's `wall_seconds` of `plan CONFIG --no-compare` at {BASELINE} and of "
+        "`plan CONFIG --no-compare --no-verify` now (the same run; verification did not exist then). "
+        "Steps: wall time of each needle step (tip tracking, equilibrium and the planner's centre). "
+        "Newton: every iteration of every solve, now one equilibrium solve per step (the centre is an "
+        f"unknown of the step's Newton solve); {BASELINE}'s summary counted only the last solve of each "
+        "step, so its counts are not comparable and are left out.\n",
+        common.markdown_table(
+            ["scene", "particles", "steps", f"planned run {BASELINE} (s)", "planned run now (s)", "speed-up",
+             "step median (ms)", "step p90 (ms)", "step max (ms)", "Newton iterations", "equilibrium solves",
+             "factorizations", "linear solves", f"passes {BASELINE} / now", f"planned exit error {BASELINE} (mm)",
+             "planned exit error now (mm)"],
+            [[r["scene"], r["particles"], r["steps"], r["baseline_planned_s"], r["planned_s"],
+              f"{r['speedup']:.2f}x", r["step_median_ms"], r["step_p90_ms"], r["step_max_ms"], r["newton"],
+              r["solves"], r["factorizations"], r["linear_solves"], f"{r['baseline_passes']} / {r['passes']}",
+              r["baseline_exit_mm"], r["exit_mm"]] for r in rows]),
+        "",
+        f"## Whole command (process wall time, median of {REPEATS})\n",
+        common.markdown_table(["scene", f"plan --no-compare at {BASELINE} (s)", "plan --no-compare --no-verify now (s)"],
+                              [[r["scene"], r["baseline_command_s"], r["command_s"]] for r in rows]),
+        "",
+        f"## Where it comes from (configs/sh12_100x100.yaml, planned run in process, median of {REPEATS})\n",
+        "Each row switches one lever of the current code back off. The centre as a Newton unknown "
+        "(needle/steering.py) is not switchable; it shows in the table above as one equilibrium solve per "
+        "step instead of one per centre try.\n",
+        common.markdown_table(["variant", "planned run (s)", "Newton iterations", "linear solves"],
+                              [list(row) for row in lever_rows]),
+        "",
+        f"## Start-up (median of {STARTUP_REPEATS})\n",
+        common.markdown_table(["command", "wall (s)"], [[k, v] for k, v in start_up.items()]),
+        "",
+    ]
     common.write_report("plan_speed.md", lines)
 
 

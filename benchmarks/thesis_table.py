@@ -73,10 +73,13 @@ def run_plan(config: Path, workdir: Path, spacing: float | None) -> dict:
 
 
 def _planner_note(summary: dict) -> str:
-    """How many steps the planner could not close (eq. 4.2 failed: moving the centre moved
-    the desired exit point about as much), from the summary's events."""
-    failed = [e for e in summary.get("events", []) if e.get("kind") == "planner-eq42-failed"]
-    return f"eq. 4.2 failed at {len(failed)} steps" if failed else ""
+    """Where the thesis's plain centre update would stall (eq. 4.2 fails: moving the centre
+    moves the desired exit point about as much) and where the centre was held, from the summary."""
+    failed = summary.get("planner_eq42_failed_steps", [])
+    held = [e for e in summary.get("events", []) if e.get("kind") == "planner-not-converged"]
+    notes = ([f"eq. 4.2 fails at {len(failed)} steps"] if failed else []) + (
+        [f"centre held at {len(held)} steps"] if held else [])
+    return "; ".join(notes)
 
 
 def _relative(ours: float | None, thesis: float) -> float | None:
@@ -146,11 +149,11 @@ def main() -> None:
         common.markdown_table(shown, [[("-" if v is None or v == "" else v) for v in row]
                                       for row in rows]),
         "",
-        "Where the note says eq. 4.2 failed, Algorithm 2 could not close the step: in these soft "
-        "blocks moving the needle centre moves the desired exit point (the material near the free "
-        "edge) about as much, so the planner keeps the best centre it tried and the planned error "
-        "stays well above the thesis's 0.01-0.05 mm. The thesis's planner, on its (unstated) "
-        "discretization and point coupling, did not report this.",
+        "Where the note says eq. 4.2 fails, the thesis's plain centre update would stall: in these "
+        "soft blocks moving the needle centre moves the desired exit point (the material near the "
+        "free edge) about as much. stitchplan's centre is a Newton unknown of each step's solve, "
+        "which needs only I - du(X_exit)/dO invertible, so it settles those steps too unless the "
+        "move limits hold it back (then the passes correct the exit through the early steps).",
         "",
     ]
     common.write_report("thesis_table.md", lines)

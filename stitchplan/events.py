@@ -13,7 +13,6 @@ from enum import Enum
 class EventKind(str, Enum):
     TIP_TRACKING_FALLBACK = "tip-tracking-fallback"  # inverse gradient jumped; Levenberg-Marquardt used
     MINRES_FALLBACK = "minres-fallback"  # MINRES stagnated; direct solve used
-    PLANNER_EQ42_FAILED = "planner-eq42-failed"  # moving the centre moved the exit as much (eq. 4.2)
     PLANNER_NOT_CONVERGED = "planner-not-converged"  # centre iterations ran out within a step
     AUTO_DISCRETIZATION = "auto-discretization"  # what the accuracy target chose, and why
     ACCURACY_CHECK = "accuracy-check"  # an exit error estimate or a plan's verification could not be made

@@ -19,7 +19,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from stitchplan.cli.app import app
+from stitchplan.cli import app
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 PHANTOM = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}

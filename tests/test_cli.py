@@ -20,7 +20,7 @@ from stitchplan.cli import app
 from stitchplan.errors import InputError, NumericalFailure
 
 REPOSITORY = Path(__file__).resolve().parents[1]
-HEAVY = ("numpy", "scipy", "h5py", "matplotlib")
+HEAVY = ("numpy", "scipy", "h5py", "matplotlib", "rich")
 
 
 def invoke(*args):
@@ -71,7 +71,7 @@ def test_python_dash_m_works_like_the_command():
 
 def test_help_and_version_import_no_numerics(tmp_path):
     """--help (top level and of a command) and --version load none of numpy, scipy, h5py,
-    matplotlib: the modules loaded are listed by the interpreter that ran them."""
+    matplotlib, rich: the modules loaded are listed by the interpreter that ran them."""
     listing = tmp_path / "modules.json"
     script = (
         "import json, sys\n"
@@ -89,6 +89,20 @@ def test_help_and_version_import_no_numerics(tmp_path):
     loaded = {name.split(".")[0] for name in json.loads(listing.read_text())}
     assert "stitchplan" in loaded and "typer" in loaded  # the listing is real
     assert not loaded & set(HEAVY), sorted(loaded & set(HEAVY))
+
+
+def test_version_is_answered_before_the_app_loads():
+    """`stitchplan --version` (the console entry point) prints the version without importing
+    typer or the commands."""
+    script = ("import sys\n"
+              "sys.argv = ['stitchplan', '--version']\n"
+              "from stitchplan.cli import main\n"
+              "main()\n"
+              "print(sorted({name.split('.')[0] for name in sys.modules} & {'typer', 'click', 'numpy'}))\n"
+              "print('stitchplan.cli.commands' in sys.modules)\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.splitlines() == [f"stitchplan {stitchplan.__version__}", "[]", "False"], run.stdout
 
 
 # --- choices -------------------------------------------------------------------------------------

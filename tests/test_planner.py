@@ -100,41 +100,41 @@ def test_passes_follow_the_shooting_update_and_the_best_is_kept(two_passes):
                                 if p["exit_error_mm"] == two_passes.planned.exit_error_mm][0]["final_mismatch_mm"])
 
 
-def test_centre_solves_the_fixed_point_of_eq_4_1_where_eq_4_2_holds(two_passes):
+def test_centre_solves_the_fixed_point_of_eq_4_1_also_where_eq_4_2_fails(two_passes):
+    """The centre is a Newton unknown of each step's solve, so every step that no move limit
+    held back ends on the fixed point of eq. 4.1, also where the exit point follows the
+    centre nearly one for one (the thesis's plain update stalls there)."""
     planned = two_passes.planned
     best = [p for p in two_passes.passes if p["exit_error_mm"] == planned.exit_error_mm][0]
-    flagged = {e.step for e in planned.events if e.step is not None}
-    assert flagged  # this scene meets eq. 4.2 failures late in the stitch
-    flagged |= set(best["limited_steps"])  # and steps held back by the move limits
+    flagged = {e.step for e in planned.events if e.step is not None} | set(best["limited_steps"])
     trajectory = two_passes.center_trajectory
     assert trajectory.shape == (len(planned.steps) + 1, 2)
     np.testing.assert_array_equal(trajectory[0], planned.geometry.center)
     np.testing.assert_allclose(planned.geometry.center, [0.0, 18.0 - RADIUS], atol=1e-12)
-    checked = 0
+    checked, hard = 0, 0
     for record in planned.steps:
         if record.step in flagged:
             continue
         mismatch = planned.geometry.center - best["offset_mm"] + record.exit_displacement - record.center
         assert np.linalg.norm(mismatch) <= planned.scenario.planner.tolerance, (record.step, mismatch)
         checked += 1
-    assert checked >= len(planned.steps) // 2
+        hard += record.eq42_ratio >= 0.8
+    assert checked >= len(planned.steps) // 2 and hard >= 1
 
 
-def test_extrapolated_start_saves_centre_iterations_and_reaches_the_same_centres():
-    """Starting each step from the centre extrapolated over the last two steps needs fewer
-    centre iterations than starting from the previous centre, for the same trajectory to
-    within the planner's tolerance where eq. 4.2 holds (one pass on the 40 x 40 mm scene)."""
+def test_centre_unknown_settles_each_step_in_one_solve():
+    """With the centre an unknown of the step's Newton solve, a planned step costs one
+    equilibrium solve and a few more Newton iterations than the unplanned step, not a solve
+    per centre try (one pass on the 40 x 40 mm scene, move limits off)."""
     scenario = parse_scenario(scene((40.0, 40.0), (0.0, 28.0), "cw", ["right"]))
-    settings = scenario.planner
-    runs = {predicted: run_insertion(scenario, control=ExitTracker(settings, extrapolate=predicted, smooth=False))
-            for predicted in (False, True)}
-    iterations = {k: sum(s.planner_iterations for s in r.steps) for k, r in runs.items()}
-    assert iterations[True] < iterations[False], iterations
-    flagged = {e.step for r in runs.values() for e in r.events if e.step is not None}
-    compared = [(a.center, b.center) for a, b in zip(runs[False].steps, runs[True].steps) if a.step not in flagged]
-    assert len(compared) >= 5
-    for plain, extrapolated in compared:
-        assert np.linalg.norm(plain - extrapolated) <= 5 * settings.tolerance
+    planned = run_insertion(scenario, control=ExitTracker(scenario.planner, smooth=False))
+    unplanned = run_insertion(scenario)
+    # one solve per step (the last, where the exit follows the centre, may need the load ramp)
+    assert sum(s.equilibrium_solves == 1 for s in planned.steps) >= len(planned.steps) - 1
+    assert sum(s.planner_iterations for s in planned.steps) >= len(planned.steps)  # the centre did move
+    newton = {name: sum(s.newton_iterations for s in run.steps) for name, run in
+              (("planned", planned), ("unplanned", unplanned))}
+    assert newton["planned"] <= 1.5 * newton["unplanned"] * len(planned.steps) / len(unplanned.steps), newton
 
 
 def test_trajectory_table_columns_and_frames(two_passes):

@@ -266,11 +266,11 @@ def test_ramped_load_ends_at_the_state_the_full_load_reaches_at_once(coupling, m
     first_tries = []
     original = NeedleInsertion._newton
 
-    def halved_first(self, rotation, step):  # fail the whole-load try, once per step
+    def halved_first(self, rotation, step, aim=None):  # fail the whole-load try, once per step
         if self.coupling.load_factor == 1.0 and step not in first_tries:
             first_tries.append(step)
             raise InsertionFailure("forced")
-        return original(self, rotation, step)
+        return original(self, rotation, step, aim)
 
     monkeypatch.setattr(NeedleInsertion, "_newton", halved_first)
     counts = []
@@ -297,11 +297,11 @@ def test_ramp_halves_the_increment_until_newton_converges():
     original = NeedleInsertion._newton
     tried = []
 
-    def limited(rotation, step):
+    def limited(rotation, step, aim=None):
         tried.append(insertion.coupling.load_factor)
         if len(tried) <= 2:
             raise InsertionFailure("forced")
-        return original(insertion, rotation, step)
+        return original(insertion, rotation, step, aim)
 
     insertion._newton = limited
     advance_one(insertion, 1)

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from .app import calibrate_app
+from .group import calibrate_app
 from .options import (DilationOption, MaxParticlesOption, NoResourceCheckOption, QuietOption, SpacingOption,
                       VerboseOption, _argv, _check_outputs, _guard_calibration, _limits, _setup_logging)
 

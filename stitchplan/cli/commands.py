@@ -10,7 +10,7 @@ from typing import Optional
 
 import typer
 
-from .app import app
+from .group import app
 from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOption, ScenarioArgument,
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, _check_outputs, _check_plot_steps,

@@ -86,8 +86,8 @@ def _provenance(scenario_path: Optional[Path] = None) -> dict:
 
 
 def _argv() -> Optional[list[str]]:
-    """The command line as a list (kept by cli.app.Commands), None outside a command."""
-    from .app import COMMAND_LINE
+    """The command line as a list (kept by cli.group.Commands), None outside a command."""
+    from .group import COMMAND_LINE
 
     return COMMAND_LINE.get()
 

@@ -24,7 +24,7 @@ HDF5_UNITS = {
     "planner_iterations": "1", "condition_saddle": "1", "condition_preconditioned": "1",
     "events/kind": "text", "events/step": "1", "angle_rad": "rad", "message": "text",
     "center_trajectory": "mm", "trajectory_columns": "text", "exit_error_mm": "mm",
-    "final_displacement": "mm",
+    "final_displacement": "mm", "equilibrium_solves": "1", "wall_seconds": "s", "eq42_ratio": "1",
 }
 
 
@@ -179,15 +179,25 @@ def insertion_summary(result) -> dict:
         "exit_rotation_rad": result.exit_rotation,
         "needle_center_at_entry": result.geometry.center,
         "needle_points": len(result.needle_points),
-        "newton_iterations": int(sum(s.newton_iterations for s in steps)),
+        "newton_iterations": int(sum(s.newton_iterations for s in steps)),  # every iteration of every solve
+        "equilibrium_solves": int(sum(s.equilibrium_solves for s in steps)),
         "minres_iterations": int(sum(s.minres_iterations for s in steps)),
         "max_constraint_violation_mm": max((s.constraint_violation for s in steps), default=0.0),
         "tip_tracking": sorted({s.tracking for s in steps}),
         "events": [event.as_record() for event in result.events],
         "solver": result.solver_counts,
-        "timings_seconds": result.timings,
+        "timings_seconds": {**result.timings, "steps": step_time_distribution(steps)},
         "discretization": discretization_summary(result.model),
     }
+
+
+def step_time_distribution(steps) -> dict:
+    """Median, 90th percentile and largest wall time of the needle steps, s (tip tracking,
+    equilibrium and the planner's centre iterations of each step)."""
+    times = np.asarray([s.wall_seconds for s in steps], dtype=float)
+    if not len(times):
+        return {"median": None, "p90": None, "max": None}
+    return {"median": float(np.median(times)), "p90": float(np.percentile(times, 90)), "max": float(times.max())}
 
 
 def exit_estimate_summary(estimate) -> dict:
@@ -262,6 +272,8 @@ def insertion_datasets(result) -> dict[str, dict]:
             "tracking": "\n".join(s.tracking for s in steps),
             "exit_displacement": column("exit_displacement").reshape(-1, 2),
             "planner_iterations": column("planner_iterations"),
+            "equilibrium_solves": column("equilibrium_solves"),
+            "wall_seconds": column("wall_seconds"),
             "condition_saddle": column("condition_saddle"),
             "condition_preconditioned": column("condition_preconditioned"),
         },
@@ -301,7 +313,7 @@ def _write_insertion_files(result, command: str, out: Path | None, summary: Path
             datasets.setdefault(group, {}).update(values)
         write_hdf5(out, datasets, {**run_attributes(command, result.scenario, provenance), **{
             "wall_seconds": result.wall_seconds,
-            "timings_seconds": result.timings,
+            "timings_seconds": {**result.timings, "steps": step_time_distribution(result.steps)},
             "solver_counts": result.solver_counts,
             "discretization": discretization_summary(result.model),
         }}, {**HDF5_UNITS, **(units or {})})
@@ -337,6 +349,9 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict) -> None:
         "error_reduction": (1.0 - planned.exit_error_mm / unplanned.exit_error_mm)
         if unplanned and unplanned.exit_error_mm > 0 else None,
         "planner_iterations": int(sum(s.planner_iterations for s in planned.steps)),
+        # steps where the thesis's plain centre update would stall (eq. 4.2 fails: the exit
+        # point moves with the centre at least one for one); the Newton update goes on there
+        "planner_eq42_failed_steps": [s.step for s in planned.steps if s.eq42_ratio >= 1.0],
         "planner_passes": result.passes,
         "trajectory_rows": len(rows),
         "trajectory_columns": columns,
@@ -347,6 +362,7 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict) -> None:
             "center_trajectory": result.center_trajectory,
             "exit_displacement": np.asarray([s.exit_displacement for s in planned.steps]).reshape(-1, 2),
             "planner_iterations": np.asarray([s.planner_iterations for s in planned.steps]),
+            "eq42_ratio": np.asarray([s.eq42_ratio for s in planned.steps]),
             "trajectory_columns": ",".join(columns),
             "trajectory": table,
         },

@@ -11,7 +11,7 @@ from .files import OutputSet, write_csv
 from .plots import plot_speed_accuracy
 
 COLUMNS = ("family", "label", "spacing_mm", "coarse_spacing_mm", "grading", "dilation",
-           "quadrature_order", "basis_order", "step_rad", "tip_tracking", "linear_solver", "particles",
+           "quadrature_order", "basis_order", "step_rad", "tip_tracking", "linear_solver", "linear_solver_backend", "particles",
            "wall_seconds", "cpu_seconds", "steps", "newton_iterations", "minres_iterations", "events",
            "exit_error_mm", "achieved_exit_def_x", "achieved_exit_def_y", "achieved_exit_x",
            "achieved_exit_y", "exit_deviation_mm", "material_exit_deviation_mm",
@@ -28,7 +28,8 @@ def study_row(run: StudyRun) -> list:
     nan2 = (math.nan, math.nan)
     return [
         run.family, run.label, run.spacing, d.spacing, grading, d.dilation, d.quadrature_order,
-        d.basis_order, needle.step, needle.tip_tracking, needle.linear_solver, run.particles,
+        d.basis_order, needle.step, needle.tip_tracking, needle.linear_solver,
+        r.solver_counts.get("linear_solver_backend", "") if r is not None else "", run.particles,
         run.wall_seconds, run.cpu_seconds, len(steps), sum(s.newton_iterations for s in steps),
         sum(s.minres_iterations for s in steps), len(r.events) if r is not None else 0,
         r.exit_error_mm if r is not None else math.nan,

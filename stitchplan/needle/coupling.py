@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -113,6 +114,11 @@ class LoadQuadrature:
     rows: sp.csr_matrix  # N(X_l) T, (L, n_free)
     magnitudes: np.ndarray  # (L,)
 
+    @cached_property
+    def rows_t(self) -> sp.csr_matrix:
+        """T^T N(X_l)^T, (n_free, L)."""
+        return self.rows.T.tocsr()
+
 
 class NeedleCoupling:
     """Gamma_N with its shape-function rows, the needle loads and the constraints on it."""
@@ -135,6 +141,8 @@ class NeedleCoupling:
         self.expanded_rows = sp.csr_matrix((0, 2 * n_free))  # N_q T on interleaved dofs, (2Q, 2 n_free)
         self.weights = sp.csr_matrix((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
         self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
+        self._weights_dense: np.ndarray | None = None  # W as an array (normal_weights)
+        self._expanded_rows_t: sp.csr_matrix | None = None  # E^T (expanded_rows_t)
         self.multiplier_count = 0
         self.multiplier_nodes = np.zeros(0)  # mortar: arc length of each multiplier's node (element start)
         # mortar constraint quadrature (multiplier_ends "arc"): Gauss points of each segment, fixed
@@ -204,6 +212,7 @@ class NeedleCoupling:
             forces = np.concatenate([forces, np.zeros(self._shares.shape[0] - len(forces))])
             carried = self._shares.T @ forces
         self.previous_loads, self.loads = self.loads, self._load_quadrature()
+        self._weights_dense = self._expanded_rows_t = None
         return carried
 
     def _segment_lengths(self) -> np.ndarray:
@@ -328,7 +337,7 @@ class NeedleCoupling:
         load_points = loads.points + loads.rows @ free  # spatial, (L, 2)
         angles = np.arctan2(load_points[:, 1] - center[1], load_points[:, 0] - center[0])
         tangent = self.geometry.tangent(angles)  # a_0, (L, 2)
-        return (loads.rows.T @ ((factor * loads.magnitudes)[:, None] * tangent)).ravel()
+        return (loads.rows_t @ ((factor * loads.magnitudes)[:, None] * tangent)).ravel()
 
     def needle_force(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
         """f_needle (2 n_free,): the line loads along the direction of needle motion a_0 at
@@ -350,7 +359,7 @@ class NeedleCoupling:
             across = np.column_stack([-radial[:, 1], radial[:, 0]])
             scale = factor * loads.magnitudes * self.geometry.sense / rho  # (L,)
             for j in range(2):
-                columns[:, j] += (loads.rows.T @ ((scale * across[:, j])[:, None] * radial)).ravel()
+                columns[:, j] += (loads.rows_t @ ((scale * across[:, j])[:, None] * radial)).ravel()
         return columns
 
     # --- constraints ------------------------------------------------------------------------
@@ -359,13 +368,31 @@ class NeedleCoupling:
         spatial = self.quadrature_points() + self.quadrature_rows @ free  # (Q, 2)
         relative = spatial - center
         rho = np.linalg.norm(relative, axis=1)
-        return ConstraintValues(self.weights.T @ (rho - self.target_radius), relative / rho[:, None], rho)
+        return ConstraintValues(self._dense_weights().T @ (rho - self.target_radius), relative / rho[:, None], rho)
 
     def quadrature_points(self) -> np.ndarray:
         """X_q, the reference points of the constraint quadrature, (Q, 2)."""
         if self.kind == POINTS:
             return self.points
         return self._constraint_points if self.arc_ends else self.segment_points
+
+    def normal_weights(self, normal: np.ndarray) -> np.ndarray:
+        """B (2Q, m) dense, B[2q + d, j] = W_qj n_q,d (the saddle-point solver's G = E^T B)."""
+        dense = self._dense_weights()
+        return (dense[:, None, :] * normal[:, :, None]).reshape(2 * dense.shape[0], dense.shape[1])
+
+    def _dense_weights(self) -> np.ndarray:
+        """W as a dense array, kept until the constraint set changes."""
+        if self._weights_dense is None or self._weights_dense.shape != self.weights.shape:
+            self._weights_dense = self.weights.toarray()
+        return self._weights_dense
+
+    @property
+    def expanded_rows_t(self) -> sp.csr_matrix:
+        """E^T (2 n_free, 2Q), kept until the constraint quadrature grows."""
+        if self._expanded_rows_t is None or self._expanded_rows_t.shape[1] != self.expanded_rows.shape[0]:
+            self._expanded_rows_t = self.expanded_rows.T.tocsr()
+        return self._expanded_rows_t
 
     def weights_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
         """B (2Q, m): B[2q + d, j] = W_qj n_q,d, so that G = E^T B."""
@@ -382,7 +409,7 @@ class NeedleCoupling:
 
     def constraint_force(self, multipliers: np.ndarray, normal: np.ndarray) -> np.ndarray:
         """G lambda = sum_q N_q^T (mu_q n_q), interleaved (2 n_free,)."""
-        return self.expanded_rows.T @ (self._carried(multipliers)[:, None] * normal).ravel()
+        return self.expanded_rows_t @ (self._carried(multipliers)[:, None] * normal).ravel()
 
     def constraint_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
         """G of eq. 3.65 for the residual form: column j = sum_q W_qj N_q^T n_q."""
@@ -390,7 +417,7 @@ class NeedleCoupling:
 
     def constraint_center_derivative(self, normal: np.ndarray) -> np.ndarray:
         """d g_j / dC = -sum_q W_qj n_q^T, (m, 2)."""
-        return -np.asarray(self.weights.T @ normal).reshape(self.multiplier_count, 2)
+        return -(self._dense_weights().T @ normal).reshape(self.multiplier_count, 2)
 
     def _projections(self, multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> np.ndarray:
         """mu_q (I - n_q n_q^T) / rho_q, (Q, 2, 2)."""
@@ -404,11 +431,11 @@ class NeedleCoupling:
             return sp.csr_matrix((2 * self.model.n_free, 2 * self.model.n_free))
         blocks = self._projections(multipliers, normal, rho)
         block_matrix = sp.bsr_matrix((blocks, np.arange(q), np.arange(q + 1)), shape=(2 * q, 2 * q)).tocsr()
-        return (self.expanded_rows.T @ block_matrix @ self.expanded_rows).tocsr()
+        return (self.expanded_rows_t @ block_matrix @ self.expanded_rows).tocsr()
 
     def center_derivative(self, multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> np.ndarray:
         """d (G lambda) / dC = -sum_q w_q lambda_e(q) N_q^T (I - n_q n_q^T) / rho_q, (2 n_free, 2)."""
         if not self.weights.shape[0] or self.multiplier_count == 0:
             return np.zeros((2 * self.model.n_free, 2))
         blocks = -self._projections(multipliers, normal, rho)  # (Q, i, j)
-        return np.column_stack([self.expanded_rows.T @ blocks[:, :, j].ravel() for j in range(2)])
+        return self.expanded_rows_t @ blocks.reshape(-1, 2)

@@ -36,14 +36,18 @@ from ..errors import InputError, InsertionFailure, InvertedMaterial
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler
 from ..tissue.model import build_tissue_model
-from ..tissue.solver import checked_deformation_gradient
+from ..tissue.solver import checked
 from .coupling import NeedleCoupling
 from .geometry import needle_zone, scenario_needle
 from .saddle_point import SaddlePointSolver, condition_numbers
+from .steering import CenterAim
 
 log = logging.getLogger(__name__)
 
 CONSTRAINT_TOLERANCE = 1e-9  # |g| / R: the track on the needle after each converged step
+ANDERSON_DEPTH = 5  # steps mixed by the accelerated modified Newton (AndersonMixing)
+STALE_CENTER_MOVES = 10.0  # d(d, lambda)/dC is re-solved while the centre moves more than this x tolerance
+REFACTOR_CONTRACTION = 0.5  # renew the factor of K + H when an iteration contracts less than this
 RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
 
 
@@ -70,6 +74,39 @@ class Snapshot:
     multipliers: np.ndarray
     center: np.ndarray
     violation: float
+
+
+class AndersonMixing:
+    """Anderson acceleration of the modified Newton iteration x <- x + f(x), f the step
+    solved with an older factor of K + H (Walker and Ni 2011, type II): the next step is
+    the combination of the last `depth` steps whose linearised step is smallest, which for
+    a linear problem is GMRES on the old-factor-preconditioned system. Modified Newton
+    contracts by ~0.1-0.2 per iteration on the needle scenes; mixing makes it superlinear
+    without refactorizing."""
+
+    def __init__(self, depth: int):
+        self.depth = depth
+        self.reset()
+
+    def reset(self) -> None:
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
+        self._states: list[np.ndarray] = []
+        self._steps: list[np.ndarray] = []
+
+    def step(self, state: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """The accelerated increment at `state` given the plain step f(state)."""
+        if self.depth == 0:
+            return step
+        if self._last is not None and len(self._last[0]) == len(state):
+            self._states.append(state - self._last[0])
+            self._steps.append(step - self._last[1])
+            del self._states[:-self.depth], self._steps[:-self.depth]
+        self._last = (state, step)
+        if not self._steps:
+            return step
+        steps = np.column_stack(self._steps)
+        gamma = np.linalg.lstsq(steps, step, rcond=1e-10)[0]
+        return step - (np.column_stack(self._states) + steps) @ gamma
 
 
 class NeedleInsertion:
@@ -102,6 +139,11 @@ class NeedleInsertion:
         self.last_violation = 0.0  # max |g_e| of the last converged equilibrium, mm
         self.constraint_tolerance = CONSTRAINT_TOLERANCE * self.geometry.radius  # mm
         self.ramp_increments = 0  # load increments beyond the first, over the run
+        self._free_rows: dict[tuple[float, ...], sp.csr_matrix] = {}
+        # every Newton iteration of every solve (the planner's centre tries and failed ramp
+        # increments included), and the solves
+        self.newton_iterations = 0
+        self.equilibrium_solves = 0
 
     def _stiffness_at_rest(self) -> sp.csr_matrix:
         """K0, the tangent at zero deformation (eq. 3.72), from an assembler of its own so the
@@ -127,6 +169,21 @@ class NeedleInsertion:
         points = self.domain.clip(np.atleast_2d(points))
         u, grad = self.model.field_at(points, self.coefficients(), gradients=gradient)
         return (u, grad) if gradient else u
+
+    def free_rows(self, point: np.ndarray) -> sp.csr_matrix:
+        """N(X) T (1, n_free): u(X) = rows @ free for one reference point, kept per point (the
+        planner asks for the desired exit point's at every centre iteration)."""
+        key = tuple(np.asarray(point, dtype=float).ravel())
+        rows = self._free_rows.get(key)
+        if rows is None:
+            clipped = self.domain.clip(np.atleast_2d(point))
+            rows = (self.model.shape_functions_at(clipped).values @ self.model.boundary.free_map).tocsr()
+            self._free_rows[key] = rows
+        return rows
+
+    def point_displacement(self, point: np.ndarray) -> np.ndarray:
+        """u (2,) at one reference point (free_rows)."""
+        return (self.free_rows(point) @ self.free)[0]
 
     def particle_displacements(self) -> np.ndarray:
         return self.particle_values @ self.coefficients()
@@ -154,8 +211,8 @@ class NeedleInsertion:
 
     def residuals(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray) -> Residuals:
         """r_u and g of eq. 3.62 at (free (n_free, 2), multipliers, centre)."""
-        coefficients = self.model.boundary.free_map @ free
-        internal = self.assembler.update(checked_deformation_gradient(self.model, coefficients))
+        gradient = (self.assembler.gradient @ free.reshape(-1)).reshape(-1, 2, 2)  # grad u (nq, i, J)
+        internal = self.assembler.update(checked(self.model, gradient + np.eye(2)))
         constraints = self.coupling.constraint_values(free, center)
         needle_force = self.coupling.needle_force(free, center)
         residual = internal - needle_force + self.coupling.constraint_force(multipliers, constraints.normal)
@@ -166,7 +223,7 @@ class NeedleInsertion:
         """K + H at the state the assembler was last updated to, built when a solver asks."""
         return lambda: self.assembler.tangent_matrix() + self.coupling.curvature(multipliers, state.normal, state.rho)
 
-    def equilibrate(self, rotation: float, step: int) -> tuple[int, int, float]:
+    def equilibrate(self, rotation: float, step: int, aim: CenterAim | None = None) -> tuple[int, int, float]:
         """Equilibrium under the step's full load about the current centre, reached by
         Algorithm 1's ramp when the load is not yet carried: the cutting force and the added
         friction (needle/coupling.py, load_factor beta) rise from the previous step's load in
@@ -175,14 +232,14 @@ class NeedleInsertion:
         iterations, max |g_e| in mm) summed over the increments."""
         coupling = self.coupling
         if coupling.load_factor >= 1.0:
-            return self._newton(rotation, step)
+            return self._newton(rotation, step, aim)
         increment, newton, minres = 1.0, 0, 0
         carried = self.snapshot()
         while coupling.load_factor < 1.0:
             start = coupling.load_factor
             coupling.load_factor = min(1.0, start + increment)
             try:
-                its, minres_its, worst = self._newton(rotation, step)
+                its, minres_its, worst = self._newton(rotation, step, aim)
             except InsertionFailure as failure:
                 coupling.load_factor = start
                 self.restore(carried)
@@ -213,48 +270,100 @@ class NeedleInsertion:
                         "use `model: neo-hookean`, which stiffens instead")
         return message
 
-    def _newton(self, rotation: float, step: int) -> tuple[int, int, float]:
-        """Newton on the saddle-point system (eq. 3.62) about the current centre at the
-        current load. Returns (Newton iterations, MINRES iterations, max |g_e| in mm)."""
+    def _newton(self, rotation: float, step: int, aim: CenterAim | None = None) -> tuple[int, int, float]:
+        """Newton on the saddle-point system (eq. 3.62) at the current load, about the
+        current centre or, with `aim`, with the centre as a third unknown (CenterAim).
+        Returns (Newton iterations, MINRES iterations, max |g_e| in mm)."""
         settings = self.scenario.solver
-        free, multipliers = self.free.ravel().copy(), self.multipliers.copy()
+        free, multipliers, center = self.free.ravel().copy(), self.multipliers.copy(), self.center.copy()
         n_dof = len(free)
         minres_total = 0
         previous = math.inf  # convergence measure at the last refactorization
+        mixing = AndersonMixing(ANDERSON_DEPTH)
+        per_center, moved = None, math.inf  # d(d, lambda)/dC (n + m, 2), and the last centre move
         for iteration in range(settings.max_iterations + 1):
-            state = self._timed_residuals(free.reshape(-1, 2), multipliers, rotation, step)
+            state = self._timed_residuals(free.reshape(-1, 2), multipliers, center, rotation, step)
             residual_norm, worst = float(np.linalg.norm(state.residual)), state.worst_violation
-            if (residual_norm <= settings.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
-                    and worst <= self.constraint_tolerance):
-                self.free, self.multipliers, self.last_violation = free.reshape(-1, 2), multipliers, worst
+            balanced = (residual_norm <= settings.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
+                        and worst <= self.constraint_tolerance)
+            steering = aim is not None and aim.held is None
+            if balanced and not steering:
+                self._accept(free, multipliers, center, worst, iteration)
                 return iteration, minres_total, worst
             if iteration == settings.max_iterations or not np.isfinite(residual_norm):
                 break
             rhs = -np.concatenate([state.residual, state.violation])
+            fresh = steering and (per_center is None or moved > STALE_CENTER_MOVES * aim.tolerance)
+            if fresh:  # and the equilibrium's change per unit move of the centre
+                rhs = np.column_stack([rhs, self._center_columns(free.reshape(-1, 2), multipliers, center, state)])
             t0 = time.perf_counter()
-            constraints = self.coupling.constraint_matrix(state.normal)
-            solution = None
-            if self.linear_method == "minres":
+            solution, modified = None, False  # modified: a direct solve on a kept factor (mixed)
+            if balanced and not fresh:  # steering in equilibrium: only the centre's move is left to check
+                solution = np.zeros_like(rhs)
+            elif self.linear_method == "minres" and not steering:
+                constraints = self.coupling.constraint_matrix(state.normal)
                 solution, its = self._minres_step(state, multipliers, constraints, rhs, rotation, step)
                 minres_total += its
             if solution is None:
                 # keep the factor of K while Newton contracts fast; renew it when it slows
                 measure = residual_norm / max(state.needle_force, 1e-12) + worst
-                solution = self.saddle.solve_direct(self._stiffness(multipliers, state), constraints, rhs,
-                                                    measure > 0.2 * previous, self.coupling.expanded_rows,
-                                                    self.coupling.weights_matrix(state.normal))
-                previous = measure
+                refactor = measure > REFACTOR_CONTRACTION * previous
+                solution = self.saddle.solve_direct(self._stiffness(multipliers, state), rhs,
+                                                    refactor, self.coupling.expanded_rows,
+                                                    self.coupling.normal_weights(state.normal))
+                if refactor or measure > previous:
+                    mixing.reset()  # another iteration map (new factor), or a step that failed
+                previous, modified = measure, True
             self.timings["solve"] += time.perf_counter() - t0
+            if fresh:
+                solution, per_center = solution[:, 0], solution[:, 1:]
+            if steering:
+                move = aim.update(free, center, np.column_stack([solution[:n_dof], per_center[:n_dof]]),
+                                  self.free_rows(aim.exit_point), balanced)
+                if balanced and move is None:  # the centre has settled
+                    self._accept(free, multipliers, center, worst, iteration)
+                    return iteration, minres_total, worst
+                move = np.zeros(2) if move is None else move
+                moved = float(np.linalg.norm(move))
+                solution = np.concatenate([solution + per_center @ move, move])
+            else:
+                solution = np.concatenate([solution, np.zeros(2)])
+            if modified:
+                solution = mixing.step(np.concatenate([free, multipliers, center]), solution)
+            if steering:
+                center = center + solution[-2:]
+                if moved > aim.tolerance:
+                    previous = math.inf  # the next residual measures the move, not the factor
             free = free + solution[:n_dof]
-            multipliers = multipliers + solution[n_dof:]
+            multipliers = multipliers + solution[n_dof:-2]
+        self._count(iteration)
         raise InsertionFailure(
             f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
             f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} iterations")
 
-    def _timed_residuals(self, free: np.ndarray, multipliers: np.ndarray, rotation: float, step: int) -> Residuals:
+    def _accept(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, worst: float,
+                iterations: int) -> None:
+        self.free, self.multipliers, self.center, self.last_violation = free.reshape(-1, 2), multipliers, center, worst
+        self._count(iterations)
+
+    def _center_columns(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray,
+                        state: Residuals) -> np.ndarray:
+        """-d(r_u, g)/dC (n + m, 2): the right-hand sides whose solutions are the equilibrium's
+        change per unit move of the centre (center_sensitivity)."""
+        coupling = self.coupling
+        force_change = (coupling.center_derivative(multipliers, state.normal, state.rho)
+                        - coupling.needle_force_center_derivative(free, center))  # (2 n_free, 2)
+        return -np.vstack([force_change, coupling.constraint_center_derivative(state.normal)])
+
+    def _count(self, iterations: int) -> None:
+        self.newton_iterations += iterations
+        self.equilibrium_solves += 1
+
+    def _timed_residuals(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, rotation: float,
+                         step: int) -> Residuals:
         t0 = time.perf_counter()
         try:
-            return self.residuals(free, multipliers, self.center)
+            return self.residuals(free, multipliers, center)
         except InvertedMaterial as error:
             raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): {error}") from None
         finally:
@@ -288,21 +397,12 @@ class NeedleInsertion:
         (needle force) / R against the tissue's stiffness.
         """
         state = self.residuals(self.free, self.multipliers, self.center)
-        coupling = self.coupling
-        constraints = coupling.constraint_matrix(state.normal)
-        force_change = (coupling.center_derivative(self.multipliers, state.normal, state.rho)
-                        - coupling.needle_force_center_derivative(self.free, self.center))  # (2 n_free, 2)
-        violation_change = coupling.constraint_center_derivative(state.normal)  # (m, 2)
-        row = self.model.shape_functions_at(point[None]).values @ self.model.boundary.free_map
+        rhs = self._center_columns(self.free, self.multipliers, self.center, state)  # (n + m, 2)
+        solution = self.saddle.solve_direct(self._stiffness(self.multipliers, state), rhs, refactor,
+                                            self.coupling.expanded_rows, self.coupling.normal_weights(state.normal))
+        row = self.free_rows(point)
         n_dof = 2 * self.model.n_free
-        weights = coupling.weights_matrix(state.normal)
-        columns = []
-        for j in range(2):
-            rhs = -np.concatenate([force_change[:, j], violation_change[:, j]])
-            solution = self.saddle.solve_direct(self._stiffness(self.multipliers, state), constraints, rhs,
-                                                refactor and j == 0, coupling.expanded_rows, weights)
-            columns.append((row @ solution[:n_dof].reshape(-1, 2))[0])
-        return np.column_stack(columns)
+        return np.column_stack([(row @ solution[:n_dof, j].reshape(-1, 2))[0] for j in range(2)])
 
     def condition_numbers(self) -> tuple[float, float]:
         """cond of the saddle matrix at the current state, and of the block-preconditioned one

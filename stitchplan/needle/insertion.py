@@ -19,8 +19,10 @@ import numpy as np
 
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure
+from ..tissue.solver import LINEAR_SOLVER_BACKEND
 from .equilibrium import NeedleInsertion
 from .results import InsertionResult, NeedleStep
+from .steering import CenterAim
 from .tip_tracking import locate_exit, track_step
 
 log = logging.getLogger(__name__)
@@ -33,9 +35,12 @@ class CenterControl(Protocol):
         """The centre step `step` starts its equilibrium from, once the tip has advanced
         about the previous step's centre."""
 
+    def aim(self, insertion: NeedleInsertion, step: int, rotation: float) -> CenterAim | None:
+        """What the step's equilibrium solve asks of the centre (needle/steering.py), or None
+        for a centre that stays where `predict` put it."""
+
     def correct(self, insertion: NeedleInsertion, step: int, rotation: float) -> int:
-        """Move the centre after the step's equilibrium (insertion.move_center and
-        equilibrate, or restore); returns the centre iterations it took."""
+        """Act on the step's equilibrium (the aim's outcome); returns the centre iterations."""
 
 
 class FixedCenter:
@@ -43,6 +48,9 @@ class FixedCenter:
 
     def predict(self, center: np.ndarray, step: int) -> np.ndarray:
         return center
+
+    def aim(self, insertion: NeedleInsertion, step: int, rotation: float) -> CenterAim | None:
+        return None
 
     def correct(self, insertion: NeedleInsertion, step: int, rotation: float) -> int:
         return 0
@@ -92,12 +100,13 @@ def run_insertion(
     limit = math.ceil(2.0 * math.pi / geometry.step) + 2
     for step in range(1, limit + 1):
         rotation = step * geometry.step
+        started = time.perf_counter()
         point, method = track_step(insertion, step, rotation)  # about the previous step's centre
         if insertion.domain.outside_distance(point) > 0.0:
             exit_point, exit_rotation = locate_exit(insertion, rotation - geometry.step, method)
             return _result(insertion, steps, displacements, exit_point, exit_rotation,
                            time.perf_counter() - wall_start)
-        record = _needle_step(insertion, control, step, rotation, point, method, condition_numbers)
+        record = _needle_step(insertion, control, step, rotation, point, method, condition_numbers, started)
         steps.append(record)
         displacements.append(insertion.particle_displacements())
         if on_step is not None:
@@ -107,12 +116,14 @@ def run_insertion(
 
 
 def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, rotation: float,
-                 point: np.ndarray, method: str, condition_numbers: bool) -> NeedleStep:
-    """Add the tracked tip point, equilibrate about the step's centre, let the control move
-    the centre; the step's record."""
+                 point: np.ndarray, method: str, condition_numbers: bool, started: float) -> NeedleStep:
+    """Add the tracked tip point, equilibrate about the step's centre (with the control's
+    aim: the centre an unknown of the same Newton solve); the step's record (its wall time from `started`, before the tip was tracked)."""
+    newton_before, solves_before = insertion.newton_iterations, insertion.equilibrium_solves
     insertion.add_point(point)
     insertion.move_center(control.predict(insertion.center, step))
-    newton_iterations, minres_iterations, _ = insertion.equilibrate(rotation, step)
+    aim = control.aim(insertion, step, rotation)
+    _, minres_iterations, _ = insertion.equilibrate(rotation, step, aim)
     planner_iterations = control.correct(insertion, step, rotation)
     geometry, needle = insertion.geometry, insertion.needle
     record = NeedleStep(
@@ -120,15 +131,19 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
         needle_tip=geometry.tip(rotation, insertion.center), tip_reference=point.copy(),
         tip_spatial=point + insertion.displacement(point)[0], needle_points=len(insertion.points),
         friction_force=needle.friction * geometry.radius * geometry.step * (len(insertion.points) - 1),
-        cutting_force=needle.cutting_force, newton_iterations=newton_iterations,
+        cutting_force=needle.cutting_force, newton_iterations=insertion.newton_iterations - newton_before,
+        equilibrium_solves=insertion.equilibrium_solves - solves_before,
         minres_iterations=minres_iterations, constraint_violation=insertion.last_violation, tracking=method,
-        exit_displacement=insertion.displacement(geometry.desired_exit)[0],
+        exit_displacement=insertion.point_displacement(geometry.desired_exit),
         planner_iterations=planner_iterations,
     )
+    record.wall_seconds = time.perf_counter() - started  # tracking and solves, before diagnostics
+    if aim is not None:
+        record.eq42_ratio = aim.eq42_ratio
     if condition_numbers:
         record.condition_saddle, record.condition_preconditioned = insertion.condition_numbers()
     log.info("step %d (needle rotation %.3f rad): Newton iterations %d, constraint violation %.2e mm%s",
-             step, rotation, newton_iterations, record.constraint_violation,
+             step, rotation, record.newton_iterations, record.constraint_violation,
              "" if isinstance(control, FixedCenter) else f", centre iterations {planner_iterations}")
     return record
 
@@ -144,6 +159,9 @@ def _result(insertion: NeedleInsertion, steps: list[NeedleStep], displacements: 
         achieved_exit=exit_point, achieved_exit_def=exit_point + u_exit[0], exit_rotation=exit_rotation,
         wall_seconds=wall_seconds, timings=insertion.timings, events=insertion.events,
         solver_counts={"factorizations": insertion.saddle.factorizations,
+                       "linear_solves": insertion.saddle.solves,
+                       "linear_solver": insertion.linear_method,
+                       "linear_solver_backend": LINEAR_SOLVER_BACKEND,
                        "minres_iterations": insertion.saddle.minres_iterations,
                        "minres_fallbacks": insertion.saddle.fallbacks,
                        "tangent_products": insertion.assembler.tangent_products},

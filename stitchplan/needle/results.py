@@ -24,12 +24,15 @@ class NeedleStep:
     needle_points: int
     friction_force: float  # N, total along the needle
     cutting_force: float  # N
-    newton_iterations: int
+    newton_iterations: int  # every Newton iteration of the step (the planner's centre tries too)
     minres_iterations: int
     constraint_violation: float  # mm, max |g_k|
     tracking: str
     exit_displacement: np.ndarray  # (2,) u at the desired exit point
     planner_iterations: int = 0
+    equilibrium_solves: int = 0  # equilibrium solves of the step (one per centre tried)
+    eq42_ratio: float = float("nan")  # planned: |du(X_exit)| / |dO| of the plain update (eq. 4.2 holds below 1)
+    wall_seconds: float = float("nan")  # the step: tip tracking, equilibrium and the planner's centre
     condition_saddle: float = float("nan")
     condition_preconditioned: float = float("nan")
 
@@ -54,7 +57,7 @@ class InsertionResult:
     wall_seconds: float
     timings: dict[str, float]
     events: list[Event] = field(default_factory=list)
-    solver_counts: dict[str, int] = field(default_factory=dict)
+    solver_counts: dict[str, int | str] = field(default_factory=dict)  # and the linear solver and its backend
 
     @property
     def exit_error_mm(self) -> float:

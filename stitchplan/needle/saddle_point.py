@@ -126,8 +126,10 @@ class SaddlePointSolver:
         # per iteration; 1e-8 costs a third more MINRES iterations on the SH 1/2 scenario
         self.minres_true_rtol = minres_true_rtol
         self._factor = None  # LU of K + H for the direct solves
-        self._solved_rows = np.zeros((0, 0))  # (K + H)^-1 N^T for that factor, (n, 2k)
+        self._solved_rows = np.zeros((0, 0))  # (K + H)^-1 E^T for that factor, (n, 2Q)
+        self._coupled = np.zeros((0, 0))  # E (K + H)^-1 E^T for that factor, (2Q, 2Q)
         self.factorizations = 0
+        self.solves = 0
         self.minres_iterations = 0
         self.fallbacks = 0
 
@@ -149,39 +151,59 @@ class SaddlePointSolver:
             self._schur = SchurPreconditioner(self.stiffness_at_rest)
         return self._schur
 
-    def solve_direct(self, stiffness: Callable[[], sp.spmatrix], constraints: sp.spmatrix, rhs: np.ndarray,
-                     refactor: bool, expanded_rows: sp.csr_matrix, weights: sp.spmatrix) -> np.ndarray:
+    def solve_direct(self, stiffness: Callable[[], sp.spmatrix], rhs: np.ndarray, refactor: bool,
+                     rows: sp.csr_matrix, weights: np.ndarray) -> np.ndarray:
         """Block elimination with a sparse LU of K + H (renewed when `refactor` or missing):
 
             a = K^-1 (-r_u),  S = G^T K^-1 G,  dl = S^-1 (G^T a + g),  dd = a - K^-1 G dl
 
         G^T dd = -g holds exactly even with an older factor of K, so the constraints
         converge at once; an older K only slows the equilibrium residual (modified Newton).
-        `stiffness` returns the current K + H when a factor is needed; G = N^T n per point,
-        with N the `expanded_rows` and B the `weights` (G = N^T B).
+        `stiffness` returns the current K + H when a factor is needed. G = E^T B with E the
+        interleaved shape-function `rows` of the constraint quadrature (2Q, n) and B the
+        dense `weights` (2Q, m) that carry the normals (NeedleCoupling.normal_weights).
+        For one factor, K^-1 E^T (n, 2Q) and E K^-1 E^T (2Q, 2Q) are kept and grown by the
+        rows of new quadrature points only, so an iteration costs one LU solve, one sparse
+        product E a and small dense products. `rhs` may hold several columns.
         """
-        n, k = constraints.shape
+        n, k = rows.shape[1], weights.shape[1]
         if refactor or self._factor is None:
             self._factor = factorize(stiffness())
             self.factorizations += 1
             self._solved_rows = np.zeros((n, 0))
+            self._coupled = np.zeros((0, 0))
         a = self._factor.solve(rhs[:n])
+        self.solves += 1
         if k == 0:
             return a
-        # cache K^-1 N^T (both directions) for this factor, so only the rows of newly added
-        # points cost a solve
-        have = self._solved_rows.shape[1]
-        if have < expanded_rows.shape[0]:
-            new = self._factor.solve(expanded_rows[have:].T.toarray())
-            self._solved_rows = np.hstack([self._solved_rows, new])
-        solved = np.asarray(weights.T @ self._solved_rows[:, : expanded_rows.shape[0]].T).T  # K^-1 G, (n, k)
-        schur = constraints.T @ solved
-        right = constraints.T @ a - rhs[n:]
+        self._grow(rows)
+        count = rows.shape[0]
+        solved = self._solved_rows[:, :count]  # K^-1 E^T
+        schur = weights.T @ self._coupled[:count, :count] @ weights  # G^T K^-1 G
+        right = weights.T @ (rows @ a) - rhs[n:]
         try:
             multipliers = scipy.linalg.cho_solve(scipy.linalg.cho_factor(schur), right)
         except np.linalg.LinAlgError:  # nearly dependent constraints: least squares
             multipliers = np.linalg.lstsq(schur, right, rcond=1e-13)[0]
-        return np.concatenate([a - solved @ multipliers, multipliers])
+        return np.concatenate([a - solved @ (weights @ multipliers), multipliers])
+
+    def _grow(self, rows: sp.csr_matrix) -> None:
+        """Extend K^-1 E^T and E K^-1 E^T by the rows added since the last solve (the
+        constraint quadrature only grows during an insertion, its earlier rows unchanged)."""
+        have, count = self._solved_rows.shape[1], rows.shape[0]
+        if have >= count:
+            return
+        new = self._factor.solve(rows[have:count].T.toarray())  # (n, new)
+        if new.ndim == 1:
+            new = new[:, None]
+        self._solved_rows = np.hstack([self._solved_rows, new])
+        cross = rows[:count] @ new  # E K^-1 E_new^T, (count, new)
+        coupled = np.zeros((count, count))
+        coupled[:have, :have] = self._coupled
+        coupled[:, have:] = cross
+        coupled[have:, :have] = cross[:have].T
+        coupled[have:, have:] = 0.5 * (cross[have:] + cross[have:].T)
+        self._coupled = coupled
 
     def solve_minres(self, stiffness_product: Callable[[np.ndarray], np.ndarray], constraints: sp.spmatrix,
                      rhs: np.ndarray, expanded_rows: sp.csr_matrix,

@@ -25,8 +25,9 @@ import numpy as np
 
 from ..config import Planner, Scenario
 from ..errors import PlanningFailure
-from ..events import Event, EventKind
-from ..needle.equilibrium import NeedleInsertion, Snapshot
+from ..events import Event
+from ..needle.equilibrium import NeedleInsertion
+from ..needle.steering import CenterAim
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
 from .trajectory import trajectory_table
@@ -107,132 +108,68 @@ def path_smoothness(centers: np.ndarray) -> tuple[float, float]:
     return float(moves.max()), float(second.max())
 
 
-@dataclass(frozen=True)
-class CenterTry:
-    """A centre tried within a step, and the equilibrium it gave."""
-
-    mismatch: float  # |O(t0) - c + u(X_exit) - O|, mm
-    state: Snapshot
-
-
 class ExitTracker:
-    """The centre update of Algorithm 2 within each step, and the start of each step's
-    iterations (a CenterControl for run_insertion).
+    """Algorithm 2's centre within each step, and the start of each step's iterations (a
+    CenterControl for run_insertion).
 
-    Within a step the fixed point O = O(t_0) - c + u(X_exit; O) (eq. 4.1, c the pass's
-    `offset`) is iterated until the centre moves less than `tolerance`. The plain iteration
-    contracts by the factor ||du(X_exit)|| / ||dO|| of eq. 4.2, often 0.9 or more here, so
-    the updates are Newton steps O <- O + (I - B)^-1 m, m = O(t_0) - c + u(X_exit) - O, with
-    B = du(X_exit)/dO from the linearised constrained equilibrium
-    (NeedleInsertion.center_sensitivity; B = 0 is the thesis's plain update). If the exit
-    point moved as much as the centre or more (eq. 4.2 fails), the step keeps the best
-    centre tried and the failure is recorded as an event (raised with `strict`). That
-    happens when the needle is deep in the tissue: the material enclosed by the arc and the
-    free edge then follows the needle almost rigidly and no centre move changes their
-    relative position. With `smooth` every centre tried lies within MoveLimits of the
-    centres before it (`limited_steps`: the steps a limit held back).
+    Within a step the centre solves O = O(t_0) - c + u(X_exit; O) (eq. 4.1, c the pass's
+    `offset`). The plain fixed-point iteration contracts by the factor ||du(X_exit)|| /
+    ||dO|| of eq. 4.2, often 0.9 or more here, and costs an equilibrium solve per try; the
+    centre is instead a third unknown of the step's equilibrium Newton solve
+    (needle/steering.py: each iteration moves it by (I - B)^-1 m, B = du(X_exit)/dO from
+    the same linearised equilibrium). If the exit point would move as much as the centre or
+    more (eq. 4.2 fails), the centre is held where it is and the failure is recorded as an
+    event (raised with `strict`). That happens when the needle is deep in the tissue: the
+    material enclosed by the arc and the free edge then follows the needle almost rigidly
+    and no centre move changes their relative position. With `smooth` every centre lies
+    within MoveLimits of the centres before it (`limited_steps`: the steps a limit held back).
     """
 
-    def __init__(self, settings: Planner, offset: np.ndarray | None = None, extrapolate: bool = True,
-                 smooth: bool = True):
+    def __init__(self, settings: Planner, offset: np.ndarray | None = None, smooth: bool = True):
         self.settings = settings
         self.offset = np.zeros(2) if offset is None else np.asarray(offset, dtype=float)
-        self.extrapolate = extrapolate
         self.smooth = smooth  # keep the centres within MoveLimits
         self.limits: MoveLimits | None = None
         self.centers: list[np.ndarray] = []  # O(t_n) of the steps so far, O(t_0) first
         self.limited_steps: list[int] = []  # steps whose centre a move limit held back
+        self._aim: CenterAim | None = None
 
     def predict(self, center: np.ndarray, step: int) -> np.ndarray:
-        """The centre extrapolated from the last two steps (with `extrapolate`), so the first
-        mismatch of a step is the change of the centre's velocity, not of its position."""
+        """The step starts from the previous step's centre (the Newton solve moves it; an
+        extrapolated start saves nothing there, tests/test_planner.py)."""
         if not self.centers:
             self.centers.append(np.asarray(center, dtype=float).copy())  # O(t_0)
-        if self.extrapolate and len(self.centers) >= 3:  # from step 3: step 1's move is a jump
-            center = center + (self.centers[-1] - self.centers[-2])
         return self._feasible(center, step)
 
-    def correct(self, insertion: NeedleInsertion, step: int, rotation: float) -> int:
-        """Iterate the step's centre (eq. 4.1); returns the iterations."""
+    def aim(self, insertion: NeedleInsertion, step: int, rotation: float) -> CenterAim:
         if self.smooth and self.limits is None:
             self.limits = MoveLimits.for_needle(insertion.geometry)
-        iterations = self._iterate(insertion, step, rotation)
+        geometry, settings = insertion.geometry, self.settings
+        self._aim = CenterAim(origin=geometry.center - self.offset, exit_point=geometry.desired_exit,
+                              feasible=lambda center: self._feasible(center, step), tolerance=settings.tolerance,
+                              max_updates=settings.max_iterations, max_move=geometry.insertion_step,
+                              step=step, rotation=rotation)
+        return self._aim
+
+    def correct(self, insertion: NeedleInsertion, step: int, rotation: float) -> int:
+        """Record the step's centre and what held it back; returns its centre moves."""
+        aim = self._aim
+        if aim.limited:
+            self.limited_steps.append(step)
+        if aim.held is not None:
+            kind, reason = aim.held
+            if self.settings.strict:
+                raise PlanningFailure(f"planning failed: {reason}")
+            message = f"planning: {reason}; the step keeps its centre (mismatch {aim.mismatch_mm:.3g} mm)"
+            insertion.events.append(Event(kind, message, step, rotation))
+            log.info(message)  # the user sees it once, as a `note:` from the event
         self.centers.append(insertion.center.copy())
-        return iterations
+        return aim.updates
 
     def _feasible(self, center: np.ndarray, step: int) -> np.ndarray:
         if self.limits is None or not self.centers:
             return center
         return self.limits.project(center, self.centers, step)
-
-    def _iterate(self, insertion: NeedleInsertion, step: int, rotation: float) -> int:
-        settings = self.settings
-        origin = insertion.geometry.center - self.offset  # aim: O - x_exit = O(t0) - X_exit - c
-        target = insertion.geometry.desired_exit
-        exit_displacement = insertion.displacement(target)[0]
-        best = None
-        for iteration in range(1, settings.max_iterations + 1):
-            center = insertion.center
-            mismatch = origin + exit_displacement - center
-            best = self._better(best, mismatch, insertion)
-            wanted = self._newton_move(insertion, mismatch, target)
-            move = self._feasible(center + wanted, step) - center
-            size = float(np.linalg.norm(move))
-            if size < float(np.linalg.norm(wanted)) - settings.tolerance and size <= settings.tolerance:
-                self.limited_steps.append(step)  # held at the limit: the mismatch carries to the next steps
-            log.debug("planning step %d, iteration %d: mismatch %.3g mm, centre move %.3g mm",
-                     step, iteration, float(np.linalg.norm(mismatch)), size)
-            if size <= settings.tolerance:
-                return iteration - 1
-            insertion.move_center(center + move)
-            insertion.equilibrate(rotation, step)
-            new_exit = insertion.displacement(target)[0]
-            moved_exit = float(np.linalg.norm(new_exit - exit_displacement))
-            exit_displacement = new_exit
-            if moved_exit >= size:  # eq. 4.2 fails
-                best = self._better(best, origin + exit_displacement - insertion.center, insertion)
-                self._give_up(insertion, best, EventKind.PLANNER_EQ42_FAILED, step, rotation,
-                              f"eq. 4.2 fails at step {step} (needle rotation {rotation:.3f} rad): moving the "
-                              f"centre by {size:.3g} mm moved the desired exit point by {moved_exit:.3g} mm, "
-                              "so iterating within the step cannot converge")
-                return iteration
-        best = self._better(best, origin + exit_displacement - insertion.center, insertion)
-        self._give_up(insertion, best, EventKind.PLANNER_NOT_CONVERGED, step, rotation,
-                      f"no convergence at step {step} (needle rotation {rotation:.3f} rad) in "
-                      f"{settings.max_iterations} iterations, the centre still moves {size:.3g} mm")
-        return settings.max_iterations
-
-    @staticmethod
-    def _better(best: CenterTry | None, mismatch: np.ndarray, insertion: NeedleInsertion) -> CenterTry:
-        """The better of the best try so far and the insertion's current state."""
-        norm = float(np.linalg.norm(mismatch))
-        if best is None or norm < best.mismatch:
-            return CenterTry(norm, insertion.snapshot())
-        return best
-
-    @staticmethod
-    def _newton_move(insertion: NeedleInsertion, mismatch: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """(I - B)^-1 m, no longer than 10 |m| nor one insertion step: (I - B) is nearly
-        singular when the exit follows the centre rigidly."""
-        jacobian = insertion.center_sensitivity(target)
-        try:
-            move = np.linalg.solve(np.eye(2) - jacobian, mismatch)
-        except np.linalg.LinAlgError:
-            move = mismatch
-        limit = min(10.0 * float(np.linalg.norm(mismatch)), insertion.geometry.insertion_step)
-        if float(np.linalg.norm(move)) > limit:
-            move = move * (limit / float(np.linalg.norm(move)))
-        return move
-
-    def _give_up(self, insertion: NeedleInsertion, best: CenterTry, kind: EventKind, step: int,
-                 rotation: float, reason: str) -> None:
-        """End the step's iterations on the best centre tried, recording why (strict: raise)."""
-        if self.settings.strict:
-            raise PlanningFailure(f"planning failed: {reason}")
-        message = f"planning: {reason}; the step keeps the best centre tried (mismatch {best.mismatch:.3g} mm)"
-        insertion.events.append(Event(kind, message, step, rotation))
-        log.info(message)  # the user sees it once, as a `note:` from the event
-        insertion.restore(best.state)
 
 
 @dataclass

@@ -1,0 +1,93 @@
+"""The needle centre as a third unknown of the equilibrium Newton (thesis eq. 4.1-4.2).
+
+Algorithm 2 asks, within each needle step, for the centre O that satisfies
+
+    m(d, O) = O(t_0) - c + u(X_exit; d) - O = 0                                   (eq. 4.1)
+
+with the tissue in equilibrium about O. Solved as a fixed point (move O, re-solve the
+equilibrium, repeat) it costs a whole equilibrium solve per centre try. Here O joins the
+Newton system of eq. 3.62 instead: each Newton iteration solves the saddle system for the
+residual and for the two columns -d(r_u, g)/dO (one factor, three right-hand sides),
+
+    [dd, dl] = [dd_0, dl_0] + [D, L] dO,
+
+and eq. 4.1 linearised, m + N_exit (dd_0 + D dO) - dO = 0, gives the centre move
+
+    dO = (I - B)^-1 (m + N_exit dd_0),    B = N_exit D = du(X_exit)/dO.
+
+The move is limited to 10 |m| and one insertion step, and projected onto the move limits
+of the centre path (`feasible`). The centre is settled when the tissue is in equilibrium
+and the next move is below `tolerance`; it is held where it is, and the equilibrium
+finished about it, after `max_updates` moves.
+
+Eq. 4.2 (|du(X_exit)| < |dO|, i.e. ||B|| < 1) is the convergence condition of the thesis's
+plain update O <- O(t_0) - c + u(X_exit). The Newton update needs only I - B to be
+invertible, so it goes on where eq. 4.2 fails (late in a stitch, where the material
+enclosed by the arc follows the needle almost rigidly and ||B|| reaches 1); the ratio
+|B m| / |m| of the step's last plain update m larger than `tolerance` is kept
+(`eq42_ratio`) so the summary can say where the plain update would have stalled.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..events import EventKind
+
+
+@dataclass
+class CenterAim:
+    """What the planner asks of the centre within one needle step, and what came of it."""
+
+    origin: np.ndarray  # O(t_0) - c: the centre asked for is origin + u(X_exit)
+    exit_point: np.ndarray  # X_exit, reference, (2,)
+    feasible: Callable[[np.ndarray], np.ndarray]  # the admissible centre nearest a wanted one
+    tolerance: float  # mm: settled when the next move is smaller
+    max_updates: int  # centre moves per step before the centre is held
+    max_move: float  # mm: one insertion step
+    step: int
+    rotation: float  # rad
+    updates: int = 0  # centre moves made
+    limited: bool = False  # the move limits held the centre back
+    held: tuple[EventKind, str] | None = None  # why the centre stopped moving before settling
+    mismatch_mm: float = float("nan")  # |m| at the last Newton iteration
+    eq42_ratio: float = float("nan")  # |B m| / |m| of the plain update m (eq. 4.2 holds below 1)
+
+    def update(self, free: np.ndarray, center: np.ndarray, solution: np.ndarray, exit_rows: sp.csr_matrix,
+               balanced: bool) -> np.ndarray | None:
+        """The centre move of one Newton iteration, or None: settled (when `balanced`) or
+        held. `free` (n_free, 2) and `center` are the iterate, `solution` (2 n_free, 3) the
+        saddle solve's displacement columns [dd_0, D], `exit_rows` N(X_exit) (1, n_free)."""
+        def at_exit(column: np.ndarray) -> np.ndarray:
+            return (exit_rows @ column.reshape(-1, 2))[0]
+
+        mismatch = self.origin + at_exit(free) - center
+        self.mismatch_mm = float(np.linalg.norm(mismatch))
+        predicted = mismatch + at_exit(solution[:, 0])  # after this iteration's equilibrium update
+        jacobian = np.column_stack([at_exit(solution[:, 1]), at_exit(solution[:, 2])])  # B
+        if float(np.linalg.norm(predicted)) > self.tolerance:  # the thesis's update dO = m moves X_exit by B m
+            self.eq42_ratio = float(np.linalg.norm(jacobian @ predicted) / np.linalg.norm(predicted))
+        try:
+            wanted = np.linalg.solve(np.eye(2) - jacobian, predicted)
+        except np.linalg.LinAlgError:
+            wanted = predicted
+        limit = min(10.0 * float(np.linalg.norm(predicted)), self.max_move)
+        if float(np.linalg.norm(wanted)) > limit:
+            wanted = wanted * (limit / float(np.linalg.norm(wanted)))
+        move = self.feasible(center + wanted) - center
+        size = float(np.linalg.norm(move))
+        if size <= self.tolerance:
+            if size < float(np.linalg.norm(wanted)) - self.tolerance:
+                self.limited = True  # held at the limit: the mismatch carries to the next steps
+            return None if balanced else move
+        if self.updates >= self.max_updates:
+            self.held = (EventKind.PLANNER_NOT_CONVERGED,
+                         f"no convergence at step {self.step} (needle rotation {self.rotation:.3f} rad) in "
+                         f"{self.max_updates} iterations, the centre still moves {size:.3g} mm")
+            return None
+        self.updates += 1
+        return move
