@@ -131,3 +131,16 @@ def test_end_grading_refines_only_around_the_segment_ends_and_can_be_switched_of
     extra = graded[~(graded[:, None, :] == grid[None]).all(axis=2).any(axis=1)]
     ends = np.array([[0.0, UNALIGNED[0]], [0.0, UNALIGNED[1]]])
     assert np.min(np.linalg.norm(extra[:, None] - ends[None], axis=2), axis=1).max() < 4.0
+
+
+def test_graded_lattice_balance_filter_matches_the_3x3_maximum_filter():
+    """The 2:1 balance of the graded lattice takes each cell's 3 x 3 neighbourhood maximum
+    (edges repeated) in numpy; it equals scipy.ndimage's maximum filter in 'nearest' mode."""
+    from scipy.ndimage import maximum_filter
+
+    from stitchplan.tissue.particles import _neighbourhood_max
+
+    rng = np.random.default_rng(3)
+    for shape in [(1, 1), (1, 6), (5, 3), (24, 17)]:
+        levels = rng.integers(0, 6, shape)
+        np.testing.assert_array_equal(_neighbourhood_max(levels), maximum_filter(levels, size=3, mode="nearest"))

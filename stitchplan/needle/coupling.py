@@ -142,6 +142,7 @@ class NeedleCoupling:
         self.weights = sp.csr_matrix((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
         self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
         self._weights_dense: np.ndarray | None = None  # W as an array (normal_weights)
+        self._spacing_of_segments = np.zeros(0)  # local particle spacing per segment (_segment_spacing)
         self._expanded_rows_t: sp.csr_matrix | None = None  # E^T (expanded_rows_t)
         self.multiplier_count = 0
         self.multiplier_nodes = np.zeros(0)  # mortar: arc length of each multiplier's node (element start)
@@ -212,8 +213,18 @@ class NeedleCoupling:
             forces = np.concatenate([forces, np.zeros(self._shares.shape[0] - len(forces))])
             carried = self._shares.T @ forces
         self.previous_loads, self.loads = self.loads, self._load_quadrature()
-        self._weights_dense = self._expanded_rows_t = None
+        self._expanded_rows_t = None
+        if self.kind == POINTS:
+            self._weights_dense = None
         return carried
+
+    def _segment_spacing(self) -> np.ndarray:
+        """Local particle spacing at each segment's midpoint, (k - 1,), kept as segments are added."""
+        have = len(self._spacing_of_segments)
+        if have < len(self.points) - 1:
+            middles = 0.5 * (self.points[have:-1] + self.points[have + 1:])
+            self._spacing_of_segments = np.concatenate([self._spacing_of_segments, self.local_spacing(middles)])
+        return self._spacing_of_segments
 
     def _segment_lengths(self) -> np.ndarray:
         return np.linalg.norm(np.diff(self.points, axis=0), axis=1)
@@ -246,7 +257,7 @@ class NeedleCoupling:
         tau(s) = int ds / (MULTIPLIER_SPACINGS h(s)) (h per segment, at its midpoint), cut at
         tau_tip - k for k = 0, 1, ..., the remainder (< 1) joining the element at the entry
         (one element while the track is shorter than one). Arc length of the ends, (m_e + 1,)."""
-        spacing = MULTIPLIER_SPACINGS * self.local_spacing(0.5 * (self.points[:-1] + self.points[1:]))
+        spacing = MULTIPLIER_SPACINGS * self._segment_spacing()
         tau = np.concatenate([[0.0], np.cumsum(lengths / spacing)])  # at the needle points
         count = max(math.floor(tau[-1] + 1e-9), 1)
         cuts = tau[-1] - np.arange(count - 1, 0, -1, dtype=float)  # interior ends, increasing
@@ -275,7 +286,7 @@ class NeedleCoupling:
             ds = self._constraint_length
             element = np.clip(np.searchsorted(nodes, s_q, side="right") - 1, 0, len(nodes) - 2)
         else:
-            needed = MULTIPLIER_SPACINGS * self.local_spacing(0.5 * (self.points[:-1] + self.points[1:]))
+            needed = MULTIPLIER_SPACINGS * self._segment_spacing()
             starts = _element_starts(lengths, needed, from_tip=PARTITION_FROM_TIP)
             marks = np.zeros(len(lengths), dtype=int)
             marks[starts[1:]] = 1
@@ -286,16 +297,18 @@ class NeedleCoupling:
         elements = len(nodes) - 1
         q = np.arange(len(s_q))
         if MULTIPLIER_ORDER == 0:
-            shares = sp.csr_matrix((np.ones(len(q)), (q, element)), shape=(len(q), elements))
+            shares = np.zeros((len(q), elements))
+            shares[q, element] = 1.0
         else:
             upper = (s_q - nodes[element]) / (nodes[element + 1] - nodes[element])
-            shares = sp.csr_matrix((np.concatenate([1.0 - upper, upper]),
-                                    (np.concatenate([q, q]), np.concatenate([element, element + 1]))),
-                                   shape=(len(q), elements + 1))
-        self._shares = shares
+            shares = np.zeros((len(q), elements + 1))
+            shares[q, element] = 1.0 - upper
+            shares[q, element + 1] += upper
         self.multiplier_nodes = nodes if MULTIPLIER_ORDER == 1 else nodes[:-1]  # arc length, mm
-        weighted = shares.multiply(ds[:, None]).tocsc()
-        self.weights = (weighted @ sp.diags(1.0 / np.asarray(weighted.sum(axis=0)).ravel())).tocsr()
+        weighted = shares * ds[:, None]
+        weights = weighted / weighted.sum(axis=0)
+        self._shares, self.weights = sp.csr_matrix(shares), sp.csr_matrix(weights)
+        self._weights_dense = weights
         self.multiplier_count = shares.shape[1]
 
     # --- loads ------------------------------------------------------------------------------
@@ -316,15 +329,20 @@ class NeedleCoupling:
             return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
         zone = min(self.cutting_length, segments * step_length)
         covered = np.clip(zone / step_length - np.arange(segments)[::-1], 0.0, 1.0)  # tip end of each segment
-        touched = np.flatnonzero(covered > 0.0)
-        start, end = self.points[touched], self.points[touched + 1]
-        fraction = covered[touched]
+        # wholly covered segments reuse their friction Gauss points and rows; only the
+        # partly covered one at the zone's far end needs rows of its own
+        whole = np.flatnonzero(covered >= 1.0)
+        part = np.flatnonzero((covered > 0.0) & (covered < 1.0))
+        gauss = (2 * whole[:, None] + np.arange(2)).ravel()
+        fraction = covered[part]
+        start, end = self.points[part], self.points[part + 1]
         along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
-        cut_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
-        cut_magnitudes = np.repeat(0.5 * cutting * fraction * step_length / zone, 2)
-        return LoadQuadrature(np.vstack([self.segment_points, cut_points]),
-                              sp.vstack([self.segment_rows, self._rows_at(cut_points)], format="csr"),
-                              np.concatenate([friction, cut_magnitudes]))
+        part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
+        share = 0.5 * cutting * step_length / zone  # N per Gauss point of a wholly covered segment
+        return LoadQuadrature(
+            np.vstack([self.segment_points, self.segment_points[gauss], part_points]),
+            sp.vstack([self.segment_rows, self.segment_rows[gauss], self._rows_at(part_points)], format="csr"),
+            np.concatenate([friction, np.full(len(gauss), share), np.repeat(share * fraction, 2)]))
 
     def load_magnitudes(self) -> np.ndarray:
         """Force (N) carried by each load point at the full load of this step."""

@@ -108,8 +108,6 @@ def graded_lattice(size: tuple[float, float], base: float, zones: tuple[Refineme
     """The quadtree behind graded_particles: coarse lattice lines ~`base` apart through the
     breaks (grid_lines), each coarse cell split into 2^l x 2^l leaves where a zone asks for
     it (leaf side <= zone spacing + growth x distance to the zone), 2:1 balanced."""
-    from scipy.ndimage import maximum_filter
-
     width, height = size
     levels = max([max(int(round(np.log2(base / zone.spacing))), 0) for zone in zones] + [0])
     coarse_x, coarse_y = grid_lines(width, base, breaks[0]), grid_lines(height, base, breaks[1])
@@ -147,7 +145,7 @@ def graded_lattice(size: tuple[float, float], base: float, zones: tuple[Refineme
 
     leaf = leaf_levels(required)
     while True:  # 2:1 balance: a leaf's neighbours are at most one level coarser
-        balanced = np.maximum(required, maximum_filter(leaf, size=3, mode="nearest") - 1)
+        balanced = np.maximum(required, _neighbourhood_max(leaf) - 1)
         if np.array_equal(balanced, required):
             break
         required = balanced
@@ -178,6 +176,13 @@ def graded_lattice(size: tuple[float, float], base: float, zones: tuple[Refineme
     coarse = fine * n if step_x and step_y else max(float(np.diff(coarse_x).max()),
                                                     float(np.diff(coarse_y).max()))
     return GradedParticles(particles, volumes, local, cells, fine, coarse)
+
+
+def _neighbourhood_max(levels: np.ndarray) -> np.ndarray:
+    """The largest value in each cell's 3 x 3 neighbourhood (edges repeated outward)."""
+    padded = np.pad(levels, 1, mode="edge")
+    rows, cols = levels.shape
+    return np.max([padded[i:i + rows, j:j + cols] for i in range(3) for j in range(3)], axis=0)
 
 
 def _subdivided(lines: np.ndarray, n: int) -> tuple[np.ndarray, float | None]:
