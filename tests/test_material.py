@@ -9,6 +9,7 @@ import pytest
 from stitchplan.tissue.material import (
     NeoHookean,
     SaintVenantKirchhoff,
+    first_piola,
     first_piola_and_tangent,
     green_lagrange_strain,
 )
@@ -66,6 +67,14 @@ def test_first_piola_is_the_energy_derivative(material, deformation_gradients):
                                           - material.energy(deformation_gradients - step)) / (2 * STEP)
     np.testing.assert_allclose(first_piola, finite_difference, rtol=0,
                                atol=FD_RTOL * np.abs(first_piola).max())
+
+
+@pytest.mark.parametrize("material", MATERIALS)
+def test_residual_first_piola_matches_the_one_with_its_tangent(material, deformation_gradients):
+    """The residual's closed-form P = F S (no tangent) equals the P computed with the tangent."""
+    expected, _ = first_piola_and_tangent(material, deformation_gradients)
+    np.testing.assert_allclose(first_piola(material, deformation_gradients), expected, rtol=0,
+                               atol=1e-13 * np.abs(expected).max())
 
 
 @pytest.mark.parametrize("material", MATERIALS)

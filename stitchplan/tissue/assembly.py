@@ -21,7 +21,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .model import TissueModel
-from .material import first_piola_and_tangent, matmul22
+from .material import first_piola, first_piola_and_tangent
 
 
 class Assembler:
@@ -44,12 +44,11 @@ class Assembler:
     def update(self, deformation_gradient: np.ndarray) -> np.ndarray:
         """Evaluate the stress at F (nq, 2, 2); returns f_int (2 n_free,). The material
         tangent at this F is evaluated only if a tangent product or matrix is asked for."""
-        stress, _ = self.model.material.pk2_stress(deformation_gradient)
-        first_piola = matmul22(deformation_gradient, stress)
+        piola = first_piola(self.model.material, deformation_gradient)
         self._deformation_gradient = deformation_gradient
         self._tangent_current = False
         weights = self.model.quadrature_weights
-        return self.gradient_t @ (first_piola * weights[:, None, None]).reshape(-1)
+        return self.gradient_t @ (piola * weights[:, None, None]).reshape(-1)
 
     def _refresh_tangent(self) -> None:
         if self._tangent_current:

@@ -85,6 +85,28 @@ class NeoHookean:
         return stress, tangent
 
 
+def first_piola(model: SaintVenantKirchhoff | NeoHookean, deformation_gradient: np.ndarray) -> np.ndarray:
+    """P = F S (n, 2, 2) alone, written out by components: the residual needs no tangent,
+    and this is ~3x cheaper than pk2_stress and a product (tests/test_material.py)."""
+    f = deformation_gradient
+    f00, f01, f10, f11 = f[:, 0, 0], f[:, 0, 1], f[:, 1, 0], f[:, 1, 1]
+    c00, c01, c11 = f00 * f00 + f10 * f10, f00 * f01 + f10 * f11, f01 * f01 + f11 * f11  # C = F^T F
+    lam, mu = model.lame_lambda, model.lame_mu
+    if isinstance(model, SaintVenantKirchhoff):
+        trace = 0.5 * lam * (c00 + c11 - 2.0)
+        s00, s01, s11 = mu * (c00 - 1.0) + trace, mu * c01, mu * (c11 - 1.0) + trace
+    else:
+        j = f00 * f11 - f01 * f10
+        scale = (lam * np.log(j) - mu) / (j * j)  # (lambda ln J - mu) / det C
+        s00, s01, s11 = mu + scale * c11, -scale * c01, mu + scale * c00
+    out = np.empty_like(f)
+    out[:, 0, 0] = f00 * s00 + f01 * s01
+    out[:, 0, 1] = f00 * s01 + f01 * s11
+    out[:, 1, 0] = f10 * s00 + f11 * s01
+    out[:, 1, 1] = f10 * s01 + f11 * s11
+    return out
+
+
 def determinant(deformation_gradient: np.ndarray) -> np.ndarray:
     """det F of (n, 2, 2) in closed form (np.linalg.det is ~10x slower for 2 x 2)."""
     f = deformation_gradient
