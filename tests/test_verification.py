@@ -99,6 +99,17 @@ def test_planned_centre_path_is_smooth_and_still_hits_the_exit():
     assert any(p["limited_steps"] for p in result.passes)  # the limits were needed here
 
 
+def test_move_limits_come_from_the_scenario_and_scale_with_the_step():
+    """planner.center_step_limit and center_second_difference_limit are stated per 0.08 rad:
+    tighter limits at a 0.16 rad step bound the path at twice them, and still plan."""
+    raw = scene_raw(30.0, 24.0, 4.0, 0.16, planner={"center_step_limit": 0.1, "center_second_difference_limit": 0.05})
+    result = run_plan(parse_scenario(raw), compare=False)
+    max_step, max_second = path_smoothness(result.exported_centers)
+    assert max_step <= 0.2 + 1e-9 and max_second <= 0.1 + 1e-9, (max_step, max_second)
+    assert max_step > 0.15  # the limit was reached, so it is what held the path
+    assert result.planned.exit_error_mm < 0.1
+
+
 @pytest.fixture(scope="module")
 def planned_small(tmp_path_factory) -> tuple[Path, dict, Path]:
     folder = tmp_path_factory.mktemp("verify")

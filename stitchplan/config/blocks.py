@@ -341,6 +341,10 @@ class Planner:
     strict: described(Flag, "fail instead of warning when the planner does not converge") = False
     exit_tolerance: described(PositiveMM, "exit-point tolerance of the planner passes, mm") = 0.005
     max_passes: described(integer(1, 20), "planner passes over the whole insertion") = 4
+    center_step_limit: described(PositiveMM, "largest centre move per 0.08 rad of needle step, mm "
+                                 "(scaled with the step; the robot's speed bound)") = 0.28
+    center_second_difference_limit: described(PositiveMM, "largest change of the centre's move per "
+                                              "0.08 rad of needle step, mm (scaled with the step)") = 0.14
 
 
 AngularSpeed = described(number("a positive number (rad/s)", gt=0) | None,

@@ -35,9 +35,7 @@ from .trajectory import trajectory_table
 log = logging.getLogger(__name__)
 
 
-REFERENCE_STEP = 0.08  # rad per needle step at which the move limits below are stated
-MAX_CENTER_STEP = 0.28  # mm the centre moves per step at most (acceptance bound 0.3)
-MAX_SECOND_DIFFERENCE = 0.14  # mm the centre's move changes per step at most (bound 0.15)
+REFERENCE_STEP = 0.08  # rad per needle step at which the move limits (config Planner) are stated
 
 
 @dataclass(frozen=True)
@@ -53,9 +51,12 @@ class MoveLimits:
     last_step: int  # the last step before the undeformed circle's exit
 
     @classmethod
-    def for_needle(cls, geometry) -> MoveLimits:
+    def for_needle(cls, geometry, settings: Planner) -> MoveLimits:
+        """The scenario's limits (planner.center_step_limit and
+        center_second_difference_limit, stated per REFERENCE_STEP) at the needle's step."""
         scale = geometry.step / REFERENCE_STEP
-        return cls(MAX_CENTER_STEP * scale, MAX_SECOND_DIFFERENCE * scale, geometry.expected_steps - 1)
+        return cls(settings.center_step_limit * scale, settings.center_second_difference_limit * scale,
+                   geometry.expected_steps - 1)
 
     def speed(self, step: int) -> float:
         """The largest move at `step`, braking one step early (the tip may leave a step
@@ -143,7 +144,7 @@ class ExitTracker:
 
     def aim(self, insertion: NeedleInsertion, step: int, rotation: float) -> CenterAim:
         if self.smooth and self.limits is None:
-            self.limits = MoveLimits.for_needle(insertion.geometry)
+            self.limits = MoveLimits.for_needle(insertion.geometry, self.settings)
         geometry, settings = insertion.geometry, self.settings
         self._aim = CenterAim(origin=geometry.center - self.offset, exit_point=geometry.desired_exit,
                               feasible=lambda center: self._feasible(center, step), tolerance=settings.tolerance,
