@@ -52,7 +52,7 @@ class CenterAim:
     step: int
     rotation: float  # rad
     updates: int = 0  # centre moves made
-    limited: bool = False  # the move limits held the centre back
+    limited: bool = False  # the move limits held the settled centre back
     held: tuple[EventKind, str] | None = None  # why the centre stopped moving before settling
     mismatch_mm: float = float("nan")  # |m| at the last Newton iteration
     eq42_ratio: float = float("nan")  # |B m| / |m| of the plain update m (eq. 4.2 holds below 1)
@@ -80,9 +80,10 @@ class CenterAim:
             wanted = wanted * (limit / float(np.linalg.norm(wanted)))
         move = self.feasible(center + wanted) - center
         size = float(np.linalg.norm(move))
+        # held at the limit (as the step settles: the last iteration's verdict counts), the
+        # mismatch carries to the next steps
+        self.limited = size <= self.tolerance < float(np.linalg.norm(wanted)) - size
         if size <= self.tolerance:
-            if size < float(np.linalg.norm(wanted)) - self.tolerance:
-                self.limited = True  # held at the limit: the mismatch carries to the next steps
             return None if balanced else move
         if self.updates >= self.max_updates:
             self.held = (EventKind.PLANNER_NOT_CONVERGED,
