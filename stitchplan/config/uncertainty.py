@@ -207,20 +207,17 @@ def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float
     if not isinstance(fit, dict) or not isinstance(fit.get("standard_uncertainty"), dict):
         raise input_error([f"{where}: fit.standard_uncertainty: missing, expected a `stitchplan calibrate "
                            "material` output (fitted.yaml)"])
-    lines, std = [], {}
-    for name in ("lame_lambda", "lame_mu"):
-        value = fit["standard_uncertainty"].get(name)
-        if _finite(value) and value > 0:
-            std[name] = float(value)
-        else:
-            lines.append(f"{where}: fit.standard_uncertainty.{name}: got {short(value)}, expected a positive "
-                         "standard uncertainty (MPa; none when the calibration could not separate the moduli)")
+    given = {name: fit["standard_uncertainty"].get(name) for name in ("lame_lambda", "lame_mu")}
+    if not all(_finite(value) and value > 0 for value in given.values()):
+        why = ("; the calibration could not separate the moduli (fit.identifiable: false)"
+               if fit.get("identifiable") is False else "")
+        raise input_error([f"{where}: fit.standard_uncertainty: got {short(given)}, expected positive standard "
+                           f"uncertainties of lame_lambda and lame_mu (MPa){why}"])
     value = fit.get("correlation")
     if not (_finite(value) and -1 < value < 1):
-        lines.append(f"{where}: fit.correlation: got {short(value)}, expected a number between -1 and 1 "
-                     "(exclusive)")
-    if lines:
-        raise input_error(lines)
+        raise input_error([f"{where}: fit.correlation: got {short(value)}, expected a number between -1 and 1 "
+                           "(exclusive)"])
+    std = {name: float(v) for name, v in given.items()}
     return std, float(value)
 
 
