@@ -177,7 +177,7 @@ def test_a_two_worker_cluster_gives_the_in_process_results():
     from dask.distributed import LocalCluster
 
     scenario = parse_scenario(small_raw())
-    spec = uncertainty(small_uncertainty())
+    spec = uncertainty(small_uncertainty(samples=2))
     local = plan_under_uncertainty(scenario, spec, Executor(workers=0))
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                       silence_logs=50) as cluster, Executor(scheduler=cluster.scheduler_address) as executor:

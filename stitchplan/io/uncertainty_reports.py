@@ -17,9 +17,9 @@ from .plots import save
 SENSITIVITY_METHOD = (f"central finite differences of the exit error vector (achieved - desired exit, deformed), "
                       f"the nominal plan's centre path replayed at the scenario's value +- {SENSITIVITY_STEP:g} std "
                       "(at most half the value), the other parameters at the scenario's values")
-ROBUST_DESIGN = ("the nominal plan re-aimed (planner passes aiming the exit error at -s) with the mean exit shift "
-                 "s = mean training exit error of the nominal path - the nominal plan's own exit error; statistics "
-                 "on the held-out samples where every path ran")
+ROBUST_DESIGN = ("the nominal plan re-aimed (planner passes aiming the exit error at robust_aim_mm): the aim minimising "
+                 "mean + p95 of the training samples' misses d_i + aim, d_i = exit error of the nominal path on sample "
+                 "i - the nominal plan's own exit error; statistics on the held-out samples where every path ran")
 COLOURS = {"unplanned": "tab:red", "nominal": "tab:blue", "robust": "tab:green"}
 
 
@@ -47,7 +47,8 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
                                         if result.evaluated.any() else None for label in LABELS},
         "robust_design": ROBUST_DESIGN,
         "mean_shift_mm": _vector(result.shift),
-        "robust_aim_mm": _vector(-result.shift) if robust_plan is not None else None,
+        "robust_aim_mm": _vector(result.aim),
+        "training_prediction": result.training_prediction(),
         "training": {"samples": len(result.training), "failed": len(result.training) - len(training_ok),
                      "nominal_path": exit_statistics(np.array([run.exit_error for run in training_ok]))},
         "sensitivity_method": SENSITIVITY_METHOD,
