@@ -26,7 +26,8 @@ from stitchplan.errors import SolverDivergence
 from stitchplan.parallel import Executor
 from stitchplan.uncertainty import evaluation
 from stitchplan.uncertainty.evaluation import run_sample
-from stitchplan.uncertainty.robust import LABELS, exit_statistics, plan_under_uncertainty
+from stitchplan.uncertainty.robust import (LABELS, aim_criterion, exit_statistics, plan_under_uncertainty,
+                                           robust_aim)
 from stitchplan.uncertainty.sampling import draw, with_parameters
 
 CALIBRATION = Path(__file__).resolve().parents[1] / "sample_runs" / "calibration"
@@ -170,6 +171,19 @@ def test_exit_statistics_of_known_distances():
     assert stats == {"mean_mm": 10.5, "p50_mm": 10.5, "p95_mm": pytest.approx(19.05), "max_mm": 20.0}
 
 
+def test_the_robust_aim_centres_a_symmetric_cloud_and_beats_the_mean_on_a_skewed_one(rng):
+    direction = np.array([0.6, 0.8])
+    symmetric = np.outer(np.linspace(-1.0, 1.0, 201), direction) + [0.3, -0.1]
+    # minus the mean, to within the points' spacing (the p95 of a finite set is piecewise linear)
+    np.testing.assert_allclose(robust_aim(symmetric), [-0.3, 0.1], atol=0.01)
+    skewed = np.outer(rng.lognormal(0.0, 0.8, 64), direction)  # a 1/t-like tail to one side
+    aim = robust_aim(skewed)
+    best = aim_criterion(skewed + aim)
+    for other in (np.zeros(2), -skewed.mean(axis=0), -np.median(skewed, axis=0)):
+        assert best <= aim_criterion(skewed + other) + 1e-12
+    assert best < aim_criterion(skewed - skewed.mean(axis=0)) - 1e-3
+
+
 # --- runs: on a cluster as in-process, failures recorded -------------------------------------
 
 
@@ -288,3 +302,23 @@ def plt_image(path: Path) -> np.ndarray:
     import matplotlib.image
 
     return matplotlib.image.imread(path)
+
+
+def test_the_executor_and_the_uncertainty_layer_import_nothing_above_them():
+    """stitchplan.parallel stands on errors alone; stitchplan.uncertainty on the layers up to
+    planning (no study, io or cli), and neither imports dask before an executor starts."""
+    import subprocess
+    import sys
+
+    for module, allowed in (("stitchplan.parallel", ("stitchplan.errors", "stitchplan.parallel")),
+                            ("stitchplan.uncertainty.robust", ("stitchplan.errors", "stitchplan.geometry",
+                                                               "stitchplan.config", "stitchplan.tissue",
+                                                               "stitchplan.needle", "stitchplan.resources",
+                                                               "stitchplan.parallel", "stitchplan.planning",
+                                                               "stitchplan.uncertainty", "stitchplan.events"))):
+        code = (f"import sys, {module}\n"
+                "print(sorted(m for m in sys.modules if m.startswith(('stitchplan', 'dask', 'distributed'))))")
+        loaded = eval(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                     check=True).stdout)
+        outside = [m for m in loaded if m != "stitchplan" and not m.startswith(allowed)]
+        assert outside == [], (module, outside)
