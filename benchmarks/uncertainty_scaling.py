@@ -21,20 +21,27 @@ Run from the repository root:  python benchmarks/uncertainty_scaling.py
 
 from __future__ import annotations
 
-import math
 import os
-import platform
-import time
-from dataclasses import replace
 
-import _common as common
-from stitchplan.config.scenario import load_scenario
-from stitchplan.config.uncertainty import load_uncertainty
-from stitchplan.parallel import Executor
-from stitchplan.planning.planner import run_plan
-from stitchplan.uncertainty.evaluation import run_sample
-from stitchplan.uncertainty.robust import planned_tasks
-from stitchplan.uncertainty.sampling import draw, with_parameters
+# single-threaded BLAS, as the `stitchplan` command sets it (and its Dask workers): the
+# in-process runs then give the workers' numbers to the last bit
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import math  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import _common as common  # noqa: E402
+from stitchplan.config.scenario import load_scenario  # noqa: E402
+from stitchplan.config.uncertainty import load_uncertainty  # noqa: E402
+from stitchplan.parallel import Executor  # noqa: E402
+from stitchplan.planning.planner import run_plan  # noqa: E402
+from stitchplan.uncertainty.evaluation import run_sample  # noqa: E402
+from stitchplan.uncertainty.robust import planned_tasks  # noqa: E402
+from stitchplan.uncertainty.sampling import draw, with_parameters  # noqa: E402
 
 SCENE = "sh12_100x100"
 SAMPLES = 8
@@ -69,8 +76,9 @@ def main() -> None:
     plan_seconds = time.perf_counter() - start
     path = nominal.exported_centers
     rows = [timed_map(workers, scenarios, path) for workers in (0, 1, 2)]
-    for row in rows[1:]:  # the same numbers wherever they ran
-        assert all((a.exit_error == b.exit_error).all() for a, b in zip(row["runs"], rows[0]["runs"]))
+    reference = np.array([run.exit_error for run in rows[0]["runs"]])
+    difference = max(float(np.abs(np.array([run.exit_error for run in row["runs"]]) - reference).max())
+                     for row in rows[1:])  # 0: the same numbers wherever they ran
     load_after = load()
     one, two = rows[1], rows[2]
     per_sample = one["wall"] / SAMPLES
@@ -103,8 +111,8 @@ def main() -> None:
         lines.append(f"| {label} | {startup} | {row['wall']:.2f} | {row['rate']:.3f} | {row['task_mean']:.2f} |")
     lines += [
         "",
-        f"Speed-up from 1 to 2 workers: {two['rate'] / one['rate']:.2f} (parallel efficiency {efficiency:.0%}); "
-        "every worker's results are identical to the in-process ones (checked).",
+        f"Speed-up from 1 to 2 workers: {two['rate'] / one['rate']:.2f} (parallel efficiency {efficiency:.0%}). "
+        f"Largest difference between a worker's exit error and the in-process one: {difference:.3g} mm.",
         "",
         f"## Projected wall time of a {PROJECTED_SAMPLES}-sample robust plan",
         "",

@@ -17,10 +17,16 @@ from .plots import save
 SENSITIVITY_METHOD = (f"central finite differences of the exit error vector (achieved - desired exit, deformed), "
                       f"the nominal plan's centre path replayed at the scenario's value +- {SENSITIVITY_STEP:g} std "
                       "(at most half the value), the other parameters at the scenario's values")
-ROBUST_DESIGN = ("the nominal plan re-aimed (planner passes aiming the exit error at robust_aim_mm): the aim minimising "
-                 "mean + p95 of the training samples' misses d_i + aim, d_i = exit error of the nominal path on sample "
-                 "i - the nominal plan's own exit error; statistics on the held-out samples where every path ran")
+ROBUST_DESIGN = ("the nominal plan re-aimed with the mean exit shift: planner passes aiming the exit error at -s, "
+                 "s = mean over the training samples of (exit error of the nominal path - the nominal plan's own exit "
+                 "error); statistics on the held-out samples where every path ran")
 COLOURS = {"unplanned": "tab:red", "nominal": "tab:blue", "robust": "tab:green"}
+
+
+def per_unit(name: str) -> str:
+    """The units of a sensitivity to parameter `name`: mm/MPa, mm/(N/mm), ..."""
+    unit = UNITS[name]
+    return f"mm/({unit})" if "/" in unit else f"mm/{unit}"
 
 
 def _vector(value) -> list[float] | None:
@@ -52,7 +58,7 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "training": {"samples": len(result.training), "failed": len(result.training) - len(training_ok),
                      "nominal_path": exit_statistics(np.array([run.exit_error for run in training_ok]))},
         "sensitivity_method": SENSITIVITY_METHOD,
-        "sensitivity_units": {s.name: f"mm/{UNITS[s.name]}" for s in result.sensitivities},
+        "sensitivity_units": {s.name: per_unit(s.name) for s in result.sensitivities},
         "sensitivity_step": {s.name: s.step for s in result.sensitivities},
         "sensitivity_achieved_exit": {s.name: _vector(s.achieved_exit) for s in result.sensitivities},
         "spread_1sigma_mm": {s.name: None if s.exit_error is None else s.spread_mm for s in result.sensitivities},
@@ -95,7 +101,7 @@ def uncertainty_datasets(result: UncertaintyResult) -> tuple[dict, dict]:
     units = {"uncertainty/parameter_names": "text", "uncertainty/nominal_values": parameter_units,
              "uncertainty/std": parameter_units, "uncertainty/correlation": "1",
              "uncertainty/training_parameters": parameter_units, "uncertainty/held_out_parameters": parameter_units,
-             "uncertainty/sensitivity": ",".join(f"mm/{UNITS[name]}" for name in names),
+             "uncertainty/sensitivity": ",".join(per_unit(name) for name in names),
              "uncertainty/sensitivity_step": parameter_units, "uncertainty/mean_shift": "mm"}
     runs = {"training/nominal": result.training, **{f"held_out/{label}": result.held_out[label] for label in LABELS}}
     for key, group in runs.items():
@@ -163,7 +169,7 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
     moves = [0.0 if s.exit_error is None else Z_95 * s.spread_mm for s in result.sensitivities]
     bars = ax.barh(names, moves, color="0.45")
     for bar, s in zip(bars, result.sensitivities):
-        text = "failed" if s.exit_error is None else (f"{np.linalg.norm(s.exit_error):.3g} mm/{UNITS[s.name]}"
+        text = "failed" if s.exit_error is None else (f"{np.linalg.norm(s.exit_error):.3g} {per_unit(s.name)}"
                                                        f" x 1.96 x {s.std:g}")
         ax.text(bar.get_width(), bar.get_y() + bar.get_height() / 2, " " + text, va="center", fontsize=7)
     ax.set_xlim(0.0, max(moves + [1e-6]) * 1.9)
