@@ -1,6 +1,6 @@
 """Throughput of the sampled runs of `stitchplan plan --uncertainty` against Dask workers.
 
-On configs/sh12_100x100.yaml with the distributions of configs/uncertainty_sample.yaml:
+On configs/sh12_100x100.yaml with the distributions of configs/uncertainty/uncertainty_sample.yaml:
 
 1. the nominal plan (in process, as the command makes it) and its centre path;
 2. SAMPLES sampled scenarios (the design's training points) replayed with that path
@@ -68,7 +68,7 @@ def timed_map(workers: int, scenarios, path) -> dict:
 def main() -> None:
     load_before = load()
     scenario = load_scenario(common.REPO_ROOT / "configs" / f"{SCENE}.yaml")
-    uncertainty = load_uncertainty(common.REPO_ROOT / "configs" / "uncertainty_sample.yaml")
+    uncertainty = load_uncertainty(common.REPO_ROOT / "configs" / "uncertainty" / "uncertainty_sample.yaml")
     design = draw(uncertainty, scenario)
     scenarios = [with_parameters(scenario, design.names, values) for values in design.train[:SAMPLES]]
     start = time.perf_counter()
@@ -94,7 +94,7 @@ def main() -> None:
         "# Sampled runs of `plan --uncertainty` against Dask workers",
         "",
         f"`python benchmarks/uncertainty_scaling.py`: configs/{SCENE}.yaml, {SAMPLES} parameter sets of "
-        "configs/uncertainty_sample.yaml (the design's training points), each a replay of the nominal plan's "
+        "configs/uncertainty/uncertainty_sample.yaml (the design's training points), each a replay of the nominal plan's "
         "centre path (`stitchplan.uncertainty.evaluation.run_sample`, the command's Dask task). "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, shared with other work: "
         f"load average (1 / 5 / 15 min) {load_before} before, {load_after} after.",

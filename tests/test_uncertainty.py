@@ -309,3 +309,14 @@ def test_the_executor_and_the_uncertainty_layer_import_nothing_above_them():
                                      check=True).stdout)
         outside = [m for m in loaded if m != "stitchplan" and not m.startswith(allowed)]
         assert outside == [], (module, outside)
+
+
+def test_the_shipped_uncertainty_file_reads_the_sample_calibration():
+    root = Path(__file__).resolve().parents[1]
+    resolved = load_uncertainty(root / "configs" / "uncertainty" / "uncertainty_sample.yaml")
+    assert resolved.names == ("lame_lambda", "lame_mu", "friction", "cutting_force", "thickness")
+    assert resolved.sources["lame_lambda"] == resolved.sources["lame_mu"] == "calibration"
+    assert resolved.correlation[0, 1] == pytest.approx(-0.9903)
+    scenario = parse_scenario(yaml.safe_load((root / "configs" / "sh12_100x100.yaml").read_text()))
+    design = draw(resolved, scenario)
+    assert design.train.shape == (16, 5) and design.rejected == 0

@@ -238,9 +238,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
                             **options) -> None:
     """plan --uncertainty: the robust plan over the file's parameter distributions, its
     sampled runs on the executor (stitchplan.uncertainty.robust)."""
-    from ..config import input_error
     from ..config.uncertainty import check_against_scenario, load_uncertainty
-    from ..errors import InputError
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
@@ -250,10 +248,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
 
     uncertainty = load_uncertainty(uncertainty_path)
     check_against_scenario(uncertainty, scenario, scenario_path)
-    try:
-        draw(uncertainty, scenario)  # a distribution mostly below zero, refused before the runs
-    except InputError as error:
-        raise input_error(getattr(error, "lines", [str(error)])) from None
+    draw(uncertainty, scenario)  # a distribution mostly below zero is refused before the runs
     tasks = planned_tasks(uncertainty)
     _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks))
     with executor, progress_bar("plans and sampled runs", tasks + 2) as advance:
