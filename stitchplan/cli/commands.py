@@ -178,6 +178,7 @@ def plan(
             if value is not None:
                 raise InputError(f"{option}: got {value}, expected it only with --uncertainty FILE")
     executor = _executor(workers, scheduler)
+    verify = verify and uncertainty_path is None  # the plans under uncertainty are not verified
     _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                     "--uncertainty-plot": uncertainty_plot},
                    {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path})
