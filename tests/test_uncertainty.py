@@ -173,14 +173,21 @@ def test_exit_statistics_of_known_distances():
 # --- runs: on a cluster as in-process, failures recorded -------------------------------------
 
 
-def test_a_two_worker_cluster_gives_the_in_process_results():
+@pytest.fixture(scope="module")
+def cluster():
+    """A running two-worker Dask cluster, reached through its address (--scheduler)."""
     from dask.distributed import LocalCluster
 
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=50) as running:
+        yield running.scheduler_address
+
+
+def test_a_two_worker_cluster_gives_the_in_process_results(cluster):
     scenario = parse_scenario(small_raw())
     spec = uncertainty(small_uncertainty(samples=2))
     local = plan_under_uncertainty(scenario, spec, Executor(workers=0))
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=50) as cluster, Executor(scheduler=cluster.scheduler_address) as executor:
+    with Executor(scheduler=cluster) as executor:
         remote = plan_under_uncertainty(scenario, spec, executor)
         assert len(executor.client.scheduler_info()["workers"]) == 2
     assert remote.where.startswith("Dask scheduler tcp://")
@@ -189,6 +196,38 @@ def test_a_two_worker_cluster_gives_the_in_process_results():
     np.testing.assert_array_equal([s.exit_error for s in remote.sensitivities],
                                   [s.exit_error for s in local.sensitivities])
     assert remote.statistics == local.statistics and remote.exported == local.exported
+
+
+def test_the_tasks_of_a_lost_worker_run_again(cluster, tmp_path):
+    def dies_once(index: int, marker: str) -> int:  # pickled by value: the workers need no test module
+        import os
+
+        if index == 1 and not os.path.exists(marker):
+            open(marker, "w").close()
+            os._exit(1)  # the worker process dies with the task
+        return index * index
+
+    with Executor(scheduler=cluster) as executor:
+        results = executor.map(dies_once, range(4), [str(tmp_path / "died")] * 4)
+    assert (tmp_path / "died").exists() and results == [0, 1, 4, 9]
+
+
+def test_the_study_sweep_on_a_cluster_gives_the_in_process_runs(cluster):
+    from test_study import tiny_raw
+
+    from stitchplan.study.sweep import run_study
+
+    scenario = parse_scenario(tiny_raw())
+    local = run_study(scenario, quick=True)
+    seen = []
+    with Executor(scheduler=cluster) as executor:
+        remote = run_study(scenario, quick=True, executor=executor, on_run=lambda run: seen.append(run.label))
+    assert sorted(seen) == sorted(run.label for run in local.runs)  # each reported once, as it completes
+    assert [run.label for run in remote.runs] == [run.label for run in local.runs]  # submission order
+    for a, b in zip(remote.runs, local.runs):
+        assert a.ok and b.ok and a.particles == b.particles
+        np.testing.assert_array_equal(a.result.achieved_exit_def, b.result.achieved_exit_def)
+        assert a.deviations == b.deviations
 
 
 def test_a_failing_sample_is_recorded_with_its_reason(tmp_path, monkeypatch):
