@@ -11,11 +11,11 @@ On configs/sh12_100x100.yaml with the distributions of configs/uncertainty/uncer
 3. the projected wall time of a 64-sample robust plan on N workers from the measured
    per-sample cost: cluster start-up + nominal plan + ceil((3 x 64 + 2 k) / N) replays +
    robust plan + ceil(64 / N) replays (k uncertain parameters: two sensitivity runs each),
-   each replay costing the 1-worker cluster's time per sample (perfect scaling assumed past
-   the measured 2 workers; the measured 2-worker efficiency is in the table).
+   each replay costing the 1-worker cluster's time per sample (perfect scaling from one
+   worker assumed; the measured 2-worker efficiency is in the table).
 
 The machine is shared: the load average before and after is written with the results.
-Writes benchmarks/results/uncertainty_scaling.md. A few minutes.
+Writes benchmarks/results/uncertainty_scaling.md. 1-2 minutes.
 Run from the repository root:  python benchmarks/uncertainty_scaling.py
 """
 
@@ -119,8 +119,8 @@ def main() -> None:
         f"{k} uncertain parameters: {first} replays before the robust plan ({PROJECTED_SAMPLES} training, "
         f"{PROJECTED_SAMPLES} unplanned and {PROJECTED_SAMPLES} nominal held-out, {2 * k} sensitivity), {second} "
         f"after it (robust held-out), two plans in process ({plan_seconds:.1f} s each), cluster start-up "
-        f"{two['startup']:.1f} s; {per_sample:.2f} s per replay (the 1-worker cluster's), perfect scaling assumed "
-        "beyond 2 workers (a shared scheduler adds ~ms per task).",
+        f"{two['startup']:.1f} s; {per_sample:.2f} s per replay (the 1-worker cluster's), perfect scaling from 1 worker assumed "
+        "(the measured 2-worker efficiency is above; a shared scheduler adds ~ms per task).",
         "",
         "| workers | projected wall time | replays / s |",
         "|---|---|---|",
