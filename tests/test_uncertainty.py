@@ -113,6 +113,9 @@ def test_options_of_uncertainty_without_it_and_bad_pairs_are_refused(tmp_path):
     line = one_error_line(invoke("plan", scenario, "--export", tmp_path / "t.csv", "--uncertainty", path,
                                  "--scheduler", "localhost"))
     assert "--scheduler: got 'localhost', expected a Dask scheduler address" in line
+    line = one_error_line(invoke("plan", scenario, "--export", tmp_path / "t.csv", "--uncertainty", path,
+                                 "--scheduler", "tcp://127.0.0.1:8786", "--workers", "2"))
+    assert "--workers: got 2 with --scheduler tcp://127.0.0.1:8786, expected one of the two" in line
     line = one_error_line(invoke("plan", scenario, "--export", path, "--uncertainty", path, "--workers", "0"))
     assert "expected a file other than the input --uncertainty" in line
     assert not (tmp_path / "t.csv").exists()
