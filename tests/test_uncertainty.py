@@ -118,6 +118,13 @@ def test_options_of_uncertainty_without_it_and_bad_pairs_are_refused(tmp_path):
     assert "--workers: got 2 with --scheduler tcp://127.0.0.1:8786, expected one of the two" in line
     line = one_error_line(invoke("plan", scenario, "--export", path, "--uncertainty", path, "--workers", "0"))
     assert "expected a file other than the input --uncertainty" in line
+    shutil.copy(CALIBRATION / "fitted.yaml", tmp_path / "fitted.yaml")
+    calibrated = write(tmp_path, {"samples": 2, "from_calibration": "fitted.yaml"}, "c.yaml")
+    before = (tmp_path / "fitted.yaml").read_bytes()
+    line = one_error_line(invoke("plan", scenario, "--export", tmp_path / "t.csv", "--summary", tmp_path / "fitted.yaml",
+                                 "--uncertainty", calibrated, "--workers", "0"))
+    assert "--summary" in line and "expected a file other than the input from_calibration" in line
+    assert (tmp_path / "fitted.yaml").read_bytes() == before
     assert not (tmp_path / "t.csv").exists()
 
 

@@ -248,6 +248,9 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     from ..uncertainty.sampling import draw
 
     uncertainty = load_uncertainty(uncertainty_path)
+    _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
+                    "--uncertainty-plot": uncertainty_plot},
+                   {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration})
     check_against_scenario(uncertainty, scenario, scenario_path)
     draw(uncertainty, scenario)  # a distribution mostly below zero is refused before the runs
     tasks = planned_tasks(uncertainty)
