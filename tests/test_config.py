@@ -424,7 +424,8 @@ def test_config_imports_no_layer_above_it():
     import subprocess
     import sys
 
-    modules = ["fields", "messages", "yaml_files", "blocks", "study", "scenario", "schema", "calibration"]
+    modules = ["fields", "messages", "yaml_files", "blocks", "study", "scenario", "schema", "calibration",
+               "uncertainty"]
     for module in modules:
         code = (f"import sys, stitchplan.config.{module}\n"
                 "print(sorted(m for m in sys.modules if m.startswith('stitchplan')))")

@@ -13,8 +13,8 @@ import typer
 from .group import app
 from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOption, ScenarioArgument,
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
-                      MaxParticlesOption, NoResourceCheckOption, _check_outputs, _check_plot_steps,
-                      _echo_events, _expected_steps, _guard, _limits, _load, _needle_geometry,
+                      MaxParticlesOption, NoResourceCheckOption, SchedulerOption, WorkersOption,
+                      _check_outputs, _check_plot_steps, _echo_events, _executor, _expected_steps, _guard, _limits, _load, _needle_geometry,
                       _parse_base_transform,
                       _parse_steps, _plot_steps_note, _provenance, _setup_logging, _value)
 
@@ -143,6 +143,16 @@ def plan(
     verify: bool = typer.Option(
         True, "--verify/--no-verify",
         help="Replay the trajectory on a model of half the spacing, re-aiming if it misses there."),
+    uncertainty_path: Optional[Path] = typer.Option(
+        None, "--uncertainty",
+        help="Uncertainty YAML (see README: Planning under uncertainty): export the robust plan, "
+        "with exit-error bands over sampled parameters and sensitivities in the summary."),
+    uncertainty_plot: Optional[Path] = typer.Option(
+        None, "--uncertainty-plot",
+        help="PNG (with --uncertainty): exit clouds of the unplanned, nominal and robust paths on the "
+        "held-out samples, and the sensitivities."),
+    workers: Optional[int] = WorkersOption,
+    scheduler: Optional[str] = SchedulerOption,
     spacing: Optional[float] = SpacingOption,
     dilation: Optional[float] = DilationOption,
     linear_solver: Optional[LinearSolver] = LinearSolverOption,
@@ -162,8 +172,16 @@ def plan(
     from ..errors import InputError
 
     _setup_logging(verbose, quiet)
-    _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot},
-                   {"SCENARIO": scenario_path})
+    if uncertainty_path is None:
+        for option, value in (("--uncertainty-plot", uncertainty_plot), ("--workers", workers),
+                              ("--scheduler", scheduler)):
+            if value is not None:
+                raise InputError(f"{option}: got {value}, expected it only with --uncertainty FILE")
+    executor = _executor(workers, scheduler)
+    verify = verify and uncertainty_path is None  # the plans under uncertainty are not verified
+    _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
+                    "--uncertainty-plot": uncertainty_plot},
+                   {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path})
     linear_solver, tip_tracking = _value(linear_solver), _value(tip_tracking)
     if angular_speed is not None and not 0 < angular_speed < math.inf:  # also refuses nan
         raise InputError(f"--angular-speed: got {angular_speed!r}, expected a positive speed in rad/s")
@@ -198,6 +216,12 @@ def plan(
                                            max_particles=None if limits is None else limits.max_particles)
     if auto_note is not None:
         guard(scenario)  # the verification model of the chosen discretization
+    if uncertainty_path is not None:
+        _plan_under_uncertainty(scenario_path, scenario, uncertainty_path, executor, auto_note, limits,
+                                export=export, out=out, summary=summary, plot=plot,
+                                uncertainty_plot=uncertainty_plot, provenance=provenance, quiet=quiet,
+                                linear_solver=linear_solver, tip_tracking=tip_tracking)
+        return
     expected = _expected_steps(scenario)
     with progress_bar("planned steps", (2 if compare else 1) * expected) as advance:
         result = plan_verified(scenario, compare=compare, verify=verify, linear_solver=linear_solver,
@@ -210,11 +234,57 @@ def plan(
     _echo_events(result.planned.events, quiet)
 
 
+def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Path, executor, auto_note, limits,
+                            export: Path, out, summary, plot, uncertainty_plot, provenance: dict, quiet: bool,
+                            **options) -> None:
+    """plan --uncertainty: the robust plan over the file's parameter distributions, its
+    sampled runs on the executor (stitchplan.uncertainty.robust)."""
+    from ..config.uncertainty import check_against_scenario, load_uncertainty
+    from ..io import reports
+    from ..io.progress import progress_bar
+    from ..io.uncertainty_reports import uncertainty_lines
+    from ..resources import PLAN_RUNS
+    from ..uncertainty.robust import plan_under_uncertainty, planned_tasks
+    from ..uncertainty.sampling import draw
+
+    uncertainty = load_uncertainty(uncertainty_path)
+    _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
+                    "--uncertainty-plot": uncertainty_plot},
+                   {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration})
+    check_against_scenario(uncertainty, scenario, scenario_path)
+    draw(uncertainty, scenario)  # a distribution mostly below zero is refused before the runs
+    tasks = planned_tasks(uncertainty)
+    _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks))
+    with executor, progress_bar("plans and sampled runs", tasks + 2) as advance:
+        result = plan_under_uncertainty(scenario, uncertainty, executor,
+                                        on_run=lambda description: advance(description=description), **options)
+    plan = result.exported_plan
+    note = ("the plans under uncertainty are not verified on a refined model (the sampled runs replay them on "
+            "the planning model)")
+    plan.planned.events.insert(0, _note_event(note))
+    if auto_note is not None:
+        plan.planned.events.insert(0, auto_note)
+    reports.write_plan_outputs(plan, export=export, out=out, summary=summary, plot=plot, provenance=provenance,
+                               uncertainty=result, uncertainty_plot=uncertainty_plot)
+    typer.echo(reports.plan_line(plan, export))
+    for line in uncertainty_lines(result):
+        typer.echo(line)
+    _echo_events(plan.planned.events, quiet)
+
+
+def _note_event(message: str):
+    from ..events import Event, EventKind
+
+    return Event(EventKind.ACCURACY_CHECK, message)
+
+
 @app.command()
 def study(
     scenario_path: Path = ScenarioArgument,
     out: Path = typer.Option(..., "--out", help="Folder for study.csv and speed_accuracy.png."),
     quick: bool = typer.Option(False, "--quick", help="A tiny sweep: two families, two spacings."),
+    workers: Optional[int] = WorkersOption,
+    scheduler: Optional[str] = SchedulerOption,
     max_particles: Optional[int] = MaxParticlesOption,
     no_resource_check: bool = NoResourceCheckOption,
     verbose: int = VerboseOption,
@@ -223,7 +293,8 @@ def study(
     """Speed against accuracy of the needle insertion over discretizations and methods.
 
     Runs the sweep of the scenario's `study:` block (or a default around its discretization)
-    and compares each run's exit point and wall time with the finest run's.
+    and compares each run's exit point and wall time with the finest run's. The runs are
+    tasks on a Dask cluster (--workers, --scheduler); wall times compare best with one worker.
     """
     from ..errors import InputError
 
@@ -232,6 +303,7 @@ def study(
         raise InputError(f"--out: {out} is a file, expected a folder")
     from ..io.study_reports import study_outputs, summary_lines, write_study_outputs
 
+    executor = _executor(workers, scheduler)
     _check_outputs(study_outputs(out), {"SCENARIO": scenario_path})
     scenario = _load(scenario_path, None, None)
     from ..io.progress import progress_bar
@@ -240,8 +312,9 @@ def study(
     runs, reference, repeats = plan_runs(scenario, quick)
     _guard(scenario_path, _limits(max_particles, no_resource_check),
            *[("insertion", run.scenario, f"study run {run.label!r}", repeats) for run in [*runs, reference]])
-    with progress_bar("study runs", study_size(scenario, quick)) as advance:
-        result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label))
+    with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:
+        result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
+                           executor=executor)
     csv_path, png_path = write_study_outputs(result, out)
     for line in summary_lines(result):
         typer.echo(line)

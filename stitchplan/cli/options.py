@@ -234,3 +234,27 @@ def _parse_base_transform(text: Optional[str]):
     return rotation, (tx, ty)
 
 
+
+
+def _workers(value: Optional[int]) -> Optional[int]:
+    if value is not None and value < 0:
+        raise typer.BadParameter(f"got {value!r}, expected a number of worker processes >= 0 (0: in this process)")
+    return value
+
+
+WorkersOption = typer.Option(
+    None, "--workers", callback=_workers, metavar="N",
+    help="Run the independent runs on a local Dask cluster of N single-threaded worker processes "
+    "(default: the machine's cores; 0: one after another in this process).")
+SchedulerOption = typer.Option(
+    None, "--scheduler", metavar="ADDRESS",
+    help="Run the independent runs on the running Dask cluster at ADDRESS (tcp://host:port) "
+    "instead of a local one.")
+
+
+def _executor(workers: Optional[int], scheduler: Optional[str]):
+    """The executor of a command's independent runs (stitchplan.parallel.Executor), not yet
+    started; a bad --workers/--scheduler pair is an InputError before any work."""
+    from ..parallel import Executor
+
+    return Executor(workers=workers, scheduler=scheduler)

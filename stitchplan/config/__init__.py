@@ -9,7 +9,8 @@ Modules, each importing only those before it (and stitchplan.errors, stitchplan.
 - study: the optional `study:` block;
 - scenario: the scenario file and Scenario, default spacing, load_scenario;
 - schema: the JSON Schema of scenario files;
-- calibration: the `calibrate material` input file.
+- calibration: the `calibrate material` input file;
+- uncertainty: the `plan --uncertainty` file (and a `calibrate material` output it reads).
 """
 
 from .blocks import (

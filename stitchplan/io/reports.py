@@ -325,15 +325,20 @@ def _write_insertion_files(result, command: str, out: Path | None, summary: Path
 
 
 def write_plan_outputs(result, export: Path, out: Path | None = None, summary: Path | None = None,
-                       plot: Path | None = None, provenance: dict | None = None) -> None:
+                       plot: Path | None = None, provenance: dict | None = None,
+                       uncertainty=None, uncertainty_plot: Path | None = None) -> None:
     """trajectory.csv, summary JSON, HDF5 run log and the planned-vs-unplanned PNG: all of
-    them or none (an OutputSet), so a robot never picks up a trajectory whose run failed."""
-    outputs = OutputSet({"--export": export, "--out": out, "--summary": summary, "--plot": plot})
+    them or none (an OutputSet), so a robot never picks up a trajectory whose run failed.
+    With `uncertainty` (an uncertainty.robust.UncertaintyResult whose exported plan is
+    `result`) the summary's `uncertainty` block, the log's `uncertainty` group and
+    `uncertainty_plot` (uncertainty.png) too."""
+    outputs = OutputSet({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
+                         "--uncertainty-plot": uncertainty_plot})
     with outputs.staged() as files:
-        _write_plan_files(result, files, provenance or make_provenance())
+        _write_plan_files(result, files, provenance or make_provenance(), uncertainty)
 
 
-def _write_plan_files(result, files: dict[str, Path], provenance: dict) -> None:
+def _write_plan_files(result, files: dict[str, Path], provenance: dict, uncertainty=None) -> None:
     """Writes to the temporaries `files` of an OutputSet."""
     from ..planning.trajectory import trajectory_table
 
@@ -377,11 +382,22 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict) -> None:
             "exit_error_mm": unplanned.exit_error_mm,
             "final_displacement": unplanned.displacements[-1],
         }
+    units = {"planner/trajectory": column_units(columns)}
+    if uncertainty is not None:
+        from .uncertainty_reports import uncertainty_datasets, uncertainty_summary
+
+        extra.update(uncertainty_summary(uncertainty))
+        groups, group_units = uncertainty_datasets(uncertainty)
+        datasets.update(groups)
+        units.update(group_units)
     write_csv(export, columns, rows)
     _write_insertion_files(planned, "plan", out, summary, None, extra_summary=extra,
-                           extra_datasets=datasets, provenance=provenance,
-                           units={"planner/trajectory": column_units(columns)})
+                           extra_datasets=datasets, provenance=provenance, units=units)
     if plot is not None:
         from .needle_plots import plot_plan
 
         plot_plan(plot, result)
+    if files.get("--uncertainty-plot") is not None:
+        from .uncertainty_reports import plot_uncertainty
+
+        plot_uncertainty(files["--uncertainty-plot"], uncertainty, planned.scenario.name)

@@ -21,31 +21,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..config import Scenario
-from ..errors import StitchplanError
 from ..events import Event, EventKind
 from ..needle.insertion import run_insertion
+# what a run may end with because of its configuration (recorded with its reason): the
+# project's errors, degenerate linear algebra, a model too big for the machine; shared
+# with the sampled runs of `plan --uncertainty`
+from ..parallel import RUN_FAILURES
 from ..resources import model_size
 
 if TYPE_CHECKING:
     from ..needle.results import InsertionResult
 
 log = logging.getLogger(__name__)
-
-# what a run may end with because of its configuration:
-RUN_FAILURES = (
-    # the project's own errors: a discretization the scenario checks refuse (InputError, e.g. a
-    # quadratic basis with too small a dilation) and numerical failures of an accepted one
-    # (SolverDivergence, InvertedMaterial, SingularMomentMatrix, TipTrackingJump, InsertionFailure)
-    StitchplanError,
-    # dense linear algebra on a degenerate model: numpy's solves and factorizations
-    np.linalg.LinAlgError,
-    # SuperLU (scipy.sparse.linalg.splu) raises a bare RuntimeError on an exactly singular factor
-    # (too few particles or quadrature points to pin the tissue down)
-    RuntimeError,
-    # a model too fine for the machine: the sweep records it and goes on with the coarser runs
-    MemoryError,
-)
-
 
 @dataclass
 class InsertionRun:

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field, replace
 from ..config import Scenario
 from ..config.study import StudyFamily, StudySpec
 from ..errors import InputError
+from ..parallel import Executor, run_all
 from .auto import AutoChoice, choose_discretization
 from .runner import InsertionRun, exit_deviations, run_timed
 
@@ -203,18 +204,21 @@ def compared_run(runs: list[StudyRun], reference: StudyRun, notes: list[str]) ->
 
 def run_study(scenario: Scenario, quick: bool = False,
               on_run: Callable[[StudyRun], None] | None = None,
-              auto: bool | None = None) -> StudyResult:
-    """Run every configuration of the study, then the reference; compare each with it.
+              auto: bool | None = None, executor: Executor | None = None) -> StudyResult:
+    """Run every configuration of the study and the reference, each a task on `executor`
+    (default: one after another in this process); compare each with the reference.
 
     With an `accuracy` in the scenario's discretization (or auto=True) the auto
-    discretization is chosen too and its run added as family "auto".
+    discretization is chosen too (in this process) and its run added as family "auto".
+    Wall times are each run's own: on a cluster of more workers than free cores the runs
+    compete for them, so for timings that compare, run with one worker (--workers 1 or 0).
     """
     report = on_run or (lambda run: None)
     runs, reference, repeats = plan_runs(scenario, quick)
     notes: list[str] = []
-    for run in runs:
-        report(run_timed(run, repeats))
-    report(run_timed(reference, 1))
+    done = run_all(run_timed, [*runs, reference], [repeats] * len(runs) + [1], executor=executor,
+                   on_result=lambda index, run: report(run))
+    runs, reference = done[:-1], done[-1]  # from a cluster: the workers' copies
     choice = None
     wants_auto = scenario.discretization.accuracy is not None if auto is None else auto
     if wants_auto:

@@ -1,0 +1,251 @@
+"""The `--uncertainty` file of `stitchplan plan` (SCENARIO.md, "Planning under parameter
+uncertainty"): how many parameter sets to draw, the seed, and a normal distribution around
+the scenario's value for each uncertain parameter, with correlations.
+
+    samples: 32
+    seed: 7
+    from_calibration: fitted.yaml     # lame_lambda, lame_mu std and their correlation
+    parameters:
+      thickness: {std: 0.5}           # mm
+    correlation:
+      - {between: [lame_lambda, lame_mu], value: -0.9}
+
+`from_calibration` reads a `stitchplan calibrate material` output (path relative to this
+file): its `fit.standard_uncertainty` gives the std of lame_lambda and lame_mu and its
+`fit.correlation` their correlation; entries of `parameters` and `correlation` given in
+this file override them. `resolve_uncertainty` gives the resolved `Uncertainty` (names,
+stds, correlation matrix), refusing a matrix that is not positive definite;
+`check_against_scenario` refuses a parameter the scenario does not have.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+from pydantic import Field, Strict, model_validator
+
+from .blocks import block
+from .fields import choice, described, expecting, integer, number, pair, problem, sequence
+from .messages import input_error, short, validate
+from .yaml_files import read_yaml
+
+# the uncertain parameters and their units (the scenario's fields they replace: UNITS order)
+UNITS = {"lame_lambda": "MPa", "lame_mu": "MPa", "friction": "N/mm", "cutting_force": "N",
+         "thickness": "mm"}
+PARAMETERS = tuple(UNITS)
+MAX_SAMPLES = 10_000
+
+Parameter = choice(PARAMETERS, "one of " + ", ".join(PARAMETERS))
+CalibrationFile = Annotated[str, Strict(), Field(min_length=1),
+                            expecting("a `calibrate material` output file (relative to this file)")]
+
+
+@block(title="parameter")
+class Spread:
+    """A normal distribution around the scenario's value, truncated to positive values."""
+
+    std: described(number("a positive number (the parameter's units)", gt=0), "standard deviation")
+
+
+@block(title="parameters")
+class Spreads:
+    lame_lambda: described(Spread | None, "MPa") = None
+    lame_mu: described(Spread | None, "MPa") = None
+    friction: described(Spread | None, "N/mm") = None
+    cutting_force: described(Spread | None, "N") = None
+    thickness: described(Spread | None, "mm") = None
+
+
+@block(title="correlation")
+class Correlation:
+    between: described(pair("two different parameter names [a, b]", Parameter), "the two parameters")
+    value: described(number("a number between -1 and 1 (exclusive)", gt=-1, lt=1), "correlation coefficient")
+
+    @model_validator(mode="after")
+    def _two_different(self) -> Correlation:
+        if self.between[0] == self.between[1]:
+            raise problem("two different parameter names [a, b]", field="between", value=list(self.between))
+        return self
+
+
+@block(kw_only=True, title="stitchplan uncertainty")
+class UncertaintyFile:
+    """An uncertainty file as written."""
+
+    samples: described(integer(2, MAX_SAMPLES), "parameter sets drawn (and as many held out)")
+    seed: described(integer(0, 2 ** 32 - 1), "seed of the low-discrepancy design") = 0
+    from_calibration: described(CalibrationFile | None, "`calibrate material` output: lame_lambda and "
+                                                        "lame_mu std and correlation") = None
+    parameters: described(Spreads | None, "normal distributions around the scenario's values") = None
+    correlation: described(sequence(Correlation, "a list of {between: [a, b], value: r}"),
+                           "correlations between parameters") = ()
+
+    @model_validator(mode="after")
+    def _pairs_once(self) -> UncertaintyFile:
+        seen: dict[frozenset, int] = {}
+        for k, entry in enumerate(self.correlation):
+            key = frozenset(entry.between)
+            if key in seen:
+                raise problem(f"each pair once (given at correlation[{seen[key]}] already)",
+                              field=f"correlation[{k}].between", value=list(entry.between))
+            seen[key] = k
+        return self
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """The resolved distributions: `names` (PARAMETERS order) with their `std` and the
+    correlation matrix (len(names) square, positive definite); where each came from."""
+
+    samples: int
+    seed: int
+    names: tuple[str, ...]
+    std: np.ndarray  # (k,)
+    correlation: np.ndarray  # (k, k)
+    sources: dict[str, str]  # name -> "file" or "calibration"
+    path: str  # the uncertainty file
+    calibration: str | None  # the calibrate material output read, if any
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.correlation * np.outer(self.std, self.std)
+
+    def as_record(self) -> dict:
+        return {"samples": self.samples, "seed": self.seed,
+                "parameters": {name: {"std": float(s), "units": UNITS[name], "source": self.sources[name]}
+                               for name, s in zip(self.names, self.std)},
+                "correlation": [{"between": [a, b], "value": float(self.correlation[i, j])}
+                                for i, a in enumerate(self.names) for j, b in enumerate(self.names)
+                                if i < j and self.correlation[i, j] != 0.0],
+                "from_calibration": self.calibration}
+
+
+def parse_uncertainty(raw: Any) -> UncertaintyFile:
+    """The validated file; an InputError lists every problem of it."""
+    return validate(UncertaintyFile, raw, "", root="uncertainty")
+
+
+def load_uncertainty(path: str | Path) -> Uncertainty:
+    """The resolved uncertainty of a file; every error line starts with the file's path."""
+    raw, _ = read_yaml(path)
+    try:
+        spec = parse_uncertainty(raw)
+    except Exception as error:
+        lines = getattr(error, "lines", None)
+        if lines is None:
+            raise
+        raise input_error([f"{path}: {line}" for line in lines]) from None
+    return resolve_uncertainty(spec, path)
+
+
+def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
+    """Stds and correlations from the file and its `from_calibration` output (the file's own
+    entries win); the correlation matrix must be positive definite."""
+    path = Path(path)
+    std: dict[str, float] = {}
+    sources: dict[str, str] = {}
+    pairs: dict[frozenset, float] = {}
+    calibration = None
+    if spec.from_calibration is not None:
+        calibration = path.parent / spec.from_calibration
+        std, pair_value = calibration_spread(calibration, path)
+        sources = {name: "calibration" for name in std}
+        pairs[frozenset(("lame_lambda", "lame_mu"))] = pair_value
+    given = spec.parameters or Spreads()
+    for name in PARAMETERS:
+        spread = getattr(given, name)
+        if spread is not None:
+            std[name], sources[name] = spread.std, "file"
+    for entry in spec.correlation:
+        pairs[frozenset(entry.between)] = entry.value
+    names = tuple(name for name in PARAMETERS if name in std)
+    lines = []
+    if not names:
+        lines.append(f"{path}: parameters: got none, expected at least one uncertain parameter among "
+                     f"{', '.join(PARAMETERS)} (or from_calibration)")
+    for k, entry in enumerate(spec.correlation):
+        missing = [name for name in entry.between if name not in std]
+        if missing:
+            lines.append(f"{path}: correlation[{k}].between: got {list(entry.between)}, expected parameters "
+                         f"with a std ({missing[0]} has none in parameters" +
+                         (" or from_calibration)" if spec.from_calibration is None or missing[0] not in
+                          ("lame_lambda", "lame_mu") else ")"))
+    if lines:
+        raise input_error(lines)
+    matrix = np.eye(len(names))
+    for i, a in enumerate(names):
+        for j, b in enumerate(names):
+            if i != j:
+                matrix[i, j] = pairs.get(frozenset((a, b)), 0.0)
+    try:
+        np.linalg.cholesky(matrix)
+    except np.linalg.LinAlgError:
+        smallest = float(np.linalg.eigvalsh(matrix).min())
+        given_pairs = [f"{'-'.join(sorted(pair_names))} {value:g}" for pair_names, value in pairs.items()]
+        raise input_error([f"{path}: correlation: got {short('; '.join(given_pairs))}, expected a positive "
+                           f"definite correlation matrix (its smallest eigenvalue is {smallest:.3g})"]) from None
+    return Uncertainty(spec.samples, spec.seed, names, np.array([std[name] for name in names]), matrix,
+                       {name: sources[name] for name in names}, str(path),
+                       None if calibration is None else str(calibration))
+
+
+def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float], float]:
+    """lame_lambda and lame_mu std and their correlation from a `calibrate material` output."""
+    where = f"{source}: from_calibration: {calibration}"
+    if not calibration.is_file():
+        raise input_error([f"{where}: cannot be read (no such file), expected a `stitchplan calibrate "
+                           "material` output (path relative to the uncertainty file)"])
+    try:
+        raw, _ = read_yaml(calibration)
+    except Exception as error:
+        raise input_error([f"{source}: from_calibration: {line}" for line in getattr(error, "lines", [str(error)])]) from None
+    fit = raw.get("fit") if isinstance(raw, dict) else None
+    if not isinstance(fit, dict) or not isinstance(fit.get("standard_uncertainty"), dict):
+        raise input_error([f"{where}: fit.standard_uncertainty: missing, expected a `stitchplan calibrate "
+                           "material` output (fitted.yaml)"])
+    given = {name: fit["standard_uncertainty"].get(name) for name in ("lame_lambda", "lame_mu")}
+    if not all(_finite(value) and value > 0 for value in given.values()):
+        why = ("; the calibration could not separate the moduli (fit.identifiable: false)"
+               if fit.get("identifiable") is False else "")
+        raise input_error([f"{where}: fit.standard_uncertainty: got {short(given)}, expected positive standard "
+                           f"uncertainties of lame_lambda and lame_mu (MPa){why}"])
+    value = fit.get("correlation")
+    if not (_finite(value) and -1 < value < 1):
+        raise input_error([f"{where}: fit.correlation: got {short(value)}, expected a number between -1 and 1 "
+                           "(exclusive)"])
+    std = {name: float(v) for name, v in given.items()}
+    return std, float(value)
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def scenario_values(scenario, names: tuple[str, ...]) -> np.ndarray:
+    """The scenario's values of the parameters `names` (PARAMETERS' units)."""
+    tissue, needle = scenario.tissue, scenario.needle
+    values = {"lame_lambda": tissue.material.lame_lambda, "lame_mu": tissue.material.lame_mu,
+              "thickness": tissue.thickness,
+              "friction": needle.friction if needle is not None else 0.0,
+              "cutting_force": needle.cutting_force if needle is not None else 0.0}
+    return np.array([values[name] for name in names], dtype=float)
+
+
+def check_against_scenario(uncertainty: Uncertainty, scenario, scenario_path: str | Path) -> None:
+    """Refuse parameters the scenario does not have (a zero friction or cutting force, no
+    needle): a normal distribution truncated to positive values around 0 is not centred on
+    the scenario, so the file must not ask for one."""
+    values = scenario_values(scenario, uncertainty.names)
+    lines = []
+    for name, value, std in zip(uncertainty.names, values, uncertainty.std):
+        if value <= 0:
+            where = {"friction": "needle", "cutting_force": "needle", "thickness": "tissue"}.get(name, "tissue.material")
+            lines.append(f"{uncertainty.path}: parameters.{name}: got {{std: {std:g}}}, expected a parameter the "
+                         f"scenario has ({scenario_path} has {where}.{name} = {value:g}; remove it or give the "
+                         "scenario a positive value)")
+    if lines:
+        raise input_error(lines)

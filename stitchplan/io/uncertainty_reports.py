@@ -1,0 +1,187 @@
+"""The outputs of `stitchplan plan --uncertainty`: the summary's `uncertainty` block
+(SCENARIO.md), the run log's `uncertainty` group, the lines printed, and uncertainty.png
+(exit clouds of the unplanned, nominal and robust paths on the held-out samples with 95 %
+ellipses, and the sensitivities). The plan's own files are io.reports' (the exported plan)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..config.uncertainty import UNITS
+from ..uncertainty.robust import LABELS, SENSITIVITY_STEP, Z_95, UncertaintyResult, ellipse_95, exit_statistics
+from .plot_elements import legend_below, pyplot, title_above
+from .plots import save
+
+SENSITIVITY_METHOD = (f"central finite differences of the exit error vector (achieved - desired exit, deformed), "
+                      f"the nominal plan's centre path replayed at the scenario's value +- {SENSITIVITY_STEP:g} std "
+                      "(at most half the value), the other parameters at the scenario's values")
+ROBUST_DESIGN = ("the nominal plan re-aimed with the mean exit shift: planner passes aiming the exit error at -s, "
+                 "s = mean over the training samples of (exit error of the nominal path - the nominal plan's own exit "
+                 "error); statistics on the held-out samples where every path ran")
+COLOURS = {"unplanned": "tab:red", "nominal": "tab:blue", "robust": "tab:green"}
+
+
+def per_unit(name: str) -> str:
+    """The units of a sensitivity to parameter `name`: mm/MPa, mm/(N/mm), ..."""
+    unit = UNITS[name]
+    return f"mm/({unit})" if "/" in unit else f"mm/{unit}"
+
+
+def _vector(value) -> list[float] | None:
+    return None if value is None else [float(v) for v in value]
+
+
+def uncertainty_summary(result: UncertaintyResult) -> dict:
+    """The summary's `uncertainty` block: SCENARIO.md's keys first, then how it was made."""
+    stats = result.statistics
+    exported = stats[result.exported]
+    robust_plan = result.robust
+    training_ok = [run for run in result.training if run.ok]
+    block = {
+        "samples": result.uncertainty.samples,
+        "failed_samples": result.failed_samples,
+        "unplanned": stats["unplanned"],
+        "nominal": stats["nominal"],
+        "robust": exported,  # the exported plan (SCENARIO.md)
+        "sensitivity": {s.name: _vector(s.exit_error) for s in result.sensitivities},
+        "exported": result.exported,
+        "robust_candidate": stats["robust"] if result.exported != "robust" and robust_plan is not None else None,
+        "evaluated_samples": int(result.evaluated.sum()),
+        "held_out_mean_exit_error_mm": {label: _vector(result.errors(label).mean(axis=0))
+                                        if result.evaluated.any() else None for label in LABELS},
+        "robust_design": ROBUST_DESIGN,
+        "mean_shift_mm": _vector(result.shift),
+        "robust_aim_mm": _vector(result.aim),
+        "training_prediction": result.training_prediction(),
+        "training": {"samples": len(result.training), "failed": len(result.training) - len(training_ok),
+                     "nominal_path": exit_statistics(np.array([run.exit_error for run in training_ok]))},
+        "sensitivity_method": SENSITIVITY_METHOD,
+        "sensitivity_units": {s.name: per_unit(s.name) for s in result.sensitivities},
+        "sensitivity_step": {s.name: s.step for s in result.sensitivities},
+        "sensitivity_achieved_exit": {s.name: _vector(s.achieved_exit) for s in result.sensitivities},
+        "spread_1sigma_mm": {s.name: None if s.exit_error is None else s.spread_mm for s in result.sensitivities},
+        "dominant_parameter": getattr(result.dominant(), "name", None),
+        "dominance": result.dominance_line(),
+        "distributions": result.uncertainty.as_record(),
+        "design": {**result.design.as_record(), "seed": result.uncertainty.seed,
+                   "training_indices": "accepted points 0 .. samples-1",
+                   "held_out_indices": "accepted points samples .. 2 samples-1"},
+        "failures": result.failures(),
+        "executor": result.where,
+        "sample_wall_seconds_mean": _mean_wall(result),
+        "notes": list(result.notes),
+    }
+    return {"uncertainty": block}
+
+
+def _mean_wall(result: UncertaintyResult) -> float | None:
+    walls = [run.wall_seconds for group in [result.training, *result.held_out.values()] for run in group if run.ok]
+    return float(np.mean(walls)) if walls else None
+
+
+def uncertainty_datasets(result: UncertaintyResult) -> tuple[dict, dict]:
+    """The run log's `uncertainty/...` groups and their units: parameters drawn, exit points,
+    error vectors and failures of every sampled run, the sensitivities."""
+    names = result.design.names
+    parameter_units = ",".join(UNITS[name] for name in names)
+    groups = {"uncertainty": {
+        "parameter_names": "\n".join(names),
+        "nominal_values": result.design.nominal,
+        "std": result.uncertainty.std,
+        "correlation": result.uncertainty.correlation,
+        "training_parameters": result.design.train,
+        "held_out_parameters": result.design.held_out,
+        "sensitivity": np.array([s.exit_error if s.exit_error is not None else [np.nan, np.nan]
+                                 for s in result.sensitivities]),
+        "sensitivity_step": np.array([s.step for s in result.sensitivities]),
+        "mean_shift": result.shift,
+    }}
+    units = {"uncertainty/parameter_names": "text", "uncertainty/nominal_values": parameter_units,
+             "uncertainty/std": parameter_units, "uncertainty/correlation": "1",
+             "uncertainty/training_parameters": parameter_units, "uncertainty/held_out_parameters": parameter_units,
+             "uncertainty/sensitivity": ",".join(per_unit(name) for name in names),
+             "uncertainty/sensitivity_step": parameter_units, "uncertainty/mean_shift": "mm"}
+    runs = {"training/nominal": result.training, **{f"held_out/{label}": result.held_out[label] for label in LABELS}}
+    for key, group in runs.items():
+        name = f"uncertainty/{key}"
+        groups[name] = {
+            "exit_error": np.array([run.exit_error for run in group]).reshape(-1, 2),
+            "achieved_exit_def": np.array([run.achieved_exit_def for run in group]).reshape(-1, 2),
+            "failed": np.array([not run.ok for run in group], dtype=int),
+            "reason": "\n".join(run.reason for run in group),
+            "wall_seconds": np.array([run.wall_seconds for run in group]),
+            "newton_iterations": np.array([run.newton_iterations for run in group]),
+        }
+        units.update({f"{name}/exit_error": "mm", f"{name}/achieved_exit_def": "mm", f"{name}/failed": "1",
+                      f"{name}/reason": "text", f"{name}/wall_seconds": "s", f"{name}/newton_iterations": "1"})
+    return groups, units
+
+
+def uncertainty_lines(result: UncertaintyResult) -> list[str]:
+    """What the command prints after the plan line."""
+    stats = result.statistics
+    lines = [f"uncertainty: {result.uncertainty.samples} samples held out ({int(result.evaluated.sum())} evaluated, "
+             f"{result.failed_samples} samples with a failed run), exit error mean / p95:"]
+    for label in LABELS:
+        s = stats[label]
+        shown = "n/a" if s["mean_mm"] is None else f"{s['mean_mm']:.4f} / {s['p95_mm']:.4f} mm"
+        exported = "  (exported)" if label == result.exported else ""
+        lines.append(f"  {label:9s} {shown}{exported}")
+    lines.append(result.dominance_line())
+    return lines + [f"note: {note}" for note in result.notes]
+
+
+def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name: str = ""):
+    """uncertainty.png: (a) the exit error vectors of the three paths on the held-out samples,
+    the desired exit at the origin, with 95 % ellipses; (b) the same for the two plans,
+    enlarged; (c) each parameter's 95 % exit move (|sensitivity| x 1.96 std)."""
+    plt = pyplot()
+    from matplotlib.ticker import MaxNLocator
+
+    fig, axes = plt.subplots(1, 3, figsize=(14.0, 4.6), gridspec_kw={"width_ratios": [1.0, 1.0, 0.9]})
+    for ax, labels, title in ((axes[0], LABELS, "unplanned, nominal and robust (x, y scaled separately)"),
+                              (axes[1], LABELS[1:], "the plans, enlarged")):
+        for label in labels:
+            errors = result.errors(label)
+            marker = "s" if label == result.exported else "o"
+            ax.scatter(errors[:, 0], errors[:, 1], s=18, color=COLOURS[label], marker=marker, alpha=0.8,
+                       label=f"{label}{' (exported)' if label == result.exported else ''}")
+            ellipse = ellipse_95(errors)
+            if ellipse is not None:
+                centre, axes_matrix = ellipse
+                t = np.linspace(0.0, 2.0 * np.pi, 120)
+                curve = centre + (axes_matrix @ np.vstack([np.cos(t), np.sin(t)])).T  # (120, 2)
+                ax.plot(curve[:, 0], curve[:, 1], color=COLOURS[label], lw=1.2,
+                        label=f"{label} 95 % ellipse")
+        ax.plot([0.0], [0.0], marker="*", color="k", markersize=12, linestyle="none", label="desired exit")
+        ax.axhline(0.0, color="0.85", lw=0.6, zorder=0)
+        ax.axvline(0.0, color="0.85", lw=0.6, zorder=0)
+        ax.margins(0.15)  # x and y scaled separately: the exits lie along the deformed edge
+        ax.xaxis.set_major_locator(MaxNLocator(4))
+        ax.ticklabel_format(axis="both", style="sci", scilimits=(-2, 3))
+        ax.set_xlabel("exit error x (mm)")
+        ax.set_ylabel("exit error y (mm)")
+        ax.set_title(title, fontsize=9)
+    ax = axes[2]
+    names = [s.name for s in result.sensitivities]
+    moves = [0.0 if s.exit_error is None else Z_95 * s.spread_mm for s in result.sensitivities]
+    bars = ax.barh(names, moves, color="0.45")
+    for bar, s in zip(bars, result.sensitivities):
+        text = "failed" if s.exit_error is None else (f"{np.linalg.norm(s.exit_error):.3g} {per_unit(s.name)}"
+                                                       f" x 1.96 x {s.std:g}")
+        ax.text(bar.get_width(), bar.get_y() + bar.get_height() / 2, " " + text, va="center", fontsize=7)
+    ax.set_xlim(0.0, max(moves + [1e-6]) * 1.9)
+    ax.invert_yaxis()
+    ax.set_xlabel("95 % exit move from the parameter alone (mm)")
+    ax.set_title("sensitivity of the exit (nominal path)", fontsize=9)
+    fig.subplots_adjust(wspace=0.5)
+    stats = result.statistics
+    exported = stats[result.exported]
+    title_above(fig, list(axes), f"{scenario_name or 'scenario'}: exit error on {int(result.evaluated.sum())} held-out "
+                                 f"samples; {result.exported} plan p95 {exported['p95_mm']:.3g} mm, unplanned "
+                                 f"{stats['unplanned']['p95_mm']:.3g} mm")
+    legend_below(fig, list(axes[:2]), columns=4)
+    save(fig, path)
+    return fig

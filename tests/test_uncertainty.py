@@ -1,0 +1,371 @@
+"""`stitchplan plan --uncertainty`: the uncertainty file and every refusal of it (one line,
+exit 2, no file written), the seeded design (reproducible, correlated and spread as asked,
+positive), sampled runs on a two-worker Dask cluster identical to in-process ones, a failing
+sample recorded rather than lost, and the command end to end with the summary's
+`uncertainty` block, the run log and uncertainty.png.
+
+The scene is test_plan_cli's smallest (20 x 20 mm, 25 particles, 0.3 rad steps, one planner
+pass): a run takes ~0.1 s, a whole `plan --uncertainty` with 4 samples a few seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+from test_plan_cli import invoke, one_error_line, small_raw, write
+
+from stitchplan.config import parse_scenario
+from stitchplan.config.uncertainty import load_uncertainty, parse_uncertainty, resolve_uncertainty
+from stitchplan.errors import SolverDivergence
+from stitchplan.parallel import Executor
+from stitchplan.uncertainty import evaluation
+from stitchplan.uncertainty.evaluation import run_sample
+from stitchplan.uncertainty.robust import LABELS, exit_statistics, plan_under_uncertainty
+from stitchplan.uncertainty.sampling import draw, with_parameters
+
+CALIBRATION = Path(__file__).resolve().parents[1] / "sample_runs" / "calibration"
+STATISTICS = {"mean_mm", "p50_mm", "p95_mm", "max_mm"}
+
+
+def uncertainty(raw: dict, path: str = "uncertainty.yaml"):
+    return resolve_uncertainty(parse_uncertainty(raw), path)
+
+
+def small_uncertainty(samples: int = 4, seed: int = 5) -> dict:
+    return {"samples": samples, "seed": seed,
+            "parameters": {"lame_mu": {"std": 0.01}, "thickness": {"std": 1.0}, "cutting_force": {"std": 0.1}},
+            "correlation": [{"between": ["lame_mu", "thickness"], "value": 0.3}]}
+
+
+# --- the file --------------------------------------------------------------------------------
+
+
+def test_from_calibration_gives_the_moduli_spread_and_the_file_overrides_it(tmp_path):
+    shutil.copy(CALIBRATION / "fitted.yaml", tmp_path / "fitted.yaml")
+    path = write(tmp_path, {"samples": 8, "seed": 7, "from_calibration": "fitted.yaml",
+                            "parameters": {"lame_mu": {"std": 0.002}, "thickness": {"std": 0.5}}}, "u.yaml")
+    resolved = load_uncertainty(path)
+    assert resolved.names == ("lame_lambda", "lame_mu", "thickness")
+    np.testing.assert_allclose(resolved.std, [0.0129, 0.002, 0.5])  # lame_mu: the file's own
+    assert resolved.sources == {"lame_lambda": "calibration", "lame_mu": "file", "thickness": "file"}
+    np.testing.assert_allclose(resolved.correlation, [[1, -0.9903, 0], [-0.9903, 1, 0], [0, 0, 1]])
+    # an explicit correlation replaces the calibration's
+    again = write(tmp_path, {"samples": 8, "from_calibration": "fitted.yaml",
+                             "correlation": [{"between": ["lame_mu", "lame_lambda"], "value": -0.5}]}, "v.yaml")
+    assert load_uncertainty(again).correlation[0, 1] == -0.5
+
+
+BAD_FILES = [
+    ({"samples": 1}, "u.yaml: samples: got 1, expected an integer between 2 and 10000"),
+    ({"parameters": {"thicknes": {"std": 1.0}}}, "unknown key 'thicknes'"),
+    ({"parameters": {"thickness": {"std": 0.0}}}, "parameters.thickness.std: got 0.0, expected a positive number"),
+    ({"correlation": [{"between": ["lame_mu", "thickness"], "value": 1.0}]},
+     "correlation[0].value: got 1.0, expected a number between -1 and 1"),
+    ({"correlation": [{"between": ["lame_mu", "lame_mu"], "value": 0.5}]},
+     "correlation[0].between: got ['lame_mu', 'lame_mu'], expected two different parameter names"),
+    ({"correlation": [{"between": ["lame_mu", "friction"], "value": 0.5}]},
+     "correlation[0].between: got ['lame_mu', 'friction'], expected parameters with a std (friction has none"),
+    ({"parameters": {"lame_mu": {"std": 0.01}, "thickness": {"std": 1.0}, "cutting_force": {"std": 0.1}},
+      "correlation": [{"between": ["lame_mu", "thickness"], "value": 0.9},
+                      {"between": ["thickness", "cutting_force"], "value": 0.9},
+                      {"between": ["lame_mu", "cutting_force"], "value": -0.9}]},
+     "expected a positive definite correlation matrix"),
+    ({"parameters": {"friction": {"std": 0.01}}},
+     "parameters.friction: got {std: 0.01}, expected a parameter the scenario has"),
+    ({"from_calibration": "missing.yaml"}, "from_calibration: "),
+    ({"from_calibration": "fitted_displacement_only.yaml"},
+     "fit.standard_uncertainty: got {'lame_lambda': None, 'lame_mu': None}, expected positive standard "
+     "uncertainties of lame_lambda and lame_mu (MPa); the calibration could not separate the moduli"),
+]
+
+
+@pytest.mark.parametrize("changes, fragment", BAD_FILES)
+def test_bad_uncertainty_files_are_one_line_exit_2_and_no_output(tmp_path, changes, fragment):
+    shutil.copy(CALIBRATION / "fitted_displacement_only.yaml", tmp_path)
+    raw = {**small_uncertainty(), "correlation": [], **changes}
+    scenario = write(tmp_path, _frictionless())
+    path = write(tmp_path, raw, "u.yaml")
+    out = tmp_path / "out"
+    result = invoke("plan", scenario, "--uncertainty", path, "--export", out / "t.csv", "--summary",
+                    out / "s.json", "--workers", "0")
+    line = one_error_line(result)
+    assert fragment in line and str(path) in line, line
+    assert not out.exists()
+
+
+def _frictionless() -> dict:
+    raw = small_raw()
+    raw["needle"]["friction"] = 0.0  # the scenario has no friction to be uncertain about
+    return raw
+
+
+def test_options_of_uncertainty_without_it_and_bad_pairs_are_refused(tmp_path):
+    scenario = write(tmp_path, small_raw())
+    line = one_error_line(invoke("plan", scenario, "--export", tmp_path / "t.csv", "--workers", "2"))
+    assert line == "error: --workers: got 2, expected it only with --uncertainty FILE"
+    path = write(tmp_path, small_uncertainty(), "u.yaml")
+    line = one_error_line(invoke("plan", scenario, "--export", tmp_path / "t.csv", "--uncertainty", path,
+                                 "--scheduler", "localhost"))
+    assert "--scheduler: got 'localhost', expected a Dask scheduler address" in line
+    line = one_error_line(invoke("plan", scenario, "--export", tmp_path / "t.csv", "--uncertainty", path,
+                                 "--scheduler", "tcp://127.0.0.1:8786", "--workers", "2"))
+    assert "--workers: got 2 with --scheduler tcp://127.0.0.1:8786, expected one of the two" in line
+    line = one_error_line(invoke("plan", scenario, "--export", path, "--uncertainty", path, "--workers", "0"))
+    assert "expected a file other than the input --uncertainty" in line
+    shutil.copy(CALIBRATION / "fitted.yaml", tmp_path / "fitted.yaml")
+    calibrated = write(tmp_path, {"samples": 2, "from_calibration": "fitted.yaml"}, "c.yaml")
+    before = (tmp_path / "fitted.yaml").read_bytes()
+    line = one_error_line(invoke("plan", scenario, "--export", tmp_path / "t.csv", "--summary", tmp_path / "fitted.yaml",
+                                 "--uncertainty", calibrated, "--workers", "0"))
+    assert "--summary" in line and "expected a file other than the input from_calibration" in line
+    assert (tmp_path / "fitted.yaml").read_bytes() == before
+    assert not (tmp_path / "t.csv").exists()
+
+
+# --- the design ------------------------------------------------------------------------------
+
+
+def test_the_design_is_reproducible_correlated_and_spread_as_asked():
+    scenario = parse_scenario(small_raw())
+    spec = uncertainty({"samples": 512, "seed": 11,
+                        "parameters": {"lame_lambda": {"std": 0.01}, "lame_mu": {"std": 0.005},
+                                       "thickness": {"std": 0.5}},
+                        "correlation": [{"between": ["lame_lambda", "lame_mu"], "value": -0.9}]})
+    design = draw(spec, scenario)
+    again = draw(spec, scenario)
+    np.testing.assert_array_equal(design.train, again.train)  # the seed fixes every point
+    np.testing.assert_array_equal(design.held_out, again.held_out)
+    other = draw(uncertainty({**small_uncertainty(512, seed=12), "parameters": {
+        "lame_lambda": {"std": 0.01}, "lame_mu": {"std": 0.005}, "thickness": {"std": 0.5}},
+        "correlation": [{"between": ["lame_lambda", "lame_mu"], "value": -0.9}]}), scenario)
+    assert not np.allclose(other.train, design.train)
+    assert design.train.shape == design.held_out.shape == (512, 3)
+    assert not np.isin(design.train, design.held_out).any()  # training and held-out points differ
+    points = np.vstack([design.train, design.held_out])
+    nominal = np.array([0.189151, 0.147688, 10.0])
+    np.testing.assert_allclose(points.mean(axis=0), nominal, atol=0.02 * spec.std.max())
+    np.testing.assert_allclose(points.std(axis=0, ddof=1), spec.std, rtol=0.03)
+    correlation = np.corrcoef(points.T)
+    assert correlation[0, 1] == pytest.approx(-0.9, abs=0.01)
+    assert abs(correlation[0, 2]) < 0.05 and abs(correlation[1, 2]) < 0.05
+
+
+def test_values_at_or_below_zero_are_rejected_and_the_stream_continues():
+    scenario = parse_scenario(small_raw())  # cutting force 0.7 N
+    design = draw(uncertainty({"samples": 64, "parameters": {"cutting_force": {"std": 0.7}}}), scenario)
+    points = np.vstack([design.train, design.held_out])
+    assert (points > 0).all() and len(points) == 128
+    assert design.rejected > 10  # about 16 % of a normal lies one std below its mean
+    assert points.mean() > 0.7  # truncation shifts the mean up
+
+
+def test_a_sample_is_the_scenario_with_its_values():
+    scenario = parse_scenario(small_raw())
+    sample = with_parameters(scenario, ("lame_lambda", "thickness", "friction"), np.array([0.2, 9.0, 0.05]))
+    assert sample.tissue.material.lame_lambda == 0.2 and sample.tissue.thickness == 9.0
+    assert sample.needle.friction == 0.05
+    assert sample.tissue.material.lame_mu == scenario.tissue.material.lame_mu
+    assert sample.needle.cutting_force == scenario.needle.cutting_force
+
+
+def test_exit_statistics_of_known_distances():
+    errors = np.column_stack([np.arange(1.0, 21.0), np.zeros(20)])  # distances 1 .. 20
+    stats = exit_statistics(errors)
+    assert stats == {"mean_mm": 10.5, "p50_mm": 10.5, "p95_mm": pytest.approx(19.05), "max_mm": 20.0}
+
+
+# --- runs: on a cluster as in-process, failures recorded -------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A running two-worker Dask cluster, reached through its address (--scheduler)."""
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=50) as running:
+        yield running.scheduler_address
+
+
+def test_a_two_worker_cluster_gives_the_in_process_results(cluster):
+    scenario = parse_scenario(small_raw())
+    spec = uncertainty(small_uncertainty(samples=2))
+    local = plan_under_uncertainty(scenario, spec, Executor(workers=0))
+    with Executor(scheduler=cluster) as executor:
+        remote = plan_under_uncertainty(scenario, spec, executor)
+        assert len(executor.client.scheduler_info()["workers"]) == 2
+    assert remote.where.startswith("Dask scheduler tcp://")
+    for label in LABELS:
+        np.testing.assert_array_equal(remote.errors(label, evaluated_only=False), local.errors(label, False))
+    np.testing.assert_array_equal([s.exit_error for s in remote.sensitivities],
+                                  [s.exit_error for s in local.sensitivities])
+    assert remote.statistics == local.statistics and remote.exported == local.exported
+
+
+def test_the_tasks_of_a_lost_worker_run_again(cluster, tmp_path):
+    def dies_once(index: int, marker: str) -> int:  # pickled by value: the workers need no test module
+        import os
+
+        if index == 1 and not os.path.exists(marker):
+            open(marker, "w").close()
+            os._exit(1)  # the worker process dies with the task
+        return index * index
+
+    with Executor(scheduler=cluster) as executor:
+        results = executor.map(dies_once, range(4), [str(tmp_path / "died")] * 4)
+    assert (tmp_path / "died").exists() and results == [0, 1, 4, 9]
+
+
+def test_the_study_sweep_on_a_cluster_gives_the_in_process_runs(cluster):
+    from test_study import tiny_raw
+
+    from stitchplan.study.sweep import run_study
+
+    scenario = parse_scenario(tiny_raw())
+    local = run_study(scenario, quick=True)
+    seen = []
+    with Executor(scheduler=cluster) as executor:
+        remote = run_study(scenario, quick=True, executor=executor, on_run=lambda run: seen.append(run.label))
+    assert sorted(seen) == sorted(run.label for run in local.runs)  # each reported once, as it completes
+    assert [run.label for run in remote.runs] == [run.label for run in local.runs]  # submission order
+    for a, b in zip(remote.runs, local.runs):
+        assert a.ok and b.ok and a.particles == b.particles
+        np.testing.assert_array_equal(a.result.achieved_exit_def, b.result.achieved_exit_def)
+        assert a.deviations == b.deviations
+
+
+def test_a_failing_sample_is_recorded_with_its_reason(tmp_path, monkeypatch):
+    scenario_path = write(tmp_path, small_raw())
+    path = write(tmp_path, small_uncertainty(), "u.yaml")
+    design = draw(load_uncertainty(path), parse_scenario(small_raw()))
+    doomed = design.held_out[1, design.names.index("thickness")]
+    real = evaluation.run_insertion
+
+    def failing(scenario, **options):
+        if scenario.tissue.thickness == doomed:
+            raise SolverDivergence("Newton diverged at needle step 3 (needle rotation 0.900 rad)")
+        return real(scenario, **options)
+
+    monkeypatch.setattr(evaluation, "run_insertion", failing)
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv",
+                    "--summary", tmp_path / "s.json", "--out", tmp_path / "run.h5", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    block = json.loads((tmp_path / "s.json").read_text())["uncertainty"]
+    assert block["failed_samples"] == 1 and block["evaluated_samples"] == 3
+    failures = block["failures"]
+    assert {f["path"] for f in failures} == set(LABELS) and {f["sample"] for f in failures} == {1}
+    assert all(f["reason"].startswith("SolverDivergence: Newton diverged at needle step 3") for f in failures)
+    with h5py.File(tmp_path / "run.h5") as log:
+        for label in LABELS:
+            group = log[f"uncertainty/held_out/{label}"]
+            np.testing.assert_array_equal(group["failed"][()], [0, 1, 0, 0])
+            assert "SolverDivergence" in group["reason"][()].decode().splitlines()[1]
+            assert np.isnan(group["exit_error"][1]).all() and np.isfinite(group["exit_error"][0]).all()
+
+
+def test_run_sample_records_a_replay_that_ends_before_the_exit():
+    scenario = parse_scenario(small_raw())
+    centers = np.repeat([[0.0, 18.0 - 8.88]], 3, axis=0)  # three rows: the tip has not left yet
+    run = run_sample(scenario, centers)
+    assert not run.ok and run.reason.startswith("InputError: centre path: 3 rows end before the tip exits")
+    assert np.isnan(run.exit_error).all()
+
+
+# --- the command -------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("uncertainty")
+    shutil.copy(CALIBRATION / "fitted.yaml", folder / "fitted.yaml")
+    scenario = write(folder, small_raw())
+    path = write(folder, {"samples": 4, "seed": 7, "from_calibration": "fitted.yaml",
+                          "parameters": {"thickness": {"std": 1.0}, "cutting_force": {"std": 0.1}}}, "u.yaml")
+    result = invoke("plan", scenario, "--uncertainty", path, "--export", folder / "t.csv", "--summary",
+                    folder / "s.json", "--out", folder / "run.h5", "--uncertainty-plot", folder / "u.png",
+                    "--workers", "0")
+    return folder, result
+
+
+def test_the_summary_has_the_uncertainty_block_of_scenario_md(planned):
+    folder, result = planned
+    assert result.exit_code == 0, result.output
+    summary = json.loads((folder / "s.json").read_text())
+    block = summary["uncertainty"]
+    assert block["samples"] == 4 and block["failed_samples"] == 0
+    for label in LABELS:
+        assert set(block[label]) >= STATISTICS and all(block[label][k] >= 0 for k in STATISTICS)
+        assert block[label]["p50_mm"] <= block[label]["p95_mm"] <= block[label]["max_mm"]
+    assert set(block["sensitivity"]) == {"lame_lambda", "lame_mu", "cutting_force", "thickness"}
+    assert all(len(value) == 2 for value in block["sensitivity"].values())
+    # the plans land far closer than the fixed centre on every held-out sample
+    assert block["nominal"]["max_mm"] < 0.5 * block["unplanned"]["mean_mm"]
+    # the exported plan is never worse than the nominal one on the held-out samples
+    assert block["robust"]["mean_mm"] <= block["nominal"]["mean_mm"]
+    assert block["robust"]["p95_mm"] <= block["nominal"]["p95_mm"]
+    assert block["exported"] in ("robust", "nominal")
+    np.testing.assert_allclose(block["robust_aim_mm"], -np.asarray(block["mean_shift_mm"]))
+    assert block["distributions"]["parameters"]["lame_lambda"] == {"std": 0.0129, "units": "MPa",
+                                                                    "source": "calibration"}
+    # more thickness, less force per unit of it: the sensitivity has the sign of the forces' opposite
+    assert np.dot(block["sensitivity"]["thickness"], block["sensitivity"]["cutting_force"]) < 0
+    assert "exit spread dominated by" in result.stdout
+    assert f"exit spread dominated by {block['dominant_parameter']}" in result.stdout
+
+
+def test_the_run_log_and_the_png(planned):
+    folder, result = planned
+    assert result.exit_code == 0, result.output
+    with h5py.File(folder / "run.h5") as log:
+        group = log["uncertainty"]
+        assert group["parameter_names"][()].decode().split() == ["lame_lambda", "lame_mu", "cutting_force",
+                                                                 "thickness"]
+        assert group["held_out_parameters"].shape == (4, 4) and group["training_parameters"].shape == (4, 4)
+        assert group["held_out_parameters"].attrs["units"] == "MPa,MPa,N,mm"
+        assert group["held_out/robust/exit_error"].attrs["units"] == "mm"
+        assert (group["held_out/unplanned/failed"][()] == 0).all()
+    image = plt_image(folder / "u.png")
+    assert image.shape[1] > 1200 and image.std() > 0.05  # a drawn figure, not a blank one
+
+
+def plt_image(path: Path) -> np.ndarray:
+    import matplotlib.image
+
+    return matplotlib.image.imread(path)
+
+
+def test_the_executor_and_the_uncertainty_layer_import_nothing_above_them():
+    """stitchplan.parallel stands on errors alone; stitchplan.uncertainty on the layers up to
+    planning (no study, io or cli), and neither imports dask before an executor starts."""
+    import subprocess
+    import sys
+
+    for module, allowed in (("stitchplan.parallel", ("stitchplan.errors", "stitchplan.parallel")),
+                            ("stitchplan.uncertainty.robust", ("stitchplan.errors", "stitchplan.geometry",
+                                                               "stitchplan.config", "stitchplan.tissue",
+                                                               "stitchplan.needle", "stitchplan.resources",
+                                                               "stitchplan.parallel", "stitchplan.planning",
+                                                               "stitchplan.uncertainty", "stitchplan.events"))):
+        code = (f"import sys, {module}\n"
+                "print(sorted(m for m in sys.modules if m.startswith(('stitchplan', 'dask', 'distributed'))))")
+        loaded = eval(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                     check=True).stdout)
+        outside = [m for m in loaded if m != "stitchplan" and not m.startswith(allowed)]
+        assert outside == [], (module, outside)
+
+
+def test_the_shipped_uncertainty_file_reads_the_sample_calibration():
+    root = Path(__file__).resolve().parents[1]
+    resolved = load_uncertainty(root / "configs" / "uncertainty" / "uncertainty_sample.yaml")
+    assert resolved.names == ("lame_lambda", "lame_mu", "friction", "cutting_force", "thickness")
+    assert resolved.sources["lame_lambda"] == resolved.sources["lame_mu"] == "calibration"
+    assert resolved.correlation[0, 1] == pytest.approx(-0.9903)
+    scenario = parse_scenario(yaml.safe_load((root / "configs" / "sh12_100x100.yaml").read_text()))
+    design = draw(resolved, scenario)
+    assert design.train.shape == (16, 5) and design.rejected == 0
