@@ -49,7 +49,7 @@ def run_plan_command(source: Path, scene: str, options: list[str], folder: Path)
     environment = {**os.environ, "PYTHONPATH": str(source)}
     start = time.perf_counter()
     subprocess.run([sys.executable, "-c", RUNNER, "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
-                    *options, "--export", str(folder / "trajectory.csv"), "--summary", str(summary), "-q"],
+                    *options, "--export", str(folder / "trajectory.csv"), "--summary", str(summary)],
                    check=True, capture_output=True, env=environment, cwd=source)
     seconds = time.perf_counter() - start
     record = json.loads(summary.read_text())
@@ -65,7 +65,7 @@ def compare_revisions(baseline: Path) -> list[dict]:
             before, after = [], []
             for _ in range(REPEATS):
                 before.append(run_plan_command(baseline, scene, ["--no-compare"], folder))
-                after.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify"], folder))
+                after.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"], folder))
             last = after[-1]
             steps = last["timings_seconds"]["steps"]
             row = {
@@ -137,15 +137,18 @@ def levers() -> list[tuple[str, float, int, int]]:
 
 
 def startup() -> dict[str, float]:
+    """The installed `stitchplan` script beside this interpreter (as a virtual environment
+    has it), else `python -m stitchplan`."""
+    script = Path(sys.executable).parent / "stitchplan"
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "stitchplan"]
     seconds = {}
     for arguments in (["--help"], ["--version"]):
         samples = []
         for _ in range(STARTUP_REPEATS):
             start = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "stitchplan", *arguments], check=True, capture_output=True,
-                           cwd=common.REPO_ROOT)
+            subprocess.run([*command, *arguments], check=True, capture_output=True, cwd=common.REPO_ROOT)
             samples.append(time.perf_counter() - start)
-        seconds["stitchplan " + " ".join(arguments)] = statistics.median(samples)
+        seconds[" ".join([Path(command[0]).name, *command[1:], *arguments])] = statistics.median(samples)
     return seconds
 
 

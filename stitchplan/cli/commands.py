@@ -136,7 +136,8 @@ def plan(
         None, "--base-transform", help="Tissue -> robot base frame: ROTATION_DEG,TX_MM,TY_MM."),
     angular_speed: Optional[float] = typer.Option(
         None, "--angular-speed", help="Needle rotation speed in rad/s; adds a time_s column."),
-    strict: bool = typer.Option(False, "--strict", help="Fail when the planner's eq. 4.2 fails."),
+    strict: bool = typer.Option(False, "--strict", help="Fail when a step's centre does not settle "
+                                "within planner.max_iterations moves."),
     compare: bool = typer.Option(
         True, "--compare/--no-compare",
         help="Also run the unplanned insertion (fixed centre) and report its exit error."),
