@@ -421,6 +421,12 @@ class PolygonDomain:
             if np.any(near):
                 idx = np.flatnonzero(near)
                 hit[idx] = segments_cross(starts[idx], ends[idx], a, b, tol)
+        # a segment between two boundary points crossing a gap touches the boundary only at
+        # its ends: its middle lies outside
+        rest = np.flatnonzero(~hit)
+        if len(rest):
+            middle = 0.5 * (starts[rest] + ends[rest])
+            hit[rest] = ~self._inside_strict(middle) & (self.distance(middle) > tol)
         return hit
 
     # --- circles --------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..config import Needle, Scenario
 from ..errors import InputError
-from ..geometry import Rectangle, circle_center_at_entry
+from ..geometry import PolygonDomain, Rectangle, circle_center_at_entry
 
 
 def unit(angle: float | np.ndarray) -> np.ndarray:
@@ -55,7 +55,7 @@ class NeedleGeometry:
         return int(self.exit_rotation / self.step) + 1
 
 
-def needle_geometry(needle: Needle, domain: Rectangle) -> NeedleGeometry:
+def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> NeedleGeometry:
     """Centre on the boundary tangent at the entry (orthogonal entry), desired exit where the
     undeformed circle first leaves the tissue (SCENARIO.md, "Needle geometry")."""
     edges = domain.edges_at(needle.entry)
@@ -70,6 +70,14 @@ def needle_geometry(needle: Needle, domain: Rectangle) -> NeedleGeometry:
     sense = -1.0 if needle.turn == "cw" else 1.0
     start_angle = math.atan2(*(entry - center)[::-1])
     rotation = domain.first_exit_rotation(center, needle.radius, start_angle, sense)
+    crossings = domain.circle_crossings(center, needle.radius, start_angle, sense, needle.arc)
+    if rotation is not None and any(kind == "entry" for _, kind in crossings):
+        again = next(r for r, kind in crossings if kind == "entry")
+        raise InputError(
+            f"needle: the {needle.radius:g} mm needle entering at {list(needle.entry)} turning "
+            f"{needle.turn} leaves the tissue after {rotation:.4g} rad and enters it again after "
+            f"{again:.4g} rad (a stitch across a wound or a hole), expected a needle that leaves the "
+            "tissue once within its arc: following a needle across a gap is not supported yet")
     if rotation is None or rotation > needle.arc + 1e-9:
         reach = "never leaves the tissue" if rotation is None else f"leaves after {rotation:.4g} rad"
         raise InputError(

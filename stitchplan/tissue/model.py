@@ -22,7 +22,7 @@ from .particles import (END_GROWTH, end_zones, graded_lattice, graded_particles,
 from .quadrature import cell_quadrature, natural_boundary_quadrature
 from .shape_functions import (ShapeFunctions, ShapePairs, SingularMomentMatrix, Visibility,
                               rk_shape_functions, rk_shape_pairs)
-from .shapes import fit_particles, region_index, shape_breaks, shaped_quadrature
+from .shapes import corner_zones, fit_particles, region_index, shape_breaks, shaped_quadrature
 
 log = logging.getLogger(__name__)
 
@@ -226,7 +226,7 @@ def _shaped_discretization(tissue: Tissue, discretization: Discretization, segme
     sx, sy = shape_breaks(tissue)
     breaks = ([x - origin[0] for x in (*xb, *sx)], [y - origin[1] for y in (*yb, *sy)])
     ends = tuple(replace(zone, center=zone.center - origin)
-                 for zone in end_zones(tissue, segments, discretization))
+                 for zone in (*end_zones(tissue, segments, discretization), *corner_zones(tissue, discretization)))
     size = tuple(domain.size)
     if discretization.needle_spacing is not None:
         if needle_zone is None:

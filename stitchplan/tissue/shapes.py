@@ -18,7 +18,9 @@ from scipy.spatial import cKDTree
 
 from ..config import Tissue
 from ..geometry import PolygonDomain
-from .particles import GradedParticles, leaf_quadrature
+from ..config import Discretization
+from ..config.blocks import default_spacing_of
+from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
 
 CUT_LEVELS = 3  # halvings of a cut background cell
 MERGE = 0.35  # a boundary particle replaces lattice particles closer than this x local spacing
@@ -36,6 +38,30 @@ def shape_breaks(tissue: Tissue) -> tuple[list[float], list[float]]:
         return [], []
     points = np.concatenate(loops)
     return list(points[:, 0]), list(points[:, 1])
+
+
+REENTRANT = 0.2  # rad beyond a straight angle: a corner the solution is singular at
+
+
+def corner_zones(tissue: Tissue, discretization: Discretization) -> tuple[RefinementZone, ...]:
+    """Refinement zones at the re-entrant corners of the tissue (interior angle above
+    pi + REENTRANT: a notch's or a hole's corners), graded like the load-segment ends
+    (particles.end_spacing: the solution is singular there, r^(~1/2) at a slit's tip);
+    none with discretization.segment_end_levels 0."""
+    domain = tissue.domain
+    if discretization.segment_end_levels == 0 or not isinstance(domain, PolygonDomain):
+        return ()
+    fine = end_spacing(discretization.spacing, default_spacing_of(tissue.bounding_size, None),
+                       discretization.segment_end_levels)
+    zones = []
+    for loop in [domain.outline] + [hole[::-1] for hole in domain.holes]:  # tissue on the left
+        before = loop - np.roll(loop, 1, axis=0)
+        after = np.roll(loop, -1, axis=0) - loop
+        turn = np.arctan2(before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0],
+                          np.sum(before * after, axis=1))  # > 0 left turn (convex corner)
+        for vertex in loop[turn < -REENTRANT]:
+            zones.append(RefinementZone(np.asarray(vertex, dtype=float), 0.0, fine))
+    return tuple(zones)
 
 
 def cutting_edges(tissue: Tissue) -> tuple[np.ndarray, np.ndarray]:
@@ -137,16 +163,18 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     tree = cKDTree(graded.particles)
     added = []
     for start, end in domain.boundary_segments():
+        # points one local spacing apart along the edge: where the count of spacings
+        # int ds / h(s) (h of the nearest lattice particle, sampled finely) passes an integer
         length = float(np.linalg.norm(end - start))
-        _, nearest = tree.query(0.5 * (start + end))
-        h = float(graded.local_spacing[nearest])
-        # the local spacing along the edge: sample it, divide each edge evenly at the finest
-        samples = start + np.linspace(0.0, 1.0, max(int(np.ceil(length / h)), 1) * 2 + 1)[:, None] * (end - start)
-        _, near = tree.query(samples)
-        h = float(graded.local_spacing[near].min())
-        count = max(int(np.ceil(length / h - 1e-9)), 1)
-        t = np.arange(count) / count  # the end is the next edge's start
-        added.append(start + t[:, None] * (end - start))
+        finest = float(graded.local_spacing.min())
+        t = np.linspace(0.0, 1.0, max(int(np.ceil(8 * length / finest)), 2) + 1)
+        _, near = tree.query(start + t[:, None] * (end - start))
+        density = 1.0 / graded.local_spacing[near]
+        count = np.concatenate([[0.0], np.cumsum(0.5 * (density[1:] + density[:-1]) * np.diff(t) * length)])
+        total = max(int(round(count[-1])), 1)
+        # the end is the next edge's start
+        t_points = np.interp(np.arange(total) * count[-1] / total, count, t)
+        added.append(start + t_points[:, None] * (end - start))
     added = np.concatenate(added)
     _, near = tree.query(added)
     added_local = graded.local_spacing[near]
