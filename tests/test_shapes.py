@@ -88,8 +88,8 @@ def test_a_bad_shape_is_refused_in_one_line(tmp_path, case):
      ["loads[0].segment: got [[20.0, 14.0], [20.0, 10.0]]", "one edge of the polygon tissue"]),
     ("simulate", {"needle": {**BASE["needle"], "entry": [8.0, 19.0]}},
      ["needle.entry: got [8.0, 19.0]", "on the boundary of the polygon tissue"]),
-    ("simulate", {"needle": {**BASE["needle"], "entry": [15.0, 20.0], "radius": 4.0, "turn": "ccw"}},
-     ["needle: the 4 mm needle entering at [15.0, 20.0]", "enters it again", "not supported"]),
+    ("simulate", {"needle": {**BASE["needle"], "entry": [18.0, 20.0]}},
+     ["needle.entry: got [18.0, 20.0], a corner"]),
     ("plan", {"needle": {**BASE["needle"], "arc": 0.5}}, ["needle: the 6 mm needle", "within its arc"]),
 ])
 def test_loads_and_needles_must_meet_the_polygon(tmp_path, command, change, fragments):
@@ -266,3 +266,56 @@ def test_calibration_runs_on_a_polygon_tissue():
     soft, _ = forward.predict(np.array([0.19, 0.15]))
     stiff, _ = forward.predict(np.array([0.38, 0.30]))
     assert np.all(np.isfinite(soft)) and np.linalg.norm(soft - stiff) > 1e-3
+
+
+# --- a stitch across a wound ------------------------------------------------------------------
+
+WOUND = {
+    "name": "wound",
+    "tissue": {"outline": [[0.0, 0.0], [40.0, 0.0], [40.0, 20.0], [22.0, 20.0], [22.0, 8.0], [18.0, 8.0],
+                           [18.0, 20.0], [0.0, 20.0]],
+               "thickness": 10.0, "material": dict(PHANTOM), "clamped": [{"segment": [[0.0, 0.0], [40.0, 0.0]]}]},
+    "discretization": {"spacing": 2.5},
+    "needle": {"radius": 6.0, "entry": [26.0, 20.0], "turn": "cw", "step": 0.15, "friction": 0.06,
+               "cutting_force": 0.5},
+}
+
+
+def test_a_stitch_across_a_wound_is_followed_through_every_crossing(tmp_path):
+    """The undeformed circle leaves at the right wall, crosses the 4 mm gap, enters the left
+    wall and exits the surface: the desired exit is the final one; the tip adds no needle
+    point in the gap (one segment joins the walls); the summary lists the three crossings
+    and each side's bite; plan aims the final exit."""
+    from stitchplan.needle.geometry import scenario_needle
+    from stitchplan.needle.insertion import run_insertion
+
+    scenario = parse_scenario(WOUND)
+    geometry = scenario_needle(scenario)
+    assert [kind for _, kind in geometry.crossings] == ["exit", "entry", "exit"]
+    assert geometry.desired_exit == pytest.approx([14.0, 20.0])
+    result = run_insertion(scenario)
+    domain = scenario.tissue.domain
+    assert [c["kind"] for c in result.crossings] == ["exit", "entry", "exit"]
+    assert np.all(domain.contains(result.needle_points, 1e-6))  # none in the gap
+    walls = [c["achieved"] for c in result.crossings[:2]]
+    assert walls[0][0] == pytest.approx(22.0) and walls[1][0] == pytest.approx(18.0)
+    # consecutive needle points on the two walls: the only segment across the gap
+    across = np.flatnonzero((result.needle_points[:-1, 0] > 20.0) & (result.needle_points[1:, 0] < 20.0))
+    assert len(across) == 1
+    assert np.allclose(result.needle_points[across[0]], walls[0]) and np.allclose(result.needle_points[across[0] + 1], walls[1])
+    assert result.crossings[-1]["error_mm"] == pytest.approx(result.exit_error_mm)
+    assert all(c["error_mm"] < 1.0 for c in result.crossings)
+    assert result.bites["entry_side_at_rest_mm"] == pytest.approx(4.0)
+    assert result.bites["difference_mm"] == pytest.approx(result.bites["exit_side_mm"] - result.bites["entry_side_mm"])
+
+    write_scene(tmp_path, WOUND)
+    run = invoke(tmp_path, "plan", "scene.yaml", *OUTPUTS["plan"])
+    assert run.exit_code == 0, run.output
+    import json
+
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert [c["kind"] for c in summary["crossings"]] == ["exit", "entry", "exit"]
+    assert set(summary["crossings"][0]) == {"kind", "desired", "desired_def", "achieved_def", "error_mm"}
+    assert summary["exit_error_mm"] < 0.05 < result.exit_error_mm  # the planner aims the final exit
+    assert summary["crossings"][-1]["error_mm"] == pytest.approx(summary["exit_error_mm"])
+    assert {"entry_side_mm", "exit_side_mm", "difference_mm"} <= set(summary["bites"])
