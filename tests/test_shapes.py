@@ -14,13 +14,13 @@ import math
 
 import numpy as np
 import pytest
+from test_bad_inputs import OUTPUTS, assert_refused, invoke, write_scene
 
 from stitchplan.config import Discretization, Material, Tissue
 from stitchplan.config.scenario import parse_scenario
-from stitchplan.geometry import PolygonDomain, circle_polygon
+from stitchplan.geometry import circle_polygon
 from stitchplan.tissue.model import build_tissue_model
 from stitchplan.tissue.shape_functions import rk_shape_functions
-from test_bad_inputs import OUTPUTS, assert_refused, invoke, write_scene
 
 PHANTOM = {"model": "neo-hookean", "lame_lambda": 0.189151, "lame_mu": 0.147688}
 NOTCHED = [[0.0, 0.0], [40.0, 0.0], [40.0, 20.0], [22.0, 20.0], [21.0, 14.0], [19.0, 14.0],

@@ -97,8 +97,7 @@ def run_insertion(
         rotation = step * geometry.step
         previous = rotation - geometry.step
         if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
-            entered = locate_reentry(insertion, crossings[-1][2] if crossings[-1][2] > previous else previous,
-                                     rotation)
+            entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
             if entered is None:
                 record = _needle_step(insertion, control, step, rotation, None, "gap", condition_numbers)
                 steps.append(record)
@@ -117,7 +116,7 @@ def run_insertion(
             point, method = track_step(insertion, step, rotation)  # about the previous step's centre
             fraction = 1.0
         if insertion.domain.outside_distance(point) > 0.0:
-            start = crossings[-1][2] if crossings and crossings[-1][2] > previous else previous
+            start = max(previous, crossings[-1][2]) if crossings else previous
             exit_point, exit_rotation = locate_exit(insertion, start, method,
                                                     (rotation - start) if start != previous else None)
             if sum(kind == "exit" for kind, _, _ in crossings) < wound_exits:

@@ -16,10 +16,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..config import Tissue
-from ..geometry import PolygonDomain
-from ..config import Discretization
+from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
+from ..geometry import PolygonDomain
 from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
 
 CUT_LEVELS = 3  # halvings of a cut background cell
