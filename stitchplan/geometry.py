@@ -286,6 +286,18 @@ class PolygonDomain:
         object.__setattr__(self, "segment_starts", np.concatenate(starts))
         object.__setattr__(self, "segment_ends", np.concatenate(ends))
         low, high = self.outline.min(axis=0), self.outline.max(axis=0)
+        # a side of the bounding box that holds exactly one outline edge answers to its name
+        # (the outline's right edge is `right`), as a rectangle's edges do
+        aliases = {}
+        if not self.edge_names:
+            tol = 1e-9 * float(np.max(high - low))
+            starts, ends = self.outline, np.roll(self.outline, -1, axis=0)
+            for name, axis, value in (("left", 0, low[0]), ("right", 0, high[0]), ("bottom", 1, low[1]),
+                                      ("top", 1, high[1])):
+                on = np.flatnonzero((np.abs(starts[:, axis] - value) <= tol) & (np.abs(ends[:, axis] - value) <= tol))
+                if len(on) == 1:
+                    aliases[name] = int(on[0])
+        object.__setattr__(self, "aliases", aliases)
         object.__setattr__(self, "origin", low)
         object.__setattr__(self, "width", float(high[0] - low[0]))
         object.__setattr__(self, "height", float(high[1] - low[1]))
@@ -318,6 +330,8 @@ class PolygonDomain:
     # --- edges ----------------------------------------------------------------------------
 
     def _index(self, name: str) -> int:
+        if name in self.aliases:
+            return self.aliases[name]
         try:
             return self.segment_names.index(name)
         except ValueError:

@@ -70,8 +70,9 @@ BAD_SHAPES = {
     "clamped segment off the boundary": (shaped(clamped=[{"segment": [[0, 1], [40, 1]]}]),
                                          ["tissue.clamped[0].segment: got [[0.0, 1.0], [40.0, 1.0]]",
                                           "a non-empty straight piece of one edge of the polygon tissue"]),
-    "named edge on a polygon": (shaped(clamped=["bottom"]),
-                                ["tissue.clamped[0]: got 'bottom'", "edge names belong to a tissue given by size"]),
+    "named edge on a polygon": (shaped(clamped=["top"]),
+                                ["tissue.clamped[0]: got 'top'", "a side of the outline's bounding box that holds "
+                                 "exactly one outline edge"]),
 }
 
 
@@ -98,6 +99,24 @@ def test_loads_and_needles_must_meet_the_polygon(tmp_path, command, change, frag
     write_scene(tmp_path, raw)
     result = invoke(tmp_path, command, "scene.yaml", *OUTPUTS[command])
     assert_refused(result, tmp_path, {"scene.yaml"}, [["scene.yaml: ", *fragments]])
+
+
+def test_the_example_of_scenario_md_reads():
+    """SCENARIO.md's shape example (its first hole, which reaches past the outline, left out):
+    `clamped: [right]` names the outline's one edge on the right side of its bounding box."""
+    raw = {"tissue": {"outline": [[0, 0], [60, 0], [60, 30], [34, 30], [32, 22], [28, 22], [26, 30], [0, 30]],
+                      "thickness": 10.0, "material": PHANTOM,
+                      "holes": [{"circle": {"center": [20, 10], "radius": 3}}],
+                      "regions": [{"polygon": [[0, 25], [60, 25], [60, 30], [0, 30]],
+                                   "material": {"model": "neo-hookean", "lame_lambda": 0.9, "lame_mu": 0.4}}],
+                      "clamped": ["right"]},
+           "loads": [{"segment": [[0, 5], [0, 25]], "force": [-1.0, 0.0]}]}
+    tissue = parse_scenario(raw).tissue
+    start, end = tissue.clamped_pieces()[0]
+    assert {tuple(start), tuple(end)} == {(60.0, 0.0), (60.0, 30.0)}
+    raw["tissue"]["holes"].insert(0, {"polygon": [[40, 20], [60, 20], [60, 40], [40, 40]]})
+    with pytest.raises(Exception, match="holes\\[0\\].*a hole inside the tissue outline"):
+        parse_scenario(raw)
 
 
 def test_a_clockwise_outline_is_walked_counter_clockwise():

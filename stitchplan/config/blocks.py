@@ -277,9 +277,10 @@ def shape_problems(tissue: Tissue) -> list:
                                     field=f"regions[{i}].polygon", value=region.polygon))
     for i, item in enumerate(tissue.clamped):
         if isinstance(item, str):
-            if tissue.outline is not None:
-                problems.append(problem("{segment: [[x0, y0], [x1, y1]]} (edge names belong to a tissue "
-                                        "given by size)", field=f"clamped[{i}]", value=item))
+            if tissue.outline is not None and item not in domain.aliases:
+                problems.append(problem("{segment: [[x0, y0], [x1, y1]]}, or the name of a side of the "
+                                        "outline's bounding box that holds exactly one outline edge",
+                                        field=f"clamped[{i}]", value=item))
         elif domain.segment_edge(*item.segment) is None:
             problems.append(problem(segment_expectation(domain), field=f"clamped[{i}].segment",
                                     value=[list(p) for p in item.segment]))
