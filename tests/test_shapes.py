@@ -338,3 +338,15 @@ def test_a_stitch_across_a_wound_is_followed_through_every_crossing(tmp_path):
     assert summary["exit_error_mm"] < 0.05 < result.exit_error_mm  # the planner aims the final exit
     assert summary["crossings"][-1]["error_mm"] == pytest.approx(summary["exit_error_mm"])
     assert {"entry_side_mm", "exit_side_mm", "difference_mm"} <= set(summary["bites"])
+
+
+def test_a_symmetric_target_evens_the_bites():
+    """planner.target symmetric: the passes aim the exit-side bite at the entry side's,
+    accepting some exit error for it."""
+    from stitchplan.planning.planner import run_plan
+
+    raw = copy.deepcopy(WOUND)
+    raw["planner"] = {"target": "symmetric"}
+    planned = run_plan(parse_scenario(raw), compare=False).planned
+    assert abs(planned.bites["difference_mm"]) <= 0.005
+    assert [c["kind"] for c in planned.crossings] == ["exit", "entry", "exit"]

@@ -528,6 +528,11 @@ class Planner:
     strict: described(Flag, "fail instead of warning when the planner does not converge") = False
     exit_tolerance: described(PositiveMM, "exit-point tolerance of the planner passes, mm") = 0.005
     max_passes: described(integer(1, 20), "planner passes over the whole insertion") = 4
+    # a stitch across a wound: aim the final exit (exit), or trade its error for equal bites
+    # on both sides of the wound (symmetric: the passes aim the exit-side bite at the entry side's)
+    target: described(choice(("exit", "symmetric")),
+                      "exit: aim the desired exit; symmetric (a stitch across a wound): aim equal bites "
+                      "on both sides of the wound, trading exit error for symmetry") = "exit"
 
 
 AngularSpeed = described(number("a positive number (rad/s)", gt=0) | None,

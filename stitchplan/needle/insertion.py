@@ -237,4 +237,5 @@ def _bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
     at_rest = (float(np.linalg.norm(points[1] - points[0])), float(np.linalg.norm(points[3] - points[2])))
     return {"entry_side_mm": entry_side, "exit_side_mm": exit_side, "difference_mm": exit_side - entry_side,
             "entry_wound_edge": points[1], "exit_wound_edge": points[3],
+            "entry_wound_edge_def": moved[1], "exit_wound_edge_def": moved[3],
             "entry_side_at_rest_mm": at_rest[0], "exit_side_at_rest_mm": at_rest[1]}
