@@ -270,6 +270,97 @@ def solve_skfem(scenario: Scenario, element: str, cells: int, grading: int = 0) 
     return SkfemRun(element, cells, basis.N, mesh.nelements, values, iterations, seconds, reactions)
 
 
+def solve_skfem_shape(scenario: Scenario, h: float, grading: int = 3) -> SkfemRun:
+    """`solve_skfem` for a tissue with an outline, holes and material regions whose edges
+    all run along x or y (an L-shape, a plate with a rectangular hole, a layered slab):
+    a Q2 tensor mesh of side ~h over the bounding box with lines through every vertex and
+    segment end, `grading` geometric levels of lines around every vertex (the corners are
+    singular), elements outside the tissue removed, each element's Lame moduli those of the
+    region holding its centre. Clamped edges or segments u = 0; force segments dead
+    tractions (displacement segments are not implemented here)."""
+    from stitchplan.geometry import on_segment
+    from stitchplan.tissue.shapes import region_index
+
+    start = time.perf_counter()
+    tissue = scenario.tissue
+    domain = tissue.domain
+    materials = [tissue.material] + [region.material for region in tissue.regions]
+    if any(m.model != "saint-venant-kirchhoff" for m in materials):
+        raise ValueError("this reference implements St. Venant-Kirchhoff only")
+    if any(load.displacement is not None for load in scenario.loads):
+        raise ValueError("force loads only")
+    origin = np.asarray(domain.origin, float)
+    width, height = domain.size
+    vertices = [np.asarray(domain.outline if hasattr(domain, "outline") else
+                           [[0, 0], [width, 0], [width, height], [0, height]], float)]
+    vertices += [np.asarray(h_, float) for h_ in domain.holes]
+    vertices += [np.asarray(r.polygon, float) for r in tissue.regions]
+    corners = np.concatenate(vertices) - origin
+    ends = np.asarray([p for load in scenario.loads for p in load.segment], float).reshape(-1, 2) - origin
+    points = np.concatenate([corners, ends])
+    x_lines = mesh_lines(width, max(int(round(width / h)), 1), list(points[:, 0]), list(corners[:, 0]), grading)
+    y_lines = mesh_lines(height, max(int(round(height / h)), 1), list(points[:, 1]), list(corners[:, 1]), grading)
+    mesh = MeshQuad.init_tensor(x_lines + origin[0], y_lines + origin[1])
+    centres = mesh.p[:, mesh.t].mean(axis=1).T  # (nel, 2)
+    outside = ~domain.contains(centres)
+    if np.any(outside):
+        mesh = mesh.remove_elements(np.flatnonzero(outside))
+        centres = mesh.p[:, mesh.t].mean(axis=1).T
+    which = region_index(tissue, centres) + 1
+    lame_lambda = np.array([m.lame_lambda for m in materials])[which][:, None]
+    lame_mu = np.array([m.lame_mu for m in materials])[which][:, None]
+    vector_element = ElementVector(ElementQuad2())
+    basis = Basis(mesh, vector_element, intorder=4)
+
+    def facets_on(a, b):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        return mesh.facets_satisfying(lambda x: on_segment(np.asarray(x).T, a, b, 1e-7 * max(width, height)),
+                                      boundaries_only=True)
+
+    external = np.zeros(basis.N)
+    for load in scenario.loads:
+        a, b = (np.asarray(p, float) for p in load.segment)
+        facet_basis = FacetBasis(mesh, vector_element, facets=facets_on(a, b))
+        h0 = np.asarray(load.force) / (float(np.linalg.norm(b - a)) * tissue.thickness)
+        external += asm(dead_traction, facet_basis, h0=h0[:, None, None])
+    clamped = [basis.get_dofs(facets=facets_on(a, b)).all() for a, b in tissue.clamped_pieces()]
+    prescribed = np.unique(np.concatenate(clamped)) if clamped else np.zeros(0, dtype=np.int64)
+    free = basis.complement_dofs(prescribed)
+
+    settings = scenario.solver
+    u = np.zeros(basis.N)
+    previous_increment = np.zeros(basis.N)
+    external_norm = float(np.linalg.norm(external[free]))
+    iterations = 0
+    for step in range(1, scenario.load_steps + 1):
+        fraction = step / scenario.load_steps
+        step_start = u.copy()
+        u = u + previous_increment
+        u[prescribed] = 0.0
+        increment_norm = np.inf
+        for iteration in range(settings.max_iterations + 1):
+            first_piola, tangent = svk_response(basis.interpolate(u).grad, lame_lambda, lame_mu)
+            residual = asm(internal_force, basis, P=first_piola) - fraction * external
+            residual_norm = float(np.linalg.norm(residual[free]))
+            if iteration == 0:
+                tolerance = settings.residual_tolerance * max(fraction * external_norm, residual_norm)
+            small_step = increment_norm <= settings.increment_tolerance * (np.abs(u).max() + h)
+            if residual_norm <= tolerance and (small_step or residual_norm <= 1e-3 * tolerance):
+                break
+            if iteration == settings.max_iterations:
+                raise RuntimeError(f"skfem Newton: no convergence at load step {step}")
+            stiffness = asm(tangent_stiffness, basis, A=tangent)
+            delta = solve(*condense(stiffness, -residual, I=free, expand=False), solver=LINEAR_SOLVER)
+            u[free] += delta
+            increment_norm = float(np.abs(delta).max())
+            iterations += 1
+        previous_increment = u - step_start
+    probes = np.asarray(scenario.probes, dtype=float).reshape(-1, 2)
+    values = (basis.probes(probes.T) @ u).reshape(2, -1).T
+    return SkfemRun("Q2-quad", int(round(max(width, height) / h)), basis.N, mesh.nelements, values,
+                    iterations, time.perf_counter() - start)
+
+
 # --- the benchmark ------------------------------------------------------------------------
 
 

@@ -8,7 +8,9 @@ import math
 from pathlib import Path
 
 THESIS = {"sh12_100x100": (1.89, 0.01), "sh12_100x100_mid": (1.89, 0.01), "sh12_100x50": (3.0, 0.05),
-          "sh12_100x40": (3.58, 0.02), "sh12_100x30": (4.35, 0.01)}
+          "sh12_100x40": (3.58, 0.02), "sh12_100x30": (4.35, 0.01),
+          "skin_layered": ("-", "-"), "hole_near_stitch": ("-", "-"),
+          "wound_closure": ("-", "-"), "wound_closure_symmetric": ("-", "-")}  # shapes: no thesis figures
 
 
 def centre_moves(trajectory: Path) -> tuple[float, float]:

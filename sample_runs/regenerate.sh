@@ -9,7 +9,16 @@ stitchplan deform configs/slab_edge_load.yaml --probes-out $out/slab_edge_load/p
   --reactions-out $out/slab_edge_load/reactions.csv --summary $out/slab_edge_load/summary.json \
   --out $out/slab_edge_load/run.h5 --plot $out/slab_edge_load/deformed.png
 
-for scene in sh12_100x100 sh12_100x100_mid sh12_100x50 sh12_100x40 sh12_100x30; do
+# tissue shapes: a layered skin patch, a hole next to the stitch, a stitch across a wound
+for scene in skin_layered hole_near_stitch wound_closure; do
+  stitchplan deform configs/$scene.yaml --probes-out $out/$scene/probes.csv \
+    --summary $out/$scene/deform_summary.json --plot $out/$scene/deformed.png
+  stitchplan simulate configs/$scene.yaml --summary $out/$scene/simulate_summary.json \
+    --plot $out/$scene/simulate.png
+done
+
+for scene in sh12_100x100 sh12_100x100_mid sh12_100x50 sh12_100x40 sh12_100x30 skin_layered hole_near_stitch wound_closure \
+    wound_closure_symmetric; do
   [ -f configs/$scene.yaml ] || continue
   stitchplan plan configs/$scene.yaml --export $out/$scene/trajectory.csv \
     --summary $out/$scene/plan_summary.json --plot $out/$scene/plan.png --angular-speed 0.5

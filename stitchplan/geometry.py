@@ -106,6 +106,38 @@ class Rectangle:
         """The nearest domain point of each point (...,2)."""
         return np.clip(points, [0.0, 0.0], [self.width, self.height])
 
+    # --- general shapes ask the same questions ------------------------------------------------
+
+    origin = np.zeros(2)
+    holes: tuple = ()
+    convex = True
+
+    def boundary_segments(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The four edges, counter-clockwise (tissue on the left)."""
+        w, h = self.width, self.height
+        corners = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+        return list(zip(corners, np.roll(corners, -1, axis=0)))
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Distance (...,) of points to the boundary."""
+        points = np.asarray(points, dtype=float)
+        x, y = points[..., 0], points[..., 1]
+        inside = np.minimum.reduce([x, self.width - x, y, self.height - y])
+        outside = np.hypot(np.maximum.reduce([-x, x - self.width, 0 * x]),
+                           np.maximum.reduce([-y, y - self.height, 0 * y]))
+        return np.where(inside >= 0, inside, outside)
+
+    def blocked(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """Convex: no segment between tissue points leaves it."""
+        return np.zeros(len(starts), dtype=bool)
+
+    def circle_crossings(self, center, radius: float, start_angle: float, sense: float,
+                         max_rotation: float = 2 * math.pi) -> list[tuple[float, str]]:
+        """Every crossing of the circle with the boundary within max_rotation, in order."""
+        ends = self.boundary_segments()
+        return circle_crossings(self, np.array([a for a, _ in ends]), np.array([b for _, b in ends]),
+                                np.asarray(center, float), radius, start_angle, sense, max_rotation)
+
     # --- circles --------------------------------------------------------------------------
 
     def first_exit_rotation(self, center: np.ndarray, radius: float, start_angle: float,
@@ -139,3 +171,326 @@ def circle_center_at_entry(domain: Rectangle, entry, radius: float, turn: str) -
     # centre to the right of the motion for a clockwise turn, to the left for ccw
     side = np.array([inward[1], -inward[0]]) if turn == "cw" else np.array([-inward[1], inward[0]])
     return np.asarray(entry, dtype=float) + radius * side, edge
+
+
+# --- polygons ---------------------------------------------------------------------------------
+
+CIRCLE_SEGMENTS = 96  # chord error R (1 - cos(pi/96)) = 5.4e-4 R: microns for mm-sized holes
+
+
+def circle_polygon(center, radius: float, segments: int = CIRCLE_SEGMENTS) -> np.ndarray:
+    """A circle as a counter-clockwise regular polygon with vertices on it, (segments, 2)."""
+    angles = 2.0 * np.pi * np.arange(segments) / segments
+    return np.asarray(center, dtype=float) + radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+
+
+def signed_area(vertices: np.ndarray) -> float:
+    """Shoelace area: positive for a counter-clockwise polygon."""
+    x, y = vertices[:, 0], vertices[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def segments_cross(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float) -> np.ndarray:
+    """Mask of segment pairs p-q and a-b (broadcasting (..., 2) arrays) that cross properly:
+    each segment's ends lie strictly (beyond `tol` mm) on opposite sides of the other's line.
+    Touching at an end, running along each other or meeting at a vertex is not a crossing."""
+    d, e = q - p, b - a
+    length_d = np.maximum(np.linalg.norm(d, axis=-1), 1e-300)
+    length_e = np.maximum(np.linalg.norm(e, axis=-1), 1e-300)
+    o1, o2 = _cross(d, a - p) / length_d, _cross(d, b - p) / length_d  # a, b seen from p-q
+    o3, o4 = _cross(e, p - a) / length_e, _cross(e, q - a) / length_e  # p, q seen from a-b
+    return (((o1 > tol) & (o2 < -tol)) | ((o1 < -tol) & (o2 > tol))) & \
+        (((o3 > tol) & (o4 < -tol)) | ((o3 < -tol) & (o4 > tol)))
+
+
+def segments_touch(p, q, a, b, tol: float) -> np.ndarray:
+    """Mask of segment pairs that come within `tol` of each other (crossing, touching,
+    overlapping)."""
+    p, q, a, b = (np.asarray(v, dtype=float) for v in (p, q, a, b))
+    close = np.minimum.reduce([_point_segment_distance(p, a, b), _point_segment_distance(q, a, b),
+                               _point_segment_distance(a, p, q), _point_segment_distance(b, p, q)])
+    return (close <= tol) | segments_cross(p, q, a, b, 0.0)
+
+
+def _point_segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    e = b - a
+    t = np.clip(np.sum((x - a) * e, axis=-1) / np.maximum(np.sum(e * e, axis=-1), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(x - (a + t[..., None] * e), axis=-1)
+
+
+def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
+    """Why `vertices` (k, 2) is not a simple polygon (None when it is): fewer than three
+    vertices, a repeated vertex, no area, or two edges that cross or touch."""
+    k = len(vertices)
+    if k < 3:
+        return "at least three vertices"
+    starts, ends = vertices, np.roll(vertices, -1, axis=0)
+    if np.any(np.linalg.norm(ends - starts, axis=1) <= tol):
+        return "a polygon without repeated consecutive vertices (an edge has zero length)"
+    i, j = np.triu_indices(k, 1)
+    adjacent = (j == i + 1) | ((i == 0) & (j == k - 1))
+    touch = segments_touch(starts[i], ends[i], starts[j], ends[j], tol)
+    # adjacent edges share their common vertex; they must not fold back onto each other
+    forward = (j == i + 1)[:, None]
+    other_i = np.where(forward, starts[i], ends[i])
+    other_j = np.where(forward, ends[j], starts[j])
+    folded = (_point_segment_distance(other_i, starts[j], ends[j]) <= tol) | \
+        (_point_segment_distance(other_j, starts[i], ends[i]) <= tol)
+    bad = np.flatnonzero(np.where(adjacent, folded, touch))
+    if len(bad):
+        a, b = int(i[bad[0]]), int(j[bad[0]])
+        return f"a simple polygon (its edges from vertex {a} and from vertex {b} cross or touch)"
+    if abs(signed_area(vertices)) <= tol * tol:
+        return "a polygon enclosing an area"
+    return None
+
+
+@dataclass(frozen=True, eq=False)
+class PolygonDomain:
+    """A simple polygon (counter-clockwise) with polygonal holes, in mm.
+
+    Boundary pieces are named `outline[i]` (the edge from vertex i to i + 1) and
+    `holes[j][i]`; every directed boundary edge has the tissue on its left (holes are walked
+    clockwise), so the inward normal is the edge direction turned left. Circles are held as
+    their inscribed polygons (CIRCLE_SEGMENTS edges).
+    """
+
+    outline: np.ndarray  # (k, 2) counter-clockwise
+    holes: tuple = ()  # (m, 2) arrays, counter-clockwise (as drawn)
+    edge_names: tuple = ()  # names of the outline edges when they have some (a rectangle's)
+
+    @classmethod
+    def rectangle(cls, size, holes=()) -> PolygonDomain:
+        """The slab [0, W] x [0, H] with holes; its edges keep their names."""
+        w, h = float(size[0]), float(size[1])
+        return cls(np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]), tuple(holes),
+                   ("bottom", "right", "top", "left"))
+
+    def __post_init__(self):
+        loops = [self.outline] + [hole[::-1] for hole in self.holes]  # tissue on the left
+        names, starts, ends = [], [], []
+        for j, loop in enumerate(loops):
+            count = len(loop)
+            for i in range(count):  # reversed hole: walked edge i is the hole's edge m - 2 - i
+                if j == 0:
+                    names.append(self.edge_names[i] if self.edge_names else f"outline[{i}]")
+                else:
+                    names.append(f"holes[{j - 1}][{(count - 2 - i) % count}]")
+            starts.append(loop)
+            ends.append(np.roll(loop, -1, axis=0))
+        object.__setattr__(self, "segment_names", tuple(names))
+        object.__setattr__(self, "segment_starts", np.concatenate(starts))
+        object.__setattr__(self, "segment_ends", np.concatenate(ends))
+        low, high = self.outline.min(axis=0), self.outline.max(axis=0)
+        # a side of the bounding box that holds exactly one outline edge answers to its name
+        # (the outline's right edge is `right`), as a rectangle's edges do
+        aliases = {}
+        if not self.edge_names:
+            tol = 1e-9 * float(np.max(high - low))
+            starts, ends = self.outline, np.roll(self.outline, -1, axis=0)
+            for name, axis, value in (("left", 0, low[0]), ("right", 0, high[0]), ("bottom", 1, low[1]),
+                                      ("top", 1, high[1])):
+                on = np.flatnonzero((np.abs(starts[:, axis] - value) <= tol) & (np.abs(ends[:, axis] - value) <= tol))
+                if len(on) == 1:
+                    aliases[name] = int(on[0])
+        object.__setattr__(self, "aliases", aliases)
+        object.__setattr__(self, "origin", low)
+        object.__setattr__(self, "width", float(high[0] - low[0]))
+        object.__setattr__(self, "height", float(high[1] - low[1]))
+
+    @property
+    def size(self) -> tuple[float, float]:
+        """The bounding box's sides (mm)."""
+        return (self.width, self.height)
+
+    @property
+    def tolerance(self) -> float:
+        return 1e-9 * max(self.width, self.height)
+
+    @property
+    def convex(self) -> bool:
+        """No holes and no reflex vertex: every segment between tissue points stays inside."""
+        if self.holes:
+            return False
+        d = np.roll(self.outline, -1, axis=0) - self.outline
+        return bool(np.all(_cross(d, np.roll(d, -1, axis=0)) >= -self.tolerance**2))
+
+    def describe(self) -> str:
+        holes = f" with {len(self.holes)} hole{'s' if len(self.holes) != 1 else ''}" if self.holes else ""
+        return f"polygon tissue ({len(self.outline)} vertices{holes})"
+
+    def boundary_segments(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Every directed boundary edge (tissue on its left)."""
+        return list(zip(self.segment_starts, self.segment_ends))
+
+    # --- edges ----------------------------------------------------------------------------
+
+    def _index(self, name: str) -> int:
+        if name in self.aliases:
+            return self.aliases[name]
+        try:
+            return self.segment_names.index(name)
+        except ValueError:
+            raise KeyError(name) from None
+
+    def edge(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        k = self._index(name)
+        return self.segment_starts[k].copy(), self.segment_ends[k].copy()
+
+    def inward_normal(self, name: str) -> np.ndarray:
+        k = self._index(name)
+        d = self.segment_ends[k] - self.segment_starts[k]
+        return np.array([-d[1], d[0]]) / float(np.hypot(*d))
+
+    def edge_mask(self, points: np.ndarray, name: str, tol: float | None = None) -> np.ndarray:
+        tol = self.tolerance if tol is None else tol
+        return on_segment(np.asarray(points, dtype=float), *self.edge(name), tol)
+
+    def edges_at(self, point, tol: float | None = None) -> list[str]:
+        """Names of the boundary edges holding the point (two at a vertex)."""
+        tol = self.tolerance if tol is None else tol
+        x = np.asarray(point, dtype=float)
+        d = _point_segment_distance(x[None], self.segment_starts, self.segment_ends)
+        return [self.segment_names[k] for k in np.flatnonzero(d <= tol)]
+
+    def segment_edge(self, start, end, tol: float | None = None) -> str | None:
+        """The boundary edge holding the whole non-empty segment start-end, or None."""
+        if np.allclose(start, end, rtol=0.0, atol=0.0):
+            return None
+        common = set(self.edges_at(start, tol)) & set(self.edges_at(end, tol))
+        return sorted(common)[0] if common else None
+
+    # --- inside, outside ------------------------------------------------------------------
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Distance (...,) of points to the boundary."""
+        points = np.asarray(points, dtype=float)
+        flat = points.reshape(-1, 2)
+        out = np.empty(len(flat))
+        for chunk in range(0, len(flat), 20000):  # (chunk x edges) work arrays
+            part = flat[chunk:chunk + 20000, None, :]
+            out[chunk:chunk + 20000] = _point_segment_distance(part, self.segment_starts[None],
+                                                               self.segment_ends[None]).min(axis=1)
+        return out.reshape(points.shape[:-1])
+
+    def _inside_strict(self, flat: np.ndarray) -> np.ndarray:
+        """Even-odd crossing test of points (n, 2) over every boundary loop."""
+        inside = np.zeros(len(flat), dtype=bool)
+        a, b = self.segment_starts, self.segment_ends
+        for chunk in range(0, len(flat), 20000):
+            x = flat[chunk:chunk + 20000, None, 0]
+            y = flat[chunk:chunk + 20000, None, 1]
+            straddle = (a[None, :, 1] > y) != (b[None, :, 1] > y)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x_cross = a[None, :, 0] + (y - a[None, :, 1]) * (b[None, :, 0] - a[None, :, 0]) / (
+                    b[None, :, 1] - a[None, :, 1])
+            inside[chunk:chunk + 20000] = (np.count_nonzero(straddle & (x < x_cross), axis=1) % 2) == 1
+        return inside
+
+    def contains(self, points: np.ndarray, tol: float = 0.0) -> np.ndarray:
+        """Mask (...,) of points inside the closed domain, grown by tol (at least round-off)."""
+        points = np.asarray(points, dtype=float)
+        flat = points.reshape(-1, 2)
+        result = self._inside_strict(flat) | (self.distance(flat) <= max(tol, self.tolerance))
+        return result.reshape(points.shape[:-1])
+
+    def outside_distance(self, point) -> float:
+        """Signed distance to the boundary: positive outside, negative inside."""
+        x = np.asarray(point, dtype=float).reshape(1, 2)
+        d = float(self.distance(x)[0])
+        return -d if self._inside_strict(x)[0] else d
+
+    def clip(self, points: np.ndarray) -> np.ndarray:
+        """The nearest domain point of each point (..., 2): itself inside, the nearest boundary
+        point outside."""
+        points = np.asarray(points, dtype=float)
+        flat = points.reshape(-1, 2).copy()
+        out = ~self.contains(flat)
+        if np.any(out):
+            x = flat[out][:, None, :]
+            a, b = self.segment_starts[None], self.segment_ends[None]
+            e = b - a
+            t = np.clip(np.sum((x - a) * e, axis=-1) / np.sum(e * e, axis=-1), 0.0, 1.0)
+            nearest = a + t[..., None] * e
+            k = np.argmin(np.linalg.norm(x - nearest, axis=-1), axis=1)
+            flat[out] = nearest[np.arange(len(k)), k]
+        return flat.reshape(points.shape)
+
+    # --- visibility -----------------------------------------------------------------------
+
+    def blocked(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """Mask (n,) of the straight segments starts-ends (n, 2) that cross the boundary
+        (leave the tissue through an edge): the visibility criterion of the shape functions."""
+        starts, ends = np.asarray(starts, dtype=float), np.asarray(ends, dtype=float)
+        hit = np.zeros(len(starts), dtype=bool)
+        tol = 1e-7 * max(self.width, self.height)
+        low, high = np.minimum(starts, ends), np.maximum(starts, ends)
+        for a, b in zip(self.segment_starts, self.segment_ends):  # edges: tens, pairs: many
+            near = ((high[:, 0] >= min(a[0], b[0])) & (low[:, 0] <= max(a[0], b[0]))
+                    & (high[:, 1] >= min(a[1], b[1])) & (low[:, 1] <= max(a[1], b[1])) & ~hit)
+            if np.any(near):
+                idx = np.flatnonzero(near)
+                hit[idx] = segments_cross(starts[idx], ends[idx], a, b, tol)
+        # a segment between two boundary points crossing a gap touches the boundary only at
+        # its ends: its middle lies outside
+        rest = np.flatnonzero(~hit)
+        if len(rest):
+            middle = 0.5 * (starts[rest] + ends[rest])
+            hit[rest] = ~self._inside_strict(middle) & (self.distance(middle) > tol)
+        return hit
+
+    # --- circles --------------------------------------------------------------------------
+
+    def circle_crossings(self, center, radius: float, start_angle: float, sense: float,
+                         max_rotation: float = 2 * math.pi) -> list[tuple[float, str]]:
+        """Every crossing of the circle point center + R (cos phi, sin phi),
+        phi = start_angle + sense * rotation, with the boundary for 0 < rotation <= max_rotation,
+        in order: (rotation, 'entry' or 'exit')."""
+        return circle_crossings(self, self.segment_starts, self.segment_ends, np.asarray(center, float),
+                                radius, start_angle, sense, max_rotation)
+
+    def first_exit_rotation(self, center: np.ndarray, radius: float, start_angle: float,
+                            sense: float) -> float | None:
+        for rotation, kind in self.circle_crossings(center, radius, start_angle, sense):
+            if kind == "exit":
+                return rotation
+        return None
+
+
+def circle_crossings(domain, starts: np.ndarray, ends: np.ndarray, center: np.ndarray, radius: float,
+                     start_angle: float, sense: float, max_rotation: float) -> list[tuple[float, str]]:
+    """Crossings of a circle with boundary edges (starts, ends (ns, 2)): the rotations where
+    the circle meets an edge, kept where the point's inside/outside state changes."""
+    d = ends - starts
+    f = starts - center
+    a = np.sum(d * d, axis=1)
+    b = 2.0 * np.sum(f * d, axis=1)
+    c = np.sum(f * f, axis=1) - radius**2
+    disc = b * b - 4 * a * c
+    ok = disc >= 0.0
+    root = np.sqrt(np.where(ok, disc, 0.0))
+    ts = np.concatenate([(-b - root) / (2 * a), (-b + root) / (2 * a)])
+    valid = np.concatenate([ok, ok]) & (ts >= -1e-12) & (ts <= 1 + 1e-12)
+    points = np.concatenate([starts, starts])[valid] + ts[valid, None] * np.concatenate([d, d])[valid]
+    phi = np.arctan2(points[:, 1] - center[1], points[:, 0] - center[0])
+    rotations = np.sort(np.mod((phi - start_angle) * sense, 2 * math.pi))
+    rotations = rotations[(rotations >= 1e-9) & (rotations <= max_rotation + 1e-9)]
+    if len(rotations):
+        rotations = rotations[np.concatenate([[True], np.diff(rotations) > 1e-9])]
+    result = []
+    eps = 1e-7
+    for rotation in rotations:
+        before, after = (start_angle + sense * (rotation + s * eps) for s in (-1.0, 1.0))
+        pts = center + radius * np.array([[math.cos(before), math.sin(before)],
+                                          [math.cos(after), math.sin(after)]])
+        inside = domain.contains(pts, tol=0.0) if not isinstance(domain, PolygonDomain) else \
+            domain._inside_strict(pts)
+        if inside[0] and not inside[1]:
+            result.append((float(rotation), "exit"))
+        elif inside[1] and not inside[0]:
+            result.append((float(rotation), "entry"))
+    return result

@@ -141,7 +141,7 @@ def model_size(scenario: Scenario) -> ModelSize:
 
 
 def _particles(scenario: Scenario) -> tuple[int, bool]:
-    d, (width, height) = scenario.discretization, scenario.tissue.size
+    d, (width, height) = scenario.discretization, scenario.tissue.bounding_size
     zone = needle_zone(scenario)
     if zone is None:  # the uniform grid of tissue.particles.grid_particles
         nx, ny = max(round(width / d.spacing), 1), max(round(height / d.spacing), 1)
@@ -150,10 +150,10 @@ def _particles(scenario: Scenario) -> tuple[int, bool]:
         return (nx + 1) * (ny + 1), not scenario.loads
     lattice = (width / d.needle_spacing) * (height / d.needle_spacing)
     if lattice <= COUNT_EXACTLY_UP_TO:
-        graded = graded_particles(scenario.tissue.size, d.spacing, d.needle_spacing,
+        graded = graded_particles(scenario.tissue.bounding_size, d.spacing, d.needle_spacing,
                                   np.asarray(zone[0], dtype=float), zone[1])
         return len(graded.particles), True
-    return _graded_estimate(scenario.tissue.size, d.spacing, d.needle_spacing, zone), False
+    return _graded_estimate(scenario.tissue.bounding_size, d.spacing, d.needle_spacing, zone), False
 
 
 def _graded_estimate(size, spacing: float, fine: float, zone, growth: float = 0.5, samples: int = 400) -> int:

@@ -263,10 +263,10 @@ def test_unknown_key_suggests_the_close_one(slab_raw):
     slab_raw["tissue"]["thicknes"] = slab_raw["tissue"].pop("thickness")
     with pytest.raises(ScenarioError) as error:
         parse_scenario(slab_raw)
-    assert error.value.lines == [
+    assert sorted(error.value.lines) == [
         "tissue.thickness: missing, required: a positive number (mm)",
-        ("tissue: unknown key 'thicknes', expected one of: size, thickness, material, clamped "
-         "(did you mean 'thickness'?)"),
+        ("tissue: unknown key 'thicknes', expected one of: size, thickness, material, clamped, "
+         "outline, holes, regions (did you mean 'thickness'?)"),
     ]
 
 

@@ -88,7 +88,8 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
         raise InputError(
             f"{path}.markers: {markers_path} line {lines[k]}: rest position "
             f"({rest[k, 0]:g}, {rest[k, 1]:g}) mm, expected a point inside "
-            f"[0, {tissue.size[0]:g}] x [0, {tissue.size[1]:g}] mm")
+            + (f"[0, {tissue.size[0]:g}] x [0, {tissue.size[1]:g}] mm" if tissue.outline is None and not tissue.holes
+               else f"the {tissue.domain.describe()}"))
     return Experiment(
         name=block.name,
         loads=block.loads,

@@ -53,10 +53,12 @@ def deform(
     provenance = _provenance(scenario_path)
     from ..io import reports
     from ..io.progress import progress_bar
+    from ..needle.geometry import needle_zone
     from ..tissue.deform import run_deform
 
+    # a needle scene's default particles are graded toward the needle: deform keeps them
     with progress_bar("load steps", scenario.load_steps) as advance:
-        result = run_deform(scenario, on_step=lambda step, record: advance())
+        result = run_deform(scenario, on_step=lambda step, record: advance(), needle_zone=needle_zone(scenario))
     reports.write_deform_outputs(result, probes_out=probes_out, reactions_out=reactions_out,
                                  summary=summary, out=out, plot=plot, provenance=provenance,
                                  plot_scale=plot_scale)

@@ -11,11 +11,13 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import asdict
-from typing import Any
+from dataclasses import field as dataclasses_field
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
     ConfigDict,
+    Field,
     ValidationError,
     ValidationInfo,
     field_validator,
@@ -23,7 +25,14 @@ from pydantic import (
 )
 from pydantic.dataclasses import dataclass
 
-from ..geometry import Rectangle
+from ..geometry import (
+    PolygonDomain,
+    Rectangle,
+    circle_polygon,
+    polygon_problem,
+    segments_touch,
+    signed_area,
+)
 from .fields import (
     BLOCK,
     EDGES,
@@ -43,13 +52,14 @@ from .fields import (
     TipTracking,
     choice,
     described,
+    expecting,
     integer,
     number,
     pair,
     problem,
     sequence,
 )
-from .messages import combined, validate
+from .messages import combined, valid_or_none, validate
 
 
 def _file_schema(required: tuple[str, ...], schema: dict) -> None:
@@ -108,25 +118,202 @@ class Material:
 
 Size = pair("a pair [W, H] of positive numbers (mm)", PositiveMM)
 Edges = sequence(choice(EDGES), "a list of edges among " + ", ".join(EDGES))
+PolygonPoints = sequence(Point, "a list of at least three points [[x, y], ...] (mm)", min_length=3)
+SegmentPoints = pair("two points [[x0, y0], [x1, y1]] (mm)", Point)
 
 
 @block()
+class Circle:
+    center: described(Point, "centre, mm")
+    radius: described(PositiveMM, "radius, mm")
+
+
+@block()
+class Hole:
+    """A cut-out with free edges: a polygon or a circle (held as a polygon of
+    geometry.CIRCLE_SEGMENTS edges with its vertices on the circle)."""
+
+    polygon: described(PolygonPoints | None, "vertices, mm") = None
+    circle: described(Circle | None, "{center: [x, y], radius: r}, mm") = None
+
+    @model_validator(mode="after")
+    def _one_shape(self) -> Hole:
+        if (self.polygon is None) == (self.circle is None):
+            raise problem("exactly one of 'polygon' or 'circle'",
+                          value=Shown("both" if self.polygon is not None else "neither"))
+        return self
+
+    def vertices(self) -> np.ndarray:
+        """Counter-clockwise vertices (k, 2)."""
+        if self.circle is not None:
+            return circle_polygon(self.circle.center, self.circle.radius)
+        return counter_clockwise(np.asarray(self.polygon, dtype=float))
+
+
+@block()
+class Region:
+    polygon: described(PolygonPoints, "vertices, mm; the first region holding a point gives its material")
+    material: described(Material, "the region's hyperelastic material")
+
+
+@block()
+class ClampedSegment:
+    segment: described(SegmentPoints, "straight piece of the boundary held fixed, mm")
+
+
+def counter_clockwise(vertices: np.ndarray) -> np.ndarray:
+    """The polygon walked counter-clockwise (a clockwise one reversed)."""
+    return vertices if signed_area(vertices) > 0 else vertices[::-1].copy()
+
+
+Clamp = Annotated[Literal[EDGES] | ClampedSegment, Field(union_mode="left_to_right"),
+                  expecting("an edge among " + ", ".join(EDGES) + " or {segment: [[x0, y0], [x1, y1]]}")]
+Clamps = sequence(Clamp, "a list of edges or {segment: ...} pieces of the boundary")
+
+
+@block(file_required=("thickness", "material"))
 class Tissue:
-    size: described(Size, "[W, H] mm: the rectangle [0, W] x [0, H]")
-    thickness: described(PositiveMM, "out-of-plane thickness t, mm (file forces are totals over t)")
-    material: described(Material, "hyperelastic material")
-    clamped: described(Edges, "edges held fixed: any of " + ", ".join(EDGES)) = ()
+    """The tissue: the rectangle `size` or the polygon `outline` (clockwise accepted and walked
+    counter-clockwise), optional holes and material regions (SCENARIO.md)."""
+
+    size: described(Size | None, "[W, H] mm: the rectangle [0, W] x [0, H]; or give outline") = None
+    thickness: described(PositiveMM, "out-of-plane thickness t, mm (file forces are totals over t)") = 1.0
+    material: described(Material, "hyperelastic material") = dataclasses_field(default_factory=Material)
+    clamped: described(Clamps, "edges held fixed: any of " + ", ".join(EDGES)
+                       + " (rectangles), or {segment: [[x0, y0], [x1, y1]]} pieces of the boundary") = ()
+    outline: described(PolygonPoints | None, "a simple polygon [[x, y], ...] (mm), instead of size") = None
+    holes: described(sequence(Hole, "a list of holes ({polygon: ...} or {circle: ...})"),
+                     "cut-outs with free edges") = ()
+    regions: described(sequence(Region, "a list of regions ({polygon: ..., material: ...})"),
+                       "areas of other materials; the first region holding a point wins") = ()
 
     @field_validator("clamped")
     @classmethod
-    def _each_edge_once(cls, clamped: tuple[str, ...]) -> tuple[str, ...]:
+    def _each_edge_once(cls, clamped: tuple) -> tuple:
         if len(set(clamped)) != len(clamped):
             raise problem("each edge at most once")
         return clamped
 
+    @model_validator(mode="after")
+    def _shape(self) -> Tissue:
+        problems = shape_problems(self)
+        if problems:
+            raise combined(problems)
+        return self
+
+    @functools.cached_property
+    def domain(self) -> Rectangle | PolygonDomain:
+        holes = tuple(hole.vertices() for hole in self.holes)
+        if self.outline is None:
+            return Rectangle.of_size(self.size) if not holes else PolygonDomain.rectangle(self.size, holes)
+        return PolygonDomain(counter_clockwise(np.asarray(self.outline, dtype=float)), holes)
+
     @property
-    def domain(self) -> Rectangle:
-        return Rectangle.of_size(self.size)
+    def bounding_size(self) -> tuple[float, float]:
+        """Sides of the bounding box (mm): `size` for a rectangle."""
+        return tuple(self.domain.size)
+
+    def clamped_pieces(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """End points of every clamped piece of the boundary."""
+        return [self.domain.edge(item) if isinstance(item, str) else
+                (np.asarray(item.segment[0], float), np.asarray(item.segment[1], float))
+                for item in self.clamped]
+
+
+def shape_problems(tissue: Tissue) -> list:
+    """Why a tissue's shape is not one the model can hold, as problems naming its fields:
+    size and outline both or neither, a self-intersecting outline, holes outside, touching or
+    overlapping the outline or each other, regions outside the tissue, clamped pieces off the
+    boundary or named edges on a polygon."""
+    if (tissue.size is None) == (tissue.outline is None):
+        given = "both" if tissue.size is not None else "neither"
+        return [problem("exactly one of 'size' [W, H] or 'outline' (a polygon)", field="size",
+                        value=Shown(given))]
+    if tissue.outline is not None:
+        outline = np.asarray(tissue.outline, dtype=float)
+        tol = 1e-9 * float(np.ptp(outline, axis=0).max())
+        why = polygon_problem(outline, tol)
+        if why:
+            return [problem(why, field="outline", value=tissue.outline)]
+        outer = counter_clockwise(outline)
+    else:
+        w, h = tissue.size
+        outer = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+        tol = 1e-9 * max(w, h)
+    problems = []
+    outer_domain = PolygonDomain(outer)
+    loops = []
+    for i, hole in enumerate(tissue.holes):
+        vertices = hole.vertices()
+        shown = hole.polygon if hole.polygon is not None else asdict(hole.circle)
+        why = polygon_problem(vertices, tol) if hole.polygon is not None else None
+        if why:
+            problems.append(problem(why, field=f"holes[{i}]", value=shown))
+            continue
+        inside = outer_domain._inside_strict(vertices) & (outer_domain.distance(vertices) > tol)
+        if not np.all(inside) or _loops_touch(vertices, outer, tol):
+            problems.append(problem("a hole inside the tissue outline, not touching it (a cut reaching the "
+                                    "surface is part of the outline)", field=f"holes[{i}]", value=shown))
+            continue
+        for j, other in loops:
+            if _loops_touch(vertices, other, tol) or PolygonDomain(other)._inside_strict(vertices[:1])[0] \
+                    or PolygonDomain(vertices)._inside_strict(other[:1])[0]:
+                problems.append(problem(f"a hole apart from holes[{j}] (they overlap or touch)",
+                                        field=f"holes[{i}]", value=shown))
+                break
+        else:
+            loops.append((i, vertices))
+    if problems:
+        return problems
+    domain = tissue.domain
+    for i, region in enumerate(tissue.regions):
+        vertices = np.asarray(region.polygon, dtype=float)
+        why = polygon_problem(vertices, tol)
+        if why:
+            problems.append(problem(why, field=f"regions[{i}].polygon", value=region.polygon))
+            continue
+        if not _overlaps(PolygonDomain(counter_clockwise(vertices)), domain):
+            problems.append(problem("a region overlapping the tissue (this one holds no tissue)",
+                                    field=f"regions[{i}].polygon", value=region.polygon))
+    for i, item in enumerate(tissue.clamped):
+        if isinstance(item, str):
+            if tissue.outline is not None and item not in domain.aliases:
+                problems.append(problem("{segment: [[x0, y0], [x1, y1]]}, or the name of a side of the "
+                                        "outline's bounding box that holds exactly one outline edge",
+                                        field=f"clamped[{i}]", value=item))
+        elif domain.segment_edge(*item.segment) is None:
+            problems.append(problem(segment_expectation(domain), field=f"clamped[{i}].segment",
+                                    value=[list(p) for p in item.segment]))
+    return problems
+
+
+def shape_domain(tissue: Any) -> Rectangle | PolygonDomain | None:
+    """The domain of a file's `tissue:` block from its shape keys alone (size or outline and
+    holes), or None when they are not valid (their own errors are reported elsewhere)."""
+    if not isinstance(tissue, dict):
+        return None
+    shape = {key: tissue[key] for key in ("size", "outline", "holes") if key in tissue}
+    valid = valid_or_none(Tissue, {**shape, "thickness": 1.0, "material": Material()})
+    return None if valid is None else valid.domain
+
+
+def _loops_touch(a: np.ndarray, b: np.ndarray, tol: float) -> bool:
+    """Whether an edge of loop a comes within tol of an edge of loop b."""
+    a0, a1 = a[:, None, :], np.roll(a, -1, axis=0)[:, None, :]
+    b0, b1 = b[None], np.roll(b, -1, axis=0)[None]
+    return bool(np.any(segments_touch(a0, a1, b0, b1, tol)))
+
+
+def _overlaps(region: PolygonDomain, domain) -> bool:
+    """Whether the region holds tissue: a lattice of 200 x 200 points over the region's
+    bounding box with some point inside both (regions thinner than 1/200 of their box count
+    as empty)."""
+    low, high = region.origin, region.origin + np.array(region.size)
+    t = (np.arange(200) + 0.5) / 200
+    points = np.stack(np.meshgrid(low[0] + t * (high[0] - low[0]), low[1] + t * (high[1] - low[1])),
+                      axis=-1).reshape(-1, 2)
+    points = points[region._inside_strict(points)]
+    return bool(np.any(domain.contains(points))) if len(points) else False
 
 
 @block(title="discretization")
@@ -233,8 +420,7 @@ class Needle:
 
 @block()
 class Load:
-    segment: described(pair("two points [[x0, y0], [x1, y1]] (mm)", Point),
-                       "straight piece of one edge, mm")
+    segment: described(SegmentPoints, "straight piece of one edge, mm")
     force: described(pair("a pair [fx, fy] of numbers (N)", number("a number (N)")) | None,
                      "N total, spread uniformly over the segment") = None
     displacement: described(pair("a pair [ux, uy] of numbers (mm)") | None,
@@ -272,7 +458,7 @@ class Shown(str):
         return str(self)
 
 
-def segment_expectation(domain: Rectangle) -> str:
+def segment_expectation(domain: Rectangle | PolygonDomain) -> str:
     return f"a non-empty straight piece of one edge of the {domain.describe()}"
 
 
@@ -292,7 +478,7 @@ def shared_length(a, b, tol: float) -> float:
     return max(0.0, min(length, along[1]) - max(0.0, along[0]))
 
 
-def load_problems(loads, clamped: tuple[str, ...], domain: Rectangle | None, path: str = "loads") -> list:
+def load_problems(loads, clamped: tuple, domain: Rectangle | PolygonDomain | None, path: str = "loads") -> list:
     """The loads' conflicts with each other and with the clamped edges, as problems naming
     `path[i].segment`: a load on a clamped edge (the clamp holds every particle there, so
     a force would be dropped and a displacement overruled), and two loads sharing more than
@@ -301,7 +487,8 @@ def load_problems(loads, clamped: tuple[str, ...], domain: Rectangle | None, pat
         return []
     tol = domain.tolerance
     problems = []
-    clamped_edges = [(name, domain.edge(name)) for name in clamped]
+    clamped_edges = [(name, domain.edge(name)) if isinstance(name, str) else
+                     (f"clamped[{k}] segment", getattr(name, "segment", name)) for k, name in enumerate(clamped)]
     for i, load in enumerate(loads):
         segment = [list(point) for point in load.segment]
         on_clamp = [name for name, edge in clamped_edges if shared_length(edge, load.segment, tol) > tol]
@@ -345,6 +532,11 @@ class Planner:
                                  "(scaled with the step; the robot's speed bound)") = 0.28
     center_second_difference_limit: described(PositiveMM, "largest change of the centre's move per "
                                               "0.08 rad of needle step, mm (scaled with the step)") = 0.14
+    # a stitch across a wound: aim the final exit (exit), or trade its error for equal bites
+    # on both sides of the wound (symmetric: the passes aim the exit-side bite at the entry side's)
+    target: described(choice(("exit", "symmetric")),
+                      "exit: aim the desired exit; symmetric (a stitch across a wound): aim equal bites "
+                      "on both sides of the wound, trading exit error for symmetry") = "exit"
 
 
 AngularSpeed = described(number("a positive number (rad/s)", gt=0) | None,

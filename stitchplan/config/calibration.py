@@ -17,12 +17,13 @@ from pydantic import (
     model_validator,
 )
 
-from ..geometry import Rectangle
 from .blocks import (
+    Clamps,
     Discretization,
-    Edges,
+    Hole,
     Load,
     Material,
+    PolygonPoints,
     Shown,
     Size,
     Solver,
@@ -30,6 +31,7 @@ from .blocks import (
     block,
     default_spacing_of,
     load_problems,
+    shape_domain,
 )
 from .fields import (
     MATERIAL_MODELS,
@@ -68,13 +70,16 @@ def _search_range(low_expected: str, **low_bound: float) -> Any:
     return Annotated[tuple[low, high], expecting(expected, items=True, length=2), _increasing(expected)]
 
 
-@block(title="tissue")
+@block(title="tissue", file_required=("thickness",))
 class CalibrationTissue:
     """The tissue of a calibration: a scenario's tissue without its material."""
 
-    size: described(Size, "[W, H] mm: the rectangle [0, W] x [0, H]")
-    thickness: described(PositiveMM, "out-of-plane thickness t, mm")
-    clamped: described(Edges, "edges held fixed") = ()
+    size: described(Size | None, "[W, H] mm: the rectangle [0, W] x [0, H]; or give outline") = None
+    thickness: described(PositiveMM, "out-of-plane thickness t, mm") = 1.0
+    clamped: described(Clamps, "edges held fixed (names, or {segment: ...} pieces)") = ()
+    outline: described(PolygonPoints | None, "a simple polygon [[x, y], ...] (mm), instead of size") = None
+    holes: described(sequence(Hole, "a list of holes ({polygon: ...} or {circle: ...})"),
+                     "cut-outs with free edges") = ()
 
     @model_validator(mode="wrap")
     @classmethod
@@ -89,8 +94,16 @@ class CalibrationTissue:
             errors = error.errors()
         raise combined([*errors, problem(NO_MATERIAL, field="material", value=material)])
 
+    @model_validator(mode="after")
+    def _shape(self) -> CalibrationTissue:
+        try:
+            self.tissue(Material())
+        except ValidationError as error:
+            raise combined(error.errors()) from None
+        return self
+
     def tissue(self, material: Material) -> Tissue:
-        return Tissue(self.size, self.thickness, material, self.clamped)
+        return Tissue(self.size, self.thickness, material, self.clamped, self.outline, self.holes)
 
 
 @block(kw_only=True, title="experiment")
@@ -160,11 +173,12 @@ def parse_calibration(raw: Any) -> CalibrationFile:
     context: dict[str, Any] = {"domain": None}
     if isinstance(raw, dict):
         tissue = raw.get("tissue")
-        size = valid_or_none(Size, tissue.get("size")) if isinstance(tissue, dict) else None
-        context["domain"] = None if size is None else Rectangle.of_size(size)
+        domain = shape_domain(tissue)
+        size = None if domain is None else domain.size
+        context["domain"] = domain
         context["clamped"] = not isinstance(tissue, dict) or bool(tissue.get("clamped"))
         if isinstance(tissue, dict):
-            context["clamped_edges"] = valid_or_none(Edges, tissue.get("clamped", ()))
+            context["clamped_edges"] = valid_or_none(Clamps, tissue.get("clamped", ()))
         given = raw.get("discretization")
         given = {} if given is None else given
         if isinstance(given, dict) and "spacing" not in given:

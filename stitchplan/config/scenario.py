@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import AfterValidator, ValidationInfo, model_validator
 
 from ..errors import InputError, ScenarioError
-from ..geometry import Rectangle
+from ..geometry import PolygonDomain, Rectangle
 from .blocks import (
     HELD,
     Discretization,
@@ -25,7 +25,6 @@ from .blocks import (
     Planner,
     Robot,
     RobotBlock,
-    Size,
     Solver,
     Tissue,
     block,
@@ -33,6 +32,7 @@ from .blocks import (
     load_problems,
     parse_discretization,
     segment_expectation,
+    shape_domain,
 )
 from .fields import (
     EDGES,
@@ -64,11 +64,13 @@ __all__ = [
 DEFAULT_NEEDLE_REFINEMENT = 2.0
 
 
-def _inside(point: tuple[float, float], domain: Rectangle) -> str | None:
+def _inside(point: tuple[float, float], domain: Rectangle | PolygonDomain) -> str | None:
     """What a probe must be when it is not inside the domain."""
     if domain.contains(np.asarray(point, dtype=float)):
         return None
-    return f"a point inside [0, {domain.width:g}] x [0, {domain.height:g}] mm"
+    if isinstance(domain, Rectangle):
+        return f"a point inside [0, {domain.width:g}] x [0, {domain.height:g}] mm"
+    return f"a point inside the {domain.describe()}"
 
 
 def _probe_inside(point: tuple[float, float], info: ValidationInfo) -> tuple[float, float]:
@@ -169,7 +171,7 @@ def default_spacing(tissue: Tissue, needle: Needle | None) -> float:
     (benchmarks/results/simulate_convergence.md), where a uniform r/3 grid changed by 13 %
     with three times the particles.
     """
-    return default_spacing_of(tissue.size, None if needle is None else needle.radius)
+    return default_spacing_of(tissue.bounding_size, None if needle is None else needle.radius)
 
 
 def _with_default_spacing(raw: dict, size: tuple[float, float] | None) -> dict | None:
@@ -194,9 +196,9 @@ def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
     """A scenario from the data of a file; an InputError lists every problem of it."""
     context: dict[str, Any] = {"domain": None}
     if isinstance(raw, dict):
-        tissue = raw.get("tissue")
-        size = valid_or_none(Size, tissue.get("size")) if isinstance(tissue, dict) else None
-        context["domain"] = None if size is None else Rectangle.of_size(size)
+        domain = shape_domain(raw.get("tissue"))
+        size = None if domain is None else domain.size
+        context["domain"] = domain
         resolved = _with_default_spacing(raw, size)
         context["default_spacing_unknown"] = resolved is None
         raw = raw if resolved is None else resolved

@@ -15,6 +15,7 @@ from .plot_elements import (
     deformed_loops,
     draw_clamps,
     draw_outline,
+    draw_regions,
     frame,
     label_mm,
     legend_below,
@@ -123,6 +124,11 @@ def _needle_frame(runs_and_steps, margin: float) -> np.ndarray:
                    np.asarray(run.desired_exit).reshape(1, 2)]
         if run.desired_exit_def is not None:
             points.append(np.asarray(run.desired_exit_def).reshape(1, 2))
+        # holes near the needle belong in the view: they shape the tissue around it
+        for hole in getattr(run.scenario.tissue.domain, "holes", ()):
+            gap = np.linalg.norm(np.asarray(hole) - run.geometry.center, axis=1).min()
+            if gap < 1.5 * run.geometry.radius:
+                points.append(np.asarray(hole))
     return np.vstack(points)
 
 
@@ -146,6 +152,7 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
     for ax, step in zip(panels, chosen):
         displacement = result.displacements[step]
         draw_outline(ax, tissue.domain, particles, displacement)
+        draw_regions(ax, tissue)
         dots = ax.scatter(*(particles + displacement).T, s=6, c=np.linalg.norm(displacement, axis=1),
                           cmap=CMAP, norm=norm, zorder=2)
         center, rotation = _state(result, step)
@@ -234,6 +241,7 @@ def plot_plan(path: str | Path, result):
     displacement = planned.displacements[-1]
     outlines = {"planned": DEFORMED, "unplanned": {"color": "darkorange", "ls": ":", "lw": 1.5}}
     draw_outline(main, tissue.domain, particles, displacement, deformed_label="tissue outline, planned run")
+    draw_regions(main, tissue)
     if unplanned is not None:
         for k, loop in enumerate(deformed_loops(tissue.domain, particles, unplanned.displacements[-1])):
             main.plot(*loop.T, **outlines["unplanned"], label="tissue outline, unplanned run" if k == 0 else None)

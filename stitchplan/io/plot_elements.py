@@ -100,6 +100,24 @@ def draw_outline(ax, domain, particles: np.ndarray | None = None, displacement: 
             ax.plot(*loop.T, **DEFORMED, label=deformed_label if k == 0 else None)
 
 
+REGION_COLOURS = ("tab:orange", "tab:cyan", "tab:pink", "tab:olive", "tab:brown")
+
+
+def draw_regions(ax, tissue) -> None:
+    """Material regions at rest: a light fill and a dotted edge each, labelled with their
+    moduli (the first region holding a point gives its material, so later ones are drawn
+    underneath)."""
+    from matplotlib.patches import Polygon
+
+    for k in range(len(getattr(tissue, "regions", ()) or ()) - 1, -1, -1):
+        region = tissue.regions[k]
+        colour = REGION_COLOURS[k % len(REGION_COLOURS)]
+        material = region.material
+        ax.add_patch(Polygon(np.asarray(region.polygon, dtype=float), closed=True, facecolor=colour,
+                             alpha=0.15, edgecolor=colour, ls=":", lw=1.2, zorder=0.5,
+                             label=f"region {k}: lambda {material.lame_lambda:g}, mu {material.lame_mu:g} MPa"))
+
+
 # --- boundary conditions --------------------------------------------------------------------
 
 

@@ -19,6 +19,7 @@ from .plot_elements import (
     draw_clamps,
     draw_loads,
     draw_outline,
+    draw_regions,
     draw_probes,
     frame,
     label_mm,
@@ -62,6 +63,7 @@ def plot_deformed(path: str | Path, result, scale: float = 1.0):
     magnitude = np.linalg.norm(u, axis=1)
     fig, ax = plt.subplots(figsize=(7.5, 7.0))
     draw_outline(ax, domain, particles, u, scale)
+    draw_regions(ax, tissue)
     moved = particles + scale * u
     dots = ax.scatter(*moved.T, s=8, c=magnitude, cmap=CMAP, norm=magnitude_norm(u), zorder=2)
     fig.colorbar(dots, ax=ax, label="|u| displacement (mm)", shrink=0.8)

@@ -86,7 +86,7 @@ def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> 
     for j in order:  # the track's segments: tens
         current.append(j)
         length, longest = length + lengths[j], max(longest, needed[j])
-        if length >= longest:
+        if length >= longest and length > 0.0:  # a gap's zero-length segment joins a neighbour
             groups.append(current)
             current, length, longest = [], 0.0, 0.0
     if current:
@@ -133,6 +133,11 @@ class NeedleCoupling:
         self._tree = cKDTree(model.particles)
         self._spacing = model.support / dilation  # local particle spacing, (NP,)
         self.points = np.zeros((0, 2))  # Gamma_N, reference, (k, 2)
+        # per segment: a gap the needle crosses outside the tissue (a wound: no load, no
+        # constraint, zero length along the track), and the share of a needle step it stands
+        # for (1, less at a wound's walls where the tip left or re-entered mid-step)
+        self.segment_gap = np.zeros(0, dtype=bool)
+        self.segment_fraction = np.zeros(0)
         self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, 2 per segment
         self.segment_rows = sp.csr_matrix((0, n_free))  # N(X_s) T at those points
         self._point_rows = sp.csr_matrix((0, n_free))
@@ -183,15 +188,21 @@ class NeedleCoupling:
         """Particle spacing at reference points: that of the nearest particle, (n,)."""
         return self._spacing[self._tree.query(np.atleast_2d(points))[1]]
 
-    def add(self, reference_point: np.ndarray, multipliers: np.ndarray | None = None) -> np.ndarray:
+    def add(self, reference_point: np.ndarray, multipliers: np.ndarray | None = None,
+            gap: bool = False, fraction: float = 1.0) -> np.ndarray:
         """Append a needle point (and the segment it closes) to Gamma_N; returns the
-        multipliers carried over to the new constraint set (forces conserved, new ones 0)."""
+        multipliers carried over to the new constraint set (forces conserved, new ones 0).
+        `gap`: the segment crosses a wound outside the tissue (it carries nothing);
+        `fraction`: the share of a needle step the segment stands for."""
         multipliers = np.zeros(self.multiplier_count) if multipliers is None else multipliers
         forces = self.weights @ multipliers if self.multiplier_count else np.zeros(self.weights.shape[0])  # (Q,)
         if len(self.points):
             new = self.points[-1] + GAUSS_POINTS[:, None] * (reference_point - self.points[-1])
             self.segment_points = np.vstack([self.segment_points, new])
-            self.segment_rows = sp.vstack([self.segment_rows, self._rows_at(new)], format="csr")
+            rows = sp.csr_matrix((2, self.model.n_free)) if gap else self._rows_at(new)  # no tissue in a gap
+            self.segment_rows = sp.vstack([self.segment_rows, rows], format="csr")
+            self.segment_gap = np.append(self.segment_gap, gap)
+            self.segment_fraction = np.append(self.segment_fraction, 0.0 if gap else fraction)
         self.points = np.vstack([self.points, reference_point])
         if self.kind == POINTS:
             row = self._rows_at(reference_point[None])
@@ -227,7 +238,10 @@ class NeedleCoupling:
         return self._spacing_of_segments
 
     def _segment_lengths(self) -> np.ndarray:
-        return np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        """Reference lengths of the segments along the track; a gap counts zero (the track's
+        pieces on both sides of a wound join in the multiplier field's arc length)."""
+        lengths = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        return np.where(self.segment_gap, 0.0, lengths)
 
     def _add_constraint_points(self) -> None:
         """Gauss points of the new segment for the constraint: at least two, and at least
@@ -236,6 +250,8 @@ class NeedleCoupling:
         functions' kinks inside a segment are integrated closely. Each asks |x - C| of a point
         at t on the chord between two needle points: sqrt(R^2 - t (1 - t) c^2)."""
         start, end = self.points[-2], self.points[-1]
+        if self.segment_gap[-1]:
+            return
         length = float(np.linalg.norm(end - start))
         element = MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0])
         count = max(2, math.ceil(QUADRATURE_PER_ELEMENT * length / element - 1e-9))
@@ -286,7 +302,7 @@ class NeedleCoupling:
             ds = self._constraint_length
             element = np.clip(np.searchsorted(nodes, s_q, side="right") - 1, 0, len(nodes) - 2)
         else:
-            needed = MULTIPLIER_SPACINGS * self._segment_spacing()
+            needed = np.where(self.segment_gap, 0.0, MULTIPLIER_SPACINGS * self._segment_spacing())
             starts = _element_starts(lengths, needed, from_tip=PARTITION_FROM_TIP)
             marks = np.zeros(len(lengths), dtype=int)
             marks[starts[1:]] = 1
@@ -321,16 +337,23 @@ class NeedleCoupling:
         if segments < 1:
             return LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, self.model.n_free)), np.zeros(0))
         step_length = self.geometry.insertion_step  # needle length per segment, mm
-        friction = np.full(2 * segments, 0.5 * self.needle.friction * step_length)
+        needle_length = step_length * self.segment_fraction  # needle length each segment stands for
+        friction = np.repeat(0.5 * self.needle.friction * needle_length, 2)
         cutting = self.needle.cutting_force
         if self.kind == POINTS or cutting == 0.0:
             magnitudes = friction.copy()
             magnitudes[-2:] += 0.5 * cutting
             return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
-        zone = min(self.cutting_length, segments * step_length)
-        covered = np.clip(zone / step_length - np.arange(segments)[::-1], 0.0, 1.0)  # tip end of each segment
-        # wholly covered segments reuse their friction Gauss points and rows; only the
-        # partly covered one at the zone's far end needs rows of its own
+        full_steps = bool(np.all(self.segment_fraction == 1.0))
+        zone = min(self.cutting_length, segments * step_length if full_steps else float(needle_length.sum()))
+        if full_steps:  # whole steps: in step units
+            covered = np.clip(zone / step_length - np.arange(segments)[::-1], 0.0, 1.0)  # tip end of each segment
+        else:  # a wound: the needle length between each segment's tip end and the tip
+            behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                covered = np.where(needle_length > 0, np.clip((zone - behind) / needle_length, 0.0, 1.0), 0.0)
+        # wholly covered segments reuse their friction Gauss points and rows; only partly
+        # covered ones (the zone's far end) need rows of their own
         whole = np.flatnonzero(covered >= 1.0)
         part = np.flatnonzero((covered > 0.0) & (covered < 1.0))
         gauss = (2 * whole[:, None] + np.arange(2)).ravel()
@@ -338,11 +361,11 @@ class NeedleCoupling:
         start, end = self.points[part], self.points[part + 1]
         along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
         part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
-        share = 0.5 * cutting * step_length / zone  # N per Gauss point of a wholly covered segment
+        share = 0.5 * cutting * needle_length / zone  # N per Gauss point of a wholly covered segment
         return LoadQuadrature(
             np.vstack([self.segment_points, self.segment_points[gauss], part_points]),
             sp.vstack([self.segment_rows, self.segment_rows[gauss], self._rows_at(part_points)], format="csr"),
-            np.concatenate([friction, np.full(len(gauss), share), np.repeat(share * fraction, 2)]))
+            np.concatenate([friction, np.repeat(share[whole], 2), np.repeat(share[part] * fraction, 2)]))
 
     def load_magnitudes(self) -> np.ndarray:
         """Force (N) carried by each load point at the full load of this step."""

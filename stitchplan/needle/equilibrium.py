@@ -201,10 +201,11 @@ class NeedleInsertion:
         """Place the needle centre; the tissue follows at the next `equilibrate`."""
         self.center = np.asarray(center, dtype=float)
 
-    def add_point(self, reference_point: np.ndarray) -> None:
+    def add_point(self, reference_point: np.ndarray, gap: bool = False, fraction: float = 1.0) -> None:
         """Append a needle point to Gamma_N; the multipliers carry over to the new constraint
-        set (a new one starts at zero). The step's load starts at the previous step's."""
-        self.multipliers = self.coupling.add(reference_point, self.multipliers)
+        set (a new one starts at zero). The step's load starts at the previous step's.
+        `gap`, `fraction`: see NeedleCoupling.add (a stitch across a wound)."""
+        self.multipliers = self.coupling.add(reference_point, self.multipliers, gap, fraction)
         self.coupling.load_factor = 0.0
 
     # --- equilibrium -------------------------------------------------------------------------

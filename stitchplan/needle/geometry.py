@@ -13,7 +13,7 @@ import numpy as np
 
 from ..config import Needle, Scenario
 from ..errors import InputError
-from ..geometry import Rectangle, circle_center_at_entry
+from ..geometry import PolygonDomain, Rectangle, circle_center_at_entry
 
 
 def unit(angle: float | np.ndarray) -> np.ndarray:
@@ -32,8 +32,21 @@ class NeedleGeometry:
     step: float  # rad per step
     entry: np.ndarray  # (2,)
     entry_edge: str
-    exit_rotation: float  # alpha at which the undeformed circle leaves the tissue
+    exit_rotation: float  # alpha at which the undeformed circle leaves the tissue for good
     desired_exit: np.ndarray  # (2,)
+    # every crossing of the undeformed circle with the boundary after the entry, in needle
+    # order, the final exit last: (alpha, "exit" | "entry"); more than one with a wound
+    crossings: tuple = ()
+
+    @property
+    def gaps(self) -> list[tuple[float, float]]:
+        """(exit, re-entry) rotations of every gap the undeformed circle crosses (a wound)."""
+        return [(a, b) for (a, ka), (b, kb) in zip(self.crossings, self.crossings[1:])
+                if ka == "exit" and kb == "entry"]
+
+    def crossing_point(self, k: int) -> np.ndarray:
+        """The undeformed circle's point at crossing k, (2,)."""
+        return self.tip(self.crossings[k][0])
 
     def tip(self, rotation: float | np.ndarray, center: np.ndarray | None = None) -> np.ndarray:
         """Tip position of the rigid needle after `rotation` (rad) about `center`."""
@@ -55,9 +68,10 @@ class NeedleGeometry:
         return int(self.exit_rotation / self.step) + 1
 
 
-def needle_geometry(needle: Needle, domain: Rectangle) -> NeedleGeometry:
+def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> NeedleGeometry:
     """Centre on the boundary tangent at the entry (orthogonal entry), desired exit where the
-    undeformed circle first leaves the tissue (SCENARIO.md, "Needle geometry")."""
+    undeformed circle leaves the tissue for the last time within the needle's arc (the first
+    and only time on a convex tissue; SCENARIO.md, "Needle geometry", "Tissue shapes")."""
     edges = domain.edges_at(needle.entry)
     if not edges:
         raise InputError(f"needle.entry: got {list(needle.entry)}, expected a point on the "
@@ -69,20 +83,33 @@ def needle_geometry(needle: Needle, domain: Rectangle) -> NeedleGeometry:
     center, edge = circle_center_at_entry(domain, entry, needle.radius, needle.turn)
     sense = -1.0 if needle.turn == "cw" else 1.0
     start_angle = math.atan2(*(entry - center)[::-1])
-    rotation = domain.first_exit_rotation(center, needle.radius, start_angle, sense)
+    first = domain.first_exit_rotation(center, needle.radius, start_angle, sense)
+    crossings = domain.circle_crossings(center, needle.radius, start_angle, sense, needle.arc)
+    exits = [r for r, kind in crossings if kind == "exit"]
+    # the desired exit: the last point where the circle leaves the tissue within the arc
+    # (a convex tissue's only exit keeps first_exit_rotation's value)
+    rotation = exits[-1] if len(exits) > 1 else first
     if rotation is None or rotation > needle.arc + 1e-9:
         reach = "never leaves the tissue" if rotation is None else f"leaves after {rotation:.4g} rad"
         raise InputError(
             f"needle: the {needle.radius:g} mm needle entering at {list(needle.entry)} turning "
             f"{needle.turn} {reach}; expected an exit within its arc of {needle.arc:.4g} rad"
         )
-    if rotation < 2 * needle.step:
+    crossings = (tuple((r, kind) for r, kind in crossings if r <= rotation + 1e-12) if len(exits) > 1
+                 else ((rotation, "exit"),))
+    if any(b - a < needle.step for (a, ka), (b, kb) in zip(crossings, crossings[1:])):
+        raise InputError(
+            f"needle: the needle entering at {list(needle.entry)} turning {needle.turn} crosses the "
+            f"boundary at rotations {', '.join(f'{r:.3g}' for r, _ in crossings)} rad, expected crossings "
+            f"at least one step ({needle.step:g} rad) apart (a gap or a bite shorter than a step)")
+    rotation_first = crossings[0][0]
+    if rotation_first < 2 * needle.step:
         raise InputError(
             f"needle: the needle entering at {list(needle.entry)} turning {needle.turn} exits after "
-            f"{rotation:.3g} rad, expected at least two steps of {needle.step:g} rad inside the tissue"
+            f"{rotation_first:.3g} rad, expected at least two steps of {needle.step:g} rad inside the tissue"
         )
     geometry = NeedleGeometry(needle.radius, needle.arc, center, start_angle, sense, needle.step, entry,
-                              edge, rotation, entry)
+                              edge, rotation, entry, crossings)
     return replace(geometry, desired_exit=geometry.tip(rotation))
 
 

@@ -23,7 +23,7 @@ from ..tissue.solver import LINEAR_SOLVER_BACKEND
 from .equilibrium import NeedleInsertion
 from .results import InsertionResult, NeedleStep
 from .steering import CenterAim
-from .tip_tracking import locate_exit, track_step
+from .tip_tracking import locate_exit, locate_reentry, track_step
 
 log = logging.getLogger(__name__)
 
@@ -98,15 +98,53 @@ def run_insertion(
     displacements = [np.zeros_like(insertion.model.particles)]
     steps: list[NeedleStep] = []
     limit = math.ceil(2.0 * math.pi / geometry.step) + 2
+    wound_exits = len(geometry.gaps)  # walls the tip leaves before the final exit
+    crossings: list[tuple[str, np.ndarray, float]] = []  # (kind, reference point, rotation)
+    in_gap = False
     for step in range(1, limit + 1):
         rotation = step * geometry.step
         started = time.perf_counter()
-        point, method = track_step(insertion, step, rotation)  # about the previous step's centre
+        previous = rotation - geometry.step
+        if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
+            entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
+            if entered is None:
+                record = _needle_step(insertion, control, step, rotation, None, "gap", condition_numbers, started)
+                steps.append(record)
+                displacements.append(insertion.particle_displacements())
+                if on_step is not None:
+                    on_step(record)
+                continue
+            entry_point, entry_rotation = entered
+            crossings.append(("entry", entry_point, entry_rotation))
+            insertion.add_point(entry_point, gap=True)
+            in_gap = False
+            log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, entry_rotation)
+            point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
+            fraction = (rotation - entry_rotation) / geometry.step
+        else:
+            point, method = track_step(insertion, step, rotation)  # about the previous step's centre
+            fraction = 1.0
         if insertion.domain.outside_distance(point) > 0.0:
-            exit_point, exit_rotation = locate_exit(insertion, rotation - geometry.step, method)
+            start = max(previous, crossings[-1][2]) if crossings else previous
+            exit_point, exit_rotation = locate_exit(insertion, start, method,
+                                                    (rotation - start) if start != previous else None)
+            if sum(kind == "exit" for kind, _, _ in crossings) < wound_exits:
+                # a wound's first wall: the track reaches the wall, the tip goes on in the gap
+                crossings.append(("exit", exit_point, exit_rotation))
+                insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
+                in_gap = True
+                log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
+                         step, exit_rotation)
+                record = _needle_step(insertion, control, step, rotation, None, method, condition_numbers, started)
+                steps.append(record)
+                displacements.append(insertion.particle_displacements())
+                if on_step is not None:
+                    on_step(record)
+                continue
             return _result(insertion, steps, displacements, exit_point, exit_rotation,
-                           time.perf_counter() - wall_start)
-        record = _needle_step(insertion, control, step, rotation, point, method, condition_numbers, started)
+                           time.perf_counter() - wall_start, crossings)
+        record = _needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
+                              fraction)
         steps.append(record)
         displacements.append(insertion.particle_displacements())
         if on_step is not None:
@@ -116,11 +154,17 @@ def run_insertion(
 
 
 def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, rotation: float,
-                 point: np.ndarray, method: str, condition_numbers: bool, started: float) -> NeedleStep:
-    """Add the tracked tip point, equilibrate about the step's centre (with the control's
-    aim: the centre an unknown of the same Newton solve); the step's record (its wall time from `started`, before the tip was tracked)."""
+                 point: np.ndarray | None, method: str, condition_numbers: bool, started: float,
+                 fraction: float = 1.0) -> NeedleStep:
+    """Add the tracked tip point (none while the tip crosses a wound's gap), equilibrate
+    about the step's centre (with the control's aim: the centre an unknown of the same
+    Newton solve); the step's record (its wall time from `started`, before the tip was
+    tracked)."""
     newton_before, solves_before = insertion.newton_iterations, insertion.equilibrium_solves
-    insertion.add_point(point)
+    if point is not None:
+        insertion.add_point(point, fraction=fraction)
+    else:
+        point = insertion.points[-1]
     insertion.move_center(control.predict(insertion.center, step))
     aim = control.aim(insertion, step, rotation)
     _, minres_iterations, _ = insertion.equilibrate(rotation, step, aim)
@@ -149,8 +193,10 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
 
 
 def _result(insertion: NeedleInsertion, steps: list[NeedleStep], displacements: list[np.ndarray],
-            exit_point: np.ndarray, exit_rotation: float, wall_seconds: float) -> InsertionResult:
+            exit_point: np.ndarray, exit_rotation: float, wall_seconds: float,
+            wound: list[tuple[str, np.ndarray, float]] = ()) -> InsertionResult:
     desired_exit = insertion.geometry.desired_exit
+    crossings = _crossings(insertion, [*wound, ("exit", exit_point, exit_rotation)])
     u_exit = insertion.displacement(np.vstack([exit_point, desired_exit]))  # achieved, desired
     result = InsertionResult(
         scenario=insertion.scenario, model=insertion.model, geometry=insertion.geometry, steps=steps,
@@ -165,7 +211,52 @@ def _result(insertion: NeedleInsertion, steps: list[NeedleStep], displacements: 
                        "minres_iterations": insertion.saddle.minres_iterations,
                        "minres_fallbacks": insertion.saddle.fallbacks,
                        "tangent_products": insertion.assembler.tangent_products},
+        crossings=crossings,
+        bites=_bites(insertion, crossings) if len(crossings) > 1 else None,
     )
     log.info("the tip left the tissue at needle rotation %.3f rad: exit error %.4g mm",
              exit_rotation, result.exit_error_mm)
     return result
+
+
+def _crossings(insertion: NeedleInsertion, achieved: list[tuple[str, np.ndarray, float]]) -> list[dict]:
+    """The summary's `crossings` (SCENARIO.md, "Tissue shapes"): every crossing after the
+    entry in needle order, the undeformed circle's point (desired, at rest and moved with the
+    tissue) against the tip's material point there (achieved, deformed)."""
+    geometry = insertion.geometry
+    desired = np.array([geometry.crossing_point(k) for k in range(len(geometry.crossings))])
+    reached = np.array([point for _, point, _ in achieved])
+    count = min(len(desired), len(reached))
+    u = insertion.displacement(np.vstack([desired[:count], reached[:count]]))
+    records = []
+    for k in range(count):
+        desired_def, achieved_def = desired[k] + u[k], reached[k] + u[count + k]
+        records.append({"kind": geometry.crossings[k][1], "desired": desired[k], "desired_def": desired_def,
+                        "achieved": reached[k], "achieved_def": achieved_def,
+                        "error_mm": float(np.linalg.norm(achieved_def - desired_def))})
+    return records
+
+
+def _bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
+    """The stitch's bites across a wound: on the entry side the deformed distance from the
+    needle's entry to the wound edge (the end of the wall the tip left through nearest the
+    entry), on the exit side from the final exit to the edge of the wall it came back in
+    through; and their difference (the symmetry surgeons look for)."""
+    domain, geometry = insertion.domain, insertion.geometry
+
+    def edge_near(point: np.ndarray, toward: np.ndarray) -> np.ndarray:
+        names = domain.edges_at(point, 1e-6 * max(domain.size))
+        ends = np.array([end for name in names for end in domain.edge(name)])
+        return ends[np.argmin(np.linalg.norm(ends - toward, axis=1))]
+
+    first_wall, last_wall = crossings[0]["achieved"], crossings[-2]["achieved"]
+    entry, final_exit = geometry.entry, crossings[-1]["achieved"]
+    points = np.vstack([entry, edge_near(first_wall, entry), final_exit, edge_near(last_wall, final_exit)])
+    moved = points + insertion.displacement(points)
+    entry_side = float(np.linalg.norm(moved[1] - moved[0]))
+    exit_side = float(np.linalg.norm(moved[3] - moved[2]))
+    at_rest = (float(np.linalg.norm(points[1] - points[0])), float(np.linalg.norm(points[3] - points[2])))
+    return {"entry_side_mm": entry_side, "exit_side_mm": exit_side, "difference_mm": exit_side - entry_side,
+            "entry_wound_edge": points[1], "exit_wound_edge": points[3],
+            "entry_wound_edge_def": moved[1], "exit_wound_edge_def": moved[3],
+            "entry_side_at_rest_mm": at_rest[0], "exit_side_at_rest_mm": at_rest[1]}

@@ -58,6 +58,12 @@ class InsertionResult:
     timings: dict[str, float]
     events: list[Event] = field(default_factory=list)
     solver_counts: dict[str, int | str] = field(default_factory=dict)  # and the linear solver and its backend
+    # every boundary crossing after the entry, the final exit last (more than one across a
+    # wound): kind, desired / desired_def / achieved / achieved_def (2,), error_mm
+    crossings: list[dict] = field(default_factory=list)
+    # a stitch across a wound: each side's bite (deformed distance between the needle's
+    # surface crossing and the wound edge) and their difference, mm; None otherwise
+    bites: dict | None = None
 
     @property
     def exit_error_mm(self) -> float:

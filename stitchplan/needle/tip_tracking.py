@@ -118,13 +118,14 @@ def track_tip(insertion: NeedleInsertion, rotation_step: float, method: str) -> 
     return levenberg_marquardt_tip(previous, center, geometry.radius, expected_length, start, field)[0]
 
 
-def track_step(insertion: NeedleInsertion, step: int, rotation: float) -> tuple[np.ndarray, str]:
+def track_step(insertion: NeedleInsertion, step: int, rotation: float,
+               rotation_step: float | None = None) -> tuple[np.ndarray, str]:
     """The tip point of needle step `step` (rotation `rotation` since entry) by the
     insertion's tip tracking, and the method that found it: 'auto' falls back from a jumping
     inverse gradient to Levenberg-Marquardt and records the event; 'inverse-gradient' alone
     raises InsertionFailure naming the step and angle."""
     t0 = time.perf_counter()
-    rotation_step = insertion.geometry.step
+    rotation_step = insertion.geometry.step if rotation_step is None else rotation_step
     try:
         if insertion.tip_tracking == LEVENBERG_MARQUARDT:
             return track_tip(insertion, rotation_step, LEVENBERG_MARQUARDT), LEVENBERG_MARQUARDT
@@ -142,26 +143,29 @@ def track_step(insertion: NeedleInsertion, step: int, rotation: float) -> tuple[
         insertion.timings["tip_tracking"] += time.perf_counter() - t0
 
 
-def locate_exit(insertion: NeedleInsertion, rotation: float, method: str) -> tuple[np.ndarray, float]:
-    """Where the tip leaves the tissue during the step after `rotation`: the boundary point
+def locate_exit(insertion: NeedleInsertion, rotation: float, method: str,
+                span: float | None = None) -> tuple[np.ndarray, float]:
+    """Where the tip leaves the tissue during the step after `rotation` (or the `span` rad
+    after it: the rest of a step the tip re-entered a wound's wall in): the boundary point
     and the needle rotation there. `method` is the tracking that found the step's tip outside;
     if the inverse gradient jumps on the way, Levenberg-Marquardt locates the exit."""
     t0 = time.perf_counter()
     try:
         try:
-            return _boundary_crossing(insertion, rotation, method)
+            return _boundary_crossing(insertion, rotation, method, span)
         except TipTrackingJump as jump:
             log.info("locating the exit: %s; Levenberg-Marquardt used instead", jump)
-            return _boundary_crossing(insertion, rotation, LEVENBERG_MARQUARDT)
+            return _boundary_crossing(insertion, rotation, LEVENBERG_MARQUARDT, span)
     finally:
         insertion.timings["tip_tracking"] += time.perf_counter() - t0
 
 
-def _boundary_crossing(insertion: NeedleInsertion, rotation: float, method: str) -> tuple[np.ndarray, float]:
+def _boundary_crossing(insertion: NeedleInsertion, rotation: float, method: str,
+                       span: float | None = None) -> tuple[np.ndarray, float]:
     """Root-find, over the fraction of the step, where the tip's material point meets the
     boundary: the signed distance to the boundary is continuous in the fraction, so Brent's
     method needs ~10 tip trackings where bisection needs ~45."""
-    step = insertion.geometry.step
+    step = insertion.geometry.step if span is None else span
     tracked = {0.0: insertion.points[-1]}  # fraction -> tip point, each tracked once
 
     def signed_distance(fraction: float) -> float:
@@ -177,3 +181,45 @@ def _boundary_crossing(insertion: NeedleInsertion, rotation: float, method: str)
         fraction = scipy.optimize.brentq(signed_distance, 0.0, 1.0, xtol=1e-13, rtol=1e-15)
     signed_distance(fraction)  # brentq's root is one of its evaluations; tracked if not
     return insertion.domain.clip(tracked[fraction]), rotation + fraction * step
+
+
+# --- across a wound ------------------------------------------------------------------------------
+
+
+def material_point(insertion: NeedleInsertion, spatial: np.ndarray, iterations: int = 100) -> np.ndarray:
+    """The reference point X with X + u(X) = `spatial`, u continued outside the tissue by
+    its value at the nearest tissue point (NeedleInsertion.displacement): outside the tissue
+    exactly when `spatial` lies outside the deformed tissue (in a wound's gap). Fixed-point
+    iteration X <- x - u(X), a contraction while |grad u| < 1."""
+    point = np.asarray(spatial, dtype=float).copy()
+    for _ in range(iterations):
+        following = spatial - insertion.displacement(point)[0]
+        if np.linalg.norm(following - point) <= 1e-13 * insertion.geometry.radius:
+            return following
+        point = following
+    return point
+
+
+def locate_reentry(insertion: NeedleInsertion, start: float, end: float) -> tuple[np.ndarray, float] | None:
+    """Where the rigid needle's tip, crossing a wound from rotation `start` to `end` about the
+    current centre, enters the deformed tissue again: the reference boundary point and the
+    rotation there (Brent's method on the signed distance of the tip's material point), or
+    None while it stays in the gap."""
+    t0 = time.perf_counter()
+    geometry = insertion.geometry
+    found: dict[float, np.ndarray] = {}
+
+    def signed_distance(rotation: float) -> float:
+        if rotation not in found:
+            found[rotation] = material_point(insertion, geometry.tip(rotation, insertion.center))
+        return insertion.domain.outside_distance(found[rotation])
+
+    try:
+        if signed_distance(end) > 0.0:
+            return None
+        rotation = start if signed_distance(start) <= 0.0 else scipy.optimize.brentq(
+            signed_distance, start, end, xtol=1e-13, rtol=1e-15)
+        signed_distance(rotation)
+        return insertion.domain.clip(found[rotation]), rotation
+    finally:
+        insertion.timings["tip_tracking"] += time.perf_counter() - t0

@@ -264,12 +264,16 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     controllable steps pre-compensate the late drift. The passes aim the exit error vector
     at `aim` (default zero; planning.verification aims it by a refined model's offset) and
     stop when they are within `tolerance` of it (default exit_tolerance) or after
-    max_passes; the best pass is returned. `shooting` continues from an earlier plan's
+    max_passes; the best pass is returned. With planner.target `symmetric` on a stitch
+    across a wound the aim is, after each pass, the exit error that would make both bites
+    equal (needle.insertion._bites), so the passes trade exit error for symmetry. `shooting` continues from an earlier plan's
     passes; `smooth` keeps the centre path within MoveLimits.
     """
     settings = scenario.planner
     unplanned = run_insertion(scenario, on_step=on_step, **options) if compare else None
     aim = np.zeros(2) if aim is None else np.asarray(aim, dtype=float)
+    # planner.target symmetric on a stitch across a wound: each pass aims the exit at equal bites
+    symmetric = settings.target == "symmetric" and bool(scenario_needle_gaps(scenario))
     target = settings.exit_tolerance if tolerance is None else tolerance
     start = time.perf_counter()
     offsets = shooting or PassOffsets()
@@ -282,6 +286,11 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         planned = run_insertion(scenario, control=tracker, on_step=on_step, **options)
         mismatch = final_mismatch(planned)
         error = exit_error_vector(planned)
+        if symmetric:
+            # equal bites: the exit moved along the surface by the bites' difference, toward the
+            # wound edge when the exit side is the longer one
+            away = planned.achieved_exit_def - planned.bites["exit_wound_edge_def"]
+            aim = error - planned.bites["difference_mm"] * away / np.linalg.norm(away)
         miss = float(np.linalg.norm(error - aim))
         passes.append({"pass": number, "offset_mm": offsets.offset.copy(), "exit_error_mm": planned.exit_error_mm,
                        "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
@@ -297,3 +306,10 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         offsets.advance(aim)
     best.wall_seconds = time.perf_counter() - start
     return PlanResult(best, unplanned, passes, shooting=offsets)
+
+
+def scenario_needle_gaps(scenario: Scenario) -> list:
+    """The wound gaps the scenario's undeformed needle circle crosses (none on a convex tissue)."""
+    from ..needle.geometry import scenario_needle
+
+    return scenario_needle(scenario).gaps

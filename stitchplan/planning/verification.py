@@ -191,6 +191,8 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             best = (verified, result, replayed)
         if replayed is None or verified <= VERIFIED_FACTOR * settings.exit_tolerance:
             break
+        if settings.target == "symmetric":  # the passes aim the bites, not the exit: no re-aiming
+            break
     verified, result, replayed = best
     result.planned.wall_seconds = planning_seconds  # every pass of every round
     result.verification = Verification(spacing, replayed, rounds)

@@ -107,7 +107,7 @@ def graded_scenario(scenario: Scenario, needle_spacing: float, tip_tracking: str
                     linear_solver: str) -> Scenario:
     """The scenario graded toward the needle at `needle_spacing` (coarse spacing GRADING x,
     at most a fifth of the smaller tissue side, and never below the needle spacing)."""
-    cap = min(scenario.tissue.size) / 5.0
+    cap = min(scenario.tissue.bounding_size) / 5.0
     grading = GRADING
     while grading > 1 and needle_spacing * grading > max(cap, needle_spacing):
         grading //= 2

@@ -63,8 +63,11 @@ def boundary_particles(
     group = np.full(len(particles), -2)
     for k, (start, end) in enumerate(prescribed_segments):
         group[on_segment(particles, start, end, tol)] = k
-    for edge in tissue.clamped:
-        group[domain.edge_mask(particles, edge, tol)] = CLAMPED
+    for item, (start, end) in zip(tissue.clamped, tissue.clamped_pieces()):
+        if isinstance(item, str):
+            group[domain.edge_mask(particles, item, tol)] = CLAMPED
+        else:
+            group[on_segment(particles, start, end, tol)] = CLAMPED
     for k, (start, end) in enumerate(prescribed_segments):
         if not np.any(group == k):
             raise InputError(

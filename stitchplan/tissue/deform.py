@@ -121,11 +121,14 @@ def reactions(model: TissueModel, scenario: Scenario, coefficients: np.ndarray,
 def run_deform(
     scenario: Scenario,
     on_step: Callable[[int, StepRecord], None] | None = None,
+    needle_zone: tuple[tuple[float, float], float] | None = None,
 ) -> DeformResult:
-    """Discretize, load and solve; `wall_seconds` covers everything from the loaded scenario."""
+    """Discretize, load and solve; `wall_seconds` covers everything from the loaded scenario.
+    `needle_zone` (centre, radius) grades the particles of a scene with a needle as simulate
+    does (stitchplan.needle.geometry.needle_zone)."""
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    model = model_for_scenario(scenario)
+    model = model_for_scenario(scenario, needle_zone)
     timings["discretization"] = time.perf_counter() - start
     full_external = external_forces(model, scenario)
     prescribed = prescribed_displacements(model, scenario)

@@ -85,9 +85,15 @@ class NeoHookean:
         return stress, tangent
 
 
-def first_piola(model: SaintVenantKirchhoff | NeoHookean, deformation_gradient: np.ndarray) -> np.ndarray:
+def first_piola(model: SaintVenantKirchhoff | NeoHookean | PointwiseMaterial,
+                deformation_gradient: np.ndarray) -> np.ndarray:
     """P = F S (n, 2, 2) alone, written out by components: the residual needs no tangent,
     and this is ~3x cheaper than pk2_stress and a product (tests/test_material.py)."""
+    if isinstance(model, PointwiseMaterial):
+        out = np.empty((len(deformation_gradient), 2, 2))
+        for part, selected in model._groups(len(deformation_gradient)):
+            out[selected] = first_piola(part, deformation_gradient[selected])
+        return out
     f = deformation_gradient
     f00, f01, f10, f11 = f[:, 0, 0], f[:, 0, 1], f[:, 1, 0], f[:, 1, 1]
     c00, c01, c11 = f00 * f00 + f10 * f10, f00 * f01 + f10 * f11, f01 * f01 + f11 * f11  # C = F^T F
@@ -118,6 +124,36 @@ def make_material(material: Material) -> SaintVenantKirchhoff | NeoHookean:
     return cls(material.lame_lambda, material.lame_mu)
 
 
+@dataclass(frozen=True, eq=False)
+class PointwiseMaterial:
+    """A material per quadrature point (material regions): point q follows parts[index[q]].
+    Its stresses are asked for at every quadrature point at once, in their order."""
+
+    parts: tuple  # SaintVenantKirchhoff | NeoHookean
+    index: np.ndarray  # (nq,) into parts
+
+    def _groups(self, count: int):
+        if count != len(self.index):
+            raise ValueError(f"a pointwise material holds {len(self.index)} points, asked at {count}")
+        for k, part in enumerate(self.parts):
+            selected = np.flatnonzero(self.index == k)
+            if len(selected):
+                yield part, selected
+
+    def energy(self, deformation_gradient: np.ndarray) -> np.ndarray:
+        out = np.empty(len(deformation_gradient))
+        for part, selected in self._groups(len(deformation_gradient)):
+            out[selected] = part.energy(deformation_gradient[selected])
+        return out
+
+    def pk2_stress(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = len(deformation_gradient)
+        stress, tangent = np.empty((n, 2, 2)), np.empty((n, 2, 2, 2, 2))
+        for part, selected in self._groups(n):
+            stress[selected], tangent[selected] = part.pk2_stress(deformation_gradient[selected])
+        return stress, tangent
+
+
 def first_piola_and_tangent(
     model: SaintVenantKirchhoff | NeoHookean, deformation_gradient: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -125,6 +161,12 @@ def first_piola_and_tangent(
 
     Returns P (n, 2, 2) and A (n, 2, 2, 2, 2) indexed [n, i, J, k, L].
     """
+    if isinstance(model, PointwiseMaterial):
+        n = len(deformation_gradient)
+        first_piola, material = np.empty((n, 2, 2)), np.empty((n, 2, 2, 2, 2))
+        for part, selected in model._groups(n):
+            first_piola[selected], material[selected] = first_piola_and_tangent(part, deformation_gradient[selected])
+        return first_piola, material
     stress, tangent = model.pk2_stress(deformation_gradient)
     n = len(stress)
     first_piola = matmul22(deformation_gradient, stress)

@@ -7,7 +7,7 @@ discretization (Total-Lagrangian formulation); the solver only refills values.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -15,12 +15,14 @@ from scipy.spatial import cKDTree
 
 from .boundary_conditions import EssentialBoundary, boundary_particles, transformation
 from ..config import Discretization, Scenario, ScenarioError, Tissue
-from .material import NeoHookean, SaintVenantKirchhoff, make_material
+from ..geometry import PolygonDomain, Rectangle
+from .material import NeoHookean, PointwiseMaterial, SaintVenantKirchhoff, make_material
 from .particles import (END_GROWTH, end_zones, graded_lattice, graded_particles, grid_particles,
                         leaf_quadrature, segment_breaks)
 from .quadrature import cell_quadrature, natural_boundary_quadrature
-from .shape_functions import (ShapeFunctions, ShapePairs, SingularMomentMatrix, rk_shape_functions,
-                              rk_shape_pairs)
+from .shape_functions import (ShapeFunctions, ShapePairs, SingularMomentMatrix, Visibility,
+                              rk_shape_functions, rk_shape_pairs)
+from .shapes import corner_zones, fit_particles, region_index, shape_breaks, shaped_quadrature
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +39,7 @@ class TissueModel:
 
     tissue: Tissue
     discretization: Discretization
-    material: SaintVenantKirchhoff | NeoHookean
+    material: SaintVenantKirchhoff | NeoHookean | PointwiseMaterial
     particles: np.ndarray  # (NP, 2)
     support: np.ndarray  # (NP,)
     volumes: np.ndarray  # (NP,)
@@ -51,6 +53,8 @@ class TissueModel:
     # gradients of the test functions when they differ from the trial ones (integration
     # "vci"); None: Galerkin, test = trial, symmetric tangent
     test_gradient: sp.csr_matrix | None = None
+    # non-convex tissue: pairs whose segment leaves the tissue are dropped (visibility)
+    visibility: Visibility | None = None
 
     @property
     def symmetric(self) -> bool:
@@ -66,7 +70,8 @@ class TissueModel:
 
     def _shape_pairs(self, points: np.ndarray, gradients: bool) -> ShapePairs:
         return rk_shape_pairs(points, self.particles, self.support, self.volumes,
-                              self.discretization.basis_order, gradients, self.tree, self.basis_scale)
+                              self.discretization.basis_order, gradients, self.tree, self.basis_scale,
+                              self.visibility)
 
     def shape_functions_at(self, points: np.ndarray, gradients: bool = False) -> ShapeFunctions:
         points = np.atleast_2d(points)
@@ -108,42 +113,49 @@ def build_tissue_model(
     inside an edge, where the solution is singular (see end_zones).
     """
     segments = tuple(prescribed_segments) + tuple(force_segments)
-    breaks = segment_breaks(segments) if segments else ((), ())
-    ends = end_zones(tissue, segments, discretization)
-    if discretization.needle_spacing is not None:
-        if needle_zone is None:
-            raise ScenarioError("discretization.needle_spacing: needs a needle to grade the "
-                                "particles toward; remove it or add a `needle:` block")
-        graded = graded_particles(tissue.size, discretization.spacing, discretization.needle_spacing,
-                                  np.asarray(needle_zone[0], dtype=float), float(needle_zone[1]),
-                                  points=ends, breaks=breaks)
-    elif segments:
-        graded = graded_lattice(tissue.size, discretization.spacing, ends, END_GROWTH, breaks)
+    domain = tissue.domain
+    if isinstance(domain, PolygonDomain) or tissue.regions:
+        particles, volumes, support, spacing, points, weights = _shaped_discretization(
+            tissue, discretization, segments, needle_zone)
     else:
-        graded = None
-    if graded is not None:
-        particles, volumes = graded.particles, graded.volumes
-        spacing = graded.fine_spacing
-        support = discretization.dilation * graded.local_spacing
-        points, weights = leaf_quadrature(graded.cells, discretization.quadrature_order,
-                                          discretization.cells_per_spacing)
-    else:
-        particles, volumes, dx, dy = grid_particles(tissue.size, discretization.spacing)
-        spacing = max(dx, dy)
-        support = np.full(len(particles), discretization.dilation * spacing)
-        n_cells = (
-            int(round(tissue.size[0] / dx)) * discretization.cells_per_spacing,
-            int(round(tissue.size[1] / dy)) * discretization.cells_per_spacing,
-        )
-        points, weights = cell_quadrature(tissue.size, n_cells, discretization.quadrature_order)
+        breaks = segment_breaks(segments) if segments else ((), ())
+        ends = end_zones(tissue, segments, discretization)
+        if discretization.needle_spacing is not None:
+            if needle_zone is None:
+                raise ScenarioError("discretization.needle_spacing: needs a needle to grade the "
+                                    "particles toward; remove it or add a `needle:` block")
+            graded = graded_particles(tissue.size, discretization.spacing, discretization.needle_spacing,
+                                      np.asarray(needle_zone[0], dtype=float), float(needle_zone[1]),
+                                      points=ends, breaks=breaks)
+        elif segments:
+            graded = graded_lattice(tissue.size, discretization.spacing, ends, END_GROWTH, breaks)
+        else:
+            graded = None
+        if graded is not None:
+            particles, volumes = graded.particles, graded.volumes
+            spacing = graded.fine_spacing
+            support = discretization.dilation * graded.local_spacing
+            points, weights = leaf_quadrature(graded.cells, discretization.quadrature_order,
+                                              discretization.cells_per_spacing)
+        else:
+            particles, volumes, dx, dy = grid_particles(tissue.size, discretization.spacing)
+            spacing = max(dx, dy)
+            support = np.full(len(particles), discretization.dilation * spacing)
+            n_cells = (
+                int(round(tissue.size[0] / dx)) * discretization.cells_per_spacing,
+                int(round(tissue.size[1] / dy)) * discretization.cells_per_spacing,
+            )
+            points, weights = cell_quadrature(tissue.size, n_cells, discretization.quadrature_order)
     tree = cKDTree(particles)
     order = discretization.basis_order
+    visibility = (Visibility.of(domain, particles)
+                  if isinstance(domain, PolygonDomain) and not domain.convex else None)
     constrained = boundary_particles(particles, tissue, prescribed_segments, spacing)
     try:  # at the quadrature points, then at the boundary particles (eq. 3.31)
         shape = rk_shape_functions(points, particles, support, volumes, order, True, tree,
-                                   float(support.mean()))
+                                   float(support.mean()), visibility)
         at_boundary = rk_shape_functions(particles[constrained.indices], particles, support, volumes,
-                                         order, False, tree, float(support.mean())).values
+                                         order, False, tree, float(support.mean()), visibility).values
     except SingularMomentMatrix as error:
         raise ScenarioError(
             f"discretization: dilation {discretization.dilation:g} with spacing "
@@ -157,18 +169,19 @@ def build_tissue_model(
     test_gradient = None
     if discretization.integration == "vci":
         essential = [(np.asarray(a, float), np.asarray(b, float)) for a, b in prescribed_segments]
-        essential += [tissue.domain.edge(edge) for edge in tissue.clamped]
+        essential += tissue.clamped_pieces()
         boundary_points, normals, boundary_weights = natural_boundary_quadrature(
-            tissue.size, essential, spacing, discretization.quadrature_order + 2)
+            tissue.bounding_size, essential, spacing, discretization.quadrature_order + 2,
+            None if isinstance(domain, Rectangle) else outward_edges(domain))
         at_natural = (rk_shape_functions(boundary_points, particles, support, volumes, order, False, tree,
-                                         float(support.mean())).values @ free_map
+                                         float(support.mean()), visibility).values @ free_map
                       if len(boundary_points) else sp.csr_matrix((0, free_map.shape[1])))
         test_gradient = _gradient_operator(*consistent_test_gradients(
             shape.values @ free_map, grad_x, grad_y, weights, at_natural, normals, boundary_weights))
     return TissueModel(
         tissue=tissue,
         discretization=discretization,
-        material=make_material(tissue.material),
+        material=_material(tissue, points),
         particles=particles,
         support=support,
         volumes=volumes,
@@ -180,7 +193,58 @@ def build_tissue_model(
         gradient=gradient,
         spacing=spacing,
         test_gradient=test_gradient,
+        visibility=visibility,
     )
+
+
+def _material(tissue: Tissue, points: np.ndarray) -> SaintVenantKirchhoff | NeoHookean | PointwiseMaterial:
+    """The tissue's material, or with regions one per quadrature point (the first region
+    holding the point, else the tissue's own)."""
+    if not tissue.regions:
+        return make_material(tissue.material)
+    parts = (make_material(tissue.material), *(make_material(region.material) for region in tissue.regions))
+    return PointwiseMaterial(parts, region_index(tissue, points) + 1)
+
+
+def outward_edges(domain: PolygonDomain) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every boundary edge with its outward unit normal (the tissue lies on the edge's left)."""
+    edges = []
+    for start, end in domain.boundary_segments():
+        d = end - start
+        edges.append((start, end, np.array([d[1], -d[0]]) / float(np.hypot(*d))))
+    return edges
+
+
+def _shaped_discretization(tissue: Tissue, discretization: Discretization, segments: tuple,
+                           needle_zone: tuple | None):
+    """Particles, supports, spacing and quadrature of a polygon tissue, holes or regions:
+    the graded lattice over the bounding box with lines through every polygon vertex and
+    segment end, fitted to the shape (stitchplan.tissue.shapes)."""
+    domain = tissue.domain
+    origin = np.asarray(domain.origin, dtype=float)
+    xb, yb = segment_breaks(segments) if segments else ([], [])
+    sx, sy = shape_breaks(tissue)
+    breaks = ([x - origin[0] for x in (*xb, *sx)], [y - origin[1] for y in (*yb, *sy)])
+    ends = tuple(replace(zone, center=zone.center - origin)
+                 for zone in (*end_zones(tissue, segments, discretization), *corner_zones(tissue, discretization)))
+    size = tuple(domain.size)
+    if discretization.needle_spacing is not None:
+        if needle_zone is None:
+            raise ScenarioError("discretization.needle_spacing: needs a needle to grade the "
+                                "particles toward; remove it or add a `needle:` block")
+        graded = graded_particles(size, discretization.spacing, discretization.needle_spacing,
+                                  np.asarray(needle_zone[0], dtype=float) - origin, float(needle_zone[1]),
+                                  points=ends, breaks=breaks)
+    else:
+        graded = graded_lattice(size, discretization.spacing, ends, END_GROWTH, breaks)
+    cells = graded.cells.copy()
+    cells[:, :2] += origin
+    graded = replace(graded, particles=graded.particles + origin, cells=cells)
+    particles, volumes, local = fit_particles(tissue, graded)
+    support = discretization.dilation * local
+    points, weights = shaped_quadrature(tissue, graded.cells, discretization.quadrature_order,
+                                        discretization.cells_per_spacing)
+    return particles, volumes, support, graded.fine_spacing, points, weights
 
 
 def model_for_scenario(scenario: Scenario,

@@ -230,7 +230,7 @@ def end_zones(tissue: Tissue, segments, discretization: Discretization) -> tuple
     if discretization.segment_end_levels == 0:
         return ()
     domain = tissue.domain
-    fine = end_spacing(discretization.spacing, default_spacing_of(tissue.size, None),
+    fine = end_spacing(discretization.spacing, default_spacing_of(tissue.bounding_size, None),
                        discretization.segment_end_levels)
     zones = []
     for segment in segments:

@@ -44,14 +44,16 @@ def segment_quadrature(
 
 
 def natural_boundary_quadrature(
-    size: tuple[float, float], essential: list[tuple[np.ndarray, np.ndarray]], interval: float, order: int
+    size: tuple[float, float], essential: list[tuple[np.ndarray, np.ndarray]], interval: float, order: int,
+    boundary: list | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss rule on the rectangle's boundary minus the `essential` pieces (segments along its
     edges: clamped edges, prescribed-displacement segments).
 
     Each edge is cut at its ends, every `interval` mm and at the ends of the essential pieces
     on it; intervals whose midpoint lies on an essential piece are dropped. Returns points
-    (n, 2), outward unit normals (n, 2) and weights (n,) (lengths, mm).
+    (n, 2), outward unit normals (n, 2) and weights (n,) (lengths, mm). `boundary` replaces
+    the rectangle's edges by any (start, end, outward normal) edges (a polygon, holes).
     """
     width, height = size
     tol = 1e-9 * max(size)
@@ -61,6 +63,8 @@ def natural_boundary_quadrature(
         ((width, height), (0.0, height), (0.0, 1.0)),
         ((0.0, height), (0.0, 0.0), (-1.0, 0.0)),
     )
+    if boundary is not None:
+        edges = boundary
     s, w = gauss_legendre(order)
     points, normals, weights = [], [], []
     for start, end, normal in edges:

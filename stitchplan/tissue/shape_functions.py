@@ -47,10 +47,38 @@ def _basis(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
     return h, np.stack([dh1, dh2], axis=2)
 
 
+@dataclass(frozen=True, eq=False)
+class Visibility:
+    """The visibility criterion on a non-convex tissue: a particle does not interact with a
+    point when the straight segment between them leaves the tissue (crosses the boundary of
+    a hole or a notch), so material across a gap never shares shape functions.
+
+    `clearance` (NP,) is each particle's distance to the boundary: a segment shorter than
+    it cannot reach the boundary, only the others are tested."""
+
+    domain: object  # geometry.PolygonDomain
+    clearance: np.ndarray
+
+    @classmethod
+    def of(cls, domain, particles: np.ndarray) -> Visibility:
+        return cls(domain, domain.distance(particles))
+
+    def keep(self, points: np.ndarray, particles: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Mask of the pairs (rows: points, cols: particles) that see each other."""
+        length = np.linalg.norm(points[rows] - particles[cols], axis=1)
+        test = np.flatnonzero(length >= self.clearance[cols])
+        keep = np.ones(len(rows), dtype=bool)
+        if len(test):
+            keep[test] = ~self.domain.blocked(points[rows[test]], particles[cols[test]])
+        return keep
+
+
 def neighbour_pairs(
-    points: np.ndarray, particles: np.ndarray, support: np.ndarray, tree: cKDTree | None = None
+    points: np.ndarray, particles: np.ndarray, support: np.ndarray, tree: cKDTree | None = None,
+    visibility: Visibility | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """All (point, particle) pairs with |X - X_I|_inf < a_I, grouped by point.
+    """All (point, particle) pairs with |X - X_I|_inf < a_I, grouped by point; with
+    `visibility`, only the pairs that see each other through the tissue.
 
     Returns (point_index, particle_index, indptr) where indptr delimits each point's pairs.
     """
@@ -63,6 +91,9 @@ def neighbour_pairs(
     # support edge (dilation 2 on a regular grid) out regardless of rounding
     keep = np.max(np.abs(points[rows] - particles[cols]), axis=1) < support[cols] * (1.0 - 1e-9)
     rows, cols = rows[keep], cols[keep]
+    if visibility is not None:
+        keep = visibility.keep(points, particles, rows, cols)
+        rows, cols = rows[keep], cols[keep]
     indptr = np.zeros(len(points) + 1, dtype=np.int64)
     np.cumsum(np.bincount(rows, minlength=len(points)), out=indptr[1:])
     return rows, cols, indptr
@@ -118,16 +149,18 @@ def rk_shape_pairs(
     gradients: bool = True,
     tree: cKDTree | None = None,
     basis_scale: float | None = None,
+    visibility: Visibility | None = None,
 ) -> ShapePairs:
     """N_I(X) = H(0)^T M(X)^-1 H((X - X_I)/a) phi_a(X - X_I) dV_I (eq. 3.19-3.20) and grad N_I.
 
     points (n, 2) evaluation points; particles (NP, 2); support (NP,) kernel half-widths a_I;
     volumes (NP,) particle volumes dV_I. The basis argument is scaled by one length for all
     particles (basis_scale, default the mean support) so that reproduction holds when the
-    supports vary between particles.
+    supports vary between particles. `visibility` drops the pairs whose segment leaves the
+    tissue (see Visibility).
     """
     points = np.atleast_2d(np.asarray(points, dtype=float))
-    rows, cols, indptr = neighbour_pairs(points, particles, support, tree)
+    rows, cols, indptr = neighbour_pairs(points, particles, support, tree, visibility)
     counts = np.diff(indptr)
     m = basis_size(order)
     if np.any(counts < m):

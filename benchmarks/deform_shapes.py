@@ -1,0 +1,127 @@
+"""Tissue shapes against an independent FEM: `stitchplan deform` on a plate with a
+rectangular hole, a two-layer slab and an L-shaped outline, each against a fine scikit-fem
+solution (Q2 quadrilaterals, graded toward every corner; benchmarks/skfem_reference.py,
+solve_skfem_shape), at the default spacing, half and a quarter of it: the max probe error
+and the observed convergence rate.
+
+Writes benchmarks/results/deform_shapes.{csv,md} and prints the table.
+Run from the repository root:  python benchmarks/deform_shapes.py
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+
+import _common as common  # noqa: E402
+from skfem_reference import solve_skfem_shape  # noqa: E402
+from stitchplan.config.scenario import parse_scenario, with_discretization  # noqa: E402
+from stitchplan.tissue.deform import run_deform  # noqa: E402
+
+SOFT = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}
+STIFF = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.756604, "lame_mu": 0.590752}  # 4 x SOFT
+
+SCENES = {
+    # L: 40 x 40 mm with the 20 x 20 mm upper-right square cut away; clamped bottom, the top of
+    # the upper arm sheared to the right (the re-entrant corner (20, 20) is singular)
+    "l_shape": {
+        "name": "L-shaped outline",
+        "tissue": {"outline": [[0.0, 0.0], [40.0, 0.0], [40.0, 20.0], [20.0, 20.0], [20.0, 40.0],
+                               [0.0, 40.0]],
+                   "thickness": 10.0, "material": SOFT,
+                   "clamped": [{"segment": [[0.0, 0.0], [40.0, 0.0]]}]},
+        "loads": [{"segment": [[0.0, 40.0], [20.0, 40.0]], "force": [0.2, 0.0]},
+                  {"segment": [[40.0, 0.0], [40.0, 20.0]], "force": [0.0, 0.15]}],
+        "probes": [[0.0, 40.0], [20.0, 40.0], [40.0, 20.0], [20.0, 20.0], [10.0, 30.0], [30.0, 10.0]],
+    },
+    # 40 x 20 mm plate, an 8 x 8 mm hole in the middle, clamped left, pulled on the right edge
+    "plate_with_hole": {
+        "name": "plate with a rectangular hole",
+        "tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": SOFT, "clamped": ["left"],
+                   "holes": [{"polygon": [[16.0, 6.0], [24.0, 6.0], [24.0, 14.0], [16.0, 14.0]]}]},
+        "loads": [{"segment": [[40.0, 0.0], [40.0, 20.0]], "force": [1.0, 0.3]}],
+        "probes": [[40.0, 10.0], [40.0, 20.0], [20.0, 14.0], [20.0, 6.0], [24.0, 10.0], [30.0, 3.0]],
+    },
+    # 40 x 20 mm slab: soft below y = 12, a 4x stiffer layer above; clamped left, a force on the
+    # right edge pulling and shearing both layers
+    "two_layer_slab": {
+        "name": "two-layer slab",
+        "tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": SOFT, "clamped": ["left"],
+                   "regions": [{"polygon": [[0.0, 12.0], [40.0, 12.0], [40.0, 20.0], [0.0, 20.0]],
+                                "material": STIFF}]},
+        "loads": [{"segment": [[40.0, 0.0], [40.0, 20.0]], "force": [1.0, -0.3]}],
+        "probes": [[40.0, 0.0], [40.0, 12.0], [40.0, 20.0], [20.0, 12.0], [20.0, 4.0], [20.0, 18.0]],
+    },
+}
+REFERENCE_H = 0.25  # mm, skfem Q2 element side (plus grading at the corners)
+REFINEMENTS = (1, 2, 4)  # spacing = default / r
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reference-h", type=float, default=REFERENCE_H)
+    args = parser.parse_args()
+    rows, csv_rows, notes = [], [], []
+    for key, raw in SCENES.items():
+        scenario = parse_scenario(raw)
+        default = scenario.discretization.spacing
+        print(f"{key}: skfem reference h = {args.reference_h:g} mm ...", flush=True)
+        reference = solve_skfem_shape(scenario, args.reference_h)
+        check = solve_skfem_shape(scenario, 2 * args.reference_h)
+        reference_change = common.max_probe_error(check.probe_displacements, reference.probe_displacements)
+        errors, spacings = [], []
+        for r in REFINEMENTS:
+            spacing = default / r
+            result = run_deform(with_discretization(scenario, spacing=spacing))
+            error = common.max_probe_error(result.probe_displacements, reference.probe_displacements)
+            errors.append(error)
+            spacings.append(spacing)
+            print(f"  spacing {spacing:g} mm: {result.model.n_particles} particles, error {100 * error:.3f} %, "
+                  f"{result.wall_seconds:.2f} s", flush=True)
+            csv_rows.append([key, spacing, result.model.n_particles, len(result.model.quadrature_weights),
+                             error, result.wall_seconds, *result.probe_displacements.ravel()])
+        # the same default run without grading toward the corners (and load-segment ends)
+        plain = run_deform(with_discretization(scenario, segment_end_levels=0))
+        plain_error = common.max_probe_error(plain.probe_displacements, reference.probe_displacements)
+        notes.append(f"{raw['name']}: at the default spacing without the grading toward re-entrant corners "
+                     f"and segment ends (segment_end_levels 0): {plain.model.n_particles} particles, "
+                     f"error {100 * plain_error:.3f} % (graded: {100 * errors[0]:.3f} %).")
+        print(f"  {notes[-1]}", flush=True)
+        rates = [math.log(errors[k] / errors[k + 1]) / math.log(spacings[k] / spacings[k + 1])
+                 for k in range(len(errors) - 1)]
+        rows.append([raw["name"], f"{default:g}", *(f"{100 * e:.3f} %" for e in errors),
+                     *(f"{q:.2f}" for q in rates), f"{reference.dofs} dofs, change {100 * reference_change:.3f} %"])
+    header = ["scene", "default spacing (mm)", *(f"error at default/{r}" for r in REFINEMENTS),
+              *(f"rate {REFINEMENTS[k]}->{REFINEMENTS[k + 1]}" for k in range(len(REFINEMENTS) - 1)),
+              f"skfem reference (Q2, h {args.reference_h:g} mm graded; change from h {2 * args.reference_h:g})"]
+    table = common.markdown_table(header, rows)
+    common.write_csv(common.results_path("deform_shapes.csv"),
+                     ["scene", "spacing_mm", "particles", "quadrature_points", "max_probe_error_rel",
+                      "wall_seconds", "probe_displacements"], csv_rows)
+    text = "\n".join([
+        "# Tissue shapes against scikit-fem",
+        "",
+        "`stitchplan deform` (default discretization: gauss integration, dilation 2, particles "
+        "fitted to the shape, cut cells split 3 times, visibility criterion) against a fine "
+        "scikit-fem solution of the same plane-strain St. Venant-Kirchhoff problem (Q2 "
+        "quadrilaterals, elements graded toward every corner, each element's material that of "
+        "its centre). Error = max over the probes of |u - u_ref| / max |u_ref|; rate = observed "
+        "order log(e1/e2)/log(h1/h2). Scenes in benchmarks/deform_shapes.py (SCENES).",
+        "",
+        table,
+        "",
+        *(f"- {note}" for note in notes),
+        "",
+        f"Machine: {common.machine_note()}.",
+        "",
+    ])
+    common.results_path("deform_shapes.md").write_text(text)
+    print(table)
+
+
+if __name__ == "__main__":
+    main()

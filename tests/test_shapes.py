@@ -1,0 +1,352 @@
+"""Tissue shapes: polygon outlines, holes, material regions and clamped segments.
+
+Bad shapes are refused up front (one line naming file and field, exit 2, no file); the
+domain answers inside/boundary/circle questions; interpolation does not reach across a slit
+(visibility) yet reproduces linear fields next to re-entrant corners; the quadrature
+integrates the shape's area; a two-layer slab carries the stress jump its materials
+demand; the needle commands and calibration run on a polygon tissue.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+from test_bad_inputs import OUTPUTS, assert_refused, invoke, write_scene
+
+from stitchplan.config import Discretization, Material, Tissue
+from stitchplan.config.scenario import parse_scenario
+from stitchplan.geometry import circle_polygon
+from stitchplan.tissue.model import build_tissue_model
+from stitchplan.tissue.shape_functions import rk_shape_functions
+
+PHANTOM = {"model": "neo-hookean", "lame_lambda": 0.189151, "lame_mu": 0.147688}
+NOTCHED = [[0.0, 0.0], [40.0, 0.0], [40.0, 20.0], [22.0, 20.0], [21.0, 14.0], [19.0, 14.0],
+           [18.0, 20.0], [0.0, 20.0]]
+BASE = {
+    "name": "notched",
+    "tissue": {"outline": NOTCHED, "thickness": 10.0, "material": dict(PHANTOM),
+               "holes": [{"circle": {"center": [30.0, 8.0], "radius": 2.0}}],
+               "clamped": [{"segment": [[0.0, 0.0], [40.0, 0.0]]}]},
+    "discretization": {"spacing": 2.5},
+    "needle": {"radius": 6.0, "entry": [8.0, 20.0], "turn": "ccw", "step": 0.2},
+    "loads": [{"segment": [[40.0, 5.0], [40.0, 15.0]], "force": [0.5, 0.0]}],
+    "probes": [[10.0, 10.0]],
+}
+
+
+def shaped(**tissue) -> dict:
+    raw = copy.deepcopy(BASE)
+    for key, value in tissue.items():
+        if value is None:
+            raw["tissue"].pop(key, None)
+        else:
+            raw["tissue"][key] = value
+    return raw
+
+
+BAD_SHAPES = {
+    "self-intersecting outline": (shaped(outline=[[0, 0], [40, 20], [40, 0], [0, 20]]),
+                                  ["tissue.outline: got [[0.0, 0.0], [40.0, 20.0], [40.0, 0.0], [0.0, 20.0]]",
+                                   "expected a simple polygon", "cross or touch"]),
+    "size and outline": (shaped(size=[40, 20]), ["tissue.size: got both", "exactly one of 'size'"]),
+    "hole outside": (shaped(holes=[{"polygon": [[50, 5], [55, 5], [55, 8]]}]),
+                     ["tissue.holes[0]: got [[50.0, 5.0], [55.0, 5.0], [55.0, 8.0]]", "a hole inside the tissue outline"]),
+    "hole touching the outline": (shaped(holes=[{"circle": {"center": [30.0, 2.0], "radius": 2.0}}]),
+                                  ["tissue.holes[0]:", "not touching it"]),
+    "hole cutting the notch": (shaped(holes=[{"polygon": [[19, 12], [21, 12], [21, 15], [19, 15]]}]),
+                               ["tissue.holes[0]:", "a hole inside the tissue outline"]),
+    "overlapping holes": (shaped(holes=[{"circle": {"center": [30.0, 8.0], "radius": 2.0}},
+                                        {"polygon": [[29, 7], [35, 7], [35, 12]]}]),
+                          ["tissue.holes[1]:", "a hole apart from holes[0]"]),
+    "circle and polygon in one hole": (shaped(holes=[{"circle": {"center": [30.0, 8.0], "radius": 2.0},
+                                                      "polygon": [[5, 5], [6, 5], [6, 6]]}]),
+                                       ["tissue.holes[0]: got both", "exactly one of 'polygon' or 'circle'"]),
+    "region outside": (shaped(regions=[{"polygon": [[50, 0], [60, 0], [60, 5]], "material": PHANTOM}]),
+                       ["tissue.regions[0].polygon: got [[50.0, 0.0], [60.0, 0.0], [60.0, 5.0]]",
+                        "a region overlapping the tissue"]),
+    "clamped segment off the boundary": (shaped(clamped=[{"segment": [[0, 1], [40, 1]]}]),
+                                         ["tissue.clamped[0].segment: got [[0.0, 1.0], [40.0, 1.0]]",
+                                          "a non-empty straight piece of one edge of the polygon tissue"]),
+    "named edge on a polygon": (shaped(clamped=["top"]),
+                                ["tissue.clamped[0]: got 'top'", "a side of the outline's bounding box that holds "
+                                 "exactly one outline edge"]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_SHAPES))
+def test_a_bad_shape_is_refused_in_one_line(tmp_path, case):
+    raw, fragments = BAD_SHAPES[case]
+    write_scene(tmp_path, raw)
+    result = invoke(tmp_path, "deform", "scene.yaml", *OUTPUTS["deform"])
+    assert_refused(result, tmp_path, {"scene.yaml"}, [["scene.yaml: ", *fragments]])
+
+
+@pytest.mark.parametrize(("command", "change", "fragments"), [
+    ("deform", {"loads": [{"segment": [[20.0, 14.0], [20.0, 10.0]], "force": [1.0, 0.0]}]},
+     ["loads[0].segment: got [[20.0, 14.0], [20.0, 10.0]]", "one edge of the polygon tissue"]),
+    ("simulate", {"needle": {**BASE["needle"], "entry": [8.0, 19.0]}},
+     ["needle.entry: got [8.0, 19.0]", "on the boundary of the polygon tissue"]),
+    ("simulate", {"needle": {**BASE["needle"], "entry": [18.0, 20.0]}},
+     ["needle.entry: got [18.0, 20.0], a corner"]),
+    ("plan", {"needle": {**BASE["needle"], "arc": 0.5}}, ["needle: the 6 mm needle", "within its arc"]),
+])
+def test_loads_and_needles_must_meet_the_polygon(tmp_path, command, change, fragments):
+    raw = copy.deepcopy(BASE)
+    raw.update(change)
+    write_scene(tmp_path, raw)
+    result = invoke(tmp_path, command, "scene.yaml", *OUTPUTS[command])
+    assert_refused(result, tmp_path, {"scene.yaml"}, [["scene.yaml: ", *fragments]])
+
+
+def test_the_example_of_scenario_md_reads():
+    """SCENARIO.md's shape example (its first hole, which reaches past the outline, left out):
+    `clamped: [right]` names the outline's one edge on the right side of its bounding box."""
+    raw = {"tissue": {"outline": [[0, 0], [60, 0], [60, 30], [34, 30], [32, 22], [28, 22], [26, 30], [0, 30]],
+                      "thickness": 10.0, "material": PHANTOM,
+                      "holes": [{"circle": {"center": [20, 10], "radius": 3}}],
+                      "regions": [{"polygon": [[0, 25], [60, 25], [60, 30], [0, 30]],
+                                   "material": {"model": "neo-hookean", "lame_lambda": 0.9, "lame_mu": 0.4}}],
+                      "clamped": ["right"]},
+           "loads": [{"segment": [[0, 5], [0, 25]], "force": [-1.0, 0.0]}]}
+    tissue = parse_scenario(raw).tissue
+    start, end = tissue.clamped_pieces()[0]
+    assert {tuple(start), tuple(end)} == {(60.0, 0.0), (60.0, 30.0)}
+    raw["tissue"]["holes"].insert(0, {"polygon": [[40, 20], [60, 20], [60, 40], [40, 40]]})
+    with pytest.raises(Exception, match="holes\\[0\\].*a hole inside the tissue outline"):
+        parse_scenario(raw)
+
+
+def test_a_clockwise_outline_is_walked_counter_clockwise():
+    forward = parse_scenario(BASE).tissue.domain
+    backward = parse_scenario(shaped(outline=NOTCHED[::-1])).tissue.domain
+    assert np.array_equal(forward.outline, backward.outline)
+    assert forward.inward_normal("outline[0]") == pytest.approx([0.0, 1.0])
+
+
+def test_the_domain_answers_inside_boundary_and_circle_questions():
+    domain = parse_scenario(BASE).tissue.domain
+    inside = domain.contains(np.array([[10.0, 10.0], [20.0, 17.0], [20.0, 13.0], [30.0, 8.0], [30.0, 10.5]]))
+    assert inside.tolist() == [True, False, True, False, True]  # notch and hole are outside
+    assert 1.4 < domain.outside_distance([20.0, 17.0]) < 1.5  # to the slanted notch wall
+    assert domain.outside_distance([5.0, 8.0]) == pytest.approx(-5.0)
+    assert domain.edges_at([10.0, 20.0]) == ["outline[6]"]
+    assert domain.segment_edge([21.5, 17.0], [21.2, 15.2]) == "outline[3]"
+    # a circle dipping into the notch: exit into it, entry out of it, exit at the top
+    crossings = domain.circle_crossings([20.0, 20.0], 4.0, math.pi, 1.0)
+    assert [kind for _, kind in crossings] == ["exit", "entry", "exit"]
+    rotations = [r for r, _ in crossings]
+    assert rotations == sorted(rotations) and rotations[-1] == pytest.approx(math.pi)
+    hole = circle_polygon([0.0, 0.0], 1.0)
+    assert np.max(1.0 - np.hypot(*(0.5 * (hole + np.roll(hole, -1, axis=0))).T)) < 1e-3  # chord error
+
+
+# --- interpolation across a gap ---------------------------------------------------------------
+
+SLIT = [[0.0, 0.0], [20.0, 0.0], [20.0, 10.0], [10.5, 10.0], [10.5, 2.0], [9.5, 2.0], [9.5, 10.0],
+        [0.0, 10.0]]
+
+
+def slit_model(spacing: float = 1.0, dilation: float = 2.0):
+    tissue = Tissue(None, 1.0, Material(), ({"segment": [[0.0, 0.0], [20.0, 0.0]]},), SLIT)
+    return build_tissue_model(tissue, Discretization(spacing=spacing, dilation=dilation,
+                                                     segment_end_levels=0))
+
+
+def test_points_across_a_slit_do_not_interact():
+    """Two points 1 mm apart across the 1 mm slit: the particle on one wall has no shape
+    function value at the other wall, nor anywhere across; without the visibility criterion
+    (same particles and supports) it would."""
+    model = slit_model()
+    left = int(np.argmin(np.linalg.norm(model.particles - [9.5, 6.0], axis=1)))
+    assert np.allclose(model.particles[left], [9.5, 6.0])
+    across = np.array([[10.5, 6.0], [10.7, 6.0], [11.0, 5.5]])
+    seen = model.shape_functions_at(across).values[:, left].toarray().ravel()
+    assert np.all(seen == 0.0)
+    blind = rk_shape_functions(across, model.particles, model.support, model.volumes, 1, False, model.tree,
+                               model.basis_scale).values[:, left].toarray().ravel()
+    assert np.all(np.abs(blind) > 1e-3)
+    # below the slit's tip the two sides meet again
+    below = model.shape_functions_at(np.array([[10.5, 1.0]])).values[:, left].toarray().ravel()
+    assert below[0] == 0.0  # 5 mm away: beyond the 2 mm support anyway
+    near_tip = int(np.argmin(np.linalg.norm(model.particles - [9.5, 2.0], axis=1)))
+    assert model.shape_functions_at(np.array([[10.5, 1.5]])).values[0, near_tip] != 0.0
+
+
+def test_linear_fields_are_reproduced_next_to_the_slit_and_its_corners():
+    """Visibility removes neighbours at re-entrant corners; the moment matrices stay regular
+    and the RK functions still reproduce 1, X, Y there (to round-off)."""
+    model = slit_model()
+    t = np.linspace(-0.45, 0.45, 7)
+    around = [np.stack(np.meshgrid(cx + t, cy + t), axis=-1).reshape(-1, 2)
+              for cx, cy in ((9.5, 2.0), (10.5, 2.0), (10.0, 1.0), (9.0, 9.5), (11.0, 9.5))]
+    points = np.concatenate(around)
+    points = points[model.tissue.domain.contains(points)]
+    shape = model.shape_functions_at(points, gradients=True)
+    assert np.allclose(shape.values.sum(axis=1), 1.0, atol=1e-10)
+    assert np.allclose(shape.values @ model.particles, points, atol=1e-9)
+    assert np.allclose(shape.grad_x @ model.particles, [1.0, 0.0], atol=1e-8)
+    assert np.allclose(shape.grad_y @ model.particles, [0.0, 1.0], atol=1e-8)
+
+
+# --- quadrature and particles ------------------------------------------------------------------
+
+
+def test_the_quadrature_integrates_the_shape():
+    """Notched outline and a circular hole: exact area for the straight notch walls on
+    lattice lines, the slanted walls and the circle cut to a small fraction of a cell."""
+    scenario = parse_scenario(BASE)
+    model = build_tissue_model(scenario.tissue, scenario.discretization)
+    area = 40.0 * 20.0 - 0.5 * (4.0 + 2.0) * 6.0 - 96 * 0.5 * 4.0 * math.sin(2 * math.pi / 96)
+    weights = model.quadrature_weights / scenario.tissue.thickness
+    assert weights.sum() == pytest.approx(area, rel=2e-4)
+    assert np.all(scenario.tissue.domain.contains(model.quadrature_points))
+    assert np.all(scenario.tissue.domain.contains(model.particles, 1e-9))
+    # boundary particles along every edge, the hole's included
+    hole_particles = np.abs(np.hypot(*(model.particles - [30.0, 8.0]).T) - 2.0) < 1e-3
+    assert hole_particles.sum() >= 5
+
+
+def test_particles_are_graded_toward_re_entrant_corners():
+    scenario = parse_scenario(BASE)
+    graded = build_tissue_model(scenario.tissue, scenario.discretization)
+    plain = build_tissue_model(scenario.tissue, scenario.discretization.replaced(segment_end_levels=0))
+    corner = np.array([21.0, 14.0])
+
+    def near(model):
+        return int((np.linalg.norm(model.particles - corner, axis=1) < 1.5).sum())
+
+    assert near(graded) > 2 * near(plain)
+
+
+# --- material regions -----------------------------------------------------------------------
+
+
+def test_a_two_layer_slab_carries_the_stress_jump():
+    """Layers stacked in y, stretched along x (Lame lambda 0: no lateral contraction): the
+    exact solution is homogeneous, F = diag(1 + e, 1) in both layers; S_xx = 2 mu E_xx jumps by
+    the ratio of the shear moduli at the interface and S_yy = 0 on both sides. The quadrature
+    points on each side carry their own layer's material (none smeared across)."""
+    soft = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.0, "lame_mu": 0.1}
+    stiff = {**soft, "lame_mu": 0.5}
+    raw = {"tissue": {"size": [20.0, 10.0], "thickness": 1.0, "material": soft, "clamped": ["left"],
+                      "regions": [{"polygon": [[0, 6.3], [20, 6.3], [20, 10], [0, 10]], "material": stiff}]},
+           "discretization": {"spacing": 1.0, "integration": "vci"},
+           "loads": [{"segment": [[20.0, 0.0], [20.0, 10.0]], "displacement": [0.4, 0.0]}],
+           "load_steps": 2}
+    from stitchplan.tissue.deform import run_deform
+
+    result = run_deform(parse_scenario(raw))
+    model = result.model
+    deformation = model.deformation_gradient(result.coefficients)
+    # the discrete solution is the homogeneous one up to the quadrature error of the rational
+    # RK functions (0.5 % of the strain)
+    assert np.allclose(deformation, np.diag([1.02, 1.0]), atol=1e-4)
+    stress, _ = model.material.pk2_stress(deformation)
+    y = model.quadrature_points[:, 1]
+    strain = 0.5 * (1.02**2 - 1.0)
+    below, above = (y < 6.3) & (y > 6.3 - 0.3), (y > 6.3) & (y < 6.3 + 0.3)  # next to the interface
+    assert below.sum() > 20 and above.sum() > 20
+    assert np.allclose(stress[y < 6.3, 0, 0], 2 * 0.1 * strain, rtol=2e-2)
+    assert np.allclose(stress[y > 6.3, 0, 0], 2 * 0.5 * strain, rtol=2e-2)
+    assert stress[above, 0, 0].mean() / stress[below, 0, 0].mean() == pytest.approx(5.0, rel=1e-2)
+    assert np.abs(stress[:, 1, 1]).max() < 0.02 * stress[:, 0, 0].max()
+
+
+# --- the commands on a polygon -----------------------------------------------------------------
+
+
+def test_deform_simulate_and_plan_run_on_a_polygon_with_a_hole(tmp_path):
+    write_scene(tmp_path, BASE)
+    for command in ("deform", "simulate", "plan"):
+        result = invoke(tmp_path, command, "scene.yaml", *OUTPUTS[command])
+        assert result.exit_code == 0, result.output
+    import json
+
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["exit_error_mm"] < 0.05  # plan aims the exit
+
+
+def test_calibration_runs_on_a_polygon_tissue():
+    """The forward model of a calibration experiment on the notched tissue with its hole:
+    displacements of markers for two moduli differ (the fit sees the material)."""
+    from stitchplan.calibration.forward import ExperimentModel
+    from stitchplan.calibration.inputs import Experiment
+    from stitchplan.config import Load
+
+    scenario = parse_scenario(BASE)
+    experiment = Experiment(name="pull", loads=(Load(((40.0, 5.0), (40.0, 15.0)), force=(0.5, 0.0)),),
+                            load_steps=2, markers=np.array([[35.0, 10.0], [10.0, 15.0]]),
+                            measured=np.zeros((2, 2)))
+    forward = ExperimentModel(scenario.tissue, scenario.discretization, experiment, "neo-hookean",
+                              scenario.solver)
+    soft, _ = forward.predict(np.array([0.19, 0.15]))
+    stiff, _ = forward.predict(np.array([0.38, 0.30]))
+    assert np.all(np.isfinite(soft)) and np.linalg.norm(soft - stiff) > 1e-3
+
+
+# --- a stitch across a wound ------------------------------------------------------------------
+
+WOUND = {
+    "name": "wound",
+    "tissue": {"outline": [[0.0, 0.0], [40.0, 0.0], [40.0, 20.0], [22.0, 20.0], [22.0, 8.0], [18.0, 8.0],
+                           [18.0, 20.0], [0.0, 20.0]],
+               "thickness": 10.0, "material": dict(PHANTOM), "clamped": [{"segment": [[0.0, 0.0], [40.0, 0.0]]}]},
+    "discretization": {"spacing": 2.5},
+    "needle": {"radius": 6.0, "entry": [26.0, 20.0], "turn": "cw", "step": 0.15, "friction": 0.06,
+               "cutting_force": 0.5},
+}
+
+
+def test_a_stitch_across_a_wound_is_followed_through_every_crossing(tmp_path):
+    """The undeformed circle leaves at the right wall, crosses the 4 mm gap, enters the left
+    wall and exits the surface: the desired exit is the final one; the tip adds no needle
+    point in the gap (one segment joins the walls); the summary lists the three crossings
+    and each side's bite; plan aims the final exit."""
+    from stitchplan.needle.geometry import scenario_needle
+    from stitchplan.needle.insertion import run_insertion
+
+    scenario = parse_scenario(WOUND)
+    geometry = scenario_needle(scenario)
+    assert [kind for _, kind in geometry.crossings] == ["exit", "entry", "exit"]
+    assert geometry.desired_exit == pytest.approx([14.0, 20.0])
+    result = run_insertion(scenario)
+    domain = scenario.tissue.domain
+    assert [c["kind"] for c in result.crossings] == ["exit", "entry", "exit"]
+    assert np.all(domain.contains(result.needle_points, 1e-6))  # none in the gap
+    walls = [c["achieved"] for c in result.crossings[:2]]
+    assert walls[0][0] == pytest.approx(22.0) and walls[1][0] == pytest.approx(18.0)
+    # consecutive needle points on the two walls: the only segment across the gap
+    across = np.flatnonzero((result.needle_points[:-1, 0] > 20.0) & (result.needle_points[1:, 0] < 20.0))
+    assert len(across) == 1
+    assert np.allclose(result.needle_points[across[0]], walls[0]) and np.allclose(result.needle_points[across[0] + 1], walls[1])
+    assert result.crossings[-1]["error_mm"] == pytest.approx(result.exit_error_mm)
+    assert all(c["error_mm"] < 1.0 for c in result.crossings)
+    assert result.bites["entry_side_at_rest_mm"] == pytest.approx(4.0)
+    assert result.bites["difference_mm"] == pytest.approx(result.bites["exit_side_mm"] - result.bites["entry_side_mm"])
+
+    write_scene(tmp_path, WOUND)
+    run = invoke(tmp_path, "plan", "scene.yaml", *OUTPUTS["plan"])
+    assert run.exit_code == 0, run.output
+    import json
+
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert [c["kind"] for c in summary["crossings"]] == ["exit", "entry", "exit"]
+    assert set(summary["crossings"][0]) == {"kind", "desired", "desired_def", "achieved_def", "error_mm"}
+    assert summary["exit_error_mm"] < 0.05 < result.exit_error_mm  # the planner aims the final exit
+    assert summary["crossings"][-1]["error_mm"] == pytest.approx(summary["exit_error_mm"])
+    assert {"entry_side_mm", "exit_side_mm", "difference_mm"} <= set(summary["bites"])
+
+
+def test_a_symmetric_target_evens_the_bites():
+    """planner.target symmetric: the passes aim the exit-side bite at the entry side's,
+    accepting some exit error for it."""
+    from stitchplan.planning.planner import run_plan
+
+    raw = copy.deepcopy(WOUND)
+    raw["planner"] = {"target": "symmetric"}
+    planned = run_plan(parse_scenario(raw), compare=False).planned
+    assert abs(planned.bites["difference_mm"]) <= 0.005
+    assert [c["kind"] for c in planned.crossings] == ["exit", "entry", "exit"]
