@@ -310,7 +310,10 @@ def test_the_summary_has_the_uncertainty_block_of_scenario_md(planned):
     assert block["robust"]["mean_mm"] <= block["nominal"]["mean_mm"]
     assert block["robust"]["p95_mm"] <= block["nominal"]["p95_mm"]
     assert block["exported"] in ("robust", "nominal")
-    np.testing.assert_allclose(block["robust_aim_mm"], -np.asarray(block["mean_shift_mm"]))
+    if block["mean_shift_t2"] >= 5.991464547107979:  # a shift beyond sampling noise: aimed at its opposite
+        np.testing.assert_allclose(block["robust_aim_mm"], -np.asarray(block["mean_shift_mm"]))
+    else:  # noise: the robust plan is the nominal one
+        assert block["robust_aim_mm"] == [0.0, 0.0] and block["robust"] == block["nominal"]
     assert block["distributions"]["parameters"]["lame_lambda"] == {"std": 0.0129, "units": "MPa",
                                                                     "source": "calibration"}
     # more thickness, less force per unit of it: the sensitivity has the sign of the forces' opposite
@@ -369,3 +372,18 @@ def test_the_shipped_uncertainty_file_reads_the_sample_calibration():
     scenario = parse_scenario(yaml.safe_load((root / "configs" / "sh12_100x100.yaml").read_text()))
     design = draw(resolved, scenario)
     assert design.train.shape == (16, 5) and design.rejected == 0
+
+
+def test_mean_shift_significance_is_hotellings_t2():
+    """T^2 = n s^T W^-1 s: a shift of one standard error per axis on 16 samples gives about
+    n (1/4)^2 x 2 = 2 (noise, below 5.99); a shift of two standard deviations is significant."""
+    from stitchplan.uncertainty.robust import CHI2_95_2D, shift_significance
+
+    rng = np.random.default_rng(5)
+    noise = rng.standard_normal((16, 2))
+    noise = (noise - noise.mean(axis=0)) / noise.std(axis=0, ddof=1)  # mean 0, unit sample spread
+    assert shift_significance(noise) == pytest.approx(0.0, abs=1e-12)
+    assert shift_significance(noise + 0.25) < CHI2_95_2D
+    assert shift_significance(noise + 2.0) > CHI2_95_2D
+    expected = 16 * np.array([2.0, 2.0]) @ np.linalg.inv(np.cov((noise + 2.0).T)) @ np.array([2.0, 2.0])
+    assert shift_significance(noise + 2.0) == pytest.approx(expected)

@@ -54,6 +54,7 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "robust_design": ROBUST_DESIGN,
         "mean_shift_mm": _vector(result.shift),
         "robust_aim_mm": _vector(result.aim),
+        "mean_shift_t2": result.shift_significance,  # Hotelling T^2; the robust plan re-aims above 5.99
         "training_prediction": result.training_prediction(),
         "training": {"samples": len(result.training), "failed": len(result.training) - len(training_ok),
                      "nominal_path": exit_statistics(np.array([run.exit_error for run in training_ok]))},

@@ -8,7 +8,9 @@ The robust plan is the nominal plan aimed with the mean exit shift:
 2. replay the nominal plan's centre path on the training samples: exit error vectors e_i,
    deviations d_i = e_i - e_nominal (e_nominal: the nominal plan's own exit error), and
    the mean shift s = mean(d_i);
-3. plan again on the scenario's values with the passes aiming the exit error at -s
+3. unless s is within the training samples' sampling noise (Hotelling's T^2 below the 95 %
+   quantile: then the robust plan is the nominal plan, since aiming at noise adds it to
+   every exit), plan again on the scenario's values with the passes aiming the exit error at -s
    (run_plan's `aim`, continuing the secant of the nominal passes, as plan_verified does
    for a refined model's offset). Every path near the nominal one moves the exit alike
    with the parameters, so that path misses sample i by about d_i - s: the cloud of exits
@@ -117,6 +119,7 @@ class UncertaintyResult:
     notes: list[str] = field(default_factory=list)
     aim: np.ndarray | None = None  # (2,) the robust plan's aim (-shift); None: no robust plan
     deviations: np.ndarray | None = None  # (n_ok, 2) training exit errors - the nominal plan's own
+    shift_significance: float | None = None  # Hotelling T^2 of the mean shift (shift_significance)
 
     def training_prediction(self) -> dict | None:
         """The training samples' miss statistics predicted for the nominal (d_i + e_nominal)
@@ -185,6 +188,19 @@ class UncertaintyResult:
                 f"{total:.3g} mm p95, linearised; std {dominant.std:g} {UNITS[dominant.name]}{miss})")
 
 
+def shift_significance(deviations: np.ndarray) -> float:
+    """Hotelling's T^2 = n s^T W^-1 s of the mean s of the deviations (n, 2), W their sample
+    covariance: below the chi^2 (2 dof) 95 % quantile the mean shift cannot be told from
+    sampling noise (inf for a zero spread with a shift, 0 without one)."""
+    n = len(deviations)
+    shift = deviations.mean(axis=0)
+    if n < 3:
+        return float("inf") if np.any(shift) else 0.0
+    covariance = np.cov(deviations.T)
+    return float(n * shift @ np.linalg.pinv(covariance) @ shift) if np.any(covariance) else (
+        float("inf") if np.any(shift) else 0.0)
+
+
 def planned_tasks(uncertainty: Uncertainty) -> int:
     """Sampled runs of plan_under_uncertainty (for a progress bar): the training runs, three
     paths on the held-out samples, two runs per sensitivity."""
@@ -225,6 +241,15 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
                                  sensitivities, _where(executor), notes)
     deviations = np.asarray(ok) - exit_error_vector(nominal.planned)  # (n_ok, 2)
     shift = deviations.mean(axis=0)
+    significance = shift_significance(deviations)
+    if significance < CHI2_95_2D:  # aiming at noise only adds it to every exit
+        notes.append(f"the mean exit shift ({shift[0]:.3g}, {shift[1]:.3g}) mm is within the training samples' "
+                     f"sampling noise (Hotelling T^2 {significance:.3g} < {CHI2_95_2D:.3g}, 95 %): the robust "
+                     "plan is the nominal plan")
+        held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": nominal_held}
+        return UncertaintyResult(uncertainty, design, nominal, nominal, "robust", shift, training, held_out,
+                                 sensitivities, _where(executor), notes, aim=np.zeros(2), deviations=deviations,
+                                 shift_significance=significance)
     aim = -shift
     log.info("mean exit shift over %d training samples (%.4g, %.4g) mm; re-planning aimed at its opposite",
              len(ok), *shift)
@@ -236,7 +261,8 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     robust_held = _runs(executor, held, [robust.exported_centers] * len(held), options, report)
     held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": robust_held}
     result = UncertaintyResult(uncertainty, design, nominal, robust, "robust", shift, training, held_out,
-                               sensitivities, _where(executor), notes, aim=aim, deviations=deviations)
+                               sensitivities, _where(executor), notes, aim=aim, deviations=deviations,
+                               shift_significance=significance)
     _choose(result)
     return result
 
