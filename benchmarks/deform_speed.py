@@ -40,7 +40,7 @@ from stitchplan.config.scenario import with_discretization  # noqa: E402
 from stitchplan.tissue.deform import external_forces, run_deform, to_free  # noqa: E402
 from stitchplan.tissue.model import model_for_scenario  # noqa: E402
 from stitchplan.tissue.shape_functions import rk_shape_functions  # noqa: E402
-from stitchplan.tissue.solver import factorize  # noqa: E402
+from stitchplan.tissue.factorization import factorize  # noqa: E402
 
 SPACINGS = (5.0, 4.0, 3.0, 2.5, 2.0, 1.5, 1.0)
 DILATION = 2.0

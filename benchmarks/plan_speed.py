@@ -43,10 +43,11 @@ STARTUP_REPEATS = 7
 RUNNER = "import sys; from stitchplan.cli import main; sys.argv[0] = 'stitchplan'; main()"
 
 
-def run_plan_command(source: Path, scene: str, options: list[str], folder: Path) -> dict:
-    """One `stitchplan plan` process of the code in `source`; its summary and wall time."""
+def run_plan_command(source: Path, scene: str, options: list[str], folder: Path, **environment) -> dict:
+    """One `stitchplan plan` process of the code in `source` (with `environment` added to
+    the process's); its summary and wall time."""
     summary = folder / "summary.json"
-    environment = {**os.environ, "PYTHONPATH": str(source)}
+    environment = {**os.environ, "PYTHONPATH": str(source), **environment}
     start = time.perf_counter()
     subprocess.run([sys.executable, "-c", RUNNER, "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
                     *options, "--export", str(folder / "trajectory.csv"), "--summary", str(summary)],
@@ -62,16 +63,19 @@ def compare_revisions(baseline: Path) -> list[dict]:
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         for scene in SCENES:
-            before, after = [], []
+            before, after, scipy_only = [], [], []
             for _ in range(REPEATS):
                 before.append(run_plan_command(baseline, scene, ["--no-compare"], folder))
                 after.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"], folder))
+                scipy_only.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"],
+                                                   folder, STITCHPLAN_LINEAR_BACKEND="superlu"))
             last = after[-1]
             steps = last["timings_seconds"]["steps"]
             row = {
                 "scene": scene, "particles": last["particles"], "steps": last["steps"],
                 "baseline_planned_s": statistics.median(r["wall_seconds"] for r in before),
                 "planned_s": statistics.median(r["wall_seconds"] for r in after),
+                "superlu_planned_s": statistics.median(r["wall_seconds"] for r in scipy_only),
                 "baseline_command_s": statistics.median(r["command_seconds"] for r in before),
                 "command_s": statistics.median(r["command_seconds"] for r in after),
                 "step_median_ms": 1e3 * steps["median"], "step_p90_ms": 1e3 * steps["p90"],
@@ -83,9 +87,11 @@ def compare_revisions(baseline: Path) -> list[dict]:
                 "backend": last["solver"]["linear_solver_backend"],
             }
             row["speedup"] = row["baseline_planned_s"] / row["planned_s"]
+            row["superlu_speedup"] = row["baseline_planned_s"] / row["superlu_planned_s"]
             rows.append(row)
             print(f"{scene}: planned run {row['baseline_planned_s']:.2f} s at {BASELINE} -> {row['planned_s']:.2f} s "
-                  f"({row['speedup']:.1f}x), steps median {row['step_median_ms']:.1f} ms, p90 "
+                  f"({row['speedup']:.1f}x; SuperLU {row['superlu_planned_s']:.2f} s, {row['superlu_speedup']:.1f}x), "
+                  f"steps median {row['step_median_ms']:.1f} ms, p90 "
                   f"{row['step_p90_ms']:.1f} ms; whole command {row['command_s']:.2f} s", flush=True)
     return rows
 
@@ -95,24 +101,28 @@ def levers() -> list[tuple[str, float, int, int]]:
     iterations, linear solves)."""
     import stitchplan.needle.equilibrium as equilibrium
     import stitchplan.needle.saddle_point as saddle_point
-    import stitchplan.tissue.solver as solver
+    import stitchplan.tissue.factorization as factorization
     from stitchplan.config.scenario import load_scenario
     from stitchplan.planning.planner import run_plan
 
     logging.getLogger("stitchplan").setLevel(logging.ERROR)
     scenario = load_scenario(common.REPO_ROOT / "configs" / "sh12_100x100.yaml")
-    symmetric = solver.factorize
+    chosen = saddle_point.factorize
 
-    def general_lu(matrix):
-        import scipy.sparse as sp
-        import scipy.sparse.linalg as spla
-        return spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A")
+    class GeneralLU(factorization.SuperLUFactor):
+        backend = "scipy SuperLU, default options"
+
+        def __init__(self, matrix):
+            import scipy.sparse as sp
+            import scipy.sparse.linalg as spla
+            self._lu = spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A")
 
     settings = {
-        "all levers (now)": {},
+        f"all levers (now; {factorization.factorize(_spd_probe(), symmetric_positive=True).backend})": {},
         "without Anderson mixing": {"ANDERSON_DEPTH": 0},
         "centre columns re-solved every iteration": {"STALE_CENTER_MOVES": 0.0},
-        "SuperLU without symmetric mode": {"factorize": general_lu},
+        "SuperLU in symmetric mode (the scipy default path)": {"factorize": lambda m, **_: factorization.SuperLUFactor(m)},
+        "SuperLU without symmetric mode": {"factorize": lambda m, **_: GeneralLU(m)},
     }
     rows = []
     run_plan(scenario, compare=False)  # warm-up
@@ -128,12 +138,18 @@ def levers() -> list[tuple[str, float, int, int]]:
         finally:
             for name, value in saved.items():
                 setattr(equilibrium, name, value)
-            saddle_point.factorize = symmetric
+            saddle_point.factorize = chosen
         planned = results[-1].planned
         rows.append((label, statistics.median(r.planned.wall_seconds for r in results),
                      sum(s.newton_iterations for s in planned.steps), planned.solver_counts["linear_solves"]))
         print(f"{label}: {rows[-1][1]:.2f} s, {rows[-1][2]} Newton iterations", flush=True)
     return rows
+
+
+def _spd_probe():
+    """A small symmetric positive definite matrix, to ask which backend factorize picks."""
+    import scipy.sparse as sp
+    return sp.diags([4.0, 4.0, 4.0]) + sp.eye(3, k=1) + sp.eye(3, k=-1)
 
 
 def startup() -> dict[str, float]:
@@ -164,7 +180,8 @@ def main() -> None:
     for label, seconds in start_up.items():
         print(f"{label}: {seconds:.3f} s", flush=True)
 
-    header = ["scene", "particles", "steps", "baseline_planned_s", "planned_s", "speedup", "step_median_ms",
+    header = ["scene", "particles", "steps", "baseline_planned_s", "planned_s", "speedup", "superlu_planned_s",
+              "superlu_speedup", "step_median_ms",
               "step_p90_ms", "step_max_ms", "newton", "solves", "factorizations", "linear_solves", "passes",
               "baseline_passes", "baseline_exit_mm", "exit_mm", "baseline_command_s", "command_s"]
     common.write_csv(common.results_path("plan_speed.csv"), header, [[r[k] for k in header] for r in rows])
@@ -174,6 +191,8 @@ def main() -> None:
         f"Generated by `python benchmarks/plan_speed.py` ({common.machine_note()}; load average "
         f"{load:.1f} at the end). Linear solver: {rows[0]['backend']}.\n",
         f"## Planned run before ({BASELINE}) and now, side by side (median of {REPEATS})\n",
+        "Now: with the installed backend (above); *SuperLU only*: the same code with "
+        "STITCHPLAN_LINEAR_BACKEND=superlu, the path without the `fast` extra. Steps: with the installed backend.\n",
         f"The planned run is the summary's `wall_seconds` of `plan CONFIG --no-compare` at {BASELINE} and of "
         "`plan CONFIG --no-compare --no-verify` now (the same run; verification did not exist then). "
         "Steps: wall time of each needle step (tip tracking, equilibrium and the planner's centre). "
@@ -182,11 +201,12 @@ def main() -> None:
         "step, so its counts are not comparable and are left out.\n",
         common.markdown_table(
             ["scene", "particles", "steps", f"planned run {BASELINE} (s)", "planned run now (s)", "speed-up",
+             "now with SuperLU only (s)", "speed-up with SuperLU",
              "step median (ms)", "step p90 (ms)", "step max (ms)", "Newton iterations", "equilibrium solves",
              "factorizations", "linear solves", f"passes {BASELINE} / now", f"planned exit error {BASELINE} (mm)",
              "planned exit error now (mm)"],
             [[r["scene"], r["particles"], r["steps"], r["baseline_planned_s"], r["planned_s"],
-              f"{r['speedup']:.2f}x", r["step_median_ms"], r["step_p90_ms"], r["step_max_ms"], r["newton"],
+              f"{r['speedup']:.2f}x", r["superlu_planned_s"], f"{r['superlu_speedup']:.2f}x", r["step_median_ms"], r["step_p90_ms"], r["step_max_ms"], r["newton"],
               r["solves"], r["factorizations"], r["linear_solves"], f"{r['baseline_passes']} / {r['passes']}",
               r["baseline_exit_mm"], r["exit_mm"]] for r in rows]),
         "",

@@ -30,10 +30,10 @@ from ..tissue.assembly import Assembler
 from ..tissue.deform import external_forces, prescribed_displacements, to_free
 from ..tissue.material import NeoHookean, SaintVenantKirchhoff
 from ..tissue.model import model_for_scenario
+from ..tissue.factorization import factorize
 from ..tissue.solver import (
     StaticProblem,
     TangentSolver,
-    factorize,
     newton,
     solve_static,
 )

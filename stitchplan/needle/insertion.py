@@ -19,7 +19,6 @@ import numpy as np
 
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure
-from ..tissue.solver import LINEAR_SOLVER_BACKEND
 from .equilibrium import NeedleInsertion
 from .results import InsertionResult, NeedleStep
 from .steering import CenterAim
@@ -207,7 +206,7 @@ def _result(insertion: NeedleInsertion, steps: list[NeedleStep], displacements: 
         solver_counts={"factorizations": insertion.saddle.factorizations,
                        "linear_solves": insertion.saddle.solves,
                        "linear_solver": insertion.linear_method,
-                       "linear_solver_backend": LINEAR_SOLVER_BACKEND,
+                       "linear_solver_backend": insertion.saddle.backend,
                        "minres_iterations": insertion.saddle.minres_iterations,
                        "minres_fallbacks": insertion.saddle.fallbacks,
                        "tangent_products": insertion.assembler.tangent_products},

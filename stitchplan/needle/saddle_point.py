@@ -29,7 +29,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..tissue.solver import factorize
+from ..tissue.factorization import SUPERLU, factorize
 
 
 class SchurPreconditioner:
@@ -130,6 +130,7 @@ class SaddlePointSolver:
         self._coupled = np.zeros((0, 0))  # E (K + H)^-1 E^T for that factor, (2Q, 2Q)
         self.factorizations = 0
         self.solves = 0
+        self.backend = SUPERLU  # of the last factor of K + H (tissue/factorization.py)
         self.minres_iterations = 0
         self.fallbacks = 0
 
@@ -137,7 +138,7 @@ class SaddlePointSolver:
     def stiffness_at_rest(self):
         """The factor of K0 (eq. 3.72)."""
         if self._at_rest_factor is None:
-            self._at_rest_factor = factorize(self._assemble_at_rest())
+            self._at_rest_factor = factorize(self._assemble_at_rest(), symmetric_positive=True)
         return self._at_rest_factor
 
     def forget(self) -> None:
@@ -168,8 +169,9 @@ class SaddlePointSolver:
         """
         n, k = rows.shape[1], weights.shape[1]
         if refactor or self._factor is None:
-            self._factor = factorize(stiffness())
+            self._factor = factorize(stiffness(), symmetric_positive=True)  # K + H: symmetric
             self.factorizations += 1
+            self.backend = self._factor.backend
             self._solved_rows = np.zeros((n, 0))
             self._coupled = np.zeros((0, 0))
         a = self._factor.solve(rhs[:n])

@@ -11,6 +11,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .assembly import Assembler
+from .factorization import factorize
 from ..config import Solver
 from ..errors import InvertedMaterial, SolverDivergence
 from .model import TissueModel
@@ -57,17 +58,6 @@ def checked(model: TissueModel, deformation_gradient: np.ndarray) -> np.ndarray:
         x, y = model.quadrature_points[worst]
         raise InvertedMaterial(f"det F = {jacobian[worst]:.3g} at ({x:.3g}, {y:.3g}) mm")
     return deformation_gradient
-
-
-LINEAR_SOLVER_BACKEND = "scipy SuperLU (splu, MMD_AT_PLUS_A ordering, symmetric mode)"
-
-
-def factorize(matrix: sp.spmatrix):
-    """Sparse LU (SuperLU) with a symmetric fill-reducing ordering; returns the factor.
-    SymmetricMode keeps the rows in the columns' order where the diagonal is an acceptable
-    pivot (partial pivoting stays on), which the tangents here always allow: same fill,
-    ~40 % faster solves (benchmarks/plan_speed.py)."""
-    return spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
 
 
 def preconditioned_cg(

@@ -1,0 +1,46 @@
+"""Sparse direct factorizations (stitchplan/tissue/factorization.py): SuperLU always, CHOLMOD's
+Cholesky from the optional `fast` extra for symmetric positive definite matrices, with the
+fallback to SuperLU and the switch that turns the Cholesky off."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from stitchplan.tissue.factorization import CHOLMOD, SUPERLU, SuperLUFactor, cholesky_available, factorize
+
+
+def spd_matrix(n: int = 40, seed: int = 2) -> sp.csr_matrix:
+    rng = np.random.default_rng(seed)
+    a = sp.random(n, n, density=0.1, random_state=rng)
+    return (a @ a.T + n * sp.eye(n)).tocsr()
+
+
+def test_superlu_solves_one_and_several_right_hand_sides():
+    matrix = spd_matrix()
+    factor = factorize(matrix)  # not declared symmetric: always SuperLU
+    assert isinstance(factor, SuperLUFactor) and factor.backend == SUPERLU
+    rhs = np.random.default_rng(1).standard_normal((40, 3))
+    np.testing.assert_allclose(matrix @ factor.solve(rhs), rhs, atol=1e-10)
+    np.testing.assert_allclose(matrix @ factor.solve(rhs[:, 0]), rhs[:, 0], atol=1e-10)
+
+
+def test_the_switch_turns_the_cholesky_off(monkeypatch):
+    monkeypatch.setenv("STITCHPLAN_LINEAR_BACKEND", "superlu")
+    assert not cholesky_available()
+    assert factorize(spd_matrix(), symmetric_positive=True).backend == SUPERLU
+
+
+@pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cholespy) is not installed")
+def test_cholesky_solves_like_superlu_and_falls_back_silently_where_not_positive_definite(capfd):
+    matrix = spd_matrix()
+    rhs = np.random.default_rng(3).standard_normal((40, 2))
+    cholesky = factorize(matrix, symmetric_positive=True)
+    assert cholesky.backend == CHOLMOD
+    np.testing.assert_allclose(cholesky.solve(rhs), SuperLUFactor(matrix).solve(rhs), rtol=0, atol=1e-12)
+    indefinite = matrix - 2.0 * 40 * sp.eye(40)  # symmetric, negative eigenvalues
+    factor = factorize(indefinite, symmetric_positive=True)
+    assert factor.backend == SUPERLU
+    np.testing.assert_allclose(indefinite @ factor.solve(rhs), rhs, atol=1e-9)
+    assert capfd.readouterr().err == ""  # CHOLMOD's own warning does not reach the user
