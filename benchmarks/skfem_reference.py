@@ -165,6 +165,42 @@ class SkfemRun:
     reactions: np.ndarray | None = None  # (n_loads, 2) N, as stitchplan's reactions.csv
 
 
+def load_stepped_newton(basis, external: np.ndarray, free: np.ndarray, prescribed: np.ndarray,
+                        final: np.ndarray, settings, load_steps: int, lame_lambda, lame_mu,
+                        h_mesh: float) -> tuple[np.ndarray, int]:
+    """Load-stepped full Newton on the SVK problem, with the same predictor and stopping test
+    as stitchplan.tissue.solver.newton: load step k applies k / load_steps of `external` and
+    of the `prescribed` dofs' `final` values. Returns (u, Newton iterations)."""
+    u = np.zeros(basis.N)
+    previous_increment = np.zeros(basis.N)
+    external_norm = float(np.linalg.norm(external[free]))
+    iterations = 0
+    for step in range(1, load_steps + 1):
+        fraction = step / load_steps
+        step_start = u.copy()
+        u = u + previous_increment
+        u[prescribed] = fraction * final[prescribed]
+        increment_norm = np.inf
+        for iteration in range(settings.max_iterations + 1):
+            first_piola, tangent = svk_response(basis.interpolate(u).grad, lame_lambda, lame_mu)
+            residual = asm(internal_force, basis, P=first_piola) - fraction * external
+            residual_norm = float(np.linalg.norm(residual[free]))
+            if iteration == 0:
+                tolerance = settings.residual_tolerance * max(fraction * external_norm, residual_norm)
+            small_step = increment_norm <= settings.increment_tolerance * (np.abs(u).max() + h_mesh)
+            if residual_norm <= tolerance and (small_step or residual_norm <= 1e-3 * tolerance):
+                break
+            if iteration == settings.max_iterations:
+                raise RuntimeError(f"skfem Newton: no convergence at load step {step}")
+            stiffness = asm(tangent_stiffness, basis, A=tangent)
+            delta = solve(*condense(stiffness, -residual, I=free, expand=False), solver=LINEAR_SOLVER)
+            u[free] += delta
+            increment_norm = float(np.abs(delta).max())
+            iterations += 1
+        previous_increment = u - step_start
+    return u, iterations
+
+
 def solve_skfem(scenario: Scenario, element: str, cells: int, grading: int = 0) -> SkfemRun:
     """Build the mesh and bases, run the load-stepped Newton solve, interpolate the probes.
 
@@ -225,37 +261,9 @@ def solve_skfem(scenario: Scenario, element: str, cells: int, grading: int = 0) 
     final[clamped] = 0.0  # the clamp holds a corner it shares with a displacement segment
     free = basis.complement_dofs(prescribed)
 
-    # load-stepped full Newton, same predictor and stopping test as stitchplan.tissue.solver.newton
-    settings = scenario.solver
-    h_mesh = max(width, height) / cells
-    u = np.zeros(basis.N)
-    previous_increment = np.zeros(basis.N)
-    external_norm = float(np.linalg.norm(external[free]))
-    iterations = 0
-    for step in range(1, scenario.load_steps + 1):
-        fraction = step / scenario.load_steps
-        step_start = u.copy()
-        u = u + previous_increment
-        u[prescribed] = fraction * final[prescribed]
-        increment_norm = np.inf
-        for iteration in range(settings.max_iterations + 1):
-            first_piola, tangent = svk_response(basis.interpolate(u).grad, material.lame_lambda,
-                                                material.lame_mu)
-            residual = asm(internal_force, basis, P=first_piola) - fraction * external
-            residual_norm = float(np.linalg.norm(residual[free]))
-            if iteration == 0:
-                tolerance = settings.residual_tolerance * max(fraction * external_norm, residual_norm)
-            small_step = increment_norm <= settings.increment_tolerance * (np.abs(u).max() + h_mesh)
-            if residual_norm <= tolerance and (small_step or residual_norm <= 1e-3 * tolerance):
-                break
-            if iteration == settings.max_iterations:
-                raise RuntimeError(f"skfem Newton: no convergence at load step {step}")
-            stiffness = asm(tangent_stiffness, basis, A=tangent)
-            delta = solve(*condense(stiffness, -residual, I=free, expand=False), solver=LINEAR_SOLVER)
-            u[free] += delta
-            increment_norm = float(np.abs(delta).max())
-            iterations += 1
-        previous_increment = u - step_start
+    u, iterations = load_stepped_newton(basis, external, free, prescribed, final, scenario.solver,
+                                        scenario.load_steps, material.lame_lambda, material.lame_mu,
+                                        max(width, height) / cells)
 
     probes = np.asarray(scenario.probes, dtype=float).reshape(-1, 2)
     values = (basis.probes(probes.T) @ u).reshape(2, -1).T
@@ -327,34 +335,8 @@ def solve_skfem_shape(scenario: Scenario, h: float, grading: int = 3) -> SkfemRu
     prescribed = np.unique(np.concatenate(clamped)) if clamped else np.zeros(0, dtype=np.int64)
     free = basis.complement_dofs(prescribed)
 
-    settings = scenario.solver
-    u = np.zeros(basis.N)
-    previous_increment = np.zeros(basis.N)
-    external_norm = float(np.linalg.norm(external[free]))
-    iterations = 0
-    for step in range(1, scenario.load_steps + 1):
-        fraction = step / scenario.load_steps
-        step_start = u.copy()
-        u = u + previous_increment
-        u[prescribed] = 0.0
-        increment_norm = np.inf
-        for iteration in range(settings.max_iterations + 1):
-            first_piola, tangent = svk_response(basis.interpolate(u).grad, lame_lambda, lame_mu)
-            residual = asm(internal_force, basis, P=first_piola) - fraction * external
-            residual_norm = float(np.linalg.norm(residual[free]))
-            if iteration == 0:
-                tolerance = settings.residual_tolerance * max(fraction * external_norm, residual_norm)
-            small_step = increment_norm <= settings.increment_tolerance * (np.abs(u).max() + h)
-            if residual_norm <= tolerance and (small_step or residual_norm <= 1e-3 * tolerance):
-                break
-            if iteration == settings.max_iterations:
-                raise RuntimeError(f"skfem Newton: no convergence at load step {step}")
-            stiffness = asm(tangent_stiffness, basis, A=tangent)
-            delta = solve(*condense(stiffness, -residual, I=free, expand=False), solver=LINEAR_SOLVER)
-            u[free] += delta
-            increment_norm = float(np.abs(delta).max())
-            iterations += 1
-        previous_increment = u - step_start
+    u, iterations = load_stepped_newton(basis, external, free, prescribed, np.zeros(basis.N), scenario.solver,
+                                        scenario.load_steps, lame_lambda, lame_mu, h)
     probes = np.asarray(scenario.probes, dtype=float).reshape(-1, 2)
     values = (basis.probes(probes.T) @ u).reshape(2, -1).T
     return SkfemRun("Q2-quad", int(round(max(width, height) / h)), basis.N, mesh.nelements, values,
