@@ -436,11 +436,8 @@ class NeedleCoupling:
         return self._expanded_rows_t
 
     def weights_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
-        """B (2Q, m): B[2q + d, j] = W_qj n_q,d, so that G = E^T B."""
-        coo = self.weights.tocoo()
-        return sp.csr_matrix((np.concatenate([coo.data * normal[coo.row, 0], coo.data * normal[coo.row, 1]]),
-                              (np.concatenate([2 * coo.row, 2 * coo.row + 1]), np.concatenate([coo.col, coo.col]))),
-                             shape=(2 * self.weights.shape[0], self.multiplier_count))
+        """B (2Q, m) of normal_weights as a sparse matrix (MINRES's G = E^T B)."""
+        return sp.csr_matrix(self.normal_weights(normal))
 
     def _carried(self, multipliers: np.ndarray) -> np.ndarray:
         """mu_q = sum_j W_qj lambda_j, the force weight of each quadrature point, (Q,)."""
@@ -454,7 +451,7 @@ class NeedleCoupling:
 
     def constraint_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
         """G of eq. 3.65 for the residual form: column j = sum_q W_qj N_q^T n_q."""
-        return (self.expanded_rows.T @ self.weights_matrix(normal)).tocsr()
+        return (self.expanded_rows_t @ self.weights_matrix(normal)).tocsr()
 
     def constraint_center_derivative(self, normal: np.ndarray) -> np.ndarray:
         """d g_j / dC = -sum_q W_qj n_q^T, (m, 2)."""

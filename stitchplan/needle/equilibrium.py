@@ -327,16 +327,13 @@ class NeedleInsertion:
                 move = np.zeros(2) if move is None else move
                 moved = float(np.linalg.norm(move))
                 solution = np.concatenate([solution + per_center @ move, move])
-            else:
-                solution = np.concatenate([solution, np.zeros(2)])
-            if modified:
-                solution = mixing.step(np.concatenate([free, multipliers, center]), solution)
-            if steering:
-                center = center + solution[-2:]
                 if moved > aim.tolerance:
                     previous = math.inf  # the next residual measures the move, not the factor
-            free = free + solution[:n_dof]
-            multipliers = multipliers + solution[n_dof:-2]
+            else:
+                solution = np.concatenate([solution, np.zeros(2)])  # the centre stays
+            if modified:
+                solution = mixing.step(np.concatenate([free, multipliers, center]), solution)
+            free, multipliers, center = free + solution[:n_dof], multipliers + solution[n_dof:-2], center + solution[-2:]
         self._count(iteration)
         raise InsertionFailure(
             f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "

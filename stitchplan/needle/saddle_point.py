@@ -164,7 +164,7 @@ class SaddlePointSolver:
         interleaved shape-function `rows` of the constraint quadrature (2Q, n) and B the
         dense `weights` (2Q, m) that carry the normals (NeedleCoupling.normal_weights).
         For one factor, K^-1 E^T (n, 2Q) and E K^-1 E^T (2Q, 2Q) are kept and grown by the
-        rows of new quadrature points only, so an iteration costs one LU solve, one sparse
+        rows of new quadrature points only, so an iteration costs one solve with the factor, one sparse
         product E a and small dense products. `rhs` may hold several columns.
         """
         n, k = rows.shape[1], weights.shape[1]

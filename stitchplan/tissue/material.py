@@ -90,10 +90,7 @@ def first_piola(model: SaintVenantKirchhoff | NeoHookean | PointwiseMaterial,
     """P = F S (n, 2, 2) alone, written out by components: the residual needs no tangent,
     and this is ~3x cheaper than pk2_stress and a product (tests/test_material.py)."""
     if isinstance(model, PointwiseMaterial):
-        out = np.empty((len(deformation_gradient), 2, 2))
-        for part, selected in model._groups(len(deformation_gradient)):
-            out[selected] = first_piola(part, deformation_gradient[selected])
-        return out
+        return model.per_part(first_piola, deformation_gradient)
     f = deformation_gradient
     f00, f01, f10, f11 = f[:, 0, 0], f[:, 0, 1], f[:, 1, 0], f[:, 1, 1]
     c00, c01, c11 = f00 * f00 + f10 * f10, f00 * f01 + f10 * f11, f01 * f01 + f11 * f11  # C = F^T F
@@ -140,18 +137,26 @@ class PointwiseMaterial:
             if len(selected):
                 yield part, selected
 
+    def per_part(self, function, deformation_gradient: np.ndarray):
+        """function(part, F) on each part's points, scattered back into point order: an array,
+        or a tuple of arrays for a function that returns a tuple."""
+        n = len(deformation_gradient)
+        outputs, single = None, True
+        for part, selected in self._groups(n):
+            result = function(part, deformation_gradient[selected])
+            single = not isinstance(result, tuple)
+            pieces = (result,) if single else result
+            if outputs is None:
+                outputs = [np.empty((n, *piece.shape[1:])) for piece in pieces]
+            for out, piece in zip(outputs, pieces):
+                out[selected] = piece
+        return outputs[0] if single else tuple(outputs)
+
     def energy(self, deformation_gradient: np.ndarray) -> np.ndarray:
-        out = np.empty(len(deformation_gradient))
-        for part, selected in self._groups(len(deformation_gradient)):
-            out[selected] = part.energy(deformation_gradient[selected])
-        return out
+        return self.per_part(lambda part, f: part.energy(f), deformation_gradient)
 
     def pk2_stress(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n = len(deformation_gradient)
-        stress, tangent = np.empty((n, 2, 2)), np.empty((n, 2, 2, 2, 2))
-        for part, selected in self._groups(n):
-            stress[selected], tangent[selected] = part.pk2_stress(deformation_gradient[selected])
-        return stress, tangent
+        return self.per_part(lambda part, f: part.pk2_stress(f), deformation_gradient)
 
 
 def first_piola_and_tangent(
@@ -162,11 +167,7 @@ def first_piola_and_tangent(
     Returns P (n, 2, 2) and A (n, 2, 2, 2, 2) indexed [n, i, J, k, L].
     """
     if isinstance(model, PointwiseMaterial):
-        n = len(deformation_gradient)
-        first_piola, material = np.empty((n, 2, 2)), np.empty((n, 2, 2, 2, 2))
-        for part, selected in model._groups(n):
-            first_piola[selected], material[selected] = first_piola_and_tangent(part, deformation_gradient[selected])
-        return first_piola, material
+        return model.per_part(first_piola_and_tangent, deformation_gradient)
     stress, tangent = model.pk2_stress(deformation_gradient)
     n = len(stress)
     first_piola = matmul22(deformation_gradient, stress)
