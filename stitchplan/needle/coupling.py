@@ -352,20 +352,24 @@ class NeedleCoupling:
             behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])
             with np.errstate(divide="ignore", invalid="ignore"):
                 covered = np.where(needle_length > 0, np.clip((zone - behind) / needle_length, 0.0, 1.0), 0.0)
-        # wholly covered segments reuse their friction Gauss points and rows; only partly
-        # covered ones (the zone's far end) need rows of their own
+        # wholly covered segments carry their share on their friction Gauss points (the same
+        # points and direction: the forces add); only partly covered ones (the zone's far end)
+        # need points and rows of their own
         whole = np.flatnonzero(covered >= 1.0)
         part = np.flatnonzero((covered > 0.0) & (covered < 1.0))
-        gauss = (2 * whole[:, None] + np.arange(2)).ravel()
+        share = 0.5 * cutting * needle_length / zone  # N per Gauss point of a wholly covered segment
+        magnitudes = friction.copy()
+        magnitudes[(2 * whole[:, None] + np.arange(2)).ravel()] += np.repeat(share[whole], 2)
+        if not len(part):
+            return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
         fraction = covered[part]
         start, end = self.points[part], self.points[part + 1]
         along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
         part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
-        share = 0.5 * cutting * needle_length / zone  # N per Gauss point of a wholly covered segment
         return LoadQuadrature(
-            np.vstack([self.segment_points, self.segment_points[gauss], part_points]),
-            sp.vstack([self.segment_rows, self.segment_rows[gauss], self._rows_at(part_points)], format="csr"),
-            np.concatenate([friction, np.repeat(share[whole], 2), np.repeat(share[part] * fraction, 2)]))
+            np.vstack([self.segment_points, part_points]),
+            sp.vstack([self.segment_rows, self._rows_at(part_points)], format="csr"),
+            np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]))
 
     def load_magnitudes(self) -> np.ndarray:
         """Force (N) carried by each load point at the full load of this step."""

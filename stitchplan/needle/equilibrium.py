@@ -35,7 +35,8 @@ from ..config import Scenario
 from ..errors import InputError, InsertionFailure, InvertedMaterial
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler
-from ..tissue.model import build_tissue_model
+from ..tissue.factorization import Factor, factorize
+from ..tissue.model import TissueModel, build_tissue_model
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
 from .geometry import needle_zone, scenario_needle
@@ -109,11 +110,71 @@ class AndersonMixing:
         return step - (np.column_stack(self._states) + steps) @ gamma
 
 
+class PreparedTissue:
+    """What every insertion into one scenario's tissue at one discretization starts from: the
+    tissue model, the shape functions at the particles, and K0 (the tangent at rest, eq. 3.72)
+    with its factor. Each insertion starts at rest with no multipliers, where K + H = K0, so
+    its first saddle solves use this factor (SaddlePointSolver.start_at_rest). Made once per
+    command and handed to each run on the same model (the planner's passes, the unplanned
+    comparison, the verification's rounds); the model is built by the first run, K0's factor
+    when first asked for."""
+
+    def __init__(self, scenario: Scenario):
+        self.scenario = scenario
+        self.key = (scenario.tissue, scenario.discretization, needle_zone(scenario))
+        self.seconds = 0.0  # building the model and the particles' shape functions
+        self._model = self._particle_values = self._factor = None
+
+    @property
+    def built(self) -> bool:
+        return self._model is not None
+
+    @property
+    def model(self) -> TissueModel:
+        self._build()
+        return self._model
+
+    @property
+    def particle_values(self) -> sp.csr_matrix:
+        """The shape functions at the particles, (NP, NP): particle displacements from coefficients."""
+        self._build()
+        return self._particle_values
+
+    def _build(self) -> None:
+        if self._model is None:
+            start = time.perf_counter()
+            self._model = build_tissue_model(self.scenario.tissue, self.scenario.discretization,
+                                             needle_zone=self.key[2])
+            self._particle_values = self._model.shape_functions_at(self._model.particles).values
+            self.seconds = time.perf_counter() - start
+
+    def fits(self, scenario: Scenario) -> bool:
+        """Whether `scenario` has this tissue, discretization and needle zone."""
+        return self.key == (scenario.tissue, scenario.discretization, needle_zone(scenario))
+
+    def stiffness_at_rest(self) -> sp.csr_matrix:
+        """K0, from an assembler of its own (an insertion's assembler keeps its current tangent)."""
+        assembler = Assembler(self.model)
+        assembler.update(np.tile(np.eye(2), (len(self.model.quadrature_weights), 1, 1)))
+        return assembler.tangent_matrix()
+
+    @property
+    def factorized(self) -> bool:
+        return self._factor is not None
+
+    def factor_at_rest(self) -> Factor:
+        """The factor of K0, made the first time it is asked for."""
+        if self._factor is None:
+            self._factor = factorize(self.stiffness_at_rest(), symmetric_positive=True)
+        return self._factor
+
+
 class NeedleInsertion:
     """The state of one insertion and the steps that change it: `add_point`, `equilibrate`,
     `move_center`; `center_sensitivity` linearises the equilibrium in the centre."""
 
-    def __init__(self, scenario: Scenario, linear_solver: str | None = None, tip_tracking: str | None = None):
+    def __init__(self, scenario: Scenario, linear_solver: str | None = None, tip_tracking: str | None = None,
+                 tissue: PreparedTissue | None = None):
         self.geometry = scenario_needle(scenario)  # refuses a scenario without a needle
         if scenario.discretization.integration != "gauss":
             raise InputError(f"discretization.integration: got {scenario.discretization.integration!r}, "
@@ -126,13 +187,21 @@ class NeedleInsertion:
         self.tip_tracking = tip_tracking or self.needle.tip_tracking
         self.timings = {"discretization": 0.0, "assembly": 0.0, "solve": 0.0, "tip_tracking": 0.0}
         self.events: list[Event] = []
-        start = time.perf_counter()
-        self.model = build_tissue_model(scenario.tissue, scenario.discretization, needle_zone=needle_zone(scenario))
-        self.particle_values = self.model.shape_functions_at(self.model.particles).values
-        self.timings["discretization"] += time.perf_counter() - start
+        tissue = tissue or PreparedTissue(scenario)
+        if not tissue.fits(scenario):
+            raise ValueError("a prepared tissue of another scenario's tissue or discretization")
+        built_here = not tissue.built
+        self.model = tissue.model
+        if built_here:
+            self.timings["discretization"] += tissue.seconds
+        self.particle_values = tissue.particle_values
         self.assembler = Assembler(self.model)
         self.coupling = NeedleCoupling(self.model, self.geometry, self.needle, scenario.discretization.dilation)
-        self.saddle = SaddlePointSolver(self._stiffness_at_rest)
+        self.saddle = SaddlePointSolver(tissue.factor_at_rest)
+        if self.linear_method == "direct":
+            if not tissue.factorized:  # made here: this insertion's factorization
+                self.saddle.factorizations += 1
+            self.saddle.start_at_rest()
         self.free = np.zeros((self.model.n_free, 2))
         self.multipliers = np.zeros(0)
         self.center = self.geometry.center.copy()
@@ -144,13 +213,6 @@ class NeedleInsertion:
         # increments included), and the solves
         self.newton_iterations = 0
         self.equilibrium_solves = 0
-
-    def _stiffness_at_rest(self) -> sp.csr_matrix:
-        """K0, the tangent at zero deformation (eq. 3.72), from an assembler of its own so the
-        current tangent is left alone."""
-        assembler = Assembler(self.model)
-        assembler.update(np.tile(np.eye(2), (len(self.model.quadrature_weights), 1, 1)))
-        return assembler.tangent_matrix()
 
     # --- fields ------------------------------------------------------------------------------
 

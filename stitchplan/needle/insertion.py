@@ -19,7 +19,7 @@ import numpy as np
 
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure
-from .equilibrium import NeedleInsertion
+from .equilibrium import NeedleInsertion, PreparedTissue
 from .results import InsertionResult, NeedleStep
 from .steering import CenterAim
 from .tip_tracking import locate_exit, locate_reentry, track_step
@@ -76,18 +76,20 @@ def run_insertion(
     tip_tracking: str | None = None,
     condition_numbers: bool = False,
     on_step: Callable[[NeedleStep], None] | None = None,
+    tissue: PreparedTissue | None = None,
 ) -> InsertionResult:
     """Insert the needle step by step until its tip leaves the tissue.
 
     `control` moves the centre during the run (the planner); `center_path` (n, 2) replays
     prescribed centres instead, row n for step n (row 0 is the entry centre). With
     `condition_numbers` each step records the (dense) condition numbers of its saddle system.
+    `tissue`: the scenario's PreparedTissue when another run on the same model made it.
     """
     if scenario.discretization.accuracy is not None:
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
                          "chosen before the run (stitchplan.study.auto.resolve_accuracy)")
     wall_start = time.perf_counter()
-    insertion = NeedleInsertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking)
+    insertion = NeedleInsertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking, tissue=tissue)
     geometry = insertion.geometry
     if center_path is not None:
         control = CenterReplay(center_path)

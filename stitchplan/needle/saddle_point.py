@@ -29,7 +29,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..tissue.factorization import SUPERLU, factorize
+from ..tissue.factorization import SUPERLU, Factor, factorize
 
 
 class SchurPreconditioner:
@@ -110,14 +110,15 @@ class SaddlePointSolver:
     """Solves of eq. 3.62 for one insertion, with the factors and caches they keep between
     Newton iterations, and counts of the work done.
 
-    `stiffness_at_rest` returns K0, the tangent at zero deformation; it is factorized the
-    first time the MINRES preconditioner or a condition number needs it, and kept.
+    `factor_at_rest` returns the factor of K0, the tangent at zero deformation (made when
+    first asked for, and kept by whoever made it: needle.equilibrium.PreparedTissue): the
+    MINRES preconditioner, the condition numbers, and the first direct solves of an insertion
+    (start_at_rest) use it.
     """
 
-    def __init__(self, stiffness_at_rest: Callable[[], sp.spmatrix], minres_rtol: float = 1e-10,
+    def __init__(self, factor_at_rest: Callable[[], Factor], minres_rtol: float = 1e-10,
                  minres_maxiter: int = 400, minres_restarts: int = 4, minres_true_rtol: float = 1e-6):
-        self._assemble_at_rest = stiffness_at_rest
-        self._at_rest_factor = None
+        self._factor_at_rest = factor_at_rest
         self._schur: SchurPreconditioner | None = None
         self.minres_rtol = minres_rtol
         self.minres_maxiter = minres_maxiter
@@ -135,11 +136,16 @@ class SaddlePointSolver:
         self.fallbacks = 0
 
     @property
-    def stiffness_at_rest(self):
+    def stiffness_at_rest(self) -> Factor:
         """The factor of K0 (eq. 3.72)."""
-        if self._at_rest_factor is None:
-            self._at_rest_factor = factorize(self._assemble_at_rest(), symmetric_positive=True)
-        return self._at_rest_factor
+        return self._factor_at_rest()
+
+    def start_at_rest(self) -> None:
+        """Take the factor of K0 as the factor of K + H: an insertion starts at rest with no
+        multipliers, where K + H = K0, so its first direct solves need no factorization."""
+        self._factor = self.stiffness_at_rest
+        self.backend = self._factor.backend
+        self._solved_rows, self._coupled = None, np.zeros((0, 0))  # sized by the first solve
 
     def forget(self) -> None:
         """Drop the factor of K + H, so the next direct solve factorizes afresh."""
@@ -174,6 +180,8 @@ class SaddlePointSolver:
             self.backend = self._factor.backend
             self._solved_rows = np.zeros((n, 0))
             self._coupled = np.zeros((0, 0))
+        if self._solved_rows is None:
+            self._solved_rows = np.zeros((n, 0))
         a = self._factor.solve(rhs[:n])
         self.solves += 1
         if k == 0:

@@ -26,7 +26,7 @@ import numpy as np
 from ..config import Planner, Scenario
 from ..errors import PlanningFailure
 from ..events import Event
-from ..needle.equilibrium import NeedleInsertion
+from ..needle.equilibrium import NeedleInsertion, PreparedTissue
 from ..needle.steering import CenterAim
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
@@ -252,7 +252,7 @@ class PassOffsets:
 
 def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
              tolerance: float | None = None, shooting: PassOffsets | None = None, smooth: bool = True,
-             **options) -> PlanResult:
+             tissue: PreparedTissue | None = None, **options) -> PlanResult:
     """Planned insertion with the scenario's planner settings, and (compare=True) the
     unplanned one of the same scene; `options` go to run_insertion.
 
@@ -267,10 +267,12 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     max_passes; the best pass is returned. With planner.target `symmetric` on a stitch
     across a wound the aim is, after each pass, the exit error that would make both bites
     equal (needle.insertion._bites), so the passes trade exit error for symmetry. `shooting` continues from an earlier plan's
-    passes; `smooth` keeps the centre path within MoveLimits.
+    passes; `smooth` keeps the centre path within MoveLimits. The runs share one model
+    (`tissue`, made here when not given).
     """
     settings = scenario.planner
-    unplanned = run_insertion(scenario, on_step=on_step, **options) if compare else None
+    tissue = tissue or PreparedTissue(scenario)  # built by the first run
+    unplanned = run_insertion(scenario, on_step=on_step, tissue=tissue, **options) if compare else None
     aim = np.zeros(2) if aim is None else np.asarray(aim, dtype=float)
     # planner.target symmetric on a stitch across a wound: each pass aims the exit at equal bites
     symmetric = settings.target == "symmetric" and bool(scenario_needle_gaps(scenario))
@@ -283,7 +285,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     best, best_miss = None, np.inf
     for number in range(1, settings.max_passes + 1):
         tracker = ExitTracker(settings, offsets.offset, smooth=smooth)
-        planned = run_insertion(scenario, control=tracker, on_step=on_step, **options)
+        planned = run_insertion(scenario, control=tracker, on_step=on_step, tissue=tissue, **options)
         mismatch = final_mismatch(planned)
         error = exit_error_vector(planned)
         if symmetric:

@@ -38,6 +38,7 @@ import numpy as np
 from ..config import Scenario, with_discretization
 from ..errors import InputError, NumericalFailure
 from ..events import Event, EventKind
+from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
 from .planner import PlanResult, exit_error_vector, run_plan
@@ -157,12 +158,14 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     The plan's `verification` is set (with `verify`), and its `estimate`, the exit error
     estimate of the planned run: from the refined replay, or without `verify` from a replay
     of the trajectory at 2h."""
-    result = run_plan(scenario, compare=compare, on_step=on_step, **options)
+    tissue = PreparedTissue(scenario)  # shared by the plan's runs and the re-planning rounds
+    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, **options)
     if not verify:
         result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, **options)
         return result
     settings = scenario.planner
     fine = rescaled(scenario, VERIFICATION_FACTOR)
+    fine_tissue = PreparedTissue(fine)  # shared by the rounds' replays
     spacing = fine.discretization.spacing
     rounds, best, replayed = [], None, None  # best: (verified error, plan, replay)
     for record in result.passes:
@@ -175,12 +178,12 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at (%.4g, %.4g) mm",
                      *offset, *aim)
             again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
-                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, **options)
+                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue, **options)
             planning_seconds += again.planned.wall_seconds
             for record in again.passes:
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
-        replayed = replay(fine, result.exported_centers, **options)
+        replayed = replay(fine, result.exported_centers, tissue=fine_tissue, **options)
         verified = np.inf if replayed is None else replayed.exit_error_mm
         rounds.append({"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
                        "verified_exit_error_mm": None if replayed is None else verified,

@@ -14,6 +14,7 @@ made it (`backend`), and the run summaries record it.
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 import scipy.sparse as sp
@@ -61,6 +62,9 @@ class CholeskyFactor:
         return solution
 
 
+Factor = SuperLUFactor | CholeskyFactor
+
+
 def cholesky_available() -> bool:
     if os.environ.get("STITCHPLAN_LINEAR_BACKEND", "").lower() == "superlu":
         return False
@@ -71,7 +75,7 @@ def cholesky_available() -> bool:
     return True
 
 
-def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> SuperLUFactor | CholeskyFactor:
+def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
     """A factor of `matrix` with `.solve(rhs)` (rhs (n,) or (n, k)) and `.backend`: CHOLMOD's
     Cholesky when the caller knows the matrix is symmetric (`symmetric_positive`) and it is
     available and succeeds, SuperLU otherwise."""
@@ -84,13 +88,30 @@ def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> SuperLUF
 
 
 def _quiet(make):
-    """Run `make` with the process's stderr closed: CHOLMOD prints a warning of its own for
-    a matrix that is not positive definite, which the fallback handles."""
-    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    """Run `make` with the process's stdout and stderr closed: CHOLMOD prints a warning of its
+    own for a matrix that is not positive definite (which the fallback handles), through C's
+    buffered stdout, so C's buffers are flushed before the descriptors come back."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    devnull = os.open(os.devnull, os.O_WRONLY)
     try:
+        os.dup2(devnull, 1)
         os.dup2(devnull, 2)
         return make()
     finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
+        _flush_c_streams()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for descriptor in (*saved, devnull):
+            os.close(descriptor)
+
+
+def _flush_c_streams() -> None:
+    """fflush(NULL): C's stdio buffers of this process."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):  # no C library to reach: nothing buffered there to lose
+        pass
