@@ -6,14 +6,13 @@ import numpy as np
 
 
 def cubic_spline(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cubic spline phi(z) of eq. 3.23 and its derivative d phi / dz (support |z| < 1)."""
+    """Cubic spline phi(z) of eq. 3.23 and its derivative d phi / dz (support |z| < 1):
+    2/3 - 4 r^2 + 4 r^3 for r = |z| <= 1/2, 4/3 (1 - r)^3 for 1/2 < r < 1."""
     r = np.abs(z)
     inner = r <= 0.5
-    outer = (r > 0.5) & (r < 1.0)
-    phi = np.where(inner, 2.0 / 3.0 - 4.0 * r**2 + 4.0 * r**3, 0.0)
-    phi = np.where(outer, 4.0 / 3.0 - 4.0 * r + 4.0 * r**2 - 4.0 / 3.0 * r**3, phi)
-    dphi = np.where(inner, -8.0 * r + 12.0 * r**2, 0.0)
-    dphi = np.where(outer, -4.0 + 8.0 * r - 4.0 * r**2, dphi)
+    rest = np.maximum(1.0 - r, 0.0)
+    phi = np.where(inner, 2.0 / 3.0 - 4.0 * r**2 + 4.0 * r**3, 4.0 / 3.0 * rest**3)
+    dphi = np.where(inner, -8.0 * r + 12.0 * r**2, -4.0 * rest**2)
     return phi, dphi * np.sign(z)
 
 
