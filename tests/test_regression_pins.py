@@ -40,8 +40,11 @@ from conftest import CONFIGS, REPOSITORY
 # Planned values re-pinned when the needle centre became an unknown of each step's Newton
 # solve (needle/steering.py; the unplanned values did not move): the planner now settles
 # the fixed point of eq. 4.1 also where eq. 4.2 fails, and all stay below 0.0025 mm.
+# sh12_100x100's planned value re-pinned when the Newton residual tolerance became 1e-6 of
+# the needle force (config Solver): its passes take another path to the exit (0.00034 ->
+# 0.00067 mm, within the 0.001 mm planner tolerance); every unplanned value moved < 1e-7 mm.
 NEEDLE_SCENES = {
-    "sh12_100x100": (39, 979, 0.463900743819185, 0.000337333285313957),
+    "sh12_100x100": (39, 979, 0.463900743819185, 0.0006703769169705066),
     "sh12_100x100_mid": (39, 976, 0.3503305174827064, 1.6963127489040536e-06),
     "sh12_100x50": (39, 570, 0.47392718492883024, 0.002412663080047873),
     "sh12_100x40": (39, 479, 0.5426787188921418, 0.0023234518674973936),
