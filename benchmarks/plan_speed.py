@@ -8,9 +8,11 @@
    result, every pass); the whole command's process wall time is reported too. Now also:
    the distribution of the needle steps' wall times, every Newton iteration, equilibrium
    solves, factorizations and linear solves (from the summary).
-2. Where it comes from, in process on configs/sh12_100x100.yaml: the planned run with each
-   lever switched back off in turn (Anderson mixing, SuperLU's symmetric mode, the stale
-   centre columns), median of REPEATS.
+2. Where it comes from, in process on configs/sh12_100x100.yaml (and sh12_100x30, which
+   takes two planner passes): the planned run with each lever switched back off in turn
+   (Anderson mixing, SuperLU's symmetric mode, the stale centre columns, Newton's method
+   before Levenberg-Marquardt in the tip tracking, the residual tolerance, one model shared
+   by the passes), median of REPEATS.
 3. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS.
 
 Writes benchmarks/results/plan_speed.{csv,md} and prints the tables. About 6 minutes.
@@ -96,18 +98,20 @@ def compare_revisions(baseline: Path) -> list[dict]:
     return rows
 
 
-def levers() -> list[tuple[str, float, int, int]]:
-    """The planned run on sh12_100x100 with each lever off in turn: (label, median s, Newton
-    iterations, linear solves)."""
+def levers() -> list[tuple]:
+    """The planned run with each lever off in turn: (scene, label, median s, Newton iterations,
+    linear solves, factorizations, planned exit error mm)."""
+    from dataclasses import replace
+
     import stitchplan.needle.equilibrium as equilibrium
     import stitchplan.needle.saddle_point as saddle_point
+    import stitchplan.needle.tip_tracking as tip_tracking
+    import stitchplan.planning.planner as planner
     import stitchplan.tissue.factorization as factorization
     from stitchplan.config.scenario import load_scenario
-    from stitchplan.planning.planner import run_plan
 
     logging.getLogger("stitchplan").setLevel(logging.ERROR)
-    scenario = load_scenario(common.REPO_ROOT / "configs" / "sh12_100x100.yaml")
-    chosen = saddle_point.factorize
+    chosen, shared_run = saddle_point.factorize, planner.run_insertion
 
     class GeneralLU(factorization.SuperLUFactor):
         backend = "scipy SuperLU, default options"
@@ -117,32 +121,52 @@ def levers() -> list[tuple[str, float, int, int]]:
             import scipy.sparse.linalg as spla
             self._lu = spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A")
 
-    settings = {
-        f"all levers (now; {factorization.factorize(_spd_probe(), symmetric_positive=True).backend})": {},
-        "without Anderson mixing": {"ANDERSON_DEPTH": 0},
-        "centre columns re-solved every iteration": {"STALE_CENTER_MOVES": 0.0},
-        "SuperLU in symmetric mode (the scipy default path)": {"factorize": lambda m, **_: factorization.SuperLUFactor(m)},
-        "SuperLU without symmetric mode": {"factorize": lambda m, **_: GeneralLU(m)},
-    }
-    rows = []
-    run_plan(scenario, compare=False)  # warm-up
-    for label, changes in settings.items():
-        saved = {name: getattr(equilibrium, name) for name in changes if name != "factorize"}
-        for name, value in changes.items():
-            if name == "factorize":
-                saddle_point.factorize = value
-            else:
-                setattr(equilibrium, name, value)
+    def own_model(scenario, **options):  # each pass builds its model and factors K0 again
+        options.pop("tissue", None)
+        return shared_run(scenario, **options)
+
+    def tolerance(value):
+        return lambda scenario: replace(scenario, solver=replace(scenario.solver, residual_tolerance=value))
+
+    backend = factorization.factorize(_spd_probe(), symmetric_positive=True).backend
+    settings = [  # (scene, label, module attributes, scenario change)
+        ("sh12_100x100", f"all levers (now; {backend})", {}, None),
+        ("sh12_100x100", "without Anderson mixing", {(equilibrium, "ANDERSON_DEPTH"): 0}, None),
+        ("sh12_100x100", "centre columns re-solved every iteration", {(equilibrium, "STALE_CENTER_MOVES"): 0.0}, None),
+        ("sh12_100x100", "SuperLU in symmetric mode (the scipy default path)",
+         {(saddle_point, "factorize"): lambda m, **_: factorization.SuperLUFactor(m),
+          (equilibrium, "factorize"): lambda m, **_: factorization.SuperLUFactor(m)}, None),
+        ("sh12_100x100", "SuperLU without symmetric mode",
+         {(saddle_point, "factorize"): lambda m, **_: GeneralLU(m),
+          (equilibrium, "factorize"): lambda m, **_: GeneralLU(m)}, None),
+        ("sh12_100x100", "tip tracking by scipy's Levenberg-Marquardt only (no Newton first)",
+         {(tip_tracking, "NEWTON_TIP_ITERATIONS"): 0}, None),
+        ("sh12_100x100", "residual tolerance 1e-8 (the former default)", {}, tolerance(1e-8)),
+        ("sh12_100x30", "all levers (now; 2 planner passes)", {}, None),
+        ("sh12_100x30", "each pass builds its own model and factors K0", {(planner, "run_insertion"): own_model}, None),
+    ]
+    rows, warmed = [], set()
+    for scene, label, changes, change_scenario in settings:
+        scenario = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml")
+        scenario = change_scenario(scenario) if change_scenario else scenario
+        if scene not in warmed:
+            planner.run_plan(scenario, compare=False)
+            warmed.add(scene)
+        saved = {key: getattr(*key) for key in changes}
+        for (module, name), value in changes.items():
+            setattr(module, name, value)
         try:
-            results = [run_plan(scenario, compare=False) for _ in range(REPEATS)]
+            results = [planner.run_plan(scenario, compare=False) for _ in range(REPEATS)]
         finally:
-            for name, value in saved.items():
-                setattr(equilibrium, name, value)
-            saddle_point.factorize = chosen
+            for (module, name), value in saved.items():
+                setattr(module, name, value)
         planned = results[-1].planned
-        rows.append((label, statistics.median(r.planned.wall_seconds for r in results),
-                     sum(s.newton_iterations for s in planned.steps), planned.solver_counts["linear_solves"]))
-        print(f"{label}: {rows[-1][1]:.2f} s, {rows[-1][2]} Newton iterations", flush=True)
+        counts = planned.solver_counts
+        rows.append((scene, label, statistics.median(r.planned.wall_seconds for r in results),
+                     sum(s.newton_iterations for s in planned.steps), counts["linear_solves"],
+                     counts["factorizations"], planned.exit_error_mm))
+        print(f"{scene} {label}: {rows[-1][2]:.2f} s, {rows[-1][3]} Newton iterations", flush=True)
+    assert saddle_point.factorize is chosen and planner.run_insertion is shared_run
     return rows
 
 
@@ -214,11 +238,15 @@ def main() -> None:
         common.markdown_table(["scene", f"plan --no-compare at {BASELINE} (s)", "plan --no-compare --no-verify now (s)"],
                               [[r["scene"], r["baseline_command_s"], r["command_s"]] for r in rows]),
         "",
-        f"## Where it comes from (configs/sh12_100x100.yaml, planned run in process, median of {REPEATS})\n",
+        f"## Where it comes from (planned run in process, median of {REPEATS})\n",
         "Each row switches one lever of the current code back off. The centre as a Newton unknown "
         "(needle/steering.py) is not switchable; it shows in the table above as one equilibrium solve per "
-        "step instead of one per centre try.\n",
-        common.markdown_table(["variant", "planned run (s)", "Newton iterations", "linear solves"],
+        "step instead of one per centre try. Factorizations: those the planned run made (K0's factor, "
+        "shared by the passes, counts in the first). The planned exit error shows what a lever costs in "
+        "accuracy: the residual tolerance moves the planner's path within its 0.001 mm tolerance; the "
+        "unplanned exit errors move by less than 1e-7 mm (tests/test_regression_pins.py).\n",
+        common.markdown_table(["scene", "variant", "planned run (s)", "Newton iterations", "linear solves",
+                               "factorizations", "planned exit error (mm)"],
                               [list(row) for row in lever_rows]),
         "",
         f"## Start-up (median of {STARTUP_REPEATS})\n",
