@@ -13,7 +13,8 @@
    (Anderson mixing, SuperLU's symmetric mode, the stale centre columns, Newton's method
    before Levenberg-Marquardt in the tip tracking, the residual tolerance, one model shared
    by the passes), median of REPEATS.
-3. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS.
+3. The whole command with the default verification on sh12_100x100, median of REPEATS.
+4. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS.
 
 Writes benchmarks/results/plan_speed.{csv,md} and prints the tables. About 6 minutes.
 Run from the repository root:  python benchmarks/plan_speed.py
@@ -96,6 +97,17 @@ def compare_revisions(baseline: Path) -> list[dict]:
                   f"steps median {row['step_median_ms']:.1f} ms, p90 "
                   f"{row['step_p90_ms']:.1f} ms; whole command {row['command_s']:.2f} s", flush=True)
     return rows
+
+
+def verified_command(scene: str = "sh12_100x100") -> dict:
+    """`plan CONFIG --no-compare` with the default verification, now: median process wall time
+    of REPEATS, and the verification's share (the summary's replay times)."""
+    with tempfile.TemporaryDirectory() as folder:
+        records = [run_plan_command(common.REPO_ROOT, scene, ["--no-compare"], Path(folder)) for _ in range(REPEATS)]
+    record = records[-1]
+    return {"scene": scene, "command_s": statistics.median(r["command_seconds"] for r in records),
+            "planned_s": record["wall_seconds"], "verified_mm": record["verified_exit_error_mm"],
+            "rounds": len(record["verification"]["rounds"])}
 
 
 def levers() -> list[tuple]:
@@ -200,6 +212,7 @@ def main() -> None:
         subprocess.run(["tar", "-x", "-C", str(baseline)], input=archive, check=True)
         rows = compare_revisions(baseline)
     lever_rows = levers()
+    verified = verified_command()
     start_up = startup()
     for label, seconds in start_up.items():
         print(f"{label}: {seconds:.3f} s", flush=True)
@@ -237,6 +250,11 @@ def main() -> None:
         f"## Whole command (process wall time, median of {REPEATS})\n",
         common.markdown_table(["scene", f"plan --no-compare at {BASELINE} (s)", "plan --no-compare --no-verify now (s)"],
                               [[r["scene"], r["baseline_command_s"], r["command_s"]] for r in rows]),
+        "",
+        f"With the default verification (`plan {verified['scene']}.yaml --no-compare`, median of {REPEATS}): "
+        f"the whole command takes {verified['command_s']:.2f} s, of which the planned runs of its "
+        f"{verified['rounds']} verification round(s) take {verified['planned_s']:.2f} s and the rest is the "
+        f"replays on the refined model and start-up; verified exit error {verified['verified_mm']:.4f} mm.\n",
         "",
         f"## Where it comes from (planned run in process, median of {REPEATS})\n",
         "Each row switches one lever of the current code back off. The centre as a Newton unknown "
