@@ -4,6 +4,9 @@ fallback to SuperLU and the switch that turns the Cholesky off."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -44,3 +47,17 @@ def test_cholesky_solves_like_superlu_and_falls_back_silently_where_not_positive
     assert factor.backend == SUPERLU
     np.testing.assert_allclose(indefinite @ factor.solve(rhs), rhs, atol=1e-9)
     assert capfd.readouterr().err == ""  # CHOLMOD's own warning does not reach the user
+
+
+@pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cholespy) is not installed")
+def test_cholmods_warning_reaches_neither_stream_of_a_process_whose_output_is_a_pipe():
+    """CHOLMOD prints its not-positive-definite warning through C's buffered stdout, which is
+    flushed only at exit when stdout is not a terminal: a `plan` piped into a file used to end
+    with it."""
+    script = ("import numpy as np, scipy.sparse as sp\n"
+              "from stitchplan.tissue.factorization import factorize\n"
+              "matrix = sp.diags(np.linspace(-1.0, 1.0, 40) + 0.01).tocsr()\n"
+              "print('backend', factorize(matrix, symmetric_positive=True).backend)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert result.stdout == f"backend {SUPERLU}\n"
+    assert result.stderr == ""
