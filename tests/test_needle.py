@@ -204,7 +204,7 @@ def test_shipped_needle20_scenarios(entry_y):
     material, needle = scenario.tissue.material, scenario.needle
     assert (material.lame_lambda, material.lame_mu) == (9.263, 1.029)
     assert (needle.radius, needle.step, needle.friction, needle.cutting_force) == (20.0, 0.1, 0.02, 0.03)
-    assert needle.turn == "cw" and needle.tip_tracking == "auto" and needle.arc == pytest.approx(math.pi)
+    assert needle.turn == "cw" and needle.tip_tracking == "levenberg-marquardt" and needle.arc == pytest.approx(math.pi)
     assert scenario.tissue.size == (100.0, 100.0) and scenario.tissue.clamped == ("right",)
     geometry = needle_geometry(needle, Rectangle.of_size(scenario.tissue.size))
     np.testing.assert_allclose(geometry.desired_exit, [NEEDLE20[entry_y], 0.0], atol=1e-9)
