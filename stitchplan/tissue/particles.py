@@ -100,6 +100,7 @@ def graded_particles(size: tuple[float, float], spacing: float, fine_spacing: fl
     return graded_lattice(size, fine_spacing * 2**levels, zones, growth, breaks)
 
 
+LEAF_SLACK = 1.15
 MAX_LATTICE_CELLS = 4_000_000  # finest-lattice cells of graded_lattice (a few hundred MB of work arrays)
 
 
@@ -131,7 +132,9 @@ def graded_lattice(size: tuple[float, float], base: float, zones: tuple[Refineme
         distance = np.hypot(xc[:, None] - zone.center[0], yc[None, :] - zone.center[1]) - zone.radius
         target = np.minimum(target, zone.spacing * (1.0 + 1e-9) + growth * np.maximum(distance, 0.0))
     with np.errstate(divide="ignore"):  # no zone: target inf, no refinement
-        required = np.clip(np.ceil(np.log2(side0 / target)), 0, levels).astype(int)
+        # a leaf up to LEAF_SLACK larger than asked is fine enough: grid_lines rounds the coarse
+        # cells to fit the edges, so they exceed `base` a little
+        required = np.clip(np.ceil(np.log2(side0 / target) - np.log2(LEAF_SLACK)), 0, levels).astype(int)
 
     def leaf_levels(required: np.ndarray) -> np.ndarray:
         """Level of the leaf holding each finest cell: the smallest l whose level-l ancestor
