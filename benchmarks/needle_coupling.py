@@ -51,12 +51,13 @@ FIELDS = ("scene", "coupling", "factor", "spacing_mm", "particles", "steps", "ex
 
 def scene(name: str, coupling: str):
     """The scene's scenario with `coupling`: points, mortar, or mortar-arc (mortar with its
-    multiplier elements cut at exact arc lengths, `needle.multiplier_ends: arc`). A name
+    multiplier elements cut at exact arc lengths, `needle.multiplier_ends: arc`), and the
+    coupling's `L=...` (discretization.needle_end_levels; see variant). A name
     `SCENE KEY=VALUE,...` overrides needle fields (e.g. `sh12_100x40 friction=0`: the
     cutting force alone)."""
     name, _, overrides = name.partition(" ")
     needle = {key: float(value) for key, value in (item.split("=") for item in overrides.split(",") if item)}
-    coupling = coupling.partition(" ")[0]
+    coupling_name, coupling = coupling, coupling.partition(" ")[0]
     if coupling == "mortar-arc":
         coupling, needle["multiplier_ends"] = "mortar", "arc"
     if name in SOFT:
@@ -65,18 +66,32 @@ def scene(name: str, coupling: str):
         base = replace(base, tissue=replace(base.tissue, thickness=SOFT[name], material=material))
     else:
         base = load_scenario(CONFIGS / f"{name}.yaml")
+    levels = variant(coupling_name)["end_levels"]
+    if levels is not None:
+        base = replace(base, discretization=base.discretization.replaced(needle_end_levels=levels))
     return replace(base, needle=replace(base.needle, coupling=coupling, **needle))
 
 
+def variant(coupling: str) -> dict:
+    """The options after a coupling's name: `c=2` the mortar elements' length in local spacings
+    (needle/coupling.py MULTIPLIER_SPACINGS, 1 by default), `ramp` the cutting force growing
+    with the cutting edge inside (needle/coupling.py CUTTING_RAMP), `L=2` particles graded
+    toward the needle's entry and exit (discretization.needle_end_levels)."""
+    tokens = coupling.split(" ")[1:]
+    options = dict(token.split("=") for token in tokens if "=" in token)
+    return {"spacings": float(options.get("c", coupling_module.MULTIPLIER_SPACINGS)),
+            "ramp": "ramp" in tokens, "end_levels": int(options["L"]) if "L" in options else None}
+
+
 def run(name: str, coupling: str, factor: float) -> dict:
-    """One `simulate` run; a coupling `mortar c=2` / `mortar-arc c=2` sets the mortar elements'
-    length in local spacings (needle/coupling.py MULTIPLIER_SPACINGS, 1 by default)."""
-    spacings = float(coupling.partition(" c=")[2] or coupling_module.MULTIPLIER_SPACINGS)
-    default, coupling_module.MULTIPLIER_SPACINGS = coupling_module.MULTIPLIER_SPACINGS, spacings
+    """One `simulate` run with the coupling's options (see variant)."""
+    options = variant(coupling)
+    saved = coupling_module.MULTIPLIER_SPACINGS, coupling_module.CUTTING_RAMP
+    coupling_module.MULTIPLIER_SPACINGS, coupling_module.CUTTING_RAMP = options["spacings"], options["ramp"]
     try:
         return _run(name, coupling, factor)
     finally:
-        coupling_module.MULTIPLIER_SPACINGS = default
+        coupling_module.MULTIPLIER_SPACINGS, coupling_module.CUTTING_RAMP = saved
 
 
 def _run(name: str, coupling: str, factor: float) -> dict:
@@ -190,7 +205,8 @@ def chart(rows: list[dict], path) -> None:
     figure, axes = plt.subplots(math.ceil(len(scenes) / columns), columns, figsize=(4 * columns, 3.2 * math.ceil(len(scenes) / columns)),
                                 squeeze=False)
     for axis, name in zip(axes.ravel(), scenes):
-        for coupling, style in (("points", "o--"), ("mortar", "s-"), ("mortar-arc", "^:")):
+        for coupling, style in (("points", "o--"), ("mortar", "s-"), ("mortar-arc", "^:"),
+                                ("mortar L=2", "v-."), ("mortar ramp", "D-"), ("mortar ramp L=2", "x-")):
             points = sorted((float(r["spacing_mm"]), float(r["exit_error_mm"]))
                             for (s, c, _), r in latest.items() if s == name and c == coupling and r["exit_error_mm"])
             if points:

@@ -348,7 +348,7 @@ class Discretization:
     needle_end_levels: described(integer(0, 8), "particle refinement levels below the needle "
                                                 "spacing at the needle's entry and exit (at the "
                                                 "default spacing; one more per halving of the "
-                                                "spacing); 0: none") = 2
+                                                "spacing); 0: none") = 0
     # "gauss": Galerkin with background-cell Gauss quadrature; "vci": the test-function
     # gradients corrected so that the quadrature satisfies the divergence theorem
     # (variationally consistent integration; passes the linear patch test; deform only)

@@ -125,7 +125,6 @@ def scenario_needle(scenario: Scenario) -> NeedleGeometry:
 # radius (mm) of the refined disks at the needle's entry and exit: 0, points graded like the
 # load-segment ends (leaf side growing by 0.5 mm per mm of distance)
 NEEDLE_END_RADIUS = 0.0
-REFINE_ENTRY = False
 
 
 def needle_end_zones(scenario: Scenario, geometry: NeedleGeometry) -> tuple[RefinementZone, ...]:
@@ -140,7 +139,7 @@ def needle_end_zones(scenario: Scenario, geometry: NeedleGeometry) -> tuple[Refi
         return ()
     reference = default_spacing_of(scenario.tissue.bounding_size, geometry.radius) * d.needle_spacing / d.spacing
     fine = end_spacing(d.needle_spacing, reference, d.needle_end_levels)
-    points = ([geometry.entry] if REFINE_ENTRY else []) + [geometry.crossing_point(k) for k in range(len(geometry.crossings))]
+    points = [geometry.entry] + [geometry.crossing_point(k) for k in range(len(geometry.crossings))]
     return tuple(RefinementZone(np.asarray(point, dtype=float), NEEDLE_END_RADIUS, fine) for point in points)
 
 
