@@ -53,3 +53,13 @@ def test_level_zero_leaves_the_needle_zone_as_it_was():
     exit_point = scenario_needle(graded).desired_exit
     assert _spacing_at(coarse, exit_point) == pytest.approx(plain.discretization.needle_spacing, rel=0.2)
     assert fine.n_particles > coarse.n_particles
+
+
+def test_the_end_zones_leave_the_needle_zone_as_it_was():
+    """At 1/sqrt(2) of the default spacing the coarse cells are rounded a little larger than
+    the lattice base; the end zones' extra levels must not refine the whole needle disk one
+    level further (it did: +1 075 particles on this scene), only the entry and exit."""
+    plain, graded = _scene(0, 2 ** -0.5), _scene(2, 2 ** -0.5)
+    coarse = model_for_scenario(plain, needle_zone(plain)).n_particles
+    fine = model_for_scenario(graded, needle_zone(graded)).n_particles
+    assert 0 < fine - coarse < 0.15 * coarse
