@@ -151,20 +151,25 @@ def _particles(scenario: Scenario) -> tuple[int, bool]:
     lattice = (width / d.needle_spacing) * (height / d.needle_spacing)
     if lattice <= COUNT_EXACTLY_UP_TO:
         graded = graded_particles(scenario.tissue.bounding_size, d.spacing, d.needle_spacing,
-                                  np.asarray(zone[0], dtype=float), zone[1])
+                                  np.asarray(zone[0], dtype=float), zone[1], points=zone[2])
         return len(graded.particles), True
     return _graded_estimate(scenario.tissue.bounding_size, d.spacing, d.needle_spacing, zone), False
 
 
 def _graded_estimate(size, spacing: float, fine: float, zone, growth: float = 0.5, samples: int = 400) -> int:
     """Particles of a graded set (tissue.particles.graded_particles: side `fine` within the zone,
-    growing by `growth` mm per mm beyond it up to `spacing`) as the integral of
+    finer toward the needle's entry and exit zones, growing by `growth` mm per mm beyond them
+    up to `spacing`) as the integral of
     1 / side^2 over the slab, on a samples x samples grid."""
     width, height = size
     x = (np.arange(samples) + 0.5) * width / samples
     y = (np.arange(samples) + 0.5) * height / samples
     distance = np.hypot(x[:, None] - zone[0][0], y[None, :] - zone[0][1]) - zone[1]  # (samples, samples)
-    side = np.clip(fine + growth * np.maximum(distance, 0.0), fine, max(spacing, fine))
+    side = fine + growth * np.maximum(distance, 0.0)
+    for point in (zone[2] if len(zone) > 2 else ()):  # the needle's entry and exit (needle_end_zones)
+        near = np.hypot(x[:, None] - point.center[0], y[None, :] - point.center[1]) - point.radius
+        side = np.minimum(side, point.spacing + growth * np.maximum(near, 0.0))
+    side = np.clip(side, None, max(spacing, fine))
     return int(np.sum(width * height / samples ** 2 / side ** 2))
 
 

@@ -341,6 +341,14 @@ class Discretization:
     segment_end_levels: described(integer(0, 8), "particle refinement levels at load-segment "
                                                  "ends (at the default spacing; one more per "
                                                  "halving of the spacing); 0: none") = 3
+    # particles graded toward the needle's entry and exit points, where the tip with its
+    # cutting force meets the free boundary (stitchplan.needle.geometry.needle_end_zones):
+    # leaf side there needle_spacing / 2^levels at the default spacing, one more per halving;
+    # 0: none
+    needle_end_levels: described(integer(0, 8), "particle refinement levels below the needle "
+                                                "spacing at the needle's entry and exit (at the "
+                                                "default spacing; one more per halving of the "
+                                                "spacing); 0: none") = 0
     # "gauss": Galerkin with background-cell Gauss quadrature; "vci": the test-function
     # gradients corrected so that the quadrature satisfies the divergence theorem
     # (variationally consistent integration; passes the linear patch test; deform only)

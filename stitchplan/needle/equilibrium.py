@@ -121,7 +121,8 @@ class PreparedTissue:
 
     def __init__(self, scenario: Scenario):
         self.scenario = scenario
-        self.key = (scenario.tissue, scenario.discretization, needle_zone(scenario))
+        # the model depends on these alone (the needle's: where the particles are graded)
+        self.key = (scenario.tissue, scenario.discretization, scenario.needle)
         self.seconds = 0.0  # building the model and the particles' shape functions
         self._model = self._particle_values = self._factor = None
 
@@ -144,13 +145,13 @@ class PreparedTissue:
         if self._model is None:
             start = time.perf_counter()
             self._model = build_tissue_model(self.scenario.tissue, self.scenario.discretization,
-                                             needle_zone=self.key[2])
+                                             needle_zone=needle_zone(self.scenario))
             self._particle_values = self._model.shape_functions_at(self._model.particles).values
             self.seconds = time.perf_counter() - start
 
     def fits(self, scenario: Scenario) -> bool:
-        """Whether `scenario` has this tissue, discretization and needle zone."""
-        return self.key == (scenario.tissue, scenario.discretization, needle_zone(scenario))
+        """Whether `scenario` has this tissue, discretization and needle."""
+        return self.key == (scenario.tissue, scenario.discretization, scenario.needle)
 
     def stiffness_at_rest(self) -> sp.csr_matrix:
         """K0, from an assembler of its own (an insertion's assembler keeps its current tangent)."""

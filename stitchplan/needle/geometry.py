@@ -12,8 +12,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import Needle, Scenario
+from ..config.blocks import default_spacing_of
 from ..errors import InputError
 from ..geometry import PolygonDomain, Rectangle, circle_center_at_entry
+from ..tissue.particles import RefinementZone, end_spacing
 
 
 def unit(angle: float | np.ndarray) -> np.ndarray:
@@ -120,10 +122,33 @@ def scenario_needle(scenario: Scenario) -> NeedleGeometry:
     return needle_geometry(scenario.needle, scenario.tissue.domain)
 
 
-def needle_zone(scenario: Scenario) -> tuple[tuple[float, float], float] | None:
-    """(needle centre at entry, needle_zone x radius) when the particles are graded toward
-    the needle, else None: the zone the tissue model refines."""
+# radius (mm) of the refined disks at the needle's entry and exit: 0, points graded like the
+# load-segment ends (leaf side growing by 0.5 mm per mm of distance)
+NEEDLE_END_RADIUS = 0.0
+
+
+def needle_end_zones(scenario: Scenario, geometry: NeedleGeometry) -> tuple[RefinementZone, ...]:
+    """Refinement zones at the points where the needle's track meets the boundary: the entry
+    and every crossing of the undeformed circle (the nominal exit last). The tip with its
+    cutting force reaches the free boundary there, a singular point like a load-segment end,
+    and the exit error is measured at the exit: the leaf side falls like spacing^2 (one level
+    more per halving, tissue.particles.end_spacing) from needle_spacing / 2^needle_end_levels
+    at the default spacing; none with discretization.needle_end_levels 0."""
+    d = scenario.discretization
+    if d.needle_end_levels == 0 or d.needle_spacing is None:
+        return ()
+    reference = default_spacing_of(scenario.tissue.bounding_size, geometry.radius) * d.needle_spacing / d.spacing
+    fine = end_spacing(d.needle_spacing, reference, d.needle_end_levels)
+    points = [geometry.entry] + [geometry.crossing_point(k) for k in range(len(geometry.crossings))]
+    return tuple(RefinementZone(np.asarray(point, dtype=float), NEEDLE_END_RADIUS, fine, separate=True)
+                 for point in points)
+
+
+def needle_zone(scenario: Scenario) -> tuple[tuple[float, float], float, tuple[RefinementZone, ...]] | None:
+    """(needle centre at entry, needle_zone x radius, zones at the entry and exit) when the
+    particles are graded toward the needle, else None: where the tissue model refines."""
     if scenario.needle is None or scenario.discretization.needle_spacing is None:
         return None
     geometry = scenario_needle(scenario)
-    return tuple(geometry.center), scenario.discretization.needle_zone * geometry.radius
+    return (tuple(geometry.center), scenario.discretization.needle_zone * geometry.radius,
+            needle_end_zones(scenario, geometry))

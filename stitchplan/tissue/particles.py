@@ -79,6 +79,9 @@ class RefinementZone:
     center: np.ndarray  # (2,)
     radius: float
     spacing: float
+    # True: the levels this zone adds leave the other zones' refinement as it was (their leaves
+    # are asked for at most the levels they had without it; see graded_lattice)
+    separate: bool = False
 
 
 def graded_particles(size: tuple[float, float], spacing: float, fine_spacing: float,
@@ -126,12 +129,19 @@ def graded_lattice(size: tuple[float, float], base: float, zones: tuple[Refineme
     # side of the coarse cell holding each finest cell, (fx, fy)
     side0 = (max(width / nx0, height / ny0) if step_x and step_y else
              np.maximum(np.repeat(np.diff(coarse_x), n)[:, None], np.repeat(np.diff(coarse_y), n)[None, :]))
-    target = np.full((fx, fy), np.inf)
-    for zone in zones:
-        distance = np.hypot(xc[:, None] - zone.center[0], yc[None, :] - zone.center[1]) - zone.radius
-        target = np.minimum(target, zone.spacing * (1.0 + 1e-9) + growth * np.maximum(distance, 0.0))
-    with np.errstate(divide="ignore"):  # no zone: target inf, no refinement
-        required = np.clip(np.ceil(np.log2(side0 / target)), 0, levels).astype(int)
+    # the coarse cells exceed `base` a little where grid_lines rounds them to fit the edges, so
+    # a zone's cells may ask for one level more than its own: capped at the deepest level of
+    # the zones that are not `separate`, which a separate zone's finer levels leave unchanged
+    own = max([max(int(round(np.log2(base / zone.spacing))), 0) for zone in zones if not zone.separate] + [0])
+    required = np.zeros((fx, fy), dtype=int)
+    for group, cap in (([z for z in zones if not z.separate], min(own, levels)),
+                       ([z for z in zones if z.separate], levels)):
+        target = np.full((fx, fy), np.inf)
+        for zone in group:
+            distance = np.hypot(xc[:, None] - zone.center[0], yc[None, :] - zone.center[1]) - zone.radius
+            target = np.minimum(target, zone.spacing * (1.0 + 1e-9) + growth * np.maximum(distance, 0.0))
+        with np.errstate(divide="ignore"):  # no zone: target inf, no refinement
+            required = np.maximum(required, np.clip(np.ceil(np.log2(side0 / target)), 0, cap).astype(int))
 
     def leaf_levels(required: np.ndarray) -> np.ndarray:
         """Level of the leaf holding each finest cell: the smallest l whose level-l ancestor
