@@ -111,8 +111,8 @@ def verified_command(scene: str = "sh12_100x100") -> dict:
 
 
 def levers() -> list[tuple]:
-    """The planned run with each lever off in turn: (scene, label, median s, Newton iterations,
-    linear solves, factorizations, planned exit error mm)."""
+    """The planned run with each lever off in turn: (scene, label, median s, median s of tip
+    tracking, Newton iterations, linear solves, factorizations, planned exit error mm)."""
     from dataclasses import replace
 
     import stitchplan.needle.equilibrium as equilibrium
@@ -175,9 +175,10 @@ def levers() -> list[tuple]:
         planned = results[-1].planned
         counts = planned.solver_counts
         rows.append((scene, label, statistics.median(r.planned.wall_seconds for r in results),
+                     statistics.median(r.planned.timings["tip_tracking"] for r in results),
                      sum(s.newton_iterations for s in planned.steps), counts["linear_solves"],
                      counts["factorizations"], planned.exit_error_mm))
-        print(f"{scene} {label}: {rows[-1][2]:.2f} s, {rows[-1][3]} Newton iterations", flush=True)
+        print(f"{scene} {label}: {rows[-1][2]:.2f} s, {rows[-1][4]} Newton iterations", flush=True)
     assert saddle_point.factorize is chosen and planner.run_insertion is shared_run
     return rows
 
@@ -263,8 +264,8 @@ def main() -> None:
         "shared by the passes, counts in the first). The planned exit error shows what a lever costs in "
         "accuracy: the residual tolerance moves the planner's path within its 0.001 mm tolerance; the "
         "unplanned exit errors move by less than 1e-7 mm (tests/test_regression_pins.py).\n",
-        common.markdown_table(["scene", "variant", "planned run (s)", "Newton iterations", "linear solves",
-                               "factorizations", "planned exit error (mm)"],
+        common.markdown_table(["scene", "variant", "planned run (s)", "of it tip tracking (s)", "Newton iterations",
+                               "linear solves", "factorizations", "planned exit error (mm)"],
                               [list(row) for row in lever_rows]),
         "",
         f"## Start-up (median of {STARTUP_REPEATS})\n",
