@@ -21,6 +21,7 @@ coupling's own checks).
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -30,13 +31,16 @@ from conftest import CONFIGS
 from stitchplan.config.scenario import load_scenario, parse_scenario
 from stitchplan.errors import InsertionFailure
 from stitchplan.events import EventKind
+from stitchplan.needle import tip_tracking
 from stitchplan.needle.equilibrium import (
     CONSTRAINT_TOLERANCE,
     RAMP_SMALLEST,
     NeedleInsertion,
+    PreparedTissue,
 )
 from stitchplan.needle.insertion import FixedCenter, run_insertion
 from stitchplan.needle.tip_tracking import track_step
+from stitchplan.planning.planner import run_plan
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 
@@ -455,3 +459,46 @@ def test_condition_numbers_match_generalised_eigenvalues(linear_solver):
     assert saddle_cond == pytest.approx(plain.max() / plain.min(), rel=1e-6)
     assert preconditioned_cond == pytest.approx(general.max() / general.min(), rel=1e-6)
     assert preconditioned_cond < 10.0 < saddle_cond
+
+
+# --- tip tracking: Newton first, Levenberg-Marquardt where it fails ---------------------------
+
+
+def test_newton_tip_tracking_finds_levenberg_marquardts_point_in_fewer_evaluations(monkeypatch):
+    """Three steps into the phantom block, the next tip point by Newton's method on eq. 3.68's
+    two terms and by Levenberg-Marquardt alone (NEWTON_TIP_ITERATIONS 0) agree to 1e-10 mm,
+    and Newton needs fewer evaluations of u."""
+    insertion = started(small_scene(), steps=3)
+    geometry = insertion.geometry
+    previous = insertion.points[-1]
+    chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
+    rest_angle = math.atan2(*(previous - geometry.center)[::-1])
+    start = previous + chord * geometry.tangent(rest_angle + 0.5 * geometry.sense * geometry.step)
+
+    def field(x):
+        u, grad = insertion.displacement(x, gradient=True)
+        return u[0], grad[0]
+
+    found = {}
+    for label, iterations in (("newton", tip_tracking.NEWTON_TIP_ITERATIONS), ("lm", 0)):
+        monkeypatch.setattr(tip_tracking, "NEWTON_TIP_ITERATIONS", iterations)
+        found[label] = tip_tracking.levenberg_marquardt_tip(previous, insertion.center, geometry.radius, chord,
+                                                            start, field)
+    np.testing.assert_allclose(found["newton"][0], found["lm"][0], rtol=0, atol=1e-10)
+    assert found["newton"][1] < found["lm"][1]
+
+
+# --- one prepared tissue per command ------------------------------------------------------
+
+
+def test_the_runs_of_a_plan_share_one_model_and_one_factor_of_k0():
+    """plan's comparison run and its passes use one PreparedTissue: the same model object, and
+    K0 factorized once (by the first run), so the planned run made no factorization of its
+    own where it kept K0's factor; a prepared tissue of another discretization is refused."""
+    scenario = small_scene()
+    result = run_plan(scenario, compare=True)
+    assert result.planned.model is result.unplanned.model
+    assert result.unplanned.solver_counts["factorizations"] >= 1
+    assert result.planned.solver_counts["factorizations"] < result.unplanned.solver_counts["factorizations"]
+    with pytest.raises(ValueError, match="another scenario's tissue or discretization"):
+        NeedleInsertion(small_scene(spacing=3.0), tissue=PreparedTissue(scenario))
