@@ -27,8 +27,25 @@ def on_segment(points: np.ndarray, start, end, tol: float) -> np.ndarray:
     return (across <= tol) & (along >= -tol) & (along <= length + tol)
 
 
+class BoundingBox:
+    """`size` and `tolerance` of a domain from its bounding box's `width` and `height` (mm)."""
+
+    width: float
+    height: float
+
+    @property
+    def size(self) -> tuple[float, float]:
+        """The bounding box's sides (mm)."""
+        return (self.width, self.height)
+
+    @property
+    def tolerance(self) -> float:
+        """Distance below which a point counts as on the boundary (round-off of the input)."""
+        return 1e-9 * max(self.width, self.height)
+
+
 @dataclass(frozen=True)
-class Rectangle:
+class Rectangle(BoundingBox):
     """The slab [0, W] x [0, H]."""
 
     width: float
@@ -37,15 +54,6 @@ class Rectangle:
     @classmethod
     def of_size(cls, size) -> Rectangle:
         return cls(float(size[0]), float(size[1]))
-
-    @property
-    def size(self) -> tuple[float, float]:
-        return (self.width, self.height)
-
-    @property
-    def tolerance(self) -> float:
-        """Distance below which a point counts as on the boundary (round-off of the input)."""
-        return 1e-9 * max(self.width, self.height)
 
     def describe(self) -> str:
         return f"{self.width:g} x {self.height:g} mm tissue"
@@ -250,7 +258,7 @@ def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
 
 
 @dataclass(frozen=True, eq=False)
-class PolygonDomain:
+class PolygonDomain(BoundingBox):
     """A simple polygon (counter-clockwise) with polygonal holes, in mm.
 
     Boundary pieces are named `outline[i]` (the edge from vertex i to i + 1) and
@@ -301,15 +309,6 @@ class PolygonDomain:
         object.__setattr__(self, "origin", low)
         object.__setattr__(self, "width", float(high[0] - low[0]))
         object.__setattr__(self, "height", float(high[1] - low[1]))
-
-    @property
-    def size(self) -> tuple[float, float]:
-        """The bounding box's sides (mm)."""
-        return (self.width, self.height)
-
-    @property
-    def tolerance(self) -> float:
-        return 1e-9 * max(self.width, self.height)
 
     @property
     def convex(self) -> bool:
