@@ -200,9 +200,7 @@ class NeedleInsertion:
         self.coupling = NeedleCoupling(self.model, self.geometry, self.needle, scenario.discretization.dilation)
         self.saddle = SaddlePointSolver(tissue.factor_at_rest)
         if self.linear_method == "direct":
-            if not tissue.factorized:  # made here: this insertion's factorization
-                self.saddle.factorizations += 1
-            self.saddle.start_at_rest()
+            self.saddle.start_at_rest(made_here=not tissue.factorized)
         self.free = np.zeros((self.model.n_free, 2))
         self.multipliers = np.zeros(0)
         self.center = self.geometry.center.copy()

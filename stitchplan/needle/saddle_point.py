@@ -127,7 +127,7 @@ class SaddlePointSolver:
         # per iteration; 1e-8 costs a third more MINRES iterations on the SH 1/2 scenario
         self.minres_true_rtol = minres_true_rtol
         self._factor = None  # LU of K + H for the direct solves
-        self._solved_rows = np.zeros((0, 0))  # (K + H)^-1 E^T for that factor, (n, 2Q)
+        self._solved_rows = None  # (K + H)^-1 E^T for that factor, (n, 2Q); sized by the first solve
         self._coupled = np.zeros((0, 0))  # E (K + H)^-1 E^T for that factor, (2Q, 2Q)
         self.factorizations = 0
         self.solves = 0
@@ -140,12 +140,17 @@ class SaddlePointSolver:
         """The factor of K0 (eq. 3.72)."""
         return self._factor_at_rest()
 
-    def start_at_rest(self) -> None:
+    def start_at_rest(self, made_here: bool) -> None:
         """Take the factor of K0 as the factor of K + H: an insertion starts at rest with no
-        multipliers, where K + H = K0, so its first direct solves need no factorization."""
-        self._factor = self.stiffness_at_rest
-        self.backend = self._factor.backend
-        self._solved_rows, self._coupled = None, np.zeros((0, 0))  # sized by the first solve
+        multipliers, where K + H = K0, so its first direct solves need no factorization.
+        `made_here`: K0's factor is made for this insertion (counted as its factorization)."""
+        self._use(self.stiffness_at_rest)
+        self.factorizations += int(made_here)
+
+    def _use(self, factor: Factor) -> None:
+        """Solve with `factor` from now on; the caches of the previous one are dropped."""
+        self._factor, self.backend = factor, factor.backend
+        self._solved_rows, self._coupled = None, np.zeros((0, 0))  # sized by the next solve
 
     def forget(self) -> None:
         """Drop the factor of K + H, so the next direct solve factorizes afresh."""
@@ -175,11 +180,8 @@ class SaddlePointSolver:
         """
         n, k = rows.shape[1], weights.shape[1]
         if refactor or self._factor is None:
-            self._factor = factorize(stiffness(), symmetric_positive=True)  # K + H: symmetric
+            self._use(factorize(stiffness(), symmetric_positive=True))  # K + H: symmetric
             self.factorizations += 1
-            self.backend = self._factor.backend
-            self._solved_rows = np.zeros((n, 0))
-            self._coupled = np.zeros((0, 0))
         if self._solved_rows is None:
             self._solved_rows = np.zeros((n, 0))
         a = self._factor.solve(rhs[:n])
