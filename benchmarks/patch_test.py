@@ -44,7 +44,7 @@ def model(size, spacing, order, integration, material="saint-venant-kirchhoff", 
     tissue = Tissue(size, 2.0, Material(material, 0.5, 0.3), ())
     discretization = Discretization(spacing=spacing, quadrature_order=order, integration=integration,
                                     needle_spacing=needle_spacing)
-    zone = ((0.5 * size[0], 0.5 * size[1]), 0.2 * min(size)) if needle_spacing else None
+    zone = ((0.5 * size[0], 0.5 * size[1]), 0.2 * min(size), ()) if needle_spacing else None
     return build_tissue_model(tissue, discretization, all_edges(*size), needle_zone=zone)
 
 

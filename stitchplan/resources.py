@@ -166,7 +166,7 @@ def _graded_estimate(size, spacing: float, fine: float, zone, growth: float = 0.
     y = (np.arange(samples) + 0.5) * height / samples
     distance = np.hypot(x[:, None] - zone[0][0], y[None, :] - zone[0][1]) - zone[1]  # (samples, samples)
     side = fine + growth * np.maximum(distance, 0.0)
-    for point in (zone[2] if len(zone) > 2 else ()):  # the needle's entry and exit (needle_end_zones)
+    for point in zone[2]:  # the needle's entry and exit (needle_end_zones)
         near = np.hypot(x[:, None] - point.center[0], y[None, :] - point.center[1]) - point.radius
         side = np.minimum(side, point.spacing + growth * np.maximum(near, 0.0))
     side = np.clip(side, None, max(spacing, fine))

@@ -49,7 +49,7 @@ def patch_model(rectangle_edges, spacing=5.0, quadrature_order=2, material="sain
     discretization = Discretization(spacing=spacing, dilation=dilation, quadrature_order=quadrature_order,
                                     basis_order=basis_order, integration=integration,
                                     needle_spacing=needle_spacing)
-    zone = ((0.5 * size[0], 0.5 * size[1]), 0.2 * min(size)) if needle_spacing else None
+    zone = ((0.5 * size[0], 0.5 * size[1]), 0.2 * min(size), ()) if needle_spacing else None
     return build_tissue_model(tissue, discretization, rectangle_edges(*size), needle_zone=zone)
 
 

@@ -100,14 +100,14 @@ def build_tissue_model(
     tissue: Tissue,
     discretization: Discretization,
     prescribed_segments: tuple[tuple[tuple[float, float], tuple[float, float]], ...] = (),
-    needle_zone: tuple | None = None,
+    needle_zone: tuple[tuple[float, float], float, tuple] | None = None,
     force_segments: tuple[tuple[tuple[float, float], tuple[float, float]], ...] = (),
 ) -> TissueModel:
     """Discretize the slab: particles, quadrature, shape functions and the essential boundary.
 
     With discretization.needle_spacing set, the particles are graded toward `needle_zone`
-    (centre, radius in mm, and optionally the refinement zones at the needle's entry and exit;
-    see graded_particles and stitchplan.needle.geometry.needle_zone) and each particle's kernel support is the
+    (centre, radius in mm, and the refinement zones at the needle's entry and exit; see
+    graded_particles and stitchplan.needle.geometry.needle_zone) and each particle's kernel support is the
     dilation times its local spacing; otherwise they form a uniform grid. Load segments
     (prescribed displacement or force) have a particle on each end whatever the spacing
     (grid lines through the ends), and the particles are graded toward the ends that lie
@@ -127,7 +127,7 @@ def build_tissue_model(
                                     "particles toward; remove it or add a `needle:` block")
             graded = graded_particles(tissue.size, discretization.spacing, discretization.needle_spacing,
                                       np.asarray(needle_zone[0], dtype=float), float(needle_zone[1]),
-                                      points=ends + _needle_ends(needle_zone), breaks=breaks)
+                                      points=ends + tuple(needle_zone[2]), breaks=breaks)
         elif segments:
             graded = graded_lattice(tissue.size, discretization.spacing, ends, END_GROWTH, breaks)
         else:
@@ -216,12 +216,6 @@ def outward_edges(domain: PolygonDomain) -> list[tuple[np.ndarray, np.ndarray, n
     return edges
 
 
-def _needle_ends(needle_zone: tuple) -> tuple:
-    """The refinement zones at the needle's entry and exit that come with a needle zone
-    (stitchplan.needle.geometry.needle_zone's third item; none in a (centre, radius) pair)."""
-    return tuple(needle_zone[2]) if len(needle_zone) > 2 else ()
-
-
 def _shaped_discretization(tissue: Tissue, discretization: Discretization, segments: tuple,
                            needle_zone: tuple | None):
     """Particles, supports, spacing and quadrature of a polygon tissue, holes or regions:
@@ -239,7 +233,7 @@ def _shaped_discretization(tissue: Tissue, discretization: Discretization, segme
         if needle_zone is None:
             raise ScenarioError("discretization.needle_spacing: needs a needle to grade the "
                                 "particles toward; remove it or add a `needle:` block")
-        needle_ends = tuple(replace(zone, center=zone.center - origin) for zone in _needle_ends(needle_zone))
+        needle_ends = tuple(replace(zone, center=zone.center - origin) for zone in needle_zone[2])
         graded = graded_particles(size, discretization.spacing, discretization.needle_spacing,
                                   np.asarray(needle_zone[0], dtype=float) - origin, float(needle_zone[1]),
                                   points=ends + needle_ends, breaks=breaks)
@@ -256,7 +250,7 @@ def _shaped_discretization(tissue: Tissue, discretization: Discretization, segme
 
 
 def model_for_scenario(scenario: Scenario,
-                       needle_zone: tuple[tuple[float, float], float] | None = None) -> TissueModel:
+                       needle_zone: tuple[tuple[float, float], float, tuple] | None = None) -> TissueModel:
     """The model of a scenario's tissue with its displacement segments held; `needle_zone`
     (centre, radius) is where graded particles refine (stitchplan.needle.geometry.needle_zone)."""
     held = tuple(load.segment for load in scenario.loads if load.displacement is not None)
