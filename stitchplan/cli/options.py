@@ -157,14 +157,19 @@ def _plot_steps_note(steps: Optional[list[int]], result, quiet: bool) -> None:
                    f"{len(result.steps)}; drew step {len(result.steps)} instead", err=True)
 
 
-def _max_particles(value: Optional[int]) -> Optional[int]:
-    if value is not None and value < 1:
-        raise typer.BadParameter(f"got {value!r}, expected a positive number of particles")
-    return value
+def _at_least(minimum: int, expected: str):
+    """An option callback refusing a count below `minimum` (`expected`: what it should be)."""
+
+    def check(value: Optional[int]) -> Optional[int]:
+        if value is not None and value < minimum:
+            raise typer.BadParameter(f"got {value!r}, expected {expected}")
+        return value
+
+    return check
 
 
 MaxParticlesOption = typer.Option(
-    None, "--max-particles", callback=_max_particles, metavar="N",
+    None, "--max-particles", callback=_at_least(1, "a positive number of particles"), metavar="N",
     help="Refuse models of more than N particles (default 50000; see README: resource guard).")
 NoResourceCheckOption = typer.Option(
     False, "--no-resource-check",
@@ -236,14 +241,9 @@ def _parse_base_transform(text: Optional[str]):
 
 
 
-def _workers(value: Optional[int]) -> Optional[int]:
-    if value is not None and value < 0:
-        raise typer.BadParameter(f"got {value!r}, expected a number of worker processes >= 0 (0: in this process)")
-    return value
-
-
 WorkersOption = typer.Option(
-    None, "--workers", callback=_workers, metavar="N",
+    None, "--workers", callback=_at_least(0, "a number of worker processes >= 0 (0: in this process)"),
+    metavar="N",
     help="Run the independent runs on a local Dask cluster of N single-threaded worker processes "
     "(default: the machine's cores; 0: one after another in this process).")
 SchedulerOption = typer.Option(
