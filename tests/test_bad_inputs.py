@@ -277,25 +277,29 @@ def test_a_bad_force_recording_is_refused(tmp_path, case):
     assert_refused(result, tmp_path, {"air.csv", "tissue.csv"}, expected)
 
 
-def test_a_marker_file_with_nan_is_refused(tmp_path):
+LEFT_FORCE = {"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.0]}
+
+
+def write_calibration(tmp_path, markers: str, loads=(LEFT_FORCE,), **fit) -> None:
+    """calibration.yaml on a 40 x 20 mm slab clamped on the right, one experiment with `loads`
+    and the marker table `markers` (markers.csv), lame_lambda and lame_mu searched in
+    [0.05, 1] MPa (`fit` adds to the fit block)."""
     calibration = {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "clamped": ["right"]},
-                   "experiments": [{"loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.0]}],
-                                    "markers": "markers.csv"}],
-                   "fit": {"lame_lambda": [0.05, 1.0], "lame_mu": [0.05, 1.0]}}
+                   "experiments": [{"loads": list(loads), "markers": "markers.csv"}],
+                   "fit": {"lame_lambda": [0.05, 1.0], "lame_mu": [0.05, 1.0], **fit}}
     write_scene(tmp_path, calibration, "calibration.yaml")
-    write_scene(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,nan,10\n", "markers.csv")
+    write_scene(tmp_path, markers, "markers.csv")
+
+
+def test_a_marker_file_with_nan_is_refused(tmp_path):
+    write_calibration(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,nan,10\n")
     result = invoke(tmp_path, "calibrate", "material", "calibration.yaml", "--out", "fitted.yaml")
     assert_refused(result, tmp_path, {"calibration.yaml", "markers.csv"},
                    [["calibration.yaml: experiments[0].markers: ", "markers.csv: line 3, x_def: got 'nan'"]])
 
 
 def test_a_calibration_too_fine_for_the_machine_is_refused(tmp_path):
-    calibration = {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "clamped": ["right"]},
-                   "experiments": [{"loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.0]}],
-                                    "markers": "markers.csv"}],
-                   "fit": {"lame_lambda": [0.05, 1.0], "lame_mu": [0.05, 1.0], "grid": 3, "max_evaluations": 4}}
-    write_scene(tmp_path, calibration, "calibration.yaml")
-    write_scene(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n", "markers.csv")
+    write_calibration(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n", grid=3, max_evaluations=4)
     result = invoke(tmp_path, "calibrate", "material", "calibration.yaml", "--out", "fitted.yaml", "--spacing", "0.1")
     assert_refused(result, tmp_path, {"calibration.yaml", "markers.csv"},
                    [["calibration.yaml: discretization.spacing: got 0.1 mm", "experiments[0]: about 80601 particles",
@@ -305,14 +309,9 @@ def test_a_calibration_too_fine_for_the_machine_is_refused(tmp_path):
 def test_calibration_loads_meet_the_same_checks(tmp_path):
     """A calibration experiment's load on the clamped edge or over another load is refused
     like a scenario's."""
-    calibration = {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "clamped": ["right"]},
-                   "experiments": [{"loads": [{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [1.0, 0.0]},
-                                              {"segment": [[0.0, 10.0], [0.0, 20.0]], "force": [1.0, 0.0]},
-                                              {"segment": RIGHT_SEGMENT, "displacement": [1.0, 0.0]}],
-                                    "markers": "markers.csv"}],
-                   "fit": {"lame_lambda": [0.05, 1.0], "lame_mu": [0.05, 1.0]}}
-    write_scene(tmp_path, calibration, "calibration.yaml")
-    write_scene(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n", "markers.csv")
+    write_calibration(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n",
+                      loads=(LEFT_FORCE, {"segment": [[0.0, 10.0], [0.0, 20.0]], "force": [1.0, 0.0]},
+                             {"segment": RIGHT_SEGMENT, "displacement": [1.0, 0.0]}))
     result = invoke(tmp_path, "calibrate", "material", "calibration.yaml", "--out", "fitted.yaml")
     assert_refused(result, tmp_path, {"calibration.yaml", "markers.csv"},
                    [["experiments[0].loads[1].segment", "share 5 mm"],
