@@ -66,10 +66,6 @@ class MaterialCalibration:
     name: str = ""
     source: str = ""
 
-    @property
-    def n_markers(self) -> int:
-        return sum(len(e.markers) for e in self.experiments)
-
 
 def fit_settings(fit: FitBlock) -> FitSettings:
     return FitSettings(fit.model, fit.lame_lambda, fit.lame_mu, fit.grid, fit.grid_scale, fit.max_evaluations)

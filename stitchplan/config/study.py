@@ -101,9 +101,3 @@ class StudySpec:
 def parse_study(raw: Any, path: str = "study") -> StudySpec:
     """The optional `study:` block of a scenario (see the module docstring)."""
     return StudySpec() if raw is None else validate(StudySpec, raw, path)
-
-
-def parse_family(raw: Any, path: str, default_name: str = "") -> StudyFamily:
-    if isinstance(raw, dict) and default_name:
-        raw = {"name": default_name, **raw}
-    return validate(StudyFamily, raw, path)

@@ -377,10 +377,6 @@ class NeedleCoupling:
             sp.vstack([self.segment_rows, self._rows_at(part_points)], format="csr"),
             np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]))
 
-    def load_magnitudes(self) -> np.ndarray:
-        """Force (N) carried by each load point at the full load of this step."""
-        return self.loads.magnitudes
-
     def _force_of(self, loads: LoadQuadrature, free: np.ndarray, center: np.ndarray,
                   factor: float) -> np.ndarray:
         if factor == 0.0 or not len(loads.magnitudes):
