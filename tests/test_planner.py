@@ -100,6 +100,13 @@ def test_passes_follow_the_shooting_update_and_the_best_is_kept(two_passes):
                                 if p["exit_error_mm"] == two_passes.planned.exit_error_mm][0]["final_mismatch_mm"])
 
 
+def test_the_second_pass_starts_each_step_from_the_first(two_passes):
+    """Each pass after the first starts every step's Newton solve (and the centre's move) from
+    the pass before (run_insertion start_from, ExitTracker earlier): fewer iterations."""
+    first, second = two_passes.passes
+    assert second["newton_iterations"] < first["newton_iterations"], (first, second)
+
+
 def test_centre_solves_the_fixed_point_of_eq_4_1_also_where_eq_4_2_fails(two_passes):
     """The centre is a Newton unknown of each step's solve, so every step that no move limit
     held back ends on the fixed point of eq. 4.1, also where the exit point follows the

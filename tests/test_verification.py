@@ -142,9 +142,12 @@ def test_verified_exit_error_is_a_replay_at_the_verification_spacing(planned_sma
     replayed = json.loads(replay.read_text())
     assert replayed["exit_error_estimate_mm"] is None
     assert replayed["particles"] == summary["verification"]["discretization"]["particles"]
-    assert replayed["exit_error_mm"] == pytest.approx(summary["verified_exit_error_mm"], abs=1e-9)
+    # a later round's replay starts each step's Newton solve from the round before
+    # (run_insertion start_from): the same equilibria to the residual tolerance, 1e-6 of the
+    # needle force, which moves the exit by ~1e-7 mm
+    assert replayed["exit_error_mm"] == pytest.approx(summary["verified_exit_error_mm"], abs=1e-6)
     np.testing.assert_allclose(replayed["achieved_exit_def"], summary["verification"]["achieved_exit_def"],
-                               atol=1e-9)
+                               atol=1e-6)
 
 
 def test_no_verify_nulls_the_verification_keys(planned_small, tmp_path):

@@ -40,6 +40,7 @@ from ..tissue.model import TissueModel, build_tissue_model
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
 from .geometry import needle_zone, scenario_needle
+from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers
 from .steering import CenterAim
 
@@ -65,16 +66,6 @@ class Residuals:
     @property
     def worst_violation(self) -> float:
         return float(np.abs(self.violation).max()) if len(self.violation) else 0.0
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    """What `restore` brings back: the tissue, the multipliers and the centre of one state."""
-
-    free: np.ndarray
-    multipliers: np.ndarray
-    center: np.ndarray
-    violation: float
 
 
 class AndersonMixing:
@@ -285,14 +276,34 @@ class NeedleInsertion:
         """K + H at the state the assembler was last updated to, built when a solver asks."""
         return lambda: self.assembler.tangent_matrix() + self.coupling.curvature(multipliers, state.normal, state.rho)
 
-    def equilibrate(self, rotation: float, step: int, aim: CenterAim | None = None) -> tuple[int, int, float]:
+    def equilibrate(self, rotation: float, step: int, aim: CenterAim | None = None,
+                    guess: Snapshot | None = None) -> tuple[int, int, float]:
         """Equilibrium under the step's full load about the current centre, reached by
         Algorithm 1's ramp when the load is not yet carried: the cutting force and the added
         friction (needle/coupling.py, load_factor beta) rise from the previous step's load in
         increments, first the whole, halved when Newton fails (step cutting) down to
         RAMP_SMALLEST, doubled again after a success. Returns (Newton iterations, MINRES
-        iterations, max |g_e| in mm) summed over the increments."""
+        iterations, max |g_e| in mm) summed over the increments.
+
+        `guess`: the same step's equilibrium in an earlier, similar run on this model (another
+        planner pass, another replay of a nearby path). Newton starts there under the whole
+        load; should it fail, the step starts again from the previous step's state."""
         coupling = self.coupling
+        if guess is not None and guess.free.shape == self.free.shape \
+                and guess.multipliers.shape == self.multipliers.shape:
+            carried, load = self.snapshot(), coupling.load_factor
+            self.free, self.multipliers = guess.free.copy(), guess.multipliers.copy()
+            coupling.load_factor = 1.0
+            try:
+                return self._newton(rotation, step, aim)
+            except InsertionFailure:
+                self.restore(carried)
+                coupling.load_factor = load
+                self.saddle.forget()
+                if aim is not None:
+                    aim.restart()
+                log.info("step %d (needle rotation %.3f rad): Newton from the earlier run's state failed; "
+                         "starting again from the previous step's", step, rotation)
         if coupling.load_factor >= 1.0:
             return self._newton(rotation, step, aim)
         increment, newton, minres = 1.0, 0, 0

@@ -20,7 +20,7 @@ import numpy as np
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure
 from .equilibrium import NeedleInsertion, PreparedTissue
-from .results import InsertionResult, NeedleStep
+from .results import InsertionResult, NeedleStep, Snapshot
 from .steering import CenterAim
 from .tip_tracking import locate_exit, locate_reentry, track_step
 
@@ -77,6 +77,7 @@ def run_insertion(
     condition_numbers: bool = False,
     on_step: Callable[[NeedleStep], None] | None = None,
     tissue: PreparedTissue | None = None,
+    start_from: InsertionResult | None = None,
 ) -> InsertionResult:
     """Insert the needle step by step until its tip leaves the tissue.
 
@@ -84,6 +85,9 @@ def run_insertion(
     prescribed centres instead, row n for step n (row 0 is the entry centre). With
     `condition_numbers` each step records the (dense) condition numbers of its saddle system.
     `tissue`: the scenario's PreparedTissue when another run on the same model made it.
+    `start_from`: an earlier run on the same model along a nearby centre path (another
+    planner pass, the replay of an earlier plan): each step's Newton solve starts from that
+    run's equilibrium at the same step (NeedleInsertion.equilibrate `guess`).
     """
     if scenario.discretization.accuracy is not None:
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
@@ -98,6 +102,16 @@ def run_insertion(
     insertion.add_point(geometry.entry.copy())
     displacements = [np.zeros_like(insertion.model.particles)]
     steps: list[NeedleStep] = []
+    states: list[Snapshot] = []  # the equilibrium after each step
+    earlier = start_from.states if start_from is not None and start_from.model is insertion.model else []
+
+    def step_done(record: NeedleStep) -> None:
+        steps.append(record)
+        states.append(insertion.snapshot())
+        displacements.append(insertion.particle_displacements())
+        if on_step is not None:
+            on_step(record)
+
     limit = math.ceil(2.0 * math.pi / geometry.step) + 2
     wound_exits = len(geometry.gaps)  # walls the tip leaves before the final exit
     crossings: list[tuple[str, np.ndarray, float]] = []  # (kind, reference point, rotation)
@@ -109,11 +123,8 @@ def run_insertion(
         if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
             entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
             if entered is None:
-                record = _needle_step(insertion, control, step, rotation, None, "gap", condition_numbers, started)
-                steps.append(record)
-                displacements.append(insertion.particle_displacements())
-                if on_step is not None:
-                    on_step(record)
+                step_done(_needle_step(insertion, control, step, rotation, None, "gap", condition_numbers,
+                                       started, guess=_at(earlier, step, insertion)))
                 continue
             entry_point, entry_rotation = entered
             crossings.append(("entry", entry_point, entry_rotation))
@@ -136,27 +147,31 @@ def run_insertion(
                 in_gap = True
                 log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
                          step, exit_rotation)
-                record = _needle_step(insertion, control, step, rotation, None, method, condition_numbers, started)
-                steps.append(record)
-                displacements.append(insertion.particle_displacements())
-                if on_step is not None:
-                    on_step(record)
+                step_done(_needle_step(insertion, control, step, rotation, None, method, condition_numbers,
+                                       started, guess=_at(earlier, step, insertion)))
                 continue
-            return _result(insertion, steps, displacements, exit_point, exit_rotation,
+            return _result(insertion, steps, states, displacements, exit_point, exit_rotation,
                            time.perf_counter() - wall_start, crossings)
-        record = _needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
-                              fraction)
-        steps.append(record)
-        displacements.append(insertion.particle_displacements())
-        if on_step is not None:
-            on_step(record)
+        step_done(_needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
+                               fraction, _at(earlier, step, insertion)))
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
 
 
+def _at(states: list[Snapshot], step: int, insertion: NeedleInsertion) -> Snapshot | None:
+    """Where `step`'s Newton solve starts, from an earlier run that got that far: this run's
+    state before the step plus the earlier run's change over the step (its multipliers as
+    they were)."""
+    if step > len(states):
+        return None
+    before = states[step - 2].free if step > 1 else 0.0
+    after = states[step - 1]
+    return Snapshot(insertion.free + (after.free - before), after.multipliers, after.center, after.violation)
+
+
 def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, rotation: float,
                  point: np.ndarray | None, method: str, condition_numbers: bool, started: float,
-                 fraction: float = 1.0) -> NeedleStep:
+                 fraction: float = 1.0, guess: Snapshot | None = None) -> NeedleStep:
     """Add the tracked tip point (none while the tip crosses a wound's gap), equilibrate
     about the step's centre (with the control's aim: the centre an unknown of the same
     Newton solve); the step's record (its wall time from `started`, before the tip was
@@ -168,7 +183,7 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
         point = insertion.points[-1]
     insertion.move_center(control.predict(insertion.center, step))
     aim = control.aim(insertion, step, rotation)
-    _, minres_iterations, _ = insertion.equilibrate(rotation, step, aim)
+    _, minres_iterations, _ = insertion.equilibrate(rotation, step, aim, guess)
     planner_iterations = control.correct(insertion, step, rotation)
     geometry, needle = insertion.geometry, insertion.needle
     record = NeedleStep(
@@ -193,7 +208,8 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
     return record
 
 
-def _result(insertion: NeedleInsertion, steps: list[NeedleStep], displacements: list[np.ndarray],
+def _result(insertion: NeedleInsertion, steps: list[NeedleStep], states: list[Snapshot],
+            displacements: list[np.ndarray],
             exit_point: np.ndarray, exit_rotation: float, wall_seconds: float,
             wound: list[tuple[str, np.ndarray, float]] = ()) -> InsertionResult:
     desired_exit = insertion.geometry.desired_exit
@@ -214,6 +230,7 @@ def _result(insertion: NeedleInsertion, steps: list[NeedleStep], displacements: 
                        "tangent_products": insertion.assembler.tangent_products},
         crossings=crossings,
         bites=_bites(insertion, crossings) if len(crossings) > 1 else None,
+        states=states,
     )
     log.info("the tip left the tissue at needle rotation %.3f rad: exit error %.4g mm",
              exit_rotation, result.exit_error_mm)

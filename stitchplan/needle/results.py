@@ -13,6 +13,17 @@ from ..tissue.model import TissueModel
 from .geometry import NeedleGeometry
 
 
+@dataclass(frozen=True)
+class Snapshot:
+    """One state of an insertion: the tissue's free coefficients (n_free, 2), the
+    multipliers, the centre and the largest constraint violation (mm)."""
+
+    free: np.ndarray
+    multipliers: np.ndarray
+    center: np.ndarray
+    violation: float
+
+
 @dataclass
 class NeedleStep:
     step: int
@@ -31,7 +42,7 @@ class NeedleStep:
     exit_displacement: np.ndarray  # (2,) u at the desired exit point
     planner_iterations: int = 0
     equilibrium_solves: int = 0  # equilibrium solves of the step (one per centre tried)
-    eq42_ratio: float = float("nan")  # planned: |du(X_exit)| / |dO| of the plain update (eq. 4.2 holds below 1)
+    eq42_ratio: float = float("nan")  # planned: ||du(X_exit)/dO||_2 (eq. 4.2 holds below 1)
     wall_seconds: float = float("nan")  # the step: tip tracking, equilibrium and the planner's centre
     condition_saddle: float = float("nan")
     condition_preconditioned: float = float("nan")
@@ -64,6 +75,9 @@ class InsertionResult:
     # a stitch across a wound: each side's bite (deformed distance between the needle's
     # surface crossing and the wound edge) and their difference, mm; None otherwise
     bites: dict | None = None
+    # the equilibrium after each step (steps[n] -> states[n]): where a later run on the same
+    # model with a nearby centre path starts its steps' Newton solves (run_insertion start_from)
+    states: list[Snapshot] = field(default_factory=list, repr=False)
 
     @property
     def exit_error_mm(self) -> float:

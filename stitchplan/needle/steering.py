@@ -23,8 +23,8 @@ finished about it, after `max_updates` moves.
 Eq. 4.2 (|du(X_exit)| < |dO|, i.e. ||B|| < 1) is the convergence condition of the thesis's
 plain update O <- O(t_0) - c + u(X_exit). The Newton update needs only I - B to be
 invertible, so it goes on where eq. 4.2 fails (late in a stitch, where the material
-enclosed by the arc follows the needle almost rigidly and ||B|| reaches 1); the ratio
-|B m| / |m| of the step's last plain update m larger than `tolerance` is kept
+enclosed by the arc follows the needle almost rigidly and ||B|| reaches 1); ||B||_2 at
+the step's last iteration, the largest |B m| / |m| over plain updates m, is kept
 (`eq42_ratio`) so the summary can say where the plain update would have stalled.
 """
 
@@ -55,7 +55,12 @@ class CenterAim:
     limited: bool = False  # the move limits held the settled centre back
     held: tuple[EventKind, str] | None = None  # why the centre stopped moving before settling
     mismatch_mm: float = float("nan")  # |m| at the last Newton iteration
-    eq42_ratio: float = float("nan")  # |B m| / |m| of the plain update m (eq. 4.2 holds below 1)
+    eq42_ratio: float = float("nan")  # ||B||_2 at the last iteration (eq. 4.2 holds below 1)
+
+    def restart(self) -> None:
+        """Forget the moves made, for a solve that starts again."""
+        self.updates, self.limited, self.held = 0, False, None
+        self.mismatch_mm = self.eq42_ratio = float("nan")
 
     def update(self, free: np.ndarray, center: np.ndarray, solution: np.ndarray, exit_rows: sp.csr_matrix,
                balanced: bool) -> np.ndarray | None:
@@ -69,8 +74,7 @@ class CenterAim:
         self.mismatch_mm = float(np.linalg.norm(mismatch))
         predicted = mismatch + at_exit(solution[:, 0])  # after this iteration's equilibrium update
         jacobian = np.column_stack([at_exit(solution[:, 1]), at_exit(solution[:, 2])])  # B
-        if float(np.linalg.norm(predicted)) > self.tolerance:  # the thesis's update dO = m moves X_exit by B m
-            self.eq42_ratio = float(np.linalg.norm(jacobian @ predicted) / np.linalg.norm(predicted))
+        self.eq42_ratio = float(np.linalg.norm(jacobian, 2))  # the plain update dO = m moves X_exit by B m
         try:
             wanted = np.linalg.solve(np.eye(2) - jacobian, predicted)
         except np.linalg.LinAlgError:

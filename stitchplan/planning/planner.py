@@ -126,9 +126,11 @@ class ExitTracker:
     within MoveLimits of the centres before it (`limited_steps`: the steps a limit held back).
     """
 
-    def __init__(self, settings: Planner, offset: np.ndarray | None = None, smooth: bool = True):
+    def __init__(self, settings: Planner, offset: np.ndarray | None = None, smooth: bool = True,
+                 earlier: InsertionResult | None = None):
         self.settings = settings
         self.offset = np.zeros(2) if offset is None else np.asarray(offset, dtype=float)
+        self.earlier = earlier  # an earlier pass: each step's centre moves first as it did there
         self.smooth = smooth  # keep the centres within MoveLimits
         self.limits: MoveLimits | None = None
         self.centers: list[np.ndarray] = []  # O(t_n) of the steps so far, O(t_0) first
@@ -137,9 +139,14 @@ class ExitTracker:
 
     def predict(self, center: np.ndarray, step: int) -> np.ndarray:
         """The step starts from the previous step's centre (the Newton solve moves it; an
-        extrapolated start saves nothing there, tests/test_planner.py)."""
+        extrapolated start saves nothing there, tests/test_planner.py), or after an earlier
+        pass by that pass's centre move over the step."""
         if not self.centers:
             self.centers.append(np.asarray(center, dtype=float).copy())  # O(t_0)
+        if self.earlier is not None and step <= len(self.earlier.steps):
+            steps = self.earlier.steps
+            before = steps[step - 2].center if step > 1 else self.earlier.geometry.center
+            center = center + (steps[step - 1].center - before)
         return self._feasible(center, step)
 
     def aim(self, insertion: NeedleInsertion, step: int, rotation: float) -> CenterAim:
@@ -252,7 +259,8 @@ class PassOffsets:
 
 def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
              tolerance: float | None = None, shooting: PassOffsets | None = None, smooth: bool = True,
-             tissue: PreparedTissue | None = None, **options) -> PlanResult:
+             tissue: PreparedTissue | None = None, start_from: InsertionResult | None = None,
+             **options) -> PlanResult:
     """Planned insertion with the scenario's planner settings, and (compare=True) the
     unplanned one of the same scene; `options` go to run_insertion.
 
@@ -268,7 +276,9 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     across a wound the aim is, after each pass, the exit error that would make both bites
     equal (needle.insertion._bites), so the passes trade exit error for symmetry. `shooting` continues from an earlier plan's
     passes; `smooth` keeps the centre path within MoveLimits. The runs share one model
-    (`tissue`, made here when not given).
+    (`tissue`, made here when not given). Each pass after the first starts every step's
+    Newton solve from the pass before it (run_insertion `start_from`, ExitTracker `earlier`);
+    `start_from` (an earlier plan's run on this model) does so for the first.
     """
     settings = scenario.planner
     tissue = tissue or PreparedTissue(scenario)  # built by the first run
@@ -283,9 +293,12 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         offsets.advance(aim)
     passes = []
     best, best_miss = None, np.inf
+    earlier = start_from  # the last pass run: the next one starts each step from it
     for number in range(1, settings.max_passes + 1):
-        tracker = ExitTracker(settings, offsets.offset, smooth=smooth)
-        planned = run_insertion(scenario, control=tracker, on_step=on_step, tissue=tissue, **options)
+        tracker = ExitTracker(settings, offsets.offset, smooth=smooth, earlier=earlier)
+        planned = run_insertion(scenario, control=tracker, on_step=on_step, tissue=tissue, start_from=earlier,
+                                **options)
+        earlier = planned
         mismatch = final_mismatch(planned)
         error = exit_error_vector(planned)
         if symmetric:
@@ -297,6 +310,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         passes.append({"pass": number, "offset_mm": offsets.offset.copy(), "exit_error_mm": planned.exit_error_mm,
                        "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
                        "limited_steps": tracker.limited_steps,
+                       "newton_iterations": sum(step.newton_iterations for step in planned.steps),
                        "wall_seconds": planned.wall_seconds})
         log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
                  *offsets.offset, planned.exit_error_mm, miss)

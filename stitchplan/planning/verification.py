@@ -178,12 +178,13 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at (%.4g, %.4g) mm",
                      *offset, *aim)
             again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
-                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue, **options)
+                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
+                             start_from=result.planned, **options)
             planning_seconds += again.planned.wall_seconds
             for record in again.passes:
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
-        replayed = replay(fine, result.exported_centers, tissue=fine_tissue, **options)
+        replayed = replay(fine, result.exported_centers, tissue=fine_tissue, start_from=replayed, **options)
         verified = np.inf if replayed is None else replayed.exit_error_mm
         rounds.append({"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
                        "verified_exit_error_mm": None if replayed is None else verified,
