@@ -32,10 +32,10 @@ def test_multiplier_elements_span_whole_segments_at_least_a_spacing_long(mortar)
     coupling = mortar.coupling
     segments = len(coupling.points) - 1
     lengths = np.linalg.norm(np.diff(coupling.points, axis=0), axis=1)
-    shares = coupling._shares.toarray()  # (Q, m): phi_j at each Gauss point
+    shares = coupling._shares  # (Q, m): phi_j at each Gauss point
     assert shares.shape == (2 * segments, coupling.multiplier_count)
     np.testing.assert_allclose(shares.sum(axis=1), 1.0, atol=1e-14)  # partition of unity
-    weights = coupling.weights.toarray()
+    weights = coupling.weights
     np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-14)  # g_j: a weighted mean
     # the nodes of the piecewise-linear field sit at needle points, at least a spacing apart
     arc = np.concatenate([[0.0], np.cumsum(lengths)])
@@ -65,7 +65,7 @@ def test_arc_ends_cut_the_track_every_local_spacing_from_the_tip():
     assert MULTIPLIER_SPACINGS * spacing[0] <= nodes[1] < 2 * MULTIPLIER_SPACINGS * spacing[0]
     assert np.min(np.abs(nodes[1:-1, None] - arc[None, :])) > 1e-3  # cut inside segments here
     assert coupling.multiplier_count == len(nodes) == int(arc[-1] / (MULTIPLIER_SPACINGS * spacing[0])) + 1
-    shares, weights = coupling._shares.toarray(), coupling.weights.toarray()
+    shares, weights = coupling._shares, coupling.weights
     np.testing.assert_allclose(shares.sum(axis=1), 1.0, atol=1e-14)
     np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-14)
     assert np.all((shares > 0).sum(axis=0) >= 2)  # every hat holds Gauss points

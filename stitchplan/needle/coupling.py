@@ -102,6 +102,55 @@ def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> 
     return sorted(min(group) for group in groups)
 
 
+def _interleaved(rows: sp.csr_matrix) -> sp.csr_matrix:
+    """N T acting on interleaved dofs: row q becomes rows (q, 0) and (q, 1) with columns
+    (p, 0) and (p, 1), built from the CSR arrays (a row's columns stay in their order)."""
+    counts = np.diff(rows.indptr)
+    row = np.repeat(np.arange(rows.shape[0]), counts)
+    order = np.argsort(np.concatenate([2 * row, 2 * row + 1]), kind="stable")
+    indices = np.concatenate([2 * rows.indices, 2 * rows.indices + 1])[order]
+    indptr = np.concatenate([[0], np.cumsum(np.repeat(counts, 2))])
+    return sp.csr_matrix((np.concatenate([rows.data, rows.data])[order], indices, indptr),
+                         shape=(2 * rows.shape[0], 2 * rows.shape[1]))
+
+
+def _stacked(top: sp.csr_matrix, bottom: sp.csr_matrix) -> sp.csr_matrix:
+    """[top; bottom] for CSR matrices of one width, joined from their arrays (sp.vstack
+    without its generality: one construction)."""
+    return sp.csr_matrix((np.concatenate([top.data, bottom.data]), np.concatenate([top.indices, bottom.indices]),
+                          np.concatenate([top.indptr, top.nnz + bottom.indptr[1:]])),
+                         shape=(top.shape[0] + bottom.shape[0], top.shape[1]))
+
+
+class GrowingRows:
+    """Shape-function rows N(X_q) T of points that are only ever appended (the track's and
+    its constraint quadrature's), with their interleaved form E (`interleaved`). Rebuilding
+    the sparse matrices by stacking every step cost more than the arithmetic on these few
+    rows; here each append joins the new rows once, and E^T is formed once per change,
+    when first asked for."""
+
+    def __init__(self, columns: int, interleaved: bool = False):
+        self.matrix = sp.csr_matrix((0, columns))  # N_q T, (Q, n_free)
+        self.expanded = sp.csr_matrix((0, 2 * columns)) if interleaved else None  # E, (2Q, 2 n_free)
+        self._expanded_t: sp.csr_matrix | None = None
+
+    def __len__(self) -> int:
+        return self.matrix.shape[0]
+
+    def append(self, rows: sp.csr_matrix) -> None:
+        self.matrix = _stacked(self.matrix, rows)
+        if self.expanded is not None:
+            self.expanded = _stacked(self.expanded, _interleaved(rows))
+            self._expanded_t = None
+
+    @property
+    def expanded_t(self) -> sp.csr_matrix:
+        """E^T (2 n_free, 2Q), kept until the rows grow."""
+        if self._expanded_t is None:
+            self._expanded_t = self.expanded.T.tocsr()
+        return self._expanded_t
+
+
 @dataclass(frozen=True)
 class ConstraintValues:
     """The needle constraints at one state (eq. 3.59-3.61)."""
@@ -144,16 +193,17 @@ class NeedleCoupling:
         self.segment_gap = np.zeros(0, dtype=bool)
         self.segment_fraction = np.zeros(0)
         self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, 2 per segment
-        self.segment_rows = sp.csr_matrix((0, n_free))  # N(X_s) T at those points
-        self._point_rows = sp.csr_matrix((0, n_free))
-        # the constraint quadrature (needle points or segment Gauss points) and its multipliers
-        self.quadrature_rows = sp.csr_matrix((0, n_free))  # N_q T, (Q, n_free)
-        self.expanded_rows = sp.csr_matrix((0, 2 * n_free))  # N_q T on interleaved dofs, (2Q, 2 n_free)
-        self.weights = sp.csr_matrix((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
+        self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
+        # N(X_s) T at the segments' Gauss points; the constraint quadrature's rows N_q T with
+        # their interleaved form (the needle points, the segments' Gauss points, or the arc
+        # ends' own Gauss points)
+        self._segment_rows = GrowingRows(n_free, interleaved=self.kind == MORTAR and not self.arc_ends)
+        self._quadrature_rows = (self._segment_rows if self.kind == MORTAR and not self.arc_ends
+                                 else GrowingRows(n_free, interleaved=True))
+        # dense: W and P have a few entries per row and columns, m ~ Q / 2
+        self.weights = np.zeros((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
         self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
-        self._weights_dense: np.ndarray | None = None  # W as an array (normal_weights)
         self._spacing_of_segments = np.zeros(0)  # local particle spacing per segment (_segment_spacing)
-        self._expanded_rows_t: sp.csr_matrix | None = None  # E^T (expanded_rows_t)
         self.multiplier_count = 0
         self.multiplier_nodes = np.zeros(0)  # mortar: arc length of each multiplier's node (element start)
         # mortar constraint quadrature (multiplier_ends "arc"): Gauss points of each segment, fixed
@@ -171,7 +221,6 @@ class NeedleCoupling:
         # = 1/6 at both Gauss points). Asking R there would push the whole track outward
         # by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm steps)
         self._chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
-        self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
         self.target_radius = (geometry.radius if self.kind == POINTS
                               else np.zeros(0) if self.arc_ends
                               else math.sqrt(geometry.radius**2 - self._chord**2 / 6.0))
@@ -181,13 +230,20 @@ class NeedleCoupling:
     def _rows_at(self, points: np.ndarray) -> sp.csr_matrix:
         return (self.model.shape_functions_at(points).values @ self.model.boundary.free_map).tocsr()
 
-    def _expand(self, rows: sp.csr_matrix) -> sp.csr_matrix:
-        """N T acting on interleaved dofs: rows (q, i), columns (p, i)."""
-        coo = rows.tocoo()
-        return sp.csr_matrix(
-            (np.concatenate([coo.data, coo.data]),
-             (np.concatenate([2 * coo.row, 2 * coo.row + 1]), np.concatenate([2 * coo.col, 2 * coo.col + 1]))),
-            shape=(2 * rows.shape[0], 2 * self.model.n_free))
+    @property
+    def segment_rows(self) -> sp.csr_matrix:
+        """N(X_s) T at the segments' Gauss points, (2 segments, n_free)."""
+        return self._segment_rows.matrix
+
+    @property
+    def quadrature_rows(self) -> sp.csr_matrix:
+        """N_q T at the constraint quadrature's points, (Q, n_free)."""
+        return self._quadrature_rows.matrix
+
+    @property
+    def expanded_rows(self) -> sp.csr_matrix:
+        """E: N_q T on interleaved dofs, (2Q, 2 n_free)."""
+        return self._quadrature_rows.expanded
 
     def local_spacing(self, points: np.ndarray) -> np.ndarray:
         """Particle spacing at reference points: that of the nearest particle, (n,)."""
@@ -205,33 +261,23 @@ class NeedleCoupling:
             new = self.points[-1] + GAUSS_POINTS[:, None] * (reference_point - self.points[-1])
             self.segment_points = np.vstack([self.segment_points, new])
             rows = sp.csr_matrix((2, self.model.n_free)) if gap else self._rows_at(new)  # no tissue in a gap
-            self.segment_rows = sp.vstack([self.segment_rows, rows], format="csr")
+            self._segment_rows.append(rows)
             self.segment_gap = np.append(self.segment_gap, gap)
             self.segment_fraction = np.append(self.segment_fraction, 0.0 if gap else fraction)
         self.points = np.vstack([self.points, reference_point])
         if self.kind == POINTS:
-            row = self._rows_at(reference_point[None])
-            self._point_rows = sp.vstack([self._point_rows, row], format="csr")
-            self.quadrature_rows = self._point_rows
-            self.expanded_rows = self._expand(self._point_rows)
-            self.weights = sp.identity(len(self.points), format="csr")
+            self._quadrature_rows.append(self._rows_at(reference_point[None]))
+            self.weights = np.eye(len(self.points))
             self._shares = self.weights
             self.multiplier_count = len(self.points)
             carried = np.append(multipliers, 0.0)
         else:
             if len(self.points) > 1 and self.arc_ends:
                 self._add_constraint_points()
-            elif len(self.points) > 1:
-                self.quadrature_rows = self.segment_rows
-                self.expanded_rows = sp.vstack([self.expanded_rows, self._expand(self.segment_rows[-2:])],
-                                               format="csr")
             self._partition()
             forces = np.concatenate([forces, np.zeros(self._shares.shape[0] - len(forces))])
             carried = self._shares.T @ forces
         self.previous_loads, self.loads = self.loads, self._load_quadrature()
-        self._expanded_rows_t = None
-        if self.kind == POINTS:
-            self._weights_dense = None
         return carried
 
     def _segment_spacing(self) -> np.ndarray:
@@ -270,8 +316,7 @@ class NeedleCoupling:
         self._constraint_length = np.append(self._constraint_length, ds)
         radius = self.geometry.radius
         self.target_radius = np.append(self.target_radius, np.sqrt(radius**2 - along * (1 - along) * self._chord**2))
-        self.quadrature_rows = sp.vstack([self.quadrature_rows, rows], format="csr")
-        self.expanded_rows = sp.vstack([self.expanded_rows, self._expand(rows)], format="csr")
+        self._quadrature_rows.append(rows)
 
     def _arc_nodes(self, lengths: np.ndarray, arc: np.ndarray) -> np.ndarray:
         """Element ends at exact arc lengths: the track measured in local spacings,
@@ -296,7 +341,7 @@ class NeedleCoupling:
         g_j = sum_q W_qj g_q is the phi_j-weighted mean violation."""
         lengths = self._segment_lengths()
         if not len(lengths):
-            self.weights = self._shares = sp.csr_matrix((0, 0))
+            self.weights = self._shares = np.zeros((0, 0))
             self.multiplier_count = 0
             return
         arc = np.concatenate([[0.0], np.cumsum(lengths)])  # arc length at the needle points
@@ -327,9 +372,7 @@ class NeedleCoupling:
             shares[q, element + 1] += upper
         self.multiplier_nodes = nodes if MULTIPLIER_ORDER == 1 else nodes[:-1]  # arc length, mm
         weighted = shares * ds[:, None]
-        weights = weighted / weighted.sum(axis=0)
-        self._shares, self.weights = sp.csr_matrix(shares), sp.csr_matrix(weights)
-        self._weights_dense = weights
+        self._shares, self.weights = shares, weighted / weighted.sum(axis=0)
         self.multiplier_count = shares.shape[1]
 
     # --- loads ------------------------------------------------------------------------------
@@ -374,7 +417,7 @@ class NeedleCoupling:
         part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
         return LoadQuadrature(
             np.vstack([self.segment_points, part_points]),
-            sp.vstack([self.segment_rows, self._rows_at(part_points)], format="csr"),
+            _stacked(self.segment_rows, self._rows_at(part_points)),
             np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]))
 
     def _force_of(self, loads: LoadQuadrature, free: np.ndarray, center: np.ndarray,
@@ -415,7 +458,7 @@ class NeedleCoupling:
         spatial = self.quadrature_points() + self.quadrature_rows @ free  # (Q, 2)
         relative = spatial - center
         rho = np.linalg.norm(relative, axis=1)
-        return ConstraintValues(self._dense_weights().T @ (rho - self.target_radius), relative / rho[:, None], rho)
+        return ConstraintValues(self.weights.T @ (rho - self.target_radius), relative / rho[:, None], rho)
 
     def quadrature_points(self) -> np.ndarray:
         """X_q, the reference points of the constraint quadrature, (Q, 2)."""
@@ -425,21 +468,13 @@ class NeedleCoupling:
 
     def normal_weights(self, normal: np.ndarray) -> np.ndarray:
         """B (2Q, m) dense, B[2q + d, j] = W_qj n_q,d (the saddle-point solver's G = E^T B)."""
-        dense = self._dense_weights()
-        return (dense[:, None, :] * normal[:, :, None]).reshape(2 * dense.shape[0], dense.shape[1])
-
-    def _dense_weights(self) -> np.ndarray:
-        """W as a dense array, kept until the constraint set changes."""
-        if self._weights_dense is None or self._weights_dense.shape != self.weights.shape:
-            self._weights_dense = self.weights.toarray()
-        return self._weights_dense
+        weights = self.weights
+        return (weights[:, None, :] * normal[:, :, None]).reshape(2 * weights.shape[0], weights.shape[1])
 
     @property
     def expanded_rows_t(self) -> sp.csr_matrix:
         """E^T (2 n_free, 2Q), kept until the constraint quadrature grows."""
-        if self._expanded_rows_t is None or self._expanded_rows_t.shape[1] != self.expanded_rows.shape[0]:
-            self._expanded_rows_t = self.expanded_rows.T.tocsr()
-        return self._expanded_rows_t
+        return self._quadrature_rows.expanded_t
 
     def weights_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
         """B (2Q, m) of normal_weights as a sparse matrix (MINRES's G = E^T B)."""
@@ -461,7 +496,7 @@ class NeedleCoupling:
 
     def constraint_center_derivative(self, normal: np.ndarray) -> np.ndarray:
         """d g_j / dC = -sum_q W_qj n_q^T, (m, 2)."""
-        return -(self._dense_weights().T @ normal).reshape(self.multiplier_count, 2)
+        return -(self.weights.T @ normal).reshape(self.multiplier_count, 2)
 
     def _projections(self, multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> np.ndarray:
         """mu_q (I - n_q n_q^T) / rho_q, (Q, 2, 2)."""
