@@ -127,7 +127,9 @@ class SaddlePointSolver:
         # per iteration; 1e-8 costs a third more MINRES iterations on the SH 1/2 scenario
         self.minres_true_rtol = minres_true_rtol
         self._factor = None  # LU of K + H for the direct solves
-        self._solved_rows = None  # (K + H)^-1 E^T for that factor, (n, 2Q); sized by the first solve
+        # (K + H)^-1 E^T for that factor in the first `_solved_count` columns of a buffer with
+        # room to grow (n, >= 2Q); sized by the first solve
+        self._solved_rows, self._solved_count = None, 0
         self._coupled = np.zeros((0, 0))  # E (K + H)^-1 E^T for that factor, (2Q, 2Q)
         self.factorizations = 0
         self.solves = 0
@@ -150,7 +152,7 @@ class SaddlePointSolver:
     def _use(self, factor: Factor) -> None:
         """Solve with `factor` from now on; the caches of the previous one are dropped."""
         self._factor, self.backend = factor, factor.backend
-        self._solved_rows, self._coupled = None, np.zeros((0, 0))  # sized by the next solve
+        self._solved_rows, self._solved_count, self._coupled = None, 0, np.zeros((0, 0))  # sized by the next solve
 
     def forget(self) -> None:
         """Drop the factor of K + H, so the next direct solve factorizes afresh."""
@@ -202,14 +204,19 @@ class SaddlePointSolver:
     def _grow(self, rows: sp.csr_matrix) -> None:
         """Extend K^-1 E^T and E K^-1 E^T by the rows added since the last solve (the
         constraint quadrature only grows during an insertion, its earlier rows unchanged)."""
-        have, count = self._solved_rows.shape[1], rows.shape[0]
+        have, count = self._solved_count, rows.shape[0]
         if have >= count:
             return
-        new = self._factor.solve(rows[have:count].T.toarray())  # (n, new)
+        new = self._factor.solve(rows[have:].toarray().T)  # (n, new)
         if new.ndim == 1:
             new = new[:, None]
-        self._solved_rows = np.hstack([self._solved_rows, new])
-        cross = rows[:count] @ new  # E K^-1 E_new^T, (count, new)
+        if self._solved_rows.shape[1] < count:  # room for the next steps' rows too
+            grown = np.empty((len(new), max(count, 2 * self._solved_rows.shape[1])))
+            grown[:, :have] = self._solved_rows[:, :have]
+            self._solved_rows = grown
+        self._solved_rows[:, have:count] = new
+        self._solved_count = count
+        cross = rows @ new  # E K^-1 E_new^T, (count, new)
         coupled = np.zeros((count, count))
         coupled[:have, :have] = self._coupled
         coupled[:, have:] = cross

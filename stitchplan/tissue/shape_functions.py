@@ -102,7 +102,7 @@ def neighbour_pairs(
         rows = np.repeat(np.arange(len(points)), counts)
     # the kernel vanishes at |z| = 1; a relative margin keeps particles that sit on the
     # support edge (dilation 2 on a regular grid) out regardless of rounding
-    keep = np.max(np.abs(points[rows] - particles[cols]), axis=1) < support[cols] * (1.0 - 1e-9)
+    keep = np.abs(points[rows] - particles[cols]).max(axis=1) < support[cols] * (1.0 - 1e-9)
     rows, cols = rows[keep], cols[keep]
     if visibility is not None:
         keep = visibility.keep(points, particles, rows, cols)
@@ -176,7 +176,7 @@ def rk_shape_pairs(
     rows, cols, indptr = neighbour_pairs(points, particles, support, tree, visibility)
     counts = np.diff(indptr)
     m = basis_size(order)
-    if np.any(counts < m):
+    if (counts < m).any():
         bad = int(np.argmin(counts))
         raise SingularMomentMatrix(
             f"point ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm is covered by "
@@ -195,7 +195,7 @@ def rk_shape_pairs(
     moment = np.add.reduceat(hh * phi[:, None, None], starts, axis=0)
     eigenvalues = np.linalg.eigvalsh(moment)  # (n, m), ascending
     rcond = eigenvalues[:, 0] / eigenvalues[:, -1]
-    if np.any(rcond < 1e-12):
+    if (rcond < 1e-12).any():
         bad = int(np.argmin(rcond))
         raise SingularMomentMatrix(
             f"moment matrix M(X) is singular at ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm "
