@@ -31,6 +31,8 @@ import scipy.sparse.linalg as spla
 
 from ..tissue.factorization import SUPERLU, Factor, factorize
 
+potrf, potrs = scipy.linalg.get_lapack_funcs(("potrf", "potrs"), dtype=np.float64)
+
 
 class SchurPreconditioner:
     """S^-1 for S = G^T K0^-1 G, factored by bordering one constraint at a time (eq. 3.73-3.74).
@@ -195,9 +197,12 @@ class SaddlePointSolver:
         solved = self._solved_rows[:, :count]  # K^-1 E^T
         schur = weights.T @ self._coupled[:count, :count] @ weights  # G^T K^-1 G
         right = weights.T @ (rows @ a) - rhs[n:]
-        try:
-            multipliers = scipy.linalg.cho_solve(scipy.linalg.cho_factor(schur), right)
-        except np.linalg.LinAlgError:  # nearly dependent constraints: least squares
+        # Cholesky of the small Schur matrix by LAPACK directly (what cho_factor and cho_solve
+        # call, without their checks: a tenth of the time at m ~ 20)
+        factor, info = potrf(schur, lower=False, clean=True)
+        if info == 0:
+            multipliers = potrs(factor, right, lower=False)[0]
+        else:  # not positive definite: nearly dependent constraints, least squares
             multipliers = np.linalg.lstsq(schur, right, rcond=1e-13)[0]
         return np.concatenate([a - solved @ (weights @ multipliers), multipliers])
 
