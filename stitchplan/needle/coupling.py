@@ -114,6 +114,13 @@ def _interleaved(rows: sp.csr_matrix) -> sp.csr_matrix:
                          shape=(2 * rows.shape[0], 2 * rows.shape[1]))
 
 
+def _row_range(rows: sp.csr_matrix, start: int, stop: int) -> sp.csr_matrix:
+    """rows[start:stop] from the CSR arrays (scipy's slicing validates more than this needs)."""
+    first, last = rows.indptr[start], rows.indptr[stop]
+    return sp.csr_matrix((rows.data[first:last], rows.indices[first:last], rows.indptr[start:stop + 1] - first),
+                         shape=(stop - start, rows.shape[1]))
+
+
 def _stacked(top: sp.csr_matrix, bottom: sp.csr_matrix) -> sp.csr_matrix:
     """[top; bottom] for CSR matrices of one width, joined from their arrays (sp.vstack
     without its generality: one construction)."""
@@ -193,6 +200,7 @@ class NeedleCoupling:
         self.segment_gap = np.zeros(0, dtype=bool)
         self.segment_fraction = np.zeros(0)
         self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, 2 per segment
+        self.tip_row = np.zeros(n_free)  # N(X) T at the last needle point, dense
         self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
         # N(X_s) T at the segments' Gauss points; the constraint quadrature's rows N_q T with
         # their interleaved form (the needle points, the segments' Gauss points, or the arc
@@ -257,27 +265,44 @@ class NeedleCoupling:
         `fraction`: the share of a needle step the segment stands for."""
         multipliers = np.zeros(self.multiplier_count) if multipliers is None else multipliers
         forces = self.weights @ multipliers if self.multiplier_count else np.zeros(self.weights.shape[0])  # (Q,)
+        new = np.zeros((0, 2))  # the new segment's Gauss points
         if len(self.points):
             new = self.points[-1] + GAUSS_POINTS[:, None] * (reference_point - self.points[-1])
             self.segment_points = np.vstack([self.segment_points, new])
-            rows = sp.csr_matrix((2, self.model.n_free)) if gap else self._rows_at(new)  # no tissue in a gap
-            self._segment_rows.append(rows)
             self.segment_gap = np.append(self.segment_gap, gap)
             self.segment_fraction = np.append(self.segment_fraction, 0.0 if gap else fraction)
         self.points = np.vstack([self.points, reference_point])
+        constraint_points = self._new_constraint_points() if self.arc_ends and len(self.points) > 1 else np.zeros((0, 2))
+        magnitudes, part_points = self._load_layout()
+        # the shape-function rows of every point the step adds, in one evaluation: the tip,
+        # the new segment's Gauss points (no tissue in a gap: zero rows), the arc ends'
+        # constraint points and the load points on a partly covered segment
+        blocks = (reference_point[None], np.zeros((0, 2)) if gap else new, constraint_points, part_points)
+        ends = np.cumsum([0] + [len(block) for block in blocks])
+        rows = self._rows_at(np.vstack(blocks))
+        self.tip_row = np.bincount(rows.indices[:rows.indptr[1]], rows.data[:rows.indptr[1]],
+                                   minlength=self.model.n_free)  # N(X_tip) T, dense (n_free,)
+        if len(new):
+            self._segment_rows.append(sp.csr_matrix((2, self.model.n_free)) if gap else _row_range(rows, 1, ends[2]))
+        if len(constraint_points):
+            self._quadrature_rows.append(_row_range(rows, ends[2], ends[3]))
+        part_rows = _row_range(rows, ends[3], ends[4])
         if self.kind == POINTS:
-            self._quadrature_rows.append(self._rows_at(reference_point[None]))
+            self._quadrature_rows.append(_row_range(rows, 0, 1))
             self.weights = np.eye(len(self.points))
             self._shares = self.weights
             self.multiplier_count = len(self.points)
             carried = np.append(multipliers, 0.0)
         else:
-            if len(self.points) > 1 and self.arc_ends:
-                self._add_constraint_points()
             self._partition()
             forces = np.concatenate([forces, np.zeros(self._shares.shape[0] - len(forces))])
             carried = self._shares.T @ forces
-        self.previous_loads, self.loads = self.loads, self._load_quadrature()
+        self.previous_loads = self.loads
+        if len(part_points):
+            self.loads = LoadQuadrature(np.vstack([self.segment_points, part_points]),
+                                        _stacked(self.segment_rows, part_rows), magnitudes)
+        else:
+            self.loads = LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
         return carried
 
     def _segment_spacing(self) -> np.ndarray:
@@ -294,29 +319,29 @@ class NeedleCoupling:
         lengths = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
         return np.where(self.segment_gap, 0.0, lengths)
 
-    def _add_constraint_points(self) -> None:
-        """Gauss points of the new segment for the constraint: at least two, and at least
+    def _new_constraint_points(self) -> np.ndarray:
+        """Gauss points of the new segment for the constraint (returned, (count, 2); none
+        across a gap), with their segment, position and length recorded: at least two, and at least
         QUADRATURE_PER_ELEMENT per multiplier element length over the segment (a 2 mm segment
         against 1.25 mm elements gets 4), so every element holds Gauss points and the hat
         functions' kinks inside a segment are integrated closely. Each asks |x - C| of a point
         at t on the chord between two needle points: sqrt(R^2 - t (1 - t) c^2)."""
         start, end = self.points[-2], self.points[-1]
         if self.segment_gap[-1]:
-            return
+            return np.zeros((0, 2))
         length = float(np.linalg.norm(end - start))
         element = MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0])
         count = max(2, math.ceil(QUADRATURE_PER_ELEMENT * length / element - 1e-9))
         abscissae, gauss_weights = np.polynomial.legendre.leggauss(count)
         along, ds = 0.5 * (abscissae + 1.0), 0.5 * gauss_weights * length
         new = start + along[:, None] * (end - start)  # (count, 2)
-        rows = self._rows_at(new)
         self._constraint_points = np.vstack([self._constraint_points, new])
         self._constraint_segment = np.append(self._constraint_segment, np.full(count, len(self.points) - 2))
         self._constraint_along = np.append(self._constraint_along, along)
         self._constraint_length = np.append(self._constraint_length, ds)
         radius = self.geometry.radius
         self.target_radius = np.append(self.target_radius, np.sqrt(radius**2 - along * (1 - along) * self._chord**2))
-        self._quadrature_rows.append(rows)
+        return new
 
     def _arc_nodes(self, lengths: np.ndarray, arc: np.ndarray) -> np.ndarray:
         """Element ends at exact arc lengths: the track measured in local spacings,
@@ -377,13 +402,16 @@ class NeedleCoupling:
 
     # --- loads ------------------------------------------------------------------------------
 
-    def _load_quadrature(self) -> LoadQuadrature:
+    def _load_layout(self) -> tuple[np.ndarray, np.ndarray]:
         """Friction on every segment's Gauss points (eq. 3.58, 3.64) and the cutting force:
         on the tip segment (points) or uniformly over the last `cutting_length` mm of needle
-        (mortar), two Gauss points per (part of a) segment."""
+        (mortar), two Gauss points per (part of a) segment. Returns the magnitudes (N) on
+        the segments' Gauss points followed by the load points of a partly covered segment,
+        and those extra points, (t, 2)."""
         segments = len(self.points) - 1
+        no_points = np.zeros((0, 2))
         if segments < 1:
-            return LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, self.model.n_free)), np.zeros(0))
+            return np.zeros(0), no_points
         step_length = self.geometry.insertion_step  # needle length per segment, mm
         needle_length = step_length * self.segment_fraction  # needle length each segment stands for
         friction = np.repeat(0.5 * self.needle.friction * needle_length, 2)
@@ -391,7 +419,7 @@ class NeedleCoupling:
         if self.kind == POINTS or cutting == 0.0:
             magnitudes = friction.copy()
             magnitudes[-2:] += 0.5 * cutting
-            return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
+            return magnitudes, no_points
         full_steps = bool(np.all(self.segment_fraction == 1.0))
         zone = min(self.cutting_length, segments * step_length if full_steps else float(needle_length.sum()))
         if full_steps:  # whole steps: in step units
@@ -410,15 +438,12 @@ class NeedleCoupling:
         magnitudes = friction.copy()
         magnitudes[(2 * whole[:, None] + np.arange(2)).ravel()] += np.repeat(share[whole], 2)
         if not len(part):
-            return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
+            return magnitudes, no_points
         fraction = covered[part]
         start, end = self.points[part], self.points[part + 1]
         along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
         part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
-        return LoadQuadrature(
-            np.vstack([self.segment_points, part_points]),
-            _stacked(self.segment_rows, self._rows_at(part_points)),
-            np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]))
+        return np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]), part_points
 
     def _force_of(self, loads: LoadQuadrature, free: np.ndarray, center: np.ndarray,
                   factor: float) -> np.ndarray:

@@ -238,6 +238,10 @@ class NeedleInsertion:
         """u (2,) at one reference point (free_rows)."""
         return self.free_rows(point) @ self.free
 
+    def tip_displacement(self) -> np.ndarray:
+        """u (2,) at the last needle point, from the row the coupling evaluated when adding it."""
+        return self.coupling.tip_row @ self.free
+
     def particle_displacements(self) -> np.ndarray:
         return self.particle_values @ self.coefficients()
 
