@@ -447,8 +447,6 @@ class NeedleCoupling:
 
     def _force_of(self, loads: LoadQuadrature, free: np.ndarray, center: np.ndarray,
                   factor: float) -> np.ndarray:
-        if factor == 0.0 or not len(loads.magnitudes):
-            return np.zeros(2 * self.model.n_free)
         load_points = loads.points + loads.rows @ free  # spatial, (L, 2)
         angles = np.arctan2(load_points[:, 1] - center[1], load_points[:, 0] - center[0])
         tangent = self.geometry.tangent(angles)  # a_0, (L, 2)
@@ -457,9 +455,11 @@ class NeedleCoupling:
     def needle_force(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
         """f_needle (2 n_free,): the line loads along the direction of needle motion a_0 at
         the spatial load points (eq. 3.64), ramped between the previous and this step's."""
-        beta = self.load_factor
-        return (self._force_of(self.loads, free, center, beta)
-                + self._force_of(self.previous_loads, free, center, 1.0 - beta))
+        force = np.zeros(2 * self.model.n_free)
+        for loads, factor in ((self.loads, self.load_factor), (self.previous_loads, 1.0 - self.load_factor)):
+            if factor != 0.0 and len(loads.magnitudes):  # within a step's Newton mostly one of them
+                force += self._force_of(loads, free, center, factor)
+        return force
 
     def needle_force_center_derivative(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
         """d f_needle / dC (2 n_free, 2): a_0 turns with the polar angle seen from C,
@@ -482,7 +482,7 @@ class NeedleCoupling:
     def constraint_values(self, free: np.ndarray, center: np.ndarray) -> ConstraintValues:
         spatial = self.quadrature_points() + self.quadrature_rows @ free  # (Q, 2)
         relative = spatial - center
-        rho = np.linalg.norm(relative, axis=1)
+        rho = np.sqrt((relative * relative).sum(axis=1))  # np.linalg.norm's sum, without its checks
         return ConstraintValues(self.weights.T @ (rho - self.target_radius), relative / rho[:, None], rho)
 
     def quadrature_points(self) -> np.ndarray:

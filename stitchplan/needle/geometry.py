@@ -57,7 +57,10 @@ class NeedleGeometry:
 
     def tangent(self, angle: float | np.ndarray) -> np.ndarray:
         """Direction of needle motion at the point of polar angle `angle` (a_0 of eq. 3.58)."""
-        return self.sense * np.stack([-np.sin(angle), np.cos(angle)], axis=-1)
+        angle = np.asarray(angle)
+        direction = np.empty(angle.shape + (2,))
+        direction[..., 0], direction[..., 1] = -np.sin(angle), np.cos(angle)
+        return self.sense * direction
 
     @property
     def insertion_step(self) -> float:
