@@ -193,6 +193,7 @@ class NeedleInsertion:
         if self.linear_method == "direct":
             self.saddle.start_at_rest(made_here=not tissue.factorized)
         self.free = np.zeros((self.model.n_free, 2))
+        self._coefficients: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # (free, T free)
         self.multipliers = np.zeros(0)
         self.center = self.geometry.center.copy()
         self.last_violation = 0.0  # max |g_e| of the last converged equilibrium, mm
@@ -212,7 +213,11 @@ class NeedleInsertion:
         return self.coupling.points
 
     def coefficients(self) -> np.ndarray:
-        return self.model.boundary.free_map @ self.free
+        """d = T free (NP, 2), kept while `free` is the same array (tip tracking asks at every
+        evaluation; `free` is replaced after each solve, never changed in place)."""
+        if self._coefficients[0] is not self.free:
+            self._coefficients = (self.free, self.model.boundary.free_map @ self.free)
+        return self._coefficients[1]
 
     def displacement(self, points: np.ndarray, gradient: bool = False):
         """u (n, 2) at reference points, and with `gradient` also grad u (n, i, J)."""

@@ -174,7 +174,7 @@ def rk_shape_pairs(
     """
     points = np.atleast_2d(np.asarray(points, dtype=float))
     rows, cols, indptr = neighbour_pairs(points, particles, support, tree, visibility)
-    counts = np.diff(indptr)
+    counts = indptr[1:] - indptr[:-1]
     m = basis_size(order)
     if (counts < m).any():
         bad = int(np.argmin(counts))
@@ -211,7 +211,7 @@ def rk_shape_pairs(
 
     dphi = dphi * volume[:, None]
     dh = dh_dy / scale
-    grads = []
+    grad = np.empty((len(rows), 2))
     for k in range(2):
         # dM/dX_k = sum (dH H^T + H dH^T) phi + H H^T dphi
         hdh = h[:, :, None] * dh[:, None, :, k]
@@ -219,10 +219,9 @@ def rk_shape_pairs(
         dmoment_terms += hh * dphi[:, k, None, None]
         dmoment = np.add.reduceat(dmoment_terms, starts, axis=0)  # (n, m, m)
         db = -np.einsum("nij,nj->ni", inverse, np.einsum("nij,nj->ni", dmoment, b))
-        grad = (
+        grad[:, k] = (
             np.einsum("pm,pm->p", db[rows], h) * phi
             + np.einsum("pm,pm->p", b_pair, dh[:, :, k]) * phi
             + corrected * dphi[:, k]
         )
-        grads.append(grad)
-    return ShapePairs(rows, cols, indptr, shape, np.stack(grads, axis=1))
+    return ShapePairs(rows, cols, indptr, shape, grad)
