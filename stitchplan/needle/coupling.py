@@ -102,39 +102,45 @@ def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> 
     return sorted(min(group) for group in groups)
 
 
-def _interleaved(rows: sp.csr_matrix) -> sp.csr_matrix:
-    """N T acting on interleaved dofs: row q becomes rows (q, 0) and (q, 1) with columns
-    (p, 0) and (p, 1), built from the CSR arrays (a row's columns stay in their order)."""
-    counts = np.diff(rows.indptr)
-    row = np.repeat(np.arange(rows.shape[0]), counts)
-    order = np.argsort(np.concatenate([2 * row, 2 * row + 1]), kind="stable")
-    indices = np.concatenate([2 * rows.indices, 2 * rows.indices + 1])[order]
-    indptr = np.concatenate([[0], np.cumsum(np.repeat(counts, 2))])
-    return sp.csr_matrix((np.concatenate([rows.data, rows.data])[order], indices, indptr),
-                         shape=(2 * rows.shape[0], 2 * rows.shape[1]))
+# Rows of the track's sparse matrices are handled as blocks (data, indices, entries per row):
+# joining arrays and building one CSR matrix per change costs less than scipy's slicing and
+# stacking of these few rows.
+RowBlock = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def _row_range(rows: sp.csr_matrix, start: int, stop: int) -> sp.csr_matrix:
-    """rows[start:stop] from the CSR arrays (scipy's slicing validates more than this needs)."""
+def _block(rows: sp.csr_matrix, start: int, stop: int) -> RowBlock:
+    """rows[start:stop] as a block."""
     first, last = rows.indptr[start], rows.indptr[stop]
-    return sp.csr_matrix((rows.data[first:last], rows.indices[first:last], rows.indptr[start:stop + 1] - first),
-                         shape=(stop - start, rows.shape[1]))
+    return rows.data[first:last], rows.indices[first:last], np.diff(rows.indptr[start:stop + 1])
 
 
-def _stacked(top: sp.csr_matrix, bottom: sp.csr_matrix) -> sp.csr_matrix:
-    """[top; bottom] for CSR matrices of one width, joined from their arrays (sp.vstack
-    without its generality: one construction)."""
-    return sp.csr_matrix((np.concatenate([top.data, bottom.data]), np.concatenate([top.indices, bottom.indices]),
-                          np.concatenate([top.indptr, top.nnz + bottom.indptr[1:]])),
-                         shape=(top.shape[0] + bottom.shape[0], top.shape[1]))
+def _empty_block(count: int) -> RowBlock:
+    """`count` rows of zeros."""
+    return np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros(count, dtype=np.int64)
+
+
+def _interleaved(block: RowBlock) -> RowBlock:
+    """N T acting on interleaved dofs: row q becomes rows (q, 0) and (q, 1) with columns
+    (p, 0) and (p, 1) (a row's columns stay in their order)."""
+    data, indices, counts = block
+    row = np.repeat(np.arange(len(counts)), counts)
+    order = np.argsort(np.concatenate([2 * row, 2 * row + 1]), kind="stable")
+    return (np.concatenate([data, data])[order], np.concatenate([2 * indices, 2 * indices + 1])[order],
+            np.repeat(counts, 2))
+
+
+def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
+    """[top; block] as one new CSR matrix."""
+    data, indices, counts = block
+    return sp.csr_matrix((np.concatenate([top.data, data]), np.concatenate([top.indices, indices]),
+                          np.concatenate([top.indptr, top.nnz + np.cumsum(counts)])),
+                         shape=(top.shape[0] + len(counts), top.shape[1]))
 
 
 class GrowingRows:
     """Shape-function rows N(X_q) T of points that are only ever appended (the track's and
-    its constraint quadrature's), with their interleaved form E (`interleaved`). Rebuilding
-    the sparse matrices by stacking every step cost more than the arithmetic on these few
-    rows; here each append joins the new rows once, and E^T is formed once per change,
-    when first asked for."""
+    its constraint quadrature's), with their interleaved form E (`interleaved`): each
+    append builds the matrices once, and E^T is formed once per change, when first asked for."""
 
     def __init__(self, columns: int, interleaved: bool = False):
         self.matrix = sp.csr_matrix((0, columns))  # N_q T, (Q, n_free)
@@ -144,10 +150,10 @@ class GrowingRows:
     def __len__(self) -> int:
         return self.matrix.shape[0]
 
-    def append(self, rows: sp.csr_matrix) -> None:
-        self.matrix = _stacked(self.matrix, rows)
+    def append(self, block: RowBlock) -> None:
+        self.matrix = _extended(self.matrix, block)
         if self.expanded is not None:
-            self.expanded = _stacked(self.expanded, _interleaved(rows))
+            self.expanded = _extended(self.expanded, _interleaved(block))
             self._expanded_t = None
 
     @property
@@ -283,12 +289,11 @@ class NeedleCoupling:
         self.tip_row = np.bincount(rows.indices[:rows.indptr[1]], rows.data[:rows.indptr[1]],
                                    minlength=self.model.n_free)  # N(X_tip) T, dense (n_free,)
         if len(new):
-            self._segment_rows.append(sp.csr_matrix((2, self.model.n_free)) if gap else _row_range(rows, 1, ends[2]))
+            self._segment_rows.append(_empty_block(2) if gap else _block(rows, 1, ends[2]))
         if len(constraint_points):
-            self._quadrature_rows.append(_row_range(rows, ends[2], ends[3]))
-        part_rows = _row_range(rows, ends[3], ends[4])
+            self._quadrature_rows.append(_block(rows, ends[2], ends[3]))
         if self.kind == POINTS:
-            self._quadrature_rows.append(_row_range(rows, 0, 1))
+            self._quadrature_rows.append(_block(rows, 0, 1))
             self.weights = np.eye(len(self.points))
             self._shares = self.weights
             self.multiplier_count = len(self.points)
@@ -300,7 +305,7 @@ class NeedleCoupling:
         self.previous_loads = self.loads
         if len(part_points):
             self.loads = LoadQuadrature(np.vstack([self.segment_points, part_points]),
-                                        _stacked(self.segment_rows, part_rows), magnitudes)
+                                        _extended(self.segment_rows, _block(rows, ends[3], ends[4])), magnitudes)
         else:
             self.loads = LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
         return carried
