@@ -212,7 +212,10 @@ class SaddlePointSolver:
         have, count = self._solved_count, rows.shape[0]
         if have >= count:
             return
-        new = self._factor.solve(rows[have:].toarray().T)  # (n, new)
+        first = rows.indptr[have]  # the new rows, from the CSR arrays (cheaper than slicing)
+        added = sp.csr_matrix((rows.data[first:], rows.indices[first:], rows.indptr[have:] - first),
+                              shape=(count - have, rows.shape[1]))
+        new = self._factor.solve(added.toarray().T)  # (n, new)
         if new.ndim == 1:
             new = new[:, None]
         if self._solved_rows.shape[1] < count:  # room for the next steps' rows too
