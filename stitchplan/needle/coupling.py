@@ -58,7 +58,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -129,6 +128,15 @@ def _interleaved(block: RowBlock) -> RowBlock:
             np.repeat(counts, 2))
 
 
+def _joined(*matrices: sp.csr_matrix) -> sp.csr_matrix:
+    """CSR matrices of one width one under the other, as one new matrix."""
+    offsets = np.cumsum([0] + [matrix.nnz for matrix in matrices[:-1]])
+    indptr = np.concatenate([[0]] + [matrix.indptr[1:] + offset for matrix, offset in zip(matrices, offsets)])
+    return sp.csr_matrix((np.concatenate([matrix.data for matrix in matrices]),
+                          np.concatenate([matrix.indices for matrix in matrices]), indptr),
+                         shape=(len(indptr) - 1, matrices[0].shape[1]))
+
+
 def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
     """[top; block] as one new CSR matrix."""
     data, indices, counts = block
@@ -181,11 +189,6 @@ class LoadQuadrature:
     rows: sp.csr_matrix  # N(X_l) T, (L, n_free)
     magnitudes: np.ndarray  # (L,)
 
-    @cached_property
-    def rows_t(self) -> sp.csr_matrix:
-        """T^T N(X_l)^T, (n_free, L)."""
-        return self.rows.T.tocsr()
-
 
 class NeedleCoupling:
     """Gamma_N with its shape-function rows, the needle loads and the constraints on it."""
@@ -229,6 +232,7 @@ class NeedleCoupling:
         self.loads = LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, n_free)), np.zeros(0))
         self.previous_loads = self.loads
         self.load_factor = 1.0  # beta of Algorithm 1's ramp within a step
+        self._track_rows: tuple[sp.csr_matrix, sp.csr_matrix, np.ndarray] | None = None  # _track
         # |x_q - C| the constraint asks of a quadrature point: the needle points lie on the
         # circle; a Gauss point at t of a segment lies on the chord between two needle points
         # one step apart, at sqrt(R^2 - t (1 - t) c^2) from C (c = 2 R sin(step / 2); t (1 - t)
@@ -302,7 +306,7 @@ class NeedleCoupling:
             self._partition()
             forces = np.concatenate([forces, np.zeros(self._shares.shape[0] - len(forces))])
             carried = self._shares.T @ forces
-        self.previous_loads = self.loads
+        self.previous_loads, self._track_rows = self.loads, None
         if len(part_points):
             self.loads = LoadQuadrature(np.vstack([self.segment_points, part_points]),
                                         _extended(self.segment_rows, _block(rows, ends[3], ends[4])), magnitudes)
@@ -450,45 +454,70 @@ class NeedleCoupling:
         part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
         return np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]), part_points
 
-    def _force_of(self, loads: LoadQuadrature, free: np.ndarray, center: np.ndarray,
-                  factor: float) -> np.ndarray:
-        load_points = loads.points + loads.rows @ free  # spatial, (L, 2)
-        angles = np.arctan2(load_points[:, 1] - center[1], load_points[:, 0] - center[0])
-        tangent = self.geometry.tangent(angles)  # a_0, (L, 2)
-        return (loads.rows_t @ ((factor * loads.magnitudes)[:, None] * tangent)).ravel()
+    # --- the coupling's terms of the residual --------------------------------------------------
 
-    def needle_force(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
-        """f_needle (2 n_free,): the line loads along the direction of needle motion a_0 at
-        the spatial load points (eq. 3.64), ramped between the previous and this step's."""
-        force = np.zeros(2 * self.model.n_free)
-        for loads, factor in ((self.loads, self.load_factor), (self.previous_loads, 1.0 - self.load_factor)):
-            if factor != 0.0 and len(loads.magnitudes):  # within a step's Newton mostly one of them
-                force += self._force_of(loads, free, center, factor)
-        return force
+    def _track(self) -> tuple[sp.csr_matrix, sp.csr_matrix, np.ndarray]:
+        """S = [N_q T; N_l T; N_l' T], the rows of the constraint quadrature's points, of this
+        step's load points and of the previous step's, (Q + L + L', n_free), with S^T and the
+        points' reference positions; built once per needle point. The residual's coupling
+        terms then take one product with S and one with S^T: on these few rows scipy's
+        per-product overhead, not the arithmetic, is the cost."""
+        if self._track_rows is None:
+            rows = _joined(self.quadrature_rows, self.loads.rows, self.previous_loads.rows)
+            points = np.vstack([self.quadrature_points(), self.loads.points, self.previous_loads.points])
+            self._track_rows = (rows, rows.T.tocsr(), points)
+        return self._track_rows
+
+    def _load_weights(self) -> np.ndarray:
+        """The load magnitudes (N) of Algorithm 1's ramp on S's load rows: beta x this step's
+        and (1 - beta) x the previous step's, (L + L',)."""
+        beta = self.load_factor
+        return np.concatenate([beta * self.loads.magnitudes, (1.0 - beta) * self.previous_loads.magnitudes])
+
+    def residual_terms(self, free: np.ndarray, multipliers: np.ndarray,
+                       center: np.ndarray) -> tuple[ConstraintValues, np.ndarray, np.ndarray]:
+        """The coupling's terms of eq. 3.62 at (free, multipliers, centre): the constraint
+        values g (eq. 3.59-3.61); f_needle (2 n_free,), the line loads along the direction of
+        needle motion a_0 at the spatial load points (eq. 3.64), ramped between the previous
+        and this step's; and G lambda = sum_q N_q^T (mu_q n_q) (2 n_free,)."""
+        rows, rows_t, points = self._track()
+        q = self.weights.shape[0]
+        spatial = points + rows @ free  # (Q + L + L', 2)
+        relative = spatial[:q] - center
+        rho = np.sqrt((relative * relative).sum(axis=1))  # np.linalg.norm's sum, without its checks
+        normal = relative / rho[:, None]
+        # S^T's right-hand sides: mu_q n_q on the quadrature rows (columns 0-1), the load
+        # forces on the load rows (columns 2-3)
+        terms = np.zeros((len(points), 4))
+        terms[:q, :2] = self._carried(multipliers)[:, None] * normal
+        magnitudes = self._load_weights()
+        if len(magnitudes):
+            angles = np.arctan2(spatial[q:, 1] - center[1], spatial[q:, 0] - center[0])
+            terms[q:, 2:] = magnitudes[:, None] * self.geometry.tangent(angles)  # a_0
+        forces = rows_t @ terms  # (n_free, 4)
+        values = ConstraintValues(self.weights.T @ (rho - self.target_radius), normal, rho)
+        return values, forces[:, 2:].ravel(), forces[:, :2].ravel()
 
     def needle_force_center_derivative(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
         """d f_needle / dC (2 n_free, 2): a_0 turns with the polar angle seen from C,
         d a_0 / dC = sense unit(theta) t^T / rho with t = (-sin theta, cos theta)."""
-        columns = np.zeros((2 * self.model.n_free, 2))
-        for loads, factor in ((self.loads, self.load_factor), (self.previous_loads, 1.0 - self.load_factor)):
-            if factor == 0.0 or not len(loads.magnitudes):
-                continue
-            relative = loads.points + loads.rows @ free - center  # (L, 2)
-            rho = np.linalg.norm(relative, axis=1)
-            radial = relative / rho[:, None]
-            across = np.column_stack([-radial[:, 1], radial[:, 0]])
-            scale = factor * loads.magnitudes * self.geometry.sense / rho  # (L,)
-            for j in range(2):
-                columns[:, j] += (loads.rows_t @ ((scale * across[:, j])[:, None] * radial)).ravel()
-        return columns
+        rows, rows_t, points = self._track()
+        q = self.weights.shape[0]
+        magnitudes = self._load_weights()
+        if not len(magnitudes):
+            return np.zeros((2 * self.model.n_free, 2))
+        relative = (points + rows @ free)[q:] - center  # (L + L', 2)
+        rho = np.sqrt((relative * relative).sum(axis=1))
+        radial = relative / rho[:, None]
+        across = np.column_stack([-radial[:, 1], radial[:, 0]])
+        scale = magnitudes * self.geometry.sense / rho
+        terms = np.zeros((len(points), 4))  # column j of dC in columns 2j, 2j + 1
+        terms[q:, :2] = (scale * across[:, 0])[:, None] * radial
+        terms[q:, 2:] = (scale * across[:, 1])[:, None] * radial
+        columns = rows_t @ terms  # (n_free, 4)
+        return np.column_stack([columns[:, :2].ravel(), columns[:, 2:].ravel()])
 
     # --- constraints ------------------------------------------------------------------------
-
-    def constraint_values(self, free: np.ndarray, center: np.ndarray) -> ConstraintValues:
-        spatial = self.quadrature_points() + self.quadrature_rows @ free  # (Q, 2)
-        relative = spatial - center
-        rho = np.sqrt((relative * relative).sum(axis=1))  # np.linalg.norm's sum, without its checks
-        return ConstraintValues(self.weights.T @ (rho - self.target_radius), relative / rho[:, None], rho)
 
     def quadrature_points(self) -> np.ndarray:
         """X_q, the reference points of the constraint quadrature, (Q, 2)."""
@@ -515,10 +544,6 @@ class NeedleCoupling:
         if not self.multiplier_count:
             return np.zeros(self.weights.shape[0])
         return self.weights @ multipliers
-
-    def constraint_force(self, multipliers: np.ndarray, normal: np.ndarray) -> np.ndarray:
-        """G lambda = sum_q N_q^T (mu_q n_q), interleaved (2 n_free,)."""
-        return self.expanded_rows_t @ (self._carried(multipliers)[:, None] * normal).ravel()
 
     def constraint_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
         """G of eq. 3.65 for the residual form: column j = sum_q W_qj N_q^T n_q."""
@@ -547,4 +572,7 @@ class NeedleCoupling:
         if not self.weights.shape[0] or self.multiplier_count == 0:
             return np.zeros((2 * self.model.n_free, 2))
         blocks = -self._projections(multipliers, normal, rho)  # (Q, i, j)
-        return self.expanded_rows_t @ blocks.reshape(-1, 2)
+        _, rows_t, points = self._track()
+        terms = np.zeros((len(points), 4))  # (i, j) in columns 2 i + j, on the quadrature rows
+        terms[:len(blocks)] = blocks.reshape(-1, 4)
+        return (rows_t @ terms).reshape(-1, 2)

@@ -276,9 +276,8 @@ class NeedleInsertion:
         """r_u and g of eq. 3.62 at (free (n_free, 2), multipliers, centre)."""
         gradient = (self.assembler.gradient @ free.reshape(-1)).reshape(-1, 2, 2)  # grad u (nq, i, J)
         internal = self.assembler.update(checked(self.model, gradient + np.eye(2)))
-        constraints = self.coupling.constraint_values(free, center)
-        needle_force = self.coupling.needle_force(free, center)
-        residual = internal - needle_force + self.coupling.constraint_force(multipliers, constraints.normal)
+        constraints, needle_force, constraint_force = self.coupling.residual_terms(free, multipliers, center)
+        residual = internal - needle_force + constraint_force
         return Residuals(residual, constraints.violation, constraints.normal, constraints.rho,
                          float(np.linalg.norm(needle_force)))
 
