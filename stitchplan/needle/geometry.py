@@ -18,6 +18,15 @@ from ..geometry import PolygonDomain, Rectangle, circle_center_at_entry
 from ..tissue.particles import RefinementZone, end_spacing
 
 
+IDENTITY = np.eye(2)
+
+
+def length(vector: np.ndarray) -> float:
+    """|v| of a 2-vector: np.linalg.norm's sqrt(v . v) without its argument handling (the
+    centre aim and the tip tracking take several per iteration)."""
+    return math.sqrt(vector.dot(vector))
+
+
 def unit(angle: float | np.ndarray) -> np.ndarray:
     return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
 

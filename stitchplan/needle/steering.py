@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..events import EventKind
+from .geometry import IDENTITY, length
 
 
 def spectral_norm(matrix: np.ndarray) -> float:
@@ -79,22 +80,22 @@ class CenterAim:
             return exit_row @ column.reshape(-1, 2)
 
         mismatch = self.origin + at_exit(free) - center
-        self.mismatch_mm = float(np.linalg.norm(mismatch))
+        self.mismatch_mm = length(mismatch)
         predicted = mismatch + at_exit(solution[:, 0])  # after this iteration's equilibrium update
         jacobian = np.column_stack([at_exit(solution[:, 1]), at_exit(solution[:, 2])])  # B
         self.eq42_ratio = spectral_norm(jacobian)  # the plain update dO = m moves X_exit by B m
         try:
-            wanted = np.linalg.solve(np.eye(2) - jacobian, predicted)
+            wanted = np.linalg.solve(IDENTITY - jacobian, predicted)
         except np.linalg.LinAlgError:
             wanted = predicted
-        limit = min(10.0 * float(np.linalg.norm(predicted)), self.max_move)
-        if float(np.linalg.norm(wanted)) > limit:
-            wanted = wanted * (limit / float(np.linalg.norm(wanted)))
+        limit = min(10.0 * length(predicted), self.max_move)
+        if length(wanted) > limit:
+            wanted = wanted * (limit / length(wanted))
         move = self.feasible(center + wanted) - center
-        size = float(np.linalg.norm(move))
+        size = length(move)
         # held at the limit (as the step settles: the last iteration's verdict counts), the
         # mismatch carries to the next steps
-        self.limited = size <= self.tolerance < float(np.linalg.norm(wanted)) - size
+        self.limited = size <= self.tolerance < length(wanted) - size
         if size <= self.tolerance:
             return None if balanced else move
         if self.updates >= self.max_updates:
