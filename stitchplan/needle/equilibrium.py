@@ -39,7 +39,7 @@ from ..tissue.factorization import Factor, factorize
 from ..tissue.model import TissueModel, build_tissue_model
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
-from .geometry import needle_zone, scenario_needle
+from .geometry import IDENTITY, length, needle_zone, scenario_needle
 from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers
 from .steering import CenterAim
@@ -275,11 +275,11 @@ class NeedleInsertion:
     def residuals(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray) -> Residuals:
         """r_u and g of eq. 3.62 at (free (n_free, 2), multipliers, centre)."""
         gradient = (self.assembler.gradient @ free.reshape(-1)).reshape(-1, 2, 2)  # grad u (nq, i, J)
-        internal = self.assembler.update(checked(self.model, gradient + np.eye(2)))
+        internal = self.assembler.update(checked(self.model, gradient + IDENTITY))
         constraints, needle_force, constraint_force = self.coupling.residual_terms(free, multipliers, center)
         residual = internal - needle_force + constraint_force
         return Residuals(residual, constraints.violation, constraints.normal, constraints.rho,
-                         float(np.linalg.norm(needle_force)))
+                         length(needle_force))
 
     def _stiffness(self, multipliers: np.ndarray, state: Residuals):
         """K + H at the state the assembler was last updated to, built when a solver asks."""
@@ -365,7 +365,7 @@ class NeedleInsertion:
         per_center, moved = None, math.inf  # d(d, lambda)/dC (n + m, 2), and the last centre move
         for iteration in range(settings.max_iterations + 1):
             state = self._timed_residuals(free.reshape(-1, 2), multipliers, center, rotation, step)
-            residual_norm, worst = float(np.linalg.norm(state.residual)), state.worst_violation
+            residual_norm, worst = length(state.residual), state.worst_violation
             balanced = (residual_norm <= settings.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
                         and worst <= self.constraint_tolerance)
             steering = aim is not None and aim.held is None
@@ -406,7 +406,7 @@ class NeedleInsertion:
                     self._accept(free, multipliers, center, worst, iteration)
                     return iteration, minres_total, worst
                 move = np.zeros(2) if move is None else move
-                moved = float(np.linalg.norm(move))
+                moved = length(move)
                 solution = np.concatenate([solution + per_center @ move, move])
                 if moved > aim.tolerance:
                     previous = math.inf  # the next residual measures the move, not the factor

@@ -22,8 +22,8 @@ IDENTITY = np.eye(2)
 
 
 def length(vector: np.ndarray) -> float:
-    """|v| of a 2-vector: np.linalg.norm's sqrt(v . v) without its argument handling (the
-    centre aim and the tip tracking take several per iteration)."""
+    """|v| of a vector: np.linalg.norm's sqrt(v . v) without its argument handling (Newton,
+    the centre aim and the tip tracking take several per iteration)."""
     return math.sqrt(vector.dot(vector))
 
 
