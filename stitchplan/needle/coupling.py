@@ -232,7 +232,7 @@ class NeedleCoupling:
         self.loads = LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, n_free)), np.zeros(0))
         self.previous_loads = self.loads
         self.load_factor = 1.0  # beta of Algorithm 1's ramp within a step
-        self._track_rows: tuple[sp.csr_matrix, sp.csr_matrix, np.ndarray] | None = None  # _track
+        self._track_rows: tuple[sp.csr_matrix, sp.csc_matrix, np.ndarray] | None = None  # _track
         # |x_q - C| the constraint asks of a quadrature point: the needle points lie on the
         # circle; a Gauss point at t of a segment lies on the chord between two needle points
         # one step apart, at sqrt(R^2 - t (1 - t) c^2) from C (c = 2 R sin(step / 2); t (1 - t)
@@ -456,7 +456,7 @@ class NeedleCoupling:
 
     # --- the coupling's terms of the residual --------------------------------------------------
 
-    def _track(self) -> tuple[sp.csr_matrix, sp.csr_matrix, np.ndarray]:
+    def _track(self) -> tuple[sp.csr_matrix, sp.csc_matrix, np.ndarray]:
         """S = [N_q T; N_l T; N_l' T], the rows of the constraint quadrature's points, of this
         step's load points and of the previous step's, (Q + L + L', n_free), with S^T and the
         points' reference positions; built once per needle point. The residual's coupling
@@ -465,7 +465,7 @@ class NeedleCoupling:
         if self._track_rows is None:
             rows = _joined(self.quadrature_rows, self.loads.rows, self.previous_loads.rows)
             points = np.vstack([self.quadrature_points(), self.loads.points, self.previous_loads.points])
-            self._track_rows = (rows, rows.T.tocsr(), points)
+            self._track_rows = (rows, rows.T, points)  # S^T as a CSC view: no conversion
         return self._track_rows
 
     def _load_weights(self) -> np.ndarray:
