@@ -12,12 +12,13 @@ K0's factor made before the clock starts):
 
 for SCENES, at BASELINE (the code before the overhead work, extracted with `git archive`
 into a temporary folder) and now, each in a subprocess with PYTHONPATH set to the code,
-alternating REPEATS times so both see the same machine load. Per case: median over the
-repeats of the run's wall time, of the median needle-step wall time (NeedleStep.wall_seconds,
-tracking and solves), and the Newton iterations; and the largest change of the exit error
-between the two codes (the results must agree to round-off).
+alternating REPEATS times so both see the same machine load. Each process makes one untimed
+run, then times RUNS_PER_PROCESS of each kind and reports their medians. Per case: median
+over the processes of the run's wall time, of the median needle-step wall time
+(NeedleStep.wall_seconds, tracking and solves), and the Newton iterations; and the largest
+difference of the exit error over all runs of both codes (they must agree to round-off).
 
-Writes benchmarks/results/step_overhead.md and prints the table. About 2-3 minutes.
+Writes benchmarks/results/step_overhead.md and prints the table. About 2 minutes.
 Run from the repository root:  python benchmarks/step_overhead.py [BASELINE]
 """
 
@@ -39,7 +40,8 @@ import _common as common  # noqa: E402
 
 BASELINE = "b0ea93e"
 SCENES = (("needle20_entry30", None), ("needle20_entry18", None), ("sh12_100x100", 7.104))
-REPEATS = int(os.environ.get("STEP_OVERHEAD_REPEATS", 5))
+REPEATS = int(os.environ.get("STEP_OVERHEAD_REPEATS", 5))  # processes per code and case
+RUNS_PER_PROCESS = 3  # timed runs in each process (their median is the process's sample)
 
 
 def worker(scene: str, spacing: float | None) -> dict:
@@ -63,12 +65,15 @@ def worker(scene: str, spacing: float | None) -> dict:
     runs = {"unplanned": lambda: run_insertion(scenario, tissue=tissue),
             "planned": lambda: run_plan(scenario, compare=False, tissue=tissue).planned}
     for kind, run in runs.items():
-        start = time.perf_counter()
-        result = run()
-        seconds = time.perf_counter() - start
+        seconds, step_ms = [], []
+        for _ in range(RUNS_PER_PROCESS):
+            start = time.perf_counter()
+            result = run()
+            seconds.append(time.perf_counter() - start)
+            step_ms.append(1e3 * float(np.median([step.wall_seconds for step in result.steps])))
         record[kind] = {
-            "wall_s": seconds,
-            "step_ms": 1e3 * float(np.median([step.wall_seconds for step in result.steps])),
+            "wall_s": float(np.median(seconds)),
+            "step_ms": float(np.median(step_ms)),
             "steps": len(result.steps),
             "newton": int(sum(step.newton_iterations for step in result.steps)),
             "exit_error_mm": float(result.exit_error_mm),
@@ -128,13 +133,14 @@ def write(rows: list[dict], baseline: str) -> None:
     text = f"""# Fixed per-step overhead of a needle insertion on small models
 
 `python benchmarks/step_overhead.py` (baseline {baseline}, extracted with `git archive`; each
-case in a fresh process with PYTHONPATH at the code, before and after alternated, median of
-{REPEATS}). The model and K0's factor are built before the clock starts (a prebuilt
-`PreparedTissue`); "wall" is the whole run (`run_insertion`, or `run_plan(..., compare=False)`
-with every planner pass), "step" the median needle step's wall time (tip tracking and
-equilibrium solves), "Newton" the Newton iterations over the run's steps. "exit error spread"
-is the largest difference of the exit error over all runs of both codes: the change does not
-move the results beyond round-off.
+case in fresh processes with PYTHONPATH at the code, before and after alternated: median of
+{REPEATS} processes, each the median of {RUNS_PER_PROCESS} runs after an untimed one). The
+model and K0's factor are built before the clock starts (a prebuilt `PreparedTissue`);
+"wall" is the whole run (`run_insertion`, or `run_plan(..., compare=False)` with every
+planner pass), "step" the median needle step's wall time (tip tracking and equilibrium
+solves), "Newton" the Newton iterations over the run's steps. "exit error spread" is the
+largest difference of the exit error over all runs of both codes: the change does not move
+the results beyond round-off.
 
 {table}
 
