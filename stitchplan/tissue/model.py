@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
-from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -82,9 +81,8 @@ class TissueModel:
         """u(X) (n, 2) from particle coefficients (NP, 2) and, with gradients, du_i/dX_J (n, 2, 2)."""
         return self._shape_pairs(np.atleast_2d(points), gradients).field(coefficients)
 
-    @cached_property
+    @property
     def basis_scale(self) -> float:
-        """The mean support (shape_functions.rk_shape_pairs), kept: tip tracking asks at every evaluation."""
         return float(self.support.mean())
 
     def coefficients(self, free: np.ndarray, prescribed: np.ndarray) -> np.ndarray:
