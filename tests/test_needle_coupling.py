@@ -9,7 +9,9 @@
   holds) and the track stays on the needle between the needle points;
 - `center_sensitivity` (the planner's Jacobian) against central finite differences of the
   re-equilibrated state, for both couplings and the mortar's arc-length element ends;
-- `multiplier_ends: arc`: element ends at exact arc lengths a local spacing apart.
+- `multiplier_ends: arc`: element ends at exact arc lengths a local spacing apart;
+- the residual's coupling terms, kept on joined rows for speed, against their definitions
+  written out point by point, for both couplings.
 """
 
 from __future__ import annotations
@@ -32,10 +34,10 @@ def test_multiplier_elements_span_whole_segments_at_least_a_spacing_long(mortar)
     coupling = mortar.coupling
     segments = len(coupling.points) - 1
     lengths = np.linalg.norm(np.diff(coupling.points, axis=0), axis=1)
-    shares = coupling._shares.toarray()  # (Q, m): phi_j at each Gauss point
+    shares = coupling._shares  # (Q, m): phi_j at each Gauss point
     assert shares.shape == (2 * segments, coupling.multiplier_count)
     np.testing.assert_allclose(shares.sum(axis=1), 1.0, atol=1e-14)  # partition of unity
-    weights = coupling.weights.toarray()
+    weights = coupling.weights
     np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-14)  # g_j: a weighted mean
     # the nodes of the piecewise-linear field sit at needle points, at least a spacing apart
     arc = np.concatenate([[0.0], np.cumsum(lengths)])
@@ -65,7 +67,7 @@ def test_arc_ends_cut_the_track_every_local_spacing_from_the_tip():
     assert MULTIPLIER_SPACINGS * spacing[0] <= nodes[1] < 2 * MULTIPLIER_SPACINGS * spacing[0]
     assert np.min(np.abs(nodes[1:-1, None] - arc[None, :])) > 1e-3  # cut inside segments here
     assert coupling.multiplier_count == len(nodes) == int(arc[-1] / (MULTIPLIER_SPACINGS * spacing[0])) + 1
-    shares, weights = coupling._shares.toarray(), coupling.weights.toarray()
+    shares, weights = coupling._shares, coupling.weights
     np.testing.assert_allclose(shares.sum(axis=1), 1.0, atol=1e-14)
     np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-14)
     assert np.all((shares > 0).sum(axis=0) >= 2)  # every hat holds Gauss points
@@ -178,3 +180,58 @@ def test_the_mortar_coupling_adds_a_multiplier_only_once_a_spacing_of_track_has_
         counts.append(insertion.coupling.multiplier_count)
     assert counts == sorted(counts) and counts[0] == 1 + (MULTIPLIER_ORDER == 1)
     assert counts[-1] <= 8 * 1.6 / (MULTIPLIER_SPACINGS * 4.0) + 2 < 9
+
+
+@pytest.mark.parametrize("coupling", ["points", "mortar", "mortar-arc"])
+def test_the_coupling_terms_match_their_definitions_point_by_point(coupling):
+    """The track's rows are kept as joined CSR blocks, a step's new points are evaluated
+    together, and the residual's coupling terms come from one product with all of the
+    track's rows and one with their transpose: against the definitions written out with
+    each point's own shape-function row, mid-ramp (both load sets carry), off equilibrium:
+    E = N (x) I_2, g = W^T (|x_q - C| - R_q), G lambda = sum_q N_q^T (mu_q n_q),
+    f_needle = sum over both load sets of factor m_l N_l^T a_0(x_l) (eq. 3.64), the centre
+    derivatives, and the tip's row."""
+    options = {"coupling": "mortar", "multiplier_ends": "arc"} if coupling == "mortar-arc" else {"coupling": coupling}
+    insertion = started(small_scene(spacing=2.0, **options), steps=4)
+    track, model, geometry = insertion.coupling, insertion.model, insertion.geometry
+    track.load_factor = 0.25
+    rng = np.random.default_rng(3)
+    free = 0.05 * rng.standard_normal(insertion.free.shape)
+    multipliers = rng.standard_normal(track.multiplier_count)
+    center = insertion.center + np.array([0.1, -0.05])
+
+    def rows_at(points):  # each point on its own
+        return np.vstack([(model.shape_functions_at(point[None]).values @ model.boundary.free_map).toarray()
+                          for point in points])
+
+    values, needle_force, constraint_force = track.residual_terms(free, multipliers, center)
+    rows = rows_at(track.quadrature_points())
+    np.testing.assert_allclose(track.expanded_rows.toarray(), np.kron(rows, np.eye(2)), rtol=0, atol=1e-14)
+    relative = track.quadrature_points() + rows @ free - center
+    rho = np.linalg.norm(relative, axis=1)
+    normal = relative / rho[:, None]
+    np.testing.assert_allclose(values.violation, track.weights.T @ (rho - track.target_radius), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(values.normal, normal, rtol=0, atol=1e-13)
+    carried = track.weights @ multipliers
+    np.testing.assert_allclose(constraint_force, (rows.T @ (carried[:, None] * normal)).ravel(), rtol=0, atol=1e-12)
+    expected = np.zeros_like(needle_force)
+    for loads, factor in ((track.loads, 0.25), (track.previous_loads, 0.75)):
+        load_rows = rows_at(loads.points)
+        spatial = loads.points + load_rows @ free - center
+        tangent = geometry.tangent(np.arctan2(spatial[:, 1], spatial[:, 0]))
+        expected += (load_rows.T @ (factor * loads.magnitudes[:, None] * tangent)).ravel()
+    assert len(track.previous_loads.magnitudes) and np.abs(expected).max() > 0.0
+    np.testing.assert_allclose(needle_force, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    projection = (carried / rho)[:, None, None] * (np.eye(2) - normal[:, :, None] * normal[:, None, :])
+    np.testing.assert_allclose(track.center_derivative(multipliers, normal, rho),
+                               -np.einsum("qp,qij->pij", rows, projection).reshape(-1, 2), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(track.tip_row, rows_at(track.points[-1:])[0], rtol=0, atol=1e-15)
+    assert insertion.tip_displacement() == pytest.approx(insertion.displacement(track.points[-1])[0], abs=1e-13)
+
+
+def test_the_aim_s_closed_form_spectral_norm():
+    from stitchplan.needle.steering import spectral_norm
+
+    rng = np.random.default_rng(5)
+    for matrix in [*rng.standard_normal((20, 2, 2)), np.eye(2), np.zeros((2, 2)), np.array([[1.0, 1.0], [1.0, 1.0]])]:
+        assert spectral_norm(matrix) == pytest.approx(np.linalg.norm(matrix, 2), rel=1e-12, abs=1e-15)

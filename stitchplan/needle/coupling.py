@@ -58,7 +58,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -102,6 +101,77 @@ def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> 
     return sorted(min(group) for group in groups)
 
 
+# Rows of the track's sparse matrices are handled as blocks (data, indices, entries per row):
+# joining arrays and building one CSR matrix per change costs less than scipy's slicing and
+# stacking of these few rows.
+RowBlock = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _block(rows: sp.csr_matrix, start: int, stop: int) -> RowBlock:
+    """rows[start:stop] as a block."""
+    first, last = rows.indptr[start], rows.indptr[stop]
+    return rows.data[first:last], rows.indices[first:last], np.diff(rows.indptr[start:stop + 1])
+
+
+def _empty_block(count: int) -> RowBlock:
+    """`count` rows of zeros."""
+    return np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros(count, dtype=np.int64)
+
+
+def _interleaved(block: RowBlock) -> RowBlock:
+    """N T acting on interleaved dofs: row q becomes rows (q, 0) and (q, 1) with columns
+    (p, 0) and (p, 1) (a row's columns stay in their order)."""
+    data, indices, counts = block
+    row = np.repeat(np.arange(len(counts)), counts)
+    order = np.argsort(np.concatenate([2 * row, 2 * row + 1]), kind="stable")
+    return (np.concatenate([data, data])[order], np.concatenate([2 * indices, 2 * indices + 1])[order],
+            np.repeat(counts, 2))
+
+
+def _joined(*matrices: sp.csr_matrix) -> sp.csr_matrix:
+    """CSR matrices of one width one under the other, as one new matrix."""
+    offsets = np.cumsum([0] + [matrix.nnz for matrix in matrices[:-1]])
+    indptr = np.concatenate([[0]] + [matrix.indptr[1:] + offset for matrix, offset in zip(matrices, offsets)])
+    return sp.csr_matrix((np.concatenate([matrix.data for matrix in matrices]),
+                          np.concatenate([matrix.indices for matrix in matrices]), indptr),
+                         shape=(len(indptr) - 1, matrices[0].shape[1]))
+
+
+def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
+    """[top; block] as one new CSR matrix."""
+    data, indices, counts = block
+    return sp.csr_matrix((np.concatenate([top.data, data]), np.concatenate([top.indices, indices]),
+                          np.concatenate([top.indptr, top.nnz + np.cumsum(counts)])),
+                         shape=(top.shape[0] + len(counts), top.shape[1]))
+
+
+class GrowingRows:
+    """Shape-function rows N(X_q) T of points that are only ever appended (the track's and
+    its constraint quadrature's), with their interleaved form E (`interleaved`): each
+    append builds the matrices once, and E^T is formed once per change, when first asked for."""
+
+    def __init__(self, columns: int, interleaved: bool = False):
+        self.matrix = sp.csr_matrix((0, columns))  # N_q T, (Q, n_free)
+        self.expanded = sp.csr_matrix((0, 2 * columns)) if interleaved else None  # E, (2Q, 2 n_free)
+        self._expanded_t: sp.csr_matrix | None = None
+
+    def __len__(self) -> int:
+        return self.matrix.shape[0]
+
+    def append(self, block: RowBlock) -> None:
+        self.matrix = _extended(self.matrix, block)
+        if self.expanded is not None:
+            self.expanded = _extended(self.expanded, _interleaved(block))
+            self._expanded_t = None
+
+    @property
+    def expanded_t(self) -> sp.csr_matrix:
+        """E^T (2 n_free, 2Q), kept until the rows grow."""
+        if self._expanded_t is None:
+            self._expanded_t = self.expanded.T.tocsr()
+        return self._expanded_t
+
+
 @dataclass(frozen=True)
 class ConstraintValues:
     """The needle constraints at one state (eq. 3.59-3.61)."""
@@ -118,11 +188,6 @@ class LoadQuadrature:
     points: np.ndarray  # (L, 2)
     rows: sp.csr_matrix  # N(X_l) T, (L, n_free)
     magnitudes: np.ndarray  # (L,)
-
-    @cached_property
-    def rows_t(self) -> sp.csr_matrix:
-        """T^T N(X_l)^T, (n_free, L)."""
-        return self.rows.T.tocsr()
 
 
 class NeedleCoupling:
@@ -144,16 +209,18 @@ class NeedleCoupling:
         self.segment_gap = np.zeros(0, dtype=bool)
         self.segment_fraction = np.zeros(0)
         self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, 2 per segment
-        self.segment_rows = sp.csr_matrix((0, n_free))  # N(X_s) T at those points
-        self._point_rows = sp.csr_matrix((0, n_free))
-        # the constraint quadrature (needle points or segment Gauss points) and its multipliers
-        self.quadrature_rows = sp.csr_matrix((0, n_free))  # N_q T, (Q, n_free)
-        self.expanded_rows = sp.csr_matrix((0, 2 * n_free))  # N_q T on interleaved dofs, (2Q, 2 n_free)
-        self.weights = sp.csr_matrix((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
+        self.tip_row = np.zeros(n_free)  # N(X) T at the last needle point, dense
+        self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
+        # N(X_s) T at the segments' Gauss points; the constraint quadrature's rows N_q T with
+        # their interleaved form (the needle points, the segments' Gauss points, or the arc
+        # ends' own Gauss points)
+        self._segment_rows = GrowingRows(n_free, interleaved=self.kind == MORTAR and not self.arc_ends)
+        self._quadrature_rows = (self._segment_rows if self.kind == MORTAR and not self.arc_ends
+                                 else GrowingRows(n_free, interleaved=True))
+        # dense: W and P have a few entries per row and columns, m ~ Q / 2
+        self.weights = np.zeros((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
         self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
-        self._weights_dense: np.ndarray | None = None  # W as an array (normal_weights)
         self._spacing_of_segments = np.zeros(0)  # local particle spacing per segment (_segment_spacing)
-        self._expanded_rows_t: sp.csr_matrix | None = None  # E^T (expanded_rows_t)
         self.multiplier_count = 0
         self.multiplier_nodes = np.zeros(0)  # mortar: arc length of each multiplier's node (element start)
         # mortar constraint quadrature (multiplier_ends "arc"): Gauss points of each segment, fixed
@@ -165,13 +232,13 @@ class NeedleCoupling:
         self.loads = LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, n_free)), np.zeros(0))
         self.previous_loads = self.loads
         self.load_factor = 1.0  # beta of Algorithm 1's ramp within a step
+        self._track_rows: tuple[sp.csr_matrix, sp.csc_matrix, np.ndarray] | None = None  # _track
         # |x_q - C| the constraint asks of a quadrature point: the needle points lie on the
         # circle; a Gauss point at t of a segment lies on the chord between two needle points
         # one step apart, at sqrt(R^2 - t (1 - t) c^2) from C (c = 2 R sin(step / 2); t (1 - t)
         # = 1/6 at both Gauss points). Asking R there would push the whole track outward
         # by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm steps)
         self._chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
-        self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
         self.target_radius = (geometry.radius if self.kind == POINTS
                               else np.zeros(0) if self.arc_ends
                               else math.sqrt(geometry.radius**2 - self._chord**2 / 6.0))
@@ -181,13 +248,20 @@ class NeedleCoupling:
     def _rows_at(self, points: np.ndarray) -> sp.csr_matrix:
         return (self.model.shape_functions_at(points).values @ self.model.boundary.free_map).tocsr()
 
-    def _expand(self, rows: sp.csr_matrix) -> sp.csr_matrix:
-        """N T acting on interleaved dofs: rows (q, i), columns (p, i)."""
-        coo = rows.tocoo()
-        return sp.csr_matrix(
-            (np.concatenate([coo.data, coo.data]),
-             (np.concatenate([2 * coo.row, 2 * coo.row + 1]), np.concatenate([2 * coo.col, 2 * coo.col + 1]))),
-            shape=(2 * rows.shape[0], 2 * self.model.n_free))
+    @property
+    def segment_rows(self) -> sp.csr_matrix:
+        """N(X_s) T at the segments' Gauss points, (2 segments, n_free)."""
+        return self._segment_rows.matrix
+
+    @property
+    def quadrature_rows(self) -> sp.csr_matrix:
+        """N_q T at the constraint quadrature's points, (Q, n_free)."""
+        return self._quadrature_rows.matrix
+
+    @property
+    def expanded_rows(self) -> sp.csr_matrix:
+        """E: N_q T on interleaved dofs, (2Q, 2 n_free)."""
+        return self._quadrature_rows.expanded
 
     def local_spacing(self, points: np.ndarray) -> np.ndarray:
         """Particle spacing at reference points: that of the nearest particle, (n,)."""
@@ -201,37 +275,43 @@ class NeedleCoupling:
         `fraction`: the share of a needle step the segment stands for."""
         multipliers = np.zeros(self.multiplier_count) if multipliers is None else multipliers
         forces = self.weights @ multipliers if self.multiplier_count else np.zeros(self.weights.shape[0])  # (Q,)
+        new = np.zeros((0, 2))  # the new segment's Gauss points
         if len(self.points):
             new = self.points[-1] + GAUSS_POINTS[:, None] * (reference_point - self.points[-1])
             self.segment_points = np.vstack([self.segment_points, new])
-            rows = sp.csr_matrix((2, self.model.n_free)) if gap else self._rows_at(new)  # no tissue in a gap
-            self.segment_rows = sp.vstack([self.segment_rows, rows], format="csr")
             self.segment_gap = np.append(self.segment_gap, gap)
             self.segment_fraction = np.append(self.segment_fraction, 0.0 if gap else fraction)
         self.points = np.vstack([self.points, reference_point])
+        constraint_points = self._new_constraint_points() if self.arc_ends and len(self.points) > 1 else np.zeros((0, 2))
+        magnitudes, part_points = self._load_layout()
+        # the shape-function rows of every point the step adds, in one evaluation: the tip,
+        # the new segment's Gauss points (no tissue in a gap: zero rows), the arc ends'
+        # constraint points and the load points on a partly covered segment
+        blocks = (reference_point[None], np.zeros((0, 2)) if gap else new, constraint_points, part_points)
+        ends = np.cumsum([0] + [len(block) for block in blocks])
+        rows = self._rows_at(np.vstack(blocks))
+        self.tip_row = np.bincount(rows.indices[:rows.indptr[1]], rows.data[:rows.indptr[1]],
+                                   minlength=self.model.n_free)  # N(X_tip) T, dense (n_free,)
+        if len(new):
+            self._segment_rows.append(_empty_block(2) if gap else _block(rows, 1, ends[2]))
+        if len(constraint_points):
+            self._quadrature_rows.append(_block(rows, ends[2], ends[3]))
         if self.kind == POINTS:
-            row = self._rows_at(reference_point[None])
-            self._point_rows = sp.vstack([self._point_rows, row], format="csr")
-            self.quadrature_rows = self._point_rows
-            self.expanded_rows = self._expand(self._point_rows)
-            self.weights = sp.identity(len(self.points), format="csr")
+            self._quadrature_rows.append(_block(rows, 0, 1))
+            self.weights = np.eye(len(self.points))
             self._shares = self.weights
             self.multiplier_count = len(self.points)
             carried = np.append(multipliers, 0.0)
         else:
-            if len(self.points) > 1 and self.arc_ends:
-                self._add_constraint_points()
-            elif len(self.points) > 1:
-                self.quadrature_rows = self.segment_rows
-                self.expanded_rows = sp.vstack([self.expanded_rows, self._expand(self.segment_rows[-2:])],
-                                               format="csr")
             self._partition()
             forces = np.concatenate([forces, np.zeros(self._shares.shape[0] - len(forces))])
             carried = self._shares.T @ forces
-        self.previous_loads, self.loads = self.loads, self._load_quadrature()
-        self._expanded_rows_t = None
-        if self.kind == POINTS:
-            self._weights_dense = None
+        self.previous_loads, self._track_rows = self.loads, None
+        if len(part_points):
+            self.loads = LoadQuadrature(np.vstack([self.segment_points, part_points]),
+                                        _extended(self.segment_rows, _block(rows, ends[3], ends[4])), magnitudes)
+        else:
+            self.loads = LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
         return carried
 
     def _segment_spacing(self) -> np.ndarray:
@@ -248,30 +328,29 @@ class NeedleCoupling:
         lengths = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
         return np.where(self.segment_gap, 0.0, lengths)
 
-    def _add_constraint_points(self) -> None:
-        """Gauss points of the new segment for the constraint: at least two, and at least
+    def _new_constraint_points(self) -> np.ndarray:
+        """Gauss points of the new segment for the constraint (returned, (count, 2); none
+        across a gap), with their segment, position and length recorded: at least two, and at least
         QUADRATURE_PER_ELEMENT per multiplier element length over the segment (a 2 mm segment
         against 1.25 mm elements gets 4), so every element holds Gauss points and the hat
         functions' kinks inside a segment are integrated closely. Each asks |x - C| of a point
         at t on the chord between two needle points: sqrt(R^2 - t (1 - t) c^2)."""
         start, end = self.points[-2], self.points[-1]
         if self.segment_gap[-1]:
-            return
+            return np.zeros((0, 2))
         length = float(np.linalg.norm(end - start))
         element = MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0])
         count = max(2, math.ceil(QUADRATURE_PER_ELEMENT * length / element - 1e-9))
         abscissae, gauss_weights = np.polynomial.legendre.leggauss(count)
         along, ds = 0.5 * (abscissae + 1.0), 0.5 * gauss_weights * length
         new = start + along[:, None] * (end - start)  # (count, 2)
-        rows = self._rows_at(new)
         self._constraint_points = np.vstack([self._constraint_points, new])
         self._constraint_segment = np.append(self._constraint_segment, np.full(count, len(self.points) - 2))
         self._constraint_along = np.append(self._constraint_along, along)
         self._constraint_length = np.append(self._constraint_length, ds)
         radius = self.geometry.radius
         self.target_radius = np.append(self.target_radius, np.sqrt(radius**2 - along * (1 - along) * self._chord**2))
-        self.quadrature_rows = sp.vstack([self.quadrature_rows, rows], format="csr")
-        self.expanded_rows = sp.vstack([self.expanded_rows, self._expand(rows)], format="csr")
+        return new
 
     def _arc_nodes(self, lengths: np.ndarray, arc: np.ndarray) -> np.ndarray:
         """Element ends at exact arc lengths: the track measured in local spacings,
@@ -296,7 +375,7 @@ class NeedleCoupling:
         g_j = sum_q W_qj g_q is the phi_j-weighted mean violation."""
         lengths = self._segment_lengths()
         if not len(lengths):
-            self.weights = self._shares = sp.csr_matrix((0, 0))
+            self.weights = self._shares = np.zeros((0, 0))
             self.multiplier_count = 0
             return
         arc = np.concatenate([[0.0], np.cumsum(lengths)])  # arc length at the needle points
@@ -327,20 +406,21 @@ class NeedleCoupling:
             shares[q, element + 1] += upper
         self.multiplier_nodes = nodes if MULTIPLIER_ORDER == 1 else nodes[:-1]  # arc length, mm
         weighted = shares * ds[:, None]
-        weights = weighted / weighted.sum(axis=0)
-        self._shares, self.weights = sp.csr_matrix(shares), sp.csr_matrix(weights)
-        self._weights_dense = weights
+        self._shares, self.weights = shares, weighted / weighted.sum(axis=0)
         self.multiplier_count = shares.shape[1]
 
     # --- loads ------------------------------------------------------------------------------
 
-    def _load_quadrature(self) -> LoadQuadrature:
+    def _load_layout(self) -> tuple[np.ndarray, np.ndarray]:
         """Friction on every segment's Gauss points (eq. 3.58, 3.64) and the cutting force:
         on the tip segment (points) or uniformly over the last `cutting_length` mm of needle
-        (mortar), two Gauss points per (part of a) segment."""
+        (mortar), two Gauss points per (part of a) segment. Returns the magnitudes (N) on
+        the segments' Gauss points followed by the load points of a partly covered segment,
+        and those extra points, (t, 2)."""
         segments = len(self.points) - 1
+        no_points = np.zeros((0, 2))
         if segments < 1:
-            return LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, self.model.n_free)), np.zeros(0))
+            return np.zeros(0), no_points
         step_length = self.geometry.insertion_step  # needle length per segment, mm
         needle_length = step_length * self.segment_fraction  # needle length each segment stands for
         friction = np.repeat(0.5 * self.needle.friction * needle_length, 2)
@@ -348,7 +428,7 @@ class NeedleCoupling:
         if self.kind == POINTS or cutting == 0.0:
             magnitudes = friction.copy()
             magnitudes[-2:] += 0.5 * cutting
-            return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
+            return magnitudes, no_points
         full_steps = bool(np.all(self.segment_fraction == 1.0))
         zone = min(self.cutting_length, segments * step_length if full_steps else float(needle_length.sum()))
         if full_steps:  # whole steps: in step units
@@ -367,55 +447,77 @@ class NeedleCoupling:
         magnitudes = friction.copy()
         magnitudes[(2 * whole[:, None] + np.arange(2)).ravel()] += np.repeat(share[whole], 2)
         if not len(part):
-            return LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
+            return magnitudes, no_points
         fraction = covered[part]
         start, end = self.points[part], self.points[part + 1]
         along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
         part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
-        return LoadQuadrature(
-            np.vstack([self.segment_points, part_points]),
-            sp.vstack([self.segment_rows, self._rows_at(part_points)], format="csr"),
-            np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]))
+        return np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]), part_points
 
-    def _force_of(self, loads: LoadQuadrature, free: np.ndarray, center: np.ndarray,
-                  factor: float) -> np.ndarray:
-        if factor == 0.0 or not len(loads.magnitudes):
-            return np.zeros(2 * self.model.n_free)
-        load_points = loads.points + loads.rows @ free  # spatial, (L, 2)
-        angles = np.arctan2(load_points[:, 1] - center[1], load_points[:, 0] - center[0])
-        tangent = self.geometry.tangent(angles)  # a_0, (L, 2)
-        return (loads.rows_t @ ((factor * loads.magnitudes)[:, None] * tangent)).ravel()
+    # --- the coupling's terms of the residual --------------------------------------------------
 
-    def needle_force(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
-        """f_needle (2 n_free,): the line loads along the direction of needle motion a_0 at
-        the spatial load points (eq. 3.64), ramped between the previous and this step's."""
+    def _track(self) -> tuple[sp.csr_matrix, sp.csc_matrix, np.ndarray]:
+        """S = [N_q T; N_l T; N_l' T], the rows of the constraint quadrature's points, of this
+        step's load points and of the previous step's, (Q + L + L', n_free), with S^T and the
+        points' reference positions; built once per needle point. The residual's coupling
+        terms then take one product with S and one with S^T: on these few rows scipy's
+        per-product overhead, not the arithmetic, is the cost."""
+        if self._track_rows is None:
+            rows = _joined(self.quadrature_rows, self.loads.rows, self.previous_loads.rows)
+            points = np.vstack([self.quadrature_points(), self.loads.points, self.previous_loads.points])
+            self._track_rows = (rows, rows.T, points)  # S^T as a CSC view: no conversion
+        return self._track_rows
+
+    def _load_weights(self) -> np.ndarray:
+        """The load magnitudes (N) of Algorithm 1's ramp on S's load rows: beta x this step's
+        and (1 - beta) x the previous step's, (L + L',)."""
         beta = self.load_factor
-        return (self._force_of(self.loads, free, center, beta)
-                + self._force_of(self.previous_loads, free, center, 1.0 - beta))
+        return np.concatenate([beta * self.loads.magnitudes, (1.0 - beta) * self.previous_loads.magnitudes])
+
+    def residual_terms(self, free: np.ndarray, multipliers: np.ndarray,
+                       center: np.ndarray) -> tuple[ConstraintValues, np.ndarray, np.ndarray]:
+        """The coupling's terms of eq. 3.62 at (free, multipliers, centre): the constraint
+        values g (eq. 3.59-3.61); f_needle (2 n_free,), the line loads along the direction of
+        needle motion a_0 at the spatial load points (eq. 3.64), ramped between the previous
+        and this step's; and G lambda = sum_q N_q^T (mu_q n_q) (2 n_free,)."""
+        rows, rows_t, points = self._track()
+        q = self.weights.shape[0]
+        spatial = points + rows @ free  # (Q + L + L', 2)
+        relative = spatial[:q] - center
+        rho = np.sqrt((relative * relative).sum(axis=1))  # np.linalg.norm's sum, without its checks
+        normal = relative / rho[:, None]
+        # S^T's right-hand sides: mu_q n_q on the quadrature rows (columns 0-1), the load
+        # forces on the load rows (columns 2-3)
+        terms = np.zeros((len(points), 4))
+        terms[:q, :2] = self._carried(multipliers)[:, None] * normal
+        magnitudes = self._load_weights()
+        if len(magnitudes):
+            angles = np.arctan2(spatial[q:, 1] - center[1], spatial[q:, 0] - center[0])
+            terms[q:, 2:] = magnitudes[:, None] * self.geometry.tangent(angles)  # a_0
+        forces = rows_t @ terms  # (n_free, 4)
+        values = ConstraintValues(self.weights.T @ (rho - self.target_radius), normal, rho)
+        return values, forces[:, 2:].ravel(), forces[:, :2].ravel()
 
     def needle_force_center_derivative(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
         """d f_needle / dC (2 n_free, 2): a_0 turns with the polar angle seen from C,
         d a_0 / dC = sense unit(theta) t^T / rho with t = (-sin theta, cos theta)."""
-        columns = np.zeros((2 * self.model.n_free, 2))
-        for loads, factor in ((self.loads, self.load_factor), (self.previous_loads, 1.0 - self.load_factor)):
-            if factor == 0.0 or not len(loads.magnitudes):
-                continue
-            relative = loads.points + loads.rows @ free - center  # (L, 2)
-            rho = np.linalg.norm(relative, axis=1)
-            radial = relative / rho[:, None]
-            across = np.column_stack([-radial[:, 1], radial[:, 0]])
-            scale = factor * loads.magnitudes * self.geometry.sense / rho  # (L,)
-            for j in range(2):
-                columns[:, j] += (loads.rows_t @ ((scale * across[:, j])[:, None] * radial)).ravel()
-        return columns
+        rows, rows_t, points = self._track()
+        q = self.weights.shape[0]
+        magnitudes = self._load_weights()
+        if not len(magnitudes):
+            return np.zeros((2 * self.model.n_free, 2))
+        relative = (points + rows @ free)[q:] - center  # (L + L', 2)
+        rho = np.sqrt((relative * relative).sum(axis=1))
+        radial = relative / rho[:, None]
+        across = np.column_stack([-radial[:, 1], radial[:, 0]])
+        scale = magnitudes * self.geometry.sense / rho
+        terms = np.zeros((len(points), 4))  # column j of dC in columns 2j, 2j + 1
+        terms[q:, :2] = (scale * across[:, 0])[:, None] * radial
+        terms[q:, 2:] = (scale * across[:, 1])[:, None] * radial
+        columns = rows_t @ terms  # (n_free, 4)
+        return np.column_stack([columns[:, :2].ravel(), columns[:, 2:].ravel()])
 
     # --- constraints ------------------------------------------------------------------------
-
-    def constraint_values(self, free: np.ndarray, center: np.ndarray) -> ConstraintValues:
-        spatial = self.quadrature_points() + self.quadrature_rows @ free  # (Q, 2)
-        relative = spatial - center
-        rho = np.linalg.norm(relative, axis=1)
-        return ConstraintValues(self._dense_weights().T @ (rho - self.target_radius), relative / rho[:, None], rho)
 
     def quadrature_points(self) -> np.ndarray:
         """X_q, the reference points of the constraint quadrature, (Q, 2)."""
@@ -425,21 +527,13 @@ class NeedleCoupling:
 
     def normal_weights(self, normal: np.ndarray) -> np.ndarray:
         """B (2Q, m) dense, B[2q + d, j] = W_qj n_q,d (the saddle-point solver's G = E^T B)."""
-        dense = self._dense_weights()
-        return (dense[:, None, :] * normal[:, :, None]).reshape(2 * dense.shape[0], dense.shape[1])
-
-    def _dense_weights(self) -> np.ndarray:
-        """W as a dense array, kept until the constraint set changes."""
-        if self._weights_dense is None or self._weights_dense.shape != self.weights.shape:
-            self._weights_dense = self.weights.toarray()
-        return self._weights_dense
+        weights = self.weights
+        return (weights[:, None, :] * normal[:, :, None]).reshape(2 * weights.shape[0], weights.shape[1])
 
     @property
     def expanded_rows_t(self) -> sp.csr_matrix:
         """E^T (2 n_free, 2Q), kept until the constraint quadrature grows."""
-        if self._expanded_rows_t is None or self._expanded_rows_t.shape[1] != self.expanded_rows.shape[0]:
-            self._expanded_rows_t = self.expanded_rows.T.tocsr()
-        return self._expanded_rows_t
+        return self._quadrature_rows.expanded_t
 
     def weights_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
         """B (2Q, m) of normal_weights as a sparse matrix (MINRES's G = E^T B)."""
@@ -451,17 +545,13 @@ class NeedleCoupling:
             return np.zeros(self.weights.shape[0])
         return self.weights @ multipliers
 
-    def constraint_force(self, multipliers: np.ndarray, normal: np.ndarray) -> np.ndarray:
-        """G lambda = sum_q N_q^T (mu_q n_q), interleaved (2 n_free,)."""
-        return self.expanded_rows_t @ (self._carried(multipliers)[:, None] * normal).ravel()
-
     def constraint_matrix(self, normal: np.ndarray) -> sp.csr_matrix:
         """G of eq. 3.65 for the residual form: column j = sum_q W_qj N_q^T n_q."""
         return (self.expanded_rows_t @ self.weights_matrix(normal)).tocsr()
 
     def constraint_center_derivative(self, normal: np.ndarray) -> np.ndarray:
         """d g_j / dC = -sum_q W_qj n_q^T, (m, 2)."""
-        return -(self._dense_weights().T @ normal).reshape(self.multiplier_count, 2)
+        return -(self.weights.T @ normal).reshape(self.multiplier_count, 2)
 
     def _projections(self, multipliers: np.ndarray, normal: np.ndarray, rho: np.ndarray) -> np.ndarray:
         """mu_q (I - n_q n_q^T) / rho_q, (Q, 2, 2)."""
@@ -482,4 +572,7 @@ class NeedleCoupling:
         if not self.weights.shape[0] or self.multiplier_count == 0:
             return np.zeros((2 * self.model.n_free, 2))
         blocks = -self._projections(multipliers, normal, rho)  # (Q, i, j)
-        return self.expanded_rows_t @ blocks.reshape(-1, 2)
+        _, rows_t, points = self._track()
+        terms = np.zeros((len(points), 4))  # (i, j) in columns 2 i + j, on the quadrature rows
+        terms[:len(blocks)] = blocks.reshape(-1, 4)
+        return (rows_t @ terms).reshape(-1, 2)

@@ -39,7 +39,7 @@ from ..tissue.factorization import Factor, factorize
 from ..tissue.model import TissueModel, build_tissue_model
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
-from .geometry import needle_zone, scenario_needle
+from .geometry import IDENTITY, length, needle_zone, scenario_needle
 from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers
 from .steering import CenterAim
@@ -193,12 +193,13 @@ class NeedleInsertion:
         if self.linear_method == "direct":
             self.saddle.start_at_rest(made_here=not tissue.factorized)
         self.free = np.zeros((self.model.n_free, 2))
+        self._coefficients: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # (free, T free)
         self.multipliers = np.zeros(0)
         self.center = self.geometry.center.copy()
         self.last_violation = 0.0  # max |g_e| of the last converged equilibrium, mm
         self.constraint_tolerance = CONSTRAINT_TOLERANCE * self.geometry.radius  # mm
         self.ramp_increments = 0  # load increments beyond the first, over the run
-        self._free_rows: dict[tuple[float, ...], sp.csr_matrix] = {}
+        self._free_rows: dict[tuple[float, ...], np.ndarray] = {}
         # every Newton iteration of every solve (the planner's centre tries and failed ramp
         # increments included), and the solves
         self.newton_iterations = 0
@@ -212,7 +213,11 @@ class NeedleInsertion:
         return self.coupling.points
 
     def coefficients(self) -> np.ndarray:
-        return self.model.boundary.free_map @ self.free
+        """d = T free (NP, 2), kept while `free` is the same array (tip tracking asks at every
+        evaluation; `free` is replaced after each solve, never changed in place)."""
+        if self._coefficients[0] is not self.free:
+            self._coefficients = (self.free, self.model.boundary.free_map @ self.free)
+        return self._coefficients[1]
 
     def displacement(self, points: np.ndarray, gradient: bool = False):
         """u (n, 2) at reference points, and with `gradient` also grad u (n, i, J)."""
@@ -222,20 +227,25 @@ class NeedleInsertion:
         u, grad = self.model.field_at(points, self.coefficients(), gradients=gradient)
         return (u, grad) if gradient else u
 
-    def free_rows(self, point: np.ndarray) -> sp.csr_matrix:
-        """N(X) T (1, n_free): u(X) = rows @ free for one reference point, kept per point (the
-        planner asks for the desired exit point's at every centre iteration)."""
+    def free_rows(self, point: np.ndarray) -> np.ndarray:
+        """N(X) T as a dense row (n_free,): u(X) = row @ free for one reference point, kept per
+        point (the planner asks for the desired exit point's at every centre iteration; a dense
+        row's product costs a tenth of a sparse one's on these models)."""
         key = tuple(np.asarray(point, dtype=float).ravel())
         rows = self._free_rows.get(key)
         if rows is None:
             clipped = self.domain.clip(np.atleast_2d(point))
-            rows = (self.model.shape_functions_at(clipped).values @ self.model.boundary.free_map).tocsr()
+            rows = (self.model.shape_functions_at(clipped).values @ self.model.boundary.free_map).toarray()[0]
             self._free_rows[key] = rows
         return rows
 
     def point_displacement(self, point: np.ndarray) -> np.ndarray:
         """u (2,) at one reference point (free_rows)."""
-        return (self.free_rows(point) @ self.free)[0]
+        return self.free_rows(point) @ self.free
+
+    def tip_displacement(self) -> np.ndarray:
+        """u (2,) at the last needle point, from the row the coupling evaluated when adding it."""
+        return self.coupling.tip_row @ self.free
 
     def particle_displacements(self) -> np.ndarray:
         return self.particle_values @ self.coefficients()
@@ -265,12 +275,11 @@ class NeedleInsertion:
     def residuals(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray) -> Residuals:
         """r_u and g of eq. 3.62 at (free (n_free, 2), multipliers, centre)."""
         gradient = (self.assembler.gradient @ free.reshape(-1)).reshape(-1, 2, 2)  # grad u (nq, i, J)
-        internal = self.assembler.update(checked(self.model, gradient + np.eye(2)))
-        constraints = self.coupling.constraint_values(free, center)
-        needle_force = self.coupling.needle_force(free, center)
-        residual = internal - needle_force + self.coupling.constraint_force(multipliers, constraints.normal)
+        internal = self.assembler.update(checked(self.model, gradient + IDENTITY))
+        constraints, needle_force, constraint_force = self.coupling.residual_terms(free, multipliers, center)
+        residual = internal - needle_force + constraint_force
         return Residuals(residual, constraints.violation, constraints.normal, constraints.rho,
-                         float(np.linalg.norm(needle_force)))
+                         length(needle_force))
 
     def _stiffness(self, multipliers: np.ndarray, state: Residuals):
         """K + H at the state the assembler was last updated to, built when a solver asks."""
@@ -356,7 +365,7 @@ class NeedleInsertion:
         per_center, moved = None, math.inf  # d(d, lambda)/dC (n + m, 2), and the last centre move
         for iteration in range(settings.max_iterations + 1):
             state = self._timed_residuals(free.reshape(-1, 2), multipliers, center, rotation, step)
-            residual_norm, worst = float(np.linalg.norm(state.residual)), state.worst_violation
+            residual_norm, worst = length(state.residual), state.worst_violation
             balanced = (residual_norm <= settings.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
                         and worst <= self.constraint_tolerance)
             steering = aim is not None and aim.held is None
@@ -397,7 +406,7 @@ class NeedleInsertion:
                     self._accept(free, multipliers, center, worst, iteration)
                     return iteration, minres_total, worst
                 move = np.zeros(2) if move is None else move
-                moved = float(np.linalg.norm(move))
+                moved = length(move)
                 solution = np.concatenate([solution + per_center @ move, move])
                 if moved > aim.tolerance:
                     previous = math.inf  # the next residual measures the move, not the factor
@@ -472,7 +481,7 @@ class NeedleInsertion:
                                             self.coupling.expanded_rows, self.coupling.normal_weights(state.normal))
         row = self.free_rows(point)
         n_dof = 2 * self.model.n_free
-        return np.column_stack([(row @ solution[:n_dof, j].reshape(-1, 2))[0] for j in range(2)])
+        return np.column_stack([row @ solution[:n_dof, j].reshape(-1, 2) for j in range(2)])
 
     def condition_numbers(self) -> tuple[float, float]:
         """cond of the saddle matrix at the current state, and of the block-preconditioned one

@@ -18,6 +18,15 @@ from ..geometry import PolygonDomain, Rectangle, circle_center_at_entry
 from ..tissue.particles import RefinementZone, end_spacing
 
 
+IDENTITY = np.eye(2)
+
+
+def length(vector: np.ndarray) -> float:
+    """|v| of a vector: np.linalg.norm's sqrt(v . v) without its argument handling (Newton,
+    the centre aim and the tip tracking take several per iteration)."""
+    return math.sqrt(vector.dot(vector))
+
+
 def unit(angle: float | np.ndarray) -> np.ndarray:
     return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
 
@@ -57,7 +66,10 @@ class NeedleGeometry:
 
     def tangent(self, angle: float | np.ndarray) -> np.ndarray:
         """Direction of needle motion at the point of polar angle `angle` (a_0 of eq. 3.58)."""
-        return self.sense * np.stack([-np.sin(angle), np.cos(angle)], axis=-1)
+        angle = np.asarray(angle)
+        direction = np.empty(angle.shape + (2,))
+        direction[..., 0], direction[..., 1] = -np.sin(angle), np.cos(angle)
+        return self.sense * direction
 
     @property
     def insertion_step(self) -> float:

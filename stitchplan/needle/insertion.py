@@ -189,7 +189,7 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
     record = NeedleStep(
         step=step, rotation=rotation, center=insertion.center.copy(),
         needle_tip=geometry.tip(rotation, insertion.center), tip_reference=point.copy(),
-        tip_spatial=point + insertion.displacement(point)[0], needle_points=len(insertion.points),
+        tip_spatial=point + insertion.tip_displacement(), needle_points=len(insertion.points),
         friction_force=needle.friction * geometry.radius * geometry.step * (len(insertion.points) - 1),
         cutting_force=needle.cutting_force, newton_iterations=insertion.newton_iterations - newton_before,
         equilibrium_solves=insertion.equilibrium_solves - solves_before,

@@ -30,13 +30,22 @@ the step's last iteration, the largest |B m| / |m| over plain updates m, is kept
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..events import EventKind
+from .geometry import IDENTITY, length
+
+
+def spectral_norm(matrix: np.ndarray) -> float:
+    """||B||_2 of a 2 x 2 matrix in closed form, the larger singular value:
+    sigma^2 = (|B|_F^2 + sqrt(|B|_F^4 - 4 det(B)^2)) / 2 (np.linalg.norm(B, 2) runs an SVD)."""
+    frobenius = float(np.sum(matrix * matrix))
+    determinant = float(matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0])
+    return math.sqrt(0.5 * (frobenius + math.sqrt(max(frobenius**2 - 4.0 * determinant**2, 0.0))))
 
 
 @dataclass
@@ -62,31 +71,31 @@ class CenterAim:
         self.updates, self.limited, self.held = 0, False, None
         self.mismatch_mm = self.eq42_ratio = float("nan")
 
-    def update(self, free: np.ndarray, center: np.ndarray, solution: np.ndarray, exit_rows: sp.csr_matrix,
+    def update(self, free: np.ndarray, center: np.ndarray, solution: np.ndarray, exit_row: np.ndarray,
                balanced: bool) -> np.ndarray | None:
         """The centre move of one Newton iteration, or None: settled (when `balanced`) or
         held. `free` (n_free, 2) and `center` are the iterate, `solution` (2 n_free, 3) the
-        saddle solve's displacement columns [dd_0, D], `exit_rows` N(X_exit) (1, n_free)."""
+        saddle solve's displacement columns [dd_0, D], `exit_row` N(X_exit) T, dense (n_free,)."""
         def at_exit(column: np.ndarray) -> np.ndarray:
-            return (exit_rows @ column.reshape(-1, 2))[0]
+            return exit_row @ column.reshape(-1, 2)
 
         mismatch = self.origin + at_exit(free) - center
-        self.mismatch_mm = float(np.linalg.norm(mismatch))
+        self.mismatch_mm = length(mismatch)
         predicted = mismatch + at_exit(solution[:, 0])  # after this iteration's equilibrium update
         jacobian = np.column_stack([at_exit(solution[:, 1]), at_exit(solution[:, 2])])  # B
-        self.eq42_ratio = float(np.linalg.norm(jacobian, 2))  # the plain update dO = m moves X_exit by B m
+        self.eq42_ratio = spectral_norm(jacobian)  # the plain update dO = m moves X_exit by B m
         try:
-            wanted = np.linalg.solve(np.eye(2) - jacobian, predicted)
+            wanted = np.linalg.solve(IDENTITY - jacobian, predicted)
         except np.linalg.LinAlgError:
             wanted = predicted
-        limit = min(10.0 * float(np.linalg.norm(predicted)), self.max_move)
-        if float(np.linalg.norm(wanted)) > limit:
-            wanted = wanted * (limit / float(np.linalg.norm(wanted)))
+        limit = min(10.0 * length(predicted), self.max_move)
+        if length(wanted) > limit:
+            wanted = wanted * (limit / length(wanted))
         move = self.feasible(center + wanted) - center
-        size = float(np.linalg.norm(move))
+        size = length(move)
         # held at the limit (as the step settles: the last iteration's verdict counts), the
         # mismatch carries to the next steps
-        self.limited = size <= self.tolerance < float(np.linalg.norm(wanted)) - size
+        self.limited = size <= self.tolerance < length(wanted) - size
         if size <= self.tolerance:
             return None if balanced else move
         if self.updates >= self.max_updates:

@@ -18,6 +18,7 @@ import scipy.optimize
 
 from ..errors import InsertionFailure, TipTrackingJump
 from ..events import Event, EventKind
+from .geometry import IDENTITY, length
 
 if TYPE_CHECKING:
     from .equilibrium import NeedleInsertion
@@ -101,7 +102,7 @@ def _tip_conditions(x, u, grad_u, previous_tip, center, radius, insertion_step):
     chord = x - previous_tip
     length = max(math.hypot(chord[0], chord[1]), 1e-300)
     values = np.array([distance - radius, length - insertion_step])
-    jacobian = np.vstack([(spatial / max(distance, 1e-300)) @ (np.eye(2) + grad_u), chord / length])
+    jacobian = np.array([(spatial / max(distance, 1e-300)) @ (IDENTITY + grad_u), chord / length])
     return values, jacobian
 
 
@@ -117,10 +118,11 @@ def _newton_tip(previous_tip, center, radius, insertion_step, start, displacemen
             step = np.linalg.solve(jacobian, values)
         except np.linalg.LinAlgError:
             return None, evaluations
-        if not np.all(np.isfinite(step)) or np.linalg.norm(step) > insertion_step:
+        size = length(step)
+        if not math.isfinite(size) or size > insertion_step:
             return None, evaluations  # leaving the step's neighbourhood: no zero near the start
         x = x - step
-        if np.linalg.norm(step) <= 1e-8 * max(radius, 1.0):  # quadratic: the error left is ~|step|^2 / R
+        if size <= 1e-8 * max(radius, 1.0):  # quadratic: the error left is ~|step|^2 / R
             return x, evaluations
     return None, NEWTON_TIP_ITERATIONS
 

@@ -31,20 +31,23 @@ def basis_size(order: int) -> int:
     return {1: 3, 2: 6}[order]
 
 
-def _basis(y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
-    """Basis H(Y) of eq. 3.21 and dH/dY; y (n, 2) -> H (n, m), dH (n, m, 2)."""
-    n = len(y)
-    one, zero = np.ones(n), np.zeros(n)
+def _basis(y: np.ndarray, order: int, gradients: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Basis H(Y) of eq. 3.21 and dH/dY; y (n, 2) -> H (n, m), dH (n, m, 2) (None without
+    `gradients`). Filled by columns: few array operations, as tip tracking evaluates single points."""
+    n, m = len(y), basis_size(order)
     y1, y2 = y[:, 0], y[:, 1]
-    if order == 1:
-        h = np.stack([one, y1, y2], axis=1)
-        dh1 = np.stack([zero, one, zero], axis=1)
-        dh2 = np.stack([zero, zero, one], axis=1)
-    else:
-        h = np.stack([one, y1, y2, y1 * y1, y1 * y2, y2 * y2], axis=1)
-        dh1 = np.stack([zero, one, zero, 2 * y1, y2, zero], axis=1)
-        dh2 = np.stack([zero, zero, one, zero, y1, 2 * y2], axis=1)
-    return h, np.stack([dh1, dh2], axis=2)
+    h = np.empty((n, m))
+    h[:, 0] = 1.0
+    h[:, 1:3] = y
+    if order == 2:
+        h[:, 3], h[:, 4], h[:, 5] = y1 * y1, y1 * y2, y2 * y2
+    if not gradients:
+        return h, None
+    dh = np.zeros((n, m, 2))  # dH_j / dY_k
+    dh[:, 1, 0] = dh[:, 2, 1] = 1.0
+    if order == 2:
+        dh[:, 3, 0], dh[:, 4, 0], dh[:, 4, 1], dh[:, 5, 1] = 2 * y1, y2, y1, 2 * y2
+    return h, dh
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,7 +102,7 @@ def neighbour_pairs(
         rows = np.repeat(np.arange(len(points)), counts)
     # the kernel vanishes at |z| = 1; a relative margin keeps particles that sit on the
     # support edge (dilation 2 on a regular grid) out regardless of rounding
-    keep = np.max(np.abs(points[rows] - particles[cols]), axis=1) < support[cols] * (1.0 - 1e-9)
+    keep = np.abs(points[rows] - particles[cols]).max(axis=1) < support[cols] * (1.0 - 1e-9)
     rows, cols = rows[keep], cols[keep]
     if visibility is not None:
         keep = visibility.keep(points, particles, rows, cols)
@@ -171,9 +174,9 @@ def rk_shape_pairs(
     """
     points = np.atleast_2d(np.asarray(points, dtype=float))
     rows, cols, indptr = neighbour_pairs(points, particles, support, tree, visibility)
-    counts = np.diff(indptr)
+    counts = indptr[1:] - indptr[:-1]
     m = basis_size(order)
-    if np.any(counts < m):
+    if (counts < m).any():
         bad = int(np.argmin(counts))
         raise SingularMomentMatrix(
             f"point ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm is covered by "
@@ -182,17 +185,17 @@ def rk_shape_pairs(
         )
     scale = float(basis_scale if basis_scale is not None else support.mean())
     offset = points[rows] - particles[cols]  # (pairs, 2)
-    phi, dphi = tensor_kernel(offset, support[cols])
-    phi = phi * volumes[cols]
-    dphi = dphi * volumes[cols][:, None]
-    h, dh_dy = _basis(offset / scale, order)  # (pairs, m), (pairs, m, 2)
-    dh = dh_dy / scale
+    volume = volumes[cols]
+    phi, dphi = tensor_kernel(offset, support[cols], gradients)
+    phi = phi * volume
+    h, dh_dy = _basis(offset / scale, order, gradients)  # (pairs, m), (pairs, m, 2)
 
     starts = indptr[:-1]
-    moment = np.add.reduceat(h[:, :, None] * h[:, None, :] * phi[:, None, None], starts, axis=0)
+    hh = h[:, :, None] * h[:, None, :]  # H H^T, (pairs, m, m)
+    moment = np.add.reduceat(hh * phi[:, None, None], starts, axis=0)
     eigenvalues = np.linalg.eigvalsh(moment)  # (n, m), ascending
     rcond = eigenvalues[:, 0] / eigenvalues[:, -1]
-    if np.any(rcond < 1e-12):
+    if (rcond < 1e-12).any():
         bad = int(np.argmin(rcond))
         raise SingularMomentMatrix(
             f"moment matrix M(X) is singular at ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm "
@@ -201,22 +204,24 @@ def rk_shape_pairs(
     inverse = np.linalg.inv(moment)  # (n, m, m); well conditioned, checked above
     b = inverse[:, :, 0]  # M^-1 H(0), H(0) = e_1 (M symmetric), (n, m)
     b_pair = b[rows]  # (pairs, m)
-    shape = np.einsum("pm,pm->p", b_pair, h) * phi
+    corrected = np.einsum("pm,pm->p", b_pair, h)  # H(0)^T M^-1 H, (pairs,)
+    shape = corrected * phi
     if not gradients:
         return ShapePairs(rows, cols, indptr, shape, None)
 
-    grads = []
+    dphi = dphi * volume[:, None]
+    dh = dh_dy / scale
+    grad = np.empty((len(rows), 2))
     for k in range(2):
         # dM/dX_k = sum (dH H^T + H dH^T) phi + H H^T dphi
         hdh = h[:, :, None] * dh[:, None, :, k]
         dmoment_terms = (hdh + hdh.transpose(0, 2, 1)) * phi[:, None, None]
-        dmoment_terms += h[:, :, None] * h[:, None, :] * dphi[:, k, None, None]
+        dmoment_terms += hh * dphi[:, k, None, None]
         dmoment = np.add.reduceat(dmoment_terms, starts, axis=0)  # (n, m, m)
         db = -np.einsum("nij,nj->ni", inverse, np.einsum("nij,nj->ni", dmoment, b))
-        grad = (
+        grad[:, k] = (
             np.einsum("pm,pm->p", db[rows], h) * phi
             + np.einsum("pm,pm->p", b_pair, dh[:, :, k]) * phi
-            + np.einsum("pm,pm->p", b_pair, h) * dphi[:, k]
+            + corrected * dphi[:, k]
         )
-        grads.append(grad)
-    return ShapePairs(rows, cols, indptr, shape, np.stack(grads, axis=1))
+    return ShapePairs(rows, cols, indptr, shape, grad)
