@@ -100,9 +100,9 @@ def _tip_conditions(x, u, grad_u, previous_tip, center, radius, insertion_step):
     spatial = x + u - center
     distance = math.hypot(spatial[0], spatial[1])
     chord = x - previous_tip
-    length = max(math.hypot(chord[0], chord[1]), 1e-300)
-    values = np.array([distance - radius, length - insertion_step])
-    jacobian = np.array([(spatial / max(distance, 1e-300)) @ (IDENTITY + grad_u), chord / length])
+    chord_length = max(math.hypot(chord[0], chord[1]), 1e-300)
+    values = np.array([distance - radius, chord_length - insertion_step])
+    jacobian = np.array([(spatial / max(distance, 1e-300)) @ (IDENTITY + grad_u), chord / chord_length])
     return values, jacobian
 
 
