@@ -157,7 +157,8 @@ def levers() -> list[tuple]:
          {(tip_tracking, "NEWTON_TIP_ITERATIONS"): 0}, None),
         ("sh12_100x100", "residual tolerance 1e-8 (the former default)", {}, tolerance(1e-8)),
         ("sh12_100x30", "all levers (now; 2 planner passes)", {}, None),
-        ("sh12_100x30", "each pass builds its own model and factors K0", {(planner, "run_insertion"): own_model}, None),
+        ("sh12_100x30", "each pass builds its own model and factors K0 (and so starts cold)",
+         {(planner, "run_insertion"): own_model}, None),
         ("sh12_100x30", "the second pass starts cold (not from the first)",
          {(planner, "run_insertion"): cold_run, (planner, "ExitTracker"): ColdTracker}, None),
     ]
