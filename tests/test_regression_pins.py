@@ -46,15 +46,12 @@ from conftest import CONFIGS, REPOSITORY
 # The 20 mm needle scenes re-pinned when they changed from `auto` tip tracking (the inverse
 # gradient first) to Levenberg-Marquardt, whose exit error converges under refinement
 # (configs/needle20_entry*.yaml): unplanned -0.9 to +4.8 %, planned now below 1e-10 mm.
-# sh12_100x30's planned value re-pinned when a pass after the first started each step from
-# the pass before (run_insertion start_from): its second pass settles the centres on another
-# path within the 0.001 mm planner tolerance (0.00033 -> 0.00087 mm).
 NEEDLE_SCENES = {
     "sh12_100x100": (39, 979, 0.463900743819185, 0.0006703769169705066),
     "sh12_100x100_mid": (39, 976, 0.3503305174827064, 1.6963127489040536e-06),
     "sh12_100x50": (39, 570, 0.47392718492883024, 0.002412663080047873),
     "sh12_100x40": (39, 479, 0.5426787188921418, 0.0023234518674973936),
-    "sh12_100x30": (39, 382, 0.6834936672370162, 0.0008679584840994998),
+    "sh12_100x30": (39, 382, 0.6834936672370162, 0.0003304813421170332),
     "needle20_entry30": (20, 622, 0.021316500521912845, 3.21773681271556e-14),
     "needle20_entry25": (18, 600, 0.018737158729361436, 2.1422865047888258e-12),
     "needle20_entry20": (15, 578, 0.016987410521680218, 4.323297788994089e-11),

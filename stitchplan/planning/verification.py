@@ -26,6 +26,9 @@ exported and reported (its `wall_seconds` then counts the passes of every round;
 replays' times are in the verification rounds). The trajectory is judged on the finer
 model: where the two models disagree by more than exit_tolerance, the planned (base-model)
 exit error of a corrected plan is about |delta|, and `exit_error_estimate_mm` says so too.
+A later round's replay starts each step's Newton solve from the round before (run_insertion
+`start_from`): its centres are prescribed, so it ends in the same equilibria to the residual
+tolerance, in fewer iterations. The re-planning passes start cold (planning.planner.run_plan).
 """
 
 from __future__ import annotations
@@ -178,8 +181,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at (%.4g, %.4g) mm",
                      *offset, *aim)
             again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
-                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
-                             start_from=result.planned, **options)
+                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue, **options)
             planning_seconds += again.planned.wall_seconds
             for record in again.passes:
                 record["round"] = correction + 1
