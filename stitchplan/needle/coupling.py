@@ -445,9 +445,9 @@ class NeedleCoupling:
     def _load_layout(self) -> tuple[np.ndarray, np.ndarray]:
         """Friction on every segment's Gauss points (eq. 3.58, 3.64) and the cutting force:
         on the tip segment (points) or uniformly over the last `cutting_length` mm of needle
-        (mortar), two Gauss points per (part of a) segment. Returns the magnitudes (N) on
-        the segments' Gauss points followed by the load points of a partly covered segment,
-        and those extra points, (t, 2)."""
+        (mortar), two Gauss points per (part of a) segment (the smooth profile:
+        _smooth_cutting). Returns the magnitudes (N) on the segments' Gauss points followed
+        by those of the extra load points (a partly covered segment's), and those points, (t, 2)."""
         segments = len(self.points) - 1
         no_points = np.zeros((0, 2))
         if segments < 1:
