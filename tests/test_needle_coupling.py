@@ -4,7 +4,9 @@
   long, no more multipliers than the track's length in spacings plus one (the inf-sup
   bound), weights that make g_j a weighted mean of the violation and a partition of unity;
 - its loads: friction x needle length on every segment, the cutting force spread over
-  `cutting_length` mm of needle behind the tip, in total the insertion force;
+  `cutting_length` mm of needle behind the tip, in total the insertion force; the smooth
+  profile's and the ramp's total cutting force on the track at several depths (also across a
+  wound's gap) and the smooth density's share on each segment;
 - the multiplier field it converges to is smooth (no checkerboard: the inf-sup condition
   holds) and the track stays on the needle between the needle points;
 - `center_sensitivity` (the planner's Jacobian) against central finite differences of the
@@ -20,7 +22,8 @@ import numpy as np
 import pytest
 from test_simulation import advance_one, dense_rest_stiffness, small_scene, started
 
-from stitchplan.needle.coupling import MULTIPLIER_ORDER, MULTIPLIER_SPACINGS
+from stitchplan.needle import coupling as coupling_module
+from stitchplan.needle.coupling import MULTIPLIER_ORDER, MULTIPLIER_SPACINGS, cutting_share
 from stitchplan.needle.equilibrium import NeedleInsertion
 
 
@@ -102,6 +105,62 @@ def test_loads_add_up_to_friction_and_cutting_force_and_the_cut_sits_behind_the_
         off = np.linalg.norm(start + t[:, None] * (end - start) - point, axis=1)
         assert np.any((off <= 1e-9) & (t >= 0.0) & (t <= 1.0))
     np.testing.assert_allclose(cutting.sum(), needle.cutting_force, rtol=1e-12)
+
+
+def _segment_of(coupling, points: np.ndarray) -> np.ndarray:
+    """The track segment each reference point lies on (inside its chord), (n,)."""
+    start, end = coupling.points[:-1], coupling.points[1:]
+    chord = end - start
+    t = np.einsum("pij,ij->pi", points[:, None, :] - start[None], chord) / np.einsum("ij,ij->i", chord, chord)
+    off = np.linalg.norm(start[None] + t[..., None] * chord[None] - points[:, None, :], axis=2)
+    off[(t < 0.0) | (t > 1.0)] = np.inf
+    assert np.all(off.min(axis=1) <= 1e-9)  # every load point on the track
+    return off.argmin(axis=1)
+
+
+@pytest.mark.parametrize("cutting_length", [2.4, 10.0])  # 1.6 mm segments: own Gauss points / the friction ones
+@pytest.mark.parametrize("profile, ramp", [("uniform", False), ("uniform", True), ("smooth", False),
+                                           ("smooth", True)])
+def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cutting_length):
+    """The cutting force on the track after each needle point (no equilibrium needed: the
+    loads depend on the reference track only), 8 steps with a wound's gap at the 4th: without
+    the ramp the whole force; with it cutting_force x the profile's share of [0, l] inside
+    (smooth: z / l - sin(2 pi z / l) / 2 pi) to < 0.5 %. The smooth density's force on each
+    segment is its integral over the segment's needle length (s from the tip), within 0.5 %
+    of the force: zero at the tip, the most at l / 2 behind it."""
+    monkeypatch.setattr(coupling_module, "CUTTING_PROFILE", profile)
+    monkeypatch.setattr(coupling_module, "CUTTING_RAMP", ramp)
+    scenario = small_scene(spacing=4.0, coupling="mortar", cutting_length=cutting_length)
+    insertion = NeedleInsertion(scenario)
+    coupling, geometry, needle = insertion.coupling, insertion.geometry, insertion.needle
+    insertion.add_point(geometry.entry.copy())
+    checked = 0
+    for step in range(1, 9):
+        gap = step == 4  # the tip crosses a wound: that segment carries nothing
+        insertion.add_point(geometry.tip(step * geometry.step), gap=gap, fraction=0.0 if gap else 1.0)
+        segments = len(coupling.points) - 1
+        needle_length = geometry.insertion_step * coupling.segment_fraction
+        friction = np.repeat(0.5 * needle.friction * needle_length, 2)
+        magnitudes = coupling.loads.magnitudes
+        cutting = magnitudes - np.concatenate([friction, np.zeros(len(magnitudes) - 2 * segments)])
+        inside = float(needle_length.sum())
+        expected = needle.cutting_force * (cutting_share(inside, cutting_length, profile) if ramp else 1.0)
+        rtol = 1e-12 if profile == "uniform" or not ramp else 5e-3
+        assert cutting.sum() == pytest.approx(expected, rel=rtol)
+        assert np.all(cutting >= -1e-15)
+        if profile == "smooth":
+            # the force on each segment against the density's integral over its needle length
+            carrying = np.flatnonzero(cutting > 0.0)
+            per_segment = np.bincount(_segment_of(coupling, coupling.loads.points[carrying]), cutting[carrying],
+                                      minlength=segments)
+            behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])
+            share = np.array([cutting_share(b + n, cutting_length) - cutting_share(b, cutting_length)
+                              for b, n in zip(behind, needle_length)])  # the track's segments: a few
+            scale = needle.cutting_force if ramp else needle.cutting_force / cutting_share(inside, cutting_length)
+            np.testing.assert_allclose(per_segment, scale * share, atol=5e-3 * needle.cutting_force)
+            checked += int(np.count_nonzero(share))
+    if profile == "smooth":
+        assert checked >= 8  # segments with a share were compared, the gap's not among them
 
 
 def test_the_track_stays_on_the_needle_between_the_multiplier_nodes():

@@ -29,7 +29,9 @@ Two couplings (`needle.coupling`):
   points per segment), so lambda_j is a force. A Gauss point of a segment is asked to lie
   on the chord between the needle points (see `target_radius`), not on the arc. The
   cutting force is spread uniformly over `cutting_length` mm of needle behind the tip (a
-  physical length: the needle point's cutting edge and taper), not over one step.
+  physical length: the needle point's cutting edge and taper), not over one step; with
+  CUTTING_PROFILE "smooth" as the density (2 / l) sin^2(pi s / l) over it instead (see
+  CUTTING_PROFILE, CUTTING_RAMP; benchmarks/results/needle_coupling.md).
 
   `needle.multiplier_ends: arc` cuts the elements at exact arc lengths instead: the track
   measured in local spacings, cut every MULTIPLIER_SPACINGS from the tip, so the element
@@ -76,9 +78,38 @@ PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter r
 # edge inside, so it grows over the first steps (benchmarks/results/needle_coupling.md:
 # the whole force on the first step's 0.7 mm at the free edge has no resolved solution)
 CUTTING_RAMP = False
+# mortar: the cutting force's density along the last cutting_length l mm of needle, s mm behind
+# the tip: "uniform" 1 / l; "smooth" (2 / l) sin^2(pi s / l) (cutting_density), zero at the tip
+# and at s = l (the taper's ends). With CUTTING_RAMP the force inside is cutting_force x the
+# density's integral over the part of [0, l] inside the tissue (cutting_share: ~ s^3 at the
+# entry for "smooth"); without, the density on that part is scaled to the whole force.
+CUTTING_PROFILE = "uniform"
+# smooth profile: Gauss points per cutting_length on a covered segment (its density is not a
+# polynomial): at least 2 on a wholly covered one (its friction Gauss points while 2 suffice),
+# 4 on the partly covered one at the zone's end; 8 per l keeps the total within 0.5 % of
+# cutting_share (tests/test_needle_coupling.py)
+SMOOTH_POINTS_PER_LENGTH = 8.0
+UNIFORM, SMOOTH = "uniform", "smooth"
 QUADRATURE_PER_ELEMENT = 2.0  # arc element ends: constraint Gauss points per segment >= this x segment / element
 POINTS, MORTAR = "points", "mortar"
 SEGMENT_ENDS, ARC_ENDS = "segments", "arc"  # `needle.multiplier_ends`: mortar element ends at needle points or exact arc lengths
+
+
+def cutting_density(s: np.ndarray, length: float) -> np.ndarray:
+    """The smooth cutting profile's density (1/mm) at s mm of needle behind the tip:
+    (2 / l) sin^2(pi s / l) on [0, l], zero beyond; its integral over [0, l] is one."""
+    s = np.asarray(s, dtype=float)
+    return np.where((s >= 0.0) & (s <= length), 2.0 / length * np.sin(math.pi * s / length) ** 2, 0.0)
+
+
+def cutting_share(inside: float, length: float, profile: str = SMOOTH) -> float:
+    """The share of the cutting force on the first `inside` mm of [0, l] behind the tip: the
+    density's integral, z / l - sin(2 pi z / l) / (2 pi) for the smooth profile (z = min(inside, l)),
+    z / l for the uniform one."""
+    z = min(max(inside, 0.0), length)
+    if profile == UNIFORM:
+        return z / length
+    return z / length - math.sin(2.0 * math.pi * z / length) / (2.0 * math.pi)
 
 
 def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> list[int]:
@@ -414,9 +445,9 @@ class NeedleCoupling:
     def _load_layout(self) -> tuple[np.ndarray, np.ndarray]:
         """Friction on every segment's Gauss points (eq. 3.58, 3.64) and the cutting force:
         on the tip segment (points) or uniformly over the last `cutting_length` mm of needle
-        (mortar), two Gauss points per (part of a) segment. Returns the magnitudes (N) on
-        the segments' Gauss points followed by the load points of a partly covered segment,
-        and those extra points, (t, 2)."""
+        (mortar), two Gauss points per (part of a) segment (the smooth profile:
+        _smooth_cutting). Returns the magnitudes (N) on the segments' Gauss points followed
+        by those of the extra load points (a partly covered segment's), and those points, (t, 2)."""
         segments = len(self.points) - 1
         no_points = np.zeros((0, 2))
         if segments < 1:
@@ -429,6 +460,8 @@ class NeedleCoupling:
             magnitudes = friction.copy()
             magnitudes[-2:] += 0.5 * cutting
             return magnitudes, no_points
+        if CUTTING_PROFILE == SMOOTH:
+            return self._smooth_cutting(friction, needle_length)
         full_steps = bool(np.all(self.segment_fraction == 1.0))
         zone = min(self.cutting_length, segments * step_length if full_steps else float(needle_length.sum()))
         if full_steps:  # whole steps: in step units
@@ -453,6 +486,46 @@ class NeedleCoupling:
         along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
         part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
         return np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]), part_points
+
+    def _smooth_cutting(self, friction: np.ndarray, needle_length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """_load_layout's magnitudes and extra points for the smooth cutting profile: the force
+        cutting_density(s) ds (x cutting_force with CUTTING_RAMP, else scaled to the whole
+        force) at Gauss points of the covered part of each segment, s the needle length
+        between the point and the tip (a wound's gaps count zero). A wholly covered segment
+        uses its two friction Gauss points while SMOOTH_POINTS_PER_LENGTH asks no more; other
+        covered segments get points of their own (at least 4 on a partly covered one)."""
+        length, cutting = self.cutting_length, self.needle.cutting_force
+        no_points = np.zeros((0, 2))
+        behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])  # tip end of each segment
+        zone = min(length, float(needle_length.sum()))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            covered = np.where(needle_length > 0, np.clip((zone - behind) / needle_length, 0.0, 1.0), 0.0)
+        count = np.maximum(np.where(covered >= 1.0, 2, 4),
+                           np.ceil(SMOOTH_POINTS_PER_LENGTH * covered * needle_length / length - 1e-9)).astype(int)
+        reuse = np.flatnonzero((covered >= 1.0) & (count == 2))
+        own = np.flatnonzero((covered > 0.0) & ((covered < 1.0) | (count > 2)))
+        # the friction Gauss points: t = GAUSS_POINTS, s = behind + (1 - t) x needle length
+        on_segments = np.zeros_like(friction)
+        s = behind[reuse, None] + (1.0 - GAUSS_POINTS[None, :]) * needle_length[reuse, None]
+        on_segments[(2 * reuse[:, None] + np.arange(2)).ravel()] = (
+            cutting_density(s, length) * 0.5 * needle_length[reuse, None]).ravel()
+        points, loads = [no_points], [np.zeros(0)]
+        for n in np.unique(count[own]):  # a few distinct counts
+            segment = own[count[own] == n]
+            abscissae, weights = np.polynomial.legendre.leggauss(int(n))
+            a, w = 0.5 * (abscissae + 1.0), 0.5 * weights  # on [0, 1] of the covered part
+            part = covered[segment, None]
+            along = 1.0 - part + part * a[None, :]  # (k, n) along the segment toward its tip end
+            s = behind[segment, None] + part * (1.0 - a[None, :]) * needle_length[segment, None]
+            loads.append((cutting_density(s, length) * part * w[None, :] * needle_length[segment, None]).ravel())
+            start, end = self.points[segment], self.points[segment + 1]
+            points.append((start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2))
+        extra = np.concatenate(loads)
+        total = on_segments.sum() + extra.sum()  # the covered integral of the density, by quadrature
+        if total <= 0.0:
+            return friction.copy(), no_points
+        scale = cutting if CUTTING_RAMP else cutting / total
+        return np.concatenate([friction + scale * on_segments, scale * extra]), np.vstack(points)
 
     # --- the coupling's terms of the residual --------------------------------------------------
 
