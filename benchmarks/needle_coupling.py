@@ -290,7 +290,7 @@ def chart(rows: list[dict], path) -> None:
         axis.invert_xaxis()
     for axis in axes.ravel()[len(scenes):]:
         axis.axis("off")
-    handles, labels = {}, {}
+    handles = {}
     for axis in axes.ravel():  # one legend for all panels, below them (no panel's data hidden)
         for handle, label in zip(*axis.get_legend_handles_labels()):
             handles.setdefault(label, handle)
