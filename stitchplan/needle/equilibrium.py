@@ -294,9 +294,9 @@ class NeedleInsertion:
         RAMP_SMALLEST, doubled again after a success. Returns (Newton iterations, MINRES
         iterations, max |g_e| in mm) summed over the increments.
 
-        `guess`: the same step's equilibrium in an earlier, similar run on this model (another
-        planner pass, another replay of a nearby path). Newton starts there under the whole
-        load; should it fail, the step starts again from the previous step's state."""
+        `guess`: where the step starts from an earlier, similar run on this model (the replay
+        of a nearby centre path: run_insertion `start_from`). Newton starts there under the
+        whole load; should it fail, the step starts again from the previous step's state."""
         coupling = self.coupling
         if guess is not None and guess.free.shape == self.free.shape \
                 and guess.multipliers.shape == self.multipliers.shape:

@@ -85,9 +85,10 @@ def run_insertion(
     prescribed centres instead, row n for step n (row 0 is the entry centre). With
     `condition_numbers` each step records the (dense) condition numbers of its saddle system.
     `tissue`: the scenario's PreparedTissue when another run on the same model made it.
-    `start_from`: an earlier run on the same model along a nearby centre path (another
-    planner pass, the replay of an earlier plan): each step's Newton solve starts from that
-    run's equilibrium at the same step (NeedleInsertion.equilibrate `guess`).
+    `start_from`: an earlier run on the same model along a nearby centre path (the
+    verification's first replay, for its second): each step's Newton solve starts from this
+    run's previous state plus that run's change over the step (NeedleInsertion.equilibrate
+    `guess`). Not for planner passes (planning.planner.run_plan says why).
     """
     if scenario.discretization.accuracy is not None:
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
