@@ -342,7 +342,7 @@ def chart(rows: list[dict], path) -> None:
             handles.setdefault(label, handle)
     figure.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=9)
     figure.suptitle("Unplanned exit error under refinement (x: the coarse spacing h): couplings, cutting-force "
-                    "ramp and profile, entry/exit grading, needle refinement 3 and 4; mortar and points also at h/4")
+                    "ramp and profile, entry/exit grading, needle refinement 3 and 4; some also at 2h and h/4")
     figure.tight_layout(rect=(0, 0.04, 1, 1))
     figure.savefig(path, dpi=110)
     plt.close(figure)
