@@ -9,7 +9,7 @@ model still is what a user relies on: this script replays each shipped trajector
 verification spacing (which must give its verified exit error again) and S / 2. The
 simulate summaries' own exit-error estimate (from a run at 2S) is listed too.
 
-Writes benchmarks/results/plan_replay.{csv,md} and prints the table. About 3 minutes.
+Writes benchmarks/results/plan_replay.{csv,md} and prints the table. About 6 minutes.
 Run from the repository root, after sample_runs/regenerate.sh:  python benchmarks/plan_replay.py
 """
 
