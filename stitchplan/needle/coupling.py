@@ -132,6 +132,21 @@ def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> 
     return sorted(min(group) for group in groups)
 
 
+def _covered(zone: float, needle_length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For segments standing for `needle_length` mm of needle each (tip last, a wound's gaps
+    zero): the needle length between each segment's tip end and the tip, and the share of
+    each segment within `zone` mm of the tip."""
+    behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        covered = np.where(needle_length > 0, np.clip((zone - behind) / needle_length, 0.0, 1.0), 0.0)
+    return behind, covered
+
+
+def _along_segments(start: np.ndarray, end: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """Points at fractions `along` (k, n) of the segments start -> end (k, 2), as (k n, 2)."""
+    return (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
+
+
 # Rows of the track's sparse matrices are handled as blocks (data, indices, entries per row):
 # joining arrays and building one CSR matrix per change costs less than scipy's slicing and
 # stacking of these few rows.
@@ -466,10 +481,8 @@ class NeedleCoupling:
         zone = min(self.cutting_length, segments * step_length if full_steps else float(needle_length.sum()))
         if full_steps:  # whole steps: in step units
             covered = np.clip(zone / step_length - np.arange(segments)[::-1], 0.0, 1.0)  # tip end of each segment
-        else:  # a wound: the needle length between each segment's tip end and the tip
-            behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                covered = np.where(needle_length > 0, np.clip((zone - behind) / needle_length, 0.0, 1.0), 0.0)
+        else:  # a wound: measured in needle length behind the tip
+            _, covered = _covered(zone, needle_length)
         # wholly covered segments carry their share on their friction Gauss points (the same
         # points and direction: the forces add); only partly covered ones (the zone's far end)
         # need points and rows of their own
@@ -484,7 +497,7 @@ class NeedleCoupling:
         fraction = covered[part]
         start, end = self.points[part], self.points[part + 1]
         along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
-        part_points = (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
+        part_points = _along_segments(start, end, along)
         return np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]), part_points
 
     def _smooth_cutting(self, friction: np.ndarray, needle_length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -496,10 +509,7 @@ class NeedleCoupling:
         covered segments get points of their own (at least 4 on a partly covered one)."""
         length, cutting = self.cutting_length, self.needle.cutting_force
         no_points = np.zeros((0, 2))
-        behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])  # tip end of each segment
-        zone = min(length, float(needle_length.sum()))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            covered = np.where(needle_length > 0, np.clip((zone - behind) / needle_length, 0.0, 1.0), 0.0)
+        behind, covered = _covered(min(length, float(needle_length.sum())), needle_length)
         count = np.maximum(np.where(covered >= 1.0, 2, 4),
                            np.ceil(SMOOTH_POINTS_PER_LENGTH * covered * needle_length / length - 1e-9)).astype(int)
         reuse = np.flatnonzero((covered >= 1.0) & (count == 2))
@@ -519,7 +529,7 @@ class NeedleCoupling:
             s = behind[segment, None] + part * (1.0 - a[None, :]) * needle_length[segment, None]
             loads.append((cutting_density(s, length) * part * w[None, :] * needle_length[segment, None]).ravel())
             start, end = self.points[segment], self.points[segment + 1]
-            points.append((start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2))
+            points.append(_along_segments(start, end, along))
         extra = np.concatenate(loads)
         total = on_segments.sum() + extra.sum()  # the covered integral of the density, by quadrature
         if total <= 0.0:
