@@ -11,6 +11,7 @@ import math
 import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -21,6 +22,11 @@ BENCH_DIR = Path(__file__).resolve().parent
 REPO_ROOT = BENCH_DIR.parent
 RESULTS_DIR = BENCH_DIR / "results"
 SCENARIO_PATH = REPO_ROOT / "configs" / "slab_edge_load.yaml"
+
+
+# `stitchplan ARGS` in a fresh process of this Python, from whatever code PYTHONPATH puts first
+# (the scripts time a baseline checkout this way too)
+STITCHPLAN = [sys.executable, "-c", "import sys; from stitchplan.cli import main; sys.argv[0] = 'stitchplan'; main()"]
 
 
 def results_path(name: str) -> Path:

@@ -22,14 +22,12 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import csv  # noqa: E402
 import json  # noqa: E402
 import subprocess  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
 
 SAMPLES = common.REPO_ROOT / "sample_runs"
-RUNNER = "import sys; from stitchplan.cli import main; sys.argv[0] = 'stitchplan'; main()"
 FIELDS = ("scene", "planned_exit_error_mm", "verified_exit_error_mm", "verification_spacing_mm",
           "replay_spacing_mm", "particles", "exit_error_mm", "exit_error_estimate_mm", "seconds")
 TARGET_MM = 0.01  # the verified exit error the shipped plans are held to (README)
@@ -48,7 +46,7 @@ def planned_scenes() -> list[str]:
 def replay(scene: str, spacing: float, folder: Path) -> dict:
     """`stitchplan simulate` of the scene's shipped trajectory at `spacing`; its summary."""
     summary = folder / f"{scene}_{spacing:.4f}.json"
-    subprocess.run([sys.executable, "-c", RUNNER, "simulate", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
+    subprocess.run([*common.STITCHPLAN, "simulate", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
                     "--center-path", str(SAMPLES / scene / "trajectory.csv"), "--spacing", f"{spacing!r}",
                     "--summary", str(summary), "--quiet"], check=True, capture_output=True)
     return json.loads(summary.read_text())

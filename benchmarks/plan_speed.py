@@ -43,7 +43,6 @@ SCENES = ("sh12_100x100", "sh12_100x100_mid", "sh12_100x50", "sh12_100x40", "sh1
           "needle20_entry30", "needle20_entry25", "needle20_entry20", "needle20_entry18")
 REPEATS = 3
 STARTUP_REPEATS = 7
-RUNNER = "import sys; from stitchplan.cli import main; sys.argv[0] = 'stitchplan'; main()"
 
 
 def run_plan_command(source: Path, scene: str, options: list[str], folder: Path, **environment) -> dict:
@@ -52,7 +51,7 @@ def run_plan_command(source: Path, scene: str, options: list[str], folder: Path,
     summary = folder / "summary.json"
     environment = {**os.environ, "PYTHONPATH": str(source), **environment}
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-c", RUNNER, "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
+    subprocess.run([*common.STITCHPLAN, "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
                     *options, "--export", str(folder / "trajectory.csv"), "--summary", str(summary)],
                    check=True, capture_output=True, env=environment, cwd=source)
     seconds = time.perf_counter() - start
