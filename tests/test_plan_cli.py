@@ -123,6 +123,7 @@ def test_plan_summary_compares_planned_and_unplanned(planned):
     folder, result, summary = planned
     assert result.exit_code == 0, result.output
     assert re.match(r"plan: \d+ steps, exit error \d\.\d{4} mm planned vs \d\.\d{4} mm unplanned", result.stdout)
+    assert f"discretization error estimate {summary['exit_error_estimate_mm']:.4f} mm" in result.stdout
     for key in ("desired_exit", "desired_exit_def", "achieved_exit_def", "achieved_exit", "exit_error_mm",
                 "exit_error_material_mm", "steps", "particles", "wall_seconds", "unplanned_exit_error_mm"):
         assert key in summary, key

@@ -62,6 +62,8 @@ def test_simulate_summary_has_every_contract_key(simulated):
     assert summary["exit_error_material_mm"] == pytest.approx(
         np.hypot(*np.subtract(summary["achieved_exit"], summary["desired_exit"])), rel=1e-12)
     assert summary["steps"] == 15 and summary["particles"] == 63
+    # the printed line carries the summary's discretization error estimate
+    assert f"discretization error estimate {summary['exit_error_estimate_mm']:.4f} mm" in result.output
     assert 0.0 < summary["wall_seconds"] < 600.0
     assert abs(summary["achieved_exit"][0]) <= 1e-9  # out through the left edge
     assert summary["max_constraint_violation_mm"] <= 1e-9

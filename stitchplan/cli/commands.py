@@ -122,7 +122,7 @@ def simulate(
     reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
                                     plot_steps=steps_to_plot, provenance=provenance,
                                     extra_summary=reports.exit_estimate_summary(error_estimate))
-    typer.echo(reports.insertion_line(result, "simulate"))
+    typer.echo(reports.insertion_line(result, "simulate", error_estimate))
     _plot_steps_note(steps_to_plot, result, quiet)
     _echo_events(result.events, quiet)
 

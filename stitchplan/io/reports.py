@@ -146,11 +146,16 @@ def deform_line(result) -> str:
             f"{result.report.iterations} Newton iterations, {result.wall_seconds:.3f} s")
 
 
-def insertion_line(result, command: str = "simulate") -> str:
-    """The line `stitchplan simulate` prints when it is done."""
-    return (f"{command}: {len(result.steps)} steps, {result.model.n_particles} particles, exit error "
+def insertion_line(result, command: str = "simulate", estimate=None) -> str:
+    """The line `stitchplan simulate` prints when it is done, with the exit error's
+    discretization error estimate (planning.verification.ExitEstimate) when there is one."""
+    line = (f"{command}: {len(result.steps)} steps, {result.model.n_particles} particles, exit error "
             f"{result.exit_error_mm:.4f} mm (material {result.exit_error_material_mm:.4f} mm), "
             f"{result.wall_seconds:.2f} s")
+    if estimate is not None:
+        line += (f"; discretization error estimate {estimate.estimate_mm:.4f} mm "
+                 f"(from a run at spacing {estimate.other_spacing_mm:.3g} mm)")
+    return line
 
 
 def plan_line(result, export: Path) -> str:
@@ -160,6 +165,9 @@ def plan_line(result, export: Path) -> str:
     verification = getattr(result, "verification", None)
     if verification is not None and verification.result is not None:
         versus += f", {verification.exit_error_mm:.4f} mm verified at spacing {verification.spacing_mm:.3g} mm"
+    estimate = getattr(result, "estimate", None)
+    if estimate is not None:
+        versus += f", discretization error estimate {estimate.estimate_mm:.4f} mm"
     return (f"plan: {len(planned.steps)} steps, exit error {planned.exit_error_mm:.4f} mm planned{versus}, "
             f"{planned.wall_seconds:.2f} s planned run; trajectory written to {export}")
 
