@@ -238,6 +238,9 @@ def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
             "exit_error_material_mm": replay.exit_error_material_mm if replay is not None else None,
             "wall_seconds": replay.wall_seconds if replay is not None else None,
             "rounds": verification.rounds,
+            # a stitch across a wound: each side's bite on the refined model too (what a
+            # symmetric plan aims at)
+            **({"bites": replay.bites} if replay is not None and replay.bites else {}),
         },
         "max_center_step_mm": max_step,
         "max_center_second_difference_mm": max_second,
