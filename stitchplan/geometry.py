@@ -202,6 +202,9 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
+VISIBILITY_CHUNK = 4096  # segments per (segments x edges) block of PolygonDomain.blocked
+
+
 def segments_cross(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float) -> np.ndarray:
     """Mask of segment pairs p-q and a-b (broadcasting (..., 2) arrays) that cross properly:
     each segment's ends lie strictly (beyond `tol` mm) on opposite sides of the other's line.
@@ -428,18 +431,24 @@ class PolygonDomain(BoundingBox):
         hit = np.zeros(len(starts), dtype=bool)
         tol = 1e-7 * max(self.width, self.height)
         low, high = np.minimum(starts, ends), np.maximum(starts, ends)
-        for a, b in zip(self.segment_starts, self.segment_ends):  # edges: tens, pairs: many
-            near = ((high[:, 0] >= min(a[0], b[0])) & (low[:, 0] <= max(a[0], b[0]))
-                    & (high[:, 1] >= min(a[1], b[1])) & (low[:, 1] <= max(a[1], b[1])) & ~hit)
-            if np.any(near):
-                idx = np.flatnonzero(near)
-                hit[idx] = segments_cross(starts[idx], ends[idx], a, b, tol)
+        a, b = self.segment_starts, self.segment_ends
+        edge_low, edge_high = np.minimum(a, b), np.maximum(a, b)
+        for chunk in range(0, len(starts), VISIBILITY_CHUNK):  # (chunk x edges) bounding-box tests
+            part = slice(chunk, chunk + VISIBILITY_CHUNK)
+            near = ((high[part, None, 0] >= edge_low[:, 0]) & (low[part, None, 0] <= edge_high[:, 0])
+                    & (high[part, None, 1] >= edge_low[:, 1]) & (low[part, None, 1] <= edge_high[:, 1]))
+            pair, edge = np.nonzero(near)  # the segments' exact test only where the boxes meet
+            if len(pair):
+                pair += chunk
+                crossed = segments_cross(starts[pair], ends[pair], a[edge], b[edge], tol)
+                hit[pair[crossed]] = True
         # a segment between two boundary points crossing a gap touches the boundary only at
         # its ends: its middle lies outside
         rest = np.flatnonzero(~hit)
         if len(rest):
             middle = 0.5 * (starts[rest] + ends[rest])
-            hit[rest] = ~self._inside_strict(middle) & (self.distance(middle) > tol)
+            outside = rest[~self._inside_strict(middle)]  # the distance only for those (few)
+            hit[outside] = self.distance(0.5 * (starts[outside] + ends[outside])) > tol
         return hit
 
     # --- circles --------------------------------------------------------------------------

@@ -31,9 +31,9 @@ def basis_size(order: int) -> int:
     return {1: 3, 2: 6}[order]
 
 
-def _basis(y: np.ndarray, order: int, gradients: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-    """Basis H(Y) of eq. 3.21 and dH/dY; y (n, 2) -> H (n, m), dH (n, m, 2) (None without
-    `gradients`). Filled by columns: few array operations, as tip tracking evaluates single points."""
+def _basis(y: np.ndarray, order: int) -> np.ndarray:
+    """Basis H(Y) of eq. 3.21; y (n, 2) -> H (n, m). Filled by columns: few array
+    operations, as tip tracking evaluates single points."""
     n, m = len(y), basis_size(order)
     y1, y2 = y[:, 0], y[:, 1]
     h = np.empty((n, m))
@@ -41,13 +41,28 @@ def _basis(y: np.ndarray, order: int, gradients: bool = True) -> tuple[np.ndarra
     h[:, 1:3] = y
     if order == 2:
         h[:, 3], h[:, 4], h[:, 5] = y1 * y1, y1 * y2, y2 * y2
-    if not gradients:
-        return h, None
-    dh = np.zeros((n, m, 2))  # dH_j / dY_k
-    dh[:, 1, 0] = dh[:, 2, 1] = 1.0
-    if order == 2:
-        dh[:, 3, 0], dh[:, 4, 0], dh[:, 4, 1], dh[:, 5, 1] = 2 * y1, y2, y1, 2 * y2
-    return h, dh
+    return h
+
+
+def _derivative_maps(order: int) -> np.ndarray:
+    """D (2, m, m) with dH/dY_k = D[k] H: the monomial basis is closed under
+    differentiation, so the basis gradient is a constant map of the basis itself."""
+    m = basis_size(order)
+    d = np.zeros((2, m, m))
+    d[0, 1, 0] = d[1, 2, 0] = 1.0  # d y1/d y1, d y2/d y2
+    if order == 2:  # y1^2, y1 y2, y2^2
+        d[0, 3, 1], d[0, 4, 2] = 2.0, 1.0
+        d[1, 4, 1], d[1, 5, 2] = 1.0, 2.0
+    return d
+
+
+# per basis order: the upper triangle's (row, column) indices, where each of the m x m
+# entries is found in the triangle's entries, and the derivative maps
+_UPPER = {order: np.triu_indices(basis_size(order)) for order in (1, 2)}
+_FULL = {order: np.triu(np.zeros((basis_size(order),) * 2, dtype=int)) for order in (1, 2)}
+for _order, (_rows, _cols) in _UPPER.items():
+    _FULL[_order][_rows, _cols] = _FULL[_order][_cols, _rows] = np.arange(len(_rows))
+_MAPS = {order: _derivative_maps(order) for order in (1, 2)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,11 +203,13 @@ def rk_shape_pairs(
     volume = volumes[cols]
     phi, dphi = tensor_kernel(offset, support[cols], gradients)
     phi = phi * volume
-    h, dh_dy = _basis(offset / scale, order, gradients)  # (pairs, m), (pairs, m, 2)
+    h = _basis(offset / scale, order)  # (pairs, m)
 
+    # M(X) = sum H H^T phi from its upper triangle: (pairs, m (m + 1) / 2) products, not m^2
     starts = indptr[:-1]
-    hh = h[:, :, None] * h[:, None, :]  # H H^T, (pairs, m, m)
-    moment = np.add.reduceat(hh * phi[:, None, None], starts, axis=0)
+    upper, full = _UPPER[order], _FULL[order]
+    hh = h[:, upper[0]] * h[:, upper[1]]  # (pairs, u)
+    moment = np.add.reduceat(hh * phi[:, None], starts, axis=0)[:, full]  # (n, m, m)
     eigenvalues = np.linalg.eigvalsh(moment)  # (n, m), ascending
     rcond = eigenvalues[:, 0] / eigenvalues[:, -1]
     if (rcond < 1e-12).any():
@@ -203,25 +220,22 @@ def rk_shape_pairs(
         )
     inverse = np.linalg.inv(moment)  # (n, m, m); well conditioned, checked above
     b = inverse[:, :, 0]  # M^-1 H(0), H(0) = e_1 (M symmetric), (n, m)
-    b_pair = b[rows]  # (pairs, m)
-    corrected = np.einsum("pm,pm->p", b_pair, h)  # H(0)^T M^-1 H, (pairs,)
+    corrected = np.einsum("pm,pm->p", b[rows], h)  # H(0)^T M^-1 H, (pairs,)
     shape = corrected * phi
     if not gradients:
         return ShapePairs(rows, cols, indptr, shape, None)
 
+    # dH/dX_k = D_k H / s, so sum (dH H^T + H dH^T) phi = (D_k M + M D_k^T) / s and only
+    # sum H H^T dphi_k is a new sum over the pairs; then dM^-1 H(0) = -M^-1 dM b and
+    # grad N_I = (dM^-1 H(0) + D_k^T b / s) . H phi + H(0)^T M^-1 H dphi_k
     dphi = dphi * volume[:, None]
-    dh = dh_dy / scale
+    maps = _MAPS[order] / scale
     grad = np.empty((len(rows), 2))
     for k in range(2):
-        # dM/dX_k = sum (dH H^T + H dH^T) phi + H H^T dphi
-        hdh = h[:, :, None] * dh[:, None, :, k]
-        dmoment_terms = (hdh + hdh.transpose(0, 2, 1)) * phi[:, None, None]
-        dmoment_terms += hh * dphi[:, k, None, None]
-        dmoment = np.add.reduceat(dmoment_terms, starts, axis=0)  # (n, m, m)
-        db = -np.einsum("nij,nj->ni", inverse, np.einsum("nij,nj->ni", dmoment, b))
-        grad[:, k] = (
-            np.einsum("pm,pm->p", db[rows], h) * phi
-            + np.einsum("pm,pm->p", b_pair, dh[:, :, k]) * phi
-            + corrected * dphi[:, k]
-        )
+        dmoment = np.add.reduceat(hh * dphi[:, k, None], starts, axis=0)[:, full]
+        spread = maps[k] @ moment  # D_k M / s, (n, m, m)
+        dmoment += spread + spread.transpose(0, 2, 1)
+        db = -(inverse @ (dmoment @ b[:, :, None]))[:, :, 0]
+        weights = db + b @ maps[k]  # (n, m): dM^-1 H(0) + D_k^T b / s
+        grad[:, k] = np.einsum("pm,pm->p", weights[rows], h) * phi + corrected * dphi[:, k]
     return ShapePairs(rows, cols, indptr, shape, grad)
