@@ -88,7 +88,7 @@ def measure(spacing: float, base, repeats: int, deform_repeats: int) -> dict:
     row["shape"], _ = common.median_time(
         lambda: rk_shape_functions(model.quadrature_points, model.particles, model.support,
                                    model.volumes, model.discretization.basis_order, True,
-                                   model.tree, model.basis_scale), repeats)
+                                   model.search, model.basis_scale), repeats)
     row["model"], _ = common.median_time(lambda: model_for_scenario(scenario), repeats)
 
     # (b) one tangent assembly at the final state, and the matrix-free product

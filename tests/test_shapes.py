@@ -165,7 +165,7 @@ def test_points_across_a_slit_do_not_interact():
     across = np.array([[10.5, 6.0], [10.7, 6.0], [11.0, 5.5]])
     seen = model.shape_functions_at(across).values[:, left].toarray().ravel()
     assert np.all(seen == 0.0)
-    blind = rk_shape_functions(across, model.particles, model.support, model.volumes, 1, False, model.tree,
+    blind = rk_shape_functions(across, model.particles, model.support, model.volumes, 1, False, model.search,
                                model.basis_scale).values[:, left].toarray().ravel()
     assert np.all(np.abs(blind) > 1e-3)
     # below the slit's tip the two sides meet again

@@ -11,7 +11,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 from .boundary_conditions import EssentialBoundary, boundary_particles, transformation
 from ..config import Discretization, Scenario, ScenarioError, Tissue
@@ -20,8 +19,8 @@ from .material import NeoHookean, PointwiseMaterial, SaintVenantKirchhoff, make_
 from .particles import (END_GROWTH, end_zones, graded_lattice, graded_particles, grid_particles,
                         leaf_quadrature, segment_breaks)
 from .quadrature import cell_quadrature, natural_boundary_quadrature
-from .shape_functions import (ShapeFunctions, ShapePairs, SingularMomentMatrix, Visibility,
-                              rk_shape_functions, rk_shape_pairs)
+from .shape_functions import (ParticleSearch, ShapeFunctions, ShapePairs, SingularMomentMatrix,
+                              Visibility, rk_shape_functions, rk_shape_pairs)
 from .shapes import corner_zones, fit_particles, region_index, shape_breaks, shaped_quadrature
 
 log = logging.getLogger(__name__)
@@ -43,7 +42,7 @@ class TissueModel:
     particles: np.ndarray  # (NP, 2)
     support: np.ndarray  # (NP,)
     volumes: np.ndarray  # (NP,)
-    tree: cKDTree
+    search: ParticleSearch  # the particles' neighbour search
     quadrature_points: np.ndarray  # (nq, 2)
     quadrature_weights: np.ndarray  # (nq,) area x thickness, mm^3
     shape: ShapeFunctions  # raw RK functions at quadrature points
@@ -70,7 +69,7 @@ class TissueModel:
 
     def _shape_pairs(self, points: np.ndarray, gradients: bool) -> ShapePairs:
         return rk_shape_pairs(points, self.particles, self.support, self.volumes,
-                              self.discretization.basis_order, gradients, self.tree, self.basis_scale,
+                              self.discretization.basis_order, gradients, self.search, self.basis_scale,
                               self.visibility)
 
     def shape_functions_at(self, points: np.ndarray, gradients: bool = False) -> ShapeFunctions:
@@ -147,16 +146,16 @@ def build_tissue_model(
                 int(round(tissue.size[1] / dy)) * discretization.cells_per_spacing,
             )
             points, weights = cell_quadrature(tissue.size, n_cells, discretization.quadrature_order)
-    tree = cKDTree(particles)
+    search = ParticleSearch.of(particles, support)
     order = discretization.basis_order
     visibility = (Visibility.of(domain, particles)
                   if isinstance(domain, PolygonDomain) and not domain.convex else None)
     constrained = boundary_particles(particles, tissue, prescribed_segments, spacing)
     try:  # at the quadrature points, then at the boundary particles (eq. 3.31)
-        shape = rk_shape_functions(points, particles, support, volumes, order, True, tree,
+        shape = rk_shape_functions(points, particles, support, volumes, order, True, search,
                                    float(support.mean()), visibility)
         at_boundary = rk_shape_functions(particles[constrained.indices], particles, support, volumes,
-                                         order, False, tree, float(support.mean()), visibility).values
+                                         order, False, search, float(support.mean()), visibility).values
     except SingularMomentMatrix as error:
         raise ScenarioError(
             f"discretization: dilation {discretization.dilation:g} with spacing "
@@ -174,7 +173,7 @@ def build_tissue_model(
         boundary_points, normals, boundary_weights = natural_boundary_quadrature(
             tissue.bounding_size, essential, spacing, discretization.quadrature_order + 2,
             None if isinstance(domain, Rectangle) else outward_edges(domain))
-        at_natural = (rk_shape_functions(boundary_points, particles, support, volumes, order, False, tree,
+        at_natural = (rk_shape_functions(boundary_points, particles, support, volumes, order, False, search,
                                          float(support.mean()), visibility).values @ free_map
                       if len(boundary_points) else sp.csr_matrix((0, free_map.shape[1])))
         test_gradient = _gradient_operator(*consistent_test_gradients(
@@ -186,7 +185,7 @@ def build_tissue_model(
         particles=particles,
         support=support,
         volumes=volumes,
-        tree=tree,
+        search=search,
         quadrature_points=points,
         quadrature_weights=weights * tissue.thickness,
         shape=shape,

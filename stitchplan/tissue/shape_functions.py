@@ -92,10 +92,54 @@ class Visibility:
 
 
 MANY_POINTS = 64  # from here on neighbour_pairs pairs two trees (~3x faster than per-point lists)
+SUPPORT_GROUPS_PER_OCTAVE = 2  # ParticleSearch: particles whose supports differ by < 2^(1/2) share a tree
+
+
+@dataclass(frozen=True, eq=False)
+class ParticleSearch:
+    """The particles in KD-trees by kernel support. A graded arrangement has supports from
+    the coarse spacing down to a fraction of the finest one; searching every point's
+    neighbours within the largest support would return, where the particles are fine,
+    hundreds of particles whose own supports do not reach the point. For many points each
+    group of similar supports (within a factor 2^(1 / SUPPORT_GROUPS_PER_OCTAVE)) is
+    searched within its own largest support; a few points (tip tracking asks for one) search
+    one tree of all particles, which costs fewer calls."""
+
+    tree: cKDTree  # all particles
+    reach: float  # the largest support
+    groups: tuple  # (particle indices, their tree, their largest support) per group
+
+    @classmethod
+    def of(cls, particles: np.ndarray, support: np.ndarray) -> ParticleSearch:
+        octaves = np.log2(support.max() / support)
+        group = np.floor(octaves * SUPPORT_GROUPS_PER_OCTAVE + 1e-9).astype(np.int64)
+        groups = []
+        for label in np.unique(group):
+            members = np.flatnonzero(group == label)
+            groups.append((members, cKDTree(particles[members]), float(support[members].max())))
+        return cls(cKDTree(particles), float(support.max()), tuple(groups))
+
+    def candidates(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(point, particle) index pairs with |X - X_I|_inf <= the largest support of I's
+        group (of all particles, for a few points), sorted by point, then particle."""
+        if len(points) <= MANY_POINTS:
+            lists = self.tree.query_ball_point(points, r=self.reach, p=np.inf, return_sorted=True)
+            counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(points))
+            cols = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
+            return np.repeat(np.arange(len(points)), counts), cols
+        point_tree = cKDTree(points)  # the pairs come as arrays, not lists
+        rows, cols = [], []
+        for members, tree, reach in self.groups:
+            pairs = point_tree.sparse_distance_matrix(tree, reach, p=np.inf, output_type="coo_matrix")
+            rows.append(pairs.row.astype(np.int64))
+            cols.append(members[pairs.col])
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        order = np.lexsort((cols, rows))
+        return rows[order], cols[order]
 
 
 def neighbour_pairs(
-    points: np.ndarray, particles: np.ndarray, support: np.ndarray, tree: cKDTree | None = None,
+    points: np.ndarray, particles: np.ndarray, support: np.ndarray, search: ParticleSearch | None = None,
     visibility: Visibility | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All (point, particle) pairs with |X - X_I|_inf < a_I, grouped by point; with
@@ -103,18 +147,8 @@ def neighbour_pairs(
 
     Returns (point_index, particle_index, indptr) where indptr delimits each point's pairs.
     """
-    tree = tree if tree is not None else cKDTree(particles)
-    reach = float(support.max())
-    if len(points) > MANY_POINTS:  # a tree of the points too: the pairs come as arrays, not lists
-        pairs = cKDTree(points).sparse_distance_matrix(tree, reach, p=np.inf, output_type="coo_matrix").tocsr()
-        pairs.sort_indices()
-        cols = pairs.indices.astype(np.int64)
-        rows = np.repeat(np.arange(len(points)), np.diff(pairs.indptr))
-    else:
-        lists = tree.query_ball_point(points, r=reach, p=np.inf, return_sorted=True)
-        counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(points))
-        cols = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
-        rows = np.repeat(np.arange(len(points)), counts)
+    search = search if search is not None else ParticleSearch.of(particles, support)
+    rows, cols = search.candidates(points)
     # the kernel vanishes at |z| = 1; a relative margin keeps particles that sit on the
     # support edge (dilation 2 on a regular grid) out regardless of rounding
     keep = np.abs(points[rows] - particles[cols]).max(axis=1) < support[cols] * (1.0 - 1e-9)
@@ -175,7 +209,7 @@ def rk_shape_pairs(
     volumes: np.ndarray,
     order: int = 1,
     gradients: bool = True,
-    tree: cKDTree | None = None,
+    search: ParticleSearch | None = None,
     basis_scale: float | None = None,
     visibility: Visibility | None = None,
 ) -> ShapePairs:
@@ -188,7 +222,7 @@ def rk_shape_pairs(
     tissue (see Visibility).
     """
     points = np.atleast_2d(np.asarray(points, dtype=float))
-    rows, cols, indptr = neighbour_pairs(points, particles, support, tree, visibility)
+    rows, cols, indptr = neighbour_pairs(points, particles, support, search, visibility)
     counts = indptr[1:] - indptr[:-1]
     m = basis_size(order)
     if (counts < m).any():
