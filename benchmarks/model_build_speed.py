@@ -4,7 +4,9 @@ and whole unplanned runs.
 Every command builds a model: RK shape functions and their gradients at every quadrature
 point (rk_shape_pairs), and on a tissue with holes or notches the visibility test of each
 (point, particle) pair (PolygonDomain.blocked). Needle steps evaluate the shape functions at
-single points (tip tracking, each new needle point). This script times, for SCENES (the
+single points (tip tracking, each new needle point). On graded particles the neighbour
+search of many points looks within each support group's own support (ParticleSearch), not
+the largest. This script times, for SCENES (the
 shipped configs at their default spacing or at `--spacing` S, the verification model of
 `plan` being half the default):
 
@@ -142,7 +144,9 @@ factor, every needle step). The change: the moment matrix summed from its upper 
 its gradient from D M + M D^T (the basis gradient is a constant map D of the basis) plus
 one new sum per direction; the visibility test of a tissue with a hole or a notch (hole_near_stitch,
 wound_closure) tests every boundary edge at once and measures the boundary distance only
-for pair midpoints outside the tissue. "exit error spread": the largest difference of the
+for pair midpoints outside the tissue; the neighbours of many points are searched per group
+of similar kernel supports within the group's support (on graded particles the largest
+support reaches hundreds of fine particles that do not reach back). "exit error spread": the largest difference of the
 exit error over all runs of both codes (round-off).
 
 {table}
