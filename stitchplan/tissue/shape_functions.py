@@ -56,12 +56,17 @@ def _derivative_maps(order: int) -> np.ndarray:
     return d
 
 
-# per basis order: the upper triangle's (row, column) indices, where each of the m x m
-# entries is found in the triangle's entries, and the derivative maps
-_UPPER = {order: np.triu_indices(basis_size(order)) for order in (1, 2)}
-_FULL = {order: np.triu(np.zeros((basis_size(order),) * 2, dtype=int)) for order in (1, 2)}
-for _order, (_rows, _cols) in _UPPER.items():
-    _FULL[_order][_rows, _cols] = _FULL[_order][_cols, _rows] = np.arange(len(_rows))
+def _triangle(order: int) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """The upper triangle of an m x m symmetric matrix: its (row, column) indices, and for
+    each of the m x m entries the index of its triangle entry."""
+    m = basis_size(order)
+    rows, cols = np.triu_indices(m)
+    full = np.empty((m, m), dtype=np.int64)
+    full[rows, cols] = full[cols, rows] = np.arange(len(rows))
+    return (rows, cols), full
+
+
+_TRIANGLES = {order: _triangle(order) for order in (1, 2)}
 _MAPS = {order: _derivative_maps(order) for order in (1, 2)}
 
 
@@ -218,8 +223,9 @@ def rk_shape_pairs(
     points (n, 2) evaluation points; particles (NP, 2); support (NP,) kernel half-widths a_I;
     volumes (NP,) particle volumes dV_I. The basis argument is scaled by one length for all
     particles (basis_scale, default the mean support) so that reproduction holds when the
-    supports vary between particles. `visibility` drops the pairs whose segment leaves the
-    tissue (see Visibility).
+    supports vary between particles. `search`: the particles' ParticleSearch (made here
+    when not given). `visibility` drops the pairs whose segment leaves the tissue (see
+    Visibility).
     """
     points = np.atleast_2d(np.asarray(points, dtype=float))
     rows, cols, indptr = neighbour_pairs(points, particles, support, search, visibility)
@@ -241,7 +247,7 @@ def rk_shape_pairs(
 
     # M(X) = sum H H^T phi from its upper triangle: (pairs, m (m + 1) / 2) products, not m^2
     starts = indptr[:-1]
-    upper, full = _UPPER[order], _FULL[order]
+    upper, full = _TRIANGLES[order]
     hh = h[:, upper[0]] * h[:, upper[1]]  # (pairs, u)
     moment = np.add.reduceat(hh * phi[:, None], starts, axis=0)[:, full]  # (n, m, m)
     eigenvalues = np.linalg.eigvalsh(moment)  # (n, m), ascending
