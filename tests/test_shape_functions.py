@@ -133,3 +133,48 @@ def test_too_few_particles_for_the_basis_is_reported():
     particles, support, volumes = particle_grid(2.0)
     with pytest.raises(SingularMomentMatrix, match=r"\(0, 0\) mm .*order-2 basis needs at least 6"):
         rk_shape_functions(np.array([[0.0, 0.0]]), particles, support, volumes, order=2)
+
+
+def graded_arrangement(dilation: float = 2.0):
+    """Particles graded from 4 mm down to 0.5 mm (three levels) toward a disk in a 40 x 30 mm
+    slab: the supports differ by a factor 8, as around a needle or a wound's corner."""
+    from stitchplan.tissue.particles import graded_particles
+
+    graded = graded_particles((40.0, 30.0), 4.0, 0.5, np.array([12.0, 20.0]), 3.0)
+    return graded.particles, dilation * graded.local_spacing, graded.volumes
+
+
+@pytest.mark.parametrize("count", [5, 500])  # a few points search one tree, many the support groups
+def test_the_support_group_search_finds_every_pair_and_no_other(count, rng):
+    """neighbour_pairs through ParticleSearch against a brute-force |X - X_I|_inf < a_I over
+    every (point, particle) pair, on graded particles whose supports differ by 8x."""
+    from stitchplan.tissue.shape_functions import ParticleSearch, neighbour_pairs
+
+    particles, support, _ = graded_arrangement()
+    search = ParticleSearch.of(particles, support)
+    assert len(search.groups) >= 3  # the levels are searched apart
+    points = rng.uniform((0.0, 0.0), (40.0, 30.0), size=(count, 2))
+    rows, cols, indptr = neighbour_pairs(points, particles, support, search)
+    inside = np.abs(points[:, None, :] - particles[None, :, :]).max(axis=2) < support * (1.0 - 1e-9)
+    expected_rows, expected_cols = np.nonzero(inside)  # by point, then particle
+    np.testing.assert_array_equal(rows, expected_rows)
+    np.testing.assert_array_equal(cols, expected_cols)
+    np.testing.assert_array_equal(np.diff(indptr), inside.sum(axis=1))
+
+
+def test_gradients_on_graded_particles_reproduce_and_match_finite_differences(rng):
+    """The moment's gradient from D M + M D^T (the basis gradient a constant map of the
+    basis) holds where the supports vary: linear fields' gradients to round-off, and every
+    grad N_I against central differences (h = 1e-6 mm, as above)."""
+    particles, support, volumes = graded_arrangement()
+    points = rng.uniform((0.0, 0.0), (40.0, 30.0), size=(200, 2))
+    shape = rk_shape_functions(points, particles, support, volumes, 1, gradients=True)
+    jacobian = np.stack([shape.grad_x @ particles, shape.grad_y @ particles], axis=2)
+    np.testing.assert_allclose(jacobian, np.broadcast_to(np.eye(2), jacobian.shape), rtol=0, atol=1e-11)
+    h = 1e-6
+    for grad, step in ((shape.grad_x, (h, 0.0)), (shape.grad_y, (0.0, h))):
+        forward = rk_shape_functions(points + step, particles, support, volumes, 1, False).values
+        backward = rk_shape_functions(points - step, particles, support, volumes, 1, False).values
+        scale = np.abs(grad.toarray()).max()
+        np.testing.assert_allclose(grad.toarray(), ((forward - backward) / (2 * h)).toarray(), rtol=0,
+                                   atol=1e-6 * scale)
