@@ -7,7 +7,8 @@ model still is what a user relies on: this script replays each shipped trajector
 (sample_runs/SCENE/trajectory.csv, written by sample_runs/regenerate.sh) with
 `stitchplan simulate CONFIG --center-path trajectory.csv --spacing S` at S = the plan's
 verification spacing (which must give its verified exit error again) and S / 2. The
-simulate summaries' own exit-error estimate (from a run at 2S) is listed too.
+simulate summaries' own exit-error estimate (from a run at 2S) is listed too, and for a
+stitch across a wound the difference of its two bites.
 
 Writes benchmarks/results/plan_replay.{csv,md} and prints the table. About 6 minutes.
 Run from the repository root, after sample_runs/regenerate.sh:  python benchmarks/plan_replay.py
@@ -29,7 +30,8 @@ import _common as common  # noqa: E402
 
 SAMPLES = common.REPO_ROOT / "sample_runs"
 FIELDS = ("scene", "planned_exit_error_mm", "verified_exit_error_mm", "verification_spacing_mm",
-          "replay_spacing_mm", "particles", "exit_error_mm", "exit_error_estimate_mm", "seconds")
+          "replay_spacing_mm", "particles", "exit_error_mm", "exit_error_estimate_mm", "seconds",
+          "planned_bite_difference_mm", "bite_difference_mm")
 TARGET_MM = 0.01  # the verified exit error the shipped plans are held to (README)
 
 
@@ -65,7 +67,10 @@ def main() -> None:
                        "verification_spacing_mm": verification, "replay_spacing_mm": spacing,
                        "particles": result["particles"], "exit_error_mm": result["exit_error_mm"],
                        "exit_error_estimate_mm": result.get("exit_error_estimate_mm"),
-                       "seconds": result["wall_seconds"]}
+                       "seconds": result["wall_seconds"],
+                       # a stitch across a wound: the bites' difference, what a symmetric plan aims at
+                       "planned_bite_difference_mm": (plan.get("bites") or {}).get("difference_mm"),
+                       "bite_difference_mm": (result.get("bites") or {}).get("difference_mm")}
                 print(row, flush=True)
                 rows.append(row)
     with common.results_path("plan_replay.csv").open("w", newline="") as handle:
@@ -101,6 +106,15 @@ def markdown(rows: list[dict]) -> str:
                      f"{mm(quarter['exit_error_estimate_mm'])} | {quarter['particles']} | {quarter['seconds']:.1f} |")
     lines += ["", f"Largest exit error at h/4: {worst:.4f} mm "
                   f"({'within' if worst <= TARGET_MM else 'above'} the {TARGET_MM} mm target)."]
+    wounds = [(s, sorted(r, key=lambda x: -x["replay_spacing_mm"])) for s, r in by_scene.items()
+              if r[0]["bite_difference_mm"] is not None]
+    if wounds:
+        lines += ["", "A stitch across a wound: the difference of the exit-side and entry-side bites (mm), "
+                      "on the planning model (the plan's summary) and in the replays; with `planner.target: "
+                      "symmetric` it is what the plan aims at.", "",
+                  "| scene | bite difference planned (h) | replay h/2 | replay h/4 |", "|---|---|---|---|"]
+        lines += [f"| {scene} | {half['planned_bite_difference_mm']:+.4f} | {half['bite_difference_mm']:+.4f} | "
+                  f"{quarter['bite_difference_mm']:+.4f} |" for scene, (half, quarter) in wounds]
     return "\n".join(lines) + "\n"
 
 
