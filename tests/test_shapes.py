@@ -354,3 +354,24 @@ def test_a_symmetric_target_evens_the_bites():
     planned = run_plan(parse_scenario(raw), compare=False).planned
     assert abs(planned.bites["difference_mm"]) <= 0.005
     assert [c["kind"] for c in planned.crossings] == ["exit", "entry", "exit"]
+
+
+def test_a_symmetric_plan_is_verified_and_re_aimed_by_its_bites():
+    """With planner.target symmetric the verification judges the bites' difference on the
+    refined model and, when it misses, re-aims the passes by the refined model's offset."""
+    from stitchplan.planning.verification import VERIFIED_FACTOR, plan_verified
+
+    raw = copy.deepcopy(WOUND)
+    raw["planner"] = {"target": "symmetric"}
+    scenario = parse_scenario(raw)
+    plan = plan_verified(scenario, compare=False)
+    rounds = plan.verification.rounds
+    assert all("verified_bite_difference_mm" in record for record in rounds)
+    refined = plan.verification.result.bites["difference_mm"]
+    assert abs(refined) == min(abs(record["verified_bite_difference_mm"]) for record in rounds)
+    if len(rounds) > 1:  # re-aimed: the second round's base-model target was the refined offset
+        first = rounds[0]
+        offset = first["verified_bite_difference_mm"] - first["planned_bite_difference_mm"]
+        assert abs(first["verified_bite_difference_mm"]) > VERIFIED_FACTOR * scenario.planner.exit_tolerance
+        assert rounds[1]["planned_bite_difference_mm"] == pytest.approx(-offset, abs=scenario.planner.exit_tolerance)
+    assert abs(refined) <= VERIFIED_FACTOR * scenario.planner.exit_tolerance

@@ -252,7 +252,7 @@ class PassOffsets:
 
 def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
              tolerance: float | None = None, shooting: PassOffsets | None = None, smooth: bool = True,
-             tissue: PreparedTissue | None = None, **options) -> PlanResult:
+             tissue: PreparedTissue | None = None, bite_aim: float = 0.0, **options) -> PlanResult:
     """Planned insertion with the scenario's planner settings, and (compare=True) the
     unplanned one of the same scene; `options` go to run_insertion.
 
@@ -266,7 +266,9 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     stop when they are within `tolerance` of it (default exit_tolerance) or after
     max_passes; the best pass is returned. With planner.target `symmetric` on a stitch
     across a wound the aim is, after each pass, the exit error that would make both bites
-    equal (needle.insertion._bites), so the passes trade exit error for symmetry. `shooting` continues from an earlier plan's
+    equal (needle.insertion._bites), so the passes trade exit error for symmetry, or that
+    would make their difference `bite_aim` mm (planning.verification aims it by a refined
+    model's offset). `shooting` continues from an earlier plan's
     passes; `smooth` keeps the centre path within MoveLimits. The runs share one model
     (`tissue`, made here when not given). Every pass starts each step from the step before
     (not from the pass before, run_insertion `start_from`): where the move limits hold the
@@ -295,10 +297,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         mismatch = final_mismatch(planned)
         error = exit_error_vector(planned)
         if symmetric:
-            # equal bites: the exit moved along the surface by the bites' difference, toward the
-            # wound edge when the exit side is the longer one
-            away = planned.achieved_exit_def - planned.bites["exit_wound_edge_def"]
-            aim = error - planned.bites["difference_mm"] * away / np.linalg.norm(away)
+            aim = symmetric_aim(planned, bite_aim)
         miss = float(np.linalg.norm(error - aim))
         passes.append({"pass": number, "offset_mm": offsets.offset.copy(), "exit_error_mm": planned.exit_error_mm,
                        "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
@@ -315,6 +314,15 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         offsets.advance(aim)
     best.wall_seconds = time.perf_counter() - start
     return PlanResult(best, unplanned, passes, shooting=offsets)
+
+
+def symmetric_aim(result: InsertionResult, bite_aim: float = 0.0) -> np.ndarray:
+    """The exit error vector that would make the bites' difference `bite_aim` (0: equal
+    bites): the exit moved along the surface by the difference's excess, toward the wound
+    edge when the exit side is the longer one."""
+    away = result.achieved_exit_def - result.bites["exit_wound_edge_def"]
+    excess = result.bites["difference_mm"] - bite_aim
+    return exit_error_vector(result) - excess * away / np.linalg.norm(away)
 
 
 def scenario_needle_gaps(scenario: Scenario) -> list:

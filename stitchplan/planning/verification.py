@@ -26,6 +26,9 @@ exported and reported (its `wall_seconds` then counts the passes of every round;
 replays' times are in the verification rounds). The trajectory is judged on the finer
 model: where the two models disagree by more than exit_tolerance, the planned (base-model)
 exit error of a corrected plan is about |delta|, and `exit_error_estimate_mm` says so too.
+With planner.target `symmetric` on a stitch across a wound the rounds judge and re-aim the
+bites' difference the same way: the refined model's offset b_refined - b_base aims the
+passes at the difference -(b_refined - b_base) on the base model (run_plan `bite_aim`).
 A later round's replay starts each step's Newton solve from the round before (run_insertion
 `start_from`): its centres are prescribed, so it ends in the same equilibria to the residual
 tolerance, in fewer iterations. The re-planning passes start cold (planning.planner.run_plan).
@@ -44,7 +47,7 @@ from ..events import Event, EventKind
 from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
-from .planner import PlanResult, exit_error_vector, run_plan
+from .planner import PlanResult, exit_error_vector, run_plan, symmetric_aim
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +157,14 @@ def replay(scenario: Scenario, centers: np.ndarray, **options) -> InsertionResul
         return None
 
 
+def _verified_miss(replayed: InsertionResult | None, symmetric: bool) -> float:
+    """What a round is judged by on the refined model: the exit error, or with the symmetric
+    target the bites' difference (mm); inf when the trajectory could not be replayed."""
+    if replayed is None or (symmetric and replayed.bites is None):
+        return np.inf
+    return abs(replayed.bites["difference_mm"]) if symmetric else replayed.exit_error_mm
+
+
 def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True, on_step=None,
                   **options) -> PlanResult:
     """run_plan, then (with `verify`) the exported trajectory replayed on the refined model
@@ -170,36 +181,52 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     fine = rescaled(scenario, VERIFICATION_FACTOR)
     fine_tissue = PreparedTissue(fine)  # shared by the rounds' replays
     spacing = fine.discretization.spacing
-    rounds, best, replayed = [], None, None  # best: (verified error, plan, replay)
+    # planner.target symmetric on a stitch across a wound: the bites' difference is judged and
+    # re-aimed on the refined model, as the exit error is otherwise
+    symmetric = settings.target == "symmetric" and result.planned.bites is not None
+    rounds, best, replayed = [], None, None  # best: (verified miss, plan, replay)
     for record in result.passes:
         record["round"] = 1
     planning_seconds = result.planned.wall_seconds
     for correction in range(MAX_CORRECTIONS + 1):
         if correction:
-            offset = exit_error_vector(replayed) - exit_error_vector(result.planned)
-            aim = -offset
-            log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at (%.4g, %.4g) mm",
-                     *offset, *aim)
+            bite_aim = 0.0
+            if symmetric:
+                bite_offset = replayed.bites["difference_mm"] - result.planned.bites["difference_mm"]
+                bite_aim = -bite_offset
+                aim = symmetric_aim(result.planned, bite_aim)
+                log.info("verification: refined model's bite-difference offset %.4g mm; re-planning aimed at "
+                         "a difference of %.4g mm", bite_offset, bite_aim)
+            else:
+                offset = exit_error_vector(replayed) - exit_error_vector(result.planned)
+                aim = -offset
+                log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at "
+                         "(%.4g, %.4g) mm", *offset, *aim)
             again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
-                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue, **options)
+                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
+                             bite_aim=bite_aim, **options)
             planning_seconds += again.planned.wall_seconds
             for record in again.passes:
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
         replayed = replay(fine, result.exported_centers, tissue=fine_tissue, start_from=replayed, **options)
-        verified = np.inf if replayed is None else replayed.exit_error_mm
-        rounds.append({"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
-                       "verified_exit_error_mm": None if replayed is None else verified,
-                       "replay_wall_seconds": None if replayed is None else replayed.wall_seconds})
-        log.info("verification round %d: planned exit error %.4g mm, on the refined model %.4g mm",
-                 correction + 1, result.planned.exit_error_mm, verified)
-        if best is None or verified < best[0]:
-            best = (verified, result, replayed)
-        if replayed is None or verified <= VERIFIED_FACTOR * settings.exit_tolerance:
+        record = {"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
+                  "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
+                  "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
+        if symmetric:
+            record["planned_bite_difference_mm"] = result.planned.bites["difference_mm"]
+            record["verified_bite_difference_mm"] = (None if replayed is None or replayed.bites is None
+                                                     else replayed.bites["difference_mm"])
+        rounds.append(record)
+        miss = _verified_miss(replayed, symmetric)
+        log.info("verification round %d: planned exit error %.4g mm, on the refined model %.4g mm%s",
+                 correction + 1, result.planned.exit_error_mm, record["verified_exit_error_mm"] or np.inf,
+                 f" (bite difference {miss:.4g} mm)" if symmetric else "")
+        if best is None or miss < best[0]:
+            best = (miss, result, replayed)
+        if replayed is None or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
             break
-        if settings.target == "symmetric":  # the passes aim the bites, not the exit: no re-aiming
-            break
-    verified, result, replayed = best
+    _, result, replayed = best
     result.planned.wall_seconds = planning_seconds  # every pass of every round
     result.verification = Verification(spacing, replayed, rounds)
     if replayed is None:
