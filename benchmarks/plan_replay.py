@@ -31,7 +31,7 @@ import _common as common  # noqa: E402
 SAMPLES = common.REPO_ROOT / "sample_runs"
 FIELDS = ("scene", "planned_exit_error_mm", "verified_exit_error_mm", "verification_spacing_mm",
           "replay_spacing_mm", "particles", "exit_error_mm", "exit_error_estimate_mm", "seconds",
-          "planned_bite_difference_mm", "bite_difference_mm")
+          "planned_bite_difference_mm", "bite_difference_mm", "target")
 TARGET_MM = 0.01  # the verified exit error the shipped plans are held to (README)
 
 
@@ -43,6 +43,13 @@ def planned_scenes() -> list[str]:
         if record.get("verification_spacing_mm") and (summary.parent / "trajectory.csv").exists():
             scenes.append(summary.parent.name)
     return scenes
+
+
+def target(scene: str) -> str:
+    """The scene's planner.target: `exit`, or `symmetric` (a wound stitch aimed at equal bites)."""
+    from stitchplan.config.scenario import load_scenario
+
+    return load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml").planner.target
 
 
 def replay(scene: str, spacing: float, folder: Path) -> dict:
@@ -70,7 +77,8 @@ def main() -> None:
                        "seconds": result["wall_seconds"],
                        # a stitch across a wound: the bites' difference, what a symmetric plan aims at
                        "planned_bite_difference_mm": (plan.get("bites") or {}).get("difference_mm"),
-                       "bite_difference_mm": (result.get("bites") or {}).get("difference_mm")}
+                       "bite_difference_mm": (result.get("bites") or {}).get("difference_mm"),
+                       "target": target(scene)}
                 print(row, flush=True)
                 rows.append(row)
     with common.results_path("plan_replay.csv").open("w", newline="") as handle:
@@ -100,11 +108,12 @@ def markdown(rows: list[dict]) -> str:
              "|---|---|---|---|---|---|---|---|"]
     worst = 0.0
     for scene, (half, quarter) in ((s, sorted(r, key=lambda x: -x["replay_spacing_mm"])) for s, r in by_scene.items()):
-        worst = max(worst, quarter["exit_error_mm"])
+        if half["target"] != "symmetric":  # a symmetric plan aims its bites (below), not the exit
+            worst = max(worst, quarter["exit_error_mm"])
         lines.append(f"| {scene} | {mm(half['planned_exit_error_mm'])} | {mm(half['verified_exit_error_mm'])} | "
                      f"{mm(half['exit_error_mm'])} | {mm(quarter['exit_error_mm'])} | "
                      f"{mm(quarter['exit_error_estimate_mm'])} | {quarter['particles']} | {quarter['seconds']:.1f} |")
-    lines += ["", f"Largest exit error at h/4: {worst:.4f} mm "
+    lines += ["", f"Largest exit error at h/4 of the plans aimed at the exit: {worst:.4f} mm "
                   f"({'within' if worst <= TARGET_MM else 'above'} the {TARGET_MM} mm target)."]
     wounds = [(s, sorted(r, key=lambda x: -x["replay_spacing_mm"])) for s, r in by_scene.items()
               if r[0]["bite_difference_mm"] is not None]

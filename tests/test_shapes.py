@@ -339,6 +339,7 @@ def test_a_stitch_across_a_wound_is_followed_through_every_crossing(tmp_path):
     assert summary["crossings"][-1]["error_mm"] == pytest.approx(summary["exit_error_mm"])
     assert {"entry_side_mm", "exit_side_mm", "difference_mm"} <= set(summary["bites"])
     verified = summary["verification"]["bites"]  # the bites on the refined replay too
+    assert f"(bites differ by {verified['difference_mm']:+.4f} mm there)" in run.output
     assert verified["entry_side_at_rest_mm"] == pytest.approx(4.0)
     assert verified["difference_mm"] == pytest.approx(verified["exit_side_mm"] - verified["entry_side_mm"])
     assert verified["difference_mm"] != summary["bites"]["difference_mm"]  # another model's

@@ -165,6 +165,8 @@ def plan_line(result, export: Path) -> str:
     verification = getattr(result, "verification", None)
     if verification is not None and verification.result is not None:
         versus += f", {verification.exit_error_mm:.4f} mm verified at spacing {verification.spacing_mm:.3g} mm"
+        if verification.result.bites:  # a stitch across a wound
+            versus += f" (bites differ by {verification.result.bites['difference_mm']:+.4f} mm there)"
     estimate = getattr(result, "estimate", None)
     if estimate is not None:
         versus += f", discretization error estimate {estimate.estimate_mm:.4f} mm"
