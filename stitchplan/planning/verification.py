@@ -226,6 +226,8 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             best = (miss, result, replayed)
         if replayed is None or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
             break
+        if symmetric and replayed.bites is None:  # the refined track does not cross the wound
+            break
     _, result, replayed = best
     result.planned.wall_seconds = planning_seconds  # every pass of every round
     result.verification = Verification(spacing, replayed, rounds)
