@@ -299,8 +299,10 @@ def plot_plan(path: str | Path, result):
         checks.append(f"discretization error of the exit about {estimate.estimate_mm:.2g} mm")
     verification = getattr(result, "verification", None)
     if verification is not None and verification.result is not None:
+        bites = verification.result.bites  # a stitch across a wound
         checks.append(f"trajectory replayed on a refined model (spacing {verification.spacing_mm:.3g} mm): "
-                      f"exit error {verification.result.exit_error_mm:.3g} mm")
+                      f"exit error {verification.result.exit_error_mm:.3g} mm"
+                      + (f", bites differ by {bites['difference_mm']:+.2g} mm" if bites else ""))
     title_above(fig, [main, *zooms, trajectory],
                 f"{_name(planned.scenario, 'plan')}: {headline}" + "".join(f"\n{c}" for c in checks), fontsize=11)
     legend_below(fig, [main, *zooms], columns=4)
