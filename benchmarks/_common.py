@@ -7,10 +7,12 @@ puts benchmarks/ on sys.path, so `import _common` finds this file.
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -27,6 +29,24 @@ SCENARIO_PATH = REPO_ROOT / "configs" / "slab_edge_load.yaml"
 # `stitchplan ARGS` in a fresh process of this Python, from whatever code PYTHONPATH puts first
 # (the scripts time a baseline checkout this way too)
 STITCHPLAN = [sys.executable, "-c", "import sys; from stitchplan.cli import main; sys.argv[0] = 'stitchplan'; main()"]
+
+
+def extract_revision(revision: str, folder: Path, *paths: str) -> Path:
+    """The repository at `revision` (only `paths`, default all of it) extracted into
+    `folder` with `git archive`, to time a baseline's code beside the working tree's."""
+    archive = subprocess.run(["git", "archive", revision, *paths], check=True, capture_output=True,
+                             cwd=REPO_ROOT).stdout
+    subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
+    return folder
+
+
+def worker_record(script: str, source: Path, *arguments: str) -> dict:
+    """`python SCRIPT --worker ARGUMENTS` in a fresh process with the code in `source` first
+    on PYTHONPATH; the JSON record it prints last."""
+    environment = {**os.environ, "PYTHONPATH": f"{source}{os.pathsep}{BENCH_DIR}"}
+    output = subprocess.run([sys.executable, str(Path(script).resolve()), "--worker", *arguments], check=True,
+                            capture_output=True, text=True, env=environment, cwd=source)
+    return json.loads(output.stdout.strip().splitlines()[-1])
 
 
 def results_path(name: str) -> Path:

@@ -33,7 +33,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import json  # noqa: E402
 import statistics  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -85,20 +84,13 @@ def worker(scene: str, spacing: float | None, run: bool) -> dict:
 
 
 def measure(source: Path, scene: str, spacing: float | None, run: bool) -> dict:
-    environment = {**os.environ, "PYTHONPATH": f"{source}{os.pathsep}{common.BENCH_DIR}"}
-    output = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", scene, str(spacing or ""),
-                             "1" if run else ""], check=True, capture_output=True, text=True, env=environment,
-                            cwd=source)
-    return json.loads(output.stdout.strip().splitlines()[-1])
+    return common.worker_record(__file__, source, scene, str(spacing or ""), "1" if run else "")
 
 
 def main(baseline: str) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as scratch:
-        before_source = Path(scratch)
-        archive = subprocess.run(["git", "archive", baseline, "stitchplan"], check=True, capture_output=True,
-                                 cwd=common.REPO_ROOT).stdout
-        subprocess.run(["tar", "-x", "-C", str(before_source)], input=archive, check=True)
+        before_source = common.extract_revision(baseline, Path(scratch), "stitchplan")
         for scene, spacing, run in SCENES:
             samples = {"before": [], "after": []}
             for _ in range(REPEATS):

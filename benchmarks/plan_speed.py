@@ -248,11 +248,7 @@ def startup() -> dict[str, float]:
 
 def main() -> None:
     with tempfile.TemporaryDirectory() as extracted:
-        baseline = Path(extracted)
-        archive = subprocess.run(["git", "archive", BASELINE], check=True, capture_output=True,
-                                 cwd=common.REPO_ROOT).stdout
-        subprocess.run(["tar", "-x", "-C", str(baseline)], input=archive, check=True)
-        rows = compare_revisions(baseline)
+        rows = compare_revisions(common.extract_revision(BASELINE, Path(extracted)))
     lever_rows = levers()
     warm_rows = verified_warm_starts()
     verified = verified_command()
