@@ -61,7 +61,7 @@ SCENES = (
 )
 
 
-def run_plan(config: Path, workdir: Path, spacing: float | None, simulate: bool = False) -> dict:
+def run_scene(config: Path, workdir: Path, spacing: float | None, simulate: bool = False) -> dict:
     """One `stitchplan plan --no-verify` run (with `simulate`: `stitchplan simulate
     --no-estimate`, the unplanned run only); its summary, or {"error": message}."""
     summary = workdir / "summary.json"
@@ -134,7 +134,7 @@ def main() -> None:
                     continue
                 spacing = None if level == "default" else default_spacing * factor
                 simulate = level == "quarter"
-                summary = run_plan(config, workdir, spacing, simulate)
+                summary = run_scene(config, workdir, spacing, simulate)
                 if "error" in summary:
                     rows.append([name, label, level, spacing, None, thesis_unplanned, None, None,
                                  thesis_planned, None, None, None, summary["error"]])
@@ -154,7 +154,7 @@ def main() -> None:
                       f"{summary['wall_seconds']:.1f} s", flush=True)
         loose = []
         for name in LIMITED_SCENES:
-            summary = run_plan(loosened(THESIS_DIR / f"{name}.yaml", workdir), workdir, None)
+            summary = run_scene(loosened(THESIS_DIR / f"{name}.yaml", workdir), workdir, None)
             if "error" in summary:
                 loose.append([name, None, None, None, summary["error"]])
             else:

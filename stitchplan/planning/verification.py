@@ -210,23 +210,22 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
         replayed = replay(fine, result.exported_centers, tissue=fine_tissue, start_from=replayed, **options)
-        record = {"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
-                  "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
-                  "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
+        verified = {"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
+                    "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
+                    "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
         if symmetric:
-            record["planned_bite_difference_mm"] = result.planned.bites["difference_mm"]
-            record["verified_bite_difference_mm"] = (None if replayed is None or replayed.bites is None
-                                                     else replayed.bites["difference_mm"])
-        rounds.append(record)
+            verified["planned_bite_difference_mm"] = result.planned.bites["difference_mm"]
+            verified["verified_bite_difference_mm"] = (None if replayed is None or replayed.bites is None
+                                                       else replayed.bites["difference_mm"])
+        rounds.append(verified)
         miss = _verified_miss(replayed, symmetric)
         log.info("verification round %d: planned exit error %.4g mm, on the refined model %.4g mm%s",
-                 correction + 1, result.planned.exit_error_mm, record["verified_exit_error_mm"] or np.inf,
+                 correction + 1, result.planned.exit_error_mm, verified["verified_exit_error_mm"] or np.inf,
                  f" (bite difference {miss:.4g} mm)" if symmetric else "")
         if best is None or miss < best[0]:
             best = (miss, result, replayed)
-        if replayed is None or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
-            break
-        if symmetric and replayed.bites is None:  # the refined track does not cross the wound
+        # no replay, or (symmetric) a refined track that does not cross the wound: nothing to re-aim by
+        if not np.isfinite(miss) or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
             break
     _, result, replayed = best
     result.planned.wall_seconds = planning_seconds  # every pass of every round
