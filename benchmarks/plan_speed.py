@@ -188,12 +188,13 @@ def verified_warm_starts(scene: str = "sh12_100x100") -> list[tuple]:
     a second round) in process, with the second round's replay started from the first's
     (now) and started cold: (scene, label, median s, rounds, replay seconds, verified exit
     error mm)."""
+    import stitchplan.planning.replays as replays
     import stitchplan.planning.verification as verification
     from stitchplan.config.scenario import load_scenario
 
     logging.getLogger("stitchplan").setLevel(logging.ERROR)
     scenario = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml")
-    shared = verification.run_insertion
+    shared = replays.run_insertion  # the replays' (in this process: plan_verified's default)
 
     def cold_run(scenario, **options):
         options.pop("start_from", None)
@@ -201,7 +202,7 @@ def verified_warm_starts(scene: str = "sh12_100x100") -> list[tuple]:
 
     rows = []
     for label, changes in (("second replay started from the first (now)", {}),
-                           ("second replay started cold", {(verification, "run_insertion"): cold_run})):
+                           ("second replay started cold", {(replays, "run_insertion"): cold_run})):
         saved = {key: getattr(*key) for key in changes}
         for (module, name), value in changes.items():
             setattr(module, name, value)
@@ -220,7 +221,7 @@ def verified_warm_starts(scene: str = "sh12_100x100") -> list[tuple]:
                      " / ".join(f"{r['replay_wall_seconds']:.2f}" for r in rounds),
                      result.verification.exit_error_mm))
         print(f"verified {scene} {label}: {rows[-1][2]:.2f} s", flush=True)
-    assert verification.run_insertion is shared
+    assert replays.run_insertion is shared
     return rows
 
 

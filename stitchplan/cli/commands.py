@@ -101,7 +101,7 @@ def simulate(
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.readers import read_center_path
-    from ..planning.verification import simulate_with_estimate
+    from ..planning.verification import estimate_replays, simulate_with_estimate
     from ..study.auto import resolve_accuracy
 
     linear_solver, tip_tracking = _value(linear_solver), _value(tip_tracking)
@@ -113,10 +113,13 @@ def simulate(
         _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1))
     scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
                                            max_particles=None if limits is None else limits.max_particles)
-    with progress_bar("needle steps", _expected_steps(scenario)) as advance:
+    # the estimate's run at 2h goes on in a helper process alongside (planning/replays.py)
+    with (estimate_replays(scenario, background=estimate, linear_solver=linear_solver, tip_tracking=tip_tracking)
+          as replays, progress_bar("needle steps", _expected_steps(scenario)) as advance):
         result, error_estimate = simulate_with_estimate(
             scenario, center_path=path, estimate=estimate, linear_solver=linear_solver,
-            tip_tracking=tip_tracking, condition_numbers=condition_numbers, on_step=lambda record: advance())
+            tip_tracking=tip_tracking, condition_numbers=condition_numbers, on_step=lambda record: advance(),
+            replays=replays)
     if auto_note is not None:
         result.events.insert(0, auto_note)
     reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
@@ -199,7 +202,7 @@ def plan(
     scenario = replace(scenario, robot=robot,
                        planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
     from ..io import reports
-    from ..planning.verification import plan_verified
+    from ..planning.verification import plan_replays, plan_verified
     from ..io.progress import progress_bar
 
     from ..resources import PLAN_RUNS, VERIFICATION_RUNS, rescaled
@@ -226,9 +229,11 @@ def plan(
                                 linear_solver=linear_solver, tip_tracking=tip_tracking)
         return
     expected = _expected_steps(scenario)
-    with progress_bar("planned steps", (2 if compare else 1) * expected) as advance:
+    # the trajectory's replay goes on in a helper process alongside (planning/replays.py)
+    with (plan_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking) as replays,
+          progress_bar("planned steps", (2 if compare else 1) * expected) as advance):
         result = plan_verified(scenario, compare=compare, verify=verify, linear_solver=linear_solver,
-                               tip_tracking=tip_tracking, on_step=lambda record: advance())
+                               tip_tracking=tip_tracking, on_step=lambda record: advance(), replays=replays)
     if auto_note is not None:
         result.planned.events.insert(0, auto_note)
     reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot,

@@ -98,7 +98,8 @@ def run_insertion(
     geometry = insertion.geometry
     if center_path is not None:
         control = CenterReplay(center_path)
-        insertion.move_center(control.path[0])
+    if isinstance(control, CenterReplay):
+        insertion.move_center(control.predict(insertion.center, 0))  # row 0: the entry centre
     control = control or FixedCenter()
     insertion.add_point(geometry.entry.copy())
     displacements = [np.zeros_like(insertion.model.particles)]

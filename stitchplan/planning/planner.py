@@ -27,10 +27,11 @@ from ..config import Planner, Scenario
 from ..errors import PlanningFailure
 from ..events import Event
 from ..needle.equilibrium import NeedleInsertion, PreparedTissue
+from ..needle.geometry import scenario_needle
 from ..needle.steering import CenterAim
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
-from .trajectory import trajectory_table
+from .trajectory import exported_center, exported_centers
 
 log = logging.getLogger(__name__)
 
@@ -192,8 +193,7 @@ class PlanResult:
     def exported_centers(self) -> np.ndarray:
         """The centre columns of trajectory.csv, as written: O(t_0) .. O(t_N) and the exit
         step's row, which keeps O(t_N) (trajectory.py)."""
-        _, table = trajectory_table(self.planned, self.planned.scenario.robot)
-        return table[:, 2:4]
+        return exported_centers(self.planned)
 
 
 def final_mismatch(result: InsertionResult) -> np.ndarray:
@@ -252,7 +252,8 @@ class PassOffsets:
 
 def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
              tolerance: float | None = None, shooting: PassOffsets | None = None, smooth: bool = True,
-             tissue: PreparedTissue | None = None, bite_aim: float = 0.0, **options) -> PlanResult:
+             tissue: PreparedTissue | None = None, bite_aim: float = 0.0, stream=None,
+             **options) -> PlanResult:
     """Planned insertion with the scenario's planner settings, and (compare=True) the
     unplanned one of the same scene; `options` go to run_insertion.
 
@@ -277,6 +278,8 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     exit error of a pass depend on that pass, not on its offset alone, which the secant
     over the passes cannot take (the thesis's table 5.1 100 x 100 block then missed the exit
     tolerance after four passes: benchmarks/results/thesis_table.md in the git history).
+    `stream` (planning/replays.py) is handed each pass's centres as they become final, so a
+    replay of the trajectory can run alongside.
     """
     settings = scenario.planner
     tissue = tissue or PreparedTissue(scenario)  # built by the first run
@@ -293,7 +296,10 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     best, best_miss = None, np.inf
     for number in range(1, settings.max_passes + 1):
         tracker = ExitTracker(settings, offsets.offset, smooth=smooth)
-        planned = run_insertion(scenario, control=tracker, on_step=on_step, tissue=tissue, **options)
+        planned = run_insertion(scenario, control=tracker, on_step=_streamed(on_step, stream, scenario),
+                                tissue=tissue, **options)
+        if stream is not None:
+            stream.end(exported_centers(planned))
         mismatch = final_mismatch(planned)
         error = exit_error_vector(planned)
         if symmetric:
@@ -316,6 +322,20 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     return PlanResult(best, unplanned, passes, shooting=offsets)
 
 
+def _streamed(on_step, stream, scenario: Scenario):
+    """on_step, and (with `stream`) the pass's start and each step's centre handed to it."""
+    if stream is None:
+        return on_step
+    stream.begin(exported_center(scenario_needle(scenario).center))
+
+    def step_done(record) -> None:
+        stream.row(record.step, exported_center(record.center))
+        if on_step is not None:
+            on_step(record)
+
+    return step_done
+
+
 def symmetric_aim(result: InsertionResult, bite_aim: float = 0.0) -> np.ndarray:
     """The exit error vector that would make the bites' difference `bite_aim` (0: equal
     bites): the exit moved along the surface by the difference's excess, toward the wound
@@ -327,6 +347,4 @@ def symmetric_aim(result: InsertionResult, bite_aim: float = 0.0) -> np.ndarray:
 
 def scenario_needle_gaps(scenario: Scenario) -> list:
     """The wound gaps the scenario's undeformed needle circle crosses (none on a convex tissue)."""
-    from ..needle.geometry import scenario_needle
-
     return scenario_needle(scenario).gaps

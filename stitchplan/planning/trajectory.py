@@ -26,6 +26,18 @@ def _clean(values: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(values, dtype=float), DECIMALS_MM) + 0.0
 
 
+def exported_center(center: np.ndarray) -> np.ndarray:
+    """A centre as trajectory.csv writes it."""
+    return _clean(center)
+
+
+def exported_centers(result: InsertionResult) -> np.ndarray:
+    """The centre columns of trajectory.csv, as written: O(t_0) .. O(t_N) and the exit
+    step's row, which keeps O(t_N), (N + 2, 2)."""
+    centers = [result.geometry.center] + [s.center for s in result.steps]
+    return _clean(np.asarray(centers + centers[-1:]))
+
+
 def trajectory_table(result: InsertionResult, robot: Robot) -> tuple[list[str], np.ndarray]:
     geometry = result.geometry
     centers = [geometry.center] + [s.center for s in result.steps]

@@ -32,6 +32,11 @@ passes at the difference -(b_refined - b_base) on the base model (run_plan `bite
 A later round's replay starts each step's Newton solve from the round before (run_insertion
 `start_from`): its centres are prescribed, so it ends in the same equilibria to the residual
 tolerance, in fewer iterations. The re-planning passes start cold (planning.planner.run_plan).
+The replays (the refined model's, or without verification the estimate's at 2h) are made
+by one `replays` object of planning/replays.py for the whole plan: the `plan` and
+`simulate` commands give them to a helper process, which replays each planner pass while
+the planning goes on; a round's `replay_wall_seconds` then runs from the start of the pass
+it replays.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
 from .planner import PlanResult, exit_error_vector, run_plan, symmetric_aim
+from .replays import InlineReplays, replays_for
 
 log = logging.getLogger(__name__)
 
@@ -122,15 +128,21 @@ def estimate_from(result: InsertionResult, other: InsertionResult, factor: float
     return ExitEstimate(estimate, basis, ASSUMED_ORDER, other_spacing, other.model.n_particles, deviations)
 
 
+def _replay_options(options: dict) -> dict:
+    """run_insertion's options for a replay on another model: not the step callback, nor
+    the dense condition numbers."""
+    return {key: value for key, value in options.items() if key not in ("on_step", "condition_numbers")}
+
+
 def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path: np.ndarray | None = None,
-                        **options) -> ExitEstimate | None:
+                        replays: InlineReplays | None = None, **options) -> ExitEstimate | None:
     """The exit error estimate of `result` from a coarser run (2h) of the same centre path
-    (`center_path` rows as run_insertion takes them; None: the needle centre stays fixed).
-    None, with an event on `result`, when the coarse model cannot run the insertion."""
-    options = {key: value for key, value in options.items() if key not in ("on_step", "condition_numbers")}
+    (`center_path` rows as run_insertion takes them; None: the needle centre stays fixed),
+    by `replays` on the 2h model (estimate_replays) when given. None, with an event on
+    `result`, when the coarse model cannot run the insertion."""
     try:
         coarse = rescaled(scenario, 2.0)
-        other = run_insertion(coarse, center_path=center_path, **options)
+        other = (replays or InlineReplays(coarse, **_replay_options(options))).replay(center_path)
     except (InputError, NumericalFailure) as error:
         message = f"exit error estimate: the model at twice the spacing failed ({error}); no estimate"
         result.events.append(Event(EventKind.ACCURACY_CHECK, message))
@@ -139,19 +151,35 @@ def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path
     return estimate_from(result, other, 2.0, coarse.discretization.spacing)
 
 
+def estimate_replays(scenario: Scenario, background: bool = True, **options):
+    """replays_for the exit error estimate's 2h model (a context manager; planning/replays.py)."""
+    return replays_for(rescaled(scenario, 2.0), background, **_replay_options(options))
+
+
+def plan_replays(scenario: Scenario, verify: bool = True, background: bool = True, **options):
+    """replays_for the model plan_verified replays its trajectory on: the refined model with
+    `verify`, else the exit error estimate's 2h model (a context manager)."""
+    factor = VERIFICATION_FACTOR if verify else 2.0
+    return replays_for(rescaled(scenario, factor), background, **_replay_options(options))
+
+
 def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = None, estimate: bool = True,
-                           on_step=None, **options) -> tuple[InsertionResult, ExitEstimate | None]:
-    """run_insertion, and (with `estimate`) its exit error estimate from a run at 2h."""
+                           on_step=None, replays: InlineReplays | None = None,
+                           **options) -> tuple[InsertionResult, ExitEstimate | None]:
+    """run_insertion, and (with `estimate`) its exit error estimate from a run at 2h, by
+    `replays` on the 2h model (estimate_replays; started before this run) when given."""
+    if estimate and replays is not None:
+        replays.submit(center_path)
     result = run_insertion(scenario, center_path=center_path, on_step=on_step, **options)
     if not estimate:
         return result, None
-    return result, estimate_exit_error(scenario, result, center_path, **options)
+    return result, estimate_exit_error(scenario, result, center_path, replays=replays, **options)
 
 
-def replay(scenario: Scenario, centers: np.ndarray, **options) -> InsertionResult | None:
+def replay(replays: InlineReplays, centers: np.ndarray) -> InsertionResult | None:
     """The centre path replayed; None when the tip does not leave the tissue within it."""
     try:
-        return run_insertion(scenario, center_path=centers, **options)
+        return replays.replay(centers)
     except InputError as error:  # the path ends before the tip exits on this model
         log.info("verification replay: %s", error)
         return None
@@ -166,21 +194,24 @@ def _verified_miss(replayed: InsertionResult | None, symmetric: bool) -> float:
 
 
 def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True, on_step=None,
-                  **options) -> PlanResult:
+                  replays: InlineReplays | None = None, **options) -> PlanResult:
     """run_plan, then (with `verify`) the exported trajectory replayed on the refined model
     and, where needed, the passes re-aimed by the refined model's offset (module docstring).
     The plan's `verification` is set (with `verify`), and its `estimate`, the exit error
     estimate of the planned run: from the refined replay, or without `verify` from a replay
-    of the trajectory at 2h."""
+    of the trajectory at 2h. `replays`: plan_replays's, which replay each planner pass while
+    the planning goes on; by default the replays run here after it."""
     tissue = PreparedTissue(scenario)  # shared by the plan's runs and the re-planning rounds
-    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, **options)
+    factor = VERIFICATION_FACTOR if verify else 2.0
+    other = rescaled(scenario, factor)
+    replays = replays or InlineReplays(other, **_replay_options(options))  # one model for every round
+    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=replays, **options)
     if not verify:
-        result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, **options)
+        result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, replays=replays,
+                                              **options)
         return result
     settings = scenario.planner
-    fine = rescaled(scenario, VERIFICATION_FACTOR)
-    fine_tissue = PreparedTissue(fine)  # shared by the rounds' replays
-    spacing = fine.discretization.spacing
+    spacing = other.discretization.spacing
     # planner.target symmetric on a stitch across a wound: the bites' difference is judged and
     # re-aimed on the refined model, as the exit error is otherwise
     symmetric = settings.target == "symmetric" and result.planned.bites is not None
@@ -204,12 +235,12 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                          "(%.4g, %.4g) mm", *offset, *aim)
             again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
                              tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
-                             bite_aim=bite_aim, **options)
+                             bite_aim=bite_aim, stream=replays, **options)
             planning_seconds += again.planned.wall_seconds
             for record in again.passes:
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
-        replayed = replay(fine, result.exported_centers, tissue=fine_tissue, start_from=replayed, **options)
+        replayed = replay(replays, result.exported_centers)  # started from the round before's
         verified = {"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
                     "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
                     "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}

@@ -1,0 +1,322 @@
+"""Replays of a needle-centre path on a second model: the verification's refined model and
+the error estimate's coarse one (planning/verification.py), here or in a helper process
+that runs them while this process plans.
+
+A plan's replay needs the plan's trajectory, but not all of it at once: a planner pass's
+centre for step n is final once step n is done (planning.planner.run_plan streams each
+pass through `begin`, `row` and `end`). `BackgroundReplays` forks a helper process that
+builds the second model (and factors its K0) while this process builds its own, then
+replays each pass as its centres arrive, so the replay of the pass that is kept ends soon
+after the planning does, on the machine's second core. A pass that is not kept is dropped
+when the next one begins; a trajectory that is not the last streamed one (the best of
+several passes) is replayed whole when asked for. `submit` starts a path known from the
+start (`simulate`'s estimate run) at once.
+
+Both kinds replay with run_insertion on the same inputs, one model kept for all their
+replays, each replay started from the one returned before it (run_insertion
+`start_from`, as the verification rounds want), so a result does not depend on where it
+ran (tests/test_replays.py). The helper is used where it can be: Linux (fork is its own
+way of starting a process; macOS's system libraries are not fork-safe), two or more cores,
+one thread in this process (forking a threaded process can deadlock the child), and
+STITCHPLAN_REPLAY_HELPER not 0; `replays_for` falls back to `InlineReplays` otherwise. Should the helper fail in a way the project does not report as a StitchplanError
+(it died, or a bug), the replay runs again here, where the failure is reported as usual.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+from contextlib import contextmanager
+from dataclasses import replace
+
+import numpy as np
+
+from ..config import Scenario
+from ..errors import StitchplanError
+from ..needle.equilibrium import PreparedTissue
+from ..needle.insertion import CenterReplay, run_insertion
+from ..needle.results import InsertionResult
+
+log = logging.getLogger(__name__)
+
+HELPER_VARIABLE = "STITCHPLAN_REPLAY_HELPER"  # 0: replays run in this process
+STOP_SECONDS = 1.0  # how long closing waits for the helper (idle unless a run failed) before terminating it
+
+
+class InlineReplays:
+    """Replays run here, when asked for; the streaming calls do nothing."""
+
+    def __init__(self, scenario: Scenario, **options):
+        self.scenario = scenario
+        self.options = options  # run_insertion's linear_solver and tip_tracking
+        self._tissue: PreparedTissue | None = None
+        self._last: InsertionResult | None = None  # the replay returned last
+
+    def begin(self, entry_center: np.ndarray) -> None:
+        """A planner pass starts at `entry_center` (row 0 of its trajectory)."""
+
+    def row(self, step: int, center: np.ndarray) -> None:
+        """The pass's centre for `step`, final."""
+
+    def end(self, centers: np.ndarray) -> None:
+        """The pass ended with these exported centres (trajectory.exported_centers)."""
+
+    def submit(self, centers: np.ndarray | None) -> None:
+        """A path that will be asked for (None: the needle centre stays fixed)."""
+
+    def replay(self, centers: np.ndarray | None) -> InsertionResult:
+        """The path replayed on this object's model (None: the fixed centre), started from
+        the replay returned before; raises what run_insertion raises."""
+        if self._tissue is None:
+            self._tissue = PreparedTissue(self.scenario)
+        start, self._last = self._last, None
+        self._last = run_insertion(self.scenario, center_path=centers, tissue=self._tissue, start_from=start,
+                                   **self.options)
+        return self._last
+
+    def close(self) -> None:
+        pass
+
+
+class BackgroundReplays(InlineReplays):
+    """Replays run by a forked helper process (module docstring)."""
+
+    def __init__(self, scenario: Scenario, **options):
+        super().__init__(scenario, **options)
+        context = multiprocessing.get_context("fork")
+        self._connection, theirs = context.Pipe()
+        self._process = context.Process(target=_serve, args=(theirs, self._connection, scenario, options),
+                                        daemon=True, name="stitchplan replays")
+        self._process.start()
+        theirs.close()
+        self.jobs = 0  # replays started in the helper (streamed passes and whole paths)
+        self.steps_run = 0  # needle steps of the helper's replays, of dropped passes too
+        self._paths: dict[int, np.ndarray | None] = {}  # job -> its path (streamed: once ended)
+        self._streaming: int | None = None  # the streamed job whose rows are still coming
+        self._last_job: int | None = None  # the job whose replay was returned last (start_from)
+        self._failed = False  # the helper is gone: replays run here
+
+    def _send(self, message: tuple) -> None:
+        if self._failed:
+            return
+        try:
+            self._connection.send(message)
+        except (OSError, EOFError, ValueError):
+            self._fail("the helper process stopped")
+
+    def _start(self, kind: str, payload) -> int:
+        self.jobs += 1
+        self._paths = {}  # the helper keeps only its newest job
+        self._send((kind, self.jobs, self._last_job, payload))
+        return self.jobs
+
+    def begin(self, entry_center: np.ndarray) -> None:
+        self._streaming = self._start("stream", np.array(entry_center, dtype=float))
+
+    def row(self, step: int, center: np.ndarray) -> None:
+        if self._streaming is not None:
+            self._send(("row", self._streaming, step, np.array(center, dtype=float)))
+
+    def end(self, centers: np.ndarray) -> None:
+        if self._streaming is not None:
+            centers = np.array(centers, dtype=float)
+            self._send(("end", self._streaming, centers))
+            self._paths[self._streaming] = centers
+            self._streaming = None
+
+    def submit(self, centers: np.ndarray | None) -> None:
+        centers = None if centers is None else np.array(centers, dtype=float)
+        job = self._start("path", centers)
+        self._paths[job] = centers
+
+    def replay(self, centers: np.ndarray | None) -> InsertionResult:
+        if self._failed:
+            return self._replay_here(centers)
+        if self._streaming is not None:  # a pass that never ended (it failed): not this path
+            self._send(("end", self._streaming, np.zeros((0, 2))))
+            self._streaming = None
+        job = next((job for job, path in self._paths.items() if _same_path(path, centers)), None)
+        if job is None:
+            self.submit(centers)
+            job = self.jobs
+        self._send(("send", job))
+        try:
+            answer = self._connection.recv() if not self._failed else None
+        except (OSError, EOFError):
+            answer = None
+        if answer is None or answer[0] != "result" or answer[1] != job:
+            self._fail("the helper process stopped")
+            return self._replay_here(centers)
+        _, _, result, error, steps = answer
+        self.steps_run += steps
+        self._last_job = None
+        if error is not None:
+            if isinstance(error, StitchplanError):
+                raise error
+            self._fail(f"the helper process failed ({error})")
+            return self._replay_here(centers)
+        self._last_job = job
+        self._last = result
+        return result
+
+    def _fail(self, reason: str) -> None:
+        if not self._failed:
+            log.info("replays: %s; replaying in this process", reason)
+        self._failed = True
+
+    def _replay_here(self, centers: np.ndarray | None) -> InsertionResult:
+        """After a helper failure: replay here (from no earlier replay: the helper's are gone)."""
+        self._last = None
+        return super().replay(centers)
+
+    def close(self) -> None:
+        self._send(("stop",))
+        self._connection.close()
+        self._process.join(STOP_SECONDS)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join()
+
+
+def helper_available() -> bool:
+    """Whether a forked helper process can run the replays (module docstring)."""
+    if os.environ.get(HELPER_VARIABLE, "") == "0":
+        return False
+    # fork only where it is the platform's own way (macOS's system libraries are not fork-safe)
+    if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
+        return False
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return cores >= 2 and threading.active_count() == 1
+
+
+@contextmanager
+def replays_for(scenario: Scenario, background: bool = True, **options):
+    """Replays on `scenario`'s model: by a helper process when `background` and
+    helper_available(), else here. Closes the helper on leaving."""
+    replays = None
+    if background and helper_available():
+        try:
+            replays = BackgroundReplays(scenario, **options)
+        except OSError as error:  # no process to be had (fork refused): replay here
+            log.info("replays: no helper process (%s); replaying in this process", error)
+    replays = replays or InlineReplays(scenario, **options)
+    try:
+        yield replays
+    finally:
+        replays.close()
+
+
+def _same_path(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return a.shape == np.shape(b) and bool(np.array_equal(a, b))
+
+
+# --- the helper process ------------------------------------------------------------------------
+
+
+class _Superseded(Exception):
+    """A newer request reached the helper while a streamed replay waited for its rows."""
+
+
+class _StreamedPath(CenterReplay):
+    """The centres of a planner pass as they arrive; CenterReplay's once the pass has ended
+    (its path then: a row the pass did not reach ends the replay as CenterReplay's does)."""
+
+    def __init__(self, receive, pending, inbox: collections.deque, job: int, entry_center: np.ndarray):
+        super().__init__(np.zeros((0, 2)))
+        self._receive, self._pending, self._inbox, self._job = receive, pending, inbox, job
+        self._rows = {0: entry_center}
+        self.steps = 0  # steps asked for
+        self._ended = False
+        self._asked = False  # the main process waits for this replay: nothing more will come
+
+    def predict(self, center: np.ndarray, step: int) -> np.ndarray:
+        # every step reads what has come, so that a newer pass ends this replay at once
+        # instead of after the whole of a pass that was dropped
+        self.steps += step > 0
+        while not self._asked and ((not self._ended and step not in self._rows) or self._pending()):
+            message = self._receive()
+            if message[0] == "send" and message[1] == self._job:
+                self._inbox.appendleft(message)  # answered once the replay is done
+                self._asked = True
+                continue
+            if message[0] in ("stream", "path", "send", "stop"):
+                self._inbox.appendleft(message)
+                raise _Superseded
+            if message[1] != self._job:  # a dropped job's
+                continue
+            if message[0] == "row":
+                self._rows[message[2]] = message[3]
+            elif message[0] == "end":
+                self._ended, self.path = True, message[2]
+        if self._ended:
+            if step < len(self.path) and step in self._rows and not np.array_equal(self._rows[step], self.path[step]):
+                raise _Superseded  # never expected: the streamed rows are the exported ones
+            return super().predict(center, step)
+        return self._rows[step]
+
+
+def _serve(connection, parents_end, scenario: Scenario, options: dict) -> None:
+    """The helper's loop: jobs ("stream" or "path", job, warm-start job, entry centre or
+    path), their rows and ends, "send" (the job's result back) and "stop"."""
+    parents_end.close()  # so that the main process's end of the pipe closing ends this loop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process stops the helper
+    logging.disable(logging.CRITICAL)  # the main process reports
+    tissue = PreparedTissue(scenario)
+    try:  # now, while the main process builds its own model and plans
+        tissue.model
+        tissue.factor_at_rest()
+    except Exception:  # noqa: BLE001 -- the replay meets it again and reports it
+        pass
+    inbox: collections.deque = collections.deque()
+
+    def receive():
+        return inbox.popleft() if inbox else connection.recv()
+
+    def pending() -> bool:
+        return bool(inbox) or connection.poll()
+
+    done: dict[int, tuple] = {}  # the newest finished job: (result, error)
+    steps_run = 0  # needle steps of every replay since the last answer, dropped ones too
+    sent: tuple[int | None, InsertionResult | None] = (None, None)  # the replay last sent back
+    while True:
+        try:
+            message = receive()
+        except (EOFError, OSError):
+            return
+        kind = message[0]
+        if kind == "stop":
+            return
+        if kind == "send":
+            result, error = done.get(message[1], (None, RuntimeError(f"no replay for job {message[1]}")))
+            connection.send(("result", message[1],
+                             None if result is None else replace(result, states=[]), error, steps_run))
+            steps_run = 0
+            sent = (message[1], result)
+            continue
+        if kind not in ("stream", "path"):
+            continue  # the rows and end of a dropped job
+        job, warm, payload = message[1], message[2], message[3]
+        start = sent[1] if warm is not None and warm == sent[0] else None
+        if kind == "stream":
+            control, path = _StreamedPath(receive, pending, inbox, job, payload), None
+        else:
+            control, path = None, payload
+        try:
+            result, error = run_insertion(scenario, control=control, center_path=path, tissue=tissue,
+                                          start_from=start, **options), None
+        except _Superseded:
+            steps_run += control.steps
+            continue
+        except StitchplanError as failure:
+            result, error = None, failure
+        except Exception as failure:  # noqa: BLE001 -- the main process replays and reports it
+            result, error = None, RuntimeError(f"{type(failure).__name__}: {failure}")
+        done = {job: (result, error)}
+        steps_run += len(result.steps) if result is not None else getattr(control, "steps", 0)

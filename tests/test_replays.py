@@ -1,0 +1,153 @@
+"""Replays on a second model by a helper process (planning/replays.py) give what the same
+replays give in this process, bit for bit: a verified plan with several passes and rounds,
+the error estimate of a plan and of `simulate`, a trajectory that was not the last one
+streamed, a path that ends before the tip exits, and a helper that dies.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_verification import scene_raw
+
+from stitchplan.config.scenario import parse_scenario
+from stitchplan.errors import InputError
+from stitchplan.needle.geometry import scenario_needle
+from stitchplan.planning.replays import BackgroundReplays, InlineReplays, helper_available, replays_for
+from stitchplan.planning.verification import (
+    plan_replays,
+    plan_verified,
+    rescaled,
+    simulate_with_estimate,
+)
+from stitchplan.planning.trajectory import exported_center
+
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    """A small block where the plan takes two passes in a round and three verification rounds."""
+    return parse_scenario(scene_raw(20.0, 18.0, 5.0, 0.3, planner={"max_passes": 2}))
+
+
+def _plan(scenario, verify: bool, kind):
+    factor = 0.5 if verify else 2.0
+    replays = kind(rescaled(scenario, factor))
+    try:
+        return plan_verified(scenario, compare=False, verify=verify, replays=replays), replays
+    finally:
+        replays.close()
+
+
+def _fingerprint(plan) -> dict:
+    verification = plan.verification
+    return {"centers": plan.exported_centers.tolist(), "planned": plan.planned.exit_error_mm,
+            "passes": [(p["pass"], p.get("round"), p["exit_error_mm"]) for p in plan.passes],
+            "rounds": None if verification is None else [(r["round"], r["verified_exit_error_mm"])
+                                                         for r in verification.rounds],
+            "verified": None if verification is None else verification.result.achieved_exit_def.tolist(),
+            "estimate": plan.estimate.as_record()}
+
+
+@pytest.mark.parametrize("verify", [True, False])
+def test_a_plan_verified_by_the_helper_is_the_plan_verified_here(scenario, verify):
+    (here, _), (helper, replays) = _plan(scenario, verify, InlineReplays), _plan(scenario, verify, BackgroundReplays)
+    assert _fingerprint(helper) == _fingerprint(here)
+    # each pass streamed once, and at most one whole replay a round (its kept pass not its last)
+    rounds = len(here.verification.rounds) if verify else 1
+    assert len(here.passes) <= replays.jobs <= len(here.passes) + rounds
+    if verify:  # the rounds and passes this test is for
+        assert len(here.verification.rounds) > 1 and len({p["pass"] for p in here.passes}) > 1
+
+
+def _fixed_path(scenario, rows: int, shift: float = 0.0) -> np.ndarray:
+    center = exported_center(scenario_needle(scenario).center + np.array([shift, 0.0]))
+    return np.repeat(center[None], rows, axis=0)
+
+
+def _stream(replays, path: np.ndarray) -> None:
+    replays.begin(path[0])
+    for step in range(1, len(path) - 1):
+        replays.row(step, path[step])
+    replays.end(path)
+
+
+def test_a_trajectory_streamed_before_another_is_replayed_whole(scenario):
+    """The best of several passes need not be the last: its replay is run when asked for."""
+    fine = rescaled(scenario, 0.5)
+    first, second = _fixed_path(fine, 40), _fixed_path(fine, 40, shift=0.05)
+    helper, here = BackgroundReplays(fine), InlineReplays(fine)
+    try:
+        _stream(helper, first)
+        _stream(helper, second)
+        replayed = helper.replay(first)
+    finally:
+        helper.close()
+    expected = here.replay(first)
+    assert replayed.achieved_exit_def.tolist() == expected.achieved_exit_def.tolist()
+    assert [s.center.tolist() for s in replayed.steps] == [s.center.tolist() for s in expected.steps]
+
+
+def test_a_dropped_pass_stops_at_the_next_step(scenario):
+    """A pass the planner drops (the next one began) is not replayed to its end: the helper
+    reads what has come at every step. Both passes are sent while it still builds its model,
+    so it meets the second at the first step of the first."""
+    fine = rescaled(scenario, 0.5)
+    first, second = _fixed_path(fine, 40), _fixed_path(fine, 40, shift=0.05)
+    helper = BackgroundReplays(fine)
+    try:
+        _stream(helper, first)
+        _stream(helper, second)
+        replayed = helper.replay(second)
+    finally:
+        helper.close()
+    assert len(replayed.steps) > 5 and helper.jobs == 2
+    assert helper.steps_run <= len(replayed.steps) + 1, helper.steps_run
+
+
+def test_a_path_that_ends_before_the_exit_fails_alike(scenario):
+    short = _fixed_path(scenario, 3)
+    messages = []
+    for kind in (InlineReplays, BackgroundReplays):
+        replays = kind(scenario)
+        try:
+            _stream(replays, short)
+            with pytest.raises(InputError) as failure:
+                replays.replay(short)
+            messages.append(str(failure.value))
+        finally:
+            replays.close()
+    assert messages[0] == messages[1] and "rows end before the tip exits" in messages[0]
+
+
+def test_the_replay_runs_here_when_the_helper_is_gone(scenario):
+    path = _fixed_path(scenario, 40)
+    helper = BackgroundReplays(scenario)
+    try:
+        helper._process.kill()
+        helper._process.join()
+        replayed = helper.replay(path)
+    finally:
+        helper.close()
+    expected = InlineReplays(scenario).replay(path)
+    assert replayed.achieved_exit_def.tolist() == expected.achieved_exit_def.tolist()
+
+
+def test_simulate_estimate_by_the_helper_is_the_estimate_made_here(scenario):
+    records = []
+    for kind in (InlineReplays, BackgroundReplays):
+        replays = kind(rescaled(scenario, 2.0))
+        try:
+            result, estimate = simulate_with_estimate(scenario, replays=replays)
+        finally:
+            replays.close()
+        records.append((result.exit_error_mm, estimate.as_record()))
+    assert records[0] == records[1]
+    assert replays.jobs == 1  # the run submitted before the insertion is the one asked for
+
+
+def test_the_helper_can_be_turned_off(scenario, monkeypatch):
+    monkeypatch.setenv("STITCHPLAN_REPLAY_HELPER", "0")
+    assert not helper_available()
+    with replays_for(scenario) as replays, plan_replays(scenario) as verification:
+        assert type(replays) is InlineReplays and type(verification) is InlineReplays
