@@ -169,6 +169,25 @@ def test_usage_error_from_the_console_entry_point(tmp_path):
     assert run.stderr.splitlines() == ["error: missing option '--export'; see 'python -m stitchplan plan --help'"]
 
 
+def test_a_real_process_ends_with_its_outputs_whole_and_its_lines_written(tmp_path):
+    """The console entry point ends a finished command without the interpreter's teardown
+    (cli._exit): its outputs, its result line, its log lines (-v) and its exit code are all
+    there, through a pipe; and a refused input still exits 2 with its one line."""
+    import h5py
+
+    scene = write_needle_scene(tmp_path)
+    run = run_module("simulate", scene, "--summary", tmp_path / "s.json", "--out", tmp_path / "run.h5", "-v")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("simulate: ") and run.stdout.endswith("\n")
+    assert "needle rotation" in run.stderr  # the -v log lines were flushed
+    summary = json.loads((tmp_path / "s.json").read_text())
+    with h5py.File(tmp_path / "run.h5") as log:
+        assert log.attrs["command"] == "simulate"
+        assert len(log["steps/step"]) == summary["steps"] > 0
+    refused = run_module("simulate", tmp_path / "absent.yaml")
+    assert refused.returncode == 2 and refused.stderr.startswith("error: ")
+
+
 # --- the project's errors and bugs ---------------------------------------------------------------
 
 
