@@ -40,6 +40,14 @@ def extract_revision(revision: str, folder: Path, *paths: str) -> Path:
     return folder
 
 
+def command_environment(**extra: str) -> dict[str, str]:
+    """The environment of a timed command: this one with `extra`, and with Python's bytecode
+    cache on (an installed package has its modules compiled; a machine that sets
+    PYTHONDONTWRITEBYTECODE would otherwise have every process compile them again)."""
+    environment = {key: value for key, value in os.environ.items() if key != "PYTHONDONTWRITEBYTECODE"}
+    return {**environment, **extra}
+
+
 def worker_record(script: str, source: Path, *arguments: str) -> dict:
     """`python SCRIPT --worker ARGUMENTS` in a fresh process with the code in `source` first
     on PYTHONPATH; the JSON record it prints last."""

@@ -49,7 +49,7 @@ def run_plan_command(source: Path, scene: str, options: list[str], folder: Path,
     """One `stitchplan plan` process of the code in `source` (with `environment` added to
     the process's); its summary and wall time."""
     summary = folder / "summary.json"
-    environment = {**os.environ, "PYTHONPATH": str(source), **environment}
+    environment = common.command_environment(PYTHONPATH=str(source), **environment)
     start = time.perf_counter()
     subprocess.run([*common.STITCHPLAN, "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
                     *options, "--export", str(folder / "trajectory.csv"), "--summary", str(summary)],
@@ -241,7 +241,8 @@ def startup() -> dict[str, float]:
         samples = []
         for _ in range(STARTUP_REPEATS):
             start = time.perf_counter()
-            subprocess.run([*command, *arguments], check=True, capture_output=True, cwd=common.REPO_ROOT)
+            subprocess.run([*command, *arguments], check=True, capture_output=True, cwd=common.REPO_ROOT,
+                           env=common.command_environment())
             samples.append(time.perf_counter() - start)
         seconds[" ".join([Path(command[0]).name, *command[1:], *arguments])] = statistics.median(samples)
     return seconds
@@ -288,6 +289,8 @@ def main() -> None:
               r["baseline_exit_mm"], r["exit_mm"]] for r in rows]),
         "",
         f"## Whole command (process wall time, median of {REPEATS})\n",
+        "Every command here runs with Python's bytecode cache on (_common.command_environment), as an "
+        "installed package has its modules compiled.\n",
         common.markdown_table(["scene", f"plan --no-compare at {BASELINE} (s)", "plan --no-compare --no-verify now (s)"],
                               [[r["scene"], r["baseline_command_s"], r["command_s"]] for r in rows]),
         "",

@@ -43,7 +43,7 @@ def run(command: str, options: list[str], scene: str, folder: Path, helper: bool
                  "--summary", str(summary)]
     if command.startswith("plan"):
         arguments += ["--export", str(folder / "trajectory.csv")]
-    environment = {**os.environ, "STITCHPLAN_REPLAY_HELPER": "1" if helper else "0"}
+    environment = common.command_environment(STITCHPLAN_REPLAY_HELPER="1" if helper else "0")
     start = time.perf_counter()
     subprocess.run([*common.STITCHPLAN, *arguments], check=True, capture_output=True, env=environment,
                    cwd=folder)
