@@ -14,7 +14,9 @@
    before Levenberg-Marquardt in the tip tracking, the residual tolerance, one model shared
    by the passes), median of REPEATS.
 3. The whole command with the default verification on sh12_100x100, median of REPEATS.
-4. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS.
+4. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS; and
+   the end: a `simulate` ended by the console entry point (no module teardown) and by the
+   interpreter's ordinary exit.
 
 Writes benchmarks/results/plan_speed.{csv,md} and prints the tables. About 6 minutes.
 Run from the repository root:  python benchmarks/plan_speed.py
@@ -248,13 +250,32 @@ def startup() -> dict[str, float]:
     return seconds
 
 
+def ending() -> dict[str, float]:
+    """`simulate configs/sh12_100x100.yaml --no-estimate` ended by the console entry point
+    (cli.main: exit functions, then no module teardown) and by the app itself (the
+    interpreter's ordinary exit), alternating, median of STARTUP_REPEATS."""
+    scenario = str(common.REPO_ROOT / "configs" / "sh12_100x100.yaml")
+    entries = {"console entry point (cli.main)": "from stitchplan.cli import main as run",
+               "the app's ordinary exit (cli.app)": "from stitchplan.cli import app as run"}
+    samples: dict[str, list[float]] = {label: [] for label in entries}
+    for _ in range(STARTUP_REPEATS):
+        for label, entry in entries.items():
+            script = f"import sys; {entry}; sys.argv = ['stitchplan', 'simulate', {scenario!r}, '--no-estimate']; run()"
+            start = time.perf_counter()
+            subprocess.run([sys.executable, "-c", script], check=True, capture_output=True, cwd=common.REPO_ROOT,
+                           env=common.command_environment())
+            samples[label].append(time.perf_counter() - start)
+    return {f"simulate sh12_100x100 --no-estimate, {label}": statistics.median(values)
+            for label, values in samples.items()}
+
+
 def main() -> None:
     with tempfile.TemporaryDirectory() as extracted:
         rows = compare_revisions(common.extract_revision(BASELINE, Path(extracted)))
     lever_rows = levers()
     warm_rows = verified_warm_starts()
     verified = verified_command()
-    start_up = startup()
+    start_up = {**startup(), **ending()}
     for label, seconds in start_up.items():
         print(f"{label}: {seconds:.3f} s", flush=True)
 
@@ -320,7 +341,7 @@ def main() -> None:
         common.markdown_table(["scene", "variant", "plan_verified (s)", "rounds", "replays (s)",
                                "verified exit error (mm)"], [list(row) for row in warm_rows]),
         "",
-        f"## Start-up (median of {STARTUP_REPEATS})\n",
+        f"## Start-up and end (median of {STARTUP_REPEATS})\n",
         common.markdown_table(["command", "wall (s)"], [[k, v] for k, v in start_up.items()]),
         "",
     ]
