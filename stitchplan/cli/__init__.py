@@ -32,8 +32,8 @@ def main() -> None:
 def _exit(code: int) -> None:
     """End the process with `code` once the command is done: the exit functions run (log
     handlers flushed and closed, child processes joined) and the streams are flushed, but
-    the interpreter's teardown of every imported module is skipped, ~0.25 s after a
-    command that loaded numpy and scipy (benchmarks/plan_speed.py, start-up table)."""
+    the interpreter's teardown of every imported module is skipped: 0.14 s of a `simulate`
+    on sh12_100x100 (benchmarks/plan_speed.py, start-up and end table)."""
     import atexit
     import os
 
