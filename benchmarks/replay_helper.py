@@ -9,7 +9,7 @@ each planner pass's centres arrive. For each scene and command: the process wall
 alternating the two ways REPEATS times (median), and whether the summaries agree
 (exit error, estimate and verified exit error, to the last bit).
 
-Writes benchmarks/results/replay_helper.{csv,md} and prints the table. About 6 minutes.
+Writes benchmarks/results/replay_helper.{csv,md} and prints the table. About 11 minutes.
 Run from the repository root:  python benchmarks/replay_helper.py
 """
 
@@ -29,7 +29,7 @@ from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
 
-SCENES = ("sh12_100x100", "sh12_100x30", "needle20_entry30", "hole_near_stitch")
+SCENES = ("sh12_100x100", "sh12_100x30", "needle20_entry30", "hole_near_stitch", "wound_closure")
 COMMANDS = (("simulate", []), ("plan --no-compare --no-verify", ["--no-compare", "--no-verify"]),
             ("plan (default: compare, verify)", []))
 REPEATS = int(os.environ.get("REPLAY_HELPER_REPEATS", 3))
