@@ -31,18 +31,20 @@ def exported_center(center: np.ndarray) -> np.ndarray:
     return _clean(center)
 
 
-def exported_centers(result: InsertionResult) -> np.ndarray:
-    """The centre columns of trajectory.csv, as written: O(t_0) .. O(t_N) and the exit
-    step's row, which keeps O(t_N), (N + 2, 2)."""
+def _centers(result: InsertionResult) -> np.ndarray:
+    """O(t_0) .. O(t_N) and the exit step's row, which keeps O(t_N), (N + 2, 2)."""
     centers = [result.geometry.center] + [s.center for s in result.steps]
-    return _clean(np.asarray(centers + centers[-1:]))
+    return np.asarray(centers + centers[-1:])
+
+
+def exported_centers(result: InsertionResult) -> np.ndarray:
+    """The centre columns of trajectory.csv, as written (N + 2, 2)."""
+    return _clean(_centers(result))
 
 
 def trajectory_table(result: InsertionResult, robot: Robot) -> tuple[list[str], np.ndarray]:
     geometry = result.geometry
-    centers = [geometry.center] + [s.center for s in result.steps]
-    centers.append(centers[-1])  # the exit step keeps the last centre
-    centers = np.asarray(centers)  # (N + 2, 2)
+    centers = _centers(result)
     steps = np.arange(len(centers))
     angles = steps * geometry.step
     tips = np.asarray([geometry.tip(a, c) for a, c in zip(angles, centers)])

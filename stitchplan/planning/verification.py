@@ -156,11 +156,15 @@ def estimate_replays(scenario: Scenario, background: bool = True, **options):
     return replays_for(rescaled(scenario, 2.0), background, **_replay_options(options))
 
 
+def replay_scenario(scenario: Scenario, verify: bool) -> Scenario:
+    """The model plan_verified replays its trajectory on: the refined one with `verify`,
+    else the exit error estimate's at 2h."""
+    return rescaled(scenario, VERIFICATION_FACTOR if verify else 2.0)
+
+
 def plan_replays(scenario: Scenario, verify: bool = True, background: bool = True, **options):
-    """replays_for the model plan_verified replays its trajectory on: the refined model with
-    `verify`, else the exit error estimate's 2h model (a context manager)."""
-    factor = VERIFICATION_FACTOR if verify else 2.0
-    return replays_for(rescaled(scenario, factor), background, **_replay_options(options))
+    """replays_for plan_verified's replays (replay_scenario; a context manager)."""
+    return replays_for(replay_scenario(scenario, verify), background, **_replay_options(options))
 
 
 def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = None, estimate: bool = True,
@@ -202,8 +206,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     of the trajectory at 2h. `replays`: plan_replays's, which replay each planner pass while
     the planning goes on; by default the replays run here after it."""
     tissue = PreparedTissue(scenario)  # shared by the plan's runs and the re-planning rounds
-    factor = VERIFICATION_FACTOR if verify else 2.0
-    other = rescaled(scenario, factor)
+    other = replay_scenario(scenario, verify)
     replays = replays or InlineReplays(other, **_replay_options(options))  # one model for every round
     result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=replays, **options)
     if not verify:
