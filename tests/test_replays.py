@@ -6,6 +6,8 @@ streamed, a path that ends before the tip exits, and a helper that dies.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from test_verification import scene_raw
@@ -118,6 +120,43 @@ def test_a_path_that_ends_before_the_exit_fails_alike(scenario):
         finally:
             replays.close()
     assert messages[0] == messages[1] and "rows end before the tip exits" in messages[0]
+
+
+def test_a_failed_replay_is_reported_alike(scenario, monkeypatch):
+    """A numerical failure of the second model's run comes back as the same error (the
+    estimate then records it as an event), and anything else the helper meets is run again
+    here, where it is raised as what it is."""
+    import stitchplan.planning.replays as replays_module
+    from stitchplan.errors import InsertionFailure
+    from stitchplan.planning.verification import estimate_exit_error
+
+    result = InlineReplays(scenario).replay(None)
+
+    def failing(*args, **kwargs):
+        raise InsertionFailure("step 3 (needle rotation 0.900 rad): Newton did not converge")
+
+    monkeypatch.setattr(replays_module, "run_insertion", failing)  # the forked helper inherits it
+    events = []
+    for kind in (InlineReplays, BackgroundReplays):
+        replays = kind(rescaled(scenario, 2.0))
+        try:
+            record = replace(result, events=[])
+            assert estimate_exit_error(scenario, record, None, replays=replays) is None
+            events.append([event.message for event in record.events])
+        finally:
+            replays.close()
+    assert events[0] == events[1] and "Newton did not converge" in events[0][0]
+
+    def bug(*args, **kwargs):
+        raise ZeroDivisionError("a bug")
+
+    monkeypatch.setattr(replays_module, "run_insertion", bug)
+    helper = BackgroundReplays(scenario)
+    try:
+        with pytest.raises(ZeroDivisionError):
+            helper.replay(None)
+    finally:
+        helper.close()
 
 
 def test_the_replay_runs_here_when_the_helper_is_gone(scenario):
