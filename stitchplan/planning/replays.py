@@ -6,11 +6,12 @@ A plan's replay needs the plan's trajectory, but not all of it at once: a planne
 centre for step n is final once step n is done (planning.planner.run_plan streams each
 pass through `begin`, `row` and `end`). `BackgroundReplays` forks a helper process that
 builds the second model (and factors its K0) while this process builds its own, then
-replays each pass as its centres arrive, so the replay of the pass that is kept ends soon
-after the planning does, on the machine's second core. A pass that is not kept is dropped
-when the next one begins; a trajectory that is not the last streamed one (the best of
-several passes) is replayed whole when asked for. `submit` starts a path known from the
-start (`simulate`'s estimate run) at once.
+replays each pass as its centres arrive, on the machine's second core: the replay of the
+pass that is kept overlaps the planning instead of following it. A pass that is not kept
+is dropped at the helper's next step once the next pass begins (it reads what has come at
+every step); a trajectory that is not the last streamed one (the best of several passes)
+is replayed whole when asked for. `submit` starts a path known from the start
+(`simulate`'s estimate run) at once.
 
 Both kinds replay with run_insertion on the same inputs, one model kept for all their
 replays, each replay started from the one returned before it (run_insertion
@@ -18,8 +19,9 @@ replays, each replay started from the one returned before it (run_insertion
 ran (tests/test_replays.py). The helper is used where it can be: Linux (fork is its own
 way of starting a process; macOS's system libraries are not fork-safe), two or more cores,
 one thread in this process (forking a threaded process can deadlock the child), and
-STITCHPLAN_REPLAY_HELPER not 0; `replays_for` falls back to `InlineReplays` otherwise. Should the helper fail in a way the project does not report as a StitchplanError
-(it died, or a bug), the replay runs again here, where the failure is reported as usual.
+STITCHPLAN_REPLAY_HELPER not 0; `replays_for` falls back to `InlineReplays` otherwise.
+Should the helper fail in a way the project does not report as a StitchplanError (it
+died, or a bug), the replay runs again here, where the failure is reported as usual.
 """
 
 from __future__ import annotations
