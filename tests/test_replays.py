@@ -58,6 +58,9 @@ def test_a_plan_verified_by_the_helper_is_the_plan_verified_here(scenario, verif
     # each pass streamed once, and at most one whole replay a round (its kept pass not its last)
     rounds = len(here.verification.rounds) if verify else 1
     assert len(here.passes) <= replays.jobs <= len(here.passes) + rounds
+    if verify:
+        assert (here.verification.replayed_in, helper.verification.replayed_in) == ("this process",
+                                                                                 "helper process")
     if verify:  # the rounds and passes this test is for
         assert len(here.verification.rounds) > 1 and len({p["pass"] for p in here.passes}) > 1
 
@@ -165,7 +168,9 @@ def test_the_replay_runs_here_when_the_helper_is_gone(scenario):
     try:
         helper._process.kill()
         helper._process.join()
+        assert helper.where == "helper process"
         replayed = helper.replay(path)
+        assert helper.where == "this process"
     finally:
         helper.close()
     expected = InlineReplays(scenario).replay(path)

@@ -128,6 +128,7 @@ def test_plan_reports_verification_and_smoothness(planned_small):
                                                               ["verified_exit_error_mm"]) or len(
         summary["verification"]["rounds"]) > 1
     assert summary["exit_error_estimate"]["basis"] == "refined"
+    assert summary["verification"]["replayed_in"] in ("helper process", "this process")
     assert summary["exit_error_estimate_mm"] >= summary["exit_error_estimate"]["exit_error_deviation_mm"]
     assert summary["max_center_step_mm"] <= 0.3 * 0.3 / 0.08 + 1e-12  # limits scale with the step
     assert summary["max_center_second_difference_mm"] <= 0.15 * 0.3 / 0.08 + 1e-12

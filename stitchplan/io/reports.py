@@ -240,6 +240,9 @@ def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
             "exit_error_material_mm": replay.exit_error_material_mm if replay is not None else None,
             "wall_seconds": replay.wall_seconds if replay is not None else None,
             "rounds": verification.rounds,
+            # where the replays ran: a helper process times a round's replay from the start
+            # of the pass it follows (planning/replays.py)
+            "replayed_in": verification.replayed_in,
             # a stitch across a wound: each side's bite on the refined model too (what a
             # symmetric plan aims at)
             **({"bites": replay.bites} if replay is not None and replay.bites else {}),

@@ -53,6 +53,8 @@ STOP_SECONDS = 1.0  # how long closing waits for the helper (idle unless a run f
 class InlineReplays:
     """Replays run here, when asked for; the streaming calls do nothing."""
 
+    where = "this process"  # where the replays ran (the plan summary's verification.replayed_in)
+
     def __init__(self, scenario: Scenario, **options):
         self.scenario = scenario
         self.options = options  # run_insertion's linear_solver and tip_tracking
@@ -166,6 +168,10 @@ class BackgroundReplays(InlineReplays):
         self._last = result
         return result
 
+    @property
+    def where(self) -> str:
+        return "this process" if self._failed else "helper process"
+
     def _fail(self, reason: str) -> None:
         if not self._failed:
             log.info("replays: %s; replaying in this process", reason)
@@ -207,6 +213,7 @@ def replays_for(scenario: Scenario, background: bool = True, **options):
         except OSError as error:  # no process to be had (fork refused): replay here
             log.info("replays: no helper process (%s); replaying in this process", error)
     replays = replays or InlineReplays(scenario, **options)
+    log.info("replays at spacing %.4g mm: in the %s", scenario.discretization.spacing, replays.where)
     try:
         yield replays
     finally:

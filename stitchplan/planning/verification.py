@@ -89,6 +89,7 @@ class Verification:
     spacing_mm: float  # nominal spacing of the refined model
     result: InsertionResult | None  # the replay (None: it could not be replayed)
     rounds: list[dict] = field(default_factory=list)  # per planning round: planned and verified errors
+    replayed_in: str = "this process"  # or "helper process" (planning/replays.py)
 
     @property
     def exit_error_mm(self) -> float | None:
@@ -263,7 +264,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             break
     _, result, replayed = best
     result.planned.wall_seconds = planning_seconds  # every pass of every round
-    result.verification = Verification(spacing, replayed, rounds)
+    result.verification = Verification(spacing, replayed, rounds, replays.where)
     if replayed is None:
         message = ("verification: the exported trajectory ends before the tip leaves the refined model "
                    f"(spacing {spacing:.4g} mm); verified exit error unknown")
