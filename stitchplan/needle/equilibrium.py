@@ -49,8 +49,24 @@ log = logging.getLogger(__name__)
 CONSTRAINT_TOLERANCE = 1e-9  # |g| / R: the track on the needle after each converged step
 ANDERSON_DEPTH = 5  # steps mixed by the accelerated modified Newton (AndersonMixing)
 STALE_CENTER_MOVES = 10.0  # d(d, lambda)/dC is re-solved while the centre moves more than this x tolerance
-REFACTOR_CONTRACTION = 0.5  # renew the factor of K + H when an iteration contracts less than this
+REFACTOR_CONTRACTION = 0.5  # a planner's step renews the factor of K + H below this contraction (renew_factor)
 RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
+
+
+def renew_factor(measure: float, previous: float, earlier: float, planned: bool) -> bool:
+    """Whether the modified Newton iteration renews the factor of K + H, from its
+    convergence measure now, one and two iterations back. A planner's step (`planned`)
+    renews it when an iteration contracts by less than REFACTOR_CONTRACTION. With the
+    centre prescribed (unplanned runs, replays) only when the measure has grown twice in a
+    row: with Anderson mixing the iteration on an older factor still converges, if more
+    slowly, and on the refined models a factorization costs tens of iterations
+    (benchmarks/plan_speed.py, the replays' table: the wound's replay at 0.75 mm renewed it
+    three times for nothing). The planner's steps keep the faster renewal: changing it moves
+    their plans within the planner's tolerance, which the shipped plans and pins would then
+    have to follow."""
+    if planned:
+        return measure > REFACTOR_CONTRACTION * previous
+    return measure > previous and measure > earlier
 
 
 @dataclass(frozen=True)
@@ -360,7 +376,7 @@ class NeedleInsertion:
         free, multipliers, center = self.free.ravel().copy(), self.multipliers.copy(), self.center.copy()
         n_dof = len(free)
         minres_total = 0
-        previous = math.inf  # convergence measure at the last refactorization
+        previous = earlier = math.inf  # the convergence measure one and two iterations back
         mixing = AndersonMixing(ANDERSON_DEPTH)
         per_center, moved = None, math.inf  # d(d, lambda)/dC (n + m, 2), and the last centre move
         for iteration in range(settings.max_iterations + 1):
@@ -389,7 +405,8 @@ class NeedleInsertion:
             if solution is None:
                 # keep the factor of K while Newton contracts fast; renew it when it slows
                 measure = residual_norm / max(state.needle_force, 1e-12) + worst
-                refactor = measure > REFACTOR_CONTRACTION * previous
+                refactor = renew_factor(measure, previous, earlier, aim is not None)
+                earlier = previous
                 solution = self.saddle.solve_direct(self._stiffness(multipliers, state), rhs,
                                                     refactor, self.coupling.expanded_rows,
                                                     self.coupling.normal_weights(state.normal))
