@@ -232,7 +232,7 @@ def verified_warm_starts(scene: str = "sh12_100x100") -> list[tuple]:
 def replay_renewals(scenes: tuple[str, ...] = ("sh12_100x30", "wound_closure")) -> list[tuple]:
     """The shipped trajectory (sample_runs/SCENE/trajectory.csv) replayed at half the spacing,
     as the verification does, with the factor of K + H renewed as now (a prescribed centre:
-    only when the iteration's measure grew twice in a row) and as a planner's step renews it
+    only when the iteration's measure exceeds both of the last two) and as a planner's step renews it
     (contraction below REFACTOR_CONTRACTION), alternating, median of REPEATS: (scene,
     variant, s, factorizations, Newton iterations, exit error mm)."""
     import stitchplan.needle.equilibrium as equilibrium
@@ -244,7 +244,7 @@ def replay_renewals(scenes: tuple[str, ...] = ("sh12_100x30", "wound_closure")) 
 
     logging.getLogger("stitchplan").setLevel(logging.ERROR)
     now = equilibrium.renew_factor
-    variants = (("now: renewed when the measure grew twice in a row", now),
+    variants = (("now: renewed when the measure exceeds the last two", now),
                 ("renewed as a planner's step renews it", lambda measure, previous, earlier, planned:
                  now(measure, previous, earlier, True)))
     rows = []
@@ -390,7 +390,7 @@ def main() -> None:
         "## Replays on the refined model: when the factor is renewed\n",
         f"The shipped trajectory replayed at half the spacing (as the verification does), median of {REPEATS}, "
         "with the factor of K + H renewed as now for a prescribed centre (only when the modified Newton "
-        "iteration's convergence measure grew twice in a row; needle/equilibrium.py renew_factor) and as a "
+        "iteration's convergence measure exceeds both of the last two; needle/equilibrium.py renew_factor) and as a "
         "planner's step renews it (an iteration contracting by less than REFACTOR_CONTRACTION).\n",
         common.markdown_table(["scene", "variant", "replay (s)", "factorizations", "Newton iterations",
                                "exit error (mm)"], [list(row) for row in renewal_rows]),

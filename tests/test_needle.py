@@ -228,3 +228,18 @@ def test_shipped_sh12_block_series_follows_one_entry_rule(name, height):
     assert scenario.needle.entry == pytest.approx((0.0, height / 2 + 8.88))
     np.testing.assert_allclose(geometry.center, [0.0, height / 2], atol=1e-12)
     np.testing.assert_allclose(geometry.desired_exit, [0.0, height / 2 - 8.88], atol=1e-9)
+
+
+def test_the_factor_is_renewed_by_the_planner_rule_or_when_newton_loses_ground():
+    """needle/equilibrium.py renew_factor: a planner's step renews the factor of K + H when an
+    iteration contracts by less than REFACTOR_CONTRACTION; a prescribed centre only when the
+    measure exceeds both of the last two iterations'."""
+    from stitchplan.needle.equilibrium import REFACTOR_CONTRACTION, renew_factor
+
+    slow = 0.9  # contracted, but by less than the planner's rule asks
+    assert REFACTOR_CONTRACTION < 0.9
+    assert renew_factor(slow, 1.0, math.inf, planned=True)
+    assert not renew_factor(slow, 1.0, math.inf, planned=False)
+    assert not renew_factor(1.2, 1.0, 1.5, planned=False)  # grew once, still below two back
+    assert renew_factor(1.2, 1.0, 0.8, planned=False)  # above both of the last two
+    assert not renew_factor(0.3, 1.0, 2.0, planned=True) and not renew_factor(0.3, 1.0, 2.0, planned=False)

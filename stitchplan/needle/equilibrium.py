@@ -57,13 +57,14 @@ def renew_factor(measure: float, previous: float, earlier: float, planned: bool)
     """Whether the modified Newton iteration renews the factor of K + H, from its
     convergence measure now, one and two iterations back. A planner's step (`planned`)
     renews it when an iteration contracts by less than REFACTOR_CONTRACTION. With the
-    centre prescribed (unplanned runs, replays) only when the measure has grown twice in a
-    row: with Anderson mixing the iteration on an older factor still converges, if more
-    slowly, and on the refined models a factorization costs tens of iterations
-    (benchmarks/plan_speed.py, the replays' table: the wound's replay at 0.75 mm renewed it
-    three times for nothing). The planner's steps keep the faster renewal: changing it moves
-    their plans within the planner's tolerance, which the shipped plans and pins would then
-    have to follow."""
+    centre prescribed (unplanned runs, replays) only when the measure exceeds both of the
+    last two (the iteration lost ground over two iterations): with Anderson mixing the
+    iteration on an older factor still converges, if more slowly, and on the refined models a
+    factorization costs tens of iterations (benchmarks/plan_speed.py, the replays' table: on
+    the wound's replay at 0.75 mm the planner's rule renews it three times, which costs more
+    than the 58 iterations they save). The planner's steps keep the faster renewal: changing
+    it moves their plans within the planner's tolerance, which the shipped plans and pins
+    would then have to follow."""
     if planned:
         return measure > REFACTOR_CONTRACTION * previous
     return measure > previous and measure > earlier
