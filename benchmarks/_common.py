@@ -48,6 +48,15 @@ def command_environment(**extra: str) -> dict[str, str]:
     return {**environment, **extra}
 
 
+def timed_command(arguments: list[str], summary: Path, cwd: Path, **environment: str) -> tuple[float, dict]:
+    """One `stitchplan ARGUMENTS` process (command_environment with `environment`, in `cwd`),
+    which writes its summary to `summary`: its wall time (s) and the summary."""
+    start = time.perf_counter()
+    subprocess.run([*STITCHPLAN, *arguments], check=True, capture_output=True, cwd=cwd,
+                   env=command_environment(**environment))
+    return time.perf_counter() - start, json.loads(summary.read_text())
+
+
 def worker_record(script: str, source: Path, *arguments: str) -> dict:
     """`python SCRIPT --worker ARGUMENTS` in a fresh process with the code in `source` first
     on PYTHONPATH; the JSON record it prints last."""

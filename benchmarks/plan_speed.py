@@ -31,7 +31,6 @@ import os
 # single-threaded BLAS, as the `stitchplan` command sets it
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import json  # noqa: E402
 import logging  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
@@ -53,13 +52,10 @@ def run_plan_command(source: Path, scene: str, options: list[str], folder: Path,
     """One `stitchplan plan` process of the code in `source` (with `environment` added to
     the process's); its summary and wall time."""
     summary = folder / "summary.json"
-    environment = common.command_environment(PYTHONPATH=str(source), **environment)
-    start = time.perf_counter()
-    subprocess.run([*common.STITCHPLAN, "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
-                    *options, "--export", str(folder / "trajectory.csv"), "--summary", str(summary)],
-                   check=True, capture_output=True, env=environment, cwd=source)
-    seconds = time.perf_counter() - start
-    record = json.loads(summary.read_text())
+    seconds, record = common.timed_command(
+        ["plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"), *options, "--export",
+         str(folder / "trajectory.csv"), "--summary", str(summary)], summary, source,
+        PYTHONPATH=str(source), **environment)
     record["command_seconds"] = seconds
     return record
 

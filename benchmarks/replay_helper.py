@@ -20,11 +20,8 @@ import os
 # single-threaded BLAS, as the `stitchplan` command sets it
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import json  # noqa: E402
 import statistics  # noqa: E402
-import subprocess  # noqa: E402
 import tempfile  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
@@ -43,11 +40,7 @@ def run(command: str, options: list[str], scene: str, folder: Path, helper: bool
                  "--summary", str(summary)]
     if command.startswith("plan"):
         arguments += ["--export", str(folder / "trajectory.csv")]
-    environment = common.command_environment(STITCHPLAN_REPLAY_HELPER="1" if helper else "0")
-    start = time.perf_counter()
-    subprocess.run([*common.STITCHPLAN, *arguments], check=True, capture_output=True, env=environment,
-                   cwd=folder)
-    return time.perf_counter() - start, json.loads(summary.read_text())
+    return common.timed_command(arguments, summary, folder, STITCHPLAN_REPLAY_HELPER="1" if helper else "0")
 
 
 def main() -> None:

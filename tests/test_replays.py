@@ -77,18 +77,25 @@ def _stream(replays, path: np.ndarray) -> None:
     replays.end(path)
 
 
-def test_a_trajectory_streamed_before_another_is_replayed_whole(scenario):
-    """The best of several passes need not be the last: its replay is run when asked for."""
+def _after_two_passes(scenario, replay_first: bool):
+    """Two passes streamed to a helper on the refined model, then one of them asked for:
+    (the refined scenario, the path asked for, its replay, the closed helper)."""
     fine = rescaled(scenario, 0.5)
     first, second = _fixed_path(fine, 40), _fixed_path(fine, 40, shift=0.05)
-    helper, here = BackgroundReplays(fine), InlineReplays(fine)
+    asked = first if replay_first else second
+    helper = BackgroundReplays(fine)
     try:
         _stream(helper, first)
         _stream(helper, second)
-        replayed = helper.replay(first)
+        return fine, asked, helper.replay(asked), helper
     finally:
         helper.close()
-    expected = here.replay(first)
+
+
+def test_a_trajectory_streamed_before_another_is_replayed_whole(scenario):
+    """The best of several passes need not be the last: its replay is run when asked for."""
+    fine, first, replayed, _ = _after_two_passes(scenario, replay_first=True)
+    expected = InlineReplays(fine).replay(first)
     assert replayed.achieved_exit_def.tolist() == expected.achieved_exit_def.tolist()
     assert [s.center.tolist() for s in replayed.steps] == [s.center.tolist() for s in expected.steps]
 
@@ -97,15 +104,7 @@ def test_a_dropped_pass_stops_at_the_next_step(scenario):
     """A pass the planner drops (the next one began) is not replayed to its end: the helper
     reads what has come at every step. Both passes are sent while it still builds its model,
     so it meets the second at the first step of the first."""
-    fine = rescaled(scenario, 0.5)
-    first, second = _fixed_path(fine, 40), _fixed_path(fine, 40, shift=0.05)
-    helper = BackgroundReplays(fine)
-    try:
-        _stream(helper, first)
-        _stream(helper, second)
-        replayed = helper.replay(second)
-    finally:
-        helper.close()
+    _, _, replayed, helper = _after_two_passes(scenario, replay_first=False)
     assert len(replayed.steps) > 5 and helper.jobs == 2
     assert helper.steps_run <= len(replayed.steps) + 1, helper.steps_run
 

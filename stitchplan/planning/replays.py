@@ -100,7 +100,7 @@ class BackgroundReplays(InlineReplays):
         theirs.close()
         self.jobs = 0  # replays started in the helper (streamed passes and whole paths)
         self.steps_run = 0  # needle steps of the helper's replays, of dropped passes too
-        self._paths: dict[int, np.ndarray | None] = {}  # job -> its path (streamed: once ended)
+        self._newest: tuple[int, np.ndarray | None] | None = None  # the helper's newest job and its path
         self._streaming: int | None = None  # the streamed job whose rows are still coming
         self._last_job: int | None = None  # the job whose replay was returned last (start_from)
         self._failed = False  # the helper is gone: replays run here
@@ -115,7 +115,7 @@ class BackgroundReplays(InlineReplays):
 
     def _start(self, kind: str, payload) -> int:
         self.jobs += 1
-        self._paths = {}  # the helper keeps only its newest job
+        self._newest = None  # its path is known once the job's rows have ended
         self._send((kind, self.jobs, self._last_job, payload))
         return self.jobs
 
@@ -130,13 +130,12 @@ class BackgroundReplays(InlineReplays):
         if self._streaming is not None:
             centers = np.array(centers, dtype=float)
             self._send(("end", self._streaming, centers))
-            self._paths[self._streaming] = centers
+            self._newest = (self._streaming, centers)
             self._streaming = None
 
     def submit(self, centers: np.ndarray | None) -> None:
         centers = None if centers is None else np.array(centers, dtype=float)
-        job = self._start("path", centers)
-        self._paths[job] = centers
+        self._newest = (self._start("path", centers), centers)
 
     def replay(self, centers: np.ndarray | None) -> InsertionResult:
         if self._failed:
@@ -144,10 +143,9 @@ class BackgroundReplays(InlineReplays):
         if self._streaming is not None:  # a pass that never ended (it failed): not this path
             self._send(("end", self._streaming, np.zeros((0, 2))))
             self._streaming = None
-        job = next((job for job, path in self._paths.items() if _same_path(path, centers)), None)
-        if job is None:
+        if self._newest is None or not _same_path(self._newest[1], centers):
             self.submit(centers)
-            job = self.jobs
+        job = self._newest[0]
         self._send(("send", job))
         try:
             answer = self._connection.recv() if not self._failed else None
@@ -264,11 +262,7 @@ class _StreamedPath(CenterReplay):
                 self._rows[message[2]] = message[3]
             elif message[0] == "end":
                 self._ended, self.path = True, message[2]
-        if self._ended:
-            if step < len(self.path) and step in self._rows and not np.array_equal(self._rows[step], self.path[step]):
-                raise _Superseded  # never expected: the streamed rows are the exported ones
-            return super().predict(center, step)
-        return self._rows[step]
+        return super().predict(center, step) if self._ended else self._rows[step]
 
 
 def _serve(connection, parents_end, scenario: Scenario, options: dict) -> None:
@@ -291,7 +285,7 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict) -> None:
     def pending() -> bool:
         return bool(inbox) or connection.poll()
 
-    done: dict[int, tuple] = {}  # the newest finished job: (result, error)
+    done: tuple = (None, None, None)  # the newest finished job: (job, result, error)
     steps_run = 0  # needle steps of every replay since the last answer, dropped ones too
     sent: tuple[int | None, InsertionResult | None] = (None, None)  # the replay last sent back
     while True:
@@ -303,7 +297,9 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict) -> None:
         if kind == "stop":
             return
         if kind == "send":
-            result, error = done.get(message[1], (None, RuntimeError(f"no replay for job {message[1]}")))
+            job, result, error = done
+            if job != message[1]:
+                result, error = None, RuntimeError(f"no replay for job {message[1]}")
             connection.send(("result", message[1],
                              None if result is None else replace(result, states=[]), error, steps_run))
             steps_run = 0
@@ -327,5 +323,5 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict) -> None:
             result, error = None, failure
         except Exception as failure:  # noqa: BLE001 -- the main process replays and reports it
             result, error = None, RuntimeError(f"{type(failure).__name__}: {failure}")
-        done = {job: (result, error)}
+        done = (job, result, error)
         steps_run += len(result.steps) if result is not None else getattr(control, "steps", 0)

@@ -59,6 +59,7 @@ log = logging.getLogger(__name__)
 
 ASSUMED_ORDER = 1.0  # convergence order of the exit point in the particle spacing (conservative)
 VERIFICATION_FACTOR = 0.5  # refined spacing / planning spacing
+ESTIMATE_FACTOR = 2.0  # the exit error estimate's second run: its spacing / the run's
 VERIFIED_FACTOR = 1.5  # a verified exit error within 1.5 x exit_tolerance needs no correction
 AIMED_TOLERANCE_FRACTION = 0.4  # passes with an aim stop within this x exit_tolerance of it
 MAX_CORRECTIONS = 2
@@ -142,25 +143,25 @@ def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path
     by `replays` on the 2h model (estimate_replays) when given. None, with an event on
     `result`, when the coarse model cannot run the insertion."""
     try:
-        coarse = rescaled(scenario, 2.0)
+        coarse = rescaled(scenario, ESTIMATE_FACTOR)
         other = (replays or InlineReplays(coarse, **_replay_options(options))).replay(center_path)
     except (InputError, NumericalFailure) as error:
         message = f"exit error estimate: the model at twice the spacing failed ({error}); no estimate"
         result.events.append(Event(EventKind.ACCURACY_CHECK, message))
         log.info(message)
         return None
-    return estimate_from(result, other, 2.0, coarse.discretization.spacing)
+    return estimate_from(result, other, ESTIMATE_FACTOR, coarse.discretization.spacing)
 
 
 def estimate_replays(scenario: Scenario, background: bool = True, **options):
     """replays_for the exit error estimate's 2h model (a context manager; planning/replays.py)."""
-    return replays_for(rescaled(scenario, 2.0), background, **_replay_options(options))
+    return replays_for(rescaled(scenario, ESTIMATE_FACTOR), background, **_replay_options(options))
 
 
 def replay_scenario(scenario: Scenario, verify: bool) -> Scenario:
     """The model plan_verified replays its trajectory on: the refined one with `verify`,
     else the exit error estimate's at 2h."""
-    return rescaled(scenario, VERIFICATION_FACTOR if verify else 2.0)
+    return rescaled(scenario, VERIFICATION_FACTOR if verify else ESTIMATE_FACTOR)
 
 
 def plan_replays(scenario: Scenario, verify: bool = True, background: bool = True, **options):
