@@ -1,5 +1,5 @@
-"""Shape functions and visibility, before and after: model builds, single-point evaluations
-and whole unplanned runs.
+"""Shape functions, neighbour search and start-up, before and after: model builds,
+single-point evaluations, whole unplanned runs and the commands' start-up.
 
 Every command builds a model: RK shape functions and their gradients at every quadrature
 point (rk_shape_pairs), and on a tissue with holes or notches the visibility test of each
@@ -20,7 +20,10 @@ shipped configs at their default spacing or at `--spacing` S, the verification m
 
 at BASELINE (the code before the change, extracted with `git archive`) and now, each in a
 fresh process with PYTHONPATH at the code, alternating REPEATS times; medians over the
-processes. Writes benchmarks/results/model_build_speed.md and prints the table. About 4
+processes. Then the start-up, alternating STARTUP_REPEATS times, medians: a process that
+imports what `simulate` and `plan` import before their run (IMPORTS, with the bytecode
+cache on), and which of scipy.spatial and scipy.optimize it loaded; and the whole commands
+of COMMANDS. Writes benchmarks/results/model_build_speed.md and prints the tables. About 6
 minutes. Run from the repository root:  python benchmarks/model_build_speed.py [BASELINE]
 """
 
@@ -33,18 +36,25 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import json  # noqa: E402
 import statistics  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
+import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
 
-BASELINE = "78828c7"
+BASELINE = "c2d6bb9"
 # (config, --spacing or None for the default, whether to time the whole unplanned run)
 SCENES = (("sh12_100x100", None, True), ("sh12_100x100", 1.776, False), ("needle20_entry18", None, True),
           ("hole_near_stitch", None, True), ("wound_closure", None, True), ("wound_closure", 0.75, False))
 REPEATS = int(os.environ.get("MODEL_BUILD_REPEATS", 3))  # processes per code and case
 POINT_CALLS = 200
+STARTUP_REPEATS = 9
+IMPORTS = "import stitchplan.cli.commands, stitchplan.planning.verification, stitchplan.needle.insertion"
+COMMANDS = (("simulate", "sh12_100x100", ("--no-estimate",)),
+            ("plan", "sh12_100x100", ("--no-compare", "--no-verify")),
+            ("plan", "needle20_entry30", ("--no-compare", "--no-verify")))
 
 
 def worker(scene: str, spacing: float | None, run: bool) -> dict:
@@ -87,6 +97,48 @@ def measure(source: Path, scene: str, spacing: float | None, run: bool) -> dict:
     return common.worker_record(__file__, source, scene, str(spacing or ""), "1" if run else "")
 
 
+def imports(source: Path) -> tuple[float, list[str]]:
+    """One process of IMPORTS from the code in `source`: wall time (s), and which of
+    scipy.spatial and scipy.optimize it loaded."""
+    script = f"import sys; {IMPORTS}; print([m for m in ('scipy.spatial', 'scipy.optimize') if m in sys.modules])"
+    start = time.perf_counter()
+    output = subprocess.run([sys.executable, "-c", script], check=True, capture_output=True, text=True,
+                            cwd=source, env=common.command_environment(PYTHONPATH=str(source)))
+    return time.perf_counter() - start, json.loads(output.stdout.strip().replace("'", '"'))
+
+
+def command(source: Path, folder: Path, name: str, scene: str, options: tuple[str, ...]) -> float:
+    """One whole `stitchplan NAME configs/SCENE.yaml OPTIONS` process of the code in `source` (s)."""
+    summary = folder / "summary.json"
+    extra = ["--export", str(folder / "trajectory.csv")] if name == "plan" else []
+    seconds, _ = common.timed_command([name, str(common.REPO_ROOT / "configs" / f"{scene}.yaml"), *options, *extra,
+                                       "--summary", str(summary), "-q"], summary, source, PYTHONPATH=str(source))
+    return seconds
+
+
+def startup(before_source: Path, folder: Path) -> list[dict]:
+    sources = {"before": before_source, "after": common.REPO_ROOT}
+    samples: dict[str, dict[str, list]] = {label: {} for label in sources}
+    for _ in range(STARTUP_REPEATS):
+        for label, source in sources.items():
+            seconds, loaded = imports(source)
+            samples[label].setdefault("imports", []).append(seconds)
+            samples[label]["loaded"] = loaded
+            for name, scene, options in COMMANDS:
+                key = " ".join([name, scene, *options])
+                samples[label].setdefault(key, []).append(command(source, folder, name, scene, options))
+    rows = []
+    for key in samples["after"]:
+        if key == "loaded":
+            continue
+        before, after = (statistics.median(samples[label][key]) for label in sources)
+        rows.append({"what": "imports of simulate and plan" if key == "imports" else key,
+                     "before_s": before, "after_s": after, "saved_s": before - after})
+    rows[0]["before_loaded"] = ", ".join(samples["before"]["loaded"]) or "neither"
+    rows[0]["after_loaded"] = ", ".join(samples["after"]["loaded"]) or "neither"
+    return rows
+
+
 def main(baseline: str) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as scratch:
@@ -108,7 +160,11 @@ def main(baseline: str) -> None:
                 row["exit_error_mm"], row["exit_error_spread_mm"] = after["exit_error_mm"], max(errors) - min(errors)
             rows.append(row)
             print(row, flush=True)
-    write(rows, baseline)
+        with tempfile.TemporaryDirectory() as commands:
+            startup_rows = startup(before_source, Path(commands))
+        for row in startup_rows:
+            print(row, flush=True)
+    write(rows, startup_rows, baseline)
 
 
 COLUMNS = [("scene", "scene"), ("particles", "particles"), ("quadrature_points", "quadrature points"),
@@ -120,11 +176,18 @@ COLUMNS = [("scene", "scene"), ("particles", "particles"), ("quadrature_points",
            ("exit_error_spread_mm", "exit error spread (mm)")]
 
 
-def write(rows: list[dict], baseline: str) -> None:
+STARTUP_COLUMNS = [("what", "process"), ("before_s", "before (s)"), ("after_s", "after (s)"),
+                   ("saved_s", "saved (s)"), ("before_loaded", "loaded before"), ("after_loaded", "loaded after")]
+
+
+def write(rows: list[dict], startup_rows: list[dict], baseline: str) -> None:
     table = common.markdown_table([title for _, title in COLUMNS],
                                   [[row.get(key, "-") for key, _ in COLUMNS] for row in rows])
+    startup_table = common.markdown_table([title for _, title in STARTUP_COLUMNS],
+                                          [[row.get(key, "") for key, _ in STARTUP_COLUMNS] for row in startup_rows])
     print(table)
-    text = f"""# Shape functions and visibility: model builds, single points, unplanned runs
+    print(startup_table)
+    text = f"""# Shape functions, neighbour search and start-up: model builds, single points, unplanned runs, commands
 
 `python benchmarks/model_build_speed.py` (baseline {baseline}, extracted with `git archive`;
 each case in fresh processes with PYTHONPATH at the code, before and after alternated:
@@ -132,16 +195,26 @@ median of {REPEATS} processes). *build*: a fresh model (particles, quadrature, R
 functions and gradients at every quadrature point, essential boundary); *one point*: shape
 functions and gradients at one point near the entry, as tip tracking evaluates them (median
 of {POINT_CALLS} calls); *unplanned run*: `run_insertion` on a fresh model (build, K0's
-factor, every needle step). The change: the moment matrix summed from its upper triangle,
-its gradient from D M + M D^T (the basis gradient is a constant map D of the basis) plus
-one new sum per direction; the visibility test of a tissue with a hole or a notch (hole_near_stitch,
-wound_closure) tests every boundary edge at once and measures the boundary distance only
-for pair midpoints outside the tissue; the neighbours of many points are searched per group
-of similar kernel supports within the group's support (on graded particles the largest
-support reaches hundreds of fine particles that do not reach back). "exit error spread": the largest difference of the
-exit error over all runs of both codes (round-off).
+factor, every needle step). The change: the neighbour search on square cells of each
+support group's largest support, in numpy (tissue/neighbours.py), instead of scipy.spatial's
+KD-trees, and the exit's and a wound's re-entry's root search by the package's own Brent
+method instead of scipy.optimize.brentq (Levenberg-Marquardt's fallback imports
+scipy.optimize when it runs), so that a command on a rectangular tissue imports neither;
+the calibration input's models are imported by `calibrate` only. (Earlier changes this
+script measured, with their baselines: the git history of this file.) "exit error spread":
+the largest difference of the exit error over all runs of both codes (round-off).
 
 {table}
+
+## Start-up
+
+Process wall times, before and after alternated, median of {STARTUP_REPEATS}, Python's
+bytecode cache on. *imports of simulate and plan*: `python -c "{IMPORTS}"`, what those
+commands import before their run (the interpreter's own start included). The whole
+commands run with their defaults otherwise (the `plan` rows include the helper process's
+estimate run at 2h).
+
+{startup_table}
 
 {common.machine_note()}
 """

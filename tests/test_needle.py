@@ -195,6 +195,37 @@ NEEDLE20 = {  # entry y -> desired exit on the bottom edge (x = sqrt(20^2 - (y -
     30: 17.320508075688775, 25: 19.364916731037084, 20: 20.0, 18: 19.899748742132399}
 
 
+@pytest.mark.parametrize("function, a, b", [
+    (lambda x: x**3 - 2.0 * x - 5.0, 2.0, 3.0),
+    (lambda x: math.cos(x) - x, 0.0, 1.0),
+    (lambda x: math.atan(50.0 * (x - 0.123456)), 0.0, 1.0),  # steep: bisection takes over
+    (lambda x: -(x - 0.7) * (1.0 + x * x), 0.0, 1.0),
+    (lambda x: (x - 0.55) ** 5 + 1e-3 * (x - 0.55), 0.0, 1.0),  # flat at the zero
+    (lambda x: math.copysign(1.0, x - 0.42), 0.0, 1.0),  # a jump: bisection only
+])
+def test_brent_root_finds_the_zero_scipy_brentq_finds(function, a, b):
+    """brent_root (the exit and re-entry searches) against scipy.optimize.brentq with the same
+    tolerances: the same zero within the tolerance, in at most as many evaluations plus one,
+    and the zero is a point the function was evaluated at."""
+    from scipy.optimize import brentq
+
+    from stitchplan.needle.tip_tracking import brent_root
+
+    seen = []
+
+    def recorded(x):
+        seen.append(x)
+        return function(x)
+
+    root = brent_root(recorded, a, b, xtol=1e-13, rtol=1e-15)
+    reference, info = brentq(function, a, b, xtol=1e-13, rtol=1e-15, full_output=True)
+    assert abs(root - reference) <= 1e-13 + 1e-15 * abs(reference)
+    assert len(seen) <= info.function_calls + 1
+    assert root in seen
+    with pytest.raises(ValueError, match="do not bracket"):
+        brent_root(function, a, a)  # f(a) is not zero: the same sign at both ends
+
+
 @pytest.mark.parametrize("entry_y", sorted(NEEDLE20))
 def test_shipped_needle20_scenarios(entry_y):
     """configs/needle20_entry*.yaml (thesis 5.1.1): the material and needle as stated in the

@@ -162,6 +162,29 @@ def test_the_support_group_search_finds_every_pair_and_no_other(count, rng):
     np.testing.assert_array_equal(np.diff(indptr), inside.sum(axis=1))
 
 
+def test_cells_find_the_max_norm_ball_and_the_nearest_particle(rng):
+    """CellGrid against brute force: pairs within a reach that equals the cell size (points
+    on the ball's edge included, particles in the point's own place, a point far outside, a
+    point that is not a number) and the nearest particle, the lowest index on a tie."""
+    from stitchplan.tissue.neighbours import CellGrid
+
+    particles = np.array([(x, y) for x in np.arange(0.0, 10.5, 1.0) for y in np.arange(0.0, 6.5, 1.0)])
+    grid = CellGrid.of(particles, 2.0)
+    points = np.vstack([rng.uniform(-1.0, 11.0, size=(200, 2)), particles[:5], [[3.0, 2.0], [5.5, 2.5],
+                        [1e12, -3.0], [np.nan, 1.0], [-2.0, 3.0]]])
+    rows, cols = grid.within(points, 2.0)
+    order = np.lexsort((cols, rows))
+    inside = np.abs(points[:, None, :] - particles[None, :, :]).max(axis=2) <= 2.0  # NaN: False
+    expected_rows, expected_cols = np.nonzero(inside)
+    np.testing.assert_array_equal(rows[order], expected_rows)
+    np.testing.assert_array_equal(cols[order], expected_cols)
+    assert inside[-5].sum() == 25  # (3, 2): the 5 x 5 particles of the closed ball
+    finite = points[:-2]  # (5.5, 2.5) is as near to four particles: the lowest index wins
+    distance = ((finite[:, None, :] - particles[None, :, :]) ** 2).sum(axis=2)
+    np.testing.assert_array_equal(grid.nearest(finite), distance.argmin(axis=1))
+    assert grid.nearest(np.array([[1e12, -3.0]]))[0] == distance[-1].argmin()  # beyond every cell
+
+
 def test_gradients_on_graded_particles_reproduce_and_match_finite_differences(rng):
     """The moment's gradient from D M + M D^T (the basis gradient a constant map of the
     basis) holds where the supports vary: linear fields' gradients to round-off, and every

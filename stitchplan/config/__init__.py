@@ -9,7 +9,8 @@ Modules, each importing only those before it (and stitchplan.errors, stitchplan.
 - study: the optional `study:` block;
 - scenario: the scenario file and Scenario, default spacing, load_scenario;
 - schema: the JSON Schema of scenario files;
-- calibration: the `calibrate material` input file;
+- calibration: the `calibrate material` input file (imported by its command only: a
+  scenario's commands need not build its models);
 - uncertainty: the `plan --uncertainty` file (and a `calibrate material` output it reads).
 """
 
@@ -24,7 +25,6 @@ from .blocks import (
     Tissue,
     parse_discretization,
 )
-from .calibration import CalibrationFile, parse_calibration
 from .fields import EDGES, INTEGRATIONS, LINEAR_SOLVERS, MATERIAL_MODELS, TIP_TRACKING
 from .messages import input_error
 from .scenario import (
@@ -50,7 +50,6 @@ __all__ = [
     "LINEAR_SOLVERS",
     "MATERIAL_MODELS",
     "TIP_TRACKING",
-    "CalibrationFile",
     "Discretization",
     "Load",
     "Material",
@@ -67,7 +66,6 @@ __all__ = [
     "default_spacing",
     "input_error",
     "load_scenario",
-    "parse_calibration",
     "parse_discretization",
     "parse_material",
     "parse_needle",

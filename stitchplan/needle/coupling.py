@@ -63,7 +63,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 from ..config import Needle
 from ..tissue.model import TissueModel
@@ -246,7 +245,6 @@ class NeedleCoupling:
         self.kind = getattr(needle, "coupling", POINTS)
         self.cutting_length = float(getattr(needle, "cutting_length", geometry.insertion_step))
         n_free = model.n_free
-        self._tree = cKDTree(model.particles)
         self._spacing = model.support / dilation  # local particle spacing, (NP,)
         self.points = np.zeros((0, 2))  # Gamma_N, reference, (k, 2)
         # per segment: a gap the needle crosses outside the tissue (a wound: no load, no
@@ -311,7 +309,7 @@ class NeedleCoupling:
 
     def local_spacing(self, points: np.ndarray) -> np.ndarray:
         """Particle spacing at reference points: that of the nearest particle, (n,)."""
-        return self._spacing[self._tree.query(np.atleast_2d(points))[1]]
+        return self._spacing[self.model.search.nearest(np.atleast_2d(points))]
 
     def add(self, reference_point: np.ndarray, multipliers: np.ndarray | None = None,
             gap: bool = False, fraction: float = 1.0) -> np.ndarray:

@@ -14,7 +14,6 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.optimize
 
 from ..errors import InsertionFailure, TipTrackingJump
 from ..events import Event, EventKind
@@ -87,8 +86,10 @@ def levenberg_marquardt_tip(previous_tip: np.ndarray, center: np.ndarray, radius
     def jacobian(x):
         return _tip_conditions(x, *evaluate(x), previous_tip, center, radius, insertion_step)[1]
 
-    result = scipy.optimize.least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-13,
-                                          ftol=1e-13, gtol=1e-13, max_nfev=200)
+    from scipy.optimize import least_squares  # here: Newton mostly succeeds, and scipy.optimize costs start-up
+
+    result = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-13, ftol=1e-13, gtol=1e-13,
+                           max_nfev=200)
     return result.x, evaluations + int(result.nfev)
 
 
@@ -198,6 +199,56 @@ def locate_exit(insertion: NeedleInsertion, rotation: float, method: str,
         insertion.timings["tip_tracking"] += time.perf_counter() - t0
 
 
+def brent_root(f, a: float, b: float, xtol: float = 1e-13, rtol: float = 1e-15, max_evaluations: int = 100) -> float:
+    """A zero of the continuous f on [a, b], where f(a) and f(b) differ in sign, to within
+    xtol + rtol |x|: Brent's method (inverse quadratic interpolation or the secant where they
+    step well inside the bracket, bisection where they do not), as scipy.optimize.brentq,
+    whose import would cost every run ~0.08 s of start-up. The zero returned is one of the
+    points f was evaluated at, so a caller that records f's evaluations has it recorded."""
+    fa, fb = f(a), f(b)
+    if fa == 0.0:
+        return a
+    if fb == 0.0:
+        return b
+    if (fa > 0.0) == (fb > 0.0):
+        raise ValueError(f"f({a}) = {fa} and f({b}) = {fb} do not bracket a zero")
+    c, fc = a, fa  # c: the bracket's other end, f(c) of the sign opposite to f(b)
+    step = previous = b - a
+    for _ in range(max_evaluations):
+        if (fb > 0.0) == (fc > 0.0):
+            c, fc = a, fa
+            step = previous = b - a
+        if abs(fc) < abs(fb):  # b: the best estimate
+            a, b, c = b, c, b
+            fa, fb, fc = fb, fc, fb
+        tolerance = 0.5 * (xtol + rtol * abs(b))
+        half = 0.5 * (c - b)
+        if abs(half) <= tolerance or fb == 0.0:
+            return b
+        if abs(previous) >= tolerance and abs(fa) > abs(fb):
+            s = fb / fa
+            if a == c:  # secant
+                p, q = 2.0 * half * s, 1.0 - s
+            else:  # inverse quadratic interpolation through a, b, c
+                q, r = fa / fc, fb / fc
+                p = s * (2.0 * half * q * (q - r) - (b - a) * (r - 1.0))
+                q = (q - 1.0) * (r - 1.0) * (s - 1.0)
+            if p > 0.0:
+                q = -q
+            p = abs(p)
+            if 2.0 * p < min(3.0 * half * q - abs(tolerance * q), abs(previous * q)):
+                previous, step = step, p / q
+            else:
+                step = previous = half
+        else:
+            step = previous = half
+        a, fa = b, fb
+        b += step if abs(step) > tolerance else math.copysign(tolerance, half)
+        fb = f(b)
+    raise InsertionFailure(f"Brent's method found no zero within {max_evaluations} evaluations "
+                           f"(bracket [{min(b, c):.17g}, {max(b, c):.17g}])")
+
+
 def _boundary_crossing(insertion: NeedleInsertion, rotation: float, method: str,
                        span: float | None = None) -> tuple[np.ndarray, float]:
     """Root-find, over the fraction of the step, where the tip's material point meets the
@@ -216,8 +267,7 @@ def _boundary_crossing(insertion: NeedleInsertion, rotation: float, method: str,
     elif signed_distance(0.0) >= 0.0:
         fraction = 0.0
     else:
-        fraction = scipy.optimize.brentq(signed_distance, 0.0, 1.0, xtol=1e-13, rtol=1e-15)
-    signed_distance(fraction)  # brentq's root is one of its evaluations; tracked if not
+        fraction = brent_root(signed_distance, 0.0, 1.0)
     return insertion.domain.clip(tracked[fraction]), rotation + fraction * step
 
 
@@ -255,9 +305,7 @@ def locate_reentry(insertion: NeedleInsertion, start: float, end: float) -> tupl
     try:
         if signed_distance(end) > 0.0:
             return None
-        rotation = start if signed_distance(start) <= 0.0 else scipy.optimize.brentq(
-            signed_distance, start, end, xtol=1e-13, rtol=1e-15)
-        signed_distance(rotation)
+        rotation = start if signed_distance(start) <= 0.0 else brent_root(signed_distance, start, end)
         return insertion.domain.clip(found[rotation]), rotation
     finally:
         insertion.timings["tip_tracking"] += time.perf_counter() - t0

@@ -8,13 +8,12 @@ multiplies by them.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import chain
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 from .kernel import tensor_kernel
+from .neighbours import CellGrid
 from ..errors import SingularMomentMatrix
 
 
@@ -96,23 +95,22 @@ class Visibility:
         return keep
 
 
-MANY_POINTS = 64  # from here on neighbour_pairs pairs two trees (~3x faster than per-point lists)
-SUPPORT_GROUPS_PER_OCTAVE = 2  # ParticleSearch: particles whose supports differ by < 2^(1/2) share a tree
+MANY_POINTS = 64  # from here on neighbour_pairs searches each support group on its own cells
+SUPPORT_GROUPS_PER_OCTAVE = 2  # ParticleSearch: particles whose supports differ by < 2^(1/2) share cells
 
 
 @dataclass(frozen=True, eq=False)
 class ParticleSearch:
-    """The particles in KD-trees by kernel support. A graded arrangement has supports from
-    the coarse spacing down to a fraction of the finest one; searching every point's
-    neighbours within the largest support would return, where the particles are fine,
-    hundreds of particles whose own supports do not reach the point. For many points each
-    group of similar supports (within a factor 2^(1 / SUPPORT_GROUPS_PER_OCTAVE)) is
-    searched within its own largest support; a few points (tip tracking asks for one) search
-    one tree of all particles, which costs fewer calls."""
+    """The particles on square cells (neighbours.CellGrid) by kernel support. A graded
+    arrangement has supports from the coarse spacing down to a fraction of the finest one;
+    searching every point's neighbours within the largest support would return, where the
+    particles are fine, hundreds of particles whose own supports do not reach the point. For
+    many points each group of similar supports (within a factor 2^(1 / SUPPORT_GROUPS_PER_OCTAVE))
+    is searched on cells of its own largest support; a few points (tip tracking asks for one)
+    search the cells of all particles, which costs fewer calls."""
 
-    tree: cKDTree  # all particles
-    reach: float  # the largest support
-    groups: tuple  # (particle indices, their tree, their largest support) per group
+    everyone: CellGrid  # all particles, cells of the largest support
+    groups: tuple  # (their CellGrid, their largest support) per group
 
     @classmethod
     def of(cls, particles: np.ndarray, support: np.ndarray) -> ParticleSearch:
@@ -121,26 +119,24 @@ class ParticleSearch:
         groups = []
         for label in np.unique(group):
             members = np.flatnonzero(group == label)
-            groups.append((members, cKDTree(particles[members]), float(support[members].max())))
-        return cls(cKDTree(particles), float(support.max()), tuple(groups))
+            reach = float(support[members].max())
+            groups.append((CellGrid.of(particles, reach, members), reach))
+        return cls(CellGrid.of(particles, float(support.max())), tuple(groups))
 
     def candidates(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(point, particle) index pairs with |X - X_I|_inf <= the largest support of I's
         group (of all particles, for a few points), sorted by point, then particle."""
-        if len(points) <= MANY_POINTS:
-            lists = self.tree.query_ball_point(points, r=self.reach, p=np.inf, return_sorted=True)
-            counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(points))
-            cols = np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
-            return np.repeat(np.arange(len(points)), counts), cols
-        point_tree = cKDTree(points)  # the pairs come as arrays, not lists
-        rows, cols = [], []
-        for members, tree, reach in self.groups:
-            pairs = point_tree.sparse_distance_matrix(tree, reach, p=np.inf, output_type="coo_matrix")
-            rows.append(pairs.row.astype(np.int64))
-            cols.append(members[pairs.col])
-        rows, cols = np.concatenate(rows), np.concatenate(cols)
-        order = np.lexsort((cols, rows))
-        return rows[order], cols[order]
+        if len(points) <= MANY_POINTS or len(self.groups) == 1:
+            grid = self.everyone if len(points) <= MANY_POINTS else self.groups[0][0]
+            return grid.within(points, grid.size)  # ordered so already
+        count = len(self.everyone.x)
+        pairs = [grid.within(points, reach) for grid, reach in self.groups]
+        merged = np.sort(np.concatenate([rows * count + cols for rows, cols in pairs]))  # by point, then particle
+        return merged // count, merged % count
+
+    def nearest(self, points: np.ndarray) -> np.ndarray:
+        """The index of each point's nearest particle, (n,)."""
+        return self.everyone.nearest(points)
 
 
 def neighbour_pairs(

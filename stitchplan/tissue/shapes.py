@@ -14,7 +14,6 @@ interfaces to 1/2^CUT_LEVELS of a cell, and exactly where they run along lattice
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
@@ -156,6 +155,8 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     domain = tissue.domain
     if not isinstance(domain, PolygonDomain):  # a rectangle with regions: the lattice fits
         return graded.particles, graded.volumes, graded.local_spacing
+    from scipy.spatial import cKDTree  # here: a rectangle's commands need not import scipy.spatial
+
     tol = 1e-7 * max(domain.size)
     keep = domain.contains(graded.particles, tol)
     particles, volumes, local = graded.particles[keep], graded.volumes[keep], graded.local_spacing[keep]
