@@ -25,10 +25,15 @@ FEW_POINTS = 4  # up to here `within` takes the points one by one
 _BLOCK = np.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)])  # a cell's 3 x 3 block, (9, 2)
 
 
+def _key(cx, cy):
+    """One integer per cell (arrays or ints), distinct for coordinates within +-_CELL_LIMIT."""
+    return (cx + _CELL_LIMIT) * (4 * _CELL_LIMIT) + (cy + _CELL_LIMIT)
+
+
 def _keys(cells: np.ndarray) -> np.ndarray:
-    """One int64 per cell (..., 2) -> (...), distinct for coordinates within +-_CELL_LIMIT."""
+    """The int64 keys of cells (..., 2) -> (...), their coordinates clipped to +-_CELL_LIMIT."""
     cells = np.clip(cells, -_CELL_LIMIT, _CELL_LIMIT)
-    return (cells[..., 0] + _CELL_LIMIT) * (4 * _CELL_LIMIT) + (cells[..., 1] + _CELL_LIMIT)
+    return _key(cells[..., 0], cells[..., 1])
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -112,7 +117,7 @@ class CellGrid:
             if math.isfinite(x) and math.isfinite(y):
                 cx = min(max(math.floor((x - ox) / self.size), -_CELL_LIMIT), _CELL_LIMIT)
                 cy = min(max(math.floor((y - oy) / self.size), -_CELL_LIMIT), _CELL_LIMIT)
-                key = (cx + _CELL_LIMIT) * (4 * _CELL_LIMIT) + (cy + _CELL_LIMIT)
+                key = _key(cx, cy)
                 slot = int(self.keys.searchsorted(key))
                 if slot < len(self.keys) and self.keys[slot] == key:
                     start, end = int(self.starts[slot]), int(self.starts[slot + 1])
