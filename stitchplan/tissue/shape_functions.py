@@ -110,7 +110,7 @@ class ParticleSearch:
     search the cells of all particles, which costs fewer calls."""
 
     everyone: CellGrid  # all particles, cells of the largest support
-    groups: tuple  # (their CellGrid, their largest support) per group
+    groups: tuple[CellGrid, ...]  # per group its particles, on cells of the group's largest support
 
     @classmethod
     def of(cls, particles: np.ndarray, support: np.ndarray) -> ParticleSearch:
@@ -119,18 +119,17 @@ class ParticleSearch:
         groups = []
         for label in np.unique(group):
             members = np.flatnonzero(group == label)
-            reach = float(support[members].max())
-            groups.append((CellGrid.of(particles, reach, members), reach))
+            groups.append(CellGrid.of(particles, float(support[members].max()), members))
         return cls(CellGrid.of(particles, float(support.max())), tuple(groups))
 
     def candidates(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(point, particle) index pairs with |X - X_I|_inf <= the largest support of I's
         group (of all particles, for a few points), sorted by point, then particle."""
         if len(points) <= MANY_POINTS or len(self.groups) == 1:
-            grid = self.everyone if len(points) <= MANY_POINTS else self.groups[0][0]
+            grid = self.everyone if len(points) <= MANY_POINTS else self.groups[0]
             return grid.within(points, grid.size)  # ordered so already
         count = len(self.everyone.x)
-        pairs = [grid.within(points, reach) for grid, reach in self.groups]
+        pairs = [grid.within(points, grid.size) for grid in self.groups]
         merged = np.sort(np.concatenate([rows * count + cols for rows, cols in pairs]))  # by point, then particle
         return merged // count, merged % count
 
