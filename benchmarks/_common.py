@@ -57,6 +57,16 @@ def timed_command(arguments: list[str], summary: Path, cwd: Path, **environment:
     return time.perf_counter() - start, json.loads(summary.read_text())
 
 
+def scene_command(name: str, scene: str, options: Sequence[str], folder: Path, cwd: Path,
+                  **environment: str) -> tuple[float, dict]:
+    """timed_command of `stitchplan NAME configs/SCENE.yaml OPTIONS`, its summary (and for
+    `plan` its trajectory) written into `folder`: wall time (s) and summary."""
+    summary = folder / "summary.json"
+    export = ["--export", str(folder / "trajectory.csv")] if name == "plan" else []
+    return timed_command([name, str(REPO_ROOT / "configs" / f"{scene}.yaml"), *options, *export,
+                          "--summary", str(summary)], summary, cwd, **environment)
+
+
 def worker_record(script: str, source: Path, *arguments: str) -> dict:
     """`python SCRIPT --worker ARGUMENTS` in a fresh process with the code in `source` first
     on PYTHONPATH; the JSON record it prints last."""

@@ -109,10 +109,7 @@ def imports(source: Path) -> tuple[float, list[str]]:
 
 def command(source: Path, folder: Path, name: str, scene: str, options: tuple[str, ...]) -> float:
     """One whole `stitchplan NAME configs/SCENE.yaml OPTIONS` process of the code in `source` (s)."""
-    summary = folder / "summary.json"
-    extra = ["--export", str(folder / "trajectory.csv")] if name == "plan" else []
-    seconds, _ = common.timed_command([name, str(common.REPO_ROOT / "configs" / f"{scene}.yaml"), *options, *extra,
-                                       "--summary", str(summary), "-q"], summary, source, PYTHONPATH=str(source))
+    seconds, _ = common.scene_command(name, scene, [*options, "-q"], folder, source, PYTHONPATH=str(source))
     return seconds
 
 

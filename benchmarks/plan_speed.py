@@ -51,11 +51,8 @@ STARTUP_REPEATS = 7
 def run_plan_command(source: Path, scene: str, options: list[str], folder: Path, **environment) -> dict:
     """One `stitchplan plan` process of the code in `source` (with `environment` added to
     the process's); its summary and wall time."""
-    summary = folder / "summary.json"
-    seconds, record = common.timed_command(
-        ["plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"), *options, "--export",
-         str(folder / "trajectory.csv"), "--summary", str(summary)], summary, source,
-        PYTHONPATH=str(source), **environment)
+    seconds, record = common.scene_command("plan", scene, options, folder, source, PYTHONPATH=str(source),
+                                           **environment)
     record["command_seconds"] = seconds
     return record
 

@@ -35,12 +35,8 @@ COMPARED = ("exit_error_mm", "exit_error_estimate_mm", "verified_exit_error_mm",
 
 def run(command: str, options: list[str], scene: str, folder: Path, helper: bool) -> tuple[float, dict]:
     """One process: its wall time and summary."""
-    summary = folder / "summary.json"
-    arguments = [command.split()[0], str(common.REPO_ROOT / "configs" / f"{scene}.yaml"), *options, "-q",
-                 "--summary", str(summary)]
-    if command.startswith("plan"):
-        arguments += ["--export", str(folder / "trajectory.csv")]
-    return common.timed_command(arguments, summary, folder, STITCHPLAN_REPLAY_HELPER="1" if helper else "0")
+    return common.scene_command(command.split()[0], scene, [*options, "-q"], folder, folder,
+                                STITCHPLAN_REPLAY_HELPER="1" if helper else "0")
 
 
 def main() -> None:

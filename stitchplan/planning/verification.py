@@ -155,7 +155,7 @@ def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path
 
 def estimate_replays(scenario: Scenario, background: bool = True, **options):
     """replays_for the exit error estimate's 2h model (a context manager; planning/replays.py)."""
-    return replays_for(rescaled(scenario, ESTIMATE_FACTOR), background, **_replay_options(options))
+    return plan_replays(scenario, verify=False, background=background, **options)
 
 
 def replay_scenario(scenario: Scenario, verify: bool) -> Scenario:
@@ -256,7 +256,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
         rounds.append(verified)
         miss = _verified_miss(replayed, symmetric)
         log.info("verification round %d: planned exit error %.4g mm, on the refined model %.4g mm%s",
-                 correction + 1, result.planned.exit_error_mm, verified["verified_exit_error_mm"] or np.inf,
+                 correction + 1, result.planned.exit_error_mm, np.inf if replayed is None else replayed.exit_error_mm,
                  f" (bite difference {miss:.4g} mm)" if symmetric else "")
         if best is None or miss < best[0]:
             best = (miss, result, replayed)

@@ -26,13 +26,13 @@ _BLOCK = np.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)])  # a cel
 
 
 def _key(cx, cy):
-    """One integer per cell (arrays or ints), distinct for coordinates within +-_CELL_LIMIT."""
-    return (cx + _CELL_LIMIT) * (4 * _CELL_LIMIT) + (cy + _CELL_LIMIT)
+    """One integer per cell (arrays or ints), distinct for coordinates within +-_CELL_LIMIT
+    and below 2^62 there (no int64 overflow)."""
+    return (cx + _CELL_LIMIT) * (2 * _CELL_LIMIT + 1) + (cy + _CELL_LIMIT)
 
 
 def _keys(cells: np.ndarray) -> np.ndarray:
-    """The int64 keys of cells (..., 2) -> (...), their coordinates clipped to +-_CELL_LIMIT."""
-    cells = np.clip(cells, -_CELL_LIMIT, _CELL_LIMIT)
+    """The int64 keys of cells (..., 2) -> (...)."""
     return _key(cells[..., 0], cells[..., 1])
 
 
