@@ -27,7 +27,7 @@ unfitted dilation-3 case (0.33x there; 0.96x in an earlier run of the same bench
 memory limit is what protects the machine; the time is a guide, not a promise.
 
 Limits (Limits; the CLI's --max-particles raises the first, --no-resource-check skips
-them all):
+them all; nothing raises the memory share: a smaller model is the way under it):
 
 - MAX_PARTICLES = 50 000: a deform at 1 mm spacing on the 100 x 100 mm slab (10 447
   particles) took 30 s and 0.77 GB; 50 000 particles are estimated at ~3 min and ~5.6 GB
@@ -41,6 +41,15 @@ them all):
   being local well before (RKPM practice: dilation 1.5-3, 9-36 neighbours), and the
   tangent's cost grows with the square of the neighbours;
 - MEMORY_SHARE = 0.5 of the memory the machine has available now.
+
+A refusal names what drives the estimate past the limit (`_particle_setting`,
+`_memory_setting`): the spacing, or the needle zone's refinement or spacing when the
+coarse spacing alone would fit, or the needle radius when the spacing is the default that
+follows it; past the memory share with a standard kernel fitting, the dilation or the
+quadrature points. A field set elsewhere than the scenario file's `discretization:` block
+(an option, a study's spacing, a plan's verification model) is named as the caller's
+`Origin` says. Counts are estimated in floating point and held at COUNT_CAP, so any finite
+positive input ends in a refusal, never in an overflow.
 """
 
 from __future__ import annotations
@@ -48,11 +57,13 @@ from __future__ import annotations
 import logging
 import math
 import os
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .config import Scenario
+from .config import DEFAULT_NEEDLE_REFINEMENT, Discretization, Scenario
+from .config.blocks import default_spacing_of
 from .errors import InputError
 from .needle.geometry import needle_zone, scenario_needle
 from .tissue.particles import graded_particles
@@ -67,6 +78,10 @@ MEMORY_SHARE = 0.5
 # bound; 0.8 s at 444 000 cells on the development machine); beyond it they are estimated
 # from the local spacing (_graded_estimate: 10-17 % below the count on the SH scenes)
 COUNT_EXACTLY_UP_TO = 250_000
+# particles and steps are held at this count: far beyond any machine (a model of 10^15
+# particles needs ~10^14 GB by the memory model below), and small enough that the cost
+# formulas stay finite floats
+COUNT_CAP = 10**15
 
 # from benchmarks/results/resource_costs.md (python benchmarks/resource_costs.py)
 SECONDS_PER_PARTICLE_STEP = {"deform": 2.4e-4, "insertion": 1.3e-4}  # at 1 000 particles
@@ -78,11 +93,15 @@ REFERENCE_PARTICLES = 1000.0
 REFERENCE_NEIGHBOURS = 16.0  # (2 x dilation)^2 at dilation 2
 REFERENCE_POINTS_PER_PARTICLE = 4.0  # 2 x 2 Gauss points per cell, one cell per particle
 
+# what lifts each limit: --max-particles raises the particle limit only; nothing but
+# skipping the guard passes the memory share
 OVERRIDE = "raise --max-particles or pass --no-resource-check to run it anyway"
+SKIP_GUARD = "pass --no-resource-check to run it anyway"
 # runs of a plan on its model (planner passes; benchmarks/results/plan_speed.md: a planned run
 # takes ~2.5 unplanned ones) and replays on the verification model (half the spacing)
 PLAN_RUNS = 3
 VERIFICATION_RUNS = 2
+VERIFICATION_SCALE = 0.5  # the verification model, rescaled(scenario, VERIFICATION_SCALE): half the spacing
 
 
 @dataclass(frozen=True)
@@ -94,12 +113,47 @@ class Limits:
 
 
 @dataclass(frozen=True)
+class Origin:
+    """What set a run's discretization, so that a refusal names what the user can change.
+
+    A discretization field is named as the scenario file's `discretization.<field>` unless
+    `names` maps it to what else set it: an option ({"spacing": "--spacing"}) or another
+    block ({"spacing": "study.spacing"}); `given` holds the value as set there where the
+    run's differs. A run derived from the given model (a plan's verification) says so in
+    `derived` and how to leave it out in `skip`."""
+
+    names: Mapping[str, str] = field(default_factory=dict)
+    given: Mapping[str, float] = field(default_factory=dict)
+    derived: str = ""  # follows what was expected, e.g. " in the plan's verification at half the spacing"
+    skip: str = ""  # advice, e.g. "pass --no-verify to skip the verification"
+
+    def name(self, key: str) -> str:
+        return self.names.get(key, f"discretization.{key}")
+
+    def value(self, key: str, run_value: float) -> float:
+        return self.given.get(key, run_value)
+
+
+def verification_origin(scenario: Scenario, names: Mapping[str, str] | None = None) -> Origin:
+    """The origin of a plan's verification model, rescaled(scenario, VERIFICATION_SCALE): a
+    refusal names the scenario's own spacings (`names` as for the plan's model) and offers
+    --no-verify."""
+    d = scenario.discretization
+    given = {"spacing": d.spacing}
+    if d.needle_spacing is not None:
+        given["needle_spacing"] = d.needle_spacing
+    return Origin(dict(names or {}), given,
+                  derived=" in the plan's verification at half the spacing",
+                  skip="pass --no-verify to skip the verification")
+
+
+@dataclass(frozen=True)
 class ModelSize:
     """What the discretization of a scenario will hold, before it is built."""
 
-    particles: int
+    particles: int  # at most COUNT_CAP
     exact: bool  # counted (True) or estimated from the local spacing (False)
-    neighbours: float  # particles in a kernel support, (2 x dilation)^2
+    neighbours: float  # particles in a kernel support, (2 x dilation)^2 (inf past the float range)
     points_per_particle: float  # quadrature points per particle
 
     @property
@@ -109,23 +163,32 @@ class ModelSize:
 
 @dataclass(frozen=True)
 class Estimate:
-    """The estimated cost of one command's runs."""
+    """The estimated cost of one command's runs, with what a refusal needs to name its cause."""
 
     label: str  # e.g. "deform", "simulate", "plan verification"
     size: ModelSize
-    steps: int  # load steps or needle steps of one run
+    steps: int  # load steps or needle steps of one run, at most COUNT_CAP
     step_kind: str  # "load steps" or "needle steps"
     runs: float  # runs of that size (plan: planned passes and the comparison)
     memory_bytes: float
     seconds: float
     spacing: float  # the discretization's spacing, mm
     needle_step: float | None  # rad per needle step (insertions)
+    discretization: Discretization
+    origin: Origin
+    # particles of a uniform grid at the spacing when the model is graded toward the needle
+    # (what the spacing alone costs), None when the model is that grid
+    coarse_particles: float | None
+    radius_default: float | None  # the needle radius, when the spacing is the default following it
 
     def describe(self) -> str:
         about = "" if self.size.exact else "about "
         runs = f" in each of {self.runs:g} runs" if self.runs != 1 else ""
-        return (f"{self.label}: {about}{self.size.particles} particles, {self.steps} {self.step_kind}{runs}, "
-                f"~{_bytes(self.memory_bytes)} memory, ~{_duration(self.seconds)}")
+        # costs of a count held at COUNT_CAP are lower bounds
+        memory = "over " if self.size.particles >= COUNT_CAP else "~"
+        time = "over " if self.size.particles >= COUNT_CAP or self.steps >= COUNT_CAP else "~"
+        return (f"{self.label}: {_count(self.size.particles, about)} particles, {_count(self.steps)} "
+                f"{self.step_kind}{runs}, {memory}{_bytes(self.memory_bytes)} memory, {time}{_duration(self.seconds)}")
 
 
 # --- sizes -------------------------------------------------------------------------------
@@ -137,23 +200,39 @@ def model_size(scenario: Scenario) -> ModelSize:
     d = scenario.discretization
     particles, exact = _particles(scenario)
     points = float(d.quadrature_order ** 2 * d.cells_per_spacing ** 2)
-    return ModelSize(particles, exact, (2.0 * d.dilation) ** 2, points)
+    support = 2.0 * d.dilation
+    return ModelSize(particles, exact, support * support, points)  # a product: inf where ** would raise
 
 
 def _particles(scenario: Scenario) -> tuple[int, bool]:
     d, (width, height) = scenario.discretization, scenario.tissue.bounding_size
     zone = needle_zone(scenario)
     if zone is None:  # the uniform grid of tissue.particles.grid_particles
-        nx, ny = max(round(width / d.spacing), 1), max(round(height / d.spacing), 1)
         # load segments add grid lines through their ends and a grading toward them
         # (tissue.particles.end_zones): the grid is then a lower bound (~5-30 % below)
-        return (nx + 1) * (ny + 1), not scenario.loads
-    lattice = (width / d.needle_spacing) * (height / d.needle_spacing)
+        return _capped(_grid_count(scenario.tissue.bounding_size, d.spacing)), not scenario.loads
+    lattice = _per_side(width, d.needle_spacing) * _per_side(height, d.needle_spacing)
     if lattice <= COUNT_EXACTLY_UP_TO:
         graded = graded_particles(scenario.tissue.bounding_size, d.spacing, d.needle_spacing,
                                   np.asarray(zone[0], dtype=float), zone[1], points=zone[2])
         return len(graded.particles), True
     return _graded_estimate(scenario.tissue.bounding_size, d.spacing, d.needle_spacing, zone), False
+
+
+def _per_side(length: float, side: float) -> float:
+    """length / side; inf for a side that underflowed to 0 (a spacing over a refinement)."""
+    return length / side if side > 0 else math.inf
+
+
+def _grid_count(size: tuple[float, float], spacing: float) -> float:
+    """Particles of the uniform grid at `spacing` (tissue.particles.grid_particles), as a
+    float: a fine spacing's count passes any integer a float can hold."""
+    nx, ny = (max(float(np.rint(_per_side(length, spacing))), 1.0) for length in size)
+    return (nx + 1.0) * (ny + 1.0)
+
+
+def _capped(count: float) -> int:
+    return int(min(count, COUNT_CAP))
 
 
 def _graded_estimate(size, spacing: float, fine: float, zone, growth: float = 0.5, samples: int = 400) -> int:
@@ -170,7 +249,29 @@ def _graded_estimate(size, spacing: float, fine: float, zone, growth: float = 0.
         near = np.hypot(x[:, None] - point.center[0], y[None, :] - point.center[1]) - point.radius
         side = np.minimum(side, point.spacing + growth * np.maximum(near, 0.0))
     side = np.clip(side, None, max(spacing, fine))
-    return int(np.sum(width * height / samples ** 2 / side ** 2))
+    with np.errstate(divide="ignore", over="ignore"):  # a side too small for a float: inf, then capped
+        return _capped(float(np.sum(width * height / samples ** 2 / side ** 2)))
+
+
+def _needle_steps(scenario: Scenario) -> int:
+    """The needle steps until the tip exits (NeedleGeometry.expected_steps), at most
+    COUNT_CAP: a step of a few 1e-324 rad gives more steps than an integer conversion takes."""
+    geometry = scenario_needle(scenario)
+    if geometry.exit_rotation / geometry.step >= COUNT_CAP:
+        return COUNT_CAP
+    return geometry.expected_steps
+
+
+def _radius_default(scenario: Scenario, origin: Origin) -> float | None:
+    """The needle radius when the run's spacing is the default that follows it (a scenario
+    giving no spacing: config.blocks.default_spacing_of), else None."""
+    if scenario.needle is None or "spacing" in origin.names:
+        return None
+    size, radius = scenario.tissue.bounding_size, scenario.needle.radius
+    default = default_spacing_of(size, radius)
+    follows_radius = default < default_spacing_of(size, math.inf)  # not held by the tissue's size
+    spacing = origin.value("spacing", scenario.discretization.spacing)
+    return radius if follows_radius and math.isclose(spacing, default, rel_tol=1e-9) else None
 
 
 # --- costs -------------------------------------------------------------------------------
@@ -187,22 +288,28 @@ def _scale(size: ModelSize) -> tuple[float, float]:
     return memory, time
 
 
-def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: float = 1.0) -> Estimate:
-    """The cost of `runs` runs of `kind` ("deform" or "insertion") on the scenario."""
+def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: float = 1.0,
+             origin: Origin | None = None) -> Estimate:
+    """The cost of `runs` runs of `kind` ("deform" or "insertion") on the scenario; `origin`:
+    what set its discretization, when not (all of) the scenario file's `discretization:`."""
     size = model_size(scenario)
     if kind == "deform":
         steps, step_kind = scenario.load_steps, "load steps"
     else:
-        steps, step_kind = scenario_needle(scenario).expected_steps, "needle steps"
+        steps, step_kind = _needle_steps(scenario), "needle steps"
     memory, time = _scale(size)
     seconds = SECONDS_PER_PARTICLE_STEP[kind] * time * steps * runs
+    d, origin = scenario.discretization, origin or Origin()
+    graded = needle_zone(scenario) is not None
     return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory, seconds,
-                    scenario.discretization.spacing, None if kind == "deform" else scenario.needle.step)
+                    d.spacing, None if kind == "deform" else scenario.needle.step, d, origin,
+                    _grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
+                    _radius_default(scenario, origin))
 
 
 def rescaled(scenario: Scenario, factor: float) -> Scenario:
     """The scenario with its particle spacings scaled by `factor` (a plan's verification
-    model: half the spacing)."""
+    model: VERIFICATION_SCALE, estimated with verification_origin)."""
     d = scenario.discretization
     changes = {"spacing": d.spacing * factor, "accuracy": None}
     if d.needle_spacing is not None and d.needle_refinement is None:
@@ -238,18 +345,14 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     for item in estimates:
         size, what = item.size, f"estimated {item.describe()}"
         if size.neighbours > limits.max_neighbours:
-            dilation = math.sqrt(size.neighbours) / 2.0
             most = math.sqrt(limits.max_neighbours) / 2.0
-            lines.append(f"discretization.dilation: got {dilation:g}, expected at most {most:g} "
-                         f"(a kernel support of ~{size.neighbours:.3g} particles per point, at most "
-                         f"{limits.max_neighbours}; RKPM uses 1.5-3)")
+            lines.append(f"{item.origin.name('dilation')}: got {item.discretization.dilation:g}, expected at "
+                         f"most {most:g} (a kernel support of {_amount(size.neighbours)} particles per point, "
+                         f"at most {limits.max_neighbours}; RKPM uses 1.5-3)")
         elif size.particles > limits.max_particles:
-            lines.append(f"discretization.spacing: got {item.spacing:g} mm, expected a spacing giving at most "
-                         f"{limits.max_particles} particles ({what}); coarsen it, or {OVERRIDE}")
+            lines.append(_particles_refusal(item, limits.max_particles))
         elif memory is not None and item.memory_bytes > limits.memory_share * memory:
-            lines.append(f"discretization.spacing: got {item.spacing:g} mm, expected a model within "
-                         f"{limits.memory_share:.0%} of the {_bytes(memory)} of memory available "
-                         f"({what}); coarsen it, or {OVERRIDE}")
+            lines.append(_memory_refusal(item, limits.memory_share, memory))
         if item.needle_step is not None and item.steps > limits.max_needle_steps:
             lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
                          f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
@@ -260,6 +363,100 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         raise error
     for item in estimates:
         log.info("resources: %s", item.describe())
+
+
+@dataclass(frozen=True)
+class Setting:
+    """What a refusal names: the field or option, the value it got, what it should give
+    (completed by "at most N particles"), how to lower the cost by it, and how it reaches
+    the model (ends in "; " when given)."""
+
+    name: str
+    got: str
+    expected: str
+    advice: str
+    note: str = ""
+
+
+def _particles_refusal(item: Estimate, limit: int) -> str:
+    setting = _particle_setting(item, lambda particles: particles <= limit)
+    return (f"{setting.name}: got {setting.got}, expected {setting.expected} at most {limit} particles"
+            f"{item.origin.derived} ({setting.note}estimated {item.describe()}); {setting.advice}, "
+            f"{_skip(item)}or {OVERRIDE}")
+
+
+def _memory_refusal(item: Estimate, share: float, memory: float) -> str:
+    setting = _memory_setting(item, share * memory)
+    return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {_bytes(memory)} of "
+            f"memory available{item.origin.derived} ({setting.note}estimated {item.describe()}); "
+            f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
+
+
+def _skip(item: Estimate) -> str:
+    return f"{item.origin.skip}, " if item.origin.skip else ""
+
+
+def _particle_setting(item: Estimate, fits: Callable[[float], bool]) -> Setting:
+    """What makes the particles too many for `fits`: the spacing, unless a uniform grid at
+    the spacing would fit and the needle zone is refined past the default; then the needle
+    zone's refinement or its own spacing."""
+    d, origin = item.discretization, item.origin
+    if item.coarse_particles is None or not fits(item.coarse_particles):
+        return _spacing_setting(item)
+    derived = d.needle_refinement is not None and math.isclose(d.needle_spacing, d.spacing / d.needle_refinement)
+    if derived and d.needle_refinement <= DEFAULT_NEEDLE_REFINEMENT:
+        return _spacing_setting(item)  # the default grading follows the spacing: coarsening it coarsens both
+    if derived:
+        spacing = origin.value("spacing", d.spacing)
+        return Setting(origin.name("needle_refinement"), f"{d.needle_refinement:g}", "a refinement giving",
+                       "lower it", f"a needle spacing of {spacing:g} mm / {d.needle_refinement:g} = "
+                       f"{spacing / d.needle_refinement:.3g} mm; ")
+    return Setting(origin.name("needle_spacing"), f"{origin.value('needle_spacing', d.needle_spacing):g} mm",
+                   "a needle spacing giving", "coarsen it")
+
+
+def _spacing_setting(item: Estimate) -> Setting:
+    d, origin = item.discretization, item.origin
+    spacing = origin.value("spacing", d.spacing)
+    if item.radius_default is not None:  # the file gives no spacing: the radius sets it
+        return Setting("needle.radius", f"{item.radius_default:g} mm",
+                       f"a radius whose default particle spacing (here {spacing:.3g} mm) gives",
+                       "check that it is in mm, or give discretization.spacing")
+    return Setting(origin.name("spacing"), f"{spacing:g} mm", "a spacing giving", "coarsen it")
+
+
+def _memory_setting(item: Estimate, budget: float) -> Setting:
+    """What takes the memory past `budget`: the particles (as _particle_setting) when even a
+    standard kernel (dilation 2, 2 x 2 Gauss points per particle) would pass it, else the
+    larger of the kernel's two factors, its support (dilation) or its quadrature points."""
+    size, d, origin = item.size, item.discretization, item.origin
+
+    def fits_with_a_standard_kernel(particles: float) -> bool:
+        standard = replace(size, particles=_capped(particles), neighbours=min(size.neighbours, REFERENCE_NEIGHBOURS),
+                           points_per_particle=min(size.points_per_particle, REFERENCE_POINTS_PER_PARTICLE))
+        return BASE_MEMORY + _scale(standard)[0] <= budget
+
+    if not fits_with_a_standard_kernel(size.particles):
+        return _particle_setting(item, fits_with_a_standard_kernel)
+    neighbours = size.effective_neighbours / REFERENCE_NEIGHBOURS
+    points = size.points_per_particle / REFERENCE_POINTS_PER_PARTICLE
+    if neighbours >= points:
+        return Setting(origin.name("dilation"), f"{d.dilation:g}", "", "lower it (RKPM uses 1.5-3)",
+                       f"a kernel support of {_amount(size.effective_neighbours)} particles per point takes "
+                       f"{neighbours:.3g} times the memory of dilation 2's {REFERENCE_NEIGHBOURS:g}; ")
+    order, cells = d.quadrature_order, d.cells_per_spacing
+    key, got = ("quadrature_order", order) if order * order / 4 >= cells * cells else ("cells_per_spacing", cells)
+    return Setting(origin.name(key), f"{got}", "", "lower it",
+                   f"{order} x {order} Gauss points in each of {cells} x {cells} cells per particle take "
+                   f"{points:.3g} times the memory of the default 2 x 2 in one; ")
+
+
+def _count(value: int, about: str = "") -> str:
+    return f"over {COUNT_CAP:.0e}" if value >= COUNT_CAP else f"{about}{value}"
+
+
+def _amount(value: float) -> str:
+    return f"~{value:.3g}" if math.isfinite(value) else "more than 1e+308"
 
 
 def _bytes(value: float) -> str:

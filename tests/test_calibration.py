@@ -436,3 +436,24 @@ def test_needle_report_carries_the_fit_and_rounds_it(tmp_path):
     out = tmp_path / "needle.yaml"
     write_needle_outputs(result, out)
     assert yaml.safe_load(out.read_text())["friction"] == report["friction"]
+
+
+@pytest.mark.parametrize("fitted, on_bound", [
+    ((0.196, 0.15), set()),  # well inside ranges that span decades
+    ((0.01, 0.15), {"lame_lambda"}),  # at the low end
+    ((0.196, 100.0), {"lame_mu"}),  # at the high end
+])
+def test_the_bound_warning_names_only_a_modulus_at_its_bound(fitted, on_bound):
+    """The margin is relative to the value: a range of decades ([0.01, 1e6] MPa) used to flag
+    a fit of 0.196 MPa as lying on the bound."""
+    from types import SimpleNamespace
+
+    from stitchplan.calibration.inputs import FitSettings
+    from stitchplan.calibration.material_fit import Refinement, Statistics, fit_warnings
+
+    fit = FitSettings("neo-hookean", (0.01, 1e6), (0.001, 100.0))
+    stats = Statistics((0.01, 0.01), 0.1, 0.01)
+    refinement = Refinement(SimpleNamespace(status=1, nfev=10), 0)
+    warnings = fit_warnings(np.array(fitted), stats, fit, refinement)
+    assert {name for name in ("lame_lambda", "lame_mu") if any(f"{name} = " in w and "bound" in w
+                                                               for w in warnings)} == on_bound

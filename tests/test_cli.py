@@ -255,7 +255,8 @@ def test_input_error_with_several_lines_prints_each_as_an_error_line(monkeypatch
     monkeypatch.setattr("stitchplan.tissue.deform.run_deform", fail)
     result = invoke("deform", slab_path)
     assert result.exit_code == 2
-    assert result.stderr.splitlines() == [f"error: {problem}" for problem in problems]
+    # raised while the run builds its model: each line names the scenario file
+    assert result.stderr.splitlines() == [f"error: {slab_path}: {problem}" for problem in problems]
     assert result.stdout == ""
 
 

@@ -13,9 +13,13 @@ every HDF5 dataset says its units; the trajectory a robot reads has no round-off
 from __future__ import annotations
 
 import csv
+import errno
 import hashlib
+import io
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import h5py
@@ -399,3 +403,139 @@ def test_calibrate_needle_failing_at_its_yaml_leaves_no_plot(tmp_path, scene, mo
     monkeypatch.setattr(os, "replace", replace)
     assert line == f"error: --out: cannot write {tmp_path / 'needle.yaml'}: Permission denied"
     assert snapshot(tmp_path) == before
+
+
+# --- a full disk, impossible names, standard output -----------------------------------------
+
+
+class _FileOnAFullDisk:
+    """An open file on a full disk: writing fails as the operating system's write does, with
+    no file name in the error."""
+
+    def __init__(self, handle):
+        self.handle = handle
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *failure):
+        self.handle.close()
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_a_full_disk_under_the_run_log_is_one_line_and_leaves_every_file_as_it_was(tmp_path, scene,
+                                                                                  monkeypatch):
+    """The HDF5 library used to crash the process (exit 139) when its file could not be
+    written, leaving the temporaries behind; the log is built in memory and written like the
+    other outputs, so the run ends with one line and nothing of it lands."""
+    before = existing_outputs(tmp_path, "run.h5", "summary.json")
+    real_open = open
+
+    def open_on_a_full_disk(path, mode="r", *args, **kwargs):
+        handle = real_open(path, mode, *args, **kwargs)
+        return _FileOnAFullDisk(handle) if ".run.h5." in str(path) else handle
+
+    monkeypatch.setattr(files, "open", open_on_a_full_disk, raising=False)
+    line = one_error_line(invoke("simulate", scene, "--out", tmp_path / "run.h5",
+                                 "--summary", tmp_path / "summary.json"))
+    assert line == f"error: --out: cannot write {tmp_path / 'run.h5'}: No space left on device"
+    assert snapshot(tmp_path) == before  # the summary written before it is gone too
+
+
+def test_the_run_log_built_in_memory_holds_every_dataset_and_attribute(tmp_path):
+    large = np.arange(3000.0).reshape(1500, 2)
+    files.write_hdf5(tmp_path / "run.h5", {"steps": {"center": large, "step": [0, 1]},
+                                           "scenario": {"text": "name: x\n"}},
+                     {"command": "simulate", "solver_counts": {"newton": 3}, "note": None},
+                     {"center": "mm", "step": "1", "text": "text"})
+    with h5py.File(tmp_path / "run.h5") as log:
+        np.testing.assert_array_equal(log["steps/center"][()], large)
+        assert log["steps/center"].compression == "gzip"  # over 1000 values
+        assert log["steps/step"].compression is None and list(log["steps/step"][()]) == [0, 1]
+        assert log["scenario/text"].asstr()[()] == "name: x\n"
+        assert log.attrs["command"] == "simulate" and log.attrs["note"] == "null"
+        assert json.loads(log.attrs["solver_counts"]) == {"newton": 3}
+        assert log.attrs["schema_version"] == files.HDF5_SCHEMA_VERSION
+        assert {log[name].attrs["units"] for name in ("steps/center", "steps/step", "scenario/text")} == {
+            "mm", "1", "text"}
+
+
+def test_a_name_too_long_or_a_loop_of_links_is_refused_before_any_work(tmp_path, scene):
+    (tmp_path / "loop_a").symlink_to("loop_b")
+    (tmp_path / "loop_b").symlink_to("loop_a")
+    long_name = tmp_path / ("a" * 300 + ".json")
+    before = snapshot(tmp_path)
+    line = one_error_line(invoke("simulate", scene, "--summary", long_name))
+    assert line == (f"error: --summary: got {long_name}, a name of 305 bytes; expected at most 255 "
+                    f"(File name too long)")
+    line = one_error_line(invoke("simulate", scene, "--summary", tmp_path / "loop_a"))
+    assert line == (f"error: --summary: got {tmp_path / 'loop_a'}, a loop of symbolic links; "
+                    f"expected a file name (Too many levels of symbolic links)")
+    with pytest.raises(InputError) as caught:  # each is named, the good output is not
+        OutputSet({"--out": tmp_path / "loop_b" / "run.h5", "--summary": long_name,
+                   "--plot": tmp_path / "p.png"}).check()
+    assert [line.split(":")[0] for line in caught.value.lines] == ["--out", "--summary"]
+    assert snapshot(tmp_path) == before
+
+
+def test_a_name_near_the_limit_still_gets_its_temporary_beside_it(tmp_path):
+    target = tmp_path / ("b" * 250 + ".csv")  # 254 bytes: its own temporary's name must be cut
+    with OutputSet({"--export": target}).staged() as staged:
+        assert len(staged["--export"].name) <= files.NAME_MAX
+        staged["--export"].write_text("x\n")
+    assert snapshot(tmp_path) == {target.name: b"x\n"}
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.parametrize("args", [["--version"], ["schema"]])
+def test_standard_output_that_cannot_be_written_is_one_error_line(args):
+    with open("/dev/full", "w") as full:
+        run = subprocess.run([sys.executable, "-m", "stitchplan", *args], stdout=full, stderr=subprocess.PIPE,
+                             text=True)
+    assert run.returncode == 2
+    assert run.stderr == "error: cannot write standard output: No space left on device\n"
+
+
+def test_a_reader_that_closes_the_pipe_ends_the_command_quietly():
+    process = subprocess.Popen([sys.executable, "-m", "stitchplan", "schema"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE)
+    process.stdout.close()  # before the command has written anything
+    _, stderr = process.communicate()
+    assert process.returncode == 1 and stderr == b""
+
+
+def test_an_os_error_of_a_bug_still_shows_its_traceback(monkeypatch):
+    """Only a failed write to standard output is an `error:` line; another OSError is a bug."""
+    from stitchplan.cli.group import exit_code
+
+    class FullStream(io.StringIO):
+        def write(self, text):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def bug():
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(sys, "stdout", FullStream())
+    with pytest.raises(OSError):
+        exit_code(bug)
+    assert exit_code(lambda: print("lost")) == 2
+    assert isinstance(sys.stdout, FullStream)  # put back after the run
+
+
+def test_a_scenario_read_from_a_pipe_records_the_checksum_of_what_was_parsed(tmp_path, scene):
+    """The pipe is read once: the summary's scenario_sha256 is that of the bytes parsed, not
+    of a second, empty read."""
+    import threading
+
+    fifo = tmp_path / "scene.fifo"
+    os.mkfifo(fifo)
+    writer = threading.Thread(target=fifo.write_bytes, args=(scene.read_bytes(),))
+    writer.start()
+    summary = tmp_path / "summary.json"
+    result = invoke("deform", fifo, "--summary", summary)
+    writer.join()
+    assert result.exit_code == 0, result.output
+    record = json.loads(summary.read_text())
+    assert record["scenario_sha256"] == hashlib.sha256(scene.read_bytes()).hexdigest()

@@ -285,7 +285,7 @@ def _without_needle() -> dict:
 
 
 @pytest.mark.parametrize("raw,fragments", [
-    (_without_needle(), ["needle: missing", "required by simulate and plan"]),
+    (_without_needle(), ["needle: missing", "required by simulate, plan and study"]),
     (scene_raw(entry=(10.0, 28.0)), ["needle.entry: got [10.0, 28.0]", "expected a point on the boundary"]),
     (scene_raw(robot={"angular_speed": 1.0, "speed": 2.0}),
      ["robot: unknown key 'speed'", "expected one of: base_transform, angular_speed"]),
@@ -312,7 +312,7 @@ def test_bad_scenario_for_plan(tmp_path, raw, fragments):
     ("step,center_x_mm,center_y_mm\n0,inf,9.12\n", ["path.csv: row 2, center_x_mm: got 'inf', expected a finite number"]),
     ("", ["path.csv: columns [] lack ['step', 'center_x_mm', 'center_y_mm']"]),
     ("step,center_x_mm,center_y_mm\n", ["path.csv: no rows below the header"]),
-    ("step,center_x_mm,center_y_mm\n1,0,9.12\n2,0,9.12\n", ["path.csv: step: got [1, 2]", "expected 0, 1, 2"]),
+    ("step,center_x_mm,center_y_mm\n1,0,9.12\n2,0,9.12\n", ["path.csv: row 2, step: got 1", "expected 0"]),
     ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0,9.12\n", ["path.csv: rows: got 2, expected",
                                                             "as `stitchplan plan` exports them"]),
 ])

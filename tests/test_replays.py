@@ -7,6 +7,7 @@ streamed, a path that ends before the tip exits, and a helper that dies.
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -194,3 +195,46 @@ def test_the_helper_can_be_turned_off(scenario, monkeypatch):
     assert not helper_available()
     with replays_for(scenario) as replays, plan_replays(scenario) as verification:
         assert type(replays) is InlineReplays and type(verification) is InlineReplays
+
+
+def test_the_helper_ends_when_the_main_process_is_killed(tmp_path):
+    """A killed main process cannot close its helper; the helper must not go on replaying."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "main.py"
+    script.write_text(
+        "import sys, time\n"
+        "sys.path.insert(0, sys.argv[1])\n"
+        "from test_verification import scene_raw\n"
+        "from stitchplan.config.scenario import parse_scenario\n"
+        "from stitchplan.planning.replays import BackgroundReplays\n"
+        "helper = BackgroundReplays(parse_scenario(scene_raw(20.0, 18.0, 0.5, 0.02)))\n"
+        "helper.submit(None)\n"  # a replay of a minute or more: the helper reads no message meanwhile
+        "print(helper._process.pid, flush=True)\n"
+        "time.sleep(60)\n")
+    main = subprocess.Popen([sys.executable, str(script), str(Path(__file__).parent)], stdout=subprocess.PIPE,
+                            text=True)
+    helper = int(main.stdout.readline())
+    time.sleep(1.0)  # the helper is replaying
+    main.send_signal(signal.SIGKILL)
+    main.wait()
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and _running(helper):
+        time.sleep(0.05)
+    running = _running(helper)
+    if running:
+        os.kill(helper, signal.SIGKILL)
+    assert not running
+
+
+def _running(pid: int) -> bool:
+    """Whether process `pid` exists and is not a zombie (an orphan is reaped by init)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False

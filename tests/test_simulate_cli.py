@@ -136,7 +136,7 @@ def test_vci_integration_is_refused_for_the_needle(tmp_path, write_scenario):
     result = invoke(scenario, "--summary", tmp_path / "summary.json")
     assert result.exit_code == 2
     lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: discretization.integration: got 'vci', expected 'gauss'")
+    assert len(lines) == 1 and lines[0].startswith(f"error: {scenario}: discretization.integration: got 'vci', expected 'gauss'")
     assert not (tmp_path / "summary.json").exists()
 
 

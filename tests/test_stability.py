@@ -20,6 +20,8 @@ tool does about it (README, "Stability limits").
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -234,9 +236,10 @@ def test_the_cli_turns_the_moment_matrix_error_into_one_line(tmp_path, write_sce
            "discretization": {"spacing": 4.0, "dilation": 1.5, "basis_order": 2},
            "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2}}
     summary = tmp_path / "summary.json"
-    result = CliRunner().invoke(app, ["simulate", str(write_scenario(raw)), "--summary", str(summary)])
+    scenario = write_scenario(raw)
+    result = CliRunner().invoke(app, ["simulate", str(scenario), "--summary", str(summary)])
     assert result.exit_code == 2 and len(result.output.strip().splitlines()) == 1
-    assert result.output.startswith("error: discretization: dilation 1.5 with spacing 4 mm (basis order 2")
+    assert result.output.startswith(f"error: {scenario}: discretization: dilation 1.5 with spacing 4 mm (basis order 2")
     assert not summary.exists()
 
 
@@ -244,3 +247,29 @@ def test_a_linear_basis_at_dilation_one_is_refused_by_the_config():
     with pytest.raises(ScenarioError, match=r"discretization.dilation: got 1.0, expected a number > 1"):
         parse_scenario({"tissue": {"size": [40.0, 30.0], "thickness": 10.0, "material": dict(PHANTOM)},
                         "discretization": {"dilation": 1.0}})
+
+
+# --- 5. loads that overflow -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("load", [{"friction": 1e200}, {"cutting_force": 1e300}])
+def test_a_needle_load_whose_norm_overflows_is_a_failure_not_a_converged_step(load):
+    """|f_needle| = inf made every residual look small against the relative tolerance, so the
+    run 'converged' in 0 iterations to an exit error of 0; now Newton refuses a residual that
+    is not finite, and the message blames the overflow, not the material."""
+    with pytest.raises(InsertionFailure, match=r"step 1 .*residual is not finite") as failure:
+        run_insertion(needle_scene(coupling="mortar", **load))
+    assert "Saint Venant-Kirchhoff" not in str(failure.value)
+
+
+def test_an_overflow_in_the_cli_is_one_error_line_without_numpy_warnings(tmp_path, write_scenario):
+    """A slab of 1e-300 mm makes every stress overflow: the run fails at step 1 with one
+    line, numpy's RuntimeWarnings about it stay out of the user's terminal."""
+    raw = {"tissue": {"size": [40.0, 30.0], "thickness": 1e-300, "clamped": ["right"], "material": dict(PHANTOM)},
+           "discretization": {"spacing": 4.0},
+           "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2, "cutting_force": 0.7}}
+    # a process of its own: pytest would catch the warnings before a CliRunner sees them
+    result = subprocess.run([sys.executable, "-m", "stitchplan", "simulate", str(write_scenario(raw)),
+                             "--no-estimate"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1 and result.stdout == ""
+    assert len(result.stderr.strip().splitlines()) == 1 and result.stderr.startswith("error: step 1 "), result.stderr

@@ -148,9 +148,20 @@ def test_study_writes_the_speed_accuracy_png(studied):
 def test_study_without_a_needle_is_one_error_line_and_no_output(tmp_path, write_scenario):
     raw = tiny_raw()
     del raw["needle"]
-    result = CliRunner().invoke(app, ["study", str(write_scenario(raw)), "--out", str(tmp_path / "out")])
+    scenario = write_scenario(raw)
+    result = CliRunner().invoke(app, ["study", str(scenario), "--out", str(tmp_path / "out")])
     assert result.exit_code == 2
-    assert result.output.strip() == "error: needle: missing, required by study (it sweeps the needle insertion)"
+    assert result.output.strip() == f"error: {scenario}: needle: missing, required by simulate, plan and study"
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_study_whose_every_run_fails_is_a_numerical_failure(tmp_path, write_scenario):
+    """Exit 1 as `simulate` gives for the same scene: the input was accepted, the method failed."""
+    scenario = write_scenario(tiny_raw({"spacing": [6.0], "families": [{"name": "uniform"}],
+                                        "reference": {"spacing": 5.0}}, friction=1e6))
+    result = CliRunner().invoke(app, ["study", str(scenario), "--out", str(tmp_path / "out"), "--workers", "0"])
+    assert result.exit_code == 1, result.output
+    assert result.output.startswith("error: study: every run failed (reference: InsertionFailure: step 1")
     assert not (tmp_path / "out").exists()
 
 

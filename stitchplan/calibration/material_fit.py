@@ -234,8 +234,10 @@ def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
             "determined, as when every load is a prescribed displacement (scaling both moduli then "
             "moves no marker); add a force-controlled experiment")
     for k, (name, (lo, hi)) in enumerate(zip(MODULI, (fit.lame_lambda, fit.lame_mu))):
-        margin = 1e-6 * (hi - lo)
-        if identifiable and (theta[k] <= lo + margin or theta[k] >= hi - margin):
+        # relative to the value, not the range: ranges span decades, and a fit of 0.2 MPa in
+        # [0.01, 1e6] is not on its bound
+        on_bound = [abs(theta[k] - bound) <= 1e-6 * max(abs(bound), abs(theta[k])) for bound in (lo, hi)]
+        if identifiable and any(on_bound):
             warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the bound of its search range "
                             f"[{lo:g}, {hi:g}]: widen fit.{name}")
     if refinement.failed_solves:

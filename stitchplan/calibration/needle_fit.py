@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, NumericalFailure
 from .tables import read_columns
 
 log = logging.getLogger(__name__)
@@ -31,6 +31,13 @@ MIN_R_SQUARED = 0.9  # below this the corrected force is not a line in the inser
 # larger value is a unit slip (mN recorded as N) or a corrupt file, and a fit to it would
 # only overflow.
 MAX_FORCE_N = 100.0
+# needle radius bounds (mm). Suture needles measure about 1 to 40 mm in radius (the thesis's
+# SH 1/2: 8.88 mm; the shipped scenes: 6 to 20 mm); a tenth of a millimetre and a metre leave
+# room for odd needles and models, while a value outside is a unit slip (m or micrometres
+# given as mm). Within them the inserted lengths radius x angle stay within a few decades of
+# 1 mm, so the line's least-squares system [1, length] is far from singular in double precision.
+MIN_RADIUS_MM = 0.1
+MAX_RADIUS_MM = 1000.0
 
 
 @dataclass
@@ -47,16 +54,31 @@ class LineFit:
         return self.intercept + self.slope * np.asarray(x)
 
 
-def fit_line(x: np.ndarray, y: np.ndarray) -> LineFit:
+def fit_line(x: np.ndarray, y: np.ndarray, what: str = "the line fit") -> LineFit:
+    """Least squares y = intercept + slope x; NumericalFailure (naming `what`) when the
+    system is singular or the result is not finite."""
     design = np.stack([np.ones_like(x), x], axis=1)  # (n, 2)
-    coefficients, *_ = np.linalg.lstsq(design, y, rcond=None)
+    coefficients, _, rank, _ = np.linalg.lstsq(design, y, rcond=None)
+    if rank < 2:  # x spans too little beside its size for a slope and an offset apart
+        raise NumericalFailure(f"{what}: singular least-squares system (x from {np.min(x):.4g} to "
+                               f"{np.max(x):.4g}): no slope and offset can be told apart")
     residual = y - design @ coefficients
     ssr = float(residual @ residual)
     sigma2 = ssr / max(len(x) - 2, 1)
     sst = float(np.sum((y - y.mean()) ** 2))
-    return LineFit(float(coefficients[0]), float(coefficients[1]),
-                   sigma2 * np.linalg.inv(design.T @ design), math.sqrt(sigma2),
-                   1.0 - ssr / sst if sst > 0 else 1.0)
+    try:
+        covariance = sigma2 * np.linalg.inv(design.T @ design)
+    except np.linalg.LinAlgError:
+        raise NumericalFailure(f"{what}: singular normal matrix (x from {np.min(x):.4g} to "
+                               f"{np.max(x):.4g})") from None
+    fit = LineFit(float(coefficients[0]), float(coefficients[1]), covariance, math.sqrt(sigma2),
+                  1.0 - ssr / sst if sst > 0 else 1.0)
+    values = [fit.intercept, fit.slope, fit.residual_std, fit.r_squared, *covariance.ravel()]
+    if not all(math.isfinite(value) for value in values):
+        raise NumericalFailure(f"{what}: non-finite result (intercept {fit.intercept:.4g}, slope "
+                               f"{fit.slope:.4g}, residual {fit.residual_std:.4g}; x from {np.min(x):.4g} "
+                               f"to {np.max(x):.4g})")
+    return fit
 
 
 @dataclass
@@ -82,20 +104,30 @@ def fit_needle(air_angle: np.ndarray, air_force: np.ndarray, tissue_angle: np.nd
     The uncertainties combine the scatter of both recordings: the background's coefficient
     covariance is carried through the linear map from background line to (cutting, friction).
     """
-    background = fit_line(air_angle, air_force)
+    background = fit_line(air_angle, air_force, "needle fit: the background line (air force against angle)")
     corrected = tissue_force - background(tissue_angle)
     length = radius * tissue_angle
-    tissue_fit = fit_line(length, corrected)
+    tissue_line = ("needle fit: the tissue line (corrected force against inserted length, "
+                   f"radius {radius:g} mm x angle)")
+    tissue_fit = fit_line(length, corrected, tissue_line)
     design = np.stack([np.ones_like(length), length], axis=1)
-    projector = np.linalg.solve(design.T @ design, design.T)  # (2, n): data -> (intercept, slope)
+    try:
+        projector = np.linalg.solve(design.T @ design, design.T)  # (2, n): data -> (intercept, slope)
+    except np.linalg.LinAlgError:
+        raise NumericalFailure(f"{tissue_line}: singular normal matrix") from None
     carried = projector @ np.stack([np.ones_like(tissue_angle), tissue_angle], axis=1)  # (2, 2)
     covariance = tissue_fit.covariance + carried @ background.covariance @ carried.T
+    variances = covariance[1, 1], covariance[0, 0]  # friction, cutting force
+    if not all(math.isfinite(value) and value >= 0 for value in variances):
+        raise NumericalFailure(f"{tissue_line}: the uncertainties came out as variances {variances[0]:.4g} "
+                               f"(friction) and {variances[1]:.4g} (cutting force), expected finite "
+                               "non-negative values")
     warnings = needle_warnings(air_angle, tissue_angle, tissue_fit)
     for message in warnings:
         log.warning(message)
     return NeedleFit(
         radius=radius, friction=tissue_fit.slope, cutting_force=tissue_fit.intercept,
-        standard_uncertainty=(math.sqrt(covariance[1, 1]), math.sqrt(covariance[0, 0])),
+        standard_uncertainty=(math.sqrt(variances[0]), math.sqrt(variances[1])),
         tissue_fit=tissue_fit, background=background,
         air=np.stack([air_angle, air_force], axis=1),
         tissue=np.stack([tissue_angle, tissue_force], axis=1),
@@ -148,16 +180,20 @@ def read_force_recording(path: str | Path, label: str) -> tuple[np.ndarray, np.n
     return angle, force
 
 
-def _positive_radius(radius: object) -> float:
+def _needle_radius(radius: object) -> float:
+    """The radius in mm, within MIN_RADIUS_MM and MAX_RADIUS_MM."""
     number = isinstance(radius, (int, float)) and not isinstance(radius, bool)
-    if not (number and math.isfinite(radius) and radius > 0):
-        raise InputError(f"--radius: got {radius!r}, expected a positive number (mm)")
+    if not (number and math.isfinite(radius) and MIN_RADIUS_MM <= radius <= MAX_RADIUS_MM):
+        unit_slip = number and math.isfinite(radius) and radius > 0
+        raise InputError(f"--radius: got {radius!r}, expected a positive number (mm) from {MIN_RADIUS_MM:g} to "
+                         f"{MAX_RADIUS_MM:g}" + ("; suture needles measure about 1 to 40 mm in radius: is it "
+                                                 "in m or micrometres?" if unit_slip else ""))
     return float(radius)
 
 
 def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> NeedleFit:
     """`stitchplan calibrate needle`: read both recordings, validate and fit."""
-    radius = _positive_radius(radius)
+    radius = _needle_radius(radius)
     air_angle, air_force = read_force_recording(air, "--air")
     tissue_angle, tissue_force = read_force_recording(tissue, "--tissue")
     if tissue_angle[0] < 0:

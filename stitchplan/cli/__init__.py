@@ -3,10 +3,15 @@
 Start-up is instant: `stitchplan --version` imports nothing but the version, the app
 (typer and the commands) loads on first use, and numpy, scipy, h5py, matplotlib and rich
 are imported inside the commands that use them, never for `--help` or `--version`.
+
+Standard output is an output like the files: if it cannot be written (`> /dev/full`, a full
+disk) the command ends with one `error:` line and exit code 2; a reader that stops early
+(`stitchplan schema | head`) ends it quietly (see `stdout_failure`).
 """
 
 from __future__ import annotations
 
+import os
 import sys
 
 # what `from stitchplan.cli import ...` finds, and the module that defines it
@@ -19,7 +24,10 @@ def main() -> None:
     if sys.argv[1:] == ["--version"]:  # answered before typer is imported
         from .. import __version__
 
-        print(f"stitchplan {__version__}")
+        try:
+            print(f"stitchplan {__version__}", flush=True)
+        except OSError as error:
+            _exit(stdout_failure(error))
         return
     try:
         __getattr__("app")()
@@ -35,18 +43,42 @@ def _exit(code: int) -> None:
     the interpreter's teardown of every imported module is skipped: 0.14 s of a `simulate`
     on sh12_100x100 (benchmarks/plan_speed.py, start-up and end table)."""
     import atexit
-    import os
 
     run_exit_functions = getattr(atexit, "_run_exitfuncs", None)
     if run_exit_functions is None:  # not CPython's atexit: the ordinary exit
         sys.exit(code)
     run_exit_functions()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a closed or broken pipe: nothing left to write to
-            pass
+    try:
+        sys.stdout.flush()
+    except OSError as error:  # what the command printed last has not arrived
+        code = code or stdout_failure(error)
+    except ValueError:  # closed
+        pass
+    try:
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a closed or broken pipe: nothing left to write to
+        pass
     os._exit(code)
+
+
+def stdout_failure(error: OSError) -> int:
+    """The exit code of a command whose standard output could not be written. A reader that
+    closed the pipe ends it quietly with 1, as Python's and click's own tools do; any other
+    failure (a full disk, /dev/full) is one `error:` line and exit code 2, like a file that
+    cannot be written. What is left in the buffer then goes to the null device, so that the
+    flush at exit does not fail again."""
+    try:
+        descriptor = sys.stdout.fileno()
+    except (OSError, ValueError):  # a stream without a file descriptor (a test's capture)
+        descriptor = None
+    if descriptor is not None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, descriptor)
+        os.close(devnull)
+    if isinstance(error, BrokenPipeError):
+        return 1
+    print(f"error: cannot write standard output: {error.strerror or error}", file=sys.stderr)
+    return 2
 
 
 def __getattr__(name: str):

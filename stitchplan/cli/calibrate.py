@@ -9,7 +9,8 @@ import typer
 
 from .group import calibrate_app
 from .options import (DilationOption, MaxParticlesOption, NoResourceCheckOption, QuietOption, SpacingOption,
-                      VerboseOption, _argv, _check_outputs, _guard_calibration, _limits, _setup_logging)
+                      VerboseOption, _argv, _check_outputs, _guard_calibration, _limits, _option_names,
+                      _setup_logging)
 
 
 @calibrate_app.command("material")
@@ -36,7 +37,8 @@ def calibrate_material(
     outputs = material_outputs(out, plot_dir)
     _check_outputs(outputs, {"CALIBRATION": calibration_path})
     problem = calibration.load_material_calibration(calibration_path, spacing, dilation)
-    _guard_calibration(calibration_path, problem, _limits(max_particles, no_resource_check))
+    _guard_calibration(calibration_path, problem, _limits(max_particles, no_resource_check),
+                       names=_option_names(spacing, dilation))
     _check_outputs(outputs, {f"markers of experiments[{k}]": experiment.source
                              for k, experiment in enumerate(problem.experiments)})
     result = calibration.fit_material(problem, progress=progress_bar)
@@ -49,7 +51,9 @@ def calibrate_needle(
     air: Path = typer.Option(..., "--air", help="CSV angle_rad,force_N: needle rotated in air."),
     tissue: Path = typer.Option(..., "--tissue", help="CSV angle_rad,force_N: needle rotated into "
                                 "the tissue, angle from the moment the tip touches it."),
-    radius: float = typer.Option(..., "--radius", help="Needle radius, mm."),
+    # the bounds are calibration.needle_fit's MIN_RADIUS_MM and MAX_RADIUS_MM (not imported:
+    # numpy would slow --help down)
+    radius: float = typer.Option(..., "--radius", help="Needle radius, mm (0.1 to 1000)."),
     out: Path = typer.Option(..., "--out", help="YAML with friction, cutting_force and diagnostics."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="PNG of the recordings and the fit."),
     verbose: int = VerboseOption,

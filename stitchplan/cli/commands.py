@@ -5,6 +5,7 @@ heavy imports stay inside the commands so `--help` is instant."""
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -14,9 +15,31 @@ from .group import app
 from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOption, ScenarioArgument,
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, SchedulerOption, WorkersOption,
-                      _check_outputs, _check_plot_steps, _echo_events, _executor, _expected_steps, _guard, _limits, _load, _needle_geometry,
-                      _parse_base_transform,
-                      _parse_steps, _plot_steps_note, _provenance, _setup_logging, _value)
+                      _check_angular_speed, _check_outputs, _check_plot_steps, _echo_events, _executor,
+                      _expected_steps, _guard, _limits, _load, _needle_geometry, _option_names,
+                      _parse_base_transform, _parse_steps, _plot_steps_note, _provenance, _setup_logging,
+                      _value)
+
+
+@contextmanager
+def _naming_files(scenario_path: Path, center_path: Optional[Path] = None):
+    """Input errors met while a run builds its model (the discretization, the needle's
+    solvers) or replays a centre path name the file they concern: the centre path's for its
+    rows, the scenario's for the rest."""
+    from ..config import input_error
+    from ..errors import InputError
+
+    try:
+        yield
+    except InputError as error:
+        named = []
+        for line in getattr(error, "lines", str(error).splitlines()):
+            if center_path is not None and line.startswith("centre path:"):
+                line = f"{center_path}: {line}"
+            elif not line.startswith(f"{scenario_path}:"):
+                line = f"{scenario_path}: {line}"
+            named.append(line)
+        raise input_error(named) from None
 
 
 @app.command()
@@ -49,15 +72,16 @@ def deform(
     from ..config.scenario import require_loads
 
     require_loads(scenario, scenario_path)
-    _guard(scenario_path, _limits(max_particles, no_resource_check), ("deform", scenario, "deform", 1))
-    provenance = _provenance(scenario_path)
+    _guard(scenario_path, _limits(max_particles, no_resource_check), ("deform", scenario, "deform", 1),
+           names=_option_names(spacing, dilation))
+    provenance = _provenance(scenario_path, scenario)
     from ..io import reports
     from ..io.progress import progress_bar
     from ..needle.geometry import needle_zone
     from ..tissue.deform import run_deform
 
     # a needle scene's default particles are graded toward the needle: deform keeps them
-    with progress_bar("load steps", scenario.load_steps) as advance:
+    with _naming_files(scenario_path), progress_bar("load steps", scenario.load_steps) as advance:
         result = run_deform(scenario, on_step=lambda step, record: advance(), needle_zone=needle_zone(scenario))
     reports.write_deform_outputs(result, probes_out=probes_out, reactions_out=reactions_out,
                                  summary=summary, out=out, plot=plot, provenance=provenance,
@@ -97,7 +121,7 @@ def simulate(
                    {"SCENARIO": scenario_path, "--center-path": center_path})
     steps_to_plot = _parse_steps(plot_steps)
     scenario = _load(scenario_path, spacing, dilation)
-    provenance = _provenance(scenario_path)
+    provenance = _provenance(scenario_path, scenario)
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.readers import read_center_path
@@ -110,11 +134,12 @@ def simulate(
     _check_plot_steps(steps_to_plot, scenario)
     limits = _limits(max_particles, no_resource_check)
     if scenario.discretization.accuracy is None:
-        _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1))
+        _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1), names=_option_names(spacing, dilation))
     scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
                                            max_particles=None if limits is None else limits.max_particles)
     # the estimate's run at 2h goes on in a helper process alongside (planning/replays.py)
-    with (estimate_replays(scenario, background=estimate, linear_solver=linear_solver, tip_tracking=tip_tracking)
+    with (_naming_files(scenario_path, center_path),
+          estimate_replays(scenario, background=estimate, linear_solver=linear_solver, tip_tracking=tip_tracking)
           as replays, progress_bar("needle steps", _expected_steps(scenario)) as advance):
         result, error_estimate = simulate_with_estimate(
             scenario, center_path=path, estimate=estimate, linear_solver=linear_solver,
@@ -189,11 +214,10 @@ def plan(
                     "--uncertainty-plot": uncertainty_plot},
                    {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path})
     linear_solver, tip_tracking = _value(linear_solver), _value(tip_tracking)
-    if angular_speed is not None and not 0 < angular_speed < math.inf:  # also refuses nan
-        raise InputError(f"--angular-speed: got {angular_speed!r}, expected a positive speed in rad/s")
+    _check_angular_speed(angular_speed)
     transform = _parse_base_transform(base_transform)
     scenario = _load(scenario_path, spacing, dilation)
-    provenance = _provenance(scenario_path)
+    provenance = _provenance(scenario_path, scenario)
     robot = scenario.robot
     if transform is not None:
         robot = replace(robot, rotation_deg=transform[0], translation=transform[1], given=True)
@@ -205,15 +229,16 @@ def plan(
     from ..planning.verification import plan_replays, plan_verified
     from ..io.progress import progress_bar
 
-    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, rescaled
+    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, VERIFICATION_SCALE, rescaled, verification_origin
     from ..study.auto import resolve_accuracy
 
     limits = _limits(max_particles, no_resource_check)
+    names = _option_names(spacing, dilation)
 
     def guard(scenario) -> None:
         _guard(scenario_path, limits, ("insertion", scenario, "plan", PLAN_RUNS + compare),
-               *([("insertion", rescaled(scenario, 0.5), "plan verification", VERIFICATION_RUNS)]
-                 if verify else []))
+               *([("insertion", rescaled(scenario, VERIFICATION_SCALE), "plan verification", VERIFICATION_RUNS,
+                   verification_origin(scenario, names))] if verify else []), names=names)
 
     _needle_geometry(scenario_path, scenario)  # a needle that cannot enter or exit, with the file named
     if scenario.discretization.accuracy is None:
@@ -230,7 +255,8 @@ def plan(
         return
     expected = _expected_steps(scenario)
     # the trajectory's replay goes on in a helper process alongside (planning/replays.py)
-    with (plan_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking) as replays,
+    with (_naming_files(scenario_path),
+          plan_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking) as replays,
           progress_bar("planned steps", (2 if compare else 1) * expected) as advance):
         result = plan_verified(scenario, compare=compare, verify=verify, linear_solver=linear_solver,
                                tip_tracking=tip_tracking, on_step=lambda record: advance(), replays=replays)
@@ -314,6 +340,7 @@ def study(
     executor = _executor(workers, scheduler)
     _check_outputs(study_outputs(out), {"SCENARIO": scenario_path})
     scenario = _load(scenario_path, None, None)
+    _needle_geometry(scenario_path, scenario)  # the sweep needs a needle that enters and exits
     from ..io.progress import progress_bar
     from ..study.sweep import plan_runs, run_study, study_size
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from collections.abc import Callable
 from contextvars import ContextVar
 from enum import Enum
@@ -25,8 +26,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 EXIT_CODES = (
     "Exit codes: 0 done; 1 a numerical method failed on an accepted input (one `error:` line "
     "says what and where); 2 unusable input: a scenario field, an option or an input file "
-    "(`error:` lines name it, the value received and what was expected). A traceback is a bug "
-    "in stitchplan (exit code 1): please report it."
+    "(`error:` lines name it, the value received and what was expected), or an output that "
+    "cannot be written, standard output included. A reader that closes the pipe early "
+    "(`| head`) ends the command quietly with 1. A traceback is a bug in stitchplan (exit "
+    "code 1): please report it."
 )
 
 
@@ -68,11 +71,18 @@ app.add_typer(calibrate_app, name="calibrate")
 
 def exit_code(run: Callable[[], Any]) -> int:
     """Run the app (click's standalone mode off) and return its exit code. The project's own
-    errors (stitchplan.errors) and click's usage errors become `error:` lines on stderr; any
-    other exception propagates with its traceback."""
+    errors (stitchplan.errors), click's usage errors and a failed write to standard output
+    become `error:` lines on stderr; any other exception propagates with its traceback."""
     from ..errors import StitchplanError  # no imports of its own: stays instant
+    from . import stdout_failure
 
     click_errors = sys.modules[typer.BadParameter.__module__]  # click's, or typer's copy of it
+    # numpy's floating-point warnings (an overflow to inf, an invalid operation to nan) in the
+    # package's code are not for the user: its checks (det F, finite residuals and outputs)
+    # turn what they lead to into the one `error:` line
+    warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"stitchplan\.")
+    stdout = _WatchedStream(sys.stdout)
+    sys.stdout = stdout
     try:
         result = run()
     except StitchplanError as error:
@@ -91,7 +101,40 @@ def exit_code(run: Callable[[], Any]) -> int:
     except click_errors.ClickException as error:
         _echo_errors([error.format_message()])
         return error.exit_code
+    except OSError as error:
+        if error is not stdout.failure:
+            raise
+        return stdout_failure(error)
+    finally:
+        sys.stdout = stdout.stream
     return result if isinstance(result, int) else 0  # click returns typer.Exit's code
+
+
+class _WatchedStream:
+    """A text stream that remembers its last failed write or flush, so that `exit_code` can
+    tell standard output that cannot be written (`> /dev/full`, a closed pipe) from an
+    OSError of a bug. Everything else goes to the stream itself."""
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.failure: OSError | None = None
+
+    def write(self, text: str) -> int:
+        try:
+            return self.stream.write(text)
+        except OSError as error:
+            self.failure = error
+            raise
+
+    def flush(self) -> None:
+        try:
+            self.stream.flush()
+        except OSError as error:
+            self.failure = error
+            raise
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.stream, name)
 
 
 def _echo_errors(lines: list[str]) -> None:

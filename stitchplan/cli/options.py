@@ -78,11 +78,12 @@ def _check_outputs(outputs: dict[str, Optional[Path]], inputs: Optional[dict[str
     check_outputs(outputs, inputs)
 
 
-def _provenance(scenario_path: Optional[Path] = None) -> dict:
-    """Version, command line (argv), scenario path and SHA-256, time: for the summaries."""
+def _provenance(scenario_path: Optional[Path] = None, scenario=None) -> dict:
+    """Version, command line (argv), scenario path and the SHA-256 of the `scenario` as
+    loaded, time: for the summaries."""
     from ..io.files import provenance
 
-    return provenance(_argv(), scenario_path)
+    return provenance(_argv(), scenario_path, getattr(scenario, "source_sha256", None))
 
 
 def _argv() -> Optional[list[str]]:
@@ -186,23 +187,32 @@ def _limits(max_particles: Optional[int], no_resource_check: bool):
     return Limits() if max_particles is None else Limits(max_particles=max_particles)
 
 
-def _guard(scenario_path: Path, limits, *runs: tuple) -> None:
+def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
-    (kind, scenario, label, count) with kind "deform" or "insertion". Lines name the file."""
+    (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
+    resources.Origin of the run's discretization (default: the file's, with the fields in
+    `names` set by options, _option_names). Lines name the file, or the option."""
     if limits is None:
         return
     from ..config import input_error
     from ..errors import InputError
-    from ..resources import check_resources, estimate
+    from ..resources import Origin, check_resources, estimate
 
     try:
-        check_resources([estimate(scenario, kind, label, count) for kind, scenario, label, count in runs],
-                        limits)
+        check_resources([estimate(scenario, kind, label, count, origin=origin[0] if origin else Origin(names or {}))
+                         for kind, scenario, label, count, *origin in runs], limits)
     except InputError as error:
-        raise input_error([f"{scenario_path}: {line}" for line in getattr(error, "lines", [str(error)])]) from None
+        raise input_error([line if line.startswith("--") else f"{scenario_path}: {line}"
+                           for line in getattr(error, "lines", [str(error)])]) from None
 
 
-def _guard_calibration(calibration_path: Path, problem, limits) -> None:
+def _option_names(spacing: Optional[float], dilation: Optional[float]) -> dict:
+    """The discretization fields that command-line options set, named as the options."""
+    given = {"spacing": ("--spacing", spacing), "dilation": ("--dilation", dilation)}
+    return {field: option for field, (option, value) in given.items() if value is not None}
+
+
+def _guard_calibration(calibration_path: Path, problem, limits, names: Optional[dict] = None) -> None:
     """The resource guard on the forward model of each experiment of a material calibration
     (run once per forward evaluation of the fit: grid^2 + max_evaluations times)."""
     from ..config import Scenario
@@ -212,7 +222,7 @@ def _guard_calibration(calibration_path: Path, problem, limits) -> None:
     _guard(calibration_path, limits, *[
         ("deform", Scenario(tissue=problem.tissue, discretization=problem.discretization, loads=experiment.loads,
                             load_steps=experiment.load_steps), f"experiments[{k}]", evaluations)
-        for k, experiment in enumerate(problem.experiments)])
+        for k, experiment in enumerate(problem.experiments)], names=names)
 
 
 def _echo_events(events, quiet: bool, shown: int = 3) -> None:
@@ -226,17 +236,32 @@ def _echo_events(events, quiet: bool, shown: int = 3) -> None:
 
 
 def _parse_base_transform(text: Optional[str]):
+    """ROTATION_DEG,TX_MM,TY_MM within the bounds that keep the base-frame columns of
+    trajectory.csv meaningful (planning.trajectory)."""
     from ..errors import InputError
+    from ..io.readers import parse_number
+    from ..planning.trajectory import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG
 
     if text is None:
         return None
-    try:
-        rotation, tx, ty = (float(part) for part in text.split(","))
-        if not all(abs(value) < float("inf") for value in (rotation, tx, ty)):  # nan, inf
-            raise ValueError
-    except ValueError:
-        raise InputError(f"--base-transform: got {text!r}, expected ROTATION_DEG,TX_MM,TY_MM") from None
+    values = [parse_number(part) for part in text.split(",")]  # None: not a finite number
+    bounds = (MAX_BASE_ROTATION_DEG, MAX_BASE_OFFSET_MM, MAX_BASE_OFFSET_MM)
+    if len(values) != 3 or not all(value is not None and abs(value) <= bound for value, bound in zip(values, bounds)):
+        raise InputError(f"--base-transform: got {text!r}, expected ROTATION_DEG,TX_MM,TY_MM: three numbers with "
+                         f"|ROTATION_DEG| <= {MAX_BASE_ROTATION_DEG:g} and |TX_MM|, |TY_MM| <= {MAX_BASE_OFFSET_MM:g} "
+                         f"(mm)")
+    rotation, tx, ty = values
     return rotation, (tx, ty)
+
+
+def _check_angular_speed(speed: Optional[float]) -> None:
+    """--angular-speed: slower than MIN_ANGULAR_SPEED, time_s would overflow to inf."""
+    from ..errors import InputError
+    from ..planning.trajectory import MIN_ANGULAR_SPEED
+
+    if speed is not None and not MIN_ANGULAR_SPEED <= speed < math.inf:  # also refuses nan
+        raise InputError(f"--angular-speed: got {speed!r}, expected a positive speed in rad/s of at least "
+                         f"{MIN_ANGULAR_SPEED:g}")
 
 
 

@@ -50,7 +50,7 @@ from .fields import (
 )
 from .messages import combined, input_error, valid_or_none, validate
 from .study import StudySpec
-from .yaml_files import read_yaml
+from .yaml_files import read_yaml, read_yaml_file
 
 __all__ = [
     "DEFAULT_NEEDLE_REFINEMENT", "EDGES", "INTEGRATIONS", "LINEAR_SOLVERS", "MATERIAL_MODELS",
@@ -102,6 +102,7 @@ class Scenario:
     robot: Robot = field(default_factory=Robot)
     name: str = ""
     source_text: str = ""  # the file as read, kept in run logs
+    source_sha256: str | None = None  # of the bytes parsed: a piped file cannot be read again
     study: StudySpec | None = None  # the optional `study:` block
 
     @model_validator(mode="after")
@@ -143,7 +144,7 @@ class ScenarioFile:
             raise combined(problems)
         return self
 
-    def scenario(self, source_text: str = "") -> Scenario:
+    def scenario(self, source_text: str = "", source_sha256: str | None = None) -> Scenario:
         return Scenario(
             tissue=self.tissue,
             discretization=self.discretization or Discretization(),
@@ -156,6 +157,7 @@ class ScenarioFile:
             robot=self.robot.robot() if self.robot else Robot(),
             name=self.name,
             source_text=source_text,
+            source_sha256=source_sha256,
             study=self.study,
         )
 
@@ -192,8 +194,9 @@ def _with_default_spacing(raw: dict, size: tuple[float, float] | None) -> dict |
     return {**raw, "discretization": values}
 
 
-def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
-    """A scenario from the data of a file; an InputError lists every problem of it."""
+def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = None) -> Scenario:
+    """A scenario from the data of a file (its text and the SHA-256 of its bytes kept for
+    run logs); an InputError lists every problem of it."""
     context: dict[str, Any] = {"domain": None}
     if isinstance(raw, dict):
         domain = shape_domain(raw.get("tissue"))
@@ -203,14 +206,14 @@ def parse_scenario(raw: Any, source_text: str = "") -> Scenario:
         context["default_spacing_unknown"] = resolved is None
         raw = raw if resolved is None else resolved
     scenario_file = validate(ScenarioFile, raw, "", root="scenario", context=context)
-    return scenario_file.scenario(source_text)
+    return scenario_file.scenario(source_text, source_sha256)
 
 
 def load_scenario(path: str | Path) -> Scenario:
     """The scenario of a YAML file; every error line starts with the file's path."""
-    raw, text = read_yaml(path)
+    file = read_yaml_file(path)  # read once: the checksum is of the bytes parsed
     try:
-        return parse_scenario(raw, text)
+        return parse_scenario(file.data, file.text, file.sha256)
     except InputError as error:
         raise input_error([f"{path}: {line}" for line in error.lines]) from None
 

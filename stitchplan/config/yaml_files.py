@@ -1,13 +1,19 @@
-"""Reading YAML input files: text and data, or one clear line naming the file.
+"""Reading YAML input files: text and data, or one clear line per problem naming the file.
 
-Refused besides syntax errors: text that is not UTF-8, a key given twice in one mapping
-(the second would silently win), and aliases beyond a small bound (an "alias bomb" expands a
-few lines into billions of values)."""
+Plain scalars follow the YAML 1.2 core schema (what `stitchplan schema` and editors assume):
+`1e-6` is a number; `010` is ten; `5:00`, `yes`, `no`, `on`, `off` and dates stay strings,
+where YAML 1.1 would silently read 300, True, False or a date. Refused besides syntax
+errors: text that is not UTF-8, a key given twice in one mapping (the second would silently
+win; every such key of a file is reported at once), tags without a plain-data meaning, and
+aliases beyond a small bound (an "alias bomb" expands a few lines into billions of values)."""
 
 from __future__ import annotations
 
+import hashlib
+import math
+import re
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, NamedTuple
 
 import yaml
 
@@ -16,13 +22,45 @@ from .messages import input_error
 MAX_ALIASES = 100  # alias uses per file
 MAX_VALUES = 100_000  # values after expanding every alias
 
+# YAML 1.2 core schema (spec 1.2.2, section 10.3.2)
+INTEGER = r"[-+]?[0-9]+"
+OCTAL = r"0o[0-7]+"
+HEXADECIMAL = r"0x[0-9a-fA-F]+"
+FLOAT = r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+INFINITY = r"[-+]?\.(?:inf|Inf|INF)"
+NAN = r"\.(?:nan|NaN|NAN)"
+TRUE, FALSE = ("true", "True", "TRUE"), ("false", "False", "FALSE")
+
+
+def _whole(*patterns: str) -> re.Pattern:
+    return re.compile("(?:" + "|".join(patterns) + r")\Z")
+
+
+# tag, the plain scalars it takes, the characters they can start with
+CORE_SCALARS = [
+    ("tag:yaml.org,2002:null", _whole("~", "null", "Null", "NULL", ""), ["~", "n", "N", ""]),
+    ("tag:yaml.org,2002:bool", _whole(*TRUE, *FALSE), list("tTfF")),
+    ("tag:yaml.org,2002:int", _whole(INTEGER, OCTAL, HEXADECIMAL), list("-+0123456789")),
+    ("tag:yaml.org,2002:float", _whole(FLOAT, INFINITY, NAN), list("-+.0123456789")),
+    # not a scalar type: `<<: *base` merges a mapping, as before
+    ("tag:yaml.org,2002:merge", _whole("<<"), ["<"]),
+]
+
 
 class _Refused(Exception):
-    pass
+    """Problems of a file, one line each (without the file's name)."""
+
+    def __init__(self, *lines: str):
+        super().__init__("\n".join(lines))
+        self.lines = list(lines)
 
 
 class _Loader(yaml.SafeLoader):
-    """yaml.safe_load's loader, refusing duplicate keys and bounding aliases."""
+    """yaml.safe_load's loader with YAML 1.2 core scalars, refusing duplicate keys and
+    bounding aliases."""
+
+    # a table of its own: the SafeLoader every other reader uses keeps YAML 1.1's
+    yaml_implicit_resolvers: ClassVar[dict] = {}
 
     def __init__(self, stream: str):
         super().__init__(stream)
@@ -38,25 +76,51 @@ class _Loader(yaml.SafeLoader):
 
     def get_single_node(self):
         node = super().get_single_node()
-        if node is not None and self.aliases:
-            _count_values(node, {})
+        if node is not None:
+            if self.aliases:
+                _count_values(node, {})
+            duplicates = _duplicate_keys(self, node)
+            if duplicates:
+                raise _Refused(*duplicates)
         return node
 
-    def construct_mapping(self, node, deep=False):
-        if isinstance(node, yaml.MappingNode):
-            first: dict = {}
-            for key_node, _ in node.value:
-                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base` may override
-                    continue
-                key, line = self.construct_object(key_node, deep=True), key_node.start_mark.line + 1
-                try:
-                    if key in first:
-                        raise _Refused(f"line {line}: duplicate key {key!r} (first given at line "
-                                       f"{first[key]}), expected each key once")
-                    first[key] = line
-                except TypeError:  # an unhashable key: the constructor reports it
-                    continue
-        return super().construct_mapping(node, deep)
+    def construct_yaml_int(self, node) -> int:
+        text = self.construct_scalar(node)
+        if re.fullmatch(INTEGER, text):
+            return int(text, 10)  # `010` is ten, not YAML 1.1's octal eight
+        if re.fullmatch(OCTAL, text) or re.fullmatch(HEXADECIMAL, text):
+            return int(text, 0)
+        raise _tag_error(node, text, "an integer (decimal digits, 0o... or 0x...)")
+
+    def construct_yaml_float(self, node) -> float:
+        text = self.construct_scalar(node)
+        if re.fullmatch(FLOAT, text):
+            return float(text)
+        if re.fullmatch(INFINITY, text):
+            return -math.inf if text.startswith("-") else math.inf
+        if re.fullmatch(NAN, text):
+            return math.nan
+        raise _tag_error(node, text, "a number such as 2.5, 1e-6, .inf or .nan")
+
+    def construct_yaml_bool(self, node) -> bool:
+        text = self.construct_scalar(node)
+        if text in TRUE or text in FALSE:
+            return text in TRUE
+        raise _tag_error(node, text, "true or false")
+
+
+for _tag, _pattern, _first in CORE_SCALARS:
+    _Loader.add_implicit_resolver(_tag, _pattern, _first)
+# explicit tags (`!!int 010`) read their value as YAML 1.2 does, too
+_Loader.add_constructor("tag:yaml.org,2002:int", _Loader.construct_yaml_int)
+_Loader.add_constructor("tag:yaml.org,2002:float", _Loader.construct_yaml_float)
+_Loader.add_constructor("tag:yaml.org,2002:bool", _Loader.construct_yaml_bool)
+
+
+def _tag_error(node, text: str, expected: str) -> yaml.constructor.ConstructorError:
+    tag = node.tag.replace("tag:yaml.org,2002:", "!!")  # as the file spells it
+    return yaml.constructor.ConstructorError(None, None, f"got {tag} {text!r}, expected {expected}",
+                                             node.start_mark)
 
 
 def _count_values(node, memo: dict) -> int:
@@ -80,6 +144,59 @@ def _count_values(node, memo: dict) -> int:
     return count
 
 
+def _duplicate_keys(loader: _Loader, root) -> list[str]:
+    """One line per key given more than once in a mapping, anywhere under `root`, in the
+    order of the file: where it is repeated, where it was first given, and the mapping's path
+    (an aliased mapping is checked once, where its anchor is)."""
+    found: list[tuple[tuple[int, int], str]] = []
+    seen: set[int] = set()
+    pending = [(root, "")]  # depth first, in the order of the file: an anchor before its aliases
+    while pending:
+        node, path = pending.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        children = []
+        if isinstance(node, yaml.SequenceNode):
+            children = [(child, f"{path}[{i}]") for i, child in enumerate(node.value)]
+        elif isinstance(node, yaml.MappingNode):
+            places: dict[Any, list] = {}
+            for key_node, value_node in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base` may override
+                    children.append((value_node, path))
+                    continue
+                key = _key(loader, key_node)
+                if key is not None:
+                    places.setdefault(key, []).append(key_node.start_mark)
+                    children.append((value_node, f"{path}.{key}" if path else str(key)))
+            found += [_duplicate_line(key, marks, path) for key, marks in places.items() if len(marks) > 1]
+        pending += reversed(children)
+    return [line for _, line in sorted(found)]
+
+
+def _key(loader: _Loader, key_node) -> Any:
+    """The key as the mapping will hold it (1, 1.0 and true are one key there), None for a
+    key the constructor refuses anyway (a list or a mapping)."""
+    if not isinstance(key_node, yaml.ScalarNode):
+        return None
+    key = loader.construct_object(key_node)
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
+
+
+def _duplicate_line(key: Any, marks: list, path: str) -> tuple[tuple[int, int], str]:
+    """The line reporting `key` given at `marks` in the mapping at `path`, and where to sort it."""
+    first, repeats = marks[0].line + 1, [mark.line + 1 for mark in marks[1:]]
+    where = (f"line {repeats[0]}" if len(repeats) == 1
+             else "lines " + ", ".join(map(str, repeats[:-1])) + f" and {repeats[-1]}")
+    inside = f" in {path}" if path else ""
+    line = f"{where}: duplicate key {key!r} (first given at line {first}){inside}, expected each key once"
+    return (marks[1].line, marks[1].column), line
+
+
 def parse_yaml(text: str) -> Any:
     """The data of one YAML document (raises _Refused or yaml.YAMLError)."""
     loader = _Loader(text)
@@ -89,8 +206,15 @@ def parse_yaml(text: str) -> Any:
         loader.dispose()
 
 
-def read_yaml(path: str | Path) -> tuple[Any, str]:
-    """The data and the text of a YAML file; every problem is an InputError naming the file."""
+class YamlFile(NamedTuple):
+    data: Any
+    text: str
+    sha256: str  # of the bytes read, the ones parsed (a pipe cannot be read a second time)
+
+
+def read_yaml_file(path: str | Path) -> YamlFile:
+    """The data, text and SHA-256 of a YAML file, read once; every problem is an InputError
+    naming the file."""
     path = Path(path)
     try:
         content = path.read_bytes()
@@ -103,11 +227,18 @@ def read_yaml(path: str | Path) -> tuple[Any, str]:
         line = f"{path}: not UTF-8 text (byte {byte} at offset {error.start}), expected a YAML text file"
         raise input_error([line]) from None
     try:
-        return parse_yaml(text), text
+        data = parse_yaml(text)
     except _Refused as error:
-        raise input_error([f"{path}: {error}"]) from None
+        raise input_error([f"{path}: {line}" for line in error.lines]) from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         problem = getattr(error, "problem", None)
         raise input_error([f"{path}: not valid YAML{where}" + (f" ({problem})" if problem else "")]) from None
+    return YamlFile(data, text, hashlib.sha256(content).hexdigest())
+
+
+def read_yaml(path: str | Path) -> tuple[Any, str]:
+    """The data and the text of a YAML file; every problem is an InputError naming the file."""
+    data, text, _ = read_yaml_file(path)
+    return data, text

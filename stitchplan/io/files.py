@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import datetime as _dt
+import errno
 import hashlib
 import io
 import json
@@ -37,6 +38,8 @@ from ..errors import InputError
 
 HDF5_SCHEMA_VERSION = 2  # 2: `units` on every dataset, provenance and library versions on the file
 
+NAME_MAX = 255  # bytes in one file name on the usual file systems (ext4, xfs, btrfs, tmpfs, NTFS)
+
 PathLike = str | Path
 
 
@@ -53,16 +56,20 @@ class OutputSet:
         """Raise one InputError listing every output that cannot be written or coincides with
         another output or an input; nothing is created."""
         lines, blocked = [], set()  # folders already reported: one line for all their files
+        labels = []  # the outputs whose target could be looked up, for the coincidences
         for label, path in self.outputs.items():
-            line = _file_problem(label, path)
-            folder = _target(path).parent
-            if line is None and folder not in blocked:
-                line = _folder_problem(label, path)
-                if line is not None:
-                    blocked.add(folder)
+            try:
+                line = _file_problem(label, path)
+                folder = _target(path).parent
+                if line is None and folder not in blocked:
+                    line = _folder_problem(label, path)
+                    if line is not None:
+                        blocked.add(folder)
+                labels.append(label)
+            except OSError as error:  # the path itself cannot be looked up
+                line = _path_problem(label, path, error)
             if line is not None:
                 lines.append(line)
-        labels = list(self.outputs)
         for i, label in enumerate(labels):
             path = self.outputs[label]
             for other in labels[:i]:
@@ -120,16 +127,29 @@ def check_outputs(outputs: Mapping[str, PathLike | None],
 
 def _target(path: Path) -> Path:
     """Where the file lands: a symbolic link's file, so the link itself stays."""
-    return path.resolve()
+    try:
+        return path.resolve()
+    except RuntimeError:  # a loop of symbolic links (an OSError itself from Python 3.13 on)
+        raise OSError(errno.ELOOP, os.strerror(errno.ELOOP), str(path)) from None
 
 
 def _same_file(a: Path, b: Path) -> bool:
-    if _target(a) == _target(b):
-        return True
     try:
-        return os.path.samefile(a, b)  # hard links, bind mounts
-    except OSError:  # one of them does not exist yet
+        return _target(a) == _target(b) or os.path.samefile(a, b)  # samefile: hard links, bind mounts
+    except OSError:  # one of them does not exist yet, or cannot be looked up
         return False
+
+
+def _path_problem(label: str, path: Path, error: OSError) -> str:
+    """Why `path` cannot even be looked up: a name too long, a loop of symbolic links."""
+    reason = error.strerror or str(error)
+    if error.errno == errno.ELOOP:
+        return f"{label}: got {path}, a loop of symbolic links; expected a file name ({reason})"
+    if error.errno == errno.ENAMETOOLONG:
+        longest = max(len(os.fsencode(part)) for part in path.parts)
+        if longest > NAME_MAX:  # else the whole path is too long
+            return f"{label}: got {path}, a name of {longest} bytes; expected at most {NAME_MAX} ({reason})"
+    return f"{label}: cannot write {path}: {reason}"
 
 
 def _file_problem(label: str, path: Path) -> str | None:
@@ -173,9 +193,15 @@ def _make_folders(folder: Path, path: Path, label: str) -> list[Path]:
     return missing
 
 
+def _sibling_prefix(target: Path) -> str:
+    """`.name.` for a temporary or backup beside `target`, the name cut so that a target whose
+    name is near the limit still gets one (the random part and suffix take 12 bytes)."""
+    return "." + os.fsdecode(os.fsencode(target.name)[:NAME_MAX - 16]) + "."
+
+
 def _temporary(target: Path, path: Path, label: str) -> Path:
     try:
-        handle, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        handle, name = tempfile.mkstemp(prefix=_sibling_prefix(target), suffix=".tmp", dir=target.parent)
     except OSError as error:
         raise InputError(f"{label}: cannot write {path}: {error.strerror or error}") from None
     os.close(handle)
@@ -222,7 +248,7 @@ def _rename_all(temporaries: dict[str, Path], targets: dict[str, Path], paths: d
 
 def _backup(target: Path) -> Path:
     """A second name for the target's current content, in its folder."""
-    handle, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent)
+    handle, name = tempfile.mkstemp(prefix=_sibling_prefix(target), suffix=".old", dir=target.parent)
     os.close(handle)
     try:
         os.unlink(name)
@@ -257,16 +283,18 @@ def utc_now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
-def provenance(command: Sequence[str] | None = None, scenario: PathLike | None = None) -> dict:
+def provenance(command: Sequence[str] | None = None, scenario: PathLike | None = None,
+               scenario_sha256: str | None = None) -> dict:
     """Who wrote a result and from what: version, the command line (argv as a list), the
-    scenario file and its SHA-256 (of the file as it was when the run started), the time."""
+    scenario file and its SHA-256 (`scenario_sha256`: of the bytes the run parsed, which a
+    pipe cannot give twice; else of the file as it is now), the time."""
     from .. import __version__
 
     return {
         "stitchplan_version": __version__,
         "command": list(command) if command is not None else None,
         "scenario": str(scenario) if scenario is not None else None,
-        "scenario_sha256": _sha256_or_none(scenario),
+        "scenario_sha256": scenario_sha256 or _sha256_or_none(scenario),
         "created_utc": utc_now(),
     }
 
@@ -283,8 +311,26 @@ def _sha256_or_none(path: PathLike | None) -> str | None:
 # --- writers -------------------------------------------------------------------------------
 
 
+@contextlib.contextmanager
+def _naming(path: PathLike) -> Iterator[None]:
+    """A failed write or close (a full disk, a file-size limit) names no file by itself: name
+    `path`, so that the output set can say which output it was."""
+    try:
+        yield
+    except OSError as error:
+        if error.filename is None:
+            error.filename = os.fspath(path)
+        raise
+
+
 def write_text(path: PathLike, text: str) -> None:
-    Path(path).write_text(text)
+    with _naming(path), open(path, "w") as handle:
+        handle.write(text)
+
+
+def write_bytes(path: PathLike, data: bytes | memoryview) -> None:
+    with _naming(path), open(path, "wb") as handle:
+        handle.write(data)
 
 
 def write_csv(path: PathLike, columns: Sequence[str], rows: np.ndarray | Sequence[Sequence[Any]],
@@ -331,13 +377,18 @@ def write_hdf5(path: PathLike, groups: dict[str, dict[str, Any]], attributes: di
                units: Mapping[str, str]) -> None:
     """groups: {"group/sub": {"dataset": array, ...}}; attributes go on the root with the
     schema version and the library versions. Every dataset gets a `units` attribute, looked
-    up in `units` as "group/dataset", then "dataset"; a dataset without one is a bug."""
+    up in `units` as "group/dataset", then "dataset"; a dataset without one is a bug.
+
+    The file is built in memory, then written like every other output: a write that fails
+    inside the HDF5 library is not an ordinary error (on a full disk the process crashed
+    while closing the file), a failed ordinary write raises an OSError that names `path`."""
     import platform
 
     import h5py
     import scipy
 
-    with h5py.File(path, "w") as handle:
+    image = io.BytesIO()
+    with h5py.File(image, "w") as handle:
         for key, value in attributes.items():
             handle.attrs[key] = _attribute(value)
         handle.attrs["schema_version"] = HDF5_SCHEMA_VERSION
@@ -355,6 +406,7 @@ def write_hdf5(path: PathLike, groups: dict[str, dict[str, Any]], attributes: di
                     options = {"compression": "gzip", "compression_opts": 4} if data.size > 1000 else {}
                     dataset = group.create_dataset(name, data=data, **options)
                 dataset.attrs["units"] = _units(units, group_name, name)
+    write_bytes(path, image.getbuffer())
 
 
 def _units(units: Mapping[str, str], group: str, name: str) -> str:

@@ -10,10 +10,12 @@ shared drawing pieces live in `plot_elements`.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
+from .files import write_bytes
 from .plot_elements import (
     CMAP,
     draw_clamps,
@@ -36,10 +38,12 @@ def save(fig, path: str | Path) -> None:
     the plots the temporaries of their OutputSet, which renames them only when all succeeded."""
     import matplotlib.pyplot as plt
 
+    buffer = io.BytesIO()  # drawn in memory, so that a failed write names its file (files.write_bytes)
     try:
-        fig.savefig(path, dpi=120, bbox_inches="tight", format="png")
+        fig.savefig(buffer, dpi=120, bbox_inches="tight", format="png")
     finally:
         plt.close(fig)
+    write_bytes(path, buffer.getbuffer())
 
 
 def _name(scenario, fallback: str) -> str:

@@ -1,14 +1,17 @@
 """Readers of the files a user gives besides the scenario: CSV tables with named columns.
 
 Every problem is an InputError with one line naming the file and, for a bad value, the row
-and the column. Rows are counted as a spreadsheet shows them: the header is row 1, the first
-values are row 2.
+and the column. Rows are counted as a spreadsheet shows them: the line number in the file,
+so with the header on the first line the first values are row 2. As in the calibration
+recordings, blank lines and lines starting with '#' are skipped (a file may carry a comment
+header).
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,59 +21,128 @@ from ..errors import InputError
 from ..needle.geometry import NeedleGeometry
 
 CENTER_PATH_COLUMNS = ("step", "center_x_mm", "center_y_mm")
+ANGLE_COLUMN = "angle_rad"
+
+# a plain decimal number: Python's float() also takes '1_0' (as 10), 'infinity' and
+# non-ASCII digits, none of which a trajectory or a recording should contain
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
 
 
-def read_columns(path: str | Path, columns: Sequence[str], expected: str) -> dict[str, np.ndarray]:
-    """The named numeric columns of a CSV file with a header row, as float arrays (other
-    columns are ignored); `expected` tells the user what file was wanted."""
+def parse_number(text: str) -> float | None:
+    """The finite number a plain decimal `text` spells (surrounding blanks allowed), else None."""
+    text = text.strip()
+    if not _DECIMAL.fullmatch(text):
+        return None
+    value = float(text)
+    return value if math.isfinite(value) else None  # '1e999' overflows to inf
+
+
+def read_table(path: str | Path, required: Sequence[str], expected: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Every column of a CSV file with a header row, as float arrays, and the row number of
+    each data row (n,). The header must name the `required` columns; every cell must be a
+    finite number and every row have as many cells as the header. `expected` tells the user
+    what file was wanted."""
     path = Path(path)
     try:
         with path.open(newline="", encoding="utf-8-sig") as handle:  # -sig: spreadsheets' BOM
-            reader = csv.reader(handle)
-            header = [name.strip() for name in next(reader, [])]
-            missing = [name for name in columns if name not in header]
-            if missing:
-                raise InputError(f"{path}: columns {header} lack {missing}; expected at least "
-                                 f"{', '.join(columns)} ({expected})")
-            where = [header.index(name) for name in columns]
-            values = [[_number(path, reader.line_num, row, name, k) for name, k in zip(columns, where)]
-                      for row in reader if any(cell.strip() for cell in row)]
+            lines = [(number, line) for number, line in enumerate(handle, start=1)
+                     if line.strip() and not line.lstrip().startswith("#")]
     except OSError as error:
         raise InputError(f"{path}: cannot be read ({error.strerror or error})") from None
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a text file; expected a CSV table ({expected})") from None
-    if not values:
+    # rows of empty cells (',,,' as spreadsheets save blank rows) are blank lines too
+    rows = [(number, row) for (number, _), row in zip(lines, csv.reader(line for _, line in lines))
+            if any(cell.strip() for cell in row)]
+    header = [name.strip() for name in rows[0][1]] if rows else []
+    missing = [name for name in required if name not in header]
+    if missing:
+        raise InputError(f"{path}: columns {header} lack {missing}; expected at least "
+                         f"{', '.join(required)} ({expected})")
+    _check_header(path, rows[0][0], header)
+    if len(rows) < 2:
         raise InputError(f"{path}: no rows below the header; expected {expected}")
-    table = np.asarray(values, dtype=float)  # (rows, columns)
-    return {name: table[:, k] for k, name in enumerate(columns)}
+    values = np.array([_row_values(path, number, row, header) for number, row in rows[1:]])  # (rows, columns)
+    row_numbers = np.array([number for number, _ in rows[1:]])
+    return {name: values[:, k] for k, name in enumerate(header)}, row_numbers
 
 
-def _number(path: Path, row_number: int, row: list[str], name: str, column: int) -> float:
-    if column >= len(row) or not row[column].strip():
-        raise InputError(f"{path}: row {row_number}, {name}: missing; expected a number")
-    text = row[column].strip()
-    try:
-        value = float(text)
-    except ValueError:
-        raise InputError(f"{path}: row {row_number}, {name}: got {text!r}, expected a number") from None
-    if not math.isfinite(value):
-        raise InputError(f"{path}: row {row_number}, {name}: got {text!r}, expected a finite number")
+def _check_header(path: Path, line: int, header: list[str]) -> None:
+    """Every column named, and named once: a value must not depend on which one is read."""
+    for k, name in enumerate(header):
+        if not name:
+            raise InputError(f"{path}: row {line}, column {k + 1}: got no name, expected a column name "
+                             f"(header {','.join(header)})")
+        if name in header[:k]:
+            raise InputError(f"{path}: row {line}, column {k + 1}: got {name!r} again, expected each "
+                             f"column once")
+
+
+def _row_values(path: Path, line: int, row: list[str], header: list[str]) -> list[float]:
+    """A row of as many cells as the header, each a finite number."""
+    if len(row) < len(header):
+        raise InputError(f"{path}: row {line}, {header[len(row)]}: missing; got {len(row)} cells, expected "
+                         f"{len(header)} as in the header ({','.join(header)})")
+    if len(row) > len(header):
+        raise InputError(f"{path}: row {line}: got {len(row)} cells, expected {len(header)} as in the "
+                         f"header ({','.join(header)})")
+    return [_number(path, line, name, text) for name, text in zip(header, row)]
+
+
+def _number(path: Path, line: int, name: str, text: str) -> float:
+    text = text.strip()
+    if not text:
+        raise InputError(f"{path}: row {line}, {name}: missing; expected a number")
+    value = parse_number(text)
+    if value is None:
+        finite = "a finite number" if _DECIMAL.fullmatch(text) or _NON_FINITE.fullmatch(text) else "a number"
+        raise InputError(f"{path}: row {line}, {name}: got {text!r}, expected {finite}")
     return value
 
 
 def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None) -> np.ndarray:
-    """Needle centres (n, 2) in mm from a trajectory CSV (columns step, center_x_mm,
-    center_y_mm, as `stitchplan plan` exports them); row n holds step n, from 0. With the
-    needle's `geometry`, the path must also fit that needle (check_center_path)."""
-    table = read_columns(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
-    steps = table["step"]
-    if not np.array_equal(steps, np.arange(len(steps))):
-        shown = ", ".join(f"{s:g}" for s in steps[:5]) + (", ..." if len(steps) > 5 else "")
-        raise InputError(f"{path}: step: got [{shown}], expected 0, 1, 2, ... one row per step")
+    """Needle centres (n, 2) in mm from a trajectory CSV as `stitchplan plan` exports it:
+    row n holds step n, from 0, in the columns step, center_x_mm, center_y_mm; the other
+    columns (tips, times, base frame) must hold numbers too but are not used. With the
+    needle's `geometry`, the path must also fit that needle: its angle_rad, when the file has
+    one, the needle's rotation schedule (check_angles), and its centres the needle's steps
+    and entry (check_center_path)."""
+    table, row_numbers = read_table(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
+    _check_steps(path, table["step"], row_numbers)
     centers = np.column_stack([table["center_x_mm"], table["center_y_mm"]])
     if geometry is not None:
-        check_center_path(path, centers, geometry)
+        if ANGLE_COLUMN in table:
+            check_angles(path, table[ANGLE_COLUMN], geometry, row_numbers)
+        check_center_path(path, centers, geometry, row_numbers)
     return centers
+
+
+def _check_steps(path: str | Path, steps: np.ndarray, row_numbers: np.ndarray) -> None:
+    """Row k of the data holds step k: the first row where it does not is named."""
+    wrong = np.flatnonzero(steps != np.arange(len(steps)))
+    if wrong.size:
+        k = wrong[0]
+        raise InputError(f"{path}: row {row_numbers[k]}, step: got {steps[k]:g}, expected {k} (one row per needle "
+                         f"step, numbered 0, 1, 2, ... in order)")
+
+
+# trajectory.csv prints 9 significant digits, so a written angle lies within 5e-9 of k * step,
+# relative to the larger of 1 rad and the angle; a path for another step misses by far more
+ANGLE_TOLERANCE = 1e-8
+
+
+def check_angles(path: str | Path, angles: np.ndarray, geometry: NeedleGeometry, row_numbers: np.ndarray) -> None:
+    """Each row's angle_rad is the needle's rotation schedule, k * step for step k (the
+    exit row too: the trajectory gives it the full step although the tip leaves during it);
+    the robot turns the needle to these angles, so a path written for another step is
+    refused at its first row that does not match."""
+    expected = np.arange(len(angles)) * geometry.step  # as the trajectory writes them
+    off = np.flatnonzero(np.abs(angles - expected) > ANGLE_TOLERANCE * np.maximum(1.0, np.abs(expected)))
+    if off.size:
+        k = off[0]
+        raise InputError(f"{path}: row {row_numbers[k]}, angle_rad: got {angles[k]:.9g}, expected {expected[k]:.9g} "
+                         f"(step {k} of the needle's {geometry.step:g} rad steps)")
 
 
 # a replayed path may end this many steps (relative to the needle's expected steps, at least
@@ -90,8 +162,9 @@ def expected_rows(geometry: NeedleGeometry) -> tuple[int, int, int]:
     return rows, max(rows - slack, 2), rows + slack
 
 
-def check_center_path(path: str | Path, centers: np.ndarray, geometry: NeedleGeometry) -> None:
-    """A centre path that fits the scenario's needle, or an InputError naming the file:
+def check_center_path(path: str | Path, centers: np.ndarray, geometry: NeedleGeometry, row_numbers: np.ndarray) -> None:
+    """A centre path that fits the scenario's needle, or an InputError naming the file (and
+    the row: `row_numbers` holds each centre's row in it):
 
     - its row count matches the steps the needle takes (`expected_rows`): the deformed
       tissue lets the tip leave some steps before or after the undeformed circle does (the
@@ -116,13 +189,13 @@ def check_center_path(path: str | Path, centers: np.ndarray, geometry: NeedleGeo
     start = float(np.linalg.norm(centers[0] - entry))
     if start > ENTRY_TOLERANCE * geometry.radius:
         raise InputError(
-            f"{path}: row 2, center_x_mm, center_y_mm: got [{centers[0, 0]:.6g}, {centers[0, 1]:.6g}], "
+            f"{path}: row {row_numbers[0]}, center_x_mm, center_y_mm: got [{centers[0, 0]:.6g}, {centers[0, 1]:.6g}], "
             f"expected the needle centre at entry [{entry[0]:.6g}, {entry[1]:.6g}] (step 0)")
     distance = np.linalg.norm(centers - entry, axis=1)
     far = int(np.argmax(distance))
     if distance[far] > MAX_CENTER_MOVE * geometry.radius:
         raise InputError(
-            f"{path}: row {far + 2}, center_x_mm, center_y_mm: got [{centers[far, 0]:.6g}, "
+            f"{path}: row {row_numbers[far]}, center_x_mm, center_y_mm: got [{centers[far, 0]:.6g}, "
             f"{centers[far, 1]:.6g}], {distance[far]:.4g} mm from the entry centre "
             f"[{entry[0]:.6g}, {entry[1]:.6g}]; expected at most {MAX_CENTER_MOVE:g} needle radii "
             f"({MAX_CENTER_MOVE * geometry.radius:.4g} mm) from it")

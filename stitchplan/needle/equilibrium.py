@@ -216,6 +216,7 @@ class NeedleInsertion:
         self.last_violation = 0.0  # max |g_e| of the last converged equilibrium, mm
         self.constraint_tolerance = CONSTRAINT_TOLERANCE * self.geometry.radius  # mm
         self.ramp_increments = 0  # load increments beyond the first, over the run
+        self.overflowed = False  # a Newton solve met a residual that is not finite
         self._free_rows: dict[tuple[float, ...], np.ndarray] = {}
         # every Newton iteration of every solve (the planner's centre tries and failed ramp
         # increments included), and the solves
@@ -361,6 +362,8 @@ class NeedleInsertion:
         message = (f"step {step} (needle rotation {rotation:.3f} rad): the needle's load could not be "
                    f"carried: {100 * carried:.0f} % of the step's cutting force and added friction held, "
                    f"the next {100 * RAMP_SMALLEST:.2g} % increment failed ({failure})")
+        if self.overflowed:  # no material model carries a load that overflows
+            return message
         models = {self.scenario.tissue.material.model}
         models |= {region.material.model for region in getattr(self.scenario.tissue, "regions", None) or []}
         if "saint-venant-kirchhoff" in models:
@@ -383,13 +386,15 @@ class NeedleInsertion:
         for iteration in range(settings.max_iterations + 1):
             state = self._timed_residuals(free.reshape(-1, 2), multipliers, center, rotation, step)
             residual_norm, worst = length(state.residual), state.worst_violation
-            balanced = (residual_norm <= settings.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
-                        and worst <= self.constraint_tolerance)
+            # a needle force so large that its norm overflows would make every residual look small
+            finite = math.isfinite(residual_norm) and math.isfinite(state.needle_force)
+            balanced = (finite and worst <= self.constraint_tolerance
+                        and residual_norm <= settings.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12)
             steering = aim is not None and aim.held is None
             if balanced and not steering:
                 self._accept(free, multipliers, center, worst, iteration)
                 return iteration, minres_total, worst
-            if iteration == settings.max_iterations or not np.isfinite(residual_norm):
+            if iteration == settings.max_iterations or not finite:
                 break
             rhs = -np.concatenate([state.residual, state.violation])
             fresh = steering and (per_center is None or moved > STALE_CENTER_MOVES * aim.tolerance)
@@ -434,6 +439,12 @@ class NeedleInsertion:
                 solution = mixing.step(np.concatenate([free, multipliers, center]), solution)
             free, multipliers, center = free + solution[:n_dof], multipliers + solution[n_dof:-2], center + solution[-2:]
         self._count(iteration)
+        if not finite:
+            self.overflowed = True
+            raise InsertionFailure(
+                f"Newton stopped at step {step} (needle rotation {rotation:.3f} rad): the residual is not finite "
+                f"after {iteration} iterations (needle force {state.needle_force:.3e} N): the loads or the "
+                "deformation overflow floating point")
         raise InsertionFailure(
             f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
             f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} iterations")

@@ -24,7 +24,8 @@ IDENTITY = np.eye(2)
 def length(vector: np.ndarray) -> float:
     """|v| of a vector: np.linalg.norm's sqrt(v . v) without its argument handling (Newton,
     the centre aim and the tip tracking take several per iteration)."""
-    return math.sqrt(vector.dot(vector))
+    with np.errstate(over="ignore"):  # an overflowing norm is inf, which Newton refuses
+        return math.sqrt(vector.dot(vector))
 
 
 def unit(angle: float | np.ndarray) -> np.ndarray:
@@ -130,7 +131,7 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
 def scenario_needle(scenario: Scenario) -> NeedleGeometry:
     """The needle geometry of a scenario that must have a needle (simulate, plan)."""
     if scenario.needle is None:
-        raise InputError("needle: missing, required by simulate and plan")
+        raise InputError("needle: missing, required by simulate, plan and study")
     return needle_geometry(scenario.needle, scenario.tissue.domain)
 
 

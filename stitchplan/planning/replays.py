@@ -94,7 +94,7 @@ class BackgroundReplays(InlineReplays):
         super().__init__(scenario, **options)
         context = multiprocessing.get_context("fork")
         self._connection, theirs = context.Pipe()
-        self._process = context.Process(target=_serve, args=(theirs, self._connection, scenario, options),
+        self._process = context.Process(target=_serve, args=(theirs, self._connection, scenario, options, os.getpid()),
                                         daemon=True, name="stitchplan replays")
         self._process.start()
         theirs.close()
@@ -265,9 +265,26 @@ class _StreamedPath(CenterReplay):
         return super().predict(center, step) if self._ended else self._rows[step]
 
 
-def _serve(connection, parents_end, scenario: Scenario, options: dict) -> None:
+def _end_with(parent: int) -> None:
+    """Have Linux stop this process when the main process dies (killed, it cannot stop the
+    helper, which would go on replaying for no one), and end now if it already has."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):  # no prctl to reach: the closed pipe still ends the loop
+        pass
+    if os.getppid() != parent:
+        os._exit(0)
+
+
+PR_SET_PDEATHSIG = 1  # prctl option: the signal this process gets when its parent dies
+
+
+def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: int) -> None:
     """The helper's loop: jobs ("stream" or "path", job, warm-start job, entry centre or
     path), their rows and ends, "send" (the job's result back) and "stop"."""
+    _end_with(parent)
     parents_end.close()  # so that the main process's end of the pipe closing ends this loop
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process stops the helper
     logging.disable(logging.CRITICAL)  # the main process reports
@@ -300,8 +317,11 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict) -> None:
             job, result, error = done
             if job != message[1]:
                 result, error = None, RuntimeError(f"no replay for job {message[1]}")
-            connection.send(("result", message[1],
-                             None if result is None else replace(result, states=[]), error, steps_run))
+            try:
+                connection.send(("result", message[1],
+                                 None if result is None else replace(result, states=[]), error, steps_run))
+            except OSError:  # the main process is gone
+                return
             steps_run = 0
             sent = (message[1], result)
             continue

@@ -13,11 +13,19 @@ import math
 import numpy as np
 
 from ..config import Robot
+from ..errors import InputError, NumericalFailure
 from ..needle.results import InsertionResult
 
 COLUMNS = ["step", "angle_rad", "center_x_mm", "center_y_mm", "tip_x_mm", "tip_y_mm"]
 BASE_COLUMNS = ["base_center_x_mm", "base_center_y_mm", "base_tip_x_mm", "base_tip_y_mm"]
 DECIMALS_MM = 9  # coordinates are rounded to 1e-9 mm: no round-off noise (5e-16) for a robot
+
+# bounds of the robot's frame and speed: a base more than 10 m from the tissue is a unit or
+# typing mistake, not a robot cell, and a needle turning slower than 1e-6 rad/s (a half turn
+# in 36 days) is one too; within them every column of the trajectory stays finite
+MAX_BASE_OFFSET_MM = 10_000.0
+MAX_BASE_ROTATION_DEG = 360.0
+MIN_ANGULAR_SPEED = 1e-6  # rad/s
 
 
 def _clean(values: np.ndarray) -> np.ndarray:
@@ -43,23 +51,49 @@ def exported_centers(result: InsertionResult) -> np.ndarray:
 
 
 def trajectory_table(result: InsertionResult, robot: Robot) -> tuple[list[str], np.ndarray]:
+    """The columns and rows (N + 2, columns) of trajectory.csv; a table holding inf or nan
+    is refused (_refuse_non_finite), so a robot never reads one."""
     geometry = result.geometry
     centers = _centers(result)
     steps = np.arange(len(centers))
     angles = steps * geometry.step
     tips = np.asarray([geometry.tip(a, c) for a, c in zip(angles, centers)])
-    if robot.given:
-        base_centers, base_tips = _clean(to_base_frame(centers, robot)), _clean(to_base_frame(tips, robot))
-    centers, tips = _clean(centers), _clean(tips)
-    columns = list(COLUMNS)
-    table = [steps, angles, centers[:, 0], centers[:, 1], tips[:, 0], tips[:, 1]]
-    if robot.angular_speed is not None:
-        columns.append("time_s")
-        table.append(angles / robot.angular_speed)
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is inf, refused below by its column
+        if robot.given:
+            base_centers, base_tips = _clean(to_base_frame(centers, robot)), _clean(to_base_frame(tips, robot))
+        centers, tips = _clean(centers), _clean(tips)
+        columns = list(COLUMNS)
+        table = [steps, angles, centers[:, 0], centers[:, 1], tips[:, 0], tips[:, 1]]
+        if robot.angular_speed is not None:
+            columns.append("time_s")
+            table.append(angles / robot.angular_speed)
     if robot.given:
         columns += BASE_COLUMNS
         table += [base_centers[:, 0], base_centers[:, 1], base_tips[:, 0], base_tips[:, 1]]
-    return columns, np.column_stack(table)
+    table = np.column_stack(table)
+    _refuse_non_finite(columns, table, robot)
+    return columns, table
+
+
+def _refuse_non_finite(columns: list[str], table: np.ndarray, robot: Robot) -> None:
+    """The first column holding inf or nan, named with its first such step and what made it:
+    the robot's speed or base transform beyond their bounds (an input), else the planned
+    path itself (a numerical failure)."""
+    bad = ~np.isfinite(table)
+    if not bad.any():
+        return
+    column = int(np.flatnonzero(bad.any(axis=0))[0])
+    step = int(np.flatnonzero(bad[:, column])[0])
+    name = columns[column]
+    found = f"trajectory: step {step}, {name}: got {table[step, column]:g}, expected a finite number"
+    if name == "time_s":
+        raise InputError(f"{found}; angle_rad {table[step, 1]:g} rad / angular speed {robot.angular_speed:g} "
+                         f"rad/s overflows (expected a speed of at least {MIN_ANGULAR_SPEED:g} rad/s)")
+    if name in BASE_COLUMNS:
+        offset = ", ".join(f"{value:g}" for value in robot.translation)
+        raise InputError(f"{found}; the base transform's offset [{offset}] mm overflows (expected offsets "
+                         f"within +-{MAX_BASE_OFFSET_MM:g} mm)")
+    raise NumericalFailure(f"{found}: the planned needle path is not finite")
 
 
 def to_base_frame(points: np.ndarray, robot: Robot) -> np.ndarray:

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field, replace
 
 from ..config import Scenario
 from ..config.study import StudyFamily, StudySpec
-from ..errors import InputError
+from ..errors import InputError, NumericalFailure
 from ..parallel import Executor, run_all
 from .auto import AutoChoice, choose_discretization
 from .runner import InsertionRun, exit_deviations, run_timed
@@ -195,7 +195,7 @@ def compared_run(runs: list[StudyRun], reference: StudyRun, notes: list[str]) ->
         return reference
     finest = [r for r in runs if r.ok]
     if not finest:
-        raise InputError(f"study: every run failed (reference: {reference.reason})")
+        raise NumericalFailure(f"study: every run failed (reference: {reference.reason})")
     compared = min(finest, key=lambda r: (r.spacing, -r.particles))
     notes.append(f"the reference run failed ({reference.reason}); deviations are measured from "
                  f"the finest successful run, {compared.label}")

@@ -1,0 +1,299 @@
+"""The resource guard at the extremes, and what its refusals name.
+
+Any finite positive discretization input ends in one refusal line naming the field or option
+that drives the estimate past the limit (never an overflow); the advice matches the limit
+that was hit (--max-particles only for the particle limit); ordinary inputs keep their
+estimates. Also here: the needle calibration's radius bounds and its numerical failures.
+Nothing is built or solved: the module runs in a few seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from stitchplan.cli import app
+from stitchplan.config import load_scenario, parse_scenario, with_discretization
+from stitchplan.errors import InputError, NumericalFailure
+from stitchplan.resources import (
+    COUNT_CAP,
+    Limits,
+    Origin,
+    check_resources,
+    estimate,
+    model_size,
+    rescaled,
+    verification_origin,
+)
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+PHANTOM = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}
+# 40 x 20 mm block clamped on the right, SH needle (r 8.88 mm) entering (0, 12) cw; no
+# spacing given, so the default one (graded toward the needle by the default refinement)
+NEEDLE_SCENE = {
+    "tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": dict(PHANTOM), "clamped": ["right"]},
+    "needle": {"radius": 8.88, "entry": [0.0, 12.0], "turn": "cw", "step": 0.2, "friction": 0.0602,
+               "cutting_force": 0.7},
+}
+LARGE_MEMORY = 64e9  # bytes: a machine where only the particle limit can refuse
+SMALL_MEMORY = 4e9  # bytes: 2 GB allowed, less than a 10 000-particle model with dilation 10 needs
+
+
+def scene(**changes) -> dict:
+    """NEEDLE_SCENE with top-level blocks replaced, `needle__radius=...` for one needle key."""
+    raw = {key: dict(value) for key, value in NEEDLE_SCENE.items()}
+    for key, value in changes.items():
+        if "__" in key:
+            block, field = key.split("__")
+            raw[block][field] = value
+        else:
+            raw[key] = value
+    return raw
+
+
+def refusal(estimates, memory: float = LARGE_MEMORY, limits: Limits | None = None) -> str:
+    """The guard's one refusal line for these estimates (default limits)."""
+    with pytest.raises(InputError) as error:
+        check_resources(estimates, limits or Limits(), memory=memory)
+    assert len(error.value.lines) == 1, error.value.lines
+    return error.value.lines[0]
+
+
+# --- extreme inputs: a refusal, never an overflow -------------------------------------------
+
+
+@pytest.mark.parametrize("raw, name", [
+    (scene(discretization={"spacing": 1e-300}), "discretization.spacing: got 1e-300 mm"),
+    (scene(discretization={"spacing": 5e-324}), "discretization.spacing: got 4.94066e-324 mm"),
+    (scene(needle__radius=1e-200), "needle.radius: got 1e-200 mm"),
+    (scene(discretization={"needle_refinement": 1e200}), "discretization.needle_refinement: got 1e+200"),
+    (scene(discretization={"spacing": 1e-300, "needle_refinement": 1e300}),
+     "discretization.spacing: got 1e-300 mm"),  # a needle spacing that underflows to 0
+])
+def test_extreme_spacings_are_refused_at_the_capped_count(raw, name):
+    """Counts past any machine are held at COUNT_CAP, with finite costs, and the refusal
+    names the field and says the count is a lower bound."""
+    item = estimate(parse_scenario(raw), "insertion", "simulate")
+    assert item.size.particles == COUNT_CAP
+    assert math.isfinite(item.memory_bytes) and math.isfinite(item.seconds)
+    line = refusal([item])
+    assert line.startswith(name), line
+    assert f"at most {Limits().max_particles} particles" in line and "over 1e+15 particles" in line
+
+
+def test_an_extreme_dilation_and_needle_step_are_refused():
+    scenario = parse_scenario(scene())
+    wide = with_discretization(scenario, dilation=1e300)
+    assert model_size(wide).neighbours == math.inf
+    line = refusal([estimate(wide, "insertion")])
+    assert line.startswith("discretization.dilation: got 1e+300, expected at most 10")
+    tiny_step = parse_scenario(scene(needle__step=5e-324))
+    item = estimate(tiny_step, "insertion")
+    assert item.steps == COUNT_CAP
+    assert refusal([item]).startswith("needle.step: got 4.94066e-324 rad, expected a step giving at most 2000")
+
+
+def write(folder: Path, raw: dict, name: str = "scene.yaml") -> Path:
+    path = folder / name
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+@pytest.mark.parametrize("raw, options, fragments", [
+    (scene(), ["--spacing", "1e-300"], ["got 1e-300 mm", "over 1e+15 particles"]),
+    (scene(needle__radius=1e-200), [], ["scene.yaml: needle.radius: got 1e-200 mm", "give discretization.spacing"]),
+    (scene(discretization={"needle_refinement": 1e200}), [],
+     ["scene.yaml: discretization.needle_refinement: got 1e+200", "2 mm / 1e+200"]),
+    (scene(discretization={"needle_refinement": 1000}), [],
+     ["scene.yaml: discretization.needle_refinement: got 1000", "lower it", "--max-particles"]),
+    (scene(), ["--dilation", "1e300"], ["--dilation: got 1e+300"]),
+])
+def test_the_cli_refuses_extreme_inputs_in_one_line(tmp_path, raw, options, fragments):
+    path = write(tmp_path, raw)
+    result = CliRunner().invoke(app, ["simulate", str(path), "--no-estimate", "--summary",
+                                      str(tmp_path / "summary.json"), *options])
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output and result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
+# --- what a refusal names -------------------------------------------------------------------
+
+
+def test_a_refusal_names_the_option_or_block_its_origin_gives():
+    scenario = with_discretization(parse_scenario(scene()), spacing=0.01)
+    line = refusal([estimate(scenario, "insertion", "simulate", origin=Origin({"spacing": "--spacing"}))])
+    assert line.startswith("--spacing: got 0.01 mm, expected a spacing giving at most 50000 particles")
+    study = Origin({"spacing": "study.spacing", "needle_spacing": "study.spacing"})
+    uniform = scenario.discretization.replaced(spacing=0.02, needle_spacing=None, needle_refinement=None)
+    line = refusal([estimate(replace(scenario, discretization=uniform), "insertion", "study run", origin=study)])
+    assert line.startswith("study.spacing: got 0.02 mm")
+
+
+def test_the_verification_refusal_names_the_given_spacing_and_how_to_skip_it():
+    """The plan's model fits and its verification at half the spacing does not: the refusal
+    names the spacing as given (not halved) and offers --no-verify."""
+    scenario = with_discretization(parse_scenario(scene()), spacing=0.2)
+    limit = Limits(max_particles=estimate(scenario, "insertion").size.particles)  # the plan's model just fits
+    plan = estimate(scenario, "insertion", "plan", 4)
+    verification = estimate(rescaled(scenario, 0.5), "insertion", "plan verification", 2,
+                            origin=verification_origin(scenario, {"spacing": "--spacing"}))
+    line = refusal([plan, verification], limits=limit)
+    assert line.startswith("--spacing: got 0.2 mm, expected a spacing giving at most")
+    assert "in the plan's verification at half the spacing" in line
+    assert "pass --no-verify to skip the verification" in line and "raise --max-particles" in line
+
+
+def test_a_refinement_names_the_refinement_not_the_spacing():
+    """The coarse spacing alone would fit: the needle zone's refinement (or its own spacing)
+    makes the particles too many; the default refinement of 2 follows the spacing, which is
+    then named."""
+    refined = estimate(parse_scenario(scene(discretization={"spacing": 2.0, "needle_refinement": 1000})), "insertion")
+    line = refusal([refined])
+    assert line.startswith("discretization.needle_refinement: got 1000, expected a refinement giving at most")
+    assert "a needle spacing of 2 mm / 1000 = 0.002 mm" in line
+    fine_zone = estimate(parse_scenario(scene(discretization={"spacing": 2.0, "needle_spacing": 0.005})), "insertion")
+    assert refusal([fine_zone]).startswith("discretization.needle_spacing: got 0.005 mm")
+    default = estimate(parse_scenario(scene(discretization={"spacing": 0.02, "needle_refinement": 2})), "insertion")
+    assert refusal([default]).startswith("discretization.spacing: got 0.02 mm")
+
+
+def test_a_needle_radius_that_sets_the_default_spacing_is_named():
+    """A file giving no spacing gets one from the needle radius: a tiny radius is named,
+    and with --spacing given the spacing is."""
+    scenario = parse_scenario(scene(needle__radius=0.01))
+    line = refusal([estimate(scenario, "insertion")])
+    assert line.startswith("needle.radius: got 0.01 mm, expected a radius whose default particle spacing")
+    given = with_discretization(scenario, spacing=0.004)
+    line = refusal([estimate(given, "insertion", origin=Origin({"spacing": "--spacing"}))])
+    assert line.startswith("--spacing: got 0.004 mm")
+
+
+# --- the memory limit: what governs it -------------------------------------------------------
+
+
+@pytest.mark.parametrize("changes, name", [
+    ({"dilation": 10.0}, "discretization.dilation: got 10"),
+    ({"cells_per_spacing": 4, "dilation": 2.0}, "discretization.cells_per_spacing: got 4"),
+    ({"quadrature_order": 8, "dilation": 2.0}, "discretization.quadrature_order: got 8"),
+])
+def test_a_kernel_past_the_memory_share_names_the_kernel_not_the_particle_limit(changes, name):
+    """10 000 particles fit the memory with a standard kernel, not with a wide support or
+    many quadrature points: the refusal names that setting, and --max-particles (which does
+    not lift the memory limit) is not offered."""
+    scenario = parse_scenario(scene(discretization={"spacing": 0.2, **changes}))
+    item = estimate(scenario, "insertion", "simulate")
+    assert item.size.particles < Limits().max_particles
+    line = refusal([item], memory=SMALL_MEMORY)
+    assert line.startswith(f"{name}, expected a model within 50% of the 4 GB of memory available"), line
+    assert "lower it" in line and "--no-resource-check" in line and "--max-particles" not in line
+
+
+def test_particles_past_the_memory_share_name_the_spacing():
+    scenario = with_discretization(parse_scenario(scene(discretization={"spacing": 1.0})), spacing=0.15)
+    line = refusal([estimate(scenario, "insertion", origin=Origin({"spacing": "--spacing"}))], memory=SMALL_MEMORY,
+                   limits=Limits(max_particles=10**9))
+    assert line.startswith("--spacing: got 0.15 mm, expected a model within 50% of the 4 GB")
+    assert "coarsen it" in line and "--max-particles" not in line
+
+
+def test_the_memory_refusal_of_the_cli_does_not_offer_max_particles(tmp_path, monkeypatch):
+    """The reproducer: dilation 10 with --max-particles raised is still refused, and the
+    line says what governs the memory (on a machine with SMALL_MEMORY available)."""
+    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: SMALL_MEMORY)
+    path = write(tmp_path, scene(discretization={"spacing": 0.2}))
+    result = CliRunner().invoke(app, ["simulate", str(path), "--no-estimate", "--dilation", "10",
+                                      "--max-particles", "1000000"])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert "dilation: got 10, expected a model within 50% of the 4 GB of memory available" in line
+    assert "--max-particles" not in line and "Traceback" not in result.output
+
+
+# --- ordinary inputs: unchanged ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["needle20_entry30", "sh12_100x100", "slab_edge_load", "wound_closure"])
+def test_the_shipped_scenes_pass_the_guard(name):
+    scenario = load_scenario(REPOSITORY / "configs" / f"{name}.yaml")
+    kinds = (["deform"] if scenario.loads else []) + (["insertion"] if scenario.needle else [])
+    check_resources([estimate(scenario, kind) for kind in kinds], Limits(), memory=8e9)
+
+
+def test_the_verification_origin_changes_no_estimate():
+    """An origin only changes what a refusal names, never the estimate."""
+    scenario = load_scenario(REPOSITORY / "configs" / "sh12_100x100.yaml")
+    verification = rescaled(scenario, 0.5)
+    plain, named = (estimate(verification, "insertion", "plan verification", 2, origin=origin)
+                    for origin in (None, verification_origin(scenario)))
+    assert (plain.size, plain.memory_bytes, plain.seconds) == (named.size, named.memory_bytes, named.seconds)
+    assert plain.describe() == named.describe()
+
+
+# --- the needle calibration's radius and numerical failures -----------------------------------
+
+
+def recordings(folder: Path, touch: float = 0.0) -> tuple[Path, Path]:
+    """air.csv and tissue.csv: background 0.12 N + 0.035 N/rad, cutting 0.7 N, friction
+    0.06 N/mm at 8.88 mm and a small ripple; the tissue's angles start at `touch` rad, its
+    forces as if they started at 0."""
+    air_angle = np.linspace(0.0, math.pi, 20)
+    angle = np.linspace(0.0, 2.8, 15)
+    tables = {"air.csv": (air_angle, 0.12 + 0.035 * air_angle),
+              "tissue.csv": (touch + angle,
+                             0.12 + 0.035 * angle + 0.7 + 0.06 * 8.88 * angle + 0.01 * np.sin(7 * angle))}
+    for name, (x, y) in tables.items():
+        (folder / name).write_text("angle_rad,force_N\n" + "".join(f"{float(a)!r},{float(f)!r}\n" for a, f in zip(x, y)))
+    return folder / "air.csv", folder / "tissue.csv"
+
+
+def calibrate(folder: Path, radius: str):
+    air, tissue = folder / "air.csv", folder / "tissue.csv"
+    return CliRunner().invoke(app, ["calibrate", "needle", "--air", str(air), "--tissue", str(tissue),
+                                    "--radius", radius, "--out", str(folder / "needle.yaml")])
+
+
+@pytest.mark.parametrize("radius", ["1e-300", "0.05", "1001", "1e160"])
+def test_a_needle_radius_outside_the_bounds_is_refused(tmp_path, radius):
+    recordings(tmp_path)
+    result = calibrate(tmp_path, radius)
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith(f"error: --radius: got {float(radius)!r}, expected a positive number (mm) from 0.1 to 1000")
+    assert not (tmp_path / "needle.yaml").exists()
+
+
+@pytest.mark.parametrize("radius", ["0.1", "8.88", "1000"])
+def test_a_needle_radius_at_the_bounds_fits_finite_values(tmp_path, radius):
+    recordings(tmp_path)
+    result = calibrate(tmp_path, radius)
+    assert result.exit_code == 0, result.output
+    fitted = yaml.safe_load((tmp_path / "needle.yaml").read_text())
+    assert fitted["cutting_force"] == pytest.approx(0.7, abs=0.02)
+    assert fitted["friction"] * float(radius) == pytest.approx(0.06 * 8.88, rel=0.05)
+    assert all(math.isfinite(value) for value in fitted["diagnostics"]["standard_uncertainty"].values())
+
+
+def test_a_line_that_cannot_be_fitted_is_a_numerical_failure(tmp_path):
+    """Tissue angles from 1e9 rad on, over 2.8 rad: the accepted recording gives a singular
+    least-squares system, reported in one line (exit 1) with no output."""
+    from stitchplan.calibration import fit_line
+
+    with pytest.raises(NumericalFailure, match="singular"):
+        fit_line(np.full(6, 3.0), np.arange(6.0))
+    recordings(tmp_path, touch=1e9)
+    result = calibrate(tmp_path, "8.88")
+    assert result.exit_code == 1, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith("error: needle fit: the tissue line") and "singular" in line
+    assert "Traceback" not in result.output and not (tmp_path / "needle.yaml").exists()

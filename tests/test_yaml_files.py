@@ -1,0 +1,185 @@
+"""Reading YAML inputs: YAML 1.2 core scalars, every duplicate key reported at once, and
+the scenario's checksum taken from the bytes that were parsed.
+
+YAML 1.1 (what a plain YAML loader implements) reads `1e-6` as a string, `010` as eight,
+`5:00` as 300 and `no` as False; the JSON Schema of the scenario files and editors follow
+YAML 1.2, so a value could be accepted by the editor and refused, or silently changed, by
+the tool. Each case loads a small file from tmp_path through the package's loaders.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import threading
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from stitchplan.cli import app
+from stitchplan.config import ScenarioError, load_scenario, read_yaml
+from stitchplan.config.uncertainty import load_uncertainty
+
+# a 40 x 20 mm slab with a needle and a force on the left edge: every field below is valid
+SCENE = """\
+name: small
+tissue:
+  size: [40.0, 20.0]
+  thickness: 10.0
+  material: {model: saint-venant-kirchhoff, lame_lambda: 0.189151, lame_mu: 0.147688}
+  clamped: [right]
+discretization: {spacing: 5.0}
+needle:
+  radius: 8.88
+  entry: [0.0, 12.0]
+  turn: cw
+  step: 0.2
+  friction: 0.0602
+  cutting_force: 0.7
+loads:
+  - segment: [[0.0, 5.0], [0.0, 15.0]]
+    force: [-1.0, 0.5]
+"""
+
+
+def write(tmp_path, text: str, name: str = "scene.yaml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def refusal(path) -> list[str]:
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(path)
+    return error.value.lines
+
+
+# --- YAML 1.2 core scalars -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("text, value", [
+    ("1e-6", 1e-6), ("1E+3", 1000.0), (".5", 0.5), ("-.5e-1", -0.05), ("1.", 1.0), ("+12", 12),
+    ("010", 10), ("0o17", 15), ("0x1F", 31), ("!!int 010", 10),
+    ("-.inf", -math.inf), (".Inf", math.inf),
+    ("true", True), ("True", True), ("FALSE", False),
+    ("null", None), ("~", None), ("", None),
+    # YAML 1.1 would read these as 300, False, True, True, False, 1000 and a date
+    ("5:00", "5:00"), ("no", "no"), ("yes", "yes"), ("on", "on"), ("off", "off"), ("1_000", "1_000"),
+    ("2024-06-11", "2024-06-11"), ("'1e-6'", "1e-6"),
+])
+def test_plain_scalars_are_read_as_yaml_1_2_core(tmp_path, text, value):
+    data, _ = read_yaml(write(tmp_path, f"value: {text}\n"))
+    assert data["value"] == value and type(data["value"]) is type(value)
+
+
+def test_nan_is_read_as_nan_and_the_global_loader_keeps_yaml_1_1(tmp_path):
+    data, _ = read_yaml(write(tmp_path, "a: .nan\nb: .NaN\n"))
+    assert math.isnan(data["a"]) and math.isnan(data["b"])
+    # other readers of YAML in the same process are not changed behind their back
+    assert yaml.safe_load("a: yes\nb: 010\nc: 1e-6\n") == {"a": True, "b": 8, "c": "1e-6"}
+
+
+@pytest.mark.parametrize("text", ["!!bool yes", "!!int 1_000", "!!float 5:00"])
+def test_explicit_tags_take_yaml_1_2_values_only(tmp_path, text):
+    path = write(tmp_path, f"value: {text}\n")
+    tag, value = text.split()
+    with pytest.raises(ScenarioError) as error:
+        read_yaml(path)
+    assert str(error.value).startswith(f"{path}: not valid YAML at line 1 (got {tag} {value!r}, expected ")
+
+
+def test_scientific_notation_reaches_the_scenario(tmp_path):
+    scenario = load_scenario(write(tmp_path, SCENE + "solver: {residual_tolerance: 1e-6}\n"
+                                   + "planner: {strict: True}\n"))
+    assert scenario.solver.residual_tolerance == 1e-6
+    assert scenario.planner.strict is True
+
+
+def test_a_leading_zero_is_decimal(tmp_path):
+    scenario = load_scenario(write(tmp_path, SCENE.replace("spacing: 5.0", "spacing: 010")))
+    assert scenario.discretization.spacing == 10
+
+
+def test_yaml_1_1_spellings_are_refused_as_the_strings_they_are(tmp_path):
+    text = (SCENE.replace("spacing: 5.0", "spacing: 5:00").replace("turn: cw", "turn: no")
+            .replace("thickness: 10.0", "thickness: .inf") + "planner: {strict: on}\n")
+    path = write(tmp_path, text)
+    lines = refusal(path)
+    assert len(lines) == 4, lines
+    for field, shown in [("tissue.thickness", "inf"), ("discretization.spacing", "'5:00'"),
+                         ("needle.turn", "'no'"), ("planner.strict", "'on'")]:
+        assert any(line.startswith(f"{path}: {field}: got {shown}, expected ") for line in lines), (field, lines)
+
+
+def test_other_input_files_read_yaml_1_2_too(tmp_path):
+    path = write(tmp_path, "samples: 8\nseed: 010\nparameters:\n  friction: {std: 5e-4}\n", "uncertainty.yaml")
+    uncertainty = load_uncertainty(path)
+    assert uncertainty.seed == 10
+    assert dict(zip(uncertainty.names, uncertainty.std)) == {"friction": 5e-4}
+
+
+# --- duplicate keys -------------------------------------------------------------------------
+
+
+def test_every_duplicate_key_is_reported_at_once(tmp_path):
+    text = (SCENE.replace("  thickness: 10.0\n", "  thickness: 10.0\n  size: [40.0, 20.0]\n")
+            .replace("  step: 0.2\n", "  step: 0.2\n  radius: 8.88\n  radius: 9.0\n")
+            + "loads:\n  - {segment: [[0.0, 5.0], [0.0, 15.0]], force: [1.0, 0.0], force: [2.0, 0.0]}\n"
+            + "name: again\n")
+    path = write(tmp_path, text)
+    assert refusal(path) == [
+        f"{path}: line 5: duplicate key 'size' (first given at line 3) in tissue, expected each key once",
+        (f"{path}: lines 14 and 15: duplicate key 'radius' (first given at line 10) in needle, "
+         "expected each key once"),
+        f"{path}: line 21: duplicate key 'loads' (first given at line 18), expected each key once",
+        f"{path}: line 22: duplicate key 'force' (first given at line 22) in loads[0], expected each key once",
+        f"{path}: line 23: duplicate key 'name' (first given at line 1), expected each key once",
+    ]
+
+
+def test_an_aliased_mapping_is_reported_once_where_it_is_anchored(tmp_path):
+    path = write(tmp_path, "base: &m {k: 1, k: 2}\nfirst: *m\nsecond: [*m]\n")
+    with pytest.raises(ScenarioError) as error:
+        read_yaml(path)
+    assert error.value.lines == [
+        f"{path}: line 1: duplicate key 'k' (first given at line 1) in base, expected each key once"]
+
+
+def test_the_command_lists_every_duplicate_key(tmp_path):
+    path = write(tmp_path, "name: a\n" + SCENE.replace("  step: 0.2\n", "  step: 0.2\n  radius: 9.0\n"))
+    result = CliRunner().invoke(app, ["deform", str(path), "--summary", str(tmp_path / "summary.json")])
+    assert result.exit_code == 2, result.output
+    assert result.stderr.splitlines() == [
+        f"error: {path}: line 2: duplicate key 'name' (first given at line 1), expected each key once",
+        (f"error: {path}: line 14: duplicate key 'radius' (first given at line 10) in needle, "
+         "expected each key once"),
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
+# --- the checksum of what was parsed --------------------------------------------------------
+
+
+def test_the_checksum_is_of_the_bytes_read(tmp_path):
+    path = tmp_path / "scene.yaml"
+    path.write_bytes(b"\xef\xbb\xbf" + SCENE.encode())  # a byte-order mark is part of the file
+    scenario = load_scenario(path)
+    assert scenario.source_sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert scenario.source_text == SCENE
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+def test_a_piped_scenario_is_read_once(tmp_path):
+    """A pipe gives its bytes once: the checksum must come from the read that was parsed."""
+    pipe = tmp_path / "scene.pipe"
+    os.mkfifo(pipe)
+    writer = threading.Thread(target=lambda: pipe.write_text(SCENE))
+    writer.start()
+    try:
+        scenario = load_scenario(pipe)
+    finally:
+        writer.join(timeout=10)
+    assert scenario.name == "small"
+    assert scenario.source_sha256 == hashlib.sha256(SCENE.encode()).hexdigest()
