@@ -82,6 +82,9 @@ COUNT_EXACTLY_UP_TO = 250_000
 # particles needs ~10^14 GB by the memory model below), and small enough that the cost
 # formulas stay finite floats
 COUNT_CAP = 10**15
+# runs estimated longer than this are announced by a warning line before they start (the
+# time is a guide: benchmarks/results/resource_costs.md)
+LONG_RUN_SECONDS = 600.0
 
 # from benchmarks/results/resource_costs.md (python benchmarks/resource_costs.py)
 SECONDS_PER_PARTICLE_STEP = {"deform": 2.4e-4, "insertion": 1.3e-4}  # at 1 000 particles
@@ -363,6 +366,8 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         raise error
     for item in estimates:
         log.info("resources: %s", item.describe())
+        if item.seconds > LONG_RUN_SECONDS:  # a run this long should not start in silence
+            log.warning("a long run: estimated %s; -v shows its progress", item.describe())
 
 
 @dataclass(frozen=True)

@@ -165,9 +165,14 @@ OPTION_CASES = {
     "max particles below the model": ("simulate", ["--max-particles", "20"],
                                       [["discretization.spacing: got 5 mm", "at most 20 particles"]]),
     "max particles not positive": ("deform", ["--max-particles", "0"], [["--max-particles: got 0"]]),
-    "plot step beyond the run": ("simulate", ["--plot-steps", "3,99"],
+    "plot step beyond the run": ("simulate", ["--plot", "run.png", "--plot-steps", "3,99"],
                                  [["--plot-steps: got 99, expected steps between 0 (the entry) and 9"]]),
-    "negative plot step": ("simulate", ["--plot-steps", "-1"], [["--plot-steps: got -1"]]),
+    "negative plot step": ("simulate", ["--plot", "run.png", "--plot-steps", "-1"],
+                           [["--plot-steps: got -1", "expected steps between"]]),
+    "plot steps without a plot": ("simulate", ["--plot-steps", "3"],
+                                  [["--plot-steps: got 3, expected it only with --plot PNG"]]),
+    "a plot not named .png": ("plan", ["--plot", "plan.pdf"],
+                              [["--plot: got plan.pdf, expected a file name ending in .png"]]),
 }
 
 

@@ -297,3 +297,20 @@ def test_a_line_that_cannot_be_fitted_is_a_numerical_failure(tmp_path):
     (line,) = result.stderr.splitlines()
     assert line.startswith("error: needle fit: the tissue line") and "singular" in line
     assert "Traceback" not in result.output and not (tmp_path / "needle.yaml").exists()
+
+
+def test_a_run_estimated_long_is_announced_before_it_starts(caplog):
+    """Within the limits, a run estimated past LONG_RUN_SECONDS starts with a warning line
+    (shown by default, unlike the estimates of -v); a short one starts without."""
+    from stitchplan.resources import LONG_RUN_SECONDS
+
+    scenario = load_scenario(REPOSITORY / "configs" / "needle20_entry30.yaml")
+    long_run = estimate(with_discretization(scenario, spacing=1.5, dilation=10.0), "insertion", "simulate")
+    short_run = estimate(scenario, "insertion", "simulate")
+    assert long_run.seconds > LONG_RUN_SECONDS > short_run.seconds
+    with caplog.at_level("WARNING", logger="stitchplan"):
+        check_resources([short_run], memory=math.inf)
+        assert not caplog.records
+        check_resources([long_run], memory=math.inf)
+    assert [record.levelname for record in caplog.records] == ["WARNING"]
+    assert caplog.records[0].getMessage().startswith("a long run: estimated simulate: ")

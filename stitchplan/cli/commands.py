@@ -116,9 +116,13 @@ def simulate(
 
     Thesis Algorithm 1. With --center-path the centre follows a trajectory instead (replay).
     """
+    from ..errors import InputError
+
     _setup_logging(verbose, quiet)
     _check_outputs({"--out": out, "--summary": summary, "--plot": plot},
                    {"SCENARIO": scenario_path, "--center-path": center_path})
+    if plot_steps is not None and plot is None:
+        raise InputError(f"--plot-steps: got {plot_steps}, expected it only with --plot PNG")
     steps_to_plot = _parse_steps(plot_steps)
     scenario = _load(scenario_path, spacing, dilation)
     provenance = _provenance(scenario_path, scenario)

@@ -72,10 +72,20 @@ def _load(scenario_path: Path, spacing: Optional[float], dilation: Optional[floa
 
 def _check_outputs(outputs: dict[str, Optional[Path]], inputs: Optional[dict[str, Optional[Path]]] = None) -> None:
     """Fail before any work if an output cannot be written or is the same file as another
-    output or an input: `{option: path}` each (None: not given)."""
+    output or an input: `{option: path}` each (None: not given). A figure option's file
+    must be named .png: the figures are PNG, and other bytes under .pdf or .svg would
+    mislead whatever opens them."""
+    from ..errors import InputError
     from ..io.files import check_outputs
 
+    for option in PNG_OPTIONS:
+        path = outputs.get(option)
+        if path is not None and path.suffix.lower() != ".png":
+            raise InputError(f"{option}: got {path}, expected a file name ending in .png (the figures are PNG)")
     check_outputs(outputs, inputs)
+
+
+PNG_OPTIONS = ("--plot", "--uncertainty-plot")
 
 
 def _provenance(scenario_path: Optional[Path] = None, scenario=None) -> dict:

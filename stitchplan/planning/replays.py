@@ -211,7 +211,7 @@ def replays_for(scenario: Scenario, background: bool = True, **options):
         except OSError as error:  # no process to be had (fork refused): replay here
             log.info("replays: no helper process (%s); replaying in this process", error)
     replays = replays or InlineReplays(scenario, **options)
-    log.info("replays at spacing %.4g mm: in the %s", scenario.discretization.spacing, replays.where)
+    log.info("replays at spacing %.4g mm run in: %s", scenario.discretization.spacing, replays.where)
     try:
         yield replays
     finally:
