@@ -19,15 +19,31 @@ failure, not a lost run; anything else escaping a task is a bug and is raised he
 
 Worker processes of a local cluster run with BLAS at one thread (OMP/OpenBLAS/MKL
 variables), so N workers use N cores, and the sparse solves give the same numbers in every
-process. Dask's own log lines are kept off the console (errors only).
+process.
+
+What the user gives is checked before any work (`check_workers`): a worker count from 0 to
+MAX_WORKERS_PER_CORE x the cores this process may use (more only queue for the same cores and
+each costs a process), and a scheduler address SCHEME://HOST:PORT with a scheme of
+distributed's comm layer that reaches another process (tcp, tls, ws, wss). Reaching the
+scheduler is bounded by CONNECT_TIMEOUT_S: an address where nothing listens, a server that
+never answers and one that answers something else than Dask's protocol each end as one
+InputError naming --scheduler, never as a hang or a traceback.
+
+Dask's log records stay off the console: in this process, while an executor runs, they go
+to this module's logger at DEBUG (shown with -vv); the worker processes of a local cluster
+drop them (`dask_setup`, run in each worker as a preload), so the heartbeat errors of a
+normal shutdown never reach the user. What fails for real ends as the package's own error:
+InputError when the cluster cannot be reached or started, ClusterFailure when it loses tasks.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import logging
 import os
-from collections.abc import Callable, Iterable, Sequence
+import re
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -55,24 +71,101 @@ RUN_FAILURES = (
 SINGLE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 DASK_LOGGERS = ("distributed", "dask", "tornado", "bokeh")
 RETRIES = 2  # a lost worker's tasks run again elsewhere, at most this many times
+MAX_WORKERS_PER_CORE = 4  # --workers at most this many times the cores this process may use
+CONNECT_TIMEOUT_S = 5.0  # reaching a --scheduler and hearing its answer, at most this long
+# distributed's comm schemes that reach a scheduler in another process (inproc:// is in-process
+# only; ucx:// has left distributed for distributed-ucxx)
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss")
+SCHEDULER_EXPECTED = ("a Dask scheduler address SCHEME://HOST:PORT with SCHEME tcp, tls, ws or wss and PORT "
+                      "from 1 to 65535, such as tcp://127.0.0.1:8786")
+_HOST_NAME = re.compile(r"[A-Za-z0-9_]([A-Za-z0-9_.-]*[A-Za-z0-9_])?")  # a host name or an IPv4 address
+
+
+class ClusterFailure(StitchplanError):
+    """The Dask cluster lost tasks (a worker killed again and again, the scheduler gone)."""
+
+    exit_code = 1
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity, which taskset and containers narrow)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
 
 
 def default_workers() -> int:
-    return os.cpu_count() or 1
+    return usable_cores()
+
+
+def max_workers() -> int:
+    """The largest --workers: MAX_WORKERS_PER_CORE x the usable cores. Beyond it the workers
+    only queue for the same cores while each costs a process and its memory."""
+    return MAX_WORKERS_PER_CORE * usable_cores()
 
 
 def check_workers(workers: int | None, scheduler: str | None) -> None:
-    """--workers and --scheduler as given: a worker count >= 0, an address with a scheme."""
-    if workers is not None and workers < 0:
-        raise InputError(f"--workers: got {workers}, expected a number of worker processes >= 0 "
-                         "(0: run in this process)")
+    """--workers and --scheduler as given: a worker count from 0 to `max_workers()`, or a
+    well-formed scheduler address (`check_scheduler_address`), not both."""
+    if workers is not None and not 0 <= workers <= max_workers():
+        cores = usable_cores()
+        raise InputError(f"--workers: got {workers}, expected a number of worker processes from 0 to "
+                         f"{max_workers()} (at most {MAX_WORKERS_PER_CORE} x the {cores} CPU "
+                         f"core{'s' if cores > 1 else ''} this process may use; 0: run in this process)")
     if scheduler is not None:
         if workers is not None:
             raise InputError(f"--workers: got {workers} with --scheduler {scheduler}, expected one of the "
                              "two (the cluster at --scheduler has its own workers)")
-        if "://" not in scheduler or scheduler.endswith("://"):
-            raise InputError(f"--scheduler: got {scheduler!r}, expected a Dask scheduler address such as "
-                             "tcp://127.0.0.1:8786")
+        check_scheduler_address(scheduler)
+
+
+def check_scheduler_address(address: str) -> tuple[str, int]:
+    """SCHEME://HOST:PORT as distributed's comm layer reads it (distributed.comm.addressing:
+    parse_address, parse_host_port), checked here so that a malformed address is an InputError
+    before any work: a scheme of SCHEDULER_SCHEMES, a host name, IPv4 address or bracketed IPv6
+    address, a port from 1 to 65535, nothing else. Returns (host, port)."""
+    try:
+        return _host_port(address)
+    except ValueError as problem:
+        raise InputError(f"--scheduler: got {address!r}, expected {SCHEDULER_EXPECTED} ({problem})") from None
+
+
+def _host_port(address: str) -> tuple[str, int]:
+    """(host, port) of SCHEME://HOST:PORT; a ValueError saying what is wrong otherwise."""
+    scheme, sep, location = address.partition("://")
+    if not sep:
+        raise ValueError("no scheme")
+    if scheme not in SCHEDULER_SCHEMES:
+        raise ValueError(f"unknown scheme {scheme!r}")
+    if location.startswith("["):  # IPv6: [addr]:port
+        host, bracket, tail = location[1:].partition("]")
+        if not bracket:
+            raise ValueError("no ']' after the IPv6 host")
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            raise ValueError(f"{host!r} is not an IPv6 address") from None
+        if not tail:
+            raise ValueError("no port")
+        if not tail.startswith(":"):
+            raise ValueError(f"{tail!r} after the host, expected :PORT")
+        port = tail[1:]
+    else:
+        host, colon, port = location.rpartition(":")
+        if not colon:
+            raise ValueError("no port" if location else "no host")
+        if ":" in host:
+            raise ValueError("an IPv6 host needs brackets, such as tcp://[::1]:8786")
+        if not host:
+            raise ValueError("no host")
+        if not _HOST_NAME.fullmatch(host):
+            raise ValueError(f"host {host!r} is not a host name or an IP address")
+    if not (port.isascii() and port.isdigit()):
+        raise ValueError(f"port {port!r} is not a number" if port else "no port")
+    if not 1 <= int(port) <= 65535:
+        raise ValueError(f"port {int(port)} is out of range")
+    return host, int(port)
 
 
 class Executor:
@@ -98,25 +191,48 @@ class Executor:
     def __enter__(self) -> Executor:
         if self.scheduler is None and not self.workers:
             return self
-        _quiet_dask()
         try:
-            from dask.distributed import Client, LocalCluster
+            import distributed  # noqa: F401
         except ImportError as error:  # pragma: no cover - a dependency of the package
             raise InputError(f"--workers: Dask is not installed ({error}); expected "
                              "`pip install 'dask[distributed]'` or --workers 0") from None
+        self._stack.enter_context(dask_logs_to_package())  # closed last: after the cluster
         try:
-            if self.scheduler is not None:
-                self.client = self._stack.enter_context(Client(self.scheduler, timeout="10s"))
-            else:
-                cluster = self._stack.enter_context(LocalCluster(
-                    n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                    silence_logs=logging.ERROR, env=SINGLE_THREAD))
-                self.client = self._stack.enter_context(Client(cluster))
-        except OSError as error:  # no scheduler at the address, or it did not answer
+            self.client = self._connect() if self.scheduler is not None else self._start_local_cluster()
+        except BaseException:
             self._stack.close()
-            raise InputError(f"--scheduler: cannot connect to {self.scheduler} ({error}); expected a "
-                             "running `dask scheduler`") from None
+            raise
         return self
+
+    def _connect(self):
+        """A client of the cluster at --scheduler, once it has answered as a Dask scheduler."""
+        from dask.distributed import Client
+
+        probe_scheduler(self.scheduler)
+        try:
+            return self._stack.enter_context(Client(self.scheduler, timeout=CONNECT_TIMEOUT_S))
+        except Exception as error:  # noqa: BLE001 -- it answered the probe, then failed: gone, or not ours
+            raise InputError(f"--scheduler: cannot connect to {self.scheduler} ({_brief(error)}); expected "
+                             "the address of a running `dask scheduler`") from None
+
+    def _start_local_cluster(self):
+        import dask
+        from dask.distributed import Client, LocalCluster
+
+        configured = dask.config.get("distributed.worker.preload", default=None) or []
+        preload = [*([configured] if isinstance(configured, str) else configured), __name__]  # its dask_setup
+        try:
+            # no dashboard; the scheduler's HTTP routes (health, metrics) on a free local port, not
+            # on 8787, where another cluster would make distributed warn on stderr
+            cluster = self._stack.enter_context(LocalCluster(
+                n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, silence_logs=logging.ERROR,
+                env=SINGLE_THREAD, preload=preload))
+            return self._stack.enter_context(Client(cluster))
+        except Exception as error:  # noqa: BLE001 -- a machine that cannot start them (memory, file limits)
+            raise InputError(f"--workers: cannot start a local Dask cluster of {self.workers} worker "
+                             f"processes ({_brief(error)}); expected fewer --workers, or --workers 0 "
+                             "to run in this process") from None
 
     def __exit__(self, *exc) -> None:
         with contextlib.suppress(Exception):  # closing a cluster must not hide the run's error
@@ -137,14 +253,20 @@ class Executor:
                 results.append(function(*args))
                 report(index, results[-1])
             return results
+        from concurrent.futures import CancelledError
+
         from dask.distributed import as_completed
+        from distributed.scheduler import KilledWorker
 
         futures = self.client.map(function, *[list(column) for column in zip(*calls)],
                                   pure=False, retries=RETRIES)
         index_of = {future.key: index for index, future in enumerate(futures)}
-        for future in as_completed(futures):
-            report(index_of[future.key], future.result())  # a task's bug is raised here
-        return [future.result() for future in futures]
+        try:
+            for future in as_completed(futures):
+                report(index_of[future.key], future.result())  # a task's bug is raised here
+            return [future.result() for future in futures]
+        except (KilledWorker, CancelledError) as error:  # the cluster's failure, not the task's
+            raise ClusterFailure(f"{self.where} lost a task: {_brief(error)}") from None
 
 
 def run_all(function: Callable[..., Any], *arguments: Iterable[Any], executor: Executor | None = None,
@@ -153,7 +275,119 @@ def run_all(function: Callable[..., Any], *arguments: Iterable[Any], executor: E
     return (executor or Executor(workers=0)).map(function, *[list(a) for a in arguments], on_result=on_result)
 
 
-def _quiet_dask() -> None:
-    """Dask's log lines (cluster start, worker restarts, closing) stay off the console."""
-    for name in DASK_LOGGERS:
-        logging.getLogger(name).setLevel(logging.ERROR)
+# --- reaching a scheduler ---------------------------------------------------------------------
+
+
+def probe_scheduler(address: str, timeout: float | None = None) -> None:
+    """Connect to `address` and ask who is there (distributed's `identity` message), within
+    `timeout` seconds (CONNECT_TIMEOUT_S) in all: an InputError naming --scheduler unless a
+    Dask scheduler answers. distributed.Client bounds the connection itself by its `timeout`
+    but not the handshake that follows, which a server that never answers holds forever."""
+    import asyncio
+
+    from distributed.comm import connect
+    from distributed.security import Security
+
+    timeout = CONNECT_TIMEOUT_S if timeout is None else timeout
+    expected = "expected the address of a running `dask scheduler`"
+
+    connecting = 0.8 * timeout  # the rest of the deadline is for the handshake and the answer
+
+    async def identity() -> Any:
+        # distributed's connect() retries for its `timeout`, then raises a plain OSError
+        comm = await connect(address, timeout=connecting, **Security().get_connection_args("client"))
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(identity(), timeout))
+    except TimeoutError:  # the deadline (asyncio.TimeoutError is TimeoutError)
+        raise InputError(f"--scheduler: no answer from {address} within {timeout:g} s; {expected}") from None
+    except Exception as error:  # noqa: BLE001 -- whatever a server that is not a scheduler makes of it
+        if type(error) is OSError:  # connect() gave up: nothing listening, or the host unreachable
+            why = _why_unreachable(address, timeout - connecting) or _brief(_last_cause(error))
+            raise InputError(f"--scheduler: cannot connect to {address} within {connecting:g} s ({why}); "
+                             f"{expected}") from None
+        raise InputError(f"--scheduler: {address} does not answer as a Dask scheduler (its reply could "
+                         f"not be read: {_brief(error)}); {expected}") from None
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if kind != "Scheduler":
+        what = f"a Dask {kind}" if isinstance(kind, str) else f"a reply of type {type(reply).__name__}"
+        raise InputError(f"--scheduler: {address} answers as {what}, not a scheduler; {expected}")
+
+
+def _why_unreachable(address: str, timeout: float) -> str | None:
+    """Why a TCP connection to the address fails (refused, unknown host, timed out), from one
+    plain attempt; None if it succeeds. distributed's connect() keeps only its last attempt's
+    error, often a timeout of an attempt cut short by its deadline."""
+    import socket
+
+    try:
+        with socket.create_connection(check_scheduler_address(address), timeout=max(timeout, 0.1)):
+            return None
+    except OSError as error:
+        return _brief(error)
+
+
+def _last_cause(error: BaseException) -> BaseException:
+    """The error at the bottom of `error`'s chain of causes (the refused connection, the
+    unknown host), not distributed's wrappers of it."""
+    while error.__cause__ is not None:
+        error = error.__cause__
+    return error
+
+
+def _brief(error: BaseException) -> str:
+    """`Type: the message on one line`, short enough for the one error line (without the
+    `in <distributed.comm...>: ` that distributed puts before the message it wraps)."""
+    text = re.sub(r"^in <[^>]*>: ", "", " ".join(str(error).split()))
+    text = f"{type(error).__name__}: {text}" if text else type(error).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+# --- Dask's log records ------------------------------------------------------------------------
+
+
+class _ToPackageLog(logging.Handler):
+    """Hands Dask's records to this module's logger at DEBUG, named after their origin."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if log.isEnabledFor(logging.DEBUG):
+            try:
+                log.debug("%s %s: %s", record.name, record.levelname, record.getMessage(),
+                          exc_info=record.exc_info)
+            except Exception:  # noqa: BLE001 -- a malformed record of theirs must not end the run
+                self.handleError(record)
+
+
+@contextlib.contextmanager
+def dask_logs_to_package() -> Iterator[None]:
+    """While it is open, the log records of Dask and the libraries under it in this process
+    (DASK_LOGGERS and their children) go to this module's logger at DEBUG instead of the
+    stderr handlers distributed installs at import; everything is put back afterwards."""
+    names = {name for name in list(logging.root.manager.loggerDict) if name.split(".")[0] in DASK_LOGGERS}
+    loggers = [logging.getLogger(name) for name in sorted(names | set(DASK_LOGGERS))]
+    saved = [(logger, list(logger.handlers), logger.propagate) for logger in loggers]
+    forward = _ToPackageLog()
+    try:
+        for logger in loggers:
+            logger.handlers = [forward] if logger.name in DASK_LOGGERS else []
+            logger.propagate = logger.name not in DASK_LOGGERS  # children to their top, tops nowhere
+        yield
+    finally:
+        for logger, handlers, propagate in saved:
+            logger.handlers = handlers
+            logger.propagate = propagate
+
+
+def dask_setup(worker: Any) -> None:
+    """Run in each worker process of a local cluster when it starts (a Dask preload): its
+    Dask records are dropped. Its stderr is the user's terminal, distributed's silence_logs
+    lets ERROR through and is undone while the worker closes, when the heartbeat to a
+    scheduler that has closed first fails; a task's own failure reaches the client anyway."""
+    names = {name for name in list(logging.root.manager.loggerDict) if name.split(".")[0] in DASK_LOGGERS}
+    for name in names | set(DASK_LOGGERS):
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)

@@ -83,3 +83,25 @@ def test_shipped_calibration_input_validates():
     assert [e.name for e in spec.experiments] == ["left-edge pull", "top-edge press"]
     tissue = spec.tissue.tissue(Material())
     assert tissue.clamped == ("right",) and tissue.size == (100.0, 60.0)
+
+
+def test_an_experiment_whose_loads_are_all_zero_is_refused():
+    """Markers that stay put whatever the moduli carry nothing to fit (the fit used to
+    report lambda/mu = 1 as determined)."""
+    raw = calibration_raw()
+    raw["experiments"][0]["loads"] = [{"segment": [[0.0, 24.0], [0.0, 36.0]], "force": [0.0, 0.0]},
+                                      {"segment": [[40.0, 60.0], [60.0, 60.0]], "displacement": [0.0, 0.0]}]
+    with pytest.raises(InputError, match=r"^experiments\[0\].loads: got only zero loads, expected a non-zero "
+                                         r"force or displacement"):
+        parse_calibration(raw)
+
+
+def test_a_marker_given_twice_is_refused_naming_both_lines(tmp_path):
+    """A repeated row would weigh that marker twice in the least squares."""
+    raw = calibration_raw()
+    (tmp_path / "markers.csv").write_text("x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n10,10,10.4,10\n")
+    path = tmp_path / "calib.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(InputError, match=r"experiments\[0\].markers: .*markers.csv line 4: rest position \(10, 10\) "
+                                         r"mm again \(first at line 2\), expected each marker once"):
+        load_material_calibration(path)

@@ -21,6 +21,7 @@ from stitchplan.config import (
     load_scenario,
     scenario_schema,
 )
+from stitchplan.config.scenario import parse_scenario
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
 TOP_LEVEL = ["name", "tissue", "discretization", "needle", "loads", "load_steps", "probes", "solver",
@@ -172,3 +173,16 @@ def test_jsonschema_agrees_when_installed(schema, slab_raw):
     slab_raw["tissue"]["colour"] = "red"
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(slab_raw, schema)
+
+
+def test_a_study_block_the_tool_accepts_satisfies_the_schema(schema, slab_raw):
+    """Families and the reference may go without a name (the tool names them) and give one
+    spacing as a number: the schema said `name` was required and `spacing` a list."""
+    raw = copy.deepcopy(slab_raw)
+    raw["needle"] = {"radius": 8.88, "entry": [0.0, 30.0], "turn": "cw", "step": 0.1}
+    raw["study"] = {"spacing": [3.0, 2.0], "families": [{"grading": 2}, {"spacing": 4.0, "dilation": 1.5}],
+                    "reference": {"grading": 4, "spacing": 0.5}}
+    scenario = parse_scenario(raw)
+    assert [f.name for f in scenario.study.families] == ["family 1", "family 2"]
+    assert scenario.study.families[1].spacing == (4.0,) and scenario.study.reference.name == "reference"
+    assert problems(schema, schema, raw) == []

@@ -539,3 +539,15 @@ def test_a_scenario_read_from_a_pipe_records_the_checksum_of_what_was_parsed(tmp
     assert result.exit_code == 0, result.output
     record = json.loads(summary.read_text())
     assert record["scenario_sha256"] == hashlib.sha256(scene.read_bytes()).hexdigest()
+
+
+def test_json_outputs_are_strict_json_with_null_for_numbers_that_are_not_finite(tmp_path):
+    path = tmp_path / "summary.json"
+    files.write_json(path, {"a": float("nan"), "b": [1.0, float("inf")], "c": np.array([np.nan, 2.0]),
+                            "d": {"e": np.float64(-np.inf)}, "f": 3})
+
+    def refuse(constant):
+        raise ValueError(constant)
+
+    assert json.loads(path.read_text(), parse_constant=refuse) == {"a": None, "b": [1.0, None], "c": [None, 2.0],
+                                                                     "d": {"e": None}, "f": 3}

@@ -323,3 +323,14 @@ def test_an_accuracy_is_resolved_once_before_the_run():
     assert first.exit_error_mm == second.exit_error_mm
     # an explicit spacing switches the auto discretization off
     assert with_discretization(scenario, spacing=5.0).discretization.accuracy is None
+
+
+@pytest.mark.parametrize("reference", [10.0, 5.0])
+def test_a_reference_not_finer_than_the_sweep_is_refused(reference):
+    """The runs' deviations are measured from the reference: one coarser than (or as coarse
+    as) a swept spacing would rank the runs against a worse answer."""
+    scenario = parse_scenario(tiny_raw({"spacing": [6.0, 5.0], "families": [{"name": "uniform"}],
+                                        "reference": {"spacing": reference}}))
+    with pytest.raises(ScenarioError, match=rf"study.reference.spacing: got {reference:g} mm, expected less "
+                                            r"than the finest spacing of the sweep, 5 mm"):
+        plan_runs(scenario)

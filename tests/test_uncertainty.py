@@ -22,7 +22,7 @@ from test_plan_cli import invoke, one_error_line, small_raw, write
 
 from stitchplan.config import parse_scenario
 from stitchplan.config.uncertainty import load_uncertainty, parse_uncertainty, resolve_uncertainty
-from stitchplan.errors import SolverDivergence
+from stitchplan.errors import InputError, SolverDivergence
 from stitchplan.parallel import Executor
 from stitchplan.uncertainty import evaluation
 from stitchplan.uncertainty.evaluation import run_sample
@@ -387,3 +387,153 @@ def test_mean_shift_significance_is_hotellings_t2():
     assert shift_significance(noise + 2.0) > CHI2_95_2D
     expected = 16 * np.array([2.0, 2.0]) @ np.linalg.inv(np.cov((noise + 2.0).T)) @ np.array([2.0, 2.0])
     assert shift_significance(noise + 2.0) == pytest.approx(expected)
+
+
+# --- failed runs, small samples, absurd stds, material regions ----------------------------------
+
+
+def _failing_on(monkeypatch, thicknesses) -> None:
+    """run_insertion raising SolverDivergence on the scenarios whose thickness is one of
+    `thicknesses` (the sampled parameter sets: the nominal plan and the probes stay)."""
+    real = evaluation.run_insertion
+    doomed = {float(t) for t in np.ravel(thicknesses)}
+
+    def failing(scenario, **options):
+        if scenario.tissue.thickness in doomed:
+            raise SolverDivergence("Newton diverged at needle step 2 (needle rotation 0.600 rad)")
+        return real(scenario, **options)
+
+    monkeypatch.setattr(evaluation, "run_insertion", failing)
+
+
+def _thickness_only(samples: int = 3) -> dict:
+    return {"samples": samples, "seed": 3, "parameters": {"thickness": {"std": 1.0}}}
+
+
+def _strict_json(path: Path) -> dict:
+    """The file as JSON that has no Infinity or NaN (json.loads accepts them by default)."""
+    def refuse(constant):
+        raise AssertionError(f"{path} holds {constant}: not JSON")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def test_the_uncertainty_plot_without_an_evaluated_held_out_sample(tmp_path, monkeypatch):
+    """Every held-out run fails, the training runs succeed: the command ends normally, the
+    held-out statistics are null, and uncertainty.png says that no held-out sample ran."""
+    from stitchplan.io.uncertainty_reports import plot_title
+
+    scenario_path = write(tmp_path, small_raw())
+    path = write(tmp_path, _thickness_only(), "u.yaml")
+    design = draw(load_uncertainty(path), parse_scenario(small_raw()))
+    _failing_on(monkeypatch, design.held_out)
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
+                    tmp_path / "s.json", "--uncertainty-plot", tmp_path / "u.png", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    assert "Traceback" not in result.output
+    block = _strict_json(tmp_path / "s.json")["uncertainty"]
+    assert block["evaluated_samples"] == 0 and block["failed_samples"] == 3
+    assert block["training"]["failed"] == 0
+    assert all(block[label]["p95_mm"] is None for label in LABELS)
+    assert plt_image(tmp_path / "u.png").std() > 0.05
+    local = plan_under_uncertainty(parse_scenario(small_raw()), load_uncertainty(path), Executor(workers=0))
+    assert "no held-out sample ran every path (3 samples with a failed run)" in plot_title(local, "s")
+
+
+def test_every_sampled_run_failing_is_a_numerical_failure_and_writes_nothing(tmp_path, monkeypatch):
+    scenario_path = write(tmp_path, small_raw())
+    path = write(tmp_path, _thickness_only(), "u.yaml")
+    design = draw(load_uncertainty(path), parse_scenario(small_raw()))
+    _failing_on(monkeypatch, np.vstack([design.train, design.held_out]))
+    out = tmp_path / "out"
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", out / "t.csv", "--summary",
+                    out / "s.json", "--uncertainty-plot", out / "u.png", "--workers", "0")
+    line = one_error_line(result, code=1)
+    assert "all 9 sampled runs failed (3 training, 6 held-out)" in line, line
+    assert "training sample 0 (nominal path): SolverDivergence: Newton diverged at needle step 2" in line, line
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_std_above_the_scenarios_value_is_refused_up_front(tmp_path):
+    """std 1e300 on a 0.7 N cutting force: most of the normal lies below 0 and the rest
+    overflows the model; refused before any run, naming the file, the field and the bound."""
+    scenario_path = write(tmp_path, small_raw())  # cutting force 0.7 N
+    path = write(tmp_path, {"samples": 3, "parameters": {"cutting_force": {"std": 1e300}}}, "u.yaml")
+    out = tmp_path / "out"
+    line = one_error_line(invoke("plan", scenario_path, "--uncertainty", path, "--export", out / "t.csv",
+                                 "--workers", "0"))
+    assert line.startswith(f"error: {path}: parameters.cutting_force.std: got 1e+300, expected at most the "
+                           f"scenario's value 0.7 N ({scenario_path}: needle.cutting_force)"), line
+    assert not out.exists()
+
+
+def test_two_training_samples_do_not_test_the_mean_shift(tmp_path):
+    """With 2 training runs the deviations' covariance is singular: T^2 is not defined, the
+    summary says null (valid JSON, no Infinity) with a note, and the nominal plan is not re-aimed."""
+    scenario_path = write(tmp_path, small_raw())
+    path = write(tmp_path, {**_thickness_only(samples=2), "parameters": {"thickness": {"std": 1.0},
+                                                                         "cutting_force": {"std": 0.1}}}, "u.yaml")
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
+                    tmp_path / "s.json", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    block = _strict_json(tmp_path / "s.json")["uncertainty"]
+    assert block["mean_shift_t2"] is None and block["mean_shift_t2_threshold"] is None
+    assert block["robust_aim_mm"] == [0.0, 0.0] and block["robust"] == block["nominal"]
+    assert any("Hotelling's T^2 needs at least 3" in note for note in block["notes"])
+
+
+def test_the_mean_shift_test_uses_the_small_sample_quantile_and_refuses_a_singular_covariance():
+    """The 95 % quantile of T^2 for n samples is 2 (n-1)/(n-2) F(2, n-2): 798 for 3 (the chi^2
+    value 5.99 made noise significant at a few samples), tending to 5.99; a covariance
+    without spread in a direction has no T^2."""
+    from scipy.stats import chi2
+
+    from stitchplan.uncertainty.robust import shift_significance, shift_threshold
+
+    assert shift_threshold(2) is None and shift_threshold(3) == pytest.approx(798.0)
+    assert shift_threshold(4) == pytest.approx(57.0) and shift_threshold(16) == pytest.approx(8.0119, abs=1e-4)
+    assert shift_threshold(10_000) == pytest.approx(chi2.ppf(0.95, 2), rel=1e-3)
+    # the quantile holds: about 5 % of normal samples of 4 exceed it
+    rng = np.random.default_rng(1)
+    t2 = np.array([shift_significance(rng.standard_normal((4, 2))) for _ in range(2000)])
+    assert np.mean(t2 > shift_threshold(4)) == pytest.approx(0.05, abs=0.015)
+    assert np.mean(t2 > chi2.ppf(0.95, 2)) == pytest.approx(1 / 3, abs=0.04)  # chi^2: 1 in 3 noise draws a "shift"
+    assert shift_significance(np.array([[1.0, 0.0], [2.0, 0.0]])) is None  # 2 samples
+    collinear = np.column_stack([np.arange(1.0, 6.0), 2.0 * np.arange(1.0, 6.0)])
+    assert shift_significance(collinear) is None  # no spread across the line
+    assert shift_significance(np.zeros((5, 2))) == 0.0
+
+
+def test_no_non_finite_number_reaches_the_summary_block():
+    from stitchplan.io.uncertainty_reports import finite_only
+
+    block = finite_only({"a": np.float64(np.inf), "b": [1.0, float("nan")], "c": {"d": 2}, "notes": []})
+    assert block["a"] is None and block["b"] == [1.0, None] and block["c"] == {"d": 2}
+    assert block["notes"] == ["not finite, written as null: a (inf), b[1] (nan)"]
+    json.dumps(block, allow_nan=False)
+
+
+def _with_region() -> dict:
+    raw = small_raw()
+    material = raw["tissue"]["material"]
+    raw["tissue"]["regions"] = [{"polygon": [[0.0, 0.0], [20.0, 0.0], [20.0, 20.0], [0.0, 20.0]],
+                                 "material": {**material, "lame_mu": 2.0 * material["lame_mu"]}}]
+    return raw
+
+
+def test_uncertain_moduli_on_a_scenario_with_material_regions_are_refused(tmp_path):
+    """A sample replaces tissue.material only: the regions' moduli would stay fixed and the
+    spread and sensitivity would read 0. Refused up front; thickness stays allowed."""
+    scenario_path = write(tmp_path, _with_region())
+    path = write(tmp_path, {"samples": 3, "parameters": {"lame_mu": {"std": 0.01}}}, "u.yaml")
+    out = tmp_path / "out"
+    line = one_error_line(invoke("plan", scenario_path, "--uncertainty", path, "--export", out / "t.csv",
+                                 "--workers", "0"))
+    expected = (f"error: {path}: parameters.lame_mu: got {{std: 0.01}}, expected no uncertain moduli for a "
+                f"scenario with material regions ({scenario_path} has 1 region in tissue.regions")
+    assert line.startswith(expected), line
+    assert not out.exists()
+    scenario = parse_scenario(_with_region())
+    with pytest.raises(InputError, match="expected no uncertain moduli"):
+        with_parameters(scenario, ("lame_mu",), np.array([0.2]))
+    assert with_parameters(scenario, ("thickness",), np.array([9.0])).tissue.thickness == 9.0

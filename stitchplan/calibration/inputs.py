@@ -86,6 +86,14 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
             f"({rest[k, 0]:g}, {rest[k, 1]:g}) mm, expected a point inside "
             + (f"[0, {tissue.size[0]:g}] x [0, {tissue.size[1]:g}] mm" if tissue.outline is None and not tissue.holes
                else f"the {tissue.domain.describe()}"))
+    # a marker given twice would weigh twice in the least squares
+    _, first, inverse = np.unique(rest, axis=0, return_index=True, return_inverse=True)
+    again = np.flatnonzero(first[inverse.ravel()] != np.arange(len(rest)))
+    if len(again):
+        k = again[0]
+        raise InputError(
+            f"{path}.markers: {markers_path} line {lines[k]}: rest position ({rest[k, 0]:g}, {rest[k, 1]:g}) mm "
+            f"again (first at line {lines[first[inverse.ravel()[k]]]}), expected each marker once")
     return Experiment(
         name=block.name,
         loads=block.loads,

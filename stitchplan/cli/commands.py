@@ -348,7 +348,8 @@ def study(
     from ..io.progress import progress_bar
     from ..study.sweep import plan_runs, run_study, study_size
 
-    runs, reference, repeats = plan_runs(scenario, quick)
+    with _naming_files(scenario_path):
+        runs, reference, repeats = plan_runs(scenario, quick)
     _guard(scenario_path, _limits(max_particles, no_resource_check),
            *[("insertion", run.scenario, f"study run {run.label!r}", repeats) for run in [*runs, reference]])
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:

@@ -276,20 +276,22 @@ def _check_angular_speed(speed: Optional[float]) -> None:
 
 
 
-WorkersOption = typer.Option(
-    None, "--workers", callback=_at_least(0, "a number of worker processes >= 0 (0: in this process)"),
-    metavar="N",
+WorkersOption = typer.Option(  # checked with --scheduler by stitchplan.parallel.check_workers
+    None, "--workers", metavar="N",
     help="Run the independent runs on a local Dask cluster of N single-threaded worker processes "
-    "(default: the machine's cores; 0: one after another in this process).")
+    "(default: the CPU cores this process may use; at most 4 times as many; 0: one after another in "
+    "this process).")
 SchedulerOption = typer.Option(
     None, "--scheduler", metavar="ADDRESS",
-    help="Run the independent runs on the running Dask cluster at ADDRESS (tcp://host:port) "
-    "instead of a local one.")
+    help="Run the independent runs on the running Dask cluster at ADDRESS (tcp://HOST:PORT, or tls://, "
+    "ws://, wss://) instead of a local one; a scheduler that does not answer within 5 s is an error.")
 
 
 def _executor(workers: Optional[int], scheduler: Optional[str]):
     """The executor of a command's independent runs (stitchplan.parallel.Executor), not yet
-    started; a bad --workers/--scheduler pair is an InputError before any work."""
+    started: --workers (0 to 4 x the usable cores) and the form of the --scheduler address are
+    checked here, before any work, as InputErrors; the scheduler is reached when the executor
+    starts."""
     from ..parallel import Executor
 
     return Executor(workers=workers, scheduler=scheduler)

@@ -121,6 +121,10 @@ class ExperimentBlock:
         if not clamped and all(load.displacement is None for load in loads):
             raise problem("tissue.clamped or a displacement load to hold the slab in place",
                           value=Shown("only forces on a tissue with no clamped edge"))
+        if all(not any(load.force or ()) and not any(load.displacement or ()) for load in loads):
+            # the markers then stay where they are whatever the moduli: nothing to fit
+            raise problem("a non-zero force or displacement (the markers must move for the moduli to show)",
+                          value=Shown("only zero loads"))
         return loads
 
     @model_validator(mode="after")

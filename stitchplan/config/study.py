@@ -39,9 +39,10 @@ def _as_list(value: Any) -> Any:
 class StudyFamily:
     """Method choices held fixed along a family; None keeps the scenario's choice."""
 
-    name: described(NonEmptyName, "label of the family in study.csv")
-    spacing: described(Spacings | None, "mm at the needle (one number or a list); default: the "
-                                 "study's list") = None
+    # optional in a file: the study block names a family 'family N' and the reference 'reference'
+    name: described(NonEmptyName | None, "label of the family in study.csv; default 'family N'") = None
+    spacing: described(Spacings | PositiveMM | None, "mm at the needle (one number or a list); default: the "
+                                                     "study's list") = None
     grading: described(choice(GRADINGS, "one of 2, 4, 8, 16 (coarse spacing / needle spacing)") | None,
                        "coarse spacing / needle spacing (graded particles); default uniform") = None
     dilation: described(Dilation | None, "kernel support / spacing") = None

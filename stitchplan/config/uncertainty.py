@@ -15,7 +15,8 @@ file): its `fit.standard_uncertainty` gives the std of lame_lambda and lame_mu a
 `fit.correlation` their correlation; entries of `parameters` and `correlation` given in
 this file override them. `resolve_uncertainty` gives the resolved `Uncertainty` (names,
 stds, correlation matrix), refusing a matrix that is not positive definite;
-`check_against_scenario` refuses a parameter the scenario does not have.
+`check_against_scenario` refuses a parameter the scenario does not have, a std above the
+scenario's value, and uncertain moduli on a scenario with material regions.
 """
 
 from __future__ import annotations
@@ -236,16 +237,46 @@ def scenario_values(scenario, names: tuple[str, ...]) -> np.ndarray:
 
 
 def check_against_scenario(uncertainty: Uncertainty, scenario, scenario_path: str | Path) -> None:
-    """Refuse parameters the scenario does not have (a zero friction or cutting force, no
-    needle): a normal distribution truncated to positive values around 0 is not centred on
-    the scenario, so the file must not ask for one."""
+    """Refuse what the sampled scenarios could not honour, one line each:
+
+    - a parameter the scenario does not have (a zero friction or cutting force, no needle): a
+      normal distribution truncated to positive values around 0 is not centred on the scenario;
+    - a std above the scenario's value: more than 16 % of the normal would lie at or below 0,
+      and the distribution truncated to positive values would no longer be around the
+      scenario's value (its mean moves up by more than 0.29 std; a std of 1e300 samples only
+      values that overflow the model);
+    - lame_lambda or lame_mu on a scenario with material `regions`: a sample replaces
+      tissue.material only, so the regions' moduli would stay fixed and the spread and the
+      sensitivity would leave them out (no region-wise meaning is defined)."""
     values = scenario_values(scenario, uncertainty.names)
+    regions = len(getattr(scenario.tissue, "regions", ()) or ())
     lines = []
     for name, value, std in zip(uncertainty.names, values, uncertainty.std):
+        where = {"friction": "needle", "cutting_force": "needle", "thickness": "tissue"}.get(name, "tissue.material")
+        field = parameter_field(uncertainty, name)
         if value <= 0:
-            where = {"friction": "needle", "cutting_force": "needle", "thickness": "tissue"}.get(name, "tissue.material")
-            lines.append(f"{uncertainty.path}: parameters.{name}: got {{std: {std:g}}}, expected a parameter the "
+            lines.append(f"{uncertainty.path}: {field}: got {{std: {std:g}}}, expected a parameter the "
                          f"scenario has ({scenario_path} has {where}.{name} = {value:g}; remove it or give the "
                          "scenario a positive value)")
+        elif std > value:
+            std_field = field if uncertainty.sources.get(name) == "calibration" else f"{field}.std"
+            lines.append(f"{uncertainty.path}: {std_field}: got {std:g}, expected at most the scenario's value "
+                         f"{value:g} {UNITS[name]} ({scenario_path}: {where}.{name}): a larger std puts more than "
+                         "16 % of the normal at or below 0, and truncated to positive values it is no longer "
+                         "centred on the scenario's value")
+        if name in ("lame_lambda", "lame_mu") and regions:
+            counted = f"{regions} region{'s' * (regions > 1)}"
+            lines.append(f"{uncertainty.path}: {field}: got {{std: {std:g}}}, expected no uncertain moduli for a "
+                         f"scenario with material regions ({scenario_path} has {counted} in tissue.regions, whose "
+                         f"moduli the uncertainty would not reach: only tissue.material.{name} would vary; remove "
+                         f"{name} from the uncertainty or the regions from the scenario)")
     if lines:
         raise input_error(lines)
+
+
+def parameter_field(uncertainty: Uncertainty, name: str) -> str:
+    """Where the uncertainty file gives parameter `name`: `parameters.<name>`, or
+    `from_calibration: <file>: fit.standard_uncertainty.<name>` for the calibration's."""
+    if uncertainty.sources.get(name) == "calibration":
+        return f"from_calibration: {uncertainty.calibration}: fit.standard_uncertainty.{name}"
+    return f"parameters.{name}"

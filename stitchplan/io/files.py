@@ -24,6 +24,7 @@ import errno
 import hashlib
 import io
 import json
+import math
 import os
 import shutil
 import stat
@@ -364,7 +365,19 @@ def _plain(value: Any) -> Any:
 
 
 def write_json(path: PathLike, data: dict) -> None:
-    write_text(path, json.dumps(_plain(data), indent=2) + "\n")
+    """JSON as the standard has it: a number that is not finite (not available, or failed)
+    is written null, not as the NaN or Infinity that strict parsers refuse."""
+    write_text(path, json.dumps(_finite(_plain(data)), indent=2, allow_nan=False) + "\n")
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
 
 
 def write_yaml(path: PathLike, data: dict, header: str = "") -> None:

@@ -5,6 +5,7 @@ ellipses, and the sensitivities). The plan's own files are io.reports' (the expo
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +55,8 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "robust_design": ROBUST_DESIGN,
         "mean_shift_mm": _vector(result.shift),
         "robust_aim_mm": _vector(result.aim),
-        "mean_shift_t2": result.shift_significance,  # Hotelling T^2; the robust plan re-aims above 5.99
+        "mean_shift_t2": result.shift_significance,  # Hotelling T^2; None: not defined (< 3 runs, singular)
+        "mean_shift_t2_threshold": result.shift_threshold,  # its 95 % quantile; the robust plan re-aims above
         "training_prediction": result.training_prediction(),
         "training": {"samples": len(result.training), "failed": len(result.training) - len(training_ok),
                      "nominal_path": exit_statistics(np.array([run.exit_error for run in training_ok]))},
@@ -74,7 +76,28 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "sample_wall_seconds_mean": _mean_wall(result),
         "notes": list(result.notes),
     }
-    return {"uncertainty": block}
+    return {"uncertainty": finite_only(block)}
+
+
+def finite_only(block: dict) -> dict:
+    """The block with every non-finite number (inf, nan: no JSON value) written as null and
+    named in a note, so that summary.json stays valid JSON and nothing is dropped silently."""
+    replaced: list[str] = []
+
+    def clean(value, where: str):
+        if isinstance(value, dict):
+            return {key: clean(item, f"{where}.{key}" if where else str(key)) for key, item in value.items()}
+        if isinstance(value, (list, tuple, np.ndarray)):
+            return [clean(item, f"{where}[{k}]") for k, item in enumerate(value)]
+        if isinstance(value, (float, np.floating)) and not math.isfinite(value):
+            replaced.append(f"{where} ({float(value)})")
+            return None
+        return value.item() if isinstance(value, np.generic) else value
+
+    cleaned = clean(block, "")
+    if replaced:
+        cleaned["notes"].append("not finite, written as null: " + ", ".join(replaced))
+    return cleaned
 
 
 def _mean_wall(result: UncertaintyResult) -> float | None:
@@ -134,6 +157,20 @@ def uncertainty_lines(result: UncertaintyResult) -> list[str]:
     return lines + [f"note: {note}" for note in result.notes]
 
 
+def plot_title(result: UncertaintyResult, scenario_name: str = "") -> str:
+    """The figure's title: the held-out samples evaluated and the p95 misses, or why there
+    are none (no held-out sample ran every path)."""
+    stats = result.statistics
+    exported, unplanned = stats[result.exported]["p95_mm"], stats["unplanned"]["p95_mm"]
+    evaluated = int(result.evaluated.sum())
+    name = scenario_name or "scenario"
+    if exported is None or unplanned is None:
+        return (f"{name}: no held-out sample ran every path ({result.failed_samples} samples with a failed run); "
+                f"{result.exported} plan exported")
+    return (f"{name}: exit error on {evaluated} held-out samples; {result.exported} plan p95 {exported:.3g} mm, "
+            f"unplanned {unplanned:.3g} mm")
+
+
 def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name: str = ""):
     """uncertainty.png: (a) the exit error vectors of the three paths on the held-out samples,
     the desired exit at the origin, with 95 % ellipses; (b) the same for the two plans,
@@ -157,6 +194,10 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
                 ax.plot(curve[:, 0], curve[:, 1], color=COLOURS[label], lw=1.2,
                         label=f"{label} 95 % ellipse")
         ax.plot([0.0], [0.0], marker="*", color="k", markersize=12, linestyle="none", label="desired exit")
+        if not result.evaluated.any():  # nothing to scatter: say so instead of an empty, arbitrary scale
+            ax.set_xlim(-1.0, 1.0)
+            ax.set_ylim(-1.0, 1.0)
+            ax.text(0.5, 0.6, "no held-out sample ran every path", transform=ax.transAxes, ha="center", fontsize=9)
         ax.axhline(0.0, color="0.85", lw=0.6, zorder=0)
         ax.axvline(0.0, color="0.85", lw=0.6, zorder=0)
         ax.margins(0.15)  # x and y scaled separately: the exits lie along the deformed edge
@@ -167,7 +208,8 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
         ax.set_title(title, fontsize=9)
     ax = axes[2]
     names = [s.name for s in result.sensitivities]
-    moves = [0.0 if s.exit_error is None else Z_95 * s.spread_mm for s in result.sensitivities]
+    moves = [Z_95 * s.spread_mm if s.exit_error is not None and math.isfinite(s.spread_mm) else 0.0
+             for s in result.sensitivities]
     bars = ax.barh(names, moves, color="0.45")
     for bar, s in zip(bars, result.sensitivities):
         text = "failed" if s.exit_error is None else (f"{np.linalg.norm(s.exit_error):.3g} {per_unit(s.name)}"
@@ -178,11 +220,7 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
     ax.set_xlabel("95 % exit move from the parameter alone (mm)")
     ax.set_title("sensitivity of the exit (nominal path)", fontsize=9)
     fig.subplots_adjust(wspace=0.5)
-    stats = result.statistics
-    exported = stats[result.exported]
-    title_above(fig, list(axes), f"{scenario_name or 'scenario'}: exit error on {int(result.evaluated.sum())} held-out "
-                                 f"samples; {result.exported} plan p95 {exported['p95_mm']:.3g} mm, unplanned "
-                                 f"{stats['unplanned']['p95_mm']:.3g} mm")
+    title_above(fig, list(axes), plot_title(result, scenario_name))
     legend_below(fig, list(axes[:2]), columns=4)
     save(fig, path)
     return fig

@@ -151,6 +151,11 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
     runs = [StudyRun(family.name, f"{family.name} h={spacing:g}", configure(scenario, family, spacing), spacing)
             for family in families for spacing in family.spacing or spacings]
     spacing = reference.spacing[0]
+    finest = min(run.spacing for run in runs)
+    if spacing >= finest:  # every deviation is measured from the reference: it must be the finest
+        raise InputError(f"study.reference.spacing: got {spacing:g} mm, expected less than the finest "
+                         f"spacing of the sweep, {finest:g} mm (the runs' deviations are measured from "
+                         "the reference)")
     reference_run = StudyRun("reference", f"reference h={spacing:g}", configure(scenario, reference, spacing),
                              spacing)
     return runs, reference_run, spec.repeats

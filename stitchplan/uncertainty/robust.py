@@ -8,12 +8,14 @@ The robust plan is the nominal plan aimed with the mean exit shift:
 2. replay the nominal plan's centre path on the training samples: exit error vectors e_i,
    deviations d_i = e_i - e_nominal (e_nominal: the nominal plan's own exit error), and
    the mean shift s = mean(d_i);
-3. unless s is within the training samples' sampling noise (Hotelling's T^2 below the 95 %
-   quantile: then the robust plan is the nominal plan, since aiming at noise adds it to
-   every exit), plan again on the scenario's values with the passes aiming the exit error at -s
-   (run_plan's `aim`, continuing the secant of the nominal passes, as plan_verified does
-   for a refined model's offset). Every path near the nominal one moves the exit alike
-   with the parameters, so that path misses sample i by about d_i - s: the cloud of exits
+3. unless s is within the training samples' sampling noise (Hotelling's T^2 below its 95 %
+   quantile for n samples, shift_threshold: then the robust plan is the nominal plan, since
+   aiming at noise adds it to every exit; with fewer than 3 successful training runs, or
+   deviations without a spread in some direction, their covariance is singular, T^2 is not
+   defined and the robust plan is the nominal plan too), plan again on the scenario's values
+   with the passes aiming the exit error at -s (run_plan's `aim`, continuing the secant of
+   the nominal passes, as plan_verified does for a refined model's offset). Every path near
+   the nominal one moves the exit alike with the parameters, so that path misses sample i by about d_i - s: the cloud of exits
    centred on the desired exit, which minimises the expected squared miss
    E|e|^2 = |mean e|^2 + trace cov e over aimed plans. (Aiming instead at the minimum of
    the training samples' mean + p95 miss was tried: with 16 samples the p95 is the
@@ -38,7 +40,9 @@ h = SENSITIVITY_STEP x std (at most half the value), the other parameters at the
 scenario's values.
 
 Every sampled run is a task on the executor (parallel.Executor); the two plans run in this
-process.
+process. When every run on a sampled parameter set fails (training and held-out), the result
+would say nothing about the uncertainty: that is a NumericalFailure naming how many failed
+and the first reason; some failed runs are recorded and counted.
 """
 
 from __future__ import annotations
@@ -48,10 +52,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import f as f_distribution
 
 from ..config import Scenario
 from ..config.uncertainty import UNITS, Uncertainty
-from ..errors import InputError
+from ..errors import InputError, NumericalFailure
 from ..parallel import Executor, run_all
 from ..planning.planner import PlanResult, exit_error_vector, run_plan
 from ..planning.verification import AIMED_TOLERANCE_FRACTION
@@ -62,6 +67,7 @@ log = logging.getLogger(__name__)
 
 SENSITIVITY_STEP = 0.5  # finite-difference step / std
 CHI2_95_2D = 5.991464547107979  # chi^2 quantile, 2 degrees of freedom, 0.95: the 95 % ellipse
+SHIFT_CONFIDENCE = 0.95  # of the test whether the mean exit shift is more than sampling noise
 Z_95 = 1.959963984540054  # two-sided 95 % of a standard normal
 LABELS = ("unplanned", "nominal", "robust")
 
@@ -119,7 +125,8 @@ class UncertaintyResult:
     notes: list[str] = field(default_factory=list)
     aim: np.ndarray | None = None  # (2,) the robust plan's aim (-shift); None: no robust plan
     deviations: np.ndarray | None = None  # (n_ok, 2) training exit errors - the nominal plan's own
-    shift_significance: float | None = None  # Hotelling T^2 of the mean shift (shift_significance)
+    shift_significance: float | None = None  # Hotelling T^2 of the mean shift; None: not tested
+    shift_threshold: float | None = None  # its 95 % quantile for the training runs (shift_threshold)
 
     def training_prediction(self) -> dict | None:
         """The training samples' miss statistics predicted for the nominal (d_i + e_nominal)
@@ -167,11 +174,14 @@ class UncertaintyResult:
     def linearised_spread_mm(self) -> float | None:
         """The 95 % half-width of the exit errors from all parameters together, linearised:
         1.96 sqrt(largest eigenvalue of J C J^T), J the sensitivities (2, k), C the
-        parameters' covariance (correlations included)."""
+        parameters' covariance (correlations included), formed as (J S) R (J S)^T with S the
+        stds and R the correlation matrix, so that no product of two stds can overflow."""
         if any(s.exit_error is None for s in self.sensitivities):
             return None
-        jacobian = np.array([s.exit_error for s in self.sensitivities]).T  # (2, k)
-        covariance = jacobian @ self.uncertainty.covariance @ jacobian.T  # (2, 2)
+        scaled = np.array([s.exit_error * s.std for s in self.sensitivities]).T  # (2, k): J S
+        covariance = scaled @ self.uncertainty.correlation @ scaled.T  # (2, 2)
+        if not np.all(np.isfinite(covariance)):
+            return None
         return float(Z_95 * np.sqrt(max(np.linalg.eigvalsh(covariance).max(), 0.0)))
 
     def dominance_line(self) -> str:
@@ -182,23 +192,38 @@ class UncertaintyResult:
         if dominant is None:
             return "exit spread: unknown (a sensitivity run failed)"
         total = self.linearised_spread_mm()
+        of_total = ("; the linearised p95 of all is unknown: a sensitivity run failed" if total is None
+                    else f" of {total:.3g} mm p95, linearised")
         p95 = self.statistics[self.exported]["p95_mm"]
         miss = "" if p95 is None else f"; held-out p95 miss {p95:.3g} mm"
-        return (f"exit spread dominated by {dominant.name} ({Z_95 * dominant.spread_mm:.3g} mm of "
-                f"{total:.3g} mm p95, linearised; std {dominant.std:g} {UNITS[dominant.name]}{miss})")
+        return (f"exit spread dominated by {dominant.name} ({Z_95 * dominant.spread_mm:.3g} mm{of_total}; "
+                f"std {dominant.std:g} {UNITS[dominant.name]}{miss})")
 
 
-def shift_significance(deviations: np.ndarray) -> float:
+def shift_significance(deviations: np.ndarray) -> float | None:
     """Hotelling's T^2 = n s^T W^-1 s of the mean s of the deviations (n, 2), W their sample
-    covariance: below the chi^2 (2 dof) 95 % quantile the mean shift cannot be told from
-    sampling noise (inf for a zero spread with a shift, 0 without one)."""
+    covariance; None where T^2 is not defined: fewer than 3 deviations, or a singular W (no
+    spread in some direction; W's rank below 2). 0 for an exact zero shift."""
+    deviations = np.asarray(deviations, dtype=float).reshape(-1, 2)
     n = len(deviations)
-    shift = deviations.mean(axis=0)
     if n < 3:
-        return float("inf") if np.any(shift) else 0.0
-    covariance = np.cov(deviations.T)
-    return float(n * shift @ np.linalg.pinv(covariance) @ shift) if np.any(covariance) else (
-        float("inf") if np.any(shift) else 0.0)
+        return None
+    shift = deviations.mean(axis=0)
+    if not np.any(shift):
+        return 0.0
+    covariance = np.cov(deviations.T)  # (2, 2)
+    if not np.all(np.isfinite(covariance)) or np.linalg.matrix_rank(covariance) < 2:
+        return None
+    return float(n * shift @ np.linalg.solve(covariance, shift))
+
+
+def shift_threshold(n: int) -> float | None:
+    """The 95 % quantile of Hotelling's T^2 for n deviations in 2 dimensions under a zero
+    mean shift: 2 (n - 1) / (n - 2) F_0.95(2, n - 2) (798 for 3, 57.0 for 4, 8.01 for 16,
+    tending to the chi^2 quantile 5.99); None below 3."""
+    if n < 3:
+        return None
+    return float(2.0 * (n - 1) / (n - 2) * f_distribution.ppf(SHIFT_CONFIDENCE, 2, n - 2))
 
 
 def planned_tasks(uncertainty: Uncertainty) -> int:
@@ -217,19 +242,20 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     report = on_run or (lambda description: None)
     design = draw(uncertainty, scenario)
     names = uncertainty.names
-    nominal = run_plan(scenario, compare=True, **options)
-    report("nominal plan")
-    path = nominal.exported_centers
     train = [with_parameters(scenario, names, values) for values in design.train]
     held = [with_parameters(scenario, names, values) for values in design.held_out]
     steps = np.minimum(uncertainty.std * SENSITIVITY_STEP, design.nominal / 2.0)
     probes = [with_parameters(scenario, (name,), [design.nominal[k] + sign * steps[k]])
               for k, name in enumerate(names) for sign in (1.0, -1.0)]
+    nominal = run_plan(scenario, compare=True, **options)
+    report("nominal plan")
+    path = nominal.exported_centers
     first = _runs(executor, [*train, *held, *held, *probes],
                   [path] * len(train) + [None] * len(held) + [path] * (len(held) + len(probes)),
                   options, report)
     n = uncertainty.samples
     training, unplanned, nominal_held, probe_runs = first[:n], first[n:2 * n], first[2 * n:3 * n], first[3 * n:]
+    _refuse_all_failed(training, unplanned, nominal_held)
     sensitivities = _sensitivities(names, uncertainty.std, steps, probe_runs)
     notes: list[str] = []
     ok = [run.exit_error for run in training if run.ok]
@@ -241,18 +267,24 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
                                  sensitivities, _where(executor), notes)
     deviations = np.asarray(ok) - exit_error_vector(nominal.planned)  # (n_ok, 2)
     shift = deviations.mean(axis=0)
-    significance = shift_significance(deviations)
-    if significance < CHI2_95_2D:  # aiming at noise only adds it to every exit
-        notes.append(f"the mean exit shift ({shift[0]:.3g}, {shift[1]:.3g}) mm is within the training samples' "
-                     f"sampling noise (Hotelling T^2 {significance:.3g} < {CHI2_95_2D:.3g}, 95 %): the robust "
-                     "plan is the nominal plan")
+    significance, threshold = shift_significance(deviations), shift_threshold(len(ok))
+    if significance is None or significance < threshold:  # aiming at noise only adds it to every exit
+        if significance is None:
+            why = (f"{len(ok)} training runs succeeded, and Hotelling's T^2 needs at least 3" if len(ok) < 3 else
+                   "the training deviations have no spread in some direction (a singular covariance)")
+            notes.append(f"the mean exit shift ({shift[0]:.3g}, {shift[1]:.3g}) mm cannot be tested against the "
+                         f"training samples' sampling noise ({why}): the robust plan is the nominal plan")
+        else:
+            notes.append(f"the mean exit shift ({shift[0]:.3g}, {shift[1]:.3g}) mm is within the training samples' "
+                         f"sampling noise (Hotelling T^2 {significance:.3g} < {threshold:.3g}, its 95 % quantile "
+                         f"for {len(ok)} samples): the robust plan is the nominal plan")
         held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": nominal_held}
         return UncertaintyResult(uncertainty, design, nominal, nominal, "robust", shift, training, held_out,
                                  sensitivities, _where(executor), notes, aim=np.zeros(2), deviations=deviations,
-                                 shift_significance=significance)
+                                 shift_significance=significance, shift_threshold=threshold)
     aim = -shift
-    log.info("mean exit shift over %d training samples (%.4g, %.4g) mm; re-planning aimed at its opposite",
-             len(ok), *shift)
+    log.info("mean exit shift over %d training samples (%.4g, %.4g) mm, T^2 %.3g >= %.3g; re-planning aimed "
+             "at its opposite", len(ok), *shift, significance, threshold)
     robust = run_plan(scenario, compare=False, aim=aim, shooting=nominal.shooting,
                       tolerance=AIMED_TOLERANCE_FRACTION * scenario.planner.exit_tolerance, **options)
     robust.unplanned = nominal.unplanned
@@ -262,7 +294,7 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": robust_held}
     result = UncertaintyResult(uncertainty, design, nominal, robust, "robust", shift, training, held_out,
                                sensitivities, _where(executor), notes, aim=aim, deviations=deviations,
-                               shift_significance=significance)
+                               shift_significance=significance, shift_threshold=threshold)
     _choose(result)
     return result
 
@@ -275,6 +307,20 @@ def _runs(executor: Executor | None, scenarios: list[Scenario], paths: list, opt
 
 def _where(executor: Executor | None) -> str:
     return executor.where if executor is not None else "in-process"
+
+
+def _refuse_all_failed(training: list[SampleRun], unplanned: list[SampleRun], nominal: list[SampleRun]) -> None:
+    """A NumericalFailure when no run on a sampled parameter set succeeded: the runs say
+    nothing about the uncertainty then, and statistics over none of them are no result."""
+    groups = [("training", "nominal", training), ("held-out", "unplanned", unplanned), ("held-out", "nominal", nominal)]
+    runs = [(name, label, index, run) for name, label, group in groups for index, run in enumerate(group)]
+    if any(run.ok for *_, run in runs):
+        return
+    name, label, index, run = runs[0]
+    reason = " ".join(run.reason.split())
+    raise NumericalFailure(f"plan --uncertainty: all {len(runs)} sampled runs failed ({len(training)} training, "
+                           f"{len(unplanned) + len(nominal)} held-out), so they tell nothing about the "
+                           f"uncertainty; the first, {name} sample {index} ({label} path): {reason}")
 
 
 def _sensitivities(names, std, steps, runs: list[SampleRun]) -> list[Sensitivity]:

@@ -30,6 +30,7 @@ from scipy.stats import norm, qmc
 
 from ..config import Scenario
 from ..config.uncertainty import Uncertainty, scenario_values
+from ..errors import InputError
 
 MAX_DOUBLINGS = 12  # at most 2^12 x the wanted points: a distribution mostly below 0 is refused
 U_EDGE = 1e-12  # keeps Phi^-1 finite at the unit cube's faces
@@ -82,18 +83,24 @@ def draw(uncertainty: Uncertainty, scenario: Scenario) -> Design:
             return Design(uncertainty.names, nominal, chosen[:uncertainty.samples], chosen[uncertainty.samples:],
                           count, rejected)
         count *= 2
-    from ..errors import InputError
-
-    raise InputError(f"{uncertainty.path}: parameters: got stds {dict(zip(uncertainty.names, uncertainty.std))}, "
-                     f"expected distributions mostly above 0 (fewer than {wanted} of {count} points drawn were "
-                     "positive)")
+    stds = ", ".join(f"{name} {std:g}" for name, std in zip(uncertainty.names, uncertainty.std))
+    raise InputError(f"{uncertainty.path}: parameters: got stds {stds}, expected distributions mostly above 0 "
+                     f"(only {int(positive.sum())} of {count} points drawn had every value positive, "
+                     f"{wanted} wanted)")
 
 
 def with_parameters(scenario: Scenario, names: tuple[str, ...], values: np.ndarray) -> Scenario:
-    """The scenario with the parameters `names` set to `values` (a validated copy)."""
+    """The scenario with the parameters `names` set to `values` (a validated copy). Moduli
+    replace tissue.material only, so they are refused for a scenario with material regions
+    (config.uncertainty.check_against_scenario says so up front, naming the files)."""
     given = dict(zip(names, (float(v) for v in values)))
     tissue, needle = scenario.tissue, scenario.needle
-    material = replace(tissue.material, **{k: v for k, v in given.items() if k in ("lame_lambda", "lame_mu")})
+    moduli = {k: v for k, v in given.items() if k in ("lame_lambda", "lame_mu")}
+    if moduli and tissue.regions:
+        raise InputError(f"uncertainty: parameters: got {', '.join(moduli)}, expected no uncertain moduli for a "
+                         f"scenario with material regions (tissue.regions has {len(tissue.regions)}, whose moduli "
+                         "a sample would not reach)")
+    material = replace(tissue.material, **moduli)
     tissue = replace(tissue, material=material, **({"thickness": given["thickness"]} if "thickness" in given else {}))
     needle_changes = {k: v for k, v in given.items() if k in ("friction", "cutting_force")}
     if needle_changes:

@@ -1,0 +1,304 @@
+"""--workers and --scheduler (stitchplan.parallel): every bad value is one `error:` line naming
+the option, exit 2, before any work and within seconds, never a traceback or a hang.
+
+The address is checked by form before anything runs; reaching it is bounded in time, tried
+here on fake servers on localhost (one that never answers, one that answers HTTP, a closed
+port) with a deadline of a second. Dask's log records stay off the user's stderr: in this
+process they go to stitchplan.parallel's logger, in a local cluster's workers they are
+dropped. Two tests start a small cluster (a few seconds each); the rest start none.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from test_plan_cli import invoke, one_error_line, small_raw, write
+
+from stitchplan import parallel
+from stitchplan.errors import InputError
+from stitchplan.parallel import (
+    ClusterFailure,
+    Executor,
+    check_scheduler_address,
+    check_workers,
+    dask_logs_to_package,
+    dask_setup,
+    max_workers,
+    probe_scheduler,
+)
+
+SCENARIO = Path(__file__).resolve().parents[1] / "configs" / "needle20_entry30.yaml"
+UNCERTAINTY = {"samples": 2, "seed": 1, "parameters": {"thickness": {"std": 0.2}}}
+FAST = 10.0  # s: a refusal before any work (Python, typer, numpy imports) takes well under this
+
+
+# --- the address, by its form ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("address", ["tcp://127.0.0.1:8786", "tcp://localhost:1", "tls://scheduler.lab-2.org:65535",
+                                     "ws://[::1]:8786", "wss://my_host:443", "tcp://10.0.0.5:8786"])
+def test_well_formed_addresses_pass(address):
+    check_scheduler_address(address)
+    check_workers(None, address)
+
+
+@pytest.mark.parametrize("address, problem", [
+    ("tcp://host:port", "port 'port' is not a number"),  # the README's placeholder
+    ("tcp://127.0.0.1", "no port"),
+    ("tcp://127.0.0.1:", "no port"),
+    ("http://127.0.0.1:8786", "unknown scheme 'http'"),
+    ("inproc://127.0.0.1/1/1", "unknown scheme 'inproc'"),  # in-process only
+    ("TCP://127.0.0.1:8786", "unknown scheme 'TCP'"),  # distributed's schemes are lower case
+    ("tcp://127.0.0.1:99999", "port 99999 is out of range"),
+    ("tcp://127.0.0.1:0", "port 0 is out of range"),
+    ("tcp://127.0.0.1:-1", "port '-1' is not a number"),
+    ("tcp://127.0.0.1:8786/", "port '8786/' is not a number"),
+    ("localhost:8786", "no scheme"),
+    ("tcp://", "no host"),
+    ("tcp://:8786", "no host"),
+    ("tcp://::1:8786", "an IPv6 host needs brackets, such as tcp://[::1]:8786"),
+    ("tcp://[::1", "no ']' after the IPv6 host"),
+    ("tcp://[::1]", "no port"),
+    ("tcp://[nonsense]:8786", "'nonsense' is not an IPv6 address"),
+    ("tcp://user@host:8786", "host 'user@host' is not a host name or an IP address"),
+    ("tcp://a b:8786", "host 'a b' is not a host name or an IP address"),
+])
+def test_malformed_addresses_are_refused_saying_why(address, problem):
+    with pytest.raises(InputError) as refused:
+        check_scheduler_address(address)
+    message = str(refused.value)
+    assert message.startswith(f"--scheduler: got {address!r}, expected a Dask scheduler address SCHEME://HOST:PORT")
+    assert message.endswith(f"({problem})") and "\n" not in message
+
+
+@pytest.mark.parametrize("command", ["plan", "study"])
+@pytest.mark.parametrize("address", ["tcp://host:port", "tcp://127.0.0.1", "http://127.0.0.1:8786",
+                                     "tcp://127.0.0.1:99999"])
+def test_the_commands_refuse_a_malformed_address_at_once(tmp_path, command, address):
+    uncertainty = write(tmp_path, UNCERTAINTY, "u.yaml")
+    outputs = (["--uncertainty", uncertainty, "--export", tmp_path / "t.csv", "--no-compare", "--no-verify"]
+               if command == "plan" else ["--out", tmp_path / "out", "--quick"])
+    start = time.perf_counter()
+    line = one_error_line(invoke(command, SCENARIO, *outputs, "--scheduler", address))
+    assert time.perf_counter() - start < FAST
+    assert line.startswith(f"error: --scheduler: got {address!r}, expected a Dask scheduler address")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["u.yaml"]  # nothing written
+
+
+# --- the worker count ------------------------------------------------------------------------
+
+
+def test_the_worker_count_is_bounded_by_the_usable_cores(monkeypatch):
+    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {0, 3})  # 2 of the machine's cores
+    assert max_workers() == 8 and parallel.default_workers() == 2
+    check_workers(0, None)
+    check_workers(8, None)
+    for workers in (9, 100000, -1):
+        with pytest.raises(InputError) as refused:
+            check_workers(workers, None)
+        assert str(refused.value) == (f"--workers: got {workers}, expected a number of worker processes from 0 to 8 "
+                                      "(at most 4 x the 2 CPU cores this process may use; 0: run in this process)")
+    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {1})
+    with pytest.raises(InputError, match=r"from 0 to 4 \(at most 4 x the 1 CPU core this"):
+        check_workers(5, None)
+
+
+@pytest.mark.parametrize("workers", ["100000", "-1"])
+@pytest.mark.parametrize("command", ["plan", "study"])
+def test_the_commands_refuse_a_worker_count_out_of_bounds_at_once(tmp_path, command, workers):
+    uncertainty = write(tmp_path, UNCERTAINTY, "u.yaml")
+    outputs = (["--uncertainty", uncertainty, "--export", tmp_path / "t.csv"] if command == "plan"
+               else ["--out", tmp_path / "out", "--quick"])
+    start = time.perf_counter()
+    line = one_error_line(invoke(command, SCENARIO, *outputs, "--workers", workers))
+    assert time.perf_counter() - start < FAST
+    assert line == (f"error: --workers: got {workers}, expected a number of worker processes from 0 to "
+                    f"{max_workers()} (at most 4 x the {parallel.usable_cores()} CPU "
+                    f"core{'s' if parallel.usable_cores() > 1 else ''} this process may use; 0: run in this process)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["u.yaml"]
+
+
+# --- reaching the scheduler: fake servers on localhost -----------------------------------------
+
+
+class FakeServer:
+    """A listening socket on a free localhost port whose every connection gets `reply` (None:
+    nothing, ever); closed by `close`."""
+
+    def __init__(self, reply: bytes | None):
+        self.reply = reply
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.address = f"tcp://127.0.0.1:{self.listener.getsockname()[1]}"
+        self.connections: list[socket.socket] = []
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        while True:
+            try:
+                connection, _ = self.listener.accept()
+            except OSError:  # closed
+                return
+            self.connections.append(connection)
+            if self.reply is not None:
+                connection.settimeout(0.5)
+                try:
+                    connection.recv(4096)
+                    connection.sendall(self.reply)
+                except OSError:
+                    pass
+                connection.close()
+
+    def close(self) -> None:
+        self.listener.close()
+        for connection in self.connections:
+            connection.close()
+
+
+@pytest.fixture
+def silent():
+    server = FakeServer(None)
+    yield server.address
+    server.close()
+
+
+@pytest.fixture
+def http():
+    server = FakeServer(b"HTTP/1.1 400 Bad Request\r\nconnection: close\r\ncontent-length: 0\r\n\r\n")
+    yield server.address
+    server.close()
+
+
+@pytest.fixture
+def closed_port() -> str:
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        port = listener.getsockname()[1]
+    return f"tcp://127.0.0.1:{port}"
+
+
+def refusal(address: str, timeout: float = 1.0) -> tuple[str, float]:
+    start = time.perf_counter()
+    with pytest.raises(InputError) as refused:
+        probe_scheduler(address, timeout=timeout)
+    return str(refused.value), time.perf_counter() - start
+
+
+def test_a_server_that_never_answers_is_refused_at_the_deadline(silent):
+    message, elapsed = refusal(silent)
+    assert message == (f"--scheduler: no answer from {silent} within 1 s; expected the address of a running "
+                       "`dask scheduler`")
+    assert 0.9 < elapsed < 3
+
+
+def test_a_server_that_answers_something_else_is_refused(http):
+    message, elapsed = refusal(http)
+    assert message.startswith(f"--scheduler: {http} does not answer as a Dask scheduler (its reply could not be read: ")
+    assert message.endswith("; expected the address of a running `dask scheduler`") and "\n" not in message
+    assert elapsed < 3
+
+
+def test_a_closed_port_is_refused_naming_the_reason(closed_port):
+    message, elapsed = refusal(closed_port)
+    assert message == (f"--scheduler: cannot connect to {closed_port} within 0.8 s (ConnectionRefusedError: "
+                       "[Errno 111] Connection refused); expected the address of a running `dask scheduler`")
+    assert elapsed < 3
+
+
+@pytest.mark.parametrize("server", ["silent", "http", "closed_port"])
+def test_the_plan_command_ends_in_one_line_at_an_address_without_a_scheduler(tmp_path, monkeypatch, request, server):
+    address = request.getfixturevalue(server)
+    monkeypatch.setattr(parallel, "CONNECT_TIMEOUT_S", 1.0)
+    scenario = write(tmp_path, small_raw())
+    uncertainty = write(tmp_path, UNCERTAINTY, "u.yaml")
+    start = time.perf_counter()
+    line = one_error_line(invoke("plan", scenario, "--uncertainty", uncertainty, "--export", tmp_path / "t.csv",
+                                 "--summary", tmp_path / "s.json", "--no-compare", "--scheduler", address))
+    assert time.perf_counter() - start < FAST
+    assert line.startswith("error: --scheduler: ") and address in line
+    assert line.endswith("expected the address of a running `dask scheduler`")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml", "u.yaml"]
+
+
+# --- Dask's log records ----------------------------------------------------------------------
+
+
+class Collected(logging.Handler):
+    def __init__(self):
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def test_dask_records_go_to_the_package_logger_and_back(caplog):
+    distributed = logging.getLogger("distributed")
+    child = logging.getLogger("distributed.worker")
+    own = Collected()  # in place of the stderr handler distributed installs at import
+    distributed.addHandler(own)
+    before = (list(distributed.handlers), distributed.propagate, list(child.handlers), child.propagate)
+    try:
+        with caplog.at_level(logging.DEBUG, logger="stitchplan"), dask_logs_to_package():
+            child.error("Failed to communicate with scheduler during heartbeat.")
+        assert own.records == []  # not through distributed's own handler
+        [record] = [r for r in caplog.records if "heartbeat" in r.getMessage()]
+        assert record.name == "stitchplan.parallel" and record.levelno == logging.DEBUG
+        assert record.getMessage() == "distributed.worker ERROR: Failed to communicate with scheduler during heartbeat."
+        assert (list(distributed.handlers), distributed.propagate, list(child.handlers), child.propagate) == before
+        child.error("after")  # distributed's own handler again
+        assert [r.getMessage() for r in own.records] == ["after"]
+    finally:
+        distributed.removeHandler(own)
+
+
+def test_dask_setup_drops_every_dask_record_of_a_worker_process():
+    names = ("distributed", "distributed.worker", "distributed.nanny", "tornado", "tornado.application")
+    saved = {name: logging.getLogger(name).level for name in names}
+    try:
+        logging.getLogger("distributed.nanny").setLevel(logging.ERROR)  # what distributed's silence_logs sets
+        dask_setup(None)
+        for name in names:
+            assert not logging.getLogger(name).isEnabledFor(logging.CRITICAL), name
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
+
+
+# --- on a real cluster (a few seconds each) ------------------------------------------------------
+
+
+def report_from_a_worker():
+    import logging
+
+    logging.getLogger("distributed.worker").error("an ERROR record of a worker process")
+    return logging.getLogger("distributed.worker").getEffectiveLevel()
+
+
+def test_a_local_clusters_workers_keep_their_records_off_stderr(capfd):
+    with Executor(workers=1) as executor:
+        assert executor.map(pow, [2, 3], [2, 2]) == [4, 9]
+        assert list(executor.client.run(report_from_a_worker).values()) == [logging.CRITICAL + 1]
+    captured = capfd.readouterr()
+    assert "distributed" not in captured.err and "ERROR" not in captured.err, captured.err
+
+
+def sleeps(seconds: float) -> float:
+    time.sleep(seconds)
+    return seconds
+
+
+def test_a_scheduler_lost_during_the_run_is_a_cluster_failure():
+    from dask.distributed import LocalCluster
+
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                           dashboard_address=None, silence_logs=logging.CRITICAL)
+    with pytest.raises(ClusterFailure) as failed, Executor(scheduler=cluster.scheduler_address) as executor:
+        threading.Timer(0.5, cluster.close).start()
+        executor.map(sleeps, [2.0, 2.0])
+    message = str(failed.value)
+    assert message.startswith(f"Dask scheduler {cluster.scheduler_address} lost a task: ") and "\n" not in message
+    assert failed.value.exit_code == 1
