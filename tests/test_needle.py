@@ -274,3 +274,18 @@ def test_the_factor_is_renewed_by_the_planner_rule_or_when_newton_loses_ground()
     assert not renew_factor(1.2, 1.0, 1.5, planned=False)  # grew once, still below two back
     assert renew_factor(1.2, 1.0, 0.8, planned=False)  # above both of the last two
     assert not renew_factor(0.3, 1.0, 2.0, planned=True) and not renew_factor(0.3, 1.0, 2.0, planned=False)
+
+
+@pytest.mark.parametrize("clamped, where", [(["left"], "the clamped left edge"),
+                                             ([{"segment": [[0.0, 10.0], [0.0, 20.0]]}],
+                                              "a clamped segment of the boundary")])
+def test_a_needle_entering_a_clamped_edge_is_refused(clamped, where):
+    from stitchplan.needle.geometry import scenario_needle
+
+    scenario = parse_scenario({
+        "tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": clamped,
+                   "material": {"lame_lambda": 0.189151, "lame_mu": 0.147688}},
+        "needle": {"radius": 8.0, "entry": [0.0, 15.0], "turn": "cw", "step": 0.2}})
+    with pytest.raises(ScenarioError, match=rf"^needle.entry: got \[0.0, 15.0\], on {where}; expected a point on a "
+                                         r"free edge"):
+        scenario_needle(scenario)

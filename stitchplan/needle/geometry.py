@@ -132,6 +132,13 @@ def scenario_needle(scenario: Scenario) -> NeedleGeometry:
     """The needle geometry of a scenario that must have a needle (simulate, plan)."""
     if scenario.needle is None:
         raise InputError("needle: missing, required by simulate, plan and study")
+    tissue, entry = scenario.tissue, np.asarray(scenario.needle.entry, dtype=float)
+    for item, (start, end) in zip(tissue.clamped, tissue.clamped_pieces()):
+        along = np.clip((entry - start) @ (end - start) / ((end - start) @ (end - start)), 0.0, 1.0)
+        if np.linalg.norm(start + along * (end - start) - entry) <= 1e-9 * max(tissue.bounding_size):
+            where = f"the clamped {item} edge" if isinstance(item, str) else "a clamped segment of the boundary"
+            raise InputError(f"needle.entry: got {list(scenario.needle.entry)}, on {where}; expected a point "
+                             "on a free edge (a clamp holds the tissue where the needle would enter)")
     return needle_geometry(scenario.needle, scenario.tissue.domain)
 
 
