@@ -219,6 +219,12 @@ class Executor:
         import dask
         from dask.distributed import Client, LocalCluster
 
+        open_files = _open_file_limit()
+        if open_files is not None and open_files < MIN_OPEN_FILES:  # below it tornado loops on EMFILE
+            raise InputError(f"--workers: a local Dask cluster needs at least {MIN_OPEN_FILES} open files, "
+                             f"got a limit of {open_files} (ulimit -n); expected a higher limit, or --workers 0 "
+                             "to run in this process")
+
         configured = dask.config.get("distributed.worker.preload", default=None) or []
         preload = [*([configured] if isinstance(configured, str) else configured), __name__]  # its dask_setup
         try:
@@ -338,6 +344,19 @@ def _last_cause(error: BaseException) -> BaseException:
     while error.__cause__ is not None:
         error = error.__cause__
     return error
+
+
+MIN_OPEN_FILES = 64  # a 2-worker local cluster ran at 64; at 16 its scheduler looped on "too many open files"
+
+
+def _open_file_limit() -> int | None:
+    """The soft limit on open files of this process, None when unknown or unlimited."""
+    try:
+        import resource
+    except ImportError:  # not a POSIX system
+        return None
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    return None if soft == resource.RLIM_INFINITY else int(soft)
 
 
 def _brief(error: BaseException) -> str:

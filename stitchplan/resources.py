@@ -322,7 +322,16 @@ def rescaled(scenario: Scenario, factor: float) -> Scenario:
 
 def available_memory() -> float | None:
     """Bytes of memory available now (MemAvailable of /proc/meminfo, else the physical
-    memory), None when unknown."""
+    memory), and no more than the process's address-space limit leaves (`ulimit -v`: past
+    it an allocation fails, in CHOLMOD by a crash); None when unknown."""
+    memory = _system_memory()
+    room = _address_space_left()
+    if room is None:
+        return memory
+    return room if memory is None else min(memory, room)
+
+
+def _system_memory() -> float | None:
     try:
         with open("/proc/meminfo") as handle:
             for line in handle:
@@ -334,6 +343,22 @@ def available_memory() -> float | None:
         return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def _address_space_left() -> float | None:
+    """Bytes the address-space limit (RLIMIT_AS) leaves above what the process maps now
+    (VmSize), None without a limit."""
+    try:
+        import resource
+
+        limit, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if limit == resource.RLIM_INFINITY:
+            return None
+        with open("/proc/self/status") as handle:
+            mapped = next((float(line.split()[1]) * 1024.0 for line in handle if line.startswith("VmSize:")), 0.0)
+    except (ImportError, OSError, ValueError):
+        return None
+    return max(float(limit) - mapped, 0.0)
 
 
 # --- the guard ---------------------------------------------------------------------------

@@ -12,6 +12,7 @@ disk) the command ends with one `error:` line and exit code 2; a reader that sto
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 # what `from stitchplan.cli import ...` finds, and the module that defines it
@@ -21,6 +22,14 @@ _LAZY = {"app": "group", "EXIT_CODES": "group", "exit_code": "group", "usage_mes
 
 def main() -> None:
     """Console entry point of `stitchplan` and `python -m stitchplan`."""
+    for name in ("stdout", "stderr"):  # a closed stream (`2>&-`) is None in Python: write nowhere
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w"))
+    # SIGTERM and SIGHUP end the command like Ctrl-C does: the outputs' temporaries are
+    # removed on the way out (the default action would leave them beside the targets)
+    for signal_name in ("SIGTERM", "SIGHUP"):
+        if hasattr(signal, signal_name):
+            signal.signal(getattr(signal, signal_name), _terminated)
     if sys.argv[1:] == ["--version"]:  # answered before typer is imported
         from .. import __version__
 
@@ -35,6 +44,11 @@ def main() -> None:
         if isinstance(done.code, int):
             _exit(done.code)
         raise
+
+
+def _terminated(number: int, frame) -> None:
+    """Unwind the command (context managers and `finally` clean up) and exit 128 + signal."""
+    raise SystemExit(128 + number)
 
 
 def _exit(code: int) -> None:

@@ -138,8 +138,11 @@ class _WatchedStream:
 
 
 def _echo_errors(lines: list[str]) -> None:
-    for line in lines:
-        typer.echo(f"error: {line}", err=True)
+    try:
+        for line in lines:
+            typer.echo(f"error: {line}", err=True)
+    except OSError:  # stderr cannot be written (a full disk): the exit code still tells
+        pass
 
 
 # what typer's value checks expected, by pydantic error type

@@ -1,0 +1,79 @@
+"""The command in an unusual environment: closed or full standard streams, a termination
+signal, limits on open files and on the address space. Each runs the real command in a
+process of its own (the limits and streams are the process's)."""
+
+from __future__ import annotations
+
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+NEEDLE20 = REPOSITORY / "configs" / "needle20_entry30.yaml"
+SH12 = REPOSITORY / "configs" / "sh12_100x100.yaml"
+
+
+def command(*args, **options) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "stitchplan", *map(str, args)], cwd=REPOSITORY,
+                            stdout=subprocess.PIPE, **options)
+
+
+def test_a_closed_standard_error_does_not_fail_a_run(tmp_path):
+    """Python gives a closed stderr (`2>&-`) as None; the logging set-up used to fail on it
+    (exit 1, nothing written)."""
+    run = command("plan", NEEDLE20, "--no-compare", "--no-verify", "--export", tmp_path / "t.csv",
+                  preexec_fn=lambda: os.close(2))
+    run.communicate(timeout=300)
+    assert run.returncode == 0 and (tmp_path / "t.csv").exists()
+
+
+def test_an_input_error_keeps_its_exit_code_when_standard_error_is_full(tmp_path):
+    with open("/dev/full", "w") as full:
+        run = command("plan", tmp_path / "absent.yaml", "--export", tmp_path / "t.csv", stderr=full)
+        run.communicate(timeout=300)
+    assert run.returncode == 2
+
+
+def test_sigterm_ends_the_command_leaving_no_file(tmp_path):
+    """The default action of SIGTERM would leave the outputs' temporaries beside the targets
+    when it came while they were written; the command now unwinds and exits 128 + 15."""
+    outputs = ["--export", tmp_path / "t.csv", "--summary", tmp_path / "s.json", "--out", tmp_path / "r.h5"]
+    run = command("plan", SH12, *outputs, stderr=subprocess.PIPE)
+    time.sleep(2.0)  # building and planning: 5 s or more in all
+    run.send_signal(signal.SIGTERM)
+    _, error = run.communicate(timeout=300)
+    assert run.returncode == 128 + signal.SIGTERM, error
+    assert list(tmp_path.iterdir()) == [] and b"Traceback" not in error
+
+
+def test_too_few_open_files_for_a_local_cluster_is_one_line(tmp_path):
+    """At `ulimit -n 16` the local cluster's scheduler looped on 'too many open files',
+    writing hundreds of MB of tracebacks."""
+    def few_files():
+        resource.setrlimit(resource.RLIMIT_NOFILE, (16, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))
+
+    run = command("study", NEEDLE20, "--quick", "--workers", "2", "--out", tmp_path / "study",
+                  stderr=subprocess.PIPE, preexec_fn=few_files)
+    _, error = run.communicate(timeout=300)
+    assert run.returncode == 2
+    assert error.decode().strip().splitlines() == [
+        "error: --workers: a local Dask cluster needs at least 64 open files, got a limit of 16 (ulimit -n); "
+        "expected a higher limit, or --workers 0 to run in this process"]
+
+
+def test_the_resource_guard_counts_the_address_space_limit(tmp_path):
+    """Under `ulimit -v` a model past the limit crashed CHOLMOD (exit 139); the guard now
+    takes the memory the limit leaves as the memory available."""
+    def capped():
+        resource.setrlimit(resource.RLIMIT_AS, (700_000 * 1024, resource.RLIM_INFINITY))
+
+    run = command("plan", SH12, "--spacing", "0.8", "--no-verify", "--no-compare", "--export", tmp_path / "t.csv",
+                  stderr=subprocess.PIPE, preexec_fn=capped)
+    _, error = run.communicate(timeout=300)
+    assert run.returncode == 2, error
+    assert error.decode().startswith("error: --spacing: got 0.8 mm, expected a model within 50% of the ")
+    assert list(tmp_path.iterdir()) == []
