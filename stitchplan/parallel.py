@@ -219,6 +219,12 @@ class Executor:
         import dask
         from dask.distributed import Client, LocalCluster
 
+        try:
+            os.getcwd()
+        except FileNotFoundError:  # the workers start in it, and fail with a message about nannies
+            raise InputError("--workers: the working directory no longer exists, and a local Dask cluster's "
+                             "workers start in it; expected an existing working directory, or --workers 0 to "
+                             "run in this process") from None
         open_files = _open_file_limit()
         if open_files is not None and open_files < MIN_OPEN_FILES:  # below it tornado loops on EMFILE
             raise InputError(f"--workers: a local Dask cluster needs at least {MIN_OPEN_FILES} open files, "

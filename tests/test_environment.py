@@ -77,3 +77,29 @@ def test_the_resource_guard_counts_the_address_space_limit(tmp_path):
     assert run.returncode == 2, error
     assert error.decode().startswith("error: --spacing: got 0.8 mm, expected a model within 50% of the ")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_deleted_working_directory_is_named_for_a_local_cluster(tmp_path):
+    """The workers start in the working directory; its absence used to read as 'Nanny failed
+    to start' under --workers."""
+    gone = tmp_path / "gone"
+    gone.mkdir()
+
+    def leave_it_deleted():
+        os.chdir(gone)
+        os.rmdir(gone)
+
+    run = subprocess.Popen([sys.executable, "-m", "stitchplan", "study", str(NEEDLE20), "--quick", "--out",
+                            str(tmp_path / "study")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           preexec_fn=leave_it_deleted, env={**os.environ, "PYTHONPATH": str(REPOSITORY)})
+    _, error = run.communicate(timeout=300)
+    assert run.returncode == 2
+    assert error.decode().startswith("error: --workers: the working directory no longer exists")
+
+
+def test_quiet_silences_matplotlib_too(tmp_path):
+    """-q is errors only: matplotlib's note about an unwritable cache folder stays out."""
+    run = command("simulate", NEEDLE20, "--no-estimate", "--plot", tmp_path / "run.png", "-q",
+                  stderr=subprocess.PIPE, env={**os.environ, "MPLCONFIGDIR": "/proc/stitchplan-test"})
+    _, error = run.communicate(timeout=300)
+    assert run.returncode == 0 and error == b""

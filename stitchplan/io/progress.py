@@ -12,6 +12,7 @@ import contextlib
 import functools
 import logging
 import sys
+import warnings
 from collections.abc import Callable, Iterator
 
 _settings = {"bars": True}
@@ -30,6 +31,9 @@ def configure_terminal(verbose: int = 0, quiet: bool = False) -> None:
     rich on a terminal, as plain `LEVEL logger: message` lines otherwise (one line a record,
     for log files). A second call replaces the first (tests run many commands in a process)."""
     level = logging.ERROR if quiet else {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
+    if quiet:  # errors only: matplotlib's notes (its cache folder, a glyph a font lacks) too
+        logging.getLogger("matplotlib").setLevel(logging.ERROR)
+        warnings.filterwarnings("ignore", category=UserWarning, module="matplotlib")
     logger = logging.getLogger("stitchplan")
     for handler in [h for h in logger.handlers if getattr(h, "stitchplan_terminal", False)]:
         logger.removeHandler(handler)
