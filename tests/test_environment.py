@@ -103,3 +103,23 @@ def test_quiet_silences_matplotlib_too(tmp_path):
                   stderr=subprocess.PIPE, env={**os.environ, "MPLCONFIGDIR": "/proc/stitchplan-test"})
     _, error = run.communicate(timeout=300)
     assert run.returncode == 0 and error == b""
+
+
+def test_a_non_ascii_scenario_path_under_an_ascii_locale_is_logged_escaped(tmp_path):
+    """Under an ASCII-only locale Python carries a path's non-ASCII bytes as lone surrogates,
+    which HDF5's UTF-8 strings refused (traceback); the run log keeps them as escapes."""
+    import h5py
+
+    folder = tmp_path / "Größe ü"
+    folder.mkdir()
+    scenario = folder / "plain.yaml"
+    scenario.write_bytes(NEEDLE20.read_bytes())
+    environment = {key: value for key, value in os.environ.items() if key not in ("LANG", "LC_CTYPE")}
+    environment.update(LC_ALL="C", PYTHONUTF8="0", PYTHONCOERCECLOCALE="0", PYTHONPATH=str(REPOSITORY))
+    run = subprocess.Popen([sys.executable, "-m", "stitchplan", "simulate", os.fsencode(scenario), "--no-estimate",
+                            "--out", str(tmp_path / "run.h5")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           cwd=REPOSITORY, env=environment)
+    _, error = run.communicate(timeout=300)
+    assert run.returncode == 0, error
+    with h5py.File(tmp_path / "run.h5") as log:
+        assert log.attrs["scenario"].endswith("Gr\\udcc3\\udcb6\\udcc3\\udc9fe \\udcc3\\udcbc/plain.yaml")

@@ -413,7 +413,7 @@ def write_hdf5(path: PathLike, groups: dict[str, dict[str, Any]], attributes: di
             group = handle.require_group(group_name)
             for name, value in datasets.items():
                 if isinstance(value, str):
-                    dataset = group.create_dataset(name, data=value, dtype=h5py.string_dtype())
+                    dataset = group.create_dataset(name, data=_text(value), dtype=h5py.string_dtype())
                 else:
                     data = np.asarray(value)
                     options = {"compression": "gzip", "compression_opts": 4} if data.size > 1000 else {}
@@ -434,4 +434,13 @@ def _attribute(value: Any) -> Any:
         return "null"
     if isinstance(value, (dict, list, tuple)):
         return json.dumps(_plain(value))
+    if isinstance(value, str):
+        return _text(value)
     return value
+
+
+def _text(value: str) -> str:
+    """`value` as UTF-8 can hold it: a path read under an ASCII-only locale carries its
+    non-ASCII bytes as lone surrogates, which HDF5's UTF-8 strings refuse; they are kept as
+    \\udcXX escapes, as the JSON summary writes them."""
+    return value.encode("utf-8", "backslashreplace").decode("utf-8")
