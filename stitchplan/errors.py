@@ -54,5 +54,9 @@ class InsertionFailure(NumericalFailure):
     """A numerical method failed during the insertion; the message says at which step and angle."""
 
 
+class NonFiniteResidual(InsertionFailure):
+    """Newton met a residual that is not finite: the loads or the deformation overflow."""
+
+
 class PlanningFailure(InsertionFailure):
     """The planner's convergence condition (eq. 4.2) fails (raised only when strict)."""

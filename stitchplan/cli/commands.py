@@ -5,7 +5,6 @@ heavy imports stay inside the commands so `--help` is instant."""
 from __future__ import annotations
 
 import math
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -16,30 +15,9 @@ from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOpt
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, SchedulerOption, WorkersOption,
                       _check_angular_speed, _check_outputs, _check_plot_steps, _echo_events, _executor,
-                      _expected_steps, _guard, _limits, _load, _needle_geometry, _option_names,
+                      _expected_steps, _guard, _limits, _load, _naming_files, _needle_geometry, _option_names,
                       _parse_base_transform, _parse_steps, _plot_steps_note, _provenance, _setup_logging,
                       _value)
-
-
-@contextmanager
-def _naming_files(scenario_path: Path, center_path: Optional[Path] = None):
-    """Input errors met while a run builds its model (the discretization, the needle's
-    solvers) or replays a centre path name the file they concern: the centre path's for its
-    rows, the scenario's for the rest."""
-    from ..config import input_error
-    from ..errors import InputError
-
-    try:
-        yield
-    except InputError as error:
-        named = []
-        for line in getattr(error, "lines", str(error).splitlines()):
-            if center_path is not None and line.startswith("centre path:"):
-                line = f"{center_path}: {line}"
-            elif not line.startswith(f"{scenario_path}:"):
-                line = f"{scenario_path}: {line}"
-            named.append(line)
-        raise input_error(named) from None
 
 
 @app.command()

@@ -4,6 +4,7 @@ overrides, logging switches, and the small parsers of option values."""
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
 from typing import Optional
@@ -136,14 +137,31 @@ def _expected_steps(scenario) -> int:
 def _needle_geometry(scenario_path: Path, scenario):
     """The scenario's needle geometry; a needle that cannot enter or exit is refused with
     the file named."""
-    from ..config import input_error
-    from ..errors import InputError
     from ..needle.geometry import scenario_needle
 
-    try:
+    with _naming_files(scenario_path):
         return scenario_needle(scenario)
+
+
+@contextmanager
+def _naming_files(scenario_path: Path, center_path: Optional[Path] = None):
+    """Input errors met after the scenario was loaded (the needle, the resource guard, the
+    model's build, a replayed centre path) name what they concern: the option for a line
+    that starts with one, the centre path's file for its rows, the scenario's for the rest."""
+    from ..config import input_error
+    from ..errors import InputError
+
+    try:
+        yield
     except InputError as error:
-        raise input_error([f"{scenario_path}: {line}" for line in getattr(error, "lines", [str(error)])]) from None
+        named = []
+        for line in getattr(error, "lines", str(error).splitlines()):
+            if center_path is not None and line.startswith("centre path:"):
+                line = f"{center_path}: {line}"
+            elif not line.startswith(("--", f"{scenario_path}:")):
+                line = f"{scenario_path}: {line}"
+            named.append(line)
+        raise input_error(named) from None
 
 
 def _check_plot_steps(steps: Optional[list[int]], scenario) -> None:
@@ -204,16 +222,11 @@ def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = No
     `names` set by options, _option_names). Lines name the file, or the option."""
     if limits is None:
         return
-    from ..config import input_error
-    from ..errors import InputError
     from ..resources import Origin, check_resources, estimate
 
-    try:
+    with _naming_files(scenario_path):
         check_resources([estimate(scenario, kind, label, count, origin=origin[0] if origin else Origin(names or {}))
                          for kind, scenario, label, count, *origin in runs], limits)
-    except InputError as error:
-        raise input_error([line if line.startswith("--") else f"{scenario_path}: {line}"
-                           for line in getattr(error, "lines", [str(error)])]) from None
 
 
 def _option_names(spacing: Optional[float], dilation: Optional[float]) -> dict:

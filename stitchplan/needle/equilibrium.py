@@ -32,7 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..config import Scenario
-from ..errors import InputError, InsertionFailure, InvertedMaterial
+from ..errors import InputError, InsertionFailure, InvertedMaterial, NonFiniteResidual
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler
 from ..tissue.factorization import Factor, factorize
@@ -216,7 +216,6 @@ class NeedleInsertion:
         self.last_violation = 0.0  # max |g_e| of the last converged equilibrium, mm
         self.constraint_tolerance = CONSTRAINT_TOLERANCE * self.geometry.radius  # mm
         self.ramp_increments = 0  # load increments beyond the first, over the run
-        self.overflowed = False  # a Newton solve met a residual that is not finite
         self._free_rows: dict[tuple[float, ...], np.ndarray] = {}
         # every Newton iteration of every solve (the planner's centre tries and failed ramp
         # increments included), and the solves
@@ -362,7 +361,7 @@ class NeedleInsertion:
         message = (f"step {step} (needle rotation {rotation:.3f} rad): the needle's load could not be "
                    f"carried: {100 * carried:.0f} % of the step's cutting force and added friction held, "
                    f"the next {100 * RAMP_SMALLEST:.2g} % increment failed ({failure})")
-        if self.overflowed:  # no material model carries a load that overflows
+        if isinstance(failure, NonFiniteResidual):  # no material model carries a load that overflows
             return message
         models = {self.scenario.tissue.material.model}
         models |= {region.material.model for region in getattr(self.scenario.tissue, "regions", None) or []}
@@ -440,8 +439,7 @@ class NeedleInsertion:
             free, multipliers, center = free + solution[:n_dof], multipliers + solution[n_dof:-2], center + solution[-2:]
         self._count(iteration)
         if not finite:
-            self.overflowed = True
-            raise InsertionFailure(
+            raise NonFiniteResidual(
                 f"Newton stopped at step {step} (needle rotation {rotation:.3f} rad): the residual is not finite "
                 f"after {iteration} iterations (needle force {state.needle_force:.3e} N): the loads or the "
                 "deformation overflow floating point")

@@ -24,8 +24,7 @@ IDENTITY = np.eye(2)
 def length(vector: np.ndarray) -> float:
     """|v| of a vector: np.linalg.norm's sqrt(v . v) without its argument handling (Newton,
     the centre aim and the tip tracking take several per iteration)."""
-    with np.errstate(over="ignore"):  # an overflowing norm is inf, which Newton refuses
-        return math.sqrt(vector.dot(vector))
+    return math.sqrt(vector.dot(vector))
 
 
 def unit(angle: float | np.ndarray) -> np.ndarray:
