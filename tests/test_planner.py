@@ -21,7 +21,7 @@ import pytest
 
 from stitchplan.config.scenario import Robot, parse_scenario
 from stitchplan.needle.insertion import run_insertion
-from stitchplan.planning.planner import ExitTracker, final_mismatch, run_plan
+from stitchplan.planning.planner import REAIM_FRACTION, REFERENCE_STEP, ExitTracker, final_mismatch, run_plan
 from stitchplan.planning.trajectory import to_base_frame, trajectory_table
 
 RADIUS = 8.88
@@ -101,13 +101,43 @@ def test_passes_follow_the_shooting_update_and_the_best_is_kept(two_passes):
 
 
 def test_a_pass_depends_on_its_offset_alone(two_passes):
-    """The secant over the passes needs e(c): the second pass run on its own, with its offset
-    and a model of its own, ends where it ended after the first."""
+    """The secant over the passes needs e(c): the second pass run on its own, with its offset,
+    the first pass's prefix and a model of its own (its prefix steps then solved, not
+    replayed), ends where it ended after the first, to the Newton tolerance."""
     second = two_passes.passes[1]
     scenario = two_passes.planned.scenario
-    alone = run_insertion(scenario, control=ExitTracker(scenario.planner, second["offset_mm"]))
-    assert alone.exit_error_mm == pytest.approx(second["exit_error_mm"], abs=1e-9)
-    assert sum(s.newton_iterations for s in alone.steps) == second["newton_iterations"]
+    prefix = two_passes.shooting.prefix
+    assert second["first_aimed_step"] == prefix.first_aimed > 1
+    alone = run_insertion(scenario, control=ExitTracker(scenario.planner, second["offset_mm"], prefix=prefix))
+    assert alone.exit_error_mm == pytest.approx(second["exit_error_mm"], abs=1e-7)
+
+
+def test_later_passes_replay_the_first_pass_up_to_the_offset(two_passes):
+    """PassPrefix: a later pass keeps the first pass's centres before its first aimed step,
+    replayed from the first pass's equilibria (no Newton iteration of its own there: each
+    starts at its solution), and counts the first pass's work for those steps; its own
+    iterations are those of the steps it solved."""
+    first, second = two_passes.passes
+    prefix = two_passes.shooting.prefix
+    reference, kept = prefix.reference.steps, two_passes.planned.steps
+    taken = prefix.first_aimed - 1
+    np.testing.assert_array_equal([s.center for s in kept[:taken]], [s.center for s in reference[:taken]])
+    assert [s.newton_iterations for s in kept[:taken]] == [s.newton_iterations for s in reference[:taken]]
+    assert [s.planner_iterations for s in kept[:taken]] == [s.planner_iterations for s in reference[:taken]]
+    assert second["newton_iterations"] == sum(s.newton_iterations for s in kept[taken:])
+    assert second["newton_iterations"] < first["newton_iterations"]
+    assert not np.allclose(kept[taken].center, reference[taken].center, atol=1e-9, rtol=0)  # the offset acts
+
+
+def test_a_large_offset_acts_from_the_first_step(two_passes):
+    """An offset beyond PassPrefix.largest_offset (a fraction of the second-difference limit)
+    would enter late as a jump the move limits hold back: such a pass runs every step."""
+    prefix = two_passes.shooting.prefix
+    scale = two_passes.planned.geometry.step / REFERENCE_STEP
+    assert prefix.largest_offset == pytest.approx(
+        REAIM_FRACTION * two_passes.planned.scenario.planner.center_second_difference_limit * scale)
+    assert prefix.for_offset(np.array([0.0, prefix.largest_offset])) is prefix
+    assert prefix.for_offset(np.array([0.0, 1.01 * prefix.largest_offset])) is None
 
 
 def test_centre_solves_the_fixed_point_of_eq_4_1_also_where_eq_4_2_fails(two_passes):
@@ -125,7 +155,8 @@ def test_centre_solves_the_fixed_point_of_eq_4_1_also_where_eq_4_2_fails(two_pas
     for record in planned.steps:
         if record.step in flagged:
             continue
-        mismatch = planned.geometry.center - best["offset_mm"] + record.exit_displacement - record.center
+        offset = best["offset_mm"] if record.step >= best["first_aimed_step"] else 0.0  # PassPrefix
+        mismatch = planned.geometry.center - offset + record.exit_displacement - record.center
         assert np.linalg.norm(mismatch) <= planned.scenario.planner.tolerance, (record.step, mismatch)
         checked += 1
         hard += record.eq42_ratio >= 0.8

@@ -46,12 +46,15 @@ from conftest import CONFIGS, REPOSITORY
 # The 20 mm needle scenes re-pinned when they changed from `auto` tip tracking (the inverse
 # gradient first) to Levenberg-Marquardt, whose exit error converges under refinement
 # (configs/needle20_entry*.yaml): unplanned -0.9 to +4.8 %, planned now below 1e-10 mm.
+# sh12_100x30 (two passes) re-pinned when a later pass's offset began acting a few steps
+# before the first pass's late limited steps instead of at step 1 (planning/planner.py
+# PassPrefix): 0.00033 -> 0.00047 mm; the scenes planned in one pass did not move.
 NEEDLE_SCENES = {
     "sh12_100x100": (39, 979, 0.463900743819185, 0.0006703769169705066),
     "sh12_100x100_mid": (39, 976, 0.3503305174827064, 1.6963127489040536e-06),
     "sh12_100x50": (39, 570, 0.47392718492883024, 0.002412663080047873),
     "sh12_100x40": (39, 479, 0.5426787188921418, 0.0023234518674973936),
-    "sh12_100x30": (39, 382, 0.6834936672370162, 0.0003304813421170332),
+    "sh12_100x30": (39, 382, 0.6834936672370162, 0.00047261335964107976),
     "needle20_entry30": (20, 622, 0.021316500521912845, 3.21773681271556e-14),
     "needle20_entry25": (18, 600, 0.018737158729361436, 2.1422865047888258e-12),
     "needle20_entry20": (15, 578, 0.016987410521680218, 4.323297788994089e-11),
@@ -64,11 +67,14 @@ NEEDLE_SCENES = {
 # 1.5 mm spacing (their verified plans did not hold at a quarter of the default spacing:
 # benchmarks/results/plan_replay.md). wound_closure_symmetric aims equal bites, not the exit
 # (planner.target: symmetric), so its exit error is pinned but not held to the exit tolerance.
+# wound_closure_symmetric re-pinned with PassPrefix (above): its later passes move only the
+# steps after the wound, so they take three passes to equal bites (difference -0.0010 ->
+# -0.000002 mm) and its exit error is 0.0241 mm instead of 0.0151 mm.
 SHAPE_SCENES = {
     "skin_layered": (39, 417, 0.1704985783569589, 1.3736003091710611e-07, None),
     "hole_near_stitch": (39, 514, 0.32920580759044804, 0.0020674049233840234, None),
     "wound_closure": (39, 1474, 0.7260466216360576, 0.0008782770334275772, 0.013811531890431716),
-    "wound_closure_symmetric": (39, 1474, 0.7260466216360576, 0.015096863351837382, -0.001000302244388962),
+    "wound_closure_symmetric": (39, 1474, 0.7260466216360576, 0.02414991280393511, -2.034640110615271e-06),
 }
 
 # static scenes re-pinned when load segments got a particle on each end and particles graded
