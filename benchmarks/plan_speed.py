@@ -343,7 +343,10 @@ def main() -> None:
         "Steps: wall time of each needle step (tip tracking, equilibrium and the planner's centre). "
         "Newton: every iteration of every solve, now one equilibrium solve per step (the centre is an "
         f"unknown of the step's Newton solve); {BASELINE}'s summary counted only the last solve of each "
-        "step, so its counts are not comparable and are left out.\n",
+        "step, so its counts are not comparable and are left out. Where a second pass ran (sh12_100x30), "
+        "the steps it replays from the first pass (planning/planner.py PassPrefix) count the first pass's "
+        "wall time, Newton iterations and equilibrium solves; linear solves and factorizations are those "
+        "of the kept pass's own run.\n",
         common.markdown_table(
             ["scene", "particles", "steps", f"planned run {BASELINE} (s)", "planned run now (s)", "speed-up",
              "now with SuperLU only (s)", "speed-up with SuperLU",

@@ -124,6 +124,7 @@ def test_later_passes_replay_the_first_pass_up_to_the_offset(two_passes):
     np.testing.assert_array_equal([s.center for s in kept[:taken]], [s.center for s in reference[:taken]])
     assert [s.newton_iterations for s in kept[:taken]] == [s.newton_iterations for s in reference[:taken]]
     assert [s.planner_iterations for s in kept[:taken]] == [s.planner_iterations for s in reference[:taken]]
+    assert [s.equilibrium_solves for s in kept[:taken]] == [s.equilibrium_solves for s in reference[:taken]]
     assert second["newton_iterations"] == sum(s.newton_iterations for s in kept[taken:])
     assert second["newton_iterations"] < first["newton_iterations"]
     assert not np.allclose(kept[taken].center, reference[taken].center, atol=1e-9, rtol=0)  # the offset acts

@@ -157,11 +157,12 @@ class PassPrefix:
 
     def take_over(self, result: InsertionResult) -> None:
         """Count the first pass's work for each prefix step in `result`'s record (its Newton
-        iterations, equilibrium solves and wall time added to the replay's, its centre moves
-        and eq. 4.2 ratio), and add its planner events there: the steps as planned."""
+        iterations and wall time added to the replay's, its equilibrium solves, centre moves
+        and eq. 4.2 ratio instead of the replay's), and add its planner events there: the
+        steps as planned. The result's solver_counts stay those of its own run."""
         for record, planned in zip(result.steps[:self.first_aimed - 1], self.reference.steps):
             record.newton_iterations += planned.newton_iterations
-            record.equilibrium_solves += planned.equilibrium_solves
+            record.equilibrium_solves = planned.equilibrium_solves
             record.wall_seconds += planned.wall_seconds
             record.planner_iterations, record.eq42_ratio = planned.planner_iterations, planned.eq42_ratio
         held = [event for event in self.reference.events
