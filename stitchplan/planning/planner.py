@@ -346,7 +346,8 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     pass k aims the centre at O(t0) + u(X_exit) - c_k (PassOffsets), so the controllable
     steps before the drift pre-compensate it. The first pass (c_1 = 0) runs every step;
     the later ones keep its centres up to a few steps before its late limited steps
-    (PassPrefix: replayed from its equilibria, not solved again) and apply c_k from there. The passes aim the exit error vector
+    (PassPrefix: replayed from its equilibria, not solved again) and apply c_k from there;
+    with the symmetric target (below), whose aim follows both bites, every pass runs every step. The passes aim the exit error vector
     at `aim` (default zero; planning.verification aims it by a refined model's offset) and
     stop when they are within `tolerance` of it (default exit_tolerance) or after
     max_passes; the best pass is returned. With planner.target `symmetric` on a stitch
@@ -379,7 +380,8 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     passes = []
     best, best_miss = None, np.inf
     for number in range(1, settings.max_passes + 1):
-        prefix = offsets.prefix.for_offset(offsets.offset) if offsets.prefix else None
+        # a symmetric target's aim follows the bites, the entry side's included: every step
+        prefix = offsets.prefix.for_offset(offsets.offset) if offsets.prefix and not symmetric else None
         tracker = ExitTracker(settings, offsets.offset, smooth=smooth, prefix=prefix)
         planned = run_insertion(scenario, control=tracker, on_step=_streamed(on_step, stream, scenario),
                                 tissue=tissue, start_from=prefix.start() if prefix else None, **options)
