@@ -97,14 +97,22 @@ class Verification:
         return None if self.result is None else self.result.exit_error_mm
 
 
-def exit_deviations(result: InsertionResult, reference: InsertionResult) -> dict[str, float]:
+def exit_deviations(result: InsertionResult, reference: InsertionResult) -> dict[str, float | bool]:
     """Distances (mm) between the exit points of two runs: spatial achieved exit, material
-    achieved exit, exit-error vector, and the largest of the three."""
+    achieved exit, exit-error vector, and the largest of them. The spatial exit is where the
+    tissue is after the run's last needle step; when the two runs took different numbers of
+    steps (the tip leaving just before and just after a step's end) they end in different
+    needle states, and the spatial deviation then measures that step, not the
+    discretization: it is reported but not counted (`spatial_compared` false). On
+    sh12_100x100_mid's verified plan, 38 against 39 steps, it was 0.137 mm while the material
+    exit and the exit-error vector differed by 0.015 mm."""
     spatial = float(np.linalg.norm(result.achieved_exit_def - reference.achieved_exit_def))
     material = float(np.linalg.norm(result.achieved_exit - reference.achieved_exit))
     error = float(np.linalg.norm(exit_error_vector(result) - exit_error_vector(reference)))
+    compared = len(result.steps) == len(reference.steps)
     return {"exit_deviation_mm": spatial, "material_exit_deviation_mm": material,
-            "exit_error_deviation_mm": error, "deviation_mm": max(spatial, material, error)}
+            "exit_error_deviation_mm": error, "spatial_compared": compared,
+            "deviation_mm": max(spatial, material, error) if compared else max(material, error)}
 
 
 def rescaled(scenario: Scenario, factor: float) -> Scenario:
