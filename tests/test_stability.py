@@ -32,7 +32,7 @@ from stitchplan.config.scenario import ScenarioError, parse_scenario
 from stitchplan.errors import InsertionFailure
 from stitchplan.events import EventKind
 from stitchplan.needle.insertion import run_insertion
-from stitchplan.study.sweep import exit_deviations
+from stitchplan.planning.verification import exit_deviations
 from stitchplan.tissue.deform import run_deform
 from stitchplan.tissue.material import determinant
 from stitchplan.tissue.solver import SolverDivergence
@@ -70,8 +70,10 @@ def tracking_sweep():
 
 def test_inverse_gradient_drifts_from_levenberg_marquardt_as_the_tip_force_grows(tracking_sweep):
     """Below the jump threshold every inverse-gradient step passes the jump checks, yet the
-    exit drifts from LM's by 0.33 mm at the phantom's 0.7 N and by 0.71 mm at 2.5 N, growing
-    with the largest displacement (0.45 -> 0.94 mm): X + F^-1 dx moves the tip a rotation step
+    exit drifts from LM's by 0.33 mm at the phantom's 0.7 N and by 0.60 mm at 2.5 N (where
+    inverse-gradient tracking exits a needle step earlier, so its spatial exit, 0.71 mm off,
+    does not count: exit_deviations), growing with the largest displacement (0.45 -> 0.94
+    mm): X + F^-1 dx moves the tip a rotation step
     along the deformed circle, LM an insertion step R theta through the material, and the two
     part as the tissue stretches along the needle."""
     drift, largest = [], []
@@ -81,7 +83,7 @@ def test_inverse_gradient_drifts_from_levenberg_marquardt_as_the_tip_force_grows
         assert {s.tracking for s in strict.steps} == {"inverse-gradient"}
         drift.append(exit_deviations(strict, lm)["deviation_mm"])
         largest.append(float(np.linalg.norm(lm.displacements[-1], axis=1).max()))
-    assert drift[0] > 0.3 and drift[-1] > 0.7
+    assert drift[0] > 0.3 and drift[-1] > 0.55
     assert np.all(np.diff(drift) > 0) and np.all(np.diff(largest) > 0)
 
 

@@ -28,7 +28,7 @@ from stitchplan.cli import app
 from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discretization
 from stitchplan.config.study import StudyFamily
 from stitchplan.io.study_reports import COLUMNS
-from stitchplan.study.runner import exit_deviations
+from stitchplan.planning.verification import exit_deviations
 from stitchplan.study.sweep import StudyRun, pareto_front, plan_runs
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
@@ -182,9 +182,9 @@ def test_pareto_front_keeps_the_runs_nothing_beats_in_both_time_and_deviation():
 
 
 def test_exit_deviations_in_the_spatial_the_material_frame_and_of_the_error_vector():
-    def fake(achieved_def, achieved, desired_def):
+    def fake(achieved_def, achieved, desired_def, steps=37):
         return SimpleNamespace(achieved_exit_def=np.array(achieved_def), achieved_exit=np.array(achieved),
-                               desired_exit_def=np.array(desired_def))
+                               desired_exit_def=np.array(desired_def), steps=[None] * steps)
 
     reference = fake([0.0, 10.0], [0.0, 10.5], [0.0, 9.5])
     run = fake([0.0, 10.03], [0.0, 10.4], [0.04, 9.5])
@@ -192,7 +192,12 @@ def test_exit_deviations_in_the_spatial_the_material_frame_and_of_the_error_vect
     assert deviation["exit_deviation_mm"] == pytest.approx(0.03)
     assert deviation["material_exit_deviation_mm"] == pytest.approx(0.1)
     assert deviation["exit_error_deviation_mm"] == pytest.approx(0.05)
-    assert deviation["deviation_mm"] == pytest.approx(0.1)
+    assert deviation["deviation_mm"] == pytest.approx(0.1) and deviation["spatial_compared"] is True
+    # a run that ended a needle step earlier ends in another needle state: its spatial exit
+    # is reported but not counted
+    earlier = exit_deviations(fake([0.0, 10.3], [0.0, 10.52], [0.0, 9.78], steps=36), reference)
+    assert earlier["exit_deviation_mm"] == pytest.approx(0.3) and earlier["spatial_compared"] is False
+    assert earlier["deviation_mm"] == pytest.approx(0.02)
 
 
 # --- graded particles --------------------------------------------------------------------------

@@ -161,25 +161,6 @@ def test_no_verify_nulls_the_verification_keys(planned_small, tmp_path):
     assert "exit_error_estimate_mm" in summary and "max_center_step_mm" in summary
 
 
-def test_spatial_exit_counts_only_between_runs_of_as_many_steps():
-    """Runs that end after different numbers of needle steps end in different needle states:
-    their spatial exits are reported but not counted in deviation_mm."""
-    from types import SimpleNamespace
-
-    def run(steps, achieved_def, achieved, desired_def):
-        return SimpleNamespace(steps=[None] * steps, achieved_exit_def=np.array(achieved_def),
-                               achieved_exit=np.array(achieved), desired_exit_def=np.array(desired_def))
-
-    a = run(39, [0.0, 37.55], [0.0, 37.50], [0.0, 37.54])
-    b = run(38, [0.0, 37.69], [0.0, 37.51], [0.0, 37.67])
-    apart = exit_deviations(a, b)
-    assert apart["spatial_compared"] is False and apart["exit_deviation_mm"] == pytest.approx(0.14)
-    assert apart["deviation_mm"] == pytest.approx(max(apart["material_exit_deviation_mm"],
-                                                      apart["exit_error_deviation_mm"])) == pytest.approx(0.01)
-    alike = exit_deviations(a, run(39, [0.0, 37.69], [0.0, 37.51], [0.0, 37.67]))
-    assert alike["spatial_compared"] is True and alike["deviation_mm"] == pytest.approx(0.14)
-
-
 def test_exit_error_estimate_tracks_the_deviation_from_a_finer_run():
     """At h = 4 mm the estimate from (h, 2h) bounds the exit point's actual deviation from
     the run at h/2 and stays within 4 x of it: with order 1 the error of the h run is about

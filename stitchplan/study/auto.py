@@ -2,7 +2,7 @@
 
 `discretization: {accuracy: 0.05}` asks for the cheapest model whose exit point lies within
 0.05 mm of the converged one. The exit point is measured as in stitchplan.study.sweep
-(stitchplan.study.runner.exit_deviations): the largest of the deviations of the spatial
+(stitchplan.planning.verification.exit_deviations): the largest of the deviations of the spatial
 achieved exit, the material (reference) achieved exit and the exit-error vector.
 
 The candidates are particle sets graded toward the needle (stitchplan.tissue.particles.graded_particles):
@@ -55,7 +55,8 @@ from ..config import Scenario
 from ..errors import InputError
 from ..events import Event, EventKind
 from ..resources import MAX_PARTICLES, model_size
-from .runner import InsertionRun, events_of, exit_deviations, run_timed
+from ..planning.verification import exit_deviations
+from .runner import InsertionRun, events_of, run_timed
 
 if TYPE_CHECKING:
     from ..needle.results import InsertionResult

@@ -5,8 +5,8 @@ A run that fails is recorded with its reason, never raised: a sweep wants every 
 the selection wants to know which configurations it cannot use. Only the failures a
 configuration can cause are caught (RUN_FAILURES); anything else is a bug and escapes.
 
-Exit points are compared with `exit_deviations`; see stitchplan.study.sweep for why three
-ways.
+Exit points are compared with `exit_deviations` (stitchplan.planning.verification, as the
+exit error estimate compares them); see stitchplan.study.sweep for why three ways.
 """
 
 from __future__ import annotations
@@ -17,8 +17,6 @@ import statistics
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
-
-import numpy as np
 
 from ..config import Scenario
 from ..events import Event, EventKind
@@ -94,17 +92,6 @@ def run_timed(run: InsertionRun, repeats: int = 1) -> InsertionRun:
     run.particles = run.result.model.n_particles
     run.wall_seconds, run.cpu_seconds = statistics.median(walls), statistics.median(cpus)
     return run
-
-
-def exit_deviations(result, reference) -> dict[str, float]:
-    """Distances (mm) between the exit points of two insertions: the spatial achieved exit,
-    the material achieved exit, the exit-error vector, and the largest of the three."""
-    spatial = float(np.linalg.norm(result.achieved_exit_def - reference.achieved_exit_def))
-    material = float(np.linalg.norm(result.achieved_exit - reference.achieved_exit))
-    error = float(np.linalg.norm((result.achieved_exit_def - result.desired_exit_def)
-                                 - (reference.achieved_exit_def - reference.desired_exit_def)))
-    return {"exit_deviation_mm": spatial, "material_exit_deviation_mm": material,
-            "exit_error_deviation_mm": error, "deviation_mm": max(spatial, material, error)}
 
 
 def events_of(result: InsertionResult, kind: EventKind) -> list[Event]:

@@ -15,7 +15,9 @@ The exit point is compared three ways (mm):
   the tissue the needle comes out;
 - `exit_error_deviation_mm`: the exit-error vector `achieved_exit_def - desired_exit_def`.
 
-`deviation_mm` is the largest of the three. The first alone can mislead: with the needle
+`deviation_mm` is the largest of the three (of the last two when the run took another
+number of needle steps than the reference: it then ends in another needle state, and its
+spatial exit deviation measures that step). The first alone can mislead: with the needle
 centre fixed, the spatial exit lies on the rigid needle circle where it meets the deformed
 edge, so it barely moves with the discretization (on the SH 1/2 scene ~0.02 mm between
 5 and 1.5 mm spacing) while the other two move by 0.1 mm and more.
@@ -44,7 +46,8 @@ from ..config.study import StudyFamily, StudySpec
 from ..errors import InputError, NumericalFailure
 from ..parallel import Executor, run_all
 from .auto import AutoChoice, choose_discretization
-from .runner import InsertionRun, exit_deviations, run_timed
+from ..planning.verification import exit_deviations
+from .runner import InsertionRun, run_timed
 
 # the study.csv and speed_accuracy.png writers: stitchplan.io.study_reports
 
