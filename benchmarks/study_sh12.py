@@ -114,7 +114,8 @@ def main() -> None:
              f"Reference (finest run): {study.reference.label}, {study.reference.particles} particles, "
              f"{study.reference.wall_seconds:.1f} s, exit error {study.reference.result.exit_error_mm:.4f} mm. "
              "`deviation` is the largest of the spatial achieved-exit, material achieved-exit and "
-             "exit-error-vector deviations from it (stitchplan.study.sweep).", "",
+             "exit-error-vector deviations from it, the spatial one only for a run of as many needle "
+             "steps (stitchplan.study.sweep).", "",
              "## Pareto front", "", common.markdown_table(header, pareto_rows), "",
              "## Families", "",
              common.markdown_table(["family", "runs", "failed", "best deviation (mm)",
