@@ -347,7 +347,8 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     steps before the drift pre-compensate it. The first pass (c_1 = 0) runs every step;
     the later ones keep its centres up to a few steps before its late limited steps
     (PassPrefix: replayed from its equilibria, not solved again) and apply c_k from there;
-    with the symmetric target (below), whose aim follows both bites, every pass runs every step. The passes aim the exit error vector
+    with the symmetric target (below), whose aim follows both bites, every pass runs every
+    step. The passes aim the exit error vector
     at `aim` (default zero; planning.verification aims it by a refined model's offset) and
     stop when they are within `tolerance` of it (default exit_tolerance) or after
     max_passes; the best pass is returned. With planner.target `symmetric` on a stitch
