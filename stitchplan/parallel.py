@@ -73,6 +73,7 @@ DASK_LOGGERS = ("distributed", "dask", "tornado", "bokeh")
 RETRIES = 2  # a lost worker's tasks run again elsewhere, at most this many times
 MAX_WORKERS_PER_CORE = 4  # --workers at most this many times the cores this process may use
 CONNECT_TIMEOUT_S = 5.0  # reaching a --scheduler and hearing its answer, at most this long
+MIN_OPEN_FILES = 64  # a 2-worker local cluster ran at 64; at 16 its scheduler looped on "too many open files"
 # distributed's comm schemes that reach a scheduler in another process (inproc:// is in-process
 # only; ucx:// has left distributed for distributed-ucxx)
 SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss")
@@ -352,9 +353,6 @@ def _last_cause(error: BaseException) -> BaseException:
     return error
 
 
-MIN_OPEN_FILES = 64  # a 2-worker local cluster ran at 64; at 16 its scheduler looped on "too many open files"
-
-
 def _open_file_limit() -> int | None:
     """The soft limit on open files of this process, None when unknown or unlimited."""
     try:
@@ -393,8 +391,7 @@ def dask_logs_to_package() -> Iterator[None]:
     """While it is open, the log records of Dask and the libraries under it in this process
     (DASK_LOGGERS and their children) go to this module's logger at DEBUG instead of the
     stderr handlers distributed installs at import; everything is put back afterwards."""
-    names = {name for name in list(logging.root.manager.loggerDict) if name.split(".")[0] in DASK_LOGGERS}
-    loggers = [logging.getLogger(name) for name in sorted(names | set(DASK_LOGGERS))]
+    loggers = [logging.getLogger(name) for name in _dask_logger_names()]
     saved = [(logger, list(logger.handlers), logger.propagate) for logger in loggers]
     forward = _ToPackageLog()
     try:
@@ -413,6 +410,11 @@ def dask_setup(worker: Any) -> None:
     Dask records are dropped. Its stderr is the user's terminal, distributed's silence_logs
     lets ERROR through and is undone while the worker closes, when the heartbeat to a
     scheduler that has closed first fails; a task's own failure reaches the client anyway."""
-    names = {name for name in list(logging.root.manager.loggerDict) if name.split(".")[0] in DASK_LOGGERS}
-    for name in names | set(DASK_LOGGERS):
+    for name in _dask_logger_names():
         logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+
+
+def _dask_logger_names() -> list[str]:
+    """DASK_LOGGERS and every logger made so far below them, sorted."""
+    names = {name for name in list(logging.root.manager.loggerDict) if name.split(".")[0] in DASK_LOGGERS}
+    return sorted(names | set(DASK_LOGGERS))

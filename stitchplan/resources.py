@@ -104,7 +104,6 @@ SKIP_GUARD = "pass --no-resource-check to run it anyway"
 # takes ~2.5 unplanned ones) and replays on the verification model (half the spacing)
 PLAN_RUNS = 3
 VERIFICATION_RUNS = 2
-VERIFICATION_SCALE = 0.5  # the verification model, rescaled(scenario, VERIFICATION_SCALE): half the spacing
 
 
 @dataclass(frozen=True)
@@ -138,7 +137,7 @@ class Origin:
 
 
 def verification_origin(scenario: Scenario, names: Mapping[str, str] | None = None) -> Origin:
-    """The origin of a plan's verification model, rescaled(scenario, VERIFICATION_SCALE): a
+    """The origin of a plan's verification model (planning.verification.replay_scenario): a
     refusal names the scenario's own spacings (`names` as for the plan's model) and offers
     --no-verify."""
     d = scenario.discretization
@@ -308,16 +307,6 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
                     d.spacing, None if kind == "deform" else scenario.needle.step, d, origin,
                     _grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
                     _radius_default(scenario, origin))
-
-
-def rescaled(scenario: Scenario, factor: float) -> Scenario:
-    """The scenario with its particle spacings scaled by `factor` (a plan's verification
-    model: VERIFICATION_SCALE, estimated with verification_origin)."""
-    d = scenario.discretization
-    changes = {"spacing": d.spacing * factor, "accuracy": None}
-    if d.needle_spacing is not None and d.needle_refinement is None:
-        changes["needle_spacing"] = d.needle_spacing * factor
-    return replace(scenario, discretization=d.replaced(**changes))
 
 
 def available_memory() -> float | None:

@@ -28,9 +28,9 @@ from stitchplan.resources import (
     check_resources,
     estimate,
     model_size,
-    rescaled,
     verification_origin,
 )
+from stitchplan.planning.verification import rescaled
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 PHANTOM = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}

@@ -208,10 +208,10 @@ def plan(
     scenario = replace(scenario, robot=robot,
                        planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
     from ..io import reports
-    from ..planning.verification import plan_replays, plan_verified
+    from ..planning.verification import plan_replays, plan_verified, replay_scenario
     from ..io.progress import progress_bar
 
-    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, VERIFICATION_SCALE, rescaled, verification_origin
+    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, verification_origin
     from ..study.auto import resolve_accuracy
 
     limits = _limits(max_particles, no_resource_check)
@@ -219,7 +219,7 @@ def plan(
 
     def guard(scenario) -> None:
         _guard(scenario_path, limits, ("insertion", scenario, "plan", PLAN_RUNS + compare),
-               *([("insertion", rescaled(scenario, VERIFICATION_SCALE), "plan verification", VERIFICATION_RUNS,
+               *([("insertion", replay_scenario(scenario, verify=True), "plan verification", VERIFICATION_RUNS,
                    verification_origin(scenario, names))] if verify else []), names=names)
 
     _needle_geometry(scenario_path, scenario)  # a needle that cannot enter or exit, with the file named

@@ -352,32 +352,26 @@ def _format(value: Any, precision: int) -> Any:
     return value
 
 
-def _plain(value: Any) -> Any:
+def _plain(value: Any, finite: bool = False) -> Any:
+    """Python's own types for numpy's, through dicts and lists; with `finite`, a float that
+    is not finite becomes None."""
     if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
+        value = value.tolist()
+    elif isinstance(value, (np.floating, np.integer)):
+        value = value.item()
     if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
+        return {k: _plain(v, finite) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        return [_plain(v, finite) for v in value]
+    if finite and isinstance(value, float) and not math.isfinite(value):
+        return None
     return value
 
 
 def write_json(path: PathLike, data: dict) -> None:
     """JSON as the standard has it: a number that is not finite (not available, or failed)
     is written null, not as the NaN or Infinity that strict parsers refuse."""
-    write_text(path, json.dumps(_finite(_plain(data)), indent=2, allow_nan=False) + "\n")
-
-
-def _finite(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    return value
+    write_text(path, json.dumps(_plain(data, finite=True), indent=2, allow_nan=False) + "\n")
 
 
 def write_yaml(path: PathLike, data: dict, header: str = "") -> None:
