@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stitchplan.tissue.assembly import Assembler
+from stitchplan.tissue.assembly import Assembler, stiffness_at_rest
 from stitchplan.config.scenario import Discretization, Material, Tissue
 from stitchplan.tissue.model import build_tissue_model
 
@@ -120,6 +120,30 @@ def test_reference_tangent_is_positive_definite_once_clamped(material):
     _, tangent = assembler.force_and_tangent(np.broadcast_to(np.eye(2), (len(model.quadrature_weights), 2, 2)))
     eigenvalues = np.linalg.eigvalsh(tangent.toarray())
     assert eigenvalues[0] > 1e-6 * eigenvalues[-1]
+
+
+@pytest.mark.parametrize("material, basis_order, dilation", CASES)
+def test_stiffness_at_rest_is_the_tangent_at_zero_deformation(material, basis_order, dilation):
+    """K0 from the direction gradients' isotropic blocks equals B^T diag(w A) B at F = I."""
+    model = small_model(material, basis_order, dilation)
+    assembler = Assembler(model)
+    _, tangent = assembler.force_and_tangent(np.broadcast_to(np.eye(2), (len(model.quadrature_weights), 2, 2)))
+    at_rest = stiffness_at_rest(model)
+    assert abs(at_rest - tangent).max() < 1e-13 * abs(tangent).max()
+
+
+def test_stiffness_at_rest_of_material_regions():
+    """Each quadrature point's own lambda and mu (a layered tissue, PointwiseMaterial)."""
+    from conftest import CONFIGS
+    from stitchplan.config.scenario import load_scenario
+    from stitchplan.needle.equilibrium import PreparedTissue
+    from stitchplan.tissue.material import PointwiseMaterial
+
+    model = PreparedTissue(load_scenario(CONFIGS / "skin_layered.yaml")).model
+    assert isinstance(model.material, PointwiseMaterial) and len(model.material.parts) > 1
+    assembler = Assembler(model)
+    _, tangent = assembler.force_and_tangent(np.broadcast_to(np.eye(2), (len(model.quadrature_weights), 2, 2)))
+    assert abs(stiffness_at_rest(model) - tangent).max() < 1e-13 * abs(tangent).max()
 
 
 @pytest.mark.parametrize("material", ["saint-venant-kirchhoff", "neo-hookean"])

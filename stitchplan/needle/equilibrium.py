@@ -34,7 +34,7 @@ import scipy.sparse as sp
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure, InvertedMaterial, NonFiniteResidual
 from ..events import Event, EventKind
-from ..tissue.assembly import Assembler
+from ..tissue.assembly import Assembler, stiffness_at_rest
 from ..tissue.factorization import Factor, factorize
 from ..tissue.model import TissueModel, build_tissue_model
 from ..tissue.solver import checked
@@ -162,10 +162,8 @@ class PreparedTissue:
         return self.key == (scenario.tissue, scenario.discretization, scenario.needle)
 
     def stiffness_at_rest(self) -> sp.csr_matrix:
-        """K0, from an assembler of its own (an insertion's assembler keeps its current tangent)."""
-        assembler = Assembler(self.model)
-        assembler.update(np.tile(np.eye(2), (len(self.model.quadrature_weights), 1, 1)))
-        return assembler.tangent_matrix()
+        """K0 (tissue.assembly.stiffness_at_rest)."""
+        return stiffness_at_rest(self.model)
 
     @property
     def factorized(self) -> bool:

@@ -116,6 +116,19 @@ def determinant(deformation_gradient: np.ndarray) -> np.ndarray:
     return f[:, 0, 0] * f[:, 1, 1] - f[:, 0, 1] * f[:, 1, 0]
 
 
+def lame_at_rest(model: SaintVenantKirchhoff | NeoHookean | PointwiseMaterial,
+                 n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """lambda and mu per point, (n,) each: at F = I both materials' tangent A = dP/dF is the
+    isotropic linear-elastic one, lambda d_iJ d_kL + mu (d_ik d_JL + d_iL d_Jk)."""
+    if isinstance(model, PointwiseMaterial):
+        if n_points != len(model.index):
+            raise ValueError(f"a pointwise material holds {len(model.index)} points, asked at {n_points}")
+        lam = np.array([part.lame_lambda for part in model.parts])[model.index]
+        mu = np.array([part.lame_mu for part in model.parts])[model.index]
+        return lam, mu
+    return np.full(n_points, model.lame_lambda), np.full(n_points, model.lame_mu)
+
+
 def make_material(material: Material) -> SaintVenantKirchhoff | NeoHookean:
     cls = SaintVenantKirchhoff if material.model == "saint-venant-kirchhoff" else NeoHookean
     return cls(material.lame_lambda, material.lame_mu)

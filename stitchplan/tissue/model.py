@@ -49,6 +49,9 @@ class TissueModel:
     boundary: EssentialBoundary
     gradient: sp.csr_matrix  # (4 nq, 2 n_free)
     spacing: float
+    # d Psi_p / d X_J of the free functions at column 2 p + J, (nq, 2 n_free): the gradient
+    # operator's entries without their repetition per displacement component
+    direction_gradient: sp.csr_matrix | None = None
     # gradients of the test functions when they differ from the trial ones (integration
     # "vci"); None: Galerkin, test = trial, symmetric tangent
     test_gradient: sp.csr_matrix | None = None
@@ -192,6 +195,7 @@ def build_tissue_model(
         boundary=boundary,
         gradient=gradient,
         spacing=spacing,
+        direction_gradient=_direction_gradient(grad_x, grad_y),
         test_gradient=test_gradient,
         visibility=visibility,
     )
@@ -291,6 +295,18 @@ def consistent_test_gradients(values: sp.csr_matrix, grad_x: sp.csr_matrix, grad
         xi = (target - grad.T @ weights) / mass
         corrected.append((grad + values @ sp.diags(xi)).tocsr())
     return corrected[0], corrected[1]
+
+
+def _direction_gradient(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matrix:
+    """(nq, 2 n_free) with d Psi_p / d X_J at column 2 p + J, from the (nq, n_free) gradient
+    matrices of the free functions."""
+    n_free = grad_x.shape[1]
+    joined = sp.hstack([grad_x, grad_y], format="csr")
+    interleaved = np.concatenate([2 * np.arange(n_free), 2 * np.arange(n_free) + 1])
+    joined.indices = interleaved.astype(joined.indices.dtype)[joined.indices]
+    joined.has_sorted_indices = False
+    joined.sort_indices()
+    return joined
 
 
 def _gradient_operator(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matrix:
