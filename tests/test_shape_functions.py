@@ -135,6 +135,32 @@ def test_too_few_particles_for_the_basis_is_reported():
         rk_shape_functions(np.array([[0.0, 0.0]]), particles, support, volumes, order=2)
 
 
+@pytest.mark.parametrize("order, dilation", CASES)
+def test_a_few_points_at_a_time_give_what_many_give(order, dilation, rng):
+    """Many points take the batched inverse and the condition estimate, a few (tip tracking)
+    LAPACK's inverse and eigenvalues: the same functions to round-off."""
+    particles, support, volumes = particle_grid(dilation)
+    points = evaluation_points(rng)
+    many = rk_shape_pairs(points, particles, support, volumes, order, gradients=True)
+    few = [rk_shape_pairs(points[k:k + 5], particles, support, volumes, order, gradients=True)
+           for k in range(0, len(points), 5)]
+    np.testing.assert_array_equal(many.cols, np.concatenate([part.cols for part in few]))
+    np.testing.assert_allclose(many.values, np.concatenate([part.values for part in few]), rtol=0, atol=ROUND_OFF)
+    np.testing.assert_allclose(many.grad, np.concatenate([part.grad for part in few]), rtol=0, atol=ROUND_OFF)
+
+
+@pytest.mark.parametrize("count", [1, 100])
+def test_a_singular_moment_matrix_is_reported_with_its_point(count):
+    """Particles on one line leave the linear basis's moment matrix singular everywhere,
+    with enough particles in each support: found by the eigenvalues (a few points) and by
+    the condition estimate (many)."""
+    particles = np.stack([np.linspace(0.0, 10.0, 11), np.full(11, 4.0)], axis=1)
+    support, volumes = np.full(11, 2.5), np.ones(11)
+    points = np.stack([np.linspace(2.0, 8.0, count), np.full(count, 4.0)], axis=1)
+    with pytest.raises(SingularMomentMatrix, match=r"moment matrix M\(X\) is singular at \([0-9.]+, 4\) mm"):
+        rk_shape_pairs(points, particles, support, volumes, order=1, gradients=False)
+
+
 def graded_arrangement(dilation: float = 2.0):
     """Particles graded from 4 mm down to 0.5 mm (three levels) toward a disk in a 40 x 30 mm
     slab: the supports differ by a factor 8, as around a needle or a wound's corner."""

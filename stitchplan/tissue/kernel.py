@@ -11,10 +11,11 @@ def cubic_spline(z: np.ndarray, derivative: bool = True) -> tuple[np.ndarray, np
     r = np.abs(z)
     inner = r <= 0.5
     rest = np.maximum(1.0 - r, 0.0)
-    phi = np.where(inner, 2.0 / 3.0 - 4.0 * r**2 + 4.0 * r**3, 4.0 / 3.0 * rest**3)
+    r2, rest2 = r * r, rest * rest  # products: numpy's power is several times slower
+    phi = np.where(inner, 2.0 / 3.0 - 4.0 * r2 + 4.0 * r2 * r, 4.0 / 3.0 * rest2 * rest)
     if not derivative:
         return phi, None
-    dphi = np.where(inner, -8.0 * r + 12.0 * r**2, -4.0 * rest**2)
+    dphi = np.where(inner, -8.0 * r + 12.0 * r2, -4.0 * rest2)
     return phi, dphi * np.sign(z)
 
 
@@ -30,5 +31,8 @@ def tensor_kernel(offset: np.ndarray, support: np.ndarray,
     phi = phi_1d[:, 0] * phi_1d[:, 1] / support**2
     if not gradient:
         return phi, None
-    grad = np.stack([dphi_1d[:, 0] * phi_1d[:, 1], phi_1d[:, 0] * dphi_1d[:, 1]], axis=1)
-    return phi, grad / support[:, None] ** 3
+    scale = 1.0 / support**3
+    grad = np.empty_like(offset)
+    grad[:, 0] = dphi_1d[:, 0] * phi_1d[:, 1] * scale
+    grad[:, 1] = phi_1d[:, 0] * dphi_1d[:, 1] * scale
+    return phi, grad

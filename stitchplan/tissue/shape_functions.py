@@ -130,7 +130,8 @@ class ParticleSearch:
             return grid.within(points, grid.size)  # ordered so already
         count = len(self.everyone.x)
         pairs = [grid.within(points, grid.size) for grid in self.groups]
-        merged = np.sort(np.concatenate([rows * count + cols for rows, cols in pairs]))  # by point, then particle
+        # by point, then particle: a merge of the groups' sorted runs (timsort finds them)
+        merged = np.sort(np.concatenate([rows * count + cols for rows, cols in pairs]), kind="stable")
         return merged // count, merged % count
 
     def nearest(self, points: np.ndarray) -> np.ndarray:
@@ -147,18 +148,27 @@ def neighbour_pairs(
 
     Returns (point_index, particle_index, indptr) where indptr delimits each point's pairs.
     """
+    rows, cols, indptr, _ = _pairs_and_offsets(points, particles, support, search, visibility)
+    return rows, cols, indptr
+
+
+def _pairs_and_offsets(points, particles, support, search, visibility):
+    """neighbour_pairs, and each pair's offset X - X_I (pairs, 2)."""
     search = search if search is not None else ParticleSearch.of(particles, support)
     rows, cols = search.candidates(points)
+    offset = np.take(points, rows, axis=0) - np.take(particles, cols, axis=0)  # take: faster than [] here
     # the kernel vanishes at |z| = 1; a relative margin keeps particles that sit on the
     # support edge (dilation 2 on a regular grid) out regardless of rounding
-    keep = np.abs(points[rows] - particles[cols]).max(axis=1) < support[cols] * (1.0 - 1e-9)
-    rows, cols = rows[keep], cols[keep]
+    reach = support[cols] * (1.0 - 1e-9)
+    keep = (np.abs(offset[:, 0]) < reach) & (np.abs(offset[:, 1]) < reach)
+    if not keep.all():
+        rows, cols, offset = rows[keep], cols[keep], offset[keep]
     if visibility is not None:
         keep = visibility.keep(points, particles, rows, cols)
-        rows, cols = rows[keep], cols[keep]
+        rows, cols, offset = rows[keep], cols[keep], offset[keep]
     indptr = np.zeros(len(points) + 1, dtype=np.int64)
     np.cumsum(np.bincount(rows, minlength=len(points)), out=indptr[1:])
-    return rows, cols, indptr
+    return rows, cols, indptr, offset
 
 
 @dataclass(frozen=True)
@@ -223,7 +233,7 @@ def rk_shape_pairs(
     Visibility).
     """
     points = np.atleast_2d(np.asarray(points, dtype=float))
-    rows, cols, indptr = neighbour_pairs(points, particles, support, search, visibility)
+    rows, cols, indptr, offset = _pairs_and_offsets(points, particles, support, search, visibility)
     counts = indptr[1:] - indptr[:-1]
     m = basis_size(order)
     if (counts < m).any():
@@ -234,28 +244,19 @@ def rk_shape_pairs(
             "increase the dilation or refine the spacing"
         )
     scale = float(basis_scale if basis_scale is not None else support.mean())
-    offset = points[rows] - particles[cols]  # (pairs, 2)
     volume = volumes[cols]
     phi, dphi = tensor_kernel(offset, support[cols], gradients)
     phi = phi * volume
     h = _basis(offset / scale, order)  # (pairs, m)
 
     # M(X) = sum H H^T phi from its upper triangle: (pairs, m (m + 1) / 2) products, not m^2
-    starts = indptr[:-1]
     upper, full = _TRIANGLES[order]
-    hh = h[:, upper[0]] * h[:, upper[1]]  # (pairs, u)
-    moment = np.add.reduceat(hh * phi[:, None], starts, axis=0)[:, full]  # (n, m, m)
-    eigenvalues = np.linalg.eigvalsh(moment)  # (n, m), ascending
-    rcond = eigenvalues[:, 0] / eigenvalues[:, -1]
-    if (rcond < 1e-12).any():
-        bad = int(np.argmin(rcond))
-        raise SingularMomentMatrix(
-            f"moment matrix M(X) is singular at ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm "
-            f"(reciprocal condition {rcond[bad]:.2e}): increase the dilation"
-        )
-    inverse = np.linalg.inv(moment)  # (n, m, m); well conditioned, checked above
+    hh = _upper_products(h, upper)  # (pairs, u)
+    sums = _PairSums(indptr, len(rows))
+    moment = sums(hh, phi)[:, full]  # (n, m, m)
+    inverse = _checked_inverse(moment, points)  # (n, m, m)
     b = inverse[:, :, 0]  # M^-1 H(0), H(0) = e_1 (M symmetric), (n, m)
-    corrected = np.einsum("pm,pm->p", b[rows], h)  # H(0)^T M^-1 H, (pairs,)
+    corrected = _row_dot(b, rows, h)  # H(0)^T M^-1 H, (pairs,)
     shape = corrected * phi
     if not gradients:
         return ShapePairs(rows, cols, indptr, shape, None)
@@ -267,10 +268,98 @@ def rk_shape_pairs(
     maps = _MAPS[order] / scale
     grad = np.empty((len(rows), 2))
     for k in range(2):
-        dmoment = np.add.reduceat(hh * dphi[:, k, None], starts, axis=0)[:, full]
+        dmoment = sums(hh, dphi[:, k])[:, full]
         spread = maps[k] @ moment  # D_k M / s, (n, m, m)
         dmoment += spread + spread.transpose(0, 2, 1)
         db = -(inverse @ (dmoment @ b[:, :, None]))[:, :, 0]
         weights = db + b @ maps[k]  # (n, m): dM^-1 H(0) + D_k^T b / s
-        grad[:, k] = np.einsum("pm,pm->p", weights[rows], h) * phi + corrected * dphi[:, k]
+        grad[:, k] = _row_dot(weights, rows, h) * phi + corrected * dphi[:, k]
     return ShapePairs(rows, cols, indptr, shape, grad)
+
+
+class _PairSums:
+    """sum_p w_p v_p over each point's pairs (grouped by point, `indptr`), (n, columns): a
+    sparse product for many points (a third of reduceat's time), reduceat for a few."""
+
+    def __init__(self, indptr: np.ndarray, pairs: int):
+        self.indptr, self.pairs = indptr, pairs
+        self.columns = np.arange(pairs) if len(indptr) > MANY_POINTS else None
+
+    def __call__(self, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        if self.columns is None:
+            return np.add.reduceat(values * weights[:, None], self.indptr[:-1], axis=0)
+        summed = sp.csr_matrix((weights, self.columns, self.indptr), shape=(len(self.indptr) - 1, self.pairs))
+        return summed @ values
+
+
+def _upper_products(h: np.ndarray, upper: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """H_a H_b for the upper triangle's (a, b), (pairs, u); by columns (H_0 = 1: no product)."""
+    out = np.empty((len(h), len(upper[0])))
+    for j, (a, b) in enumerate(zip(*upper)):
+        out[:, j] = h[:, b] if a == 0 else h[:, a] * h[:, b]
+    return out
+
+
+def _row_dot(per_point: np.ndarray, rows: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """per_point[rows[p]] . h[p] for every pair p, (pairs,)."""
+    gathered = np.take(per_point, rows, axis=0)
+    out = gathered[:, 0] * h[:, 0]
+    for j in range(1, h.shape[1]):
+        out += gathered[:, j] * h[:, j]
+    return out
+
+
+def _checked_inverse(moment: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """M^-1 of each moment matrix (n, m, m), after checking that none is singular: a
+    reciprocal condition lambda_min / lambda_max below 1e-12 raises SingularMomentMatrix.
+
+    For many points the eigenvalues are computed only where the cheap 1-norm estimate
+    1 / (|M|_1 |M^-1|_1) falls below m x 1e-12: for symmetric positive semidefinite M the two
+    differ by at most the factor m, so every other point passes the eigenvalue test."""
+    m = moment.shape[1]
+    if len(moment) <= MANY_POINTS:  # a few points: two LAPACK calls cost less than the estimate
+        _check_condition(np.linalg.eigvalsh(moment), np.arange(len(moment)), points)
+        return np.linalg.inv(moment)
+    inverse = _inverse3(moment) if m == 3 else _inverse_or_nan(moment)
+    norm = np.abs(moment).sum(axis=1).max(axis=1)
+    norm_inverse = np.abs(inverse).sum(axis=1).max(axis=1)
+    doubtful = np.flatnonzero(~(1.0 / (norm * norm_inverse) >= m * 1e-12))  # NaN (singular) included
+    if len(doubtful):
+        _check_condition(np.linalg.eigvalsh(moment[doubtful]), doubtful, points)
+    return inverse
+
+
+def _check_condition(eigenvalues: np.ndarray, which: np.ndarray, points: np.ndarray) -> None:
+    """Raise SingularMomentMatrix where lambda_min / lambda_max < 1e-12 (eigenvalues
+    ascending, of the moment matrices at points[which])."""
+    rcond = eigenvalues[:, 0] / eigenvalues[:, -1]
+    if (~(rcond >= 1e-12)).any():
+        worst = int(np.argmin(np.nan_to_num(rcond, nan=-np.inf)))
+        bad = int(which[worst])
+        raise SingularMomentMatrix(
+            f"moment matrix M(X) is singular at ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm "
+            f"(reciprocal condition {rcond[worst]:.2e}): increase the dilation"
+        )
+
+
+def _inverse3(moment: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric 3 x 3 matrices (n, 3, 3) by cofactors (NaN where singular):
+    a tenth of np.linalg.inv's time for the batches here."""
+    a, b, c = moment[:, 0, 0], moment[:, 0, 1], moment[:, 0, 2]
+    d, e, f = moment[:, 1, 1], moment[:, 1, 2], moment[:, 2, 2]
+    cof = np.empty_like(moment)
+    cof[:, 0, 0] = d * f - e * e
+    cof[:, 0, 1] = cof[:, 1, 0] = c * e - b * f
+    cof[:, 0, 2] = cof[:, 2, 0] = b * e - c * d
+    cof[:, 1, 1] = a * f - c * c
+    cof[:, 1, 2] = cof[:, 2, 1] = b * c - a * e
+    cof[:, 2, 2] = a * d - b * b
+    determinant = (a * cof[:, 0, 0] + b * cof[:, 0, 1] + c * cof[:, 0, 2])[:, None, None]
+    return np.divide(cof, determinant, out=np.full_like(cof, np.nan), where=determinant > 0.0)
+
+
+def _inverse_or_nan(moment: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.inv(moment)
+    except np.linalg.LinAlgError:  # an exactly singular one: the check names it
+        return np.full_like(moment, np.nan)
