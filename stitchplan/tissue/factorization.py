@@ -1,27 +1,30 @@
-"""Sparse direct factorizations: scipy's SuperLU always, CHOLMOD's supernodal Cholesky when
-the optional `fast` extra (the `cholespy` wheel) is installed and the matrix is symmetric
-positive definite.
+"""Sparse direct factorizations: scipy's SuperLU always; CHOLMOD when the optional `fast`
+extra (the `cvxopt` wheel, which carries CHOLMOD and OpenBLAS) is installed and the matrix
+is symmetric.
 
 The needle's saddle-point solves reuse one factor of K + H over hundreds of Newton
-iterations, so the solve dominates: on the SH 1/2 scene (1900 dofs, 175 000 nonzeros)
-CHOLMOD solves in ~0.27 ms against SuperLU's ~0.44 ms (symmetric mode). SuperLU stays the
-default and the fallback: a matrix the Cholesky finds not positive definite (the needle's
-constraint curvature H can make K + H indefinite) is factorized by SuperLU instead.
-STITCHPLAN_LINEAR_BACKEND=superlu turns the Cholesky off. Every factor says which backend
-made it (`backend`), and the run summaries record it.
+iterations, and every run factors K0 once: on the SH 1/2 scene (1900 dofs, 175 000
+nonzeros) CHOLMOD's Cholesky factors K0 in ~11 ms and solves in ~0.2 ms, against SuperLU's
+~25 ms and ~0.44 ms (symmetric mode); on its model at half the spacing (the plan's
+verification, 7170 dofs) in ~0.11 s against ~0.35 s. Where the needle's constraint
+curvature H makes K + H indefinite, CHOLMOD's L D L^T (no pivoting) takes it when it solves
+a generic right-hand side accurately, SuperLU (with pivoting) otherwise.
+STITCHPLAN_LINEAR_BACKEND=superlu turns CHOLMOD off. Every factor says which backend made
+it (`backend`), and the run summaries record it.
 """
 
 from __future__ import annotations
 
 import os
-import sys
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 SUPERLU = "scipy SuperLU (splu, MMD_AT_PLUS_A ordering, symmetric mode)"
-CHOLMOD = "CHOLMOD supernodal Cholesky (cholespy)"
+CHOLMOD = "CHOLMOD Cholesky (cvxopt)"
+CHOLMOD_LDL = "CHOLMOD L D L^T (cvxopt)"
+INDEFINITE_ACCURACY = 1e-10  # relative residual an L D L^T factor must solve a probe to
 
 
 class SuperLUFactor:
@@ -40,26 +43,46 @@ class SuperLUFactor:
 
 
 class CholeskyFactor:
-    """L L^T of a symmetric positive definite matrix by CHOLMOD (cholespy); raises
-    ValueError when the matrix is not positive definite."""
+    """A factor of a symmetric matrix by CHOLMOD (cvxopt's build, with its own OpenBLAS):
+    L L^T, supernodal where the fill makes BLAS pay, for a positive definite matrix; with
+    `indefinite`, L D L^T (simplicial, no pivoting). Raises ValueError when the matrix is
+    not positive definite (L L^T) or the L D L^T factor does not solve it to
+    INDEFINITE_ACCURACY (a tiny pivot)."""
 
     backend = CHOLMOD
 
-    def __init__(self, matrix: sp.spmatrix):
-        from cholespy import CholeskySolverD, MatrixType
+    def __init__(self, matrix: sp.spmatrix, indefinite: bool = False):
+        from cvxopt import cholmod, matrix as dense, spmatrix
 
-        csr = sp.csr_matrix(matrix)
-        csr.sum_duplicates()
-        csr.sort_indices()
-        self._solver = _quiet(lambda: CholeskySolverD(csr.shape[0], csr.indptr.astype(np.int32),
-                                                      csr.indices.astype(np.int32),
-                                                      np.ascontiguousarray(csr.data, dtype=float), MatrixType.CSR))
+        lower = sp.tril(matrix, format="csc")
+        lower.sum_duplicates()
+        lower.sort_indices()
+        triplets = lower.tocoo()  # in column order, as CHOLMOD keeps it
+        n = lower.shape[0]
+        stored = spmatrix(dense(triplets.data), dense(triplets.row.astype(np.int64)),
+                          dense(triplets.col.astype(np.int64)), (n, n))
+        saved = dict(cholmod.options)
+        cholmod.options["supernodal"] = 0 if indefinite else 2  # 2: CHOLMOD's choice
+        try:
+            self._factor = cholmod.symbolic(stored, uplo="L")
+            cholmod.numeric(stored, self._factor)
+        except ArithmeticError:
+            raise ValueError("not positive definite") from None
+        finally:
+            cholmod.options.clear()
+            cholmod.options.update(saved)
+        self._dense, self._solve = dense, cholmod.solve
+        if indefinite:
+            self.backend = CHOLMOD_LDL
+            probe = np.random.default_rng(0).standard_normal(n)  # a generic right-hand side
+            product = matrix @ self.solve(probe)
+            if not np.linalg.norm(product - probe) <= INDEFINITE_ACCURACY * np.linalg.norm(probe):
+                raise ValueError("L D L^T without pivoting is not accurate")
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        rhs = np.ascontiguousarray(rhs, dtype=float)
-        solution = np.empty_like(rhs)
-        self._solver.solve(rhs, solution)
-        return solution
+        solution = self._dense(np.asfortranarray(rhs, dtype=float))
+        self._solve(self._factor, solution)
+        return np.array(solution).reshape(np.shape(rhs))
 
 
 Factor = SuperLUFactor | CholeskyFactor
@@ -69,49 +92,22 @@ def cholesky_available() -> bool:
     if os.environ.get("STITCHPLAN_LINEAR_BACKEND", "").lower() == "superlu":
         return False
     try:
-        import cholespy  # noqa: F401
+        import cvxopt.cholmod  # noqa: F401
     except ImportError:
         return False
     return True
 
 
 def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
-    """A factor of `matrix` with `.solve(rhs)` (rhs (n,) or (n, k)) and `.backend`: CHOLMOD's
-    Cholesky when the caller knows the matrix is symmetric (`symmetric_positive`) and it is
-    available and succeeds, SuperLU otherwise."""
+    """A factor of `matrix` with `.solve(rhs)` (rhs (n,) or (n, k)) and `.backend`. Where the
+    caller knows the matrix is symmetric (`symmetric_positive`) and CHOLMOD is available: its
+    Cholesky, or where the matrix is not positive definite (the needle's constraint
+    curvature H can make K + H indefinite) its L D L^T when that solves accurately;
+    SuperLU otherwise."""
     if symmetric_positive and cholesky_available():
-        try:
-            return CholeskyFactor(matrix)
-        except ValueError:  # not positive definite
-            pass
+        for indefinite in (False, True):
+            try:
+                return CholeskyFactor(matrix, indefinite)
+            except ValueError:  # not positive definite; not accurate without pivoting
+                pass
     return SuperLUFactor(matrix)
-
-
-def _quiet(make):
-    """Run `make` with the process's stdout and stderr closed: CHOLMOD prints a warning of its
-    own for a matrix that is not positive definite (which the fallback handles), through C's
-    buffered stdout, so C's buffers are flushed before the descriptors come back."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = [os.dup(1), os.dup(2)]
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        os.dup2(devnull, 2)
-        return make()
-    finally:
-        _flush_c_streams()
-        os.dup2(saved[0], 1)
-        os.dup2(saved[1], 2)
-        for descriptor in (*saved, devnull):
-            os.close(descriptor)
-
-
-def _flush_c_streams() -> None:
-    """fflush(NULL): C's stdio buffers of this process."""
-    import ctypes
-
-    try:
-        ctypes.CDLL(None).fflush(None)
-    except (OSError, AttributeError):  # no C library to reach: nothing buffered there to lose
-        pass
