@@ -130,6 +130,31 @@ def test_later_passes_replay_the_first_pass_up_to_the_offset(two_passes):
     assert not np.allclose(kept[taken].center, reference[taken].center, atol=1e-9, rtol=0)  # the offset acts
 
 
+def test_a_later_pass_takes_the_first_passs_tip_points_over_its_prefix(monkeypatch):
+    """The steps a later pass takes over are replayed about the first pass's centres from its
+    states, so their tip points are the first pass's (not tracked again)."""
+    import stitchplan.needle.insertion as insertion
+
+    tracked = []  # (pass, step) of every tracking
+
+    def counted(state, step, *args, **kwargs):
+        tracked.append(step)
+        return track_step(state, step, *args, **kwargs)
+
+    track_step = insertion.track_step
+    monkeypatch.setattr(insertion, "track_step", counted)
+    raw = scene((20.0, 20.0), (0.0, 18.0), "cw", ["right"], spacing=5.0, step=0.3,
+                planner={"exit_tolerance": 1e-9, "max_passes": 2})
+    plan = run_plan(parse_scenario(raw), compare=False)
+    first_aimed, steps = plan.shooting.prefix.first_aimed, len(plan.planned.steps)
+    assert first_aimed > 2
+    # the first pass tracks every step and its exit; the second from its first aimed step on
+    assert tracked == [*range(1, steps + 2), *range(first_aimed, steps + 2)]
+    reference = plan.shooting.prefix.reference.steps
+    np.testing.assert_array_equal([s.tip_reference for s in plan.planned.steps[:first_aimed - 1]],
+                                  [s.tip_reference for s in reference[:first_aimed - 1]])
+
+
 def test_a_large_offset_acts_from_the_first_step(two_passes):
     """An offset beyond PassPrefix.largest_offset (a fraction of the second-difference limit)
     would enter late as a jump the move limits hold back: such a pass runs every step."""

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure
+from ..events import EventKind
 from .equilibrium import NeedleInsertion, PreparedTissue
 from .results import InsertionResult, NeedleStep, Snapshot
 from .steering import CenterAim
@@ -88,7 +89,11 @@ def run_insertion(
     `start_from`: an earlier run on the same model along a nearby centre path (the
     verification's first replay, for its second): each step's Newton solve starts from this
     run's previous state plus that run's change over the step (NeedleInsertion.equilibrate
-    `guess`). Not for planner passes (planning.planner.run_plan says why).
+    `guess`). Not for planner passes (planning.planner.run_plan says why), except over the
+    steps a later pass takes over from the first (planning.planner.PassPrefix). While this
+    run has taken the earlier run's centres (and the needle crosses no wound), its tip points
+    are the earlier run's: they would be tracked from the same state (to round-off) about the
+    same centre.
     """
     if scenario.discretization.accuracy is not None:
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
@@ -106,6 +111,9 @@ def run_insertion(
     steps: list[NeedleStep] = []
     states: list[Snapshot] = []  # the equilibrium after each step
     earlier = start_from.states if start_from is not None and start_from.model is insertion.model else []
+    # every centre so far the earlier run's (a needle across no wound, whose steps' records
+    # hold their tracked tip points)
+    followed = bool(earlier) and not geometry.gaps
 
     def step_done(record: NeedleStep) -> None:
         steps.append(record)
@@ -136,7 +144,11 @@ def run_insertion(
             point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
             fraction = (rotation - entry_rotation) / geometry.step
         else:
-            point, method = track_step(insertion, step, rotation)  # about the previous step's centre
+            followed = followed and _same_center(start_from, step - 1, insertion)
+            if followed and step <= len(earlier):
+                point, method = _tracked_before(start_from, step, insertion)
+            else:
+                point, method = track_step(insertion, step, rotation)  # about the previous step's centre
             fraction = 1.0
         if insertion.domain.outside_distance(point) > 0.0:
             start = max(previous, crossings[-1][2]) if crossings else previous
@@ -158,6 +170,20 @@ def run_insertion(
                                fraction, _at(earlier, step, insertion)))
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
+
+
+def _same_center(earlier: InsertionResult, step: int, insertion: NeedleInsertion) -> bool:
+    """Whether this run's centre after `step` (0: the entry centre) is the earlier run's."""
+    center = earlier.geometry.center if step == 0 else earlier.steps[step - 1].center
+    return bool(np.array_equal(center, insertion.center))
+
+
+def _tracked_before(earlier: InsertionResult, step: int, insertion: NeedleInsertion) -> tuple[np.ndarray, str]:
+    """The earlier run's tip point of `step` and how it was tracked, with its tracking events."""
+    record = earlier.steps[step - 1]
+    insertion.events.extend(event for event in earlier.events
+                            if event.kind == EventKind.TIP_TRACKING_FALLBACK and event.step == step)
+    return record.tip_reference.copy(), record.tracking
 
 
 def _at(states: list[Snapshot], step: int, insertion: NeedleInsertion) -> Snapshot | None:
