@@ -21,6 +21,11 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+try:  # the `fast` extra; imported with the module, as scipy is, not within a run
+    from cvxopt import cholmod, matrix as dense, spmatrix
+except (ImportError, OSError):
+    cholmod = None
+
 SUPERLU = "scipy SuperLU (splu, MMD_AT_PLUS_A ordering, symmetric mode)"
 CHOLMOD = "CHOLMOD Cholesky (cvxopt)"
 CHOLMOD_LDL = "CHOLMOD L D L^T (cvxopt)"
@@ -52,8 +57,6 @@ class CholeskyFactor:
     backend = CHOLMOD
 
     def __init__(self, matrix: sp.spmatrix, indefinite: bool = False):
-        from cvxopt import cholmod, matrix as dense, spmatrix
-
         lower = sp.tril(matrix, format="csc")
         lower.sum_duplicates()
         lower.sort_indices()
@@ -71,7 +74,6 @@ class CholeskyFactor:
         finally:
             cholmod.options.clear()
             cholmod.options.update(saved)
-        self._dense, self._solve = dense, cholmod.solve
         if indefinite:
             self.backend = CHOLMOD_LDL
             probe = np.random.default_rng(0).standard_normal(n)  # a generic right-hand side
@@ -80,8 +82,8 @@ class CholeskyFactor:
                 raise ValueError("L D L^T without pivoting is not accurate")
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        solution = self._dense(np.asfortranarray(rhs, dtype=float))
-        self._solve(self._factor, solution)
+        solution = dense(np.asfortranarray(rhs, dtype=float))
+        cholmod.solve(self._factor, solution)
         return np.array(solution).reshape(np.shape(rhs))
 
 
@@ -89,13 +91,7 @@ Factor = SuperLUFactor | CholeskyFactor
 
 
 def cholesky_available() -> bool:
-    if os.environ.get("STITCHPLAN_LINEAR_BACKEND", "").lower() == "superlu":
-        return False
-    try:
-        import cvxopt.cholmod  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return cholmod is not None and os.environ.get("STITCHPLAN_LINEAR_BACKEND", "").lower() != "superlu"
 
 
 def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
