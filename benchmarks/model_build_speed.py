@@ -44,12 +44,13 @@ from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
 
-BASELINE = "c2d6bb9"
+BASELINE = "89f6881"
 # (config, --spacing or None for the default, whether to time the whole unplanned run)
 SCENES = (("sh12_100x100", None, True), ("sh12_100x100", 1.776, False), ("needle20_entry18", None, True),
           ("hole_near_stitch", None, True), ("wound_closure", None, True), ("wound_closure", 0.75, False))
 REPEATS = int(os.environ.get("MODEL_BUILD_REPEATS", 3))  # processes per code and case
 POINT_CALLS = 200
+SOLVES = 20
 STARTUP_REPEATS = 9
 IMPORTS = "import stitchplan.cli.commands, stitchplan.planning.verification, stitchplan.needle.insertion"
 COMMANDS = (("simulate", "sh12_100x100", ("--no-estimate",)),
@@ -86,10 +87,41 @@ def worker(scene: str, spacing: float | None, run: bool) -> dict:
         times.append(time.perf_counter() - start)
     record = {"particles": model.n_particles, "quadrature_points": len(model.quadrature_points),
               "build_s": build, "point_ms": 1e3 * statistics.median(times)}
+    record.update(factor_record(scenario))
     if run:
         start = time.perf_counter()
         result = run_insertion(scenario)
         record.update(run_s=time.perf_counter() - start, exit_error_mm=result.exit_error_mm)
+    return record
+
+
+def factor_record(scenario) -> dict:
+    """K0 (PreparedTissue.stiffness_at_rest) and its factor by the installed backend
+    (factorize) and by SuperLU: seconds to assemble and to factor, milliseconds per solve of
+    one right-hand side (median of SOLVES)."""
+    import numpy as np
+
+    from stitchplan.needle.equilibrium import PreparedTissue
+    from stitchplan.tissue.factorization import SuperLUFactor, factorize
+
+    tissue = PreparedTissue(scenario)
+    tissue.model
+    start = time.perf_counter()
+    stiffness = tissue.stiffness_at_rest()
+    record = {"k0_s": time.perf_counter() - start}
+    rhs = np.ones(stiffness.shape[0])
+    for key, make in (("factor", lambda: factorize(stiffness, symmetric_positive=True)),
+                      ("superlu", lambda: SuperLUFactor(stiffness))):
+        start = time.perf_counter()
+        factor = make()
+        record[f"{key}_s"] = time.perf_counter() - start
+        times = []
+        for _ in range(SOLVES):
+            start = time.perf_counter()
+            factor.solve(rhs)
+            times.append(time.perf_counter() - start)
+        record[f"{key}_solve_ms"] = 1e3 * statistics.median(times)
+        record.setdefault("backend", factor.backend)
     return record
 
 
@@ -148,10 +180,14 @@ def main(baseline: str) -> None:
             after = samples["after"][0]
             row = {"scene": scene + (f" --spacing {spacing:g}" if spacing else ""), "particles": after["particles"],
                    "quadrature_points": after["quadrature_points"]}
-            for key in ("build_s", "point_ms") + (("run_s",) if run else ()):
+            for label, records in samples.items():
+                row[f"{label}_backend"] = records[0]["backend"]
+            for key in ("build_s", "point_ms", "k0_s", "factor_s", "factor_solve_ms") + (("run_s",) if run else ()):
                 for label, records in samples.items():
                     row[f"{label}_{key}"] = statistics.median(r[key] for r in records)
                 row[f"{key}_ratio"] = row[f"before_{key}"] / row[f"after_{key}"]
+            for key in ("superlu_s", "superlu_solve_ms"):
+                row[key] = statistics.median(r[key] for r in samples["after"])
             if run:
                 errors = [r["exit_error_mm"] for r in samples["before"] + samples["after"]]
                 row["exit_error_mm"], row["exit_error_spread_mm"] = after["exit_error_mm"], max(errors) - min(errors)
@@ -171,6 +207,12 @@ COLUMNS = [("scene", "scene"), ("particles", "particles"), ("quadrature_points",
            ("before_run_s", "unplanned run before (s)"), ("after_run_s", "unplanned run after (s)"),
            ("run_s_ratio", "run speed-up"), ("exit_error_mm", "exit error (mm)"),
            ("exit_error_spread_mm", "exit error spread (mm)")]
+FACTOR_COLUMNS = [("scene", "scene"), ("before_k0_s", "K0 before (s)"), ("after_k0_s", "K0 after (s)"),
+                  ("k0_s_ratio", "K0 speed-up"), ("before_backend", "backend before"),
+                  ("before_factor_s", "factor before (s)"), ("before_factor_solve_ms", "solve before (ms)"),
+                  ("after_backend", "backend after"), ("after_factor_s", "factor after (s)"),
+                  ("after_factor_solve_ms", "solve after (ms)"), ("factor_s_ratio", "factor speed-up"),
+                  ("superlu_s", "SuperLU factor (s)"), ("superlu_solve_ms", "SuperLU solve (ms)")]
 
 
 STARTUP_COLUMNS = [("what", "process"), ("before_s", "before (s)"), ("after_s", "after (s)"),
@@ -180,9 +222,12 @@ STARTUP_COLUMNS = [("what", "process"), ("before_s", "before (s)"), ("after_s", 
 def write(rows: list[dict], startup_rows: list[dict], baseline: str) -> None:
     table = common.markdown_table([title for _, title in COLUMNS],
                                   [[row.get(key, "-") for key, _ in COLUMNS] for row in rows])
+    factor_table = common.markdown_table([title for _, title in FACTOR_COLUMNS],
+                                         [[row.get(key, "-") for key, _ in FACTOR_COLUMNS] for row in rows])
     startup_table = common.markdown_table([title for _, title in STARTUP_COLUMNS],
                                           [[row.get(key, "") for key, _ in STARTUP_COLUMNS] for row in startup_rows])
     print(table)
+    print(factor_table)
     print(startup_table)
     text = f"""# Shape functions, neighbour search and start-up: model builds, single points, unplanned runs, commands
 
@@ -192,16 +237,28 @@ median of {REPEATS} processes). *build*: a fresh model (particles, quadrature, R
 functions and gradients at every quadrature point, essential boundary); *one point*: shape
 functions and gradients at one point near the entry, as tip tracking evaluates them (median
 of {POINT_CALLS} calls); *unplanned run*: `run_insertion` on a fresh model (build, K0's
-factor, every needle step). The change: the neighbour search on square cells of each
-support group's largest support, in numpy (tissue/neighbours.py), instead of scipy.spatial's
-KD-trees, and the exit's and a wound's re-entry's root search by the package's own Brent
-method instead of scipy.optimize.brentq (Levenberg-Marquardt's fallback imports
-scipy.optimize when it runs), so that a command on a rectangular tissue imports neither;
-the calibration input's models are imported by `calibrate` only. (Earlier changes this
-script measured, with their baselines: the git history of this file.) "exit error spread":
-the largest difference of the exit error over all runs of both codes (round-off).
+factor, every needle step). The change: the RK shape functions of many points in about
+half the time (tissue/shape_functions.py: each pair's offset computed once, the support
+groups' sorted runs merged by a stable sort, the sums over a point's pairs as one sparse
+product, the 3 x 3 moment matrices inverted by cofactors with a 1-norm condition estimate
+and their eigenvalues computed only where that estimate is in doubt; tissue/kernel.py:
+products instead of powers); K0 from the isotropic tangent at rest, one product of the
+(nq x 2n) direction gradients (tissue/assembly.py stiffness_at_rest); and the `fast`
+extra's CHOLMOD from cvxopt's wheel, which carries OpenBLAS, instead of cholespy's, which
+carries the reference BLAS (tissue/factorization.py). Both codes ran with their own `fast`
+extra installed (cholespy and cvxopt). (Earlier changes this script measured, with their
+baselines: the git history of this file.) "exit error spread": the largest difference of
+the exit error over all runs of both codes (round-off).
 
 {table}
+
+## K0 and its factor
+
+*K0*: assembling the tangent at rest (PreparedTissue.stiffness_at_rest); *factor*: its factor
+by `factorize` with the installed backend, and the median of {SOLVES} solves of one right-hand
+side; *SuperLU*: the same with scipy's SuperLU (the path without the `fast` extra), now.
+
+{factor_table}
 
 ## Start-up
 
