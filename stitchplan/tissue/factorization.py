@@ -4,9 +4,10 @@ is symmetric.
 
 The needle's saddle-point solves reuse one factor of K + H over hundreds of Newton
 iterations, and every run factors K0 once: on the SH 1/2 scene (1900 dofs, 175 000
-nonzeros) CHOLMOD's Cholesky factors K0 in ~11 ms and solves in ~0.2 ms, against SuperLU's
-~25 ms and ~0.44 ms (symmetric mode); on its model at half the spacing (the plan's
-verification, 7170 dofs) in ~0.11 s against ~0.35 s. Where the needle's constraint
+nonzeros) CHOLMOD's Cholesky factors K0 in ~17 ms and solves in ~0.17 ms, against SuperLU's
+~26 ms and ~0.34 ms (symmetric mode); on its model at half the spacing (the plan's
+verification, 7170 dofs) in ~0.12 s and ~3.6 ms against ~0.33 s and ~6.3 ms
+(benchmarks/results/model_build_speed.md). Where the needle's constraint
 curvature H makes K + H indefinite, CHOLMOD's L D L^T (no pivoting) takes it when it solves
 a generic right-hand side accurately, SuperLU (with pivoting) otherwise.
 STITCHPLAN_LINEAR_BACKEND=superlu turns CHOLMOD off. Every factor says which backend made
@@ -49,7 +50,7 @@ class SuperLUFactor:
 
 class CholeskyFactor:
     """A factor of a symmetric matrix by CHOLMOD (cvxopt's build, with its own OpenBLAS):
-    L L^T, supernodal where the fill makes BLAS pay, for a positive definite matrix; with
+    supernodal L L^T (dense blocks through BLAS) for a positive definite matrix; with
     `indefinite`, L D L^T (simplicial, no pivoting). Raises ValueError when the matrix is
     not positive definite (L L^T) or the L D L^T factor does not solve it to
     INDEFINITE_ACCURACY (a tiny pivot)."""
@@ -65,7 +66,7 @@ class CholeskyFactor:
         stored = spmatrix(dense(triplets.data), dense(triplets.row.astype(np.int64)),
                           dense(triplets.col.astype(np.int64)), (n, n))
         saved = dict(cholmod.options)
-        cholmod.options["supernodal"] = 0 if indefinite else 2  # 2: CHOLMOD's choice
+        cholmod.options["supernodal"] = 0 if indefinite else 2  # simplicial L D L^T; supernodal L L^T
         try:
             self._factor = cholmod.symbolic(stored, uplo="L")
             cholmod.numeric(stored, self._factor)
