@@ -11,8 +11,10 @@
 2. Where it comes from, in process on configs/sh12_100x100.yaml (and sh12_100x30, which
    takes two planner passes): the planned run with each lever switched back off in turn
    (Anderson mixing, SuperLU's symmetric mode, the stale centre columns, Newton's method
-   before Levenberg-Marquardt in the tip tracking, the residual tolerance, one model shared
-   by the passes, a later pass replaying the first pass's early steps), median of REPEATS;
+   before Levenberg-Marquardt in the tip tracking, the residual tolerance, K0 from the
+   direction gradients, one model shared by the passes, a later pass replaying the first
+   pass's early steps with their tip points),
+   median of LEVER_REPEATS rounds, each round running every variant once;
    and the verified plan with the second round's replay started cold and with its passes
    solving every step.
 3. The whole command with the default verification on sh12_100x100, median of REPEATS.
@@ -47,6 +49,7 @@ BASELINE = "19ff45d"
 SCENES = ("sh12_100x100", "sh12_100x100_mid", "sh12_100x50", "sh12_100x40", "sh12_100x30",
           "needle20_entry30", "needle20_entry25", "needle20_entry20", "needle20_entry18")
 REPEATS = 3
+LEVER_REPEATS = 5  # rounds of the in-process levers table
 STARTUP_REPEATS = 7
 
 
@@ -113,9 +116,13 @@ def levers() -> list[tuple]:
     tracking, Newton iterations, linear solves, factorizations, planned exit error mm)."""
     from dataclasses import replace
 
+    import numpy as np
+
     import stitchplan.needle.equilibrium as equilibrium
+    import stitchplan.needle.insertion as insertion
     import stitchplan.needle.saddle_point as saddle_point
     import stitchplan.needle.tip_tracking as tip_tracking
+    from stitchplan.tissue.assembly import Assembler
     import stitchplan.planning.planner as planner
     import stitchplan.tissue.factorization as factorization
     from stitchplan.config.scenario import load_scenario
@@ -136,6 +143,14 @@ def levers() -> list[tuple]:
         return shared_run(scenario, **options)
 
 
+    def general_stiffness_at_rest(model):
+        assembler = Assembler(model)
+        assembler.update(np.broadcast_to(np.eye(2), (len(model.quadrature_weights), 2, 2)).copy())
+        return assembler.tangent_matrix()
+
+    def never(*_):
+        return False
+
     def tolerance(value):
         return lambda scenario: replace(scenario, solver=replace(scenario.solver, residual_tolerance=value))
 
@@ -153,30 +168,40 @@ def levers() -> list[tuple]:
         ("sh12_100x100", "tip tracking by scipy's Levenberg-Marquardt only (no Newton first)",
          {(tip_tracking, "NEWTON_TIP_ITERATIONS"): 0}, None),
         ("sh12_100x100", "residual tolerance 1e-8 (the former default)", {}, tolerance(1e-8)),
+        ("sh12_100x100", "K0 as B^T diag(w A) B over the 4 nq rows of B (not from the direction gradients)",
+         {(equilibrium, "stiffness_at_rest"): general_stiffness_at_rest}, None),
         ("sh12_100x30", "all levers (now; 2 planner passes)", {}, None),
+        ("sh12_100x30", "the taken-over steps' tip points tracked again", {(insertion, "_same_center"): never}, None),
         ("sh12_100x30", "each pass builds its own model and factors K0", {(planner, "run_insertion"): own_model}, None),
         ("sh12_100x30", "the second pass solves every step (its offset from step 1, no PassPrefix)",
          {(planner, "REAIM_FRACTION"): 0.0}, None),
     ]
-    rows, warmed = [], set()
-    for scene, label, changes, change_scenario in settings:
+    # every variant once per round, REPEATS rounds: the machine's speed drifts over minutes,
+    # so each variant's runs are spread over the same span
+    scenarios, warmed = [], set()
+    for scene, _, _, change_scenario in settings:
         scenario = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml")
-        scenario = change_scenario(scenario) if change_scenario else scenario
+        scenarios.append(change_scenario(scenario) if change_scenario else scenario)
         if scene not in warmed:
-            planner.run_plan(scenario, compare=False)
+            planner.run_plan(scenarios[-1], compare=False)
             warmed.add(scene)
-        saved = {key: getattr(*key) for key in changes}
-        for (module, name), value in changes.items():
-            setattr(module, name, value)
-        try:
-            results = [planner.run_plan(scenario, compare=False) for _ in range(REPEATS)]
-        finally:
-            for (module, name), value in saved.items():
+    results: list[list] = [[] for _ in settings]
+    for _ in range(LEVER_REPEATS):
+        for (scene, label, changes, _), scenario, runs in zip(settings, scenarios, results):
+            saved = {key: getattr(*key) for key in changes}
+            for (module, name), value in changes.items():
                 setattr(module, name, value)
-        planned = results[-1].planned
+            try:
+                runs.append(planner.run_plan(scenario, compare=False))
+            finally:
+                for (module, name), value in saved.items():
+                    setattr(module, name, value)
+    rows = []
+    for (scene, label, _, _), runs in zip(settings, results):
+        planned = runs[-1].planned
         counts = planned.solver_counts
-        rows.append((scene, label, statistics.median(r.planned.wall_seconds for r in results),
-                     statistics.median(r.planned.timings["tip_tracking"] for r in results),
+        rows.append((scene, label, statistics.median(r.planned.wall_seconds for r in runs),
+                     statistics.median(r.planned.timings["tip_tracking"] for r in runs),
                      sum(s.newton_iterations for s in planned.steps), counts["linear_solves"],
                      counts["factorizations"], planned.exit_error_mm))
         print(f"{scene} {label}: {rows[-1][2]:.2f} s, {rows[-1][4]} Newton iterations", flush=True)
@@ -202,26 +227,28 @@ def verified_warm_starts(scene: str = "sh12_100x100") -> list[tuple]:
         options.pop("start_from", None)
         return shared(scenario, **options)
 
-    rows = []
-    for label, changes in (("second replay started from the first (now)", {}),
-                           ("second replay started cold", {(replays, "run_insertion"): cold_run}),
-                           ("second round's passes solve every step (no PassPrefix)",
-                            {(planner, "REAIM_FRACTION"): 0.0})):
-        saved = {key: getattr(*key) for key in changes}
-        for (module, name), value in changes.items():
-            setattr(module, name, value)
-        try:
-            seconds, results = [], []
-            for _ in range(REPEATS):
-                start = time.perf_counter()
-                results.append(verification.plan_verified(scenario, compare=False))
-                seconds.append(time.perf_counter() - start)
-        finally:
-            for (module, name), value in saved.items():
+    variants = (("second replay started from the first (now)", {}),
+                ("second replay started cold", {(replays, "run_insertion"): cold_run}),
+                ("second round's passes solve every step (no PassPrefix)", {(planner, "REAIM_FRACTION"): 0.0}))
+    seconds: dict[str, list] = {label: [] for label, _ in variants}
+    results: dict[str, list] = {label: [] for label, _ in variants}
+    for _ in range(REPEATS):  # every variant once per round, as in levers()
+        for label, changes in variants:
+            saved = {key: getattr(*key) for key in changes}
+            for (module, name), value in changes.items():
                 setattr(module, name, value)
-        result = results[-1]
+            try:
+                start = time.perf_counter()
+                results[label].append(verification.plan_verified(scenario, compare=False))
+                seconds[label].append(time.perf_counter() - start)
+            finally:
+                for (module, name), value in saved.items():
+                    setattr(module, name, value)
+    rows = []
+    for label, _ in variants:
+        result = results[label][-1]
         rounds = result.verification.rounds
-        rows.append((scene, label, statistics.median(seconds), len(rounds),
+        rows.append((scene, label, statistics.median(seconds[label]), len(rounds),
                      " / ".join(f"{r['replay_wall_seconds']:.2f}" for r in rounds),
                      result.verification.exit_error_mm))
         print(f"verified {scene} {label}: {rows[-1][2]:.2f} s", flush=True)
@@ -369,7 +396,7 @@ def main() -> None:
         f"{verified['rounds']} verification round(s) take {verified['planned_s']:.2f} s and the rest is the "
         f"replays on the refined model and start-up; verified exit error {verified['verified_mm']:.4f} mm.\n",
         "",
-        f"## Where it comes from (planned run in process, median of {REPEATS})\n",
+        f"## Where it comes from (planned run in process, median of {LEVER_REPEATS} rounds, each running every variant once)\n",
         "Each row switches one lever of the current code back off. The centre as a Newton unknown "
         "(needle/steering.py) is not switchable; it shows in the table above as one equilibrium solve per "
         "step instead of one per centre try. Factorizations: those the planned run made (K0's factor, "

@@ -1,17 +1,17 @@
-"""Sparse direct factorizations: scipy's SuperLU always; CHOLMOD when the optional `fast`
-extra (the `cvxopt` wheel, which carries CHOLMOD and OpenBLAS) is installed and the matrix
-is symmetric.
+"""Sparse direct factorizations: scipy's SuperLU always; CHOLMOD's Cholesky when the
+optional `fast` extra (the `cvxopt` wheel, which carries CHOLMOD and OpenBLAS) is installed
+and the matrix is symmetric positive definite.
 
 The needle's saddle-point solves reuse one factor of K + H over hundreds of Newton
 iterations, and every run factors K0 once: on the SH 1/2 scene (1900 dofs, 175 000
 nonzeros) CHOLMOD's Cholesky factors K0 in ~17 ms and solves in ~0.17 ms, against SuperLU's
 ~26 ms and ~0.34 ms (symmetric mode); on its model at half the spacing (the plan's
 verification, 7170 dofs) in ~0.12 s and ~3.6 ms against ~0.33 s and ~6.3 ms
-(benchmarks/results/model_build_speed.md). Where the needle's constraint
-curvature H makes K + H indefinite, CHOLMOD's L D L^T (no pivoting) takes it when it solves
-a generic right-hand side accurately, SuperLU (with pivoting) otherwise.
-STITCHPLAN_LINEAR_BACKEND=superlu turns CHOLMOD off. Every factor says which backend made
-it (`backend`), and the run summaries record it.
+(benchmarks/results/model_build_speed.md). SuperLU stays the default and the fallback: a
+matrix the Cholesky finds not positive definite (the needle's constraint curvature H can
+make K + H indefinite) is factorized by SuperLU instead. STITCHPLAN_LINEAR_BACKEND=superlu
+turns CHOLMOD off. Every factor says which backend made it (`backend`), and the run
+summaries record it.
 """
 
 from __future__ import annotations
@@ -29,8 +29,6 @@ except (ImportError, OSError):
 
 SUPERLU = "scipy SuperLU (splu, MMD_AT_PLUS_A ordering, symmetric mode)"
 CHOLMOD = "CHOLMOD Cholesky (cvxopt)"
-CHOLMOD_LDL = "CHOLMOD L D L^T (cvxopt)"
-INDEFINITE_ACCURACY = 1e-10  # relative residual an L D L^T factor must solve a probe to
 
 
 class SuperLUFactor:
@@ -49,15 +47,12 @@ class SuperLUFactor:
 
 
 class CholeskyFactor:
-    """A factor of a symmetric matrix by CHOLMOD (cvxopt's build, with its own OpenBLAS):
-    supernodal L L^T (dense blocks through BLAS) for a positive definite matrix; with
-    `indefinite`, L D L^T (simplicial, no pivoting). Raises ValueError when the matrix is
-    not positive definite (L L^T) or the L D L^T factor does not solve it to
-    INDEFINITE_ACCURACY (a tiny pivot)."""
+    """The supernodal L L^T of a symmetric positive definite matrix by CHOLMOD (cvxopt's
+    build, with its own OpenBLAS); raises ValueError when the matrix is not positive definite."""
 
     backend = CHOLMOD
 
-    def __init__(self, matrix: sp.spmatrix, indefinite: bool = False):
+    def __init__(self, matrix: sp.spmatrix):
         lower = sp.tril(matrix, format="csc")
         lower.sum_duplicates()
         lower.sort_indices()
@@ -65,22 +60,11 @@ class CholeskyFactor:
         n = lower.shape[0]
         stored = spmatrix(dense(triplets.data), dense(triplets.row.astype(np.int64)),
                           dense(triplets.col.astype(np.int64)), (n, n))
-        saved = dict(cholmod.options)
-        cholmod.options["supernodal"] = 0 if indefinite else 2  # simplicial L D L^T; supernodal L L^T
         try:
             self._factor = cholmod.symbolic(stored, uplo="L")
             cholmod.numeric(stored, self._factor)
         except ArithmeticError:
             raise ValueError("not positive definite") from None
-        finally:
-            cholmod.options.clear()
-            cholmod.options.update(saved)
-        if indefinite:
-            self.backend = CHOLMOD_LDL
-            probe = np.random.default_rng(0).standard_normal(n)  # a generic right-hand side
-            product = matrix @ self.solve(probe)
-            if not np.linalg.norm(product - probe) <= INDEFINITE_ACCURACY * np.linalg.norm(probe):
-                raise ValueError("L D L^T without pivoting is not accurate")
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         solution = dense(np.asfortranarray(rhs, dtype=float))
@@ -96,15 +80,13 @@ def cholesky_available() -> bool:
 
 
 def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
-    """A factor of `matrix` with `.solve(rhs)` (rhs (n,) or (n, k)) and `.backend`. Where the
-    caller knows the matrix is symmetric (`symmetric_positive`) and CHOLMOD is available: its
-    Cholesky, or where the matrix is not positive definite (the needle's constraint
-    curvature H can make K + H indefinite) its L D L^T when that solves accurately;
-    SuperLU otherwise."""
+    """A factor of `matrix` with `.solve(rhs)` (rhs (n,) or (n, k)) and `.backend`: CHOLMOD's
+    Cholesky when the caller knows the matrix is symmetric (`symmetric_positive`) and it is
+    available and succeeds, SuperLU otherwise (the needle's constraint curvature H can make
+    K + H indefinite)."""
     if symmetric_positive and cholesky_available():
-        for indefinite in (False, True):
-            try:
-                return CholeskyFactor(matrix, indefinite)
-            except ValueError:  # not positive definite; not accurate without pivoting
-                pass
+        try:
+            return CholeskyFactor(matrix)
+        except ValueError:  # not positive definite
+            pass
     return SuperLUFactor(matrix)
