@@ -35,6 +35,7 @@ import os
 # single-threaded BLAS, as the `stitchplan` command sets it
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import contextlib  # noqa: E402
 import logging  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
@@ -111,6 +112,19 @@ def verified_command(scene: str = "sh12_100x100") -> dict:
             "rounds": len(record["verification"]["rounds"])}
 
 
+@contextlib.contextmanager
+def switched(changes: dict):
+    """Module attributes set to other values ({(module, name): value}) while it is open."""
+    saved = {key: getattr(*key) for key in changes}
+    for (module, name), value in changes.items():
+        setattr(module, name, value)
+    try:
+        yield
+    finally:
+        for (module, name), value in saved.items():
+            setattr(module, name, value)
+
+
 def levers() -> list[tuple]:
     """The planned run with each lever off in turn: (scene, label, median s, median s of tip
     tracking, Newton iterations, linear solves, factorizations, planned exit error mm)."""
@@ -148,8 +162,8 @@ def levers() -> list[tuple]:
         assembler.update(np.broadcast_to(np.eye(2), (len(model.quadrature_weights), 2, 2)).copy())
         return assembler.tangent_matrix()
 
-    def never(*_):
-        return False
+    def tracked_again(_earlier, step, state):  # as a step of its own run tracks its tip
+        return insertion.track_step(state, step, step * state.geometry.step)
 
     def tolerance(value):
         return lambda scenario: replace(scenario, solver=replace(scenario.solver, residual_tolerance=value))
@@ -171,7 +185,7 @@ def levers() -> list[tuple]:
         ("sh12_100x100", "K0 as B^T diag(w A) B over the 4 nq rows of B (not from the direction gradients)",
          {(equilibrium, "stiffness_at_rest"): general_stiffness_at_rest}, None),
         ("sh12_100x30", "all levers (now; 2 planner passes)", {}, None),
-        ("sh12_100x30", "the taken-over steps' tip points tracked again", {(insertion, "_same_center"): never}, None),
+        ("sh12_100x30", "the taken-over steps' tip points tracked again", {(insertion, "_tracked_before"): tracked_again}, None),
         ("sh12_100x30", "each pass builds its own model and factors K0", {(planner, "run_insertion"): own_model}, None),
         ("sh12_100x30", "the second pass solves every step (its offset from step 1, no PassPrefix)",
          {(planner, "REAIM_FRACTION"): 0.0}, None),
@@ -188,14 +202,8 @@ def levers() -> list[tuple]:
     results: list[list] = [[] for _ in settings]
     for _ in range(LEVER_REPEATS):
         for (scene, label, changes, _), scenario, runs in zip(settings, scenarios, results):
-            saved = {key: getattr(*key) for key in changes}
-            for (module, name), value in changes.items():
-                setattr(module, name, value)
-            try:
+            with switched(changes):
                 runs.append(planner.run_plan(scenario, compare=False))
-            finally:
-                for (module, name), value in saved.items():
-                    setattr(module, name, value)
     rows = []
     for (scene, label, _, _), runs in zip(settings, results):
         planned = runs[-1].planned
@@ -234,16 +242,10 @@ def verified_warm_starts(scene: str = "sh12_100x100") -> list[tuple]:
     results: dict[str, list] = {label: [] for label, _ in variants}
     for _ in range(REPEATS):  # every variant once per round, as in levers()
         for label, changes in variants:
-            saved = {key: getattr(*key) for key in changes}
-            for (module, name), value in changes.items():
-                setattr(module, name, value)
-            try:
+            with switched(changes):
                 start = time.perf_counter()
                 results[label].append(verification.plan_verified(scenario, compare=False))
                 seconds[label].append(time.perf_counter() - start)
-            finally:
-                for (module, name), value in saved.items():
-                    setattr(module, name, value)
     rows = []
     for label, _ in variants:
         result = results[label][-1]
@@ -281,15 +283,12 @@ def replay_renewals(scenes: tuple[str, ...] = ("sh12_100x30", "wound_closure")) 
                                 scenario_needle(scenario))
         fine = rescaled(scenario, 0.5)
         results: dict[str, list] = {label: [] for label, _ in variants}
-        try:
-            for _ in range(REPEATS):
-                for label, rule in variants:
-                    equilibrium.renew_factor = rule
+        for _ in range(REPEATS):
+            for label, rule in variants:
+                with switched({(equilibrium, "renew_factor"): rule}):
                     start = time.perf_counter()
                     replayed = run_insertion(fine, center_path=path)
                     results[label].append((time.perf_counter() - start, replayed))
-        finally:
-            equilibrium.renew_factor = now
         for label, _ in variants:
             replayed = results[label][-1][1]
             rows.append((scene, label, statistics.median(t for t, _ in results[label]),

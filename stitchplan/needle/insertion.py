@@ -144,7 +144,7 @@ def run_insertion(
             point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
             fraction = (rotation - entry_rotation) / geometry.step
         else:
-            followed = followed and _same_center(start_from, step - 1, insertion)
+            followed = followed and np.array_equal(start_from.center_after(step - 1), insertion.center)
             if followed and step <= len(earlier):
                 point, method = _tracked_before(start_from, step, insertion)
             else:
@@ -170,12 +170,6 @@ def run_insertion(
                                fraction, _at(earlier, step, insertion)))
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
-
-
-def _same_center(earlier: InsertionResult, step: int, insertion: NeedleInsertion) -> bool:
-    """Whether this run's centre after `step` (0: the entry centre) is the earlier run's."""
-    center = earlier.geometry.center if step == 0 else earlier.steps[step - 1].center
-    return bool(np.array_equal(center, insertion.center))
 
 
 def _tracked_before(earlier: InsertionResult, step: int, insertion: NeedleInsertion) -> tuple[np.ndarray, str]:

@@ -83,6 +83,10 @@ class InsertionResult:
     def exit_error_mm(self) -> float:
         return float(np.linalg.norm(self.achieved_exit_def - self.desired_exit_def))
 
+    def center_after(self, step: int) -> np.ndarray:
+        """The needle centre after `step` (0: the entry centre)."""
+        return self.geometry.center if step == 0 else self.steps[step - 1].center
+
     @property
     def exit_error_material_mm(self) -> float:
         return float(np.linalg.norm(self.achieved_exit - self.desired_exit))

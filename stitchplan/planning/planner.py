@@ -149,7 +149,7 @@ class PassPrefix:
 
     def center(self, step: int) -> np.ndarray:
         """The first pass's centre at `step` (0: the entry centre)."""
-        return (self.reference.geometry.center if step == 0 else self.reference.steps[step - 1].center).copy()
+        return self.reference.center_after(step).copy()
 
     def start(self) -> InsertionResult:
         """run_insertion's `start_from` for the prefix: the first pass, its states cut there."""

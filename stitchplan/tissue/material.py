@@ -121,11 +121,9 @@ def lame_at_rest(model: SaintVenantKirchhoff | NeoHookean | PointwiseMaterial,
     """lambda and mu per point, (n,) each: at F = I both materials' tangent A = dP/dF is the
     isotropic linear-elastic one, lambda d_iJ d_kL + mu (d_ik d_JL + d_iL d_Jk)."""
     if isinstance(model, PointwiseMaterial):
-        if n_points != len(model.index):
-            raise ValueError(f"a pointwise material holds {len(model.index)} points, asked at {n_points}")
-        lam = np.array([part.lame_lambda for part in model.parts])[model.index]
-        mu = np.array([part.lame_mu for part in model.parts])[model.index]
-        return lam, mu
+        index = model.checked_index(n_points)
+        return (np.array([part.lame_lambda for part in model.parts])[index],
+                np.array([part.lame_mu for part in model.parts])[index])
     return np.full(n_points, model.lame_lambda), np.full(n_points, model.lame_mu)
 
 
@@ -142,11 +140,16 @@ class PointwiseMaterial:
     parts: tuple  # SaintVenantKirchhoff | NeoHookean
     index: np.ndarray  # (nq,) into parts
 
-    def _groups(self, count: int):
+    def checked_index(self, count: int) -> np.ndarray:
+        """`index`, after checking that it is asked for at its own `count` points."""
         if count != len(self.index):
             raise ValueError(f"a pointwise material holds {len(self.index)} points, asked at {count}")
+        return self.index
+
+    def _groups(self, count: int):
+        index = self.checked_index(count)
         for k, part in enumerate(self.parts):
-            selected = np.flatnonzero(self.index == k)
+            selected = np.flatnonzero(index == k)
             if len(selected):
                 yield part, selected
 

@@ -48,10 +48,10 @@ class TissueModel:
     shape: ShapeFunctions  # raw RK functions at quadrature points
     boundary: EssentialBoundary
     gradient: sp.csr_matrix  # (4 nq, 2 n_free)
-    spacing: float
     # d Psi_p / d X_J of the free functions at column 2 p + J, (nq, 2 n_free): the gradient
     # operator's entries without their repetition per displacement component
-    direction_gradient: sp.csr_matrix | None = None
+    direction_gradient: sp.csr_matrix
+    spacing: float
     # gradients of the test functions when they differ from the trial ones (integration
     # "vci"); None: Galerkin, test = trial, symmetric tangent
     test_gradient: sp.csr_matrix | None = None

@@ -252,8 +252,7 @@ def rk_shape_pairs(
     # M(X) = sum H H^T phi from its upper triangle: (pairs, m (m + 1) / 2) products, not m^2
     upper, full = _TRIANGLES[order]
     hh = _upper_products(h, upper)  # (pairs, u)
-    sums = _PairSums(indptr, len(rows))
-    moment = sums(hh, phi)[:, full]  # (n, m, m)
+    moment = _pair_sums(hh, phi, indptr)[:, full]  # (n, m, m)
     inverse = _checked_inverse(moment, points)  # (n, m, m)
     b = inverse[:, :, 0]  # M^-1 H(0), H(0) = e_1 (M symmetric), (n, m)
     corrected = _row_dot(b, rows, h)  # H(0)^T M^-1 H, (pairs,)
@@ -268,7 +267,7 @@ def rk_shape_pairs(
     maps = _MAPS[order] / scale
     grad = np.empty((len(rows), 2))
     for k in range(2):
-        dmoment = sums(hh, dphi[:, k])[:, full]
+        dmoment = _pair_sums(hh, dphi[:, k], indptr)[:, full]
         spread = maps[k] @ moment  # D_k M / s, (n, m, m)
         dmoment += spread + spread.transpose(0, 2, 1)
         db = -(inverse @ (dmoment @ b[:, :, None]))[:, :, 0]
@@ -277,19 +276,13 @@ def rk_shape_pairs(
     return ShapePairs(rows, cols, indptr, shape, grad)
 
 
-class _PairSums:
+def _pair_sums(values: np.ndarray, weights: np.ndarray, indptr: np.ndarray) -> np.ndarray:
     """sum_p w_p v_p over each point's pairs (grouped by point, `indptr`), (n, columns): a
     sparse product for many points (a third of reduceat's time), reduceat for a few."""
-
-    def __init__(self, indptr: np.ndarray, pairs: int):
-        self.indptr, self.pairs = indptr, pairs
-        self.columns = np.arange(pairs) if len(indptr) > MANY_POINTS else None
-
-    def __call__(self, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        if self.columns is None:
-            return np.add.reduceat(values * weights[:, None], self.indptr[:-1], axis=0)
-        summed = sp.csr_matrix((weights, self.columns, self.indptr), shape=(len(self.indptr) - 1, self.pairs))
-        return summed @ values
+    if len(indptr) <= MANY_POINTS + 1:
+        return np.add.reduceat(values * weights[:, None], indptr[:-1], axis=0)
+    summed = sp.csr_matrix((weights, np.arange(len(weights)), indptr), shape=(len(indptr) - 1, len(weights)))
+    return summed @ values
 
 
 def _upper_products(h: np.ndarray, upper: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
