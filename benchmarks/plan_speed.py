@@ -165,6 +165,18 @@ def levers() -> list[tuple]:
     def tracked_again(_earlier, step, state):  # as a step of its own run tracks its tip
         return insertion.track_step(state, step, step * state.geometry.step)
 
+    needle_step = insertion._needle_step
+
+    def solved_again(*args, **kwargs):  # a taken-over step added and solved from the earlier state
+        kwargs.pop("taken", None)
+        return needle_step(*args[:10], **kwargs)
+
+    residuals = equilibrium.NeedleInsertion.residuals
+
+    def stress_every_time(self, *args):  # no internal force kept from the step before
+        self._last_internal = None
+        return residuals(self, *args)
+
     def tolerance(value):
         return lambda scenario: replace(scenario, solver=replace(scenario.solver, residual_tolerance=value))
 
@@ -186,6 +198,10 @@ def levers() -> list[tuple]:
          {(equilibrium, "stiffness_at_rest"): general_stiffness_at_rest}, None),
         ("sh12_100x30", "all levers (now; 2 planner passes)", {}, None),
         ("sh12_100x30", "the taken-over steps' tip points tracked again", {(insertion, "_tracked_before"): tracked_again}, None),
+        ("sh12_100x30", "the taken-over steps solved again from the first pass's states (no take-over)",
+         {(insertion, "_needle_step"): solved_again}, None),
+        ("sh12_100x30", "every residual evaluates the stress (none kept where the step before ended)",
+         {(equilibrium.NeedleInsertion, "residuals"): stress_every_time}, None),
         ("sh12_100x30", "each pass builds its own model and factors K0", {(planner, "run_insertion"): own_model}, None),
         ("sh12_100x30", "the second pass solves every step (its offset from step 1, no PassPrefix)",
          {(planner, "REAIM_FRACTION"): 0.0}, None),

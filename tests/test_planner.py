@@ -112,11 +112,10 @@ def test_a_pass_depends_on_its_offset_alone(two_passes):
     assert alone.exit_error_mm == pytest.approx(second["exit_error_mm"], abs=1e-7)
 
 
-def test_later_passes_replay_the_first_pass_up_to_the_offset(two_passes):
+def test_later_passes_take_the_first_pass_over_up_to_the_offset(two_passes):
     """PassPrefix: a later pass keeps the first pass's centres before its first aimed step,
-    replayed from the first pass's equilibria (no Newton iteration of its own there: each
-    starts at its solution), and counts the first pass's work for those steps; its own
-    iterations are those of the steps it solved."""
+    with the first pass's equilibria (no Newton iteration of its own there), and counts the
+    first pass's work for those steps; its own iterations are those of the steps it solved."""
     first, second = two_passes.passes
     prefix = two_passes.shooting.prefix
     reference, kept = prefix.reference.steps, two_passes.planned.steps
@@ -128,6 +127,18 @@ def test_later_passes_replay_the_first_pass_up_to_the_offset(two_passes):
     assert second["newton_iterations"] == sum(s.newton_iterations for s in kept[taken:])
     assert second["newton_iterations"] < first["newton_iterations"]
     assert not np.allclose(kept[taken].center, reference[taken].center, atol=1e-9, rtol=0)  # the offset acts
+
+
+def test_a_later_pass_takes_the_first_passs_equilibria_over_its_prefix(two_passes):
+    """The prefix steps' states are the first pass's to the last bit: taken over, not solved
+    again from the first pass's states (which would move them by round-off)."""
+    prefix = two_passes.shooting.prefix
+    taken = prefix.first_aimed - 1
+    kept, reference = two_passes.planned.states[:taken], prefix.reference.states[:taken]
+    assert len(kept) == len(reference) == taken
+    for mine, first in zip(kept, reference):
+        np.testing.assert_array_equal(mine.free, first.free)
+        np.testing.assert_array_equal(mine.multipliers, first.multipliers)
 
 
 def test_a_later_pass_takes_the_first_passs_tip_points_over_its_prefix(monkeypatch):

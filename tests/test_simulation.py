@@ -105,6 +105,61 @@ def direct_run():
     return result, distances
 
 
+def test_a_run_along_an_earlier_runs_centres_takes_its_steps_over():
+    """run_insertion `start_from`: while a run follows an earlier run's centres on the same
+    model, each step's tip point, state and needle coupling are the earlier run's (taken
+    over, no Newton iteration); from the first step whose centre differs it solves again."""
+    scenario = small_scene()
+    tissue = PreparedTissue(scenario)
+    first = run_insertion(scenario, tissue=tissue)
+    centers = np.array([first.center_after(n) for n in range(len(first.steps) + 1)])
+    again = run_insertion(scenario, center_path=centers, tissue=tissue, start_from=first)
+    assert [s.newton_iterations for s in again.steps] == [0] * len(first.steps)
+    np.testing.assert_array_equal(again.achieved_exit, first.achieved_exit)
+    for mine, earlier in zip(again.states, first.states, strict=True):
+        np.testing.assert_array_equal(mine.free, earlier.free)
+        np.testing.assert_array_equal(mine.multipliers, earlier.multipliers)
+    moved = centers.copy()
+    moved[6:] += [0.02, 0.0]  # from step 6 on
+    apart = run_insertion(scenario, center_path=moved, tissue=tissue, start_from=first)
+    assert [s.newton_iterations for s in apart.steps[:5]] == [0] * 5
+    assert min(s.newton_iterations for s in apart.steps[5:]) > 0
+    assert apart.exit_error_mm != first.exit_error_mm
+
+
+def test_a_steps_first_residual_reuses_the_stress_where_the_step_before_ended(monkeypatch):
+    """Each step's Newton solve starts where the step before ended, at the displacements of
+    its last residual: the internal force there is kept, not evaluated again, and the run
+    is the same to the last bit as one that evaluates every residual's stress."""
+    from stitchplan.tissue.assembly import Assembler
+
+    scenario = small_scene()
+    reference = run_insertion(scenario)
+    counts = {"updates": 0, "residuals": 0}
+    update, residuals = Assembler.update, NeedleInsertion.residuals
+
+    def counted_update(self, *args):
+        counts["updates"] += 1
+        return update(self, *args)
+
+    def counted_residuals(self, *args):
+        counts["residuals"] += 1
+        return residuals(self, *args)
+
+    monkeypatch.setattr(Assembler, "update", counted_update)
+    monkeypatch.setattr(NeedleInsertion, "residuals", counted_residuals)
+    result = run_insertion(scenario)
+    assert counts["updates"] <= counts["residuals"] - (len(result.steps) - 1)
+    np.testing.assert_array_equal(result.achieved_exit, reference.achieved_exit)
+
+    def uncached(self, *args):  # every residual evaluates the stress
+        self._last_internal = None
+        return residuals(self, *args)
+
+    monkeypatch.setattr(NeedleInsertion, "residuals", uncached)
+    np.testing.assert_array_equal(run_insertion(scenario).achieved_exit, reference.achieved_exit)
+
+
 # --- linearisation against finite differences --------------------------------------------
 
 
@@ -532,13 +587,16 @@ def test_a_replay_started_from_a_nearby_run_reaches_the_same_exit_in_fewer_itera
 def test_a_start_that_newton_cannot_use_falls_back_to_the_previous_step(caplog):
     """A guess far off (every earlier state's displacement x 50, det F < 0 in places) fails
     under the whole load; the step starts again from the previous step's state and the run
-    ends where a cold run does."""
+    ends where a cold run does. (The run's centres leave the earlier run's at step 1, so no
+    step is taken over.)"""
     scenario = small_scene()
     tissue = PreparedTissue(scenario)
     earlier = run_insertion(scenario, tissue=tissue)
     earlier.states = [replace(state, free=50.0 * state.free) for state in earlier.states]
-    cold = run_insertion(scenario, tissue=tissue)
+    path = np.array([earlier.center_after(n) for n in range(len(earlier.steps) + 1)])
+    path[1:] += [0.001, 0.0]
+    cold = run_insertion(scenario, tissue=tissue, center_path=path)
     with caplog.at_level(logging.INFO, logger="stitchplan.needle.equilibrium"):
-        warm = run_insertion(scenario, tissue=tissue, start_from=earlier)
+        warm = run_insertion(scenario, tissue=tissue, center_path=path, start_from=earlier)
     assert "Newton from the earlier run's state failed" in caplog.text
     np.testing.assert_allclose(warm.achieved_exit_def, cold.achieved_exit_def, rtol=0, atol=1e-6)

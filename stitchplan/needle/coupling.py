@@ -58,6 +58,7 @@ interleaved over (particle, direction), length 2 n_free.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -286,6 +287,24 @@ class NeedleCoupling:
         self.target_radius = (geometry.radius if self.kind == POINTS
                               else np.zeros(0) if self.arc_ends
                               else math.sqrt(geometry.radius**2 - self._chord**2 / 6.0))
+
+    # --- state -----------------------------------------------------------------------------
+
+    def state(self) -> dict:
+        """What `add` (and the ramp's load_factor) changed, for `restore`. Every attribute is
+        replaced, never changed in place, so a shallow copy keeps it; the growing rows are
+        copied as objects (segment and quadrature rows may be one object)."""
+        state = dict(self.__dict__)
+        copies = {id(rows): copy.copy(rows) for rows in (self._segment_rows, self._quadrature_rows)}
+        state["_segment_rows"], state["_quadrature_rows"] = (copies[id(self._segment_rows)],
+                                                             copies[id(self._quadrature_rows)])
+        return state
+
+    def restore(self, state: dict) -> None:
+        """Back to a `state` of this coupling (kept unchanged for another restore)."""
+        self.__dict__.update(state)
+        copies = {id(rows): copy.copy(rows) for rows in (self._segment_rows, self._quadrature_rows)}
+        self._segment_rows, self._quadrature_rows = copies[id(self._segment_rows)], copies[id(self._quadrature_rows)]
 
     # --- the track ------------------------------------------------------------------------
 

@@ -203,6 +203,7 @@ class NeedleInsertion:
             self.timings["discretization"] += tissue.seconds
         self.particle_values = tissue.particle_values
         self.assembler = Assembler(self.model)
+        self._last_internal: tuple[np.ndarray, np.ndarray] | None = None  # (free, f_int): _internal_force
         self.coupling = NeedleCoupling(self.model, self.geometry, self.needle, scenario.discretization.dilation)
         self.saddle = SaddlePointSolver(tissue.factor_at_rest)
         if self.linear_method == "direct":
@@ -267,12 +268,22 @@ class NeedleInsertion:
 
     # --- state -------------------------------------------------------------------------------
 
-    def snapshot(self) -> Snapshot:
-        return Snapshot(self.free.copy(), self.multipliers.copy(), self.center.copy(), self.last_violation)
+    def snapshot(self, coupling: bool = False) -> Snapshot:
+        """The state now; with `coupling` also the needle coupling's (after a step: what a
+        later run takes over)."""
+        return Snapshot(self.free.copy(), self.multipliers.copy(), self.center.copy(), self.last_violation,
+                        self.coupling.state() if coupling else None)
 
     def restore(self, snapshot: Snapshot) -> None:
         self.free, self.multipliers = snapshot.free, snapshot.multipliers
         self.center, self.last_violation = snapshot.center, snapshot.violation
+
+    def take_over(self, state: Snapshot) -> None:
+        """The equilibrium an earlier run on this model reached after this step, from the same
+        state before it, with the same tip point and centre: its needle coupling and state,
+        instead of adding the point and solving the same equations again (run_insertion)."""
+        self.coupling.restore(state.coupling)
+        self.restore(state)
 
     def move_center(self, center: np.ndarray) -> None:
         """Place the needle centre; the tissue follows at the next `equilibrate`."""
@@ -289,12 +300,24 @@ class NeedleInsertion:
 
     def residuals(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray) -> Residuals:
         """r_u and g of eq. 3.62 at (free (n_free, 2), multipliers, centre)."""
-        gradient = (self.assembler.gradient @ free.reshape(-1)).reshape(-1, 2, 2)  # grad u (nq, i, J)
-        internal = self.assembler.update(checked(self.model, gradient + IDENTITY))
+        internal = self._internal_force(free)
         constraints, needle_force, constraint_force = self.coupling.residual_terms(free, multipliers, center)
         residual = internal - needle_force + constraint_force
         return Residuals(residual, constraints.violation, constraints.normal, constraints.rho,
                          length(needle_force))
+
+    def _internal_force(self, free: np.ndarray) -> np.ndarray:
+        """f_int at `free` (n_free, 2), the assembler updated to it. The last one is kept: a
+        step's first residual is taken where the step before ended, at the displacements of
+        that step's last residual (only the needle's terms differ)."""
+        vector = free.reshape(-1)
+        last = self._last_internal
+        if last is not None and np.array_equal(last[0], vector):
+            return last[1]
+        gradient = (self.assembler.gradient @ vector).reshape(-1, 2, 2)  # grad u (nq, i, J)
+        internal = self.assembler.update(checked(self.model, gradient + IDENTITY))
+        self._last_internal = (vector.copy(), internal)
+        return internal
 
     def _stiffness(self, multipliers: np.ndarray, state: Residuals):
         """K + H at the state the assembler was last updated to, built when a solver asks."""

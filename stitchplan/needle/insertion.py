@@ -92,8 +92,10 @@ def run_insertion(
     `guess`). Not for planner passes (planning.planner.run_plan says why), except over the
     steps a later pass takes over from the first (planning.planner.PassPrefix). While this
     run has taken the earlier run's centres (and the needle crosses no wound), its tip points
-    are the earlier run's: they would be tracked from the same state (to round-off) about the
-    same centre.
+    are the earlier run's (they would be tracked from the same state about the same centre),
+    and so are its equilibria where its centre control holds the centre where the earlier
+    run's was: the state and needle coupling after such a step are taken over
+    (NeedleInsertion.take_over), not solved again from the earlier state.
     """
     if scenario.discretization.accuracy is not None:
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
@@ -117,7 +119,7 @@ def run_insertion(
 
     def step_done(record: NeedleStep) -> None:
         steps.append(record)
-        states.append(insertion.snapshot())
+        states.append(insertion.snapshot(coupling=True))
         displacements.append(insertion.particle_displacements())
         if on_step is not None:
             on_step(record)
@@ -145,7 +147,8 @@ def run_insertion(
             fraction = (rotation - entry_rotation) / geometry.step
         else:
             followed = followed and np.array_equal(start_from.center_after(step - 1), insertion.center)
-            if followed and step <= len(earlier):
+            taken = earlier[step - 1] if followed and step <= len(earlier) else None
+            if taken is not None:
                 point, method = _tracked_before(start_from, step, insertion)
             else:
                 point, method = track_step(insertion, step, rotation)  # about the previous step's centre
@@ -167,7 +170,7 @@ def run_insertion(
             return _result(insertion, steps, states, displacements, exit_point, exit_rotation,
                            time.perf_counter() - wall_start, crossings)
         step_done(_needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
-                               fraction, _at(earlier, step, insertion)))
+                               fraction, _at(earlier, step, insertion), taken))
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
 
@@ -193,19 +196,25 @@ def _at(states: list[Snapshot], step: int, insertion: NeedleInsertion) -> Snapsh
 
 def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, rotation: float,
                  point: np.ndarray | None, method: str, condition_numbers: bool, started: float,
-                 fraction: float = 1.0, guess: Snapshot | None = None) -> NeedleStep:
+                 fraction: float = 1.0, guess: Snapshot | None = None, taken: Snapshot | None = None) -> NeedleStep:
     """Add the tracked tip point (none while the tip crosses a wound's gap), equilibrate
     about the step's centre (with the control's aim: the centre an unknown of the same
     Newton solve); the step's record (its wall time from `started`, before the tip was
-    tracked)."""
+    tracked). `taken`: an earlier run's state after this step, reached from this run's
+    state before it with the same tip point; taken over (NeedleInsertion.take_over) when
+    the control holds the centre where that run's was."""
     newton_before, solves_before = insertion.newton_iterations, insertion.equilibrium_solves
-    if point is not None:
-        insertion.add_point(point, fraction=fraction)
-    else:
-        point = insertion.points[-1]
     insertion.move_center(control.predict(insertion.center, step))
     aim = control.aim(insertion, step, rotation)
-    _, minres_iterations, _ = insertion.equilibrate(rotation, step, aim, guess)
+    minres_iterations = 0
+    if taken is not None and aim is None and np.array_equal(insertion.center, taken.center):
+        insertion.take_over(taken)
+    else:
+        if point is not None:
+            insertion.add_point(point, fraction=fraction)
+        _, minres_iterations, _ = insertion.equilibrate(rotation, step, aim, guess)
+    if point is None:
+        point = insertion.points[-1]
     planner_iterations = control.correct(insertion, step, rotation)
     geometry, needle = insertion.geometry, insertion.needle
     record = NeedleStep(

@@ -16,12 +16,15 @@ from .geometry import NeedleGeometry
 @dataclass(frozen=True)
 class Snapshot:
     """One state of an insertion: the tissue's free coefficients (n_free, 2), the
-    multipliers, the centre and the largest constraint violation (mm)."""
+    multipliers, the centre and the largest constraint violation (mm); after a needle step
+    also the needle coupling's state (NeedleCoupling.state), for a later run that takes the
+    step over (run_insertion `start_from`)."""
 
     free: np.ndarray
     multipliers: np.ndarray
     center: np.ndarray
     violation: float
+    coupling: dict | None = None
 
 
 @dataclass

@@ -116,9 +116,9 @@ def path_smoothness(centers: np.ndarray) -> tuple[float, float]:
 @dataclass(frozen=True)
 class PassPrefix:
     """The steps a later pass takes over from the plan's first pass (PassOffsets): steps 1 ..
-    first_aimed - 1 keep the first pass's centres, and each is replayed from the first pass's
-    equilibrium there (run_insertion `start_from`: the Newton solve starts at its own
-    solution), so only the steps from `first_aimed` on are solved again with the pass's offset."""
+    first_aimed - 1 keep the first pass's centres, tip points and equilibria (run_insertion
+    `start_from`: taken over, not solved again), so only the steps from `first_aimed` on are
+    solved with the pass's offset."""
 
     reference: InsertionResult  # the first pass (offset zero)
     first_aimed: int  # the first step whose centre the pass's offset moves
@@ -157,8 +157,8 @@ class PassPrefix:
 
     def take_over(self, result: InsertionResult) -> None:
         """Count the first pass's work for each prefix step in `result`'s record (its Newton
-        iterations and wall time added to the replay's, its equilibrium solves, centre moves
-        and eq. 4.2 ratio instead of the replay's), and add its planner events there: the
+        iterations and wall time added to the later pass's, its equilibrium solves, centre moves
+        and eq. 4.2 ratio instead of the later pass's), and add its planner events there: the
         steps as planned. The result's solver_counts stay those of its own run."""
         for record, planned in zip(result.steps[:self.first_aimed - 1], self.reference.steps):
             record.newton_iterations += planned.newton_iterations
@@ -295,7 +295,7 @@ class PassOffsets:
     held back by the move limits cannot send the next one far off.
 
     The offset of every pass after the first acts from the same step on (`prefix`, set from
-    the first pass): the steps before it are the first pass's, replayed rather than solved
+    the first pass): the steps before it are the first pass's, taken over rather than solved
     again, so a pass costs only its late steps and e(c) stays one function of c.
     """
 
@@ -346,7 +346,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     pass k aims the centre at O(t0) + u(X_exit) - c_k (PassOffsets), so the controllable
     steps before the drift pre-compensate it. The first pass (c_1 = 0) runs every step;
     the later ones keep its centres up to a few steps before its late limited steps
-    (PassPrefix: replayed from its equilibria, not solved again) and apply c_k from there;
+    (PassPrefix: its equilibria taken over, not solved again) and apply c_k from there;
     with the symmetric target (below), whose aim follows both bites, every pass runs every
     step. The passes aim the exit error vector
     at `aim` (default zero; planning.verification aims it by a refined model's offset) and
