@@ -186,9 +186,9 @@ def _joined(*matrices: sp.csr_matrix) -> sp.csr_matrix:
 def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
     """[top; block] as one new CSR matrix."""
     data, indices, counts = block
-    rows = sp.csr_matrix((data, indices, np.concatenate([[0], np.cumsum(counts)])),
-                         shape=(len(counts), top.shape[1]))
-    return _joined(top, rows)
+    indptr = np.concatenate([top.indptr, top.nnz + np.cumsum(counts)])
+    return sp.csr_matrix((np.concatenate([top.data, data]), np.concatenate([top.indices, indices]), indptr),
+                         shape=(len(indptr) - 1, top.shape[1]))
 
 
 class GrowingRows:
