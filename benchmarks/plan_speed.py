@@ -450,9 +450,10 @@ def main() -> None:
         "and the thesis's table 5.1 100 x 100 block then missed the exit tolerance after four passes "
         "(benchmarks/results/thesis_table.md as generated at the commit that says so, git history). "
         "A later pass instead keeps the first pass's centres up to a few steps before its late limited "
-        "steps and replays those steps from the first pass's equilibria, each Newton solve starting at "
-        "its solution (planning/planner.py PassPrefix); its offset acts from there. The second round's "
-        "passes are such passes.\n",
+        "steps and takes those steps over: their tip points, equilibria and needle coupling are the first "
+        "pass's (planning/planner.py PassPrefix); its offset acts from there. The second round's passes "
+        "are such passes, and the second replay takes over the first replay's steps while its centres are "
+        "the first replay's.\n",
         common.markdown_table(["scene", "variant", "plan_verified (s)", "rounds", "replays (s)",
                                "verified exit error (mm)"], [list(row) for row in warm_rows]),
         "",
