@@ -135,15 +135,17 @@ def test_too_few_particles_for_the_basis_is_reported():
         rk_shape_functions(np.array([[0.0, 0.0]]), particles, support, volumes, order=2)
 
 
+@pytest.mark.parametrize("batch", [1, 5])
 @pytest.mark.parametrize("order, dilation", CASES)
-def test_a_few_points_at_a_time_give_what_many_give(order, dilation, rng):
-    """Many points take the batched inverse and the condition estimate, a few (tip tracking)
-    LAPACK's inverse and eigenvalues: the same functions to round-off."""
+def test_a_few_points_at_a_time_give_what_many_give(order, dilation, batch, rng):
+    """Many points take the batched inverse and the condition estimate, a few LAPACK's
+    inverse and eigenvalues, and one point (tip tracking) its sums as dot products: the same
+    functions to round-off."""
     particles, support, volumes = particle_grid(dilation)
     points = evaluation_points(rng)
     many = rk_shape_pairs(points, particles, support, volumes, order, gradients=True)
-    few = [rk_shape_pairs(points[k:k + 5], particles, support, volumes, order, gradients=True)
-           for k in range(0, len(points), 5)]
+    few = [rk_shape_pairs(points[k:k + batch], particles, support, volumes, order, gradients=True)
+           for k in range(0, len(points), batch)]
     np.testing.assert_array_equal(many.cols, np.concatenate([part.cols for part in few]))
     np.testing.assert_allclose(many.values, np.concatenate([part.values for part in few]), rtol=0, atol=ROUND_OFF)
     np.testing.assert_allclose(many.grad, np.concatenate([part.grad for part in few]), rtol=0, atol=ROUND_OFF)

@@ -244,6 +244,8 @@ def rk_shape_pairs(
             "increase the dilation or refine the spacing"
         )
     scale = float(basis_scale if basis_scale is not None else support.mean())
+    if len(points) == 1:
+        return _one_point(points, rows, cols, indptr, offset, support, volumes, order, gradients, scale)
     volume = volumes[cols]
     phi, dphi = tensor_kernel(offset, support[cols], gradients)
     phi = phi * volume
@@ -273,6 +275,33 @@ def rk_shape_pairs(
         db = -(inverse @ (dmoment @ b[:, :, None]))[:, :, 0]
         weights = db + b @ maps[k]  # (n, m): dM^-1 H(0) + D_k^T b / s
         grad[:, k] = _row_dot(weights, rows, h) * phi + corrected * dphi[:, k]
+    return ShapePairs(rows, cols, indptr, shape, grad)
+
+
+def _one_point(points, rows, cols, indptr, offset, support, volumes, order, gradients, scale) -> ShapePairs:
+    """rk_shape_pairs for a single point (tip tracking asks for one at a time): the same sums
+    as dot products over its pairs, without the per-point grouping."""
+    volume = volumes[cols]
+    phi, dphi = tensor_kernel(offset, support[cols], gradients)
+    phi = phi * volume
+    h = _basis(offset / scale, order)  # (pairs, m)
+    upper, full = _TRIANGLES[order]
+    hh = _upper_products(h, upper)  # (pairs, u)
+    moment = (phi @ hh)[full]  # (m, m)
+    inverse = _checked_inverse(moment[None], points)[0]
+    b = inverse[:, 0]
+    corrected = h @ b
+    shape = corrected * phi
+    if not gradients:
+        return ShapePairs(rows, cols, indptr, shape, None)
+    dphi = dphi * volume[:, None]
+    maps = _MAPS[order] / scale
+    grad = np.empty((len(rows), 2))
+    for k in range(2):
+        spread = maps[k] @ moment
+        dmoment = (dphi[:, k] @ hh)[full] + spread + spread.T
+        weights = b @ maps[k] - inverse @ (dmoment @ b)
+        grad[:, k] = (h @ weights) * phi + corrected * dphi[:, k]
     return ShapePairs(rows, cols, indptr, shape, grad)
 
 
