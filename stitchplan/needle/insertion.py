@@ -207,7 +207,8 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
     insertion.move_center(control.predict(insertion.center, step))
     aim = control.aim(insertion, step, rotation)
     minres_iterations = 0
-    if taken is not None and aim is None and np.array_equal(insertion.center, taken.center):
+    if (taken is not None and taken.coupling is not None and aim is None
+            and np.array_equal(insertion.center, taken.center)):
         insertion.take_over(taken)
     else:
         if point is not None:
