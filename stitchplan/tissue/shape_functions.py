@@ -244,8 +244,6 @@ def rk_shape_pairs(
             "increase the dilation or refine the spacing"
         )
     scale = float(basis_scale if basis_scale is not None else support.mean())
-    if len(points) == 1:
-        return _one_point(points, rows, cols, indptr, offset, support, volumes, order, gradients, scale)
     volume = volumes[cols]
     phi, dphi = tensor_kernel(offset, support[cols], gradients)
     phi = phi * volume
@@ -278,36 +276,12 @@ def rk_shape_pairs(
     return ShapePairs(rows, cols, indptr, shape, grad)
 
 
-def _one_point(points, rows, cols, indptr, offset, support, volumes, order, gradients, scale) -> ShapePairs:
-    """rk_shape_pairs for a single point (tip tracking asks for one at a time): the same sums
-    as dot products over its pairs, without the per-point grouping."""
-    volume = volumes[cols]
-    phi, dphi = tensor_kernel(offset, support[cols], gradients)
-    phi = phi * volume
-    h = _basis(offset / scale, order)  # (pairs, m)
-    upper, full = _TRIANGLES[order]
-    hh = _upper_products(h, upper)  # (pairs, u)
-    moment = (phi @ hh)[full]  # (m, m)
-    inverse = _checked_inverse(moment[None], points)[0]
-    b = inverse[:, 0]
-    corrected = h @ b
-    shape = corrected * phi
-    if not gradients:
-        return ShapePairs(rows, cols, indptr, shape, None)
-    dphi = dphi * volume[:, None]
-    maps = _MAPS[order] / scale
-    grad = np.empty((len(rows), 2))
-    for k in range(2):
-        spread = maps[k] @ moment
-        dmoment = (dphi[:, k] @ hh)[full] + spread + spread.T
-        weights = b @ maps[k] - inverse @ (dmoment @ b)
-        grad[:, k] = (h @ weights) * phi + corrected * dphi[:, k]
-    return ShapePairs(rows, cols, indptr, shape, grad)
-
-
 def _pair_sums(values: np.ndarray, weights: np.ndarray, indptr: np.ndarray) -> np.ndarray:
     """sum_p w_p v_p over each point's pairs (grouped by point, `indptr`), (n, columns): a
-    sparse product for many points (a third of reduceat's time), reduceat for a few."""
+    sparse product for many points (a third of reduceat's time), reduceat for a few, a dot
+    product for one (tip tracking asks for one point at a time)."""
+    if len(indptr) == 2:
+        return (weights @ values)[None]
     if len(indptr) <= MANY_POINTS + 1:
         return np.add.reduceat(values * weights[:, None], indptr[:-1], axis=0)
     summed = sp.csr_matrix((weights, np.arange(len(weights)), indptr), shape=(len(indptr) - 1, len(weights)))
@@ -324,6 +298,8 @@ def _upper_products(h: np.ndarray, upper: tuple[np.ndarray, np.ndarray]) -> np.n
 
 def _row_dot(per_point: np.ndarray, rows: np.ndarray, h: np.ndarray) -> np.ndarray:
     """per_point[rows[p]] . h[p] for every pair p, (pairs,)."""
+    if len(per_point) == 1:
+        return h @ per_point[0]
     gathered = np.take(per_point, rows, axis=0)
     out = gathered[:, 0] * h[:, 0]
     for j in range(1, h.shape[1]):
