@@ -192,6 +192,34 @@ def test_plan_plot_marks_each_runs_error_at_its_own_desired_exit(plan_result, tm
     assert "O(t)" in trajectory.get_title()
 
 
+def test_plan_plot_keeps_both_error_labels_inside_the_panel_at_a_top_edge_exit(tmp_path):
+    """An exit on a top or bottom edge: side by side the two labels would need more width than
+    the panel has (the unplanned one was cut by the colour bar); each leans to its own side,
+    the second one row further out, and both lie inside the tissue panel."""
+    from stitchplan.planning.planner import run_plan
+
+    raw = {"name": "top-edge-stitch",
+           "tissue": {"size": [30.0, 16.0], "thickness": 10.0, "clamped": ["bottom"], "material": MATERIAL},
+           "discretization": {"spacing": 4.0},
+           "needle": {"radius": 6.0, "entry": [20.0, 16.0], "turn": "cw", "step": 0.3,
+                      "friction": 0.0602, "cutting_force": 0.7}}
+    result = run_plan(parse_scenario(raw), compare=True)
+    fig = needle_plots.plot_plan(tmp_path / "plan.png", result)
+    main = data_axes(fig)[0]
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)  # the saved figure's canvas is closed
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    panel = main.get_window_extent(renderer)
+    notes = [t for t in main.texts if "exit error" in t.get_text()]
+    assert len(notes) == 2
+    for note in notes:
+        box = note.get_bbox_patch().get_window_extent(renderer)
+        assert panel.x0 <= box.x0 and box.x1 <= panel.x1 and panel.y0 <= box.y0 and box.y1 <= panel.y1, \
+            (note.get_text(), box, panel)
+
+
 # --- calibration ----------------------------------------------------------------------------
 
 

@@ -201,10 +201,14 @@ def _label_offsets(runs, outward: np.ndarray) -> dict[str, np.ndarray]:
     tissue (along `outward`) and, for two runs, apart along the boundary, the run whose
     desired exit lies further along the boundary on that side."""
     tangent = np.array([-outward[1], outward[0]])
-    apart = 16.0 if abs(tangent[1]) > abs(tangent[0]) else 60.0  # labels one above the other or side by side
     order = np.argsort([np.asarray(run.desired_exit_def) @ tangent for run, *_ in runs])
     sides = np.linspace(-1.0, 1.0, len(runs)) if len(runs) > 1 else np.zeros(1)
-    return {runs[k][1]: 30.0 * outward + sides[rank] * apart * tangent for rank, k in enumerate(order)}
+    if abs(tangent[1]) > abs(tangent[0]):  # an exit on a side edge: one label above the other
+        return {runs[k][1]: 30.0 * outward + sides[rank] * 16.0 * tangent for rank, k in enumerate(order)}
+    # on the top or bottom edge: side by side they would need more width than the axes have,
+    # so each leans to its own side, the second one row further out
+    return {runs[k][1]: (30.0 + 40.0 * rank) * outward + sides[rank] * 8.0 * tangent
+            for rank, k in enumerate(order)}
 
 
 def _alignment(offset: np.ndarray) -> dict[str, str]:
