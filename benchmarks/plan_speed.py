@@ -172,9 +172,8 @@ def levers() -> list[tuple]:
 
     needle_step = insertion._needle_step
 
-    def solved_again(*args, **kwargs):  # a taken-over step added and solved from the earlier state
-        kwargs.pop("taken", None)
-        return needle_step(*args[:10], **kwargs)
+    def solved_again(*args, taken=None, **kwargs):  # a taken-over step added and solved from the earlier state
+        return needle_step(*args, **kwargs)
 
     residuals = equilibrium.NeedleInsertion.residuals
 

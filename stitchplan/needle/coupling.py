@@ -191,6 +191,16 @@ def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
                          shape=(len(indptr) - 1, top.shape[1]))
 
 
+def _own_rows(attributes: dict) -> dict:
+    """A coupling's attributes with copies of its growing rows, which append in place (the
+    segment and quadrature rows may be one object, and stay one)."""
+    attributes = dict(attributes)
+    rows = (attributes["_segment_rows"], attributes["_quadrature_rows"])
+    copies = {id(part): copy.copy(part) for part in rows}
+    attributes["_segment_rows"], attributes["_quadrature_rows"] = (copies[id(part)] for part in rows)
+    return attributes
+
+
 class GrowingRows:
     """Shape-function rows N(X_q) T of points that are only ever appended (the track's and
     its constraint quadrature's), with their interleaved form E (`interleaved`): each
@@ -292,19 +302,12 @@ class NeedleCoupling:
 
     def state(self) -> dict:
         """What `add` (and the ramp's load_factor) changed, for `restore`. Every attribute is
-        replaced, never changed in place, so a shallow copy keeps it; the growing rows are
-        copied as objects (segment and quadrature rows may be one object)."""
-        state = dict(self.__dict__)
-        copies = {id(rows): copy.copy(rows) for rows in (self._segment_rows, self._quadrature_rows)}
-        state["_segment_rows"], state["_quadrature_rows"] = (copies[id(self._segment_rows)],
-                                                             copies[id(self._quadrature_rows)])
-        return state
+        replaced, never changed in place, so a shallow copy keeps it."""
+        return _own_rows(self.__dict__)
 
     def restore(self, state: dict) -> None:
         """Back to a `state` of this coupling (kept unchanged for another restore)."""
-        self.__dict__.update(state)
-        copies = {id(rows): copy.copy(rows) for rows in (self._segment_rows, self._quadrature_rows)}
-        self._segment_rows, self._quadrature_rows = copies[id(self._segment_rows)], copies[id(self._quadrature_rows)]
+        self.__dict__.update(_own_rows(state))
 
     # --- the track ------------------------------------------------------------------------
 

@@ -170,7 +170,7 @@ def run_insertion(
             return _result(insertion, steps, states, displacements, exit_point, exit_rotation,
                            time.perf_counter() - wall_start, crossings)
         step_done(_needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
-                               fraction, _at(earlier, step, insertion), taken))
+                               fraction, _at(earlier, step, insertion), taken=taken))
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
 
@@ -207,8 +207,7 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
     insertion.move_center(control.predict(insertion.center, step))
     aim = control.aim(insertion, step, rotation)
     minres_iterations = 0
-    if (taken is not None and taken.coupling is not None and aim is None
-            and np.array_equal(insertion.center, taken.center)):
+    if taken is not None and aim is None and np.array_equal(insertion.center, taken.center):
         insertion.take_over(taken)
     else:
         if point is not None:
