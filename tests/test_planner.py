@@ -212,7 +212,8 @@ def test_centre_unknown_settles_each_step_in_one_solve():
     assert sum(s.planner_iterations for s in planned.steps) >= len(planned.steps)  # the centre did move
     newton = {name: sum(s.newton_iterations for s in run.steps) for name, run in
               (("planned", planned), ("unplanned", unplanned))}
-    assert newton["planned"] <= 1.5 * newton["unplanned"] * len(planned.steps) / len(unplanned.steps), newton
+    # ~2 more a step (40 over 19 steps); a solve per centre try would add ~3 per try (51 tries)
+    assert newton["planned"] - newton["unplanned"] <= 3 * len(planned.steps), newton
 
 
 def test_trajectory_table_columns_and_frames(two_passes):

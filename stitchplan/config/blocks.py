@@ -523,10 +523,10 @@ HELD = ("at least one clamped edge or a displacement load: forces alone leave th
 
 @block(title="solver")
 class Solver:
-    # 1e-6 of the driving force leaves ~1e-8 mm in the displacements and the exit points of the
-    # shipped needle scenes (1e-8 took a fifth more Newton iterations for no visible change:
-    # benchmarks/results/plan_speed.md)
-    residual_tolerance: described(Positive, "Newton: force residual tolerance (relative)") = 1e-6
+    # 5e-6 of the driving force leaves at most 2.5e-7 mm in the exit points of the shipped needle
+    # scenes, 4000x below the planner's 0.001 mm tolerance; 1e-6 took 8-46 % more Newton
+    # iterations (benchmarks/results/solver_tolerance.md), 1e-8 a fifth more again
+    residual_tolerance: described(Positive, "Newton: force residual tolerance (relative)") = 5e-6
     increment_tolerance: described(Positive, "Newton: increment tolerance (relative)") = 1e-8
     max_iterations: described(integer(1, 500), "Newton iterations per load step") = 25
     max_step_cuts: described(integer(0, 30), "halvings of a load step that fails to converge") = 6

@@ -457,6 +457,8 @@ class NeedleInsertion:
                 solution = np.concatenate([solution, np.zeros(2)])  # the centre stays
             if modified:
                 solution = mixing.step(np.concatenate([free, multipliers, center]), solution)
+                if steering:  # the mixed centre kept within the move limits
+                    solution[-2:] = aim.feasible(center + solution[-2:]) - center
             free, multipliers, center = free + solution[:n_dof], multipliers + solution[n_dof:-2], center + solution[-2:]
         self._count(iteration)
         if not finite:
