@@ -25,13 +25,12 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-import scipy.linalg
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from ..tissue.factorization import SUPERLU, Factor, factorize
 
-potrf, potrs = scipy.linalg.get_lapack_funcs(("potrf", "potrs"), dtype=np.float64)
+# scipy.linalg and scipy.sparse.linalg (~70 ms of start-up) are imported by the MINRES path
+# only: the direct solves need numpy's LAPACK alone
 
 
 class SchurPreconditioner:
@@ -60,11 +59,15 @@ class SchurPreconditioner:
         """S^-1 x by forward and back substitution with L."""
         if self.size == 0:
             return np.zeros_like(x)
-        return scipy.linalg.cho_solve((self.cholesky, True), x)
+        from scipy.linalg import cho_solve
+
+        return cho_solve((self.cholesky, True), x)
 
     def _border(self, v: np.ndarray, alpha: float) -> None:
         """L <- [[L, 0], [l^T, d]] with L l = v, d^2 = alpha - l^T l (the new Schur pivot)."""
-        l = scipy.linalg.solve_triangular(self.cholesky, v, lower=True) if self.size else np.zeros(0)
+        from scipy.linalg import solve_triangular
+
+        l = solve_triangular(self.cholesky, v, lower=True) if self.size else np.zeros(0)
         # a constraint (nearly) dependent on the earlier ones leaves the pivot at round-off
         # level: factor S + 1e-12 diag(S) instead (pivots then stay >= ~1e-12 alpha, so l
         # stays bounded), and keep the pivot positive so MINRES sees an SPD preconditioner
@@ -197,12 +200,10 @@ class SaddlePointSolver:
         solved = self._solved_rows[:, :count]  # K^-1 E^T
         schur = weights.T @ self._coupled[:count, :count] @ weights  # G^T K^-1 G
         right = weights.T @ (rows @ a) - rhs[n:]
-        # Cholesky of the small Schur matrix by LAPACK directly (what cho_factor and cho_solve
-        # call, without their checks: a tenth of the time at m ~ 20)
-        factor, info = potrf(schur, lower=False, clean=True)
-        if info == 0:
-            multipliers = potrs(factor, right, lower=False)[0]
-        else:  # not positive definite: nearly dependent constraints, least squares
+        try:  # the small Schur matrix: its Cholesky tests that it is positive definite
+            np.linalg.cholesky(schur)
+            multipliers = np.linalg.solve(schur, right)
+        except np.linalg.LinAlgError:  # not positive definite: nearly dependent constraints, least squares
             multipliers = np.linalg.lstsq(schur, right, rcond=1e-13)[0]
         return np.concatenate([a - solved @ (weights @ multipliers), multipliers])
 
@@ -237,6 +238,8 @@ class SaddlePointSolver:
                      weights: sp.spmatrix) -> tuple[np.ndarray | None, int]:
         """MINRES on the saddle system with diag(K0^-1, S^-1), S re-formed from the current
         G = N^T n (SchurPreconditioner.refresh). Returns (solution or None, iterations)."""
+        import scipy.sparse.linalg as spla
+
         n, k = constraints.shape
         g_t = constraints.T.tocsr()
         if k:
@@ -295,7 +298,9 @@ def condition_numbers(stiffness: sp.spmatrix, constraints: sp.spmatrix, stiffnes
     g = constraints.toarray()
     schur = SchurPreconditioner(stiffness_at_rest)
     schur.factor(g, k0_inverse @ g)
-    off = scipy.linalg.solve_triangular(schur.cholesky, (g.T @ c), lower=True).T if k else np.zeros((n, 0))
+    from scipy.linalg import solve_triangular
+
+    off = solve_triangular(schur.cholesky, (g.T @ c), lower=True).T if k else np.zeros((n, 0))
     top = c.T @ saddle[:n, :n] @ c
     transformed = np.block([[top, off], [off.T, np.zeros((k, k))]])
     preconditioned = np.abs(np.linalg.eigvalsh(0.5 * (transformed + transformed.T)))

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .model import TissueModel
 from .material import first_piola, first_piola_and_tangent, lame_at_rest
@@ -64,9 +63,13 @@ class Assembler:
         self.tangent_products += 1
         return self.gradient_t @ (self._pointwise @ (self.gradient @ vector))
 
-    def tangent_operator(self) -> spla.LinearOperator:
+    def tangent_operator(self):
+        """K as a scipy LinearOperator (the iterative static solves; scipy.sparse.linalg is
+        imported here, not by the needle commands, which never need it)."""
+        from scipy.sparse.linalg import LinearOperator
+
         n = self.gradient.shape[1]
-        return spla.LinearOperator((n, n), matvec=self.tangent_product, dtype=float)
+        return LinearOperator((n, n), matvec=self.tangent_product, dtype=float)
 
     def tangent_matrix(self) -> sp.csr_matrix:
         """Explicit K at the last update (eq. 3.45)."""

@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 import scipy.sparse as sp
 
 from ..config import Tissue
@@ -100,9 +99,9 @@ def transformation(
     d_b = at_boundary[:, b].toarray()  # D^b (Nb, Nb), eq. 3.31
     d_nb = at_boundary[:, free]  # D^nb (Nb, n_free), eq. 3.32
     touched = np.flatnonzero(np.diff(d_nb.indptr) > 0)  # free particles seen by the boundary
-    lu = scipy.linalg.lu_factor(d_b)
-    coupling = scipy.linalg.lu_solve(lu, d_nb[:, touched].toarray())  # (D^b)^-1 D^nb
-    inverse = scipy.linalg.lu_solve(lu, np.eye(len(b)))  # (D^b)^-1
+    # (D^b)^-1 D^nb and (D^b)^-1 from one LU of D^b
+    solved = np.linalg.solve(d_b, np.hstack([d_nb[:, touched].toarray(), np.eye(len(b))]))
+    coupling, inverse = solved[:, :len(touched)], solved[:, len(touched):]
     # (D^b)^-1 decays exponentially away from the diagonal: entries below 1e-13 x the
     # largest are round-off, and keeping them would couple every boundary particle to
     # every other (dense rows in the gradient operator, super-linear assembly cost)

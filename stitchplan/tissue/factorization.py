@@ -20,7 +20,6 @@ import os
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 try:  # the `fast` extra; imported with the module, as scipy is, not within a run
     from cvxopt import cholmod, matrix as dense, spmatrix
@@ -40,7 +39,9 @@ class SuperLUFactor:
     backend = SUPERLU
 
     def __init__(self, matrix: sp.spmatrix):
-        self._lu = spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        from scipy.sparse.linalg import splu  # imported at start-up where SuperLU is the backend (below)
+
+        self._lu = splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         return self._lu.solve(rhs)
@@ -77,6 +78,13 @@ Factor = SuperLUFactor | CholeskyFactor
 
 def cholesky_available() -> bool:
     return cholmod is not None and os.environ.get("STITCHPLAN_LINEAR_BACKEND", "").lower() != "superlu"
+
+
+# scipy.sparse.linalg (with scipy.linalg ~70 ms) is imported with this module where SuperLU
+# factors every matrix, so that a run's time is its own; with CHOLMOD it is imported the
+# first time a matrix is not positive definite (on most needle commands never)
+if not cholesky_available():
+    import scipy.sparse.linalg  # noqa: F401
 
 
 def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:

@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .assembly import Assembler
 from .factorization import factorize
@@ -101,6 +100,8 @@ def preconditioned_gmres(
     """GMRES (Krylov spaces of up to max_iterations, at most three cycles: scipy may end a cycle
     early on its preconditioned residual estimate) for nonsymmetric tangents; returns
     (None, its) unless the true residual reaches ~rtol |rhs|."""
+    import scipy.sparse.linalg as spla  # here: the needle commands import this module but never need it
+
     n = len(rhs)
     count = [0]
     a = spla.LinearOperator((n, n), matvec=operator, dtype=float)
