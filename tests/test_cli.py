@@ -19,6 +19,7 @@ import stitchplan
 from stitchplan import cli
 from stitchplan.cli import app
 from stitchplan.errors import InputError, NumericalFailure
+from stitchplan.tissue.factorization import cholesky_available
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 HEAVY = ("numpy", "scipy", "h5py", "matplotlib", "rich")
@@ -96,7 +97,9 @@ def test_runs_on_a_rectangle_import_neither_scipy_spatial_nor_optimize(tmp_path)
     """`simulate` and `plan` on a rectangular tissue (the shipped slab scene with a needle)
     load neither scipy.spatial nor scipy.optimize (about 0.1 and 0.08 s of every command's
     start-up; the neighbour search and the exit's root search are the package's own), nor the
-    calibration input's models."""
+    calibration input's models; with CHOLMOD (the `fast` extra), whose factors stay positive
+    definite here, nor scipy.linalg and scipy.sparse.linalg (~0.07 s: imported for MINRES,
+    GMRES and SuperLU only)."""
     listing = tmp_path / "modules.json"
     scenario = REPOSITORY / "configs" / "needle20_entry30.yaml"
     script = (
@@ -118,6 +121,10 @@ def test_runs_on_a_rectangle_import_neither_scipy_spatial_nor_optimize(tmp_path)
     loaded = set(json.loads(listing.read_text()))
     assert "scipy.sparse" in loaded and (tmp_path / "t.csv").exists()  # the runs were real
     assert not loaded & {"scipy.spatial", "scipy.optimize", "stitchplan.config.calibration"}
+    if cholesky_available():
+        assert not loaded & {"scipy.linalg", "scipy.sparse.linalg"}, sorted(loaded & {"scipy.linalg", "scipy.sparse.linalg"})
+    else:  # SuperLU factors every matrix: imported with the factorization module
+        assert "scipy.sparse.linalg" in loaded
 
 
 def test_version_is_answered_before_the_app_loads():
