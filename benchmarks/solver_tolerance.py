@@ -7,9 +7,12 @@ iterations it took. Then the planned run (`plan --no-compare --no-verify`'s, in 
 each tolerance: Newton iterations, planned exit error, the largest difference of the
 exported centres from those at the first tolerance, and its wall time (median of REPEATS,
 the tolerances alternating). And `deform` on configs/slab_edge_load.yaml: its probes'
-largest distance from the reference's.
+largest distance from the reference's. Last, the 20 mm needle scenes' unplanned exit errors
+at the default spacing h, h/sqrt(2) and h/2 (benchmarks/needle_coupling.py's levels), at the
+default tolerance and at REFERENCE: whether the differences between the levels, a fraction
+of a micrometre there, are the discretization's or the solver's.
 
-Writes benchmarks/results/solver_tolerance.{csv,md}. About 4 minutes.
+Writes benchmarks/results/solver_tolerance.{csv,md}. About 5 minutes.
 Run from the repository root:  python benchmarks/solver_tolerance.py
 """
 
@@ -28,7 +31,7 @@ from dataclasses import replace  # noqa: E402
 import _common as common  # noqa: E402
 import numpy as np  # noqa: E402
 
-from stitchplan.config.scenario import load_scenario  # noqa: E402
+from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 from stitchplan.planning.planner import run_plan  # noqa: E402
 from stitchplan.tissue.deform import run_deform  # noqa: E402
@@ -92,6 +95,34 @@ def deform_probes() -> list[dict]:
             for tolerance, run in runs.items()]
 
 
+REFINEMENT = (1.0, 2.0 ** -0.5, 0.5)  # spacing factors, as benchmarks/needle_coupling.py's
+NEEDLE20 = ("needle20_entry30", "needle20_entry25", "needle20_entry20", "needle20_entry18")
+
+
+def refinement(name: str) -> list[dict]:
+    base = load_scenario(CONFIGS / f"{name}.yaml")
+    rows = []
+    for tolerance in (base.solver.residual_tolerance, REFERENCE):
+        errors = [run_insertion(with_discretization(with_tolerance(base, tolerance),
+                                                    spacing=base.discretization.spacing * factor)).exit_error_mm
+                  for factor in REFINEMENT]
+        rows.append({"scene": name, "tolerance": tolerance, "errors": errors})
+    return rows
+
+
+def refinement_markdown(rows: list[dict]) -> list[str]:
+    lines = ["", "## The 20 mm needle scenes under refinement, at two tolerances", "",
+             "Unplanned exit error (mm) at the default spacing h, h/sqrt(2) and h/2; the differences "
+             "between consecutive levels in micrometres.", "",
+             "| scene | tolerance | e(h) | e(h/sqrt(2)) | e(h/2) | e(h/sqrt(2)) - e(h) (um) | e(h/2) - e(h/sqrt(2)) (um) |",
+             "|---|---|---|---|---|---|---|"]
+    for row in rows:
+        e = row["errors"]
+        lines.append(f"| {row['scene']} | {row['tolerance']:.0e} | {e[0]:.8f} | {e[1]:.8f} | {e[2]:.8f} | "
+                     f"{1e3 * (e[1] - e[0]):+.4f} | {1e3 * (e[2] - e[1]):+.4f} |")
+    return lines
+
+
 def markdown(rows: list[dict]) -> str:
     def value(row, key, digits=".2e"):
         return "" if key not in row or row[key] != row[key] else format(row[key], digits)
@@ -127,11 +158,12 @@ def main() -> None:
         rows += planned(name)
         print(rows[-1], flush=True)
     rows += deform_probes()
+    levels = [row for name in NEEDLE20 for row in refinement(name)]
     header = ["scene", "run", "tolerance", "exit_error_mm", "exit_from_reference_mm", "centers_from_first_mm",
               "probes_from_reference_mm", "newton_iterations", "seconds"]
     common.write_csv(common.results_path("solver_tolerance.csv"), header,
                      [[row.get(key, "") for key in header] for row in rows])
-    common.write_report("solver_tolerance.md", markdown(rows).splitlines())
+    common.write_report("solver_tolerance.md", markdown(rows).splitlines() + refinement_markdown(levels))
 
 
 if __name__ == "__main__":
