@@ -434,8 +434,8 @@ def main() -> None:
         "(needle/steering.py) is not switchable; it shows in the table above as one equilibrium solve per "
         "step instead of one per centre try. Factorizations: those the planned run made (K0's factor, "
         "shared by the passes, counts in the first). The planned exit error shows what a lever costs in "
-        "accuracy: the residual tolerance moves the planner's path within its 0.001 mm tolerance; the "
-        "unplanned exit errors move by less than 1e-7 mm (tests/test_regression_pins.py). The least of the "
+        "accuracy: the residual tolerance moves the unplanned exit points by at most 2.5e-7 mm and the "
+        "planned centres by up to 0.0023 mm (benchmarks/results/solver_tolerance.md). The least of the "
         "rounds is the run other work on this shared machine disturbed least; the medians of the same "
         "variant moved by up to 40 % between runs of this table, so only the iteration and solve counts "
         "are exact.\n",
