@@ -203,6 +203,8 @@ def levers() -> list[tuple]:
          {(equilibrium, "stiffness_at_rest"): general_stiffness_at_rest}, None),
         ("needle20_entry25", "all levers (now)", {}, None),
         ("needle20_entry25", "residual tolerance 1e-6 (the default before 5e-6)", {}, tolerance(1e-6)),
+        ("needle20_entry25", "tip Newton stopped at a step below 1e-8 R (not 1e-6 R)",
+         {(tip_tracking, "NEWTON_TIP_STOP"): 1e-8}, None),
         ("sh12_100x30", "all levers (now; 2 planner passes)", {}, None),
         ("sh12_100x30", "the taken-over steps' tip points tracked again", {(insertion, "_tracked_before"): tracked_again}, None),
         ("sh12_100x30", "the taken-over steps solved again from the first pass's states (no take-over)",
