@@ -229,6 +229,28 @@ def test_center_sensitivity_matches_finite_differences(coupling):
     assert np.linalg.norm(jacobian - difference) <= 1e-3 * np.linalg.norm(difference)
 
 
+@pytest.mark.parametrize("cutting_length", [3.2, 3.0])
+def test_center_columns_on_the_constraint_rows_match_the_solved_ones(monkeypatch, cutting_length):
+    """The centre's columns d(d, lambda)/dC from the kept K^-1 E^T (equilibrium
+    CENTER_COLUMNS_ON_ROWS) against the same columns solved with the factor: equal to
+    round-off where every load point is a segment Gauss point (cutting length two whole
+    1.6 mm steps), and within the finite-difference test's 1e-3 where the cutting force's
+    points on a partly covered segment are lumped onto its Gauss points (3 mm)."""
+    from stitchplan.needle import equilibrium
+
+    insertion = started(small_scene(spacing=2.0, coupling="mortar", cutting_length=cutting_length), steps=5)
+    lumped = len(insertion.coupling.loads.lumping[0])
+    target = insertion.geometry.desired_exit
+    on_rows = insertion.center_sensitivity(target, refactor=True)
+    monkeypatch.setattr(equilibrium, "CENTER_COLUMNS_ON_ROWS", False)
+    solved = insertion.center_sensitivity(target, refactor=True)
+    difference = np.linalg.norm(on_rows - solved) / np.linalg.norm(solved)
+    if cutting_length == 3.2:
+        assert lumped == 0 and difference < 1e-10
+    else:
+        assert lumped == 2 and 0.0 < difference < 1e-3
+
+
 def test_the_mortar_coupling_adds_a_multiplier_only_once_a_spacing_of_track_has_grown():
     """On a 4 mm grid with 1.6 mm steps the multiplier count grows about every third step
     (track length / spacing + 1), not with every needle point as the point coupling's does."""

@@ -244,6 +244,10 @@ class LoadQuadrature:
     points: np.ndarray  # (L, 2)
     rows: sp.csr_matrix  # N(X_l) T, (L, n_free)
     magnitudes: np.ndarray  # (L,)
+    # the points after the segments' Gauss points (a partly covered segment's), each as a
+    # linear combination of its segment's two Gauss points: their indices and weights (P, 2)
+    # each; None where the layout has other points (the smooth cutting profile)
+    lumping: tuple[np.ndarray, np.ndarray] | None = (np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2)))
 
 
 class NeedleCoupling:
@@ -311,9 +315,6 @@ class NeedleCoupling:
 
     # --- the track ------------------------------------------------------------------------
 
-    def _rows_at(self, points: np.ndarray) -> sp.csr_matrix:
-        return (self.model.shape_functions_at(points).values @ self.model.boundary.free_map).tocsr()
-
     @property
     def segment_rows(self) -> sp.csr_matrix:
         """N(X_s) T at the segments' Gauss points, (2 segments, n_free)."""
@@ -349,13 +350,13 @@ class NeedleCoupling:
             self.segment_fraction = np.append(self.segment_fraction, 0.0 if gap else fraction)
         self.points = np.vstack([self.points, reference_point])
         constraint_points = self._new_constraint_points() if self.arc_ends and len(self.points) > 1 else np.zeros((0, 2))
-        magnitudes, part_points = self._load_layout()
+        magnitudes, part_points, lumping = self._load_layout()
         # the shape-function rows of every point the step adds, in one evaluation: the tip,
         # the new segment's Gauss points (no tissue in a gap: zero rows), the arc ends'
         # constraint points and the load points on a partly covered segment
         blocks = (reference_point[None], np.zeros((0, 2)) if gap else new, constraint_points, part_points)
         ends = np.cumsum([0] + [len(block) for block in blocks])
-        rows = self._rows_at(np.vstack(blocks))
+        rows = self.model.free_rows_at(np.vstack(blocks))
         self.tip_row = np.bincount(rows.indices[:rows.indptr[1]], rows.data[:rows.indptr[1]],
                                    minlength=self.model.n_free)  # N(X_tip) T, dense (n_free,)
         if len(new):
@@ -375,7 +376,8 @@ class NeedleCoupling:
         self.previous_loads, self._track_rows = self.loads, None
         if len(part_points):
             self.loads = LoadQuadrature(np.vstack([self.segment_points, part_points]),
-                                        _extended(self.segment_rows, _block(rows, ends[3], ends[4])), magnitudes)
+                                        _extended(self.segment_rows, _block(rows, ends[3], ends[4])), magnitudes,
+                                        lumping)
         else:
             self.loads = LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
         return carried
@@ -482,11 +484,13 @@ class NeedleCoupling:
         on the tip segment (points) or uniformly over the last `cutting_length` mm of needle
         (mortar), two Gauss points per (part of a) segment (the smooth profile:
         _smooth_cutting). Returns the magnitudes (N) on the segments' Gauss points followed
-        by those of the extra load points (a partly covered segment's), and those points, (t, 2)."""
+        by those of the extra load points (a partly covered segment's), those points, (t, 2),
+        and their LoadQuadrature.lumping."""
         segments = len(self.points) - 1
         no_points = np.zeros((0, 2))
+        no_lumping = LoadQuadrature.lumping
         if segments < 1:
-            return np.zeros(0), no_points
+            return np.zeros(0), no_points, no_lumping
         step_length = self.geometry.insertion_step  # needle length per segment, mm
         needle_length = step_length * self.segment_fraction  # needle length each segment stands for
         friction = np.repeat(0.5 * self.needle.friction * needle_length, 2)
@@ -494,9 +498,9 @@ class NeedleCoupling:
         if self.kind == POINTS or cutting == 0.0:
             magnitudes = friction.copy()
             magnitudes[-2:] += 0.5 * cutting
-            return magnitudes, no_points
+            return magnitudes, no_points, no_lumping
         if CUTTING_PROFILE == SMOOTH:
-            return self._smooth_cutting(friction, needle_length)
+            return (*self._smooth_cutting(friction, needle_length), None)
         full_steps = bool(np.all(self.segment_fraction == 1.0))
         zone = min(self.cutting_length, segments * step_length if full_steps else float(needle_length.sum()))
         if full_steps:  # whole steps: in step units
@@ -513,12 +517,14 @@ class NeedleCoupling:
         magnitudes = friction.copy()
         magnitudes[(2 * whole[:, None] + np.arange(2)).ravel()] += np.repeat(share[whole], 2)
         if not len(part):
-            return magnitudes, no_points
+            return magnitudes, no_points, no_lumping
         fraction = covered[part]
         start, end = self.points[part], self.points[part + 1]
         along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
         part_points = _along_segments(start, end, along)
-        return np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]), part_points
+        upper = ((along - GAUSS_POINTS[0]) / (GAUSS_POINTS[1] - GAUSS_POINTS[0])).ravel()  # its weight
+        lumping = (np.repeat(2 * part[:, None] + np.arange(2), 2, axis=0), np.column_stack([1.0 - upper, upper]))
+        return np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]), part_points, lumping
 
     def _smooth_cutting(self, friction: np.ndarray, needle_length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """_load_layout's magnitudes and extra points for the smooth cutting profile: the force
@@ -601,24 +607,58 @@ class NeedleCoupling:
         values = ConstraintValues(self.weights.T @ (rho - self.target_radius), normal, rho)
         return values, forces[:, 2:].ravel(), forces[:, :2].ravel()
 
-    def needle_force_center_derivative(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
-        """d f_needle / dC (2 n_free, 2): a_0 turns with the polar angle seen from C,
-        d a_0 / dC = sense unit(theta) t^T / rho with t = (-sin theta, cos theta)."""
-        rows, rows_t, points = self._track()
+    def _needle_force_turn(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
+        """d a_l / dC (L + L', i, j), the change of each load point's force with the centre:
+        a_0 turns with the polar angle seen from C, d a_0 / dC = sense unit(theta) t^T / rho
+        with t = (-sin theta, cos theta)."""
+        rows, _, points = self._track()
         q = self.weights.shape[0]
-        magnitudes = self._load_weights()
-        if not len(magnitudes):
-            return np.zeros((2 * self.model.n_free, 2))
         relative = (points + rows @ free)[q:] - center  # (L + L', 2)
         rho = np.sqrt((relative * relative).sum(axis=1))
         radial = relative / rho[:, None]
         across = np.column_stack([-radial[:, 1], radial[:, 0]])
-        scale = magnitudes * self.geometry.sense / rho
-        terms = np.zeros((len(points), 4))  # column j of dC in columns 2j, 2j + 1
-        terms[q:, :2] = (scale * across[:, 0])[:, None] * radial
-        terms[q:, 2:] = (scale * across[:, 1])[:, None] * radial
-        columns = rows_t @ terms  # (n_free, 4)
-        return np.column_stack([columns[:, :2].ravel(), columns[:, 2:].ravel()])
+        scale = self._load_weights() * self.geometry.sense / rho
+        return (scale[:, None, None] * radial[:, :, None]) * across[:, None, :]
+
+    def needle_force_center_derivative(self, free: np.ndarray, center: np.ndarray) -> np.ndarray:
+        """d f_needle / dC (2 n_free, 2) (_needle_force_turn on the load points' rows)."""
+        _, rows_t, points = self._track()
+        q = self.weights.shape[0]
+        if len(points) == q:
+            return np.zeros((2 * self.model.n_free, 2))
+        terms = np.zeros((len(points), 2, 2))
+        terms[q:] = self._needle_force_turn(free, center)
+        columns = rows_t @ terms.reshape(len(points), 4)  # (n_free, (i, j))
+        return columns.reshape(-1, 2, 2).reshape(-1, 2)
+
+    def center_derivative_on_rows(self, free: np.ndarray, multipliers: np.ndarray, normal: np.ndarray,
+                                  rho: np.ndarray, center: np.ndarray) -> np.ndarray | None:
+        """d r_u / dC = d (G lambda) / dC - d f_needle / dC as E^T C: the coefficients C (2Q, 2)
+        on the interleaved constraint rows E, where the constraint quadrature is the segments'
+        Gauss points (the mortar coupling's default); else None. The saddle solver keeps
+        K^-1 E^T, so these right-hand sides need no solve with its factor.
+
+        Exact but for the cutting force's points on a partly covered segment: their force
+        change is lumped onto the segment's two Gauss points (LoadQuadrature.lumping), whose
+        rows interpolate theirs linearly. The columns are the Jacobian of the planner's centre
+        move (needle/steering.py), which this changes by O(h^2) at those points: the moves
+        converge to the same centre."""
+        loads, previous = self.loads, self.previous_loads
+        if not (self._segment_rows is self._quadrature_rows and loads.lumping is not None
+                and previous.lumping is not None):
+            return None
+        q = self.weights.shape[0]
+        coefficients = np.zeros((q, 2, 2))  # (point, i, j)
+        if q and self.multiplier_count:
+            coefficients -= self._projections(multipliers, normal, rho)
+        turn = self._needle_force_turn(free, center)  # this step's load points, then the previous step's
+        for part, (indices, weights) in ((turn[:len(loads.magnitudes)], loads.lumping),
+                                         (turn[len(loads.magnitudes):], previous.lumping)):
+            on_segments = len(part) - len(indices)
+            coefficients[:on_segments] -= part[:on_segments]
+            np.subtract.at(coefficients, indices.ravel(),
+                           (weights[:, :, None, None] * part[on_segments:, None]).reshape(-1, 2, 2))
+        return coefficients.reshape(2 * q, 2)
 
     # --- constraints ------------------------------------------------------------------------
 

@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 CONSTRAINT_TOLERANCE = 1e-9  # |g| / R: the track on the needle after each converged step
 ANDERSON_DEPTH = 5  # steps mixed by the accelerated modified Newton (AndersonMixing)
 STALE_CENTER_MOVES = 10.0  # d(d, lambda)/dC is re-solved while the centre moves more than this x tolerance
+CENTER_COLUMNS_ON_ROWS = True  # d(d, lambda)/dC from the kept K^-1 E^T where the coupling allows (_center_columns)
 REFACTOR_CONTRACTION = 0.5  # a planner's step renews the factor of K + H below this contraction (renew_factor)
 RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
 
@@ -251,7 +252,7 @@ class NeedleInsertion:
         rows = self._free_rows.get(key)
         if rows is None:
             clipped = self.domain.clip(np.atleast_2d(point))
-            rows = (self.model.shape_functions_at(clipped).values @ self.model.boundary.free_map).toarray()[0]
+            rows = self.model.free_rows_at(clipped).toarray()[0]
             self._free_rows[key] = rows
         return rows
 
@@ -418,8 +419,11 @@ class NeedleInsertion:
                 break
             rhs = -np.concatenate([state.residual, state.violation])
             fresh = steering and (per_center is None or moved > STALE_CENTER_MOVES * aim.tolerance)
+            on_rows = None
             if fresh:  # and the equilibrium's change per unit move of the centre
-                rhs = np.column_stack([rhs, self._center_columns(free.reshape(-1, 2), multipliers, center, state)])
+                columns, on_rows = self._center_columns(free.reshape(-1, 2), multipliers, center, state)
+                if columns is not None:
+                    rhs = np.column_stack([rhs, columns])
             t0 = time.perf_counter()
             solution, modified = None, False  # modified: a direct solve on a kept factor (mixed)
             if balanced and not fresh:  # steering in equilibrium: only the centre's move is left to check
@@ -435,7 +439,7 @@ class NeedleInsertion:
                 earlier = previous
                 solution = self.saddle.solve_direct(self._stiffness(multipliers, state), rhs,
                                                     refactor, self.coupling.expanded_rows,
-                                                    self.coupling.normal_weights(state.normal))
+                                                    self.coupling.normal_weights(state.normal), on_rows)
                 if refactor or measure > previous:
                     mixing.reset()  # another iteration map (new factor), or a step that failed
                 previous, modified = measure, True
@@ -476,13 +480,21 @@ class NeedleInsertion:
         self._count(iterations)
 
     def _center_columns(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray,
-                        state: Residuals) -> np.ndarray:
-        """-d(r_u, g)/dC (n + m, 2): the right-hand sides whose solutions are the equilibrium's
-        change per unit move of the centre (center_sensitivity)."""
+                        state: Residuals) -> tuple[np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
+        """-d(r_u, g)/dC: the right-hand sides whose solutions are the equilibrium's change per
+        unit move of the centre (center_sensitivity). As (None, (C, h)) with -d r_u/dC = E^T C
+        (2Q, 2) on the constraint rows and h = -dg/dC (m, 2), the saddle solver's `on_rows`,
+        where the coupling can (NeedleCoupling.center_derivative_on_rows; CENTER_COLUMNS_ON_ROWS);
+        else as (columns (n + m, 2), None)."""
         coupling = self.coupling
+        constraint_part = -coupling.constraint_center_derivative(state.normal)
+        on_rows = (coupling.center_derivative_on_rows(free, multipliers, state.normal, state.rho, center)
+                   if CENTER_COLUMNS_ON_ROWS else None)
+        if on_rows is not None:
+            return None, (-on_rows, constraint_part)
         force_change = (coupling.center_derivative(multipliers, state.normal, state.rho)
                         - coupling.needle_force_center_derivative(free, center))  # (2 n_free, 2)
-        return -np.vstack([force_change, coupling.constraint_center_derivative(state.normal)])
+        return np.vstack([-force_change, constraint_part]), None
 
     def _count(self, iterations: int) -> None:
         self.newton_iterations += iterations
@@ -526,9 +538,12 @@ class NeedleInsertion:
         (needle force) / R against the tissue's stiffness.
         """
         state = self.residuals(self.free, self.multipliers, self.center)
-        rhs = self._center_columns(self.free, self.multipliers, self.center, state)  # (n + m, 2)
+        columns, on_rows = self._center_columns(self.free, self.multipliers, self.center, state)
+        n_rows = 2 * self.model.n_free + self.coupling.multiplier_count
+        rhs = columns if columns is not None else np.zeros((n_rows, 0))
         solution = self.saddle.solve_direct(self._stiffness(self.multipliers, state), rhs, refactor,
-                                            self.coupling.expanded_rows, self.coupling.normal_weights(state.normal))
+                                            self.coupling.expanded_rows, self.coupling.normal_weights(state.normal),
+                                            on_rows)
         row = self.free_rows(point)
         n_dof = 2 * self.model.n_free
         return np.column_stack([row @ solution[:n_dof, j].reshape(-1, 2) for j in range(2)])

@@ -254,6 +254,7 @@ def _result(insertion: NeedleInsertion, steps: list[NeedleStep], states: list[Sn
         wall_seconds=wall_seconds, timings=insertion.timings, events=insertion.events,
         solver_counts={"factorizations": insertion.saddle.factorizations,
                        "linear_solves": insertion.saddle.solves,
+                       "solved_columns": insertion.saddle.solved_columns,
                        "linear_solver": insertion.linear_method,
                        "linear_solver_backend": insertion.saddle.backend,
                        "minres_iterations": insertion.saddle.minres_iterations,

@@ -138,6 +138,7 @@ class SaddlePointSolver:
         self._coupled = np.zeros((0, 0))  # E (K + H)^-1 E^T for that factor, (2Q, 2Q)
         self.factorizations = 0
         self.solves = 0
+        self.solved_columns = 0  # right-hand-side columns through the factor (its solves take them one at a time)
         self.backend = SUPERLU  # of the last factor of K + H (tissue/factorization.py)
         self.minres_iterations = 0
         self.fallbacks = 0
@@ -171,7 +172,8 @@ class SaddlePointSolver:
         return self._schur
 
     def solve_direct(self, stiffness: Callable[[], sp.spmatrix], rhs: np.ndarray, refactor: bool,
-                     rows: sp.csr_matrix, weights: np.ndarray) -> np.ndarray:
+                     rows: sp.csr_matrix, weights: np.ndarray,
+                     on_rows: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Block elimination with a sparse LU of K + H (renewed when `refactor` or missing):
 
             a = K^-1 (-r_u),  S = G^T K^-1 G,  dl = S^-1 (G^T a + g),  dd = a - K^-1 G dl
@@ -184,6 +186,10 @@ class SaddlePointSolver:
         For one factor, K^-1 E^T (n, 2Q) and E K^-1 E^T (2Q, 2Q) are kept and grown by the
         rows of new quadrature points only, so an iteration costs one solve with the factor, one sparse
         product E a and small dense products. `rhs` may hold several columns.
+
+        `on_rows` = (C (2Q, j), h (m, j)): j more right-hand sides [E^T C; h], whose K^-1 E^T C
+        comes from the kept columns without a solve (the factor's solves take their columns one
+        at a time); their solutions follow rhs's columns.
         """
         n, k = rows.shape[1], weights.shape[1]
         if refactor or self._factor is None:
@@ -191,15 +197,25 @@ class SaddlePointSolver:
             self.factorizations += 1
         if self._solved_rows is None:
             self._solved_rows = np.zeros((n, 0))
-        a = self._factor.solve(rhs[:n])
-        self.solves += 1
-        if k == 0:
+        if rhs.ndim == 2 and rhs.shape[1] == 0:  # only `on_rows` columns
+            a = np.zeros((n, 0))
+        else:
+            a = self._factor.solve(rhs[:n])
+            self.solves += 1
+            self.solved_columns += 1 if rhs.ndim == 1 else rhs.shape[1]
+        if k == 0 and on_rows is None:
             return a
         self._grow(rows)
         count = rows.shape[0]
         solved = self._solved_rows[:, :count]  # K^-1 E^T
+        constraint_rhs = rhs[n:]
+        if on_rows is not None:
+            a = np.column_stack([a, solved @ on_rows[0]])
+            constraint_rhs = np.column_stack([constraint_rhs, on_rows[1]])
+        if k == 0:
+            return a
         schur = weights.T @ self._coupled[:count, :count] @ weights  # G^T K^-1 G
-        right = weights.T @ (rows @ a) - rhs[n:]
+        right = weights.T @ (rows @ a) - constraint_rhs
         try:  # the small Schur matrix: its Cholesky tests that it is positive definite (numpy has
             np.linalg.cholesky(schur)  # no triangular solve to reuse it with; m ~ 20-40: microseconds)
             multipliers = np.linalg.solve(schur, right)
@@ -217,6 +233,7 @@ class SaddlePointSolver:
         added = sp.csr_matrix((rows.data[first:], rows.indices[first:], rows.indptr[have:] - first),
                               shape=(count - have, rows.shape[1]))
         new = self._factor.solve(added.toarray().T)  # (n, new)
+        self.solved_columns += count - have
         if new.ndim == 1:
             new = new[:, None]
         if self._solved_rows.shape[1] < count:  # room for the next steps' rows too

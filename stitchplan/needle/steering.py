@@ -7,7 +7,9 @@ Algorithm 2 asks, within each needle step, for the centre O that satisfies
 with the tissue in equilibrium about O. Solved as a fixed point (move O, re-solve the
 equilibrium, repeat) it costs a whole equilibrium solve per centre try. Here O joins the
 Newton system of eq. 3.62 instead: each Newton iteration solves the saddle system for the
-residual and for the two columns -d(r_u, g)/dO (one factor, three right-hand sides),
+residual and for the two columns -d(r_u, g)/dO (one factor; the columns' K^-1 part comes from
+the kept K^-1 E^T where the loads sit on the constraint quadrature, needle/equilibrium.py
+_center_columns),
 
     [dd, dl] = [dd_0, dl_0] + [D, L] dO,
 

@@ -37,6 +37,7 @@ class EssentialBoundary:
     free_indices: np.ndarray  # (n_free,)
     free_map: sp.csr_matrix  # T (NP, n_free)
     prescribed_map: sp.csr_matrix  # T_g (NP, Nb)
+    free_column: np.ndarray  # (NP,) each free particle's column in T (its row of T is that unit row), -1 on the boundary
 
     @property
     def n_free(self) -> int:
@@ -93,7 +94,7 @@ def transformation(
     )
     if len(b) == 0:
         empty = sp.csr_matrix((n_particles, 0))
-        return EssentialBoundary(b, constrained.group, free, identity_rows, empty)
+        return EssentialBoundary(b, constrained.group, free, identity_rows, empty, column_of_free)
 
     at_boundary = at_boundary.tocsc()
     d_b = at_boundary[:, b].toarray()  # D^b (Nb, Nb), eq. 3.31
@@ -119,4 +120,4 @@ def transformation(
     )
     free_map.eliminate_zeros()
     prescribed_map.eliminate_zeros()
-    return EssentialBoundary(b, constrained.group, free, free_map.tocsr(), prescribed_map.tocsr())
+    return EssentialBoundary(b, constrained.group, free, free_map.tocsr(), prescribed_map.tocsr(), column_of_free)

@@ -79,6 +79,17 @@ class TissueModel:
         points = np.atleast_2d(points)
         return self._shape_pairs(points, gradients).matrices(len(points), self.n_particles)
 
+    def free_rows_at(self, points: np.ndarray) -> sp.csr_matrix:
+        """N(X) T (n, n_free): the shape functions at reference points acting on the free
+        coefficients. Where no boundary particle is among the points' neighbours (along a
+        needle's track, mostly) T only renumbers the columns, and the rows are built as such."""
+        points = np.atleast_2d(points)
+        pairs = self._shape_pairs(points, False)
+        columns = self.boundary.free_column[pairs.cols]
+        if (columns >= 0).all():
+            return sp.csr_matrix((pairs.values, columns, pairs.indptr), shape=(len(points), self.n_free))
+        return (pairs.matrices(len(points), self.n_particles).values @ self.boundary.free_map).tocsr()
+
     def field_at(self, points: np.ndarray, coefficients: np.ndarray, gradients: bool = False):
         """u(X) (n, 2) from particle coefficients (NP, 2) and, with gradients, du_i/dX_J (n, 2, 2)."""
         return self._shape_pairs(np.atleast_2d(points), gradients).field(coefficients)

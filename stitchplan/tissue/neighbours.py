@@ -108,21 +108,23 @@ class CellGrid:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         return np.concatenate(rows), np.concatenate(cols)
 
+    def block(self, x: float, y: float) -> tuple[int, int]:
+        """The range of `blocks` of the cell holding (x, y) (empty where none): every member
+        within `size` of the point in the max norm lies in it."""
+        ox, oy = self.origin.tolist()
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return 0, 0
+        cx = min(max(math.floor((x - ox) / self.size), -_CELL_LIMIT), _CELL_LIMIT)
+        cy = min(max(math.floor((y - oy) / self.size), -_CELL_LIMIT), _CELL_LIMIT)
+        key = _key(cx, cy)
+        slot = int(self.keys.searchsorted(key))
+        if slot < len(self.keys) and self.keys[slot] == key:
+            return int(self.starts[slot]), int(self.starts[slot + 1])
+        return 0, 0
+
     def _block_of(self, points: np.ndarray) -> list[tuple[int, int, float, float]]:
         """Per point, the range of `blocks` of its cell (empty where no cell) and its coordinates."""
-        ox, oy = self.origin.tolist()
-        ranges = []
-        for x, y in points.tolist():
-            start = end = 0
-            if math.isfinite(x) and math.isfinite(y):
-                cx = min(max(math.floor((x - ox) / self.size), -_CELL_LIMIT), _CELL_LIMIT)
-                cy = min(max(math.floor((y - oy) / self.size), -_CELL_LIMIT), _CELL_LIMIT)
-                key = _key(cx, cy)
-                slot = int(self.keys.searchsorted(key))
-                if slot < len(self.keys) and self.keys[slot] == key:
-                    start, end = int(self.starts[slot]), int(self.starts[slot + 1])
-            ranges.append((start, end, x, y))
-        return ranges
+        return [(*self.block(x, y), x, y) for x, y in points.tolist()]
 
     def nearest(self, points: np.ndarray) -> np.ndarray:
         """The index of each point's nearest particle among the members (Euclidean; on a tie

@@ -138,6 +138,21 @@ class ParticleSearch:
         """The index of each point's nearest particle, (n,)."""
         return self.everyone.nearest(points)
 
+    def around(self, point: np.ndarray, support: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The particles I whose support reaches one point, |X - X_I|_inf < a_I (with
+        _pairs_and_offsets' margin), ascending, and their offsets X - X_I (k, 2): the
+        candidates' filter and the support test in one pass (tip tracking asks for one point
+        at a time)."""
+        grid = self.everyone
+        x, y = point.tolist()
+        start, end = grid.block(x, y)
+        candidates = grid.blocks[start:end]
+        offset = np.empty((end - start, 2))
+        np.subtract(x, grid.block_x[start:end], out=offset[:, 0])
+        np.subtract(y, grid.block_y[start:end], out=offset[:, 1])
+        keep = np.flatnonzero((np.abs(offset) < (support[candidates] * (1.0 - 1e-9))[:, None]).all(axis=1))
+        return candidates[keep], offset[keep]
+
 
 def neighbour_pairs(
     points: np.ndarray, particles: np.ndarray, support: np.ndarray, search: ParticleSearch | None = None,
@@ -155,6 +170,13 @@ def neighbour_pairs(
 def _pairs_and_offsets(points, particles, support, search, visibility):
     """neighbour_pairs, and each pair's offset X - X_I (pairs, 2)."""
     search = search if search is not None else ParticleSearch.of(particles, support)
+    if len(points) == 1:
+        cols, offset = search.around(points[0], support)
+        rows = np.zeros(len(cols), dtype=np.int64)
+        if visibility is not None:
+            keep = visibility.keep(points, particles, rows, cols)
+            rows, cols, offset = rows[keep], cols[keep], offset[keep]
+        return rows, cols, np.array([0, len(cols)]), offset
     rows, cols = search.candidates(points)
     offset = np.take(points, rows, axis=0) - np.take(particles, cols, axis=0)  # take: faster than [] here
     # the kernel vanishes at |z| = 1; a relative margin keeps particles that sit on the
@@ -187,8 +209,10 @@ class ShapePairs:
 
         Cheaper than building the sparse matrices when only a few points are evaluated once
         (tip tracking evaluates one point per call)."""
-        starts = self.indptr[:-1]
         d = coefficients[self.cols]  # (pairs, 2)
+        if len(self.indptr) == 2:  # one point: two small products
+            return (self.values @ d)[None], None if self.grad is None else (d.T @ self.grad)[None]
+        starts = self.indptr[:-1]
         u = np.add.reduceat(self.values[:, None] * d, starts, axis=0)
         if self.grad is None:
             return u, None
@@ -249,10 +273,19 @@ def rk_shape_pairs(
     phi = phi * volume
     h = _basis(offset / scale, order)  # (pairs, m)
 
-    # M(X) = sum H H^T phi from its upper triangle: (pairs, m (m + 1) / 2) products, not m^2
-    upper, full = _TRIANGLES[order]
-    hh = _upper_products(h, upper)  # (pairs, u)
-    moment = _pair_sums(hh, phi, indptr)[:, full]  # (n, m, m)
+    # M(X) = sum H H^T phi: for one point one product (m, pairs) x (pairs, m); for more from
+    # its upper triangle, (pairs, m (m + 1) / 2) products, not m^2
+    if len(points) == 1:
+        def moment_sum(weights: np.ndarray) -> np.ndarray:  # sum_p w_p H_p H_p^T, (1, m, m)
+            return ((h.T * weights) @ h)[None]
+    else:
+        upper, full = _TRIANGLES[order]
+        hh = _upper_products(h, upper)  # (pairs, u)
+
+        def moment_sum(weights: np.ndarray) -> np.ndarray:  # (n, m, m)
+            return _pair_sums(hh, weights, indptr)[:, full]
+
+    moment = moment_sum(phi)
     inverse = _checked_inverse(moment, points)  # (n, m, m)
     b = inverse[:, :, 0]  # M^-1 H(0), H(0) = e_1 (M symmetric), (n, m)
     corrected = _row_dot(b, rows, h)  # H(0)^T M^-1 H, (pairs,)
@@ -267,7 +300,7 @@ def rk_shape_pairs(
     maps = _MAPS[order] / scale
     grad = np.empty((len(rows), 2))
     for k in range(2):
-        dmoment = _pair_sums(hh, dphi[:, k], indptr)[:, full]
+        dmoment = moment_sum(dphi[:, k])
         spread = maps[k] @ moment  # D_k M / s, (n, m, m)
         dmoment += spread + spread.transpose(0, 2, 1)
         db = -(inverse @ (dmoment @ b[:, :, None]))[:, :, 0]
