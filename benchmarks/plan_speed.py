@@ -22,9 +22,7 @@
 3. The whole command with the default verification on sh12_100x100, median of REPEATS.
 4. Replays of the shipped trajectories at half the spacing with the factor renewed as now
    and as a planner's step renews it (needle/equilibrium.py renew_factor).
-5. The allocator: the planned run, the whole command and the process's page faults with the
-   heap's top kept (stitchplan/allocator.py, as the command sets it) and with glibc's default.
-6. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS; and
+5. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS; and
    the end: a `simulate` ended by the console entry point (no module teardown) and by the
    interpreter's ordinary exit.
 
@@ -41,7 +39,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import contextlib  # noqa: E402
 import gc  # noqa: E402
-import json  # noqa: E402
 import logging  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
@@ -382,38 +379,6 @@ def ending() -> dict[str, float]:
             for label, values in samples.items()}
 
 
-def allocator_rows(scenes: tuple[str, ...] = ("sh12_100x100", "needle20_entry18")) -> list[tuple]:
-    """`plan CONFIG --no-compare --no-verify` with the heap's top kept (stitchplan/allocator.py,
-    as the command sets it) and with glibc's default, alternating, REPEATS each: (scene, variant,
-    median planned run s, median whole command s, median page faults of the process)."""
-    import resource
-
-    variants = {"64 MiB kept at the heap's top (now)": "",
-                "glibc's default trimming": "import stitchplan.allocator as a; a.keep_heap_top = lambda: False; "}
-    rows = []
-    with tempfile.TemporaryDirectory() as scratch:
-        summary, export = Path(scratch) / "summary.json", Path(scratch) / "trajectory.csv"
-        for scene in scenes:
-            samples: dict[str, list[tuple[float, float, int]]] = {label: [] for label in variants}
-            for _ in range(REPEATS):
-                for label, patch in variants.items():
-                    arguments = ["stitchplan", "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
-                                 "--no-compare", "--no-verify", "-q", "--export", str(export), "--summary", str(summary)]
-                    script = f"import sys; {patch}from stitchplan.cli import main; sys.argv = {arguments!r}; main()"
-                    faults = resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt
-                    start = time.perf_counter()
-                    subprocess.run([sys.executable, "-c", script], check=True, capture_output=True,
-                                   cwd=common.REPO_ROOT, env=common.command_environment())
-                    seconds = time.perf_counter() - start
-                    faults = resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt - faults
-                    samples[label].append((json.loads(summary.read_text())["wall_seconds"], seconds, faults))
-            for label, values in samples.items():
-                rows.append((scene, label, *(statistics.median(v[i] for v in values) for i in range(3))))
-                print(f"allocator {scene} {label}: planned {rows[-1][2]:.3f} s, {rows[-1][4]:.0f} page faults",
-                      flush=True)
-    return rows
-
-
 def main() -> None:
     with tempfile.TemporaryDirectory() as extracted:
         rows = compare_revisions(common.extract_revision(BASELINE, Path(extracted)))
@@ -421,7 +386,6 @@ def main() -> None:
     warm_rows = verified_warm_starts()
     verified = verified_command()
     renewal_rows = replay_renewals()
-    allocator = allocator_rows()
     start_up = {**startup(), **ending()}
     for label, seconds in start_up.items():
         print(f"{label}: {seconds:.3f} s", flush=True)
@@ -510,14 +474,6 @@ def main() -> None:
         "planner's step renews it (an iteration contracting by less than REFACTOR_CONTRACTION).\n",
         common.markdown_table(["scene", "variant", "replay (s)", "factorizations", "Newton iterations",
                                "exit error (mm)"], [list(row) for row in renewal_rows]),
-        "",
-        f"## The allocator (median of {REPEATS}, alternating)\n",
-        "The command keeps 64 MiB at the top of glibc's heap (stitchplan/allocator.py); by default the "
-        "heap's top is returned to the system as soon as more than 128 KiB is free there, and the arrays "
-        "each Newton iteration frees and allocates again fault in anew. Page faults: the whole process's "
-        "(start-up included).\n",
-        common.markdown_table(["scene", "variant", "planned run (s)", "whole command (s)", "page faults"],
-                              [list(row) for row in allocator]),
         "",
         f"## Start-up and end (median of {STARTUP_REPEATS})\n",
         common.markdown_table(["command", "wall (s)"], [[k, v] for k, v in start_up.items()]),

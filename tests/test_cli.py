@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import subprocess
 import sys
 import tomllib
@@ -345,45 +344,3 @@ def test_schema_prints_the_json_schema_of_scenario_files():
     assert isinstance(schema, dict)
     assert {"tissue", "needle", "loads"} <= set(schema["properties"])
     assert "tissue" in schema.get("required", [])
-
-
-
-def test_the_command_keeps_the_heap_top():
-    """After the console entry point has run a command, glibc's malloc keeps freed memory at
-    the top of its heap (stitchplan/allocator.py): 10 MiB of 64 KiB blocks (below the mmap
-    threshold: on the heap) freed again leave at least 10 MiB free at the heap's top, where
-    glibc's default trims it to below 1 MiB. Elsewhere (not glibc) keep_heap_top reports that
-    it did nothing."""
-    from stitchplan.allocator import keep_heap_top
-
-    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
-        assert keep_heap_top() is False
-        return
-    script = (
-        "import ctypes, sys\n"
-        "import stitchplan.cli as cli\n"
-        "if sys.argv[1] == 'default':\n"
-        "    import stitchplan.allocator as allocator; allocator.keep_heap_top = lambda: False\n"
-        "sys.argv = ['stitchplan', 'schema']\n"
-        "cli._exit = lambda code: None  # stay alive after the command\n"
-        "try:\n"
-        "    cli.main()\n"
-        "except SystemExit:\n"
-        "    pass\n"
-        "libc = ctypes.CDLL('libc.so.6')\n"
-        "class Info(ctypes.Structure):\n"
-        "    _fields_ = [(name, ctypes.c_int) for name in ('arena', 'ordblks', 'smblks', 'hblks', 'hblkhd',\n"
-        "                'usmblks', 'fsmblks', 'uordblks', 'fordblks', 'keepcost')]\n"
-        "libc.mallinfo.restype = Info\n"
-        "libc.malloc.restype = ctypes.c_void_p\n"
-        "blocks = [libc.malloc(64 * 1024) for _ in range(160)]\n"
-        "for block in reversed(blocks):\n"
-        "    libc.free(ctypes.c_void_p(block))\n"
-        "sys.stderr.write(str(libc.mallinfo().keepcost))\n"
-    )
-    top = {}  # the free memory left at the heap's top (mallinfo's keepcost)
-    for variant in ("command", "default"):
-        run = subprocess.run([sys.executable, "-c", script, variant], capture_output=True, text=True)
-        assert run.returncode == 0, run.stderr
-        top[variant] = int(run.stderr.strip().splitlines()[-1])
-    assert top["command"] >= 10 * 2**20 and top["default"] < 2**20, top

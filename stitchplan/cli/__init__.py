@@ -38,9 +38,6 @@ def main() -> None:
         except OSError as error:
             _exit(stdout_failure(error))
         return
-    from ..allocator import keep_heap_top
-
-    keep_heap_top()
     try:
         __getattr__("app")()
     except SystemExit as done:  # the command has ended (a bug's traceback is not caught here)
