@@ -11,7 +11,7 @@
 2. Where it comes from, in process on configs/sh12_100x100.yaml (and sh12_100x30, which
    takes two planner passes): the planned run with each lever switched back off in turn
    (Anderson mixing, SuperLU's symmetric mode, the stale centre columns, the centre columns
-   from the kept K^-1 E^T, Newton's method
+   from the kept K^-1 E^T, CHOLMOD's L D L^T for an indefinite K + H, Newton's method
    before Levenberg-Marquardt in the tip tracking, the residual tolerance, K0 from the
    direction gradients, one model shared by the passes, a later pass taking over the first
    pass's early steps with their tip points and equilibria, the internal force kept where a
@@ -183,6 +183,10 @@ def levers() -> list[tuple]:
         self._last_internal = None
         return residuals(self, *args)
 
+    class NoLDL:  # an indefinite K + H factored by SuperLU, as before CHOLMOD's L D L^T
+        def __init__(self, *args):
+            raise ValueError("off")
+
     def tolerance(value):
         return lambda scenario: replace(scenario, solver=replace(scenario.solver, residual_tolerance=value))
 
@@ -212,6 +216,8 @@ def levers() -> list[tuple]:
         ("needle20_entry25", "centre columns solved with the factor (not from the kept K^-1 E^T)",
          {(equilibrium, "CENTER_COLUMNS_ON_ROWS"): False}, None),
         ("sh12_100x30", "all levers (now; 2 planner passes)", {}, None),
+        ("sh12_100x30", "its indefinite K + H factored by SuperLU (not CHOLMOD's L D L^T)",
+         {(factorization, "LDLFactor"): NoLDL}, None),
         ("sh12_100x30", "the taken-over steps' tip points tracked again", {(insertion, "_tracked_before"): tracked_again}, None),
         ("sh12_100x30", "the taken-over steps solved again from the first pass's states (no take-over)",
          {(insertion, "_needle_step"): solved_again}, None),

@@ -1,6 +1,7 @@
 """Sparse direct factorizations (stitchplan/tissue/factorization.py): SuperLU always, CHOLMOD's
-Cholesky from the optional `fast` extra for symmetric positive definite matrices, with the
-fallback to SuperLU and the switch that turns the Cholesky off."""
+Cholesky from the optional `fast` extra for symmetric positive definite matrices, its L D L^T
+for symmetric indefinite ones (checked, and SuperLU where it fails), and the switch that
+turns CHOLMOD off."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from stitchplan.tissue.factorization import CHOLMOD, SUPERLU, SuperLUFactor, cholesky_available, factorize
+from stitchplan.tissue.factorization import (CHOLMOD, CHOLMOD_LDL, SUPERLU, SuperLUFactor, cholesky_available,
+                                              factorize)
 
 
 def spd_matrix(n: int = 40, seed: int = 2) -> sp.csr_matrix:
@@ -37,6 +39,8 @@ def test_the_switch_turns_the_cholesky_off(monkeypatch):
 
 @pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cvxopt) is not installed")
 def test_cholesky_solves_like_superlu_and_falls_back_silently_where_not_positive_definite(capfd):
+    """Positive definite: the Cholesky. Indefinite: the L D L^T, as accurate as SuperLU. A
+    zero pivot whatever the ordering ([[0, 1], [1, 0]] blocks): SuperLU."""
     matrix = spd_matrix()
     rhs = np.random.default_rng(3).standard_normal((40, 2))
     cholesky = factorize(matrix, symmetric_positive=True)
@@ -45,9 +49,26 @@ def test_cholesky_solves_like_superlu_and_falls_back_silently_where_not_positive
     np.testing.assert_allclose(cholesky.solve(rhs[:, 0]), SuperLUFactor(matrix).solve(rhs[:, 0]), rtol=0, atol=1e-12)
     indefinite = matrix - 2.0 * 40 * sp.eye(40)  # symmetric, negative eigenvalues
     factor = factorize(indefinite, symmetric_positive=True)
+    assert factor.backend == CHOLMOD_LDL
+    np.testing.assert_allclose(factor.solve(rhs), SuperLUFactor(indefinite).solve(rhs), rtol=0, atol=1e-12)
+    swaps = sp.block_diag([np.array([[0.0, 1.0], [1.0, 0.0]])] * 20, format="csr")
+    factor = factorize(swaps, symmetric_positive=True)
     assert factor.backend == SUPERLU
-    np.testing.assert_allclose(indefinite @ factor.solve(rhs), rhs, atol=1e-9)
+    np.testing.assert_allclose(swaps @ factor.solve(rhs), rhs, atol=1e-12)
     assert capfd.readouterr().err == ""  # CHOLMOD's own warning does not reach the user
+
+
+@pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cvxopt) is not installed")
+def test_an_indefinite_factor_imports_no_scipy_sparse_linalg():
+    """With CHOLMOD a symmetric indefinite matrix (K + H of the narrow SH 1/2 blocks) is
+    factored without SuperLU, whose scipy.sparse.linalg costs ~0.07 s of start-up."""
+    script = ("import sys, numpy as np, scipy.sparse as sp\n"
+              "from stitchplan.tissue.factorization import factorize\n"
+              "matrix = sp.diags(np.linspace(-1.0, 1.0, 40) + 0.01).tocsr()\n"
+              "factorize(matrix, symmetric_positive=True)\n"
+              "print('scipy.sparse.linalg' in sys.modules)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert result.stdout == "False\n"
 
 
 @pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cvxopt) is not installed")
@@ -59,5 +80,5 @@ def test_cholmods_warning_reaches_neither_stream_of_a_process_whose_output_is_a_
               "matrix = sp.diags(np.linspace(-1.0, 1.0, 40) + 0.01).tocsr()\n"
               "print('backend', factorize(matrix, symmetric_positive=True).backend)\n")
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
-    assert result.stdout == f"backend {SUPERLU}\n"
+    assert result.stdout == f"backend {CHOLMOD_LDL}\n"
     assert result.stderr == ""

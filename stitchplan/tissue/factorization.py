@@ -7,11 +7,17 @@ iterations, and every run factors K0 once: on the SH 1/2 scene (1900 dofs, 175 0
 nonzeros) CHOLMOD's Cholesky factors K0 in ~17 ms and solves in ~0.17 ms, against SuperLU's
 ~26 ms and ~0.34 ms (symmetric mode); on its model at half the spacing (the plan's
 verification, 7170 dofs) in ~0.12 s and ~3.6 ms against ~0.33 s and ~6.3 ms
-(benchmarks/results/model_build_speed.md). SuperLU stays the default and the fallback: a
-matrix the Cholesky finds not positive definite (the needle's constraint curvature H can
-make K + H indefinite) is factorized by SuperLU instead. STITCHPLAN_LINEAR_BACKEND=superlu
-turns CHOLMOD off. Every factor says which backend made it (`backend`), and the run
-summaries record it.
+(benchmarks/results/model_build_speed.md). SuperLU stays the default and the fallback.
+
+A symmetric matrix the Cholesky finds not positive definite (the needle's constraint
+curvature H, or Saint Venant-Kirchhoff's tangent under strong compression, can make K + H
+indefinite) gets CHOLMOD's simplicial L D L^T: no pivoting beyond the fill-reducing
+ordering, so one solve's residual is checked (LDL_CHECK) and SuperLU factors the matrix
+where it fails. It keeps the indefinite K + H of the SH 1/2 100 x 30 and 100 x 40 blocks
+on CHOLMOD, so those runs import no scipy.sparse.linalg (~0.07 s; tests/test_factorization.py;
+benchmarks/plan_speed.py's levers table times them with SuperLU instead).
+STITCHPLAN_LINEAR_BACKEND=superlu turns CHOLMOD off.
+Every factor says which backend made it (`backend`), and the run summaries record it.
 """
 
 from __future__ import annotations
@@ -28,6 +34,8 @@ except (ImportError, OSError):
 
 SUPERLU = "scipy SuperLU (splu, MMD_AT_PLUS_A ordering, symmetric mode)"
 CHOLMOD = "CHOLMOD Cholesky (cvxopt)"
+CHOLMOD_LDL = "CHOLMOD LDL^T (cvxopt, simplicial)"
+LDL_CHECK = 1e-10  # |A x - b| / |b| an L D L^T factor's solve must reach on a test vector
 
 
 class SuperLUFactor:
@@ -47,30 +55,60 @@ class SuperLUFactor:
         return self._lu.solve(rhs)
 
 
+def cholmod_matrix(matrix: sp.spmatrix):
+    """The lower triangle of a symmetric scipy matrix as cvxopt's sparse matrix."""
+    lower = sp.tril(matrix, format="csc")
+    lower.sum_duplicates()
+    lower.sort_indices()
+    triplets = lower.tocoo()  # in column order, as CHOLMOD keeps it
+    n = lower.shape[0]
+    return spmatrix(dense(triplets.data), dense(triplets.row.astype(np.int64)),
+                    dense(triplets.col.astype(np.int64)), (n, n))
+
+
 class CholeskyFactor:
     """The supernodal L L^T of a symmetric positive definite matrix by CHOLMOD (cvxopt's
-    build, with its own OpenBLAS); raises ValueError when the matrix is not positive definite."""
+    build, with its own OpenBLAS); raises ValueError when the matrix is not positive definite.
+    `matrix`: a scipy matrix, or its cholmod_matrix."""
 
     backend = CHOLMOD
+    SUPERNODAL = 2  # cvxopt's cholmod.options["supernodal"]: 2 supernodal L L^T, 0 simplicial L D L^T
 
-    def __init__(self, matrix: sp.spmatrix):
-        lower = sp.tril(matrix, format="csc")
-        lower.sum_duplicates()
-        lower.sort_indices()
-        triplets = lower.tocoo()  # in column order, as CHOLMOD keeps it
-        n = lower.shape[0]
-        stored = spmatrix(dense(triplets.data), dense(triplets.row.astype(np.int64)),
-                          dense(triplets.col.astype(np.int64)), (n, n))
+    def __init__(self, matrix):
+        stored = matrix if isinstance(matrix, spmatrix) else cholmod_matrix(matrix)
+        previous = cholmod.options.get("supernodal")
+        cholmod.options["supernodal"] = self.SUPERNODAL
         try:
             self._factor = cholmod.symbolic(stored, uplo="L")
             cholmod.numeric(stored, self._factor)
         except ArithmeticError:
             raise ValueError("not positive definite") from None
+        finally:
+            if previous is None:
+                del cholmod.options["supernodal"]
+            else:
+                cholmod.options["supernodal"] = previous
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         solution = dense(np.asfortranarray(rhs, dtype=float))
         cholmod.solve(self._factor, solution)
         return np.array(solution).reshape(np.shape(rhs))
+
+
+class LDLFactor(CholeskyFactor):
+    """CHOLMOD's simplicial L D L^T of a symmetric (indefinite) matrix, pivoting only by its
+    fill-reducing ordering: a pivot near zero would spoil it, so a solve with it must reach
+    LDL_CHECK on a test vector; raises ValueError otherwise (or on a zero pivot)."""
+
+    backend = CHOLMOD_LDL
+    SUPERNODAL = 0
+
+    def __init__(self, matrix: sp.spmatrix, stored=None):
+        super().__init__(stored if stored is not None else cholmod_matrix(matrix))
+        probe = np.cos(np.arange(matrix.shape[0]))  # not special to any matrix here
+        residual = matrix @ self.solve(probe) - probe
+        if not np.linalg.norm(residual) <= LDL_CHECK * np.linalg.norm(probe):  # NaN included
+            raise ValueError("inaccurate without pivoting")
 
 
 Factor = SuperLUFactor | CholeskyFactor
@@ -82,19 +120,26 @@ def cholesky_available() -> bool:
 
 # scipy.sparse.linalg (with scipy.linalg ~70 ms) is imported with this module where SuperLU
 # factors every matrix, so that a run's time is its own; with CHOLMOD it is imported the
-# first time a matrix is not positive definite (on most needle commands never)
+# first time SuperLU runs (an indefinite matrix whose L D L^T fails the check: none of the
+# shipped needle scenes')
 if not cholesky_available():
     import scipy.sparse.linalg  # noqa: F401
 
 
 def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
-    """A factor of `matrix` with `.solve(rhs)` (rhs (n,) or (n, k)) and `.backend`: CHOLMOD's
-    Cholesky when the caller knows the matrix is symmetric (`symmetric_positive`) and it is
-    available and succeeds, SuperLU otherwise (the needle's constraint curvature H can make
-    K + H indefinite)."""
+    """A factor of `matrix` with `.solve(rhs)` (rhs (n,) or (n, k)) and `.backend`: where the
+    caller knows the matrix is symmetric (`symmetric_positive`) and CHOLMOD is available, its
+    Cholesky, or its L D L^T where the matrix is not positive definite (the needle's
+    constraint curvature H can make K + H indefinite); SuperLU otherwise or where the L D L^T
+    is not accurate."""
     if symmetric_positive and cholesky_available():
+        stored = cholmod_matrix(matrix)
         try:
-            return CholeskyFactor(matrix)
+            return CholeskyFactor(stored)
         except ValueError:  # not positive definite
+            pass
+        try:
+            return LDLFactor(matrix, stored)
+        except ValueError:  # a pivot near zero
             pass
     return SuperLUFactor(matrix)
