@@ -257,6 +257,7 @@ def _result(insertion: NeedleInsertion, steps: list[NeedleStep], states: list[Sn
                        "solved_columns": insertion.saddle.solved_columns,
                        "linear_solver": insertion.linear_method,
                        "linear_solver_backend": insertion.saddle.backend,
+                       "linear_solver_backends": list(insertion.saddle.backends),
                        "minres_iterations": insertion.saddle.minres_iterations,
                        "minres_fallbacks": insertion.saddle.fallbacks,
                        "tangent_products": insertion.assembler.tangent_products},

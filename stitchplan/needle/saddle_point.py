@@ -140,6 +140,7 @@ class SaddlePointSolver:
         self.solves = 0
         self.solved_columns = 0  # right-hand-side columns through the factor (its solves take them one at a time)
         self.backend = SUPERLU  # of the last factor of K + H (tissue/factorization.py)
+        self.backends: list[str] = []  # of every factor used, in the order first used
         self.minres_iterations = 0
         self.fallbacks = 0
 
@@ -158,6 +159,8 @@ class SaddlePointSolver:
     def _use(self, factor: Factor) -> None:
         """Solve with `factor` from now on; the caches of the previous one are dropped."""
         self._factor, self.backend = factor, factor.backend
+        if factor.backend not in self.backends:
+            self.backends.append(factor.backend)
         self._solved_rows, self._solved_count, self._coupled = None, 0, np.zeros((0, 0))  # sized by the next solve
 
     def forget(self) -> None:
