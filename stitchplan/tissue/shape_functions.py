@@ -311,10 +311,8 @@ def rk_shape_pairs(
 
 def _pair_sums(values: np.ndarray, weights: np.ndarray, indptr: np.ndarray) -> np.ndarray:
     """sum_p w_p v_p over each point's pairs (grouped by point, `indptr`), (n, columns): a
-    sparse product for many points (a third of reduceat's time), reduceat for a few, a dot
-    product for one (tip tracking asks for one point at a time)."""
-    if len(indptr) == 2:
-        return (weights @ values)[None]
+    sparse product for many points (a third of reduceat's time), reduceat for a few (one
+    point's moments are one product in rk_shape_pairs)."""
     if len(indptr) <= MANY_POINTS + 1:
         return np.add.reduceat(values * weights[:, None], indptr[:-1], axis=0)
     summed = sp.csr_matrix((weights, np.arange(len(weights)), indptr), shape=(len(indptr) - 1, len(weights)))
