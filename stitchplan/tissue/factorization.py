@@ -72,22 +72,24 @@ class CholeskyFactor:
     `matrix`: a scipy matrix, or its cholmod_matrix."""
 
     backend = CHOLMOD
-    SUPERNODAL = 2  # cvxopt's cholmod.options["supernodal"]: 2 supernodal L L^T, 0 simplicial L D L^T
+    SUPERNODAL = None  # cvxopt's cholmod.options["supernodal"] while factoring: None CHOLMOD's own
+    # choice (supernodal L L^T for these matrices), 0 the simplicial L D L^T
 
     def __init__(self, matrix):
         stored = matrix if isinstance(matrix, spmatrix) else cholmod_matrix(matrix)
         previous = cholmod.options.get("supernodal")
-        cholmod.options["supernodal"] = self.SUPERNODAL
+        if self.SUPERNODAL is not None:
+            cholmod.options["supernodal"] = self.SUPERNODAL
         try:
             self._factor = cholmod.symbolic(stored, uplo="L")
             cholmod.numeric(stored, self._factor)
         except ArithmeticError:
             raise ValueError("not positive definite") from None
         finally:
-            if previous is None:
-                del cholmod.options["supernodal"]
-            else:
+            if previous is not None:
                 cholmod.options["supernodal"] = previous
+            else:
+                cholmod.options.pop("supernodal", None)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         solution = dense(np.asfortranarray(rhs, dtype=float))
