@@ -16,6 +16,7 @@ from .boundary_conditions import EssentialBoundary, boundary_particles, transfor
 from ..config import Discretization, Scenario, ScenarioError, Tissue
 from ..geometry import PolygonDomain, Rectangle
 from .material import NeoHookean, PointwiseMaterial, SaintVenantKirchhoff, make_material
+from .neighbours import concatenated_ranges
 from .particles import (END_GROWTH, end_zones, graded_lattice, graded_particles, grid_particles,
                         leaf_quadrature, segment_breaks)
 from .quadrature import cell_quadrature, natural_boundary_quadrature
@@ -332,8 +333,7 @@ def _gradient_operator(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matri
     starts = np.stack([grad_x.indptr[:-1], grad_x.nnz + grad_y.indptr[:-1]], axis=1)  # (q, J)
     counts = np.stack([np.diff(grad_x.indptr), np.diff(grad_y.indptr)], axis=1)
     starts, counts = np.tile(starts, 2).ravel(), np.tile(counts, 2).ravel()  # (q, i, J)
-    ends = np.cumsum(counts)
-    gather = np.repeat(starts - (ends - counts), counts) + np.arange(ends[-1] if len(ends) else 0)
+    gather = concatenated_ranges(starts, counts)
     component = np.repeat(np.tile(np.repeat([0, 1], 2), n_points), counts)  # i of each entry
-    return sp.csr_matrix((data[gather], 2 * indices[gather] + component, np.concatenate([[0], ends])),
+    return sp.csr_matrix((data[gather], 2 * indices[gather] + component, np.concatenate([[0], np.cumsum(counts)])),
                          shape=(4 * n_points, 2 * n_free))

@@ -36,7 +36,7 @@ def _keys(cells: np.ndarray) -> np.ndarray:
     return _key(cells[..., 0], cells[..., 1])
 
 
-def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+def concatenated_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """The concatenated ranges starts[i] .. starts[i] + counts[i] - 1."""
     ends = np.cumsum(counts)
     return np.repeat(starts - (ends - counts), counts) + np.arange(ends[-1] if len(ends) else 0)
@@ -90,7 +90,7 @@ class CellGrid:
         index, slot = index[hit], slot[hit]
         counts = self.starts[slot + 1] - self.starts[slot]
         rows = np.repeat(index, counts)
-        cols = self.blocks[_ranges(self.starts[slot], counts)]
+        cols = self.blocks[concatenated_ranges(self.starts[slot], counts)]
         near = ((np.abs(points[:, 0][rows] - self.x[cols]) <= reach)
                 & (np.abs(points[:, 1][rows] - self.y[cols]) <= reach))
         return rows[near], cols[near]
