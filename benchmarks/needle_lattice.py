@@ -1,0 +1,145 @@
+"""Exit error against where the needle track lies in the particle lattice.
+
+The particles near the needle sit on a regular lattice of the needle spacing h_n; the track
+crosses it wherever the entry puts it. Shifting the entry along its edge by k h_n / 10,
+k = 0..10, moves the physics a little and smoothly (the exit moves with the entry), but k = 0
+and k = 10 put the track at the same place in the lattice. What the exit error does between
+them beyond the straight line through those two is the discretization's dependence on the
+track's position in the lattice ("aliasing"): on a refinement ladder that is what makes the
+exit error go up and down instead of converging monotonically
+(benchmarks/results/needle_coupling.md).
+
+Per scene and variant (needle_coupling.py's coupling names: `fixed` the multiplier
+elements' least length fixed in mm, `ramp` the cutting force ramped in, `d=...` the kernel
+dilation, `q=...` Gauss points per direction per background cell): the eleven exit errors,
+the largest deviation from that line as a share of their mean, and the seconds of a run.
+
+Writes benchmarks/results/needle_lattice.{csv,md,png}. About 10 minutes.
+Run from the repository root:  python benchmarks/needle_lattice.py
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import csv  # noqa: E402
+import logging  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import _common as common  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import needle_coupling  # noqa: E402
+import numpy as np  # noqa: E402
+
+from stitchplan.config.scenario import with_discretization  # noqa: E402
+from stitchplan.needle import coupling as coupling_module  # noqa: E402
+from stitchplan.needle.insertion import run_insertion  # noqa: E402
+
+SCENES = ("sh12_100x50", "sh12_100x100")
+VARIANTS = ("mortar", "mortar q=4", "mortar ramp fixed", "mortar ramp fixed d=2.5", "mortar ramp fixed d=2.8",
+            "mortar ramp fixed d=3", "mortar ramp fixed d=3.5")
+FACTORS = (1.0, 0.5)  # the default spacing and half of it
+HALF_VARIANTS = ("mortar", "mortar ramp fixed d=3")  # the ones also run at half the spacing
+OFFSETS = 11  # k h_n / 10, k = 0..10
+FIELDS = ("scene", "variant", "factor", "needle_spacing_mm", "offsets_mm", "exit_errors_mm", "aliasing",
+          "seconds_per_run")
+
+
+def lattice_sweep(name: str, variant: str, factor: float) -> dict:
+    """The exit errors with the entry shifted through one needle spacing."""
+    options = needle_coupling.variant(variant)
+    tokens = dict(token.split("=") for token in variant.split(" ")[1:] if "=" in token)
+    saved = (coupling_module.MULTIPLIER_SPACINGS, coupling_module.CUTTING_RAMP)
+    coupling_module.MULTIPLIER_SPACINGS = options["spacings"] / factor if options["fixed"] else options["spacings"]
+    coupling_module.CUTTING_RAMP = options["ramp"]
+    try:
+        base = needle_coupling.scene(name, variant)
+        base = with_discretization(base, spacing=base.discretization.spacing * factor,
+                                   quadrature_order=int(tokens["q"]) if "q" in tokens else None)
+        needle_spacing = base.discretization.needle_spacing
+        offsets = needle_spacing * np.arange(OFFSETS) / (OFFSETS - 1)
+        errors, start = [], time.perf_counter()
+        for offset in offsets:
+            entry = (base.needle.entry[0], base.needle.entry[1] + offset)
+            errors.append(run_insertion(replace(base, needle=replace(base.needle, entry=entry))).exit_error_mm)
+        seconds = (time.perf_counter() - start) / OFFSETS
+    finally:
+        coupling_module.MULTIPLIER_SPACINGS, coupling_module.CUTTING_RAMP = saved
+    errors = np.array(errors)
+    line = errors[0] + (errors[-1] - errors[0]) * np.arange(OFFSETS) / (OFFSETS - 1)
+    row = {"scene": name, "variant": variant, "factor": f"{factor:.4f}", "needle_spacing_mm": f"{needle_spacing:.4f}",
+           "offsets_mm": " ".join(f"{o:.4f}" for o in offsets), "exit_errors_mm": " ".join(f"{e:.6f}" for e in errors),
+           "aliasing": f"{np.abs(errors - line).max() / errors.mean():.5f}", "seconds_per_run": f"{seconds:.2f}"}
+    print(row["scene"], row["variant"], row["factor"], "aliasing", row["aliasing"], flush=True)
+    return row
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["# Exit error against the track's place in the particle lattice", "",
+             "`python benchmarks/needle_lattice.py` (results/needle_lattice.csv holds the exit errors).",
+             "The entry shifted along its edge by k/10 of the needle spacing h_n, k = 0..10: k = 0 and",
+             "k = 10 put the track at the same place in the lattice. Aliasing: the largest deviation of",
+             "the eleven exit errors from the straight line through those two, as a share of their",
+             "mean. Variants as in needle_coupling.py (`ramp`, `fixed`, `d=` the dilation, 2 by",
+             "default; `q=4` four Gauss points per direction per background cell instead of two).", "",
+             "| scene | variant | spacing | h_n (mm) | exit error, mean (mm) | range (mm) | aliasing | s per run |",
+             "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        errors = np.array(row["exit_errors_mm"].split(), dtype=float)
+        spacing = "h" if float(row["factor"]) == 1.0 else f"h x {float(row['factor']):g}"
+        lines.append(f"| {row['scene']} | {row['variant']} | {spacing} | {float(row['needle_spacing_mm']):.3f} | "
+                     f"{errors.mean():.4f} | {errors.min():.4f}-{errors.max():.4f} | "
+                     f"{100 * float(row['aliasing']):.2f} % | {float(row['seconds_per_run']):.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def chart(rows: list[dict], path) -> None:
+    panels = sorted({(row["scene"], row["factor"]) for row in rows}, key=lambda k: (k[0], -float(k[1])))
+    figure, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.0), squeeze=False)
+    variants = list(dict.fromkeys(row["variant"] for row in rows))
+    for axis, (name, factor) in zip(axes[0], panels):
+        for row in rows:
+            if (row["scene"], row["factor"]) != (name, factor):
+                continue
+            errors = np.array(row["exit_errors_mm"].split(), dtype=float)
+            shift = np.arange(OFFSETS) / (OFFSETS - 1)
+            axis.plot(shift, errors, "o-", ms=3, color=f"C{variants.index(row['variant'])}", label=row["variant"])
+        axis.set_title(f"{name}, spacing h x {float(factor):g}", fontsize=9)
+        axis.set_xlabel("entry shift / needle spacing", fontsize=8)
+        axis.set_ylabel("exit error (mm)", fontsize=8)
+    handles = {}
+    for axis in axes.ravel():
+        for handle, label in zip(*axis.get_legend_handles_labels()):
+            handles.setdefault(label, handle)
+    figure.legend(list(handles.values()), list(handles), loc="lower center", ncol=4, fontsize=8)
+    figure.suptitle("Unplanned exit error as the track moves through one needle spacing of the lattice")
+    figure.tight_layout(rect=(0, 0.12, 1, 0.95))
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def main() -> None:
+    logging.disable(logging.WARNING)
+    rows = []
+    for name in SCENES:
+        for factor in FACTORS:
+            for variant in VARIANTS if factor == 1.0 else HALF_VARIANTS:
+                rows.append(lattice_sweep(name, variant, factor))
+    with common.results_path("needle_lattice.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    text = markdown(rows)
+    common.results_path("needle_lattice.md").write_text(text)
+    chart(rows, common.results_path("needle_lattice.png"))
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
