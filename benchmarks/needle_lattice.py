@@ -24,7 +24,6 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import csv  # noqa: E402
 import logging  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
@@ -131,10 +130,7 @@ def main() -> None:
         for factor in FACTORS:
             for variant in VARIANTS if factor == 1.0 else HALF_VARIANTS:
                 rows.append(lattice_sweep(name, variant, factor))
-    with common.results_path("needle_lattice.csv").open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
+    common.write_csv(common.results_path("needle_lattice.csv"), FIELDS, [[row[key] for key in FIELDS] for row in rows])
     text = markdown(rows)
     common.results_path("needle_lattice.md").write_text(text)
     chart(rows, common.results_path("needle_lattice.png"))
