@@ -130,19 +130,24 @@ def scene(name: str, coupling: str):
                if options[name] is not None}
     if changes:
         base = replace(base, discretization=base.discretization.replaced(**changes))
+    if options["ramp"]:
+        needle["cutting_ramp"] = True
+    if options["fixed"]:  # the default level's element length in mm, at every level
+        at_needle = base.discretization.needle_spacing or base.discretization.spacing
+        needle["multiplier_length"] = options["spacings"] * at_needle
     return replace(base, needle=replace(base.needle, coupling=coupling, **needle))
 
 
 def variant(coupling: str) -> dict:
     """The options after a coupling's name: `c=2` the mortar elements' length in local spacings
     (needle/coupling.py MULTIPLIER_SPACINGS, 1 by default), `ramp` the cutting force growing
-    with the cutting edge inside (needle/coupling.py CUTTING_RAMP), `smooth` the cutting force
+    with the cutting edge inside (`needle.cutting_ramp`), `smooth` the cutting force
     as the density (2 / l) sin^2(pi s / l) over the cutting length instead of the uniform one
     (needle/coupling.py CUTTING_PROFILE), `L=2` particles graded
     toward the needle's entry and exit (discretization.needle_end_levels), `r=4` the spacing
     at the needle a quarter of the spacing (discretization.needle_refinement, 2 by default),
-    `fixed` the mortar elements' least length fixed in mm at that of the default spacing
-    (MULTIPLIER_SPACINGS c / factor: the multiplier space is not refined with the
+    `fixed` the mortar elements' least length fixed in mm at c x the default spacing at the
+    needle (`needle.multiplier_length`: the multiplier space is not refined with the
     particles), `d=3` the kernel support (discretization.dilation, 2 by default)."""
     tokens = coupling.split(" ")[1:]
     options = dict(token.split("=") for token in tokens if "=" in token)
@@ -158,10 +163,10 @@ def variant(coupling: str) -> dict:
 def run(name: str, coupling: str, factor: float) -> dict:
     """One `simulate` run with the coupling's options (see variant)."""
     options = variant(coupling)
-    names = ("MULTIPLIER_SPACINGS", "CUTTING_RAMP", "CUTTING_PROFILE")
+    names = ("MULTIPLIER_SPACINGS", "CUTTING_PROFILE")
     saved = [getattr(coupling_module, key) for key in names]
-    spacings = options["spacings"] / factor if options["fixed"] else options["spacings"]
-    for key, value in zip(names, (spacings, options["ramp"], options["profile"])):
+    spacings = 1.0 if options["fixed"] else options["spacings"]  # fixed: c is in multiplier_length
+    for key, value in zip(names, (spacings, options["profile"])):
         setattr(coupling_module, key, value)
     try:
         return _run(name, coupling, factor)
@@ -250,8 +255,8 @@ def markdown(table: list[dict]) -> str:
              "segments at least a local spacing long), `mortar-arc` (`needle.multiplier_ends: arc`: elements",
              "cut at exact arc lengths, one local spacing long). Options after the name: `L=n`",
              "(`discretization.needle_end_levels` n: particles graded toward the needle's entry and exit,",
-             "needle spacing / 2^n there at h, one level finer per halving), `ramp` (needle/coupling.py",
-             "CUTTING_RAMP: the cutting force grows with the cutting edge inside, cutting_force /",
+             "needle spacing / 2^n there at h, one level finer per halving), `ramp` (the scenario key",
+             "`needle.cutting_ramp`: the cutting force grows with the cutting edge inside, cutting_force /",
              "cutting_length per mm, instead of the whole force on the needle inside from the first",
              "step), `smooth` (needle/coupling.py CUTTING_PROFILE \"smooth\": the cutting force's density",
              "(2/l) sin^2(pi s/l) at s mm behind the tip over the cutting length l instead of 1/l; with",
@@ -280,7 +285,7 @@ def markdown(table: list[dict]) -> str:
              "and once the entry is refined that load cannot be carried (every SH 1/2 scene stops at",
              "step 1 at h/√2 and h/2). That load is the SH scenes' non-converging part: the cutting",
              "force alone (sh12_100x40 friction=0) changes by -15.7 %, ramped in with the cutting edge",
-             "inside (`ramp`: needle/coupling.py CUTTING_RAMP) by -3.2 %, monotone. With `ramp` and the",
+             "inside (`ramp`: `needle.cutting_ramp`) by -3.2 %, monotone. With `ramp` and the",
              "entry graded (`ramp L=1`, `ramp L=2`) the SH 1/2 scenes converge monotonically (rates",
              "2-8) but 1.7-4.2 % from the default's value; `ramp r=4` brings all but soft_t2.5 within",
              "1.7 %. The needle20 changes are 0.1-0.2 µm on an exit error of ~0.02 mm, below the",
@@ -355,7 +360,8 @@ def markdown(table: list[dict]) -> str:
              "swing down to 0.15-0.36 % (dilation 2.8-3; 0.5-0.7 % at 2.5, 0.6-0.7 % at 3.5), 0.11-0.15 %",
              "at half the spacing. The second part is the multiplier space: refined with the particles",
              "(whole segments at least one local spacing) it changes between levels; `fixed` keeps the",
-             "default level's elements (in mm) at every level, so only the particles are refined.",
+             "default level's elements (in mm: `needle.multiplier_length` the default's needle spacing)",
+             "at every level, so only the particles are refined.",
              "Alone, `fixed` makes the four needle20 scenes monotone (+1.47 to +1.98 %), and `d=3`",
              "sh12_100x100, sh12_100x40, sh12_100x30 (+1.59 to +3.35 %) and soft_t2.5 (+6.49 %); with the ramp and",
              "`d=3` (`mortar ramp fixed d=3`) 10 of the 11 scenes are monotone (rates 1.9-6.1; not",

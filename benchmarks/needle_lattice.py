@@ -37,7 +37,6 @@ import needle_coupling  # noqa: E402
 import numpy as np  # noqa: E402
 
 from stitchplan.config.scenario import with_discretization  # noqa: E402
-from stitchplan.needle import coupling as coupling_module  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
 SCENES = ("sh12_100x50", "sh12_100x100")
@@ -52,24 +51,17 @@ FIELDS = ("scene", "variant", "factor", "needle_spacing_mm", "offsets_mm", "exit
 
 def lattice_sweep(name: str, variant: str, factor: float) -> dict:
     """The exit errors with the entry shifted through one needle spacing."""
-    options = needle_coupling.variant(variant)
     tokens = dict(token.split("=") for token in variant.split(" ")[1:] if "=" in token)
-    saved = (coupling_module.MULTIPLIER_SPACINGS, coupling_module.CUTTING_RAMP)
-    coupling_module.MULTIPLIER_SPACINGS = options["spacings"] / factor if options["fixed"] else options["spacings"]
-    coupling_module.CUTTING_RAMP = options["ramp"]
-    try:
-        base = needle_coupling.scene(name, variant)
-        base = with_discretization(base, spacing=base.discretization.spacing * factor,
-                                   quadrature_order=int(tokens["q"]) if "q" in tokens else None)
-        needle_spacing = base.discretization.needle_spacing
-        offsets = needle_spacing * np.arange(OFFSETS) / (OFFSETS - 1)
-        errors, start = [], time.perf_counter()
-        for offset in offsets:
-            entry = (base.needle.entry[0], base.needle.entry[1] + offset)
-            errors.append(run_insertion(replace(base, needle=replace(base.needle, entry=entry))).exit_error_mm)
-        seconds = (time.perf_counter() - start) / OFFSETS
-    finally:
-        coupling_module.MULTIPLIER_SPACINGS, coupling_module.CUTTING_RAMP = saved
+    base = needle_coupling.scene(name, variant)  # ramp and fixed: needle keys
+    base = with_discretization(base, spacing=base.discretization.spacing * factor,
+                               quadrature_order=int(tokens["q"]) if "q" in tokens else None)
+    needle_spacing = base.discretization.needle_spacing
+    offsets = needle_spacing * np.arange(OFFSETS) / (OFFSETS - 1)
+    errors, start = [], time.perf_counter()
+    for offset in offsets:
+        entry = (base.needle.entry[0], base.needle.entry[1] + offset)
+        errors.append(run_insertion(replace(base, needle=replace(base.needle, entry=entry))).exit_error_mm)
+    seconds = (time.perf_counter() - start) / OFFSETS
     errors = np.array(errors)
     line = errors[0] + (errors[-1] - errors[0]) * np.arange(OFFSETS) / (OFFSETS - 1)
     row = {"scene": name, "variant": variant, "factor": f"{factor:.4f}", "needle_spacing_mm": f"{needle_spacing:.4f}",

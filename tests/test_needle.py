@@ -129,6 +129,8 @@ def needle_raw(**changes) -> dict:
     ("coupling", "springs", "needle.coupling: got 'springs', expected one of mortar, points"),
     ("cutting_length", 0.0, "needle.cutting_length: got 0.0, expected a positive number (mm)"),
     ("multiplier_ends", "curved", "needle.multiplier_ends: got 'curved', expected one of segments, arc"),
+    ("multiplier_length", -1.5, "needle.multiplier_length: got -1.5, expected a positive number (mm)"),
+    ("cutting_ramp", "yes", "needle.cutting_ramp: got 'yes', expected true or false"),
 ])
 def test_bad_needle_fields_are_refused_by_the_config(field, value, fragment):
     with pytest.raises(ScenarioError) as error:

@@ -52,6 +52,37 @@ def test_multiplier_elements_span_whole_segments_at_least_a_spacing_long(mortar)
     assert 2 <= coupling.multiplier_count <= arc[-1] / (MULTIPLIER_SPACINGS * spacing) + 1
 
 
+@pytest.mark.parametrize("multiplier_ends", ["segments", "arc"])
+def test_multiplier_length_keeps_the_elements_when_the_particles_are_refined(multiplier_ends):
+    """`needle.multiplier_length: 3` with 1.6 mm steps, 6 steps: on 2 mm and 1 mm grids the
+    elements are the same (whole segments: 2 of them, 3.2 mm; arc ends: cut every 3 mm
+    from the tip), none shorter than 3 mm; on a 4 mm grid the local spacing is longer and
+    sets them (at least 4 mm), as without the key."""
+    def nodes_at(spacing: float) -> tuple[np.ndarray, np.ndarray, float]:
+        scene = small_scene(spacing=spacing, coupling="mortar", multiplier_ends=multiplier_ends,
+                            multiplier_length=3.0)
+        coupling = started(scene, steps=6).coupling
+        lengths = np.linalg.norm(np.diff(coupling.points, axis=0), axis=1)
+        arc = np.concatenate([[0.0], np.cumsum(lengths)])
+        return coupling.multiplier_nodes, arc, coupling.local_spacing(coupling.points).max()
+
+    fine, fine_arc, _ = nodes_at(1.0)
+    medium, medium_arc, _ = nodes_at(2.0)
+    coarse, coarse_arc, coarse_spacing = nodes_at(4.0)
+    assert len(fine) == len(medium) >= 3
+    # the same elements: at the same needle points (segments) or arc lengths (arc) from the tip
+    if multiplier_ends == "segments":
+        np.testing.assert_array_equal(np.searchsorted(fine_arc, fine - 1e-9),
+                                      np.searchsorted(medium_arc, medium - 1e-9))
+        interior = np.diff(fine)
+    else:  # the track's length moves a little with the discretization; the cuts keep their distance from the tip
+        np.testing.assert_allclose(fine_arc[-1] - fine[1:-1], medium_arc[-1] - medium[1:-1], atol=1e-12)
+        interior = np.diff(fine)[1:]  # the first element holds the remainder at the entry
+    assert np.all(interior >= 3.0 - 1e-9)
+    assert coarse_spacing == 4.0 and np.all(np.diff(coarse)[1 if multiplier_ends == "arc" else 0:] >= 4.0 - 1e-9)
+    assert len(coarse) < len(fine)
+
+
 def test_arc_ends_cut_the_track_every_local_spacing_from_the_tip():
     """`multiplier_ends: arc` on a 2 mm grid with 1.6 mm steps, 6 steps: the element ends sit at exact arc lengths one local spacing apart counted from the
     tip (not at needle points), the remainder (< 1 spacing) joins the element at the entry;
@@ -129,8 +160,7 @@ def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cu
     segment is its integral over the segment's needle length (s from the tip), within 0.5 %
     of the force: zero at the tip, the most at l / 2 behind it."""
     monkeypatch.setattr(coupling_module, "CUTTING_PROFILE", profile)
-    monkeypatch.setattr(coupling_module, "CUTTING_RAMP", ramp)
-    scenario = small_scene(spacing=4.0, coupling="mortar", cutting_length=cutting_length)
+    scenario = small_scene(spacing=4.0, coupling="mortar", cutting_length=cutting_length, cutting_ramp=ramp)
     insertion = NeedleInsertion(scenario)
     coupling, geometry, needle = insertion.coupling, insertion.geometry, insertion.needle
     insertion.add_point(geometry.entry.copy())

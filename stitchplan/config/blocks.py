@@ -424,6 +424,14 @@ class Needle:
                                "mortar coupling: multiplier elements of whole track segments "
                                "(segments) or cut at exact arc lengths one local spacing apart "
                                "(arc)") = "segments"
+    # fixed in mm, the multiplier space stays the same when the particles are refined
+    # (benchmarks/results/needle_coupling.md, rows `fixed`)
+    multiplier_length: described(PositiveMM | None,
+                                 "mortar coupling: least length of a multiplier element, mm (never "
+                                 "less than one local particle spacing; default: that spacing)") = None
+    cutting_ramp: described(Flag, "mortar coupling: the cutting force grows with the cutting edge "
+                                  "inside (cutting_force / cutting_length per mm) instead of acting "
+                                  "whole from the first step") = False
 
 
 @block()

@@ -21,7 +21,7 @@ Two couplings (`needle.coupling`):
 - `mortar`: a multiplier field mu(s) on Gamma_N, discretised independently of the needle
   points: continuous and piecewise linear (MULTIPLIER_ORDER 1; 0 gives one constant per
   element) on elements of whole segments at least MULTIPLIER_SPACINGS local particle
-  spacings long, counted from the tip (where the loads act) so a shorter remainder sits at
+  spacings (and `needle.multiplier_length` mm, if given) long, counted from the tip (where the loads act) so a shorter remainder sits at
   the entry. No more multipliers than the particles can resolve keeps the discrete inf-sup
   condition (Babuska 1973, Brezzi 1974; mortar methods: Wohlmuth 2000; tests/
   test_needle_coupling.py checks the normalised Schur complement). The constraint is
@@ -31,7 +31,7 @@ Two couplings (`needle.coupling`):
   cutting force is spread uniformly over `cutting_length` mm of needle behind the tip (a
   physical length: the needle point's cutting edge and taper), not over one step; with
   CUTTING_PROFILE "smooth" as the density (2 / l) sin^2(pi s / l) over it instead (see
-  CUTTING_PROFILE, CUTTING_RAMP; benchmarks/results/needle_coupling.md).
+  CUTTING_PROFILE, `needle.cutting_ramp`; benchmarks/results/needle_coupling.md).
 
   `needle.multiplier_ends: arc` cuts the elements at exact arc lengths instead: the track
   measured in local spacings, cut every MULTIPLIER_SPACINGS from the tip, so the element
@@ -73,14 +73,9 @@ GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on
 MULTIPLIER_SPACINGS = 1.0  # mortar multiplier elements span at least this many local spacings
 MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous piecewise linear
 PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter remainder at the entry)
-# mortar: False, the whole cutting force from the first step on (over the needle inside while
-# that is shorter than cutting_length); True, cutting_force / cutting_length per mm of cutting
-# edge inside, so it grows over the first steps (benchmarks/results/needle_coupling.md:
-# the whole force on the first step's 0.7 mm at the free edge has no resolved solution)
-CUTTING_RAMP = False
 # mortar: the cutting force's density along the last cutting_length l mm of needle, s mm behind
 # the tip: "uniform" 1 / l; "smooth" (2 / l) sin^2(pi s / l) (cutting_density), zero at the tip
-# and at s = l (the taper's ends). With CUTTING_RAMP the force inside is cutting_force x the
+# and at s = l (the taper's ends). With `needle.cutting_ramp` the force inside is cutting_force x the
 # density's integral over the part of [0, l] inside the tissue (cutting_share: ~ s^3 at the
 # entry for "smooth"); without, the density on that part is scaled to the whole force.
 CUTTING_PROFILE = "uniform"
@@ -259,6 +254,16 @@ class NeedleCoupling:
         self.needle = needle
         self.kind = getattr(needle, "coupling", POINTS)
         self.cutting_length = float(getattr(needle, "cutting_length", geometry.insertion_step))
+        # `needle.cutting_ramp` (mortar): False, the whole cutting force from the first step on
+        # (over the needle inside while that is shorter than cutting_length); True,
+        # cutting_force / cutting_length per mm of cutting edge inside, so it grows over the
+        # first steps (benchmarks/results/needle_coupling.md: the whole force on the first
+        # step's 0.7 mm at the free edge has no resolved solution)
+        self.cutting_ramp = bool(getattr(needle, "cutting_ramp", False))
+        # `needle.multiplier_length` (mortar): the elements' least length in mm besides
+        # MULTIPLIER_SPACINGS local spacings (0: none); fixed in mm, the multiplier space stays
+        # the same when the particles are refined
+        self.multiplier_length = float(getattr(needle, "multiplier_length", None) or 0.0)
         n_free = model.n_free
         self._spacing = model.support / dilation  # local particle spacing, (NP,)
         self.points = np.zeros((0, 2))  # Gamma_N, reference, (k, 2)
@@ -407,7 +412,8 @@ class NeedleCoupling:
         if self.segment_gap[-1]:
             return np.zeros((0, 2))
         length = float(np.linalg.norm(end - start))
-        element = MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0])
+        element = max(MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0]),
+                      self.multiplier_length)
         count = max(2, math.ceil(QUADRATURE_PER_ELEMENT * length / element - 1e-9))
         abscissae, gauss_weights = np.polynomial.legendre.leggauss(count)
         along, ds = 0.5 * (abscissae + 1.0), 0.5 * gauss_weights * length
@@ -425,7 +431,7 @@ class NeedleCoupling:
         tau(s) = int ds / (MULTIPLIER_SPACINGS h(s)) (h per segment, at its midpoint), cut at
         tau_tip - k for k = 0, 1, ..., the remainder (< 1) joining the element at the entry
         (one element while the track is shorter than one). Arc length of the ends, (m_e + 1,)."""
-        spacing = MULTIPLIER_SPACINGS * self._segment_spacing()
+        spacing = np.maximum(MULTIPLIER_SPACINGS * self._segment_spacing(), self.multiplier_length)
         tau = np.concatenate([[0.0], np.cumsum(lengths / spacing)])  # at the needle points
         count = max(math.floor(tau[-1] + 1e-9), 1)
         cuts = tau[-1] - np.arange(count - 1, 0, -1, dtype=float)  # interior ends, increasing
@@ -454,7 +460,8 @@ class NeedleCoupling:
             ds = self._constraint_length
             element = np.clip(np.searchsorted(nodes, s_q, side="right") - 1, 0, len(nodes) - 2)
         else:
-            needed = np.where(self.segment_gap, 0.0, MULTIPLIER_SPACINGS * self._segment_spacing())
+            needed = np.where(self.segment_gap, 0.0,
+                              np.maximum(MULTIPLIER_SPACINGS * self._segment_spacing(), self.multiplier_length))
             starts = _element_starts(lengths, needed, from_tip=PARTITION_FROM_TIP)
             marks = np.zeros(len(lengths), dtype=int)
             marks[starts[1:]] = 1
@@ -512,7 +519,7 @@ class NeedleCoupling:
         # need points and rows of their own
         whole = np.flatnonzero(covered >= 1.0)
         part = np.flatnonzero((covered > 0.0) & (covered < 1.0))
-        per_mm = cutting / (self.cutting_length if CUTTING_RAMP else zone)
+        per_mm = cutting / (self.cutting_length if self.cutting_ramp else zone)
         share = 0.5 * per_mm * needle_length  # N per Gauss point of a wholly covered segment
         magnitudes = friction.copy()
         magnitudes[(2 * whole[:, None] + np.arange(2)).ravel()] += np.repeat(share[whole], 2)
@@ -528,7 +535,7 @@ class NeedleCoupling:
 
     def _smooth_cutting(self, friction: np.ndarray, needle_length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """_load_layout's magnitudes and extra points for the smooth cutting profile: the force
-        cutting_density(s) ds (x cutting_force with CUTTING_RAMP, else scaled to the whole
+        cutting_density(s) ds (x cutting_force with the ramp, else scaled to the whole
         force) at Gauss points of the covered part of each segment, s the needle length
         between the point and the tip (a wound's gaps count zero). A wholly covered segment
         uses its two friction Gauss points while SMOOTH_POINTS_PER_LENGTH asks no more; other
@@ -560,7 +567,7 @@ class NeedleCoupling:
         total = on_segments.sum() + extra.sum()  # the covered integral of the density, by quadrature
         if total <= 0.0:
             return friction.copy(), no_points
-        scale = cutting if CUTTING_RAMP else cutting / total
+        scale = cutting if self.cutting_ramp else cutting / total
         return np.concatenate([friction + scale * on_segments, scale * extra]), np.vstack(points)
 
     # --- the coupling's terms of the residual --------------------------------------------------
