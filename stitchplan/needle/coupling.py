@@ -21,8 +21,8 @@ Two couplings (`needle.coupling`):
 - `mortar`: a multiplier field mu(s) on Gamma_N, discretised independently of the needle
   points: continuous and piecewise linear (MULTIPLIER_ORDER 1; 0 gives one constant per
   element) on elements of whole segments at least MULTIPLIER_SPACINGS local particle
-  spacings (and `needle.multiplier_length` mm, if given) long, counted from the tip (where the loads act) so a shorter remainder sits at
-  the entry. No more multipliers than the particles can resolve keeps the discrete inf-sup
+  spacings (and `needle.multiplier_length` mm, if given) long, counted from the tip (where
+  the loads act) so a shorter remainder sits at the entry. No more multipliers than the particles can resolve keeps the discrete inf-sup
   condition (Babuska 1973, Brezzi 1974; mortar methods: Wohlmuth 2000; tests/
   test_needle_coupling.py checks the normalised Schur complement). The constraint is
   enforced weakly, g_j = int phi_j g(X(s)) ds / int phi_j ds = 0 per multiplier (two Gauss
@@ -75,8 +75,8 @@ MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous p
 PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter remainder at the entry)
 # mortar: the cutting force's density along the last cutting_length l mm of needle, s mm behind
 # the tip: "uniform" 1 / l; "smooth" (2 / l) sin^2(pi s / l) (cutting_density), zero at the tip
-# and at s = l (the taper's ends). With `needle.cutting_ramp` the force inside is cutting_force x the
-# density's integral over the part of [0, l] inside the tissue (cutting_share: ~ s^3 at the
+# and at s = l (the taper's ends). With `needle.cutting_ramp` the force inside is
+# cutting_force x the density's integral over the part of [0, l] inside the tissue (cutting_share: ~ s^3 at the
 # entry for "smooth"); without, the density on that part is scaled to the whole force.
 CUTTING_PROFILE = "uniform"
 # smooth profile: Gauss points per cutting_length on a covered segment (its density is not a
