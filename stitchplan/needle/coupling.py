@@ -22,9 +22,10 @@ Two couplings (`needle.coupling`):
   points: continuous and piecewise linear (MULTIPLIER_ORDER 1; 0 gives one constant per
   element) on elements of whole segments at least MULTIPLIER_SPACINGS local particle
   spacings (and `needle.multiplier_length` mm, if given) long, counted from the tip (where
-  the loads act) so a shorter remainder sits at the entry. No more multipliers than the particles can resolve keeps the discrete inf-sup
-  condition (Babuska 1973, Brezzi 1974; mortar methods: Wohlmuth 2000; tests/
-  test_needle_coupling.py checks the normalised Schur complement). The constraint is
+  the loads act) so a shorter remainder sits at the entry. No more multipliers than the
+  particles can resolve keeps the discrete inf-sup condition (Babuska 1973, Brezzi 1974;
+  mortar methods: Wohlmuth 2000; tests/test_needle_coupling.py checks the normalised Schur
+  complement). The constraint is
   enforced weakly, g_j = int phi_j g(X(s)) ds / int phi_j ds = 0 per multiplier (two Gauss
   points per segment), so lambda_j is a force. A Gauss point of a segment is asked to lie
   on the chord between the needle points (see `target_radius`), not on the arc. The
@@ -76,8 +77,9 @@ PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter r
 # mortar: the cutting force's density along the last cutting_length l mm of needle, s mm behind
 # the tip: "uniform" 1 / l; "smooth" (2 / l) sin^2(pi s / l) (cutting_density), zero at the tip
 # and at s = l (the taper's ends). With `needle.cutting_ramp` the force inside is
-# cutting_force x the density's integral over the part of [0, l] inside the tissue (cutting_share: ~ s^3 at the
-# entry for "smooth"); without, the density on that part is scaled to the whole force.
+# cutting_force x the density's integral over the part of [0, l] inside the tissue
+# (cutting_share: ~ s^3 at the entry for "smooth"); without, the density on that part is
+# scaled to the whole force.
 CUTTING_PROFILE = "uniform"
 # smooth profile: Gauss points per cutting_length on a covered segment (its density is not a
 # polynomial): at least 2 on a wholly covered one (its friction Gauss points while 2 suffice),
