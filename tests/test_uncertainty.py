@@ -337,6 +337,26 @@ def test_the_run_log_and_the_png(planned):
     assert image.shape[1] > 1200 and image.std() > 0.05  # a drawn figure, not a blank one
 
 
+def test_the_plot_draws_a_robust_plan_that_is_the_nominal_one_once():
+    """Where the robust plan is the nominal one (none made, or the same object), uncertainty.png
+    draws its held-out exits once, named for both, instead of a cloud hidden under another."""
+    from types import SimpleNamespace
+
+    from stitchplan.io.uncertainty_reports import plotted_paths
+    from stitchplan.uncertainty.robust import UncertaintyResult
+
+    nominal = object()
+    same = UncertaintyResult.robust_is_nominal.fget
+    assert same(SimpleNamespace(robust=None, nominal=nominal))
+    assert same(SimpleNamespace(robust=nominal, nominal=nominal))
+    assert not same(SimpleNamespace(robust=object(), nominal=nominal))
+    for exported in ("robust", "nominal"):
+        paths = plotted_paths(SimpleNamespace(robust_is_nominal=True, exported=exported))
+        assert paths == [("unplanned", "unplanned"), (exported, "robust = nominal plan (exported)")]
+    paths = plotted_paths(SimpleNamespace(robust_is_nominal=False, exported="robust"))
+    assert paths == [("unplanned", "unplanned"), ("nominal", "nominal"), ("robust", "robust (exported)")]
+
+
 def plt_image(path: Path) -> np.ndarray:
     import matplotlib.image
 

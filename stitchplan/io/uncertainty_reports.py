@@ -171,28 +171,38 @@ def plot_title(result: UncertaintyResult, scenario_name: str = "") -> str:
             f"unplanned {unplanned:.3g} mm")
 
 
+def plotted_paths(result: UncertaintyResult) -> list[tuple[str, str]]:
+    """(path, legend name) of the exit clouds drawn: the unplanned path and both plans, or, where
+    the robust plan is the nominal one (the same held-out runs), that plan once."""
+    if result.robust_is_nominal:
+        return [("unplanned", "unplanned"), (result.exported, "robust = nominal plan (exported)")]
+    return [(label, f"{label}{' (exported)' if label == result.exported else ''}") for label in LABELS]
+
+
 def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name: str = ""):
-    """uncertainty.png: (a) the exit error vectors of the three paths on the held-out samples,
-    the desired exit at the origin, with 95 % ellipses; (b) the same for the two plans,
+    """uncertainty.png: (a) the exit error vectors of the three paths on the held-out samples
+    (two where the robust plan is the nominal one), the desired exit at the origin, with 95 % ellipses; (b) the same for the two plans,
     enlarged; (c) each parameter's 95 % exit move (|sensitivity| x 1.96 std)."""
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
     fig, axes = plt.subplots(1, 3, figsize=(14.0, 4.6), gridspec_kw={"width_ratios": [1.0, 1.0, 0.9]})
-    for ax, labels, title in ((axes[0], LABELS, "unplanned, nominal and robust (x, y scaled separately)"),
-                              (axes[1], LABELS[1:], "the plans, enlarged")):
-        for label in labels:
+    paths = plotted_paths(result)
+    plans = "the plan (robust = nominal)" if result.robust_is_nominal else "the plans"
+    for ax, shown, title in ((axes[0], paths, f"unplanned and {plans} (x, y scaled separately)"),
+                             (axes[1], paths[1:], f"{plans}, enlarged")):
+        for label, name in shown:
             errors = result.errors(label)
             marker = "s" if label == result.exported else "o"
             ax.scatter(errors[:, 0], errors[:, 1], s=18, color=COLOURS[label], marker=marker, alpha=0.8,
-                       label=f"{label}{' (exported)' if label == result.exported else ''}")
+                       label=name)
             ellipse = ellipse_95(errors)
             if ellipse is not None:
                 centre, axes_matrix = ellipse
                 t = np.linspace(0.0, 2.0 * np.pi, 120)
                 curve = centre + (axes_matrix @ np.vstack([np.cos(t), np.sin(t)])).T  # (120, 2)
                 ax.plot(curve[:, 0], curve[:, 1], color=COLOURS[label], lw=1.2,
-                        label=f"{label} 95 % ellipse")
+                        label=f"{name.removesuffix(' (exported)')} 95 % ellipse")
         ax.plot([0.0], [0.0], marker="*", color="k", markersize=12, linestyle="none", label="desired exit")
         if not result.evaluated.any():  # nothing to scatter: say so instead of an empty, arbitrary scale
             ax.set_xlim(-1.0, 1.0)

@@ -141,6 +141,12 @@ class UncertaintyResult:
         return self.robust if self.exported == "robust" else self.nominal
 
     @property
+    def robust_is_nominal(self) -> bool:
+        """Whether the robust plan is the nominal one (no shift to aim with, or one within the
+        training samples' noise): then both have the same held-out runs."""
+        return self.robust is None or self.robust is self.nominal
+
+    @property
     def evaluated(self) -> np.ndarray:
         """Held-out samples where every path ran (bool, (samples,))."""
         return np.all([[run.ok for run in self.held_out[label]] for label in LABELS], axis=0)
