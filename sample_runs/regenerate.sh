@@ -39,7 +39,7 @@ python sample_runs/plan_table.py > $out/plan_table.md
    --plot forces.png)
 
 # planning under uncertainty on sh12_100x100 with the sample calibration's uncertainties
-# (configs/uncertainty/uncertainty_sample.yaml reads calibration/fitted.yaml); about 4 minutes on 2 cores
+# (configs/uncertainty/uncertainty_sample.yaml reads calibration/fitted.yaml); under a minute on 2 cores
 stitchplan plan configs/sh12_100x100.yaml --uncertainty configs/uncertainty/uncertainty_sample.yaml \
   --export $out/sh12_100x100/uncertainty/trajectory.csv --summary $out/sh12_100x100/uncertainty/summary.json \
   --uncertainty-plot $out/sh12_100x100/uncertainty/uncertainty.png
