@@ -126,7 +126,8 @@ def scene(name: str, coupling: str):
     options = variant(coupling_name)
     changes = {key: options[name] for key, name in (("needle_end_levels", "end_levels"),
                                                      ("needle_refinement", "refinement"),
-                                                     ("dilation", "dilation"))
+                                                     ("dilation", "dilation"),
+                                                     ("quadrature_order", "quadrature"))
                if options[name] is not None}
     if changes:
         base = replace(base, discretization=base.discretization.replaced(**changes))
@@ -148,12 +149,14 @@ def variant(coupling: str) -> dict:
     at the needle a quarter of the spacing (discretization.needle_refinement, 2 by default),
     `fixed` the mortar elements' least length fixed in mm at c x the default spacing at the
     needle (`needle.multiplier_length`: the multiplier space is not refined with the
-    particles), `d=3` the kernel support (discretization.dilation, 2 by default)."""
+    particles), `d=3` the kernel support (discretization.dilation, 2 by default), `q=4` Gauss
+    points per direction per background cell (discretization.quadrature_order, 2 by default)."""
     tokens = coupling.split(" ")[1:]
     options = dict(token.split("=") for token in tokens if "=" in token)
     return {"spacings": float(options.get("c", coupling_module.MULTIPLIER_SPACINGS)),
             "fixed": "fixed" in tokens,
             "dilation": float(options["d"]) if "d" in options else None,
+            "quadrature": int(options["q"]) if "q" in options else None,
             "ramp": "ramp" in tokens,
             "profile": coupling_module.SMOOTH if "smooth" in tokens else coupling_module.UNIFORM,
             "end_levels": int(options["L"]) if "L" in options else None,

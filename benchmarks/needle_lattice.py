@@ -54,10 +54,8 @@ FIELDS = ("scene", "variant", "factor", "needle_spacing_mm", "offsets_mm", "exit
 
 def lattice_sweep(name: str, variant: str, factor: float) -> dict:
     """The exit errors with the entry shifted through one needle spacing."""
-    tokens = dict(token.split("=") for token in variant.split(" ")[1:] if "=" in token)
-    base = needle_coupling.scene(name, variant)  # ramp and fixed: needle keys
-    base = with_discretization(base, spacing=base.discretization.spacing * factor,
-                               quadrature_order=int(tokens["q"]) if "q" in tokens else None)
+    base = needle_coupling.scene(name, variant)
+    base = with_discretization(base, spacing=base.discretization.spacing * factor)
     needle_spacing = base.discretization.needle_spacing
     offsets = needle_spacing * np.arange(OFFSETS) / (OFFSETS - 1)
     errors, start = [], time.perf_counter()

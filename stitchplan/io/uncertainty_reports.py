@@ -181,8 +181,9 @@ def plotted_paths(result: UncertaintyResult) -> list[tuple[str, str]]:
 
 def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name: str = ""):
     """uncertainty.png: (a) the exit error vectors of the three paths on the held-out samples
-    (two where the robust plan is the nominal one), the desired exit at the origin, with 95 % ellipses; (b) the same for the two plans,
-    enlarged; (c) each parameter's 95 % exit move (|sensitivity| x 1.96 std)."""
+    (two where the robust plan is the nominal one: plotted_paths), the desired exit at the
+    origin, with 95 % ellipses; (b) the same for the plans, enlarged; (c) each parameter's
+    95 % exit move (|sensitivity| x 1.96 std)."""
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 

@@ -25,9 +25,8 @@ Two couplings (`needle.coupling`):
   the loads act) so a shorter remainder sits at the entry. No more multipliers than the
   particles can resolve keeps the discrete inf-sup condition (Babuska 1973, Brezzi 1974;
   mortar methods: Wohlmuth 2000; tests/test_needle_coupling.py checks the normalised Schur
-  complement). The constraint is
-  enforced weakly, g_j = int phi_j g(X(s)) ds / int phi_j ds = 0 per multiplier (two Gauss
-  points per segment), so lambda_j is a force. A Gauss point of a segment is asked to lie
+  complement). The constraint is enforced weakly, g_j = int phi_j g(X(s)) ds / int phi_j ds
+  = 0 per multiplier (two Gauss points per segment), so lambda_j is a force. A Gauss point of a segment is asked to lie
   on the chord between the needle points (see `target_radius`), not on the arc. The
   cutting force is spread uniformly over `cutting_length` mm of needle behind the tip (a
   physical length: the needle point's cutting edge and taper), not over one step; with
@@ -397,6 +396,11 @@ class NeedleCoupling:
             self._spacing_of_segments = np.concatenate([self._spacing_of_segments, self.local_spacing(middles)])
         return self._spacing_of_segments
 
+    def _least_element(self, spacing: np.ndarray) -> np.ndarray:
+        """A mortar element's least length where the local particle spacing is `spacing`:
+        MULTIPLIER_SPACINGS of it, and at least `needle.multiplier_length`."""
+        return np.maximum(MULTIPLIER_SPACINGS * spacing, self.multiplier_length)
+
     def _segment_lengths(self) -> np.ndarray:
         """Reference lengths of the segments along the track; a gap counts zero (the track's
         pieces on both sides of a wound join in the multiplier field's arc length)."""
@@ -414,8 +418,7 @@ class NeedleCoupling:
         if self.segment_gap[-1]:
             return np.zeros((0, 2))
         length = float(np.linalg.norm(end - start))
-        element = max(MULTIPLIER_SPACINGS * float(self.local_spacing(0.5 * (start + end))[0]),
-                      self.multiplier_length)
+        element = float(self._least_element(self.local_spacing(0.5 * (start + end)))[0])
         count = max(2, math.ceil(QUADRATURE_PER_ELEMENT * length / element - 1e-9))
         abscissae, gauss_weights = np.polynomial.legendre.leggauss(count)
         along, ds = 0.5 * (abscissae + 1.0), 0.5 * gauss_weights * length
@@ -433,7 +436,7 @@ class NeedleCoupling:
         tau(s) = int ds / (MULTIPLIER_SPACINGS h(s)) (h per segment, at its midpoint), cut at
         tau_tip - k for k = 0, 1, ..., the remainder (< 1) joining the element at the entry
         (one element while the track is shorter than one). Arc length of the ends, (m_e + 1,)."""
-        spacing = np.maximum(MULTIPLIER_SPACINGS * self._segment_spacing(), self.multiplier_length)
+        spacing = self._least_element(self._segment_spacing())
         tau = np.concatenate([[0.0], np.cumsum(lengths / spacing)])  # at the needle points
         count = max(math.floor(tau[-1] + 1e-9), 1)
         cuts = tau[-1] - np.arange(count - 1, 0, -1, dtype=float)  # interior ends, increasing
@@ -462,8 +465,7 @@ class NeedleCoupling:
             ds = self._constraint_length
             element = np.clip(np.searchsorted(nodes, s_q, side="right") - 1, 0, len(nodes) - 2)
         else:
-            needed = np.where(self.segment_gap, 0.0,
-                              np.maximum(MULTIPLIER_SPACINGS * self._segment_spacing(), self.multiplier_length))
+            needed = np.where(self.segment_gap, 0.0, self._least_element(self._segment_spacing()))
             starts = _element_starts(lengths, needed, from_tip=PARTITION_FROM_TIP)
             marks = np.zeros(len(lengths), dtype=int)
             marks[starts[1:]] = 1
