@@ -1,0 +1,217 @@
+"""Speed against coupling convergence on the shipped needle scenes: the shipped
+discretization beside the one whose unplanned exit error converges monotonically.
+
+The converged configuration (README, "The model"; benchmarks/results/needle_coupling.md,
+rows `fixed`) sets four scenario keys: the cutting force ramped in with the cutting edge
+inside (`needle.cutting_ramp: true`), the kernel support 3 spacings (`discretization.dilation:
+3`), the multiplier elements' least length fixed in mm (`needle.multiplier_length`, the
+default level's needle spacing) and, on the SH 1/2 blocks, a quarter of the spacing at the
+needle (`discretization.needle_refinement: 4`, a needle spacing of 1.25 needle steps; the 20
+mm needle scenes' default already is). Per scene and configuration:
+
+- accuracy: the unplanned exit error's change from the default spacing to half of it, whether
+  the three levels h, h/sqrt(2), h/2 are monotone, and their observed rate, read from
+  results/needle_coupling.csv (rows `mortar` and RECIPES'; run benchmarks/needle_coupling.py
+  with those couplings where rows are missing);
+- speed: the planned run (the summary's `wall_seconds` of `stitchplan plan CONFIG --no-compare
+  --no-verify`, the converged configuration's CONFIG a copy of the shipped file with the four
+  keys) and its speed-up over the planned run at BASELINE (`plan CONFIG --no-compare`, the code
+  before the speed work, extracted with `git archive`, as benchmarks/plan_speed.py times it),
+  REPEATS runs each, alternating the three.
+
+Writes benchmarks/results/coupling_tradeoff.{csv,md,png}; about 6 minutes (`--report` only
+rewrites the table and the chart from the CSV). Run from the repository root:
+    python benchmarks/coupling_tradeoff.py
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import _common as common  # noqa: E402
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter  # noqa: E402
+import needle_coupling  # noqa: E402
+import plan_speed  # noqa: E402
+import yaml  # noqa: E402
+
+from stitchplan.config.scenario import load_scenario  # noqa: E402
+from stitchplan.config.yaml_files import read_yaml  # noqa: E402
+
+BASELINE = plan_speed.BASELINE
+SHIPPED = "mortar"
+RECIPES = {"sh12": "mortar ramp r=4 fixed d=3", "needle20": "mortar ramp fixed d=3"}
+REPEATS = 5
+SPEEDUP_TARGET = 4.0  # the speed issue's planned run against BASELINE
+CHANGE_TARGET = 0.02  # the accuracy issue's change from the default to half the spacing
+FIELDS = ("scene", "configuration", "coupling", "particles", "passes", "baseline_planned_s", "planned_s", "speedup",
+          "cost", "change", "monotone", "rate", "planned_exit_error_mm")
+
+
+def recipe(scene: str) -> str:
+    return RECIPES[scene.split("_")[0]]
+
+
+def converged_config(scene: str, folder: Path) -> Path:
+    """configs/SCENE.yaml with the converged configuration's four keys, written into
+    `folder`; checked to load as the scenario needle_coupling.scene runs."""
+    expected = needle_coupling.scene(scene, recipe(scene))
+    data, _ = read_yaml(common.REPO_ROOT / "configs" / f"{scene}.yaml")
+    discretization = data.setdefault("discretization", {})
+    discretization["dilation"] = expected.discretization.dilation
+    discretization["needle_refinement"] = expected.discretization.needle_refinement
+    data["needle"].update(cutting_ramp=True, multiplier_length=expected.needle.multiplier_length)
+    path = folder / f"{scene}_converged.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    loaded = load_scenario(path)
+    if (loaded.discretization, loaded.needle) != (expected.discretization, expected.needle):
+        raise SystemExit(f"{path}: does not load as needle_coupling.scene({scene!r}, {recipe(scene)!r})")
+    return path
+
+
+def planned_run(config: Path, options: list[str], folder: Path, source: Path) -> dict:
+    """The summary of one `stitchplan plan CONFIG OPTIONS` process of the code in `source`."""
+    summary = folder / "summary.json"
+    _, record = common.timed_command(["plan", str(config), *options, "--export", str(folder / "trajectory.csv"),
+                                      "--summary", str(summary)], summary, source, PYTHONPATH=str(source))
+    return record
+
+
+def measure(scenes: tuple[str, ...]) -> list[dict]:
+    convergence = {(entry["scene"], entry["coupling"]): entry
+                   for entry in needle_coupling.summarise(needle_coupling.read_rows(
+                       common.results_path("needle_coupling.csv")))}
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        (folder / "baseline").mkdir()
+        baseline = common.extract_revision(BASELINE, folder / "baseline", "stitchplan")
+        for scene in scenes:
+            shipped = common.REPO_ROOT / "configs" / f"{scene}.yaml"
+            configurations = {"shipped": (shipped, SHIPPED), "converged": (converged_config(scene, folder), recipe(scene))}
+            before, after = [], {name: [] for name in configurations}
+            for _ in range(REPEATS):
+                before.append(planned_run(shipped, ["--no-compare"], folder, baseline)["wall_seconds"])
+                for name, (config, _) in configurations.items():
+                    after[name].append(planned_run(config, ["--no-compare", "--no-verify", "-q"], folder,
+                                                   common.REPO_ROOT))
+            baseline_s = statistics.median(before)
+            for name, (_, coupling) in configurations.items():
+                entry = convergence.get((scene, coupling))
+                if entry is None or entry["change"] is None:
+                    raise SystemExit(f"results/needle_coupling.csv has no three levels of {scene} with "
+                                     f"'{coupling}': python benchmarks/needle_coupling.py --scenes {scene} "
+                                     f"--couplings '{coupling}'")
+                planned = statistics.median(record["wall_seconds"] for record in after[name])
+                row = {"scene": scene, "configuration": name, "coupling": coupling,
+                       "particles": after[name][-1]["particles"], "passes": len(after[name][-1]["planner_passes"]),
+                       "baseline_planned_s": baseline_s, "planned_s": planned, "speedup": baseline_s / planned,
+                       "cost": planned / statistics.median(record["wall_seconds"] for record in after["shipped"]),
+                       "change": entry["change"],
+                       "monotone": bool(entry["monotone"]), "rate": entry["rate"],
+                       "planned_exit_error_mm": after[name][-1]["exit_error_mm"]}
+                rows.append(row)
+                print(f"{scene} {name}: {row['particles']} particles, {row['passes']} pass(es), planned run {planned:.3f} s "
+                      f"({row['speedup']:.1f}x {BASELINE}'s {baseline_s:.3f} s), change {100 * row['change']:+.2f} %"
+                      f"{', monotone' if row['monotone'] else ''}", flush=True)
+    return rows
+
+
+def chart(rows: list[dict], path: Path) -> None:
+    figure, axes = plt.subplots(figsize=(8.5, 5.5))
+    styles = {"shipped": ("tab:blue", "o"), "converged": ("tab:red", "s")}
+    for name, (colour, marker) in styles.items():
+        chosen = [row for row in rows if row["configuration"] == name]
+        for monotone in (True, False):
+            part = [row for row in chosen if row["monotone"] == monotone]
+            axes.scatter([row["speedup"] for row in part], [100 * abs(row["change"]) for row in part],
+                         marker=marker, s=55, color=colour if monotone else "white", edgecolors=colour,
+                         label=f"{name} discretization, {'monotone' if monotone else 'not monotone'}")
+        for number, row in enumerate(chosen):  # labels above and below in turn: neighbours overlap less
+            axes.annotate(row["scene"].replace("needle20_", "n20_"), (row["speedup"], 100 * abs(row["change"])),
+                          fontsize=7, xytext=(4, 3 if number % 2 == 0 else -10), textcoords="offset points",
+                          color=colour)
+    axes.axvline(SPEEDUP_TARGET, color="grey", linestyle="--", linewidth=1)
+    axes.axhline(100 * CHANGE_TARGET, color="grey", linestyle=":", linewidth=1)
+    axes.set_xscale("log")
+    axes.xaxis.set_major_locator(FixedLocator([1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0]))
+    axes.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}x"))
+    axes.xaxis.set_minor_formatter(NullFormatter())
+    axes.set_xlabel(f"planned run: speed-up over {BASELINE} (plan --no-compare --no-verify)")
+    axes.set_ylabel("|exit error change| from h to h/2 (%), unplanned")
+    axes.set_title("Shipped needle scenes: speed against coupling convergence\n"
+                   f"targets: >= {SPEEDUP_TARGET:g}x (dashed) and < {100 * CHANGE_TARGET:g} %, monotone (dotted)",
+                   fontsize=10)
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=8, loc="upper left")
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+def report(rows: list[dict]) -> list[str]:
+    both = [row for row in rows if row["speedup"] >= SPEEDUP_TARGET and abs(row["change"]) < CHANGE_TARGET
+            and row["monotone"]]
+    table = [(row["scene"], row["configuration"], row["particles"], row["passes"], row["baseline_planned_s"],
+              row["planned_s"], f"{row['speedup']:.2f}x", f"{row['cost']:.2f}", f"{100 * row['change']:+.2f} %", "yes" if row["monotone"] else "no",
+              "—" if row["rate"] is None else f"{row['rate']:.1f}", row["planned_exit_error_mm"]) for row in rows]
+    return [
+        "# Speed against coupling convergence on the shipped needle scenes", "",
+        f"Generated by `python benchmarks/coupling_tradeoff.py` ({common.machine_note()}).", "",
+        "shipped: the scene's file as shipped (coupling `mortar`); converged: the same file with "
+        "`needle.cutting_ramp: true`, `needle.multiplier_length` (the default level's needle spacing, mm), "
+        "`discretization.dilation: 3` and, on the SH 1/2 blocks, `discretization.needle_refinement: 4` "
+        f"(needle_coupling.py couplings {', '.join(repr(value) for value in RECIPES.values())}). "
+        f"Planned run: the summary's `wall_seconds` of `plan CONFIG --no-compare --no-verify`, median of "
+        f"{REPEATS}, alternating with {BASELINE}'s `plan CONFIG --no-compare` of the shipped file; cost: the "
+        "planned run against the shipped discretization's in the same run. Change, "
+        "monotone and rate: the unplanned exit error at h, h/sqrt(2), h/2, from results/needle_coupling.csv.", "",
+        common.markdown_table(("scene", "discretization", "particles", "planner passes", f"planned run {BASELINE} (s)",
+                               "planned run now (s)", "speed-up", "cost (x shipped)", "change h to h/2", "monotone",
+                               "rate",
+                               "planned exit error (mm)"), table), "",
+        f"Both targets (>= {SPEEDUP_TARGET:g}x, < {100 * CHANGE_TARGET:g} % and monotone) on "
+        f"{len(both)} of {len(rows)} rows"
+        + (": " + ", ".join(f"{row['scene']} ({row['configuration']})" for row in both) if both else "") + ".",
+        "", "![speed against convergence](coupling_tradeoff.png)", ""]
+
+
+def read_rows() -> list[dict]:
+    """The rows of results/coupling_tradeoff.csv, typed as measure returns them."""
+    rows = []
+    for row in needle_coupling.read_rows(common.results_path("coupling_tradeoff.csv")):
+        typed = dict(row)
+        for field in ("baseline_planned_s", "planned_s", "speedup", "cost", "change", "planned_exit_error_mm"):
+            typed[field] = float(row[field])
+        typed["particles"], typed["passes"] = int(row["particles"]), int(row["passes"])
+        typed["monotone"] = row["monotone"] == "True"
+        typed["rate"] = float(row["rate"]) if row["rate"] else None
+        rows.append(typed)
+    return rows
+
+
+def main() -> None:
+    if "--report" in sys.argv[1:]:  # the table and the chart again from the CSV
+        rows = read_rows()
+        chart(rows, common.results_path("coupling_tradeoff.png"))
+        common.write_report("coupling_tradeoff.md", report(rows))
+        return
+    rows = measure(needle_coupling.SHIPPED)
+    common.write_csv(common.results_path("coupling_tradeoff.csv"), FIELDS,
+                     [[row[field] for field in FIELDS] for row in rows])
+    chart(rows, common.results_path("coupling_tradeoff.png"))
+    common.write_report("coupling_tradeoff.md", report(rows))
+
+
+if __name__ == "__main__":
+    main()
