@@ -5,11 +5,12 @@ command's own process (STITCHPLAN_REPLAY_HELPER=0, as before), side by side.
 (`--no-verify`, the estimate) or on the refined model (the default verification, every
 round). With the helper (planning/replays.py) those replays run on the machine's second core
 while the command's own run goes on: the estimate run from the start, a plan's replay as
-each planner pass's centres arrive. For each scene and command: the process wall time,
-alternating the two ways REPEATS times (median), and whether the summaries agree
-(exit error, estimate and verified exit error, to the last bit).
+each planner pass's centres arrive. For each scene and command: the process wall time and the
+command's own run (the summary's `wall_seconds`), alternating the two ways REPEATS times
+(median), and whether the summaries agree (exit error, estimate and verified exit error, to
+the last bit).
 
-Writes benchmarks/results/replay_helper.{csv,md} and prints the table. About 11 minutes.
+Writes benchmarks/results/replay_helper.{csv,md} and prints the table. About 13 minutes.
 Run from the repository root:  python benchmarks/replay_helper.py
 """
 
@@ -26,7 +27,8 @@ from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
 
-SCENES = ("sh12_100x100", "sh12_100x30", "needle20_entry30", "hole_near_stitch", "wound_closure")
+SCENES = ("sh12_100x100", "sh12_100x30", "needle20_entry30", "needle20_entry18", "hole_near_stitch",
+          "wound_closure")
 COMMANDS = (("simulate", []), ("plan --no-compare --no-verify", ["--no-compare", "--no-verify"]),
             ("plan (default: compare, verify)", []))
 REPEATS = int(os.environ.get("REPLAY_HELPER_REPEATS", 3))
@@ -45,20 +47,23 @@ def main() -> None:
         folder = Path(scratch)
         for scene in SCENES:
             for label, options in COMMANDS:
-                times = {True: [], False: []}
+                times, own = {True: [], False: []}, {True: [], False: []}
                 summaries = {}
-                for _ in range(REPEATS):
-                    for helper in (True, False):
+                for repeat in range(REPEATS):
+                    for helper in (True, False) if repeat % 2 == 0 else (False, True):
                         seconds, summaries[helper] = run(label, options, scene, folder, helper)
                         times[helper].append(seconds)
+                        own[helper].append(summaries[helper]["wall_seconds"])
                 same = all(summaries[True].get(key) == summaries[False].get(key) for key in COMPARED)
                 before, after = statistics.median(times[False]), statistics.median(times[True])
-                rows.append((scene, label, before, after, before / after, "yes" if same else "NO",
+                rows.append((scene, label, before, after, before / after, statistics.median(own[False]),
+                             statistics.median(own[True]), "yes" if same else "NO",
                              summaries[True].get("exit_error_estimate_mm"),
                              summaries[True].get("verified_exit_error_mm")))
                 print(f"{scene} {label}: {before:.2f} s here, {after:.2f} s with the helper", flush=True)
     header = ["scene", "command", "replays here (s)", "replays in the helper (s)", "speed-up",
-              "same summary", "exit error estimate (mm)", "verified exit error (mm)"]
+              "own run, replays here (s)", "own run, replays in the helper (s)", "same summary",
+              "exit error estimate (mm)", "verified exit error (mm)"]
     common.write_csv(common.results_path("replay_helper.csv"), header, rows)
     common.write_report("replay_helper.md", [
         "# Whole commands with the replays in a helper process",
@@ -69,7 +74,11 @@ def main() -> None:
         "STITCHPLAN_REPLAY_HELPER=0, the estimate's run and the verification's replays after the "
         "command's own run, in its process (as before the helper). *In the helper*: the default, "
         "the same replays in a forked helper process alongside (planning/replays.py). *Same "
-        f"summary*: {', '.join(COMPARED)} equal to the last bit.",
+        f"summary*: {', '.join(COMPARED)} equal to the last bit. *Own run*: the summary's `wall_seconds` "
+        "(simulate: its run; plan: the planned runs of every pass and round, the replays not included), "
+        "median of the same processes. The helper slows it a little: forked from the command's process, "
+        "it shares that process's memory pages until one of the two writes to one, and the command's "
+        "process then pays a copy-on-write page fault for each page it writes while the helper lives.",
         "",
         common.markdown_table(header, [[common.fmt(value) for value in row] for row in rows]),
     ])
