@@ -5,7 +5,9 @@
    `plan CONFIG --no-compare --no-verify` now (the same planned run: BASELINE had no
    verification), REPEATS times each, alternating so both see the same machine load. The
    planned run's time is the summary's `wall_seconds` (from the loaded scenario to the
-   result, every pass); the whole command's process wall time is reported too. Now also:
+   result, every pass); the whole command's process wall time is reported too. Now also with
+   SuperLU alone and with the estimate's replay in the command's process
+   (STITCHPLAN_REPLAY_HELPER=0: no forked helper alongside, as at BASELINE), and
    the distribution of the needle steps' wall times, every Newton iteration, equilibrium
    solves, factorizations and linear solves (from the summary).
 2. Where it comes from, in process on configs/sh12_100x100.yaml (and sh12_100x30, which
@@ -26,7 +28,7 @@
    the end: a `simulate` ended by the console entry point (no module teardown) and by the
    interpreter's ordinary exit.
 
-Writes benchmarks/results/plan_speed.{csv,md} and prints the tables. About 15 minutes.
+Writes benchmarks/results/plan_speed.{csv,md} and prints the tables. 9-15 minutes.
 Run from the repository root:  python benchmarks/plan_speed.py
 """
 
@@ -71,12 +73,14 @@ def compare_revisions(baseline: Path) -> list[dict]:
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         for scene in SCENES:
-            before, after, scipy_only = [], [], []
+            before, after, scipy_only, inline = [], [], [], []
             for _ in range(REPEATS):
                 before.append(run_plan_command(baseline, scene, ["--no-compare"], folder))
                 after.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"], folder))
                 scipy_only.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"],
                                                    folder, STITCHPLAN_LINEAR_BACKEND="superlu"))
+                inline.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"],
+                                               folder, STITCHPLAN_REPLAY_HELPER="0"))
             last = after[-1]
             steps = last["timings_seconds"]["steps"]
             row = {
@@ -84,6 +88,8 @@ def compare_revisions(baseline: Path) -> list[dict]:
                 "baseline_planned_s": statistics.median(r["wall_seconds"] for r in before),
                 "planned_s": statistics.median(r["wall_seconds"] for r in after),
                 "superlu_planned_s": statistics.median(r["wall_seconds"] for r in scipy_only),
+                "inline_planned_s": statistics.median(r["wall_seconds"] for r in inline),
+                "inline_command_s": statistics.median(r["command_seconds"] for r in inline),
                 "baseline_least_s": min(r["wall_seconds"] for r in before),
                 "least_s": min(r["wall_seconds"] for r in after),
                 "baseline_command_s": statistics.median(r["command_seconds"] for r in before),
@@ -98,10 +104,12 @@ def compare_revisions(baseline: Path) -> list[dict]:
             }
             row["speedup"] = row["baseline_planned_s"] / row["planned_s"]
             row["superlu_speedup"] = row["baseline_planned_s"] / row["superlu_planned_s"]
+            row["inline_speedup"] = row["baseline_planned_s"] / row["inline_planned_s"]
             row["least_speedup"] = row["baseline_least_s"] / row["least_s"]
             rows.append(row)
             print(f"{scene}: planned run {row['baseline_planned_s']:.2f} s at {BASELINE} -> {row['planned_s']:.2f} s "
-                  f"({row['speedup']:.1f}x; SuperLU {row['superlu_planned_s']:.2f} s, {row['superlu_speedup']:.1f}x), "
+                  f"({row['speedup']:.1f}x; SuperLU {row['superlu_planned_s']:.2f} s, {row['superlu_speedup']:.1f}x; "
+                  f"replays in the process {row['inline_planned_s']:.2f} s, {row['inline_speedup']:.1f}x), "
                   f"steps median {row['step_median_ms']:.1f} ms, p90 "
                   f"{row['step_p90_ms']:.1f} ms; whole command {row['command_s']:.2f} s", flush=True)
     return rows
@@ -397,9 +405,9 @@ def main() -> None:
         print(f"{label}: {seconds:.3f} s", flush=True)
 
     header = ["scene", "particles", "steps", "baseline_planned_s", "planned_s", "speedup", "superlu_planned_s",
-              "superlu_speedup", "baseline_least_s", "least_s", "least_speedup", "step_median_ms",
+              "superlu_speedup", "inline_planned_s", "inline_speedup", "baseline_least_s", "least_s", "least_speedup", "step_median_ms",
               "step_p90_ms", "step_max_ms", "newton", "solves", "factorizations", "linear_solves", "passes",
-              "baseline_passes", "baseline_exit_mm", "exit_mm", "baseline_command_s", "command_s"]
+              "baseline_passes", "baseline_exit_mm", "exit_mm", "baseline_command_s", "command_s", "inline_command_s"]
     common.write_csv(common.results_path("plan_speed.csv"), header, [[r[k] for k in header] for r in rows])
     load = os.getloadavg()[0]
     lines = [
@@ -408,7 +416,11 @@ def main() -> None:
         f"{load:.1f} at the end). Linear solver: {rows[0]['backend']}.\n",
         f"## Planned run before ({BASELINE}) and now, side by side (median of {REPEATS})\n",
         "Now: with the installed backend (above); *SuperLU only*: the same code with "
-        "STITCHPLAN_LINEAR_BACKEND=superlu, the path without the `fast` extra. Steps: with the installed backend.\n",
+        "STITCHPLAN_LINEAR_BACKEND=superlu, the path without the `fast` extra; *replays in the process*: "
+        "STITCHPLAN_REPLAY_HELPER=0, the exit-error estimate's replay at 2h after the planned run in the "
+        "command's process instead of in the forked helper alongside it (planning/replays.py), whose "
+        "copy-on-write page faults slow the planned run a little (benchmarks/results/replay_helper.md), "
+        f"as no helper did at {BASELINE}. Steps: with the installed backend.\n",
         f"The planned run is the summary's `wall_seconds` of `plan CONFIG --no-compare` at {BASELINE} and of "
         "`plan CONFIG --no-compare --no-verify` now (the same run; verification did not exist then). "
         "Steps: wall time of each needle step (tip tracking, equilibrium and the planner's centre). "
@@ -420,13 +432,15 @@ def main() -> None:
         "of the kept pass's own run.\n",
         common.markdown_table(
             ["scene", "particles", "steps", f"planned run {BASELINE} (s)", "planned run now (s)", "speed-up",
-             "now with SuperLU only (s)", "speed-up with SuperLU", f"least of the {REPEATS} runs {BASELINE} / now (s)",
+             "now with SuperLU only (s)", "speed-up with SuperLU", "now, replays in the process (s)",
+             "speed-up, replays in the process", f"least of the {REPEATS} runs {BASELINE} / now (s)",
              "speed-up of the least",
              "step median (ms)", "step p90 (ms)", "step max (ms)", "Newton iterations", "equilibrium solves",
              "factorizations", "linear solves", f"passes {BASELINE} / now", f"planned exit error {BASELINE} (mm)",
              "planned exit error now (mm)"],
             [[r["scene"], r["particles"], r["steps"], r["baseline_planned_s"], r["planned_s"],
               f"{r['speedup']:.2f}x", r["superlu_planned_s"], f"{r['superlu_speedup']:.2f}x",
+              r["inline_planned_s"], f"{r['inline_speedup']:.2f}x",
               f"{r['baseline_least_s']:.4g} / {r['least_s']:.4g}", f"{r['least_speedup']:.2f}x", r["step_median_ms"], r["step_p90_ms"], r["step_max_ms"], r["newton"],
               r["solves"], r["factorizations"], r["linear_solves"], f"{r['baseline_passes']} / {r['passes']}",
               r["baseline_exit_mm"], r["exit_mm"]] for r in rows]),
@@ -434,8 +448,10 @@ def main() -> None:
         f"## Whole command (process wall time, median of {REPEATS})\n",
         "Every command here runs with Python's bytecode cache on (_common.command_environment), as an "
         "installed package has its modules compiled.\n",
-        common.markdown_table(["scene", f"plan --no-compare at {BASELINE} (s)", "plan --no-compare --no-verify now (s)"],
-                              [[r["scene"], r["baseline_command_s"], r["command_s"]] for r in rows]),
+        common.markdown_table(["scene", f"plan --no-compare at {BASELINE} (s)", "plan --no-compare --no-verify now (s)",
+                               "now, replays in the process (s)"],
+                              [[r["scene"], r["baseline_command_s"], r["command_s"], r["inline_command_s"]]
+                               for r in rows]),
         "",
         f"With the default verification (`plan {verified['scene']}.yaml --no-compare`, median of {REPEATS}): "
         f"the whole command takes {verified['command_s']:.2f} s, of which the planned runs of its "
