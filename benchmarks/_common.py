@@ -59,12 +59,18 @@ def timed_command(arguments: list[str], summary: Path, cwd: Path, **environment:
 
 def scene_command(name: str, scene: str, options: Sequence[str], folder: Path, cwd: Path,
                   **environment: str) -> tuple[float, dict]:
-    """timed_command of `stitchplan NAME configs/SCENE.yaml OPTIONS`, its summary (and for
-    `plan` its trajectory) written into `folder`: wall time (s) and summary."""
+    """config_command of configs/SCENE.yaml."""
+    return config_command(name, REPO_ROOT / "configs" / f"{scene}.yaml", options, folder, cwd, **environment)
+
+
+def config_command(name: str, config: Path, options: Sequence[str], folder: Path, cwd: Path,
+                   **environment: str) -> tuple[float, dict]:
+    """timed_command of `stitchplan NAME CONFIG OPTIONS`, its summary (and for `plan` its
+    trajectory) written into `folder`: wall time (s) and summary."""
     summary = folder / "summary.json"
     export = ["--export", str(folder / "trajectory.csv")] if name == "plan" else []
-    return timed_command([name, str(REPO_ROOT / "configs" / f"{scene}.yaml"), *options, *export,
-                          "--summary", str(summary)], summary, cwd, **environment)
+    return timed_command([name, str(config), *options, *export, "--summary", str(summary)], summary, cwd,
+                         **environment)
 
 
 def worker_record(script: str, source: Path, *arguments: str) -> dict:

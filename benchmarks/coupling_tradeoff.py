@@ -33,6 +33,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
+import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
@@ -81,10 +82,7 @@ def converged_config(scene: str, folder: Path) -> Path:
 
 def planned_run(config: Path, options: list[str], folder: Path, source: Path) -> dict:
     """The summary of one `stitchplan plan CONFIG OPTIONS` process of the code in `source`."""
-    summary = folder / "summary.json"
-    _, record = common.timed_command(["plan", str(config), *options, "--export", str(folder / "trajectory.csv"),
-                                      "--summary", str(summary)], summary, source, PYTHONPATH=str(source))
-    return record
+    return common.config_command("plan", config, options, folder, source, PYTHONPATH=str(source))[1]
 
 
 def measure(scenes: tuple[str, ...]) -> list[dict]:
@@ -98,7 +96,8 @@ def measure(scenes: tuple[str, ...]) -> list[dict]:
         baseline = common.extract_revision(BASELINE, folder / "baseline", "stitchplan")
         for scene in scenes:
             shipped = common.REPO_ROOT / "configs" / f"{scene}.yaml"
-            configurations = {"shipped": (shipped, SHIPPED), "converged": (converged_config(scene, folder), recipe(scene))}
+            configurations = {"shipped": (shipped, SHIPPED),
+                              "converged": (converged_config(scene, folder), recipe(scene))}
             before, after = [], {name: [] for name in configurations}
             for _ in range(REPEATS):
                 before.append(planned_run(shipped, ["--no-compare"], folder, baseline)["wall_seconds"])
@@ -106,24 +105,25 @@ def measure(scenes: tuple[str, ...]) -> list[dict]:
                     after[name].append(planned_run(config, ["--no-compare", "--no-verify", "-q"], folder,
                                                    common.REPO_ROOT))
             baseline_s = statistics.median(before)
+            planned = {name: statistics.median(record["wall_seconds"] for record in records)
+                       for name, records in after.items()}
             for name, (_, coupling) in configurations.items():
                 entry = convergence.get((scene, coupling))
                 if entry is None or entry["change"] is None:
                     raise SystemExit(f"results/needle_coupling.csv has no three levels of {scene} with "
                                      f"'{coupling}': python benchmarks/needle_coupling.py --scenes {scene} "
                                      f"--couplings '{coupling}'")
-                planned = statistics.median(record["wall_seconds"] for record in after[name])
+                last = after[name][-1]
                 row = {"scene": scene, "configuration": name, "coupling": coupling,
-                       "particles": after[name][-1]["particles"], "passes": len(after[name][-1]["planner_passes"]),
-                       "baseline_planned_s": baseline_s, "planned_s": planned, "speedup": baseline_s / planned,
-                       "cost": planned / statistics.median(record["wall_seconds"] for record in after["shipped"]),
-                       "change": entry["change"],
-                       "monotone": bool(entry["monotone"]), "rate": entry["rate"],
-                       "planned_exit_error_mm": after[name][-1]["exit_error_mm"]}
+                       "particles": last["particles"], "passes": len(last["planner_passes"]),
+                       "baseline_planned_s": baseline_s, "planned_s": planned[name],
+                       "speedup": baseline_s / planned[name], "cost": planned[name] / planned["shipped"],
+                       "change": entry["change"], "monotone": bool(entry["monotone"]), "rate": entry["rate"],
+                       "planned_exit_error_mm": last["exit_error_mm"]}
                 rows.append(row)
-                print(f"{scene} {name}: {row['particles']} particles, {row['passes']} pass(es), planned run {planned:.3f} s "
-                      f"({row['speedup']:.1f}x {BASELINE}'s {baseline_s:.3f} s), change {100 * row['change']:+.2f} %"
-                      f"{', monotone' if row['monotone'] else ''}", flush=True)
+                print(f"{scene} {name}: {row['particles']} particles, {row['passes']} pass(es), planned run "
+                      f"{planned[name]:.3f} s ({row['speedup']:.1f}x {BASELINE}'s {baseline_s:.3f} s), change "
+                      f"{100 * row['change']:+.2f} %{', monotone' if row['monotone'] else ''}", flush=True)
     return rows
 
 
@@ -159,15 +159,18 @@ def chart(rows: list[dict], path: Path) -> None:
     plt.close(figure)
 
 
-def report(rows: list[dict]) -> list[str]:
+def report(rows: list[dict], redrawn: bool = False) -> list[str]:
     both = [row for row in rows if row["speedup"] >= SPEEDUP_TARGET and abs(row["change"]) < CHANGE_TARGET
             and row["monotone"]]
     table = [(row["scene"], row["configuration"], row["particles"], row["passes"], row["baseline_planned_s"],
-              row["planned_s"], f"{row['speedup']:.2f}x", f"{row['cost']:.2f}", f"{100 * row['change']:+.2f} %", "yes" if row["monotone"] else "no",
-              "—" if row["rate"] is None else f"{row['rate']:.1f}", row["planned_exit_error_mm"]) for row in rows]
+              row["planned_s"], f"{row['speedup']:.2f}x", f"{row['cost']:.2f}", f"{100 * row['change']:+.2f} %",
+              "yes" if row["monotone"] else "no", "—" if row["rate"] is None else f"{row['rate']:.1f}",
+              row["planned_exit_error_mm"]) for row in rows]
     return [
         "# Speed against coupling convergence on the shipped needle scenes", "",
-        f"Generated by `python benchmarks/coupling_tradeoff.py` ({common.machine_note()}).", "",
+        (f"Redrawn by `python benchmarks/coupling_tradeoff.py --report` from results/coupling_tradeoff.csv "
+         f"({time.strftime('%Y-%m-%d %H:%M')}); the timings are the CSV's." if redrawn else
+         f"Generated by `python benchmarks/coupling_tradeoff.py` ({common.machine_note()})."), "",
         "shipped: the scene's file as shipped (coupling `mortar`); converged: the same file with "
         "`needle.cutting_ramp: true`, `needle.multiplier_length` (the default level's needle spacing, mm), "
         "`discretization.dilation: 3` and, on the SH 1/2 blocks, `discretization.needle_refinement: 4` "
@@ -176,10 +179,9 @@ def report(rows: list[dict]) -> list[str]:
         f"{REPEATS}, alternating with {BASELINE}'s `plan CONFIG --no-compare` of the shipped file; cost: the "
         "planned run against the shipped discretization's in the same run. Change, "
         "monotone and rate: the unplanned exit error at h, h/sqrt(2), h/2, from results/needle_coupling.csv.", "",
-        common.markdown_table(("scene", "discretization", "particles", "planner passes", f"planned run {BASELINE} (s)",
-                               "planned run now (s)", "speed-up", "cost (x shipped)", "change h to h/2", "monotone",
-                               "rate",
-                               "planned exit error (mm)"), table), "",
+        common.markdown_table(("scene", "discretization", "particles", "planner passes",
+                               f"planned run {BASELINE} (s)", "planned run now (s)", "speed-up", "cost (x shipped)",
+                               "change h to h/2", "monotone", "rate", "planned exit error (mm)"), table), "",
         f"Both targets (>= {SPEEDUP_TARGET:g}x, < {100 * CHANGE_TARGET:g} % and monotone) on "
         f"{len(both)} of {len(rows)} rows"
         + (": " + ", ".join(f"{row['scene']} ({row['configuration']})" for row in both) if both else "") + ".",
@@ -204,7 +206,7 @@ def main() -> None:
     if "--report" in sys.argv[1:]:  # the table and the chart again from the CSV
         rows = read_rows()
         chart(rows, common.results_path("coupling_tradeoff.png"))
-        common.write_report("coupling_tradeoff.md", report(rows))
+        common.write_report("coupling_tradeoff.md", report(rows, redrawn=True))
         return
     rows = measure(needle_coupling.SHIPPED)
     common.write_csv(common.results_path("coupling_tradeoff.csv"), FIELDS,

@@ -405,9 +405,10 @@ def main() -> None:
         print(f"{label}: {seconds:.3f} s", flush=True)
 
     header = ["scene", "particles", "steps", "baseline_planned_s", "planned_s", "speedup", "superlu_planned_s",
-              "superlu_speedup", "inline_planned_s", "inline_speedup", "baseline_least_s", "least_s", "least_speedup", "step_median_ms",
-              "step_p90_ms", "step_max_ms", "newton", "solves", "factorizations", "linear_solves", "passes",
-              "baseline_passes", "baseline_exit_mm", "exit_mm", "baseline_command_s", "command_s", "inline_command_s"]
+              "superlu_speedup", "inline_planned_s", "inline_speedup", "baseline_least_s", "least_s",
+              "least_speedup", "step_median_ms", "step_p90_ms", "step_max_ms", "newton", "solves", "factorizations",
+              "linear_solves", "passes", "baseline_passes", "baseline_exit_mm", "exit_mm", "baseline_command_s",
+              "command_s", "inline_command_s"]
     common.write_csv(common.results_path("plan_speed.csv"), header, [[r[k] for k in header] for r in rows])
     load = os.getloadavg()[0]
     lines = [
