@@ -24,7 +24,10 @@
 3. The whole command with the default verification on sh12_100x100, median of REPEATS.
 4. Replays of the shipped trajectories at half the spacing with the factor renewed as now
    and as a planner's step renews it (needle/equilibrium.py renew_factor).
-5. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS; and
+5. The allocator: the planned run, the whole command, the process's page faults and its
+   peak memory with glibc malloc's thresholds set as the command sets them
+   (stitchplan/allocator.py) and with glibc's default.
+6. Start-up: `stitchplan --help` and `stitchplan --version`, median of STARTUP_REPEATS; and
    the end: a `simulate` ended by the console entry point (no module teardown) and by the
    interpreter's ordinary exit.
 
@@ -41,6 +44,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import contextlib  # noqa: E402
 import gc  # noqa: E402
+import json  # noqa: E402
 import logging  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
@@ -393,6 +397,49 @@ def ending() -> dict[str, float]:
             for label, values in samples.items()}
 
 
+def allocator_rows(scenes: tuple[str, ...] = ("needle20_entry30", "needle20_entry18", "sh12_100x100"),
+                   verified: str = "sh12_100x100") -> list[tuple]:
+    """`plan CONFIG --no-compare --no-verify` on `scenes` and the default verified `plan
+    VERIFIED --no-compare`, with glibc malloc's thresholds set as the command sets them
+    (stitchplan/allocator.py) and with glibc's default, alternating, REPEATS each: (command,
+    variant, median planned run s, median whole command s, median page faults of the process
+    and its helper, median peak memory of the command's process MiB)."""
+    import resource
+
+    variants = {"thresholds set (now)": "",
+                "glibc's default": "import stitchplan.allocator as a; a.reuse_freed_memory = lambda: False; "}
+    commands = [(scene, ["--no-verify"]) for scene in scenes] + [(verified, [])]
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        summary, peak = folder / "summary.json", folder / "peak"
+        for scene, options in commands:
+            samples: dict[str, list[tuple[float, float, int, float]]] = {label: [] for label in variants}
+            for repeat in range(REPEATS):
+                for label in variants if repeat % 2 == 0 else reversed(variants):
+                    arguments = ["stitchplan", "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
+                                 "--no-compare", *options, "-q", "--export", str(folder / "trajectory.csv"),
+                                 "--summary", str(summary)]
+                    script = (f"import atexit, resource, sys; {variants[label]}"
+                              f"atexit.register(lambda: open({str(peak)!r}, 'w').write("
+                              "str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))); "
+                              f"from stitchplan.cli import main; sys.argv = {arguments!r}; main()")
+                    faults = resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt
+                    start = time.perf_counter()
+                    subprocess.run([sys.executable, "-c", script], check=True, capture_output=True,
+                                   cwd=common.REPO_ROOT, env=common.command_environment())
+                    seconds = time.perf_counter() - start
+                    faults = resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt - faults
+                    planned = json.loads(summary.read_text())["wall_seconds"]
+                    samples[label].append((planned, seconds, faults, int(peak.read_text()) / 1024))
+            command = f"plan {scene} --no-compare {' '.join(options)}".strip()
+            for label, values in samples.items():
+                rows.append((command, label, *(statistics.median(v[i] for v in values) for i in range(4))))
+                print(f"allocator {command} {label}: planned {rows[-1][2]:.4f} s, whole {rows[-1][3]:.3f} s, "
+                      f"{rows[-1][4]:.0f} page faults, peak {rows[-1][5]:.0f} MiB", flush=True)
+    return rows
+
+
 def main() -> None:
     with tempfile.TemporaryDirectory() as extracted:
         rows = compare_revisions(common.extract_revision(BASELINE, Path(extracted)))
@@ -400,6 +447,7 @@ def main() -> None:
     warm_rows = verified_warm_starts()
     verified = verified_command()
     renewal_rows = replay_renewals()
+    allocator = allocator_rows()
     start_up = {**startup(), **ending()}
     for label, seconds in start_up.items():
         print(f"{label}: {seconds:.3f} s", flush=True)
@@ -497,6 +545,17 @@ def main() -> None:
         "planner's step renews it (an iteration contracting by less than REFACTOR_CONTRACTION).\n",
         common.markdown_table(["scene", "variant", "replay (s)", "factorizations", "Newton iterations",
                                "exit error (mm)"], [list(row) for row in renewal_rows]),
+        "",
+        f"## The allocator (median of {REPEATS}, alternating)\n",
+        "The command sets glibc malloc's mmap threshold to 32 MiB and its trim threshold to 64 MiB "
+        "(stitchplan/allocator.py), where glibc's own adjustment of them ends; with glibc's default an "
+        "array above the current mmap threshold (128 KiB at first) gets fresh pages from the system and "
+        "gives them back when freed, and the heap's top is returned once 128 KiB is free there. Planned "
+        "run: the summary's `wall_seconds` (with the default verification: its rounds' planned runs). "
+        "Page faults: the command's process and its replay helper, start-up included. Peak memory: the "
+        "command's process (its maximum resident set).\n",
+        common.markdown_table(["command", "allocator", "planned run (s)", "whole command (s)", "page faults",
+                               "peak memory (MiB)"], [list(row) for row in allocator]),
         "",
         f"## Start-up and end (median of {STARTUP_REPEATS})\n",
         common.markdown_table(["command", "wall (s)"], [[k, v] for k, v in start_up.items()]),

@@ -409,7 +409,11 @@ def dask_setup(worker: Any) -> None:
     """Run in each worker process of a local cluster when it starts (a Dask preload): its
     Dask records are dropped. Its stderr is the user's terminal, distributed's silence_logs
     lets ERROR through and is undone while the worker closes, when the heartbeat to a
-    scheduler that has closed first fails; a task's own failure reaches the client anyway."""
+    scheduler that has closed first fails; a task's own failure reaches the client anyway.
+    Its allocator reuses freed memory, as the command's does (stitchplan/allocator.py)."""
+    from .allocator import reuse_freed_memory
+
+    reuse_freed_memory()
     for name in _dask_logger_names():
         logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import subprocess
 import sys
 import tomllib
@@ -344,3 +345,47 @@ def test_schema_prints_the_json_schema_of_scenario_files():
     assert isinstance(schema, dict)
     assert {"tissue", "needle", "loads"} <= set(schema["properties"])
     assert "tissue" in schema.get("required", [])
+
+
+def test_the_command_reuses_freed_memory():
+    """After the console entry point has run a command, glibc's malloc serves 1 MiB blocks
+    from its heap and keeps them there once freed (stitchplan/allocator.py): no block is
+    mapped on its own (mallinfo's hblks) and the 16 MiB freed stay at the heap's top
+    (keepcost), where glibc's default maps the first block by itself and trims the heap's top
+    below 2 MiB. Elsewhere (not glibc) reuse_freed_memory reports that it did nothing."""
+    from stitchplan.allocator import reuse_freed_memory
+
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        assert reuse_freed_memory() is False
+        return
+    script = (
+        "import ctypes, sys\n"
+        "import stitchplan.cli as cli\n"
+        "if sys.argv[1] == 'default':\n"
+        "    import stitchplan.allocator as allocator; allocator.reuse_freed_memory = lambda: False\n"
+        "sys.argv = ['stitchplan', 'schema']\n"
+        "cli._exit = lambda code: None  # stay alive after the command\n"
+        "try:\n"
+        "    cli.main()\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "libc = ctypes.CDLL('libc.so.6')\n"
+        "class Info(ctypes.Structure):\n"
+        "    _fields_ = [(name, ctypes.c_int) for name in ('arena', 'ordblks', 'smblks', 'hblks', 'hblkhd',\n"
+        "                'usmblks', 'fsmblks', 'uordblks', 'fordblks', 'keepcost')]\n"
+        "libc.mallinfo.restype = Info\n"
+        "libc.malloc.restype = ctypes.c_void_p\n"
+        "mapped = libc.mallinfo().hblks\n"
+        "blocks = [libc.malloc(2**20) for _ in range(16)]\n"
+        "mapped = libc.mallinfo().hblks - mapped\n"
+        "for block in reversed(blocks):\n"
+        "    libc.free(ctypes.c_void_p(block))\n"
+        "sys.stderr.write(f'{mapped} {libc.mallinfo().keepcost}')\n"
+    )
+    mapped, top = {}, {}  # blocks mapped on their own; the free memory left at the heap's top
+    for variant in ("command", "default"):
+        run = subprocess.run([sys.executable, "-c", script, variant], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        mapped[variant], top[variant] = map(int, run.stderr.strip().splitlines()[-1].split())
+    assert mapped["command"] == 0 and mapped["default"] >= 1, mapped
+    assert top["command"] >= 16 * 2**20 and top["default"] < 2 * 2**20, top

@@ -38,6 +38,9 @@ def main() -> None:
         except OSError as error:
             _exit(stdout_failure(error))
         return
+    from ..allocator import reuse_freed_memory
+
+    reuse_freed_memory()  # before the commands' imports allocate
     try:
         __getattr__("app")()
     except SystemExit as done:  # the command has ended (a bug's traceback is not caught here)

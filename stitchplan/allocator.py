@@ -1,0 +1,47 @@
+"""The process's memory allocator, set once as a command starts.
+
+glibc's malloc serves an allocation above its mmap threshold (128 KiB at first) with fresh
+pages from the system and returns them when it is freed; each time such a block is freed the
+threshold rises to its size, up to 32 MiB. A command's first model build and planned run
+allocate many arrays of new, growing sizes, so most of them fault in page by page before the
+threshold has caught up, where a second run in the same process reuses what the first
+freed (and the heap's top is returned to the system once 128 KiB is free there, to be
+faulted in again).
+
+`reuse_freed_memory` sets both thresholds where glibc's own adjustment ends: arrays up to
+32 MiB come from the heap, and up to 64 MiB (glibc's rule, twice the mmap threshold) stays
+at its top, so what the planner frees is reused rather than faulted in anew. The planned run
+and the whole command get faster and the peak memory stays the same (benchmarks/
+plan_speed.py, the allocator table). Where the process is not on glibc (musl, macOS,
+Windows), or the user set glibc's MALLOC_MMAP_THRESHOLD_ or MALLOC_TRIM_THRESHOLD_,
+nothing changes.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+# glibc's mallopt parameters (malloc.h)
+M_TRIM_THRESHOLD = -1
+M_MMAP_THRESHOLD = -3
+MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024  # glibc's DEFAULT_MMAP_THRESHOLD_MAX on 64-bit systems
+TRIM_THRESHOLD_BYTES = 2 * MMAP_THRESHOLD_BYTES  # as glibc sets it when it raises the mmap threshold
+USER_VARIABLES = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+
+
+def reuse_freed_memory() -> bool:
+    """Set glibc malloc's mmap and trim thresholds (module docstring); whether they were set."""
+    if not sys.platform.startswith("linux") or any(name in os.environ for name in USER_VARIABLES):
+        return False
+    try:
+        import ctypes
+
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):  # not glibc
+        return False
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    mallopt.restype = ctypes.c_int
+    # M_MMAP_THRESHOLD first: setting it also stops glibc's own adjustment of the trim threshold
+    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD,
+                                                                                  TRIM_THRESHOLD_BYTES))
