@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from stitchplan.tissue.kernel import cubic_spline
 from stitchplan.tissue.particles import grid_particles
 from stitchplan.tissue.shape_functions import SingularMomentMatrix, rk_shape_functions, rk_shape_pairs
 
@@ -55,6 +56,23 @@ def monomials(points: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, n
         d_dx += [2 * x, y, zero]
         d_dy += [zero, x, 2 * y]
     return np.stack(values, 1), np.stack(d_dx, 1), np.stack(d_dy, 1)
+
+
+def test_the_cubic_spline_is_eq_3_23_with_its_derivative(rng):
+    """The kernel's truncated-power evaluation equals eq. 3.23's two pieces (2/3 - 4 r^2 +
+    4 r^3 up to r = 1/2, 4/3 (1 - r)^3 up to 1, zero beyond) at random arguments and at the
+    breakpoints, and its derivative matches central differences away from them."""
+    z = np.concatenate([rng.uniform(-1.3, 1.3, 2000), [0.0, 0.5, -0.5, 1.0, -1.0, 1.25]])
+    r = np.abs(z)
+    piecewise = np.where(r <= 0.5, 2 / 3 - 4 * r**2 + 4 * r**3, np.where(r < 1.0, 4 / 3 * (1 - r) ** 3, 0.0))
+    phi, dphi = cubic_spline(z)
+    np.testing.assert_allclose(phi, piecewise, rtol=0, atol=ROUND_OFF)
+    np.testing.assert_allclose(phi[-6:], [2 / 3, 1 / 6, 1 / 6, 0.0, 0.0, 0.0], rtol=0, atol=ROUND_OFF)
+    h = 1e-6
+    smooth = np.abs(r[:-6, None] - [0.0, 0.5, 1.0]).min(axis=1) > 10 * h
+    central = (cubic_spline(z + h, False)[0] - cubic_spline(z - h, False)[0]) / (2 * h)
+    np.testing.assert_allclose(dphi[:-6][smooth], central[:-6][smooth], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(dphi[-6:], [0.0, -1.0, 1.0, 0.0, 0.0, 0.0], rtol=0, atol=ROUND_OFF)
 
 
 @pytest.mark.parametrize("order, dilation", CASES)

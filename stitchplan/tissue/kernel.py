@@ -7,16 +7,19 @@ import numpy as np
 
 def cubic_spline(z: np.ndarray, derivative: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """Cubic spline phi(z) of eq. 3.23 and its derivative d phi / dz (support |z| < 1; None
-    without `derivative`): 2/3 - 4 r^2 + 4 r^3 for r = |z| <= 1/2, 4/3 (1 - r)^3 for 1/2 < r < 1."""
+    without `derivative`): 2/3 - 4 r^2 + 4 r^3 for r = |z| <= 1/2, 4/3 (1 - r)^3 for 1/2 < r < 1.
+
+    Evaluated as the B-spline's truncated powers, 4/3 (1 - r)+^3 - 16/3 (1/2 - r)+^3, the same
+    polynomials without computing both branches everywhere: half the time on a model's pairs."""
     r = np.abs(z)
-    inner = r <= 0.5
-    rest = np.maximum(1.0 - r, 0.0)
-    r2, rest2 = r * r, rest * rest  # products: numpy's power is several times slower
-    phi = np.where(inner, 2.0 / 3.0 - 4.0 * r2 + 4.0 * r2 * r, 4.0 / 3.0 * rest2 * rest)
+    outer = np.maximum(1.0 - r, 0.0)
+    inner = np.maximum(0.5 - r, 0.0)
+    outer2, inner2 = outer * outer, inner * inner  # products: numpy's power is several times slower
+    phi = (4.0 / 3.0) * (outer2 * outer) - (16.0 / 3.0) * (inner2 * inner)
     if not derivative:
         return phi, None
-    dphi = np.where(inner, -8.0 * r + 12.0 * r2, -4.0 * rest2)
-    return phi, dphi * np.sign(z)
+    # d phi / dr = 16 (1/2 - r)+^2 - 4 (1 - r)+^2 <= 0, times sign(z)
+    return phi, np.copysign(4.0 * outer2 - 16.0 * inner2, -z)
 
 
 def tensor_kernel(offset: np.ndarray, support: np.ndarray,
@@ -26,13 +29,15 @@ def tensor_kernel(offset: np.ndarray, support: np.ndarray,
     offset: (n, 2) values X - X_I; support: (n,) kernel half-width a of each pair.
     Returns phi (n,) and grad (n, 2) (None without `gradient`).
     """
-    a = support[:, None]  # (n, 1)
-    phi_1d, dphi_1d = cubic_spline(offset / a, gradient)  # (n, 2) each
-    phi = phi_1d[:, 0] * phi_1d[:, 1] / support**2
+    inverse = 1.0 / support  # products below: numpy's power is several times slower
+    phi_1d, dphi_1d = cubic_spline(offset * inverse[:, None], gradient)  # (n, 2) each
+    inverse2 = inverse * inverse
+    phi_x, phi_y = phi_1d[:, 0], phi_1d[:, 1]
+    phi = phi_x * phi_y * inverse2
     if not gradient:
         return phi, None
-    scale = 1.0 / support**3
+    scale = inverse2 * inverse
     grad = np.empty_like(offset)
-    grad[:, 0] = dphi_1d[:, 0] * phi_1d[:, 1] * scale
-    grad[:, 1] = phi_1d[:, 0] * dphi_1d[:, 1] * scale
+    np.multiply(dphi_1d[:, 0] * phi_y, scale, out=grad[:, 0])
+    np.multiply(phi_x * dphi_1d[:, 1], scale, out=grad[:, 1])
     return phi, grad

@@ -272,18 +272,17 @@ def rk_shape_pairs(
     phi, dphi = tensor_kernel(offset, support[cols], gradients)
     phi = phi * volume
     h = _basis(offset / scale, order)  # (pairs, m)
+    if len(points) == 1:  # tip tracking: one point per call, where numpy's call overhead is the cost
+        shape, grad = _one_point(h, phi, None if dphi is None else dphi * volume[:, None], _MAPS[order] / scale,
+                                 points)
+        return ShapePairs(rows, cols, indptr, shape, grad)
 
-    # M(X) = sum H H^T phi: for one point one product (m, pairs) x (pairs, m); for more from
-    # its upper triangle, (pairs, m (m + 1) / 2) products, not m^2
-    if len(points) == 1:
-        def moment_sum(weights: np.ndarray) -> np.ndarray:  # sum_p w_p H_p H_p^T, (1, m, m)
-            return ((h.T * weights) @ h)[None]
-    else:
-        upper, full = _TRIANGLES[order]
-        hh = _upper_products(h, upper)  # (pairs, u)
+    # M(X) = sum H H^T phi from its upper triangle, (pairs, m (m + 1) / 2) products, not m^2
+    upper, full = _TRIANGLES[order]
+    hh = _upper_products(h, upper)  # (pairs, u)
 
-        def moment_sum(weights: np.ndarray) -> np.ndarray:  # (n, m, m)
-            return _pair_sums(hh, weights, indptr)[:, full]
+    def moment_sum(weights: np.ndarray) -> np.ndarray:  # (n, m, m)
+        return _pair_sums(hh, weights, indptr)[:, full]
 
     moment = moment_sum(phi)
     inverse = _checked_inverse(moment, points)  # (n, m, m)
@@ -307,6 +306,26 @@ def rk_shape_pairs(
         weights = db + b @ maps[k]  # (n, m): dM^-1 H(0) + D_k^T b / s
         grad[:, k] = _row_dot(weights, rows, h) * phi + corrected * dphi[:, k]
     return ShapePairs(rows, cols, indptr, shape, grad)
+
+
+def _one_point(h: np.ndarray, phi: np.ndarray, dphi: np.ndarray | None, maps: np.ndarray,
+               point: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """rk_shape_pairs' values and gradients at one point from its pairs' basis H (k, m),
+    kernel phi dV (k,) and kernel gradient dphi dV (k, 2) (None: no gradients), with the
+    derivative maps D / s (2, m, m): the same sums as for many points, each direction's
+    gradient in one batched product."""
+    moment = (h.T * phi) @ h  # M = sum H H^T phi, (m, m)
+    _check_condition(np.linalg.eigvalsh(moment)[None], np.zeros(1, dtype=np.int64), point)
+    inverse = np.linalg.inv(moment)
+    b = inverse[:, 0]  # M^-1 H(0)
+    corrected = h @ b  # H(0)^T M^-1 H, (k,)
+    if dphi is None:
+        return corrected * phi, None
+    # as in rk_shape_pairs: dM_k = sum H H^T dphi_k + D_k M + M D_k^T, dM^-1 H(0) = -M^-1 dM_k b
+    spread = maps @ moment  # (2, m, m)
+    dmoment = (h.T * dphi.T[:, None, :]) @ h + spread + spread.transpose(0, 2, 1)
+    weights = (maps.transpose(0, 2, 1) @ b - dmoment @ b @ inverse).T  # dM^-1 H(0) + D_k^T b / s, (m, 2)
+    return corrected * phi, (h @ weights) * phi[:, None] + corrected[:, None] * dphi
 
 
 def _pair_sums(values: np.ndarray, weights: np.ndarray, indptr: np.ndarray) -> np.ndarray:
