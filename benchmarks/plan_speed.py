@@ -17,7 +17,8 @@
    before Levenberg-Marquardt in the tip tracking, the residual tolerance, K0 from the
    direction gradients, one model shared by the passes, a later pass taking over the first
    pass's early steps with their tip points and equilibria, the internal force kept where a
-   step starts),
+   step starts; on needle20_entry25 also the kernel's truncated powers and one point's
+   gradient directions in one product),
    median of LEVER_REPEATS rounds, each round running every variant once;
    and the verified plan with the second round's replay started cold and with its passes
    solving every step.
@@ -158,6 +159,8 @@ def levers() -> list[tuple]:
     from stitchplan.tissue.assembly import Assembler
     import stitchplan.planning.planner as planner
     import stitchplan.tissue.factorization as factorization
+    import stitchplan.tissue.kernel as kernel
+    import stitchplan.tissue.shape_functions as shape_functions
     from stitchplan.config.scenario import load_scenario
 
     logging.getLogger("stitchplan").setLevel(logging.ERROR)
@@ -202,6 +205,32 @@ def levers() -> list[tuple]:
     def tolerance(value):
         return lambda scenario: replace(scenario, solver=replace(scenario.solver, residual_tolerance=value))
 
+    def spline_by_branches(z, derivative=True):  # eq. 3.23's two pieces, both computed everywhere
+        r = np.abs(z)
+        inner = r <= 0.5
+        rest = np.maximum(1.0 - r, 0.0)
+        r2, rest2 = r * r, rest * rest
+        phi = np.where(inner, 2.0 / 3.0 - 4.0 * r2 + 4.0 * r2 * r, 4.0 / 3.0 * rest2 * rest)
+        if not derivative:
+            return phi, None
+        return phi, np.where(inner, -8.0 * r + 12.0 * r2, -4.0 * rest2) * np.sign(z)
+
+    def one_point_by_direction(h, phi, dphi, maps, point):  # each gradient direction's sums on their own
+        moment = ((h.T * phi) @ h)[None]
+        inverse = shape_functions._checked_inverse(moment, point)
+        b = inverse[:, :, 0]
+        corrected = h @ b[0]
+        if dphi is None:
+            return corrected * phi, None
+        grad = np.empty((len(h), 2))
+        for k in range(2):
+            dmoment = ((h.T * dphi[:, k]) @ h)[None]
+            spread = maps[k] @ moment
+            dmoment += spread + spread.transpose(0, 2, 1)
+            weights = -(inverse @ (dmoment @ b[:, :, None]))[:, :, 0] + b @ maps[k]
+            grad[:, k] = (h @ weights[0]) * phi + corrected * dphi[:, k]
+        return corrected * phi, grad
+
     backend = factorization.factorize(_spd_probe(), symmetric_positive=True).backend
     settings = [  # (scene, label, module attributes, scenario change)
         ("sh12_100x100", f"all levers (now; {backend})", {}, None),
@@ -227,6 +256,10 @@ def levers() -> list[tuple]:
          {(tip_tracking, "NEWTON_TIP_STOP"): 1e-8}, None),
         ("needle20_entry25", "centre columns solved with the factor (not from the kept K^-1 E^T)",
          {(equilibrium, "CENTER_COLUMNS_ON_ROWS"): False}, None),
+        ("needle20_entry25", "the cubic spline by its two branches (not its truncated powers)",
+         {(kernel, "cubic_spline"): spline_by_branches}, None),
+        ("needle20_entry25", "one point's shape-function gradients a direction at a time (tip tracking)",
+         {(shape_functions, "_one_point"): one_point_by_direction}, None),
         ("sh12_100x30", "all levers (now; 2 planner passes)", {}, None),
         ("sh12_100x30", "its indefinite K + H factored by SuperLU (not CHOLMOD's L D L^T)",
          {(factorization, "LDLFactor"): NoLDL}, None),

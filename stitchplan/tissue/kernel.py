@@ -10,7 +10,7 @@ def cubic_spline(z: np.ndarray, derivative: bool = True) -> tuple[np.ndarray, np
     without `derivative`): 2/3 - 4 r^2 + 4 r^3 for r = |z| <= 1/2, 4/3 (1 - r)^3 for 1/2 < r < 1.
 
     Evaluated as the B-spline's truncated powers, 4/3 (1 - r)+^3 - 16/3 (1/2 - r)+^3, the same
-    polynomials without computing both branches everywhere: half the time on a model's pairs."""
+    polynomials without computing both branches everywhere."""
     r = np.abs(z)
     outer = np.maximum(1.0 - r, 0.0)
     inner = np.maximum(0.5 - r, 0.0)
