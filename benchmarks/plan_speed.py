@@ -453,9 +453,11 @@ def allocator_rows(scenes: tuple[str, ...] = ("needle20_entry30", "needle20_entr
                     arguments = ["stitchplan", "plan", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
                                  "--no-compare", *options, "-q", "--export", str(folder / "trajectory.csv"),
                                  "--summary", str(summary)]
-                    script = (f"import atexit, resource, sys; {variants[label]}"
-                              f"atexit.register(lambda: open({str(peak)!r}, 'w').write("
-                              "str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))); "
+                    # VmHWM: the resident set's high-water mark of this process's own memory
+                    # (ru_maxrss also counts the memory of the process it was forked from)
+                    script = (f"import atexit, sys; {variants[label]}"
+                              f"atexit.register(lambda: open({str(peak)!r}, 'w').write(next("
+                              "line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM')))); "
                               f"from stitchplan.cli import main; sys.argv = {arguments!r}; main()")
                     faults = resource.getrusage(resource.RUSAGE_CHILDREN).ru_minflt
                     start = time.perf_counter()
@@ -586,7 +588,7 @@ def main() -> None:
         "gives them back when freed, and the heap's top is returned once 128 KiB is free there. Planned "
         "run: the summary's `wall_seconds` (with the default verification: its rounds' planned runs). "
         "Page faults: the command's process and its replay helper, start-up included. Peak memory: the "
-        "command's process (its maximum resident set).\n",
+        "command's process (the high-water mark of its resident set, VmHWM).\n",
         common.markdown_table(["command", "allocator", "planned run (s)", "whole command (s)", "page faults",
                                "peak memory (MiB)"], [list(row) for row in allocator]),
         "",
