@@ -88,7 +88,8 @@ class TissueModel:
         pairs = self._shape_pairs(points, False)
         columns = self.boundary.free_column[pairs.cols]
         if (columns >= 0).all():
-            return sp.csr_matrix((pairs.values, columns, pairs.indptr), shape=(len(points), self.n_free))
+            return sp.csr_matrix((pairs.values, columns.astype(np.int32, copy=False),  # 32-bit: as scipy keeps them
+                                  pairs.indptr.astype(np.int32, copy=False)), shape=(len(points), self.n_free))
         return (pairs.matrices(len(points), self.n_particles).values @ self.boundary.free_map).tocsr()
 
     def field_at(self, points: np.ndarray, coefficients: np.ndarray, gradients: bool = False):
