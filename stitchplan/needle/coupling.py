@@ -188,7 +188,7 @@ def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
 def _track_csr(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, columns: int) -> sp.csr_matrix:
     """A CSR matrix of the track's rows, its index arrays 32-bit as scipy keeps them (a few
     thousand entries at most): scipy then takes them as they are instead of checking and
-    converting 64-bit ones, a third of each construction's time."""
+    converting 64-bit ones at each construction."""
     return sp.csr_matrix((data, indices.astype(np.int32, copy=False), indptr.astype(np.int32, copy=False)),
                          shape=(len(indptr) - 1, columns))
 
