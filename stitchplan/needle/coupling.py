@@ -67,6 +67,7 @@ import scipy.sparse as sp
 
 from ..config import Needle
 from ..tissue.model import TissueModel
+from ..tissue.shape_functions import rows_csr
 from .geometry import NeedleGeometry
 
 GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on [0, 1]
@@ -174,23 +175,16 @@ def _joined(*matrices: sp.csr_matrix) -> sp.csr_matrix:
     """CSR matrices of one width one under the other, as one new matrix."""
     offsets = np.cumsum([0] + [matrix.nnz for matrix in matrices[:-1]])
     indptr = np.concatenate([[0]] + [matrix.indptr[1:] + offset for matrix, offset in zip(matrices, offsets)])
-    return _track_csr(np.concatenate([matrix.data for matrix in matrices]),
-                      np.concatenate([matrix.indices for matrix in matrices]), indptr, matrices[0].shape[1])
+    return rows_csr(np.concatenate([matrix.data for matrix in matrices]),
+                    np.concatenate([matrix.indices for matrix in matrices]), indptr, matrices[0].shape[1])
 
 
 def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
     """[top; block] as one new CSR matrix."""
     data, indices, counts = block
     indptr = np.concatenate([top.indptr, top.nnz + np.cumsum(counts)])
-    return _track_csr(np.concatenate([top.data, data]), np.concatenate([top.indices, indices]), indptr, top.shape[1])
+    return rows_csr(np.concatenate([top.data, data]), np.concatenate([top.indices, indices]), indptr, top.shape[1])
 
-
-def _track_csr(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, columns: int) -> sp.csr_matrix:
-    """A CSR matrix of the track's rows, its index arrays 32-bit as scipy keeps them (a few
-    thousand entries at most): scipy then takes them as they are instead of checking and
-    converting 64-bit ones at each construction."""
-    return sp.csr_matrix((data, indices.astype(np.int32, copy=False), indptr.astype(np.int32, copy=False)),
-                         shape=(len(indptr) - 1, columns))
 
 
 def _own_rows(attributes: dict) -> dict:

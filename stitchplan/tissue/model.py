@@ -21,7 +21,7 @@ from .particles import (END_GROWTH, end_zones, graded_lattice, graded_particles,
                         leaf_quadrature, segment_breaks)
 from .quadrature import cell_quadrature, natural_boundary_quadrature
 from .shape_functions import (ParticleSearch, ShapeFunctions, ShapePairs, SingularMomentMatrix,
-                              Visibility, rk_shape_functions, rk_shape_pairs)
+                              Visibility, rk_shape_functions, rk_shape_pairs, rows_csr)
 from .shapes import corner_zones, fit_particles, region_index, shape_breaks, shaped_quadrature
 
 log = logging.getLogger(__name__)
@@ -88,8 +88,7 @@ class TissueModel:
         pairs = self._shape_pairs(points, False)
         columns = self.boundary.free_column[pairs.cols]
         if (columns >= 0).all():
-            return sp.csr_matrix((pairs.values, columns.astype(np.int32, copy=False),  # 32-bit: as scipy keeps them
-                                  pairs.indptr.astype(np.int32, copy=False)), shape=(len(points), self.n_free))
+            return rows_csr(pairs.values, columns, pairs.indptr, self.n_free)
         return (pairs.matrices(len(points), self.n_particles).values @ self.boundary.free_map).tocsr()
 
     def field_at(self, points: np.ndarray, coefficients: np.ndarray, gradients: bool = False):

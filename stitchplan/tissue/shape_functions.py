@@ -228,6 +228,14 @@ class ShapePairs:
         return ShapeFunctions(csr(self.values), csr(self.grad[:, 0]), csr(self.grad[:, 1]))
 
 
+def rows_csr(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, columns: int) -> sp.csr_matrix:
+    """A CSR matrix of a few points' rows (a needle track's, a few thousand entries at most)
+    with 32-bit index arrays, as scipy keeps them: scipy then takes them as they are instead
+    of checking and converting 64-bit ones at each construction."""
+    return sp.csr_matrix((data, indices.astype(np.int32, copy=False), indptr.astype(np.int32, copy=False)),
+                         shape=(len(indptr) - 1, columns))
+
+
 def rk_shape_functions(points: np.ndarray, particles: np.ndarray, *args, **kwargs) -> ShapeFunctions:
     """The RK shape functions of `rk_shape_pairs` (same arguments) as sparse
     (n_points x n_particles) matrices."""
