@@ -17,9 +17,15 @@ mm needle scenes' default already is). Per scene and configuration:
   --no-verify`, the converged configuration's CONFIG a copy of the shipped file with the four
   keys) and its speed-up over the planned run at BASELINE (`plan CONFIG --no-compare`, the code
   before the speed work, extracted with `git archive`, as benchmarks/plan_speed.py times it),
-  REPEATS runs each, alternating the three.
+  REPEATS runs each, alternating the three;
+- the same speed-up like for like: BASELINE's planned run on the converged configuration's
+  particles (a copy of the converged file without `needle.cutting_ramp` and
+  `needle.multiplier_length`, which BASELINE does not have: it runs the same discretization
+  with the whole cutting force from the first step and multiplier elements refined with the
+  particles), SAME_REPEATS runs, checked to have the converged run's particle count. It
+  separates what the code gained from what the converged discretization costs.
 
-Writes benchmarks/results/coupling_tradeoff.{csv,md,png}; about 6 minutes (`--report` only
+Writes benchmarks/results/coupling_tradeoff.{csv,md,png}; about 15 minutes (`--report` only
 rewrites the table and the chart from the CSV). Run from the repository root:
     python benchmarks/coupling_tradeoff.py
 """
@@ -53,10 +59,12 @@ BASELINE = plan_speed.BASELINE
 SHIPPED = "mortar"
 RECIPES = {"sh12": "mortar ramp r=4 fixed d=3", "needle20": "mortar ramp fixed d=3"}
 REPEATS = 5
+SAME_REPEATS = 3  # BASELINE on the converged particles: 1-30 s a run
+BASELINE_LACKS = ("cutting_ramp", "multiplier_length")  # needle keys BASELINE's scenarios do not have
 SPEEDUP_TARGET = 4.0  # the planned run's goal against BASELINE (README, Planner speed)
 CHANGE_TARGET = 0.02  # the coupling's goal: the change from the default to half the spacing
 FIELDS = ("scene", "configuration", "coupling", "particles", "passes", "baseline_planned_s", "planned_s", "speedup",
-          "cost", "change", "monotone", "rate", "planned_exit_error_mm")
+          "cost", "change", "monotone", "rate", "planned_exit_error_mm", "baseline_same_s", "speedup_same")
 
 
 def recipe(scene: str) -> str:
@@ -77,6 +85,17 @@ def converged_config(scene: str, folder: Path) -> Path:
     loaded = load_scenario(path)
     if (loaded.discretization, loaded.needle) != (expected.discretization, expected.needle):
         raise SystemExit(f"{path}: does not load as needle_coupling.scene({scene!r}, {recipe(scene)!r})")
+    return path
+
+
+def baseline_config(converged: Path) -> Path:
+    """The converged configuration as BASELINE can read it: the same discretization, without
+    the needle keys it does not have (BASELINE_LACKS)."""
+    data, _ = read_yaml(converged)
+    for key in BASELINE_LACKS:
+        data["needle"].pop(key, None)
+    path = converged.with_name(converged.stem + "_baseline.yaml")
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 
 
@@ -104,7 +123,14 @@ def measure(scenes: tuple[str, ...]) -> list[dict]:
                 for name, (config, _) in configurations.items():
                     after[name].append(planned_run(config, ["--no-compare", "--no-verify", "-q"], folder,
                                                    common.REPO_ROOT))
+            same_config = baseline_config(configurations["converged"][0])
+            same = [planned_run(same_config, ["--no-compare"], folder, baseline) for _ in range(SAME_REPEATS)]
+            if same[-1]["particles"] != after["converged"][-1]["particles"]:
+                raise SystemExit(f"{scene}: {BASELINE} built {same[-1]['particles']} particles from "
+                                 f"{same_config.name}, the converged run {after['converged'][-1]['particles']}")
             baseline_s = statistics.median(before)
+            baseline_same = {"shipped": baseline_s,
+                             "converged": statistics.median(record["wall_seconds"] for record in same)}
             planned = {name: statistics.median(record["wall_seconds"] for record in records)
                        for name, records in after.items()}
             for name, (_, coupling) in configurations.items():
@@ -119,10 +145,12 @@ def measure(scenes: tuple[str, ...]) -> list[dict]:
                        "baseline_planned_s": baseline_s, "planned_s": planned[name],
                        "speedup": baseline_s / planned[name], "cost": planned[name] / planned["shipped"],
                        "change": entry["change"], "monotone": bool(entry["monotone"]), "rate": entry["rate"],
-                       "planned_exit_error_mm": last["exit_error_mm"]}
+                       "planned_exit_error_mm": last["exit_error_mm"], "baseline_same_s": baseline_same[name],
+                       "speedup_same": baseline_same[name] / planned[name]}
                 rows.append(row)
                 print(f"{scene} {name}: {row['particles']} particles, {row['passes']} pass(es), planned run "
-                      f"{planned[name]:.3f} s ({row['speedup']:.1f}x {BASELINE}'s {baseline_s:.3f} s), change "
+                      f"{planned[name]:.3f} s ({row['speedup']:.1f}x {BASELINE}'s {baseline_s:.3f} s, "
+                      f"{row['speedup_same']:.1f}x on the same particles), change "
                       f"{100 * row['change']:+.2f} %{', monotone' if row['monotone'] else ''}", flush=True)
     return rows
 
@@ -141,10 +169,17 @@ def chart(rows: list[dict], path: Path) -> None:
             axes.annotate(row["scene"].replace("needle20_", "n20_"), (row["speedup"], 100 * abs(row["change"])),
                           fontsize=7, xytext=(4, 3 if number % 2 == 0 else -10), textcoords="offset points",
                           color=colour)
+    converged = [row for row in rows if row["configuration"] == "converged"]
+    for row in converged:  # the same rows against BASELINE on their own particles
+        axes.plot([row["speedup"], row["speedup_same"]], [100 * abs(row["change"])] * 2, color="tab:red",
+                  linewidth=0.6, alpha=0.5)
+    axes.scatter([row["speedup_same"] for row in converged], [100 * abs(row["change"]) for row in converged],
+                 marker=">", s=40, color="tab:red", alpha=0.6,
+                 label=f"converged discretization against {BASELINE} on the same particles")
     axes.axvline(SPEEDUP_TARGET, color="grey", linestyle="--", linewidth=1)
     axes.axhline(100 * CHANGE_TARGET, color="grey", linestyle=":", linewidth=1)
     axes.set_xscale("log")
-    axes.xaxis.set_major_locator(FixedLocator([1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0]))
+    axes.xaxis.set_major_locator(FixedLocator([1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0]))
     axes.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}x"))
     axes.xaxis.set_minor_formatter(NullFormatter())
     axes.set_xlabel(f"planned run: speed-up over {BASELINE} (plan --no-compare --no-verify)")
@@ -162,10 +197,12 @@ def chart(rows: list[dict], path: Path) -> None:
 def report(rows: list[dict], redrawn: bool = False) -> list[str]:
     both = [row for row in rows if row["speedup"] >= SPEEDUP_TARGET and abs(row["change"]) < CHANGE_TARGET
             and row["monotone"]]
+    alike = [row for row in rows if row["speedup_same"] >= SPEEDUP_TARGET and abs(row["change"]) < CHANGE_TARGET
+             and row["monotone"]]
     table = [(row["scene"], row["configuration"], row["particles"], row["passes"], row["baseline_planned_s"],
               row["planned_s"], f"{row['speedup']:.2f}x", f"{row['cost']:.2f}", f"{100 * row['change']:+.2f} %",
               "yes" if row["monotone"] else "no", "—" if row["rate"] is None else f"{row['rate']:.1f}",
-              row["planned_exit_error_mm"]) for row in rows]
+              row["planned_exit_error_mm"], row["baseline_same_s"], f"{row['speedup_same']:.2f}x") for row in rows]
     return [
         "# Speed against coupling convergence on the shipped needle scenes", "",
         (f"Redrawn by `python benchmarks/coupling_tradeoff.py --report` from results/coupling_tradeoff.csv "
@@ -178,13 +215,20 @@ def report(rows: list[dict], redrawn: bool = False) -> list[str]:
         f"Planned run: the summary's `wall_seconds` of `plan CONFIG --no-compare --no-verify`, median of "
         f"{REPEATS}, alternating with {BASELINE}'s `plan CONFIG --no-compare` of the shipped file; cost: the "
         "planned run against the shipped discretization's in the same run. Change, "
-        "monotone and rate: the unplanned exit error at h, h/sqrt(2), h/2, from results/needle_coupling.csv.", "",
+        "monotone and rate: the unplanned exit error at h, h/sqrt(2), h/2, from results/needle_coupling.csv. "
+        f"On these particles: {BASELINE}'s `plan CONFIG --no-compare` of the converged file without "
+        f"{' and '.join(f'`needle.{key}`' for key in BASELINE_LACKS)} (keys it does not have), median of "
+        f"{SAME_REPEATS}, the same particles (checked): the speed-up of the code on the same discretization.", "",
         common.markdown_table(("scene", "discretization", "particles", "planner passes",
                                f"planned run {BASELINE} (s)", "planned run now (s)", "speed-up", "cost (x shipped)",
-                               "change h to h/2", "monotone", "rate", "planned exit error (mm)"), table), "",
+                               "change h to h/2", "monotone", "rate", "planned exit error (mm)",
+                               f"{BASELINE} on these particles (s)", "speed-up on these particles"), table), "",
         f"Both targets (>= {SPEEDUP_TARGET:g}x, < {100 * CHANGE_TARGET:g} % and monotone) on "
         f"{len(both)} of {len(rows)} rows"
         + (": " + ", ".join(f"{row['scene']} ({row['configuration']})" for row in both) if both else "") + ".",
+        "", f"With the speed-up on the same particles instead (the code's gain, the discretization's cost "
+        f"set aside): {len(alike)} of {len(rows)} rows"
+        + (": " + ", ".join(f"{row['scene']} ({row['configuration']})" for row in alike) if alike else "") + ".",
         "", "![speed against convergence](coupling_tradeoff.png)", ""]
 
 
@@ -193,7 +237,8 @@ def read_rows() -> list[dict]:
     rows = []
     for row in needle_coupling.read_rows(common.results_path("coupling_tradeoff.csv")):
         typed = dict(row)
-        for field in ("baseline_planned_s", "planned_s", "speedup", "cost", "change", "planned_exit_error_mm"):
+        for field in ("baseline_planned_s", "planned_s", "speedup", "cost", "change", "planned_exit_error_mm",
+                      "baseline_same_s", "speedup_same"):
             typed[field] = float(row[field])
         typed["particles"], typed["passes"] = int(row["particles"]), int(row["passes"])
         typed["monotone"] = row["monotone"] == "True"
