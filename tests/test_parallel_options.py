@@ -174,10 +174,12 @@ def http():
 
 
 @pytest.fixture
-def closed_port() -> str:
-    with socket.create_server(("127.0.0.1", 0)) as listener:
-        port = listener.getsockname()[1]
-    return f"tcp://127.0.0.1:{port}"
+def closed_port():
+    """A port bound but not listening, kept for the test: connecting is refused, and no other
+    process (a Dask worker of another test) can take the port meanwhile, as it could once freed."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as bound:
+        bound.bind(("127.0.0.1", 0))
+        yield f"tcp://127.0.0.1:{bound.getsockname()[1]}"
 
 
 def refusal(address: str, timeout: float = 1.0) -> tuple[str, float]:
