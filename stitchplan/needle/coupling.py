@@ -186,7 +186,6 @@ def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
     return rows_csr(np.concatenate([top.data, data]), np.concatenate([top.indices, indices]), indptr, top.shape[1])
 
 
-
 def _own_rows(attributes: dict) -> dict:
     """A coupling's attributes with copies of its growing rows, which append in place (the
     segment and quadrature rows may be one object, and stay one)."""
