@@ -86,7 +86,8 @@ def main() -> None:
         "cache on (_common.command_environment).\n",
         "*Plan*: `plan CONFIG --no-compare` with the default verification, its whole command and its "
         "planned runs (every round's, the summary's `wall_seconds`); a round whose verified exit error "
-        "is above the planner's tolerance re-aims and replays again (planning/verification.py). "
+        "is above 1.5 x the planner's exit tolerance (0.0075 mm by default) re-aims and replays again "
+        "(planning/verification.py). "
         "*Replay alone*: the exported trajectory replayed on the refined model by itself, `simulate "
         "CONFIG --center-path trajectory.csv --spacing VERIFICATION_SPACING --no-estimate` (the same "
         "particles, checked): start-up, the refined model and every step. The plan's helper replays "
