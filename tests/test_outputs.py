@@ -105,6 +105,15 @@ def test_check_lists_every_problem_and_creates_nothing(tmp_path):
     assert snapshot(tmp_path) == before and not (tmp_path / "new").exists()
 
 
+def test_an_output_cannot_be_the_folder_of_another(tmp_path):
+    folder = tmp_path / "run"
+    with pytest.raises(InputError) as caught:
+        OutputSet({"--export": folder / "t.csv", "--out": folder}).check()
+    assert caught.value.lines == [f"--out: got {folder}, the folder of --export ({folder / 't.csv'}); "
+                                  "expected a file name"]
+    assert not folder.exists()
+
+
 def test_coinciding_files_are_found_through_links_and_spellings(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "a.csv").write_text("x\n")

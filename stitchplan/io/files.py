@@ -4,7 +4,7 @@ CSV, JSON, YAML and HDF5.
 `OutputSet` is the transaction of one command. Before the run, `check()` makes sure every
 output can be created (its folder exists or can be made and takes new files, the target is
 not a folder or a device, an existing target may be written) and that no two outputs, and no
-output and an input, are the same file. After the run, `staged()` hands the writers
+output and an input, are the same file, nor one output the folder another is written into. After the run, `staged()` hands the writers
 temporary paths beside their targets and renames them all into place only when every writer
 succeeded; if a rename fails, the ones before it are undone. So a failed run creates,
 replaces or deletes none of the user's files, and a robot never picks up a half-written or
@@ -77,6 +77,11 @@ class OutputSet:
                 if _same_file(path, self.outputs[other]):
                     lines.append(f"{label}: got {path}, expected a file other than {other} "
                                  f"({self.outputs[other]})")
+                    break
+            for other in labels:  # a new file where another output's new folder is to be made
+                if other != label and not path.exists() and _target(path) in _target(self.outputs[other]).parents:
+                    lines.append(f"{label}: got {path}, the folder of {other} ({self.outputs[other]}); "
+                                 "expected a file name")
                     break
             for other, source in self.inputs.items():
                 if _same_file(path, source):
