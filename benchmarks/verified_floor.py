@@ -11,10 +11,12 @@ and all its steps. That command is the floor a faster planner cannot lower.
 
 For each scene, REPEATS times (median): the plan's whole command, its planned runs (every
 round's, the summary's `wall_seconds`), its verification rounds and their verified exit errors;
-then the kept trajectory replayed alone (its whole command and its run, the summary's
-`wall_seconds`), with its particle count checked against the verification's.
+the same with `planner.predicted_aim: false` (the scene's file with that key changed), which
+re-aims only after the refined replay, alternating with it; then the kept trajectory replayed
+alone (its whole command and its run, the summary's `wall_seconds`), with its particle count
+checked against the verification's.
 
-Writes benchmarks/results/verified_floor.{csv,md} and prints the table. About 2 minutes.
+Writes benchmarks/results/verified_floor.{csv,md} and prints the table. About 4 minutes.
 Run from the repository root:  python benchmarks/verified_floor.py
 """
 
@@ -29,6 +31,8 @@ import statistics  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import yaml  # noqa: E402
+
 import _common as common  # noqa: E402
 
 SCENES = ("sh12_100x100", "sh12_100x30", "hole_near_stitch", "needle20_entry30", "needle20_entry18")
@@ -37,9 +41,17 @@ GOAL_SECONDS = 1.5  # the whole `plan --no-compare` command the speed work aims 
 
 
 def measure(scene: str, folder: Path) -> dict:
-    """The scene's verified plan and its trajectory's replay alone, REPEATS times each."""
-    plans = [common.scene_command("plan", scene, ["--no-compare", "-q"], folder, folder) for _ in range(REPEATS)]
-    plan = plans[-1][1]
+    """The scene's verified plan, with and without the predicted aim, and its trajectory's
+    replay alone, REPEATS times each."""
+    raw = yaml.safe_load((common.REPO_ROOT / "configs" / f"{scene}.yaml").read_text())
+    raw.setdefault("planner", {})["predicted_aim"] = False
+    unpredicted = folder / f"{scene}_without_predicted_aim.yaml"
+    unpredicted.write_text(yaml.safe_dump(raw))
+    plans, befores = [], []
+    for _ in range(REPEATS):  # alternating, so that a slower spell of the machine hits both
+        befores.append(common.config_command("plan", unpredicted, ["--no-compare", "-q"], folder, folder))
+        plans.append(common.scene_command("plan", scene, ["--no-compare", "-q"], folder, folder))
+    plan, before = plans[-1][1], befores[-1][1]
     trajectory = folder / f"{scene}_trajectory.csv"
     (folder / "trajectory.csv").replace(trajectory)
     verification = plan["verification"]
@@ -63,6 +75,9 @@ def measure(scene: str, folder: Path) -> dict:
         "replay_command_s": statistics.median(seconds for seconds, _ in replays),
         "replay_s": statistics.median(summary["wall_seconds"] for _, summary in replays),
         "replay_exit_mm": replay["exit_error_mm"],
+        "unpredicted_command_s": statistics.median(seconds for seconds, _ in befores),
+        "unpredicted_rounds": len(before["verification"]["rounds"]),
+        "unpredicted_verified_mm": before["verified_exit_error_mm"],
     }
 
 
@@ -73,7 +88,8 @@ def main() -> None:
             row = measure(scene, Path(scratch))
             rows.append(row)
             print(f"{scene}: plan --no-compare {row['plan_command_s']:.2f} s ({row['rounds']} round(s), verified "
-                  f"{row['verified_mm']:.4f} mm); replay alone {row['replay_command_s']:.2f} s "
+                  f"{row['verified_mm']:.4f} mm; without the predicted aim {row['unpredicted_command_s']:.2f} s, "
+                  f"{row['unpredicted_rounds']} round(s)); replay alone {row['replay_command_s']:.2f} s "
                   f"(run {row['replay_s']:.2f} s, {row['refined_particles']} particles)", flush=True)
     header = list(rows[0])
     common.write_csv(common.results_path("verified_floor.csv"), header, [[r[k] for k in header] for r in rows])
@@ -87,7 +103,11 @@ def main() -> None:
         "*Plan*: `plan CONFIG --no-compare` with the default verification, its whole command and its "
         "planned runs (every round's, the summary's `wall_seconds`); a round whose verified exit error "
         "is above 1.5 x the planner's exit tolerance (0.0075 mm by default) re-aims and replays again "
-        "(planning/verification.py). "
+        "(planning/verification.py); the plan's first round is re-aimed by the refined model's offset "
+        "predicted from a replay at twice the spacing (`planner.predicted_aim`, "
+        "benchmarks/results/predicted_aim.md) before the refined replay. *Without the predicted aim*: "
+        "the same command on the scene's file with `planner.predicted_aim: false`, run alternately with "
+        "it (the plan before the predicted aim). "
         "*Replay alone*: the exported trajectory replayed on the refined model by itself, `simulate "
         "CONFIG --center-path trajectory.csv --spacing VERIFICATION_SPACING --no-estimate` (the same "
         "particles, checked): start-up, the refined model and every step. The plan's helper replays "
@@ -96,9 +116,11 @@ def main() -> None:
         common.markdown_table(
             ["scene", "particles (planning / refined)", "plan --no-compare (s)", "planned runs (s)",
              "verification rounds", "verified exit error, round 1 (mm)", "verified exit error (mm)",
+             "without the predicted aim: plan (s)", "rounds", "verified (mm)",
              "replay alone: whole command (s)", "replay alone: run (s)"],
             [[r["scene"], f"{r['particles']} / {r['refined_particles']}", r["plan_command_s"], r["planned_s"],
-              r["rounds"], r["first_round_verified_mm"], r["verified_mm"], r["replay_command_s"], r["replay_s"]]
+              r["rounds"], r["first_round_verified_mm"], r["verified_mm"], r["unpredicted_command_s"],
+              r["unpredicted_rounds"], r["unpredicted_verified_mm"], r["replay_command_s"], r["replay_s"]]
              for r in rows]),
         "",
         f"Whole `plan --no-compare` within {GOAL_SECONDS:g} s: {', '.join(met) or 'none'}. The replay alone "

@@ -6,6 +6,7 @@ streamed, a path that ends before the tip exits, and a helper that dies.
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -108,6 +109,41 @@ def test_a_dropped_pass_stops_at_the_next_step(scenario):
     _, _, replayed, helper = _after_two_passes(scenario, replay_first=False)
     assert len(replayed.steps) > 5 and helper.jobs == 2
     assert helper.steps_run <= len(replayed.steps) + 1, helper.steps_run
+
+
+def _streamed_in_two(scenario, shared: int, rows: int = 40):
+    """A pass streamed up to row 4 and left open, then a second pass from the same start
+    that agrees with it on rows 0 .. shared - 1: (the refined scenario, the second pass,
+    its replay by the helper, the closed helper)."""
+    fine = rescaled(scenario, 0.5)
+    first = _fixed_path(fine, rows)
+    second = first.copy()
+    second[shared:] += np.array([0.05, 0.0])
+    helper = BackgroundReplays(fine)
+    try:
+        helper.begin(first[0])
+        for step in range(1, 5):
+            helper.row(step, first[step])
+        time.sleep(1.0)  # the helper builds its model and replays what has come
+        _stream(helper, second)
+        return fine, second, helper.replay(second), helper
+    finally:
+        helper.close()
+
+
+@pytest.mark.parametrize("shared", [7, 2])
+def test_a_pass_that_keeps_the_first_steps_of_the_one_before_is_replayed_alike(scenario, shared):
+    """A re-aimed pass keeps the earlier pass's first steps (planning.planner.PassPrefix): the
+    helper goes on with it where the centres it has used agree, and starts again where they
+    do not (shared = 2: the helper may have replayed up to row 4 of the first pass). Either way
+    the replay is the second pass's, as this process replays it."""
+    fine, second, replayed, helper = _streamed_in_two(scenario, shared)
+    expected = InlineReplays(fine).replay(second)
+    assert replayed.achieved_exit_def.tolist() == expected.achieved_exit_def.tolist()
+    assert [s.center.tolist() for s in replayed.steps] == [s.center.tolist() for s in expected.steps]
+    assert helper.jobs == 2
+    if shared == 7:  # never more steps than the second pass's own: nothing was replayed twice
+        assert helper.steps_run <= len(replayed.steps) + 1, helper.steps_run
 
 
 def test_a_path_that_ends_before_the_exit_fails_alike(scenario):

@@ -11,7 +11,9 @@ centre path a robot can follow.
   error is what `simulate --center-path trajectory.csv --spacing verification_spacing_mm`
   gives;
 - the exit error estimate (runs at h and 2h) bounds and tracks the actual deviation from a
-  run at h/2.
+  run at h/2;
+- the predicted aim is the refined model's offset predicted from a replay at 2h, and on a
+  block where the unaimed plan misses on the refined model it saves the second round.
 """
 
 from __future__ import annotations
@@ -31,12 +33,16 @@ from stitchplan.needle.insertion import run_insertion
 from stitchplan.planning.planner import (
     MoveLimits,
     PassOffsets,
+    exit_error_vector,
     path_smoothness,
     run_plan,
 )
 from stitchplan.planning.trajectory import DECIMALS_MM
 from stitchplan.planning.verification import (
+    PREDICTED_RATIO,
+    VERIFIED_FACTOR,
     exit_deviations,
+    plan_verified,
     rescaled,
     simulate_with_estimate,
 )
@@ -178,3 +184,25 @@ def test_exit_error_estimate_tracks_the_deviation_from_a_finer_run():
     actual = exit_deviations(result, finer)["deviation_mm"]
     assert actual > 0.01  # a deviation worth estimating
     assert actual <= estimate.estimate_mm <= 4.0 * actual, (estimate.estimate_mm, actual)
+
+
+def test_the_predicted_aim_re_aims_before_the_refined_replay_and_saves_a_round():
+    """With planner.predicted_aim the plan is re-aimed by the refined model's offset predicted
+    from a replay of its trajectory at 2h, (e(h) - e(2h)) / PREDICTED_RATIO, before the
+    refined replay: on this block one round then verifies within VERIFIED_FACTOR x the exit
+    tolerance, where the unaimed plan misses on the refined model and takes a second."""
+    raw = scene_raw(30.0, 24.0, 4.0, 0.16)
+    scenario = parse_scenario(raw)
+    aimed = plan_verified(scenario, compare=False)
+    plain = plan_verified(parse_scenario({**raw, "planner": {"predicted_aim": False}}), compare=False)
+    threshold = VERIFIED_FACTOR * scenario.planner.exit_tolerance
+    first = aimed.verification.rounds[0]
+    unaimed = run_plan(scenario, compare=False)
+    coarse = run_insertion(rescaled(scenario, 2.0), center_path=unaimed.exported_centers)
+    expected = (exit_error_vector(unaimed.planned) - exit_error_vector(coarse)) / PREDICTED_RATIO
+    assert first["aimed_by"] == "predicted offset"
+    np.testing.assert_allclose(first["predicted_offset_mm"], expected, rtol=1e-9, atol=1e-12)
+    assert len(aimed.verification.rounds) == 1 and aimed.verification.exit_error_mm <= threshold
+    assert plain.verification.rounds[0]["aimed_by"] == "none"
+    assert plain.verification.rounds[0]["verified_exit_error_mm"] > threshold
+    assert len(plain.verification.rounds) > 1

@@ -9,8 +9,10 @@ builds the second model (and factors its K0) while this process builds its own, 
 replays each pass as its centres arrive, on the machine's second core: the replay of the
 pass that is kept overlaps the planning instead of following it. A pass that is not kept
 is dropped at the helper's next step once the next pass begins (it reads what has come at
-every step); a trajectory that is not the last streamed one (the best of several passes)
-is replayed whole when asked for. `submit` starts a path known from the start
+every step), unless the next pass keeps every centre the replay has used so far (a re-aimed
+pass keeps the first pass's early steps): the replay then goes on with the next pass's
+centres. A trajectory that is not the last streamed one (the best of several passes) is
+replayed whole when asked for. `submit` starts a path known from the start
 (`simulate`'s estimate run) at once.
 
 Both kinds replay with run_insertion on the same inputs, one model kept for all their
@@ -233,13 +235,23 @@ class _Superseded(Exception):
 
 class _StreamedPath(CenterReplay):
     """The centres of a planner pass as they arrive; CenterReplay's once the pass has ended
-    (its path then: a row the pass did not reach ends the replay as CenterReplay's does)."""
+    (its path then: a row the pass did not reach ends the replay as CenterReplay's does).
 
-    def __init__(self, receive, pending, inbox: collections.deque, job: int, entry_center: np.ndarray):
+    A newer pass from the same warm start whose centres agree with every one used so far (a
+    re-aimed pass keeps the earlier pass's first steps: planning.planner.PassPrefix) is
+    adopted: the replay goes on with its centres instead of starting again. The pass's
+    messages are kept: at the first centre that differs from one already used they go back to
+    the inbox and the replay starts again from them (_Superseded)."""
+
+    def __init__(self, receive, pending, inbox: collections.deque, message: tuple):
         super().__init__(np.zeros((0, 2)))
-        self._receive, self._pending, self._inbox, self._job = receive, pending, inbox, job
+        self._receive, self._pending, self._inbox = receive, pending, inbox
+        _, self.job, self._warm, entry_center = message  # job: the pass replayed now (adopted or not)
         self._rows = {0: entry_center}
+        self._used: dict[int, np.ndarray] = {}  # the centres the replay has taken, by step
+        self._kept: list[tuple] = [message]  # the pass's messages so far
         self.steps = 0  # steps asked for
+        self.adoptions = 0  # newer passes taken over
         self._ended = False
         self._asked = False  # the main process waits for this replay: nothing more will come
 
@@ -249,20 +261,45 @@ class _StreamedPath(CenterReplay):
         self.steps += step > 0
         while not self._asked and ((not self._ended and step not in self._rows) or self._pending()):
             message = self._receive()
-            if message[0] == "send" and message[1] == self._job:
+            if message[0] == "send" and message[1] == self.job:
                 self._inbox.appendleft(message)  # answered once the replay is done
                 self._asked = True
                 continue
-            if message[0] in ("stream", "path", "send", "stop"):
+            if message[0] == "stream" and message[2] == self._warm and self._agrees(0, message[3]):
+                self._adopt(message)
+                continue
+            if message[0] in ("stream", "path", "send", "stop"):  # this pass is dropped
                 self._inbox.appendleft(message)
                 raise _Superseded
-            if message[1] != self._job:  # a dropped job's
+            if message[1] != self.job:  # a dropped job's
                 continue
+            self._kept.append(message)
             if message[0] == "row":
+                if not self._agrees(message[2], message[3]):
+                    self._start_again()
                 self._rows[message[2]] = message[3]
             elif message[0] == "end":
+                if not all(self._agrees(row_step, row) for row_step, row in enumerate(message[2])):
+                    self._start_again()
                 self._ended, self.path = True, message[2]
-        return super().predict(center, step) if self._ended else self._rows[step]
+        center = super().predict(center, step) if self._ended else self._rows[step]
+        self._used[step] = center
+        return center
+
+    def _agrees(self, step: int, center: np.ndarray) -> bool:
+        """Whether `center` is the one the replay took at `step` (or took none there yet)."""
+        return step not in self._used or np.array_equal(self._used[step], center)
+
+    def _adopt(self, message: tuple) -> None:
+        self.job, self._rows, self._ended = message[1], {0: message[3]}, False
+        self._kept = [message]
+        self.adoptions += 1
+
+    def _start_again(self) -> None:
+        """End this replay; the pass's messages go back to the inbox, to be replayed afresh."""
+        for kept in reversed(self._kept):
+            self._inbox.appendleft(kept)
+        raise _Superseded
 
 
 def _end_with(parent: int) -> None:
@@ -330,7 +367,7 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: i
         job, warm, payload = message[1], message[2], message[3]
         start = sent[1] if warm is not None and warm == sent[0] else None
         if kind == "stream":
-            control, path = _StreamedPath(receive, pending, inbox, job, payload), None
+            control, path = _StreamedPath(receive, pending, inbox, message), None
         else:
             control, path = None, payload
         try:
@@ -343,5 +380,5 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: i
             result, error = None, failure
         except Exception as failure:  # noqa: BLE001 -- the main process replays and reports it
             result, error = None, RuntimeError(f"{type(failure).__name__}: {failure}")
-        done = (job, result, error)
+        done = (control.job if kind == "stream" else job, result, error)
         steps_run += len(result.steps) if result is not None else getattr(control, "steps", 0)

@@ -29,6 +29,19 @@ exit error of a corrected plan is about |delta|, and `exit_error_estimate_mm` sa
 With planner.target `symmetric` on a stitch across a wound the rounds judge and re-aim the
 bites' difference the same way: the refined model's offset b_refined - b_base aims the
 passes at the difference -(b_refined - b_base) on the base model (run_plan `bite_aim`).
+
+Predicted aim (planner.predicted_aim, the default). Before the first refined replay the
+trajectory is replayed at 2h (a quarter of the planning model's particles), and the refined
+model's offset is predicted from the change between 2h and h: delta ~ (e_h - e_2h) /
+PREDICTED_RATIO. When |e_base + delta| is above VERIFIED_FACTOR x exit_tolerance the passes
+are aimed at -delta at once, and the first round's refined replay judges that plan (a miss
+re-aims by the measured offset as above). So where the base model's bias is larger than the
+tolerance, the first round's refined replay is of the re-aimed plan, and the re-aimed pass,
+which keeps the first pass's early steps, is replayed by the helper as the continuation of
+the first pass's replay (planning/replays.py): one refined replay instead of two. The ratio
+is a property of the discretization that the prediction assumes; only the aim depends on it.
+The symmetric target is not predicted.
+
 A later round's replay starts each step's Newton solve from the round before (run_insertion
 `start_from`): its centres are prescribed, so it ends in the same equilibria to the residual
 tolerance, in fewer iterations. The re-planning passes start cold (planning.planner.run_plan).
@@ -36,7 +49,7 @@ The replays (the refined model's, or without verification the estimate's at 2h) 
 by one `replays` object of planning/replays.py for the whole plan: the `plan` and
 `simulate` commands give them to a helper process, which replays each planner pass while
 the planning goes on; a round's `replay_wall_seconds` then runs from the start of the pass
-it replays.
+it replays (of the first pass, where the replay went on with a re-aimed one).
 """
 
 from __future__ import annotations
@@ -63,6 +76,10 @@ ESTIMATE_FACTOR = 2.0  # the exit error estimate's second run: its spacing / the
 VERIFIED_FACTOR = 1.5  # a verified exit error within 1.5 x exit_tolerance needs no correction
 AIMED_TOLERANCE_FRACTION = 0.4  # passes with an aim stop within this x exit_tolerance of it
 MAX_CORRECTIONS = 2
+# the exit-error vector's change from 2h to h over its change from h to h/2, by which the
+# predicted aim scales the first (2^p for order p): 2.6-4.2 on the shipped plans' trajectories
+# (benchmarks/results/predicted_aim.md)
+PREDICTED_RATIO = 3.0
 
 
 @dataclass
@@ -190,6 +207,19 @@ def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = 
     return result, estimate_exit_error(scenario, result, center_path, replays=replays, **options)
 
 
+def predicted_offset(scenario: Scenario, plan: PlanResult, **options) -> np.ndarray | None:
+    """The refined model's offset e(h/2) - e(h) of the exit-error vector for the plan's
+    trajectory, predicted from its replay at 2h as (e(h) - e(2h)) / PREDICTED_RATIO; None
+    when the model at 2h cannot replay it."""
+    try:
+        coarse = InlineReplays(rescaled(scenario, ESTIMATE_FACTOR), **_replay_options(options))
+        replayed = coarse.replay(plan.exported_centers)
+    except (InputError, NumericalFailure) as error:
+        log.info("verification: no predicted offset, the model at twice the spacing failed (%s)", error)
+        return None
+    return (exit_error_vector(plan.planned) - exit_error_vector(replayed)) / PREDICTED_RATIO
+
+
 def replay(replays: InlineReplays, centers: np.ndarray) -> InsertionResult | None:
     """The centre path replayed; None when the tip does not leave the tissue within it."""
     try:
@@ -232,6 +262,22 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     for record in result.passes:
         record["round"] = 1
     planning_seconds = result.planned.wall_seconds
+    predicted = None
+    if settings.predicted_aim and not symmetric:
+        predicted = predicted_offset(scenario, result, **options)
+        miss = None if predicted is None else float(np.linalg.norm(exit_error_vector(result.planned) + predicted))
+        if miss is not None and miss > VERIFIED_FACTOR * settings.exit_tolerance:
+            log.info("verification: refined model's exit offset predicted from 2h (%.4g, %.4g) mm; re-planning "
+                     "aimed at (%.4g, %.4g) mm before the refined replay", *predicted, *-predicted)
+            again = run_plan(scenario, compare=False, on_step=on_step, aim=-predicted, shooting=result.shooting,
+                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
+                             stream=replays, **options)
+            planning_seconds += again.planned.wall_seconds
+            for record in again.passes:
+                record["round"] = 1
+            result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
+        else:
+            predicted = None  # no re-aiming: the refined replay is predicted to pass
     for correction in range(MAX_CORRECTIONS + 1):
         if correction:
             bite_aim = 0.0
@@ -254,9 +300,13 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
         replayed = replay(replays, result.exported_centers)  # started from the round before's
-        verified = {"round": correction + 1, "planned_exit_error_mm": result.planned.exit_error_mm,
+        verified = {"round": correction + 1, "aimed_by": ("predicted offset" if predicted is not None else "none")
+                    if correction == 0 else "refined offset",
+                    "planned_exit_error_mm": result.planned.exit_error_mm,
                     "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
                     "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
+        if correction == 0 and predicted is not None:
+            verified["predicted_offset_mm"] = predicted.tolist()
         if symmetric:
             verified["planned_bite_difference_mm"] = result.planned.bites["difference_mm"]
             verified["verified_bite_difference_mm"] = (None if replayed is None or replayed.bites is None
