@@ -127,6 +127,31 @@ def test_a_run_along_an_earlier_runs_centres_takes_its_steps_over():
     assert apart.exit_error_mm != first.exit_error_mm
 
 
+def test_a_run_that_takes_steps_over_only_ends_as_if_made_alone():
+    """run_insertion `take_over_only`: the steps whose centres are the earlier run's are taken
+    over with its needle coupling and its solver's factor and kept columns
+    (SaddlePointSolver.state), the others start from this run's previous step alone; so the
+    run is, to the last bit, the one made from no earlier run. A state sent to another
+    process leaves the factor behind."""
+    import pickle
+
+    scenario = small_scene()
+    tissue = PreparedTissue(scenario)
+    first = run_insertion(scenario, tissue=tissue)
+    moved = np.array([first.center_after(n) for n in range(len(first.steps) + 1)])
+    moved[6:] += [0.02, 0.0]  # from step 6 on
+    alone = run_insertion(scenario, center_path=moved, tissue=tissue)
+    taken = run_insertion(scenario, center_path=moved, tissue=tissue, start_from=first, take_over_only=True)
+    assert [s.newton_iterations for s in taken.steps[:5]] == [0] * 5
+    assert [s.newton_iterations for s in taken.steps[5:]] == [s.newton_iterations for s in alone.steps[5:]]
+    assert taken.achieved_exit.tolist() == alone.achieved_exit.tolist()
+    for mine, made_alone in zip(taken.states, alone.states, strict=True):
+        np.testing.assert_array_equal(mine.free, made_alone.free)
+        np.testing.assert_array_equal(mine.multipliers, made_alone.multipliers)
+    assert first.states[-1].solver is not None
+    assert pickle.loads(pickle.dumps(first.states[-1])).solver is None
+
+
 def test_a_steps_first_residual_reuses_the_stress_where_the_step_before_ended(monkeypatch):
     """Each step's Newton solve starts where the step before ended, at the displacements of
     its last residual: the internal force there is kept, not evaluated again, and the run

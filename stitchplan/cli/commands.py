@@ -208,7 +208,7 @@ def plan(
     scenario = replace(scenario, robot=robot,
                        planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
     from ..io import reports
-    from ..planning.verification import plan_replays, plan_verified, replay_scenario
+    from ..planning.verification import plan_replays, plan_verified, prediction_replays, replay_scenario
     from ..io.progress import progress_bar
 
     from ..resources import PLAN_RUNS, VERIFICATION_RUNS, verification_origin
@@ -236,12 +236,16 @@ def plan(
                                 linear_solver=linear_solver, tip_tracking=tip_tracking)
         return
     expected = _expected_steps(scenario)
-    # the trajectory's replay goes on in a helper process alongside (planning/replays.py)
+    # the trajectory's replays (and the predicted aim's at 2h) go on in helper processes
+    # alongside (planning/replays.py)
     with (_naming_files(scenario_path),
           plan_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking) as replays,
+          prediction_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking)
+          as predictions,
           progress_bar("planned steps", (2 if compare else 1) * expected) as advance):
         result = plan_verified(scenario, compare=compare, verify=verify, linear_solver=linear_solver,
-                               tip_tracking=tip_tracking, on_step=lambda record: advance(), replays=replays)
+                               tip_tracking=tip_tracking, on_step=lambda record: advance(), replays=replays,
+                               predictions=predictions)
     if auto_note is not None:
         result.planned.events.insert(0, auto_note)
     reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot,

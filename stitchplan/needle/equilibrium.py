@@ -273,7 +273,7 @@ class NeedleInsertion:
         """The state now; with `coupling` also the needle coupling's (after a step: what a
         later run takes over)."""
         return Snapshot(self.free.copy(), self.multipliers.copy(), self.center.copy(), self.last_violation,
-                        self.coupling.state() if coupling else None)
+                        self.coupling.state() if coupling else None, self.saddle.state() if coupling else None)
 
     def restore(self, snapshot: Snapshot) -> None:
         self.free, self.multipliers = snapshot.free, snapshot.multipliers
@@ -284,6 +284,8 @@ class NeedleInsertion:
         state before it, with the same tip point and centre: its needle coupling and state,
         instead of adding the point and solving the same equations again (run_insertion)."""
         self.coupling.restore(state.coupling)
+        if state.solver is not None:  # else (a state from another process) this run's factor solves on
+            self.saddle.restore(state.solver)
         self.restore(state)
 
     def move_center(self, center: np.ndarray) -> None:

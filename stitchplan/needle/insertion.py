@@ -79,6 +79,7 @@ def run_insertion(
     on_step: Callable[[NeedleStep], None] | None = None,
     tissue: PreparedTissue | None = None,
     start_from: InsertionResult | None = None,
+    take_over_only: bool = False,
 ) -> InsertionResult:
     """Insert the needle step by step until its tip leaves the tissue.
 
@@ -95,7 +96,10 @@ def run_insertion(
     are the earlier run's (they would be tracked from the same state about the same centre),
     and so are its equilibria where its centre control holds the centre where the earlier
     run's was: the state and needle coupling after such a step are taken over
-    (NeedleInsertion.take_over), not solved again from the earlier state.
+    (NeedleInsertion.take_over), not solved again from the earlier state. With
+    `take_over_only` the earlier run gives only those steps and no Newton starts: a run made
+    from no earlier run along centres that agree with `start_from`'s (itself made from none)
+    up to some step, which then ends as if made alone, to the last bit.
     """
     if scenario.discretization.accuracy is not None:
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
@@ -113,6 +117,7 @@ def run_insertion(
     steps: list[NeedleStep] = []
     states: list[Snapshot] = []  # the equilibrium after each step
     earlier = start_from.states if start_from is not None and start_from.model is insertion.model else []
+    guesses = [] if take_over_only else earlier  # where the steps not taken over start their Newton solve
     # every centre so far the earlier run's (a needle across no wound, whose steps' records
     # hold their tracked tip points)
     followed = bool(earlier) and not geometry.gaps
@@ -136,7 +141,7 @@ def run_insertion(
             entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
             if entered is None:
                 step_done(_needle_step(insertion, control, step, rotation, None, "gap", condition_numbers,
-                                       started, guess=_at(earlier, step, insertion)))
+                                       started, guess=_at(guesses, step, insertion)))
                 continue
             entry_point, entry_rotation = entered
             crossings.append(("entry", entry_point, entry_rotation))
@@ -165,12 +170,12 @@ def run_insertion(
                 log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
                          step, exit_rotation)
                 step_done(_needle_step(insertion, control, step, rotation, None, method, condition_numbers,
-                                       started, guess=_at(earlier, step, insertion)))
+                                       started, guess=_at(guesses, step, insertion)))
                 continue
             return _result(insertion, steps, states, displacements, exit_point, exit_rotation,
                            time.perf_counter() - wall_start, crossings)
         step_done(_needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
-                               fraction, _at(earlier, step, insertion), taken=taken))
+                               fraction, _at(guesses, step, insertion), taken=taken))
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
 

@@ -17,14 +17,19 @@ from .geometry import NeedleGeometry
 class Snapshot:
     """One state of an insertion: the tissue's free coefficients (n_free, 2), the
     multipliers, the centre and the largest constraint violation (mm); after a needle step
-    also the needle coupling's state (NeedleCoupling.state), for a later run that takes the
-    step over (run_insertion `start_from`)."""
+    also the needle coupling's state (NeedleCoupling.state) and the saddle-point solver's
+    (SaddlePointSolver.state: its factor and kept columns), for a later run that takes the
+    step over (run_insertion `start_from`) and then solves on as this run did."""
 
     free: np.ndarray
     multipliers: np.ndarray
     center: np.ndarray
     violation: float
     coupling: dict | None = None
+    solver: tuple | None = None  # holds the factor itself: not pickled (another process solves with its own)
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "solver": None}
 
 
 @dataclass

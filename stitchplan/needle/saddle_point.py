@@ -163,6 +163,18 @@ class SaddlePointSolver:
             self.backends.append(factor.backend)
         self._solved_rows, self._solved_count, self._coupled = None, 0, np.zeros((0, 0))  # sized by the next solve
 
+    def state(self) -> tuple:
+        """The direct solves' factor and what is kept for it now, for a later run that takes
+        this state over (`restore`). Nothing is copied: a kept buffer's first columns are never
+        written again for its factor, and only those are handed on."""
+        rows = None if self._solved_rows is None else self._solved_rows[:, :self._solved_count]
+        return self._factor, self.backend, rows, self._solved_count, self._coupled
+
+    def restore(self, state: tuple) -> None:
+        """Solve on from `state` (made by `state()`), as the run that made it did; the next
+        rows added grow a buffer of their own."""
+        self._factor, self.backend, self._solved_rows, self._solved_count, self._coupled = state
+
     def forget(self) -> None:
         """Drop the factor of K + H, so the next direct solve factorizes afresh."""
         self._factor = None

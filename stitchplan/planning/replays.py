@@ -11,7 +11,9 @@ pass that is kept overlaps the planning instead of following it. A pass that is 
 is dropped at the helper's next step once the next pass begins (it reads what has come at
 every step), unless the next pass keeps every centre the replay has used so far (a re-aimed
 pass keeps the first pass's early steps): the replay then goes on with the next pass's
-centres. A trajectory that is not the last streamed one (the best of several passes) is
+centres; and a replay that has already ended gives a next pass from the same start the steps
+where their centres agree (run_insertion `take_over_only`, to the last bit what they would
+compute). A trajectory that is not the last streamed one (the best of several passes) is
 replayed whole when asked for. `submit` starts a path known from the start
 (`simulate`'s estimate run) at once.
 
@@ -191,6 +193,25 @@ class BackgroundReplays(InlineReplays):
             self._process.join()
 
 
+class StreamTee:
+    """Hands a planner pass's centres to several replays (planning.planner.run_plan `stream`)."""
+
+    def __init__(self, *replays: InlineReplays):
+        self.replays = replays
+
+    def begin(self, entry_center: np.ndarray) -> None:
+        for replays in self.replays:
+            replays.begin(entry_center)
+
+    def row(self, step: int, center: np.ndarray) -> None:
+        for replays in self.replays:
+            replays.row(step, center)
+
+    def end(self, centers: np.ndarray) -> None:
+        for replays in self.replays:
+            replays.end(centers)
+
+
 def helper_available() -> bool:
     """Whether a forked helper process can run the replays (module docstring)."""
     if os.environ.get(HELPER_VARIABLE, "") == "0":
@@ -340,6 +361,7 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: i
         return bool(inbox) or connection.poll()
 
     done: tuple = (None, None, None)  # the newest finished job: (job, result, error)
+    alone: InsertionResult | None = None  # the newest replay made from no earlier one
     steps_run = 0  # needle steps of every replay since the last answer, dropped ones too
     sent: tuple[int | None, InsertionResult | None] = (None, None)  # the replay last sent back
     while True:
@@ -366,13 +388,19 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: i
             continue  # the rows and end of a dropped job
         job, warm, payload = message[1], message[2], message[3]
         start = sent[1] if warm is not None and warm == sent[0] else None
+        # a replay from no earlier one takes over the steps where its centres are those of the
+        # last such replay (a re-aimed pass keeps the first pass's early steps), to the last bit
+        # what it would compute
+        take_over_only = warm is None and alone is not None
+        if take_over_only:
+            start = alone
         if kind == "stream":
             control, path = _StreamedPath(receive, pending, inbox, message), None
         else:
             control, path = None, payload
         try:
             result, error = run_insertion(scenario, control=control, center_path=path, tissue=tissue,
-                                          start_from=start, **options), None
+                                          start_from=start, take_over_only=take_over_only, **options), None
         except _Superseded:
             steps_run += control.steps
             continue
@@ -381,4 +409,6 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: i
         except Exception as failure:  # noqa: BLE001 -- the main process replays and reports it
             result, error = None, RuntimeError(f"{type(failure).__name__}: {failure}")
         done = (control.job if kind == "stream" else job, result, error)
+        if warm is None and result is not None:
+            alone = result
         steps_run += len(result.steps) if result is not None else getattr(control, "steps", 0)

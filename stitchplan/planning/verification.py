@@ -55,6 +55,7 @@ it replays (of the first pass, where the replay went on with a re-aimed one).
 from __future__ import annotations
 
 import logging
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,8 +66,8 @@ from ..events import Event, EventKind
 from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
-from .planner import PlanResult, exit_error_vector, run_plan, symmetric_aim
-from .replays import InlineReplays, replays_for
+from .planner import PlanResult, exit_error_vector, run_plan, scenario_needle_gaps, symmetric_aim
+from .replays import InlineReplays, StreamTee, replays_for
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +195,20 @@ def plan_replays(scenario: Scenario, verify: bool = True, background: bool = Tru
     return replays_for(replay_scenario(scenario, verify), background, **_replay_options(options))
 
 
+def predicts_aim(scenario: Scenario, verify: bool = True) -> bool:
+    """Whether plan_verified predicts the refined model's offset (the module docstring)."""
+    symmetric = scenario.planner.target == "symmetric" and bool(scenario_needle_gaps(scenario))
+    return verify and scenario.planner.predicted_aim and not symmetric
+
+
+def prediction_replays(scenario: Scenario, verify: bool = True, background: bool = True, **options):
+    """replays_for the predicted aim's model at 2h, which replay the first planner pass while
+    the planning goes on (a context manager); None where plan_verified predicts no aim."""
+    if not predicts_aim(scenario, verify):
+        return nullcontext(None)
+    return replays_for(rescaled(scenario, ESTIMATE_FACTOR), background, **_replay_options(options))
+
+
 def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = None, estimate: bool = True,
                            on_step=None, replays: InlineReplays | None = None,
                            **options) -> tuple[InsertionResult, ExitEstimate | None]:
@@ -207,12 +222,13 @@ def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = 
     return result, estimate_exit_error(scenario, result, center_path, replays=replays, **options)
 
 
-def predicted_offset(scenario: Scenario, plan: PlanResult, **options) -> np.ndarray | None:
+def predicted_offset(scenario: Scenario, plan: PlanResult, predictions: InlineReplays | None = None,
+                     **options) -> np.ndarray | None:
     """The refined model's offset e(h/2) - e(h) of the exit-error vector for the plan's
-    trajectory, predicted from its replay at 2h as (e(h) - e(2h)) / PREDICTED_RATIO; None
-    when the model at 2h cannot replay it."""
+    trajectory, predicted from its replay at 2h (by `predictions`, prediction_replays's, when
+    given) as (e(h) - e(2h)) / PREDICTED_RATIO; None when the model at 2h cannot replay it."""
     try:
-        coarse = InlineReplays(rescaled(scenario, ESTIMATE_FACTOR), **_replay_options(options))
+        coarse = predictions or InlineReplays(rescaled(scenario, ESTIMATE_FACTOR), **_replay_options(options))
         replayed = coarse.replay(plan.exported_centers)
     except (InputError, NumericalFailure) as error:
         log.info("verification: no predicted offset, the model at twice the spacing failed (%s)", error)
@@ -238,17 +254,22 @@ def _verified_miss(replayed: InsertionResult | None, symmetric: bool) -> float:
 
 
 def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True, on_step=None,
-                  replays: InlineReplays | None = None, **options) -> PlanResult:
+                  replays: InlineReplays | None = None, predictions: InlineReplays | None = None,
+                  **options) -> PlanResult:
     """run_plan, then (with `verify`) the exported trajectory replayed on the refined model
     and, where needed, the passes re-aimed by the refined model's offset (module docstring).
     The plan's `verification` is set (with `verify`), and its `estimate`, the exit error
     estimate of the planned run: from the refined replay, or without `verify` from a replay
     of the trajectory at 2h. `replays`: plan_replays's, which replay each planner pass while
-    the planning goes on; by default the replays run here after it."""
+    the planning goes on; by default the replays run here after it. `predictions`:
+    prediction_replays's, which replay the first pass at 2h for the predicted aim alongside;
+    by default that replay runs here after the pass."""
     tissue = PreparedTissue(scenario)  # shared by the plan's runs and the re-planning rounds
     other = replay_scenario(scenario, verify)
     replays = replays or InlineReplays(other, **_replay_options(options))  # one model for every round
-    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=replays, **options)
+    predict = predicts_aim(scenario, verify)
+    first_stream = StreamTee(replays, predictions) if predict and predictions is not None else replays
+    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=first_stream, **options)
     if not verify:
         result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, replays=replays,
                                               **options)
@@ -263,8 +284,8 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
         record["round"] = 1
     planning_seconds = result.planned.wall_seconds
     predicted = None
-    if settings.predicted_aim and not symmetric:
-        predicted = predicted_offset(scenario, result, **options)
+    if predict and not symmetric:
+        predicted = predicted_offset(scenario, result, predictions, **options)
         miss = None if predicted is None else float(np.linalg.norm(exit_error_vector(result.planned) + predicted))
         if miss is not None and miss > VERIFIED_FACTOR * settings.exit_tolerance:
             log.info("verification: refined model's exit offset predicted from 2h (%.4g, %.4g) mm; re-planning "
