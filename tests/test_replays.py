@@ -35,12 +35,17 @@ def scenario():
 
 
 def _plan(scenario, verify: bool, kind):
+    """The plan with its replays (and with `verify` the predicted aim's at 2h) made by `kind`."""
     factor = 0.5 if verify else 2.0
     replays = kind(rescaled(scenario, factor))
+    predictions = kind(rescaled(scenario, 2.0)) if verify else None
     try:
-        return plan_verified(scenario, compare=False, verify=verify, replays=replays), replays
+        return plan_verified(scenario, compare=False, verify=verify, replays=replays,
+                             predictions=predictions), replays
     finally:
         replays.close()
+        if predictions is not None:
+            predictions.close()
 
 
 def _fingerprint(plan) -> dict:
@@ -63,8 +68,9 @@ def test_a_plan_verified_by_the_helper_is_the_plan_verified_here(scenario, verif
     if verify:
         assert (here.verification.replayed_in, helper.verification.replayed_in) == ("this process",
                                                                                  "helper process")
-    if verify:  # the rounds and passes this test is for
+    if verify:  # the rounds, passes and predicted aim this test is for
         assert len(here.verification.rounds) > 1 and len({p["pass"] for p in here.passes}) > 1
+        assert here.verification.rounds[0]["aimed_by"] == "predicted offset"
 
 
 def _fixed_path(scenario, rows: int, shift: float = 0.0) -> np.ndarray:

@@ -187,19 +187,20 @@ def test_exit_error_estimate_tracks_the_deviation_from_a_finer_run():
 
 
 def test_the_predicted_aim_re_aims_before_the_refined_replay_and_saves_a_round():
-    """With planner.predicted_aim the plan is re-aimed by the refined model's offset predicted
-    from a replay of its trajectory at 2h, (e(h) - e(2h)) / PREDICTED_RATIO, before the
-    refined replay: on this block one round then verifies within VERIFIED_FACTOR x the exit
-    tolerance, where the unaimed plan misses on the refined model and takes a second."""
+    """With planner.predicted_aim the passes after the first aim at minus the refined model's
+    offset predicted from a replay of the first pass's trajectory at 2h, (e(h) - e(2h)) /
+    PREDICTED_RATIO, before any refined replay: on this block one round then verifies within
+    VERIFIED_FACTOR x the exit tolerance, where the unaimed plan misses on the refined model
+    and takes a second."""
     raw = scene_raw(30.0, 24.0, 4.0, 0.16)
     scenario = parse_scenario(raw)
     aimed = plan_verified(scenario, compare=False)
     plain = plan_verified(parse_scenario({**raw, "planner": {"predicted_aim": False}}), compare=False)
     threshold = VERIFIED_FACTOR * scenario.planner.exit_tolerance
     first = aimed.verification.rounds[0]
-    unaimed = run_plan(scenario, compare=False)
-    coarse = run_insertion(rescaled(scenario, 2.0), center_path=unaimed.exported_centers)
-    expected = (exit_error_vector(unaimed.planned) - exit_error_vector(coarse)) / PREDICTED_RATIO
+    first_pass = run_plan(parse_scenario({**raw, "planner": {"max_passes": 1}}), compare=False)
+    coarse = run_insertion(rescaled(scenario, 2.0), center_path=first_pass.exported_centers)
+    expected = (exit_error_vector(first_pass.planned) - exit_error_vector(coarse)) / PREDICTED_RATIO
     assert first["aimed_by"] == "predicted offset"
     np.testing.assert_allclose(first["predicted_offset_mm"], expected, rtol=1e-9, atol=1e-12)
     assert len(aimed.verification.rounds) == 1 and aimed.verification.exit_error_mm <= threshold

@@ -291,8 +291,9 @@ class PassOffsets:
     the exit (both points are on it), so the passes solve one equation: t . (e(c) - aim) = 0
     with c = s t, t the direction of the first pass's miss. Moving the aim of the centre by
     c moves the exit by about -c along the edge (de/dc ~ -1, the start of the secant); the
-    slope is then the secant of the last two passes, kept within [-3, -1/3] so that a pass
-    held back by the move limits cannot send the next one far off.
+    slope is then the secant of t . e over the last two passes (whatever each aimed at: a
+    later round or a predicted aim changes the aim, not e(c)), kept within [-3, -1/3] so that
+    a pass held back by the move limits cannot send the next one far off.
 
     The offset of every pass after the first acts from the same step on (`prefix`, set from
     the first pass): the steps before it are the first pass's, taken over rather than solved
@@ -305,7 +306,7 @@ class PassOffsets:
         self.direction: np.ndarray | None = None
         self.slope = -1.0
         self.last: tuple[float, np.ndarray] | None = None  # (s, e) of the last pass run
-        self._previous: tuple[float, float] | None = None  # (s, t . miss) of the pass before
+        self._previous: tuple[float, float] | None = None  # (s, t . e) of the pass before
 
     @property
     def position(self) -> float:
@@ -324,17 +325,17 @@ class PassOffsets:
             if norm == 0.0:
                 return
             self.direction = miss / norm
-        along = float(self.direction @ miss)
+        along, exit_along = float(self.direction @ miss), float(self.direction @ error)
         if self._previous is not None and position != self._previous[0]:
-            slope = (along - self._previous[1]) / (position - self._previous[0])
+            slope = (exit_along - self._previous[1]) / (position - self._previous[0])
             self.slope = float(np.clip(slope, -3.0, -1.0 / 3.0))
-        self._previous = (position, along)
+        self._previous = (position, exit_along)
         self.offset = (position - along / self.slope) * self.direction
 
 
 def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
              tolerance: float | None = None, shooting: PassOffsets | None = None, smooth: bool = True,
-             tissue: PreparedTissue | None = None, bite_aim: float = 0.0, stream=None,
+             tissue: PreparedTissue | None = None, bite_aim: float = 0.0, stream=None, retarget=None,
              **options) -> PlanResult:
     """Planned insertion with the scenario's planner settings, and (compare=True) the
     unplanned one of the same scene; `options` go to run_insertion.
@@ -365,7 +366,9 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     over the passes cannot take (the thesis's table 5.1 100 x 100 block then missed the exit
     tolerance after four passes: benchmarks/results/thesis_table.md in the git history).
     `stream` (planning/replays.py) is handed each pass's centres as they become final, so a
-    replay of the trajectory can run alongside.
+    replay of the trajectory can run alongside. `retarget(first pass)` is asked after the
+    first pass for (aim, tolerance) to go on with instead, or None to keep them
+    (planning.verification's predicted aim).
     """
     settings = scenario.planner
     tissue = tissue or PreparedTissue(scenario)  # built by the first run
@@ -398,6 +401,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         if symmetric:
             aim = symmetric_aim(planned, bite_aim)
         miss = float(np.linalg.norm(error - aim))
+        retargeted = retarget(planned) if retarget is not None and number == 1 else None
         passes.append({"pass": number, "offset_mm": offsets.offset.copy(), "exit_error_mm": planned.exit_error_mm,
                        "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
                        "limited_steps": tracker.limited_steps,
@@ -405,6 +409,9 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
                        "newton_iterations": own_iterations, "wall_seconds": planned.wall_seconds})
         log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
                  *offsets.offset, planned.exit_error_mm, miss)
+        if retargeted is not None:
+            aim, target = np.asarray(retargeted[0], dtype=float), retargeted[1]
+            miss = float(np.linalg.norm(error - aim))
         if miss < best_miss:
             best, best_miss = planned, miss
         offsets.record(error)

@@ -30,16 +30,18 @@ With planner.target `symmetric` on a stitch across a wound the rounds judge and 
 bites' difference the same way: the refined model's offset b_refined - b_base aims the
 passes at the difference -(b_refined - b_base) on the base model (run_plan `bite_aim`).
 
-Predicted aim (planner.predicted_aim, the default). Before the first refined replay the
-trajectory is replayed at 2h (a quarter of the planning model's particles), and the refined
-model's offset is predicted from the change between 2h and h: delta ~ (e_h - e_2h) /
-PREDICTED_RATIO. When |e_base + delta| is above VERIFIED_FACTOR x exit_tolerance the passes
-are aimed at -delta at once, and the first round's refined replay judges that plan (a miss
-re-aims by the measured offset as above). So where the base model's bias is larger than the
-tolerance, the first round's refined replay is of the re-aimed plan, and the re-aimed pass,
-which keeps the first pass's early steps, is replayed by the helper as the continuation of
-the first pass's replay (planning/replays.py): one refined replay instead of two. The ratio
-is a property of the discretization that the prediction assumes; only the aim depends on it.
+Predicted aim (planner.predicted_aim, the default). The first planner pass's trajectory is
+replayed at 2h too (a quarter of the planning model's particles; in a second helper process
+while the pass runs, `prediction_replays`), and the refined model's offset is predicted from
+the change between 2h and h: delta ~ (e_h - e_2h) / PREDICTED_RATIO. When |e_base + delta|
+is above VERIFIED_FACTOR x exit_tolerance, the passes from the second on aim at -delta
+(run_plan `retarget`), and the first round's refined replay judges that plan (a miss re-aims
+by the measured offset as above). So where the base model's bias is larger than the
+tolerance, the first round's passes already aim for the refined model: one refined replay
+and one run of passes instead of two, and the re-aimed passes, which keep the first pass's
+early steps, are replayed by the helper as the continuation of the first pass's replay
+(planning/replays.py). The ratio is a property of the discretization that the prediction
+assumes; only the aim depends on it.
 The symmetric target is not predicted.
 
 A later round's replay starts each step's Newton solve from the round before (run_insertion
@@ -68,6 +70,7 @@ from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
 from .planner import PlanResult, exit_error_vector, run_plan, scenario_needle_gaps, symmetric_aim
 from .replays import InlineReplays, StreamTee, replays_for
+from .trajectory import exported_centers
 
 log = logging.getLogger(__name__)
 
@@ -222,18 +225,18 @@ def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = 
     return result, estimate_exit_error(scenario, result, center_path, replays=replays, **options)
 
 
-def predicted_offset(scenario: Scenario, plan: PlanResult, predictions: InlineReplays | None = None,
+def predicted_offset(scenario: Scenario, planned: InsertionResult, predictions: InlineReplays | None = None,
                      **options) -> np.ndarray | None:
-    """The refined model's offset e(h/2) - e(h) of the exit-error vector for the plan's
-    trajectory, predicted from its replay at 2h (by `predictions`, prediction_replays's, when
-    given) as (e(h) - e(2h)) / PREDICTED_RATIO; None when the model at 2h cannot replay it."""
+    """The refined model's offset e(h/2) - e(h) of the exit-error vector for the planned
+    run's trajectory, predicted from its replay at 2h (by `predictions`, prediction_replays's,
+    when given) as (e(h) - e(2h)) / PREDICTED_RATIO; None when the model at 2h cannot replay it."""
     try:
         coarse = predictions or InlineReplays(rescaled(scenario, ESTIMATE_FACTOR), **_replay_options(options))
-        replayed = coarse.replay(plan.exported_centers)
+        replayed = coarse.replay(exported_centers(planned))
     except (InputError, NumericalFailure) as error:
         log.info("verification: no predicted offset, the model at twice the spacing failed (%s)", error)
         return None
-    return (exit_error_vector(plan.planned) - exit_error_vector(replayed)) / PREDICTED_RATIO
+    return (exit_error_vector(planned) - exit_error_vector(replayed)) / PREDICTED_RATIO
 
 
 def replay(replays: InlineReplays, centers: np.ndarray) -> InsertionResult | None:
@@ -268,8 +271,28 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     other = replay_scenario(scenario, verify)
     replays = replays or InlineReplays(other, **_replay_options(options))  # one model for every round
     predict = predicts_aim(scenario, verify)
-    first_stream = StreamTee(replays, predictions) if predict and predictions is not None else replays
-    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=first_stream, **options)
+    tee = StreamTee(replays, predictions) if predict and predictions is not None else None
+    prediction: dict = {}  # the predicted offset, and whether the passes were aimed by it
+
+    def retarget(first_pass: InsertionResult):
+        """After the first pass: aim the passes at -delta where the refined replay is
+        predicted to miss (the module docstring)."""
+        if tee is not None:
+            tee.replays = (replays,)  # the later passes: the refined model's replays only
+        offset = predicted_offset(scenario, first_pass, predictions, **options)
+        if offset is None:
+            return None
+        prediction["offset"] = offset
+        tolerance = scenario.planner.exit_tolerance
+        if np.linalg.norm(exit_error_vector(first_pass) + offset) <= VERIFIED_FACTOR * tolerance:
+            return None  # the refined replay is predicted to pass
+        prediction["aimed"] = True
+        log.info("verification: refined model's exit offset predicted from 2h (%.4g, %.4g) mm; the passes aim at "
+                 "(%.4g, %.4g) mm", *offset, *-offset)
+        return -offset, AIMED_TOLERANCE_FRACTION * tolerance
+
+    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=tee or replays,
+                      retarget=retarget if predict else None, **options)
     if not verify:
         result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, replays=replays,
                                               **options)
@@ -283,22 +306,6 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     for record in result.passes:
         record["round"] = 1
     planning_seconds = result.planned.wall_seconds
-    predicted = None
-    if predict and not symmetric:
-        predicted = predicted_offset(scenario, result, predictions, **options)
-        miss = None if predicted is None else float(np.linalg.norm(exit_error_vector(result.planned) + predicted))
-        if miss is not None and miss > VERIFIED_FACTOR * settings.exit_tolerance:
-            log.info("verification: refined model's exit offset predicted from 2h (%.4g, %.4g) mm; re-planning "
-                     "aimed at (%.4g, %.4g) mm before the refined replay", *predicted, *-predicted)
-            again = run_plan(scenario, compare=False, on_step=on_step, aim=-predicted, shooting=result.shooting,
-                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
-                             stream=replays, **options)
-            planning_seconds += again.planned.wall_seconds
-            for record in again.passes:
-                record["round"] = 1
-            result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
-        else:
-            predicted = None  # no re-aiming: the refined replay is predicted to pass
     for correction in range(MAX_CORRECTIONS + 1):
         if correction:
             bite_aim = 0.0
@@ -321,13 +328,13 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
         replayed = replay(replays, result.exported_centers)  # started from the round before's
-        verified = {"round": correction + 1, "aimed_by": ("predicted offset" if predicted is not None else "none")
+        verified = {"round": correction + 1, "aimed_by": ("predicted offset" if prediction.get("aimed") else "none")
                     if correction == 0 else "refined offset",
                     "planned_exit_error_mm": result.planned.exit_error_mm,
                     "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
                     "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
-        if correction == 0 and predicted is not None:
-            verified["predicted_offset_mm"] = predicted.tolist()
+        if correction == 0 and "offset" in prediction:
+            verified["predicted_offset_mm"] = prediction["offset"].tolist()
         if symmetric:
             verified["planned_bite_difference_mm"] = result.planned.bites["difference_mm"]
             verified["verified_bite_difference_mm"] = (None if replayed is None or replayed.bites is None
