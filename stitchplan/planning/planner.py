@@ -401,7 +401,6 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         if symmetric:
             aim = symmetric_aim(planned, bite_aim)
         miss = float(np.linalg.norm(error - aim))
-        retargeted = retarget(planned) if retarget is not None and number == 1 else None
         passes.append({"pass": number, "offset_mm": offsets.offset.copy(), "exit_error_mm": planned.exit_error_mm,
                        "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
                        "limited_steps": tracker.limited_steps,
@@ -409,6 +408,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
                        "newton_iterations": own_iterations, "wall_seconds": planned.wall_seconds})
         log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
                  *offsets.offset, planned.exit_error_mm, miss)
+        retargeted = retarget(planned) if retarget is not None and number == 1 else None
         if retargeted is not None:
             aim, target = np.asarray(retargeted[0], dtype=float), retargeted[1]
             miss = float(np.linalg.norm(error - aim))
