@@ -556,8 +556,8 @@ class Planner:
     target: described(choice(("exit", "symmetric")),
                       "exit: aim the desired exit; symmetric (a stitch across a wound): aim equal bites "
                       "on both sides of the wound, trading exit error for symmetry") = "exit"
-    predicted_aim: described(Flag, "plan with verification: re-aim at once by the refined model's offset "
-                             "predicted from a replay at twice the spacing, before the refined replay") = True
+    predicted_aim: described(Flag, "plan with verification: aim the passes after the first by the refined "
+                             "model's offset predicted from a replay of the first pass at twice the spacing") = True
 
 
 AngularSpeed = described(number("a positive number (rad/s)", gt=0) | None,
