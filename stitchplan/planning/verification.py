@@ -41,8 +41,7 @@ tolerance, the first round's passes already aim for the refined model: one refin
 and one run of passes instead of two, and the re-aimed passes, which keep the first pass's
 early steps, are replayed by the helper as the continuation of the first pass's replay
 (planning/replays.py). The ratio is a property of the discretization that the prediction
-assumes; only the aim depends on it.
-The symmetric target is not predicted.
+assumes; only the aim depends on it. The symmetric target is not predicted.
 
 A later round's replay starts each step's Newton solve from the round before (run_insertion
 `start_from`): its centres are prescribed, so it ends in the same equilibria to the residual
@@ -81,8 +80,8 @@ VERIFIED_FACTOR = 1.5  # a verified exit error within 1.5 x exit_tolerance needs
 AIMED_TOLERANCE_FRACTION = 0.4  # passes with an aim stop within this x exit_tolerance of it
 MAX_CORRECTIONS = 2
 # the exit-error vector's change from 2h to h over its change from h to h/2, by which the
-# predicted aim scales the first (2^p for order p): 2.6-4.2 on the shipped plans' trajectories
-# (benchmarks/results/predicted_aim.md)
+# predicted aim scales the first (2^p for order p): 2.5-3.9 for the first passes of the six
+# shipped scenes it re-aims (benchmarks/results/predicted_aim.md)
 PREDICTED_RATIO = 3.0
 
 
