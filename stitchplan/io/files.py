@@ -4,11 +4,12 @@ CSV, JSON, YAML and HDF5.
 `OutputSet` is the transaction of one command. Before the run, `check()` makes sure every
 output can be created (its folder exists or can be made and takes new files, the target is
 not a folder or a device, an existing target may be written) and that no two outputs, and no
-output and an input, are the same file, nor one output the folder another is written into. After the run, `staged()` hands the writers
-temporary paths beside their targets and renames them all into place only when every writer
-succeeded; if a rename fails, the ones before it are undone. So a failed run creates,
-replaces or deletes none of the user's files, and a robot never picks up a half-written or
-mismatched trajectory. Any OS error becomes one InputError line naming the file (exit 2).
+output and an input, are the same file, nor one output the folder another is written into.
+After the run, `staged()` hands the writers temporary paths beside their targets and renames
+them all into place only when every writer succeeded; if a rename fails, the ones before it
+are undone. So a failed run creates, replaces or deletes none of the user's files, and a
+robot never picks up a half-written or mismatched trajectory. Any OS error becomes one
+InputError line naming the file (exit 2).
 
 The writers below write to the path they are given: inside `staged()`, a temporary. (A
 script writing one file the same way: `with OutputSet({"out": path}).staged() as files:

@@ -272,7 +272,6 @@ class _StreamedPath(CenterReplay):
         self._used: dict[int, np.ndarray] = {}  # the centres the replay has taken, by step
         self._kept: list[tuple] = [message]  # the pass's messages so far
         self.steps = 0  # steps asked for
-        self.adoptions = 0  # newer passes taken over
         self._ended = False
         self._asked = False  # the main process waits for this replay: nothing more will come
 
@@ -314,7 +313,6 @@ class _StreamedPath(CenterReplay):
     def _adopt(self, message: tuple) -> None:
         self.job, self._rows, self._ended = message[1], {0: message[3]}, False
         self._kept = [message]
-        self.adoptions += 1
 
     def _start_again(self) -> None:
         """End this replay; the pass's messages go back to the inbox, to be replayed afresh."""
