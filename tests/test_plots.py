@@ -192,6 +192,20 @@ def test_plan_plot_marks_each_runs_error_at_its_own_desired_exit(plan_result, tm
     assert "O(t)" in trajectory.get_title()
 
 
+def test_plan_plot_says_when_the_plan_was_aimed_for_the_refined_model(plan_result, tmp_path):
+    """A plan re-aimed by the refined model's offset misses on its own model on purpose: the
+    headline says so, beside its planned exit error; a plan not aimed so says nothing."""
+    from dataclasses import replace
+
+    from stitchplan.planning.verification import Verification
+
+    for aimed_by, said in (("predicted offset", True), ("refined offset", True), ("none", False)):
+        verified = replace(plan_result, verification=Verification(2.0, None, [], aimed_by=aimed_by))
+        headline = needle_plots.plot_plan(tmp_path / "plan.png", verified)._suptitle.get_text()
+        assert ("(aimed for the refined model)" in headline) is said, aimed_by
+        assert f"{plan_result.planned.exit_error_mm:.3g} mm planned" in headline
+
+
 def test_plan_plot_keeps_both_error_labels_inside_the_panel_at_a_top_edge_exit(tmp_path):
     """An exit on a top or bottom edge: side by side the two labels would need more width than
     the panel has (the unplanned one was cut by the colour bar); each leans to its own side,

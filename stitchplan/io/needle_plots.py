@@ -294,6 +294,9 @@ def plot_plan(path: str | Path, result):
     trajectory.grid(alpha=0.3)
     trajectory.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8, frameon=False)
     headline = f"exit error {planned.exit_error_mm:.3g} mm planned"
+    verification = getattr(result, "verification", None)
+    if verification is not None and verification.aimed_by != "none":  # the planning model's bias offset
+        headline += " (aimed for the refined model)"
     if unplanned is not None:
         headline += f" vs {unplanned.exit_error_mm:.3g} mm unplanned"
     headline += f" ({len(planned.steps)} steps, {planned.model.n_particles} particles)"
@@ -301,7 +304,6 @@ def plot_plan(path: str | Path, result):
     estimate = getattr(result, "estimate", None)
     if estimate is not None:
         checks.append(f"discretization error of the exit about {estimate.estimate_mm:.2g} mm")
-    verification = getattr(result, "verification", None)
     if verification is not None and verification.result is not None:
         bites = verification.result.bites  # a stitch across a wound
         checks.append(f"trajectory replayed on a refined model (spacing {verification.spacing_mm:.3g} mm): "

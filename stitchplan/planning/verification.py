@@ -111,6 +111,7 @@ class Verification:
     result: InsertionResult | None  # the replay (None: it could not be replayed)
     rounds: list[dict] = field(default_factory=list)  # per planning round: planned and verified errors
     replayed_in: str = "this process"  # or "helper process" (planning/replays.py)
+    aimed_by: str = "none"  # the exported plan's round: aimed by a "predicted offset" or "refined offset"
 
     @property
     def exit_error_mm(self) -> float | None:
@@ -301,7 +302,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     # planner.target symmetric on a stitch across a wound: the bites' difference is judged and
     # re-aimed on the refined model, as the exit error is otherwise
     symmetric = settings.target == "symmetric" and result.planned.bites is not None
-    rounds, best, replayed = [], None, None  # best: (verified miss, plan, replay)
+    rounds, best, replayed = [], None, None  # best: (verified miss, plan, replay, its round's record)
     for record in result.passes:
         record["round"] = 1
     planning_seconds = result.planned.wall_seconds
@@ -344,13 +345,13 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                  correction + 1, result.planned.exit_error_mm, np.inf if replayed is None else replayed.exit_error_mm,
                  f" (bite difference {miss:.4g} mm)" if symmetric else "")
         if best is None or miss < best[0]:
-            best = (miss, result, replayed)
+            best = (miss, result, replayed, verified)
         # no replay, or (symmetric) a refined track that does not cross the wound: nothing to re-aim by
         if not np.isfinite(miss) or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
             break
-    _, result, replayed = best
+    _, result, replayed, kept = best
     result.planned.wall_seconds = planning_seconds  # every pass of every round
-    result.verification = Verification(spacing, replayed, rounds, replays.where)
+    result.verification = Verification(spacing, replayed, rounds, replays.where, kept["aimed_by"])
     if replayed is None:
         message = ("verification: the exported trajectory ends before the tip leaves the refined model "
                    f"(spacing {spacing:.4g} mm); verified exit error unknown")
