@@ -12,11 +12,13 @@ and all its steps. That command is the floor a faster planner cannot lower.
 For each scene, REPEATS times (median): the plan's whole command, its planned runs (every
 round's, the summary's `wall_seconds`), its verification rounds and their verified exit errors;
 the same with `planner.predicted_aim: false` (the scene's file with that key changed), which
-re-aims only after the refined replay, alternating with it; then the kept trajectory replayed
-alone (its whole command and its run, the summary's `wall_seconds`), with its particle count
-checked against the verification's.
+re-aims only after the refined replay, and the same command with the code at BASELINE (before
+the helper's replay took over the steps of a replay it dropped, and before a replay's entry
+centre was the one its path gave: a trajectory's rounded entry centre took over no step),
+alternating with it; then the kept trajectory replayed alone (its whole command and its run,
+the summary's `wall_seconds`), with its particle count checked against the verification's.
 
-Writes benchmarks/results/verified_floor.{csv,md} and prints the table. About 4 minutes.
+Writes benchmarks/results/verified_floor.{csv,md} and prints the table. About 6 minutes.
 Run from the repository root:  python benchmarks/verified_floor.py
 """
 
@@ -37,20 +39,26 @@ import _common as common  # noqa: E402
 
 SCENES = ("sh12_100x100", "sh12_100x30", "hole_near_stitch", "needle20_entry30", "needle20_entry18")
 REPEATS = 5
+BASELINE = "685727f"
 GOAL_SECONDS = 1.5  # the whole `plan --no-compare` command the speed work aims at
 
 
-def measure(scene: str, folder: Path) -> dict:
-    """The scene's verified plan, with and without the predicted aim, and its trajectory's
-    replay alone, REPEATS times each."""
+def measure(scene: str, folder: Path, baseline: Path) -> dict:
+    """The scene's verified plan, with and without the predicted aim and at BASELINE (its
+    code extracted into `baseline`), and its trajectory's replay alone, REPEATS times each."""
     raw = yaml.safe_load((common.REPO_ROOT / "configs" / f"{scene}.yaml").read_text())
     raw.setdefault("planner", {})["predicted_aim"] = False
     unpredicted = folder / f"{scene}_without_predicted_aim.yaml"
     unpredicted.write_text(yaml.safe_dump(raw))
-    plans, befores = [], []
-    for _ in range(REPEATS):  # alternating, so that a slower spell of the machine hits both
+    plans, befores, baselines = [], [], []
+    for _ in range(REPEATS):  # alternating, so that a slower spell of the machine hits each
+        baselines.append(common.scene_command("plan", scene, ["--no-compare", "-q"], folder, baseline,
+                                              PYTHONPATH=str(baseline)))
         befores.append(common.config_command("plan", unpredicted, ["--no-compare", "-q"], folder, folder))
         plans.append(common.scene_command("plan", scene, ["--no-compare", "-q"], folder, folder))
+    if baselines[-1][1]["verified_exit_error_mm"] != plans[-1][1]["verified_exit_error_mm"]:
+        raise RuntimeError(f"{scene}: verified exit error {plans[-1][1]['verified_exit_error_mm']} mm, at "
+                           f"{BASELINE} {baselines[-1][1]['verified_exit_error_mm']} mm")
     plan, before = plans[-1][1], befores[-1][1]
     trajectory = folder / f"{scene}_trajectory.csv"
     (folder / "trajectory.csv").replace(trajectory)
@@ -78,16 +86,19 @@ def measure(scene: str, folder: Path) -> dict:
         "unpredicted_command_s": statistics.median(seconds for seconds, _ in befores),
         "unpredicted_rounds": len(before["verification"]["rounds"]),
         "unpredicted_verified_mm": before["verified_exit_error_mm"],
+        "baseline_command_s": statistics.median(seconds for seconds, _ in baselines),
     }
 
 
 def main() -> None:
-    with tempfile.TemporaryDirectory() as scratch:
+    with tempfile.TemporaryDirectory() as scratch, tempfile.TemporaryDirectory() as extracted:
+        baseline = common.extract_revision(BASELINE, Path(extracted))
         rows = []
         for scene in SCENES:
-            row = measure(scene, Path(scratch))
+            row = measure(scene, Path(scratch), baseline)
             rows.append(row)
-            print(f"{scene}: plan --no-compare {row['plan_command_s']:.2f} s ({row['rounds']} round(s), verified "
+            print(f"{scene}: plan --no-compare {row['plan_command_s']:.2f} s (at {BASELINE} "
+                  f"{row['baseline_command_s']:.2f} s; {row['rounds']} round(s), verified "
                   f"{row['verified_mm']:.4f} mm; without the predicted aim {row['unpredicted_command_s']:.2f} s, "
                   f"{row['unpredicted_rounds']} round(s)); replay alone {row['replay_command_s']:.2f} s "
                   f"(run {row['replay_s']:.2f} s, {row['refined_particles']} particles)", flush=True)
@@ -109,17 +120,24 @@ def main() -> None:
         "predicted aim*: "
         "the same command on the scene's file with `planner.predicted_aim: false`, run alternately with "
         "it (the plan before the predicted aim). "
+        f"*At {BASELINE}*: the same command with the code of commit {BASELINE}, run alternately with "
+        "them, its verified exit error checked equal: there the helper started a replay it had dropped "
+        "(the planner's second pass leaving the first pass's centres at a step the replay had passed) "
+        "again from the model's start, and a trajectory's entry centre as exported (rounded) took over "
+        "no step of an earlier replay. "
         "*Replay alone*: the exported trajectory replayed on the refined model by itself, `simulate "
         "CONFIG --center-path trajectory.csv --spacing VERIFICATION_SPACING --no-estimate` (the same "
         "particles, checked): start-up, the refined model and every step. The plan's helper replays "
         "every step of the first round's trajectory on that model too, so the replay alone's whole "
         "command is about the least a verified plan can take, whatever the planning costs.\n",
         common.markdown_table(
-            ["scene", "particles (planning / refined)", "plan --no-compare (s)", "planned runs (s)",
+            ["scene", "particles (planning / refined)", "plan --no-compare (s)", f"at {BASELINE} (s)",
+             "planned runs (s)",
              "verification rounds", "verified exit error, round 1 (mm)", "verified exit error (mm)",
              "without the predicted aim: plan (s)", "rounds", "verified (mm)",
              "replay alone: whole command (s)", "replay alone: run (s)"],
-            [[r["scene"], f"{r['particles']} / {r['refined_particles']}", r["plan_command_s"], r["planned_s"],
+            [[r["scene"], f"{r['particles']} / {r['refined_particles']}", r["plan_command_s"],
+              r["baseline_command_s"], r["planned_s"],
               r["rounds"], r["first_round_verified_mm"], r["verified_mm"], r["unpredicted_command_s"],
               r["unpredicted_rounds"], r["unpredicted_verified_mm"], r["replay_command_s"], r["replay_s"]]
              for r in rows]),

@@ -152,6 +152,40 @@ def test_a_run_that_takes_steps_over_only_ends_as_if_made_alone():
     assert pickle.loads(pickle.dumps(first.states[-1])).solver is None
 
 
+def test_the_steps_a_stopped_run_had_done_are_taken_over_alike():
+    """A centre control that stops a run (InsertionStopped, a replay helper's dropped pass)
+    gets the steps done so far; a later run along centres that agree with them up to some
+    step (its entry centre too, which need not be the scenario's) takes those over and solves
+    on from there, to the last bit the run made alone, also past the last step the stopped
+    run had done."""
+    from stitchplan.needle.insertion import CenterReplay, InsertionStopped
+
+    class StopAt(CenterReplay):
+        def predict(self, center, step):
+            if step == 9:
+                raise InsertionStopped
+            return super().predict(center, step)
+
+    scenario = small_scene()
+    tissue = PreparedTissue(scenario)
+    first = run_insertion(scenario, tissue=tissue)
+    centers = np.array([first.center_after(n) for n in range(len(first.steps) + 1)])
+    centers[0] = np.nextafter(centers[0], np.inf)  # an entry centre not the scenario's (a rounded trajectory.csv)
+    with pytest.raises(InsertionStopped) as stopped:
+        run_insertion(scenario, control=StopAt(centers), tissue=tissue)
+    done = stopped.value.done
+    assert len(done.steps) == len(done.states) == 8
+    for moved_from in (6, len(centers)):  # leaving the stopped run's centres at step 6; never
+        moved = centers.copy()
+        moved[moved_from:] += [0.02, 0.0]
+        alone = run_insertion(scenario, center_path=moved, tissue=tissue)
+        taken = run_insertion(scenario, center_path=moved, tissue=tissue, start_from=done, take_over_only=True)
+        shared = min(moved_from - 1, 8)
+        assert [s.newton_iterations for s in taken.steps[:shared]] == [0] * shared
+        assert ([s.newton_iterations for s in taken.steps[shared:]]
+                == [s.newton_iterations for s in alone.steps[shared:]])
+        assert taken.achieved_exit_def.tolist() == alone.achieved_exit_def.tolist()
+
 def test_a_steps_first_residual_reuses_the_stress_where_the_step_before_ended(monkeypatch):
     """Each step's Newton solve starts where the step before ended, at the displacements of
     its last residual: the internal force there is kept, not evaluated again, and the run

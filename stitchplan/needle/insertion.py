@@ -21,7 +21,7 @@ from ..config import Scenario
 from ..errors import InputError, InsertionFailure
 from ..events import EventKind
 from .equilibrium import NeedleInsertion, PreparedTissue
-from .results import InsertionResult, NeedleStep, Snapshot
+from .results import InsertionResult, NeedleStep, Snapshot, StepsDone
 from .steering import CenterAim
 from .tip_tracking import locate_exit, locate_reentry, track_step
 
@@ -41,6 +41,14 @@ class CenterControl(Protocol):
 
     def correct(self, insertion: NeedleInsertion, step: int, rotation: float) -> int:
         """Act on the step's equilibrium (the aim's outcome); returns the centre iterations."""
+
+
+class InsertionStopped(Exception):
+    """Raised by a centre control to end a run before the tip exits (a replay of a planner
+    pass that has been dropped, planning/replays.py). run_insertion sets `done`, the steps
+    completed, for a later run along the same first centres to take over."""
+
+    done: StepsDone | None = None
 
 
 class FixedCenter:
@@ -78,7 +86,7 @@ def run_insertion(
     condition_numbers: bool = False,
     on_step: Callable[[NeedleStep], None] | None = None,
     tissue: PreparedTissue | None = None,
-    start_from: InsertionResult | None = None,
+    start_from: InsertionResult | StepsDone | None = None,
     take_over_only: bool = False,
 ) -> InsertionResult:
     """Insert the needle step by step until its tip leaves the tissue.
@@ -99,7 +107,8 @@ def run_insertion(
     (NeedleInsertion.take_over), not solved again from the earlier state. With
     `take_over_only` the earlier run gives only those steps and no Newton starts: a run made
     from no earlier run along centres that agree with `start_from`'s (itself made from none)
-    up to some step, which then ends as if made alone, to the last bit.
+    up to some step, which then ends as if made alone, to the last bit; `start_from` may then
+    be the steps a stopped run had done (InsertionStopped).
     """
     if scenario.discretization.accuracy is not None:
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
@@ -111,6 +120,7 @@ def run_insertion(
         control = CenterReplay(center_path)
     if isinstance(control, CenterReplay):
         insertion.move_center(control.predict(insertion.center, 0))  # row 0: the entry centre
+    entry_center = insertion.center.copy()
     control = control or FixedCenter()
     insertion.add_point(geometry.entry.copy())
     displacements = [np.zeros_like(insertion.model.particles)]
@@ -133,54 +143,60 @@ def run_insertion(
     wound_exits = len(geometry.gaps)  # walls the tip leaves before the final exit
     crossings: list[tuple[str, np.ndarray, float]] = []  # (kind, reference point, rotation)
     in_gap = False
-    for step in range(1, limit + 1):
-        rotation = step * geometry.step
-        started = time.perf_counter()
-        previous = rotation - geometry.step
-        if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
-            entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
-            if entered is None:
-                step_done(_needle_step(insertion, control, step, rotation, None, "gap", condition_numbers,
-                                       started, guess=_at(guesses, step, insertion)))
-                continue
-            entry_point, entry_rotation = entered
-            crossings.append(("entry", entry_point, entry_rotation))
-            insertion.add_point(entry_point, gap=True)
-            in_gap = False
-            log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, entry_rotation)
-            point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
-            fraction = (rotation - entry_rotation) / geometry.step
-        else:
-            followed = followed and np.array_equal(start_from.center_after(step - 1), insertion.center)
-            taken = earlier[step - 1] if followed and step <= len(earlier) else None
-            if taken is not None:
-                point, method = _tracked_before(start_from, step, insertion)
+    try:
+        for step in range(1, limit + 1):
+            rotation = step * geometry.step
+            started = time.perf_counter()
+            previous = rotation - geometry.step
+            if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
+                entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
+                if entered is None:
+                    step_done(_needle_step(insertion, control, step, rotation, None, "gap", condition_numbers,
+                                           started, guess=_at(guesses, step, insertion)))
+                    continue
+                entry_point, entry_rotation = entered
+                crossings.append(("entry", entry_point, entry_rotation))
+                insertion.add_point(entry_point, gap=True)
+                in_gap = False
+                log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, entry_rotation)
+                point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
+                fraction = (rotation - entry_rotation) / geometry.step
             else:
-                point, method = track_step(insertion, step, rotation)  # about the previous step's centre
-            fraction = 1.0
-        if insertion.domain.outside_distance(point) > 0.0:
-            start = max(previous, crossings[-1][2]) if crossings else previous
-            exit_point, exit_rotation = locate_exit(insertion, start, method,
-                                                    (rotation - start) if start != previous else None)
-            if sum(kind == "exit" for kind, _, _ in crossings) < wound_exits:
-                # a wound's first wall: the track reaches the wall, the tip goes on in the gap
-                crossings.append(("exit", exit_point, exit_rotation))
-                insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
-                in_gap = True
-                log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
-                         step, exit_rotation)
-                step_done(_needle_step(insertion, control, step, rotation, None, method, condition_numbers,
-                                       started, guess=_at(guesses, step, insertion)))
-                continue
-            return _result(insertion, steps, states, displacements, exit_point, exit_rotation,
-                           time.perf_counter() - wall_start, crossings)
-        step_done(_needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
-                               fraction, _at(guesses, step, insertion), taken=taken))
+                followed = (followed and step <= len(earlier)
+                            and np.array_equal(start_from.center_after(step - 1), insertion.center))
+                taken = earlier[step - 1] if followed else None
+                if taken is not None:
+                    point, method = _tracked_before(start_from, step, insertion)
+                else:
+                    point, method = track_step(insertion, step, rotation)  # about the previous step's centre
+                fraction = 1.0
+            if insertion.domain.outside_distance(point) > 0.0:
+                start = max(previous, crossings[-1][2]) if crossings else previous
+                exit_point, exit_rotation = locate_exit(insertion, start, method,
+                                                        (rotation - start) if start != previous else None)
+                if sum(kind == "exit" for kind, _, _ in crossings) < wound_exits:
+                    # a wound's first wall: the track reaches the wall, the tip goes on in the gap
+                    crossings.append(("exit", exit_point, exit_rotation))
+                    insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
+                    in_gap = True
+                    log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
+                             step, exit_rotation)
+                    step_done(_needle_step(insertion, control, step, rotation, None, method, condition_numbers,
+                                           started, guess=_at(guesses, step, insertion)))
+                    continue
+                return _result(insertion, entry_center, steps, states, displacements, exit_point,
+                               exit_rotation, time.perf_counter() - wall_start, crossings)
+            step_done(_needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
+                                   fraction, _at(guesses, step, insertion), taken=taken))
+    except InsertionStopped as stopped:
+        stopped.done = StepsDone(insertion.model, geometry, entry_center, steps, insertion.events, states)
+        raise
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
 
 
-def _tracked_before(earlier: InsertionResult, step: int, insertion: NeedleInsertion) -> tuple[np.ndarray, str]:
+def _tracked_before(earlier: InsertionResult | StepsDone, step: int,
+                    insertion: NeedleInsertion) -> tuple[np.ndarray, str]:
     """The earlier run's tip point of `step` and how it was tracked, with its tracking events."""
     record = earlier.steps[step - 1]
     insertion.events.extend(event for event in earlier.events
@@ -244,7 +260,8 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
     return record
 
 
-def _result(insertion: NeedleInsertion, steps: list[NeedleStep], states: list[Snapshot],
+def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[NeedleStep],
+            states: list[Snapshot],
             displacements: list[np.ndarray],
             exit_point: np.ndarray, exit_rotation: float, wall_seconds: float,
             wound: list[tuple[str, np.ndarray, float]] = ()) -> InsertionResult:
@@ -252,8 +269,9 @@ def _result(insertion: NeedleInsertion, steps: list[NeedleStep], states: list[Sn
     crossings = _crossings(insertion, [*wound, ("exit", exit_point, exit_rotation)])
     u_exit = insertion.displacement(np.vstack([exit_point, desired_exit]))  # achieved, desired
     result = InsertionResult(
-        scenario=insertion.scenario, model=insertion.model, geometry=insertion.geometry, steps=steps,
-        displacements=np.asarray(displacements), needle_points=insertion.points.copy(),
+        scenario=insertion.scenario, model=insertion.model, geometry=insertion.geometry,
+        entry_center=entry_center, steps=steps, displacements=np.asarray(displacements),
+        needle_points=insertion.points.copy(),
         desired_exit=desired_exit, desired_exit_def=desired_exit + u_exit[1],
         achieved_exit=exit_point, achieved_exit_def=exit_point + u_exit[0], exit_rotation=exit_rotation,
         wall_seconds=wall_seconds, timings=insertion.timings, events=insertion.events,

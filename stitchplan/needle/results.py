@@ -86,6 +86,9 @@ class InsertionResult:
     # the equilibrium after each step (steps[n] -> states[n]): where a later run on the same
     # model with a nearby centre path starts its steps' Newton solves (run_insertion start_from)
     states: list[Snapshot] = field(default_factory=list, repr=False)
+    # the centre the needle entered about: a replayed path's row 0 (trajectory.csv writes the
+    # scenario's centre rounded), else the scenario's; None: the scenario's
+    entry_center: np.ndarray | None = None
 
     @property
     def exit_error_mm(self) -> float:
@@ -93,8 +96,25 @@ class InsertionResult:
 
     def center_after(self, step: int) -> np.ndarray:
         """The needle centre after `step` (0: the entry centre)."""
-        return self.geometry.center if step == 0 else self.steps[step - 1].center
+        if step > 0:
+            return self.steps[step - 1].center
+        return self.geometry.center if self.entry_center is None else self.entry_center
 
     @property
     def exit_error_material_mm(self) -> float:
         return float(np.linalg.norm(self.achieved_exit - self.desired_exit))
+
+
+@dataclass
+class StepsDone:
+    """The steps a run had completed when its centre control stopped it (InsertionStopped):
+    what a later run along the same first centres takes over (run_insertion `start_from`)."""
+
+    model: TissueModel
+    geometry: NeedleGeometry
+    entry_center: np.ndarray
+    steps: list[NeedleStep]
+    events: list[Event]
+    states: list[Snapshot] = field(repr=False)
+
+    center_after = InsertionResult.center_after

@@ -11,11 +11,11 @@ pass that is kept overlaps the planning instead of following it. A pass that is 
 is dropped at the helper's next step once the next pass begins (it reads what has come at
 every step), unless the next pass keeps every centre the replay has used so far (a re-aimed
 pass keeps the first pass's early steps): the replay then goes on with the next pass's
-centres; and a replay that has already ended gives a next pass from the same start the steps
-where their centres agree (run_insertion `take_over_only`, to the last bit what they would
-compute). A trajectory that is not the last streamed one (the best of several passes) is
-replayed whole when asked for. `submit` starts a path known from the start
-(`simulate`'s estimate run) at once.
+centres; and a replay that has already ended, or the steps a dropped one had done, give a
+next pass from the same start the steps where their centres agree (run_insertion
+`take_over_only`, to the last bit what they would compute). A trajectory that is not the
+last streamed one (the best of several passes) is replayed whole when asked for. `submit`
+starts a path known from the start (`simulate`'s estimate run) at once.
 
 Both kinds replay with run_insertion on the same inputs, one model kept for all their
 replays, each replay started from the one returned before it (run_insertion
@@ -45,8 +45,8 @@ import numpy as np
 from ..config import Scenario
 from ..errors import StitchplanError
 from ..needle.equilibrium import PreparedTissue
-from ..needle.insertion import CenterReplay, run_insertion
-from ..needle.results import InsertionResult
+from ..needle.insertion import CenterReplay, InsertionStopped, run_insertion
+from ..needle.results import InsertionResult, StepsDone
 
 log = logging.getLogger(__name__)
 
@@ -250,7 +250,7 @@ def _same_path(a: np.ndarray | None, b: np.ndarray | None) -> bool:
 # --- the helper process ------------------------------------------------------------------------
 
 
-class _Superseded(Exception):
+class _Superseded(InsertionStopped):
     """A newer request reached the helper while a streamed replay waited for its rows."""
 
 
@@ -359,7 +359,8 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: i
         return bool(inbox) or connection.poll()
 
     done: tuple = (None, None, None)  # the newest finished job: (job, result, error)
-    alone: InsertionResult | None = None  # the newest replay made from no earlier one
+    # the newest replay made from no earlier one, or the steps it had done when dropped
+    alone: InsertionResult | StepsDone | None = None
     steps_run = 0  # needle steps of every replay since the last answer, dropped ones too
     sent: tuple[int | None, InsertionResult | None] = (None, None)  # the replay last sent back
     while True:
@@ -399,8 +400,10 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: i
         try:
             result, error = run_insertion(scenario, control=control, center_path=path, tissue=tissue,
                                           start_from=start, take_over_only=take_over_only, **options), None
-        except _Superseded:
+        except _Superseded as dropped:
             steps_run += control.steps
+            if warm is None and dropped.done is not None and dropped.done.steps:
+                alone = dropped.done  # the pass that dropped it keeps its first centres
             continue
         except StitchplanError as failure:
             result, error = None, failure
