@@ -152,6 +152,48 @@ def test_a_pass_that_keeps_the_first_steps_of_the_one_before_is_replayed_alike(s
         assert helper.steps_run <= len(replayed.steps) + 1, helper.steps_run
 
 
+def test_a_dropped_replay_gives_its_steps_to_the_pass_that_dropped_it(scenario):
+    """The helper's streamed replay of a first pass has done four steps when a second pass
+    from the same start arrives that leaves the first pass's centres at step 2: the replay is
+    dropped with the steps it had done (InsertionStopped), and the second pass's replay takes
+    step 1 over from them (no Newton iteration), to the last bit the replay made here alone.
+    The messages come in the order the helper reads them (planning.replays._serve)."""
+    from collections import deque
+
+    from stitchplan.needle.equilibrium import PreparedTissue
+    from stitchplan.needle.insertion import run_insertion
+    from stitchplan.planning.replays import _StreamedPath, _Superseded
+
+    fine = rescaled(scenario, 0.5)
+    first = _fixed_path(fine, 40)
+    second = first.copy()
+    second[2:] += np.array([0.05, 0.0])
+    arriving = deque([*(("row", 1, step, first[step]) for step in range(1, 5)), ("stream", 2, None, second[0]),
+                      *(("row", 2, step, second[step]) for step in range(1, len(second) - 1)),
+                      ("end", 2, second)])
+    inbox: deque = deque()
+
+    def receive():
+        return inbox.popleft() if inbox else arriving.popleft()
+
+    def pending():  # nothing new has come while a step was solved
+        return bool(inbox)
+
+    tissue = PreparedTissue(fine)
+    with pytest.raises(_Superseded) as dropped:
+        run_insertion(fine, control=_StreamedPath(receive, pending, inbox, ("stream", 1, None, first[0])),
+                      tissue=tissue)
+    done = dropped.value.done
+    assert [s.center.tolist() for s in done.steps] == first[1:5].tolist()
+    again = _StreamedPath(receive, pending, inbox, receive())  # the second pass's messages, kept
+    assert again.job == 2
+    replayed = run_insertion(fine, control=again, tissue=tissue, start_from=done, take_over_only=True)
+    expected = InlineReplays(fine).replay(second)
+    assert replayed.steps[0].newton_iterations == 0 and replayed.steps[1].newton_iterations > 0
+    assert replayed.achieved_exit_def.tolist() == expected.achieved_exit_def.tolist()
+    assert [s.center.tolist() for s in replayed.steps] == [s.center.tolist() for s in expected.steps]
+
+
 def test_a_path_that_ends_before_the_exit_fails_alike(scenario):
     short = _fixed_path(scenario, 3)
     messages = []
