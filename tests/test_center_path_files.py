@@ -289,3 +289,20 @@ def test_plan_refuses_a_base_offset_beyond_range_before_running(tmp_path):
                                       str(tmp_path / "t.csv"), "--base-transform", "0,1e308,1e308"])
     assert "got '0,1e308,1e308', expected ROTATION_DEG,TX_MM,TY_MM" in one_error_line(result)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_records_the_entry_centre_of_the_path_it_followed(tmp_path, geometry):
+    """Row 0 may lie off the scenario's centre (within ENTRY_TOLERANCE radii): the run enters
+    about row 0, and the summary's `needle_center_at_entry` says so."""
+    import json
+
+    shift = np.array([0.004, -0.003]) * geometry.radius
+    rows = trajectory_rows(geometry, drift=(0.0, 0.0))
+    rows[0][2:4] = [f"{value:.9g}" for value in geometry.center + shift]
+    path = write_rows(tmp_path, rows)
+    summary = tmp_path / "summary.json"
+    result = CliRunner().invoke(app, ["simulate", str(SCENE), "--no-estimate", "--center-path", str(path),
+                                      "--summary", str(summary), "-q"])
+    assert result.exit_code == 0, result.output
+    entry = json.loads(summary.read_text())["needle_center_at_entry"]
+    np.testing.assert_allclose(entry, geometry.center + shift, rtol=0, atol=1e-9)

@@ -45,7 +45,7 @@ def _tip_path(run, step: int | None = None) -> np.ndarray:
 def _state(run, step: int) -> tuple[np.ndarray, float]:
     """Needle centre and rotation after `step` steps (step 0: at entry)."""
     if step == 0:
-        return np.asarray(run.geometry.center), 0.0
+        return np.asarray(run.center_after(0)), 0.0
     record = run.steps[step - 1]
     return np.asarray(record.center), float(record.rotation)
 

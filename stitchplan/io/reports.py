@@ -187,7 +187,7 @@ def insertion_summary(result) -> dict:
         "particles": result.model.n_particles,
         "wall_seconds": result.wall_seconds,
         "exit_rotation_rad": result.exit_rotation,
-        "needle_center_at_entry": result.geometry.center,
+        "needle_center_at_entry": result.center_after(0),
         "needle_points": len(result.needle_points),
         "newton_iterations": int(sum(s.newton_iterations for s in steps)),  # every iteration of every solve
         "equilibrium_solves": int(sum(s.equilibrium_solves for s in steps)),
@@ -262,7 +262,7 @@ def insertion_datasets(result) -> dict[str, dict]:
     return {
         "scenario": {"text": result.scenario.source_text},
         "needle": {
-            "center_at_entry": geometry.center,
+            "center_at_entry": result.center_after(0),
             "entry": geometry.entry,
             "radius": geometry.radius,
             "arc": geometry.arc,
