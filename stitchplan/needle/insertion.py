@@ -132,7 +132,14 @@ def run_insertion(
     # hold their tracked tip points)
     followed = bool(earlier) and not geometry.gaps
 
-    def step_done(record: NeedleStep) -> None:
+    def solve_step(*needle_step_arguments, **keywords) -> None:
+        """_needle_step, and its record and state kept; a control that stops the run
+        (InsertionStopped) gets the steps done before it."""
+        try:
+            record = _needle_step(*needle_step_arguments, **keywords)
+        except InsertionStopped as stopped:
+            stopped.done = StepsDone(insertion.model, geometry, entry_center, steps, insertion.events, states)
+            raise
         steps.append(record)
         states.append(insertion.snapshot(coupling=True))
         displacements.append(insertion.particle_displacements())
@@ -143,54 +150,50 @@ def run_insertion(
     wound_exits = len(geometry.gaps)  # walls the tip leaves before the final exit
     crossings: list[tuple[str, np.ndarray, float]] = []  # (kind, reference point, rotation)
     in_gap = False
-    try:
-        for step in range(1, limit + 1):
-            rotation = step * geometry.step
-            started = time.perf_counter()
-            previous = rotation - geometry.step
-            if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
-                entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
-                if entered is None:
-                    step_done(_needle_step(insertion, control, step, rotation, None, "gap", condition_numbers,
-                                           started, guess=_at(guesses, step, insertion)))
-                    continue
-                entry_point, entry_rotation = entered
-                crossings.append(("entry", entry_point, entry_rotation))
-                insertion.add_point(entry_point, gap=True)
-                in_gap = False
-                log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, entry_rotation)
-                point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
-                fraction = (rotation - entry_rotation) / geometry.step
+    for step in range(1, limit + 1):
+        rotation = step * geometry.step
+        started = time.perf_counter()
+        previous = rotation - geometry.step
+        if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
+            entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
+            if entered is None:
+                solve_step(insertion, control, step, rotation, None, "gap", condition_numbers, started,
+                           guess=_at(guesses, step, insertion))
+                continue
+            entry_point, entry_rotation = entered
+            crossings.append(("entry", entry_point, entry_rotation))
+            insertion.add_point(entry_point, gap=True)
+            in_gap = False
+            log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, entry_rotation)
+            point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
+            fraction = (rotation - entry_rotation) / geometry.step
+        else:
+            followed = (followed and step <= len(earlier)
+                        and np.array_equal(start_from.center_after(step - 1), insertion.center))
+            taken = earlier[step - 1] if followed else None
+            if taken is not None:
+                point, method = _tracked_before(start_from, step, insertion)
             else:
-                followed = (followed and step <= len(earlier)
-                            and np.array_equal(start_from.center_after(step - 1), insertion.center))
-                taken = earlier[step - 1] if followed else None
-                if taken is not None:
-                    point, method = _tracked_before(start_from, step, insertion)
-                else:
-                    point, method = track_step(insertion, step, rotation)  # about the previous step's centre
-                fraction = 1.0
-            if insertion.domain.outside_distance(point) > 0.0:
-                start = max(previous, crossings[-1][2]) if crossings else previous
-                exit_point, exit_rotation = locate_exit(insertion, start, method,
-                                                        (rotation - start) if start != previous else None)
-                if sum(kind == "exit" for kind, _, _ in crossings) < wound_exits:
-                    # a wound's first wall: the track reaches the wall, the tip goes on in the gap
-                    crossings.append(("exit", exit_point, exit_rotation))
-                    insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
-                    in_gap = True
-                    log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
-                             step, exit_rotation)
-                    step_done(_needle_step(insertion, control, step, rotation, None, method, condition_numbers,
-                                           started, guess=_at(guesses, step, insertion)))
-                    continue
-                return _result(insertion, entry_center, steps, states, displacements, exit_point,
-                               exit_rotation, time.perf_counter() - wall_start, crossings)
-            step_done(_needle_step(insertion, control, step, rotation, point, method, condition_numbers, started,
-                                   fraction, _at(guesses, step, insertion), taken=taken))
-    except InsertionStopped as stopped:
-        stopped.done = StepsDone(insertion.model, geometry, entry_center, steps, insertion.events, states)
-        raise
+                point, method = track_step(insertion, step, rotation)  # about the previous step's centre
+            fraction = 1.0
+        if insertion.domain.outside_distance(point) > 0.0:
+            start = max(previous, crossings[-1][2]) if crossings else previous
+            exit_point, exit_rotation = locate_exit(insertion, start, method,
+                                                    (rotation - start) if start != previous else None)
+            if sum(kind == "exit" for kind, _, _ in crossings) < wound_exits:
+                # a wound's first wall: the track reaches the wall, the tip goes on in the gap
+                crossings.append(("exit", exit_point, exit_rotation))
+                insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
+                in_gap = True
+                log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
+                         step, exit_rotation)
+                solve_step(insertion, control, step, rotation, None, method, condition_numbers, started,
+                           guess=_at(guesses, step, insertion))
+                continue
+            return _result(insertion, entry_center, steps, states, displacements, exit_point,
+                           exit_rotation, time.perf_counter() - wall_start, crossings)
+        solve_step(insertion, control, step, rotation, point, method, condition_numbers, started,
+                   fraction, _at(guesses, step, insertion), taken=taken)
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
 

@@ -328,8 +328,11 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
         replayed = replay(replays, result.exported_centers)  # started from the round before's
-        verified = {"round": correction + 1, "aimed_by": ("predicted offset" if prediction.get("aimed") else "none")
-                    if correction == 0 else "refined offset",
+        if correction > 0:
+            aimed_by = "refined offset"
+        else:
+            aimed_by = "predicted offset" if prediction.get("aimed") else "none"
+        verified = {"round": correction + 1, "aimed_by": aimed_by,
                     "planned_exit_error_mm": result.planned.exit_error_mm,
                     "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
                     "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
