@@ -10,7 +10,12 @@ verification spacing (which must give its verified exit error again) and S / 2. 
 simulate summaries' own exit-error estimate (from a run at 2S) is listed too, and for a
 stitch across a wound the difference of its two bites.
 
-Writes benchmarks/results/plan_replay.{csv,md} and prints the table. About 6 minutes.
+Where the exit point's discretization error comes from: the same trajectories replayed with
+only the graded zone around the needle refined (its spacing that of h/2 and of h/4, the
+planning spacing h elsewhere; the scene's file with `discretization.needle_spacing` set),
+beside the replays refined throughout.
+
+Writes benchmarks/results/plan_replay.{csv,md} and prints the tables. About 8 minutes.
 Run from the repository root, after sample_runs/regenerate.sh:  python benchmarks/plan_replay.py
 """
 
@@ -26,12 +31,14 @@ import subprocess  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import yaml  # noqa: E402
+
 import _common as common  # noqa: E402
 
 SAMPLES = common.REPO_ROOT / "sample_runs"
 FIELDS = ("scene", "planned_exit_error_mm", "verified_exit_error_mm", "verification_spacing_mm",
-          "replay_spacing_mm", "particles", "exit_error_mm", "exit_error_estimate_mm", "seconds",
-          "planned_bite_difference_mm", "bite_difference_mm", "target")
+          "refined", "replay_spacing_mm", "replay_needle_spacing_mm", "particles", "exit_error_mm",
+          "exit_error_estimate_mm", "seconds", "planned_bite_difference_mm", "bite_difference_mm", "target")
 TARGET_MM = 0.01  # the verified exit error the shipped plans are held to (README)
 
 
@@ -52,12 +59,34 @@ def target(scene: str) -> str:
     return load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml").planner.target
 
 
-def replay(scene: str, spacing: float, folder: Path) -> dict:
-    """`stitchplan simulate` of the scene's shipped trajectory at `spacing`; its summary."""
-    summary = folder / f"{scene}_{spacing:.4f}.json"
-    subprocess.run([*common.STITCHPLAN, "simulate", str(common.REPO_ROOT / "configs" / f"{scene}.yaml"),
-                    "--center-path", str(SAMPLES / scene / "trajectory.csv"), "--spacing", f"{spacing!r}",
-                    "--summary", str(summary), "--quiet"], check=True, capture_output=True)
+def needle_grading(scene: str) -> float:
+    """The scene's nominal needle spacing / spacing (the summary's needle spacing is the
+    arrangement's finest, which a wound's walls may refine further)."""
+    from stitchplan.config.scenario import load_scenario
+
+    discretization = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml").discretization
+    return (discretization.needle_spacing or discretization.spacing) / discretization.spacing
+
+
+def replay(scene: str, spacing: float, folder: Path, needle_spacing: float | None = None) -> dict:
+    """`stitchplan simulate` of the scene's shipped trajectory at `spacing`, the graded arrangement
+    scaled with it; with `needle_spacing`, the particles at `spacing` and `needle_spacing` near
+    the needle (the scene's file with those keys, written to `folder`). Its summary."""
+    config = common.REPO_ROOT / "configs" / f"{scene}.yaml"
+    options = ["--spacing", f"{spacing!r}"]
+    name = f"{scene}_{spacing:.4f}"
+    if needle_spacing is not None:
+        raw = yaml.safe_load(config.read_text())
+        discretization = raw.setdefault("discretization", {})
+        discretization.pop("needle_refinement", None)
+        discretization.update(spacing=spacing, needle_spacing=needle_spacing)
+        name += f"_needle_{needle_spacing:.4f}"
+        config = folder / f"{name}.yaml"
+        config.write_text(yaml.safe_dump(raw))
+        options = []
+    summary = folder / f"{name}.json"
+    subprocess.run([*common.STITCHPLAN, "simulate", str(config), "--center-path", str(SAMPLES / scene / "trajectory.csv"),
+                    *options, "--summary", str(summary), "--quiet"], check=True, capture_output=True)
     return json.loads(summary.read_text())
 
 
@@ -67,11 +96,15 @@ def main() -> None:
         for scene in planned_scenes():
             plan = json.loads((SAMPLES / scene / "plan_summary.json").read_text())
             verification = float(plan["verification_spacing_mm"])
-            for spacing in (verification, verification / 2.0):
-                result = replay(scene, spacing, Path(folder))
+            grading = needle_grading(scene)
+            replays = [("throughout", spacing, None) for spacing in (verification, verification / 2.0)]
+            replays += [("needle zone", 2.0 * verification, grading * spacing) for spacing in (verification, verification / 2.0)]
+            for refined, spacing, needle_spacing in replays:
+                result = replay(scene, spacing, Path(folder), needle_spacing)
                 row = {"scene": scene, "planned_exit_error_mm": plan["exit_error_mm"],
                        "verified_exit_error_mm": plan["verified_exit_error_mm"],
-                       "verification_spacing_mm": verification, "replay_spacing_mm": spacing,
+                       "verification_spacing_mm": verification, "refined": refined, "replay_spacing_mm": spacing,
+                       "replay_needle_spacing_mm": result["discretization"].get("needle_spacing_mm"),
                        "particles": result["particles"], "exit_error_mm": result["exit_error_mm"],
                        "exit_error_estimate_mm": result.get("exit_error_estimate_mm"),
                        "seconds": result["wall_seconds"],
@@ -94,9 +127,12 @@ def markdown(rows: list[dict]) -> str:
     def mm(value) -> str:
         return "—" if value is None else f"{value:.4f}"
 
-    by_scene: dict[str, list[dict]] = {}
+    by_scene: dict[str, dict[str, list[dict]]] = {}  # scene -> refined -> rows, coarser first
     for row in rows:
-        by_scene.setdefault(row["scene"], []).append(row)
+        by_scene.setdefault(row["scene"], {}).setdefault(row["refined"], []).append(row)
+    for replays in by_scene.values():
+        for same in replays.values():
+            same.sort(key=lambda x: (-x["replay_spacing_mm"], -(x["replay_needle_spacing_mm"] or 0.0)))
     lines = ["# The shipped plans replayed one refinement beyond their verification", "",
              f"Generated by `python benchmarks/plan_replay.py` ({common.machine_note()}).", "",
              "Each shipped trajectory (sample_runs/SCENE/trajectory.csv) replayed by `stitchplan simulate "
@@ -107,7 +143,8 @@ def markdown(rows: list[dict]) -> str:
              "particles h/4 | h/4 replay s |",
              "|---|---|---|---|---|---|---|---|"]
     worst = 0.0
-    for scene, (half, quarter) in ((s, sorted(r, key=lambda x: -x["replay_spacing_mm"])) for s, r in by_scene.items()):
+    for scene, replays in by_scene.items():
+        half, quarter = replays["throughout"]
         if half["target"] != "symmetric":  # a symmetric plan aims its bites (below), not the exit
             worst = max(worst, quarter["exit_error_mm"])
         lines.append(f"| {scene} | {mm(half['planned_exit_error_mm'])} | {mm(half['verified_exit_error_mm'])} | "
@@ -115,8 +152,25 @@ def markdown(rows: list[dict]) -> str:
                      f"{mm(quarter['exit_error_estimate_mm'])} | {quarter['particles']} | {quarter['seconds']:.1f} |")
     lines += ["", f"Largest exit error at h/4 of the plans aimed at the exit: {worst:.4f} mm "
                   f"({'within' if worst <= TARGET_MM else 'above'} the {TARGET_MM} mm target)."]
-    wounds = [(s, sorted(r, key=lambda x: -x["replay_spacing_mm"])) for s, r in by_scene.items()
-              if r[0]["bite_difference_mm"] is not None]
+    lines += ["", "Where the exit point's discretization error comes from: the same replays with only the "
+                  "graded zone around the needle refined (its spacing as at h/2 and h/4, the planning "
+                  "spacing h elsewhere) beside those refined throughout; exit errors in mm, particles in "
+                  "brackets, the largest difference between the two at the same needle spacing, and the "
+                  "replays' runs at h/2 (simulate's `wall_seconds`).", "",
+              "| scene | throughout h/2 | needle zone h/2 | throughout h/4 | needle zone h/4 | difference (mm) | "
+              "h/2 replay s, throughout / needle zone |",
+              "|---|---|---|---|---|---|---|"]
+    largest = 0.0
+    for scene, replays in by_scene.items():
+        pairs = list(zip(replays["throughout"], replays["needle zone"]))
+        difference = max(abs(whole["exit_error_mm"] - zone["exit_error_mm"]) for whole, zone in pairs)
+        largest = max(largest, difference)
+        cells = [f"{mm(row['exit_error_mm'])} ({row['particles']})" for pair in pairs for row in pair]
+        seconds = " / ".join(f"{row['seconds']:.2f}" for row in pairs[0])
+        lines.append(f"| {scene} | {' | '.join(cells)} | {difference:.4f} | {seconds} |")
+    lines += ["", f"Largest difference: {largest:.4f} mm."]
+    wounds = [(scene, replays["throughout"]) for scene, replays in by_scene.items()
+              if replays["throughout"][0]["bite_difference_mm"] is not None]
     if wounds:
         lines += ["", "A stitch across a wound: the difference of the exit-side and entry-side bites (mm), "
                       "on the planning model (the plan's summary) and in the replays; with `planner.target: "
