@@ -52,20 +52,15 @@ def planned_scenes() -> list[str]:
     return scenes
 
 
-def target(scene: str) -> str:
-    """The scene's planner.target: `exit`, or `symmetric` (a wound stitch aimed at equal bites)."""
+def scene_settings(scene: str) -> tuple[str, float]:
+    """The scene's planner.target (`exit`, or `symmetric`: a wound stitch aimed at equal bites)
+    and its nominal needle spacing / spacing (the summary's needle spacing is the arrangement's
+    finest, which a wound's walls may refine further)."""
     from stitchplan.config.scenario import load_scenario
 
-    return load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml").planner.target
-
-
-def needle_grading(scene: str) -> float:
-    """The scene's nominal needle spacing / spacing (the summary's needle spacing is the
-    arrangement's finest, which a wound's walls may refine further)."""
-    from stitchplan.config.scenario import load_scenario
-
-    discretization = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml").discretization
-    return (discretization.needle_spacing or discretization.spacing) / discretization.spacing
+    scenario = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml")
+    discretization = scenario.discretization
+    return scenario.planner.target, (discretization.needle_spacing or discretization.spacing) / discretization.spacing
 
 
 def replay(scene: str, spacing: float, folder: Path, needle_spacing: float | None = None) -> dict:
@@ -96,9 +91,10 @@ def main() -> None:
         for scene in planned_scenes():
             plan = json.loads((SAMPLES / scene / "plan_summary.json").read_text())
             verification = float(plan["verification_spacing_mm"])
-            grading = needle_grading(scene)
-            replays = [("throughout", spacing, None) for spacing in (verification, verification / 2.0)]
-            replays += [("needle zone", 2.0 * verification, grading * spacing) for spacing in (verification, verification / 2.0)]
+            target, grading = scene_settings(scene)
+            levels = (verification, verification / 2.0)
+            replays = ([("throughout", spacing, None) for spacing in levels]
+                       + [("needle zone", 2.0 * verification, grading * spacing) for spacing in levels])
             for refined, spacing, needle_spacing in replays:
                 result = replay(scene, spacing, Path(folder), needle_spacing)
                 row = {"scene": scene, "planned_exit_error_mm": plan["exit_error_mm"],
@@ -111,7 +107,7 @@ def main() -> None:
                        # a stitch across a wound: the bites' difference, what a symmetric plan aims at
                        "planned_bite_difference_mm": (plan.get("bites") or {}).get("difference_mm"),
                        "bite_difference_mm": (result.get("bites") or {}).get("difference_mm"),
-                       "target": target(scene)}
+                       "target": target}
                 print(row, flush=True)
                 rows.append(row)
     with common.results_path("plan_replay.csv").open("w", newline="") as handle:

@@ -79,8 +79,9 @@ class OutputSet:
                     lines.append(f"{label}: got {path}, expected a file other than {other} "
                                  f"({self.outputs[other]})")
                     break
+            new_file = None if path.exists() else _target(path)
             for other in labels:  # a new file where another output's new folder is to be made
-                if other != label and not path.exists() and _target(path) in _target(self.outputs[other]).parents:
+                if other != label and new_file is not None and new_file in _target(self.outputs[other]).parents:
                     lines.append(f"{label}: got {path}, the folder of {other} ({self.outputs[other]}); "
                                  "expected a file name")
                     break
