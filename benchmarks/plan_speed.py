@@ -202,8 +202,9 @@ def levers() -> list[tuple]:
         def __init__(self, *args):
             raise ValueError("off")
 
-    def tolerance(value):
-        return lambda scenario: replace(scenario, solver=replace(scenario.solver, residual_tolerance=value))
+    def tolerance(residual, constraint=1e-9):  # a needle step's Newton (|r| / |f_needle|, |g| / R)
+        return lambda scenario: replace(scenario, solver=replace(scenario.solver, needle_residual_tolerance=residual,
+                                                                 needle_constraint_tolerance=constraint))
 
     def spline_by_branches(z, derivative=True):  # eq. 3.23's two pieces, both computed everywhere
         r = np.abs(z)
@@ -246,11 +247,15 @@ def levers() -> list[tuple]:
           (equilibrium, "factorize"): lambda m, **_: GeneralLU(m)}, None),
         ("sh12_100x100", "tip tracking by scipy's Levenberg-Marquardt only (no Newton first)",
          {(tip_tracking, "NEWTON_TIP_ITERATIONS"): 0}, None),
+        ("sh12_100x100", "needle tolerances 5e-6 and 1e-9 R (the defaults before 1e-3 and 1e-7 R)", {},
+         tolerance(5e-6)),
         ("sh12_100x100", "residual tolerance 1e-6 (the default before 5e-6)", {}, tolerance(1e-6)),
         ("sh12_100x100", "residual tolerance 1e-8 (the default before 1e-6)", {}, tolerance(1e-8)),
         ("sh12_100x100", "K0 as B^T diag(w A) B over the 4 nq rows of B (not from the direction gradients)",
          {(equilibrium, "stiffness_at_rest"): general_stiffness_at_rest}, None),
         ("needle20_entry25", "all levers (now)", {}, None),
+        ("needle20_entry25", "needle tolerances 5e-6 and 1e-9 R (the defaults before 1e-3 and 1e-7 R)", {},
+         tolerance(5e-6)),
         ("needle20_entry25", "residual tolerance 1e-6 (the default before 5e-6)", {}, tolerance(1e-6)),
         ("needle20_entry25", "tip Newton stopped at a step below 1e-8 R (not 1e-6 R)",
          {(tip_tracking, "NEWTON_TIP_STOP"): 1e-8}, None),

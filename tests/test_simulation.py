@@ -27,17 +27,17 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import CONFIGS
+from conftest import CONFIGS, TIGHT_NEEDLE_NEWTON
 
 from stitchplan.config.scenario import load_scenario, parse_scenario
 from stitchplan.errors import InsertionFailure
 from stitchplan.events import EventKind
 from stitchplan.needle import tip_tracking
 from stitchplan.needle.equilibrium import (
-    CONSTRAINT_TOLERANCE,
     RAMP_SMALLEST,
     NeedleInsertion,
     PreparedTissue,
+    newton_tolerances,
 )
 from stitchplan.needle.insertion import FixedCenter, run_insertion
 from stitchplan.needle.tip_tracking import track_step
@@ -46,7 +46,8 @@ from stitchplan.planning.planner import run_plan
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 
 
-def small_scene(*, friction=0.0602, cutting_force=0.7, material=PHANTOM, spacing=4.0, thickness=10.0, **needle):
+def small_scene(*, friction=0.0602, cutting_force=0.7, material=PHANTOM, spacing=4.0, thickness=10.0,
+                solver=None, **needle):
     """40 x 30 mm phantom block clamped on the right, 8 mm needle entering (0, 22) turning cw
     in steps of 0.2 rad: 15 steps on 99 particles, the desired exit at (0, 6)."""
     raw = {"tissue": {"size": [40.0, 30.0], "thickness": thickness, "clamped": ["right"],
@@ -54,6 +55,8 @@ def small_scene(*, friction=0.0602, cutting_force=0.7, material=PHANTOM, spacing
            "discretization": {"spacing": spacing},
            "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2,
                       "friction": friction, "cutting_force": cutting_force, **needle}}
+    if solver is not None:
+        raw["solver"] = solver
     return parse_scenario(raw)
 
 
@@ -292,7 +295,7 @@ def test_needle_points_stay_on_the_needle_after_every_step(direct_run):
     for step, distance in enumerate(distances, start=1):
         assert len(distance) == step + 1  # entry plus one point per step
         assert np.abs(distance).max() <= 1e-6, step
-    assert max(s.constraint_violation for s in result.steps) <= CONSTRAINT_TOLERANCE * result.geometry.radius
+    assert max(s.constraint_violation for s in result.steps) <= newton_tolerances(result.scenario)[1] * result.geometry.radius
     assert all(s.newton_iterations >= 1 for s in result.steps)
     # the tissue does deform: the needle drags it by a good fraction of a millimetre
     assert np.linalg.norm(result.displacements[-1], axis=1).max() > 0.2
@@ -327,11 +330,24 @@ def test_without_friction_and_cutting_the_tissue_does_not_deform(tracking):
     assert {s.tracking for s in result.steps} == {tracking} and not result.events
 
 
+def test_newton_tolerances_follow_the_coupling_unless_the_scenario_sets_them():
+    """A needle step's Newton stops at 1e-3 of the needle force and 1e-7 R with the mortar
+    coupling and at 5e-6 and 1e-9 R with the point coupling (nearly dependent constraint rows);
+    a solver block's values win, and a run records the tolerances it stopped at."""
+    assert newton_tolerances(small_scene()) == (1e-3, 1e-7)
+    assert newton_tolerances(small_scene(coupling="points")) == (5e-6, 1e-9)
+    assert newton_tolerances(small_scene(solver={"needle_residual_tolerance": 2e-4})) == (2e-4, 1e-7)
+    assert newton_tolerances(small_scene(coupling="points", solver={"needle_constraint_tolerance": 3e-8})) == (
+        5e-6, 3e-8)
+    insertion = NeedleInsertion(small_scene(coupling="points"))
+    assert (insertion.residual_tolerance, insertion.constraint_tolerance) == (5e-6, pytest.approx(1e-9 * 8.0))
+
+
 def test_minres_and_direct_solves_agree(direct_run):
     """MINRES with diag(K0^-1, S^-1) (S by bordering) reproduces the direct insertion: exit
     points to 1e-7 mm and every particle's final displacement to 1e-7 mm (both Newton runs
     stop at a residual of 1e-9 of the needle force, so both are converged to well below that)."""
-    scenario = replace(direct_run[0].scenario, solver=replace(direct_run[0].scenario.solver, residual_tolerance=1e-9))
+    scenario = replace(direct_run[0].scenario, solver=replace(direct_run[0].scenario.solver, needle_residual_tolerance=1e-9))
     direct = run_insertion(scenario, tip_tracking="levenberg-marquardt")
     minres = run_insertion(scenario, linear_solver="minres", tip_tracking="levenberg-marquardt")
     assert len(minres.steps) == len(direct.steps)
@@ -361,7 +377,7 @@ def test_auto_tip_tracking_falls_back_to_levenberg_marquardt_at_a_jump():
     assert used[:2] == ["inverse-gradient"] * 2 and used[2] == "levenberg-marquardt"
     assert used.count("levenberg-marquardt") == len(result.events)
     assert on_edge_distance(result.achieved_exit, result.scenario.tissue.size) <= 1e-9
-    assert max(s.constraint_violation for s in result.steps) <= CONSTRAINT_TOLERANCE * result.geometry.radius
+    assert max(s.constraint_violation for s in result.steps) <= newton_tolerances(result.scenario)[1] * result.geometry.radius
     assert np.linalg.norm(result.displacements[-1], axis=1).max() > 0.5
 
 
@@ -383,7 +399,7 @@ def test_ramped_load_ends_at_the_state_the_full_load_reaches_at_once(coupling, m
     steps (the tracked points agree as well). Both converge to 1e-10 of the needle force, so
     that the two paths' own residuals stay far below that."""
     scenario = small_scene(coupling=coupling)
-    scenario = replace(scenario, solver=replace(scenario.solver, residual_tolerance=1e-10))
+    scenario = replace(scenario, solver=replace(scenario.solver, needle_residual_tolerance=1e-10))
     direct = started(scenario, steps=3)
     assert direct.ramp_increments == 0
     ramped = started(scenario)
@@ -470,7 +486,7 @@ def test_shipped_needle20_scenarios_run_to_the_bottom_edge(entry_y):
     result = run_insertion(load_scenario(CONFIGS / f"needle20_entry{entry_y}.yaml"))
     assert abs(result.achieved_exit[1]) <= 1e-9  # out through the bottom edge, as documented
     assert result.exit_error_mm == pytest.approx(NEEDLE20_EXIT_ERROR[entry_y], rel=0.02)
-    assert max(s.constraint_violation for s in result.steps) <= result.geometry.radius * CONSTRAINT_TOLERANCE
+    assert max(s.constraint_violation for s in result.steps) <= result.geometry.radius * newton_tolerances(result.scenario)[1]
     assert result.steps[-1].rotation < result.geometry.exit_rotation + result.geometry.step
 
 
@@ -628,7 +644,7 @@ def test_a_replay_started_from_a_nearby_run_reaches_the_same_exit_in_fewer_itera
     plus the earlier run's change over the step. Replaying a centre path 0.02 mm off an earlier
     run's ends where the cold replay does (to the residual tolerance) with fewer Newton
     iterations; a run of another model is not used."""
-    scenario = small_scene()
+    scenario = small_scene(solver=TIGHT_NEEDLE_NEWTON)
     tissue = PreparedTissue(scenario)
     earlier = run_insertion(scenario, tissue=tissue)
     assert len(earlier.states) == len(earlier.steps)
@@ -649,7 +665,7 @@ def test_a_start_that_newton_cannot_use_falls_back_to_the_previous_step(caplog):
     under the whole load; the step starts again from the previous step's state and the run
     ends where a cold run does. (The run's centres leave the earlier run's at step 1, so no
     step is taken over.)"""
-    scenario = small_scene()
+    scenario = small_scene(solver=TIGHT_NEEDLE_NEWTON)
     tissue = PreparedTissue(scenario)
     earlier = run_insertion(scenario, tissue=tissue)
     earlier.states = [replace(state, free=50.0 * state.free) for state in earlier.states]

@@ -37,10 +37,12 @@ from stitchplan.tissue.deform import run_deform
 from stitchplan.tissue.material import determinant
 from stitchplan.tissue.solver import SolverDivergence
 
+from conftest import TIGHT_NEEDLE_NEWTON
+
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 
 
-def needle_scene(*, cutting_force=0.7, spacing=4.0, step=0.2, coupling="points", **needle):
+def needle_scene(*, cutting_force=0.7, spacing=4.0, step=0.2, coupling="points", solver=None, **needle):
     """40 x 30 mm phantom block clamped on the right, 8 mm needle entering (0, 22) cw: 99
     particles at 4 mm, well under a second per insertion. The thesis's point coupling, whose
     limits these tests document."""
@@ -48,7 +50,8 @@ def needle_scene(*, cutting_force=0.7, spacing=4.0, step=0.2, coupling="points",
         "tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": ["right"], "material": dict(PHANTOM)},
         "discretization": {"spacing": spacing},
         "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": step, "friction": 0.0602,
-                   "cutting_force": cutting_force, "coupling": coupling, **needle}})
+                   "cutting_force": cutting_force, "coupling": coupling, **needle},
+        **({"solver": solver} if solver is not None else {})})
 
 
 # --- 1. tip tracking ------------------------------------------------------------------------
@@ -146,7 +149,7 @@ def test_a_stagnating_minres_falls_back_to_the_direct_solve(monkeypatch):
         return original(stiffness_at_rest, **{**options, "minres_maxiter": 3})
 
     monkeypatch.setattr(equilibrium, "SaddlePointSolver", starved)
-    scenario = needle_scene()
+    scenario = needle_scene(solver=TIGHT_NEEDLE_NEWTON)
     fallback = run_insertion(scenario, linear_solver="minres", tip_tracking="levenberg-marquardt")
     monkeypatch.setattr(equilibrium, "SaddlePointSolver", original)
     direct = run_insertion(scenario, linear_solver="direct", tip_tracking="levenberg-marquardt")

@@ -531,13 +531,18 @@ HELD = ("at least one clamped edge or a displacement load: forces alone leave th
 
 @block(title="solver")
 class Solver:
-    # 5e-6 of the driving force leaves at most 2.5e-7 mm in the exit points of the shipped needle
-    # scenes, 4000x below the planner's 0.001 mm tolerance; 1e-6 took 8-46 % more Newton
-    # iterations (benchmarks/results/solver_tolerance.md), 1e-8 a fifth more again
-    residual_tolerance: described(Positive, "Newton: force residual tolerance (relative)") = 5e-6
-    increment_tolerance: described(Positive, "Newton: increment tolerance (relative)") = 1e-8
-    max_iterations: described(integer(1, 500), "Newton iterations per load step") = 25
+    # static load steps (deform, calibration): full Newton, which the increment test ends
+    residual_tolerance: described(Positive, "load steps' Newton: force residual tolerance (relative)") = 5e-6
+    increment_tolerance: described(Positive, "load steps' Newton: increment tolerance (relative)") = 1e-8
+    max_iterations: described(integer(1, 500), "Newton iterations per load or needle step") = 25
     max_step_cuts: described(integer(0, 30), "halvings of a load step that fails to converge") = 6
+    # a needle step's modified Newton stops on both; unset, they follow the coupling
+    # (needle/equilibrium.py NEWTON_TOLERANCES)
+    needle_residual_tolerance: described(Positive | None, "needle steps' Newton: force residual / needle force "
+                                         "(default 1e-3; 5e-6 with needle.coupling points)") = None
+    needle_constraint_tolerance: described(Positive | None, "needle steps' Newton: largest distance of the "
+                                           "track from the needle / needle radius (default 1e-7; 1e-9 with "
+                                           "needle.coupling points)") = None
 
 
 @block(title="planner")

@@ -286,7 +286,10 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
                        "linear_solver_backends": list(insertion.saddle.backends),
                        "minres_iterations": insertion.saddle.minres_iterations,
                        "minres_fallbacks": insertion.saddle.fallbacks,
-                       "tangent_products": insertion.assembler.tangent_products},
+                       "tangent_products": insertion.assembler.tangent_products,
+                       # the needle steps' Newton stopped at these (needle/equilibrium.py newton_tolerances)
+                       "needle_residual_tolerance": insertion.residual_tolerance,
+                       "needle_constraint_tolerance": insertion.constraint_tolerance / insertion.geometry.radius},
         crossings=crossings,
         bites=_bites(insertion, crossings) if len(crossings) > 1 else None,
         states=states,
