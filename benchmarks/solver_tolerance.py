@@ -17,7 +17,7 @@ at the default spacing h, h/sqrt(2) and h/2 (benchmarks/needle_coupling.py's lev
 default pair and at REFERENCE: whether the differences between the levels, a fraction of a
 micrometre there, are the discretization's or the solver's.
 
-Writes benchmarks/results/solver_tolerance.{csv,md}. About 15 minutes.
+Writes benchmarks/results/solver_tolerance.{csv,md}. About 10 minutes.
 Run from the repository root:  python benchmarks/solver_tolerance.py
 """
 

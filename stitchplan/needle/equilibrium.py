@@ -231,8 +231,9 @@ class NeedleInsertion:
         self.multipliers = np.zeros(0)
         self.center = self.geometry.center.copy()
         self.last_violation = 0.0  # max |g_e| of the last converged equilibrium, mm
-        self.residual_tolerance, constraint = newton_tolerances(scenario)
-        self.constraint_tolerance = constraint * self.geometry.radius  # mm
+        self.newton_tolerances = newton_tolerances(scenario)  # (|r_u| / |f_needle|, |g| / R)
+        self.residual_tolerance = self.newton_tolerances[0]
+        self.constraint_tolerance = self.newton_tolerances[1] * self.geometry.radius  # mm
         self.ramp_increments = 0  # load increments beyond the first, over the run
         self._free_rows: dict[tuple[float, ...], np.ndarray] = {}
         # every Newton iteration of every solve (the planner's centre tries and failed ramp

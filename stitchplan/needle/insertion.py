@@ -288,8 +288,8 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
                        "minres_fallbacks": insertion.saddle.fallbacks,
                        "tangent_products": insertion.assembler.tangent_products,
                        # the needle steps' Newton stopped at these (needle/equilibrium.py newton_tolerances)
-                       "needle_residual_tolerance": insertion.residual_tolerance,
-                       "needle_constraint_tolerance": insertion.constraint_tolerance / insertion.geometry.radius},
+                       "needle_residual_tolerance": insertion.newton_tolerances[0],
+                       "needle_constraint_tolerance": insertion.newton_tolerances[1]},
         crossings=crossings,
         bites=_bites(insertion, crossings) if len(crossings) > 1 else None,
         states=states,

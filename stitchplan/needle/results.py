@@ -76,7 +76,8 @@ class InsertionResult:
     wall_seconds: float
     timings: dict[str, float]
     events: list[Event] = field(default_factory=list)
-    solver_counts: dict[str, int | float | str] = field(default_factory=dict)  # and the linear solver, its backend and the tolerances
+    # and the linear solver, its backend and the needle steps' Newton tolerances
+    solver_counts: dict[str, int | float | str] = field(default_factory=dict)
     # every boundary crossing after the entry, the final exit last (more than one across a
     # wound): kind, desired / desired_def / achieved / achieved_def (2,), error_mm
     crossings: list[dict] = field(default_factory=list)
