@@ -41,6 +41,7 @@ SCENES = ("sh12_100x100", "sh12_100x30", "hole_near_stitch", "needle20_entry30",
 REPEATS = 5
 BASELINE = "685727f"
 GOAL_SECONDS = 1.5  # the whole `plan --no-compare` command the speed work aims at
+PLANNER_TOLERANCE = 1e-3  # mm (planner.tolerance)
 
 
 def measure(scene: str, folder: Path, baseline: Path) -> dict:
@@ -56,7 +57,10 @@ def measure(scene: str, folder: Path, baseline: Path) -> dict:
                                               PYTHONPATH=str(baseline)))
         befores.append(common.config_command("plan", unpredicted, ["--no-compare", "-q"], folder, folder))
         plans.append(common.scene_command("plan", scene, ["--no-compare", "-q"], folder, folder))
-    if baselines[-1][1]["verified_exit_error_mm"] != plans[-1][1]["verified_exit_error_mm"]:
+    # BASELINE solved a needle step to 5e-6 of the needle force and 1e-9 R, the code now to 1e-3
+    # and 1e-7 R (benchmarks/results/solver_tolerance.md): the plans then agree within the
+    # planner's tolerance, not to the bit
+    if abs(baselines[-1][1]["verified_exit_error_mm"] - plans[-1][1]["verified_exit_error_mm"]) > PLANNER_TOLERANCE:
         raise RuntimeError(f"{scene}: verified exit error {plans[-1][1]['verified_exit_error_mm']} mm, at "
                            f"{BASELINE} {baselines[-1][1]['verified_exit_error_mm']} mm")
     plan, before = plans[-1][1], befores[-1][1]
@@ -121,7 +125,9 @@ def main() -> None:
         "the same command on the scene's file with `planner.predicted_aim: false`, run alternately with "
         "it (the plan before the predicted aim). "
         f"*At {BASELINE}*: the same command with the code of commit {BASELINE}, run alternately with "
-        "them, its verified exit error checked equal: there the helper started a replay it had dropped "
+        "them, its verified exit error checked within the planner's 0.001 mm (it solved a needle step to "
+        "5e-6 of the needle force and 1e-9 R, the code now to 1e-3 and 1e-7 R): there the helper started a "
+        "replay it had dropped "
         "(the planner's second pass leaving the first pass's centres at a step the replay had passed) "
         "again from the model's start, and a trajectory's entry centre as exported (rounded) took over "
         "no step of an earlier replay. "
