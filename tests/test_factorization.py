@@ -31,6 +31,23 @@ def test_superlu_solves_one_and_several_right_hand_sides():
     np.testing.assert_allclose(matrix @ factor.solve(rhs[:, 0]), rhs[:, 0], atol=1e-10)
 
 
+def test_sparse_columns_solve_like_their_dense_right_hand_sides():
+    """solve_columns (the needle's new constraint rows, needle/saddle_point.py) gives what solve
+    gives for the same columns made dense, on every backend, one column or several."""
+    matrix = spd_matrix()
+    columns = sp.random(40, 3, density=0.2, random_state=np.random.default_rng(4), format="csc")
+    indefinite = matrix - 2.0 * 40 * sp.eye(40)
+    factors = [SuperLUFactor(matrix)]
+    if cholesky_available():
+        factors += [factorize(matrix, symmetric_positive=True), factorize(indefinite, symmetric_positive=True)]
+        assert [f.backend for f in factors[1:]] == [CHOLMOD, CHOLMOD_LDL]
+    for factor in factors:
+        for block in (columns, columns[:, :1]):
+            solved = factor.solve_columns(block)
+            assert solved.shape == block.shape
+            np.testing.assert_allclose(solved, factor.solve(block.toarray()), rtol=0, atol=1e-13)
+
+
 def test_the_switch_turns_the_cholesky_off(monkeypatch):
     monkeypatch.setenv("STITCHPLAN_LINEAR_BACKEND", "superlu")
     assert not cholesky_available()

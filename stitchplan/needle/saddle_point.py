@@ -247,10 +247,8 @@ class SaddlePointSolver:
         first = rows.indptr[have]  # the new rows, from the CSR arrays (cheaper than slicing)
         added = sp.csr_matrix((rows.data[first:], rows.indices[first:], rows.indptr[have:] - first),
                               shape=(count - have, rows.shape[1]))
-        new = self._factor.solve(added.toarray().T)  # (n, new)
+        new = self._factor.solve_columns(added.T)  # (n, new)
         self.solved_columns += count - have
-        if new.ndim == 1:
-            new = new[:, None]
         if self._solved_rows.shape[1] < count:  # room for the next steps' rows too
             grown = np.empty((len(new), max(count, 2 * self._solved_rows.shape[1])))
             grown[:, :have] = self._solved_rows[:, :have]
