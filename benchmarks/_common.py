@@ -82,6 +82,19 @@ def worker_record(script: str, source: Path, *arguments: str) -> dict:
     return json.loads(output.stdout.strip().splitlines()[-1])
 
 
+def verification_replay(scene: str):
+    """The shipped trajectory of `scene` (sample_runs/SCENE/trajectory.csv) and the model its
+    plan is verified on (half the spacing): (that scenario, the centres as run_insertion's
+    center_path). Imports the installed stitchplan."""
+    from stitchplan.config.scenario import load_scenario
+    from stitchplan.io.readers import read_center_path
+    from stitchplan.needle.geometry import scenario_needle
+    from stitchplan.planning.verification import VERIFICATION_FACTOR, rescaled
+
+    refined = rescaled(load_scenario(REPO_ROOT / "configs" / f"{scene}.yaml"), VERIFICATION_FACTOR)
+    return refined, read_center_path(REPO_ROOT / "sample_runs" / scene / "trajectory.csv", scenario_needle(refined))
+
+
 def results_path(name: str) -> Path:
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     return RESULTS_DIR / name

@@ -26,11 +26,7 @@ import time  # noqa: E402
 
 import _common as common  # noqa: E402
 
-from stitchplan.config.scenario import load_scenario  # noqa: E402
-from stitchplan.io.readers import read_center_path  # noqa: E402
-from stitchplan.needle.geometry import scenario_needle  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
-from stitchplan.planning.verification import VERIFICATION_FACTOR, rescaled  # noqa: E402
 from stitchplan.tissue import factorization  # noqa: E402
 
 SCENES = ("sh12_100x30", "hole_near_stitch", "sh12_100x100", "wound_closure")
@@ -42,8 +38,7 @@ def dense_columns(factor, columns):  # the way before: one dense column at a tim
 
 
 def measure(scene: str) -> dict:
-    refined = rescaled(load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml"), VERIFICATION_FACTOR)
-    centers = read_center_path(common.REPO_ROOT / "sample_runs" / scene / "trajectory.csv", scenario_needle(refined))
+    refined, centers = common.verification_replay(scene)
     sparse = factorization.CholeskyFactor.solve_columns
     seconds, results = {"sparse": [], "dense": []}, {}
     try:

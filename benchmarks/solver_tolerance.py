@@ -38,12 +38,9 @@ import numpy as np  # noqa: E402
 
 from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
-from stitchplan.io.readers import read_center_path  # noqa: E402
 from stitchplan.needle.equilibrium import newton_tolerances  # noqa: E402
-from stitchplan.needle.geometry import scenario_needle  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 from stitchplan.planning.planner import run_plan  # noqa: E402
-from stitchplan.planning.verification import VERIFICATION_FACTOR, rescaled  # noqa: E402
 from stitchplan.tissue.deform import run_deform  # noqa: E402
 
 REFERENCE = (1e-10, 1e-12)  # (needle residual / needle force, constraint / needle radius)
@@ -114,11 +111,9 @@ def planned(name: str) -> list[dict]:
 
 def replayed(name: str) -> list[dict]:
     """The shipped trajectory on the verification model (half the spacing)."""
-    trajectory = SAMPLE_RUNS / name / "trajectory.csv"
-    if not trajectory.exists():
+    if not (SAMPLE_RUNS / name / "trajectory.csv").exists():
         return []
-    base = rescaled(load_scenario(CONFIGS / f"{name}.yaml"), VERIFICATION_FACTOR)
-    centers = read_center_path(trajectory, scenario_needle(base))
+    base, centers = common.verification_replay(name)
     runs, seconds = {}, {}
     for pair in (REFERENCE, *PAIRS):
         gc.collect()
