@@ -58,5 +58,10 @@ class NonFiniteResidual(InsertionFailure):
     """Newton met a residual that is not finite: the loads or the deformation overflow."""
 
 
+class ConstraintStall(InsertionFailure):
+    """Newton balanced the forces but the needle constraints stalled above their tolerance:
+    constraint rows nearly dependent (needle points closer together than the particles resolve)."""
+
+
 class PlanningFailure(InsertionFailure):
     """The planner's convergence condition (eq. 4.2) fails (raised only when strict)."""

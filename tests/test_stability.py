@@ -15,6 +15,9 @@ tool does about it (README, "Stability limits").
    naming the load step and fraction; neo-Hookean solves 8 mm without a cut.
 4. A dilation too small for the moment matrix (here a quadratic basis): a ScenarioError
    naming the dilation, spacing and orders, raised before any solve.
+5. Needle loads that overflow: a failure that blames the overflow, one line in the CLI.
+6. Point constraints closer together than the particles resolve: the constraint violation
+   stalls just above its tolerance, and the failure says so (not the material).
 """
 
 from __future__ import annotations
@@ -279,3 +282,22 @@ def test_an_overflow_in_the_cli_is_one_error_line_without_numpy_warnings(tmp_pat
                              "--no-estimate"], capture_output=True, text=True, timeout=300)
     assert result.returncode == 1 and result.stdout == ""
     assert len(result.stderr.strip().splitlines()) == 1 and result.stderr.startswith("error: step 1 "), result.stderr
+
+
+# --- 6. needle points closer together than the particles resolve -----------------------------------
+
+
+def test_point_constraints_closer_than_the_particles_stall_and_the_failure_says_so():
+    """Point constraints 0.16 mm apart (step 0.02 rad) on 5 mm particles: their rows are nearly
+    dependent, and at step 18 the constraint violation stalls at 8.01e-9 mm, just above the
+    points coupling's 1e-9 R (8e-9 mm), while the force residual is 1e-12 N. The failure names
+    the stall and its causes, not Saint Venant-Kirchhoff's compression (the block is SVK, and
+    the load ramp's message blamed it before); the mortar coupling runs the same scene."""
+    with pytest.raises(InsertionFailure) as failure:
+        run_insertion(needle_scene(spacing=5.0, step=0.02))
+    message = str(failure.value)
+    assert re.match(r"step \d+ \(needle rotation 0\.\d{3} rad\): ", message), message
+    assert "the forces balance, but the needle constraints stall above their tolerance of 8.000e-09 mm" in message
+    assert "use `needle.coupling: mortar`" in message and "Saint Venant-Kirchhoff" not in message
+    result = run_insertion(needle_scene(spacing=5.0, step=0.02, coupling="mortar"))
+    assert result.exit_rotation is not None and not result.events

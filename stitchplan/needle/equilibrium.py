@@ -32,7 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..config import Scenario
-from ..errors import InputError, InsertionFailure, InvertedMaterial, NonFiniteResidual
+from ..errors import ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NonFiniteResidual
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler, stiffness_at_rest
 from ..tissue.factorization import Factor, factorize
@@ -404,7 +404,7 @@ class NeedleInsertion:
         message = (f"step {step} (needle rotation {rotation:.3f} rad): the needle's load could not be "
                    f"carried: {100 * carried:.0f} % of the step's cutting force and added friction held, "
                    f"the next {100 * RAMP_SMALLEST:.2g} % increment failed ({failure})")
-        if isinstance(failure, NonFiniteResidual):  # no material model carries a load that overflows
+        if isinstance(failure, (NonFiniteResidual, ConstraintStall)):  # not the material's doing
             return message
         models = {self.scenario.tissue.material.model}
         models |= {region.material.model for region in getattr(self.scenario.tissue, "regions", None) or []}
@@ -491,9 +491,17 @@ class NeedleInsertion:
                 f"Newton stopped at step {step} (needle rotation {rotation:.3f} rad): the residual is not finite "
                 f"after {iteration} iterations (needle force {state.needle_force:.3e} N): the loads or the "
                 "deformation overflow floating point")
-        raise InsertionFailure(
-            f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
-            f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} iterations")
+        message = (f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
+                   f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} "
+                   "iterations")
+        if residual_norm <= self.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12:
+            raise ConstraintStall(f"{message}; the forces balance, but the needle constraints stall above their "
+                                  f"tolerance of {self.constraint_tolerance:.3e} mm: their rows are nearly "
+                                  "dependent, needle points closer together than the particles resolve ("
+                                  + ("refine the spacing, lengthen the needle step or use `needle.coupling: "
+                                     "mortar`)" if self.needle.coupling == "points" else
+                                     "refine the spacing or lengthen the needle step)"))
+        raise InsertionFailure(message)
 
     def _accept(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, worst: float,
                 iterations: int) -> None:
