@@ -87,9 +87,11 @@ COUNT_CAP = 10**15
 LONG_RUN_SECONDS = 600.0
 
 # from benchmarks/results/resource_costs.md (python benchmarks/resource_costs.py): the time
-# constants are its fit; the memory constants an earlier fit's (git history), kept because they
-# bound every measured peak from above, where the latest fit's sublinear exponent (the fixed
-# cost of a run's first imports spread over few particles) falls below the largest one
+# constants a fit of the code as it is (fits vary with the machine's load: the exponent by
+# 1.07-1.19 over two runs; the file's "guard now" columns check these against every run); the
+# memory constants an earlier fit's (git history), kept because they bound every measured peak
+# from above, where the latest fits' sublinear exponent (the fixed cost of a run's first imports
+# spread over few particles) falls below the largest one
 SECONDS_PER_PARTICLE_STEP = {"deform": 6.5e-5, "insertion": 1.5e-5}  # at 1 000 particles
 TIME_EXPONENT = 1.07  # seconds ~ particles^TIME_EXPONENT
 MEMORY_PER_PARTICLE = 3.6e4  # bytes per particle at 1 000 particles
