@@ -119,14 +119,14 @@ def main() -> None:
                   f"{max(s.condition_preconditioned for s in result.steps):.3g}", flush=True)
 
     # --- files ---------------------------------------------------------------------------
-    header = ["part", "coupling", "spacing_mm", "particles", "linear_solver", "runs", "wall_seconds", *[f"{p}_seconds" for p in PHASES],
-              "other_seconds", "steps", "newton_iterations", "minres_iterations", "factorizations", "minres_fallbacks",
-              "exit_error_mm", "status"]
+    header = ["part", "coupling", "spacing_mm", "particles", "linear_solver", "runs", "wall_seconds",
+              *[f"{p}_seconds" for p in PHASES], "other_seconds", "steps", "newton_iterations",
+              "minres_iterations", "factorizations", "minres_fallbacks", "exit_error_mm", "status"]
     rows = []
     for solver, r in runs.items():
-        rows.append(["default scene", base.needle.coupling, r["spacing"], r["particles"], solver, r["runs"], r["wall"], *[r[p] for p in PHASES],
-                     r["other"], r["steps"], r["newton"], r["minres"], r["factorizations"], r["fallbacks"],
-                     r["exit_error"], r["status"]])
+        rows.append(["default scene", base.needle.coupling, r["spacing"], r["particles"], solver, r["runs"],
+                     r["wall"], *[r[p] for p in PHASES], r["other"], r["steps"], r["newton"], r["minres"],
+                     r["factorizations"], r["fallbacks"], r["exit_error"], r["status"]])
     for r in sweep:
         rows.append(["stagnation sweep", r["coupling"], r["spacing"], r["particles"], r["solver"], 1, r["wall"],
                      *[r.get(p, "") for p in PHASES], r.get("other", ""), r["steps"], r["newton"], r["minres"],

@@ -38,8 +38,6 @@ from stitchplan.planning.planner import (
     run_plan,
 )
 from stitchplan.planning.trajectory import DECIMALS_MM
-
-from conftest import TIGHT_NEEDLE_NEWTON
 from stitchplan.planning.verification import (
     PREDICTED_RATIO,
     VERIFIED_FACTOR,
@@ -48,6 +46,8 @@ from stitchplan.planning.verification import (
     rescaled,
     simulate_with_estimate,
 )
+
+from conftest import TIGHT_NEEDLE_NEWTON
 
 RADIUS = 8.88
 VERIFICATION_KEYS = ("verified_exit_error_mm", "verification_spacing_mm", "verification")

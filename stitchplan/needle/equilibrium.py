@@ -430,8 +430,8 @@ class NeedleInsertion:
             residual_norm, worst = length(state.residual), state.worst_violation
             # a needle force so large that its norm overflows would make every residual look small
             finite = math.isfinite(residual_norm) and math.isfinite(state.needle_force)
-            balanced = (finite and worst <= self.constraint_tolerance
-                        and residual_norm <= self.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12)
+            forces_balance = finite and residual_norm <= self.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
+            balanced = forces_balance and worst <= self.constraint_tolerance
             steering = aim is not None and aim.held is None
             if balanced and not steering:
                 self._accept(free, multipliers, center, worst, iteration)
@@ -494,14 +494,14 @@ class NeedleInsertion:
         message = (f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
                    f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} "
                    "iterations")
-        if residual_norm <= self.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12:
-            raise ConstraintStall(f"{message}; the forces balance, but the needle constraints stall above their "
-                                  f"tolerance of {self.constraint_tolerance:.3e} mm: their rows are nearly "
-                                  "dependent, needle points closer together than the particles resolve ("
-                                  + ("refine the spacing, lengthen the needle step or use `needle.coupling: "
-                                     "mortar`)" if self.needle.coupling == "points" else
-                                     "refine the spacing or lengthen the needle step)"))
-        raise InsertionFailure(message)
+        if not forces_balance:
+            raise InsertionFailure(message)
+        remedy = "refine the spacing or lengthen the needle step"
+        if self.needle.coupling == "points":
+            remedy = "refine the spacing, lengthen the needle step or use `needle.coupling: mortar`"
+        raise ConstraintStall(f"{message}; the forces balance, but the needle constraints stall above their "
+                              f"tolerance of {self.constraint_tolerance:.3e} mm: their rows are nearly dependent, "
+                              f"needle points closer together than the particles resolve ({remedy})")
 
     def _accept(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, worst: float,
                 iterations: int) -> None:
