@@ -260,6 +260,33 @@ def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
     return None
 
 
+def cut_outline(outline: np.ndarray, cuts: list[np.ndarray],
+                tol: float) -> tuple[np.ndarray | None, str, list[int]]:
+    """The outline (k, 2) with the polygons `cuts` (holes that reach or cross it) cut out:
+    its vertices counter-clockwise, or None and why the rest is not one simple polygon
+    (nothing left, several pieces, a pinch where a cut only touches the outline); and the
+    indices of the cuts that hold no tissue (none of their area inside the outline).
+    Slivers thinner than `tol` are dropped. Shapely (GEOS) does the polygon difference,
+    whose degenerate cases (a cut's edge along the outline's, a vertex on an edge) it
+    handles."""
+    import shapely
+
+    tissue, pieces = shapely.Polygon(outline), [shapely.Polygon(cut) for cut in cuts]
+    idle = [i for i, piece in enumerate(pieces) if tissue.intersection(piece).area <= tol * tol]
+    rest = shapely.simplify(tissue.difference(shapely.union_all(pieces)), tol, preserve_topology=True)
+    if rest.is_empty or rest.area <= tol * tol:
+        return None, "no tissue", idle
+    if rest.geom_type != "Polygon":
+        return None, f"{len(rest.geoms)} separate pieces of tissue", idle
+    if len(rest.interiors):
+        return None, "an outline pinched where a cut touches it at a point", idle
+    vertices = np.asarray(rest.exterior.coords, dtype=float)[:-1]
+    why = polygon_problem(vertices, tol)
+    if why:
+        return None, f"an outline that is not {why}", idle
+    return (vertices if signed_area(vertices) > 0 else vertices[::-1].copy()), "", idle
+
+
 @dataclass(frozen=True, eq=False)
 class PolygonDomain(BoundingBox):
     """A simple polygon (counter-clockwise) with polygonal holes, in mm.

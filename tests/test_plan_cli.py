@@ -138,6 +138,32 @@ def test_plan_summary_compares_planned_and_unplanned(planned):
     assert verified < 0.05 and verified < 0.05 * unplanned
     assert summary["exit_error_mm"] <= verified + 2 * summary["exit_error_estimate_mm"]
     assert (folder / "run.h5").stat().st_size > 0
+    # the exit point and the rigid tip at the exit rotation both lie on the needle's circle
+    # about the exit row's centre; the summary gives the distance along it
+    columns, table = read_trajectory(folder / "trajectory.csv")
+    center = table[-1, [columns.index("center_x_mm"), columns.index("center_y_mm")]]
+    assert math.dist(center, summary["needle_tip_at_exit"]) == pytest.approx(RADIUS, abs=1e-6)
+    assert math.dist(center, summary["achieved_exit_def"]) == pytest.approx(RADIUS, abs=1e-6)
+    assert summary["exit_to_needle_tip_mm"] == pytest.approx(
+        math.dist(summary["achieved_exit_def"], summary["needle_tip_at_exit"]), rel=1e-12)
+
+
+def test_the_plan_summary_counts_the_work_of_every_pass(planned):
+    """Newton iterations, equilibrium and linear solves of every planner pass, the passes
+    whose runs were not exported included; the run log's steps hold the exported run's."""
+    folder, result, summary = planned
+    assert result.exit_code == 0, result.output
+    passes = summary["planner_passes"]
+    assert len(passes) >= 2  # the planned scene takes more than one pass
+    assert summary["newton_iterations"] == sum(record["newton_iterations"] for record in passes)
+    assert summary["equilibrium_solves"] == sum(record["equilibrium_solves"] for record in passes)
+    for key in ("linear_solves", "factorizations", "solved_columns"):
+        assert summary["solver"][key] == sum(record["solver"][key] for record in passes), key
+    # direct solves: one saddle-point solve per Newton iteration
+    assert summary["solver"]["linear_solves"] == summary["newton_iterations"]
+    with h5py.File(folder / "run.h5") as log:
+        exported = int(log["steps/newton_iterations"][()].sum())
+    assert passes[-1]["newton_iterations"] <= exported <= summary["newton_iterations"]
 
 
 def test_replaying_the_exported_centres_reproduces_the_planned_exit(planned, tmp_path):

@@ -10,6 +10,7 @@ demand; the needle commands and calibration run on a polygon tissue.
 from __future__ import annotations
 
 import copy
+import json
 import math
 
 import numpy as np
@@ -56,8 +57,13 @@ BAD_SHAPES = {
                      ["tissue.holes[0]: got [[50.0, 5.0], [55.0, 5.0], [55.0, 8.0]]", "a hole inside the tissue outline"]),
     "hole touching the outline": (shaped(holes=[{"circle": {"center": [30.0, 2.0], "radius": 2.0}}]),
                                   ["tissue.holes[0]:", "not touching it"]),
-    "hole cutting the notch": (shaped(holes=[{"polygon": [[19, 12], [21, 12], [21, 15], [19, 15]]}]),
-                               ["tissue.holes[0]:", "a hole inside the tissue outline"]),
+    "hole cutting the tissue apart": (shaped(holes=[{"polygon": [[10, -1], [12, -1], [12, 21], [10, 21]]}]),
+                                      ["tissue.holes[0]:", "one simple piece of tissue",
+                                       "it leaves 2 separate pieces of tissue"]),
+    "hole touching the hole cut into the outline": (
+        shaped(holes=[{"polygon": [[19, 12], [21, 12], [21, 15], [19, 15]]},
+                      {"circle": {"center": [20.0, 10.0], "radius": 2.0}}]),
+        ["tissue.holes[1]:", "apart from the holes cut into its outline (holes[0])"]),
     "overlapping holes": (shaped(holes=[{"circle": {"center": [30.0, 8.0], "radius": 2.0}},
                                         {"polygon": [[29, 7], [35, 7], [35, 12]]}]),
                           ["tissue.holes[1]:", "a hole apart from holes[0]"]),
@@ -101,22 +107,66 @@ def test_loads_and_needles_must_meet_the_polygon(tmp_path, command, change, frag
     assert_refused(result, tmp_path, {"scene.yaml"}, [["scene.yaml: ", *fragments]])
 
 
+SCENARIO_EXAMPLE = {
+    "tissue": {"outline": [[0, 0], [60, 0], [60, 30], [34, 30], [32, 22], [28, 22], [26, 30], [0, 30]],
+               "thickness": 10.0, "material": PHANTOM,
+               "holes": [{"polygon": [[40, 20], [60, 20], [60, 40], [40, 40]]},
+                         {"circle": {"center": [20, 10], "radius": 3}}],
+               "regions": [{"polygon": [[0, 25], [60, 25], [60, 30], [0, 30]],
+                            "material": {"model": "neo-hookean", "lame_lambda": 0.9, "lame_mu": 0.4}}],
+               "clamped": ["right"]},
+    "loads": [{"segment": [[0, 5], [0, 25]], "force": [-1.0, 0.0]}],
+    "probes": [[10, 10], [30, 15], [50, 10], [38, 25]],
+    "discretization": {"spacing": 5.0},
+}
+# the same tissue with SCENARIO.md's first hole drawn into the outline
+CUT_OUTLINE = [[0, 0], [60, 0], [60, 20], [40, 20], [40, 30], [34, 30], [32, 22], [28, 22], [26, 30], [0, 30]]
+
+
 def test_the_example_of_scenario_md_reads():
-    """SCENARIO.md's shape example (its first hole, which reaches past the outline, left out):
-    `clamped: [right]` names the outline's one edge on the right side of its bounding box."""
-    raw = {"tissue": {"outline": [[0, 0], [60, 0], [60, 30], [34, 30], [32, 22], [28, 22], [26, 30], [0, 30]],
-                      "thickness": 10.0, "material": PHANTOM,
-                      "holes": [{"circle": {"center": [20, 10], "radius": 3}}],
-                      "regions": [{"polygon": [[0, 25], [60, 25], [60, 30], [0, 30]],
-                                   "material": {"model": "neo-hookean", "lame_lambda": 0.9, "lame_mu": 0.4}}],
-                      "clamped": ["right"]},
-           "loads": [{"segment": [[0, 5], [0, 25]], "force": [-1.0, 0.0]}]}
-    tissue = parse_scenario(raw).tissue
+    """SCENARIO.md's shape example as written: its first hole reaches past the outline and
+    is cut out of it, and `clamped: [right]` names the one outline edge left on the right
+    side of the bounding box."""
+    tissue = parse_scenario(SCENARIO_EXAMPLE).tissue
+    assert {tuple(v) for v in tissue.domain.outline} == {tuple(map(float, v)) for v in CUT_OUTLINE}
+    assert len(tissue.domain.holes) == 1  # the circle stays a hole
     start, end = tissue.clamped_pieces()[0]
-    assert {tuple(start), tuple(end)} == {(60.0, 0.0), (60.0, 30.0)}
-    raw["tissue"]["holes"].insert(0, {"polygon": [[40, 20], [60, 20], [60, 40], [40, 40]]})
-    with pytest.raises(Exception, match="holes\\[0\\].*a hole inside the tissue outline"):
-        parse_scenario(raw)
+    assert {tuple(start), tuple(end)} == {(60.0, 0.0), (60.0, 20.0)}
+
+
+def test_a_hole_cut_into_the_outline_is_the_outline_drawn_with_the_cut(tmp_path):
+    """`deform` on SCENARIO.md's example gives, to round-off, what it gives with the cut drawn
+    into the outline: as many particles and the same probe displacements."""
+    drawn = copy.deepcopy(SCENARIO_EXAMPLE)
+    drawn["tissue"]["outline"] = CUT_OUTLINE
+    del drawn["tissue"]["holes"][0]
+    probes, particles = [], []
+    for name, raw in (("cut", SCENARIO_EXAMPLE), ("drawn", drawn)):
+        folder = tmp_path / name
+        folder.mkdir()
+        write_scene(folder, raw)
+        result = invoke(folder, "deform", "scene.yaml", "--probes-out", "probes.csv", "--summary", "summary.json")
+        assert result.exit_code == 0, result.output
+        probes.append(np.loadtxt(folder / "probes.csv", delimiter=",", skiprows=1))
+        particles.append(json.loads((folder / "summary.json").read_text())["particles"])
+    assert particles[0] == particles[1]
+    assert np.abs(probes[1]).max() > 0.1  # the load moves the probes
+    np.testing.assert_allclose(probes[0], probes[1], rtol=0.0, atol=1e-9)
+
+
+def test_holes_cut_notches_into_a_rectangle_and_its_corners():
+    """A rectangle (`size`) with a polygon notch in its top and a circle over its lower right
+    corner: the outline loses both, the right edge is what is left of it."""
+    raw = {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": PHANTOM, "clamped": ["right"],
+                      "holes": [{"polygon": [[18, 15], [22, 15], [22, 25], [18, 25]]},
+                                {"circle": {"center": [40.0, 0.0], "radius": 4.0}}]}}
+    domain = parse_scenario(raw).tissue.domain
+    outline = {tuple(v) for v in domain.outline}
+    assert {(18.0, 20.0), (18.0, 15.0), (22.0, 15.0), (22.0, 20.0), (0.0, 0.0), (40.0, 20.0)} <= outline
+    assert (40.0, 0.0) not in outline and not domain.holes
+    start, end = parse_scenario(raw).tissue.clamped_pieces()[0]
+    assert {tuple(start), tuple(end)} == {(40.0, 4.0), (40.0, 20.0)}
+    assert domain.contains(np.array([[20.0, 10.0], [20.0, 17.0], [39.0, 1.0]])).tolist() == [True, False, False]
 
 
 def test_a_clockwise_outline_is_walked_counter_clockwise():

@@ -322,6 +322,23 @@ def test_the_summary_has_the_uncertainty_block_of_scenario_md(planned):
     assert f"exit spread dominated by {block['dominant_parameter']}" in result.stdout
 
 
+def test_the_exported_plan_under_uncertainty_is_verified_by_default(planned):
+    """As any plan: the exported trajectory replayed on the refined model (at the scenario's
+    values), which `simulate --center-path ... --spacing` reproduces, and an estimate from it."""
+    folder, result = planned
+    assert result.exit_code == 0, result.output
+    summary = json.loads((folder / "s.json").read_text())
+    assert summary["verification"]["rounds"][0]["aimed_by"] == "none"
+    assert summary["exit_error_estimate"]["basis"] == "refined"
+    replay = invoke("simulate", folder / "scene.yaml", "--center-path", folder / "t.csv", "--spacing",
+                    str(summary["verification_spacing_mm"]), "--summary", folder / "replay.json")
+    assert replay.exit_code == 0, replay.output
+    replayed = json.loads((folder / "replay.json").read_text())
+    assert replayed["exit_error_mm"] == pytest.approx(summary["verified_exit_error_mm"], rel=1e-6, abs=1e-9)
+    assert summary["exit_error_estimate_mm"] > 0.0
+    assert "verified" in result.stdout
+
+
 def test_the_run_log_and_the_png(planned):
     folder, result = planned
     assert result.exit_code == 0, result.output

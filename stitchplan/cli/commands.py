@@ -191,7 +191,6 @@ def plan(
             if value is not None:
                 raise InputError(f"{option}: got {value}, expected it only with --uncertainty FILE")
     executor = _executor(workers, scheduler)
-    verify = verify and uncertainty_path is None  # the plans under uncertainty are not verified
     _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                     "--uncertainty-plot": uncertainty_plot},
                    {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path})
@@ -231,7 +230,7 @@ def plan(
         guard(scenario)  # the verification model of the chosen discretization
     if uncertainty_path is not None:
         _plan_under_uncertainty(scenario_path, scenario, uncertainty_path, executor, auto_note, limits,
-                                export=export, out=out, summary=summary, plot=plot,
+                                verify=verify, names=names, export=export, out=out, summary=summary, plot=plot,
                                 uncertainty_plot=uncertainty_plot, provenance=provenance, quiet=quiet,
                                 linear_solver=linear_solver, tip_tracking=tip_tracking)
         return
@@ -255,15 +254,17 @@ def plan(
 
 
 def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Path, executor, auto_note, limits,
-                            export: Path, out, summary, plot, uncertainty_plot, provenance: dict, quiet: bool,
-                            **options) -> None:
+                            verify: bool, names: dict, export: Path, out, summary, plot, uncertainty_plot,
+                            provenance: dict, quiet: bool, **options) -> None:
     """plan --uncertainty: the robust plan over the file's parameter distributions, its
-    sampled runs on the executor (stitchplan.uncertainty.robust)."""
+    sampled runs on the executor (stitchplan.uncertainty.robust); with `verify` the exported
+    plan replayed on the refined model at the scenario's values."""
     from ..config.uncertainty import check_against_scenario, load_uncertainty
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
-    from ..resources import PLAN_RUNS
+    from ..planning.verification import replay_scenario, verify_exported
+    from ..resources import PLAN_RUNS, verification_origin
     from ..uncertainty.robust import plan_under_uncertainty, planned_tasks
     from ..uncertainty.sampling import draw
 
@@ -274,13 +275,19 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     check_against_scenario(uncertainty, scenario, scenario_path)
     draw(uncertainty, scenario)  # a distribution mostly below zero is refused before the runs
     tasks = planned_tasks(uncertainty)
-    _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks))
+    _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks),
+           *([("insertion", replay_scenario(scenario, verify=True), "plan verification", 1,
+               verification_origin(scenario, names))] if verify else []), names=names)
     with executor, progress_bar("plans and sampled runs", tasks + 2) as advance:
         result = plan_under_uncertainty(scenario, uncertainty, executor,
                                         on_run=lambda description: advance(description=description), **options)
     plan = result.exported_plan
-    note = ("the plans under uncertainty are not verified on a refined model (the sampled runs replay them on "
-            "the planning model)")
+    if verify:
+        verify_exported(scenario, plan, **options)
+        note = ("verification: the exported plan replayed on the refined model at the scenario's values, not "
+                "re-aimed by it (the sampled runs replay the plans on the planning model)")
+    else:
+        note = "the plans under uncertainty are not verified on a refined model (--no-verify)"
     plan.planned.events.insert(0, _note_event(note))
     if auto_note is not None:
         plan.planned.events.insert(0, auto_note)

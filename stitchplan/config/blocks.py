@@ -29,6 +29,7 @@ from ..geometry import (
     PolygonDomain,
     Rectangle,
     circle_polygon,
+    cut_outline,
     polygon_problem,
     segments_touch,
     signed_area,
@@ -183,7 +184,7 @@ class Tissue:
                        + " (rectangles), or {segment: [[x0, y0], [x1, y1]]} pieces of the boundary") = ()
     outline: described(PolygonPoints | None, "a simple polygon [[x, y], ...] (mm), instead of size") = None
     holes: described(sequence(Hole, "a list of holes ({polygon: ...} or {circle: ...})"),
-                     "cut-outs with free edges") = ()
+                     "cut-outs with free edges; one reaching the outline is cut out of it") = ()
     regions: described(sequence(Region, "a list of regions ({polygon: ..., material: ...})"),
                        "areas of other materials; the first region holding a point wins") = ()
 
@@ -203,10 +204,11 @@ class Tissue:
 
     @functools.cached_property
     def domain(self) -> Rectangle | PolygonDomain:
-        holes = tuple(hole.vertices() for hole in self.holes)
-        if self.outline is None:
+        outer, inside, cut, _ = shape_loops(self)
+        holes = tuple(vertices for _, vertices in inside)
+        if self.outline is None and not cut:
             return Rectangle.of_size(self.size) if not holes else PolygonDomain.rectangle(self.size, holes)
-        return PolygonDomain(counter_clockwise(np.asarray(self.outline, dtype=float)), holes)
+        return PolygonDomain(outer, holes)
 
     @property
     def bounding_size(self) -> tuple[float, float]:
@@ -220,55 +222,93 @@ class Tissue:
                 for item in self.clamped]
 
 
-def shape_problems(tissue: Tissue) -> list:
-    """Why a tissue's shape is not one the model can hold, as problems naming its fields:
-    size and outline both or neither, a self-intersecting outline, holes outside, touching or
-    overlapping the outline or each other, regions outside the tissue, clamped pieces off the
-    boundary or named edges on a polygon."""
+def shape_loops(tissue: Tissue) -> tuple[np.ndarray | None, list[tuple[int, np.ndarray]], bool, list]:
+    """The tissue's outer boundary (counter-clockwise), the holes inside it as (index in
+    `holes`, vertices), whether holes were cut out of the outline, and the problems that
+    stop the shape (naming their fields). A hole that reaches or crosses the outline is cut
+    out of it (SCENARIO.md's first hole: the tissue is the outline minus the hole), as long
+    as one simple piece of tissue is left."""
     if (tissue.size is None) == (tissue.outline is None):
         given = "both" if tissue.size is not None else "neither"
-        return [problem("exactly one of 'size' [W, H] or 'outline' (a polygon)", field="size",
-                        value=Shown(given))]
+        return None, [], False, [problem("exactly one of 'size' [W, H] or 'outline' (a polygon)", field="size",
+                                         value=Shown(given))]
     if tissue.outline is not None:
         outline = np.asarray(tissue.outline, dtype=float)
         tol = 1e-9 * float(np.ptp(outline, axis=0).max())
         why = polygon_problem(outline, tol)
         if why:
-            return [problem(why, field="outline", value=tissue.outline)]
+            return None, [], False, [problem(why, field="outline", value=tissue.outline)]
         outer = counter_clockwise(outline)
     else:
         w, h = tissue.size
         outer = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
         tol = 1e-9 * max(w, h)
-    problems = []
+    problems, inside, reaching = [], [], []
     outer_domain = PolygonDomain(outer)
-    loops = []
     for i, hole in enumerate(tissue.holes):
         vertices = hole.vertices()
-        shown = hole.polygon if hole.polygon is not None else asdict(hole.circle)
         why = polygon_problem(vertices, tol) if hole.polygon is not None else None
         if why:
-            problems.append(problem(why, field=f"holes[{i}]", value=shown))
-            continue
-        inside = outer_domain._inside_strict(vertices) & (outer_domain.distance(vertices) > tol)
-        if not np.all(inside) or _loops_touch(vertices, outer, tol):
-            problems.append(problem("a hole inside the tissue outline, not touching it (a cut reaching the "
-                                    "surface is part of the outline)", field=f"holes[{i}]", value=shown))
-            continue
+            problems.append(problem(why, field=f"holes[{i}]", value=_shown(hole)))
+        elif np.all(outer_domain._inside_strict(vertices) & (outer_domain.distance(vertices) > tol)) \
+                and not _loops_touch(vertices, outer, tol):
+            inside.append((i, vertices))
+        else:
+            reaching.append((i, vertices))
+    if problems:
+        return None, [], False, problems
+    if reaching:
+        cut, why, idle = cut_outline(outer, [vertices for _, vertices in reaching], tol)
+        expected = "a hole inside the tissue outline, not touching it, or one cutting into it that leaves " \
+                   "one simple piece of tissue"
+        for k in idle:
+            i = reaching[k][0]
+            problems.append(problem(f"{expected} (this one holds no tissue)", field=f"holes[{i}]",
+                                    value=_shown(tissue.holes[i])))
+        if not problems and cut is None:
+            i = reaching[0][0]
+            others = ", ".join(f"holes[{j}]" for j, _ in reaching[1:])
+            problems.append(problem(f"{expected} (cut out of the outline{' with ' + others if others else ''}, "
+                                    f"it leaves {why})", field=f"holes[{i}]", value=_shown(tissue.holes[i])))
+        if problems:
+            return None, [], False, problems
+        outer = cut
+        cut_domain = PolygonDomain(outer)
+        for i, vertices in inside:
+            if not np.all(cut_domain._inside_strict(vertices) & (cut_domain.distance(vertices) > tol)) \
+                    or _loops_touch(vertices, outer, tol):
+                problems.append(problem("a hole inside the tissue, apart from the holes cut into its outline ("
+                                        + ", ".join(f"holes[{j}]" for j, _ in reaching) + ")",
+                                        field=f"holes[{i}]", value=_shown(tissue.holes[i])))
+    loops = []
+    for i, vertices in inside:
         for j, other in loops:
             if _loops_touch(vertices, other, tol) or PolygonDomain(other)._inside_strict(vertices[:1])[0] \
                     or PolygonDomain(vertices)._inside_strict(other[:1])[0]:
                 problems.append(problem(f"a hole apart from holes[{j}] (they overlap or touch)",
-                                        field=f"holes[{i}]", value=shown))
+                                        field=f"holes[{i}]", value=_shown(tissue.holes[i])))
                 break
         else:
             loops.append((i, vertices))
+    return outer, inside, bool(reaching), problems
+
+
+def _shown(hole: Hole):
+    return hole.polygon if hole.polygon is not None else asdict(hole.circle)
+
+
+def shape_problems(tissue: Tissue) -> list:
+    """Why a tissue's shape is not one the model can hold, as problems naming its fields:
+    size and outline both or neither, a self-intersecting outline, holes outside the tissue,
+    touching the outline at a point, cutting it apart or overlapping each other, regions
+    outside the tissue, clamped pieces off the boundary or named edges on a polygon."""
+    _, _, _, problems = shape_loops(tissue)
     if problems:
         return problems
     domain = tissue.domain
     for i, region in enumerate(tissue.regions):
         vertices = np.asarray(region.polygon, dtype=float)
-        why = polygon_problem(vertices, tol)
+        why = polygon_problem(vertices, domain.tolerance)
         if why:
             problems.append(problem(why, field=f"regions[{i}].polygon", value=region.polygon))
             continue
@@ -277,7 +317,7 @@ def shape_problems(tissue: Tissue) -> list:
                                     field=f"regions[{i}].polygon", value=region.polygon))
     for i, item in enumerate(tissue.clamped):
         if isinstance(item, str):
-            if tissue.outline is not None and item not in domain.aliases:
+            if isinstance(domain, PolygonDomain) and not domain.edge_names and item not in domain.aliases:
                 problems.append(problem("{segment: [[x0, y0], [x1, y1]]}, or the name of a side of the "
                                         "outline's bounding box that holds exactly one outline edge",
                                         field=f"clamped[{i}]", value=item))

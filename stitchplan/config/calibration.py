@@ -79,7 +79,7 @@ class CalibrationTissue:
     clamped: described(Clamps, "edges held fixed (names, or {segment: ...} pieces)") = ()
     outline: described(PolygonPoints | None, "a simple polygon [[x, y], ...] (mm), instead of size") = None
     holes: described(sequence(Hole, "a list of holes ({polygon: ...} or {circle: ...})"),
-                     "cut-outs with free edges") = ()
+                     "cut-outs with free edges; one reaching the outline is cut out of it") = ()
 
     @model_validator(mode="wrap")
     @classmethod

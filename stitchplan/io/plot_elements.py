@@ -106,16 +106,27 @@ REGION_COLOURS = ("tab:orange", "tab:cyan", "tab:pink", "tab:olive", "tab:brown"
 def draw_regions(ax, tissue) -> None:
     """Material regions at rest: a light fill and a dotted edge each, labelled with their
     moduli (the first region holding a point gives its material, so later ones are drawn
-    underneath)."""
-    from matplotlib.patches import Polygon
+    underneath), clipped to the tissue (a region may reach past it)."""
+    from matplotlib.patches import PathPatch, Polygon
+    from matplotlib.path import Path as DrawnPath
 
-    for k in range(len(getattr(tissue, "regions", ()) or ()) - 1, -1, -1):
-        region = tissue.regions[k]
+    regions = getattr(tissue, "regions", ()) or ()
+    if not regions:
+        return
+    outer, *holes = outline_loops(tissue.domain)
+    loops = [_closed(loop) for loop in (outer, *(hole[::-1] for hole in holes))]  # holes the other way
+    codes = [np.r_[DrawnPath.MOVETO, np.full(len(loop) - 2, DrawnPath.LINETO), DrawnPath.CLOSEPOLY]
+             for loop in loops]
+    inside = PathPatch(DrawnPath(np.concatenate(loops), np.concatenate(codes)), transform=ax.transData)
+    for k in range(len(regions) - 1, -1, -1):
+        region = regions[k]
         colour = REGION_COLOURS[k % len(REGION_COLOURS)]
         material = region.material
-        ax.add_patch(Polygon(np.asarray(region.polygon, dtype=float), closed=True, facecolor=colour,
-                             alpha=0.15, edgecolor=colour, ls=":", lw=1.2, zorder=0.5,
-                             label=f"region {k}: lambda {material.lame_lambda:g}, mu {material.lame_mu:g} MPa"))
+        patch = ax.add_patch(Polygon(np.asarray(region.polygon, dtype=float), closed=True, facecolor=colour,
+                                     alpha=0.15, edgecolor=colour, ls=":", lw=1.2, zorder=0.5,
+                                     label=f"region {k}: lambda {material.lame_lambda:g}, "
+                                           f"mu {material.lame_mu:g} MPa"))
+        patch.set_clip_path(inside)
 
 
 # --- boundary conditions --------------------------------------------------------------------

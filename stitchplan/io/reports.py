@@ -187,6 +187,10 @@ def insertion_summary(result) -> dict:
         "particles": result.model.n_particles,
         "wall_seconds": result.wall_seconds,
         "exit_rotation_rad": result.exit_rotation,
+        # the rigid needle's tip as the track reaches the boundary: the tissue at the cut's end,
+        # carried along the needle by friction and the cutting force, is ahead of it on the arc
+        "needle_tip_at_exit": needle_tip_at_exit(result),
+        "exit_to_needle_tip_mm": float(np.linalg.norm(result.achieved_exit_def - needle_tip_at_exit(result))),
         "needle_center_at_entry": result.center_after(0),
         "needle_points": len(result.needle_points),
         "newton_iterations": int(sum(s.newton_iterations for s in steps)),  # every iteration of every solve
@@ -203,6 +207,13 @@ def insertion_summary(result) -> dict:
                       for record in getattr(result, "crossings", [])],
         **({"bites": result.bites} if getattr(result, "bites", None) else {}),
     }
+
+
+def needle_tip_at_exit(result) -> np.ndarray:
+    """The rigid needle's tip at the exit rotation, about the last step's centre (which the
+    trajectory's exit row keeps)."""
+    center = result.steps[-1].center if result.steps else result.center_after(0)
+    return result.geometry.tip(result.exit_rotation, center)
 
 
 def step_time_distribution(steps) -> dict:
@@ -360,6 +371,7 @@ def write_plan_outputs(result, export: Path, out: Path | None = None, summary: P
 
 def _write_plan_files(result, files: dict[str, Path], provenance: dict, uncertainty=None) -> None:
     """Writes to the temporaries `files` of an OutputSet."""
+    from ..planning.planner import planning_work
     from ..planning.trajectory import trajectory_table
 
     export, out, summary, plot = (files.get(label) for label in ("--export", "--out", "--summary", "--plot"))
@@ -378,6 +390,8 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict, uncertai
         # point moves with the centre at least one for one); the Newton update goes on there
         "planner_eq42_failed_steps": [s.step for s in planned.steps if s.eq42_ratio >= 1.0],
         "planner_passes": result.passes,
+        # every pass's work, the discarded passes' included (the HDF5 steps: the exported run's)
+        **planning_work(result),
         "trajectory_rows": len(rows),
         "trajectory_columns": columns,
         **plan_accuracy_summary(result, table[:, 2:4]),

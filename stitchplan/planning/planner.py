@@ -273,6 +273,21 @@ class PlanResult:
         return exported_centers(self.planned)
 
 
+SOLVER_COUNTS = ("factorizations", "linear_solves", "solved_columns", "minres_iterations", "minres_fallbacks",
+                 "tangent_products")  # a run's solver_counts that add up over runs
+
+
+def planning_work(result: PlanResult) -> dict:
+    """What every planner pass of every round solved, the passes not exported included: the
+    total Newton iterations and equilibrium solves, and the solver counts of the exported
+    run (its backend, tolerances) with their counts summed over the passes."""
+    counts = {key: sum(record["solver"][key] for record in result.passes) for key in SOLVER_COUNTS}
+    return {"newton_iterations": int(sum(record["newton_iterations"] for record in result.passes)),
+            "equilibrium_solves": int(sum(record["equilibrium_solves"] for record in result.passes)),
+            "minres_iterations": int(counts["minres_iterations"]),
+            "solver": {**result.planned.solver_counts, **counts}}
+
+
 def final_mismatch(result: InsertionResult) -> np.ndarray:
     """O(t0) + u(X_exit) - O at the last step: what Algorithm 2 drives to zero."""
     last = result.steps[-1]
@@ -390,6 +405,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         planned = run_insertion(scenario, control=tracker, on_step=_streamed(on_step, stream, scenario),
                                 tissue=tissue, start_from=prefix.start() if prefix else None, **options)
         own_iterations = sum(step.newton_iterations for step in planned.steps)  # before take_over
+        own_solves = sum(step.equilibrium_solves for step in planned.steps)
         if prefix is not None:
             prefix.take_over(planned)
         elif not offsets.offset.any():  # the plan's first pass: later passes take over its early steps
@@ -405,7 +421,9 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
                        "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
                        "limited_steps": tracker.limited_steps,
                        "first_aimed_step": prefix.first_aimed if prefix else 1,
-                       "newton_iterations": own_iterations, "wall_seconds": planned.wall_seconds})
+                       "newton_iterations": own_iterations, "equilibrium_solves": own_solves,
+                       "solver": {key: planned.solver_counts[key] for key in SOLVER_COUNTS},
+                       "wall_seconds": planned.wall_seconds})
         log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
                  *offsets.offset, planned.exit_error_mm, miss)
         retargeted = retarget(planned) if retarget is not None and number == 1 else None

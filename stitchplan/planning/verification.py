@@ -332,10 +332,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             aimed_by = "refined offset"
         else:
             aimed_by = "predicted offset" if prediction.get("aimed") else "none"
-        verified = {"round": correction + 1, "aimed_by": aimed_by,
-                    "planned_exit_error_mm": result.planned.exit_error_mm,
-                    "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
-                    "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
+        verified = _round_record(correction + 1, aimed_by, result.planned, replayed)
         if correction == 0 and "offset" in prediction:
             verified["predicted_offset_mm"] = prediction["offset"].tolist()
         if symmetric:
@@ -354,13 +351,46 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             break
     _, result, replayed, kept = best
     result.planned.wall_seconds = planning_seconds  # every pass of every round
-    result.verification = Verification(spacing, replayed, rounds, replays.where, kept["aimed_by"])
-    if replayed is None:
+    return _verified(scenario, result, Verification(spacing, replayed, rounds, replays.where, kept["aimed_by"]),
+                     **options)
+
+
+def verify_exported(scenario: Scenario, result: PlanResult, **options) -> PlanResult:
+    """A plan made elsewhere (the robust plan under uncertainty) checked as plan_verified
+    checks its own: the exported trajectory replayed on the refined model at the scenario's
+    values, once (not re-aimed by it), giving the plan's `verification` and `estimate`."""
+    other = replay_scenario(scenario, verify=True)
+    replays = InlineReplays(other, **_replay_options(options))
+    try:
+        replayed = replay(replays, result.exported_centers)
+    finally:
+        replays.close()
+    log.info("verification: the exported plan's exit error %.4g mm, on the refined model %.4g mm",
+             result.planned.exit_error_mm, np.inf if replayed is None else replayed.exit_error_mm)
+    rounds = [_round_record(1, "none", result.planned, replayed)]
+    return _verified(scenario, result, Verification(other.discretization.spacing, replayed, rounds,
+                                                    replays.where, "none"), **options)
+
+
+def _round_record(number: int, aimed_by: str, planned: InsertionResult, replayed: InsertionResult | None) -> dict:
+    """A verification round's record: what aimed its plan, the planned and verified errors."""
+    return {"round": number, "aimed_by": aimed_by, "planned_exit_error_mm": planned.exit_error_mm,
+            "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
+            "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
+
+
+def _verified(scenario: Scenario, result: PlanResult, verification: Verification, **options) -> PlanResult:
+    """The plan with its `verification` and the exit error estimate from the refined replay
+    (from a replay at 2h where the exported trajectory ends before the tip leaves the refined
+    model, which an event says)."""
+    result.verification = verification
+    if verification.result is None:
         message = ("verification: the exported trajectory ends before the tip leaves the refined model "
-                   f"(spacing {spacing:.4g} mm); verified exit error unknown")
+                   f"(spacing {verification.spacing_mm:.4g} mm); verified exit error unknown")
         result.planned.events.append(Event(EventKind.ACCURACY_CHECK, message))
         log.info(message)
         result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, **options)
     else:
-        result.estimate = estimate_from(result.planned, replayed, VERIFICATION_FACTOR, spacing)
+        result.estimate = estimate_from(result.planned, verification.result, VERIFICATION_FACTOR,
+                                        verification.spacing_mm)
     return result

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
-from ..geometry import PolygonDomain
+from ..geometry import CIRCLE_SEGMENTS, PolygonDomain
 from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
 
 CUT_LEVELS = 3  # halvings of a cut background cell
@@ -25,11 +25,19 @@ MERGE = 0.35  # a boundary particle replaces lattice particles closer than this 
 
 
 def shape_breaks(tissue: Tissue) -> tuple[list[float], list[float]]:
-    """Grid-line coordinates through the polygon vertices (outline, polygon holes, regions);
-    circles are left out (their many vertices would crowd the lattice)."""
+    """Grid-line coordinates through the polygon vertices (outline, polygon holes, regions,
+    and where holes cut into the outline); circles are left out (their many vertices would
+    crowd the lattice)."""
     loops = []
-    if tissue.outline is not None:
-        loops.append(np.asarray(tissue.outline, dtype=float))
+    domain = tissue.domain
+    if isinstance(domain, PolygonDomain) and not domain.edge_names:  # not a rectangle's
+        outline = domain.outline
+        for hole in tissue.holes:  # a circle cut into the outline: its vertices and ends on the chords
+            if hole.circle is not None:
+                r = np.hypot(*(outline - hole.circle.center).T)
+                outline = outline[(r < hole.circle.radius * np.cos(np.pi / CIRCLE_SEGMENTS) - domain.tolerance)
+                                  | (r > hole.circle.radius + domain.tolerance)]
+        loops.append(outline)
     loops += [np.asarray(hole.polygon, dtype=float) for hole in tissue.holes if hole.polygon is not None]
     loops += [np.asarray(region.polygon, dtype=float) for region in tissue.regions]
     if not loops:
