@@ -361,6 +361,14 @@ def test_plan_summary_run_log_and_a_trajectory_without_round_off(tmp_path, scene
     assert not any(cell.startswith("-0") and float(cell) == 0 for cell in cells)
     values = np.asarray(cells, dtype=float)
     assert np.all((values == 0) | (np.abs(values) >= 1e-9))
+    # the file holds the run log's table to the last bit: coordinates to 1e-9 mm, angles and
+    # times to 1e-12 (2.8, not 35 x 0.08 = 2.8000000000000003)
+    table = np.asarray(rows[1:], dtype=float)
+    with h5py.File(tmp_path / "run.h5") as log:
+        np.testing.assert_array_equal(table, log["planner/trajectory"][()])
+    np.testing.assert_array_equal(table[:, 2:6], np.round(table[:, 2:6], 9))
+    np.testing.assert_array_equal(table[:, [1, 6]], np.round(table[:, [1, 6]], 12))
+    assert max(len(row[1]) for row in rows[1:]) < 16  # no round-off tail on an angle
 
 
 def test_simulate_run_log_has_units_on_every_dataset(tmp_path, scene):

@@ -342,7 +342,9 @@ def write_bytes(path: PathLike, data: bytes | memoryview) -> None:
 
 
 def write_csv(path: PathLike, columns: Sequence[str], rows: np.ndarray | Sequence[Sequence[Any]],
-              precision: int = 9) -> None:
+              precision: int | None = 9) -> None:
+    """Rows under a header; floats with `precision` significant digits, or (None) as the
+    shortest text that reads back as the same double."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(columns)
@@ -351,8 +353,11 @@ def write_csv(path: PathLike, columns: Sequence[str], rows: np.ndarray | Sequenc
     write_text(path, buffer.getvalue())
 
 
-def _format(value: Any, precision: int) -> Any:
+def _format(value: Any, precision: int | None) -> Any:
     if isinstance(value, (float, np.floating)):
+        if precision is None:
+            text = repr(float(value))
+            return text[:-2] if text.endswith(".0") else text
         return f"{float(value):.{precision}g}"
     if isinstance(value, np.integer):
         return int(value)

@@ -127,8 +127,9 @@ def _check_steps(path: str | Path, steps: np.ndarray, row_numbers: np.ndarray) -
                          f"step, numbered 0, 1, 2, ... in order)")
 
 
-# trajectory.csv prints 9 significant digits, so a written angle lies within 5e-9 of k * step,
-# relative to the larger of 1 rad and the angle; a path for another step misses by far more
+# trajectory.csv writes angles rounded to 1e-12 rad; a file written with 9 significant digits
+# (by hand, or by an earlier stitchplan) lies within 5e-9 of k * step, relative to the larger
+# of 1 rad and the angle; a path for another step misses by far more
 ANGLE_TOLERANCE = 1e-8
 
 

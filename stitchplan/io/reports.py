@@ -424,7 +424,7 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict, uncertai
         groups, group_units = uncertainty_datasets(uncertainty)
         datasets.update(groups)
         units.update(group_units)
-    write_csv(export, columns, rows)
+    write_csv(export, columns, rows, precision=None)  # the doubles the verification replayed, to the last bit
     _write_insertion_files(planned, "plan", out, summary, None, extra_summary=extra,
                            extra_datasets=datasets, provenance=provenance, units=units)
     if plot is not None:

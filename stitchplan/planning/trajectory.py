@@ -19,6 +19,7 @@ from ..needle.results import InsertionResult
 COLUMNS = ["step", "angle_rad", "center_x_mm", "center_y_mm", "tip_x_mm", "tip_y_mm"]
 BASE_COLUMNS = ["base_center_x_mm", "base_center_y_mm", "base_tip_x_mm", "base_tip_y_mm"]
 DECIMALS_MM = 9  # coordinates are rounded to 1e-9 mm: no round-off noise (5e-16) for a robot
+DECIMALS_ANGLE = 12  # angles (rad) and times (s) to 1e-12: 2.8, not n x 0.08 = 2.8000000000000003
 
 # bounds of the robot's frame and speed: a base more than 10 m from the tissue is a unit or
 # typing mistake, not a robot cell, and a needle turning slower than 1e-6 rad/s (a half turn
@@ -28,10 +29,10 @@ MAX_BASE_ROTATION_DEG = 360.0
 MIN_ANGULAR_SPEED = 1e-6  # rad/s
 
 
-def _clean(values: np.ndarray) -> np.ndarray:
-    """Rounded to DECIMALS_MM decimals (numpy divides by 10**9: the nearest double to the
-    decimal), with -0.0 made 0.0."""
-    return np.round(np.asarray(values, dtype=float), DECIMALS_MM) + 0.0
+def _clean(values: np.ndarray, decimals: int = DECIMALS_MM) -> np.ndarray:
+    """Rounded to `decimals` decimals (numpy divides by 10**decimals: the nearest double to
+    the decimal), with -0.0 made 0.0."""
+    return np.round(np.asarray(values, dtype=float), decimals) + 0.0
 
 
 def exported_center(center: np.ndarray) -> np.ndarray:
@@ -63,10 +64,10 @@ def trajectory_table(result: InsertionResult, robot: Robot) -> tuple[list[str], 
             base_centers, base_tips = _clean(to_base_frame(centers, robot)), _clean(to_base_frame(tips, robot))
         centers, tips = _clean(centers), _clean(tips)
         columns = list(COLUMNS)
-        table = [steps, angles, centers[:, 0], centers[:, 1], tips[:, 0], tips[:, 1]]
+        table = [steps, _clean(angles, DECIMALS_ANGLE), centers[:, 0], centers[:, 1], tips[:, 0], tips[:, 1]]
         if robot.angular_speed is not None:
             columns.append("time_s")
-            table.append(angles / robot.angular_speed)
+            table.append(_clean(angles / robot.angular_speed, DECIMALS_ANGLE))
     if robot.given:
         columns += BASE_COLUMNS
         table += [base_centers[:, 0], base_centers[:, 1], base_tips[:, 0], base_tips[:, 1]]
