@@ -212,7 +212,7 @@ def _commands(folder: Path, scene: Path) -> dict[str, list]:
 
 
 OUTPUT_NAMES = ("probes.csv", "reactions.csv", "summary.json", "run.h5", "trajectory.csv",
-                "fitted.yaml", "needle.yaml", "study.csv", "speed_accuracy.png")
+                "fitted.yaml", "needle.yaml", "study.csv", "speed_accuracy.png", "study.json")
 
 
 @pytest.mark.parametrize("command", ["deform", "simulate", "plan", "calibrate material",

@@ -16,6 +16,8 @@
 from __future__ import annotations
 
 import csv
+import hashlib
+import json
 import math
 from types import SimpleNamespace
 
@@ -24,6 +26,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from stitchplan import __version__
 from stitchplan.cli import app
 from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discretization
 from stitchplan.config.study import StudyFamily
@@ -136,6 +139,19 @@ def test_a_failing_configuration_is_recorded_with_its_reason(studied):
         assert row["reason"].startswith("InputError: discretization: dilation 1.5 with spacing")
         assert "singular RK moment matrix" in row["reason"] and "basis order 2" in row["reason"]
         assert row["deviation_mm"] == "nan" and row["pareto"] == "false"
+
+
+def test_study_json_records_provenance_and_outcome(studied):
+    folder, result, rows = studied
+    assert result.exit_code == 0, result.output
+    record = json.loads((folder / "out" / "study.json").read_text())
+    assert record["stitchplan_version"] == __version__ and record["command"][1] == "study"
+    assert record["scenario"] == str(folder / "tiny.yaml")
+    assert record["scenario_sha256"] == hashlib.sha256((folder / "tiny.yaml").read_bytes()).hexdigest()
+    assert (record["runs"], record["ok"], record["failed"]) == (len(rows), 5, 2)
+    assert record["reference"]["label"] == rows[-1]["label"]
+    assert set(record["pareto"]) == {r["label"] for r in rows if r["pareto"] == "true"}
+    assert record["linear_solver_backends"] == sorted({r["linear_solver_backend"] for r in rows if r["status"] == "ok"})
 
 
 def test_study_writes_the_speed_accuracy_png(studied):

@@ -344,10 +344,10 @@ def study(
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
                            executor=executor)
-    csv_path, png_path = write_study_outputs(result, out)
+    csv_path, png_path, json_path = write_study_outputs(result, out, _provenance(scenario_path, scenario))
     for line in summary_lines(result):
         typer.echo(line)
-    typer.echo(f"study: wrote {csv_path} and {png_path}")
+    typer.echo(f"study: wrote {csv_path}, {png_path} and {json_path}")
 
 
 @app.command()

@@ -1,5 +1,6 @@
-"""The files and lines of `stitchplan study`: study.csv (one row per run), speed_accuracy.png
-and the summary printed by the command. The study itself is stitchplan.study.sweep."""
+"""The files and lines of `stitchplan study`: study.csv (one row per run), speed_accuracy.png,
+study.json (the run's provenance and outcome) and the summary printed by the command. The
+study itself is stitchplan.study.sweep."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import math
 from pathlib import Path
 
 from ..study.sweep import StudyResult, StudyRun
-from .files import OutputSet, write_csv
+from .files import OutputSet, write_csv, write_json
+from .files import provenance as make_provenance
 from .plots import plot_speed_accuracy
 
 COLUMNS = ("family", "label", "spacing_mm", "coarse_spacing_mm", "grading", "dilation",
@@ -41,17 +43,36 @@ def study_row(run: StudyRun) -> list:
 
 def study_outputs(out: str | Path) -> dict[str, Path]:
     """The files `stitchplan study --out DIR` writes, by label."""
-    return {f"--out ({name})": Path(out) / name for name in ("study.csv", "speed_accuracy.png")}
+    return {f"--out ({name})": Path(out) / name for name in ("study.csv", "speed_accuracy.png", "study.json")}
 
 
-def write_study_outputs(result: StudyResult, out: str | Path) -> tuple[Path, Path]:
-    """out/study.csv (one row per run) and out/speed_accuracy.png: both or neither (an OutputSet)."""
+def study_record(result: StudyResult, provenance: dict | None = None) -> dict:
+    """study.json: the provenance of the study (version, command line, scenario and its
+    SHA-256, time), its counts, reference, Pareto front, notes and the linear-solver backends
+    its runs used (each run's diagnostics are its row of study.csv)."""
+    reference = result.reference
+    return {
+        **(provenance or make_provenance()),
+        "runs": len(result.runs), "ok": sum(run.ok for run in result.runs), "failed": len(result.failed),
+        "reference": {"label": reference.label, "spacing_mm": reference.spacing,
+                      "particles": reference.particles, "wall_seconds": reference.wall_seconds},
+        "pareto": [run.label for run in sorted(result.front, key=lambda run: run.wall_seconds)],
+        "linear_solver_backends": sorted({run.result.solver_counts.get("linear_solver_backend", "")
+                                          for run in result.runs if run.result is not None}),
+        "notes": list(result.notes),
+    }
+
+
+def write_study_outputs(result: StudyResult, out: str | Path, provenance: dict | None = None) -> tuple[Path, ...]:
+    """out/study.csv (one row per run), out/speed_accuracy.png and out/study.json: all or none
+    (an OutputSet)."""
     outputs = study_outputs(out)
-    csv_label, png_label = outputs
+    csv_label, png_label, json_label = outputs
     with OutputSet(outputs).staged() as files:
         write_csv(files[csv_label], COLUMNS, [study_row(run) for run in result.runs])
         plot_speed_accuracy(files[png_label], result)
-    return outputs[csv_label], outputs[png_label]
+        write_json(files[json_label], study_record(result, provenance))
+    return tuple(outputs.values())
 
 
 def summary_lines(result: StudyResult) -> list[str]:
