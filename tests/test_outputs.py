@@ -515,6 +515,36 @@ def test_standard_output_that_cannot_be_written_is_one_error_line(args):
     assert run.stderr == "error: cannot write standard output: No space left on device\n"
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_a_command_whose_standard_output_is_full_writes_no_file(tmp_path, scene):
+    """The outputs land only once the command's line is out: with standard output full the
+    command fails (exit 2) and neither creates nor replaces a file."""
+    kept = tmp_path / "probes.csv"
+    kept.write_text("earlier\n")
+    before = snapshot(tmp_path)
+    with open("/dev/full", "w") as full:
+        run = subprocess.run([sys.executable, "-m", "stitchplan", "deform", str(scene), "--probes-out", str(kept),
+                              "--summary", str(tmp_path / "summary.json")], stdout=full, stderr=subprocess.PIPE,
+                             text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    assert run.returncode == 2
+    assert run.stderr == "error: cannot write standard output: No space left on device\n"
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("form", ["separate", "joined"])
+def test_an_output_given_as_a_folder_name_is_refused(tmp_path, scene, form):
+    """`--export out/` names a folder, though a Path drops the slash: refused, not written as
+    the file `out` (nor over an existing file of that name)."""
+    (tmp_path / "trajectory.csv").write_text("earlier\n")
+    before = snapshot(tmp_path)
+    given = f"{tmp_path / 'trajectory.csv'}/"
+    args = ["--export", given] if form == "separate" else [f"--export={given}"]
+    result = invoke("plan", scene, *args, "--no-verify", "--no-compare")
+    assert result.exit_code == 2
+    assert result.stderr == f"error: --export: got {given}, a folder name (it ends in /); expected a file name\n"
+    assert snapshot(tmp_path) == before
+
+
 def test_a_reader_that_closes_the_pipe_ends_the_command_quietly():
     process = subprocess.Popen([sys.executable, "-m", "stitchplan", "schema"], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE)

@@ -6,6 +6,8 @@ shows its traceback.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import sys
 import warnings
@@ -72,8 +74,13 @@ app.add_typer(calibrate_app, name="calibrate")
 def exit_code(run: Callable[[], Any]) -> int:
     """Run the app (click's standalone mode off) and return its exit code. The project's own
     errors (stitchplan.errors), click's usage errors and a failed write to standard output
-    become `error:` lines on stderr; any other exception propagates with its traceback."""
+    become `error:` lines on stderr; any other exception propagates with its traceback.
+
+    What the command prints goes to standard output when it has finished, after its output
+    files have been renamed into place and before they are kept (io/commits.py): if standard
+    output cannot be written, the files are undone, so a failed command leaves none."""
     from ..errors import StitchplanError  # no imports of its own: stays instant
+    from ..io.commits import deferred_commits
     from . import stdout_failure
 
     click_errors = sys.modules[typer.BadParameter.__module__]  # click's, or typer's copy of it
@@ -81,14 +88,21 @@ def exit_code(run: Callable[[], Any]) -> int:
     # package's code are not for the user: its checks (det F, finite residuals and outputs)
     # turn what they lead to into the one `error:` line
     warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"stitchplan\.")
-    stdout = _WatchedStream(sys.stdout)
+    stdout = _HeldStream(sys.stdout)
     sys.stdout = stdout
     try:
-        result = run()
+        with deferred_commits() as outputs:
+            result = run()
+            stdout.finished = True
+            outputs.commit()
+            stdout.deliver()
+            outputs.keep()
     except StitchplanError as error:
+        stdout.deliver_quietly()
         _echo_errors(getattr(error, "lines", None) or str(error).splitlines() or [type(error).__name__])
         return error.exit_code
     except click_errors.UsageError as error:
+        stdout.deliver_quietly()
         if type(error).__name__ == "NoArgsIsHelpError":  # bare `stitchplan`: the help was the answer
             if error.format_message().strip():  # the help has already been printed
                 error.show()
@@ -96,45 +110,63 @@ def exit_code(run: Callable[[], Any]) -> int:
         _echo_errors([usage_message(error, click_errors)])
         return error.exit_code
     except (typer.Abort, getattr(click_errors, "Abort", typer.Abort)):
+        stdout.deliver_quietly()
         _echo_errors(["aborted"])
         return 1
     except click_errors.ClickException as error:
+        stdout.deliver_quietly()
         _echo_errors([error.format_message()])
         return error.exit_code
     except OSError as error:
         if error is not stdout.failure:
+            stdout.deliver_quietly()
             raise
         return stdout_failure(error)
+    except BaseException:
+        stdout.deliver_quietly()
+        raise
     finally:
         sys.stdout = stdout.stream
     return result if isinstance(result, int) else 0  # click returns typer.Exit's code
 
 
-class _WatchedStream:
-    """A text stream that remembers its last failed write or flush, so that `exit_code` can
-    tell standard output that cannot be written (`> /dev/full`, a closed pipe) from an
-    OSError of a bug. Everything else goes to the stream itself."""
+class _HeldStream(io.StringIO):
+    """Standard output held while the command runs: `deliver()` writes it to the real
+    stream and flushes, remembering an OSError there, so that `exit_code` can tell standard
+    output that cannot be written (`> /dev/full`, a closed pipe) from an OSError of a bug."""
 
     def __init__(self, stream):
+        super().__init__()
         self.stream = stream
         self.failure: OSError | None = None
+        self.finished = False  # the command returned: its lines report a success
 
-    def write(self, text: str) -> int:
-        try:
-            return self.stream.write(text)
-        except OSError as error:
-            self.failure = error
-            raise
+    def fileno(self) -> int:  # child processes and faulthandler write to the real one
+        return self.stream.fileno()
 
-    def flush(self) -> None:
+    def isatty(self) -> bool:
+        return self.stream.isatty()
+
+    def deliver(self) -> None:
+        text = self.getvalue()
+        self.seek(0)
+        self.truncate()
         try:
+            if text:
+                self.stream.write(text)
             self.stream.flush()
         except OSError as error:
             self.failure = error
             raise
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.stream, name)
+    def deliver_quietly(self) -> None:
+        """What the command printed before it failed, if standard output takes it; nothing
+        when the command had finished and its outputs then failed to land (its lines would
+        report them written)."""
+        if self.finished:
+            return
+        with contextlib.suppress(OSError, ValueError):
+            self.deliver()
 
 
 def _echo_errors(lines: list[str]) -> None:

@@ -4,6 +4,7 @@ overrides, logging switches, and the small parsers of option values."""
 from __future__ import annotations
 
 import math
+import os
 from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
@@ -83,7 +84,23 @@ def _check_outputs(outputs: dict[str, Optional[Path]], inputs: Optional[dict[str
         path = outputs.get(option)
         if path is not None and path.suffix.lower() != ".png":
             raise InputError(f"{option}: got {path}, expected a file name ending in .png (the figures are PNG)")
+    for option, path in outputs.items():
+        given = _given_value(option)
+        if path is not None and given is not None and given.endswith(("/", os.sep)):
+            raise InputError(f"{option}: got {given}, a folder name (it ends in /); expected a file name")
     check_outputs(outputs, inputs)
+
+
+def _given_value(option: str) -> Optional[str]:
+    """The text given for `option` on the command line, as typed (a Path drops a trailing
+    slash), or None."""
+    argv = _argv() or []
+    for k, arg in enumerate(argv):
+        if arg == option and k + 1 < len(argv):
+            return argv[k + 1]
+        if arg.startswith(option + "="):
+            return arg[len(option) + 1:]
+    return None
 
 
 PNG_OPTIONS = ("--plot", "--uncertainty-plot")

@@ -11,6 +11,10 @@ are undone. So a failed run creates, replaces or deletes none of the user's file
 robot never picks up a half-written or mismatched trajectory. Any OS error becomes one
 InputError line naming the file (exit 2).
 
+Within a command (io/commits.py, cli.group.exit_code) the renames wait until the command has
+returned and its lines have reached standard output: a command that then fails (standard
+output full or closed) leaves no file either.
+
 The writers below write to the path they are given: inside `staged()`, a temporary. (A
 script writing one file the same way: `with OutputSet({"out": path}).staged() as files:
 write_csv(files["out"], ...)`.)
@@ -37,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from .commits import DEFERRED
 
 HDF5_SCHEMA_VERSION = 2  # 2: `units` on every dataset, provenance and library versions on the file
 
@@ -98,30 +103,66 @@ class OutputSet:
     @contextlib.contextmanager
     def staged(self) -> Iterator[dict[str, Path]]:
         """`{label: temporary path}` for the writers; on success every temporary is renamed
-        onto its target, on any failure all are removed and folders made for them too."""
+        onto its target (within deferred_commits: when it commits), on any failure all are
+        removed and folders made for them too."""
         self.check()
-        targets = {label: _target(path) for label, path in self.outputs.items()}
-        temporaries: dict[str, Path] = {}
-        made: list[Path] = []
-        done = False
+        staged = _Staged({label: _target(path) for label, path in self.outputs.items()}, self.outputs)
         try:
-            for label, target in targets.items():
-                made += _make_folders(target.parent, self.outputs[label], label)
-                temporaries[label] = _temporary(target, self.outputs[label], label)
+            for label, target in staged.targets.items():
+                staged.made += _make_folders(target.parent, self.outputs[label], label)
+                staged.temporaries[label] = _temporary(target, self.outputs[label], label)
             try:
-                yield dict(temporaries)
+                yield dict(staged.temporaries)
             except OSError as error:
-                raise _os_error(error, temporaries, self.outputs) from None
-            _rename_all(temporaries, targets, self.outputs)
-            done = True
-        finally:
-            for temporary in temporaries.values():
-                with contextlib.suppress(OSError):
-                    os.unlink(temporary)
-            if not done:
-                for folder in reversed(made):
-                    with contextlib.suppress(OSError):
-                        folder.rmdir()
+                raise _os_error(error, staged.temporaries, self.outputs) from None
+        except BaseException:
+            staged.discard()
+            raise
+        pending = DEFERRED.get()
+        if pending is None:
+            staged.commit()
+        else:
+            pending.append(staged)
+
+
+def commit_staged(pending: list[_Staged]) -> Renamed:
+    """Rename the temporaries of every staged set onto their targets, all or none; the
+    replaced files' backups are kept until the Renamed is kept or undone."""
+    temporaries, targets, paths = {}, {}, {}
+    for staged in pending:
+        for label, temporary in staged.temporaries.items():
+            key = label if label not in temporaries else f"{label} ({len(temporaries)})"
+            temporaries[key], targets[key], paths[key] = temporary, staged.targets[label], staged.paths[label]
+    renamed = _rename_all(temporaries, targets, paths)
+    for staged in pending:
+        staged.temporaries = {}
+    return renamed
+
+
+class _Staged:
+    """An OutputSet's temporaries, written, waiting to be renamed onto their targets."""
+
+    def __init__(self, targets: dict[str, Path], paths: dict[str, Path]):
+        self.targets, self.paths = targets, paths
+        self.temporaries: dict[str, Path] = {}
+        self.made: list[Path] = []  # folders made for the targets, removed if nothing lands
+
+    def commit(self) -> None:
+        try:
+            _rename_all(self.temporaries, self.targets, self.paths).keep()
+        except BaseException:
+            self.discard()
+            raise
+        self.temporaries = {}
+
+    def discard(self) -> None:
+        for temporary in self.temporaries.values():
+            with contextlib.suppress(OSError):
+                os.unlink(temporary)
+        self.temporaries = {}
+        for folder in reversed(self.made):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
 
 
 def check_outputs(outputs: Mapping[str, PathLike | None],
@@ -226,32 +267,48 @@ def _file_mode(target: Path) -> int:
         return 0o666 & ~umask
 
 
-def _rename_all(temporaries: dict[str, Path], targets: dict[str, Path], paths: dict[str, Path]) -> None:
-    """Rename each temporary onto its target; if one fails, put back what the earlier ones
-    replaced (from hard-linked or copied backups) and remove what they created."""
-    backups: dict[str, Path] = {}
-    renamed: list[str] = []
+class Renamed:
+    """Temporaries renamed onto their targets, with backups of what they replaced: `keep()`
+    drops the backups, `undo()` puts them back and removes what the renames created."""
+
+    def __init__(self, targets: dict[str, Path]):
+        self.targets = targets
+        self.backups: dict[str, Path] = {}
+        self.labels: list[str] = []  # renamed, in order
+
+    def keep(self) -> None:
+        for backup in self.backups.values():
+            with contextlib.suppress(OSError):
+                os.unlink(backup)
+        self.backups, self.labels = {}, []
+
+    def undo(self) -> None:
+        for done in reversed(self.labels):
+            with contextlib.suppress(OSError):
+                if done in self.backups:
+                    os.replace(self.backups.pop(done), self.targets[done])
+                else:
+                    os.unlink(self.targets[done])
+        self.keep()
+
+
+def _rename_all(temporaries: dict[str, Path], targets: dict[str, Path], paths: dict[str, Path]) -> Renamed:
+    """Rename each temporary onto its target, keeping a backup (hard-linked or copied) of
+    each file replaced; if one fails, undo the earlier ones."""
+    renamed = Renamed(targets)
     label = ""
     try:
         for label, temporary in temporaries.items():
             target = targets[label]
             os.chmod(temporary, _file_mode(target))
             if target.exists():
-                backups[label] = _backup(target)
+                renamed.backups[label] = _backup(target)
             os.replace(temporary, target)
-            renamed.append(label)
+            renamed.labels.append(label)
     except OSError as error:
-        for done in reversed(renamed):
-            with contextlib.suppress(OSError):
-                if done in backups:
-                    os.replace(backups.pop(done), targets[done])
-                else:
-                    os.unlink(targets[done])
+        renamed.undo()
         raise InputError(f"{label}: cannot write {paths[label]}: {error.strerror or error}") from None
-    finally:
-        for backup in backups.values():
-            with contextlib.suppress(OSError):
-                os.unlink(backup)
+    return renamed
 
 
 def _backup(target: Path) -> Path:
