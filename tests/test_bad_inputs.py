@@ -118,6 +118,34 @@ SCENARIO_CASES = {
                    + "".join(f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
                              for p, c in zip("abcde", "bcdef")), [["scene.yaml: line", "YAML alias"]]),
     "binary file": ("simulate", b"\x89PNG\r\n\x1a\n\x00\xff\xfe", [["scene.yaml: not UTF-8 text"]]),
+    "lists nested 500 deep": ("deform", "name: " + "[" * 500 + "]" * 500 + "\n",
+                              [["scene.yaml: line 1: nesting too deep (more than 100 levels"]]),
+    "a key true": ("deform", TEXT + "true: x\n", [["scene.yaml: scenario: unknown key true, expected one of: name"]]),
+    "control characters in the name": ("simulate", scene(name="\x00\u202e \u00e9vil\nline"),
+                                       [["scene.yaml: name: got '\\x00\\u202e \u00e9vil\\nline', expected a "
+                                         "one-line string without control characters (U+0000 at character 1)"]]),
+    "a tab in the name": ("simulate", scene(name="a\tb"),
+                          [["scene.yaml: name: got 'a\\tb'", "(U+0009 at character 2)"]]),
+    # the robot block within the bounds of --base-transform and --angular-speed
+    "a robot base 10^9 mm away": ("plan", scene(robot={"base_transform": {"rotation_deg": 10,
+                                                                          "translation": [1e9, 0]}}),
+                                  [["scene.yaml: robot.base_transform.translation[0]: got 1000000000.0, expected a "
+                                    "number between -10000 and 10000 (mm; a base more than 10 m"]]),
+    "a robot base turned 1000 deg": ("plan", scene(robot={"base_transform": {"rotation_deg": 1000,
+                                                                             "translation": [0, 0]}}),
+                                     [["scene.yaml: robot.base_transform.rotation_deg: got 1000, expected a number "
+                                       "between -360 and 360 (deg)"]]),
+    **{f"angular speed {speed:g}": ("plan", scene(robot={"angular_speed": speed}),
+                                    [[f"scene.yaml: robot.angular_speed: got {speed!r}, expected a positive number of "
+                                      "at least 1e-06 (rad/s"]])
+       for speed in (1e-9, 1e-300)},
+    # magnitudes that are unit mistakes
+    "a force of 1e300 N": ("deform", scene(loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [-1e300, 0.5]}]),
+                           [["scene.yaml: loads[0].force[0]: got -1e+300, expected a number between -1e+06 and "
+                             "1e+06 (N"]]),
+    "a cutting edge longer than the needle": ("simulate", scene(needle__cutting_length=1000),
+                                              [["scene.yaml: needle.cutting_length: got 1000 mm, expected at most "
+                                                "the needle's length 27.9 mm (radius 8.88 mm x arc 3.142 rad)"]]),
     # loads against clamps and each other
     "force on a clamped edge": ("deform", scene(loads=BASE["loads"] + [{"segment": RIGHT_SEGMENT, "force": [1.0, 0.0]}]),
                                 [["scene.yaml: loads[1].segment: got [[40.0, 5.0], [40.0, 15.0]]",

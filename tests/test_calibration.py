@@ -457,3 +457,87 @@ def test_the_bound_warning_names_only_a_modulus_at_its_bound(fitted, on_bound):
     warnings = fit_warnings(np.array(fitted), stats, fit, refinement)
     assert {name for name in ("lame_lambda", "lame_mu") if any(f"{name} = " in w and "bound" in w
                                                                for w in warnings)} == on_bound
+
+
+# --- search ranges the fit can resolve, negative needle fits, one recording twice -------
+
+
+def _calibration_with_fit(folder, **fit) -> Path:
+    """A calibration file on one small marker file with the given search ranges."""
+    (folder / "markers0.csv").write_text("x,y,x_def,y_def\n10,10,10.5,10.2\n50,30,50.3,30.1\n")
+    data = {"tissue": {"size": [100.0, 60.0], "thickness": 10.0, "clamped": ["right"]},
+            "experiments": [{"loads": load_block(LOADS["left-pull"]), "markers": "markers0.csv"}],
+            "fit": {**FIT, **fit}}
+    path = folder / "calib.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("fit, fragments", [
+    # the geometric middle of [1e-200, 1e-199] underflowed to 0.0: a traceback from Material
+    ({"lame_mu": [1e-200, 1e-199]}, ["fit.lame_mu[0]", "got 1e-200", "at least 1e-06"]),
+    ({"lame_mu": [0.0, 2.0]}, ["fit.lame_mu[0]", "got 0.0", "at least 1e-06"]),
+    ({"lame_lambda": [1e-9, 2.0]}, ["fit.lame_lambda[0]", "got 1e-09", "0 or a number of at least 1e-06"]),
+    # hundreds of decades: every grid point failed, or the trust region overflowed
+    ({"lame_lambda": [0.01, 1e300]}, ["fit.lame_lambda[1]", "got 1e+300", "at most 1e+06"]),
+    ({"lame_mu": [0.01, 1e7]}, ["fit.lame_mu[1]", "got 10000000.0", "at most 1e+06"]),
+])
+def test_material_refuses_search_ranges_the_fit_cannot_resolve(tmp_path, fit, fragments):
+    path = _calibration_with_fit(tmp_path, **fit)
+    out = tmp_path / "fitted.yaml"
+    result = run("calibrate", "material", path, "--out", out, "--spacing", 10)
+    assert_refused(result, out, str(path), *fragments)
+
+
+def test_search_range_bounds_are_accepted_and_the_start_point_lies_inside(tmp_path):
+    from stitchplan.calibration.inputs import _start_point
+
+    problem = calibration.load_material_calibration(
+        _calibration_with_fit(tmp_path, lame_lambda=[0.0, 1e6], lame_mu=[1e-6, 1e6]))
+    assert problem.fit.lame_mu == (1e-6, 1e6) and problem.fit.grid_scale == "linear"
+    # sqrt(low * high) under- and overflows where sqrt(low) * sqrt(high) does not
+    for low, high in [(1e-200, 1e-199), (10.0, 1e308), (1.0, math.nextafter(1.0, 2.0))]:
+        start = _start_point(calibration.FitSettings("neo-hookean", (low, high), (low, high)))
+        assert all(low <= value <= high and value > 0 for value in start)
+
+
+def _needle_run(tmp_path, tissue_force):
+    """calibrate needle on the noise-free air recording and a tissue recording of the given
+    force (N) at the tissue angles of write_recordings."""
+    air, tissue = write_recordings(tmp_path)
+    angle = np.loadtxt(tissue, delimiter=",", skiprows=1)[:, 0]
+    rows = "".join(f"{float(a)!r},{float(f)!r}\n" for a, f in zip(angle, tissue_force(angle)))
+    tissue.write_text("angle_rad,force_N\n" + rows)
+    out, plot = tmp_path / "needle.yaml", tmp_path / "forces.png"
+    result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", RADIUS,
+                 "--out", out, "--plot", plot)
+    return result, out, plot
+
+
+@pytest.mark.parametrize("tissue_force, fragments", [
+    # a constant force less the growing background: friction = -0.035 / 8.88 N/mm (the audit's case)
+    (lambda a: 0.5 + 0.0 * a, ["friction -0.003941", "does not grow with the inserted length"]),
+    # below the background at the entry: a negative cutting force
+    (lambda a: BACKGROUND[0] + BACKGROUND[1] * a - 0.2 + FRICTION * RADIUS * a,
+     ["cutting force -0.2", "starts below the air background"]),
+])
+def test_needle_fit_with_a_negative_value_fails_and_writes_nothing(tmp_path, tissue_force, fragments):
+    result, out, plot = _needle_run(tmp_path, tissue_force)
+    assert result.exit_code == 1, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: needle fit: the fit gave "), result.output
+    assert "expected >= 0" in lines[0] and "Traceback" not in result.output
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    assert not out.exists() and not plot.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith((".needle.yaml.", ".forces.png."))]
+
+
+def test_needle_refuses_one_recording_as_both_air_and_tissue(tmp_path):
+    air, _ = write_recordings(tmp_path)
+    link = tmp_path / "link.csv"
+    link.symlink_to(air)
+    out = tmp_path / "needle.yaml"
+    for tissue in (air, link):
+        result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", RADIUS, "--out", out)
+        assert_refused(result, out, f"--tissue: got {tissue}", f"the same file as --air ({air})")

@@ -25,15 +25,11 @@ from typer.testing import CliRunner
 from stitchplan.cli import app
 from stitchplan.cli.options import _check_angular_speed, _parse_base_transform
 from stitchplan.config import Robot, load_scenario
+from stitchplan.config.blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
 from stitchplan.errors import InputError
 from stitchplan.io.readers import ANGLE_TOLERANCE, parse_number, read_center_path
 from stitchplan.needle.geometry import scenario_needle
-from stitchplan.planning.trajectory import (
-    MAX_BASE_OFFSET_MM,
-    MIN_ANGULAR_SPEED,
-    exported_centers,
-    trajectory_table,
-)
+from stitchplan.planning.trajectory import exported_centers, trajectory_table
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 SCENE = REPOSITORY / "configs" / "needle20_entry30.yaml"

@@ -65,6 +65,24 @@ BAD_SCENARIOS = [
      ["loads[0]", "exactly one of", "neither"]),
     ("null force", lambda r: set_in(r, ("loads", 0, "force"), None), ["loads[0]", "exactly one of", "neither"]),
     ("a key that is not a string", lambda r: set_in(r, (1,), 2), ["scenario: unknown key 1", "load_steps"]),
+    ("a key true, as written", lambda r: set_in(r, (True,), 2), ["scenario: unknown key true,", "load_steps"]),
+    ("a key null, as written", lambda r: set_in(r, ("tissue", None), 2), ["tissue: unknown key null,", "thickness"]),
+    ("a NUL in the name", lambda r: set_in(r, ("name",), "a\x00b"),
+     ["name: got 'a\\x00b', expected a one-line string without control characters (U+0000 at character 2)"]),
+    ("a line break in the name", lambda r: set_in(r, ("name",), "two\nlines"), ["name", "(U+000A at character 4)"]),
+    ("a force of 1e300 N", lambda r: set_in(r, ("loads", 0, "force"), [-1e300, 0.5]),
+     ["loads[0].force[0]: got -1e+300, expected a number between -1e+06 and 1e+06 (N"]),
+    ("a robot base 10 km away", lambda r: set_in(r, ("robot",), {"base_transform": {"translation": [0, -1e9]}}),
+     ["robot.base_transform.translation[1]: got -1000000000.0, expected a number between -10000 and 10000 (mm"]),
+    ("a robot base turned 1000 deg", lambda r: set_in(r, ("robot",), {"base_transform": {"rotation_deg": 1000}}),
+     ["robot.base_transform.rotation_deg: got 1000, expected a number between -360 and 360 (deg)"]),
+    ("a needle turning at 1e-300 rad/s", lambda r: set_in(r, ("robot",), {"angular_speed": 1e-300}),
+     ["robot.angular_speed: got 1e-300, expected a positive number of at least 1e-06 (rad/s"]),
+    ("a study reference spacing below 0", lambda r: set_in(r, ("study",), {"reference": {"grading": 4, "spacing": -1}}),
+     ["study.reference.spacing: got -1, expected a positive number (mm) or a non-empty list of them"]),
+    ("a study reference spacing list with one below 0",
+     lambda r: set_in(r, ("study",), {"reference": {"spacing": [2, -1]}}),
+     ["study.reference.spacing[1]: got -1, expected a positive number (mm)"]),
     ("probe outside", lambda r: set_in(r, ("probes",), [[0.0, 50.0], [120.0, 50.0]]),
      ["probes[1]", "[120.0, 50.0]", "inside [0, 100] x [0, 100] mm"]),
     ("probe below", lambda r: set_in(r, ("probes",), [[50.0, -0.5]]),
@@ -297,6 +315,24 @@ def test_robot_block_reads_the_base_transform(slab_raw):
     with pytest.raises(ScenarioError, match="robot: unknown key 'rotation_deg', expected one of: "
                                             "base_transform, angular_speed"):
         parse_scenario(slab_raw)
+
+
+def test_robot_block_takes_the_bounds_of_the_options(slab_raw):
+    """The file's robot block accepts what --base-transform and --angular-speed accept, up to
+    their bounds (the Robot held inside is not bounded: planning.trajectory is the backstop)."""
+    from stitchplan.config import Robot
+    from stitchplan.config.blocks import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG, MIN_ANGULAR_SPEED
+
+    slab_raw["robot"] = {"base_transform": {"rotation_deg": -MAX_BASE_ROTATION_DEG,
+                                            "translation": [MAX_BASE_OFFSET_MM, -MAX_BASE_OFFSET_MM]},
+                         "angular_speed": MIN_ANGULAR_SPEED}
+    assert parse_scenario(slab_raw).robot == Robot(-360.0, (1e4, -1e4), 1e-6, given=True)
+    assert Robot(angular_speed=5e-324, translation=(1e308, 0.0)).angular_speed == 5e-324
+
+
+def test_a_name_may_hold_any_printable_text(slab_raw):
+    slab_raw["name"] = "\u202e \u00e9vil \u2014 na\u00efve \U0001f9f5"  # format characters (Cf) are not Cc
+    assert parse_scenario(slab_raw).name == slab_raw["name"]
 
 
 # --- typed objects: construction validates, replace and asdict work ------------------------------

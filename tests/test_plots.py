@@ -323,3 +323,27 @@ def test_speed_accuracy_mentions_failures_only_when_there_are_some(failed, tmp_p
             assert axis.get_major_formatter()(0.01) == "0.01"
             shown = [label.get_text() for label in axis.get_ticklabels(minor=True) if label.get_text()]
             assert all("10^" not in text and "$" not in text for text in shown)
+
+
+@pytest.mark.parametrize("scale", ["1e308", "1e7"])
+def test_deform_plot_scale_beyond_a_million_is_refused(slab_path, tmp_path, scale):
+    """1e308 x the displacements overflowed the axis limits: a matplotlib traceback."""
+    plot, probes = tmp_path / "big.png", tmp_path / "probes.csv"
+    bad = CliRunner().invoke(app, ["deform", str(slab_path), "--plot", str(plot), "--probes-out", str(probes),
+                                   "--plot-scale", scale])
+    assert bad.exit_code == 2, bad.output
+    lines = bad.output.strip().splitlines()
+    assert lines == [f"error: --plot-scale: got {float(scale)!r}, expected a positive number of at most 1e+06 "
+                     "(1 = true scale)"], bad.output
+    assert not plot.exists() and not probes.exists()
+
+
+def test_deformed_plot_at_the_largest_scale_stays_finite(deformed, tmp_path):
+    from stitchplan.errors import InputError
+
+    fig = plots.plot_deformed(tmp_path / "deformed.png", deformed, scale=plots.MAX_PLOT_SCALE)
+    ax = data_axes(fig)[0]
+    assert np.all(np.isfinite(ax.get_xlim() + ax.get_ylim())) and "1e+06x enlarged" in ax.get_title()
+    with pytest.raises(InputError, match=r"^--plot-scale: got 1e\+308"):
+        plots.plot_deformed(tmp_path / "huge.png", deformed, scale=1e308)
+    assert not (tmp_path / "huge.png").exists()

@@ -78,6 +78,8 @@ BAD_FILES = [
      "expected a positive definite correlation matrix"),
     ({"parameters": {"friction": {"std": 0.01}}},
      "parameters.friction: got {std: 0.01}, expected a parameter the scenario has"),
+    ({"parameters": {"friction": None, "thickness": {"std": 1.0}}},  # `friction:` left blank
+     "parameters.friction: got None, expected a mapping {std: ...} giving the parameter's standard deviation"),
     ({"from_calibration": "missing.yaml"}, "from_calibration: "),
     ({"from_calibration": "fitted_displacement_only.yaml"},
      "fit.standard_uncertainty: got {'lame_lambda': None, 'lame_mu': None}, expected positive standard "

@@ -159,6 +159,47 @@ def test_the_command_lists_every_duplicate_key(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
 
 
+# --- nesting ----------------------------------------------------------------------------------
+
+TOO_DEEP = "line 1: nesting too deep (more than 100 levels of lists and mappings), expected plain data"
+
+
+@pytest.mark.parametrize("depth", [100, 500, 100_000])
+def test_nesting_beyond_a_hundred_levels_is_one_line(tmp_path, depth):
+    """The loader recurses once per level: without a bound, 500 nested `[` end in a
+    RecursionError traceback. The root mapping is the first level."""
+    path = write(tmp_path, "name: " + "[" * depth + "]" * depth + "\n")
+    assert refusal(path) == [f"{path}: {TOO_DEEP}"]
+    with pytest.raises(ScenarioError) as error:  # any YAML input file
+        load_uncertainty(path)
+    assert error.value.lines == [f"{path}: {TOO_DEEP}"]
+
+
+def test_nesting_within_the_bound_reaches_the_fields(tmp_path):
+    path = write(tmp_path, SCENE.replace("name: small", "name: " + "[" * 99 + "]" * 99))
+    [line] = refusal(path)
+    assert line.startswith(f"{path}: name: got [[[[") and line.endswith("expected a string")
+
+
+def test_nesting_built_from_aliases_is_bounded_too(tmp_path):
+    """Each alias nests an anchored list 30 levels further: the fourth goes past 100."""
+    lines = [f"a0: &a0 {'[' * 30}1{']' * 30}"]
+    lines += [f"a{k}: &a{k} {'[' * 30}*a{k - 1}{']' * 30}" for k in range(1, 4)]
+    path = write(tmp_path, "\n".join(lines) + "\n")
+    [line] = refusal(path)
+    assert line.startswith(f"{path}: line ") and "nesting too deep (more than 100 levels" in line
+
+
+def test_a_recursion_error_while_reading_names_the_file(tmp_path, monkeypatch):
+    """Should any recursion still run out of stack (here with the bound lifted), the file is
+    named in one line."""
+    from stitchplan.config import yaml_files
+
+    monkeypatch.setattr(yaml_files, "MAX_DEPTH", 10 ** 9)
+    path = write(tmp_path, "name: " + "[" * 5000 + "]" * 5000 + "\n")
+    assert refusal(path) == [f"{path}: nesting too deep, expected plain data"]
+
+
 # --- the checksum of what was parsed --------------------------------------------------------
 
 

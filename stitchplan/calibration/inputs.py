@@ -142,8 +142,11 @@ def load_material_calibration(path: str | Path, spacing: float | None = None,
 
 
 def _start_point(fit: FitSettings) -> tuple[float, float]:
-    """Geometric (or arithmetic) middle of the search ranges."""
+    """Geometric (or arithmetic) middle of the search ranges, written so that it neither
+    underflows nor overflows (sqrt(low * high) of [1e-200, 1e-199] is 0.0, of [10, 1e308]
+    inf) and kept within the range against rounding."""
     def mid(low: float, high: float) -> float:
-        return math.sqrt(low * high) if fit.grid_scale == "log" else 0.5 * (low + high)
+        middle = math.sqrt(low) * math.sqrt(high) if fit.grid_scale == "log" else 0.5 * low + 0.5 * high
+        return min(max(middle, low), high)
 
     return mid(*fit.lame_lambda), mid(*fit.lame_mu)

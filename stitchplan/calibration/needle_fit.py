@@ -122,6 +122,7 @@ def fit_needle(air_angle: np.ndarray, air_force: np.ndarray, tissue_angle: np.nd
         raise NumericalFailure(f"{tissue_line}: the uncertainties came out as variances {variances[0]:.4g} "
                                f"(friction) and {variances[1]:.4g} (cutting force), expected finite "
                                "non-negative values")
+    refuse_negative(tissue_fit, math.sqrt(variances[0]), math.sqrt(variances[1]))
     warnings = needle_warnings(air_angle, tissue_angle, tissue_fit)
     for message in warnings:
         log.warning(message)
@@ -135,9 +136,28 @@ def fit_needle(air_angle: np.ndarray, air_force: np.ndarray, tissue_angle: np.nd
     )
 
 
-def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit: LineFit) -> list[str]:
-    """Extrapolated background, a poor line, negative values."""
+def refuse_negative(tissue_fit: LineFit, friction_sigma: float, cutting_sigma: float) -> None:
+    """NumericalFailure when the tissue line gives a negative friction (slope) or cutting force
+    (intercept): no needle has them (a scenario's needle block refuses them), so the recordings
+    do not show what the fit assumes, a tissue force growing from the cutting force at the
+    entry by the friction along the inserted length."""
     friction, cutting = tissue_fit.slope, tissue_fit.intercept
+    found = []  # (what the fit gave, why the recordings give it)
+    if friction < 0:
+        found.append((f"friction {friction:.4g} +- {friction_sigma:.2g} N/mm",
+                      "the tissue recording's force less the air background does not grow with the "
+                      "inserted length (radius x angle)"))
+    if cutting < 0:
+        found.append((f"cutting force {cutting:.4g} +- {cutting_sigma:.2g} N",
+                      "the tissue recording starts below the air background where the tip enters"))
+    if found:
+        raise NumericalFailure(f"needle fit: the fit gave {' and '.join(gave for gave, _ in found)}, expected "
+                               f">= 0: {', and '.join(why for _, why in found)}; is --tissue the recording "
+                               "in tissue and --air the one in air?")
+
+
+def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit: LineFit) -> list[str]:
+    """Extrapolated background, a poor line (negative values are refused: refuse_negative)."""
     warnings = []
     span = air_angle[-1] - air_angle[0]
     if tissue_angle[0] < air_angle[0] - 0.01 * span or tissue_angle[-1] > air_angle[-1] + 0.01 * span:
@@ -148,9 +168,6 @@ def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit:
     if tissue_fit.r_squared < MIN_R_SQUARED:
         warnings.append(f"the corrected force is far from linear in the inserted length "
                         f"(R^2 = {tissue_fit.r_squared:.3f}); check the recordings")
-    if friction < 0 or cutting < 0:
-        warnings.append(f"negative fitted value (friction {friction:.4g} N/mm, cutting force "
-                        f"{cutting:.4g} N): a scenario's needle block refuses negative values")
     return warnings
 
 

@@ -62,9 +62,21 @@ def calibrate_needle(
     """Fit needle friction (N/mm) and cutting force (N) to force recordings in air and tissue."""
     _setup_logging(verbose, quiet)
     _check_outputs({"--out": out, "--plot": plot}, {"--air": air, "--tissue": tissue})
+    _check_two_recordings(air, tissue)
     from .. import calibration
     from ..io.calibration_reports import needle_summary_line, write_needle_outputs
 
     result = calibration.calibrate_needle(air, tissue, radius)
     write_needle_outputs(result, out, plot, command=_argv())
     typer.echo(needle_summary_line(result))
+
+
+def _check_two_recordings(air: Path, tissue: Path) -> None:
+    """--air and --tissue must be two recordings: the fit subtracts the one in air from the
+    one in tissue, and a file given twice (or through a link) leaves nothing to fit."""
+    from ..errors import InputError
+    from ..io.files import _same_file  # the comparison of outputs with inputs (symbolic and hard links)
+
+    if _same_file(air, tissue):
+        raise InputError(f"--tissue: got {tissue}, the same file as --air ({air}); expected the recording in "
+                         "tissue, a file other than the one in air")

@@ -4,7 +4,6 @@ heavy imports stay inside the commands so `--help` is instant."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Optional
 
@@ -14,8 +13,8 @@ from .group import app
 from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOption, ScenarioArgument,
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, SchedulerOption, WorkersOption,
-                      _check_angular_speed, _check_outputs, _check_plot_steps, _echo_events, _executor,
-                      _expected_steps, _guard, _limits, _load, _naming_files, _needle_geometry, _option_names,
+                      _check_angular_speed, _check_outputs, _check_plot_scale, _check_plot_steps, _echo_events,
+                      _executor, _expected_steps, _guard, _limits, _load, _naming_files, _needle_geometry, _option_names,
                       _parse_base_transform, _parse_steps, _plot_steps_note, _provenance, _setup_logging,
                       _value)
 
@@ -39,11 +38,8 @@ def deform(
     quiet: bool = QuietOption,
 ) -> None:
     """Static large-deformation solve of the slab under the scenario's `loads`."""
-    from ..errors import InputError
-
     _setup_logging(verbose, quiet)
-    if not 0 < plot_scale < math.inf:  # also refuses nan
-        raise InputError(f"--plot-scale: got {plot_scale!r}, expected a positive number (1 = true scale)")
+    _check_plot_scale(plot_scale)
     _check_outputs({"--probes-out": probes_out, "--reactions-out": reactions_out, "--summary": summary,
                     "--out": out, "--plot": plot}, {"SCENARIO": scenario_path})
     scenario = _load(scenario_path, spacing, dilation)
@@ -117,8 +113,9 @@ def simulate(
     limits = _limits(max_particles, no_resource_check)
     if scenario.discretization.accuracy is None:
         _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1), names=_option_names(spacing, dilation))
-    scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
-                                           max_particles=None if limits is None else limits.max_particles)
+    with _naming_files(scenario_path):  # an accuracy the discretizations cannot reach names the file
+        scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
+                                               max_particles=None if limits is None else limits.max_particles)
     # the estimate's run at 2h goes on in a helper process alongside (planning/replays.py)
     with (_naming_files(scenario_path, center_path),
           estimate_replays(scenario, background=estimate, linear_solver=linear_solver, tip_tracking=tip_tracking)
@@ -224,8 +221,9 @@ def plan(
     _needle_geometry(scenario_path, scenario)  # a needle that cannot enter or exit, with the file named
     if scenario.discretization.accuracy is None:
         guard(scenario)
-    scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
-                                           max_particles=None if limits is None else limits.max_particles)
+    with _naming_files(scenario_path):  # an accuracy the discretizations cannot reach names the file
+        scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
+                                               max_particles=None if limits is None else limits.max_particles)
     if auto_note is not None:
         guard(scenario)  # the verification model of the chosen discretization
     if uncertainty_path is not None:

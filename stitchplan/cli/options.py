@@ -280,7 +280,7 @@ def _parse_base_transform(text: Optional[str]):
     trajectory.csv meaningful (planning.trajectory)."""
     from ..errors import InputError
     from ..io.readers import parse_number
-    from ..planning.trajectory import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG
+    from ..config.blocks import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG
 
     if text is None:
         return None
@@ -297,11 +297,19 @@ def _parse_base_transform(text: Optional[str]):
 def _check_angular_speed(speed: Optional[float]) -> None:
     """--angular-speed: slower than MIN_ANGULAR_SPEED, time_s would overflow to inf."""
     from ..errors import InputError
-    from ..planning.trajectory import MIN_ANGULAR_SPEED
+    from ..config.blocks import MIN_ANGULAR_SPEED
 
     if speed is not None and not MIN_ANGULAR_SPEED <= speed < math.inf:  # also refuses nan
         raise InputError(f"--angular-speed: got {speed!r}, expected a positive speed in rad/s of at least "
                          f"{MIN_ANGULAR_SPEED:g}")
+
+
+def _check_plot_scale(scale: float) -> None:
+    """deform --plot-scale, before the run: positive and at most io.plots.MAX_PLOT_SCALE (near
+    1e308 the drawn positions overflow). plot_deformed checks it again when it draws."""
+    from ..io.plots import check_plot_scale
+
+    check_plot_scale(scale)
 
 
 

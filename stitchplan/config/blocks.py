@@ -473,11 +473,32 @@ class Needle:
                                   "inside (cutting_force / cutting_length per mm) instead of acting "
                                   "whole from the first step") = False
 
+    @model_validator(mode="wrap")
+    @classmethod
+    def _cutting_length_on_the_needle(cls, data: Any, handler) -> Needle:
+        """A file's cutting_length no longer than the needle (radius x arc): a longer cutting
+        edge than the needle has is a mistake (the default, 3 mm, is left to the coupling, which
+        spreads the force over the needle inside when that is shorter)."""
+        needle = handler(data)
+        length = needle.radius * needle.arc
+        if isinstance(data, dict) and "cutting_length" in data and needle.cutting_length > length:
+            raise problem(f"at most the needle's length {length:.4g} mm (radius {needle.radius:g} mm x arc "
+                          f"{needle.arc:.4g} rad)", field="cutting_length",
+                          value=Shown(f"{needle.cutting_length:g} mm"))
+        return needle
+
+
+# a load's force components: a total of a mega-newton on a slab of tissue is a unit mistake
+# (kN or mN read as N), and near 1e300 N the solver's norms overflow
+MAX_LOAD_FORCE_N = 1e6
+LoadForce = number(f"a number between {-MAX_LOAD_FORCE_N:g} and {MAX_LOAD_FORCE_N:g} (N; a larger total force "
+                   "on tissue is a unit mistake)", ge=-MAX_LOAD_FORCE_N, le=MAX_LOAD_FORCE_N)
+
 
 @block()
 class Load:
     segment: described(SegmentPoints, "straight piece of one edge, mm")
-    force: described(pair("a pair [fx, fy] of numbers (N)", number("a number (N)")) | None,
+    force: described(pair("a pair [fx, fy] of numbers (N)", LoadForce) | None,
                      "N total, spread uniformly over the segment") = None
     displacement: described(pair("a pair [ux, uy] of numbers (mm)") | None,
                             "mm, prescribed on the segment") = None
@@ -605,26 +626,41 @@ class Planner:
                              "model's offset predicted from a replay of the first pass at twice the spacing") = True
 
 
-AngularSpeed = described(number("a positive number (rad/s)", gt=0) | None,
-                         "rad/s of needle rotation: adds time_s to trajectory.csv")
-Rotation = described(number("a number (deg)"), "rotation of the tissue frame in the base frame, deg")
-Translation = described(Point, "tissue origin in the base frame, mm")
+# bounds of the robot's frame and speed (the same for `plan`'s --base-transform and
+# --angular-speed, stitchplan.cli.options): a base more than 10 m from the tissue is a unit or
+# typing mistake, not a robot cell, and a needle turning slower than 1e-6 rad/s (a half turn
+# in 36 days) is one too; within them every column of the trajectory stays finite
+MAX_BASE_OFFSET_MM = 10_000.0
+MAX_BASE_ROTATION_DEG = 360.0
+MIN_ANGULAR_SPEED = 1e-6  # rad/s
+
+ROTATION = "rotation of the tissue frame in the base frame, deg"
+TRANSLATION = "tissue origin in the base frame, mm"
+SPEED = "rad/s of needle rotation: adds time_s to trajectory.csv"
 
 
 @block()
 class Robot:
-    """Tissue frame -> robot base frame: p_base = R(rotation) p_tissue + translation."""
+    """Tissue frame -> robot base frame: p_base = R(rotation) p_tissue + translation. Its
+    values are not bounded here (planning.trajectory refuses a trajectory they make
+    infinite); a file's `robot:` block (RobotBlock) and the options are."""
 
-    rotation_deg: Rotation = 0.0
-    translation: Translation = (0.0, 0.0)
-    angular_speed: AngularSpeed = None
+    rotation_deg: described(number("a number (deg)"), ROTATION) = 0.0
+    translation: described(Point, TRANSLATION) = (0.0, 0.0)
+    angular_speed: described(number("a positive number (rad/s)", gt=0) | None, SPEED) = None
     given: Flag = False
+
+
+BaseOffset = number(f"a number between {-MAX_BASE_OFFSET_MM:g} and {MAX_BASE_OFFSET_MM:g} (mm; a base more than "
+                    "10 m from the tissue is a typing or unit mistake)", ge=-MAX_BASE_OFFSET_MM, le=MAX_BASE_OFFSET_MM)
 
 
 @block(title="base_transform")
 class BaseTransform:
-    rotation_deg: Rotation = 0.0
-    translation: Translation = (0.0, 0.0)
+    rotation_deg: described(number(f"a number between {-MAX_BASE_ROTATION_DEG:g} and {MAX_BASE_ROTATION_DEG:g} "
+                                   "(deg)", ge=-MAX_BASE_ROTATION_DEG, le=MAX_BASE_ROTATION_DEG), ROTATION) = 0.0
+    translation: described(pair(f"a pair [tx, ty] of numbers between {-MAX_BASE_OFFSET_MM:g} and "
+                                f"{MAX_BASE_OFFSET_MM:g} (mm)", BaseOffset), TRANSLATION) = (0.0, 0.0)
 
 
 @block(title="robot")
@@ -632,7 +668,9 @@ class RobotBlock:
     """The `robot:` block of a file, as Robot holds it."""
 
     base_transform: described(BaseTransform | None, "p_base = R(rotation_deg) p + translation") = None
-    angular_speed: AngularSpeed = None
+    angular_speed: described(number(f"a positive number of at least {MIN_ANGULAR_SPEED:g} (rad/s; a needle "
+                                    "turning slower is a typing or unit mistake)", ge=MIN_ANGULAR_SPEED) | None,
+                             SPEED) = None
 
     def robot(self) -> Robot:
         transform = self.base_transform or BaseTransform()

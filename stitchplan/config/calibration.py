@@ -63,11 +63,35 @@ def _increasing(expected: str):
     return AfterValidator(check)
 
 
-def _search_range(low_expected: str, **low_bound: float) -> Any:
-    expected = f"[low, high] with {'0 <' if 'gt' in low_bound else '0 <='} low < high (MPa)"
-    low = number(low_expected, **low_bound)
-    high = number("a positive number (MPa)", gt=0)
+# The moduli a search range may reach, MPa. 1e-6 MPa is 1 Pa, a thousand times softer than
+# the softest soft tissues (brain, fat: about 1 kPa); 1e6 MPa is 1 TPa, stiffer than diamond
+# (shear modulus about 0.5 TPa). Outside them the moduli are no material the fit can resolve:
+# bounds such as [1e-200, 1e-199] underflow (their geometric middle is 0.0), a range over
+# hundreds of decades overflows the least squares' trust region and leaves the grid a point
+# per fifty decades. Within them a range spans at most 12 decades. lame_lambda may still
+# start at exactly 0 (a linear grid).
+MIN_SEARCH_MODULUS = 1e-6
+MAX_SEARCH_MODULUS = 1e6
+
+
+def _at_least_softest_or_zero(value: float) -> float:
+    if 0 < value < MIN_SEARCH_MODULUS:
+        raise problem(f"0 or a number of at least {MIN_SEARCH_MODULUS:g} (MPa; 1 Pa, softer than any tissue)")
+    return value
+
+
+def _search_range(low: Any, zero_allowed: bool) -> Any:
+    # the pair's message keeps its 0.1.x text; a low bound below MIN_SEARCH_MODULUS is
+    # reported on the item, fit.lame_mu[0], with the bound
+    expected = f"[low, high] with {'0 <=' if zero_allowed else '0 <'} low < high (MPa)"
+    high = number(f"a positive number of at most {MAX_SEARCH_MODULUS:g} (MPa; 1 TPa, stiffer than diamond)",
+                  gt=0, le=MAX_SEARCH_MODULUS)
     return Annotated[tuple[low, high], expecting(expected, items=True, length=2), _increasing(expected)]
+
+
+LambdaLow = Annotated[number("a non-negative number (MPa)", ge=0), AfterValidator(_at_least_softest_or_zero)]
+MuLow = number(f"a number of at least {MIN_SEARCH_MODULUS:g} (MPa; 1 Pa, softer than any tissue)",
+               ge=MIN_SEARCH_MODULUS)
 
 
 @block(title="tissue", file_required=("thickness",))
@@ -138,10 +162,12 @@ class ExperimentBlock:
 
 @block(title="fit")
 class FitBlock:
-    lame_lambda: described(_search_range("a non-negative number (MPa)", ge=0),
-                           "search range [low, high] of lame_lambda, MPa")
-    lame_mu: described(_search_range("a positive number (MPa)", gt=0),
-                       "search range [low, high] of lame_mu, MPa")
+    lame_lambda: described(_search_range(LambdaLow, zero_allowed=True),
+                           f"search range [low, high] of lame_lambda, MPa (low 0 or at least "
+                           f"{MIN_SEARCH_MODULUS:g}, high at most {MAX_SEARCH_MODULUS:g})")
+    lame_mu: described(_search_range(MuLow, zero_allowed=False),
+                       f"search range [low, high] of lame_mu, MPa (from {MIN_SEARCH_MODULUS:g} to "
+                       f"{MAX_SEARCH_MODULUS:g})")
     model: described(choice(MATERIAL_MODELS), "constitutive law fitted") = "saint-venant-kirchhoff"
     grid: described(integer(2, 50), "grid points per axis of the initial search") = 6
     grid_scale: described(choice(GRID_SCALES) | None,

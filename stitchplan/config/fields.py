@@ -6,10 +6,12 @@ integers, fixed choices and points. Each type carries the text of its error mess
 from __future__ import annotations
 
 import operator
+import unicodedata
 from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
 from pydantic import (
+    AfterValidator,
     BeforeValidator,
     ConfigDict,
     Field,
@@ -102,8 +104,22 @@ Number = number("a number (mm)")
 Positive = number("a positive number", gt=0)
 PositiveMM = number("a positive number (mm)", gt=0)
 Point = Annotated[tuple[Number, Number], expecting("a pair [x, y] of numbers (mm)", items=True, length=2)]
-Name = Annotated[str, Strict(), expecting("a string")]
-NonEmptyName = Annotated[str, Strict(), Field(min_length=1), expecting("a non-empty string")]
+
+
+def _one_line(text: str) -> str:
+    """A label as run logs, CSV files and terminals take it: no control character (Unicode
+    category Cc: NUL, tab, line breaks, escape, ...), so a label is one line and HDF5 can hold it."""
+    for i, character in enumerate(text):
+        if unicodedata.category(character) == "Cc":
+            raise problem(f"a one-line string without control characters (U+{ord(character):04X} at "
+                          f"character {i + 1})")
+    return text
+
+
+# a label: one line of text (JSON Schema: no character of category Cc, U+0000-001F and U+007F-009F)
+LABEL = [AfterValidator(_one_line), Field(json_schema_extra={"pattern": "^[^\\u0000-\\u001f\\u007f-\\u009f]*$"})]
+Name = Annotated[str, Strict(), expecting("a string"), *LABEL]
+NonEmptyName = Annotated[str, Strict(), Field(min_length=1), expecting("a non-empty string"), *LABEL]
 Flag = Annotated[bool, Strict(), expecting("true or false")]
 
 # shared by the discretization, the needle and the families of a study

@@ -40,7 +40,7 @@ def validate(kind: Any, raw: Any, path: str = "", root: str | None = None,
     try:
         return adapter(kind).validate_python(raw, context=context)
     except ValidationError as error:
-        raise input_error(error_lines(error, kind, path, root or path or "value")) from None
+        raise input_error(error_lines(error, kind, path, root or path or "value", raw)) from None
 
 
 def valid_or_none(kind: Any, raw: Any) -> Any:
@@ -91,7 +91,9 @@ def field_path(base: str, loc: tuple) -> str:
     return path
 
 
-def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "value") -> list[str]:
+def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "value",
+                raw: Any = None) -> list[str]:
+    """One line per error of `error`; `raw`, the data validated, shows unknown keys as given."""
     lines = []
     for e in error.errors(include_url=False):
         loc, ctx = tuple(e["loc"]), e.get("ctx") or {}
@@ -105,7 +107,7 @@ def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "
             what = expected_of(kind, loc)
             lines.append(f"{path}: missing, required" + (f": {what}" if what else ""))
         elif e["type"] in ("extra_forbidden", "unexpected_keyword_argument", "invalid_key"):
-            lines.append(_unknown_key(kind, loc, field_path(base, loc[:-1]) or root))
+            lines.append(_unknown_key(kind, loc, field_path(base, loc[:-1]) or root, raw))
         elif e["type"] in MAPPING_ERRORS:
             keys = _keys(_block_at(kind, loc))
             what = "a mapping" + (f" with keys among: {', '.join(keys)}" if keys else "")
@@ -116,11 +118,34 @@ def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "
     return lines
 
 
-def _unknown_key(kind: Any, loc: tuple, parent: str) -> str:
-    key, allowed = loc[-1], _keys(_block_at(kind, loc[:-1]))
-    line = f"{parent}: unknown key {key!r}, expected one of: {', '.join(allowed)}"
+def _unknown_key(kind: Any, loc: tuple, parent: str, raw: Any = None) -> str:
+    key, allowed = _given_key(raw, loc), _keys(_block_at(kind, loc[:-1]))
+    line = f"{parent}: unknown key {_as_written(key)}, expected one of: {', '.join(allowed)}"
     close = difflib.get_close_matches(str(key), allowed, n=1)
     return line + (f" (did you mean {close[0]!r}?)" if close else "")
+
+
+def _given_key(raw: Any, loc: tuple) -> Any:
+    """The key of the mapping at loc[:-1] in `raw` that pydantic names loc[-1]: it names a key
+    `true` 1, `1.5` '1.5' and `null` 'None' (loc[-1] itself when `raw` does not lead there)."""
+    parent = raw
+    for step in loc[:-1]:
+        try:
+            parent = parent[step]
+        except (KeyError, IndexError, TypeError):
+            return loc[-1]
+    if isinstance(parent, dict):
+        for key in parent:
+            if not isinstance(key, str) and (key == loc[-1] if isinstance(loc[-1], int) else str(key) == loc[-1]):
+                return key
+    return loc[-1]
+
+
+def _as_written(key: Any) -> str:
+    """A key as a YAML file writes it: 'name' quoted, true, false, null and numbers plain."""
+    if isinstance(key, bool):
+        return "true" if key else "false"
+    return "null" if key is None else repr(key)
 
 
 # --- what the models expect at a field path -------------------------------------------------

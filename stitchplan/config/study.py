@@ -3,9 +3,9 @@ swept by `stitchplan study` (see stitchplan.study.sweep)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import field_validator, model_validator
+from pydantic import WithJsonSchema, field_validator, model_validator
 
 from .blocks import block
 from .fields import (
@@ -24,15 +24,27 @@ from .fields import (
     problem,
     sequence,
 )
-from .messages import validate
+from .messages import valid_or_none, validate
 
 GRADINGS = (2, 4, 8, 16)
 
 Spacings = sequence(PositiveMM, "a non-empty list of spacings (mm)", min_length=1)
+# a family's spacing: one number or a list in a file (so the schema says), held as a list (a
+# number is read as a list of one, StudyFamily._one_or_more), so that a bad value is one line
+# naming its item rather than one line per member of a union
+OneOrMoreSpacings = Annotated[Spacings | None, WithJsonSchema({"anyOf": [
+    {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0}, "minItems": 1},
+    {"type": "number", "exclusiveMinimum": 0},
+    {"type": "null"}]})]
 
 
 def _as_list(value: Any) -> Any:
-    return value if isinstance(value, (list, tuple)) or value is None else [value]
+    """A spacing given as one number, as a list of one; a bad one reported as given."""
+    if isinstance(value, (list, tuple)) or value is None:
+        return value
+    if valid_or_none(PositiveMM, value) is None:
+        raise problem("a positive number (mm) or a non-empty list of them")
+    return [value]
 
 
 @block()
@@ -41,8 +53,8 @@ class StudyFamily:
 
     # optional in a file: the study block names a family 'family N' and the reference 'reference'
     name: described(NonEmptyName | None, "label of the family in study.csv; default 'family N'") = None
-    spacing: described(Spacings | PositiveMM | None, "mm at the needle (one number or a list); default: the "
-                                                     "study's list") = None
+    spacing: described(OneOrMoreSpacings, "mm at the needle (one number or a list); default: the "
+                                           "study's list") = None
     grading: described(choice(GRADINGS, "one of 2, 4, 8, 16 (coarse spacing / needle spacing)") | None,
                        "coarse spacing / needle spacing (graded particles); default uniform") = None
     dilation: described(Dilation | None, "kernel support / spacing") = None

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import Field, Strict, model_validator
+from pydantic import Field, Strict, field_validator, model_validator
 
 from .blocks import block
 from .fields import choice, described, expecting, integer, number, pair, problem, sequence
@@ -59,6 +59,16 @@ class Spreads:
     friction: described(Spread | None, "N/mm") = None
     cutting_force: described(Spread | None, "N") = None
     thickness: described(Spread | None, "mm") = None
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _not_blank(cls, value: Any) -> Any:
+        """A parameter given without a value (`friction:`) is refused, not dropped: the file
+        says it is uncertain but not by how much."""
+        if value is None:
+            raise problem("a mapping {std: ...} giving the parameter's standard deviation (to keep the "
+                          "parameter fixed, remove it)")
+        return value
 
 
 @block(title="correlation")

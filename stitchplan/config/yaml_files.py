@@ -5,7 +5,9 @@ Plain scalars follow the YAML 1.2 core schema (what `stitchplan schema` and edit
 where YAML 1.1 would silently read 300, True, False or a date. Refused besides syntax
 errors: text that is not UTF-8, a key given twice in one mapping (the second would silently
 win; every such key of a file is reported at once), tags without a plain-data meaning, and
-aliases beyond a small bound (an "alias bomb" expands a few lines into billions of values)."""
+aliases beyond a small bound (an "alias bomb" expands a few lines into billions of values),
+and nesting deeper than a bound (the loader recurses once per level: 500 nested `[` would
+end in Python's recursion limit)."""
 
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ from .messages import input_error
 
 MAX_ALIASES = 100  # alias uses per file
 MAX_VALUES = 100_000  # values after expanding every alias
+MAX_DEPTH = 100  # nested sequences and mappings, aliases expanded (a scenario needs about 6)
 
 # YAML 1.2 core schema (spec 1.2.2, section 10.3.2)
 INTEGER = r"[-+]?[0-9]+"
@@ -65,6 +68,7 @@ class _Loader(yaml.SafeLoader):
     def __init__(self, stream: str):
         super().__init__(stream)
         self.aliases = 0
+        self.depth = 0
 
     def compose_node(self, parent, index):
         if self.check_event(yaml.AliasEvent):
@@ -72,7 +76,13 @@ class _Loader(yaml.SafeLoader):
             if self.aliases > MAX_ALIASES:
                 line = self.peek_event().start_mark.line + 1
                 raise _Refused(f"line {line}: more than {MAX_ALIASES} YAML aliases, expected plain data")
-        return super().compose_node(parent, index)
+        self.depth += 1
+        try:
+            if self.depth > MAX_DEPTH:
+                raise _too_deep(self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
 
     def get_single_node(self):
         node = super().get_single_node()
@@ -123,24 +133,36 @@ def _tag_error(node, text: str, expected: str) -> yaml.constructor.ConstructorEr
                                              node.start_mark)
 
 
-def _count_values(node, memo: dict) -> int:
-    """Values under `node` with every alias expanded; refuses more than MAX_VALUES."""
+def _too_deep(mark) -> _Refused:
+    return _Refused(f"line {mark.line + 1}: nesting too deep (more than {MAX_DEPTH} levels of lists and "
+                    "mappings), expected plain data")
+
+
+def _count_values(node, memo: dict, depth: int = 1) -> int:
+    """Values under `node` with every alias expanded; refuses more than MAX_VALUES, and
+    nesting deeper than MAX_DEPTH through aliases (`depth`: the level of `node`)."""
     key = id(node)
     if key in memo:
         if memo[key] is None:
             raise _Refused(f"line {node.start_mark.line + 1}: a recursive YAML alias, expected plain data")
-        return memo[key]
+        count, height = memo[key]
+        if depth + height - 1 > MAX_DEPTH:
+            raise _too_deep(node.start_mark)
+        return count
+    if depth > MAX_DEPTH:
+        raise _too_deep(node.start_mark)
     memo[key] = None
-    count = 1
+    children = []
     if isinstance(node, yaml.SequenceNode):
-        count += sum(_count_values(child, memo) for child in node.value)
+        children = node.value
     elif isinstance(node, yaml.MappingNode):
-        count += sum(_count_values(k, memo) + _count_values(v, memo)
-                     for k, v in node.value)
+        children = [child for pair in node.value for child in pair]
+    count = 1 + sum(_count_values(child, memo, depth + 1) for child in children)
+    height = 1 + max((memo[id(child)][1] for child in children), default=0)
     if count > MAX_VALUES:
         raise _Refused(f"line {node.start_mark.line + 1}: YAML aliases expand to more than "
                        f"{MAX_VALUES} values, expected plain data")
-    memo[key] = count
+    memo[key] = (count, height)
     return count
 
 
@@ -230,6 +252,8 @@ def read_yaml_file(path: str | Path) -> YamlFile:
         data = parse_yaml(text)
     except _Refused as error:
         raise input_error([f"{path}: {line}" for line in error.lines]) from None
+    except RecursionError:  # MAX_DEPTH stops the loader first; any deeper recursion ends here too
+        raise input_error([f"{path}: nesting too deep, expected plain data"]) from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""

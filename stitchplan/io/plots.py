@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from .files import write_bytes
 from .plot_elements import (
     CMAP,
@@ -52,13 +53,27 @@ def _name(scenario, fallback: str) -> str:
 
 # --- deform ---------------------------------------------------------------------------------
 
+# The largest enlargement of the displacements in deformed.png (deform --plot-scale). A
+# micrometre drawn a million times enlarged is a metre, ten times a 100 mm slab: more draws
+# nothing a reader can use, and near 1e308 the drawn positions and the axis limits overflow.
+MAX_PLOT_SCALE = 1e6
+
+
+def check_plot_scale(scale: float) -> None:
+    """InputError naming --plot-scale unless 0 < scale <= MAX_PLOT_SCALE (nan refused)."""
+    if not 0 < scale <= MAX_PLOT_SCALE:
+        raise InputError(f"--plot-scale: got {scale!r}, expected a positive number of at most {MAX_PLOT_SCALE:g} "
+                         "(1 = true scale)")
+
 
 def plot_deformed(path: str | Path, result, scale: float = 1.0):
     """deformed.png of `stitchplan deform`: particles where the loads moved them, coloured by
     |u|; the outline at rest and deformed, clamps, loads and probes. Positions are drawn with
-    the displacements `scale` times enlarged; colours and numbers stay true."""
+    the displacements `scale` times enlarged (at most MAX_PLOT_SCALE); colours and numbers
+    stay true."""
     from ..tissue.deform import interpolate
 
+    check_plot_scale(scale)
     plt = pyplot()
     scenario = result.scenario
     tissue, domain = scenario.tissue, scenario.tissue.domain

@@ -13,6 +13,8 @@ import math
 import numpy as np
 
 from ..config import Robot
+# the bounds of the robot's frame and speed (the robot block checks a file's, cli.options the options')
+from ..config.blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
 from ..errors import InputError, NumericalFailure
 from ..needle.results import InsertionResult
 
@@ -20,13 +22,6 @@ COLUMNS = ["step", "angle_rad", "center_x_mm", "center_y_mm", "tip_x_mm", "tip_y
 BASE_COLUMNS = ["base_center_x_mm", "base_center_y_mm", "base_tip_x_mm", "base_tip_y_mm"]
 DECIMALS_MM = 9  # coordinates are rounded to 1e-9 mm: no round-off noise (5e-16) for a robot
 DECIMALS_ANGLE = 12  # angles (rad) and times (s) to 1e-12: 2.8, not n x 0.08 = 2.8000000000000003
-
-# bounds of the robot's frame and speed: a base more than 10 m from the tissue is a unit or
-# typing mistake, not a robot cell, and a needle turning slower than 1e-6 rad/s (a half turn
-# in 36 days) is one too; within them every column of the trajectory stays finite
-MAX_BASE_OFFSET_MM = 10_000.0
-MAX_BASE_ROTATION_DEG = 360.0
-MIN_ANGULAR_SPEED = 1e-6  # rad/s
 
 
 def _clean(values: np.ndarray, decimals: int = DECIMALS_MM) -> np.ndarray:
