@@ -8,7 +8,9 @@ methods, not a change to the numerics. Points are (..., 2) arrays in mm.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,6 +183,108 @@ def circle_center_at_entry(domain: Rectangle, entry, radius: float, turn: str) -
     return np.asarray(entry, dtype=float) + radius * side, edge
 
 
+# --- edges on a grid ---------------------------------------------------------------------------
+
+PAIR_BLOCK = 1 << 16  # (query, edge) pairs per block of a geometry query: work arrays of ~0.5 MB
+MAX_GRID_SIDE = 1024  # cells per side of an EdgeGrid
+FEW_PAIRS = 1 << 14  # up to here a query tests all (query, edge) pairs (a grid would cost more),
+FEW_EDGES = 16  # and with up to this many edges
+
+
+def _concatenated_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The concatenated ranges starts[i] .. starts[i] + counts[i] - 1."""
+    ends = np.cumsum(counts)
+    return np.repeat(starts - (ends - counts), counts) + np.arange(ends[-1] if len(ends) else 0)
+
+
+def _blocks(counts: np.ndarray) -> Iterator[slice]:
+    """Consecutive slices of entries whose counts sum to about PAIR_BLOCK (at most that plus
+    one entry's count), so that expanding a slice's entries stays within a bounded block."""
+    if len(counts) == 0:
+        return
+    block = (np.cumsum(counts) - counts) // PAIR_BLOCK
+    cuts = np.flatnonzero(np.diff(block)) + 1
+    for first, last in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(counts)]])):
+        yield slice(int(first), int(last))
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeGrid:
+    """Straight edges registered on a uniform grid of cells: every edge in each cell its
+    bounding box covers, so that a query box meets only the edges of the cells it covers.
+
+    A geometry query (inside, near the boundary, crossing a segment, cutting a cell) then
+    costs the edges near each point, not (points x edges): a traced outline of a thousand
+    vertices or a few circular holes (CIRCLE_SEGMENTS edges each) stay cheap. The exact test
+    of each candidate pair is the same arithmetic as on all pairs, so the answers are."""
+
+    origin: np.ndarray  # (2,) lower left corner of the grid
+    cell: np.ndarray  # (2,) sides of a cell (mm)
+    shape: tuple[int, int]  # cells along x and y
+    first: np.ndarray  # (E, 2) cell (i, j) of each edge's lower left box corner
+    indptr: np.ndarray  # (nx ny + 1,) registrations of cell j nx + i: indptr[c] .. indptr[c + 1] - 1
+    edge: np.ndarray  # (registrations,) the edge registered
+    column: np.ndarray  # (registrations,) the cell column i of the registration
+
+    @classmethod
+    def of(cls, starts: np.ndarray, ends: np.ndarray, bands: bool = False) -> EdgeGrid:
+        """The grid over the edges' bounding box: square cells, about one per edge (at most
+        MAX_GRID_SIDE per side); with `bands`, one column of about one row per edge (a ray
+        along x then meets the edges of one thin band)."""
+        low, high = np.minimum(starts, ends), np.maximum(starts, ends)  # (E, 2) edge boxes
+        origin = low.min(axis=0)
+        extent = high.max(axis=0) - origin
+        if bands:
+            shape = (1, int(np.clip(len(starts), 1, MAX_GRID_SIDE)))
+        else:
+            side = max(math.sqrt(float(extent[0] * extent[1]) / len(starts)), float(extent.max()) / MAX_GRID_SIDE)
+            shape = tuple(int(n) for n in np.clip(np.ceil(extent / side), 1, MAX_GRID_SIDE)) if side > 0 else (1, 1)
+        cell = np.where(extent > 0, extent / np.array(shape), 1.0)
+        grid = cls(origin, cell, shape, np.zeros((0, 2), int), np.zeros(1, int), np.zeros(0, int), np.zeros(0, int))
+        first, last = grid.cells_of(low), grid.cells_of(high)  # (E, 2)
+        width = last[:, 0] - first[:, 0] + 1
+        count = width * (last[:, 1] - first[:, 1] + 1)
+        edge = np.repeat(np.arange(len(starts)), count)
+        local = _concatenated_ranges(np.zeros(len(starts), int), count)
+        column = first[edge, 0] + local % width[edge]
+        row = first[edge, 1] + local // width[edge]
+        key = row * shape[0] + column
+        order = np.argsort(key, kind="stable")
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=shape[0] * shape[1]))])
+        return cls(origin, cell, shape, first, indptr, edge[order], column[order])
+
+    def cells_of(self, points: np.ndarray) -> np.ndarray:
+        """Cell (i, j) (n, 2) holding each point, clipped to the grid (monotone in x and y, so
+        boxes that meet cover cells that meet)."""
+        with np.errstate(invalid="ignore"):
+            scaled = np.nan_to_num((np.asarray(points, dtype=float) - self.origin) / self.cell,
+                                   nan=0.0, posinf=MAX_GRID_SIDE + 1.0, neginf=-1.0)
+        index = np.floor(np.clip(scaled, -1.0, MAX_GRID_SIDE + 1.0)).astype(int)
+        return np.clip(index, 0, np.array(self.shape) - 1)
+
+    def pairs(self, low: np.ndarray, high: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Blocks (query index, edge index) of the query boxes (n, 2 lower and upper corners)
+        with every edge registered in a cell the box covers, each pair once (in the first
+        cell of both: a superset of the edges whose boxes meet the query's); about
+        PAIR_BLOCK pairs per block."""
+        first, last = self.cells_of(low), self.cells_of(high)
+        rows = last[:, 1] - first[:, 1] + 1
+        nx = self.shape[0]
+        for part in _blocks(rows):  # entries (query, row): the registrations of its cells in that row
+            queries = np.arange(len(low))[part]
+            query = np.repeat(queries, rows[part])
+            row = _concatenated_ranges(first[queries, 1], rows[part])
+            begin = self.indptr[row * nx + first[query, 0]]
+            count = self.indptr[row * nx + last[query, 0] + 1] - begin
+            for block in _blocks(count):
+                entry = np.repeat(np.arange(block.start, block.stop), count[block])
+                registration = _concatenated_ranges(begin[block], count[block])
+                q, e = query[entry], self.edge[registration]
+                once = ((self.column[registration] == np.maximum(first[q, 0], self.first[e, 0]))
+                        & (row[entry] == np.maximum(first[q, 1], self.first[e, 1])))
+                yield q[once], e[once]
+
+
 # --- polygons ---------------------------------------------------------------------------------
 
 CIRCLE_SEGMENTS = 96  # chord error R (1 - cos(pi/96)) = 5.4e-4 R: microns for mm-sized holes
@@ -192,6 +296,28 @@ def circle_polygon(center, radius: float, segments: int = CIRCLE_SEGMENTS) -> np
     return np.asarray(center, dtype=float) + radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
 
 
+CORNER_TURN = 0.35  # rad (20 deg): a vertex turning more is a corner (a 40-gon's turn 9 deg, a circle's 3.75)
+
+
+def turns(loop: np.ndarray) -> np.ndarray:
+    """Signed turn (rad) of the boundary at each vertex of a closed loop (k, 2): > 0 a left
+    turn (a convex corner when the tissue is on the left), 0 straight on."""
+    before = loop - np.roll(loop, 1, axis=0)
+    after = np.roll(loop, -1, axis=0) - loop
+    return np.arctan2(before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0], np.sum(before * after, axis=1))
+
+
+def smooth_vertex(domain, point) -> bool:
+    """Whether `point` is a boundary vertex where the boundary turns by at most CORNER_TURN
+    (a traced contour's vertex, which the model treats as a point inside an edge)."""
+    names = domain.edges_at(point)
+    if len(names) != 2:
+        return False
+    (a0, a1), (b0, b1) = (domain.edge(name) for name in names)
+    d, e = a1 - a0, b1 - b0
+    return abs(math.atan2(float(_cross(d, e)), float(np.dot(d, e)))) <= CORNER_TURN
+
+
 def signed_area(vertices: np.ndarray) -> float:
     """Shoelace area: positive for a counter-clockwise polygon."""
     x, y = vertices[:, 0], vertices[:, 1]
@@ -200,9 +326,6 @@ def signed_area(vertices: np.ndarray) -> float:
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
-VISIBILITY_CHUNK = 4096  # segments per (segments x edges) block of PolygonDomain.blocked
 
 
 def segments_cross(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float) -> np.ndarray:
@@ -242,7 +365,12 @@ def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
     starts, ends = vertices, np.roll(vertices, -1, axis=0)
     if np.any(np.linalg.norm(ends - starts, axis=1) <= tol):
         return "a polygon without repeated consecutive vertices (an edge has zero length)"
-    i, j = np.triu_indices(k, 1)
+    # the pairs of edges (i < j) whose boxes, grown by tol, meet: the others cannot touch
+    grid = EdgeGrid.of(starts, ends)
+    low, high = np.minimum(starts, ends) - 2 * tol, np.maximum(starts, ends) + 2 * tol
+    found = [(i, j) for i, j in grid.pairs(low, high) if len(i)]
+    i, j = (np.concatenate(parts) for parts in zip(*found)) if found else (np.zeros(0, int),) * 2
+    i, j = i[i < j], j[i < j]
     adjacent = (j == i + 1) | ((i == 0) & (j == k - 1))
     touch = segments_touch(starts[i], ends[i], starts[j], ends[j], tol)
     # adjacent edges share their common vertex; they must not fold back onto each other
@@ -253,7 +381,8 @@ def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
         (_point_segment_distance(other_j, starts[i], ends[i]) <= tol)
     bad = np.flatnonzero(np.where(adjacent, folded, touch))
     if len(bad):
-        a, b = int(i[bad[0]]), int(j[bad[0]])
+        first = bad[np.lexsort((j[bad], i[bad]))[0]]  # the first pair in (i, j) order
+        a, b = int(i[first]), int(j[first])
         return f"a simple polygon (its edges from vertex {a} and from vertex {b} cross or touch)"
     if abs(signed_area(vertices)) <= tol * tol:
         return "a polygon enclosing an area"
@@ -395,36 +524,80 @@ class PolygonDomain(BoundingBox):
 
     # --- inside, outside ------------------------------------------------------------------
 
+    @functools.cached_property
+    def grid(self) -> EdgeGrid:
+        """The boundary edges on a grid of square cells (built on first use): the geometry
+        queries look only at the edges near each point."""
+        return EdgeGrid.of(self.segment_starts, self.segment_ends)
+
+    @functools.cached_property
+    def bands(self) -> EdgeGrid:
+        """The boundary edges on thin bands along x (built on first use): the inside test's
+        ray meets the edges of one band."""
+        return EdgeGrid.of(self.segment_starts, self.segment_ends, bands=True)
+
+    def candidates(self, low: np.ndarray, high: np.ndarray,
+                   bands: bool = False) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Blocks (query index, edge index) holding every pair of a query box (n, 2 lower and
+        upper corners) and a boundary edge whose box meets it, each pair once: all pairs when
+        there are few or the edges are (a small domain's queries need no grid), else the
+        grid's (`bands`: the bands')."""
+        count = len(self.segment_starts)
+        if count > FEW_EDGES and len(low) * count > FEW_PAIRS:
+            yield from (self.bands if bands else self.grid).pairs(low, high)
+            return
+        rows = max(PAIR_BLOCK // count, 1)
+        for first in range(0, len(low), rows):  # (rows x edges) blocks
+            n = min(rows, len(low) - first)
+            yield np.repeat(np.arange(first, first + n), count), np.tile(np.arange(count), n)
+
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Distance (...,) of points to the boundary."""
         points = np.asarray(points, dtype=float)
         flat = points.reshape(-1, 2)
         out = np.empty(len(flat))
-        for chunk in range(0, len(flat), 20000):  # (chunk x edges) work arrays
-            part = flat[chunk:chunk + 20000, None, :]
-            out[chunk:chunk + 20000] = _point_segment_distance(part, self.segment_starts[None],
-                                                               self.segment_ends[None]).min(axis=1)
+        rows = max(PAIR_BLOCK // len(self.segment_starts), 1)
+        for chunk in range(0, len(flat), rows):  # (rows x edges) work arrays
+            part = flat[chunk:chunk + rows, None, :]
+            out[chunk:chunk + rows] = _point_segment_distance(part, self.segment_starts[None],
+                                                              self.segment_ends[None]).min(axis=1)
         return out.reshape(points.shape[:-1])
 
+    def near_boundary(self, flat: np.ndarray, tol: float) -> np.ndarray:
+        """Mask (n,) of points (n, 2) within tol of the boundary (distance(flat) <= tol, from
+        the edges near each point only)."""
+        near = np.zeros(len(flat), dtype=bool)
+        pad = 2.0 * tol + self.tolerance  # the boxes of the edges within tol meet the point's
+        for q, e in self.candidates(flat - pad, flat + pad):
+            close = _point_segment_distance(flat[q], self.segment_starts[e], self.segment_ends[e]) <= tol
+            near[q[close]] = True
+        return near
+
     def _inside_strict(self, flat: np.ndarray) -> np.ndarray:
-        """Even-odd crossing test of points (n, 2) over every boundary loop."""
-        inside = np.zeros(len(flat), dtype=bool)
+        """Even-odd crossing test of points (n, 2) over every boundary loop: the edges that
+        straddle a point's y to the right of it (from the edges of the point's band)."""
+        flat = np.asarray(flat, dtype=float).reshape(-1, 2)
+        crossings = np.zeros(len(flat), dtype=np.int64)
         a, b = self.segment_starts, self.segment_ends
-        for chunk in range(0, len(flat), 20000):
-            x = flat[chunk:chunk + 20000, None, 0]
-            y = flat[chunk:chunk + 20000, None, 1]
-            straddle = (a[None, :, 1] > y) != (b[None, :, 1] > y)
+        pad = self.tolerance  # round-off of the crossing's x beyond the edge's box
+        right = np.column_stack([np.full(len(flat), np.inf), flat[:, 1]])
+        for q, e in self.candidates(flat - [pad, 0.0], right, bands=True):
+            x, y = flat[q, 0], flat[q, 1]
+            straddle = (a[e, 1] > y) != (b[e, 1] > y)
             with np.errstate(divide="ignore", invalid="ignore"):
-                x_cross = a[None, :, 0] + (y - a[None, :, 1]) * (b[None, :, 0] - a[None, :, 0]) / (
-                    b[None, :, 1] - a[None, :, 1])
-            inside[chunk:chunk + 20000] = (np.count_nonzero(straddle & (x < x_cross), axis=1) % 2) == 1
-        return inside
+                x_cross = a[e, 0] + (y - a[e, 1]) * (b[e, 0] - a[e, 0]) / (b[e, 1] - a[e, 1])
+            crossed = q[straddle & (x < x_cross)]
+            if len(crossed):  # a block holds a range of points: count over that range only
+                first = int(crossed.min())
+                count = np.bincount(crossed - first)
+                crossings[first:first + len(count)] += count
+        return (crossings % 2) == 1
 
     def contains(self, points: np.ndarray, tol: float = 0.0) -> np.ndarray:
         """Mask (...,) of points inside the closed domain, grown by tol (at least round-off)."""
         points = np.asarray(points, dtype=float)
         flat = points.reshape(-1, 2)
-        result = self._inside_strict(flat) | (self.distance(flat) <= max(tol, self.tolerance))
+        result = self._inside_strict(flat) | self.near_boundary(flat, max(tol, self.tolerance))
         return result.reshape(points.shape[:-1])
 
     def outside_distance(self, point) -> float:
@@ -460,22 +633,19 @@ class PolygonDomain(BoundingBox):
         low, high = np.minimum(starts, ends), np.maximum(starts, ends)
         a, b = self.segment_starts, self.segment_ends
         edge_low, edge_high = np.minimum(a, b), np.maximum(a, b)
-        for chunk in range(0, len(starts), VISIBILITY_CHUNK):  # (chunk x edges) bounding-box tests
-            part = slice(chunk, chunk + VISIBILITY_CHUNK)
-            near = ((high[part, None, 0] >= edge_low[:, 0]) & (low[part, None, 0] <= edge_high[:, 0])
-                    & (high[part, None, 1] >= edge_low[:, 1]) & (low[part, None, 1] <= edge_high[:, 1]))
-            pair, edge = np.nonzero(near)  # the segments' exact test only where the boxes meet
-            if len(pair):
-                pair += chunk
-                crossed = segments_cross(starts[pair], ends[pair], a[edge], b[edge], tol)
-                hit[pair[crossed]] = True
+        for pair, edge in self.candidates(low - self.tolerance, high + self.tolerance):
+            near = ((high[pair, 0] >= edge_low[edge, 0]) & (low[pair, 0] <= edge_high[edge, 0])
+                    & (high[pair, 1] >= edge_low[edge, 1]) & (low[pair, 1] <= edge_high[edge, 1]))
+            pair, edge = pair[near], edge[near]  # the segments' exact test only where the boxes meet
+            crossed = segments_cross(starts[pair], ends[pair], a[edge], b[edge], tol)
+            hit[pair[crossed]] = True
         # a segment between two boundary points crossing a gap touches the boundary only at
         # its ends: its middle lies outside
         rest = np.flatnonzero(~hit)
         if len(rest):
             middle = 0.5 * (starts[rest] + ends[rest])
             outside = rest[~self._inside_strict(middle)]  # the distance only for those (few)
-            hit[outside] = self.distance(0.5 * (starts[outside] + ends[outside])) > tol
+            hit[outside] = ~self.near_boundary(0.5 * (starts[outside] + ends[outside]), tol)
         return hit
 
     # --- circles --------------------------------------------------------------------------

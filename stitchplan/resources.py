@@ -19,6 +19,17 @@ the guard estimates
   SECONDS_PER_PARTICLE_STEP x particles^TIME_EXPONENT x steps x (neighbours / 16)^2 x
   (quadrature points per particle / 4) x runs.
 
+A shaped tissue (an outline, holes, regions) is not a lattice the spacing alone counts: its
+particles and quadrature points are placed as the model places them (a traced contour's
+boundary particles, a circular hole's CIRCLE_SEGMENTS, the cut cells' extra Gauss points),
+and both costs are multiplied by its `crowding`, the mean square of the particles a
+quadrature point sees over a regular lattice's (16^2 at dilation 2), counted on a sample of
+the points: boundary particles carry the support of the lattice around them, so around a
+small hole a point sees several times the usual particles (measured on the audit's scenes
+and the shipped shaped ones, deform: memory 0.52-0.89x of the estimate; time 1.0-1.5x, and
+up to 2.4x where the solve of a point-like load on a traced outline needs many Newton
+iterations).
+
 The constants come from `python benchmarks/resource_costs.py` (benchmarks/results/
 resource_costs.md), measured on the 2-core machine the tool is developed on, which is
 shared: the memory model is within 0.93-1.23x of every measured case, the time model within
@@ -65,6 +76,7 @@ import numpy as np
 from .config import DEFAULT_NEEDLE_REFINEMENT, Discretization, Scenario
 from .config.blocks import default_spacing_of
 from .errors import InputError
+from .geometry import PolygonDomain
 from .needle.geometry import needle_zone, scenario_needle
 from .tissue.particles import graded_particles
 
@@ -78,6 +90,10 @@ MEMORY_SHARE = 0.5
 # bound; 0.8 s at 444 000 cells on the development machine); beyond it they are estimated
 # from the local spacing (_graded_estimate: 10-17 % below the count on the SH scenes)
 COUNT_EXACTLY_UP_TO = 250_000
+# a shaped tissue's particles are placed and counted up to this estimate (_shaped_size: the
+# default limit), estimated beyond it (placing them would itself be a large run)
+COUNT_SHAPED_UP_TO = MAX_PARTICLES
+CROWDING_SAMPLE = 500  # quadrature points whose neighbours _shaped_size counts
 # particles and steps are held at this count: far beyond any machine (a model of 10^15
 # particles needs ~10^14 GB by the memory model below), and small enough that the cost
 # formulas stay finite floats
@@ -162,6 +178,11 @@ class ModelSize:
     exact: bool  # counted (True) or estimated from the local spacing (False)
     neighbours: float  # particles in a kernel support, (2 x dilation)^2 (inf past the float range)
     points_per_particle: float  # quadrature points per particle
+    # a shaped tissue's particles per quadrature point, counted: their mean square over the
+    # kernel's neighbours^2 (at least 1). Boundary particles crowd the supports (a circular
+    # hole's CIRCLE_SEGMENTS, each with the support of the lattice around it), and the tangent's
+    # cost and nonzeros grow with the square of a point's particles
+    crowding: float = 1.0
 
     @property
     def effective_neighbours(self) -> float:
@@ -203,12 +224,17 @@ class Estimate:
 
 def model_size(scenario: Scenario) -> ModelSize:
     """Particles, neighbours per kernel support and quadrature points per particle of the
-    scenario's discretization, without building it."""
+    scenario's discretization, without building its shape functions (a shaped tissue's
+    particles and quadrature points are placed and counted: _shaped_size)."""
     d = scenario.discretization
-    particles, exact = _particles(scenario)
     points = float(d.quadrature_order ** 2 * d.cells_per_spacing ** 2)
     support = 2.0 * d.dilation
-    return ModelSize(particles, exact, support * support, points)  # a product: inf where ** would raise
+    neighbours = support * support  # a product: inf where ** would raise
+    tissue = scenario.tissue
+    if isinstance(tissue.domain, PolygonDomain) or tissue.regions:
+        return _shaped_size(scenario, ModelSize(0, False, neighbours, points))
+    particles, exact = _particles(scenario)
+    return ModelSize(particles, exact, neighbours, points)
 
 
 def _particles(scenario: Scenario) -> tuple[int, bool]:
@@ -224,6 +250,94 @@ def _particles(scenario: Scenario) -> tuple[int, bool]:
                                   np.asarray(zone[0], dtype=float), zone[1], points=zone[2])
         return len(graded.particles), True
     return _graded_estimate(scenario.tissue.bounding_size, d.spacing, d.needle_spacing, zone), False
+
+
+def _model_segments(scenario: Scenario) -> tuple:
+    """The load segments as the model takes them (tissue.model.model_for_scenario)."""
+    held = tuple(load.segment for load in scenario.loads if load.displacement is not None)
+    return held + tuple(load.segment for load in scenario.loads if load.force is not None)
+
+
+def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
+    """A polygon tissue's, or one with holes or regions: its particles and quadrature points
+    as the model places them (tissue.model's shaped discretization: the lattice with the
+    shape's lines, fitted to the boundary, and the cut-cell quadrature), and how its
+    particles crowd the quadrature points (`crowding`: the particles each of CROWDING_SAMPLE
+    evenly spread quadrature points sees through the tissue, as the model's visibility
+    criterion lets them). Estimated instead (_shaped_estimate) past COUNT_SHAPED_UP_TO
+    particles, where placing them would itself be a large run."""
+    from .tissue.model import _shaped_discretization
+
+    zone = needle_zone(scenario)
+    segments = _model_segments(scenario)
+    estimated = _shaped_estimate(scenario, zone, segments)
+    if estimated > COUNT_SHAPED_UP_TO:
+        return replace(nominal, particles=estimated)
+    particles, _, support, _, points, _ = _shaped_discretization(scenario.tissue, scenario.discretization,
+                                                                 segments, zone)
+    square = _mean_square_neighbours(scenario.tissue.domain, points, particles, support)
+    crowding = square / nominal.neighbours ** 2 if math.isfinite(nominal.neighbours) else 1.0
+    return replace(nominal, particles=len(particles), exact=True,
+                   points_per_particle=len(points) / max(len(particles), 1), crowding=max(crowding, 1.0))
+
+
+def _mean_square_neighbours(domain, points: np.ndarray, particles: np.ndarray, support: np.ndarray) -> float:
+    """The mean over up to CROWDING_SAMPLE of the quadrature points (every k-th) of the
+    squared count of particles whose support holds the point and that see it (the model's
+    neighbour search and visibility criterion, tissue.shape_functions)."""
+    from .tissue.shape_functions import Visibility, neighbour_pairs
+
+    sample = points[::max(len(points) // CROWDING_SAMPLE, 1)]
+    rows, cols, _ = neighbour_pairs(sample, particles, support)
+    if isinstance(domain, PolygonDomain) and not domain.convex:
+        clearance = np.zeros(len(particles))  # only the sampled pairs' particles: 0 tests a pair
+        seen = np.unique(cols)
+        clearance[seen] = domain.distance(particles[seen])
+        rows = rows[Visibility(domain, clearance).keep(sample, particles, rows, cols)]
+    counts = np.bincount(rows, minlength=len(sample)).astype(float)
+    return float(np.mean(counts ** 2)) if len(sample) else 0.0
+
+
+def _shaped_estimate(scenario: Scenario, zone, segments, samples: int = 200) -> int:
+    """Particles of a shaped tissue without placing them: the lattice as the integral of
+    1 / side^2 over the tissue (side: the spacing, graded toward the refinement zones as the
+    lattice is: corners, segment ends, the needle), the boundary's as the integral of
+    1 / side along it, the shape's lattice lines (tissue.shapes.shape_breaks) across the
+    bounding box, and a particle at each vertex that keeps one (tissue.shapes.kept_vertices)."""
+    from .tissue.particles import END_GROWTH, end_zones
+    from .tissue.shapes import corner_zones, kept_vertices, shape_breaks
+
+    tissue, d = scenario.tissue, scenario.discretization
+    domain = tissue.domain
+    (width, height), origin = tissue.bounding_size, np.asarray(domain.origin, dtype=float)
+    zones = [(z.center, z.radius, z.spacing, END_GROWTH)
+             for z in (*end_zones(tissue, segments, d), *corner_zones(tissue, d))]
+    if zone is not None:
+        zones.append((np.asarray(zone[0], dtype=float), zone[1], d.needle_spacing, 0.5))
+        zones += [(z.center, z.radius, z.spacing, 0.5) for z in zone[2]]
+
+    def side(points: np.ndarray) -> np.ndarray:
+        result = np.full(len(points), d.spacing)
+        for center, radius, spacing, growth in zones:  # a few zones
+            distance = np.maximum(np.hypot(*(points - center).T) - radius, 0.0)
+            result = np.minimum(result, spacing + growth * distance)
+        return result
+
+    t = (np.arange(samples) + 0.5) / samples
+    grid = origin + np.stack(np.meshgrid(t * width, t * height, indexing="ij"), axis=-1).reshape(-1, 2)
+    inside = grid[domain.contains(grid)]
+    lines = shape_breaks(tissue, d.spacing)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a side too small for a float: inf
+        lattice = np.sum(width * height / samples**2 / side(inside) ** 2)
+        lattice += (len(lines[0]) * height + len(lines[1]) * width) / d.spacing
+        if isinstance(domain, PolygonDomain):
+            starts, ends = domain.segment_starts, domain.segment_ends
+            u = (np.arange(8) + 0.5) / 8  # (8,) points along each edge
+            along = starts[:, None] + u[:, None] * (ends - starts)[:, None]  # (E, 8, 2)
+            length = np.linalg.norm(ends - starts, axis=1)
+            spacing = side(along.reshape(-1, 2)).reshape(len(starts), 8)
+            lattice += np.sum(length[:, None] / 8 / spacing) + np.count_nonzero(kept_vertices(tissue))
+    return _capped(float(lattice)) if math.isfinite(lattice) else COUNT_CAP
 
 
 def _per_side(length: float, side: float) -> float:
@@ -285,13 +399,15 @@ def _radius_default(scenario: Scenario, origin: Origin) -> float | None:
 
 
 def _scale(size: ModelSize) -> tuple[float, float]:
-    """(memory, time) factors of a model relative to one reference particle."""
+    """(memory, time) factors of a model relative to one reference particle; a crowded shaped
+    tissue's by its `crowding` (the tangent's nonzeros and its assembly both)."""
     particles = max(size.particles, 1)
     neighbours = size.effective_neighbours / REFERENCE_NEIGHBOURS
     points = size.points_per_particle / REFERENCE_POINTS_PER_PARTICLE
     relative = particles / REFERENCE_PARTICLES
-    memory = MEMORY_PER_PARTICLE * REFERENCE_PARTICLES * relative ** MEMORY_EXPONENT * neighbours * points
-    time = REFERENCE_PARTICLES * relative ** TIME_EXPONENT * neighbours ** 2 * points
+    memory = (MEMORY_PER_PARTICLE * REFERENCE_PARTICLES * relative ** MEMORY_EXPONENT * neighbours * points
+              * size.crowding)
+    time = REFERENCE_PARTICLES * relative ** TIME_EXPONENT * neighbours ** 2 * points * size.crowding
     return memory, time
 
 

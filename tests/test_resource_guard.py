@@ -314,3 +314,60 @@ def test_a_run_estimated_long_is_announced_before_it_starts(caplog):
         check_resources([long_run], memory=math.inf)
     assert [record.levelname for record in caplog.records] == ["WARNING"]
     assert caplog.records[0].getMessage().startswith("a long run: estimated simulate: ")
+
+
+# --- shaped tissues: the guard counts the particles the model places --------------------------
+
+
+def eight_holes() -> dict:
+    """The traced ellipse of test_shapes with eight small circular holes instead of one: each
+    hole's CIRCLE_SEGMENTS vertices carry boundary particles, so the particles are about
+    three times what the spacing alone gives."""
+    from test_shapes import traced
+
+    raw = traced(40)
+    raw["tissue"]["holes"] = [{"circle": {"center": [12.0 + 6.0 * k, 12.0 + 6.0 * (k % 2)], "radius": 1.5}}
+                              for k in range(6)] + [{"circle": {"center": [30.0, 4.5], "radius": 1.5}},
+                                                    {"circle": {"center": [30.0, 25.0], "radius": 1.5}}]
+    return raw
+
+
+@pytest.mark.parametrize("name", ["traced 200-gon", "eight holes"])
+def test_a_shaped_tissue_is_counted_as_the_model_places_it(name):
+    """The guard places a shaped tissue's particles and quadrature points as the model does
+    (the bounding box's area over the spacing squared said 231 for both; the 200-gon once
+    built 5159): its count is the built model's, and its crowding (particles seen per
+    quadrature point, squared, over a regular lattice's) raises the cost estimates where the
+    holes' boundary particles crowd the supports."""
+    from test_shapes import traced
+
+    from stitchplan.tissue.model import model_for_scenario
+
+    scenario = parse_scenario(traced(200) if name == "traced 200-gon" else eight_holes())
+    size = model_size(scenario)
+    model = model_for_scenario(scenario)
+    assert size.exact and size.particles == len(model.particles)
+    assert size.points_per_particle == pytest.approx(len(model.quadrature_points) / len(model.particles))
+    nominal = replace(size, crowding=1.0)
+    item, plain = estimate(scenario, "deform"), replace(estimate(scenario, "deform"), size=nominal)
+    assert size.crowding >= 1.0 and item.memory_bytes >= plain.memory_bytes
+    if name == "eight holes":
+        assert size.particles > 2.5 * 231 and size.crowding > 3.0
+
+
+def test_the_cli_refuses_a_traced_contour_past_max_particles(tmp_path):
+    """--max-particles just below the 200-gon's real count refuses it up front, in the usual
+    line, with the count the run would have."""
+    from test_shapes import traced
+
+    raw = traced(200)
+    count = model_size(parse_scenario(raw)).particles
+    path = write(tmp_path, raw)
+    result = CliRunner().invoke(app, ["deform", str(path), "--probes-out", str(tmp_path / "probes.csv"),
+                                      "--max-particles", str(count - 1)])
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output and result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {path}: discretization.spacing: got 3 mm"), lines
+    assert f"at most {count - 1} particles" in lines[0] and f"estimated deform: {count} particles" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]

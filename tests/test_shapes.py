@@ -426,3 +426,80 @@ def test_a_symmetric_plan_is_verified_and_re_aimed_by_its_bites():
         assert abs(first["verified_bite_difference_mm"]) > VERIFIED_FACTOR * scenario.planner.exit_tolerance
         assert rounds[1]["planned_bite_difference_mm"] == pytest.approx(-offset, abs=scenario.planner.exit_tolerance)
     assert abs(refined) <= VERIFIED_FACTOR * scenario.planner.exit_tolerance
+
+
+# --- traced contours: the model follows the spacing, not the vertex count ----------------------
+
+
+def traced(vertices: int, spacing: float = 3.0) -> dict:
+    """A 60 x 30 mm ellipse traced with `vertices` points (a contour's smooth vertices, each
+    turning 2 pi / vertices) around a 4 mm circular hole, clamped on one bottom edge, pulled
+    on its right edge."""
+    angle = 2 * np.pi * np.arange(vertices) / vertices
+    outline = np.stack([30 + 30 * np.cos(angle), 15 + 15 * np.sin(angle)], axis=1).round(9).tolist()
+    bottom = 3 * vertices // 4
+    return {"tissue": {"outline": outline, "thickness": 10.0, "material": dict(PHANTOM),
+                       "holes": [{"circle": {"center": [30.0, 10.0], "radius": 2.0}}],
+                       "clamped": [{"segment": [outline[bottom], outline[bottom + 1]]}]},
+            "discretization": {"spacing": spacing},
+            "loads": [{"segment": [outline[0], outline[1]], "force": [0.1, 0.0]}],
+            "probes": [[30.0, 20.0]]}
+
+
+def test_a_traced_contour_builds_the_particles_its_spacing_implies():
+    """The same ellipse traced with 40 and with 200 vertices: about as many particles (a
+    lattice line through every vertex made the 200-gon's 5159 at this spacing, 371 the
+    40-gon's), one local spacing apart along the outline (its perimeter 145 mm / 3 mm), and
+    the quadrature still integrates the shape's area."""
+    from stitchplan.geometry import PolygonDomain
+
+    models = {}
+    for vertices in (40, 200):
+        scenario = parse_scenario(traced(vertices))
+        models[vertices] = build_tissue_model(scenario.tissue, scenario.discretization)
+    coarse, fine = len(models[40].particles), len(models[200].particles)
+    assert abs(fine - coarse) <= 0.3 * coarse, (coarse, fine)
+    domain = models[200].tissue.domain
+    outline = PolygonDomain(domain.outline)
+    on_outline = outline.near_boundary(models[200].particles, 1e-6).sum()
+    assert 0.7 * 145.3 / 3.0 <= on_outline <= 1.3 * 145.3 / 3.0
+    hole = 96 * 0.5 * 4.0 * math.sin(2 * math.pi / 96)
+    area = 0.5 * abs(np.sum(domain.outline[:, 0] * np.roll(domain.outline[:, 1], -1)
+                            - np.roll(domain.outline[:, 0], -1) * domain.outline[:, 1])) - hole
+    assert models[200].quadrature_weights.sum() / 10.0 == pytest.approx(area, rel=1e-3)
+
+
+def test_the_geometry_queries_answer_as_over_all_edges():
+    """Inside, near-the-boundary and crossing tests look only at the edges near each point
+    (geometry.EdgeGrid); on a 300-vertex contour with three circular holes they give the
+    answers of the same tests over every (point, edge) pair, bit for bit: random points,
+    points on every edge and every vertex, random segments and segments between boundary
+    points."""
+    from stitchplan.geometry import _point_segment_distance, segments_cross
+
+    raw = traced(300)
+    raw["tissue"]["holes"] = [{"circle": {"center": [x, 14.0], "radius": 2.0}} for x in (15.0, 30.0, 45.0)]
+    domain = parse_scenario(raw).tissue.domain
+    a, b = domain.segment_starts, domain.segment_ends
+    rng = np.random.default_rng(3)
+    on_edges = (a[:, None] + rng.uniform(size=(len(a), 2))[..., None] * (b - a)[:, None]).reshape(-1, 2)
+    points = np.concatenate([rng.uniform([-2.0, -2.0], [62.0, 32.0], size=(3000, 2)), on_edges, a])
+
+    def inside(x):  # even-odd over every edge, as PolygonDomain does it
+        straddle = (a[None, :, 1] > x[:, None, 1]) != (b[None, :, 1] > x[:, None, 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cross = a[None, :, 0] + (x[:, None, 1] - a[None, :, 1]) * (b - a)[None, :, 0] / (b - a)[None, :, 1]
+        return np.count_nonzero(straddle & (x[:, None, 0] < cross), axis=1) % 2 == 1
+
+    distance = _point_segment_distance(points[:, None], a[None], b[None]).min(axis=1)
+    assert np.array_equal(domain._inside_strict(points), inside(points))
+    assert np.array_equal(domain.distance(points), distance)
+    for tol in (domain.tolerance, 0.01, 0.5):
+        assert np.array_equal(domain.contains(points, tol), inside(points) | (distance <= max(tol, domain.tolerance)))
+    starts = np.concatenate([points[:3000], on_edges])  # random ones, then between boundary points
+    ends = np.concatenate([starts[:3000] + rng.normal(size=(3000, 2)) * 4.0, on_edges[rng.permutation(len(on_edges))]])
+    crossed = segments_cross(starts[:, None], ends[:, None], a[None], b[None], 1e-7 * 60.0).any(axis=1)
+    middle = 0.5 * (starts + ends)
+    gap = ~inside(middle) & (_point_segment_distance(middle[:, None], a[None], b[None]).min(axis=1) > 1e-7 * 60.0)
+    assert np.array_equal(domain.blocked(starts, ends), crossed | gap)
+    assert 0 < domain.blocked(starts, ends).sum() < len(starts)

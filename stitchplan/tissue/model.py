@@ -239,7 +239,7 @@ def _shaped_discretization(tissue: Tissue, discretization: Discretization, segme
     domain = tissue.domain
     origin = np.asarray(domain.origin, dtype=float)
     xb, yb = segment_breaks(segments) if segments else ([], [])
-    sx, sy = shape_breaks(tissue)
+    sx, sy = shape_breaks(tissue, discretization.spacing)
     breaks = ([x - origin[0] for x in (*xb, *sx)], [y - origin[1] for y in (*yb, *sy)])
     ends = tuple(replace(zone, center=zone.center - origin)
                  for zone in (*end_zones(tissue, segments, discretization), *corner_zones(tissue, discretization)))

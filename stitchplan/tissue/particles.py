@@ -11,6 +11,7 @@ import numpy as np
 
 from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
+from ..geometry import smooth_vertex
 from .quadrature import cell_quadrature
 
 log = logging.getLogger(__name__)
@@ -235,8 +236,9 @@ def end_spacing(spacing: float, reference: float, reference_levels: int = 3) -> 
 
 
 def end_zones(tissue: Tissue, segments, discretization: Discretization) -> tuple[RefinementZone, ...]:
-    """Refinement zones (points) at the load-segment ends that lie inside an edge (corners
-    are left as they are); none with discretization.segment_end_levels 0."""
+    """Refinement zones (points) at the load-segment ends that lie inside an edge or at a
+    vertex where the boundary hardly turns (a traced contour's: geometry.smooth_vertex;
+    corners are left as they are); none with discretization.segment_end_levels 0."""
     if discretization.segment_end_levels == 0:
         return ()
     domain = tissue.domain
@@ -245,7 +247,7 @@ def end_zones(tissue: Tissue, segments, discretization: Discretization) -> tuple
     zones = []
     for segment in segments:
         for point in segment:
-            if len(domain.edges_at(point)) == 1:
+            if len(domain.edges_at(point)) == 1 or smooth_vertex(domain, point):
                 zones.append(RefinementZone(np.asarray(point, dtype=float), 0.0, fine))
     return tuple(zones)
 

@@ -1,14 +1,17 @@
 """Particles and quadrature of a tissue that is not a plain rectangle: a polygon outline,
 holes, material regions.
 
-The graded lattice of `particles` is kept (its lines pass through every polygon vertex, so
-edges along the lattice directions never cut a background cell); particles outside the
-shape are dropped and particles are added along every boundary edge at the local spacing,
-so free and clamped edges carry particles. Background cells cut by the boundary or by a
-region's edge are split in four, recursively (CUT_LEVELS times); the cells no edge cuts
-are integrated whole (inside) or dropped (outside), the finest cut cells keep only their
-Gauss points inside the tissue. The quadrature thus follows the boundary and the material
-interfaces to 1/2^CUT_LEVELS of a cell, and exactly where they run along lattice lines.
+The graded lattice of `particles` is kept, with lines through the polygon vertices that need
+them (the coordinates of edges along x and y, so such edges never cut a background cell,
+and the corners: shape_breaks); particles outside the shape are dropped and particles are
+added along the boundary at the local spacing, every corner one of them, so free and
+clamped edges carry particles (fit_particles). A traced contour's vertices that turn little,
+and lines closer than a fraction of the spacing, are left out: the model's size follows the
+spacing, not the vertex count. Background cells cut by the boundary or by a region's edge
+are split in four, recursively (CUT_LEVELS times); the cells no edge cuts are integrated
+whole (inside) or dropped (outside), the finest cut cells keep only their Gauss points
+inside the tissue. The quadrature thus follows the boundary and the material interfaces to
+1/2^CUT_LEVELS of a cell, and exactly where they run along lattice lines.
 """
 
 from __future__ import annotations
@@ -17,33 +20,76 @@ import numpy as np
 
 from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
-from ..geometry import CIRCLE_SEGMENTS, PolygonDomain
+from ..geometry import CIRCLE_SEGMENTS, CORNER_TURN, EdgeGrid, PolygonDomain, turns
+from .neighbours import concatenated_ranges
 from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
 
 CUT_LEVELS = 3  # halvings of a cut background cell
 MERGE = 0.35  # a boundary particle replaces lattice particles closer than this x local spacing
+THIN = 0.25  # x the spacing: a lattice line closer than this to a kept one is left out
 
 
-def shape_breaks(tissue: Tissue) -> tuple[list[float], list[float]]:
-    """Grid-line coordinates through the polygon vertices (outline, polygon holes, regions,
-    and where holes cut into the outline); circles are left out (their many vertices would
-    crowd the lattice)."""
+def shape_breaks(tissue: Tissue, spacing: float | None = None) -> tuple[list[float], list[float]]:
+    """Grid-line coordinates through the polygon vertices that need one (outline, polygon
+    holes, regions, and where holes cut into the outline): the x of every edge along y and the
+    y of every edge along x (so those never cut a background cell), and both coordinates of
+    every corner (a turn above CORNER_TURN) between two such long edges, where long is at
+    least THIN x `spacing` (default: the tissue's default spacing, min(W, H)/20). Lines closer
+    than that to a kept one or to the bounding box are left out, the edges' kept before the
+    corners'; so are circles' vertices and a traced contour's that turn less: the lattice
+    follows the spacing, not the vertex count (a jagged contour's steps and wiggles, shorter
+    than the spacing resolves, add no lines)."""
     loops = []
     domain = tissue.domain
     if isinstance(domain, PolygonDomain) and not domain.edge_names:  # not a rectangle's
         outline = domain.outline
+        keep = np.ones(len(outline), dtype=bool)
         for hole in tissue.holes:  # a circle cut into the outline: its vertices and ends on the chords
             if hole.circle is not None:
                 r = np.hypot(*(outline - hole.circle.center).T)
-                outline = outline[(r < hole.circle.radius * np.cos(np.pi / CIRCLE_SEGMENTS) - domain.tolerance)
-                                  | (r > hole.circle.radius + domain.tolerance)]
-        loops.append(outline)
-    loops += [np.asarray(hole.polygon, dtype=float) for hole in tissue.holes if hole.polygon is not None]
-    loops += [np.asarray(region.polygon, dtype=float) for region in tissue.regions]
+                keep &= ((r < hole.circle.radius * np.cos(np.pi / CIRCLE_SEGMENTS) - domain.tolerance)
+                         | (r > hole.circle.radius + domain.tolerance))
+        loops.append((outline, keep))
+    loops += [(np.asarray(hole.polygon, dtype=float), None) for hole in tissue.holes if hole.polygon is not None]
+    loops += [(np.asarray(region.polygon, dtype=float), None) for region in tissue.regions]
     if not loops:
         return [], []
-    points = np.concatenate(loops)
-    return list(points[:, 0]), list(points[:, 1])
+    tol = domain.tolerance
+    gap = THIN * (default_spacing_of(tissue.bounding_size, None) if spacing is None else spacing)
+    edges, corners = [], []  # (n, 2) vertices whose x / y the lattice follows: edges first
+    for loop, keep in loops:
+        keep = np.ones(len(loop), dtype=bool) if keep is None else keep
+        after = np.roll(loop, -1, axis=0)
+        length = np.linalg.norm(after - loop, axis=1)  # (k,) of the edge from each vertex
+        long = keep & np.roll(keep, -1) & (length >= gap)
+        along = (np.abs(after - loop) <= tol) & long[:, None]  # (k, 2): a long edge along y / x
+        edges.append(np.where(along, loop, np.nan))  # x of edges along y, y of those along x
+        edges.append(np.where(along, after, np.nan))
+        corner = keep & (np.abs(turns(loop)) > CORNER_TURN) & long & np.roll(long, 1)
+        corners.append(np.where(corner[:, None], loop, np.nan))
+    edges, corners = np.concatenate(edges), np.concatenate(corners)
+    low, high = domain.origin, domain.origin + np.asarray(domain.size)
+    return tuple(_thinned([low[axis], high[axis]], [edges[:, axis], corners[:, axis]], gap)
+                 for axis in (0, 1))
+
+
+def _thinned(sides: list[float], groups: list[np.ndarray], gap: float) -> list[float]:
+    """The coordinates of `groups` (NaN: none) that lie at least `gap` from the bounding box's
+    `sides` and from every one kept before them: group by group, each greedily from the
+    smallest (a coordinate already kept is that line again)."""
+    kept = np.unique(np.asarray(sides, dtype=float))
+    for group in groups:
+        candidates = np.setdiff1d(group[~np.isnan(group)], kept)  # sorted, without repeats
+        index = np.searchsorted(kept, candidates)
+        distance = np.minimum(np.abs(candidates - kept[np.maximum(index - 1, 0)]),
+                              np.abs(kept[np.minimum(index, len(kept) - 1)] - candidates))
+        free = candidates[distance >= gap]
+        chosen, i = [], 0
+        while i < len(free):  # one step per line kept: at most (extent / gap) steps
+            chosen.append(free[i])
+            i = int(np.searchsorted(free, free[i] + gap))
+        kept = np.union1d(kept, chosen)
+    return [float(x) for x in kept if x not in sides]
 
 
 REENTRANT = 0.2  # rad beyond a straight angle: a corner the solution is singular at
@@ -53,7 +99,9 @@ def corner_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refine
     """Refinement zones at the re-entrant corners of the tissue (interior angle above
     pi + REENTRANT: a notch's or a hole's corners), graded like the load-segment ends
     (particles.end_spacing: the solution is singular there, r^(~1/2) at a slit's tip);
-    none with discretization.segment_end_levels 0."""
+    none with discretization.segment_end_levels 0. A corner of an edge shorter than THIN x
+    the spacing (a jagged traced contour's step, a feature the spacing does not resolve)
+    is left as it is."""
     domain = tissue.domain
     if discretization.segment_end_levels == 0 or not isinstance(domain, PolygonDomain):
         return ()
@@ -61,11 +109,9 @@ def corner_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refine
                        discretization.segment_end_levels)
     zones = []
     for loop in [domain.outline] + [hole[::-1] for hole in domain.holes]:  # tissue on the left
-        before = loop - np.roll(loop, 1, axis=0)
-        after = np.roll(loop, -1, axis=0) - loop
-        turn = np.arctan2(before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0],
-                          np.sum(before * after, axis=1))  # > 0 left turn (convex corner)
-        for vertex in loop[turn < -REENTRANT]:
+        long = np.linalg.norm(np.roll(loop, -1, axis=0) - loop, axis=1) >= THIN * discretization.spacing
+        corner = (turns(loop) < -REENTRANT) & long & np.roll(long, 1)  # turn > 0: a left turn (convex)
+        for vertex in loop[corner]:
             zones.append(RefinementZone(np.asarray(vertex, dtype=float), 0.0, fine))
     return tuple(zones)
 
@@ -83,31 +129,32 @@ def cutting_edges(tissue: Tissue) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(starts), np.concatenate(ends)
 
 
-def cells_cut(cells: np.ndarray, starts: np.ndarray, ends: np.ndarray, chunk: int = 4000) -> np.ndarray:
+def cells_cut(cells: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """Mask (nc,) of cells (x0, y0, width, height) whose open interior some edge passes
-    through (Liang-Barsky clipping of every edge against every cell, shrunk by round-off)."""
+    through (Liang-Barsky clipping, against the cell shrunk by round-off, of the edges whose
+    boxes meet the cell: geometry.EdgeGrid)."""
     cut = np.zeros(len(cells), dtype=bool)
-    if len(starts) == 0:
+    if len(starts) == 0 or len(cells) == 0:
         return cut
     delta = ends - starts  # (ns, 2)
-    for first in range(0, len(cells), chunk):
-        c = cells[first:first + chunk, None, :]
-        shrink = 1e-9 * np.maximum(c[..., 2], c[..., 3])
-        low_x, high_x = c[..., 0] + shrink, c[..., 0] + c[..., 2] - shrink
-        low_y, high_y = c[..., 1] + shrink, c[..., 1] + c[..., 3] - shrink
-        t0 = np.zeros((len(c), len(starts)))
+    pad = 1e-9 * float(np.max(np.abs(cells[:, 2:])))
+    for cell, edge in EdgeGrid.of(starts, ends).pairs(cells[:, :2] - pad, cells[:, :2] + cells[:, 2:] + pad):
+        c, start, d = cells[cell], starts[edge], delta[edge]  # one row per (cell, edge) pair
+        shrink = 1e-9 * np.maximum(c[:, 2], c[:, 3])
+        low_x, high_x = c[:, 0] + shrink, c[:, 0] + c[:, 2] - shrink
+        low_y, high_y = c[:, 1] + shrink, c[:, 1] + c[:, 3] - shrink
+        t0 = np.zeros(len(c))
         t1 = np.ones_like(t0)
         reject = np.zeros_like(t0, dtype=bool)
-        for p, q in ((-delta[:, 0], starts[:, 0] - low_x), (delta[:, 0], high_x - starts[:, 0]),
-                     (-delta[:, 1], starts[:, 1] - low_y), (delta[:, 1], high_y - starts[:, 1])):
-            p = np.broadcast_to(p, t0.shape)
+        for p, q in ((-d[:, 0], start[:, 0] - low_x), (d[:, 0], high_x - start[:, 0]),
+                     (-d[:, 1], start[:, 1] - low_y), (d[:, 1], high_y - start[:, 1])):
             parallel = p == 0.0
             reject |= parallel & (q < 0.0)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = np.where(parallel, 0.0, q / np.where(parallel, 1.0, p))
             t0 = np.where(~parallel & (p < 0.0), np.maximum(t0, t), t0)
             t1 = np.where(~parallel & (p > 0.0), np.minimum(t1, t), t1)
-        cut[first:first + chunk] = np.any(~reject & (t0 < t1), axis=1)
+        cut[cell[~reject & (t0 < t1)]] = True
     return cut
 
 
@@ -157,9 +204,10 @@ def _split_n(cells: np.ndarray, n: int) -> np.ndarray:
 
 
 def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The lattice's particles inside the shape plus particles along every boundary edge at
-    the local spacing (every vertex one of them); lattice particles closer than MERGE x the
-    local spacing to an added one are dropped. Returns particles, volumes, local spacing."""
+    """The lattice's particles inside the shape plus particles along the boundary at the
+    local spacing (boundary_points: every corner one of them); lattice particles closer than
+    MERGE x the local spacing to an added one are dropped. Returns particles, volumes, local
+    spacing."""
     domain = tissue.domain
     if not isinstance(domain, PolygonDomain):  # a rectangle with regions: the lattice fits
         return graded.particles, graded.volumes, graded.local_spacing
@@ -169,21 +217,9 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     keep = domain.contains(graded.particles, tol)
     particles, volumes, local = graded.particles[keep], graded.volumes[keep], graded.local_spacing[keep]
     tree = cKDTree(graded.particles)
-    added = []
-    for start, end in domain.boundary_segments():
-        # points one local spacing apart along the edge: where the count of spacings
-        # int ds / h(s) (h of the nearest lattice particle, sampled finely) passes an integer
-        length = float(np.linalg.norm(end - start))
-        finest = float(graded.local_spacing.min())
-        t = np.linspace(0.0, 1.0, max(int(np.ceil(8 * length / finest)), 2) + 1)
-        _, near = tree.query(start + t[:, None] * (end - start))
-        density = 1.0 / graded.local_spacing[near]
-        count = np.concatenate([[0.0], np.cumsum(0.5 * (density[1:] + density[:-1]) * np.diff(t) * length)])
-        total = max(int(round(count[-1])), 1)
-        # the end is the next edge's start
-        t_points = np.interp(np.arange(total) * count[-1] / total, count, t)
-        added.append(start + t_points[:, None] * (end - start))
-    added = np.concatenate(added)
+    _, near = tree.query(domain.segment_starts)
+    kept = kept_vertices(tissue, graded.local_spacing[near])
+    added = boundary_points(domain, kept, tree, graded.local_spacing)
     _, near = tree.query(added)
     added_local = graded.local_spacing[near]
     # an added particle onto an existing one (a lattice line along the edge): keep the old one
@@ -194,13 +230,136 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     if len(added):
         # lattice particles just inside the boundary next to an added one would nearly coincide
         distance, index = cKDTree(added).query(particles)
-        on_boundary = domain.distance(particles) <= tol
+        on_boundary = domain.near_boundary(particles, tol)
         crowded = (distance < MERGE * added_local[index]) & ~on_boundary
         particles, volumes, local = particles[~crowded], volumes[~crowded], local[~crowded]
     particles = np.concatenate([particles, added])
     volumes = np.concatenate([volumes, 0.5 * added_local**2])  # half a cell: the other half is outside
     local = np.concatenate([local, added_local])
     return particles, volumes, local
+
+
+def kept_vertices(tissue: Tissue, spacing_at: np.ndarray | None = None) -> np.ndarray:
+    """Mask over the boundary edges' start vertices (domain.segment_starts) that carry a
+    boundary particle: the corners (a turn above geometry.CORNER_TURN) but those closer than
+    MERGE x the local spacing there (`spacing_at`, (E,)) to the corner before them, the ends
+    of clamped pieces, and the vertices of circular holes (the CIRCLE_SEGMENTS vertices of
+    each, as the shipped scenes were verified with). A traced contour's vertices that turn
+    less, and the crowded corners of a jagged one, are passed by at the local spacing."""
+    domain = tissue.domain
+    vertices = domain.segment_starts
+    loops = [domain.outline] + [hole[::-1] for hole in domain.holes]  # as segment_starts
+    loop = np.repeat(np.arange(len(loops)), [len(vertices_of) for vertices_of in loops])
+    corner = np.flatnonzero(np.abs(np.concatenate([turns(vertices_of) for vertices_of in loops])) > CORNER_TURN)
+    kept = np.zeros(len(vertices), dtype=bool)
+    kept[corner] = True
+    if spacing_at is not None and len(corner):
+        # the corner before each one in its loop (the loop's last before its first)
+        last_of_loop = np.full(len(loops), -1)
+        np.maximum.at(last_of_loop, loop[corner], np.arange(len(corner)))
+        before = np.roll(np.arange(len(corner)), 1)
+        starts_loop = np.concatenate([[True], loop[corner][1:] != loop[corner][:-1]])
+        before[starts_loop] = last_of_loop[loop[corner][starts_loop]]
+        gap = np.linalg.norm(vertices[corner] - vertices[corner[before]], axis=1)
+        kept[corner[(gap > 0.0) & (gap < MERGE * spacing_at[corner])]] = False
+    for start, end in tissue.clamped_pieces():  # a clamped piece holds the particles at its ends
+        kept |= (np.linalg.norm(vertices - start, axis=1) <= domain.tolerance) | \
+            (np.linalg.norm(vertices - end, axis=1) <= domain.tolerance)
+    for hole in tissue.holes:
+        if hole.circle is not None:
+            r = np.hypot(*(vertices - hole.circle.center).T)
+            kept |= np.abs(r - hole.circle.radius) <= domain.tolerance
+    return kept
+
+
+def boundary_points(domain: PolygonDomain, kept: np.ndarray, tree, local_spacing: np.ndarray) -> np.ndarray:
+    """Points (n, 2) along every boundary loop one local spacing apart, a kept vertex (mask
+    over domain.segment_starts) one of them: each loop is walked in runs from one kept vertex
+    to the next (a loop with none from its first vertex), and a run's points lie where the
+    count of spacings int ds / h(s) (h of the nearest of the `tree`'s lattice particles,
+    sampled 8 times per finest spacing) passes a multiple of its total / round(total). A run
+    of one edge gives the same numbers as that edge taken alone."""
+    starts, ends = domain.segment_starts, domain.segment_ends
+    sizes = np.array([len(domain.outline)] + [len(hole) for hole in domain.holes])
+    loop = np.repeat(np.arange(len(sizes)), sizes)  # (E,)
+    position = np.arange(len(starts)) - (np.cumsum(sizes) - sizes)[loop]
+    kept = kept | (position == 0) & (np.bincount(loop, weights=kept, minlength=len(sizes)) == 0)[loop]
+    first_kept = np.full(len(sizes), len(starts))
+    np.minimum.at(first_kept, loop[kept], position[kept])
+    order = np.lexsort(((position - first_kept[loop]) % sizes[loop], loop))  # each loop from its first kept vertex
+    a, b, kept = starts[order], ends[order], kept[order]
+    edge_length = np.linalg.norm(b - a, axis=1)
+    first = np.flatnonzero(kept)  # (R,) first edge of each run
+    single = np.diff(np.append(first, len(a))) == 1
+    length = np.add.reduceat(edge_length, first)
+    # samples t in [0, 1] along each run, as np.linspace(0, 1, intervals + 1)
+    intervals = np.maximum(np.ceil(8 * length / float(local_spacing.min())).astype(int), 2)
+    run = np.repeat(np.arange(len(first)), intervals + 1)
+    step = concatenated_ranges(np.zeros(len(first), dtype=int), intervals + 1)
+    t = step * (1.0 / intervals)[run]
+    t[step == intervals[run]] = 1.0
+    _, near = tree.query(_along_runs(a, b, edge_length, first, single, length, run, t))
+    density = 1.0 / local_spacing[near]
+    within = run[1:] == run[:-1]  # consecutive samples of one run
+    increment = (0.5 * (density[1:] + density[:-1]) * np.diff(t) * length[run[1:]])[within]
+    count = np.zeros(len(t))
+    count[step > 0] = _cumsum_by_run(increment, intervals)  # int ds / h from each run's start
+    total_count = count[step == intervals[run]]
+    total = np.maximum(np.rint(total_count).astype(int), 1)  # the run's end is the next run's start
+    point_run = np.repeat(np.arange(len(first)), total)
+    target = concatenated_ranges(np.zeros(len(first), dtype=int), total) * total_count[point_run] / total[point_run]
+    t_points = _interp_by_run(target, point_run, count, t, run)
+    return _along_runs(a, b, edge_length, first, single, length, point_run, t_points)
+
+
+def _along_runs(a, b, edge_length, first, single, length, run, t) -> np.ndarray:
+    """Points (n, 2) at the fractions t (n,) of the arc length of runs `run` (n,): a run of
+    one edge as start + t (end - start), a longer one through the edge holding the arc."""
+    edge = first[run]
+    fraction = t.copy()
+    longer = ~single[run]
+    if np.any(longer):
+        before = np.cumsum(edge_length) - edge_length  # (E,) arc length up to each edge
+        arc = before[edge[longer]] + t[longer] * length[run[longer]]
+        last = np.append(first[1:], len(a))[run[longer]] - 1
+        holder = np.clip(np.searchsorted(before, arc, side="right") - 1, edge[longer], last)
+        edge[longer] = holder
+        fraction[longer] = np.clip((arc - before[holder]) / edge_length[holder], 0.0, 1.0)
+    return a[edge] + fraction[:, None] * (b[edge] - a[edge])
+
+
+def _cumsum_by_run(values: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The cumulative sums of `values` within each run of `counts` consecutive entries, each
+    summed in order as np.cumsum of that run alone: runs of lengths in one octave padded into
+    one (runs, longest) array."""
+    out = np.empty(len(values))
+    offsets = np.cumsum(counts) - counts
+    octave = np.ceil(np.log2(np.maximum(counts, 1))).astype(int)
+    for level in np.unique(octave[counts > 0]):  # a few octaves of run lengths
+        rows = np.flatnonzero((octave == level) & (counts > 0))
+        columns = np.arange(counts[rows].max())
+        valid = columns[None, :] < counts[rows, None]  # (runs, longest)
+        index = offsets[rows, None] + columns[None, :]
+        padded = np.where(valid, values[np.where(valid, index, 0)], 0.0)
+        out[index[valid]] = np.cumsum(padded, axis=1)[valid]
+    return out
+
+
+def _interp_by_run(x: np.ndarray, x_run: np.ndarray, xp: np.ndarray, fp: np.ndarray, xp_run: np.ndarray) -> np.ndarray:
+    """np.interp(x, xp, fp) within each run (xp increasing within a run, runs in order, x at
+    or after its run's first xp), with np.interp's arithmetic: the same numbers run by run."""
+    kind = np.concatenate([np.zeros(len(xp), dtype=int), np.ones(len(x), dtype=int)])
+    order = np.lexsort((kind, np.concatenate([xp, x]), np.concatenate([xp_run, x_run])))
+    at_or_below = np.cumsum(kind[order] == 0)  # xp entries sorted at or before each position
+    j = np.empty(len(x), dtype=int)
+    is_x = kind[order] == 1
+    j[order[is_x] - len(xp)] = at_or_below[is_x] - 1  # the last xp <= x of its run
+    last = np.append(np.flatnonzero(np.diff(xp_run)), len(xp) - 1)[x_run]
+    following = np.minimum(j + 1, len(xp) - 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = (fp[following] - fp[j]) / (xp[following] - xp[j])
+        value = slope * (x - xp[j]) + fp[j]
+    return np.where((j == last) | (xp[j] == x), fp[j], value)
 
 
 def region_index(tissue: Tissue, points: np.ndarray) -> np.ndarray:
