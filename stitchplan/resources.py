@@ -266,14 +266,14 @@ def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
     evenly spread quadrature points sees through the tissue, as the model's visibility
     criterion lets them). Estimated instead (_shaped_estimate) past COUNT_SHAPED_UP_TO
     particles, where placing them would itself be a large run."""
-    from .tissue.model import _shaped_discretization
+    from .tissue.model import shaped_discretization
 
     zone = needle_zone(scenario)
     segments = _model_segments(scenario)
     estimated = _shaped_estimate(scenario, zone, segments)
     if estimated > COUNT_SHAPED_UP_TO:
         return replace(nominal, particles=estimated)
-    particles, _, support, _, points, _ = _shaped_discretization(scenario.tissue, scenario.discretization,
+    particles, _, support, _, points, _ = shaped_discretization(scenario.tissue, scenario.discretization,
                                                                  segments, zone)
     square = _mean_square_neighbours(scenario.tissue.domain, points, particles, support)
     crowding = square / nominal.neighbours ** 2 if math.isfinite(nominal.neighbours) else 1.0

@@ -3,8 +3,9 @@
 Any finite positive discretization input ends in one refusal line naming the field or option
 that drives the estimate past the limit (never an overflow); the advice matches the limit
 that was hit (--max-particles only for the particle limit); ordinary inputs keep their
-estimates. Also here: the needle calibration's radius bounds and its numerical failures.
-Nothing is built or solved: the module runs in a few seconds.
+estimates; a shaped tissue is counted as the model places it. Also here: the needle
+calibration's radius bounds and its numerical failures. Nothing is solved, and only the
+shaped-tissue tests build models: the module runs in a few seconds.
 """
 
 from __future__ import annotations

@@ -130,7 +130,7 @@ def build_tissue_model(
     segments = tuple(prescribed_segments) + tuple(force_segments)
     domain = tissue.domain
     if isinstance(domain, PolygonDomain) or tissue.regions:
-        particles, volumes, support, spacing, points, weights = _shaped_discretization(
+        particles, volumes, support, spacing, points, weights = shaped_discretization(
             tissue, discretization, segments, needle_zone)
     else:
         breaks = segment_breaks(segments) if segments else ((), ())
@@ -231,7 +231,7 @@ def outward_edges(domain: PolygonDomain) -> list[tuple[np.ndarray, np.ndarray, n
     return edges
 
 
-def _shaped_discretization(tissue: Tissue, discretization: Discretization, segments: tuple,
+def shaped_discretization(tissue: Tissue, discretization: Discretization, segments: tuple,
                            needle_zone: tuple | None):
     """Particles, supports, spacing and quadrature of a polygon tissue, holes or regions:
     the graded lattice over the bounding box with lines through every polygon vertex and
