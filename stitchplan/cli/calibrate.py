@@ -75,8 +75,8 @@ def _check_two_recordings(air: Path, tissue: Path) -> None:
     """--air and --tissue must be two recordings: the fit subtracts the one in air from the
     one in tissue, and a file given twice (or through a link) leaves nothing to fit."""
     from ..errors import InputError
-    from ..io.files import _same_file  # the comparison of outputs with inputs (symbolic and hard links)
+    from ..io.files import same_file  # as outputs are compared with inputs (symbolic and hard links)
 
-    if _same_file(air, tissue):
+    if same_file(air, tissue):
         raise InputError(f"--tissue: got {tissue}, the same file as --air ({air}); expected the recording in "
                          "tissue, a file other than the one in air")

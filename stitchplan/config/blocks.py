@@ -203,8 +203,13 @@ class Tissue:
         return self
 
     @functools.cached_property
+    def loops(self) -> tuple:
+        """shape_loops of this tissue, made once (its polygon difference is shapely's work)."""
+        return shape_loops(self)
+
+    @functools.cached_property
     def domain(self) -> Rectangle | PolygonDomain:
-        outer, inside, cut, _ = shape_loops(self)
+        outer, inside, cut, _ = self.loops
         holes = tuple(vertices for _, vertices in inside)
         if self.outline is None and not cut:
             return Rectangle.of_size(self.size) if not holes else PolygonDomain.rectangle(self.size, holes)
@@ -302,7 +307,7 @@ def shape_problems(tissue: Tissue) -> list:
     size and outline both or neither, a self-intersecting outline, holes outside the tissue,
     touching the outline at a point, cutting it apart or overlapping each other, regions
     outside the tissue, clamped pieces off the boundary or named edges on a polygon."""
-    _, _, _, problems = shape_loops(tissue)
+    problems = list(tissue.loops[3])
     if problems:
         return problems
     domain = tissue.domain

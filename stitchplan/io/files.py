@@ -80,7 +80,7 @@ class OutputSet:
         for i, label in enumerate(labels):
             path = self.outputs[label]
             for other in labels[:i]:
-                if _same_file(path, self.outputs[other]):
+                if same_file(path, self.outputs[other]):
                     lines.append(f"{label}: got {path}, expected a file other than {other} "
                                  f"({self.outputs[other]})")
                     break
@@ -91,7 +91,7 @@ class OutputSet:
                                  "expected a file name")
                     break
             for other, source in self.inputs.items():
-                if _same_file(path, source):
+                if same_file(path, source):
                     lines.append(f"{label}: got {path}, expected a file other than the input "
                                  f"{other} ({source})")
         if lines:
@@ -182,7 +182,7 @@ def _target(path: Path) -> Path:
         raise OSError(errno.ELOOP, os.strerror(errno.ELOOP), str(path)) from None
 
 
-def _same_file(a: Path, b: Path) -> bool:
+def same_file(a: Path, b: Path) -> bool:
     try:
         return _target(a) == _target(b) or os.path.samefile(a, b)  # samefile: hard links, bind mounts
     except OSError:  # one of them does not exist yet, or cannot be looked up

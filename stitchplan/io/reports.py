@@ -176,6 +176,7 @@ def plan_line(result, export: Path) -> str:
 
 def insertion_summary(result) -> dict:
     steps = result.steps
+    tip_at_exit = needle_tip_at_exit(result)
     return {
         "desired_exit": result.desired_exit,
         "desired_exit_def": result.desired_exit_def,
@@ -189,8 +190,8 @@ def insertion_summary(result) -> dict:
         "exit_rotation_rad": result.exit_rotation,
         # the rigid needle's tip as the track reaches the boundary: the tissue at the cut's end,
         # carried along the needle by friction and the cutting force, is ahead of it on the arc
-        "needle_tip_at_exit": needle_tip_at_exit(result),
-        "exit_to_needle_tip_mm": float(np.linalg.norm(result.achieved_exit_def - needle_tip_at_exit(result))),
+        "needle_tip_at_exit": tip_at_exit,
+        "exit_to_needle_tip_mm": float(np.linalg.norm(result.achieved_exit_def - tip_at_exit)),
         "needle_center_at_entry": result.center_after(0),
         "needle_points": len(result.needle_points),
         "newton_iterations": int(sum(s.newton_iterations for s in steps)),  # every iteration of every solve
