@@ -7,11 +7,12 @@ Light on imports: the command group enters it before every command, `--help` inc
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextvars import ContextVar
 from typing import Any
 
-DEFERRED: ContextVar[list[Any] | None] = ContextVar("stitchplan_deferred_outputs", default=None)
+
+DEFERRED: ContextVar[DeferredOutputs | None] = ContextVar("stitchplan_deferred_outputs", default=None)
 
 
 class DeferredOutputs:
@@ -21,12 +22,17 @@ class DeferredOutputs:
     def __init__(self):
         self.pending: list[Any] = []  # io.files._Staged
         self.renamed = None  # io.files.Renamed, committed but not yet kept
+        self._commit_all: Callable[[list[Any]], Any] | None = None
+
+    def add(self, staged: Any, commit_all: Callable[[list[Any]], Any]) -> None:
+        """Hold a staged set until `commit()`, which renames the held sets by `commit_all`
+        (io.files.commit_staged: this module stays free of the writers' imports)."""
+        self.pending.append(staged)
+        self._commit_all = commit_all
 
     def commit(self) -> None:
         if self.pending:
-            from .files import commit_staged
-
-            self.renamed = commit_staged(self.pending)
+            self.renamed = self._commit_all(self.pending)
 
     def keep(self) -> None:
         if self.renamed is not None:
@@ -39,7 +45,7 @@ def deferred_commits() -> Iterator[DeferredOutputs]:
     """Within the block, OutputSet.staged() leaves its written temporaries staged (see
     DeferredOutputs); leaving it undoes a commit not kept and removes what was not committed."""
     outputs = DeferredOutputs()
-    token = DEFERRED.set(outputs.pending)
+    token = DEFERRED.set(outputs)
     try:
         yield outputs
     finally:

@@ -118,11 +118,11 @@ class OutputSet:
         except BaseException:
             staged.discard()
             raise
-        pending = DEFERRED.get()
-        if pending is None:
+        deferred = DEFERRED.get()
+        if deferred is None:
             staged.commit()
         else:
-            pending.append(staged)
+            deferred.add(staged, commit_staged)
 
 
 def commit_staged(pending: list[_Staged]) -> Renamed:
