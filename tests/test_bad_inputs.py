@@ -295,7 +295,8 @@ RECORDING_CASES = {
                         [["tissue.csv: line 13, force_N: got 1500"]]),
     "nan": (recording(ANGLES, ["0.8", "0.9", "nan", *["1.0"] * 9]),
             [["tissue.csv: line 4, force_N: got 'nan', expected a finite number"]]),
-    "wrong columns": ("angle,force\n0,1\n", [["tissue.csv: columns: got 'angle,force', expected exactly"]]),
+    "wrong columns": ("angle,force\n0,1\n", [["tissue.csv: columns: got 'angle,force', expected the columns "
+                                             "'angle_rad,force_N' (in any order, no others)"]]),
     "binary": (b"\xff\xfe\x00\x01", [["--tissue: ", "tissue.csv: cannot be read"]]),
 }
 

@@ -119,7 +119,7 @@ def test_shipped_scenario_parses(slab_path):
 @pytest.mark.parametrize("text, fragments", [
     ("tissue: [1, 2\n  size: {\n", ["not valid YAML", "line 2"]),
     ("- 1\n- 2\n", ["scenario", "[1, 2]", "a mapping"]),
-    ("", ["scenario", "None", "a mapping"]),
+    ("", ["scenario", "an empty file", "a mapping"]),
 ])
 def test_bad_yaml_is_reported_with_the_file(tmp_path, text, fragments):
     path = tmp_path / "bad.yaml"
@@ -251,7 +251,7 @@ def test_the_file_path_starts_every_line(write_scenario, slab_raw):
 
 
 @pytest.mark.parametrize("value, shown", [
-    (float("nan"), "nan"), (float("inf"), "inf"), (True, "True"), ("10", "'10'"), (None, "None"),
+    (float("nan"), "nan"), (float("inf"), "inf"), (True, "True"), ("10", "'10'"), (None, "null"),
     ([10.0], "[10.0]"),
 ])
 def test_numbers_are_finite_numbers(slab_raw, value, shown):

@@ -79,10 +79,10 @@ BAD_FILES = [
     ({"parameters": {"friction": {"std": 0.01}}},
      "parameters.friction: got {std: 0.01}, expected a parameter the scenario has"),
     ({"parameters": {"friction": None, "thickness": {"std": 1.0}}},  # `friction:` left blank
-     "parameters.friction: got None, expected a mapping {std: ...} giving the parameter's standard deviation"),
+     "parameters.friction: got null, expected a mapping {std: ...} giving the parameter's standard deviation"),
     ({"from_calibration": "missing.yaml"}, "from_calibration: "),
     ({"from_calibration": "fitted_displacement_only.yaml"},
-     "fit.standard_uncertainty: got {'lame_lambda': None, 'lame_mu': None}, expected positive standard "
+     "fit.standard_uncertainty: got {'lame_lambda': null, 'lame_mu': null}, expected positive standard "
      "uncertainties of lame_lambda and lame_mu (MPa); the calibration could not separate the moduli"),
 ]
 
@@ -306,6 +306,7 @@ def test_the_summary_has_the_uncertainty_block_of_scenario_md(planned):
         assert block[label]["p50_mm"] <= block[label]["p95_mm"] <= block[label]["max_mm"]
     assert set(block["sensitivity"]) == {"lame_lambda", "lame_mu", "cutting_force", "thickness"}
     assert all(len(value) == 2 for value in block["sensitivity"].values())
+    assert summary["sensitivity"] == block["sensitivity"]  # SCENARIO.md read either way
     # the plans land far closer than the fixed centre on every held-out sample
     assert block["nominal"]["max_mm"] < 0.5 * block["unplanned"]["mean_mm"]
     # the exported plan is never worse than the nominal one on the held-out samples

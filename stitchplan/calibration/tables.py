@@ -13,7 +13,7 @@ from ..errors import InputError
 
 def read_columns(path: str | Path, columns: tuple[str, ...],
                  label: str = "") -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Read a numeric CSV whose header is exactly `columns` (any order).
+    """Read a numeric CSV whose header holds exactly `columns`, in any order.
 
     Lines starting with '#' and blank lines are skipped (data files may carry a comment
     header). Returns ({column: values (n,)}, file line number of each row (n,)).
@@ -34,8 +34,8 @@ def read_columns(path: str | Path, columns: tuple[str, ...],
     rows = list(csv.reader(line for _, line in lines))
     header = [name.strip() for name in rows[0]]
     if sorted(header) != sorted(columns):
-        raise InputError(f"{where}: columns: got {','.join(header)!r}, expected exactly "
-                         f"{','.join(columns)!r}")
+        raise InputError(f"{where}: columns: got {','.join(header)!r}, expected the columns "
+                         f"{','.join(columns)!r} (in any order, no others)")
     values = np.empty((len(rows) - 1, len(header)))
     for r, (row, (number, _)) in enumerate(zip(rows[1:], lines[1:])):
         if len(row) != len(header):

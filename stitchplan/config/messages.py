@@ -68,9 +68,19 @@ def combined(errors: list, title: str = "config") -> ValidationError:
 # --- one line per error ------------------------------------------------------------------
 
 
+class _Null:
+    """YAML's word for a missing value (`radius:` left blank), where Python would say None."""
+
+    def __repr__(self) -> str:
+        return "null"
+
+
 def short(value: Any) -> str:
-    """The value as given, on one short line (tuples shown as the lists a file gives)."""
+    """The value as given, on one short line (tuples shown as the lists a file gives, a
+    blank value as YAML's null)."""
     def plain(v: Any) -> Any:
+        if v is None:
+            return _Null()
         if isinstance(v, (tuple, list)):
             return [plain(item) for item in v]
         if isinstance(v, dict):
@@ -111,7 +121,8 @@ def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "
         elif e["type"] in MAPPING_ERRORS:
             keys = _keys(_block_at(kind, loc))
             what = "a mapping" + (f" with keys among: {', '.join(keys)}" if keys else "")
-            lines.append(f"{path}: got {short(value)}, expected {what}")
+            got = "an empty file" if value is None and not loc and not base else short(value)
+            lines.append(f"{path}: got {got}, expected {what}")
         else:
             what = e["msg"].removeprefix("Input should be ").removeprefix("Value error, ")
             lines.append(f"{path}: got {short(value)}, expected {what}")

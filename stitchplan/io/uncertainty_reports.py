@@ -35,7 +35,8 @@ def _vector(value) -> list[float] | None:
 
 
 def uncertainty_summary(result: UncertaintyResult) -> dict:
-    """The summary's `uncertainty` block: SCENARIO.md's keys first, then how it was made."""
+    """The summary's `uncertainty` block (SCENARIO.md's keys first, then how it was made) and
+    its `sensitivity` again at the top level."""
     stats = result.statistics
     exported = stats[result.exported]
     robust_plan = result.robust
@@ -76,7 +77,10 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "sample_wall_seconds_mean": _mean_wall(result),
         "notes": list(result.notes),
     }
-    return {"uncertainty": finite_only(block)}
+    block = finite_only(block)
+    # SCENARIO.md's "adds to the summary `uncertainty`: ...; and `sensitivity`: ..." reads
+    # either way: the sensitivities are in the block and, the same values, beside it
+    return {"uncertainty": block, "sensitivity": block["sensitivity"]}
 
 
 def finite_only(block: dict) -> dict:
