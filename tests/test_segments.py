@@ -144,3 +144,25 @@ def test_graded_lattice_balance_filter_matches_the_3x3_maximum_filter():
     for shape in [(1, 1), (1, 6), (5, 3), (24, 17)]:
         levels = rng.integers(0, 6, shape)
         np.testing.assert_array_equal(_neighbourhood_max(levels), maximum_filter(levels, size=3, mode="nearest"))
+
+
+def test_a_zone_is_refined_to_its_own_level_where_the_coarse_cells_are_a_little_wider():
+    """Coarse cells 4 % wider than the base (grid lines fitted to a 10.4 mm edge) would ask a
+    half-spacing zone for a quarter-spacing leaf (ceil(log2(1.04 / 0.5)) = 2) whenever a
+    finer zone makes that level exist: each zone stops at its own level, so the disk's leaves
+    stay half the coarse side while the point zone's go on to an eighth."""
+    from stitchplan.tissue.particles import RefinementZone, graded_lattice
+
+    disk = RefinementZone(np.array([3.0, 5.0]), 1.5, 0.5)
+    point = RefinementZone(np.array([9.0, 2.0]), 0.0, 0.125)
+    alone = graded_lattice((10.4, 10.0), 1.0, (disk,))
+    together = graded_lattice((10.4, 10.0), 1.0, (disk, point))
+    cells = together.cells
+    sides = np.maximum(cells[:, 2], cells[:, 3])
+    centres = cells[:, :2] + 0.5 * cells[:, 2:]
+    in_disk = np.hypot(*(centres - disk.center).T) <= disk.radius
+    assert np.allclose(sides[in_disk], 0.52)  # 1.04 / 2: the disk's own level, not 0.26
+    assert np.isclose(sides.min(), 0.13)  # the point's three levels
+    alone_sides = np.maximum(alone.cells[:, 2], alone.cells[:, 3])
+    alone_centres = alone.cells[:, :2] + 0.5 * alone.cells[:, 2:]
+    assert np.allclose(alone_sides[np.hypot(*(alone_centres - disk.center).T) <= disk.radius], 0.52)

@@ -503,3 +503,22 @@ def test_the_geometry_queries_answer_as_over_all_edges():
     gap = ~inside(middle) & (_point_segment_distance(middle[:, None], a[None], b[None]).min(axis=1) > 1e-7 * 60.0)
     assert np.array_equal(domain.blocked(starts, ends), crossed | gap)
     assert 0 < domain.blocked(starts, ends).sum() < len(starts)
+
+
+@pytest.mark.parametrize("factor, needle_spacing", [(1.0, 0.75), (0.5, 0.375)])
+def test_the_wound_is_graded_at_the_needle_to_the_spacing_it_asks_for(factor, needle_spacing):
+    """The shipped wound stitch at its spacing and at the verification's half: the needle
+    zone's particles are `needle_spacing` apart (to the lattice's fit to the wound's walls),
+    not a level finer, and the summary's needle_spacing_mm says so although the wound's
+    corners are graded further."""
+    from conftest import CONFIGS
+
+    from stitchplan.config.scenario import load_scenario
+    from stitchplan.needle.geometry import needle_zone
+    from stitchplan.planning.verification import rescaled
+    from stitchplan.tissue.model import model_for_scenario
+
+    scenario = rescaled(load_scenario(CONFIGS / "wound_closure.yaml"), factor)
+    model = model_for_scenario(scenario, needle_zone(scenario))
+    assert model.needle_spacing == pytest.approx(needle_spacing, rel=0.05)
+    assert model.spacing < 0.5 * model.needle_spacing  # the corners' leaves

@@ -53,7 +53,7 @@ def discretization_summary(model) -> dict:
     return {
         "particles": model.n_particles,
         "spacing_mm": float(model.support.max() / d.dilation),  # the coarsest, for graded particles
-        "needle_spacing_mm": model.spacing if d.needle_spacing is not None else None,
+        "needle_spacing_mm": model.needle_spacing if d.needle_spacing is not None else None,
         "needle_zone_radii": d.needle_zone if d.needle_spacing is not None else None,
         "dilation": d.dilation,
         "quadrature_order": d.quadrature_order,

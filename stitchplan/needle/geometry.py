@@ -159,7 +159,7 @@ def needle_end_zones(scenario: Scenario, geometry: NeedleGeometry) -> tuple[Refi
     reference = default_spacing_of(scenario.tissue.bounding_size, geometry.radius) * d.needle_spacing / d.spacing
     fine = end_spacing(d.needle_spacing, reference, d.needle_end_levels)
     points = [geometry.entry] + [geometry.crossing_point(k) for k in range(len(geometry.crossings))]
-    return tuple(RefinementZone(np.asarray(point, dtype=float), NEEDLE_END_RADIUS, fine, separate=True)
+    return tuple(RefinementZone(np.asarray(point, dtype=float), NEEDLE_END_RADIUS, fine)
                  for point in points)
 
 

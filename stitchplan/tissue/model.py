@@ -52,12 +52,14 @@ class TissueModel:
     # d Psi_p / d X_J of the free functions at column 2 p + J, (nq, 2 n_free): the gradient
     # operator's entries without their repetition per displacement component
     direction_gradient: sp.csr_matrix
-    spacing: float
+    spacing: float  # the finest leaf side anywhere (load-segment ends and corners included)
     # gradients of the test functions when they differ from the trial ones (integration
     # "vci"); None: Galerkin, test = trial, symmetric tangent
     test_gradient: sp.csr_matrix | None = None
     # non-convex tissue: pairs whose segment leaves the tissue are dropped (visibility)
     visibility: Visibility | None = None
+    # particles graded toward a needle: the particle spacing in its zone (zone_spacing)
+    needle_spacing: float | None = None
 
     @property
     def symmetric(self) -> bool:
@@ -210,7 +212,17 @@ def build_tissue_model(
         direction_gradient=_direction_gradient(grad_x, grad_y),
         test_gradient=test_gradient,
         visibility=visibility,
+        needle_spacing=(zone_spacing(particles, support / discretization.dilation, needle_zone)
+                        if needle_zone is not None and discretization.needle_spacing is not None else None),
     )
+
+
+def zone_spacing(particles: np.ndarray, local_spacing: np.ndarray, needle_zone: tuple) -> float | None:
+    """The particle spacing in the needle's zone (centre, radius, ...): the median local
+    spacing of the particles within it, which finer grading at load-segment ends, corners
+    or the needle's entry and exit inside the zone does not move."""
+    inside = np.hypot(*(particles - np.asarray(needle_zone[0], dtype=float)).T) <= float(needle_zone[1])
+    return float(np.median(local_spacing[inside])) if inside.any() else None
 
 
 def _material(tissue: Tissue, points: np.ndarray) -> SaintVenantKirchhoff | NeoHookean | PointwiseMaterial:

@@ -80,9 +80,6 @@ class RefinementZone:
     center: np.ndarray  # (2,)
     radius: float
     spacing: float
-    # True: the levels this zone adds leave the other zones' refinement as it was (their leaves
-    # are asked for at most the levels they had without it; see graded_lattice)
-    separate: bool = False
 
 
 def graded_particles(size: tuple[float, float], spacing: float, fine_spacing: float,
@@ -130,13 +127,15 @@ def graded_lattice(size: tuple[float, float], base: float, zones: tuple[Refineme
     # side of the coarse cell holding each finest cell, (fx, fy)
     side0 = (max(width / nx0, height / ny0) if step_x and step_y else
              np.maximum(np.repeat(np.diff(coarse_x), n)[:, None], np.repeat(np.diff(coarse_y), n)[None, :]))
-    # the coarse cells exceed `base` a little where grid_lines rounds them to fit the edges, so
-    # a zone's cells may ask for one level more than its own: capped at the deepest level of
-    # the zones that are not `separate`, which a separate zone's finer levels leave unchanged
-    own = max([max(int(round(np.log2(base / zone.spacing))), 0) for zone in zones if not zone.separate] + [0])
+    # the coarse cells exceed `base` a little where grid_lines rounds them to fit the edges or
+    # the breaks, so a zone's cells may ask for one level more than its own (4x the particles
+    # there): each zone's levels are capped at its own, zones of one level taken together
+    def own_level(zone: RefinementZone) -> int:
+        return min(max(int(round(np.log2(base / zone.spacing))), 0), levels)
+
     required = np.zeros((fx, fy), dtype=int)
-    for group, cap in (([z for z in zones if not z.separate], min(own, levels)),
-                       ([z for z in zones if z.separate], levels)):
+    for cap in sorted({own_level(zone) for zone in zones}):
+        group = [zone for zone in zones if own_level(zone) == cap]
         target = np.full((fx, fy), np.inf)
         for zone in group:
             distance = np.hypot(xc[:, None] - zone.center[0], yc[None, :] - zone.center[1]) - zone.radius
