@@ -15,7 +15,8 @@ class EventKind(str, Enum):
     MINRES_FALLBACK = "minres-fallback"  # MINRES stagnated; direct solve used
     PLANNER_NOT_CONVERGED = "planner-not-converged"  # centre iterations ran out within a step
     AUTO_DISCRETIZATION = "auto-discretization"  # what the accuracy target chose, and why
-    ACCURACY_CHECK = "accuracy-check"  # an exit error estimate or a plan's verification could not be made
+    TARGET_MISSED = "target-missed"  # a plan's best pass still misses its target (exit or bites)
+    ACCURACY_CHECK = "accuracy-check"  # an exit error estimate or a verification could not be made, or an estimate is above the accuracy asked for
 
 
 @dataclass(frozen=True)

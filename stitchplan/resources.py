@@ -208,6 +208,7 @@ class Estimate:
     # (what the spacing alone costs), None when the model is that grid
     coarse_particles: float | None
     radius_default: float | None  # the needle radius, when the spacing is the default following it
+    tissue_size: tuple[float, float] | None = None  # the tissue's bounding box, mm
 
     def describe(self) -> str:
         about = "" if self.size.exact else "about "
@@ -427,7 +428,7 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
     return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory, seconds,
                     d.spacing, None if kind == "deform" else scenario.needle.step, d, origin,
                     _grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
-                    _radius_default(scenario, origin))
+                    _radius_default(scenario, origin), tuple(scenario.tissue.bounding_size))
 
 
 def available_memory() -> float | None:
@@ -559,9 +560,11 @@ def _spacing_setting(item: Estimate) -> Setting:
     d, origin = item.discretization, item.origin
     spacing = origin.value("spacing", d.spacing)
     if item.radius_default is not None:  # the file gives no spacing: the radius sets it
+        width, height = item.tissue_size
         return Setting("needle.radius", f"{item.radius_default:g} mm",
                        f"a radius whose default particle spacing (here {spacing:.3g} mm) gives",
-                       "check that it is in mm, or give discretization.spacing")
+                       f"check that it and the tissue's size ({width:g} x {height:g} mm) are in mm, "
+                       "or give discretization.spacing")
     return Setting(origin.name("spacing"), f"{spacing:g} mm", "a spacing giving", "coarsen it")
 
 

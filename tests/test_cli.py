@@ -389,3 +389,21 @@ def test_the_command_reuses_freed_memory():
         mapped[variant], top[variant] = map(int, run.stderr.strip().splitlines()[-1].split())
     assert mapped["command"] == 0 and mapped["default"] >= 1, mapped
     assert top["command"] >= 16 * 2**20 and top["default"] < 2 * 2**20, top
+
+
+def test_a_run_estimated_above_the_accuracy_it_was_chosen_for_says_so():
+    """The auto discretization meets an accuracy by its estimate from runs at h and h/2; the
+    run's own estimate (from a run at 2h) can come out above it: an accuracy-check note then
+    says both, never silence beside a contradicting summary."""
+    from types import SimpleNamespace
+
+    from stitchplan.cli.commands import _accuracy_events
+    from stitchplan.events import EventKind
+
+    above = SimpleNamespace(estimate_mm=0.0129, other_spacing_mm=9.96)
+    [event] = _accuracy_events(0.01, above)
+    assert event.kind == EventKind.ACCURACY_CHECK
+    assert event.message.startswith("accuracy: the run's own exit error estimate, 0.0129 mm (from the run at "
+                                    "9.96 mm), is above the 0.01 mm asked for")
+    assert _accuracy_events(0.01, SimpleNamespace(estimate_mm=0.009, other_spacing_mm=9.96)) == []
+    assert _accuracy_events(None, above) == [] and _accuracy_events(0.01, None) == []

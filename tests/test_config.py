@@ -120,6 +120,8 @@ def test_shipped_scenario_parses(slab_path):
     ("tissue: [1, 2\n  size: {\n", ["not valid YAML", "line 2"]),
     ("- 1\n- 2\n", ["scenario", "[1, 2]", "a mapping"]),
     ("", ["scenario", "an empty file", "a mapping"]),
+    # a tab after a value: YAML 1.2 takes it as a space, PyYAML's reader refuses it
+    ("name: slab\t# comment\n", ["line 1: a tab character", "replace the tab by spaces"]),
 ])
 def test_bad_yaml_is_reported_with_the_file(tmp_path, text, fragments):
     path = tmp_path / "bad.yaml"

@@ -291,3 +291,22 @@ def test_a_needle_entering_a_clamped_edge_is_refused(clamped, where):
     with pytest.raises(ScenarioError, match=rf"^needle.entry: got \[0.0, 15.0\], on {where}; expected a point on a "
                                          r"free edge"):
         scenario_needle(scenario)
+
+
+@pytest.mark.parametrize("clamped, where", [(["bottom"], "the clamped bottom edge"),
+                                             ([{"segment": [[0.0, 0.0], [20.0, 0.0]]}],
+                                              "a clamped segment of the boundary")])
+def test_a_needle_leaving_through_a_clamped_edge_is_refused(clamped, where):
+    """Entering 5 mm above the bottom turning cw, the 8 mm needle's way out is the bottom edge
+    at x = 7.42: held there by a clamp, it cannot come out (and the exit error would only say
+    that the clamp does not move)."""
+    from stitchplan.needle.geometry import scenario_needle
+
+    raw = {"tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": clamped,
+                      "material": {"lame_lambda": 0.189151, "lame_mu": 0.147688}},
+           "needle": {"radius": 8.0, "entry": [0.0, 5.0], "turn": "cw", "step": 0.2}}
+    with pytest.raises(ScenarioError, match=rf"^needle: the 8 mm needle entering at \[0.0, 5.0\] turning cw leaves "
+                                         rf"the tissue on {where}: the desired exit \[7.416, 0\]; expected"):
+        scenario_needle(parse_scenario(raw))
+    raw["tissue"]["clamped"] = ["right"]
+    assert scenario_needle(parse_scenario(raw)).desired_exit[1] == pytest.approx(0.0, abs=1e-12)

@@ -99,6 +99,7 @@ def simulate(
         raise InputError(f"--plot-steps: got {plot_steps}, expected it only with --plot PNG")
     steps_to_plot = _parse_steps(plot_steps)
     scenario = _load(scenario_path, spacing, dilation)
+    accuracy = scenario.discretization.accuracy  # asked for; resolve_accuracy clears it
     provenance = _provenance(scenario_path, scenario)
     from ..io import reports
     from ..io.progress import progress_bar
@@ -118,14 +119,14 @@ def simulate(
                                                max_particles=None if limits is None else limits.max_particles)
     # the estimate's run at 2h goes on in a helper process alongside (planning/replays.py)
     with (_naming_files(scenario_path, center_path),
-          estimate_replays(scenario, background=estimate, linear_solver=linear_solver, tip_tracking=tip_tracking)
+          estimate_replays(scenario, estimate=estimate, linear_solver=linear_solver, tip_tracking=tip_tracking)
           as replays, progress_bar("needle steps", _expected_steps(scenario)) as advance):
         result, error_estimate = simulate_with_estimate(
             scenario, center_path=path, estimate=estimate, linear_solver=linear_solver,
             tip_tracking=tip_tracking, condition_numbers=condition_numbers, on_step=lambda record: advance(),
             replays=replays)
     if auto_note is not None:
-        result.events.insert(0, auto_note)
+        result.events[:0] = [auto_note, *_accuracy_events(accuracy, error_estimate)]
     reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
                                     plot_steps=steps_to_plot, provenance=provenance,
                                     extra_summary=reports.exit_estimate_summary(error_estimate))
@@ -195,6 +196,7 @@ def plan(
     _check_angular_speed(angular_speed)
     transform = _parse_base_transform(base_transform)
     scenario = _load(scenario_path, spacing, dilation)
+    accuracy = scenario.discretization.accuracy  # asked for; resolve_accuracy clears it
     provenance = _provenance(scenario_path, scenario)
     robot = scenario.robot
     if transform is not None:
@@ -244,7 +246,7 @@ def plan(
                                tip_tracking=tip_tracking, on_step=lambda record: advance(), replays=replays,
                                predictions=predictions)
     if auto_note is not None:
-        result.planned.events.insert(0, auto_note)
+        result.planned.events[:0] = [auto_note, *_accuracy_events(accuracy, result.estimate)]
     reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot,
                                provenance=provenance)
     typer.echo(reports.plan_line(result, export))
@@ -295,6 +297,19 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     for line in uncertainty_lines(result):
         typer.echo(line)
     _echo_events(plan.planned.events, quiet)
+
+
+def _accuracy_events(accuracy: float | None, estimate) -> list:
+    """An accuracy-check event where the run's own exit error estimate (from a run at twice
+    its spacing) is above the `accuracy` the auto discretization chose the run for by its
+    estimate (from runs at h and h/2): both stand in the summary, so the difference is said."""
+    if accuracy is None or estimate is None or estimate.estimate_mm <= accuracy:
+        return []
+    return [_note_event(f"accuracy: the run's own exit error estimate, {estimate.estimate_mm:.3g} mm (from "
+                        f"the run at {estimate.other_spacing_mm:.3g} mm), is above the {accuracy:g} mm "
+                        "asked for, which the auto discretization met by its estimate from two finer "
+                        "runs (first note); the two estimate the same error from different pairs of "
+                        "runs: for a firmer bound ask for a smaller accuracy")]
 
 
 def _note_event(message: str):

@@ -258,6 +258,11 @@ def read_yaml_file(path: str | Path) -> YamlFile:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         problem = getattr(error, "problem", None)
+        if problem is not None and "'\\t'" in problem:  # valid YAML 1.2 perhaps, but not for PyYAML's reader
+            line = f"line {mark.line + 1}: " if mark is not None else ""
+            raise input_error([f"{path}: {line}a tab character where the YAML reader takes spaces only (tabs "
+                               "are read inside quoted text alone); expected spaces: replace the tab by "
+                               "spaces"]) from None
         raise input_error([f"{path}: not valid YAML{where}" + (f" ({problem})" if problem else "")]) from None
     return YamlFile(data, text, hashlib.sha256(content).hexdigest())
 

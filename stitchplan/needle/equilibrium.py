@@ -226,6 +226,8 @@ class NeedleInsertion:
         self.saddle = SaddlePointSolver(tissue.factor_at_rest)
         if self.linear_method == "direct":
             self.saddle.start_at_rest(made_here=not tissue.factorized)
+        else:
+            self.saddle.precondition_at_rest(made_here=not tissue.factorized)
         self.free = np.zeros((self.model.n_free, 2))
         self._coefficients: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # (free, T free)
         self.multipliers = np.zeros(0)

@@ -132,13 +132,32 @@ def scenario_needle(scenario: Scenario) -> NeedleGeometry:
     if scenario.needle is None:
         raise InputError("needle: missing, required by simulate, plan and study")
     tissue, entry = scenario.tissue, np.asarray(scenario.needle.entry, dtype=float)
+    where = _clamp_at(tissue, entry)
+    if where is not None:
+        raise InputError(f"needle.entry: got {list(scenario.needle.entry)}, on {where}; expected a point "
+                         "on a free edge (a clamp holds the tissue where the needle would enter)")
+    geometry = needle_geometry(scenario.needle, scenario.tissue.domain)
+    for k, (_, kind) in enumerate(geometry.crossings):
+        point = geometry.crossing_point(k)
+        where = _clamp_at(tissue, point)
+        if where is not None:
+            what = "the desired exit" if k == len(geometry.crossings) - 1 else f"its crossing {k + 1} ({kind})"
+            raise InputError(
+                f"needle: the {scenario.needle.radius:g} mm needle entering at {list(scenario.needle.entry)} "
+                f"turning {scenario.needle.turn} leaves the tissue on {where}: {what} "
+                f"[{round(point[0], 9) + 0.0:.4g}, {round(point[1], 9) + 0.0:.4g}]; expected the needle's way out on a free edge (a clamp "
+                "holds the tissue there: move the entry, turn the other way or change the clamps)")
+    return geometry
+
+
+def _clamp_at(tissue, point: np.ndarray) -> str | None:
+    """Which clamp holds the boundary at `point` ("the clamped left edge", "a clamped segment
+    of the boundary"), or None."""
     for item, (start, end) in zip(tissue.clamped, tissue.clamped_pieces()):
-        along = np.clip((entry - start) @ (end - start) / ((end - start) @ (end - start)), 0.0, 1.0)
-        if np.linalg.norm(start + along * (end - start) - entry) <= 1e-9 * max(tissue.bounding_size):
-            where = f"the clamped {item} edge" if isinstance(item, str) else "a clamped segment of the boundary"
-            raise InputError(f"needle.entry: got {list(scenario.needle.entry)}, on {where}; expected a point "
-                             "on a free edge (a clamp holds the tissue where the needle would enter)")
-    return needle_geometry(scenario.needle, scenario.tissue.domain)
+        along = np.clip((point - start) @ (end - start) / ((end - start) @ (end - start)), 0.0, 1.0)
+        if np.linalg.norm(start + along * (end - start) - point) <= 1e-9 * max(tissue.bounding_size):
+            return f"the clamped {item} edge" if isinstance(item, str) else "a clamped segment of the boundary"
+    return None
 
 
 # radius (mm) of the refined disks at the needle's entry and exit: 0, points graded like the

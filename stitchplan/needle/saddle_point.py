@@ -156,6 +156,15 @@ class SaddlePointSolver:
         self._use(self.stiffness_at_rest)
         self.factorizations += int(made_here)
 
+    def precondition_at_rest(self, made_here: bool) -> None:
+        """MINRES's preconditioner takes the factor of K0 (made now when not yet made): counted
+        and recorded as the direct solves' factors are, for the summaries' solver counts."""
+        factor = self.stiffness_at_rest
+        self.factorizations += int(made_here)
+        self.backend = factor.backend
+        if factor.backend not in self.backends:
+            self.backends.append(factor.backend)
+
     def _use(self, factor: Factor) -> None:
         """Solve with `factor` from now on; the caches of the previous one are dropped."""
         self._factor, self.backend = factor, factor.backend

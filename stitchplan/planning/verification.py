@@ -182,8 +182,11 @@ def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path
     return estimate_from(result, other, ESTIMATE_FACTOR, coarse.discretization.spacing)
 
 
-def estimate_replays(scenario: Scenario, background: bool = True, **options):
-    """replays_for the exit error estimate's 2h model (a context manager; planning/replays.py)."""
+def estimate_replays(scenario: Scenario, background: bool = True, estimate: bool = True, **options):
+    """replays_for the exit error estimate's 2h model (a context manager; planning/replays.py);
+    None without an `estimate`."""
+    if not estimate:
+        return nullcontext(None)
     return plan_replays(scenario, verify=False, background=background, **options)
 
 
@@ -296,6 +299,9 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     if not verify:
         result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, replays=replays,
                                               **options)
+        symmetric = scenario.planner.target == "symmetric" and result.planned.bites is not None
+        _note_missed(result, _verified_miss(result.planned, symmetric), scenario.planner.exit_tolerance,
+                     "on the planning model", symmetric)
         return result
     settings = scenario.planner
     spacing = other.discretization.spacing
@@ -349,10 +355,28 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
         # no replay, or (symmetric) a refined track that does not cross the wound: nothing to re-aim by
         if not np.isfinite(miss) or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
             break
-    _, result, replayed, kept = best
+    miss, result, replayed, kept = best
     result.planned.wall_seconds = planning_seconds  # every pass of every round
+    if np.isfinite(miss):
+        _note_missed(result, miss, VERIFIED_FACTOR * settings.exit_tolerance,
+                     f"on the refined model (spacing {spacing:.4g} mm)", symmetric)
     return _verified(scenario, result, Verification(spacing, replayed, rounds, replays.where, kept["aimed_by"]),
                      **options)
+
+
+def _note_missed(result: PlanResult, miss: float, accepted: float, where: str, symmetric: bool) -> None:
+    """An event on the exported plan when even its best pass misses the target by more than
+    `accepted` mm (the planner's exit_tolerance, or 1.5 x it on the refined model): the
+    trajectory is still written, the best found, and the summary and the stderr note say so."""
+    if miss <= accepted:
+        return
+    what = f"its bites differ by {miss:.4g} mm" if symmetric else f"the tip exits {miss:.4g} mm from the desired exit"
+    message = (f"plan: {what} {where}, above the {accepted:.4g} mm accepted, after "
+               f"{len(result.passes)} planner passes: the best trajectory found is exported; the centre "
+               "could not be moved far enough (planner.center_step_limit and the other move limits, "
+               "planner.max_passes, or the steps where eq. 4.2 fails: see planner_passes in the summary)")
+    result.planned.events.append(Event(EventKind.TARGET_MISSED, message))
+    log.info(message)
 
 
 def verify_exported(scenario: Scenario, result: PlanResult, **options) -> PlanResult:
