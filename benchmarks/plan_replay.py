@@ -54,8 +54,7 @@ def planned_scenes() -> list[str]:
 
 def scene_settings(scene: str) -> tuple[str, float]:
     """The scene's planner.target (`exit`, or `symmetric`: a wound stitch aimed at equal bites)
-    and its nominal needle spacing / spacing (the summary's needle spacing is the arrangement's
-    finest, which a wound's walls may refine further)."""
+    and its nominal needle spacing / spacing, as the file asks for it."""
     from stitchplan.config.scenario import load_scenario
 
     scenario = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml")
