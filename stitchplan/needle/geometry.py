@@ -142,10 +142,11 @@ def scenario_needle(scenario: Scenario) -> NeedleGeometry:
         where = _clamp_at(tissue, point)
         if where is not None:
             what = "the desired exit" if k == len(geometry.crossings) - 1 else f"its crossing {k + 1} ({kind})"
+            x, y = (round(value, 9) + 0.0 for value in point)  # no -0 or 1e-16 off an edge
             raise InputError(
                 f"needle: the {scenario.needle.radius:g} mm needle entering at {list(scenario.needle.entry)} "
-                f"turning {scenario.needle.turn} leaves the tissue on {where}: {what} "
-                f"[{round(point[0], 9) + 0.0:.4g}, {round(point[1], 9) + 0.0:.4g}]; expected the needle's way out on a free edge (a clamp "
+                f"turning {scenario.needle.turn} {'leaves' if kind == 'exit' else 'enters'} the tissue on "
+                f"{where}: {what} [{x:.4g}, {y:.4g}]; expected the needle's way out on a free edge (a clamp "
                 "holds the tissue there: move the entry, turn the other way or change the clamps)")
     return geometry
 

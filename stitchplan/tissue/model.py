@@ -52,7 +52,7 @@ class TissueModel:
     # d Psi_p / d X_J of the free functions at column 2 p + J, (nq, 2 n_free): the gradient
     # operator's entries without their repetition per displacement component
     direction_gradient: sp.csr_matrix
-    spacing: float  # the finest leaf side anywhere (load-segment ends and corners included)
+    spacing: float  # the finest level's lattice step (load-segment ends and corners included)
     # gradients of the test functions when they differ from the trial ones (integration
     # "vci"); None: Galerkin, test = trial, symmetric tangent
     test_gradient: sp.csr_matrix | None = None
