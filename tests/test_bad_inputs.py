@@ -213,15 +213,16 @@ def test_a_bad_option_is_refused_up_front(tmp_path, case):
 
 
 def test_a_study_too_large_for_the_machine_is_refused_before_its_first_run(tmp_path):
-    """Each run of the sweep past the limits is one line (here the 0.05 mm run and the
-    reference at 0.04 mm), before any run starts and before the output folder exists."""
+    """Each run of the sweep past the limits is one line naming the study field that set its
+    spacing (here the 0.05 mm run and the reference at 0.04 mm), before any run starts and
+    before the output folder exists."""
     raw = scene(loads=None, probes=None)
     raw["study"] = {"spacing": [4.0, 0.05], "families": [{"name": "uniform"}], "reference": {"spacing": [0.04]}}
     write_scene(tmp_path, raw)
     result = CliRunner().invoke(app, ["study", str(tmp_path / "scene.yaml"), "--out", str(tmp_path / "out")])
     assert_refused(result, tmp_path, {"scene.yaml"},
-                   [["scene.yaml: discretization.spacing: got 0.05 mm", "study run 'uniform h=0.05'"],
-                    ["scene.yaml: discretization.spacing: got 0.04 mm", "study run 'reference h=0.04'"]])
+                   [["scene.yaml: study.spacing: got 0.05 mm", "study run 'uniform h=0.05'"],
+                    ["scene.yaml: study.reference.spacing: got 0.04 mm", "study run 'reference h=0.04'"]])
 
 
 # --- centre paths (simulate --center-path) ------------------------------------------------------

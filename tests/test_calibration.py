@@ -279,6 +279,8 @@ BAD_RECORDINGS = {
                     ["line 4", "force_N", "'abc'", "finite number"]),
     "short span": ("angle_rad,force_N\n" + "".join(f"{0.01 * i},{i}\n" for i in range(6)),
                    ["span of 0.05 rad", "at least 0.1 rad"]),
+    "degrees": ("angle_rad,force_N\n" + "".join(f"{18 * i},{0.1 * i}\n" for i in range(11)),
+                ["span of 180 rad", "at most 6.283 rad", "degrees?"]),
 }
 
 

@@ -86,11 +86,27 @@ def test_study_block_is_parsed_into_families_and_reference():
     ({"families": [{"name": "a"}, {"name": "a"}]}, "study.families: got ['a', 'a'], expected families with distinct names"),
     ({"reference": {"spacing": [1.0, 2.0]}}, "study.reference.spacing: got [1.0, 2.0], expected one spacing (mm)"),
     ({"repeats": 0}, "study.repeats: got 0, expected an integer between 1 and 20"),
+    ({"spacing": [6.0, 6.0]}, "study.spacing: got [6.0, 6.0], expected spacings each given once"),
+    ({"families": [{"spacing": [4.0, 4]}]}, "study.families[0].spacing: got [4.0, 4.0], expected spacings each"),
 ])
 def test_bad_study_blocks_are_refused_naming_the_field(study, fragment):
     with pytest.raises(ScenarioError) as error:
         parse_scenario(tiny_raw(study))
     assert fragment in str(error.value)
+
+
+def test_a_study_run_too_big_names_the_study_field_that_set_its_spacing(tmp_path):
+    """The resource guard's refusal of a study run names the study's own field (a family's
+    spacing list, the reference's), with the value given there, not discretization.spacing."""
+    scenario = tmp_path / "huge.yaml"
+    scenario.write_text(yaml.safe_dump(tiny_raw({"families": [{"name": "a"}, {"name": "tiny", "spacing": [0.05]}],
+                                                 "spacing": [6.0], "reference": {"spacing": 0.04}}),
+                                       sort_keys=False))
+    result = CliRunner().invoke(app, ["study", str(scenario), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2
+    assert f"error: {scenario}: study.families[1].spacing: got 0.05 mm, expected a spacing giving at most" in result.output
+    assert f"error: {scenario}: study.reference.spacing: got 0.04 mm, expected a spacing" in result.output
+    assert not (tmp_path / "out").exists()
 
 
 def test_quick_study_is_two_families_of_two_spacings_and_a_finer_reference():

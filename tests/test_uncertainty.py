@@ -577,3 +577,43 @@ def test_uncertain_moduli_on_a_scenario_with_material_regions_are_refused(tmp_pa
     with pytest.raises(InputError, match="expected no uncertain moduli"):
         with_parameters(scenario, ("lame_mu",), np.array([0.2]))
     assert with_parameters(scenario, ("thickness",), np.array([9.0])).tissue.thickness == 9.0
+
+
+def test_a_calibration_that_cannot_separate_the_moduli_is_refused_with_finite_stds(tmp_path):
+    """A fit marked `identifiable: false` is refused even where it printed standard
+    uncertainties (the estimates' correlation beyond the limit): they are not usable."""
+    from stitchplan.config.uncertainty import calibration_spread
+    from stitchplan.errors import InputError
+
+    fitted = tmp_path / "fitted.yaml"
+    fitted.write_text("fit:\n  standard_uncertainty: {lame_lambda: 0.02, lame_mu: 0.01}\n"
+                      "  correlation: -0.9995\n  identifiable: false\n")
+    with pytest.raises(InputError, match="fit.identifiable: got false, expected a calibration that separates"):
+        calibration_spread(fitted, tmp_path / "u.yaml")
+
+
+def test_correlated_moduli_that_cancel_are_not_called_a_share_of_the_spread():
+    """lame_lambda and lame_mu at -0.99: each alone moves the exit far more than both together
+    (their effects cancel), so the line names the cancellation rather than '0.0088 mm of
+    0.0014 mm'."""
+    from types import SimpleNamespace
+
+    from stitchplan.uncertainty.robust import Sensitivity, UncertaintyResult
+
+    names = ("lame_lambda", "lame_mu")
+    correlation = np.array([[1.0, -0.99], [-0.99, 1.0]])
+    sensitivities = [Sensitivity("lame_lambda", 0.0129, 0.006, np.array([0.3, 0.1]), None),
+                     Sensitivity("lame_mu", 0.0047, 0.002, np.array([0.8, 0.27]), None)]
+    result = SimpleNamespace(uncertainty=SimpleNamespace(names=names, correlation=correlation),
+                             sensitivities=sensitivities, statistics={"nominal": {"p95_mm": 0.002}},
+                             exported="nominal")
+    result.dominant = lambda: UncertaintyResult.dominant(result)
+    result.linearised_spread_mm = lambda: UncertaintyResult.linearised_spread_mm(result)
+    total, alone = result.linearised_spread_mm(), 1.959963984540054 * sensitivities[0].spread_mm
+    assert total < alone
+    line = UncertaintyResult.dominance_line(result)
+    assert line.startswith(f"exit spread: lame_lambda alone would move the exit {alone:.3g} mm (p95, std "
+                           f"0.0129 MPa), more than the {total:.3g} mm p95 of all parameters together "
+                           "(linearised): its correlation with lame_mu (-0.99) cancels most of it")
+    result.uncertainty.correlation = np.eye(2)  # independent: a share of the total again
+    assert UncertaintyResult.dominance_line(result).startswith("exit spread dominated by")

@@ -223,21 +223,26 @@ def statistics(residual: np.ndarray, jacobian: np.ndarray, theta: np.ndarray) ->
 
 
 def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
-                 refinement: Refinement) -> list[str]:
-    """What a user should know about the fitted moduli, most serious first."""
+                 refinement: Refinement, displacements_only: bool = True) -> list[str]:
+    """What a user should know about the fitted moduli, most serious first.
+    `displacements_only`: every load of every experiment is a prescribed displacement."""
     identifiable = stats.identifiable
     warnings: list[str] = []
     if not identifiable:
+        why = ("as when every load is a prescribed displacement (scaling both moduli then moves no "
+               "marker, as here); add a force-controlled experiment" if displacements_only else
+               "the markers' motion does not tell them apart (too little of it, or markers where the "
+               "tissue hardly deforms: check their units, mm); add markers where the tissue deforms "
+               "or another experiment")
         warnings.append(
             f"the data cannot separate lame_lambda and lame_mu (correlation of the estimates "
             f"{stats.correlation:+.4f}): only lame_lambda/lame_mu = {theta[0] / theta[1]:.4g} is "
-            "determined, as when every load is a prescribed displacement (scaling both moduli then "
-            "moves no marker); add a force-controlled experiment")
+            f"determined, {why}")
     for k, (name, (lo, hi)) in enumerate(zip(MODULI, (fit.lame_lambda, fit.lame_mu))):
         # relative to the value, not the range: ranges span decades, and a fit of 0.2 MPa in
         # [0.01, 1e6] is not on its bound
         on_bound = [abs(theta[k] - bound) <= 1e-6 * max(abs(bound), abs(theta[k])) for bound in (lo, hi)]
-        if identifiable and any(on_bound):
+        if any(on_bound):
             warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the bound of its search range "
                             f"[{lo:g}, {hi:g}]: widen fit.{name}")
     if refinement.failed_solves:
@@ -304,7 +309,8 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
     theta = refinement.solution.x
     r, jac, simulated = misfit.evaluate(theta, jacobian=True)
     stats = statistics(r, jac, theta)
-    warnings = fit_warnings(theta, stats, problem.fit, refinement)
+    displacements_only = all(load.displacement is not None for e in problem.experiments for load in e.loads)
+    warnings = fit_warnings(theta, stats, problem.fit, refinement, displacements_only)
     for message in warnings:
         log.warning(message)
     sizes = np.cumsum([len(e.markers) for e in problem.experiments])[:-1]
@@ -312,7 +318,8 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         problem=problem,
         lame_lambda=float(theta[0]),
         lame_mu=float(theta[1]),
-        standard_uncertainty=stats.uncertainty,
+        # not identifiable: no usable uncertainties (the pair is only known along lambda/mu)
+        standard_uncertainty=stats.uncertainty if stats.identifiable else (None, None),
         correlation=stats.correlation,
         lambda_over_mu=float(theta[0] / theta[1]),
         lambda_over_mu_uncertainty=stats.ratio_uncertainty,

@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 FORCE_COLUMNS = ("angle_rad", "force_N")
 MIN_FORCE_SAMPLES = 5
 MIN_ANGLE_SPAN = 0.1  # rad: less than ~6 degrees of rotation cannot separate slope and offset
+MAX_ANGLE_SPAN = 2.0 * math.pi  # rad: a needle turns less than once (a span beyond: degrees?)
 MIN_R_SQUARED = 0.9  # below this the corrected force is not a line in the inserted length
 # |force| bound of a recording (N). The forces that turn a suture needle are a few N (the
 # thesis's SH 1/2 needle: 0.7 N cutting + 0.06 N/mm friction over a 28 mm arc, ~2.4 N; the
@@ -151,9 +152,13 @@ def refuse_negative(tissue_fit: LineFit, friction_sigma: float, cutting_sigma: f
         found.append((f"cutting force {cutting:.4g} +- {cutting_sigma:.2g} N",
                       "the tissue recording starts below the air background where the tip enters"))
     if found:
+        # only a negative value beyond its noise says the recordings are the wrong way round
+        significant = friction < -2.0 * friction_sigma or cutting < -2.0 * cutting_sigma
+        hint = ("is --tissue the recording in tissue and --air the one in air?" if significant else
+                "zero within twice its standard uncertainty: the recordings show none above the air's "
+                "(record more of the insertion, or a tissue that grips the needle)")
         raise NumericalFailure(f"needle fit: the fit gave {' and '.join(gave for gave, _ in found)}, expected "
-                               f">= 0: {', and '.join(why for _, why in found)}; is --tissue the recording "
-                               "in tissue and --air the one in air?")
+                               f">= 0: {', and '.join(why for _, why in found)}; {hint}")
 
 
 def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit: LineFit) -> list[str]:
@@ -194,6 +199,9 @@ def read_force_recording(path: str | Path, label: str) -> tuple[np.ndarray, np.n
     if span < MIN_ANGLE_SPAN:
         raise InputError(f"{label}: {path}: angle_rad: got a span of {span:.3g} rad, expected at "
                          f"least {MIN_ANGLE_SPAN:g} rad")
+    if span > MAX_ANGLE_SPAN:
+        raise InputError(f"{label}: {path}: angle_rad: got a span of {span:.4g} rad, expected at most "
+                         f"{MAX_ANGLE_SPAN:.4g} rad (one turn of the needle; are the angles in degrees?)")
     return angle, force
 
 

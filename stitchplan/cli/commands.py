@@ -352,8 +352,15 @@ def study(
 
     with _naming_files(scenario_path):
         runs, reference, repeats = plan_runs(scenario, quick)
+    from ..resources import Origin
+
+    def origin(run) -> Origin:  # a refusal names the study field that set the run's spacing
+        return Origin({"spacing": run.source, "needle_spacing": run.source},
+                      {"spacing": run.spacing, "needle_spacing": run.spacing})
+
     _guard(scenario_path, _limits(max_particles, no_resource_check),
-           *[("insertion", run.scenario, f"study run {run.label!r}", repeats) for run in [*runs, reference]])
+           *[("insertion", run.scenario, f"study run {run.label!r}", repeats, origin(run))
+             for run in [*runs, reference]])
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
                            executor=executor)

@@ -70,6 +70,19 @@ class StudyFamily:
     def _one_or_more(cls, value: Any) -> Any:
         return _as_list(value)
 
+    @field_validator("spacing")
+    @classmethod
+    def _distinct_spacings(cls, spacings: tuple[float, ...] | None):
+        return _no_repeats(spacings)
+
+
+def _no_repeats(spacings: tuple[float, ...] | None):
+    """A spacing list without repeats: a repeated spacing would run twice under one label."""
+    if spacings is not None and len(set(spacings)) != len(spacings):
+        raise problem("spacings each given once (a repeat runs the same model twice under one label)",
+                      value=list(spacings))
+    return spacings
+
 
 @block(title="study")
 class StudySpec:
@@ -93,6 +106,11 @@ class StudySpec:
         if isinstance(data.get("reference"), dict):
             data["reference"] = {**data["reference"], "name": "reference"}
         return data
+
+    @field_validator("spacing")
+    @classmethod
+    def _distinct_spacings(cls, spacings: tuple[float, ...] | None):
+        return _no_repeats(spacings)
 
     @field_validator("families")
     @classmethod

@@ -224,6 +224,10 @@ def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float
                if fit.get("identifiable") is False else "")
         raise input_error([f"{where}: fit.standard_uncertainty: got {short(given)}, expected positive standard "
                            f"uncertainties of lame_lambda and lame_mu (MPa){why}"])
+    if fit.get("identifiable") is False:
+        raise input_error([f"{where}: fit.identifiable: got false, expected a calibration that separates "
+                           "the moduli (its standard uncertainties and correlation are not usable: add a "
+                           "force-controlled experiment or markers that move more)"])
     value = fit.get("correlation")
     if not (_finite(value) and -1 < value < 1):
         raise input_error([f"{where}: fit.correlation: got {short(value)}, expected a number between -1 and 1 "

@@ -118,6 +118,7 @@ class StudyRun(InsertionRun):
 
     deviations: dict[str, float] = field(default_factory=dict)  # exit_deviations(), mm
     pareto: bool = False
+    source: str = ""  # what set the run's spacing (`study.families[1].spacing`), for refusals
 
     @property
     def deviation_mm(self) -> float:
@@ -151,8 +152,16 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
         families = spec.families or default_families(scenario)
         reference = spec.reference or default_reference(
             tuple(s for f in families for s in (f.spacing or spacings)))
-    runs = [StudyRun(family.name, f"{family.name} h={spacing:g}", configure(scenario, family, spacing), spacing)
-            for family in families for spacing in family.spacing or spacings]
+    def source(k: int, family) -> str:
+        if quick:
+            return "the --quick sweep's spacings"
+        if spec.families and family.spacing:
+            return f"study.families[{k}].spacing"
+        return "study.spacing" if spec.spacing else "the study's default spacings"
+
+    runs = [StudyRun(family.name, f"{family.name} h={spacing:g}", configure(scenario, family, spacing), spacing,
+                     source=source(k, family))
+            for k, family in enumerate(families) for spacing in family.spacing or spacings]
     spacing = reference.spacing[0]
     finest = min(run.spacing for run in runs)
     if spacing >= finest:  # every deviation is measured from the reference: it must be the finest
@@ -160,7 +169,8 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
                          f"spacing of the sweep, {finest:g} mm (the runs' deviations are measured from "
                          "the reference)")
     reference_run = StudyRun("reference", f"reference h={spacing:g}", configure(scenario, reference, spacing),
-                             spacing)
+                             spacing, source="study.reference.spacing" if spec.reference and not quick
+                             else "the study's default reference spacing")
     return runs, reference_run, spec.repeats
 
 

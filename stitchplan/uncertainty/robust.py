@@ -193,7 +193,8 @@ class UncertaintyResult:
     def dominance_line(self) -> str:
         """"exit spread dominated by <param> (... mm of ... mm p95)": the 95 % exit move from
         that parameter alone against the linearised 95 % spread from all of them, and the
-        exported plan's held-out p95 miss."""
+        exported plan's held-out p95 miss; where correlated parameters cancel (the one alone
+        moves the exit more than all together) the line says so instead."""
         dominant = self.dominant()
         if dominant is None:
             return "exit spread: unknown (a sensitivity run failed)"
@@ -202,7 +203,17 @@ class UncertaintyResult:
                     else f" of {total:.3g} mm p95, linearised")
         p95 = self.statistics[self.exported]["p95_mm"]
         miss = "" if p95 is None else f"; held-out p95 miss {p95:.3g} mm"
-        return (f"exit spread dominated by {dominant.name} ({Z_95 * dominant.spread_mm:.3g} mm{of_total}; "
+        alone = Z_95 * dominant.spread_mm
+        if total is not None and alone > total:  # correlated parameters cancel: not a share of the total
+            names = list(self.uncertainty.names)
+            row = self.uncertainty.correlation[names.index(dominant.name)]
+            partners = [f"{name} ({row[k]:+.3g})" for k, name in enumerate(names)
+                        if name != dominant.name and row[k] != 0.0]
+            return (f"exit spread: {dominant.name} alone would move the exit {alone:.3g} mm (p95, std "
+                    f"{dominant.std:g} {UNITS[dominant.name]}), more than the {total:.3g} mm p95 of all "
+                    f"parameters together (linearised): its correlation with {', '.join(partners)} cancels "
+                    f"most of it{miss}")
+        return (f"exit spread dominated by {dominant.name} ({alone:.3g} mm{of_total}; "
                 f"std {dominant.std:g} {UNITS[dominant.name]}{miss})")
 
 
