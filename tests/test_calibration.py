@@ -236,6 +236,21 @@ def test_needle_noise_free_is_exact(tmp_path):
     assert result.tissue_fit.r_squared == pytest.approx(1.0)
 
 
+def test_a_tissue_recording_that_starts_after_the_touch_is_warned_about(tmp_path):
+    """Angles that start 1 rad after the touch (the recording's own zero missed) move the
+    cutting force, the line's value at zero inserted length: a warning says how far it was
+    extrapolated; a recording from the touch gets none."""
+    air, tissue = write_recordings(tmp_path)
+    assert not [w for w in calibration.calibrate_needle(air, tissue, RADIUS).warnings if "not at the touch" in w]
+    rows = tissue.read_text().splitlines()
+    late = tmp_path / "late.csv"
+    late.write_text("\n".join([rows[0]] + [f"{float(a) + 1.0!r},{f}" for a, f in (r.split(",") for r in rows[1:])]))
+    warnings = calibration.calibrate_needle(air, late, RADIUS).warnings
+    first = float(rows[1].split(",")[0]) + 1.0
+    assert f"the tissue recording starts at {first:.3g} rad, not at the touch (0 rad): the cutting force is the " \
+           f"line extrapolated back over {RADIUS * first:.3g} mm of inserted length" in warnings[0]
+
+
 def test_needle_round_trip_with_noise_through_the_cli(tmp_path):
     air, tissue = write_recordings(tmp_path, noise=(0.01, 0.02), seed=11)
     out, plot = tmp_path / "needle.yaml", tmp_path / "forces.png"

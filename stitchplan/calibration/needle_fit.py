@@ -124,7 +124,7 @@ def fit_needle(air_angle: np.ndarray, air_force: np.ndarray, tissue_angle: np.nd
                                f"(friction) and {variances[1]:.4g} (cutting force), expected finite "
                                "non-negative values")
     refuse_negative(tissue_fit, math.sqrt(variances[0]), math.sqrt(variances[1]))
-    warnings = needle_warnings(air_angle, tissue_angle, tissue_fit)
+    warnings = needle_warnings(air_angle, tissue_angle, tissue_fit, radius)
     for message in warnings:
         log.warning(message)
     return NeedleFit(
@@ -161,9 +161,21 @@ def refuse_negative(tissue_fit: LineFit, friction_sigma: float, cutting_sigma: f
                                f">= 0: {', and '.join(why for _, why in found)}; {hint}")
 
 
-def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit: LineFit) -> list[str]:
-    """Extrapolated background, a poor line (negative values are refused: refuse_negative)."""
+LATE_START = 0.1  # the tissue recording's first angle over its span beyond which the touch was missed
+
+
+def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit: LineFit,
+                    radius: float | None = None) -> list[str]:
+    """A tissue recording that starts well after the touch, extrapolated background, a poor
+    line (negative values are refused: refuse_negative)."""
     warnings = []
+    tissue_span = tissue_angle[-1] - tissue_angle[0]
+    if tissue_angle[0] > LATE_START * tissue_span:
+        inserted = "" if radius is None else f" over {radius * tissue_angle[0]:.3g} mm of inserted length"
+        warnings.append(
+            f"the tissue recording starts at {tissue_angle[0]:.3g} rad, not at the touch (0 rad): the "
+            f"cutting force is the line extrapolated back{inserted}; record from the moment the tip "
+            "touches the tissue")
     span = air_angle[-1] - air_angle[0]
     if tissue_angle[0] < air_angle[0] - 0.01 * span or tissue_angle[-1] > air_angle[-1] + 0.01 * span:
         warnings.append(
