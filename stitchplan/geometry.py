@@ -191,7 +191,7 @@ FEW_PAIRS = 1 << 14  # up to here a query tests all (query, edge) pairs (a grid 
 FEW_EDGES = 16  # and with up to this many edges
 
 
-def _concatenated_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+def concatenated_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """The concatenated ranges starts[i] .. starts[i] + counts[i] - 1."""
     ends = np.cumsum(counts)
     return np.repeat(starts - (ends - counts), counts) + np.arange(ends[-1] if len(ends) else 0)
@@ -245,7 +245,7 @@ class EdgeGrid:
         width = last[:, 0] - first[:, 0] + 1
         count = width * (last[:, 1] - first[:, 1] + 1)
         edge = np.repeat(np.arange(len(starts)), count)
-        local = _concatenated_ranges(np.zeros(len(starts), int), count)
+        local = concatenated_ranges(np.zeros(len(starts), int), count)
         column = first[edge, 0] + local % width[edge]
         row = first[edge, 1] + local // width[edge]
         key = row * shape[0] + column
@@ -273,12 +273,12 @@ class EdgeGrid:
         for part in _blocks(rows):  # entries (query, row): the registrations of its cells in that row
             queries = np.arange(len(low))[part]
             query = np.repeat(queries, rows[part])
-            row = _concatenated_ranges(first[queries, 1], rows[part])
+            row = concatenated_ranges(first[queries, 1], rows[part])
             begin = self.indptr[row * nx + first[query, 0]]
             count = self.indptr[row * nx + last[query, 0] + 1] - begin
             for block in _blocks(count):
                 entry = np.repeat(np.arange(block.start, block.stop), count[block])
-                registration = _concatenated_ranges(begin[block], count[block])
+                registration = concatenated_ranges(begin[block], count[block])
                 q, e = query[entry], self.edge[registration]
                 once = ((self.column[registration] == np.maximum(first[q, 0], self.first[e, 0]))
                         & (row[entry] == np.maximum(first[q, 1], self.first[e, 1])))

@@ -253,12 +253,6 @@ def _particles(scenario: Scenario) -> tuple[int, bool]:
     return _graded_estimate(scenario.tissue.bounding_size, d.spacing, d.needle_spacing, zone), False
 
 
-def _model_segments(scenario: Scenario) -> tuple:
-    """The load segments as the model takes them (tissue.model.model_for_scenario)."""
-    held = tuple(load.segment for load in scenario.loads if load.displacement is not None)
-    return held + tuple(load.segment for load in scenario.loads if load.force is not None)
-
-
 def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
     """A polygon tissue's, or one with holes or regions: its particles and quadrature points
     as the model places them (tissue.model's shaped discretization: the lattice with the
@@ -267,10 +261,11 @@ def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
     evenly spread quadrature points sees through the tissue, as the model's visibility
     criterion lets them). Estimated instead (_shaped_estimate) past COUNT_SHAPED_UP_TO
     particles, where placing them would itself be a large run."""
-    from .tissue.model import shaped_discretization
+    from .tissue.model import load_segments, shaped_discretization
 
     zone = needle_zone(scenario)
-    segments = _model_segments(scenario)
+    held, pulled = load_segments(scenario)
+    segments = held + pulled  # in the model's order
     estimated = _shaped_estimate(scenario, zone, segments)
     if estimated > COUNT_SHAPED_UP_TO:
         return replace(nominal, particles=estimated)

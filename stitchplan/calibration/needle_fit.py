@@ -165,17 +165,16 @@ LATE_START = 0.1  # the tissue recording's first angle over its span beyond whic
 
 
 def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit: LineFit,
-                    radius: float | None = None) -> list[str]:
+                    radius: float) -> list[str]:
     """A tissue recording that starts well after the touch, extrapolated background, a poor
     line (negative values are refused: refuse_negative)."""
     warnings = []
     tissue_span = tissue_angle[-1] - tissue_angle[0]
     if tissue_angle[0] > LATE_START * tissue_span:
-        inserted = "" if radius is None else f" over {radius * tissue_angle[0]:.3g} mm of inserted length"
         warnings.append(
             f"the tissue recording starts at {tissue_angle[0]:.3g} rad, not at the touch (0 rad): the "
-            f"cutting force is the line extrapolated back{inserted}; record from the moment the tip "
-            "touches the tissue")
+            f"cutting force is the line extrapolated back over {radius * tissue_angle[0]:.3g} mm of "
+            "inserted length; record from the moment the tip touches the tissue")
     span = air_angle[-1] - air_angle[0]
     if tissue_angle[0] < air_angle[0] - 0.01 * span or tissue_angle[-1] > air_angle[-1] + 0.01 * span:
         warnings.append(

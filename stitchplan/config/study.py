@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import WithJsonSchema, field_validator, model_validator
+from pydantic import AfterValidator, WithJsonSchema, field_validator, model_validator
 
 from .blocks import block
 from .fields import (
@@ -28,7 +28,17 @@ from .messages import valid_or_none, validate
 
 GRADINGS = (2, 4, 8, 16)
 
-Spacings = sequence(PositiveMM, "a non-empty list of spacings (mm)", min_length=1)
+
+def _no_repeats(spacings: tuple[float, ...]) -> tuple[float, ...]:
+    """A spacing list without repeats: a repeated spacing would run twice under one label."""
+    if len(set(spacings)) != len(spacings):
+        raise problem("spacings each given once (a repeat runs the same model twice under one label)",
+                      value=list(spacings))
+    return spacings
+
+
+Spacings = Annotated[sequence(PositiveMM, "a non-empty list of spacings (mm)", min_length=1),
+                     AfterValidator(_no_repeats)]
 # a family's spacing: one number or a list in a file (so the schema says), held as a list (a
 # number is read as a list of one, StudyFamily._one_or_more), so that a bad value is one line
 # naming its item rather than one line per member of a union
@@ -70,18 +80,6 @@ class StudyFamily:
     def _one_or_more(cls, value: Any) -> Any:
         return _as_list(value)
 
-    @field_validator("spacing")
-    @classmethod
-    def _distinct_spacings(cls, spacings: tuple[float, ...] | None):
-        return _no_repeats(spacings)
-
-
-def _no_repeats(spacings: tuple[float, ...] | None):
-    """A spacing list without repeats: a repeated spacing would run twice under one label."""
-    if spacings is not None and len(set(spacings)) != len(spacings):
-        raise problem("spacings each given once (a repeat runs the same model twice under one label)",
-                      value=list(spacings))
-    return spacings
 
 
 @block(title="study")
@@ -106,11 +104,6 @@ class StudySpec:
         if isinstance(data.get("reference"), dict):
             data["reference"] = {**data["reference"], "name": "reference"}
         return data
-
-    @field_validator("spacing")
-    @classmethod
-    def _distinct_spacings(cls, spacings: tuple[float, ...] | None):
-        return _no_repeats(spacings)
 
     @field_validator("families")
     @classmethod

@@ -296,18 +296,17 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
 
     result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=tee or replays,
                       retarget=retarget if predict else None, **options)
+    settings = scenario.planner
+    # planner.target symmetric on a stitch across a wound: the bites' difference is judged (and
+    # re-aimed on the refined model) as the exit error is otherwise
+    symmetric = settings.target == "symmetric" and result.planned.bites is not None
     if not verify:
         result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, replays=replays,
                                               **options)
-        symmetric = scenario.planner.target == "symmetric" and result.planned.bites is not None
-        _note_missed(result, _verified_miss(result.planned, symmetric), scenario.planner.exit_tolerance,
+        _note_missed(result, _verified_miss(result.planned, symmetric), settings.exit_tolerance,
                      "on the planning model", symmetric)
         return result
-    settings = scenario.planner
     spacing = other.discretization.spacing
-    # planner.target symmetric on a stitch across a wound: the bites' difference is judged and
-    # re-aimed on the refined model, as the exit error is otherwise
-    symmetric = settings.target == "symmetric" and result.planned.bites is not None
     rounds, best, replayed = [], None, None  # best: (verified miss, plan, replay, its round's record)
     for record in result.passes:
         record["round"] = 1

@@ -14,9 +14,8 @@ import scipy.sparse as sp
 
 from .boundary_conditions import EssentialBoundary, boundary_particles, transformation
 from ..config import Discretization, Scenario, ScenarioError, Tissue
-from ..geometry import PolygonDomain, Rectangle
+from ..geometry import PolygonDomain, Rectangle, concatenated_ranges
 from .material import NeoHookean, PointwiseMaterial, SaintVenantKirchhoff, make_material
-from .neighbours import concatenated_ranges
 from .particles import (END_GROWTH, end_zones, graded_lattice, graded_particles, grid_particles,
                         leaf_quadrature, segment_breaks)
 from .quadrature import cell_quadrature, natural_boundary_quadrature
@@ -276,12 +275,19 @@ def shaped_discretization(tissue: Tissue, discretization: Discretization, segmen
     return particles, volumes, support, graded.fine_spacing, points, weights
 
 
+def load_segments(scenario: Scenario) -> tuple[tuple, tuple]:
+    """The scenario's load segments as the model takes them: (held: prescribed displacement,
+    pulled: force)."""
+    held = tuple(load.segment for load in scenario.loads if load.displacement is not None)
+    pulled = tuple(load.segment for load in scenario.loads if load.force is not None)
+    return held, pulled
+
+
 def model_for_scenario(scenario: Scenario,
                        needle_zone: tuple[tuple[float, float], float, tuple] | None = None) -> TissueModel:
     """The model of a scenario's tissue with its displacement segments held; `needle_zone`
     (centre, radius) is where graded particles refine (stitchplan.needle.geometry.needle_zone)."""
-    held = tuple(load.segment for load in scenario.loads if load.displacement is not None)
-    pulled = tuple(load.segment for load in scenario.loads if load.force is not None)
+    held, pulled = load_segments(scenario)
     return build_tissue_model(scenario.tissue, scenario.discretization, held, needle_zone, pulled)
 
 

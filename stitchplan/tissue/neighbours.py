@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import concatenated_ranges
+
 _CELL_LIMIT = 2**30  # cell coordinates are clipped here: a point far outside finds no cell
 FEW_POINTS = 4  # up to here `within` takes the points one by one
 _BLOCK = np.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)])  # a cell's 3 x 3 block, (9, 2)
@@ -34,12 +36,6 @@ def _key(cx, cy):
 def _keys(cells: np.ndarray) -> np.ndarray:
     """The int64 keys of cells (..., 2) -> (...)."""
     return _key(cells[..., 0], cells[..., 1])
-
-
-def concatenated_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """The concatenated ranges starts[i] .. starts[i] + counts[i] - 1."""
-    ends = np.cumsum(counts)
-    return np.repeat(starts - (ends - counts), counts) + np.arange(ends[-1] if len(ends) else 0)
 
 
 @dataclass(frozen=True, eq=False)

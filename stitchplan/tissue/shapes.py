@@ -20,8 +20,7 @@ import numpy as np
 
 from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
-from ..geometry import CIRCLE_SEGMENTS, CORNER_TURN, EdgeGrid, PolygonDomain, turns
-from .neighbours import concatenated_ranges
+from ..geometry import CIRCLE_SEGMENTS, CORNER_TURN, EdgeGrid, PolygonDomain, concatenated_ranges, turns
 from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
 
 CUT_LEVELS = 3  # halvings of a cut background cell
