@@ -91,18 +91,21 @@ def exit_code(run: Callable[[], Any]) -> int:
     stdout = _HeldStream(sys.stdout)
     sys.stdout = stdout
     try:
-        with deferred_commits() as outputs:
-            result = run()
-            stdout.finished = True
-            outputs.commit()
-            stdout.deliver()
-            outputs.keep()
+        try:
+            with deferred_commits() as outputs:
+                result = run()
+                stdout.finished = True
+                outputs.commit()
+                stdout.deliver()
+                outputs.keep()
+        except BaseException as error:  # what it printed before failing, unless printing failed
+            if error is not stdout.failure:
+                stdout.deliver_quietly()
+            raise
     except StitchplanError as error:
-        stdout.deliver_quietly()
         _echo_errors(getattr(error, "lines", None) or str(error).splitlines() or [type(error).__name__])
         return error.exit_code
     except click_errors.UsageError as error:
-        stdout.deliver_quietly()
         if type(error).__name__ == "NoArgsIsHelpError":  # bare `stitchplan`: the help was the answer
             if error.format_message().strip():  # the help has already been printed
                 error.show()
@@ -110,21 +113,15 @@ def exit_code(run: Callable[[], Any]) -> int:
         _echo_errors([usage_message(error, click_errors)])
         return error.exit_code
     except (typer.Abort, getattr(click_errors, "Abort", typer.Abort)):
-        stdout.deliver_quietly()
         _echo_errors(["aborted"])
         return 1
     except click_errors.ClickException as error:
-        stdout.deliver_quietly()
         _echo_errors([error.format_message()])
         return error.exit_code
     except OSError as error:
         if error is not stdout.failure:
-            stdout.deliver_quietly()
             raise
         return stdout_failure(error)
-    except BaseException:
-        stdout.deliver_quietly()
-        raise
     finally:
         sys.stdout = stdout.stream
     return result if isinstance(result, int) else 0  # click returns typer.Exit's code
