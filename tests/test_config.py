@@ -222,7 +222,7 @@ def test_every_problem_of_a_file_is_reported_together(slab_raw):
         "tissue.material.model: got 'mooney-rivlin', expected one of saint-venant-kirchhoff, neo-hookean",
         "tissue.clamped: got ['right', 'right'], expected each edge at most once",
         ("discretization.dilation: got 0.9, expected a number > 1 (kernel support / spacing; "
-         "at least ~1.5 for a linear basis)"),
+         "at least ~1.5 for a linear basis, at most ~3: wider kernels make the stiffness nearly singular)"),
         ("loads[0].segment: got [[10.0, 40.0], [10.0, 60.0]], expected a non-empty straight piece of "
          "one edge of the 100 x 100 mm tissue"),
         "loads[1]: got neither, expected exactly one of 'force' (N) or 'displacement' (mm)",
@@ -388,7 +388,7 @@ def test_replaced_is_a_validated_copy_and_as_input_round_trips():
         graded.replaced(path="study 'a'", dilation=0.5, basis_order=3)
     assert error.value.lines == [
         ("study 'a'.dilation: got 0.5, expected a number > 1 (kernel support / spacing; "
-         "at least ~1.5 for a linear basis)"),
+         "at least ~1.5 for a linear basis, at most ~3: wider kernels make the stiffness nearly singular)"),
         "study 'a'.basis_order: got 3, expected an integer between 1 and 2"]
 
 

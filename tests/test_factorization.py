@@ -13,13 +13,27 @@ import pytest
 import scipy.sparse as sp
 
 from stitchplan.tissue.factorization import (CHOLMOD, CHOLMOD_LDL, SUPERLU, SuperLUFactor, cholesky_available,
-                                              factorize)
+                                              condition_estimate, factorize)
 
 
 def spd_matrix(n: int = 40, seed: int = 2) -> sp.csr_matrix:
     rng = np.random.default_rng(seed)
     a = sp.random(n, n, density=0.1, random_state=rng)
     return (a @ a.T + n * sp.eye(n)).tocsr()
+
+
+def test_the_condition_estimate_follows_the_condition_number_to_a_singular_matrix():
+    """Within 3x of the eigenvalue ratio from 1e2 to 1e14 (1.9x here: Gershgorin's bound over
+    three inverse iterations); above 1e15 where the smallest eigenvalue is lost to rounding."""
+    basis = np.linalg.qr(np.random.default_rng(3).standard_normal((60, 60)))[0]
+    for condition in (1e2, 1e8, 1e14, 1e20):
+        eigenvalues = np.geomspace(1.0, 1.0 / condition, 60)
+        matrix = sp.csr_matrix(basis @ np.diag(eigenvalues) @ basis.T)
+        estimate = condition_estimate(matrix, SuperLUFactor(matrix))
+        if condition < 1e15:
+            assert condition / 3 < estimate < 3 * condition, (condition, estimate)
+        else:
+            assert estimate > 1e15, estimate
 
 
 def test_superlu_solves_one_and_several_right_hand_sides():

@@ -18,6 +18,8 @@ tool does about it (README, "Stability limits").
 5. Needle loads that overflow: a failure that blames the overflow, one line in the CLI.
 6. Point constraints closer together than the particles resolve: the constraint violation
    stalls just above its tolerance, and the failure says so (not the material).
+7. A kernel four spacings wide: the stiffness is nearly singular and the run is refused; a
+   Newton whose steps on fresh tangents raise the residual gives up on that load.
 """
 
 from __future__ import annotations
@@ -31,10 +33,11 @@ import pytest
 from typer.testing import CliRunner
 
 from stitchplan.cli import app
-from stitchplan.config.scenario import ScenarioError, parse_scenario
-from stitchplan.errors import InsertionFailure
+from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discretization
+from stitchplan.errors import InputError, InsertionFailure
 from stitchplan.events import EventKind
 from stitchplan.needle.insertion import run_insertion
+from stitchplan.needle.saddle_point import SaddlePointSolver
 from stitchplan.planning.verification import exit_deviations
 from stitchplan.tissue.deform import run_deform
 from stitchplan.tissue.material import determinant
@@ -301,3 +304,38 @@ def test_point_constraints_closer_than_the_particles_stall_and_the_failure_says_
     assert "use `needle.coupling: mortar`" in message and "Saint Venant-Kirchhoff" not in message
     result = run_insertion(needle_scene(spacing=5.0, step=0.02, coupling="mortar"))
     assert result.exit_rotation is not None and not result.events
+
+
+# --- 7. a kernel too wide for its particles; Newton steps that lose on fresh tangents -----------
+
+
+def test_a_kernel_four_spacings_wide_makes_the_stiffness_nearly_singular_and_the_run_is_refused():
+    """The cubic-spline kernel of support 4 spacings cancels the particles' alternating mode: on
+    the block at 2 mm K0's condition number is 1.4e13 at dilation 4 against 5e5 at dilation 3
+    (eigsh). The run is refused before its first step, naming the dilation, the spacing and
+    what to use instead; at dilation 3 it runs."""
+    scene = needle_scene(spacing=2.0, coupling="mortar")
+    with pytest.raises(InputError) as refused:
+        run_insertion(with_discretization(scene, dilation=4.0))
+    message = str(refused.value)
+    assert message.startswith("discretization: dilation 4 with spacing 2 mm makes the tissue's stiffness nearly "
+                              "singular (condition number ~"), message
+    assert float(re.search(r"condition number ~(\S+), ", message).group(1)) > 1e12
+    assert message.endswith("use a dilation of 3 or less (2 is the default)")
+    assert run_insertion(with_discretization(scene, dilation=3.0)).exit_rotation is not None
+
+
+def test_newton_gives_up_on_a_load_whose_steps_on_fresh_tangents_raise_the_residual(monkeypatch):
+    """Steps made three times too long (a stand-in for a tangent that no longer describes the
+    tissue) raise the residual after every fresh factorization. Newton gives up on a load
+    after two such steps instead of running out its 25 iterations, and the ramp's failure
+    names the step, the angle and the divergence."""
+    solve_direct = SaddlePointSolver.solve_direct
+    monkeypatch.setattr(SaddlePointSolver, "solve_direct", lambda *args: 3.0 * solve_direct(*args))
+    scene = needle_scene(coupling="mortar")
+    with pytest.raises(InsertionFailure) as failure:
+        run_insertion(scene)
+    message = str(failure.value)
+    assert message.startswith("step 1 (needle rotation 0.200 rad): the needle's load could not be carried"), message
+    assert "(Newton diverged at step 1 (needle rotation 0.200 rad): 2 steps on a freshly factored tangent " \
+           "raised the residual" in message

@@ -123,7 +123,8 @@ NonEmptyName = Annotated[str, Strict(), Field(min_length=1), expecting("a non-em
 Flag = Annotated[bool, Strict(), expecting("true or false")]
 
 # shared by the discretization, the needle and the families of a study
-Dilation = number("a number > 1 (kernel support / spacing; at least ~1.5 for a linear basis)", gt=1)
+Dilation = number("a number > 1 (kernel support / spacing; at least ~1.5 for a linear basis, at most ~3: "
+                  "wider kernels make the stiffness nearly singular)", gt=1)
 QuadratureOrder = integer(1, 10)
 BasisOrder = integer(1, 2)
 CellsPerSpacing = integer(1, 4)

@@ -16,6 +16,10 @@ again after each success. Equilibrium of the hyperelastic tissue does not depend
 path, so a ramped step ends where the whole load would have (tests/test_simulation.py).
 A step whose load cannot be carried stops the run with an InsertionFailure naming the step,
 the angle and the share carried (for Saint Venant-Kirchhoff: its compression instability).
+With the centre prescribed, Newton gives up on an increment once FRESH_FACTOR_LOSSES steps on
+a freshly factored tangent have raised the residual, rather than refactoring on to its last
+iteration: such steps go astray near an instability, and on the larger models each
+factorization of an indefinite K + H costs seconds.
 
 Converged means |r_u| <= needle_residual_tolerance x |f_needle| and every |g| <=
 needle_constraint_tolerance x R (config Solver; NEWTON_TOLERANCES where they are unset).
@@ -35,7 +39,7 @@ from ..config import Scenario
 from ..errors import ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NonFiniteResidual
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler, stiffness_at_rest
-from ..tissue.factorization import Factor, factorize
+from ..tissue.factorization import Factor, condition_estimate, factorize
 from ..tissue.model import TissueModel, build_tissue_model
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
@@ -60,6 +64,11 @@ STALE_CENTER_MOVES = 10.0  # d(d, lambda)/dC is re-solved while the centre moves
 CENTER_COLUMNS_ON_ROWS = True  # d(d, lambda)/dC from the kept K^-1 E^T where the coupling allows (_center_columns)
 REFACTOR_CONTRACTION = 0.5  # a planner's step renews the factor of K + H below this contraction (renew_factor)
 RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
+# K0's condition number (condition_estimate) above which a discretization is refused as
+# nearly singular: its solves then keep fewer than 4 of double precision's 16 digits. 1e4 at
+# dilation 2 on SH 1/2, 4e6 at 3, 2e10 at 3.5 and 5e15 at 4 (benchmarks/results/dilation_conditioning.md)
+STIFFNESS_CONDITION = 1e12
+FRESH_FACTOR_LOSSES = 2  # steps on a fresh factor that may raise the residual before a solve gives up (_newton)
 
 
 def newton_tolerances(scenario: Scenario) -> tuple[float, float]:
@@ -188,10 +197,33 @@ class PreparedTissue:
         return self._factor is not None
 
     def factor_at_rest(self) -> Factor:
-        """The factor of K0, made the first time it is asked for."""
+        """The factor of K0, made the first time it is asked for; InputError where K0 is
+        nearly singular (refuse_singular_stiffness)."""
         if self._factor is None:
-            self._factor = factorize(self.stiffness_at_rest(), symmetric_positive=True)
+            stiffness = self.stiffness_at_rest()
+            factor = factorize(stiffness, symmetric_positive=True)
+            refuse_singular_stiffness(condition_estimate(stiffness, factor), self.scenario.discretization)
+            self._factor = factor
         return self._factor
+
+
+def refuse_singular_stiffness(condition: float, discretization) -> None:
+    """Raise InputError where K0's `condition` number exceeds STIFFNESS_CONDITION. With a
+    linear basis on evenly spaced particles the RK shape functions are the cubic-spline
+    kernel's translates, and the kernel's Fourier transform, (sin(k a / 4) / (k a / 4))^4 per
+    direction, vanishes at the particles' alternating mode (k = pi / spacing) for a = 4
+    spacings: at dilation 4 that mode's coefficients make no displacement, and from ~3 on
+    they make almost none. Newton then stalls on such a model (sh12_100x100 at dilation 4
+    and half its spacing ran for more than 10 minutes at step 1)."""
+    if not condition > STIFFNESS_CONDITION:
+        return
+    estimate = f"~{condition:.0e}" if math.isfinite(condition) else "infinite to rounding"
+    raise InputError(
+        f"discretization: dilation {discretization.dilation:g} with spacing {discretization.spacing:g} mm makes "
+        f"the tissue's stiffness nearly singular (condition number {estimate}, estimated; ~1e4 at dilation 2; "
+        f"above {STIFFNESS_CONDITION:.0e} its solves keep fewer than 4 of 16 digits): kernels wider than ~3 "
+        "spacings make the particles' coefficients nearly dependent; use a dilation of 3 or less (2 is the "
+        "default)")
 
 
 class NeedleInsertion:
@@ -425,6 +457,7 @@ class NeedleInsertion:
         n_dof = len(free)
         minres_total = 0
         previous = earlier = math.inf  # the convergence measure one and two iterations back
+        factored_at, losses = None, 0  # the measure where the last step's factor was made; steps it lost
         mixing = AndersonMixing(ANDERSON_DEPTH)
         per_center, moved = None, math.inf  # d(d, lambda)/dC (n + m, 2), and the last centre move
         for iteration in range(settings.max_iterations + 1):
@@ -435,11 +468,24 @@ class NeedleInsertion:
             forces_balance = finite and residual_norm <= self.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
             balanced = forces_balance and worst <= self.constraint_tolerance
             steering = aim is not None and aim.held is None
+            log.debug("step %d (needle rotation %.3f rad), load %.3g, Newton iteration %d: residual %.3e N "
+                      "(needle force %.3e N), constraint violation %.3e mm", step, rotation,
+                      self.coupling.load_factor, iteration, residual_norm, state.needle_force, worst)
             if balanced and not steering:
                 self._accept(free, multipliers, center, worst, iteration)
                 return iteration, minres_total, worst
             if iteration == settings.max_iterations or not finite:
                 break
+            measure = residual_norm / max(state.needle_force, 1e-12) + worst
+            if factored_at is not None and measure > factored_at and not forces_balance:
+                losses += 1
+                if losses >= FRESH_FACTOR_LOSSES:
+                    self._count(iteration)
+                    raise InsertionFailure(
+                        f"Newton diverged at step {step} (needle rotation {rotation:.3f} rad): {losses} steps on "
+                        f"a freshly factored tangent raised the residual (now {residual_norm:.3e} N, constraint "
+                        f"violation {worst:.3e} mm)")
+            factored_at = None
             rhs = -np.concatenate([state.residual, state.violation])
             fresh = steering and (per_center is None or moved > STALE_CENTER_MOVES * aim.tolerance)
             on_rows = None
@@ -457,8 +503,9 @@ class NeedleInsertion:
                 minres_total += its
             if solution is None:
                 # keep the factor of K while Newton contracts fast; renew it when it slows
-                measure = residual_norm / max(state.needle_force, 1e-12) + worst
                 refactor = renew_factor(measure, previous, earlier, aim is not None)
+                if refactor and aim is None:  # a Newton step on the tangent here, which must not lose
+                    factored_at = measure
                 earlier = previous
                 solution = self.saddle.solve_direct(self._stiffness(multipliers, state), rhs,
                                                     refactor, self.coupling.expanded_rows,
