@@ -290,6 +290,21 @@ def test_unknown_key_suggests_the_close_one(slab_raw):
     ]
 
 
+def test_a_key_of_another_block_is_sent_there_not_to_a_near_spelling(slab_raw):
+    """`dilation` under needle is close to no needle key but 'friction' by spelling; it
+    belongs in discretization, and the line says so (at the top level too)."""
+    slab_raw["tissue"]["dilation"] = 3.0
+    slab_raw["max_step_cuts"] = 4
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert sorted(error.value.lines) == [
+        ("scenario: unknown key 'max_step_cuts', expected one of: name, tissue, discretization, needle, loads, "
+         "load_steps, probes, solver, planner, robot, study ('max_step_cuts' belongs in solver)"),
+        ("tissue: unknown key 'dilation', expected one of: size, thickness, material, clamped, outline, holes, "
+         "regions ('dilation' belongs in discretization)"),
+    ]
+
+
 def test_long_values_are_shortened(slab_raw):
     slab_raw["tissue"]["clamped"] = "right " * 100
     with pytest.raises(ScenarioError) as error:

@@ -132,8 +132,18 @@ def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "
 def _unknown_key(kind: Any, loc: tuple, parent: str, raw: Any = None) -> str:
     key, allowed = _given_key(raw, loc), _keys(_block_at(kind, loc[:-1]))
     line = f"{parent}: unknown key {_as_written(key)}, expected one of: {', '.join(allowed)}"
+    home = [name for name, block in _blocks(kind) if name != (loc[-2] if len(loc) > 1 else None)
+            and str(key) in _keys(block)]
+    if home:  # a key of another block: say where it goes, not a near spelling here
+        return line + f" ({_as_written(key)} belongs in {' or '.join(home)})"
     close = difflib.get_close_matches(str(key), allowed, n=1)
     return line + (f" (did you mean {close[0]!r}?)" if close else "")
+
+
+def _blocks(kind: Any) -> list[tuple[str, Any]]:
+    """The top-level blocks of `kind` (name, type) that have keys of their own."""
+    fields = getattr(_strip(kind), "__pydantic_fields__", None) or {}
+    return [(name, _strip(info.annotation)) for name, info in fields.items() if _keys(_strip(info.annotation))]
 
 
 def _given_key(raw: Any, loc: tuple) -> Any:
