@@ -17,7 +17,8 @@ the guard estimates
 - time: the tangent assembly B^T W B costs ~ quadrature points x neighbours^2 per Newton
   iteration and the factorization grows a little faster than the particles; seconds =
   SECONDS_PER_PARTICLE_STEP x particles^TIME_EXPONENT x steps x (neighbours / 16)^2 x
-  (quadrature points per particle / 4) x runs.
+  (quadrature points per particle / 4) x runs, x MINRES_TIME_FACTOR for needle runs whose
+  steps MINRES solves.
 
 A shaped tissue (an outline, holes, regions) is not a lattice the spacing alone counts: its
 particles and quadrature points are placed as the model places them (a traced contour's
@@ -110,6 +111,10 @@ LONG_RUN_SECONDS = 600.0
 # spread over few particles) falls below the largest one
 SECONDS_PER_PARTICLE_STEP = {"deform": 6.5e-5, "insertion": 1.5e-5}  # at 1 000 particles
 TIME_EXPONENT = 1.07  # seconds ~ particles^TIME_EXPONENT
+# a needle run with `linear_solver: minres` against the direct solve the constants above were
+# fitted on: 3.5-4.6x on SH 1/2 from 324 to 979 particles, 7.4x at 2601 (mortar coupling;
+# benchmarks/results/simulate_speed.md, "Where MINRES stagnates")
+MINRES_TIME_FACTOR = 5.0
 MEMORY_PER_PARTICLE = 3.6e4  # bytes per particle at 1 000 particles
 MEMORY_EXPONENT = 1.28
 BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan loaded
@@ -408,9 +413,10 @@ def _scale(size: ModelSize) -> tuple[float, float]:
 
 
 def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: float = 1.0,
-             origin: Origin | None = None) -> Estimate:
+             origin: Origin | None = None, linear_solver: str | None = None) -> Estimate:
     """The cost of `runs` runs of `kind` ("deform" or "insertion") on the scenario; `origin`:
-    what set its discretization, when not (all of) the scenario file's `discretization:`."""
+    what set its discretization, when not (all of) the scenario file's `discretization:`;
+    `linear_solver`: the needle steps' where an option overrides the scenario's."""
     size = model_size(scenario)
     if kind == "deform":
         steps, step_kind = scenario.load_steps, "load steps"
@@ -418,6 +424,8 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
         steps, step_kind = _needle_steps(scenario), "needle steps"
     memory, time = _scale(size)
     seconds = SECONDS_PER_PARTICLE_STEP[kind] * time * steps * runs
+    if kind != "deform" and (linear_solver or scenario.needle.linear_solver) == "minres":
+        seconds *= MINRES_TIME_FACTOR
     d, origin = scenario.discretization, origin or Origin()
     graded = needle_zone(scenario) is not None
     return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory, seconds,

@@ -317,6 +317,22 @@ def test_a_run_estimated_long_is_announced_before_it_starts(caplog):
     assert caplog.records[0].getMessage().startswith("a long run: estimated simulate: ")
 
 
+def test_minres_needle_steps_are_estimated_at_their_measured_cost():
+    """MINRES runs take 3.5-7.4x the direct solve's time on SH 1/2 (simulate_speed.md): the
+    estimate follows the scenario's solver or the option's, and leaves deform alone."""
+    from stitchplan.resources import MINRES_TIME_FACTOR
+
+    scenario = load_scenario(REPOSITORY / "configs" / "sh12_100x100.yaml")
+    direct = estimate(scenario, "insertion", "simulate").seconds
+    assert estimate(scenario, "insertion", "simulate", linear_solver="minres").seconds == \
+        pytest.approx(MINRES_TIME_FACTOR * direct)
+    in_file = replace(scenario, needle=replace(scenario.needle, linear_solver="minres"))
+    assert estimate(in_file, "insertion", "simulate").seconds == pytest.approx(MINRES_TIME_FACTOR * direct)
+    assert estimate(in_file, "insertion", "simulate", linear_solver="direct").seconds == pytest.approx(direct)
+    slab = load_scenario(REPOSITORY / "configs" / "slab_edge_load.yaml")
+    assert estimate(slab, "deform", linear_solver="minres").seconds == estimate(slab, "deform").seconds
+
+
 # --- shaped tissues: the guard counts the particles the model places --------------------------
 
 

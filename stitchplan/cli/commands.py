@@ -113,7 +113,8 @@ def simulate(
     _check_plot_steps(steps_to_plot, scenario)
     limits = _limits(max_particles, no_resource_check)
     if scenario.discretization.accuracy is None:
-        _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1), names=_option_names(spacing, dilation))
+        _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1), names=_option_names(spacing, dilation),
+               linear_solver=linear_solver)
     with _naming_files(scenario_path):  # an accuracy the discretizations cannot reach names the file
         scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
                                                max_particles=None if limits is None else limits.max_particles)
@@ -218,7 +219,8 @@ def plan(
     def guard(scenario) -> None:
         _guard(scenario_path, limits, ("insertion", scenario, "plan", PLAN_RUNS + compare),
                *([("insertion", replay_scenario(scenario, verify=True), "plan verification", VERIFICATION_RUNS,
-                   verification_origin(scenario, names))] if verify else []), names=names)
+                   verification_origin(scenario, names))] if verify else []), names=names,
+               linear_solver=linear_solver)
 
     _needle_geometry(scenario_path, scenario)  # a needle that cannot enter or exit, with the file named
     if scenario.discretization.accuracy is None:
@@ -277,7 +279,8 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     tasks = planned_tasks(uncertainty)
     _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks),
            *([("insertion", replay_scenario(scenario, verify=True), "plan verification", 1,
-               verification_origin(scenario, names))] if verify else []), names=names)
+               verification_origin(scenario, names))] if verify else []), names=names,
+           linear_solver=options.get("linear_solver"))
     with executor, progress_bar("plans and sampled runs", tasks + 2) as advance:
         result = plan_under_uncertainty(scenario, uncertainty, executor,
                                         on_run=lambda description: advance(description=description), **options)

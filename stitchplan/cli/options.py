@@ -232,17 +232,20 @@ def _limits(max_particles: Optional[int], no_resource_check: bool):
     return Limits() if max_particles is None else Limits(max_particles=max_particles)
 
 
-def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None) -> None:
+def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
+           linear_solver: Optional[str] = None) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.Origin of the run's discretization (default: the file's, with the fields in
-    `names` set by options, _option_names). Lines name the file, or the option."""
+    `names` set by options, _option_names); `linear_solver`: the --linear-solver option.
+    Lines name the file, or the option."""
     if limits is None:
         return
     from ..resources import Origin, check_resources, estimate
 
     with _naming_files(scenario_path):
-        check_resources([estimate(scenario, kind, label, count, origin=origin[0] if origin else Origin(names or {}))
+        check_resources([estimate(scenario, kind, label, count, origin=origin[0] if origin else Origin(names or {}),
+                                  linear_solver=linear_solver)
                          for kind, scenario, label, count, *origin in runs], limits)
 
 
