@@ -259,14 +259,14 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
                             verify: bool, names: dict, export: Path, out, summary, plot, uncertainty_plot,
                             provenance: dict, quiet: bool, **options) -> None:
     """plan --uncertainty: the robust plan over the file's parameter distributions, its
-    sampled runs on the executor (stitchplan.uncertainty.robust); with `verify` the exported
-    plan replayed on the refined model at the scenario's values."""
+    sampled runs on the executor (stitchplan.uncertainty.robust); with `verify` the plans aimed
+    for the refined model and the exported one replayed on it at the scenario's values."""
     from ..config.uncertainty import check_against_scenario, load_uncertainty
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
     from ..planning.verification import replay_scenario, verify_exported
-    from ..resources import PLAN_RUNS, verification_origin
+    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, verification_origin
     from ..uncertainty.robust import plan_under_uncertainty, planned_tasks
     from ..uncertainty.sampling import draw
 
@@ -278,17 +278,22 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     draw(uncertainty, scenario)  # a distribution mostly below zero is refused before the runs
     tasks = planned_tasks(uncertainty)
     _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks),
-           *([("insertion", replay_scenario(scenario, verify=True), "plan verification", 1,
+           *([("insertion", replay_scenario(scenario, verify=True), "plan verification", VERIFICATION_RUNS + 1,
                verification_origin(scenario, names))] if verify else []), names=names,
            linear_solver=options.get("linear_solver"))
     with executor, progress_bar("plans and sampled runs", tasks + 2) as advance:
-        result = plan_under_uncertainty(scenario, uncertainty, executor,
+        result = plan_under_uncertainty(scenario, uncertainty, executor, verify=verify,
                                         on_run=lambda description: advance(description=description), **options)
     plan = result.exported_plan
     if verify:
-        verify_exported(scenario, plan, **options)
-        note = ("verification: the exported plan replayed on the refined model at the scenario's values, not "
-                "re-aimed by it (the sampled runs replay the plans on the planning model)")
+        if plan.verification is None:  # the re-aimed robust plan; the nominal one was verified as `plan` verifies
+            verify_exported(scenario, plan, **options)
+        note = ("verification: the plans aim for the refined model (its exit offset for the nominal plan's path, "
+                f"({result.refined_offset[0]:.3g}, {result.refined_offset[1]:.3g}) mm), the exported plan replayed "
+                "on it at the scenario's values; the sampled runs replay on the planning model, the plans' exit "
+                "errors are reported with that offset added" if result.refined_offset is not None else
+                "verification: the nominal plan's trajectory could not be replayed on the refined model; the plans "
+                "are not aimed for it")
     else:
         note = "the plans under uncertainty are not verified on a refined model (--no-verify)"
     plan.planned.events.insert(0, _note_event(note))

@@ -18,9 +18,15 @@ from .plots import save
 SENSITIVITY_METHOD = (f"central finite differences of the exit error vector (achieved - desired exit, deformed), "
                       f"the nominal plan's centre path replayed at the scenario's value +- {SENSITIVITY_STEP:g} std "
                       "(at most half the value), the other parameters at the scenario's values")
-ROBUST_DESIGN = ("the nominal plan re-aimed with the mean exit shift: planner passes aiming the exit error at -s, "
-                 "s = mean over the training samples of (exit error of the nominal path - the nominal plan's own exit "
-                 "error); statistics on the held-out samples where every path ran")
+ROBUST_DESIGN = ("the nominal plan re-aimed with the mean exit shift: planner passes aiming the exit error at -s "
+                 "(minus the refined model's offset where verified), s = mean over the training samples of (exit "
+                 "error of the nominal path - the nominal plan's own exit error); statistics on the held-out samples "
+                 "where every path ran")
+STATISTICS_MODEL = {
+    True: ("the sampled runs replay on the planning model; the nominal and robust paths' exit error vectors with "
+           "refined_offset_mm added (on the refined model to first order), the unplanned path's as they are"),
+    False: "the sampled runs replay on the planning model (not verified: no refined offset)",
+}
 COLOURS = {"unplanned": "tab:red", "nominal": "tab:blue", "robust": "tab:green"}
 
 
@@ -54,13 +60,16 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "held_out_mean_exit_error_mm": {label: _vector(result.errors(label).mean(axis=0))
                                         if result.evaluated.any() else None for label in LABELS},
         "robust_design": ROBUST_DESIGN,
+        "statistics_model": STATISTICS_MODEL[result.refined_offset is not None],
+        "refined_offset_mm": _vector(result.refined_offset),
         "mean_shift_mm": _vector(result.shift),
         "robust_aim_mm": _vector(result.aim),
         "mean_shift_t2": result.shift_significance,  # Hotelling T^2; None: not defined (< 3 runs, singular)
         "mean_shift_t2_threshold": result.shift_threshold,  # its 95 % quantile; the robust plan re-aims above
         "training_prediction": result.training_prediction(),
         "training": {"samples": len(result.training), "failed": len(result.training) - len(training_ok),
-                     "nominal_path": exit_statistics(np.array([run.exit_error for run in training_ok]))},
+                     "nominal_path": exit_statistics(result.on_refined_model(
+                         np.array([run.exit_error for run in training_ok]).reshape(-1, 2), "nominal"))},
         "sensitivity_method": SENSITIVITY_METHOD,
         "sensitivity_units": {s.name: per_unit(s.name) for s in result.sensitivities},
         "sensitivity_step": {s.name: s.step for s in result.sensitivities},
@@ -125,12 +134,15 @@ def uncertainty_datasets(result: UncertaintyResult) -> tuple[dict, dict]:
                                  for s in result.sensitivities]),
         "sensitivity_step": np.array([s.step for s in result.sensitivities]),
         "mean_shift": result.shift,
+        # the planned paths' exit_error below are the planning model's; the summary adds this offset
+        **({} if result.refined_offset is None else {"refined_offset": result.refined_offset}),
     }}
     units = {"uncertainty/parameter_names": "text", "uncertainty/nominal_values": parameter_units,
              "uncertainty/std": parameter_units, "uncertainty/correlation": "1",
              "uncertainty/training_parameters": parameter_units, "uncertainty/held_out_parameters": parameter_units,
              "uncertainty/sensitivity": ",".join(per_unit(name) for name in names),
-             "uncertainty/sensitivity_step": parameter_units, "uncertainty/mean_shift": "mm"}
+             "uncertainty/sensitivity_step": parameter_units, "uncertainty/mean_shift": "mm",
+             "uncertainty/refined_offset": "mm"}
     runs = {"training/nominal": result.training, **{f"held_out/{label}": result.held_out[label] for label in LABELS}}
     for key, group in runs.items():
         name = f"uncertainty/{key}"
@@ -150,8 +162,11 @@ def uncertainty_datasets(result: UncertaintyResult) -> tuple[dict, dict]:
 def uncertainty_lines(result: UncertaintyResult) -> list[str]:
     """What the command prints after the plan line."""
     stats = result.statistics
+    basis = ("" if result.refined_offset is None else
+             " (the plans' on the refined model: their planning-model exits + its offset "
+             f"({result.refined_offset[0]:.3g}, {result.refined_offset[1]:.3g}) mm)")
     lines = [f"uncertainty: {result.uncertainty.samples} samples held out ({int(result.evaluated.sum())} evaluated, "
-             f"{result.failed_samples} samples with a failed run), exit error mean / p95:"]
+             f"{result.failed_samples} samples with a failed run), exit error mean / p95{basis}:"]
     for label in LABELS:
         s = stats[label]
         shown = "n/a" if s["mean_mm"] is None else f"{s['mean_mm']:.4f} / {s['p95_mm']:.4f} mm"
@@ -171,8 +186,9 @@ def plot_title(result: UncertaintyResult, scenario_name: str = "") -> str:
     if exported is None or unplanned is None:
         return (f"{name}: no held-out sample ran every path ({result.failed_samples} samples with a failed run); "
                 f"{result.exported} plan exported")
-    return (f"{name}: exit error on {evaluated} held-out samples; {result.exported} plan p95 {exported:.3g} mm, "
-            f"unplanned {unplanned:.3g} mm")
+    basis = "" if result.refined_offset is None else " (plans: on the refined model)"
+    return (f"{name}: exit error on {evaluated} held-out samples{basis}; {result.exported} plan p95 "
+            f"{exported:.3g} mm, unplanned {unplanned:.3g} mm")
 
 
 def plotted_paths(result: UncertaintyResult) -> list[tuple[str, str]]:

@@ -379,9 +379,10 @@ def _note_missed(result: PlanResult, miss: float, accepted: float, where: str, s
 
 
 def verify_exported(scenario: Scenario, result: PlanResult, **options) -> PlanResult:
-    """A plan made elsewhere (the robust plan under uncertainty) checked as plan_verified
-    checks its own: the exported trajectory replayed on the refined model at the scenario's
-    values, once (not re-aimed by it), giving the plan's `verification` and `estimate`."""
+    """A plan made elsewhere (the re-aimed robust plan under uncertainty, aimed by the nominal
+    plan's refined offset) checked as plan_verified checks its own: the exported trajectory
+    replayed on the refined model at the scenario's values, once (not re-aimed by it), giving
+    the plan's `verification` and `estimate`."""
     other = replay_scenario(scenario, verify=True)
     replays = InlineReplays(other, **_replay_options(options))
     try:
