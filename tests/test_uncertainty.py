@@ -373,6 +373,36 @@ def test_the_plans_statistics_are_on_the_refined_model_by_its_offset_of_the_nomi
     assert "on the refined model" in result.stdout
 
 
+def test_a_re_aimed_robust_plan_aims_by_the_shift_and_the_refined_offset_and_is_verified(tmp_path, monkeypatch):
+    """Every shift taken as significant (a zero threshold): the robust plan is planned again,
+    aimed at -s - delta on the planning model, and replayed on the refined model itself; its
+    statistics there are its held-out exits + delta, as the nominal plan's are."""
+    from stitchplan.uncertainty import robust
+
+    monkeypatch.setattr(robust, "shift_threshold", lambda n: 0.0)
+    scenario_path = write(tmp_path, {**small_raw(), "solver": TIGHT_NEEDLE_NEWTON})
+    path = write(tmp_path, {"samples": 4, "seed": 7, "parameters": {"thickness": {"std": 1.0},
+                                                                    "cutting_force": {"std": 0.1}}}, "u.yaml")
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
+                    tmp_path / "s.json", "--out", tmp_path / "run.h5", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "s.json").read_text())
+    block = summary["uncertainty"]
+    offset = np.asarray(block["refined_offset_mm"])
+    assert np.linalg.norm(offset) > 0.0
+    np.testing.assert_allclose(block["robust_aim_mm"], -np.asarray(block["mean_shift_mm"]) - offset)
+    with h5py.File(tmp_path / "run.h5") as log:
+        robust_exits = log["uncertainty/held_out/robust/exit_error"][()]
+    candidate = block["robust"] if block["exported"] == "robust" else block["robust_candidate"]
+    assert candidate == pytest.approx(exit_statistics(robust_exits + offset), rel=1e-12)
+    # the exported plan's own replay on the refined model, as `simulate --center-path --spacing` gives it
+    replay = invoke("simulate", scenario_path, "--center-path", tmp_path / "t.csv", "--spacing",
+                    str(summary["verification_spacing_mm"]), "--summary", tmp_path / "replay.json")
+    assert replay.exit_code == 0, replay.output
+    replayed = json.loads((tmp_path / "replay.json").read_text())
+    assert replayed["exit_error_mm"] == pytest.approx(summary["verified_exit_error_mm"], abs=1e-6)
+
+
 def test_the_run_log_and_the_png(planned):
     folder, result = planned
     assert result.exit_code == 0, result.output
