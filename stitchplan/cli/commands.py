@@ -292,8 +292,8 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
                 f"({result.refined_offset[0]:.3g}, {result.refined_offset[1]:.3g}) mm), the exported plan replayed "
                 "on it at the scenario's values; the sampled runs replay on the planning model, the plans' exit "
                 "errors are reported with that offset added" if result.refined_offset is not None else
-                "verification: the nominal plan's trajectory could not be replayed on the refined model; the plans "
-                "are not aimed for it")
+                "verification: the nominal plan's trajectory could not be replayed on the refined model: no refined "
+                "offset is added to the plans' statistics, and a re-aimed robust plan aims by the mean shift alone")
     else:
         note = "the plans under uncertainty are not verified on a refined model (--no-verify)"
     plan.planned.events.insert(0, _note_event(note))
