@@ -320,9 +320,11 @@ def test_the_summary_has_the_uncertainty_block_of_scenario_md(planned):
     offset = np.asarray(block["refined_offset_mm"])
     if block["mean_shift_t2"] >= block["mean_shift_t2_threshold"]:  # a shift beyond noise: aimed at its opposite
         np.testing.assert_allclose(block["robust_aim_mm"], -np.asarray(block["mean_shift_mm"]) - offset)
-    else:  # noise: the robust plan is the nominal one
-        np.testing.assert_allclose(block["robust_aim_mm"], -offset)
+    else:  # noise: the robust plan is the nominal one, its aim where it exits on the planning model
+        own = np.subtract(summary["achieved_exit_def"], summary["desired_exit_def"])
+        np.testing.assert_allclose(block["robust_aim_mm"], own, atol=1e-12)
         assert block["robust"] == block["nominal"]
+        assert block["training_prediction"]["robust"] == block["training_prediction"]["nominal"]
     assert block["distributions"]["parameters"]["lame_lambda"] == {"std": 0.0129, "units": "MPa",
                                                                     "source": "calibration"}
     # more thickness, less force per unit of it: the sensitivity has the sign of the forces' opposite
@@ -579,8 +581,10 @@ def test_two_training_samples_do_not_test_the_mean_shift(tmp_path):
     assert result.exit_code == 0, result.output
     block = _strict_json(tmp_path / "s.json")["uncertainty"]
     assert block["mean_shift_t2"] is None and block["mean_shift_t2_threshold"] is None
-    # not re-aimed by a mean shift: the nominal plan's aim, the refined model's offset
-    np.testing.assert_allclose(block["robust_aim_mm"], -np.asarray(block["refined_offset_mm"]))
+    # not re-aimed by a mean shift: the nominal plan, aimed where it exits on the planning model
+    summary = _strict_json(tmp_path / "s.json")
+    own = np.subtract(summary["achieved_exit_def"], summary["desired_exit_def"])
+    np.testing.assert_allclose(block["robust_aim_mm"], own, atol=1e-12)
     assert block["robust"] == block["nominal"]
     assert any("Hotelling's T^2 needs at least 3" in note for note in block["notes"])
 

@@ -131,8 +131,9 @@ class UncertaintyResult:
     sensitivities: list[Sensitivity]
     where: str  # the executor
     notes: list[str] = field(default_factory=list)
-    aim: np.ndarray | None = None  # (2,) the robust plan's aim on the planning model (-shift - the refined
-    # offset); None: no robust plan
+    # (2,) the robust plan's exit error aimed at on the planning model (-shift - the refined offset;
+    # where it is the nominal plan, that plan's own exit error there); None: no robust plan
+    aim: np.ndarray | None = None
     deviations: np.ndarray | None = None  # (n_ok, 2) training exit errors - the nominal plan's own
     shift_significance: float | None = None  # Hotelling T^2 of the mean shift; None: not tested
     shift_threshold: float | None = None  # its 95 % quantile for the training runs (shift_threshold)
@@ -312,7 +313,6 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
         return UncertaintyResult(uncertainty, design, nominal, None, "nominal", np.zeros(2), training, held_out,
                                  sensitivities, _where(executor), notes, refined_offset=offset)
     deviations = np.asarray(ok) - exit_error_vector(nominal.planned)  # (n_ok, 2)
-    base_aim = np.zeros(2) if offset is None else -offset  # where the nominal scene's exit is aimed
     shift = deviations.mean(axis=0)
     significance, threshold = shift_significance(deviations), shift_threshold(len(ok))
     if significance is None or significance < threshold:  # aiming at noise only adds it to every exit
@@ -327,9 +327,10 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
                          f"for {len(ok)} samples): the robust plan is the nominal plan")
         held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": nominal_held}
         return UncertaintyResult(uncertainty, design, nominal, nominal, "robust", shift, training, held_out,
-                                 sensitivities, _where(executor), notes, aim=base_aim, deviations=deviations,
+                                 sensitivities, _where(executor), notes, aim=exit_error_vector(nominal.planned),
+                                 deviations=deviations,
                                  shift_significance=significance, shift_threshold=threshold, refined_offset=offset)
-    aim = base_aim - shift
+    aim = -shift if offset is None else -shift - offset  # the refined model's exit centred on the desired one
     log.info("mean exit shift over %d training samples (%.4g, %.4g) mm, T^2 %.3g >= %.3g; re-planning aimed "
              "at (%.4g, %.4g) mm", len(ok), *shift, significance, threshold, *aim)
     robust = run_plan(scenario, compare=False, aim=aim, shooting=nominal.shooting,
