@@ -288,12 +288,16 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     if verify:
         if plan.verification is None:  # the re-aimed robust plan; the nominal one was verified as `plan` verifies
             verify_exported(scenario, plan, **options)
-        note = ("verification: the plans aim for the refined model (its exit offset for the nominal plan's path, "
-                f"({result.refined_offset[0]:.3g}, {result.refined_offset[1]:.3g}) mm), the exported plan replayed "
-                "on it at the scenario's values; the sampled runs replay on the planning model, the plans' exit "
-                "errors are reported with that offset added" if result.refined_offset is not None else
-                "verification: the nominal plan's trajectory could not be replayed on the refined model: no refined "
-                "offset is added to the plans' statistics, and a re-aimed robust plan aims by the mean shift alone")
+        offset = result.refined_offset
+        if offset is None:
+            note = ("verification: the nominal plan's trajectory could not be replayed on the refined model: no "
+                    "refined offset is added to the plans' statistics, and a re-aimed robust plan aims by the mean "
+                    "shift alone")
+        else:
+            note = (f"verification: the plans aim for the refined model (its exit offset for the nominal plan's path, "
+                    f"({offset[0]:.3g}, {offset[1]:.3g}) mm), the exported plan replayed on it at the scenario's "
+                    "values; the sampled runs replay on the planning model, the plans' exit errors are reported "
+                    "with that offset added")
     else:
         note = "the plans under uncertainty are not verified on a refined model (--no-verify)"
     plan.planned.events.insert(0, _note_event(note))

@@ -242,6 +242,12 @@ def predicted_offset(scenario: Scenario, planned: InsertionResult, predictions: 
     return (exit_error_vector(planned) - exit_error_vector(replayed)) / PREDICTED_RATIO
 
 
+def exit_offset(replayed: InsertionResult, planned: InsertionResult) -> np.ndarray:
+    """The refined model's exit offset delta = e_refined - e_base for the same trajectory (the
+    module docstring): what the passes aim by."""
+    return exit_error_vector(replayed) - exit_error_vector(planned)
+
+
 def replay(replays: InlineReplays, centers: np.ndarray) -> InsertionResult | None:
     """The centre path replayed; None when the tip does not leave the tissue within it."""
     try:
@@ -321,7 +327,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                 log.info("verification: refined model's bite-difference offset %.4g mm; re-planning aimed at "
                          "a difference of %.4g mm", bite_offset, bite_aim)
             else:
-                offset = exit_error_vector(replayed) - exit_error_vector(result.planned)
+                offset = exit_offset(replayed, result.planned)
                 aim = -offset
                 log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at "
                          "(%.4g, %.4g) mm", *offset, *aim)

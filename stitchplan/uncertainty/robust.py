@@ -67,7 +67,7 @@ from ..config.uncertainty import UNITS, Uncertainty
 from ..errors import InputError, NumericalFailure
 from ..parallel import Executor, run_all
 from ..planning.planner import PlanResult, exit_error_vector, run_plan
-from ..planning.verification import AIMED_TOLERANCE_FRACTION, plan_verified
+from ..planning.verification import AIMED_TOLERANCE_FRACTION, exit_offset, plan_verified
 from .evaluation import SampleRun, run_sample
 from .sampling import Design, draw, with_parameters
 
@@ -292,7 +292,7 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     if verify:
         nominal = plan_verified(scenario, compare=True, **options)
         refined = nominal.verification.result
-        offset = None if refined is None else exit_error_vector(refined) - exit_error_vector(nominal.planned)
+        offset = None if refined is None else exit_offset(refined, nominal.planned)
     else:
         nominal, offset = run_plan(scenario, compare=True, **options), None
     report("nominal plan")
@@ -312,7 +312,8 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
         held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": nominal_held}
         return UncertaintyResult(uncertainty, design, nominal, None, "nominal", np.zeros(2), training, held_out,
                                  sensitivities, _where(executor), notes, refined_offset=offset)
-    deviations = np.asarray(ok) - exit_error_vector(nominal.planned)  # (n_ok, 2)
+    own = exit_error_vector(nominal.planned)  # where the nominal plan exits on the planning model
+    deviations = np.asarray(ok) - own  # (n_ok, 2)
     shift = deviations.mean(axis=0)
     significance, threshold = shift_significance(deviations), shift_threshold(len(ok))
     if significance is None or significance < threshold:  # aiming at noise only adds it to every exit
@@ -327,8 +328,7 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
                          f"for {len(ok)} samples): the robust plan is the nominal plan")
         held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": nominal_held}
         return UncertaintyResult(uncertainty, design, nominal, nominal, "robust", shift, training, held_out,
-                                 sensitivities, _where(executor), notes, aim=exit_error_vector(nominal.planned),
-                                 deviations=deviations,
+                                 sensitivities, _where(executor), notes, aim=own, deviations=deviations,
                                  shift_significance=significance, shift_threshold=threshold, refined_offset=offset)
     aim = -shift if offset is None else -shift - offset  # the refined model's exit centred on the desired one
     log.info("mean exit shift over %d training samples (%.4g, %.4g) mm, T^2 %.3g >= %.3g; re-planning aimed "
