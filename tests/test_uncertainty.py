@@ -646,6 +646,29 @@ def test_uncertain_moduli_on_a_scenario_with_material_regions_are_refused(tmp_pa
     assert with_parameters(scenario, ("thickness",), np.array([9.0])).tissue.thickness == 9.0
 
 
+def test_a_symmetric_target_across_a_wound_is_refused_with_uncertainty(tmp_path):
+    """The plans under uncertainty aim at and report the exit; a symmetric plan aims at equal
+    bites, whose passes would override the robust aim. Refused before any run, naming the
+    scenario's file and field; the target alone (no wound crossed) means the exit, and passes."""
+    from stitchplan.config import load_scenario
+    from stitchplan.uncertainty.robust import check_target
+
+    scenario_path = Path(__file__).resolve().parents[1] / "configs" / "wound_closure_symmetric.yaml"
+    path = write(tmp_path, {"samples": 3, "parameters": {"thickness": {"std": 0.5}}}, "u.yaml")
+    out = tmp_path / "out"
+    line = one_error_line(invoke("plan", scenario_path, "--uncertainty", path, "--export", out / "t.csv",
+                                 "--summary", out / "s.json", "--workers", "0"))
+    assert line.startswith(f"error: {scenario_path}: planner.target: got 'symmetric', expected 'exit' with "
+                           "--uncertainty"), line
+    assert not out.exists()
+    with pytest.raises(InputError, match="planner.target: got 'symmetric'"):
+        plan_under_uncertainty(load_scenario(scenario_path), uncertainty({"samples": 3, "parameters":
+                                                                          {"thickness": {"std": 0.5}}}))
+    convex = small_raw()
+    convex.setdefault("planner", {})["target"] = "symmetric"
+    check_target(parse_scenario(convex))  # no wound crossed: nothing to refuse
+
+
 def test_a_calibration_that_cannot_separate_the_moduli_is_refused_with_finite_stds(tmp_path):
     """A fit marked `identifiable: false` is refused even where it printed standard
     uncertainties (the estimates' correlation beyond the limit): they are not usable."""

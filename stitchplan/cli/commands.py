@@ -267,7 +267,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     from ..io.uncertainty_reports import uncertainty_lines
     from ..planning.verification import replay_scenario, verify_exported
     from ..resources import PLAN_RUNS, VERIFICATION_RUNS, verification_origin
-    from ..uncertainty.robust import plan_under_uncertainty, planned_tasks
+    from ..uncertainty.robust import check_target, plan_under_uncertainty, planned_tasks
     from ..uncertainty.sampling import draw
 
     uncertainty = load_uncertainty(uncertainty_path)
@@ -275,6 +275,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
                     "--uncertainty-plot": uncertainty_plot},
                    {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration})
     check_against_scenario(uncertainty, scenario, scenario_path)
+    check_target(scenario, str(scenario_path))
     draw(uncertainty, scenario)  # a distribution mostly below zero is refused before the runs
     tasks = planned_tasks(uncertainty)
     _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks),

@@ -47,6 +47,9 @@ point) per parameter, the nominal plan's path replayed at the scenario's value +
 h = SENSITIVITY_STEP x std (at most half the value), the other parameters at the
 scenario's values.
 
+Only the exit is aimed at: planner.target `symmetric` on a stitch across a wound (equal bites)
+is refused (check_target).
+
 Every sampled run is a task on the executor (parallel.Executor); the two plans run in this
 process. When every run on a sampled parameter set fails (training and held-out), the result
 would say nothing about the uncertainty: that is a NumericalFailure naming how many failed
@@ -66,7 +69,7 @@ from ..config import Scenario
 from ..config.uncertainty import UNITS, Uncertainty
 from ..errors import InputError, NumericalFailure
 from ..parallel import Executor, run_all
-from ..planning.planner import PlanResult, exit_error_vector, run_plan
+from ..planning.planner import PlanResult, exit_error_vector, run_plan, scenario_needle_gaps
 from ..planning.verification import AIMED_TOLERANCE_FRACTION, exit_offset, plan_verified
 from .evaluation import SampleRun, run_sample
 from .sampling import Design, draw, with_parameters
@@ -272,6 +275,19 @@ def planned_tasks(uncertainty: Uncertainty) -> int:
     return 4 * uncertainty.samples + 2 * len(uncertainty.names)
 
 
+def check_target(scenario: Scenario, source: str = "scenario") -> None:
+    """Refuse planner.target `symmetric` on a stitch across a wound (`source`: the scenario's
+    file, for the message). The plans here aim at the exit point: the training shift, the
+    robust aim and the held-out statistics are exit error vectors. A symmetric plan aims at
+    equal bites and trades exit error for them (planning.planner.run_plan), so its passes
+    would override the robust aim and the statistics would measure what it does not aim at."""
+    if scenario.planner.target == "symmetric" and scenario_needle_gaps(scenario):
+        raise InputError(f"{source}: planner.target: got 'symmetric', expected 'exit' with --uncertainty (plans "
+                         "under uncertainty aim at the exit point and report its spread; a symmetric plan aims at "
+                         "equal bites across the wound instead: plan it without --uncertainty, or plan the exit "
+                         "under uncertainty with planner.target: exit)")
+
+
 def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executor: Executor | None = None,
                            on_run: Callable[[str], None] | None = None, verify: bool = False,
                            **options) -> UncertaintyResult:
@@ -281,6 +297,7 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     is plan_verified's (its `verification` set) and the plans aim for the refined model."""
     if scenario.needle is None:
         raise InputError("needle: missing, required by plan")
+    check_target(scenario)
     report = on_run or (lambda description: None)
     design = draw(uncertainty, scenario)
     names = uncertainty.names
