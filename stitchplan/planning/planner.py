@@ -389,8 +389,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     tissue = tissue or PreparedTissue(scenario)  # built by the first run
     unplanned = run_insertion(scenario, on_step=on_step, tissue=tissue, **options) if compare else None
     aim = np.zeros(2) if aim is None else np.asarray(aim, dtype=float)
-    # planner.target symmetric on a stitch across a wound: each pass aims the exit at equal bites
-    symmetric = settings.target == "symmetric" and bool(scenario_needle_gaps(scenario))
+    symmetric = aims_at_bites(scenario)  # each pass aims the exit at equal bites
     target = settings.exit_tolerance if tolerance is None else tolerance
     start = time.perf_counter()
     offsets = shooting or PassOffsets()
@@ -461,6 +460,12 @@ def symmetric_aim(result: InsertionResult, bite_aim: float = 0.0) -> np.ndarray:
     away = result.achieved_exit_def - result.bites["exit_wound_edge_def"]
     excess = result.bites["difference_mm"] - bite_aim
     return exit_error_vector(result) - excess * away / np.linalg.norm(away)
+
+
+def aims_at_bites(scenario: Scenario) -> bool:
+    """Whether the plan aims at equal bites: planner.target symmetric on a stitch across a
+    wound (elsewhere the target means the exit)."""
+    return scenario.planner.target == "symmetric" and bool(scenario_needle_gaps(scenario))
 
 
 def scenario_needle_gaps(scenario: Scenario) -> list:

@@ -67,7 +67,7 @@ from ..events import Event, EventKind
 from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
-from .planner import PlanResult, exit_error_vector, run_plan, scenario_needle_gaps, symmetric_aim
+from .planner import PlanResult, aims_at_bites, exit_error_vector, run_plan, symmetric_aim
 from .replays import InlineReplays, StreamTee, replays_for
 from .trajectory import exported_centers
 
@@ -203,8 +203,7 @@ def plan_replays(scenario: Scenario, verify: bool = True, background: bool = Tru
 
 def predicts_aim(scenario: Scenario, verify: bool = True) -> bool:
     """Whether plan_verified predicts the refined model's offset (the module docstring)."""
-    symmetric = scenario.planner.target == "symmetric" and bool(scenario_needle_gaps(scenario))
-    return verify and scenario.planner.predicted_aim and not symmetric
+    return verify and scenario.planner.predicted_aim and not aims_at_bites(scenario)
 
 
 def prediction_replays(scenario: Scenario, verify: bool = True, background: bool = True, **options):

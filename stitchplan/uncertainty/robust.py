@@ -69,7 +69,7 @@ from ..config import Scenario
 from ..config.uncertainty import UNITS, Uncertainty
 from ..errors import InputError, NumericalFailure
 from ..parallel import Executor, run_all
-from ..planning.planner import PlanResult, exit_error_vector, run_plan, scenario_needle_gaps
+from ..planning.planner import PlanResult, aims_at_bites, exit_error_vector, run_plan
 from ..planning.verification import AIMED_TOLERANCE_FRACTION, exit_offset, plan_verified
 from .evaluation import SampleRun, run_sample
 from .sampling import Design, draw, with_parameters
@@ -281,7 +281,7 @@ def check_target(scenario: Scenario, source: str = "scenario") -> None:
     robust aim and the held-out statistics are exit error vectors. A symmetric plan aims at
     equal bites and trades exit error for them (planning.planner.run_plan), so its passes
     would override the robust aim and the statistics would measure what it does not aim at."""
-    if scenario.planner.target == "symmetric" and scenario_needle_gaps(scenario):
+    if aims_at_bites(scenario):
         raise InputError(f"{source}: planner.target: got 'symmetric', expected 'exit' with --uncertainty (plans "
                          "under uncertainty aim at the exit point and report its spread; a symmetric plan aims at "
                          "equal bites across the wound instead: plan it without --uncertainty, or plan the exit "
