@@ -16,6 +16,7 @@ class EventKind(str, Enum):
     PLANNER_NOT_CONVERGED = "planner-not-converged"  # centre iterations ran out within a step
     AUTO_DISCRETIZATION = "auto-discretization"  # what the accuracy target chose, and why
     TARGET_MISSED = "target-missed"  # a plan's best pass still misses its target (exit or bites)
+    CROSSING_MISSED = "crossing-missed"  # the tip did not make a crossing of the undeformed circle (a wound it passed by)
     ACCURACY_CHECK = "accuracy-check"  # an exit error estimate or a verification could not be made, or an estimate is above the accuracy asked for
 
 

@@ -59,6 +59,20 @@ class NeedleGeometry:
         """The undeformed circle's point at crossing k, (2,)."""
         return self.tip(self.crossings[k][0])
 
+    def exit_made(self, loops: BoundaryLoops, point: np.ndarray, first: int) -> int | None:
+        """Which crossing of the undeformed circle a tip that leaves the tissue at the boundary
+        point `point` makes: of the exits from crossing `first` on, the one nearest to it along
+        the boundary loop that holds it; None when no exit ahead lies on that loop.
+
+        The deformed tissue may keep the tip from a wound the undeformed circle only clips, or
+        let it out before a wall the circle grazes: counting exits would then take the final
+        exit for a wound's wall. Where the tip leaves tells which exit it is; the crossings
+        passed over are the ones it missed."""
+        distances = {k: loops.distance(point, self.crossing_point(k))
+                     for k in range(first, len(self.crossings)) if self.crossings[k][1] == "exit"}
+        nearest = min(distances, key=distances.get, default=None)
+        return None if nearest is None or math.isinf(distances[nearest]) else nearest
+
     def tip(self, rotation: float | np.ndarray, center: np.ndarray | None = None) -> np.ndarray:
         """Tip position of the rigid needle after `rotation` (rad) about `center`."""
         center = self.center if center is None else center
@@ -80,6 +94,52 @@ class NeedleGeometry:
     def expected_steps(self) -> int:
         """Needle steps until the undeformed circle leaves the tissue, the exit step included."""
         return int(self.exit_rotation / self.step) + 1
+
+
+@dataclass(frozen=True)
+class BoundaryLoops:
+    """The tissue's boundary walked loop by loop (the outline first, then each hole), its
+    directed edges with their arc length along their loop: how far apart two boundary points
+    are along the boundary (NeedleGeometry.exit_made)."""
+
+    starts: np.ndarray  # (k, 2) directed boundary edges, loop after loop
+    ends: np.ndarray  # (k, 2)
+    loop: np.ndarray  # (k,) the loop of each edge, 0 the outline
+    offset: np.ndarray  # (k,) arc length along its loop at each edge's start, mm
+    perimeter: np.ndarray  # (loops,) mm
+
+    @classmethod
+    def of(cls, domain: Rectangle | PolygonDomain) -> BoundaryLoops:
+        segments = domain.boundary_segments()
+        starts = np.array([start for start, _ in segments], dtype=float)
+        ends = np.array([end for _, end in segments], dtype=float)
+        lengths = np.linalg.norm(ends - starts, axis=1)
+        # a loop starts where an edge does not begin at the previous edge's end
+        first_of_loop = np.concatenate([[True], np.any(starts[1:] != ends[:-1], axis=1)])
+        loop = np.cumsum(first_of_loop) - 1
+        before = np.cumsum(lengths) - lengths  # arc length over every loop so far
+        return cls(starts, ends, loop, before - before[first_of_loop][loop], np.bincount(loop, weights=lengths))
+
+    def position(self, point: np.ndarray) -> tuple[int, float]:
+        """The loop of the boundary point nearest `point`, and the arc length along it there."""
+        edges = self.ends - self.starts
+        along = np.clip(np.sum((point - self.starts) * edges, axis=1) / np.sum(edges * edges, axis=1), 0.0, 1.0)
+        nearest = int(np.argmin(np.linalg.norm(self.starts + along[:, None] * edges - point, axis=1)))
+        return int(self.loop[nearest]), float(self.offset[nearest] + along[nearest] * length(edges[nearest]))
+
+    def distance(self, first: np.ndarray, second: np.ndarray) -> float:
+        """Distance between two boundary points along the boundary, the shorter way round their
+        loop; inf on different loops (a hole's wall and the outline, two holes)."""
+        (loop, at_first), (other, at_second) = self.position(first), self.position(second)
+        if loop != other:
+            return math.inf
+        along = abs(at_first - at_second)
+        return min(along, float(self.perimeter[loop]) - along)
+
+    def describe(self, point: np.ndarray) -> str:
+        """Which loop holds the boundary point: 'the outer boundary' or 'the wall of hole 2'."""
+        loop = self.position(point)[0]
+        return "the outer boundary" if loop == 0 else f"the wall of hole {loop}"
 
 
 def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> NeedleGeometry:
@@ -104,7 +164,9 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
     # (a convex tissue's only exit keeps first_exit_rotation's value)
     rotation = exits[-1] if len(exits) > 1 else first
     if rotation is None or rotation > needle.arc + 1e-9:
-        reach = "never leaves the tissue" if rotation is None else f"leaves after {rotation:.4g} rad"
+        # the excess too: an entry a hair off a corner leaves a hair past the arc, which 4 digits hide
+        reach = ("never leaves the tissue" if rotation is None
+                 else f"leaves after {rotation:.4g} rad, {rotation - needle.arc:.2g} rad past its arc")
         raise InputError(
             f"needle: the {needle.radius:g} mm needle entering at {list(needle.entry)} turning "
             f"{needle.turn} {reach}; expected an exit within its arc of {needle.arc:.4g} rad"

@@ -19,8 +19,9 @@ import numpy as np
 
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure
-from ..events import EventKind
+from ..events import Event, EventKind
 from .equilibrium import NeedleInsertion, PreparedTissue
+from .geometry import BoundaryLoops
 from .results import InsertionResult, NeedleStep, Snapshot, StepsDone
 from .steering import CenterAim
 from .tip_tracking import locate_exit, locate_reentry, track_step
@@ -146,22 +147,29 @@ def run_insertion(
         if on_step is not None:
             on_step(record)
 
-    limit = math.ceil(2.0 * math.pi / geometry.step) + 2
-    wound_exits = len(geometry.gaps)  # walls the tip leaves before the final exit
-    crossings: list[tuple[str, np.ndarray, float]] = []  # (kind, reference point, rotation)
+    loops = BoundaryLoops.of(insertion.domain)
+    # the crossings the tip made, (index into geometry.crossings, reference point, rotation):
+    # each matched to the undeformed circle's crossing it is, the ones passed over missed
+    made: list[tuple[int, np.ndarray, float]] = []
+    ahead = 0  # the first crossing of the undeformed circle the tip has neither made nor missed
     in_gap = False
+    limit = math.ceil(2.0 * math.pi / geometry.step) + 2
     for step in range(1, limit + 1):
         rotation = step * geometry.step
         started = time.perf_counter()
         previous = rotation - geometry.step
         if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
-            entered = locate_reentry(insertion, max(previous, crossings[-1][2]), rotation)
+            # the needle turns no further than its arc through a wound: the tip enters again within it
+            entered = _reentry(insertion, step, max(previous, made[-1][2]), min(rotation, geometry.arc))
             if entered is None:
+                if rotation >= geometry.arc:
+                    raise _left_for_good(insertion, step, made[-1])
                 solve_step(insertion, control, step, rotation, None, "gap", condition_numbers, started,
                            guess=_at(guesses, step, insertion))
                 continue
             entry_point, entry_rotation = entered
-            crossings.append(("entry", entry_point, entry_rotation))
+            made.append((ahead, entry_point, entry_rotation))
+            ahead += 1
             insertion.add_point(entry_point, gap=True)
             in_gap = False
             log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, entry_rotation)
@@ -177,25 +185,80 @@ def run_insertion(
                 point, method = track_step(insertion, step, rotation)  # about the previous step's centre
             fraction = 1.0
         if insertion.domain.outside_distance(point) > 0.0:
-            start = max(previous, crossings[-1][2]) if crossings else previous
+            start = max(previous, made[-1][2]) if made else previous
             exit_point, exit_rotation = locate_exit(insertion, start, method,
                                                     (rotation - start) if start != previous else None)
-            if sum(kind == "exit" for kind, _, _ in crossings) < wound_exits:
+            crossing = _exit_made(insertion, loops, step, exit_point, exit_rotation, ahead)
+            made.append((crossing, exit_point, exit_rotation))
+            ahead = crossing + 1
+            if crossing < len(geometry.crossings) - 1:
                 # a wound's first wall: the track reaches the wall, the tip goes on in the gap
-                crossings.append(("exit", exit_point, exit_rotation))
-                insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
-                in_gap = True
                 log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
                          step, exit_rotation)
+                if rotation >= geometry.arc:  # too late in the arc to enter again
+                    raise _left_for_good(insertion, step, made[-1])
+                insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
+                in_gap = True
                 solve_step(insertion, control, step, rotation, None, method, condition_numbers, started,
                            guess=_at(guesses, step, insertion))
                 continue
             return _result(insertion, entry_center, steps, states, displacements, exit_point,
-                           exit_rotation, time.perf_counter() - wall_start, crossings)
+                           exit_rotation, time.perf_counter() - wall_start, made)
         solve_step(insertion, control, step, rotation, point, method, condition_numbers, started,
                    fraction, _at(guesses, step, insertion), taken=taken)
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
+
+
+def _left_for_good(insertion: NeedleInsertion, step: int, wall: tuple[int, np.ndarray, float]) -> InsertionFailure:
+    """The failure of a run whose tip left the tissue into a wound and cannot enter it again
+    within the needle's arc (a needle turned no further through the air)."""
+    crossing, point, rotation = wall
+    geometry = insertion.geometry
+    return InsertionFailure(
+        f"step {step}: the needle tip left the tissue into a wound at {_point_text(point)} at needle rotation "
+        f"{rotation:.3f} rad (crossing {crossing + 1} of the undeformed circle) and did not enter it again within "
+        f"the needle's arc of {geometry.arc:.4g} rad")
+
+
+def _reentry(insertion: NeedleInsertion, step: int, start: float, end: float) -> tuple[np.ndarray, float] | None:
+    """locate_reentry, its failure naming the step."""
+    try:
+        return locate_reentry(insertion, start, end)
+    except InsertionFailure as failure:
+        raise InsertionFailure(f"step {step}: {failure}") from None
+
+
+def _exit_made(insertion: NeedleInsertion, loops: BoundaryLoops, step: int, point: np.ndarray,
+               rotation: float, ahead: int) -> int:
+    """The crossing of the undeformed circle (index into geometry.crossings) that the tip
+    leaving the tissue at `point` makes (NeedleGeometry.exit_made); an event for each crossing
+    from `ahead` on that it passed over without making. Raises InsertionFailure when the tip
+    leaves through a wall the undeformed circle does not leave through ahead."""
+    geometry = insertion.geometry
+    crossing = geometry.exit_made(loops, point, ahead)
+    where = f"{_point_text(point)} at needle rotation {rotation:.3f} rad"
+    if crossing is None:
+        raise InsertionFailure(
+            f"step {step}: the needle tip left the tissue through {loops.describe(point)} at {where}, where the "
+            f"undeformed circle leaves at none of its crossings {ahead + 1}-{len(geometry.crossings)}; expected "
+            "the tip to leave where the undeformed circle does")
+    made = "the final exit" if crossing == len(geometry.crossings) - 1 else f"crossing {crossing + 1} (exit)"
+    for missed in range(ahead, crossing):
+        kind, desired = geometry.crossings[missed][1], geometry.crossing_point(missed)
+        message = (f"crossing {missed + 1} of {len(geometry.crossings)} of the undeformed circle ({kind} at "
+                   f"{_point_text(desired)} on {loops.describe(desired)}) missed: the needle tip did not cross "
+                   f"the boundary there but next left the tissue at {where}, nearest along the boundary to "
+                   f"{made}")
+        insertion.events.append(Event(EventKind.CROSSING_MISSED, message, step, rotation))
+        log.info(message)  # the user sees it once, as a `note:` from the event
+    return crossing
+
+
+def _point_text(point: np.ndarray) -> str:
+    """'[x, y]' to 4 digits, without -0 or 1e-16 off an edge."""
+    x, y = (round(float(value), 9) + 0.0 for value in point)
+    return f"[{x:.4g}, {y:.4g}]"
 
 
 def _tracked_before(earlier: InsertionResult | StepsDone, step: int,
@@ -267,9 +330,11 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
             states: list[Snapshot],
             displacements: list[np.ndarray],
             exit_point: np.ndarray, exit_rotation: float, wall_seconds: float,
-            wound: list[tuple[str, np.ndarray, float]] = ()) -> InsertionResult:
+            made: list[tuple[int, np.ndarray, float]]) -> InsertionResult:
+    """The run's record once the tip has left the tissue at `exit_point` (the final exit, the
+    last of the crossings `made`)."""
     desired_exit = insertion.geometry.desired_exit
-    crossings = _crossings(insertion, [*wound, ("exit", exit_point, exit_rotation)])
+    crossings = _crossings(insertion, made)
     u_exit = insertion.displacement(np.vstack([exit_point, desired_exit]))  # achieved, desired
     result = InsertionResult(
         scenario=insertion.scenario, model=insertion.model, geometry=insertion.geometry,
@@ -291,7 +356,7 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
                        "needle_residual_tolerance": insertion.newton_tolerances[0],
                        "needle_constraint_tolerance": insertion.newton_tolerances[1]},
         crossings=crossings,
-        bites=_bites(insertion, crossings) if len(crossings) > 1 else None,
+        bites=_bites(insertion, crossings) if any(c["achieved"] is not None for c in crossings[:-1]) else None,
         states=states,
     )
     log.info("the tip left the tissue at needle rotation %.3f rad: exit error %.4g mm",
@@ -299,21 +364,28 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
     return result
 
 
-def _crossings(insertion: NeedleInsertion, achieved: list[tuple[str, np.ndarray, float]]) -> list[dict]:
-    """The summary's `crossings` (SCENARIO.md, "Tissue shapes"): every crossing after the
-    entry in needle order, the undeformed circle's point (desired, at rest and moved with the
-    tissue) against the tip's material point there (achieved, deformed)."""
+def _crossings(insertion: NeedleInsertion, made: list[tuple[int, np.ndarray, float]]) -> list[dict]:
+    """The summary's `crossings` (SCENARIO.md, "Tissue shapes"): every crossing of the
+    undeformed circle after the entry in needle order, its point (desired, at rest and moved
+    with the tissue) against the tip's material point there (achieved, deformed); achieved,
+    achieved_def and error_mm None for a crossing the tip missed (`made`: the crossings it
+    made, by index)."""
     geometry = insertion.geometry
     desired = np.array([geometry.crossing_point(k) for k in range(len(geometry.crossings))])
-    reached = np.array([point for _, point, _ in achieved])
-    count = min(len(desired), len(reached))
-    u = insertion.displacement(np.vstack([desired[:count], reached[:count]]))
+    achieved = {crossing: point for crossing, point, _ in made}
+    reached = np.array([achieved[k] for k in sorted(achieved)]).reshape(-1, 2)
+    u = insertion.displacement(np.vstack([desired, reached]))
+    u_reached = dict(zip(sorted(achieved), u[len(desired):]))
     records = []
-    for k in range(count):
-        desired_def, achieved_def = desired[k] + u[k], reached[k] + u[count + k]
-        records.append({"kind": geometry.crossings[k][1], "desired": desired[k], "desired_def": desired_def,
-                        "achieved": reached[k], "achieved_def": achieved_def,
-                        "error_mm": float(np.linalg.norm(achieved_def - desired_def))})
+    for k, (_, kind) in enumerate(geometry.crossings):
+        desired_def = desired[k] + u[k]
+        record = {"kind": kind, "desired": desired[k], "desired_def": desired_def,
+                  "achieved": None, "achieved_def": None, "error_mm": None}
+        if k in achieved:
+            achieved_def = achieved[k] + u_reached[k]
+            record.update(achieved=achieved[k], achieved_def=achieved_def,
+                          error_mm=float(np.linalg.norm(achieved_def - desired_def)))
+        records.append(record)
     return records
 
 
@@ -342,7 +414,9 @@ def _bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
         ends = np.array([end for name in names for end in domain.edge(name)])  # (2 x edges, 2)
         return ends[np.argmin(np.linalg.norm(ends - toward, axis=1))]
 
-    first_wall, last_wall = crossings[0]["achieved"], crossings[-2]["achieved"]
+    # the walls of the wounds the tip crossed (a wound it missed has none)
+    walls = [crossing["achieved"] for crossing in crossings[:-1] if crossing["achieved"] is not None]
+    first_wall, last_wall = walls[0], walls[-1]
     entry, final_exit = geometry.entry, crossings[-1]["achieved"]
     points = np.vstack([entry, edge_near(first_wall, entry), final_exit, edge_near(last_wall, final_exit)])
     moved = points + insertion.displacement(points)

@@ -78,8 +78,9 @@ class InsertionResult:
     events: list[Event] = field(default_factory=list)
     # and the linear solver, its backend and the needle steps' Newton tolerances
     solver_counts: dict[str, int | float | str] = field(default_factory=dict)
-    # every boundary crossing after the entry, the final exit last (more than one across a
-    # wound): kind, desired / desired_def / achieved / achieved_def (2,), error_mm
+    # every boundary crossing of the undeformed circle after the entry, the final exit last
+    # (more than one across a wound): kind, desired / desired_def / achieved / achieved_def
+    # (2,), error_mm; achieved, achieved_def and error_mm None for a crossing the tip missed
     crossings: list[dict] = field(default_factory=list)
     # a stitch across a wound: each side's bite (deformed distance between the needle's
     # surface crossing and the wound edge) and their difference, mm; None otherwise

@@ -413,8 +413,10 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
             stream.end(exported_centers(planned))
         mismatch = final_mismatch(planned)
         error = exit_error_vector(planned)
-        if symmetric:
+        if symmetric and planned.bites is not None:
             aim = symmetric_aim(planned, bite_aim)
+        elif symmetric:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
+            log.info("planning pass %d: the tip crossed no wound (no bites); the pass keeps its exit aim", number)
         miss = float(np.linalg.norm(error - aim))
         passes.append({"pass": number, "offset_mm": offsets.offset.copy(), "exit_error_mm": planned.exit_error_mm,
                        "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
