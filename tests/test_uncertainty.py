@@ -84,7 +84,7 @@ BAD_FILES = [
     ({"from_calibration": "missing.yaml"}, "from_calibration: "),
     ({"from_calibration": "fitted_displacement_only.yaml"},
      "fit.standard_uncertainty: got {'lame_lambda': null, 'lame_mu': null}, expected positive standard "
-     "uncertainties of lame_lambda and lame_mu (MPa); the calibration could not separate the moduli"),
+     "uncertainties of lame_lambda and lame_mu (MPa); the calibration did not identify the moduli"),
 ]
 
 
@@ -678,7 +678,7 @@ def test_a_calibration_that_cannot_separate_the_moduli_is_refused_with_finite_st
     fitted = tmp_path / "fitted.yaml"
     fitted.write_text("fit:\n  standard_uncertainty: {lame_lambda: 0.02, lame_mu: 0.01}\n"
                       "  correlation: -0.9995\n  identifiable: false\n")
-    with pytest.raises(InputError, match="fit.identifiable: got false, expected a calibration that separates"):
+    with pytest.raises(InputError, match="fit.identifiable: got false, expected a calibration that identifies"):
         calibration_spread(fitted, tmp_path / "u.yaml")
 
 

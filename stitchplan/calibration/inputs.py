@@ -30,6 +30,16 @@ from ..errors import InputError
 from .tables import read_columns
 
 MARKER_COLUMNS = ("x", "y", "x_def", "y_def")
+# A marker moves by less than the tissue's size (the longer side of its bounding box): more
+# would stretch the slab to over twice its length, far beyond the strains a calibration
+# photographs and the quasi-static model fits (the shipped example's markers move under
+# 6 mm in a 100 mm slab). A deformed position beyond is a typo, a unit slip (micrometres
+# as mm) or a coordinate of another frame, and would only make the misfit overflow.
+MAX_DISPLACEMENT_OVER_SIZE = 1.0
+# Markers all displaced by less than this fraction of the tissue's size (0.1 micrometre in a
+# 100 mm slab, far below what a photograph resolves) did not move: the deformed columns
+# repeat the rest ones. The fit would read them as an infinitely stiff material.
+NO_MOTION_OVER_SIZE = 1e-6
 __all__ = ["GRID_SCALES", "MARKER_COLUMNS", "Experiment", "FitSettings", "MaterialCalibration",
            "load_material_calibration", "parse_material_calibration"]
 
@@ -94,14 +104,38 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
         raise InputError(
             f"{path}.markers: {markers_path} line {lines[k]}: rest position ({rest[k, 0]:g}, {rest[k, 1]:g}) mm "
             f"again (first at line {lines[first[inverse.ravel()[k]]]}), expected each marker once")
+    deformed = np.stack([data["x_def"], data["y_def"]], axis=1)
+    check_displacements(rest, deformed, lines, max(tissue.bounding_size), f"{path}.markers: {markers_path}")
     return Experiment(
         name=block.name,
         loads=block.loads,
         load_steps=block.load_steps,
         markers=rest,
-        measured=np.stack([data["x_def"], data["y_def"]], axis=1),
+        measured=deformed,
         source=str(markers_path),
     )
+
+
+def check_displacements(rest: np.ndarray, deformed: np.ndarray, lines: np.ndarray, size: float,
+                        where: str) -> None:
+    """Each marker displaced by at most the tissue's `size` in x and in y, and the markers as a
+    whole displaced at all (every experiment carries non-zero loads, so its markers move)."""
+    displacement = deformed - rest  # (n, 2)
+    reach = MAX_DISPLACEMENT_OVER_SIZE * size
+    beyond = np.argwhere(np.abs(displacement) > reach)
+    if len(beyond):
+        k, axis = beyond[0]
+        column, rest_column = ("x_def", "x") if axis == 0 else ("y_def", "y")
+        raise InputError(
+            f"{where}: line {lines[k]}, {column}: got {deformed[k, axis]:g}, expected a deformed position "
+            f"within {reach:g} mm (the tissue's size) of the rest position {rest_column} = {rest[k, axis]:g} mm; "
+            "is it in another unit or frame?")
+    largest = float(np.linalg.norm(displacement, axis=1).max())
+    if largest <= NO_MOTION_OVER_SIZE * size:
+        raise InputError(
+            f"{where}: x_def,y_def: got every marker at its rest position x,y (largest displacement "
+            f"{largest:g} mm over {len(rest)} markers), expected markers the experiment's loads displace "
+            "(are the deformed columns a copy of the rest ones?)")
 
 
 def parse_material_calibration(raw: Any, folder: Path, source: str = "") -> MaterialCalibration:

@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, SolverDivergence
+from ..config.calibration import MAX_SEARCH_MODULUS, MIN_SEARCH_MODULUS
+from ..errors import InputError, NumericalFailure
 from .forward import ExperimentModel
 from .inputs import FitSettings, MaterialCalibration, load_material_calibration
 
@@ -42,6 +43,24 @@ def no_progress(label: str, total: int | None) -> Iterator[Callable[..., None]]:
     yield lambda *args, **kwargs: None
 
 
+# what a forward solve may fail with: the solver's own failures, and a singular tangent
+FORWARD_FAILURES = (NumericalFailure, ArithmeticError, np.linalg.LinAlgError)
+
+
+def experiment_label(index: int, name: str) -> str:
+    """experiments[i] of the calibration file, with its name when it has one."""
+    return f"experiments[{index}]" + (f" ({name!r})" if name else "")
+
+
+class ForwardFailure(NumericalFailure):
+    """The forward model of one experiment gave no usable markers at a parameter point."""
+
+    def __init__(self, experiment: str, theta: np.ndarray, cause: str):
+        super().__init__(f"{experiment} at lame_lambda {theta[0]:.4g}, lame_mu {theta[1]:.4g} MPa: {cause}")
+        self.experiment = experiment
+        self.cause = cause
+
+
 class MarkerMisfit:
     """Residual r = p - q over all markers of all experiments, as a function of theta."""
 
@@ -49,6 +68,7 @@ class MarkerMisfit:
         shared: dict = {}
         self.experiments = [ExperimentModel(problem.tissue, problem.discretization, e, problem.fit.model,
                                             problem.solver, shared) for e in problem.experiments]
+        self.labels = [experiment_label(i, e.name) for i, e in enumerate(problem.experiments)]
         self.measured = np.concatenate([e.measured for e in problem.experiments])  # (n, 2)
         self._cache: dict[tuple[float, float], tuple[np.ndarray, np.ndarray | None, list]] = {}
         self.evaluations: list[np.ndarray] = []
@@ -60,18 +80,31 @@ class MarkerMisfit:
         return all(any(load.force is not None for load in e.experiment.loads) for e in self.experiments)
 
     def evaluate(self, theta: np.ndarray, jacobian: bool = False, quick: bool = False):
-        """(r (2n,), dr/dtheta (2n, 2) or None, simulated positions per experiment)."""
+        """(r (2n,), dr/dtheta (2n, 2) or None, simulated positions per experiment).
+
+        Raises ForwardFailure, naming the experiment, where a static solve fails or its
+        markers (or their sensitivities) are not finite."""
         key = (float(theta[0]), float(theta[1]))
         cached = self._cache.get(key)
         if cached is not None and (cached[1] is not None or not jacobian):
             return cached
         self.evaluations.append(np.array(key))
-        predictions = [e.predict(np.array(key), jacobian, quick) for e in self.experiments]
+        predictions = [self._predict(k, np.array(key), jacobian, quick) for k in range(len(self.experiments))]
         simulated = [q for q, _ in predictions]
         residual = (self.measured - np.concatenate(simulated)).ravel()
         derivative = -np.concatenate([dq for _, dq in predictions]).reshape(-1, 2) if jacobian else None
         self._cache[key] = (residual, derivative, simulated)
         return self._cache[key]
+
+    def _predict(self, k: int, theta: np.ndarray, jacobian: bool, quick: bool):
+        """Experiment k's markers and sensitivities; ForwardFailure when there are none usable."""
+        try:
+            positions, derivative = self.experiments[k].predict(theta, jacobian, quick)
+        except FORWARD_FAILURES as failure:
+            raise ForwardFailure(self.labels[k], theta, str(failure) or type(failure).__name__) from failure
+        if not (np.all(np.isfinite(positions)) and (derivative is None or np.all(np.isfinite(derivative)))):
+            raise ForwardFailure(self.labels[k], theta, "the simulated markers are not finite")
+        return positions, derivative
 
     @property
     def solves(self) -> int:
@@ -93,7 +126,7 @@ class MarkerMisfit:
 class GridSearch:
     lame_lambda: np.ndarray  # (n,)
     lame_mu: np.ndarray  # (m,)
-    cost: np.ndarray  # (n, m) f = sum |p - q|^2, mm^2; nan where the solve failed
+    cost: np.ndarray  # (n, m) f = sum |p - q|^2, mm^2; nan where the forward model failed
     best: tuple[float, float]
     failed: int
 
@@ -106,28 +139,42 @@ def grid_axes(fit: FitSettings) -> tuple[np.ndarray, np.ndarray]:
 def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., None]) -> GridSearch:
     """f on the grid, from the stiffest corner towards the softest in a serpentine, so each
     solve warm-starts from a neighbour that deformed less. Under force loads a point softer
-    in both moduli than one that failed is not tried: it would deform even more."""
+    in both moduli than one that failed is not tried: it would deform even more. A point
+    whose forward model fails, or whose cost is not finite, stays nan and is never the best."""
     lambdas, mus = grid_axes(fit)
     cost = np.full((len(lambdas), len(mus)), np.nan)
-    failures: list[tuple[int, int]] = []
+    failures: list[tuple[int, int]] = []  # where a solve failed: softer points are skipped
+    failed_experiments: dict[str, str] = {}  # experiment -> its first failure
+    tried = 0
     for step, i in enumerate(reversed(range(len(lambdas)))):
         for j in (reversed(range(len(mus))) if step % 2 == 0 else range(len(mus))):
             if misfit.force_controlled and any(i <= a and j <= b for a, b in failures):
                 advance()
                 continue
+            tried += 1
             try:
                 residual, _, _ = misfit.evaluate(np.array([lambdas[i], mus[j]]), quick=True)
-                cost[i, j] = residual @ residual
-            except SolverDivergence as failure:
+            except ForwardFailure as failure:
                 failures.append((i, j))
-                log.info("grid point lambda=%.4g mu=%.4g: no solution (%s)", lambdas[i], mus[j], failure)
+                failed_experiments.setdefault(failure.experiment, failure.cause)
+                log.info("grid point: no solution (%s)", failure)
+                advance()
+                continue
+            with np.errstate(over="ignore"):  # checked here
+                value = float(residual @ residual)
+            if math.isfinite(value):
+                cost[i, j] = value
+            else:  # markers finite, yet their squares overflow: no sign of a too soft material
+                failed_experiments.setdefault(" and ".join(misfit.labels), f"the misfit f = {value} overflows")
             advance()
     failed = int(np.isnan(cost).sum())
     if failed == cost.size:
         raise InputError(
-            f"fit: the static solve failed at all {cost.size} grid points of lame_lambda "
-            f"{list(fit.lame_lambda)}, lame_mu {list(fit.lame_mu)} MPa; expected ranges where the "
-            "tissue can carry the loads (raise the lower bounds or reduce the loads)")
+            f"fit: could not evaluate any moduli in lame_lambda {list(fit.lame_lambda)}, lame_mu "
+            f"{list(fit.lame_mu)} MPa: the forward model failed at every grid point tried ({tried} of "
+            f"{cost.size}" + (", the others softer still" if tried < cost.size else "") + "), "
+            + "; ".join(f"in {label}: {cause}" for label, cause in failed_experiments.items())
+            + "; expected ranges where the tissue can carry the loads (raise the lower bounds or reduce the loads)")
     i, j = np.unravel_index(np.nanargmin(cost), cost.shape)
     if failed:
         log.info("grid: %d of %d points without a static solution (too soft for the loads)",
@@ -154,15 +201,20 @@ class Refinement:
 
 
 def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: tuple[float, float],
-           advance: Callable[..., None]) -> Refinement:
-    """Bounded trust-region least squares on r(theta) with the exact Jacobian. A trial point
-    whose static solve fails gets a large constant residual, which the method steps back from."""
+           start_cost: float, advance: Callable[..., None]) -> Refinement:
+    """Bounded trust-region least squares on r(theta) with the exact Jacobian, from `start`
+    (whose cost f is `start_cost`). A trial point whose forward model fails gets a large
+    constant residual, costlier than the start, so the method steps back from it and never
+    ends there."""
     from scipy.optimize import least_squares
 
     fit = problem.fit
     rest = np.concatenate([e.markers for e in problem.experiments])
     measured_scale = float(np.abs(misfit.measured - rest).max())
-    penalty = 10.0 * (measured_scale + 1.0)  # residual returned where a trial point cannot be solved
+    count = 2 * len(misfit.measured)
+    # residual returned where a trial point cannot be solved: its cost is at least 100 times
+    # the start's, so a failed point is never accepted as a step
+    penalty = 10.0 * max(measured_scale + 1.0, math.sqrt(start_cost / count))
     failures = 0
 
     def residual(theta: np.ndarray) -> np.ndarray:
@@ -170,12 +222,16 @@ def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: tuple[floa
         advance()
         try:
             return misfit.evaluate(theta, jacobian=True)[0]
-        except SolverDivergence:
+        except ForwardFailure as failure:
             failures += 1
-            return np.full(2 * len(misfit.measured), penalty)
+            log.info("least squares: no solution (%s)", failure)
+            return np.full(count, penalty)
 
     def jacobian(theta: np.ndarray, *_: object) -> np.ndarray:
-        return misfit.evaluate(theta, jacobian=True)[1]
+        try:
+            return misfit.evaluate(theta, jacobian=True)[1]
+        except ForwardFailure:  # the constant penalty residual there does not change
+            return np.zeros((count, 2))
 
     lower = np.array([fit.lame_lambda[0], fit.lame_mu[0]])
     upper = np.array([fit.lame_lambda[1], fit.lame_mu[1]])
@@ -188,6 +244,45 @@ def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: tuple[floa
 # --- statistics and identifiability ---------------------------------------------------
 
 
+def moduli_on_bound(theta: np.ndarray, fit: FitSettings) -> list[tuple[int, int]]:
+    """(modulus index, 0 for the low bound or 1 for the high) of each fitted modulus on a
+    bound of its search range. The margin is relative to the value, not the range: ranges
+    span decades, and a fit of 0.2 MPa in [0.01, 1e6] is not on its bound. On a low bound
+    of 0 (lambda's) a relative margin is none: there a value below the smallest non-zero
+    bound a range may have (1 Pa, softer than any tissue) is 0; the least squares ends
+    such fits at 1e-14 MPa and less, not at 0."""
+    found = []
+    for k, bounds in enumerate((fit.lame_lambda, fit.lame_mu)):
+        for side, bound in enumerate(bounds):
+            margin = 1e-6 * max(abs(bound), abs(theta[k])) if bound else MIN_SEARCH_MODULUS
+            if abs(theta[k] - bound) <= margin:
+                found.append((k, side))
+    return found
+
+
+def identified(theta: np.ndarray, stats: Statistics, fit: FitSettings) -> bool:
+    """Both moduli estimated: the data separate them and neither ends on a bound of its search
+    range (where the best fit may lie beyond and (J^T J)^-1 does not describe the estimate)."""
+    return stats.separable and not moduli_on_bound(theta, fit)
+
+
+def bound_advice(name: str, side: int, bounds: tuple[float, float]) -> str:
+    """How to let the fit past a bound, within the moduli a search range may reach
+    (stitchplan.config.calibration); at their limits, what to check in the data instead."""
+    low, high = bounds
+    smallest = 0.0 if name == "lame_lambda" else MIN_SEARCH_MODULUS  # lambda may start at 0
+    if side == 1 and high < MAX_SEARCH_MODULUS:
+        return f"raise fit.{name}[1] (up to {MAX_SEARCH_MODULUS:g} MPa)"
+    if side == 0 and low > smallest:
+        return f"lower fit.{name}[0] (down to {smallest:g} MPa)"
+    if side == 0 and name == "lame_lambda":
+        return ("a negative lame_lambda (Poisson's ratio below 0) is no tissue's: it is 0 within the "
+                "markers' scatter, or their change of area is off (check that they are in mm)")
+    limit = f"past {MAX_SEARCH_MODULUS:g}" if side == 1 else f"below {smallest:g}"
+    return (f"no search may go {limit} MPa, so no material it allows fits the markers: check that they "
+            "are in mm, and the loads in N and in their directions")
+
+
 @dataclass
 class Statistics:
     uncertainty: tuple[float | None, float | None]  # standard uncertainties, MPa
@@ -195,7 +290,8 @@ class Statistics:
     ratio_uncertainty: float | None  # of lambda/mu
 
     @property
-    def identifiable(self) -> bool:
+    def separable(self) -> bool:
+        """The data tell the two moduli apart (the fit also needs them inside their ranges)."""
         return abs(self.correlation) < CORRELATION_LIMIT and self.uncertainty[0] is not None
 
 
@@ -226,9 +322,9 @@ def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
                  refinement: Refinement, displacements_only: bool = True) -> list[str]:
     """What a user should know about the fitted moduli, most serious first.
     `displacements_only`: every load of every experiment is a prescribed displacement."""
-    identifiable = stats.identifiable
+    identifiable = identified(theta, stats, fit)
     warnings: list[str] = []
-    if not identifiable:
+    if not stats.separable:
         why = ("as when every load is a prescribed displacement (scaling both moduli then moves no "
                "marker, as here); add a force-controlled experiment" if displacements_only else
                "the markers' motion does not tell them apart (too little of it, or markers where the "
@@ -238,16 +334,14 @@ def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
             f"the data cannot separate lame_lambda and lame_mu (correlation of the estimates "
             f"{stats.correlation:+.4f}): only lame_lambda/lame_mu = {theta[0] / theta[1]:.4g} is "
             f"determined, {why}")
-    for k, (name, (lo, hi)) in enumerate(zip(MODULI, (fit.lame_lambda, fit.lame_mu))):
-        # relative to the value, not the range: ranges span decades, and a fit of 0.2 MPa in
-        # [0.01, 1e6] is not on its bound
-        on_bound = [abs(theta[k] - bound) <= 1e-6 * max(abs(bound), abs(theta[k])) for bound in (lo, hi)]
-        if any(on_bound):
-            warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the bound of its search range "
-                            f"[{lo:g}, {hi:g}]: widen fit.{name}")
+    for k, side in moduli_on_bound(theta, fit):
+        name, bounds = MODULI[k], (fit.lame_lambda, fit.lame_mu)[k]
+        warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the {('low', 'high')[side]} bound of its search "
+                        f"range [{bounds[0]:g}, {bounds[1]:g}], so it is not identified (the best fit may lie "
+                        f"beyond): {bound_advice(name, side, bounds)}")
     if refinement.failed_solves:
         warnings.append(f"least squares tried {refinement.failed_solves} parameter point(s) where "
-                        "the static solve failed (too soft for the loads): the optimum may lie at "
+                        "the forward model failed (too soft for the loads): the optimum may lie at "
                         "the edge of the solvable materials; check the cost surface plot")
     for k, name in enumerate(MODULI):
         u = stats.uncertainty[k]
@@ -305,10 +399,14 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         grid = grid_search(misfit, problem.fit, advance)
     grid_solves, grid_evaluations = misfit.solves, len(misfit.evaluations)
     with progress("least squares", None) as advance:
-        refinement = refine(misfit, problem, grid.best, advance)
+        refinement = refine(misfit, problem, grid.best, float(np.nanmin(grid.cost)), advance)
     theta = refinement.solution.x
-    r, jac, simulated = misfit.evaluate(theta, jacobian=True)
+    try:
+        r, jac, simulated = misfit.evaluate(theta, jacobian=True)
+    except ForwardFailure as failure:  # only where even the grid's best point fails when refined
+        raise NumericalFailure(f"fit: the forward model failed at the fitted moduli: {failure}") from None
     stats = statistics(r, jac, theta)
+    identifiable = identified(theta, stats, problem.fit)
     displacements_only = all(load.displacement is not None for e in problem.experiments for load in e.loads)
     warnings = fit_warnings(theta, stats, problem.fit, refinement, displacements_only)
     for message in warnings:
@@ -318,12 +416,13 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         problem=problem,
         lame_lambda=float(theta[0]),
         lame_mu=float(theta[1]),
-        # not identifiable: no usable uncertainties (the pair is only known along lambda/mu)
-        standard_uncertainty=stats.uncertainty if stats.identifiable else (None, None),
+        # not identifiable: no usable uncertainties (the pair is only known along lambda/mu, or
+        # a modulus is on a bound)
+        standard_uncertainty=stats.uncertainty if identifiable else (None, None),
         correlation=stats.correlation,
         lambda_over_mu=float(theta[0] / theta[1]),
         lambda_over_mu_uncertainty=stats.ratio_uncertainty,
-        identifiable=stats.identifiable,
+        identifiable=identifiable,
         residuals=np.split(r.reshape(-1, 2), sizes),
         simulated=simulated,
         grid=grid,

@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import csv
-import math
 from pathlib import Path
 
 import numpy as np
 
+from ..decimals import parse_number, spells_a_number
 from ..errors import InputError
+
+
+def cell_problem(text: str) -> str:
+    """What was wrong with a cell parse_number refused, for the error message."""
+    text = text.strip()
+    if not text:
+        return "missing; expected a finite number"
+    if spells_a_number(text):
+        return f"got {text!r}, expected a finite number"
+    return f"got {text!r}, expected a finite number in plain decimals (digits 0-9, like -1.5e-3)"
 
 
 def read_columns(path: str | Path, columns: tuple[str, ...],
@@ -17,7 +27,8 @@ def read_columns(path: str | Path, columns: tuple[str, ...],
 
     Lines starting with '#' and blank lines are skipped (data files may carry a comment
     header). Returns ({column: values (n,)}, file line number of each row (n,)).
-    Every problem is an InputError naming the file (and `label`, e.g. the YAML field).
+    Every cell must be a plain decimal number (parse_number). Every problem is an InputError
+    naming the file (and `label`, e.g. the YAML field).
     """
     where = f"{label}: {path}" if label else f"{path}"
     try:
@@ -42,13 +53,9 @@ def read_columns(path: str | Path, columns: tuple[str, ...],
             raise InputError(f"{where}: line {number}: got {len(row)} values, expected "
                              f"{len(header)} ({','.join(header)})")
         for c, text in enumerate(row):
-            try:
-                value = float(text)
-            except ValueError:
-                value = math.nan
-            if not math.isfinite(value):
-                raise InputError(f"{where}: line {number}, {header[c]}: got "
-                                 f"{text.strip()!r}, expected a finite number")
+            value = parse_number(text)
+            if value is None:
+                raise InputError(f"{where}: line {number}, {header[c]}: {cell_problem(text)}")
             values[r, c] = value
     line_numbers = np.array([number for number, _ in lines[1:]], dtype=int)
     return {name: values[:, c] for c, name in enumerate(header)}, line_numbers

@@ -220,14 +220,15 @@ def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float
                            "material` output (fitted.yaml)"])
     given = {name: fit["standard_uncertainty"].get(name) for name in ("lame_lambda", "lame_mu")}
     if not all(_finite(value) and value > 0 for value in given.values()):
-        why = ("; the calibration could not separate the moduli (fit.identifiable: false)"
-               if fit.get("identifiable") is False else "")
+        why = ("; the calibration did not identify the moduli (fit.identifiable: false: they could not be "
+               "separated, or one ended on a bound of its search range)" if fit.get("identifiable") is False else "")
         raise input_error([f"{where}: fit.standard_uncertainty: got {short(given)}, expected positive standard "
                            f"uncertainties of lame_lambda and lame_mu (MPa){why}"])
     if fit.get("identifiable") is False:
-        raise input_error([f"{where}: fit.identifiable: got false, expected a calibration that separates "
+        raise input_error([f"{where}: fit.identifiable: got false, expected a calibration that identifies "
                            "the moduli (its standard uncertainties and correlation are not usable: add a "
-                           "force-controlled experiment or markers that move more)"])
+                           "force-controlled experiment or markers that move more, or widen a search range "
+                           "the fit ended on; its warnings say which)"])
     value = fit.get("correlation")
     if not (_finite(value) and -1 < value < 1):
         raise input_error([f"{where}: fit.correlation: got {short(value)}, expected a number between -1 and 1 "

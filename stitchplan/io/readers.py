@@ -11,32 +11,17 @@ from __future__ import annotations
 
 import csv
 import math
-import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from ..decimals import parse_number, spells_a_number
 from ..errors import InputError
 from ..needle.geometry import NeedleGeometry
 
 CENTER_PATH_COLUMNS = ("step", "center_x_mm", "center_y_mm")
 ANGLE_COLUMN = "angle_rad"
-
-# a plain decimal number: Python's float() also takes '1_0' (as 10), 'infinity' and
-# non-ASCII digits, none of which a trajectory or a recording should contain
-_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-_NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
-
-
-def parse_number(text: str) -> float | None:
-    """The finite number a plain decimal `text` spells (surrounding blanks allowed), else None."""
-    text = text.strip()
-    if not _DECIMAL.fullmatch(text):
-        return None
-    value = float(text)
-    return value if math.isfinite(value) else None  # '1e999' overflows to inf
-
 
 def read_table(path: str | Path, required: Sequence[str], expected: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Every column of a CSV file with a header row, as float arrays, and the row number of
@@ -96,7 +81,7 @@ def _number(path: Path, line: int, name: str, text: str) -> float:
         raise InputError(f"{path}: row {line}, {name}: missing; expected a number")
     value = parse_number(text)
     if value is None:
-        finite = "a finite number" if _DECIMAL.fullmatch(text) or _NON_FINITE.fullmatch(text) else "a number"
+        finite = "a finite number" if spells_a_number(text) else "a number"
         raise InputError(f"{path}: row {line}, {name}: got {text!r}, expected {finite}")
     return value
 

@@ -1,0 +1,26 @@
+"""Numbers in the CSV files a user gives (trajectories, marker positions, force recordings):
+plain decimals only. Python's float() also takes '1_0' (as 10), 'infinity' and non-ASCII
+digits (Arabic-Indic ones as their values), none of which such a file should contain."""
+
+from __future__ import annotations
+
+import math
+import re
+
+DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+
+
+def parse_number(text: str) -> float | None:
+    """The finite number a plain decimal `text` spells (surrounding blanks allowed), else None."""
+    text = text.strip()
+    if not DECIMAL.fullmatch(text):
+        return None
+    value = float(text)
+    return value if math.isfinite(value) else None  # '1e999' overflows to inf
+
+
+def spells_a_number(text: str) -> bool:
+    """Whether `text` spells a number parse_number refuses only for not being finite."""
+    text = text.strip()
+    return bool(DECIMAL.fullmatch(text) or NON_FINITE.fullmatch(text))
