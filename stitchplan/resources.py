@@ -54,6 +54,13 @@ them all; nothing raises the memory share: a smaller model is the way under it):
   tangent's cost grows with the square of the neighbours;
 - MEMORY_SHARE = 0.5 of the memory the machine has available now.
 
+The guard also refuses a model too coarse to mean anything (`_coarse_refusal`), the other
+side of a spacing typed wrong: a spacing above half the tissue's smaller side (fewer than
+three particles across it), or a spacing at the needle above the needle's radius (the
+needle's curve then falls between a few particles: on the SH 1/2 block, `--spacing 200`
+runs on 4 particles to an exit error of 0.0175 mm, with an estimate of 0 from a second run on
+the same 4 particles, against 0.4685 mm at half the default spacing).
+
 A refusal names what drives the estimate past the limit (`_particle_setting`,
 `_memory_setting`): the spacing, or the needle zone's refinement or spacing when the
 coarse spacing alone would fit, or the needle radius when the spacing is the default that
@@ -214,6 +221,7 @@ class Estimate:
     coarse_particles: float | None
     radius_default: float | None  # the needle radius, when the spacing is the default following it
     tissue_size: tuple[float, float] | None = None  # the tissue's bounding box, mm
+    needle_radius: float | None = None  # mm (insertions)
 
     def describe(self) -> str:
         about = "" if self.size.exact else "about "
@@ -431,7 +439,8 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
     return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory, seconds,
                     d.spacing, None if kind == "deform" else scenario.needle.step, d, origin,
                     _grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
-                    _radius_default(scenario, origin), tuple(scenario.tissue.bounding_size))
+                    _radius_default(scenario, origin), tuple(scenario.tissue.bounding_size),
+                    None if kind == "deform" else scenario.needle.radius)
 
 
 def available_memory() -> float | None:
@@ -495,6 +504,9 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             lines.append(_particles_refusal(item, limits.max_particles))
         elif memory is not None and item.memory_bytes > limits.memory_share * memory:
             lines.append(_memory_refusal(item, limits.memory_share, memory))
+        coarse = _coarse_refusal(item)
+        if coarse is not None:
+            lines.append(coarse)
         if item.needle_step is not None and item.steps > limits.max_needle_steps:
             lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
                          f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
@@ -534,6 +546,31 @@ def _memory_refusal(item: Estimate, share: float, memory: float) -> str:
     return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {_bytes(memory)} of "
             f"memory available{item.origin.derived} ({setting.note}estimated {item.describe()}); "
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
+
+
+def _coarse_refusal(item: Estimate) -> str | None:
+    """The line refusing a model too coarse for its tissue or needle (module docstring), or
+    None. A needle spacing that follows the spacing (needle_refinement, or no grading) is
+    named as the spacing."""
+    d, origin = item.discretization, item.origin
+    spacing = origin.value("spacing", d.spacing)
+    width, height = item.tissue_size
+    if d.spacing > min(width, height) / 2.0:
+        return (f"{origin.name('spacing')}: got {spacing:g} mm, expected at most half the tissue's smaller side "
+                f"({width:g} x {height:g} mm), so that at least three particles span it{item.origin.derived}; "
+                f"refine it, {_skip(item)}or {SKIP_GUARD}")
+    at_needle = d.spacing if d.needle_spacing is None else d.needle_spacing
+    if item.needle_radius is None or at_needle <= item.needle_radius:
+        return None
+    if d.needle_spacing is not None and d.needle_refinement is None:
+        name, got = origin.name("needle_spacing"), f"{origin.value('needle_spacing', d.needle_spacing):g} mm"
+    else:
+        name, got = origin.name("spacing"), f"{spacing:g} mm"
+        if d.needle_spacing is not None:
+            got += f" (a needle spacing of {at_needle:.3g} mm)"
+    return (f"{name}: got {got}, expected a spacing at the needle of at most its radius, {item.needle_radius:g} mm, "
+            f"so that the particles follow the needle's curve{item.origin.derived}; refine it, {_skip(item)}or "
+            f"{SKIP_GUARD}")
 
 
 def _skip(item: Estimate) -> str:

@@ -598,3 +598,13 @@ def test_json_outputs_are_strict_json_with_null_for_numbers_that_are_not_finite(
 
     assert json.loads(path.read_text(), parse_constant=refuse) == {"a": None, "b": [1.0, None], "c": [None, 2.0],
                                                                      "d": {"e": None}, "f": 3}
+
+
+def test_a_csv_writes_a_negative_zero_as_zero(tmp_path):
+    """A reaction of -0.0 N (a sign of rounding, not a direction) reads as 0 in the CSV;
+    the full-precision path keeps every bit (a trajectory replays to the last bit)."""
+    path = tmp_path / "reactions.csv"
+    files.write_csv(path, ["segment", "fx", "fy"], [[0, -1.0, -0.0], [1, -0.0, 2.5]])
+    assert path.read_text() == "segment,fx,fy\n0,-1,0\n1,0,2.5\n"
+    files.write_csv(path, ["x"], [[-0.0]], precision=None)
+    assert path.read_text() == "x\n-0\n"

@@ -347,3 +347,34 @@ def test_deformed_plot_at_the_largest_scale_stays_finite(deformed, tmp_path):
     with pytest.raises(InputError, match=r"^--plot-scale: got 1e\+308"):
         plots.plot_deformed(tmp_path / "huge.png", deformed, scale=1e308)
     assert not (tmp_path / "huge.png").exists()
+
+
+def test_load_labels_on_the_edges_of_a_narrow_hole_sit_beside_their_own_segments():
+    """An arrow as long as the hole is wide would carry each label across to the other
+    edge's load: the arrows stay within the hole and the labels on their own side."""
+    from stitchplan.io.plot_elements import draw_loads, pyplot
+
+    scenario = parse_scenario({
+        "tissue": {"size": [60.0, 30.0], "thickness": 10.0, "clamped": ["bottom"],
+                   "material": {"model": "neo-hookean", "lame_lambda": 0.189151, "lame_mu": 0.147688},
+                   "holes": [{"polygon": [[20, 10], [30, 10], [30, 20], [20, 20]]}]},
+        "loads": [{"segment": [[20, 12], [20, 18]], "force": [1.0, 0.0]},
+                  {"segment": [[30, 10], [30, 20]], "displacement": [0.5, 0.0]},
+                  {"segment": [[0, 10], [0, 20]], "force": [-1.0, 0.0]}]})
+    plt = pyplot()
+    fig, ax = plt.subplots()
+    try:
+        draw_loads(ax, scenario.loads, scenario.tissue.domain, arrow=0.15 * 60.0)
+        labels = {text.get_text().split(" =")[0]: text for text in ax.texts if text.get_text()}
+        arrows = [text for text in ax.texts if not text.get_text()]
+    finally:
+        plt.close(fig)
+    # F1 on the hole's left edge (x = 20) is labelled left of it, u2 (x = 30) right of it
+    assert labels["F1"].xy[0] <= 20.0 and labels["F1"].get_ha() == "right"
+    assert labels["u2"].xy[0] >= 30.0 and labels["u2"].get_ha() == "left"
+    # the hole-edge arrows end inside the 10 mm hole; the outer edge's keeps its length
+    for arrow in arrows[:2]:
+        for x in (arrow.xy[0], arrow.xyann[0]):
+            assert 20.0 <= x <= 30.0
+    assert arrows[2].xy[0] == pytest.approx(-9.0)
+    assert labels["F3"].xy[0] == pytest.approx(-9.0) and labels["F3"].get_ha() == "right"

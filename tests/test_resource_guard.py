@@ -100,6 +100,42 @@ def test_an_extreme_dilation_and_needle_step_are_refused():
     assert refusal([item]).startswith("needle.step: got 4.94066e-324 rad, expected a step giving at most 2000")
 
 
+@pytest.mark.parametrize("discretization, fragment", [
+    ({"spacing": 11.0}, "discretization.spacing: got 11 mm, expected at most half the tissue's smaller side "
+                        "(40 x 20 mm)"),
+    ({"spacing": 9.0, "needle_spacing": None}, "discretization.spacing: got 9 mm, expected a spacing at the "
+                                               "needle of at most its radius, 8.88 mm"),
+    ({"spacing": 9.5, "needle_spacing": 9.0}, "discretization.needle_spacing: got 9 mm, expected a spacing at "
+                                              "the needle of at most its radius"),
+    ({"spacing": 10.0, "needle_refinement": 1.1}, "discretization.spacing: got 10 mm (a needle spacing of "
+                                                  "9.09 mm), expected"),
+])
+def test_a_model_too_coarse_for_its_tissue_or_needle_is_refused(discretization, fragment):
+    """A spacing typed wrong the other way: fewer than three particles across the tissue,
+    or a needle spacing past the needle's radius, runs to numbers that mean nothing."""
+    raw = scene(discretization={k: v for k, v in discretization.items() if v is not None})
+    line = refusal([estimate(parse_scenario(raw), "insertion", "simulate")])
+    assert line.startswith(fragment), line
+    assert line.endswith("refine it, or pass --no-resource-check to run it anyway")
+    # at the bounds it runs
+    fine = scene(discretization={"spacing": 8.88, "needle_refinement": 1.0})
+    check_resources([estimate(parse_scenario(fine), "insertion")], memory=LARGE_MEMORY)
+    check_resources([estimate(parse_scenario({**NEEDLE_SCENE, "needle": None,
+                                              "discretization": {"spacing": 10.0}}), "deform")],
+                    memory=LARGE_MEMORY)
+
+
+def test_the_cli_refuses_a_spacing_too_coarse_for_the_needle(tmp_path):
+    path = write(tmp_path, scene(tissue={**NEEDLE_SCENE["tissue"], "size": [60.0, 40.0]}))
+    result = CliRunner().invoke(app, ["simulate", str(path), "--spacing", "19", "--summary",
+                                      str(tmp_path / "summary.json")])
+    assert result.exit_code == 2, result.output
+    assert result.stderr.strip() == ("error: --spacing: got 19 mm (a needle spacing of 9.5 mm), expected a spacing "
+                                     "at the needle of at most its radius, 8.88 mm, so that the particles follow "
+                                     "the needle's curve; refine it, or pass --no-resource-check to run it anyway")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
 def write(folder: Path, raw: dict, name: str = "scene.yaml") -> Path:
     path = folder / name
     path.write_text(yaml.safe_dump(raw))

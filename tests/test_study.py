@@ -296,6 +296,13 @@ def test_needle_spacing_without_a_needle_is_refused():
     ({"spacing": 4.0, "needle_spacing": 5.0}, "discretization.needle_spacing: got 5.0, expected a spacing (mm) no larger than spacing = 4 mm"),
     ({"accuracy": 0.0}, "discretization.accuracy: got 0.0, expected a number >= 0.001 (mm, exit point"),
     ({"needle_refinement": 0.5}, "discretization.needle_refinement: got 0.5, expected a number >= 1"),
+    # two ways to one value: the one not taken would be dropped without a word
+    ({"spacing": 4.0, "needle_spacing": 1.0, "needle_refinement": 2},
+     "discretization.needle_spacing: got 1.0, expected either needle_spacing or needle_refinement "
+     "(needle_refinement 2 sets needle_spacing = spacing / 2 = 2 mm)"),
+    ({"accuracy": 0.5, "spacing": 6.0}, "discretization.spacing: got 6.0, expected no spacing with accuracy "
+                                        "0.5 mm (the auto discretization chooses the spacings"),
+    ({"accuracy": 0.5, "needle_refinement": 3}, "discretization.needle_refinement: got 3"),
 ])
 def test_bad_graded_and_accuracy_fields_are_refused(block, fragment):
     raw = tiny_raw()

@@ -408,6 +408,19 @@ class Discretization:
 
     @model_validator(mode="after")
     def _graded(self, info: ValidationInfo) -> Discretization:
+        given = (info.context or {}).get("discretization_given", ())  # the keys a scenario file gives
+        # two ways to the same value: the one not taken would be dropped without a word
+        if "needle_spacing" in given and "needle_refinement" in given:
+            raise problem(f"either needle_spacing or needle_refinement (needle_refinement {self.needle_refinement:g} "
+                          f"sets needle_spacing = spacing / {self.needle_refinement:g} = "
+                          f"{self.spacing / self.needle_refinement:g} mm)", field="needle_spacing",
+                          value=self.needle_spacing)
+        if self.accuracy is not None:  # the auto discretization chooses these
+            for key in ("spacing", "needle_spacing", "needle_refinement"):
+                if key in given:
+                    raise problem(f"no {key} with accuracy {self.accuracy:g} mm (the auto discretization "
+                                  f"chooses the spacings; give one or the other)", field=key,
+                                  value=getattr(self, key))
         if self.needle_spacing is None and self.needle_refinement is not None and self.needle_refinement > 1:
             object.__setattr__(self, "needle_spacing", self.spacing / self.needle_refinement)
         spacing_known = not (info.context or {}).get("default_spacing_unknown")

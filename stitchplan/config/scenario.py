@@ -202,6 +202,9 @@ def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = 
         domain = shape_domain(raw.get("tissue"))
         size = None if domain is None else domain.size
         context["domain"] = domain
+        given = raw.get("discretization")
+        # the keys the file gives (the default spacing is filled in below)
+        context["discretization_given"] = {k for k, v in given.items() if v is not None} if isinstance(given, dict) else set()
         resolved = _with_default_spacing(raw, size)
         context["default_spacing_unknown"] = resolved is None
         raw = raw if resolved is None else resolved

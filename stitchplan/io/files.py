@@ -415,7 +415,7 @@ def _format(value: Any, precision: int | None) -> Any:
         if precision is None:
             text = repr(float(value))
             return text[:-2] if text.endswith(".0") else text
-        return f"{float(value):.{precision}g}"
+        return f"{float(value) + 0.0:.{precision}g}"  # + 0.0: a rounded -0.0 is written as 0
     if isinstance(value, np.integer):
         return int(value)
     return value

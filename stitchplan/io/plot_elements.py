@@ -197,23 +197,44 @@ def draw_loads(ax, loads, domain, arrow: float, move: Callable[[np.ndarray], np.
             continue
         direction = vector / size
         outward = outward_normal(domain, start, end)
-        if direction @ outward >= 0.0:  # pulling: the arrow leaves the segment
-            tail, head, away = middle, middle + arrow * direction, direction
+        away = direction if direction @ outward >= 0.0 else -direction  # the side outside the tissue
+        # a hole or notch may leave no room outside for the arrow and its label (about 2.3
+        # arrows wide): the arrow then stays within the gap and the label sits on the tissue's
+        # side of its own segment, not beside the gap's other edge
+        length, label_away = arrow, away
+        free = _free_length(domain, middle, away, (1.0 + LABEL_ROOM) * arrow)
+        if free < (1.0 + LABEL_ROOM) * arrow:
+            length, label_away = 0.4 * free, -away
+        if away is direction:  # pulling: the arrow leaves the segment
+            tail, head = middle, middle + length * direction
         else:  # pushing: the arrow arrives at the segment from outside
-            tail, head, away = middle - arrow * direction, middle, -direction
-        far = middle + arrow * away
+            tail, head = middle - length * direction, middle
+        at = middle + length * away if label_away is away else middle
         ax.annotate("", xy=head, xytext=tail,
                     arrowprops={"arrowstyle": "-|>", "color": colour, "lw": 2.0, "mutation_scale": 14}, zorder=4)
         unit = "N" if is_force else "mm"
         text = f"{'F' if is_force else 'u'}{k + 1} = ({vector[0]:.3g}, {vector[1]:.3g}) {unit}"
-        ha = "right" if away[0] < -0.3 else "left" if away[0] > 0.3 else "center"
-        va = "top" if away[1] < -0.3 else "bottom" if away[1] > 0.3 else "center"
-        ax.annotate(text, far, xytext=6 * away, textcoords="offset points", fontsize=8, color=colour,
+        ha = "right" if label_away[0] < -0.3 else "left" if label_away[0] > 0.3 else "center"
+        va = "top" if label_away[1] < -0.3 else "bottom" if label_away[1] > 0.3 else "center"
+        ax.annotate(text, at, xytext=6 * label_away, textcoords="offset points", fontsize=8, color=colour,
                     ha=ha, va=va, zorder=5, bbox={"boxstyle": "round", "fc": "white", "ec": colour, "alpha": 0.9})
-        room = {"right": -2.3, "left": 2.3, "center": 0.0}[ha], {"top": -0.6, "bottom": 0.6, "center": 0.0}[va]
-        reach = far + arrow * np.asarray(room)  # room for the label (about 2.3 arrows wide)
+        room = ({"right": -LABEL_ROOM, "left": LABEL_ROOM, "center": 0.0}[ha],
+                {"top": -0.6, "bottom": 0.6, "center": 0.0}[va])
+        reach = at + arrow * np.asarray(room)  # room for the label
         ends += [tail, head, reach]
     return np.asarray(ends).reshape(-1, 2)
+
+
+LABEL_ROOM = 2.3  # a load label's width, in arrows
+
+
+def _free_length(domain, start: np.ndarray, direction: np.ndarray, reach: float, samples: int = 200) -> float:
+    """How far (mm, at most `reach`) the ray from boundary point `start` along `direction`
+    runs outside the tissue before it meets it again (across a hole or a notch)."""
+    t = reach * (np.arange(1, samples + 1) / samples)
+    inside = np.asarray(domain.contains(start + t[:, None] * direction), dtype=bool)
+    inside[t < 1e-3 * reach] = False  # the segment's own edge
+    return float(t[np.argmax(inside)]) if inside.any() else reach
 
 
 def draw_probes(ax, reference: np.ndarray, displaced: np.ndarray | None = None) -> None:
