@@ -175,9 +175,12 @@ class Rectangle(BoundingBox):
 def circle_center_at_entry(domain: Rectangle, entry, radius: float, turn: str) -> tuple[np.ndarray, str]:
     """Centre of a needle of `radius` entering orthogonally at `entry` (tip tangent to the
     inward normal), on the side `turn` (cw/ccw) selects; and the entry edge's name.
-    The caller has checked that `entry` lies inside exactly one edge."""
-    edge = domain.edges_at(entry)[0]
-    inward = domain.inward_normal(edge)
+    The caller has checked that `entry` lies inside exactly one edge, or on a smooth vertex
+    (smooth_vertex), whose inward normal is the mean of its two edges'."""
+    names = domain.edges_at(entry)
+    edge = names[0]
+    inward = sum(domain.inward_normal(name) for name in names)
+    inward = inward / float(np.hypot(*inward))
     # centre to the right of the motion for a clockwise turn, to the left for ccw
     side = np.array([inward[1], -inward[0]]) if turn == "cw" else np.array([-inward[1], inward[0]])
     return np.asarray(entry, dtype=float) + radius * side, edge

@@ -94,6 +94,29 @@ def test_entry_off_the_boundary_or_at_a_corner_is_refused(entry, fragment):
     assert fragment in str(error.value)
 
 
+def test_an_entry_off_the_boundary_is_told_the_nearest_boundary_point():
+    with pytest.raises(ScenarioError) as error:
+        needle_geometry(make_needle((5.0, 15.0)), Rectangle.of_size(SIZE))
+    assert str(error.value).endswith("expected a point on the boundary of the 40 x 30 mm tissue; the nearest "
+                                     "is [0, 15], 5 mm away")
+
+
+def test_an_entry_on_a_smooth_vertex_enters_along_the_mean_normal():
+    """A vertex of a traced contour or a circular hole, where the boundary turns by a few
+    degrees, is no corner: the needle enters along the mean of its two edges' normals (the
+    radial direction on a polygon inscribed in a circle)."""
+    from stitchplan.geometry import PolygonDomain
+
+    angles = np.linspace(np.pi, 0.0, 49)  # a top edge bulging as a half circle of radius 40
+    arc = np.stack([50.0 + 40.0 * np.cos(angles), 30.0 + 40.0 * np.sin(angles)], axis=1)
+    domain = PolygonDomain(np.vstack([[[10.0, 0.0], [90.0, 0.0]], arc[::-1]]))
+    vertex = arc[20]  # on the circle, between two edges turning by 3.75 degrees
+    assert len(domain.edges_at(vertex)) == 2
+    geometry = needle_geometry(make_needle(tuple(vertex), "cw", radius=8.0), domain)
+    inward = (np.array([50.0, 30.0]) - vertex) / 40.0
+    np.testing.assert_allclose(geometry.center, vertex + 8.0 * np.array([inward[1], -inward[0]]), atol=1e-9)
+
+
 def test_arc_too_short_to_exit_is_refused():
     """A quarter-circle needle cannot bring the tip back out of a half-circle stitch."""
     with pytest.raises(ScenarioError) as error:

@@ -134,6 +134,12 @@ def test_deform_plot_scale_option(slab_path, tmp_path):
     good = runner.invoke(app, ["deform", str(slab_path), "--plot", str(tmp_path / "d.png"), "--plot-scale", "5"])
     assert good.exit_code == 0, good.output
     assert is_png(tmp_path / "d.png")
+    # without a --plot to draw it in, the scale would be dropped without a word
+    alone = runner.invoke(app, ["deform", str(slab_path), "--summary", str(tmp_path / "s.json"), "--plot-scale", "5"])
+    assert alone.exit_code == 2
+    assert alone.stderr.strip() == ("error: --plot-scale: got 5 without --plot, expected it with the --plot PNG it "
+                                    "enlarges the displacements in")
+    assert not (tmp_path / "s.json").exists()
 
 
 # --- needle insertion and plan --------------------------------------------------------------

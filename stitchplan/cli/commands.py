@@ -39,7 +39,7 @@ def deform(
 ) -> None:
     """Static large-deformation solve of the slab under the scenario's `loads`."""
     _setup_logging(verbose, quiet)
-    _check_plot_scale(plot_scale)
+    _check_plot_scale(plot_scale, plot)
     _check_outputs({"--probes-out": probes_out, "--reactions-out": reactions_out, "--summary": summary,
                     "--out": out, "--plot": plot}, {"SCENARIO": scenario_path})
     scenario = _load(scenario_path, spacing, dilation)

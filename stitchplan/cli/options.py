@@ -307,12 +307,17 @@ def _check_angular_speed(speed: Optional[float]) -> None:
                          f"{MIN_ANGULAR_SPEED:g}")
 
 
-def _check_plot_scale(scale: float) -> None:
+def _check_plot_scale(scale: float, plot: Optional[Path]) -> None:
     """deform --plot-scale, before the run: positive and at most io.plots.MAX_PLOT_SCALE (near
-    1e308 the drawn positions overflow). plot_deformed checks it again when it draws."""
+    1e308 the drawn positions overflow), and given with the --plot it draws (without one it
+    would be dropped without a word). plot_deformed checks the scale again when it draws."""
+    from ..errors import InputError
     from ..io.plots import check_plot_scale
 
     check_plot_scale(scale)
+    if scale != 1.0 and plot is None:
+        raise InputError(f"--plot-scale: got {scale:g} without --plot, expected it with the --plot PNG it "
+                         "enlarges the displacements in")
 
 
 

@@ -14,7 +14,7 @@ import numpy as np
 from ..config import Needle, Scenario
 from ..config.blocks import default_spacing_of
 from ..errors import InputError
-from ..geometry import PolygonDomain, Rectangle, circle_center_at_entry
+from ..geometry import CIRCLE_SEGMENTS, PolygonDomain, Rectangle, circle_center_at_entry, smooth_vertex
 from ..tissue.particles import RefinementZone, end_spacing
 
 
@@ -142,18 +142,35 @@ class BoundaryLoops:
         return "the outer boundary" if loop == 0 else f"the wall of hole {loop}"
 
 
+def nearest_boundary_point(domain: Rectangle | PolygonDomain, point: np.ndarray) -> tuple[np.ndarray, float]:
+    """The boundary point nearest `point`, and how far it is (mm)."""
+    starts, ends = (np.array(ends, dtype=float) for ends in zip(*domain.boundary_segments()))
+    edges = ends - starts
+    along = np.clip(np.sum((point - starts) * edges, axis=1) / np.sum(edges * edges, axis=1), 0.0, 1.0)
+    candidates = starts + along[:, None] * edges
+    distances = np.linalg.norm(candidates - point, axis=1)
+    k = int(np.argmin(distances))
+    return candidates[k], float(distances[k])
+
+
 def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> NeedleGeometry:
     """Centre on the boundary tangent at the entry (orthogonal entry), desired exit where the
     undeformed circle leaves the tissue for the last time within the needle's arc (the first
     and only time on a convex tissue; SCENARIO.md, "Needle geometry", "Tissue shapes")."""
     edges = domain.edges_at(needle.entry)
+    entry = np.asarray(needle.entry, dtype=float)
     if not edges:
+        nearest, distance = nearest_boundary_point(domain, entry)
+        circles = (f" (a circular hole is held as its inscribed {CIRCLE_SEGMENTS}-gon)"
+                   if getattr(domain, "holes", ()) else "")
         raise InputError(f"needle.entry: got {list(needle.entry)}, expected a point on the "
-                         f"boundary of the {domain.describe()}")
-    if len(edges) > 1:
+                         f"boundary of the {domain.describe()}; the nearest is [{nearest[0]:.6g}, "
+                         f"{nearest[1]:.6g}], {distance:.3g} mm away{circles}")
+    # a vertex where the boundary hardly turns (a traced contour's, a circular hole's) has an
+    # entry normal: the model treats it as a point inside an edge
+    if len(edges) > 1 and not smooth_vertex(domain, entry):
         raise InputError(f"needle.entry: got {list(needle.entry)}, a corner; expected a point "
                          "inside one edge (the entry normal is undefined at a corner)")
-    entry = np.asarray(needle.entry, dtype=float)
     center, edge = circle_center_at_entry(domain, entry, needle.radius, needle.turn)
     sense = -1.0 if needle.turn == "cw" else 1.0
     start_angle = math.atan2(*(entry - center)[::-1])
