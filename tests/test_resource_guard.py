@@ -125,6 +125,18 @@ def test_a_model_too_coarse_for_its_tissue_or_needle_is_refused(discretization, 
                     memory=LARGE_MEMORY)
 
 
+def test_a_study_family_too_coarse_names_the_coarse_spacing_its_grading_makes():
+    """A study's spacing is the one at the needle: a graded family's coarse spacing is a
+    multiple of it, and the refusal says which number broke the bound."""
+    raw = scene(tissue={**NEEDLE_SCENE["tissue"], "size": [100.0, 30.0]},
+                discretization={"spacing": 24.0, "needle_spacing": 6.0})
+    study = Origin({"spacing": "study.spacing", "needle_spacing": "study.spacing"},
+                   {"spacing": 6.0, "needle_spacing": 6.0})
+    line = refusal([estimate(parse_scenario(raw), "insertion", "study run 'graded x4 h=6'", origin=study)])
+    assert line.startswith("study.spacing: got 6 mm (a coarse spacing of 24 mm), expected at most half the "
+                           "tissue's smaller side (100 x 30 mm)"), line
+
+
 def test_the_cli_refuses_a_spacing_too_coarse_for_the_needle(tmp_path):
     path = write(tmp_path, scene(tissue={**NEEDLE_SCENE["tissue"], "size": [60.0, 40.0]}))
     result = CliRunner().invoke(app, ["simulate", str(path), "--spacing", "19", "--summary",

@@ -188,31 +188,94 @@ def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
 
 def _own_rows(attributes: dict) -> dict:
     """A coupling's attributes with copies of its growing rows, which append in place (the
-    segment and quadrature rows may be one object, and stay one)."""
+    segment and quadrature rows may be one object, and stay one), without the caches a state
+    need not keep (rebuilt when first asked for): a state is kept per needle step, and caches
+    that grow with the track would make a long insertion's states grow with its square."""
     attributes = dict(attributes)
     rows = (attributes["_segment_rows"], attributes["_quadrature_rows"])
     copies = {id(part): copy.copy(part) for part in rows}
     attributes["_segment_rows"], attributes["_quadrature_rows"] = (copies[id(part)] for part in rows)
+    attributes["_track_rows"] = None
     return attributes
+
+
+class AppendedRows:
+    """A CSR matrix whose rows are only ever appended, in buffers with room to grow: each
+    append writes past the rows before it, and `matrix` is the rows so far as views of the
+    buffers. A copy (a kept state) shares the buffers with the original; the first append
+    after a copy moves to buffers of its own, so a state's rows are never written again."""
+
+    def __init__(self, columns: int):
+        self.columns = columns
+        self._data, self._indices = np.zeros(0), np.zeros(0, dtype=np.int32)
+        self._indptr = np.zeros(1, dtype=np.int32)
+        self._rows, self._owned = 0, True
+        self.matrix = rows_csr(self._data, self._indices, self._indptr, columns)
+
+    def __copy__(self) -> AppendedRows:
+        other = object.__new__(AppendedRows)
+        other.__dict__.update(self.__dict__)
+        other._owned = False  # its next append must not write into buffers the original fills
+        return other
+
+    def append(self, block: RowBlock) -> None:
+        data, indices, counts = block
+        nnz, rows = int(self._indptr[self._rows]), self._rows
+        new_nnz, new_rows = nnz + len(data), rows + len(counts)
+        if not self._owned or new_nnz > len(self._data) or new_rows + 1 > len(self._indptr):
+            self._data = _grown(self._data, nnz, new_nnz)
+            self._indices = _grown(self._indices, nnz, new_nnz)
+            self._indptr = _grown(self._indptr, rows + 1, new_rows + 1)
+            self._owned = True
+        self._data[nnz:new_nnz] = data
+        self._indices[nnz:new_nnz] = indices
+        self._indptr[rows + 1:new_rows + 1] = nnz + np.cumsum(counts)
+        self._rows = new_rows
+        self.matrix = rows_csr(self._data[:new_nnz], self._indices[:new_nnz], self._indptr[:new_rows + 1],
+                               self.columns)
+
+
+def _grown(buffer: np.ndarray, kept: int, needed: int) -> np.ndarray:
+    """A new buffer of at least `needed` entries (twice the old size, for the appends to come)
+    holding the first `kept` entries of `buffer`."""
+    grown = np.empty(max(needed, 2 * len(buffer), 16), dtype=buffer.dtype)
+    grown[:kept] = buffer[:kept]
+    return grown
 
 
 class GrowingRows:
     """Shape-function rows N(X_q) T of points that are only ever appended (the track's and
-    its constraint quadrature's), with their interleaved form E (`interleaved`): each
-    append builds the matrices once, and E^T is formed once per change, when first asked for."""
+    its constraint quadrature's), with their interleaved form E (`interleaved`), each in
+    AppendedRows; E^T is formed once per change, when first asked for (and not kept in a
+    copy: a kept state's)."""
 
     def __init__(self, columns: int, interleaved: bool = False):
-        self.matrix = sp.csr_matrix((0, columns))  # N_q T, (Q, n_free)
-        self.expanded = sp.csr_matrix((0, 2 * columns)) if interleaved else None  # E, (2Q, 2 n_free)
+        self._matrix = AppendedRows(columns)  # N_q T, (Q, n_free)
+        self._expanded = AppendedRows(2 * columns) if interleaved else None  # E, (2Q, 2 n_free)
         self._expanded_t: sp.csr_matrix | None = None
+
+    def __copy__(self) -> GrowingRows:
+        other = object.__new__(GrowingRows)
+        other._matrix = copy.copy(self._matrix)
+        other._expanded = None if self._expanded is None else copy.copy(self._expanded)
+        other._expanded_t = None
+        return other
+
+    @property
+    def matrix(self) -> sp.csr_matrix:
+        return self._matrix.matrix
+
+    @property
+    def expanded(self) -> sp.csr_matrix | None:
+        return None if self._expanded is None else self._expanded.matrix
 
     def __len__(self) -> int:
         return self.matrix.shape[0]
 
     def append(self, block: RowBlock) -> None:
-        self.matrix = _extended(self.matrix, block)
-        if self.expanded is not None:
-            self.expanded = _extended(self.expanded, _interleaved(block))
+        self._matrix.append(block)
+        if self._expanded is not None:
+            self._expanded.append(_interleaved(block))
             self._expanded_t = None
 
     @property
