@@ -126,7 +126,9 @@ class StudyRun(InsertionRun):
 
 
 def pareto_front(runs: list[StudyRun]) -> list[StudyRun]:
-    """Runs no other run beats in both wall time and deviation (successful, compared runs)."""
+    """Runs no other run beats in both wall time and `deviation_mm` (successful, compared
+    runs): the study's one front, flagged `pareto` and shown as such in study.csv,
+    study.json and both panels of speed_accuracy.png."""
     candidates = sorted((r for r in runs if r.ok and math.isfinite(r.deviation_mm)),
                         key=lambda r: (r.wall_seconds, r.deviation_mm))
     front, best = [], math.inf
