@@ -15,6 +15,7 @@ class EventKind(str, Enum):
     MINRES_FALLBACK = "minres-fallback"  # MINRES stagnated; direct solve used
     PLANNER_NOT_CONVERGED = "planner-not-converged"  # centre iterations ran out within a step
     AUTO_DISCRETIZATION = "auto-discretization"  # what the accuracy target chose, and why
+    PASS_FAILED = "planner-pass-failed"  # a planner pass after the first failed numerically; the best before it is kept
     TARGET_MISSED = "target-missed"  # a plan's best pass still misses its target (exit or bites)
     CROSSING_MISSED = "crossing-missed"  # the tip did not make a crossing of the undeformed circle (a wound it passed by)
     ACCURACY_CHECK = "accuracy-check"  # an exit error estimate or a verification could not be made, or an estimate is above the accuracy asked for

@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import Planner, Scenario
-from ..errors import PlanningFailure
+from ..errors import NumericalFailure, PlanningFailure
 from ..events import Event, EventKind
 from ..needle.equilibrium import NeedleInsertion, PreparedTissue
 from ..needle.geometry import length, scenario_needle
@@ -401,8 +401,20 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         # a symmetric target's aim follows the bites, the entry side's included: every step
         prefix = offsets.prefix.for_offset(offsets.offset) if offsets.prefix and not symmetric else None
         tracker = ExitTracker(settings, offsets.offset, smooth=smooth, prefix=prefix)
-        planned = run_insertion(scenario, control=tracker, on_step=_streamed(on_step, stream, scenario),
-                                tissue=tissue, start_from=prefix.start() if prefix else None, **options)
+        try:
+            planned = run_insertion(scenario, control=tracker, on_step=_streamed(on_step, stream, scenario),
+                                    tissue=tissue, start_from=prefix.start() if prefix else None, **options)
+        except NumericalFailure as failure:
+            if best is None or isinstance(failure, PlanningFailure):  # no pass to export, or --strict
+                raise
+            # a later pass moved the centre where the model fails: the best pass so far stands
+            # (planner_passes lists the passes that ran to the exit)
+            message = (f"planner pass {number} (offset ({offsets.offset[0]:.4g}, {offsets.offset[1]:.4g}) mm) "
+                       f"failed: {failure}; the best of the {number - 1} pass{'es' if number > 2 else ''} "
+                       "before it is exported")
+            best.events.append(Event(EventKind.PASS_FAILED, message))
+            log.info(message)
+            break
         own_iterations = sum(step.newton_iterations for step in planned.steps)  # before take_over
         own_solves = sum(step.equilibrium_solves for step in planned.steps)
         if prefix is not None:

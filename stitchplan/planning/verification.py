@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import Scenario, with_discretization
-from ..errors import InputError, NumericalFailure
+from ..errors import InputError, NumericalFailure, PlanningFailure
 from ..events import Event, EventKind
 from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
@@ -112,6 +112,7 @@ class Verification:
     rounds: list[dict] = field(default_factory=list)  # per planning round: planned and verified errors
     replayed_in: str = "this process"  # or "helper process" (planning/replays.py)
     aimed_by: str = "none"  # the exported plan's round: aimed by a "predicted offset" or "refined offset"
+    no_replay: str | None = None  # without a replay (result None), why
 
     @property
     def exit_error_mm(self) -> float | None:
@@ -247,13 +248,21 @@ def exit_offset(replayed: InsertionResult, planned: InsertionResult) -> np.ndarr
     return exit_error_vector(replayed) - exit_error_vector(planned)
 
 
-def replay(replays: InlineReplays, centers: np.ndarray) -> InsertionResult | None:
-    """The centre path replayed; None when the tip does not leave the tissue within it."""
+def replay(replays: InlineReplays, centers: np.ndarray, why: list[str] | None = None) -> InsertionResult | None:
+    """The centre path replayed; None (with the reason appended to `why`) when the tip does
+    not leave the tissue within it, or the refined model fails on it: the plan stands, its
+    verification unknown."""
     try:
         return replays.replay(centers)
     except InputError as error:  # the path ends before the tip exits on this model
+        reason = "the exported trajectory ends before the tip leaves the refined model"
         log.info("verification replay: %s", error)
-        return None
+    except NumericalFailure as error:  # the refined model fails where the planning model did not
+        reason = f"the replay on the refined model failed ({error})"
+        log.info("verification replay: %s", reason)
+    if why is not None:
+        why.append(reason)
+    return None
 
 
 def _verified_miss(replayed: InsertionResult | None, symmetric: bool) -> float:
@@ -330,19 +339,30 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                 aim = -offset
                 log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at "
                          "(%.4g, %.4g) mm", *offset, *aim)
-            again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
-                             tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
-                             bite_aim=bite_aim, stream=replays, **options)
+            try:
+                again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
+                                 tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
+                                 bite_aim=bite_aim, stream=replays, **options)
+            except PlanningFailure:  # --strict
+                raise
+            except NumericalFailure as failure:  # the re-aimed passes fail: the best round so far stands
+                message = (f"verification round {correction + 1}: its re-aimed planner pass failed ({failure}); "
+                           f"the best of the {correction} round{'s' if correction > 1 else ''} before it is "
+                           "exported")
+                best[1].planned.events.append(Event(EventKind.PASS_FAILED, message))
+                log.info(message)
+                break
             planning_seconds += again.planned.wall_seconds
             for record in again.passes:
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
-        replayed = replay(replays, result.exported_centers)  # started from the round before's
+        why: list[str] = []
+        replayed = replay(replays, result.exported_centers, why)  # started from the round before's
         if correction > 0:
             aimed_by = "refined offset"
         else:
             aimed_by = "predicted offset" if prediction.get("aimed") else "none"
-        verified = _round_record(correction + 1, aimed_by, result.planned, replayed)
+        verified = _round_record(correction + 1, aimed_by, result.planned, replayed, why)
         if correction == 0 and "offset" in prediction:
             verified["predicted_offset_mm"] = prediction["offset"].tolist()
         if symmetric:
@@ -364,8 +384,8 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     if np.isfinite(miss):
         _note_missed(result, miss, VERIFIED_FACTOR * settings.exit_tolerance,
                      f"on the refined model (spacing {spacing:.4g} mm)", symmetric)
-    return _verified(scenario, result, Verification(spacing, replayed, rounds, replays.where, kept["aimed_by"]),
-                     **options)
+    return _verified(scenario, result, Verification(spacing, replayed, rounds, replays.where, kept["aimed_by"],
+                                                    kept.get("no_replay")), **options)
 
 
 def _note_missed(result: PlanResult, miss: float, accepted: float, where: str, symmetric: bool) -> None:
@@ -390,22 +410,28 @@ def verify_exported(scenario: Scenario, result: PlanResult, **options) -> PlanRe
     the plan's `verification` and `estimate`."""
     other = replay_scenario(scenario, verify=True)
     replays = InlineReplays(other, **_replay_options(options))
+    why: list[str] = []
     try:
-        replayed = replay(replays, result.exported_centers)
+        replayed = replay(replays, result.exported_centers, why)
     finally:
         replays.close()
     log.info("verification: the exported plan's exit error %.4g mm, on the refined model %.4g mm",
              result.planned.exit_error_mm, np.inf if replayed is None else replayed.exit_error_mm)
-    rounds = [_round_record(1, "none", result.planned, replayed)]
+    rounds = [_round_record(1, "none", result.planned, replayed, why)]
     return _verified(scenario, result, Verification(other.discretization.spacing, replayed, rounds,
-                                                    replays.where, "none"), **options)
+                                                    replays.where, "none", rounds[0].get("no_replay")), **options)
 
 
-def _round_record(number: int, aimed_by: str, planned: InsertionResult, replayed: InsertionResult | None) -> dict:
-    """A verification round's record: what aimed its plan, the planned and verified errors."""
-    return {"round": number, "aimed_by": aimed_by, "planned_exit_error_mm": planned.exit_error_mm,
-            "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
-            "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
+def _round_record(number: int, aimed_by: str, planned: InsertionResult, replayed: InsertionResult | None,
+                  why: list[str] = ()) -> dict:
+    """A verification round's record: what aimed its plan, the planned and verified errors
+    (and, without a replay, why: replay's `why`)."""
+    record = {"round": number, "aimed_by": aimed_by, "planned_exit_error_mm": planned.exit_error_mm,
+              "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
+              "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
+    if replayed is None and why:
+        record["no_replay"] = why[-1]
+    return record
 
 
 def _verified(scenario: Scenario, result: PlanResult, verification: Verification, **options) -> PlanResult:
@@ -414,8 +440,8 @@ def _verified(scenario: Scenario, result: PlanResult, verification: Verification
     model, which an event says)."""
     result.verification = verification
     if verification.result is None:
-        message = ("verification: the exported trajectory ends before the tip leaves the refined model "
-                   f"(spacing {verification.spacing_mm:.4g} mm); verified exit error unknown")
+        why = verification.no_replay or "the exported trajectory ends before the tip leaves the refined model"
+        message = f"verification: {why} (spacing {verification.spacing_mm:.4g} mm); verified exit error unknown"
         result.planned.events.append(Event(EventKind.ACCURACY_CHECK, message))
         log.info(message)
         result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, **options)

@@ -1,0 +1,56 @@
+"""A plan whose later runs fail numerically still exports the best it has: a planner pass
+after the first that moves the centre where the model fails (det F < 0 at the tip), or a
+verification replay on the refined model that fails where the planning model did not. Each
+used to end the whole command with exit 1, the usable trajectory discarded; now an event
+says what failed and the plan stands (small blocks, about a second each)."""
+
+from __future__ import annotations
+
+import pytest
+
+from stitchplan.config.scenario import parse_scenario
+from stitchplan.errors import InsertionFailure
+from stitchplan.events import EventKind
+from stitchplan.planning.planner import run_plan
+from stitchplan.planning.verification import plan_verified
+
+
+def block(model: str, thickness: float, friction: float, cutting_force: float) -> dict:
+    """40 x 30 mm block clamped on the right, an 8 mm needle entering (0, 22) cw in 0.2 rad
+    steps, 4 mm particles, loads far past the phantom's."""
+    return {"tissue": {"size": [40.0, 30.0], "thickness": thickness, "clamped": ["right"],
+                       "material": {"model": model, "lame_lambda": 0.189151, "lame_mu": 0.147688}},
+            "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2, "friction": friction,
+                       "cutting_force": cutting_force},
+            "discretization": {"spacing": 4.0}}
+
+
+def test_a_later_pass_that_fails_leaves_the_best_pass_before_it():
+    scenario = parse_scenario(block("saint-venant-kirchhoff", 5.0, 0.2, 1.5))
+    plan = run_plan(scenario, compare=False)
+    assert len(plan.passes) == 1  # the second pass failed: only the first ran to the exit
+    failed = [event for event in plan.planned.events if event.kind == EventKind.PASS_FAILED]
+    assert len(failed) == 1
+    assert failed[0].message.startswith("planner pass 2 (offset (")
+    assert "step 14 (needle rotation 2.800 rad)" in failed[0].message and "det F = " in failed[0].message
+    assert failed[0].message.endswith("the best of the 1 pass before it is exported")
+    assert plan.planned.exit_error_mm == pytest.approx(plan.passes[0]["exit_error_mm"])
+
+
+def test_a_first_pass_that_fails_is_still_an_error():
+    """With no pass to export the failure is the command's, naming step and angle."""
+    scenario = parse_scenario(block("saint-venant-kirchhoff", 2.0, 0.2, 3.0))
+    with pytest.raises(InsertionFailure, match=r"step \d+ \(needle rotation [\d.]+ rad\)"):
+        run_plan(scenario, compare=False)
+
+
+def test_a_verification_replay_that_fails_leaves_the_plan_unverified():
+    scenario = parse_scenario(block("neo-hookean", 3.0, 0.3, 1.5))
+    plan = plan_verified(scenario, compare=False)
+    assert plan.verification.result is None and plan.verification.exit_error_mm is None
+    assert plan.verification.no_replay.startswith("the replay on the refined model failed (step 4 (needle "
+                                                  "rotation 0.800 rad): ")
+    assert plan.verification.rounds[0]["no_replay"] == plan.verification.no_replay
+    checks = [event.message for event in plan.planned.events if event.kind == EventKind.ACCURACY_CHECK]
+    assert any(message.startswith("verification: the replay on the refined model failed (step 4") and
+               message.endswith("(spacing 2 mm); verified exit error unknown") for message in checks)
