@@ -2,16 +2,21 @@
 shapes"): the tip's exits are matched to the undeformed circle's crossings by where they lie
 along the boundary, so a hole the circle only clips, or an edge it only grazes, that the tip
 passes by is reported as missed (an event, None in the crossings record) instead of taking
-the final exit for a wound's wall; and the needle never turns past its arc through a wound.
+the final exit for a wound's wall; a tip back in the tissue through the wall it has just left
+(a soft wall bulging round it) is on the near side still, and its next exit through that wall
+is that wall again; and the needle never turns past its arc through a wound.
 
 These used to end in a false failure after the needle had turned on through the air to
 6.5 rad (the clipped hole), or in a summary whose grazed-edge crossings held the final exit's
-and a bogus re-entry's positions (errors of 13 and 8 mm). Small scenes, about a second each.
+and a bogus re-entry's positions (errors of 13 and 8 mm), or (the soft notch) in the wound's
+near wall reported as the final exit at 1.5 rad of a pi arc, 12.8 mm off, without an event.
+Small scenes, about a second each.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import numpy as np
@@ -48,6 +53,21 @@ def grazed_edge_scene() -> dict:
                        "material": {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151,
                                     "lame_mu": 0.147688}},
             "needle": {**NEEDLE, "arc": math.pi, "entry": [0.0, 30.0]}}
+
+
+def soft_notch_scene() -> dict:
+    """configs/wound_closure.yaml 3 mm thick (its load on a third of the tissue) at a coarse
+    spacing: the right wall bulges into the wound round the needle, so the tip that left it at
+    1.29 rad is in the tissue again on the near side at 1.36 rad and leaves through the same
+    wall at 1.51 rad before it crosses the wound."""
+    return {"name": "soft notch",
+            "tissue": {"outline": [[0.0, 0.0], [60.0, 0.0], [60.0, 30.0], [32.0, 30.0], [32.0, 18.0],
+                                   [28.0, 18.0], [28.0, 30.0], [0.0, 30.0]],
+                       "thickness": 3.0, "material": dict(PHANTOM),
+                       "clamped": [{"segment": [[0.0, 0.0], [60.0, 0.0]]}]},
+            "discretization": {"spacing": 3.0},
+            "needle": {**NEEDLE, "entry": [38.88, 30.0]},
+            "loads": [{"segment": [[60.0, 0.0], [60.0, 30.0]], "force": [1.0, 0.0]}]}
 
 
 def missed_events(events) -> list:
@@ -153,3 +173,45 @@ def test_a_symmetric_plan_whose_tip_passes_the_wound_by_is_judged_by_its_exit():
     assert [record["aim_mm"].tolist() for record in plan.passes] == [[0.0, 0.0]] * len(plan.passes)
     # the exit aimed as with the exit target (0.3559 mm unplanned)
     assert plan.planned.exit_error_mm <= parse_scenario(raw).planner.exit_tolerance
+
+
+def test_a_tip_back_in_through_the_wall_it_left_crosses_that_wall_again_then_the_wound(caplog):
+    """The soft notch: the re-entry at 1.36 rad lies nearer along the boundary to the right
+    wall the tip left than to the left wall's entry, so the tip is on the near side still and
+    its exit at 1.51 rad is the right wall again (it used to be taken for the final exit, 12.8
+    mm off, the run ending inside the wound). The run crosses the wound and exits the top
+    surface left of it; the crossings record keeps the right wall's last exit."""
+    with caplog.at_level(logging.INFO, logger="stitchplan.needle.insertion"):
+        result = run_insertion(parse_scenario(soft_notch_scene()))
+    geometry = result.geometry
+    assert [kind for _, kind in geometry.crossings] == ["exit", "entry", "exit"]
+    assert result.achieved_exit[1] == pytest.approx(30.0) and result.achieved_exit[0] < 28.0
+    assert geometry.crossings[1][0] < result.exit_rotation <= geometry.arc
+    assert result.exit_error_mm < 3.0
+    assert not missed_events(result.events)
+    near_side = [r.getMessage() for r in caplog.records if "on the near side of the wound" in r.getMessage()]
+    again = [r.getMessage() for r in caplog.records if "left the tissue into a wound again" in r.getMessage()]
+    assert len(near_side) == 1 and "crossing 1 of 3" in near_side[0]
+    crossed_back = [event for event in result.events if event.kind == EventKind.WALL_CROSSED_BACK]
+    assert [event.message for event in crossed_back] == near_side  # in the summary too, not only the log
+    assert len(again) == 1 and "at [32, 22.25]" in again[0] and "the same wall (crossing 1 of 3" in again[0]
+    right_wall, left_wall, final_exit = (crossing["achieved"] for crossing in result.crossings)
+    assert right_wall == pytest.approx([32.0, 22.25], abs=0.005)  # the second exit, not the first
+    assert left_wall[0] <= 28.0 + 1e-9  # the far wall (its material point may lie inside the tissue)
+    assert final_exit == pytest.approx(result.achieved_exit)
+    assert result.bites["entry_wound_edge"].tolist() == [32.0, 30.0]
+    assert result.bites["exit_wound_edge"].tolist() == [28.0, 30.0]
+
+
+def test_a_crossing_back_through_the_wall_just_crossed_is_that_wall():
+    """NeedleGeometry.crossing_made with the crossing the tip made last: a re-entry or exit
+    nearer along the boundary to it than to any crossing ahead is that wall again."""
+    scenario = parse_scenario(soft_notch_scene())
+    geometry, loops = scenario_needle(scenario), BoundaryLoops.of(scenario.tissue.domain)
+    # right wall exit 0 at (32, 21.35), left wall entry 1 at (28, 21.35), final exit 2 at (21.12, 30)
+    assert geometry.crossing_made(loops, np.array([33.35, 22.47]), "entry", 1, back=0) == 0  # inside, near side
+    assert geometry.crossing_made(loops, np.array([28.0, 22.0]), "entry", 1, back=0) == 1
+    assert geometry.crossing_made(loops, np.array([32.0, 22.25]), "exit", 0, back=0) == 0
+    assert geometry.exit_made(loops, np.array([32.0, 22.25]), 1) == 2  # the exits ahead alone: a false final exit
+    assert geometry.crossing_made(loops, np.array([28.0, 23.0]), "exit", 2, back=1) == 1  # back out of the far wall
+    assert geometry.crossing_made(loops, np.array([23.4, 30.0]), "exit", 2, back=1) == 2

@@ -68,8 +68,24 @@ class NeedleGeometry:
         let it out before a wall the circle grazes: counting exits would then take the final
         exit for a wound's wall. Where the tip leaves tells which exit it is; the crossings
         passed over are the ones it missed."""
-        distances = {k: loops.distance(point, self.crossing_point(k))
-                     for k in range(first, len(self.crossings)) if self.crossings[k][1] == "exit"}
+        return self.crossing_made(loops, point, "exit", first)
+
+    def crossing_made(self, loops: BoundaryLoops, point: np.ndarray, kind: str, first: int,
+                      back: int | None = None) -> int | None:
+        """Which crossing of the undeformed circle the tip crossing the boundary at `point`
+        (`kind`: "exit" leaving the tissue, "entry" entering it) is: of the crossings of that
+        kind from `first` on, and the crossing `back` the tip made last, the one nearest to it
+        along the boundary loop that holds it; None when none of them lies on that loop.
+
+        A soft wall bulges: the tip that left it into a wound may find itself in the tissue
+        again on the same side, and leave through the same wall once more. Counting on to the
+        crossings ahead would take that re-entry for the far wall and the second exit for the
+        final exit; `back`, the wall the tip crossed last, is the tip crossing that wall back
+        or once more (exit_made for the rest)."""
+        candidates = [k for k in range(first, len(self.crossings)) if self.crossings[k][1] == kind]
+        if back is not None and back not in candidates:
+            candidates.append(back)
+        distances = {k: loops.distance(point, self.crossing_point(k)) for k in candidates}
         nearest = min(distances, key=distances.get, default=None)
         return None if nearest is None or math.isinf(distances[nearest]) else nearest
 
@@ -100,7 +116,7 @@ class NeedleGeometry:
 class BoundaryLoops:
     """The tissue's boundary walked loop by loop (the outline first, then each hole), its
     directed edges with their arc length along their loop: how far apart two boundary points
-    are along the boundary (NeedleGeometry.exit_made)."""
+    are along the boundary (NeedleGeometry.crossing_made)."""
 
     starts: np.ndarray  # (k, 2) directed boundary edges, loop after loop
     ends: np.ndarray  # (k, 2)

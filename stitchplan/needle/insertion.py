@@ -21,7 +21,7 @@ from ..config import Scenario
 from ..errors import InputError, InsertionFailure
 from ..events import Event, EventKind
 from .equilibrium import NeedleInsertion, PreparedTissue
-from .geometry import BoundaryLoops
+from .geometry import BoundaryLoops, NeedleGeometry
 from .results import InsertionResult, NeedleStep, Snapshot, StepsDone
 from .steering import CenterAim
 from .tip_tracking import locate_exit, locate_reentry, track_step
@@ -148,10 +148,12 @@ def run_insertion(
             on_step(record)
 
     loops = BoundaryLoops.of(insertion.domain)
-    # the crossings the tip made, (index into geometry.crossings, reference point, rotation):
-    # each matched to the undeformed circle's crossing it is, the ones passed over missed
-    made: list[tuple[int, np.ndarray, float]] = []
-    ahead = 0  # the first crossing of the undeformed circle the tip has neither made nor missed
+    # the tip's boundary crossings in order, (index into geometry.crossings, "exit" | "entry",
+    # reference point, rotation): each matched to the undeformed circle's crossing it makes,
+    # or to the wall it crosses back through (a crossing of the other kind: a soft wall that
+    # bulged round the tip); the ones passed over missed
+    made: list[tuple[int, str, np.ndarray, float]] = []
+    ahead = 0  # the first crossing of the undeformed circle the tip has yet to make (or miss)
     in_gap = False
     limit = math.ceil(2.0 * math.pi / geometry.step) + 2
     for step in range(1, limit + 1):
@@ -160,7 +162,7 @@ def run_insertion(
         previous = rotation - geometry.step
         if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
             # the needle turns no further than its arc through a wound: the tip enters again within it
-            entered = _reentry(insertion, step, max(previous, made[-1][2]), min(rotation, geometry.arc))
+            entered = _reentry(insertion, step, max(previous, made[-1][3]), min(rotation, geometry.arc))
             if entered is None:
                 if rotation >= geometry.arc:
                     raise _left_for_good(insertion, step, made[-1])
@@ -168,14 +170,18 @@ def run_insertion(
                            guess=_at(guesses, step, insertion))
                 continue
             entry_point, entry_rotation = entered
-            made.append((ahead, entry_point, entry_rotation))
-            ahead += 1
+            crossing = _crossing_made(insertion, loops, step, "entry", entry_point, entry_rotation, ahead,
+                                      made[-1][0])
+            made.append((crossing, "entry", entry_point, entry_rotation))
+            ahead = _ahead_after(geometry, made[-1])
             insertion.add_point(entry_point, gap=True)
             in_gap = False
-            log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, entry_rotation)
+            _log_crossing(insertion, step, made)
             point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
             fraction = (rotation - entry_rotation) / geometry.step
         else:
+            if rotation > geometry.arc and made and _crossed_back(geometry, made[-1]):
+                raise _stayed_on_near_side(insertion, step, rotation, made)
             followed = (followed and step <= len(earlier)
                         and np.array_equal(start_from.center_after(step - 1), insertion.center))
             taken = earlier[step - 1] if followed else None
@@ -185,16 +191,16 @@ def run_insertion(
                 point, method = track_step(insertion, step, rotation)  # about the previous step's centre
             fraction = 1.0
         if insertion.domain.outside_distance(point) > 0.0:
-            start = max(previous, made[-1][2]) if made else previous
+            start = max(previous, made[-1][3]) if made else previous
             exit_point, exit_rotation = locate_exit(insertion, start, method,
                                                     (rotation - start) if start != previous else None)
-            crossing = _exit_made(insertion, loops, step, exit_point, exit_rotation, ahead)
-            made.append((crossing, exit_point, exit_rotation))
-            ahead = crossing + 1
+            crossing = _crossing_made(insertion, loops, step, "exit", exit_point, exit_rotation, ahead,
+                                      made[-1][0] if made else None)
+            made.append((crossing, "exit", exit_point, exit_rotation))
+            ahead = _ahead_after(geometry, made[-1])
             if crossing < len(geometry.crossings) - 1:
-                # a wound's first wall: the track reaches the wall, the tip goes on in the gap
-                log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad",
-                         step, exit_rotation)
+                # a wound's wall: the track reaches the wall, the tip goes on in the gap
+                _log_crossing(insertion, step, made)
                 if rotation >= geometry.arc:  # too late in the arc to enter again
                     raise _left_for_good(insertion, step, made[-1])
                 insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
@@ -210,10 +216,66 @@ def run_insertion(
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
 
 
-def _left_for_good(insertion: NeedleInsertion, step: int, wall: tuple[int, np.ndarray, float]) -> InsertionFailure:
+def _crossed_back(geometry: NeedleGeometry, crossing_made: tuple[int, str, np.ndarray, float]) -> bool:
+    """Whether the tip's boundary crossing went back through the wall of a crossing of the
+    other kind (the wall it had just left, or the far wall it had just entered)."""
+    crossing, kind, _, _ = crossing_made
+    return geometry.crossings[crossing][1] != kind
+
+
+def _ahead_after(geometry: NeedleGeometry, crossing_made: tuple[int, str, np.ndarray, float]) -> int:
+    """The first crossing of the undeformed circle still ahead after the tip's boundary
+    crossing: the next one when the tip made its crossing, the crossing itself when the tip
+    crossed back through its wall (the tip has to cross that wall again)."""
+    crossing = crossing_made[0]
+    return crossing if _crossed_back(geometry, crossing_made) else crossing + 1
+
+
+def _log_crossing(insertion: NeedleInsertion, step: int, made: list[tuple[int, str, np.ndarray, float]]) -> None:
+    """Say which wall the tip crossed through a wound, and whether it crossed back (a soft
+    wall that bulged round the tip) or crossed that wall once more."""
+    geometry = insertion.geometry
+    crossing, kind, point, rotation = made[-1]
+    wall = f"crossing {crossing + 1} of {len(geometry.crossings)} of the undeformed circle"
+    if _crossed_back(geometry, made[-1]):
+        if kind == "entry":
+            message = (f"step {step}: the tip entered the tissue again at {_point_text(point)} at needle rotation "
+                       f"{rotation:.3f} rad on the near side of the wound: nearest along the boundary to the wall "
+                       f"it left ({wall}), not to the far wall (the wall bulged round the tip); it has to leave "
+                       "through that wall again")
+        else:
+            message = (f"step {step}: the tip left the tissue back into the wound at {_point_text(point)} at needle "
+                       f"rotation {rotation:.3f} rad, through the far wall it had entered ({wall}); it has to "
+                       "enter that wall again")
+        insertion.events.append(Event(EventKind.WALL_CROSSED_BACK, message, step, rotation))
+        log.info(message)
+    elif any(earlier[:2] == (crossing, kind) for earlier in made[:-1]):  # the same wall once more
+        log.info("step %d: the tip %s at %s at needle rotation %.3f rad, through the same wall (%s)",
+                 step, "left the tissue into a wound again" if kind == "exit" else "entered the far wall again",
+                 _point_text(point), rotation, wall)
+    elif kind == "entry":
+        log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, rotation)
+    else:
+        log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad", step, rotation)
+
+
+def _stayed_on_near_side(insertion: NeedleInsertion, step: int, rotation: float,
+                         made: list[tuple[int, str, np.ndarray, float]]) -> InsertionFailure:
+    """The failure of a run whose tip entered the tissue again through the wall it had left
+    and is still on that side of the wound when the needle's arc ends."""
+    geometry = insertion.geometry
+    crossing, _, point, entered = made[-1]
+    return InsertionFailure(
+        f"step {step}: the needle's arc of {geometry.arc:.4g} rad ended (needle rotation {rotation:.3f} rad) with "
+        f"its tip still on the near side of the wound: the tip entered the tissue again at {_point_text(point)} "
+        f"at needle rotation {entered:.3f} rad through the wall it had left (crossing {crossing + 1} of the "
+        "undeformed circle; the wall bulged round the tip) and did not leave through it again to cross the wound")
+
+
+def _left_for_good(insertion: NeedleInsertion, step: int, wall: tuple[int, str, np.ndarray, float]) -> InsertionFailure:
     """The failure of a run whose tip left the tissue into a wound and cannot enter it again
     within the needle's arc (a needle turned no further through the air)."""
-    crossing, point, rotation = wall
+    crossing, _, point, rotation = wall
     geometry = insertion.geometry
     return InsertionFailure(
         f"step {step}: the needle tip left the tissue into a wound at {_point_text(point)} at needle rotation "
@@ -229,26 +291,29 @@ def _reentry(insertion: NeedleInsertion, step: int, start: float, end: float) ->
         raise InsertionFailure(f"step {step}: {failure}") from None
 
 
-def _exit_made(insertion: NeedleInsertion, loops: BoundaryLoops, step: int, point: np.ndarray,
-               rotation: float, ahead: int) -> int:
+def _crossing_made(insertion: NeedleInsertion, loops: BoundaryLoops, step: int, kind: str, point: np.ndarray,
+                   rotation: float, ahead: int, back: int | None) -> int:
     """The crossing of the undeformed circle (index into geometry.crossings) that the tip
-    leaving the tissue at `point` makes (NeedleGeometry.exit_made); an event for each crossing
-    from `ahead` on that it passed over without making. Raises InsertionFailure when the tip
-    leaves through a wall the undeformed circle does not leave through ahead."""
+    crossing the boundary at `point` (`kind`: "exit" or "entry") makes, or `back`, the one it
+    made last, when it crosses back through that wall (NeedleGeometry.crossing_made); an event
+    for each crossing from `ahead` on that it passed over without making. Raises
+    InsertionFailure when the tip crosses a wall the undeformed circle does not cross ahead."""
     geometry = insertion.geometry
-    crossing = geometry.exit_made(loops, point, ahead)
+    crossing = geometry.crossing_made(loops, point, kind, ahead, back)
     where = f"{_point_text(point)} at needle rotation {rotation:.3f} rad"
+    verb = "left" if kind == "exit" else "entered"
     if crossing is None:
         raise InsertionFailure(
-            f"step {step}: the needle tip left the tissue through {loops.describe(point)} at {where}, where the "
-            f"undeformed circle leaves at none of its crossings {ahead + 1}-{len(geometry.crossings)}; expected "
-            "the tip to leave where the undeformed circle does")
-    made = "the final exit" if crossing == len(geometry.crossings) - 1 else f"crossing {crossing + 1} (exit)"
+            f"step {step}: the needle tip {verb} the tissue through {loops.describe(point)} at {where}, where the "
+            f"undeformed circle {'leaves' if kind == 'exit' else 'enters'} at none of its crossings "
+            f"{ahead + 1}-{len(geometry.crossings)}; expected the tip to {'leave' if kind == 'exit' else 'enter'} "
+            "where the undeformed circle does")
+    made = "the final exit" if crossing == len(geometry.crossings) - 1 else f"crossing {crossing + 1} ({kind})"
     for missed in range(ahead, crossing):
-        kind, desired = geometry.crossings[missed][1], geometry.crossing_point(missed)
-        message = (f"crossing {missed + 1} of {len(geometry.crossings)} of the undeformed circle ({kind} at "
+        missed_kind, desired = geometry.crossings[missed][1], geometry.crossing_point(missed)
+        message = (f"crossing {missed + 1} of {len(geometry.crossings)} of the undeformed circle ({missed_kind} at "
                    f"{_point_text(desired)} on {loops.describe(desired)}) missed: the needle tip did not cross "
-                   f"the boundary there but next left the tissue at {where}, nearest along the boundary to "
+                   f"the boundary there but next {verb} the tissue at {where}, nearest along the boundary to "
                    f"{made}")
         insertion.events.append(Event(EventKind.CROSSING_MISSED, message, step, rotation))
         log.info(message)  # the user sees it once, as a `note:` from the event
@@ -330,9 +395,9 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
             states: list[Snapshot],
             displacements: list[np.ndarray],
             exit_point: np.ndarray, exit_rotation: float, wall_seconds: float,
-            made: list[tuple[int, np.ndarray, float]]) -> InsertionResult:
+            made: list[tuple[int, str, np.ndarray, float]]) -> InsertionResult:
     """The run's record once the tip has left the tissue at `exit_point` (the final exit, the
-    last of the crossings `made`)."""
+    last of the tip's boundary crossings `made`)."""
     desired_exit = insertion.geometry.desired_exit
     crossings = _crossings(insertion, made)
     u_exit = insertion.displacement(np.vstack([exit_point, desired_exit]))  # achieved, desired
@@ -364,15 +429,17 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
     return result
 
 
-def _crossings(insertion: NeedleInsertion, made: list[tuple[int, np.ndarray, float]]) -> list[dict]:
+def _crossings(insertion: NeedleInsertion, made: list[tuple[int, str, np.ndarray, float]]) -> list[dict]:
     """The summary's `crossings` (SCENARIO.md, "Tissue shapes"): every crossing of the
     undeformed circle after the entry in needle order, its point (desired, at rest and moved
     with the tissue) against the tip's material point there (achieved, deformed); achieved,
-    achieved_def and error_mm None for a crossing the tip missed (`made`: the crossings it
-    made, by index)."""
+    achieved_def and error_mm None for a crossing the tip missed (`made`: the tip's boundary
+    crossings in order, by index). A wall the tip crossed more than once (back into the tissue
+    through a bulging wall and out again) keeps the last time, the one before it went on."""
     geometry = insertion.geometry
     desired = np.array([geometry.crossing_point(k) for k in range(len(geometry.crossings))])
-    achieved = {crossing: point for crossing, point, _ in made}
+    # the last crossing of each wall made in its own direction (not a crossing back through it)
+    achieved = {crossing: point for crossing, kind, point, _ in made if kind == geometry.crossings[crossing][1]}
     reached = np.array([achieved[k] for k in sorted(achieved)]).reshape(-1, 2)
     u = insertion.displacement(np.vstack([desired, reached]))
     u_reached = dict(zip(sorted(achieved), u[len(desired):]))
