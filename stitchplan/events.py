@@ -16,6 +16,7 @@ class EventKind(str, Enum):
     PLANNER_NOT_CONVERGED = "planner-not-converged"  # centre iterations ran out within a step
     AUTO_DISCRETIZATION = "auto-discretization"  # what the accuracy target chose, and why
     PASS_FAILED = "planner-pass-failed"  # a planner pass after the first failed numerically; the best before it is kept
+    PATH_LIMITS_EXCEEDED = "path-limits-exceeded"  # the exported centre path breaks the planner's move limits
     TARGET_MISSED = "target-missed"  # a plan's best pass still misses its target (exit or bites)
     CROSSING_MISSED = "crossing-missed"  # the tip did not make a crossing of the undeformed circle (a wound it passed by)
     WALL_CROSSED_BACK = "wall-crossed-back"  # a soft wound wall bulged round the tip: it crossed back to the side it left

@@ -54,3 +54,22 @@ def test_a_verification_replay_that_fails_leaves_the_plan_unverified():
     checks = [event.message for event in plan.planned.events if event.kind == EventKind.ACCURACY_CHECK]
     assert any(message.startswith("verification: the replay on the refined model failed (step 4") and
                message.endswith("(spacing 2 mm); verified exit error unknown") for message in checks)
+
+
+def test_a_path_that_stops_short_of_its_braking_says_it_breaks_the_move_limits():
+    """The centre brakes toward the step before the undeformed circle's exit; on a soft block
+    the tip leaves steps earlier and the centre stops at the exit row from full speed. The
+    summary's max_center_second_difference_mm shows it; an event says so and why."""
+    from stitchplan.planning.planner import MoveLimits, path_smoothness
+
+    scenario = parse_scenario(block("neo-hookean", 3.0, 0.3, 1.5))
+    plan = run_plan(scenario, compare=False)
+    limits = MoveLimits.for_needle(plan.planned.geometry, scenario.planner)
+    _, second = path_smoothness(plan.exported_centers)
+    assert second > limits.second_difference_mm + 1e-6
+    events = [event.message for event in plan.planned.events if event.kind == EventKind.PATH_LIMITS_EXCEEDED]
+    assert len(events) == 1
+    assert f"a second difference of {second:.3g} mm at row" in events[0]
+    assert f"(limit {limits.second_difference_mm:.3g} mm)" in events[0]
+    assert f"the tip left the tissue after step {len(plan.planned.steps)}, before step {limits.last_step + 1}" \
+        in events[0]

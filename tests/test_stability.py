@@ -339,3 +339,23 @@ def test_newton_gives_up_on_a_load_whose_steps_on_fresh_tangents_raise_the_resid
     assert message.startswith("step 1 (needle rotation 0.200 rad): the needle's load could not be carried"), message
     assert "(Newton diverged at step 1 (needle rotation 0.200 rad): 2 steps on a freshly factored tangent " \
            "raised the residual" in message
+
+
+def test_newton_out_of_the_iterations_it_was_given_blames_the_cap_not_the_material():
+    """solver.max_iterations 1: the step fails for want of iterations, and the message says
+    so instead of calling Saint Venant-Kirchhoff unstable under compression."""
+    from stitchplan.config.scenario import parse_scenario
+    from stitchplan.errors import InsertionFailure
+    from stitchplan.needle.insertion import run_insertion
+
+    raw = {"tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": ["right"],
+                      "material": {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}},
+           "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2, "friction": 0.0602,
+                      "cutting_force": 0.7},
+           "discretization": {"spacing": 4.0}, "solver": {"max_iterations": 1}}
+    with pytest.raises(InsertionFailure) as failure:
+        run_insertion(parse_scenario(raw))
+    message = str(failure.value)
+    assert message.startswith("step 1 (needle rotation 0.200 rad): the needle's load could not be carried")
+    assert message.endswith("; solver.max_iterations is 1 (the default 25): give Newton more iterations")
+    assert "Saint Venant-Kirchhoff" not in message

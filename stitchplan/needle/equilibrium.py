@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..config import Scenario
+from ..config import Scenario, Solver
 from ..errors import ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NonFiniteResidual
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler, stiffness_at_rest
@@ -440,6 +440,11 @@ class NeedleInsertion:
                    f"the next {100 * RAMP_SMALLEST:.2g} % increment failed ({failure})")
         if isinstance(failure, (NonFiniteResidual, ConstraintStall)):  # not the material's doing
             return message
+        iterations = self.scenario.solver.max_iterations
+        if "did not converge" in str(failure) and iterations < Solver().max_iterations:
+            # Newton ran out of the few iterations it was given: no sign of the material's doing
+            return message + (f"; solver.max_iterations is {iterations} (the default "
+                              f"{Solver().max_iterations}): give Newton more iterations")
         models = {self.scenario.tissue.material.model}
         models |= {region.material.model for region in getattr(self.scenario.tissue, "regions", None) or []}
         if "saint-venant-kirchhoff" in models:

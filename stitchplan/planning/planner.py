@@ -450,7 +450,37 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
             break
         offsets.advance(aim)
     best.wall_seconds = time.perf_counter() - start
+    _note_rough_path(best, MoveLimits.for_needle(best.geometry, settings))
     return PlanResult(best, unplanned, passes, shooting=offsets)
+
+
+def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:
+    """An event on a pass whose exported centre path breaks the move limits (a robot told to
+    follow it would be told too late): the planner keeps them step by step, braking toward the
+    step before the undeformed circle's exit, so a tip that leaves earlier stops the centre at
+    the exit row from a speed the braking had not yet taken off."""
+    centers = exported_centers(result)
+    moves = np.linalg.norm(np.diff(centers, axis=0), axis=1)
+    second = np.linalg.norm(np.diff(centers, 2, axis=0), axis=1) if len(centers) > 2 else np.zeros(0)
+    broken = []
+    slack = 1e-6  # mm: the limits hold to round-off, and the exported centres are rounded to 1e-9 mm
+    if len(moves) and moves.max() > limits.step_mm + slack:
+        k = int(np.argmax(moves))
+        broken.append(f"a move of {moves[k]:.3g} mm into row {k + 1} (limit {limits.step_mm:.3g} mm)")
+    if len(second) and second.max() > limits.second_difference_mm + slack:
+        k = int(np.argmax(second))
+        broken.append(f"a second difference of {second[k]:.3g} mm at row {k + 2} (limit "
+                      f"{limits.second_difference_mm:.3g} mm)")
+    if not broken:
+        return
+    steps = len(result.steps)
+    why = (f": the tip left the tissue after step {steps}, before step {limits.last_step + 1}, the last before "
+           "the undeformed circle's exit, which the centre brakes toward" if steps < limits.last_step + 1 else "")
+    message = (f"plan: the exported centre path breaks the planner's move limits with {' and '.join(broken)}"
+               f"{why}; slow the robot there or loosen planner.center_step_limit / "
+               "center_second_difference_limit knowingly")
+    result.events.append(Event(EventKind.PATH_LIMITS_EXCEEDED, message))
+    log.info(message)
 
 
 def _streamed(on_step, stream, scenario: Scenario):
