@@ -73,3 +73,14 @@ def test_a_path_that_stops_short_of_its_braking_says_it_breaks_the_move_limits()
     assert f"(limit {limits.second_difference_mm:.3g} mm)" in events[0]
     assert f"the tip left the tissue after step {len(plan.planned.steps)}, before step {limits.last_step + 1}" \
         in events[0]
+
+
+def test_minres_asked_for_a_plan_says_the_planner_steps_solve_directly():
+    """The planner's steps carry the centre as an unknown and solve directly whatever
+    --linear-solver says; the run says so instead of reporting MINRES with no iterations."""
+    raw = block("saint-venant-kirchhoff", 10.0, 0.0602, 0.7)
+    raw["needle"]["linear_solver"] = "minres"
+    plan = run_plan(parse_scenario(raw), compare=False)
+    told = [event for event in plan.planned.events if event.kind == EventKind.MINRES_FALLBACK]
+    assert len(told) == 1 and told[0].message.startswith("the planner's steps solve directly, not by MINRES")
+    assert plan.planned.solver_counts["minres_iterations"] == 0

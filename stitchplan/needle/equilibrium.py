@@ -63,6 +63,8 @@ ANDERSON_DEPTH = 5  # steps mixed by the accelerated modified Newton (AndersonMi
 STALE_CENTER_MOVES = 10.0  # d(d, lambda)/dC is re-solved while the centre moves more than this x tolerance
 CENTER_COLUMNS_ON_ROWS = True  # d(d, lambda)/dC from the kept K^-1 E^T where the coupling allows (_center_columns)
 REFACTOR_CONTRACTION = 0.5  # a planner's step renews the factor of K + H below this contraction (renew_factor)
+# the event of a MINRES run's steps solved directly because the planner steers the centre
+STEERED_DIRECT = "the planner's steps solve directly, not by MINRES"
 RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
 # K0's condition number (condition_estimate) above which a discretization is refused as
 # nearly singular: its solves then keep fewer than 4 of double precision's 16 digits. 1e4 at
@@ -506,6 +508,15 @@ class NeedleInsertion:
                 constraints = self.coupling.constraint_matrix(state.normal)
                 solution, its = self._minres_step(state, multipliers, constraints, rhs, rotation, step)
                 minres_total += its
+            elif self.linear_method == "minres" and not any(e.kind == EventKind.MINRES_FALLBACK and
+                                                            e.message.startswith(STEERED_DIRECT) for e in self.events):
+                # MINRES solves the symmetric saddle-point system; the centre as a third unknown
+                # (CenterAim) borders it with the exit's rows, which only the direct path takes
+                message = (f"{STEERED_DIRECT} (--linear-solver minres): with the centre as an unknown the Newton "
+                           "system is no longer the saddle-point system MINRES is preconditioned for; MINRES "
+                           "solves the steps whose centre is fixed (simulate, the replays)")
+                self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
+                log.info(message)
             if solution is None:
                 # keep the factor of K while Newton contracts fast; renew it when it slows
                 refactor = renew_factor(measure, previous, earlier, aim is not None)
