@@ -12,7 +12,12 @@ task ran. Three ways to run:
   tcp://...` on any machines that can import stitchplan).
 
 Tasks are submitted with `pure=False` (each is run, none deduplicated) and `retries=2`, so
-the tasks of a worker that dies are run again on another one. A task's own failure is the
+the tasks of a worker that dies are run again on another one. A cluster without a worker
+holds its tasks forever, so the wait for results is watched: while no task completes the
+scheduler is asked every few seconds for its workers, and when it has had none for
+`worker_wait_seconds()` (WORKER_WAIT_S, or the STITCHPLAN_WORKER_WAIT environment variable)
+the run ends as a ClusterFailure saying whether no worker ever came or the cluster lost its
+workers, and how many tasks were done. The wait is logged at INFO (-v) as it goes. A task's own failure is the
 task's business: the functions mapped here record the failures a run may end with
 (RUN_FAILURES) in their result instead of raising them, so a failed sample is a recorded
 failure, not a lost run; anything else escaping a task is a bug and is raised here.
@@ -32,7 +37,10 @@ InputError naming --scheduler, never as a hang or a traceback.
 Dask's log records stay off the console: in this process, while an executor runs, they go
 to this module's logger at DEBUG (shown with -vv); the worker processes of a local cluster
 drop them (`dask_setup`, run in each worker as a preload), so the heartbeat errors of a
-normal shutdown never reach the user. What fails for real ends as the package's own error:
+normal shutdown never reach the user. Those workers ignore Ctrl-C (SIGINT, which a terminal
+sends to the whole process group): the command stops them when it closes the cluster, so an
+interrupt ends with the command's own exit and no traceback of theirs. What fails for real
+ends as the package's own error:
 InputError when the cluster cannot be reached or started, ClusterFailure when it loses tasks.
 """
 
@@ -41,8 +49,11 @@ from __future__ import annotations
 import contextlib
 import ipaddress
 import logging
+import math
 import os
 import re
+import signal
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
@@ -73,6 +84,12 @@ DASK_LOGGERS = ("distributed", "dask", "tornado", "bokeh")
 RETRIES = 2  # a lost worker's tasks run again elsewhere, at most this many times
 MAX_WORKERS_PER_CORE = 4  # --workers at most this many times the cores this process may use
 CONNECT_TIMEOUT_S = 5.0  # reaching a --scheduler and hearing its answer, at most this long
+# how long tasks wait on a cluster without a worker (none came, or all were lost) before the run
+# ends: time for `dask worker` processes to be started, or for a lost one to be replaced
+WORKER_WAIT_S = 60.0
+WORKER_WAIT_VARIABLE = "STITCHPLAN_WORKER_WAIT"  # overrides WORKER_WAIT_S (seconds)
+WORKER_POLL_S = 2.0  # while no task completes, the scheduler is asked for its workers this often
+WAIT_NOTE_S = 10.0  # a wait for workers is logged at its start and then this often
 MIN_OPEN_FILES = 64  # a 2-worker local cluster ran at 64; at 16 its scheduler looped on "too many open files"
 # distributed's comm schemes that reach a scheduler in another process (inproc:// is in-process
 # only; ucx:// has left distributed for distributed-ucxx)
@@ -104,6 +121,22 @@ def max_workers() -> int:
     """The largest --workers: MAX_WORKERS_PER_CORE x the usable cores. Beyond it the workers
     only queue for the same cores while each costs a process and its memory."""
     return MAX_WORKERS_PER_CORE * usable_cores()
+
+
+def worker_wait_seconds() -> float:
+    """How long tasks may wait on a cluster without a worker: WORKER_WAIT_VARIABLE's seconds
+    when set (an InputError unless a number > 0), WORKER_WAIT_S otherwise."""
+    text = os.environ.get(WORKER_WAIT_VARIABLE, "").strip()
+    if not text:
+        return WORKER_WAIT_S
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise InputError(f"{WORKER_WAIT_VARIABLE}: got {text!r}, expected the seconds tasks may wait for a "
+                         f"Dask worker, a number > 0 (default {WORKER_WAIT_S:g})")
+    return seconds
 
 
 def check_workers(workers: int | None, scheduler: str | None) -> None:
@@ -174,9 +207,11 @@ class Executor:
 
     def __init__(self, workers: int | None = None, scheduler: str | None = None):
         check_workers(workers, scheduler)
+        self.worker_wait = worker_wait_seconds() if workers != 0 else WORKER_WAIT_S
         self.scheduler = scheduler
         self.workers = default_workers() if workers is None and scheduler is None else workers
         self.client = None
+        self.had_workers = False  # whether its cluster was seen with a worker (ran a task)
         self._stack = contextlib.ExitStack()
 
     @property
@@ -211,10 +246,18 @@ class Executor:
 
         probe_scheduler(self.scheduler)
         try:
-            return self._stack.enter_context(Client(self.scheduler, timeout=CONNECT_TIMEOUT_S))
+            client = self._stack.enter_context(Client(self.scheduler, timeout=CONNECT_TIMEOUT_S))
         except Exception as error:  # noqa: BLE001 -- it answered the probe, then failed: gone, or not ours
             raise InputError(f"--scheduler: cannot connect to {self.scheduler} ({_brief(error)}); expected "
                              "the address of a running `dask scheduler`") from None
+        workers = len(client.nthreads())
+        self.had_workers = workers > 0
+        if workers:
+            log.info("Dask scheduler %s has %d worker%s", self.scheduler, workers, "s" if workers > 1 else "")
+        else:  # said now: the tasks only wait for one after the nominal plan
+            log.info("Dask scheduler %s has no workers yet; its tasks will wait up to %g s for one", self.scheduler,
+                     self.worker_wait)
+        return client
 
     def _start_local_cluster(self):
         import dask
@@ -237,10 +280,12 @@ class Executor:
         try:
             # no dashboard; the scheduler's HTTP routes (health, metrics) on a free local port, not
             # on 8787, where another cluster would make distributed warn on stderr
-            cluster = self._stack.enter_context(LocalCluster(
-                n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, silence_logs=logging.ERROR,
-                env=SINGLE_THREAD, preload=preload))
+            with signals_deferred():  # a cluster interrupted half-started cannot be closed
+                cluster = self._stack.enter_context(LocalCluster(
+                    n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                    scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, silence_logs=logging.ERROR,
+                    env=SINGLE_THREAD, preload=preload))
+            self.had_workers = True  # LocalCluster returns once its workers have started
             return self._stack.enter_context(Client(cluster))
         except Exception as error:  # noqa: BLE001 -- a machine that cannot start them (memory, file limits)
             raise InputError(f"--workers: cannot start a local Dask cluster of {self.workers} worker "
@@ -268,24 +313,123 @@ class Executor:
             return results
         from concurrent.futures import CancelledError
 
-        from dask.distributed import as_completed
+        from dask.distributed import wait
         from distributed.scheduler import KilledWorker
 
         futures = self.client.map(function, *[list(column) for column in zip(*calls)],
                                   pure=False, retries=RETRIES)
         index_of = {future.key: index for index, future in enumerate(futures)}
+        watch = _WorkerWatch(self, len(futures))
+        pending = list(futures)
         try:
-            for future in as_completed(futures):
-                report(index_of[future.key], future.result())  # a task's bug is raised here
+            while pending:
+                try:
+                    done, not_done = wait(pending, timeout=min(WORKER_POLL_S, self.worker_wait),
+                                          return_when="FIRST_COMPLETED")
+                except TimeoutError:  # nothing completed meanwhile: are there workers at all?
+                    watch.check(len(futures) - len(pending))
+                    continue
+                watch.progressed()
+                for future in done:
+                    report(index_of[future.key], future.result())  # a task's bug is raised here
+                pending = list(not_done)
             return [future.result() for future in futures]
         except (KilledWorker, CancelledError) as error:  # the cluster's failure, not the task's
             raise ClusterFailure(f"{self.where} lost a task: {_brief(error)}") from None
+
+
+class _WorkerWatch:
+    """Watches an executor's cluster while its tasks wait: a ClusterFailure once it has had no
+    worker for `executor.worker_wait` seconds, INFO records of the wait meanwhile."""
+
+    def __init__(self, executor: Executor, tasks: int):
+        self.executor = executor
+        self.tasks = tasks
+        self.without_since: float | None = None  # when the cluster was last seen to have no worker
+        self.noted_at = 0.0
+
+    def progressed(self) -> None:
+        """A task completed: a worker ran it."""
+        self.executor.had_workers = True
+        self.without_since = None
+
+    def check(self, done: int) -> None:
+        """Ask the scheduler for its workers; raise a ClusterFailure if it has had none for the
+        wait allowed, `done` of the tasks completed."""
+        executor = self.executor
+        try:
+            workers = len(executor.client.nthreads())
+        except Exception as error:  # noqa: BLE001 -- the scheduler gone or not answering: the cluster's failure
+            raise ClusterFailure(f"{executor.where} stopped answering with {done} of {self.tasks} tasks done "
+                                 f"({_brief(error)})") from None
+        now = time.monotonic()
+        if workers:
+            if self.without_since is not None:
+                log.info("%s has %d worker%s again", executor.where, workers, "s" if workers > 1 else "")
+            executor.had_workers, self.without_since = True, None
+            return
+        what = "lost its workers" if executor.had_workers else "has no workers"
+        if self.without_since is None:
+            self.without_since = self.noted_at = now
+            log.info("%s %s (%d of %d tasks done); waiting up to %g s for one", executor.where, what, done,
+                     self.tasks, executor.worker_wait)
+        waited = now - self.without_since
+        if waited >= executor.worker_wait:
+            if executor.had_workers:
+                raise ClusterFailure(f"{executor.where} lost its workers: {done} of {self.tasks} tasks done, then "
+                                     f"no worker for {executor.worker_wait:g} s; expected workers attached to it "
+                                     "that keep running" + _worker_hint(executor.scheduler))
+            raise ClusterFailure(f"{executor.where} has no workers: none joined within {executor.worker_wait:g} s "
+                                 f"({done} of {self.tasks} tasks done); expected workers attached to it"
+                                 f"{_worker_hint(executor.scheduler)}")
+        if now - self.noted_at >= WAIT_NOTE_S:
+            self.noted_at = now
+            log.info("%s still %s: waited %.0f s of %g s (%d of %d tasks done)", executor.where,
+                     "without workers" if executor.had_workers else "has no workers", waited, executor.worker_wait,
+                     done, self.tasks)
+
+
+def _worker_hint(scheduler: str | None) -> str:
+    """How to attach a worker to the scheduler, for the error line."""
+    return f" (`dask worker {scheduler}`)" if scheduler is not None else ""
 
 
 def run_all(function: Callable[..., Any], *arguments: Iterable[Any], executor: Executor | None = None,
             on_result: Callable[[int, Any], None] | None = None) -> list[Any]:
     """`executor.map`, or in this process without one."""
     return (executor or Executor(workers=0)).map(function, *[list(a) for a in arguments], on_result=on_result)
+
+
+DEFERRED_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")  # the ones that end a command (stitchplan.cli)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """While it is open, Ctrl-C (and SIGTERM, SIGHUP) only are noted; on closing, the first
+    one noted is handled as it would have been (KeyboardInterrupt, the command's exit). For the
+    start of a local cluster: distributed cannot close one interrupted half-started (its exit
+    function fails on the nannies still starting, with a traceback), so the interrupt waits
+    the seconds until the cluster is up and in the executor's hands. Outside the main thread
+    (where signal handlers cannot be set) it does nothing."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    noted: list[int] = []
+    numbers = [getattr(signal, name) for name in DEFERRED_SIGNALS if hasattr(signal, name)]
+    previous = {number: signal.signal(number, lambda number, frame: noted.append(number)) for number in numbers}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    if noted:
+        handler = previous[noted[0]]
+        if callable(handler):
+            handler(noted[0], None)
+        elif handler == signal.SIG_DFL:
+            os.kill(os.getpid(), noted[0])
 
 
 # --- reaching a scheduler ---------------------------------------------------------------------
@@ -393,11 +537,8 @@ def dask_logs_to_package() -> Iterator[None]:
     stderr handlers distributed installs at import; everything is put back afterwards."""
     loggers = [logging.getLogger(name) for name in _dask_logger_names()]
     saved = [(logger, list(logger.handlers), logger.propagate) for logger in loggers]
-    forward = _ToPackageLog()
     try:
-        for logger in loggers:
-            logger.handlers = [forward] if logger.name in DASK_LOGGERS else []
-            logger.propagate = logger.name not in DASK_LOGGERS  # children to their top, tops nowhere
+        _forward_to_package(loggers)
         yield
     finally:
         for logger, handlers, propagate in saved:
@@ -410,12 +551,37 @@ def dask_setup(worker: Any) -> None:
     Dask records are dropped. Its stderr is the user's terminal, distributed's silence_logs
     lets ERROR through and is undone while the worker closes, when the heartbeat to a
     scheduler that has closed first fails; a task's own failure reaches the client anyway.
+    A worker process (one its nanny started) ignores Ctrl-C: the terminal sends SIGINT to the
+    whole process group, and the worker would end in a traceback of asyncio's CancelledError
+    and KeyboardInterrupt while the command, which closes the cluster, stops it anyway.
     Its allocator reuses freed memory, as the command's does (stitchplan/allocator.py)."""
+    import multiprocessing
+    import threading
+
     from .allocator import reuse_freed_memory
 
     reuse_freed_memory()
     for name in _dask_logger_names():
         logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+    if multiprocessing.parent_process() is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def dask_logs_to_package_until_exit() -> None:
+    """From now on, for the rest of the process, Dask's log records go to this module's logger
+    at DEBUG (as inside `dask_logs_to_package`). For the command's end: a cluster an interrupt
+    caught half-started is closed by distributed's exit functions, and its finalizers reap the
+    worker processes, each saying so in INFO records that would reach the console."""
+    _forward_to_package([logging.getLogger(name) for name in _dask_logger_names()])
+
+
+def _forward_to_package(loggers: list[logging.Logger]) -> None:
+    """Dask's top loggers (DASK_LOGGERS) hand their records to this module's logger, their
+    children pass theirs up to them, and none reaches a stderr handler of its own."""
+    forward = _ToPackageLog()
+    for logger in loggers:
+        logger.handlers = [forward] if logger.name in DASK_LOGGERS else []
+        logger.propagate = logger.name not in DASK_LOGGERS  # children to their top, tops nowhere
 
 
 def _dask_logger_names() -> list[str]:

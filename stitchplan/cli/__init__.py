@@ -19,6 +19,14 @@ import sys
 _LAZY = {"app": "group", "EXIT_CODES": "group", "exit_code": "group", "usage_message": "group",
          "LinearSolver": "options", "TipTracking": "options"}
 
+# Run again as the main module of a child process the command started (multiprocessing's spawn
+# imports the parent's main module as __mp_main__ first: a local Dask cluster's worker
+# processes), the process ignores Ctrl-C from here on: the terminal sends SIGINT to the whole
+# process group, the command stops its cluster on the way out, and each worker would print a
+# traceback of its own
+if "__mp_main__" in sys.modules:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
 
 def main() -> None:
     """Console entry point of `stitchplan` and `python -m stitchplan`."""
@@ -61,6 +69,9 @@ def _exit(code: int) -> None:
     on sh12_100x100 (benchmarks/plan_speed.py, start-up and end table)."""
     import atexit
 
+    parallel = sys.modules.get("stitchplan.parallel")
+    if parallel is not None:  # a cluster closed by the exit functions (after Ctrl-C) logs as it goes
+        parallel.dask_logs_to_package_until_exit()
     run_exit_functions = getattr(atexit, "_run_exitfuncs", None)
     if run_exit_functions is None:  # not CPython's atexit: the ordinary exit
         sys.exit(code)

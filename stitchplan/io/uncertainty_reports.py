@@ -47,9 +47,16 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
     exported = stats[result.exported]
     robust_plan = result.robust
     training_ok = [run for run in result.training if run.ok]
+    samples = result.uncertainty.samples
     block = {
-        "samples": result.uncertainty.samples,
-        "failed_samples": result.failed_samples,
+        # SCENARIO.md's counts, of the held-out samples the statistics below are over (as many
+        # train the robust plan); each set's own counts follow
+        "samples": samples,
+        "failed_samples": result.failed_held_out_samples,
+        "held_out_samples": samples,
+        "failed_held_out_samples": result.failed_held_out_samples,
+        "training_samples": len(result.training),
+        "failed_training_samples": result.failed_training_samples,
         "unplanned": stats["unplanned"],
         "nominal": stats["nominal"],
         "robust": exported,  # the exported plan (SCENARIO.md)
@@ -165,8 +172,10 @@ def uncertainty_lines(result: UncertaintyResult) -> list[str]:
     basis = ("" if result.refined_offset is None else
              " (the plans' on the refined model: their planning-model exits + its offset "
              f"({result.refined_offset[0]:.3g}, {result.refined_offset[1]:.3g}) mm)")
-    lines = [f"uncertainty: {result.uncertainty.samples} samples held out ({int(result.evaluated.sum())} evaluated, "
-             f"{result.failed_samples} samples with a failed run), exit error mean / p95{basis}:"]
+    evaluated = int(result.evaluated.sum())
+    lines = [f"uncertainty: {len(result.training)} training samples ({result.failed_training_samples} with a failed "
+             f"run), {result.uncertainty.samples} held out ({result.failed_held_out_samples} with a failed run); "
+             f"exit error mean / p95 over the {evaluated} held-out samples where every path ran{basis}:"]
     for label in LABELS:
         s = stats[label]
         shown = "n/a" if s["mean_mm"] is None else f"{s['mean_mm']:.4f} / {s['p95_mm']:.4f} mm"
@@ -184,8 +193,8 @@ def plot_title(result: UncertaintyResult, scenario_name: str = "") -> str:
     evaluated = int(result.evaluated.sum())
     name = scenario_name or "scenario"
     if exported is None or unplanned is None:
-        return (f"{name}: no held-out sample ran every path ({result.failed_samples} samples with a failed run); "
-                f"{result.exported} plan exported")
+        return (f"{name}: no held-out sample ran every path ({result.failed_held_out_samples} samples with a failed "
+                f"run); {result.exported} plan exported")
     basis = "" if result.refined_offset is None else " (plans: on the refined model)"
     return (f"{name}: exit error on {evaluated} held-out samples{basis}; {result.exported} plan p95 "
             f"{exported:.3g} mm, unplanned {unplanned:.3g} mm")

@@ -193,10 +193,19 @@ class UncertaintyResult:
         return [{"set": name, "sample": index, "path": label, "reason": run.reason}
                 for name, label, group in runs for index, run in enumerate(group) if not run.ok]
 
+    def failed_in(self, sample_set: str) -> int:
+        """Samples of one set ("training" or "held_out") with at least one failed run."""
+        return len({record["sample"] for record in self.failures() if record["set"] == sample_set})
+
     @property
-    def failed_samples(self) -> int:
-        """Samples (training or held-out) with at least one failed run."""
-        return len({(record["set"], record["sample"]) for record in self.failures()})
+    def failed_training_samples(self) -> int:
+        """Training samples whose run (the nominal path) failed."""
+        return self.failed_in("training")
+
+    @property
+    def failed_held_out_samples(self) -> int:
+        """Held-out samples with a failed run of any path: those not evaluated."""
+        return self.failed_in("held_out")
 
     def dominant(self) -> Sensitivity | None:
         """The parameter moving the exit most over its std (|sensitivity| x std)."""
