@@ -271,3 +271,16 @@ def test_calibration_tables_read_numbers_as_the_center_path_files_do():
     from stitchplan.io import readers
 
     assert tables.parse_number is readers.parse_number  # one rule for every CSV a user gives
+
+
+def test_one_marker_file_in_two_experiments_is_refused(tmp_path):
+    """The same photographs counted twice would halve the stated scatter of the fit."""
+    path = marker_calibration(tmp_path, MOVED)
+    data = yaml.safe_load(path.read_text())
+    data["experiments"].append({**data["experiments"][0], "name": "copy"})
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(InputError) as raised:
+        calibration.load_material_calibration(path)
+    assert str(raised.value) == (f"{path}: experiments[1].markers: got {tmp_path / 'markers0.csv'}, the markers of "
+                                 "experiments[0] again; expected each experiment's own marker file (its loads move "
+                                 "the markers differently)")

@@ -150,6 +150,15 @@ def parse_material_calibration(raw: Any, folder: Path, source: str = "") -> Mate
             experiments.append(read_experiment(block, tissue, folder, f"experiments[{i}]"))
         except InputError as error:
             problems += getattr(error, "lines", [str(error)])
+    # one marker file in two experiments counts the same photographs twice, halving their
+    # stated scatter: a copied block whose file was not changed
+    first_of: dict[Path, int] = {}
+    for i, experiment in enumerate(experiments):
+        same = first_of.setdefault(Path(experiment.source).resolve(), i)
+        if same != i:
+            problems.append(f"experiments[{i}].markers: got {experiment.source}, the markers of experiments[{same}] "
+                            "again; expected each experiment's own marker file (its loads move the markers "
+                            "differently)")
     if problems:
         raise input_error(problems)
     if sum(len(e.markers) for e in experiments) < 2:
