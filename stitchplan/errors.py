@@ -58,6 +58,10 @@ class NonFiniteResidual(InsertionFailure):
     """Newton met a residual that is not finite: the loads or the deformation overflow."""
 
 
+class NewtonExhausted(InsertionFailure):
+    """Newton used up solver.max_iterations at a step with its forces still out of balance."""
+
+
 class ConstraintStall(InsertionFailure):
     """Newton balanced the forces but the needle constraints stalled above their tolerance:
     constraint rows nearly dependent (needle points closer together than the particles resolve)."""

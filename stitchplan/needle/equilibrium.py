@@ -36,7 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..config import Scenario, Solver
-from ..errors import ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NonFiniteResidual
+from ..errors import ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NewtonExhausted, NonFiniteResidual
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler, stiffness_at_rest
 from ..tissue.factorization import Factor, condition_estimate, factorize
@@ -63,8 +63,6 @@ ANDERSON_DEPTH = 5  # steps mixed by the accelerated modified Newton (AndersonMi
 STALE_CENTER_MOVES = 10.0  # d(d, lambda)/dC is re-solved while the centre moves more than this x tolerance
 CENTER_COLUMNS_ON_ROWS = True  # d(d, lambda)/dC from the kept K^-1 E^T where the coupling allows (_center_columns)
 REFACTOR_CONTRACTION = 0.5  # a planner's step renews the factor of K + H below this contraction (renew_factor)
-# the event of a MINRES run's steps solved directly because the planner steers the centre
-STEERED_DIRECT = "the planner's steps solve directly, not by MINRES"
 RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
 # K0's condition number (condition_estimate) above which a discretization is refused as
 # nearly singular: its solves then keep fewer than 4 of double precision's 16 digits. 1e4 at
@@ -246,6 +244,7 @@ class NeedleInsertion:
         self.tip_tracking = tip_tracking or self.needle.tip_tracking
         self.timings = {"discretization": 0.0, "assembly": 0.0, "solve": 0.0, "tip_tracking": 0.0}
         self.events: list[Event] = []
+        self._told_steered_direct = False  # that the planner's steps solve directly (once per run)
         tissue = tissue or PreparedTissue(scenario)
         if not tissue.fits(scenario):
             raise ValueError("a prepared tissue of another scenario's tissue or discretization")
@@ -443,7 +442,7 @@ class NeedleInsertion:
         if isinstance(failure, (NonFiniteResidual, ConstraintStall)):  # not the material's doing
             return message
         iterations = self.scenario.solver.max_iterations
-        if "did not converge" in str(failure) and iterations < Solver().max_iterations:
+        if isinstance(failure, NewtonExhausted) and iterations < Solver().max_iterations:
             # Newton ran out of the few iterations it was given: no sign of the material's doing
             return message + (f"; solver.max_iterations is {iterations} (the default "
                               f"{Solver().max_iterations}): give Newton more iterations")
@@ -508,14 +507,15 @@ class NeedleInsertion:
                 constraints = self.coupling.constraint_matrix(state.normal)
                 solution, its = self._minres_step(state, multipliers, constraints, rhs, rotation, step)
                 minres_total += its
-            elif self.linear_method == "minres" and not any(e.kind == EventKind.MINRES_FALLBACK and
-                                                            e.message.startswith(STEERED_DIRECT) for e in self.events):
+            elif self.linear_method == "minres" and not self._told_steered_direct:
                 # MINRES solves the symmetric saddle-point system; the centre as a third unknown
                 # (CenterAim) borders it with the exit's rows, which only the direct path takes
-                message = (f"{STEERED_DIRECT} (--linear-solver minres): with the centre as an unknown the Newton "
-                           "system is no longer the saddle-point system MINRES is preconditioned for; MINRES "
-                           "solves the steps whose centre is fixed (simulate, the replays)")
+                message = ("the planner's steps solve directly, not by MINRES (--linear-solver minres): with the "
+                           "centre as an unknown the Newton system is no longer the saddle-point system MINRES is "
+                           "preconditioned for; MINRES solves the steps whose centre is fixed (simulate, the "
+                           "replays)")
                 self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
+                self._told_steered_direct = True
                 log.info(message)
             if solution is None:
                 # keep the factor of K while Newton contracts fast; renew it when it slows
@@ -560,7 +560,7 @@ class NeedleInsertion:
                    f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} "
                    "iterations")
         if not forces_balance:
-            raise InsertionFailure(message)
+            raise NewtonExhausted(message)
         remedy = "refine the spacing or lengthen the needle step"
         if self.needle.coupling == "points":
             remedy = "refine the spacing, lengthen the needle step or use `needle.coupling: mortar`"

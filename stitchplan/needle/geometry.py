@@ -136,12 +136,24 @@ class BoundaryLoops:
         before = np.cumsum(lengths) - lengths  # arc length over every loop so far
         return cls(starts, ends, loop, before - before[first_of_loop][loop], np.bincount(loop, weights=lengths))
 
-    def position(self, point: np.ndarray) -> tuple[int, float]:
-        """The loop of the boundary point nearest `point`, and the arc length along it there."""
+    def _nearest(self, point: np.ndarray) -> tuple[int, float, np.ndarray]:
+        """The edge holding the boundary point nearest `point`, the fraction along it there,
+        and that point."""
         edges = self.ends - self.starts
         along = np.clip(np.sum((point - self.starts) * edges, axis=1) / np.sum(edges * edges, axis=1), 0.0, 1.0)
-        nearest = int(np.argmin(np.linalg.norm(self.starts + along[:, None] * edges - point, axis=1)))
-        return int(self.loop[nearest]), float(self.offset[nearest] + along[nearest] * length(edges[nearest]))
+        candidates = self.starts + along[:, None] * edges
+        k = int(np.argmin(np.linalg.norm(candidates - point, axis=1)))
+        return k, float(along[k]), candidates[k]
+
+    def nearest(self, point: np.ndarray) -> tuple[np.ndarray, float]:
+        """The boundary point nearest `point`, and how far it is (mm)."""
+        _, _, nearest = self._nearest(point)
+        return nearest, float(length(nearest - point))
+
+    def position(self, point: np.ndarray) -> tuple[int, float]:
+        """The loop of the boundary point nearest `point`, and the arc length along it there."""
+        k, along, _ = self._nearest(point)
+        return int(self.loop[k]), float(self.offset[k] + along * length(self.ends[k] - self.starts[k]))
 
     def distance(self, first: np.ndarray, second: np.ndarray) -> float:
         """Distance between two boundary points along the boundary, the shorter way round their
@@ -158,17 +170,6 @@ class BoundaryLoops:
         return "the outer boundary" if loop == 0 else f"the wall of hole {loop}"
 
 
-def nearest_boundary_point(domain: Rectangle | PolygonDomain, point: np.ndarray) -> tuple[np.ndarray, float]:
-    """The boundary point nearest `point`, and how far it is (mm)."""
-    starts, ends = (np.array(ends, dtype=float) for ends in zip(*domain.boundary_segments()))
-    edges = ends - starts
-    along = np.clip(np.sum((point - starts) * edges, axis=1) / np.sum(edges * edges, axis=1), 0.0, 1.0)
-    candidates = starts + along[:, None] * edges
-    distances = np.linalg.norm(candidates - point, axis=1)
-    k = int(np.argmin(distances))
-    return candidates[k], float(distances[k])
-
-
 def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> NeedleGeometry:
     """Centre on the boundary tangent at the entry (orthogonal entry), desired exit where the
     undeformed circle leaves the tissue for the last time within the needle's arc (the first
@@ -176,7 +177,7 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
     edges = domain.edges_at(needle.entry)
     entry = np.asarray(needle.entry, dtype=float)
     if not edges:
-        nearest, distance = nearest_boundary_point(domain, entry)
+        nearest, distance = BoundaryLoops.of(domain).nearest(entry)
         circles = (f" (a circular hole is held as its inscribed {CIRCLE_SEGMENTS}-gon)"
                    if getattr(domain, "holes", ()) else "")
         raise InputError(f"needle.entry: got {list(needle.entry)}, expected a point on the "

@@ -105,12 +105,17 @@ def _into_both(point: np.ndarray, center_a: np.ndarray, radius_a: float, center_
     return min(crossings, key=lambda crossing: float(np.linalg.norm(crossing - point)))
 
 
+def center_moves(centers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """|O_n - O_(n-1)| (n - 1,) and |O_n - 2 O_(n-1) + O_(n-2)| (n - 2,) of a centre path (n, 2), mm."""
+    centers = np.asarray(centers, dtype=float).reshape(-1, 2)
+    return (np.linalg.norm(np.diff(centers, axis=0), axis=1),
+            np.linalg.norm(np.diff(centers, 2, axis=0), axis=1) if len(centers) > 2 else np.zeros(0))
+
+
 def path_smoothness(centers: np.ndarray) -> tuple[float, float]:
     """Largest centre move and largest second difference (mm) of a centre path (n, 2)."""
-    centers = np.asarray(centers, dtype=float)
-    moves = np.linalg.norm(np.diff(centers, axis=0), axis=1) if len(centers) > 1 else np.zeros(1)
-    second = np.linalg.norm(np.diff(centers, 2, axis=0), axis=1) if len(centers) > 2 else np.zeros(1)
-    return float(moves.max()), float(second.max())
+    moves, second = center_moves(centers)
+    return float(moves.max(initial=0.0)), float(second.max(initial=0.0))
 
 
 @dataclass(frozen=True)
@@ -459,9 +464,7 @@ def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:
     follow it would be told too late): the planner keeps them step by step, braking toward the
     step before the undeformed circle's exit, so a tip that leaves earlier stops the centre at
     the exit row from a speed the braking had not yet taken off."""
-    centers = exported_centers(result)
-    moves = np.linalg.norm(np.diff(centers, axis=0), axis=1)
-    second = np.linalg.norm(np.diff(centers, 2, axis=0), axis=1) if len(centers) > 2 else np.zeros(0)
+    moves, second = center_moves(exported_centers(result))
     broken = []
     slack = 1e-6  # mm: the limits hold to round-off, and the exported centres are rounded to 1e-9 mm
     if len(moves) and moves.max() > limits.step_mm + slack:

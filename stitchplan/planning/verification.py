@@ -79,6 +79,7 @@ ESTIMATE_FACTOR = 2.0  # the exit error estimate's second run: its spacing / the
 VERIFIED_FACTOR = 1.5  # a verified exit error within 1.5 x exit_tolerance needs no correction
 AIMED_TOLERANCE_FRACTION = 0.4  # passes with an aim stop within this x exit_tolerance of it
 MAX_CORRECTIONS = 2
+ENDS_BEFORE_EXIT = "the exported trajectory ends before the tip leaves the refined model"  # a replay's reason for none
 # the exit-error vector's change from 2h to h over its change from h to h/2, by which the
 # predicted aim scales the first (2^p for order p): 2.5-3.9 for the first passes of the six
 # shipped scenes it re-aims (benchmarks/results/predicted_aim.md)
@@ -248,21 +249,18 @@ def exit_offset(replayed: InsertionResult, planned: InsertionResult) -> np.ndarr
     return exit_error_vector(replayed) - exit_error_vector(planned)
 
 
-def replay(replays: InlineReplays, centers: np.ndarray, why: list[str] | None = None) -> InsertionResult | None:
-    """The centre path replayed; None (with the reason appended to `why`) when the tip does
-    not leave the tissue within it, or the refined model fails on it: the plan stands, its
-    verification unknown."""
+def replay(replays: InlineReplays, centers: np.ndarray) -> tuple[InsertionResult | None, str | None]:
+    """The centre path replayed, or None and why: the tip does not leave the tissue within it,
+    or the refined model fails on it (the plan stands, its verification unknown)."""
     try:
-        return replays.replay(centers)
+        return replays.replay(centers), None
     except InputError as error:  # the path ends before the tip exits on this model
-        reason = "the exported trajectory ends before the tip leaves the refined model"
         log.info("verification replay: %s", error)
+        return None, ENDS_BEFORE_EXIT
     except NumericalFailure as error:  # the refined model fails where the planning model did not
         reason = f"the replay on the refined model failed ({error})"
         log.info("verification replay: %s", reason)
-    if why is not None:
-        why.append(reason)
-    return None
+        return None, reason
 
 
 def _verified_miss(replayed: InsertionResult | None, symmetric: bool) -> float:
@@ -356,13 +354,12 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             for record in again.passes:
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
-        why: list[str] = []
-        replayed = replay(replays, result.exported_centers, why)  # started from the round before's
+        replayed, no_replay = replay(replays, result.exported_centers)  # started from the round before's
         if correction > 0:
             aimed_by = "refined offset"
         else:
             aimed_by = "predicted offset" if prediction.get("aimed") else "none"
-        verified = _round_record(correction + 1, aimed_by, result.planned, replayed, why)
+        verified = _round_record(correction + 1, aimed_by, result.planned, replayed, no_replay)
         if correction == 0 and "offset" in prediction:
             verified["predicted_offset_mm"] = prediction["offset"].tolist()
         if symmetric:
@@ -410,27 +407,26 @@ def verify_exported(scenario: Scenario, result: PlanResult, **options) -> PlanRe
     the plan's `verification` and `estimate`."""
     other = replay_scenario(scenario, verify=True)
     replays = InlineReplays(other, **_replay_options(options))
-    why: list[str] = []
     try:
-        replayed = replay(replays, result.exported_centers, why)
+        replayed, no_replay = replay(replays, result.exported_centers)
     finally:
         replays.close()
     log.info("verification: the exported plan's exit error %.4g mm, on the refined model %.4g mm",
              result.planned.exit_error_mm, np.inf if replayed is None else replayed.exit_error_mm)
-    rounds = [_round_record(1, "none", result.planned, replayed, why)]
+    rounds = [_round_record(1, "none", result.planned, replayed, no_replay)]
     return _verified(scenario, result, Verification(other.discretization.spacing, replayed, rounds,
-                                                    replays.where, "none", rounds[0].get("no_replay")), **options)
+                                                    replays.where, "none", no_replay), **options)
 
 
 def _round_record(number: int, aimed_by: str, planned: InsertionResult, replayed: InsertionResult | None,
-                  why: list[str] = ()) -> dict:
+                  no_replay: str | None = None) -> dict:
     """A verification round's record: what aimed its plan, the planned and verified errors
-    (and, without a replay, why: replay's `why`)."""
+    (and, without a replay, why: replay's reason)."""
     record = {"round": number, "aimed_by": aimed_by, "planned_exit_error_mm": planned.exit_error_mm,
               "verified_exit_error_mm": None if replayed is None else replayed.exit_error_mm,
               "replay_wall_seconds": None if replayed is None else replayed.wall_seconds}
-    if replayed is None and why:
-        record["no_replay"] = why[-1]
+    if no_replay is not None:
+        record["no_replay"] = no_replay
     return record
 
 
@@ -440,7 +436,7 @@ def _verified(scenario: Scenario, result: PlanResult, verification: Verification
     model, which an event says)."""
     result.verification = verification
     if verification.result is None:
-        why = verification.no_replay or "the exported trajectory ends before the tip leaves the refined model"
+        why = verification.no_replay or ENDS_BEFORE_EXIT
         message = f"verification: {why} (spacing {verification.spacing_mm:.4g} mm); verified exit error unknown"
         result.planned.events.append(Event(EventKind.ACCURACY_CHECK, message))
         log.info(message)
