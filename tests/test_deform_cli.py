@@ -143,11 +143,17 @@ def test_deform_writes_probes_reactions_summary_and_run_log(slab_path, tmp_path)
     assert report["load_steps"] == 10
     assert report["newton_iterations"] >= report["load_steps"]
     assert report["wall_seconds"] > 0
+    # the linear solver that ran, as in simulate's and plan's summaries
+    solver = report["solver"]
+    assert solver["factorizations"] >= 1 and solver["linear_solves"] == report["newton_iterations"]
+    assert solver["linear_solver_backend"] == solver["linear_solver_backends"][-1]
+    assert solver["linear_solver_backend"].startswith(("CHOLMOD", "scipy SuperLU"))
 
     with h5py.File(run_log, "r") as handle:
         text = handle["scenario/text"][()]
         text = text.decode() if isinstance(text, bytes) else text
         assert text == slab_path.read_text()
+        assert json.loads(handle.attrs["solver_counts"]) == solver
         np.testing.assert_allclose(handle["probes/displacement"][()], values[:, 2:], rtol=1e-8, atol=1e-12)
 
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(

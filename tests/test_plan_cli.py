@@ -163,7 +163,9 @@ def test_the_plan_summary_counts_the_work_of_every_pass(planned):
     assert summary["solver"]["linear_solves"] == summary["newton_iterations"]
     with h5py.File(folder / "run.h5") as log:
         exported = int(log["steps/newton_iterations"][()].sum())
+        logged_counts = json.loads(log.attrs["solver_counts"])
     assert passes[-1]["newton_iterations"] <= exported <= summary["newton_iterations"]
+    assert logged_counts == summary["solver"]  # the run log's counts are the whole plan's too
 
 
 def test_replaying_the_exported_centres_reproduces_the_planned_exit(planned, tmp_path):
@@ -226,6 +228,9 @@ def test_no_compare_skips_the_unplanned_run_and_plans_the_same_trajectory(tmp_pa
         assert result.exit_code == 0, result.output
         summary = json.loads(summary_path.read_text())
         assert (summary["unplanned_exit_error_mm"] is None) == (flag == "--no-compare")
+        # the planned run's time counts building its model whether or not the comparison ran
+        assert summary["timings_seconds"]["discretization"] > 0.0, flag
+        assert summary["wall_seconds"] >= sum(v for k, v in summary["timings_seconds"].items() if k != "steps")
         assert ("unplanned" in result.stdout.splitlines()[0]) == (flag == "--compare")
         exports[flag] = read_trajectory(export)[1]
     np.testing.assert_allclose(exports["--no-compare"], exports["--compare"], atol=1e-9)
@@ -293,6 +298,7 @@ def test_strict_planning_fails_with_one_line_naming_the_step(tmp_path, how):
     (["--angular-speed", "-1"], ["--angular-speed", "got -1.0", "expected a positive speed in rad/s"]),
     (["--angular-speed", "0"], ["--angular-speed", "got 0.0", "expected a positive speed"]),
     (["--angular-speed", "inf"], ["--angular-speed", "got inf", "expected a positive speed"]),
+    (["--out", ""], ["--out", "got an empty path", "expected a file name"]),  # not "." as a folder
 ])
 def test_bad_plan_options(tmp_path, options, fragments):
     scenario = write(tmp_path, scene_raw())

@@ -369,6 +369,32 @@ def test_an_accuracy_is_resolved_once_before_the_run():
     assert with_discretization(scenario, spacing=5.0).discretization.accuracy is None
 
 
+def test_a_plan_on_an_auto_discretization_says_how_to_reproduce_its_verification(tmp_path):
+    """`--spacing` replaces an auto discretization by the scene's default one, so the summary
+    gives the refined model as a `discretization` block and the needle methods the auto
+    discretization chose: with them in the file, simulate --center-path replays the
+    trajectory on the same particles to the same exit."""
+    raw = {**tiny_raw(step=0.2), "discretization": {"accuracy": 0.2}}
+    (tmp_path / "auto.yaml").write_text(yaml.safe_dump(raw))
+    result = CliRunner().invoke(app, ["plan", str(tmp_path / "auto.yaml"), "--no-compare", "-q", "--export",
+                                      str(tmp_path / "trajectory.csv"), "--summary", str(tmp_path / "plan.json")])
+    assert result.exit_code == 0, result.output
+    verification = json.loads((tmp_path / "plan.json").read_text())["verification"]
+    keys = verification["scenario_keys"]
+    assert keys["discretization"]["spacing"] == verification["spacing_mm"]
+    refined = {**raw, "discretization": keys["discretization"], "needle": {**raw["needle"], **keys["needle"]}}
+    (tmp_path / "refined.yaml").write_text(yaml.safe_dump(refined))
+    result = CliRunner().invoke(app, ["simulate", str(tmp_path / "refined.yaml"), "--no-estimate", "-q",
+                                      "--center-path", str(tmp_path / "trajectory.csv"),
+                                      "--summary", str(tmp_path / "replay.json")])
+    assert result.exit_code == 0, result.output
+    replay = json.loads((tmp_path / "replay.json").read_text())
+    assert replay["particles"] == verification["discretization"]["particles"]
+    # a later verification round's replay starts its steps from the round before's (run_insertion
+    # start_from): the same equilibria to within the Newton tolerance, not always to the bit
+    np.testing.assert_allclose(replay["achieved_exit_def"], verification["achieved_exit_def"], rtol=0, atol=1e-4)
+
+
 @pytest.mark.parametrize("reference", [10.0, 5.0])
 def test_a_reference_not_finer_than_the_sweep_is_refused(reference):
     """The runs' deviations are measured from the reference: one coarser than (or as coarse

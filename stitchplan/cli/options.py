@@ -86,6 +86,8 @@ def _check_outputs(outputs: dict[str, Optional[Path]], inputs: Optional[dict[str
             raise InputError(f"{option}: got {path}, expected a file name ending in .png (the figures are PNG)")
     for option, path in outputs.items():
         given = _given_value(option)
+        if path is not None and given == "":  # Path("") is ".", the working folder
+            raise InputError(f"{option}: got an empty path; expected a file name")
         if path is not None and given is not None and given.endswith(("/", os.sep)):
             raise InputError(f"{option}: got {given}, a folder name (it ends in /); expected a file name")
     check_outputs(outputs, inputs)

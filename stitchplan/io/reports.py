@@ -72,6 +72,7 @@ def deform_summary(result) -> dict:
         "step_cuts": report.cuts,
         "factorizations": report.factorizations,
         "krylov_iterations": report.krylov_iterations,
+        "solver": deform_solver_counts(report),
         "final_residual_N": report.steps[-1].residual if report.steps else 0.0,
         "wall_seconds": result.wall_seconds,
         "timings_seconds": result.timings,
@@ -82,6 +83,15 @@ def deform_summary(result) -> dict:
         ],
         "reactions_N": result.reactions.tolist(),
     }
+
+
+def deform_solver_counts(report) -> dict:
+    """deform's `solver` block, as simulate's and plan's: the linear solves, which sparse
+    factorization made the last factor (`linear_solver_backend`) and every one that ran."""
+    backends = report.linear_solver_backends
+    return {"factorizations": report.factorizations, "linear_solves": report.linear_solves,
+            "krylov_iterations": report.krylov_iterations, "linear_solver": report.linear_solver,
+            "linear_solver_backend": backends[-1] if backends else None, "linear_solver_backends": backends}
 
 
 def write_deform_outputs(result, probes_out: Path | None = None, reactions_out: Path | None = None,
@@ -132,6 +142,7 @@ def _write_deform_files(result, files: dict[str, Path], provenance: dict, plot_s
             "wall_seconds": result.wall_seconds,
             "factorizations": report.factorizations,
             "krylov_iterations": report.krylov_iterations,
+            "solver_counts": deform_solver_counts(report),
             "discretization": discretization_summary(result.model),
         }}, HDF5_UNITS)
     if plot is not None:
@@ -232,6 +243,34 @@ def exit_estimate_summary(estimate) -> dict:
             "exit_error_estimate": None if estimate is None else estimate.as_record()}
 
 
+def scenario_keys(scenario) -> dict:
+    """A run's model and needle methods as the keys of a scenario file that give them:
+    `discretization` (discretization_keys) and the needle's `tip_tracking` and
+    `linear_solver` (an auto discretization chooses them too)."""
+    needle = scenario.needle
+    return {"discretization": discretization_keys(scenario.discretization),
+            "needle": {"tip_tracking": needle.tip_tracking, "linear_solver": needle.linear_solver}}
+
+
+def discretization_keys(discretization) -> dict:
+    """A discretization as the keys of a scenario file's `discretization` block that give it:
+    the spacing, and the needle spacing or the needle refinement it derives from, always
+    (their defaults depend on the scene; a null needle spacing makes the particles uniform),
+    the others where they differ from the defaults."""
+    from dataclasses import fields
+
+    values = discretization.as_input()
+    keys = {"spacing": values["spacing"]}
+    if values["needle_refinement"] is None:
+        keys["needle_spacing"] = values["needle_spacing"]
+    else:
+        keys["needle_refinement"] = values["needle_refinement"]
+    for field in fields(discretization):
+        if field.name not in keys and values[field.name] != field.default:
+            keys[field.name] = values[field.name]
+    return keys
+
+
 def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
     """The exit error estimate, the verification on the refined model and the smoothness of
     the exported centre path `centers` (n, 2) of a PlanResult."""
@@ -247,6 +286,9 @@ def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
         "verification": None if verification is None else {
             "spacing_mm": verification.spacing_mm,  # `--spacing` that reproduces the replay
             "discretization": discretization_summary(replay.model) if replay is not None else None,
+            # the refined model and the needle's methods as a scenario file's keys: what
+            # reproduces the replay where `--spacing` cannot (an auto discretization's choice)
+            "scenario_keys": scenario_keys(replay.scenario) if replay is not None else None,
             "achieved_exit_def": replay.achieved_exit_def if replay is not None else None,
             "desired_exit_def": replay.desired_exit_def if replay is not None else None,
             "exit_error_material_mm": replay.exit_error_material_mm if replay is not None else None,
@@ -346,7 +388,8 @@ def _write_insertion_files(result, command: str, out: Path | None, summary: Path
         write_hdf5(out, datasets, {**run_attributes(command, result.scenario, provenance), **{
             "wall_seconds": result.wall_seconds,
             "timings_seconds": {**result.timings, "steps": step_time_distribution(result.steps)},
-            "solver_counts": result.solver_counts,
+            # a plan's: every planner pass's, summed as its summary's `solver` (planning_work)
+            "solver_counts": (extra_summary or {}).get("solver", result.solver_counts),
             "discretization": discretization_summary(result.model),
         }}, {**HDF5_UNITS, **(units or {})})
     if plot is not None:

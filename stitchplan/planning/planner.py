@@ -357,8 +357,9 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
              tolerance: float | None = None, shooting: PassOffsets | None = None, smooth: bool = True,
              tissue: PreparedTissue | None = None, bite_aim: float = 0.0, stream=None, retarget=None,
              **options) -> PlanResult:
-    """Planned insertion with the scenario's planner settings, and (compare=True) the
-    unplanned one of the same scene; `options` go to run_insertion.
+    """Planned insertion with the scenario's planner settings, and (compare=True, after the
+    passes) the unplanned one of the same scene; `options` go to run_insertion. The planned
+    run's wall time and timings are every pass's, the model's building included.
 
     Algorithm 2 controls the exit only while the exit point does not follow the needle
     rigidly (eq. 4.2). Late in a stitch the material enclosed by the arc and the free edge
@@ -392,7 +393,6 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     """
     settings = scenario.planner
     tissue = tissue or PreparedTissue(scenario)  # built by the first run
-    unplanned = run_insertion(scenario, on_step=on_step, tissue=tissue, **options) if compare else None
     aim = np.zeros(2) if aim is None else np.asarray(aim, dtype=float)
     symmetric = aims_at_bites(scenario)  # each pass aims the exit at equal bites
     target = settings.exit_tolerance if tolerance is None else tolerance
@@ -401,6 +401,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     if offsets.last is not None:  # continuing with another aim: re-aim from the last pass
         offsets.advance(aim)
     passes = []
+    timings: dict[str, float] = {}  # every pass's, summed as its wall time is
     best, best_miss = None, np.inf
     for number in range(1, settings.max_passes + 1):
         # a symmetric target's aim follows the bites, the entry side's included: every step
@@ -420,6 +421,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
             best.events.append(Event(EventKind.PASS_FAILED, message))
             log.info(message)
             break
+        add_timings(timings, planned.timings)
         own_iterations = sum(step.newton_iterations for step in planned.steps)  # before take_over
         own_solves = sum(step.equilibrium_solves for step in planned.steps)
         if prefix is not None:
@@ -454,9 +456,18 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         if miss <= target:
             break
         offsets.advance(aim)
-    best.wall_seconds = time.perf_counter() - start
+    best.wall_seconds, best.timings = time.perf_counter() - start, timings
     _note_rough_path(best, MoveLimits.for_needle(best.geometry, settings))
+    # after the passes, so that the planned run's wall time counts building the model it runs on
+    # whether or not the comparison runs (and a helper replaying the passes has their centres sooner)
+    unplanned = run_insertion(scenario, on_step=on_step, tissue=tissue, **options) if compare else None
     return PlanResult(best, unplanned, passes, shooting=offsets)
+
+
+def add_timings(total: dict[str, float], more: dict[str, float]) -> None:
+    """Add a run's timings_seconds split (discretization, assembly, solve, tip tracking) to `total`."""
+    for key, seconds in more.items():
+        total[key] = total.get(key, 0.0) + seconds
 
 
 def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:

@@ -67,7 +67,7 @@ from ..events import Event, EventKind
 from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
-from .planner import PlanResult, aims_at_bites, exit_error_vector, run_plan, symmetric_aim
+from .planner import PlanResult, add_timings, aims_at_bites, exit_error_vector, run_plan, symmetric_aim
 from .replays import InlineReplays, StreamTee, replays_for
 from .trajectory import exported_centers
 
@@ -322,7 +322,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     rounds, best, replayed = [], None, None  # best: (verified miss, plan, replay, its round's record)
     for record in result.passes:
         record["round"] = 1
-    planning_seconds = result.planned.wall_seconds
+    planning_seconds, planning_timings = result.planned.wall_seconds, dict(result.planned.timings)
     for correction in range(MAX_CORRECTIONS + 1):
         if correction:
             bite_aim = 0.0
@@ -351,6 +351,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                 log.info(message)
                 break
             planning_seconds += again.planned.wall_seconds
+            add_timings(planning_timings, again.planned.timings)
             for record in again.passes:
                 record["round"] = correction + 1
             result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
@@ -377,7 +378,8 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
         if not np.isfinite(miss) or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
             break
     miss, result, replayed, kept = best
-    result.planned.wall_seconds = planning_seconds  # every pass of every round
+    # every pass of every round
+    result.planned.wall_seconds, result.planned.timings = planning_seconds, planning_timings
     if np.isfinite(miss):
         _note_missed(result, miss, VERIFIED_FACTOR * settings.exit_tolerance,
                      f"on the refined model (spacing {spacing:.4g} mm)", symmetric)

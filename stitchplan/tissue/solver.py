@@ -34,6 +34,8 @@ class NewtonReport:
     linear_solves: int = 0
     factorizations: int = 0
     krylov_iterations: int = 0
+    linear_solver: str = "pcg"  # TangentSolver.mode
+    linear_solver_backends: list[str] = field(default_factory=list)  # every factorization's, in order met
 
     @property
     def iterations(self) -> int:
@@ -129,10 +131,13 @@ class TangentSolver:
         self.factor = None
         self.factorizations = 0
         self.krylov_iterations = 0
+        self.backends: list[str] = []  # the sparse factorizations that ran (factorization.py `backend`)
 
     def _refactor(self, matrix: sp.spmatrix) -> None:
         self.factor = factorize(matrix)
         self.factorizations += 1
+        if self.factor.backend not in self.backends:
+            self.backends.append(self.factor.backend)
 
     def solve(self, problem, rhs: np.ndarray) -> np.ndarray:
         if self.mode == "pcg" and self.factor is not None:
@@ -288,5 +293,6 @@ def solve_static(
     report.linear_solves = report.iterations
     report.factorizations = linear.factorizations
     report.krylov_iterations = linear.krylov_iterations
+    report.linear_solver, report.linear_solver_backends = linear.mode, list(linear.backends)
     coefficients = model.coefficients(free, prescribed)
     return StaticSolution(free, coefficients, report)
