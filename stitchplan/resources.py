@@ -13,7 +13,12 @@ the guard estimates
 
 - memory: the sparse shape-function, gradient and tangent matrices and the LU factor grow
   like particles x neighbours; bytes = MEMORY_PER_PARTICLE x particles^MEMORY_EXPONENT x
-  (neighbours / 16) x (quadrature points per particle / 4), plus the interpreter's share;
+  (neighbours / 16) x (quadrature points per particle / 4), plus the interpreter's share,
+  plus for a needle run what it keeps of its steps until it ends (_step_memory, counted
+  from the arrays the code keeps: each step's state with the saddle-point solver's dense
+  (2Q)^2 blocks, 2Q ~ 4 x the steps, in doubling buffers the states share), which passes
+  the rest from a few hundred steps on (SH 1/2: 1.5 GB measured at 0.0025 rad, 0.10 GB at
+  its 0.08 rad);
 - time: the tangent assembly B^T W B costs ~ quadrature points x neighbours^2 per Newton
   iteration and the factorization grows a little faster than the particles; seconds =
   SECONDS_PER_PARTICLE_STEP x particles^TIME_EXPONENT x steps x (neighbours / 16)^2 x
@@ -35,7 +40,10 @@ The constants come from `python benchmarks/resource_costs.py` (benchmarks/result
 resource_costs.md), measured on the 2-core machine the tool is developed on, which is
 shared: the memory model is within 0.93-1.23x of every measured case, the time model within
 0.78-1.6x of the dilation-2 cases, and the (neighbours/16)^2 time scaling overestimated the
-unfitted dilation-3 case (0.33x there; 0.96x in an earlier run of the same benchmark). The
+unfitted dilation-3 case (0.33x there; 0.96x in an earlier run of the same benchmark). What
+a needle run keeps of its steps is not fitted: the runs at 0.01 and 0.0025 rad on SH 1/2
+peak at 0.86 and 0.98x of the estimate (the slab's and the default steps' at 0.56-0.91x),
+and their time per step grows with the steps taken (1.6x the estimate at 0.0025 rad). The
 memory limit is what protects the machine; the time is a guide, not a promise.
 
 Limits (Limits; the CLI's --max-particles raises the first, --no-resource-check skips
@@ -48,7 +56,8 @@ them all; nothing raises the memory share: a smaller model is the way under it):
 - MAX_NEEDLE_STEPS = 2 000: the shipped needles take 15-40 steps; 2 000 steps over a half
   circle advance the SH needle's tip by radius x step ~ 0.014 mm each, 1/130 of the default
   particle spacing at the needle (1.78 mm): nothing the model resolves, while the run time
-  grows with every step;
+  grows with every step, and the memory it keeps with their square (~4.6 GB estimated at
+  2 000 steps, past the memory share on many machines: then refused naming needle.step);
 - MAX_NEIGHBOURS = 400 particles in a kernel support (dilation 10): the RK functions stop
   being local well before (RKPM practice: dilation 1.5-3, 9-36 neighbours), and the
   tangent's cost grows with the square of the neighbours;
@@ -63,9 +72,11 @@ the same 4 particles, against 0.4685 mm at half the default spacing).
 
 A refusal names what drives the estimate past the limit (`_particle_setting`,
 `_memory_setting`): the spacing, or the needle zone's refinement or spacing when the
-coarse spacing alone would fit, or the needle radius when the spacing is the default that
-follows it; past the memory share with a standard kernel fitting, the dilation or the
-quadrature points. A field set elsewhere than the scenario file's `discretization:` block
+coarse spacing alone would fit, or, when the spacing is the default of a file giving none,
+the needle radius or the tissue's size that sets it; past the memory share with a standard
+kernel fitting, the dilation or the quadrature points, and the needle step when the run
+would fit but for what it keeps of its steps. A field set elsewhere than the scenario file's
+`discretization:` block
 (an option, a study's spacing, a plan's verification model) is named as the caller's
 `Origin` says. Counts are estimated in floating point and held at COUNT_CAP, so any finite
 positive input ends in a refusal, never in an overflow.
@@ -128,6 +139,24 @@ BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan lo
 REFERENCE_PARTICLES = 1000.0
 REFERENCE_NEIGHBOURS = 16.0  # (2 x dilation)^2 at dilation 2
 REFERENCE_POINTS_PER_PARTICLE = 4.0  # 2 x 2 Gauss points per cell, one cell per particle
+# what a needle run keeps of its steps until it ends (_step_memory, from the arrays the code
+# keeps; checked against measured peaks in benchmarks/results/resource_costs.md)
+FLOAT_BYTES = 8.0
+# a step's state holds its own copy of the track's arrays (NeedleCoupling.add makes new ones
+# each step): per needle point the points (16 bytes), the segments' two Gauss points and the
+# load points (32 each), the load magnitudes (16), segment fraction and spacing (8 each), gap (1)
+TRACK_BYTES_PER_POINT = 113.0
+# with `multiplier_ends: arc` also per constraint quadrature point its point (16), segment,
+# position, length and target radius (8 each): NeedleCoupling._new_constraint_points
+ARC_BYTES_PER_QUADRATURE_POINT = 48.0
+# per particle of each step: the state's free coefficients (16, Snapshot.free) and the tip's
+# dense shape-function row (8, NeedleCoupling.tip_row), and the particle displacements (16),
+# held twice at the end (run_insertion's list and InsertionResult's array)
+STEP_BYTES_PER_PARTICLE = 56.0
+# a run may take a few more steps than the undeformed circle's (a planned run on SH 1/2:
+# 628 for 611 at 0.005 rad): the solver's buffers are counted for this many times the steps,
+# so that a run just past a doubling is not estimated at a quarter of its largest buffer
+STEP_MARGIN = 1.1
 
 # what lifts each limit: --max-particles raises the particle limit only; nothing but
 # skipping the guard passes the memory share
@@ -137,6 +166,14 @@ SKIP_GUARD = "pass --no-resource-check to run it anyway"
 # takes ~2.5 unplanned ones) and replays on the verification model (half the spacing)
 PLAN_RUNS = 3
 VERIFICATION_RUNS = 2
+# runs whose steps' states one process holds at once (_step_memory each), of the `runs` an
+# estimate counts: a plan holds its unplanned comparison (--compare), its first pass (later
+# passes take its early steps over: planning.planner.PassPrefix), its best pass so far and the
+# pass running, 1-4 runs (1 or 2 in the plans measured: on SH 1/2 at 0.005 rad 568 MB for one
+# pass, 998 MB with the comparison; 861 MB for two passes on its 100 x 30 block); a verification
+# its first replay while the second runs (run_insertion `start_from`). Two: within 2x of one and
+# of four
+HELD_RUNS = 2
 
 
 @dataclass(frozen=True)
@@ -222,6 +259,10 @@ class Estimate:
     radius_default: float | None  # the needle radius, when the spacing is the default following it
     tissue_size: tuple[float, float] | None = None  # the tissue's bounding box, mm
     needle_radius: float | None = None  # mm (insertions)
+    step_memory: float = 0.0  # bytes of memory_bytes that needle runs keep of their steps (_step_memory)
+    # the tissue's field ("tissue.size" or "tissue.outline") when the spacing is the default its
+    # size sets (a scenario giving no spacing, and no needle radius setting it: _size_default)
+    size_default: str | None = None
 
     def describe(self) -> str:
         about = "" if self.size.exact else "about "
@@ -404,6 +445,20 @@ def _radius_default(scenario: Scenario, origin: Origin) -> float | None:
     return radius if follows_radius and math.isclose(spacing, default, rel_tol=1e-9) else None
 
 
+def _size_default(scenario: Scenario, origin: Origin) -> str | None:
+    """The tissue's field setting the run's spacing ("tissue.size", or "tissue.outline" for a
+    polygon) when the spacing is the default of a scenario giving none that the tissue's size
+    sets (config.blocks.default_spacing_of: a twentieth of the smaller side without a needle,
+    a share of a side where that is below 2/5 of the needle's radius), else None."""
+    if "spacing" in origin.names:
+        return None
+    radius = None if scenario.needle is None else scenario.needle.radius
+    default = default_spacing_of(scenario.tissue.bounding_size, radius)
+    if not math.isclose(origin.value("spacing", scenario.discretization.spacing), default, rel_tol=1e-9):
+        return None
+    return "tissue.outline" if scenario.tissue.size is None else "tissue.size"
+
+
 # --- costs -------------------------------------------------------------------------------
 
 
@@ -420,6 +475,59 @@ def _scale(size: ModelSize) -> tuple[float, float]:
     return memory, time
 
 
+def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
+    """Bytes a needle run of `steps` steps keeps of them until it ends: run_insertion keeps
+    every step's state (its Snapshot with the needle coupling's and the saddle-point
+    solver's) and particle displacements. With Q_k constraint quadrature points and m_k
+    multipliers after step k (2k and ~k x step length / element length + 2 with the mortar
+    coupling, k + 1 and k + 1 with the point coupling), and P particles (bounding the free ones):
+
+    - the saddle-point solver's E K^-1 E^T (2Q, 2Q) and K^-1 E^T (2 n_free, 2Q)
+      (SaddlePointSolver._grow) live in buffers whose capacity doubles from the first step's
+      2Q_1 to at least 2Q_N; every state holds a view of the buffer then in use, so every buffer
+      of the doubling stays (sum of capacities^2: ~4/3 of the last one's). Counted at their
+      capacity, which the last one's resident rows approach (numpy asks for transparent huge
+      pages for large arrays: 2Q_N rows written are resident whole), and which covers what the
+      allocator keeps of the steps' freed temporaries (SH 1/2 at 0.005 and 0.0025 rad: peaks
+      ~180 and ~430 MB above the resident bytes of the arrays kept, ~100 MB of them the
+      interpreter's and the model's);
+    - the coupling's dense W and P (Q_k, m_k), new in each step's state (NeedleCoupling._partition;
+      the point coupling's identity is both, (k + 1)^2): sum over the steps ~ N^3;
+    - the track's arrays, new in each state (TRACK_BYTES_PER_POINT): ~ N^2;
+    - STEP_BYTES_PER_PARTICLE per particle and step.
+
+    A renewed factor starts new buffers (SaddlePointSolver._use), which the states then keep
+    as well: the measured runs renewed none (the factor of K0 solves their needle steps).
+    Sums in floating point, finite for counts up to COUNT_CAP."""
+    from .needle.coupling import ARC_ENDS, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT
+
+    needle, d = scenario.needle, scenario.discretization
+    n = float(steps)
+    sum_k, sum_k2 = n * (n + 1.0) / 2.0, n * (n + 1.0) * (2.0 * n + 1.0) / 6.0
+    arc_ends = needle.coupling != POINTS and needle.multiplier_ends == ARC_ENDS
+    # Q_k = per_segment k + first, m_k = slope k + offset; `arrays`: W and P, or one for both
+    if needle.coupling == POINTS:
+        per_segment, first, slope, offset, arrays = 1.0, 1.0, 1.0, 1.0, 1.0
+    else:
+        at_needle = d.spacing if d.needle_spacing is None else d.needle_spacing
+        element = max(MULTIPLIER_SPACINGS * at_needle, needle.multiplier_length or 0.0)
+        ratio = min(_per_side(scenario_needle(scenario).insertion_step, element), float(COUNT_CAP))
+        # arc ends: at least 2 Gauss points per segment, QUADRATURE_PER_ELEMENT per element length;
+        # segment ends: whole segments of at least an element's length (at most one per segment)
+        per_segment = max(2.0, float(math.ceil(QUADRATURE_PER_ELEMENT * ratio))) if arc_ends else 2.0
+        first, slope, offset, arrays = 0.0, ratio if arc_ends else min(ratio, 1.0), 2.0, 2.0
+    weights = arrays * FLOAT_BYTES * (per_segment * slope * sum_k2 + (per_segment * offset + first * slope) * sum_k
+                                      + first * offset * n)
+    # the doubling buffers' capacities c_0 2^j, j = 0..J, c_0 = 2 Q_1, c_0 2^J >= 2 Q_N
+    start, end = 2.0 * (per_segment + first), 2.0 * (per_segment * STEP_MARGIN * n + first)
+    doublings = max(math.ceil(math.log2(end / start) - 1e-9), 0)
+    capacities = start * (2.0 ** (doublings + 1) - 1.0)  # sum of c_j
+    squares = start * start * (4.0 ** (doublings + 1) - 1.0) / 3.0  # sum of c_j^2
+    blocks = FLOAT_BYTES * (squares + 2.0 * particles * capacities)
+    track = (TRACK_BYTES_PER_POINT + (ARC_BYTES_PER_QUADRATURE_POINT * per_segment if arc_ends else 0.0)) * sum_k
+    return blocks + weights + track + STEP_BYTES_PER_PARTICLE * particles * n
+
+
 def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: float = 1.0,
              origin: Origin | None = None, linear_solver: str | None = None) -> Estimate:
     """The cost of `runs` runs of `kind` ("deform" or "insertion") on the scenario; `origin`:
@@ -431,16 +539,19 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
     else:
         steps, step_kind = _needle_steps(scenario), "needle steps"
     memory, time = _scale(size)
+    kept = 0.0 if kind == "deform" else min(runs, HELD_RUNS) * _step_memory(scenario, size.particles, steps)
     seconds = SECONDS_PER_PARTICLE_STEP[kind] * time * steps * runs
     if kind != "deform" and (linear_solver or scenario.needle.linear_solver) == "minres":
         seconds *= MINRES_TIME_FACTOR
     d, origin = scenario.discretization, origin or Origin()
     graded = needle_zone(scenario) is not None
-    return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory, seconds,
+    radius_default = _radius_default(scenario, origin)
+    return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory + kept, seconds,
                     d.spacing, None if kind == "deform" else scenario.needle.step, d, origin,
                     _grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
-                    _radius_default(scenario, origin), tuple(scenario.tissue.bounding_size),
-                    None if kind == "deform" else scenario.needle.radius)
+                    radius_default, tuple(scenario.tissue.bounding_size),
+                    None if kind == "deform" else scenario.needle.radius, kept,
+                    None if radius_default is not None else _size_default(scenario, origin))
 
 
 def available_memory() -> float | None:
@@ -495,6 +606,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     lines = []
     for item in estimates:
         size, what = item.size, f"estimated {item.describe()}"
+        too_many_steps = item.needle_step is not None and item.steps > limits.max_needle_steps
         if size.neighbours > limits.max_neighbours:
             most = math.sqrt(limits.max_neighbours) / 2.0
             lines.append(f"{item.origin.name('dilation')}: got {item.discretization.dilation:g}, expected at "
@@ -503,11 +615,13 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         elif size.particles > limits.max_particles:
             lines.append(_particles_refusal(item, limits.max_particles))
         elif memory is not None and item.memory_bytes > limits.memory_share * memory:
-            lines.append(_memory_refusal(item, limits.memory_share, memory))
+            setting = _memory_setting(item, limits.memory_share * memory)
+            if not (setting.name == "needle.step" and too_many_steps):  # the step limit's line below names it
+                lines.append(_memory_refusal(item, setting, limits.memory_share, memory))
         coarse = _coarse_refusal(item)
         if coarse is not None:
             lines.append(coarse)
-        if item.needle_step is not None and item.steps > limits.max_needle_steps:
+        if too_many_steps:
             lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
                          f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
                          "--no-resource-check")
@@ -541,8 +655,7 @@ def _particles_refusal(item: Estimate, limit: int) -> str:
             f"{_skip(item)}or {OVERRIDE}")
 
 
-def _memory_refusal(item: Estimate, share: float, memory: float) -> str:
-    setting = _memory_setting(item, share * memory)
+def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: float) -> str:
     return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {_bytes(memory)} of "
             f"memory available{item.origin.derived} ({setting.note}estimated {item.describe()}); "
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
@@ -607,14 +720,28 @@ def _spacing_setting(item: Estimate) -> Setting:
                        f"a radius whose default particle spacing (here {spacing:.3g} mm) gives",
                        f"check that it and the tissue's size ({width:g} x {height:g} mm) are in mm, "
                        "or give discretization.spacing")
+    if item.size_default is not None:  # the file gives no spacing: the tissue's size sets it
+        width, height = item.tissue_size
+        shape = "size" if item.size_default == "tissue.size" else "outline"
+        got = f"[{width:g}, {height:g}] mm" if shape == "size" else f"an outline of {width:g} x {height:g} mm"
+        return Setting(item.size_default, got,
+                       f"a {shape} whose default particle spacing (here {spacing:.3g} mm) gives",
+                       "check that it is in mm, or give discretization.spacing")
     return Setting(origin.name("spacing"), f"{spacing:g} mm", "a spacing giving", "coarsen it")
 
 
 def _memory_setting(item: Estimate, budget: float) -> Setting:
-    """What takes the memory past `budget`: the particles (as _particle_setting) when even a
-    standard kernel (dilation 2, 2 x 2 Gauss points per particle) would pass it, else the
-    larger of the kernel's two factors, its support (dilation) or its quadrature points."""
+    """What takes the memory past `budget`: the needle step when the run would fit without
+    what it keeps of its steps (_step_memory); else the particles (as _particle_setting) when
+    even a standard kernel (dilation 2, 2 x 2 Gauss points per particle) would pass it, else
+    the larger of the kernel's two factors, its support (dilation) or its quadrature points."""
     size, d, origin = item.size, item.discretization, item.origin
+    if item.needle_step is not None and item.memory_bytes - item.step_memory <= budget:
+        held = min(item.runs, HELD_RUNS)
+        both = f", {_bytes(item.step_memory)} for the {held:g} runs held at once" if held > 1 else ""
+        return Setting("needle.step", f"{item.needle_step:g} rad", "", "take a larger step",
+                       f"{_count(item.steps)} needle steps keep ~{_bytes(item.step_memory / held)} of states and "
+                       f"solver blocks until the run ends{both}; ")
 
     def fits_with_a_standard_kernel(particles: float) -> bool:
         standard = replace(size, particles=_capped(particles), neighbours=min(size.neighbours, REFERENCE_NEIGHBOURS),

@@ -3,7 +3,8 @@
 Any finite positive discretization input ends in one refusal line naming the field or option
 that drives the estimate past the limit (never an overflow); the advice matches the limit
 that was hit (--max-particles only for the particle limit); ordinary inputs keep their
-estimates; a shaped tissue is counted as the model places it. Also here: the needle
+estimates; a shaped tissue is counted as the model places it; a needle run's estimate counts
+what it keeps of its steps, against peaks measured at steps of 0.08-0.0025 rad. Also here: the needle
 calibration's radius bounds and its numerical failures. Nothing is solved, and only the
 shaped-tissue tests build models: the module runs in a few seconds.
 """
@@ -23,7 +24,9 @@ from stitchplan.cli import app
 from stitchplan.config import load_scenario, parse_scenario, with_discretization
 from stitchplan.errors import InputError, NumericalFailure
 from stitchplan.resources import (
+    BASE_MEMORY,
     COUNT_CAP,
+    PLAN_RUNS,
     Limits,
     Origin,
     check_resources,
@@ -148,6 +151,11 @@ def test_the_cli_refuses_a_spacing_too_coarse_for_the_needle(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
 
 
+def with_step(scenario, step: float, **needle):
+    """The scenario with another needle step (rad), and other needle keys if given."""
+    return replace(scenario, needle=replace(scenario.needle, step=step, **needle))
+
+
 def write(folder: Path, raw: dict, name: str = "scene.yaml") -> Path:
     path = folder / name
     path.write_text(yaml.safe_dump(raw))
@@ -228,6 +236,49 @@ def test_a_needle_radius_that_sets_the_default_spacing_is_named():
     assert line.startswith("--spacing: got 0.004 mm")
 
 
+def long_slab(**tissue) -> dict:
+    """A 4000 x 10 mm slab under an edge load, giving no spacing: the default, a twentieth of
+    the smaller side (0.5 mm), puts ~170 000 particles in it."""
+    return {"tissue": {"size": [4000.0, 10.0], "thickness": 10.0, "material": dict(PHANTOM), "clamped": ["right"],
+                       **tissue},
+            "loads": [{"segment": [[0.0, 4.0], [0.0, 6.0]], "force": [-3.0, 1.0]}], "load_steps": 10}
+
+
+def test_a_default_spacing_set_by_the_tissue_size_names_the_size():
+    """A file giving no spacing gets one from the tissue's size (without a needle, or where
+    a needle's radius does not set it): the refusal names the size, as a default that
+    follows the needle radius names the radius, and a spacing given in the file or by an
+    option is named as given."""
+    scenario = parse_scenario(long_slab())
+    line = refusal([estimate(scenario, "deform")])
+    assert line.startswith("tissue.size: got [4000, 10] mm, expected a size whose default particle spacing "
+                           "(here 0.5 mm) gives at most 50000 particles"), line
+    assert line.endswith("check that it is in mm, or give discretization.spacing, or raise --max-particles or "
+                         "pass --no-resource-check to run it anyway")
+    line = refusal([estimate(scenario, "deform")], memory=SMALL_MEMORY, limits=Limits(max_particles=10**9))
+    assert line.startswith("tissue.size: got [4000, 10] mm, expected a model within 50% of the 4 GB"), line
+    given = with_discretization(scenario, spacing=0.4)
+    assert refusal([estimate(given, "deform")]).startswith("discretization.spacing: got 0.4 mm")
+    option = estimate(given, "deform", origin=Origin({"spacing": "--spacing"}))
+    assert refusal([option]).startswith("--spacing: got 0.4 mm")
+    # a needle scene whose default is held by the tissue's size (an eighth of the smaller
+    # side, 2.5 mm, below 2/5 of the 8.88 mm radius)
+    wide = parse_scenario(scene(tissue={**NEEDLE_SCENE["tissue"], "size": [4000.0, 20.0]}))
+    line = refusal([estimate(wide, "insertion", "simulate")], limits=Limits(max_particles=5000))
+    assert line.startswith("tissue.size: got [4000, 20] mm, expected a size whose default particle spacing "
+                           "(here 2.5 mm) gives at most 5000 particles"), line
+
+
+def test_the_cli_names_the_tissue_size_that_sets_a_default_spacing(tmp_path):
+    path = write(tmp_path, long_slab())
+    result = CliRunner().invoke(app, ["deform", str(path), "--probes-out", str(tmp_path / "probes.csv")])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith(f"error: {path}: tissue.size: got [4000, 10] mm, expected a size whose default "
+                           "particle spacing (here 0.5 mm) gives at most 50000 particles"), line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
 # --- the memory limit: what governs it -------------------------------------------------------
 
 
@@ -267,6 +318,93 @@ def test_the_memory_refusal_of_the_cli_does_not_offer_max_particles(tmp_path, mo
     (line,) = result.stderr.splitlines()
     assert "dilation: got 10, expected a model within 50% of the 4 GB of memory available" in line
     assert "--max-particles" not in line and "Traceback" not in result.output
+
+
+# --- what a needle run keeps of its steps ------------------------------------------------------
+
+
+def sh12(step: float, name: str = "sh12_100x100", **needle):
+    return with_step(load_scenario(REPOSITORY / "configs" / f"{name}.yaml"), step, **needle)
+
+
+def test_a_needle_run_is_estimated_to_keep_its_dense_blocks():
+    """Every step's state keeps the saddle-point solver's E K^-1 E^T, (2Q, 2Q) after the last
+    step with 2Q = 4 x the steps (the mortar coupling's two Gauss points per segment, two
+    directions each): at 0.0025 rad on SH 1/2 that block alone is ~200 MB, above the tissue's
+    own estimate. The point coupling's states also keep their own identity weights, (k + 1)^2
+    after step k."""
+    item = estimate(sh12(0.0025), "insertion", "simulate")
+    last_block = 8.0 * (4.0 * item.steps) ** 2
+    assert item.steps > 1200 and last_block > item.memory_bytes - item.step_memory  # more than the tissue's
+    assert item.memory_bytes >= BASE_MEMORY + last_block
+    points = estimate(sh12(0.0025, coupling="points"), "insertion", "simulate")
+    assert points.memory_bytes >= BASE_MEMORY + 8.0 * sum((k + 1) ** 2 for k in range(1, points.steps + 1))
+    # a plan holds two runs' steps at once (resources.HELD_RUNS), a simulate one
+    plan = estimate(sh12(0.0025), "insertion", "plan", PLAN_RUNS)
+    assert plan.step_memory == pytest.approx(2.0 * item.step_memory)
+
+
+# peak resident memory (MiB) measured with `/usr/bin/time -f %M python -m stitchplan simulate
+# CFG --no-estimate` (plan: `plan CFG --no-compare --no-verify --export x.csv`, `compare`
+# without --no-compare) on copies of the configs at these needle steps; the two-pass plan (the
+# 100 x 30 block at 0.005 rad) holds both passes' steps
+MEASURED_PEAKS = [
+    ("sh12_100x100", 0.08, "simulate", 98.3), ("sh12_100x100", 0.02, "simulate", 144.8),
+    ("sh12_100x100", 0.01, "simulate", 233.2), ("sh12_100x100", 0.005, "simulate", 509.2),
+    ("sh12_100x100", 0.0025, "simulate", 1481.5),
+    ("sh12_100x30", 0.08, "simulate", 82.6), ("sh12_100x30", 0.02, "simulate", 111.8),
+    ("sh12_100x30", 0.01, "simulate", 175.3), ("sh12_100x30", 0.005, "simulate", 400.7),
+    ("sh12_100x30", 0.0025, "simulate", 1252.0),
+    ("sh12_100x100", 0.01, "plan", 244.4), ("sh12_100x100", 0.005, "plan", 542.0),
+    ("sh12_100x100", 0.005, "compare", 951.8), ("sh12_100x30", 0.005, "plan", 820.8),
+]
+
+
+@pytest.mark.parametrize("name, step, command, peak", MEASURED_PEAKS)
+def test_the_memory_estimate_bounds_the_measured_peaks(name, step, command, peak):
+    """From steps of 0.08 to 0.0025 rad (36 to 1205 taken) the measured peaks grow 15-fold;
+    the estimate stays above 0.85 of each (the two-pass plan's 0.92 the lowest: the guard
+    counts two runs' steps of a plan) and within twice it (a one-pass plan's 1.8 the highest)."""
+    runs = {"simulate": 1, "plan": PLAN_RUNS, "compare": PLAN_RUNS + 1}[command]
+    item = estimate(sh12(step, name), "insertion", command, runs)
+    assert 0.85 <= item.memory_bytes / (peak * 2**20) <= 2.0, item.describe()
+
+
+def test_steps_too_many_for_the_memory_are_refused_naming_the_needle_step():
+    """SH 1/2 at 0.0025 rad: the tissue's model (~130 MB) fits 1 GB, what its 1257 steps
+    keep (~1.4 GB; a run peaked at 1.55 GB) does not: the refusal names the needle step,
+    not the spacing; at the shipped 0.08 rad it runs."""
+    line = refusal([estimate(sh12(0.0025), "insertion", "simulate")], memory=2e9)
+    assert line.startswith("needle.step: got 0.0025 rad, expected a model within 50% of the 2 GB of memory "
+                           "available (1257 needle steps keep ~1.45 GB of states and solver blocks until the run "
+                           "ends; estimated simulate: 979 particles, 1257 needle steps"), line
+    assert line.endswith("take a larger step, or pass --no-resource-check to run it anyway")
+    plan = refusal([estimate(sh12(0.0025), "insertion", "plan", PLAN_RUNS)], memory=2e9)
+    assert "~1.45 GB of states and solver blocks until the run ends, 2.89 GB for the 2 runs held at once" in plan
+    check_resources([estimate(sh12(0.08), "insertion", "simulate")], memory=2e9)
+    # past the step limit too: one line, the step limit's
+    line = refusal([estimate(sh12(0.0012), "insertion", "simulate")], memory=2e9)
+    assert line.startswith("needle.step: got 0.0012 rad, expected a step giving at most 2000 needle steps"), line
+
+
+def test_the_cli_refuses_steps_too_many_for_the_memory(tmp_path, monkeypatch):
+    """772 steps of 0.0025 rad on the 40 x 20 mm block keep ~420 MB: refused in one line on a
+    machine with 800 MB available, before the run (which would take seconds) starts."""
+    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: 8e8)
+
+    def not_reached(*args, **kwargs):
+        raise AssertionError("the run started past the guard")
+
+    monkeypatch.setattr("stitchplan.planning.verification.simulate_with_estimate", not_reached)
+    path = write(tmp_path, scene(needle__step=0.0025))
+    result = CliRunner().invoke(app, ["simulate", str(path), "--no-estimate", "--summary",
+                                      str(tmp_path / "summary.json")])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith(f"error: {path}: needle.step: got 0.0025 rad, expected a model within 50% of the "
+                           "800 MB of memory available (772 needle steps keep ~"), line
+    assert line.endswith("take a larger step, or pass --no-resource-check to run it anyway")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
 
 
 # --- ordinary inputs: unchanged ---------------------------------------------------------------
