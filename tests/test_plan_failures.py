@@ -32,7 +32,10 @@ def test_a_later_pass_that_fails_leaves_the_best_pass_before_it():
     failed = [event for event in plan.planned.events if event.kind == EventKind.PASS_FAILED]
     assert len(failed) == 1
     assert failed[0].message.startswith("planner pass 2 (offset (")
-    assert "step 14 (needle rotation 2.800 rad)" in failed[0].message and "det F = " in failed[0].message
+    assert "step 14 (needle rotation 2.800 rad)" in failed[0].message
+    # the collapse in front of the tip: det F < 0 (SuperLU's solves), or the load ramp stalling on
+    # it (CHOLMOD's, the `fast` extra: the same tangents factored otherwise take other iterates)
+    assert "det F = " in failed[0].message or "Saint Venant-Kirchhoff is unstable" in failed[0].message
     assert failed[0].message.endswith("the best of the 1 pass before it is exported")
     assert plan.planned.exit_error_mm == pytest.approx(plan.passes[0]["exit_error_mm"])
 
