@@ -254,8 +254,8 @@ class Executor:
         self.had_workers = workers > 0
         if workers:
             log.info("Dask scheduler %s has %d worker%s", self.scheduler, workers, "s" if workers > 1 else "")
-        else:  # said now: the tasks only wait for one after the nominal plan
-            log.info("Dask scheduler %s has no workers yet; its tasks will wait up to %g s for one", self.scheduler,
+        else:  # said now, without -v too: the tasks only wait for one after the nominal plan
+            log.warning("Dask scheduler %s has no workers yet; its tasks will wait up to %g s for one", self.scheduler,
                      self.worker_wait)
         return client
 
@@ -365,13 +365,14 @@ class _WorkerWatch:
         now = time.monotonic()
         if workers:
             if self.without_since is not None:
-                log.info("%s has %d worker%s again", executor.where, workers, "s" if workers > 1 else "")
+                log.warning("%s has %d worker%s again", executor.where, workers, "s" if workers > 1 else "")
             executor.had_workers, self.without_since = True, None
             return
         what = "lost its workers" if executor.had_workers else "has no workers"
         if self.without_since is None:
             self.without_since = self.noted_at = now
-            log.info("%s %s (%d of %d tasks done); waiting up to %g s for one", executor.where, what, done,
+            # a warning: a command that stalls says why without -v
+            log.warning("%s %s (%d of %d tasks done); waiting up to %g s for one", executor.where, what, done,
                      self.tasks, executor.worker_wait)
         waited = now - self.without_since
         if waited >= executor.worker_wait:
@@ -384,7 +385,7 @@ class _WorkerWatch:
                                  f"{_worker_hint(executor.scheduler)}")
         if now - self.noted_at >= WAIT_NOTE_S:
             self.noted_at = now
-            log.info("%s still %s: waited %.0f s of %g s (%d of %d tasks done)", executor.where,
+            log.warning("%s still %s: waited %.0f s of %g s (%d of %d tasks done)", executor.where,
                      "without workers" if executor.had_workers else "has no workers", waited, executor.worker_wait,
                      done, self.tasks)
 
