@@ -29,6 +29,19 @@ def on_segment(points: np.ndarray, start, end, tol: float) -> np.ndarray:
     return (across <= tol) & (along >= -tol) & (along <= length + tol)
 
 
+# How far off the boundary a point a person typed or measured (a needle entry, the end of a
+# load or clamped segment, a probe) may lie and still mean a boundary point: a micrometre, or
+# a millionth of the tissue's size when that is larger. Coordinates written to three decimals
+# (mm) lie within 0.71 um of the point meant; points on a slanted edge or a circular hole's
+# wall typed to three to six decimals were 2.4e-7 to 1.5e-4 mm off it, and refused. A micrometre is
+# also the finest accuracy the tool accepts (discretization.accuracy, the planner's tolerance)
+# and a thousandth of a typical particle spacing: moving a point that far onto the boundary
+# changes nothing the model resolves. Beyond a metre of tissue, 1e-6 of its size is the
+# rounding of coordinates typed to seven significant digits.
+INPUT_TOLERANCE_MM = 1e-3
+INPUT_TOLERANCE_RELATIVE = 1e-6
+
+
 class BoundingBox:
     """`size` and `tolerance` of a domain from its bounding box's `width` and `height` (mm)."""
 
@@ -44,6 +57,11 @@ class BoundingBox:
     def tolerance(self) -> float:
         """Distance below which a point counts as on the boundary (round-off of the input)."""
         return 1e-9 * max(self.width, self.height)
+
+    @property
+    def input_tolerance(self) -> float:
+        """Distance within which a point a file gives is moved onto the boundary (snap_to_boundary)."""
+        return max(INPUT_TOLERANCE_MM, INPUT_TOLERANCE_RELATIVE * max(self.width, self.height))
 
 
 @dataclass(frozen=True)
@@ -319,6 +337,44 @@ def smooth_vertex(domain, point) -> bool:
     (a0, a1), (b0, b1) = (domain.edge(name) for name in names)
     d, e = a1 - a0, b1 - b0
     return abs(math.atan2(float(_cross(d, e)), float(np.dot(d, e)))) <= CORNER_TURN
+
+
+def boundary_edges(domain) -> tuple[np.ndarray, np.ndarray]:
+    """Starts and ends (k, 2) of every directed boundary edge of a domain."""
+    segments = domain.boundary_segments()
+    return (np.array([start for start, _ in segments], dtype=float),
+            np.array([end for _, end in segments], dtype=float))
+
+
+def nearest_boundary_point(domain, point) -> tuple[np.ndarray, float]:
+    """The boundary point nearest `point` (2,), and how far it is (mm)."""
+    starts, ends = boundary_edges(domain)
+    x = np.asarray(point, dtype=float)
+    e = ends - starts  # (k, 2)
+    along = np.clip(np.sum((x - starts) * e, axis=1) / np.sum(e * e, axis=1), 0.0, 1.0)
+    candidates = starts + along[:, None] * e
+    distances = np.linalg.norm(candidates - x, axis=1)
+    k = int(np.argmin(distances))
+    return candidates[k], float(distances[k])
+
+
+def snap_to_boundary(domain, point) -> np.ndarray | None:
+    """The boundary point that a typed or measured `point` (2,) means, or None when it lies
+    more than domain.input_tolerance off the boundary. A boundary vertex within that tolerance
+    is the point (a point typed next to a corner is the corner, refused as one wherever a
+    corner is); else the point itself when it lies on the boundary to round-off
+    (domain.tolerance: a file's exact points are kept to the bit); else the nearest boundary
+    point."""
+    x = np.asarray(point, dtype=float)
+    starts, _ = boundary_edges(domain)
+    gaps = np.linalg.norm(starts - x, axis=1)
+    k = int(np.argmin(gaps))
+    if gaps[k] <= domain.input_tolerance:
+        return x.copy() if gaps[k] <= domain.tolerance else starts[k].copy()
+    nearest, distance = nearest_boundary_point(domain, x)
+    if distance <= domain.tolerance:
+        return x.copy()
+    return nearest if distance <= domain.input_tolerance else None
 
 
 def signed_area(vertices: np.ndarray) -> float:

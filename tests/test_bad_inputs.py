@@ -11,6 +11,7 @@ accuracy its particle limit cannot reach.
 from __future__ import annotations
 
 import copy
+import json
 import math
 from pathlib import Path
 
@@ -114,6 +115,16 @@ SCENARIO_CASES = {
     "needle never leaves": ("plan", scene(needle__arc=0.5),
                             [["scene.yaml: needle: the 8.88 mm needle", "expected an exit within its arc"]]),
     "duplicate YAML key": ("deform", TEXT + "name: again\n", [["scene.yaml: line", "duplicate key 'name'"]]),
+    "a YAML merge key": ("deform", TEXT.replace("  thickness: 10.0\n", "  <<: {thickness: 0.01}\n  thickness: 10.0\n"),
+                         [["scene.yaml: line 6: merge key '<<' in tissue (YAML 1.1; files are read as YAML 1.2",
+                           "expected the keys written out in this mapping"]]),
+    "entry 0.01 mm off the boundary": ("deform", scene(needle__entry=[0.01, 12.0]),
+                                       [["scene.yaml: needle.entry: got [0.01, 12.0], expected a point on the boundary "
+                                         "of the 40 x 20 mm tissue or within 0.001 mm of it; the nearest is [0, 12], "
+                                         "0.01 mm away"]]),
+    "entry typed next to a corner": ("simulate", scene(needle__entry=[0.0004, 19.9996]),
+                                     [["scene.yaml: needle.entry: got [0.0004, 19.9996], 0.000566 mm from the corner "
+                                       "[0, 20], expected a point inside one edge"]]),
     "alias bomb": ("deform", "a: &a [x, x, x, x, x, x, x, x, x, x]\n"
                    + "".join(f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
                              for p, c in zip("abcde", "bcdef")), [["scene.yaml: line", "YAML alias"]]),
@@ -143,6 +154,17 @@ SCENARIO_CASES = {
     "a force of 1e300 N": ("deform", scene(loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [-1e300, 0.5]}]),
                            [["scene.yaml: loads[0].force[0]: got -1e+300, expected a number between -1e+06 and "
                              "1e+06 (N"]]),
+    **{f"a slab {thickness:g} mm thick": ("deform", scene(tissue__thickness=thickness),
+                                          [[f"scene.yaml: tissue.thickness: got {thickness!r}, expected a number "
+                                            "between 0.001 and 10000 (mm; a thinner or thicker slab is a unit "
+                                            "mistake)"]])
+       for thickness in (1e300, 1e-300)},
+    "a cutting force of 1e7 N": ("simulate", scene(needle__cutting_force=1e7),
+                                 [["scene.yaml: needle.cutting_force: got 10000000.0, expected a number between 0 and "
+                                   "1e+06 (N; a larger force at the needle's tip is a unit mistake)"]]),
+    "a friction of 1e7 N/mm": ("plan", scene(needle__friction=1e7),
+                               [["scene.yaml: needle.friction: got 10000000.0, expected a number between 0 and 1e+06 "
+                                 "(N/mm; a larger force on each millimetre of needle is a unit mistake)"]]),
     "a cutting edge longer than the needle": ("simulate", scene(needle__cutting_length=1000),
                                               [["scene.yaml: needle.cutting_length: got 1000 mm, expected at most "
                                                 "the needle's length 27.9 mm (radius 8.88 mm x arc 3.142 rad)"]]),
@@ -181,6 +203,55 @@ def test_a_bad_scenario_is_refused_up_front(tmp_path, case):
     write_scene(tmp_path, raw)
     result = invoke(tmp_path, command, "scene.yaml", *OUTPUTS[command])
     assert_refused(result, tmp_path, {"scene.yaml"}, expected)
+
+
+# --- points typed by hand on a slanted edge ----------------------------------------------------------
+
+# a block whose top edge slants from (40, 20) to (0, 30), on the line x + 4 y = 120: points typed
+# on it to four decimals lie 2.4e-5 mm off it, and were refused
+SLANT = {"tissue": {"outline": [[0, 0], [40, 0], [40, 20], [0, 30]], "thickness": 10.0, "material": dict(PHANTOM),
+                    "clamped": [{"segment": [[0, 0], [40, 0]]}]},
+         "needle": {"radius": 5.0, "entry": [13.3333, 26.6667], "turn": "cw", "step": 0.1, "friction": 0.0602,
+                    "cutting_force": 0.7},
+         "loads": [{"segment": [[33.3333, 21.6667], [26.6667, 23.3333]], "force": [0.0, -1.0]}],
+         "probes": [[40.0004, 10.0], [20.0, 10.0]]}
+
+
+def off_slant(point) -> float:
+    return float((point[0] + 4.0 * point[1] - 120.0) / math.sqrt(17.0))
+
+
+def test_points_typed_on_a_slanted_edge_run_from_the_boundary(tmp_path):
+    """deform and simulate run with the typed points moved onto the edge: the needle's centre
+    lies on the edge's tangent line through the entry, the edge itself (2.4e-5 mm off it from
+    the entry as typed). The probe typed 0.4 um outside moved more than the digits' rounding:
+    a warning says so; the others moved within it (shown with -v only)."""
+    write_scene(tmp_path, SLANT)
+    result = invoke(tmp_path, "deform", "scene.yaml", *OUTPUTS["deform"])
+    assert result.exit_code == 0, result.output
+    assert [line for line in result.stderr.splitlines() if "boundary_points" in line] == [
+        "WARNING stitchplan.config.boundary_points: probes[0]: [40.0004, 10.0] lies 0.0004 mm off the boundary of "
+        "the polygon tissue (4 vertices); the run uses [40, 10] on it (more than the rounding of the digits given)"]
+    probes = np.loadtxt(tmp_path / "probes.csv", delimiter=",", skiprows=1)
+    assert probes[0, :2].tolist() == [40.0, 10.0]
+    result = invoke(tmp_path, "simulate", "scene.yaml", "--summary", "summary.json", "--no-estimate", "-v")
+    assert result.exit_code == 0, result.output
+    assert "needle.entry: [13.3333, 26.6667] lies 2.43e-05 mm off the boundary" in result.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert abs(off_slant(summary["needle_center_at_entry"])) < 1e-9
+
+
+def test_an_entry_typed_on_a_clamped_slanted_edge_is_refused_as_on_the_clamp(tmp_path):
+    """The entry moved onto the edge meets the clamp typed on the same edge: refused as before
+    for points exactly on a clamp, not left 2.4e-5 mm beside it."""
+    raw = copy.deepcopy(SLANT)
+    raw["tissue"]["clamped"].append({"segment": [[40.0, 20.0], [6.6667, 28.3333]]})
+    del raw["loads"], raw["probes"]
+    write_scene(tmp_path, raw)
+    result = invoke(tmp_path, "simulate", "scene.yaml", *OUTPUTS["simulate"])
+    [line] = error_lines(result)
+    assert "scene.yaml: needle.entry: got [13.3332" in line and "on a clamped segment of the boundary" in line
+    assert {p.name for p in tmp_path.iterdir()} == {"scene.yaml"}
 
 
 OPTION_CASES = {

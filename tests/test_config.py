@@ -3,6 +3,11 @@ expected; defaults and overrides of the discretization."""
 
 from __future__ import annotations
 
+import copy
+import math
+import re
+
+import numpy as np
 import pytest
 
 from stitchplan.config.scenario import (
@@ -224,10 +229,12 @@ def test_every_problem_of_a_file_is_reported_together(slab_raw):
         ("discretization.dilation: got 0.9, expected a number > 1 (kernel support / spacing; "
          "at least ~1.5 for a linear basis, at most ~3: wider kernels make the stiffness nearly singular)"),
         ("loads[0].segment: got [[10.0, 40.0], [10.0, 60.0]], expected a non-empty straight piece of "
-         "one edge of the 100 x 100 mm tissue"),
+         "one edge of the 100 x 100 mm tissue; its end [10, 40] is off the boundary, the nearest is [0, 40], "
+         "10 mm away; its end [10, 60] is off the boundary, the nearest is [0, 60], 10 mm away"),
         "loads[1]: got neither, expected exactly one of 'force' (N) or 'displacement' (mm)",
         "load_steps: got 2.5, expected an integer between 1 and 10000",
-        "probes[2]: got [25.0, 150.0], expected a point inside [0, 100] x [0, 100] mm",
+        "probes[2]: got [25.0, 150.0], expected a point inside [0, 100] x [0, 100] mm; the nearest is [25, 100], "
+        "50 mm away",
         ("scenario: unknown key 'colour', expected one of: name, tissue, discretization, needle, loads, "
          "load_steps, probes, solver, planner, robot, study"),
     ]
@@ -442,16 +449,25 @@ def test_an_alias_bomb_is_one_short_line(tmp_path):
     assert str(error.value) == f"{path}: line 5: YAML aliases expand to more than 100000 values, expected plain data"
 
 
-def test_a_few_aliases_and_merge_keys_are_fine(tmp_path, slab_raw):
+def test_a_few_aliases_are_fine_and_merge_keys_are_refused(tmp_path, slab_raw):
+    """An alias stands for a whole value; YAML 1.1's merge key `<<` is refused (YAML 1.2 has
+    none, and the keys it merges give way silently to the mapping's own: tests/test_yaml_files.py)."""
     path = tmp_path / "scene.yaml"
-    path.write_text("tissue:\n  size: &square [100.0, 100.0]\n  thickness: 10.0\n"
-                    "  material: &phantom {lame_lambda: 0.19, lame_mu: 0.15}\n  clamped: [right]\n"
-                    "probes: [[0.0, 50.0]]\n"
-                    "loads:\n  - &pull {segment: [[0.0, 40.0], [0.0, 60.0]], force: [1.0, 0.0]}\n"
-                    "  - {<<: *pull, segment: [[0.0, 60.0], [0.0, 70.0]], force: [2.0, 0.0]}\n")
+    text = ("tissue:\n  size: &square [100.0, 100.0]\n  thickness: 10.0\n"
+            "  material: &phantom {lame_lambda: 0.19, lame_mu: 0.15}\n  clamped: [right]\n"
+            "probes: [[0.0, 50.0]]\n"
+            "loads:\n  - &pull {segment: [[0.0, 40.0], [0.0, 60.0]], force: &force [1.0, 0.0]}\n"
+            "  - {segment: [[0.0, 60.0], [0.0, 70.0]], force: *force}\n")
+    path.write_text(text)
     scenario = load_scenario(path)
-    assert [load.force for load in scenario.loads] == [(1.0, 0.0), (2.0, 0.0)]
+    assert [load.force for load in scenario.loads] == [(1.0, 0.0), (1.0, 0.0)]
     assert scenario.loads[1].segment == ((0.0, 60.0), (0.0, 70.0))
+    path.write_text(text.replace("{segment: [[0.0, 60.0]", "{<<: *pull, segment: [[0.0, 60.0]"))
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(path)
+    assert error.value.lines == [f"{path}: line 9: merge key '<<' in loads[1] (YAML 1.1; files are read as YAML 1.2, "
+                                 "which has no merge keys), expected the keys written out in this mapping (an alias "
+                                 "such as `material: *phantom` may still stand for a whole value)"]
 
 
 def test_a_file_that_is_not_utf8_is_named(tmp_path):
@@ -477,8 +493,8 @@ def test_config_imports_no_layer_above_it():
     import subprocess
     import sys
 
-    modules = ["fields", "messages", "yaml_files", "blocks", "study", "scenario", "schema", "calibration",
-               "uncertainty"]
+    modules = ["fields", "messages", "yaml_files", "boundary_points", "blocks", "study", "scenario", "schema",
+               "calibration", "uncertainty"]
     for module in modules:
         code = (f"import sys, stitchplan.config.{module}\n"
                 "print(sorted(m for m in sys.modules if m.startswith('stitchplan')))")
@@ -487,3 +503,186 @@ def test_config_imports_no_layer_above_it():
         outside = [m for m in loaded if m not in ("stitchplan", "stitchplan.errors", "stitchplan.geometry")
                    and not m.startswith("stitchplan.config")]
         assert outside == [], (module, outside)
+
+
+# --- points typed on the boundary ------------------------------------------------------------------
+
+# a block whose top edge slants from (40, 20) to (0, 30) (the line x + 4 y = 120): no point of it
+# but its ends has short decimal coordinates, so every point typed on it is a little off it
+SLANT_TISSUE = {"outline": [[0, 0], [40, 0], [40, 20], [0, 30]], "thickness": 10.0,
+                "material": {"lame_lambda": 0.189151, "lame_mu": 0.147688},
+                "clamped": [{"segment": [[0, 0], [40, 0]]}]}
+SLANT_NEEDLE = {"radius": 5.0, "entry": [13.3333, 26.6667], "turn": "cw", "step": 0.1}
+SLANT_NORMAL = np.array([1.0, 4.0]) / math.sqrt(17.0)
+NEAREST = re.compile(r"the nearest is \[([-0-9.]+), ([-0-9.]+)\], ([0-9.e+-]+) mm away")
+
+
+def slant(**blocks) -> dict:
+    return copy.deepcopy({"tissue": SLANT_TISSUE, **blocks})
+
+
+def off_slant(point) -> float:
+    """Signed distance (mm) of a point from the slanted edge's line, > 0 outside the block."""
+    return float(np.dot(point, SLANT_NORMAL) - 120.0 / math.sqrt(17.0))
+
+
+@pytest.mark.parametrize("entry", [[13.3333, 26.6667], [13.333333, 26.666667], [13.3337, 26.6663],
+                                   [20.0004, 25.0]])
+def test_an_entry_typed_on_a_slanted_edge_is_moved_onto_it(entry):
+    """[13.3333, 26.6667] is 2.43e-5 mm off the edge, [13.333333, 26.666667] 2.4e-7 mm: both were
+    refused, told of a nearest point that printed as the point given. Within a micrometre the
+    entry is the boundary point nearest it, and the run uses that point."""
+    scenario = parse_scenario(slant(needle={**SLANT_NEEDLE, "entry": entry}))
+    used = np.asarray(scenario.needle.entry)
+    assert 0 < abs(off_slant(entry)) <= 1e-3
+    assert abs(off_slant(used)) <= scenario.tissue.domain.tolerance
+    np.testing.assert_allclose(used, np.asarray(entry) - off_slant(entry) * SLANT_NORMAL, rtol=0, atol=1e-12)
+
+
+def test_a_point_typed_on_a_circular_holes_wall_is_on_it():
+    """A hole's wall point at 30 deg typed to the micrometre, [35.196, 18.0], is 1.5e-4 mm off
+    the hole's 96-gon: it is the 96-gon's vertex there."""
+    from stitchplan.geometry import circle_polygon
+
+    raw = {"tissue": {"size": [60.0, 40.0], "thickness": 10.0, "material": {"lame_lambda": 0.19, "lame_mu": 0.15},
+                      "holes": [{"circle": {"center": [30.0, 15.0], "radius": 6.0}}], "clamped": ["left"]},
+           "needle": {"radius": 8.0, "entry": [35.196, 18.0], "turn": "cw", "step": 0.1},
+           "loads": [{"segment": [[35.196, 18.0], [35.093, 18.167]], "force": [0.0, 1.0]}]}  # to mid-edge
+    scenario = parse_scenario(raw)
+    vertices = circle_polygon([30.0, 15.0], 6.0)
+    assert scenario.needle.entry == tuple(vertices[8]) and scenario.loads[0].segment[0] == tuple(vertices[8])
+    end = np.asarray(scenario.loads[0].segment[1])
+    assert scenario.tissue.domain.segment_edge(vertices[8], end) is not None
+    assert 0 < np.linalg.norm(end - [35.093, 18.167]) <= 1e-3
+
+
+@pytest.mark.parametrize("field", ["needle.entry", "loads[0].segment", "tissue.clamped[1].segment", "probes[0]"])
+def test_the_nearest_point_told_for_a_point_off_the_boundary_is_accepted_pasted_back(field):
+    """[13.3, 26.7] lies 0.0243 mm outside the slanted edge: refused, naming the nearest
+    boundary point to the nanometre; that point, pasted into the file, is accepted."""
+    far, other = [13.3, 26.7], [26.6667, 23.3333]
+    raw = slant(needle=dict(SLANT_NEEDLE), probes=[[20.0, 10.0]])
+
+    def place(point):
+        if field == "needle.entry":
+            raw["needle"]["entry"] = point
+        elif field == "loads[0].segment":
+            raw["loads"] = [{"segment": [point, other], "force": [0.0, -1.0]}]
+        elif field == "tissue.clamped[1].segment":
+            raw["tissue"]["clamped"][1:] = [{"segment": [point, other]}]
+        else:
+            raw["probes"] = [point]
+
+    place(far)
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(raw)
+    [line] = error.value.lines
+    assert line.startswith(f"{field}: got [")
+    x, y, distance = (float(value) for value in NEAREST.search(line).groups())
+    assert distance == pytest.approx(off_slant(far), rel=1e-2) and abs(off_slant([x, y])) < 1e-6
+    place([x, y])
+    scenario = parse_scenario(raw)
+    assert scenario.tissue.domain.distance(np.array([x, y])) < 1e-6
+
+
+def test_a_point_typed_next_to_a_corner_is_the_corner(slab_raw):
+    """Snapping cannot slide an entry along an edge to within a hair of a corner: a point within
+    the tolerance of a vertex is the vertex, so the entry is refused as a corner and a segment
+    typed there ends at the corner."""
+    slab_raw["needle"] = {"radius": 8.88, "entry": [0.0004, 99.9997], "turn": "cw", "step": 0.08}
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert error.value.lines == ["needle.entry: got [0.0004, 99.9997], 0.0005 mm from the corner [0, 100], expected "
+                                 "a point inside one edge (the entry normal is undefined at a corner; a point within "
+                                 "0.001 mm of a vertex is the vertex)"]
+    slab_raw["needle"]["entry"] = [0.0, 30.0]
+    slab_raw["loads"][0]["segment"] = [[0.0003, 99.9998], [0.0, 60.0]]
+    assert parse_scenario(slab_raw).loads[0].segment == ((0.0, 100.0), (0.0, 60.0))
+
+
+def test_a_load_typed_on_a_clamped_slanted_edge_meets_the_clamp():
+    """Both typed by hand on the slanted edge: moved onto it, the load is on the clamp and
+    refused as such (the clamp's segment unmoved, they would not be seen to overlap)."""
+    raw = slant(loads=[{"segment": [[33.3333, 21.6667], [26.6667, 23.3333]], "force": [0.0, -1.0]}])
+    raw["tissue"]["clamped"].append({"segment": [[40.0, 20.0], [6.6667, 28.3333]]})
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(raw)
+    assert error.value.lines == ["loads[0].segment: got [[33.333294, 21.666676], [26.666706, 23.333324]], expected "
+                                 "a segment off the clamped edges (the clamped[1] segment edge is clamped: it neither "
+                                 "moves nor takes a load; remove it from tissue.clamped or move the load)"]
+
+
+def test_moved_points_are_logged_and_exact_ones_kept_to_the_bit(slab_raw, caplog):
+    """A move within the rounding of the digits given is logged at INFO, a larger one at
+    WARNING; a point on the boundary as given is kept as it is and not logged."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="stitchplan")
+    scenario = parse_scenario(slab_raw)
+    assert scenario.loads[0].segment == ((0.0, 40.0), (0.0, 60.0)) and not caplog.records
+    raw = slant(needle={**SLANT_NEEDLE, "entry": [13.3337, 26.6663]},
+                loads=[{"segment": [[33.3333, 21.6667], [26.6667, 23.3333]], "force": [0.0, -1.0]}])
+    parse_scenario(raw)
+    records = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert records[0] == ("WARNING", "needle.entry: [13.3337, 26.6663] lies 0.000267 mm off the boundary of the "
+                          "polygon tissue (4 vertices); the run uses [13.333765, 26.666559] on it (more than the "
+                          "rounding of the digits given)")
+    assert [(level, message.split(":")[0]) for level, message in records[1:]] == [
+        ("INFO", "loads[0].segment[0]"), ("INFO", "loads[0].segment[1]")]
+
+
+# --- magnitudes that are unit mistakes --------------------------------------------------------------
+
+THICKNESS = "a number between 0.001 and 10000 (mm; a thinner or thicker slab is a unit mistake)"
+CUTTING = "a number between 0 and 1e+06 (N; a larger force at the needle's tip is a unit mistake)"
+FRICTION = "a number between 0 and 1e+06 (N/mm; a larger force on each millimetre of needle is a unit mistake)"
+
+
+@pytest.mark.parametrize("path, value, line", [
+    (("tissue", "thickness"), 1e300, f"tissue.thickness: got 1e+300, expected {THICKNESS}"),
+    (("tissue", "thickness"), 1e-300, f"tissue.thickness: got 1e-300, expected {THICKNESS}"),
+    (("tissue", "thickness"), 20000, f"tissue.thickness: got 20000, expected {THICKNESS}"),
+    (("needle", "cutting_force"), 1e7, f"needle.cutting_force: got 10000000.0, expected {CUTTING}"),
+    (("needle", "friction"), 1e7, f"needle.friction: got 10000000.0, expected {FRICTION}"),
+])
+def test_thickness_and_needle_forces_beyond_any_tissue_are_unit_mistakes(slab_raw, path, value, line):
+    """As a load's force beyond 1e6 N: before, 1e300 mm or 1e-300 mm thickness and a 1e7 N
+    cutting force ran into a failed first step that named no field."""
+    slab_raw["needle"] = {"radius": 8.88, "entry": [0.0, 30.0], "turn": "cw", "step": 0.08}
+    set_in(slab_raw, path, value)
+    slab_raw["tissue"]["material"]["lame_mu"] = -1.0  # reported with the other problems of the file
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert error.value.lines[:1] == ["tissue.material.lame_mu: got -1.0, expected a positive number (MPa)"]
+    assert line in error.value.lines and len(error.value.lines) == 2
+
+
+def test_the_magnitude_bounds_admit_their_ends_and_python_callers(slab_raw):
+    """The bounds are of the files; the numerics' own checks of overflowing loads construct
+    blocks beyond them in Python (tests/test_stability.py)."""
+    from stitchplan.config import Material, Tissue
+    from stitchplan.config.schema import scenario_schema
+
+    slab_raw["needle"] = {"radius": 8.88, "entry": [0.0, 30.0], "turn": "cw", "step": 0.08,
+                          "friction": 1e6, "cutting_force": 1e6}
+    for thickness in (1e-3, 1e4):
+        slab_raw["tissue"]["thickness"] = thickness
+        assert parse_scenario(slab_raw).tissue.thickness == thickness
+    assert Needle(radius=8.88, entry=(0.0, 30.0), turn="cw", step=0.08, friction=1e200).friction == 1e200
+    assert Tissue((100.0, 100.0), 1e-300, Material(), ("right",)).thickness == 1e-300
+    definitions = scenario_schema()["$defs"]
+    assert definitions["Tissue"]["properties"]["thickness"]["maximum"] == 1e4
+    assert definitions["Needle"]["properties"]["friction"]["maximum"] == 1e6
+    assert definitions["Needle"]["properties"]["cutting_force"]["maximum"] == 1e6
+
+
+def test_a_calibration_files_thickness_has_the_same_bounds():
+    from stitchplan.config.calibration import parse_calibration
+
+    raw = {"tissue": {"size": [100.0, 60.0], "thickness": 1e300, "clamped": ["right"]},
+           "experiments": [{"loads": [{"segment": [[0.0, 24.0], [0.0, 36.0]], "force": [2.0, 1.0]}],
+                            "markers": "markers.csv"}],
+           "fit": {"lame_lambda": [0.01, 2.0], "lame_mu": [0.01, 2.0]}}
+    with pytest.raises(ScenarioError) as error:
+        parse_calibration(raw)
+    assert error.value.lines == [f"tissue.thickness: got 1e+300, expected {THICKNESS}"]

@@ -159,6 +159,52 @@ def test_the_command_lists_every_duplicate_key(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
 
 
+# --- merge keys -------------------------------------------------------------------------------
+
+MERGE = ("merge key '<<'{inside} (YAML 1.1; files are read as YAML 1.2, which has no merge keys), expected the "
+         "keys written out in this mapping (an alias such as `material: *phantom` may still stand for a whole value)")
+
+
+def test_a_merge_key_is_refused_not_overridden_silently(tmp_path):
+    """`<<` merged thickness 0.01 and the mapping's own 10.0 silently won: the file ran as
+    10 mm although it gives two thicknesses. YAML 1.2 has no merge keys; each is one line."""
+    text = SCENE.replace("  thickness: 10.0\n", "  <<: {thickness: 0.01}\n  thickness: 10.0\n")
+    path = write(tmp_path, text)
+    assert refusal(path) == [f"{path}: line 4: " + MERGE.format(inside=" in tissue")]
+
+
+def test_every_merge_key_is_reported_with_the_duplicate_keys(tmp_path):
+    text = (SCENE + "probes: [[10.0, 10.0]]\n").replace(
+        "loads:\n  - segment: [[0.0, 5.0], [0.0, 15.0]]\n    force: [-1.0, 0.5]\n",
+        "loads:\n  - &pull {segment: [[0.0, 5.0], [0.0, 15.0]], force: [-1.0, 0.5]}\n"
+        "  - {<<: *pull, segment: [[0.0, 15.0], [0.0, 18.0]]}\n  - <<: [*pull]\n    segment: [[0.0, 1.0], [0.0, 2.0]]\n"
+        "    segment: [[0.0, 2.0], [0.0, 3.0]]\n")
+    path = write(tmp_path, text)
+    assert refusal(path) == [
+        f"{path}: line 17: " + MERGE.format(inside=" in loads[1]"),
+        f"{path}: line 18: " + MERGE.format(inside=" in loads[2]"),
+        f"{path}: line 20: duplicate key 'segment' (first given at line 19) in loads[2], expected each key once",
+    ]
+
+
+def test_the_command_refuses_a_merge_key_in_one_line(tmp_path):
+    path = write(tmp_path, "<<: {name: merged}\n" + SCENE)
+    result = CliRunner().invoke(app, ["deform", str(path), "--summary", str(tmp_path / "summary.json")])
+    assert result.exit_code == 2, result.output
+    assert result.stderr.splitlines() == [f"error: {path}: line 1: " + MERGE.format(inside="")]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
+def test_a_quoted_key_and_aliases_of_whole_values_are_plain_data(tmp_path):
+    """Only YAML 1.1's plain `<<` merges: a quoted '<<' is an unknown key, and an alias of a
+    whole mapping stays what it is."""
+    path = write(tmp_path, SCENE.replace("  material: {", "  material: &phantom {") + "'<<': 1\n")
+    assert refusal(path) == [f"{path}: scenario: unknown key '<<', expected one of: name, tissue, discretization, "
+                             "needle, loads, load_steps, probes, solver, planner, robot, study"]
+    data, _ = read_yaml(write(tmp_path, "a: &m {k: 1}\nb: *m\n", "aliases.yaml"))
+    assert data == {"a": {"k": 1}, "b": {"k": 1}}
+
+
 # --- nesting ----------------------------------------------------------------------------------
 
 TOO_DEEP = "line 1: nesting too deep (more than 100 levels of lists and mappings), expected plain data"

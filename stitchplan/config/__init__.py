@@ -4,7 +4,9 @@ Modules, each importing only those before it (and stitchplan.errors, stitchplan.
 
 - messages: validation errors as lines, `<field>: got <value>, expected <what>`;
 - fields: finite numbers with bounds and units, integers, choices, points;
-- yaml_files: reading YAML (duplicate keys, alias bombs and non-UTF-8 text refused);
+- yaml_files: reading YAML (duplicate keys, merge keys, alias bombs and non-UTF-8 text refused);
+- boundary_points: points a file places on the boundary, moved onto it within the input
+  tolerance or refused naming the nearest boundary point;
 - blocks: tissue, material, discretization, needle, loads, solver, planner, robot;
 - study: the optional `study:` block;
 - scenario: the scenario file and Scenario, default spacing, load_scenario;

@@ -34,6 +34,7 @@ from ..geometry import (
     segments_touch,
     signed_area,
 )
+from .boundary_points import entry_on_boundary, segment_on_boundary, shown_as_given
 from .fields import (
     BLOCK,
     EDGES,
@@ -60,7 +61,7 @@ from .fields import (
     problem,
     sequence,
 )
-from .messages import combined, valid_or_none, validate
+from .messages import combined, short, valid_or_none, validate
 
 
 def _file_schema(required: tuple[str, ...], schema: dict) -> None:
@@ -172,13 +173,54 @@ Clamp = Annotated[Literal[EDGES] | ClampedSegment, Field(union_mode="left_to_rig
 Clamps = sequence(Clamp, "a list of edges or {segment: ...} pieces of the boundary")
 
 
+# Magnitudes beyond which a file's value is a unit mistake, not a tissue or a needle (as a
+# load's force beyond MAX_LOAD_FORCE_N). A slab thinner than a micrometre is thinner than a cell
+# (no needle passes through it), thicker than 10 m is no tissue (the robot's frame ends at
+# 10 m too); a mega-newton at the needle's tip, or on each millimetre of needle inside the
+# tissue, is 1e6 times a suture needle's cutting force and friction (0.7 N, 0.06 N/mm). At
+# 1e300 mm, 1e-300 mm or 1e7 N the numerics fail in the first step instead, naming no field.
+# Python callers may go beyond them (the numerics' overflow checks are tested that way).
+THICKNESS_RANGE_MM = (1e-3, 1e4)
+MAX_CUTTING_FORCE_N = 1e6
+MAX_FRICTION_N_PER_MM = 1e6
+THICKNESS_LIMITS = {"thickness": (THICKNESS_RANGE_MM, f"a number between {THICKNESS_RANGE_MM[0]:g} and "
+                                  f"{THICKNESS_RANGE_MM[1]:g} (mm; a thinner or thicker slab is a unit mistake)")}
+NEEDLE_LIMITS = {
+    "friction": ((0.0, MAX_FRICTION_N_PER_MM), f"a number between 0 and {MAX_FRICTION_N_PER_MM:g} (N/mm; a "
+                 "larger force on each millimetre of needle is a unit mistake)"),
+    "cutting_force": ((0.0, MAX_CUTTING_FORCE_N), f"a number between 0 and {MAX_CUTTING_FORCE_N:g} (N; a "
+                      "larger force at the needle's tip is a unit mistake)"),
+}
+
+
+def within_limits(limits: dict) -> Any:
+    """A wrap validator refusing a file's numbers (data a mapping) outside `limits` (key:
+    ((low, high), expected)), reported with every other problem of the block. A value the
+    field's own type refuses (a negative thickness, a string) is left to that type."""
+
+    def check(cls, data: Any, handler):
+        problems = []
+        for key, ((low, high), expected) in limits.items():
+            value = data.get(key) if isinstance(data, dict) else None
+            if (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and value > 0 and not low <= value <= high):
+                problems.append(problem(expected, field=key, value=value))
+        if not problems:
+            return handler(data)
+        raise combined([*_field_errors(handler, data), *problems])
+
+    return model_validator(mode="wrap")(check)
+
+
 @block(file_required=("thickness", "material"))
 class Tissue:
     """The tissue: the rectangle `size` or the polygon `outline` (clockwise accepted and walked
     counter-clockwise), optional holes and material regions (SCENARIO.md)."""
 
     size: described(Size | None, "[W, H] mm: the rectangle [0, W] x [0, H]; or give outline") = None
-    thickness: described(PositiveMM, "out-of-plane thickness t, mm (file forces are totals over t)") = 1.0
+    thickness: described(PositiveMM, f"out-of-plane thickness t, mm (file forces are totals over t); "
+                                      f"{THICKNESS_RANGE_MM[0]:g} to {THICKNESS_RANGE_MM[1]:g}",
+                         maximum=THICKNESS_RANGE_MM[1]) = 1.0
     material: described(Material, "hyperelastic material") = dataclasses_field(default_factory=Material)
     clamped: described(Clamps, "edges held fixed: any of " + ", ".join(EDGES)
                        + " (rectangles), or {segment: [[x0, y0], [x1, y1]]} pieces of the boundary") = ()
@@ -187,6 +229,8 @@ class Tissue:
                      "cut-outs with free edges; one reaching the outline is cut out of it") = ()
     regions: described(sequence(Region, "a list of regions ({polygon: ..., material: ...})"),
                        "areas of other materials; the first region holding a point wins") = ()
+
+    _thickness_within_limits = within_limits(THICKNESS_LIMITS)
 
     @field_validator("clamped")
     @classmethod
@@ -200,6 +244,8 @@ class Tissue:
         problems = shape_problems(self)
         if problems:
             raise combined(problems)
+        # clamped segments as the run uses them: their ends moved onto the boundary
+        object.__setattr__(self, "clamped", clamps_on_boundary(self.clamped, self.domain)[0])
         return self
 
     @functools.cached_property
@@ -326,10 +372,22 @@ def shape_problems(tissue: Tissue) -> list:
                 problems.append(problem("{segment: [[x0, y0], [x1, y1]]}, or the name of a side of the "
                                         "outline's bounding box that holds exactly one outline edge",
                                         field=f"clamped[{i}]", value=item))
-        elif domain.segment_edge(*item.segment) is None:
-            problems.append(problem(segment_expectation(domain), field=f"clamped[{i}].segment",
-                                    value=[list(p) for p in item.segment]))
-    return problems
+    return problems + clamps_on_boundary(tissue.clamped, domain)[1]
+
+
+def clamps_on_boundary(clamped: tuple, domain: Rectangle | PolygonDomain) -> tuple[tuple, list]:
+    """The clamped items with each segment's ends moved onto the boundary (boundary_points),
+    and the problems of the segments that are not a straight piece of one edge."""
+    items, problems = [], []
+    for i, item in enumerate(clamped):
+        if isinstance(item, ClampedSegment):
+            segment, why = segment_on_boundary(domain, item.segment)
+            if segment is None:
+                problems.append(problem(why, field=f"clamped[{i}].segment", value=[list(p) for p in item.segment]))
+            elif segment != tuple(item.segment):
+                item = ClampedSegment(segment=segment)
+        items.append(item)
+    return tuple(items), problems
 
 
 def shape_domain(tissue: Any) -> Rectangle | PolygonDomain | None:
@@ -468,8 +526,11 @@ class Needle:
     turn: described(choice(TURNS), "cw or ccw: the way the tip turns after entry")
     step: described(NeedleStep, "rad of needle rotation per step")
     friction: described(number("a non-negative number (N/mm)", ge=0),
-                        "N per mm of needle inside the tissue") = 0.0
-    cutting_force: described(number("a non-negative number (N)", ge=0), "N at the tip needed to cut") = 0.0
+                        f"N per mm of needle inside the tissue; at most {MAX_FRICTION_N_PER_MM:g}",
+                        maximum=MAX_FRICTION_N_PER_MM) = 0.0
+    cutting_force: described(number("a non-negative number (N)", ge=0),
+                             f"N at the tip needed to cut; at most {MAX_CUTTING_FORCE_N:g}",
+                             maximum=MAX_CUTTING_FORCE_N) = 0.0
     tip_tracking: described(TipTracking, "levenberg-marquardt, inverse-gradient (strict) or auto "
                                          "(inverse-gradient, LM fallback)") = "levenberg-marquardt"
     linear_solver: described(LinearSolver, "direct or minres") = "direct"
@@ -490,6 +551,21 @@ class Needle:
     cutting_ramp: described(Flag, "mortar coupling: the cutting force grows with the cutting edge "
                                   "inside (cutting_force / cutting_length per mm) instead of acting "
                                   "whole from the first step") = False
+
+    _magnitudes_within_limits = within_limits(NEEDLE_LIMITS)
+
+    @field_validator("entry")
+    @classmethod
+    def _entry_on_the_boundary(cls, entry, info: ValidationInfo):
+        """A file's entry moved onto the boundary when within its input tolerance
+        (boundary_points); off it or at a corner, refused (the domain comes with a file)."""
+        domain = (info.context or {}).get("domain")
+        if domain is None:
+            return entry
+        snapped, got, why = entry_on_boundary(domain, entry)
+        if snapped is None:
+            raise problem(why, value=Shown(f"{short(list(entry))}, {got}") if got else list(entry))
+        return snapped
 
     @model_validator(mode="wrap")
     @classmethod
@@ -524,10 +600,14 @@ class Load:
     @field_validator("segment")
     @classmethod
     def _on_one_edge(cls, segment, info: ValidationInfo):
+        """Both ends moved onto the boundary when within its input tolerance (boundary_points)."""
         domain = (info.context or {}).get("domain")
-        if domain is not None and domain.segment_edge(*segment) is None:
-            raise problem(segment_expectation(domain))
-        return segment
+        if domain is None:
+            return segment
+        snapped, why = segment_on_boundary(domain, segment)
+        if snapped is None:
+            raise problem(why)
+        return snapped
 
     @model_validator(mode="wrap")
     @classmethod
@@ -551,10 +631,6 @@ class Shown(str):
 
     def __repr__(self) -> str:
         return str(self)
-
-
-def segment_expectation(domain: Rectangle | PolygonDomain) -> str:
-    return f"a non-empty straight piece of one edge of the {domain.describe()}"
 
 
 def shared_length(a, b, tol: float) -> float:
@@ -582,10 +658,13 @@ def load_problems(loads, clamped: tuple, domain: Rectangle | PolygonDomain | Non
         return []
     tol = domain.tolerance
     problems = []
+    # clamped segments as the run uses them (ends moved onto the boundary), so that a load on a
+    # slanted edge meets the clamp on it as typed
+    clamped = clamps_on_boundary(tuple(clamped), domain)[0]
     clamped_edges = [(name, domain.edge(name)) if isinstance(name, str) else
                      (f"clamped[{k}] segment", getattr(name, "segment", name)) for k, name in enumerate(clamped)]
     for i, load in enumerate(loads):
-        segment = [list(point) for point in load.segment]
+        segment = Shown(shown_as_given(load.segment))
         on_clamp = [name for name, edge in clamped_edges if shared_length(edge, load.segment, tol) > tol]
         if on_clamp:
             problems.append(problem(
@@ -596,7 +675,7 @@ def load_problems(loads, clamped: tuple, domain: Rectangle | PolygonDomain | Non
         for j in range(i):
             common = shared_length(loads[j].segment, load.segment, tol)
             if common > tol:
-                other = [list(point) for point in loads[j].segment]
+                other = shown_as_given(loads[j].segment)
                 problems.append(problem(
                     f"a segment sharing at most an end point with {path}[{j}].segment {other} "
                     f"(they share {common:.4g} mm; one load would overrule the other there)",

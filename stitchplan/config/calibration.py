@@ -18,6 +18,8 @@ from pydantic import (
 )
 
 from .blocks import (
+    THICKNESS_LIMITS,
+    THICKNESS_RANGE_MM,
     Clamps,
     Discretization,
     Hole,
@@ -32,7 +34,9 @@ from .blocks import (
     default_spacing_of,
     load_problems,
     shape_domain,
+    within_limits,
 )
+from .boundary_points import given_points, log_moves
 from .fields import (
     MATERIAL_MODELS,
     Name,
@@ -99,11 +103,14 @@ class CalibrationTissue:
     """The tissue of a calibration: a scenario's tissue without its material."""
 
     size: described(Size | None, "[W, H] mm: the rectangle [0, W] x [0, H]; or give outline") = None
-    thickness: described(PositiveMM, "out-of-plane thickness t, mm") = 1.0
+    thickness: described(PositiveMM, f"out-of-plane thickness t, mm; {THICKNESS_RANGE_MM[0]:g} to "
+                                      f"{THICKNESS_RANGE_MM[1]:g}", maximum=THICKNESS_RANGE_MM[1]) = 1.0
     clamped: described(Clamps, "edges held fixed (names, or {segment: ...} pieces)") = ()
     outline: described(PolygonPoints | None, "a simple polygon [[x, y], ...] (mm), instead of size") = None
     holes: described(sequence(Hole, "a list of holes ({polygon: ...} or {circle: ...})"),
                      "cut-outs with free edges; one reaching the outline is cut out of it") = ()
+
+    _thickness_within_limits = within_limits(THICKNESS_LIMITS)
 
     @model_validator(mode="wrap")
     @classmethod
@@ -216,4 +223,14 @@ def parse_calibration(raw: Any) -> CalibrationFile:
                 context["default_spacing_unknown"] = True
             else:
                 raw = {**raw, "discretization": {**given, "spacing": default_spacing_of(size, None)}}
-    return validate(CalibrationFile, raw, "", root="calibration", context=context)
+    calibration = validate(CalibrationFile, raw, "", root="calibration", context=context)
+    moves = [(f"tissue.clamped[{i}].segment[{k}]", given_points(raw, ("tissue", "clamped", i, "segment", k)), end)
+             for i, item in enumerate(calibration.tissue.tissue(Material()).clamped)
+             for k, end in enumerate(getattr(item, "segment", ()))]
+    moves += [(f"experiments[{j}].loads[{i}].segment[{k}]",
+               given_points(raw, ("experiments", j, "loads", i, "segment", k)), end)
+              for j, experiment in enumerate(calibration.experiments) for i, load in enumerate(experiment.loads)
+              for k, end in enumerate(load.segment)]
+    if context["domain"] is not None:
+        log_moves(context["domain"], moves)
+    return calibration

@@ -95,9 +95,10 @@ def choice(values: tuple, expected: str | None = None) -> Any:
     return Annotated[Literal[values], expecting(expected)]
 
 
-def described(kind: Any, description: str) -> Any:
-    """`kind` with a description for the JSON Schema."""
-    return Annotated[kind, Field(description=description)]
+def described(kind: Any, description: str, **schema: Any) -> Any:
+    """`kind` with a description for the JSON Schema, and further `schema` keywords (a
+    `maximum` that a file's values keep, checked by the block)."""
+    return Annotated[kind, Field(description=description, **({"json_schema_extra": schema} if schema else {}))]
 
 
 Number = number("a number (mm)")

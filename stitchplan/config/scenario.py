@@ -31,9 +31,9 @@ from .blocks import (
     default_spacing_of,
     load_problems,
     parse_discretization,
-    segment_expectation,
     shape_domain,
 )
+from .boundary_points import given_points, inside_expectation, log_moves, probe_in_tissue, segment_expectation
 from .fields import (
     EDGES,
     INTEGRATIONS,
@@ -66,19 +66,19 @@ DEFAULT_NEEDLE_REFINEMENT = 2.0
 
 def _inside(point: tuple[float, float], domain: Rectangle | PolygonDomain) -> str | None:
     """What a probe must be when it is not inside the domain."""
-    if domain.contains(np.asarray(point, dtype=float)):
-        return None
-    if isinstance(domain, Rectangle):
-        return f"a point inside [0, {domain.width:g}] x [0, {domain.height:g}] mm"
-    return f"a point inside the {domain.describe()}"
+    return None if domain.contains(np.asarray(point, dtype=float)) else inside_expectation(domain)
 
 
 def _probe_inside(point: tuple[float, float], info: ValidationInfo) -> tuple[float, float]:
+    """A file's probe inside the tissue, or moved onto its boundary from just outside (within
+    the input tolerance: boundary_points); further out, refused naming the nearest point."""
     domain = (info.context or {}).get("domain")
-    expected = _inside(point, domain) if domain is not None else None
-    if expected:
+    if domain is None:
+        return point
+    snapped, expected = probe_in_tissue(domain, point)
+    if snapped is None:
         raise problem(expected)
-    return point
+    return snapped
 
 
 Probes = sequence(Annotated[Point, AfterValidator(_probe_inside)],
@@ -209,7 +209,26 @@ def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = 
         context["default_spacing_unknown"] = resolved is None
         raw = raw if resolved is None else resolved
     scenario_file = validate(ScenarioFile, raw, "", root="scenario", context=context)
+    log_moves(scenario_file.tissue.domain, moved_points(raw, scenario_file))
     return scenario_file.scenario(source_text, source_sha256)
+
+
+def moved_points(raw: Any, scenario_file: ScenarioFile) -> list[tuple[str, Any, Any]]:
+    """(field, point as the file gives it, point as the run uses it) of every point a file
+    places on the boundary or inside the tissue: the needle entry, segment ends, probes."""
+    points = []
+    if scenario_file.needle is not None:
+        points.append(("needle.entry", given_points(raw, ("needle", "entry")), scenario_file.needle.entry))
+    for i, item in enumerate(scenario_file.tissue.clamped):
+        for k, end in enumerate(getattr(item, "segment", ())):
+            points.append((f"tissue.clamped[{i}].segment[{k}]",
+                           given_points(raw, ("tissue", "clamped", i, "segment", k)), end))
+    for i, load in enumerate(scenario_file.loads):
+        for k, end in enumerate(load.segment):
+            points.append((f"loads[{i}].segment[{k}]", given_points(raw, ("loads", i, "segment", k)), end))
+    for i, point in enumerate(scenario_file.probes):
+        points.append((f"probes[{i}]", given_points(raw, ("probes", i)), point))
+    return points
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -4,7 +4,9 @@ Plain scalars follow the YAML 1.2 core schema (what `stitchplan schema` and edit
 `1e-6` is a number; `010` is ten; `5:00`, `yes`, `no`, `on`, `off` and dates stay strings,
 where YAML 1.1 would silently read 300, True, False or a date. Refused besides syntax
 errors: text that is not UTF-8, a key given twice in one mapping (the second would silently
-win; every such key of a file is reported at once), tags without a plain-data meaning, and
+win; every such key of a file is reported at once), YAML 1.1's merge key `<<` (YAML 1.2 has
+none, and the keys it merges give way silently to the mapping's own: a second way to give a
+key twice), tags without a plain-data meaning, and
 aliases beyond a small bound (an "alias bomb" expands a few lines into billions of values),
 and nesting deeper than a bound (the loader recurses once per level: 500 nested `[` would
 end in Python's recursion limit)."""
@@ -45,7 +47,7 @@ CORE_SCALARS = [
     ("tag:yaml.org,2002:bool", _whole(*TRUE, *FALSE), list("tTfF")),
     ("tag:yaml.org,2002:int", _whole(INTEGER, OCTAL, HEXADECIMAL), list("-+0123456789")),
     ("tag:yaml.org,2002:float", _whole(FLOAT, INFINITY, NAN), list("-+.0123456789")),
-    # not a scalar type: `<<: *base` merges a mapping, as before
+    # not YAML 1.2: `<<` is recognised only to be refused by name (_key_problems)
     ("tag:yaml.org,2002:merge", _whole("<<"), ["<"]),
 ]
 
@@ -89,9 +91,9 @@ class _Loader(yaml.SafeLoader):
         if node is not None:
             if self.aliases:
                 _count_values(node, {})
-            duplicates = _duplicate_keys(self, node)
-            if duplicates:
-                raise _Refused(*duplicates)
+            problems = _key_problems(self, node)
+            if problems:
+                raise _Refused(*problems)
         return node
 
     def construct_yaml_int(self, node) -> int:
@@ -166,10 +168,10 @@ def _count_values(node, memo: dict, depth: int = 1) -> int:
     return count
 
 
-def _duplicate_keys(loader: _Loader, root) -> list[str]:
-    """One line per key given more than once in a mapping, anywhere under `root`, in the
-    order of the file: where it is repeated, where it was first given, and the mapping's path
-    (an aliased mapping is checked once, where its anchor is)."""
+def _key_problems(loader: _Loader, root) -> list[str]:
+    """One line per key given more than once in a mapping, and per merge key `<<`, anywhere
+    under `root`, in the order of the file: where it is (repeated), where it was first given,
+    and the mapping's path (an aliased mapping is checked once, where its anchor is)."""
     found: list[tuple[tuple[int, int], str]] = []
     seen: set[int] = set()
     pending = [(root, "")]  # depth first, in the order of the file: an anchor before its aliases
@@ -184,7 +186,8 @@ def _duplicate_keys(loader: _Loader, root) -> list[str]:
         elif isinstance(node, yaml.MappingNode):
             places: dict[Any, list] = {}
             for key_node, value_node in node.value:
-                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base` may override
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    found.append(_merge_line(key_node.start_mark, path))
                     children.append((value_node, path))
                     continue
                 key = _key(loader, key_node)
@@ -194,6 +197,15 @@ def _duplicate_keys(loader: _Loader, root) -> list[str]:
             found += [_duplicate_line(key, marks, path) for key, marks in places.items() if len(marks) > 1]
         pending += reversed(children)
     return [line for _, line in sorted(found)]
+
+
+def _merge_line(mark, path: str) -> tuple[tuple[int, int], str]:
+    """The line refusing a merge key at `mark` in the mapping at `path`, and where to sort it."""
+    inside = f" in {path}" if path else ""
+    return (mark.line, mark.column), (
+        f"line {mark.line + 1}: merge key '<<'{inside} (YAML 1.1; files are read as YAML 1.2, which has no "
+        "merge keys), expected the keys written out in this mapping (an alias such as `material: *phantom` "
+        "may still stand for a whole value)")
 
 
 def _key(loader: _Loader, key_node) -> Any:

@@ -1,0 +1,163 @@
+"""Points a file places on the tissue's boundary (a needle entry, the ends of load and clamped
+segments) or inside it (probes), as a person types or measures them.
+
+A point within the domain's input tolerance of the boundary (a micrometre; see
+geometry.INPUT_TOLERANCE_MM) is moved onto it (geometry.snap_to_boundary) and the run uses the
+moved point; the checks that follow (a corner, a clamped edge, one edge holding a segment)
+judge the moved point. A point further off is refused with the nearest boundary point, written
+to the nanometre so that it is accepted when pasted back. `log_moves` says which points moved:
+at INFO when a move is within the rounding of the digits typed, at WARNING when it is more.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from decimal import Decimal, InvalidOperation
+from typing import Any
+
+import numpy as np
+
+from ..geometry import (
+    CIRCLE_SEGMENTS,
+    PolygonDomain,
+    Rectangle,
+    nearest_boundary_point,
+    smooth_vertex,
+    snap_to_boundary,
+)
+
+log = logging.getLogger(__name__)
+
+SHOWN_DECIMALS = 6  # a nanometre: a point shown so lies within 0.71 nm of its value, far inside the tolerance
+
+
+def shown_number(value: float) -> str:
+    """A coordinate to the nanometre, without trailing zeros (13.333333, 40, -0.5)."""
+    text = f"{round(float(value), SHOWN_DECIMALS) + 0.0:.{SHOWN_DECIMALS}f}".rstrip("0").rstrip(".")
+    return "0" if text in ("", "-0") else text
+
+
+def shown_point(point) -> str:
+    return "[" + ", ".join(shown_number(value) for value in point) + "]"
+
+
+def shown_as_given(points) -> str:
+    """Points (a segment) as a file gives them ([[40.0, 5.0], ...]), a coordinate moved onto
+    the boundary to the nanometre (33.333294 rather than 33.33329411764706)."""
+    def number(value: float) -> str:
+        short = shown_number(value)
+        return repr(float(value)) if float(short) == float(value) else short
+
+    return "[" + ", ".join("[" + ", ".join(number(v) for v in point) + "]" for point in points) + "]"
+
+
+def nearest_note(domain: Rectangle | PolygonDomain, point) -> str:
+    """'the nearest is [x, y], d mm away' (with the circle note on a domain with holes)."""
+    nearest, distance = nearest_boundary_point(domain, point)
+    circles = (f" (a circular hole is held as its inscribed {CIRCLE_SEGMENTS}-gon)"
+               if getattr(domain, "holes", ()) else "")
+    return f"the nearest is {shown_point(nearest)}, {distance:.3g} mm away{circles}"
+
+
+def on_boundary(domain: Rectangle | PolygonDomain) -> str:
+    return f"a point on the boundary of the {domain.describe()} or within {domain.input_tolerance:g} mm of it"
+
+
+def segment_expectation(domain: Rectangle | PolygonDomain) -> str:
+    return f"a non-empty straight piece of one edge of the {domain.describe()}"
+
+
+def as_pair(point) -> tuple[float, float]:
+    return (float(point[0]), float(point[1]))
+
+
+def entry_on_boundary(domain: Rectangle | PolygonDomain, entry) -> tuple[tuple[float, float] | None, str, str]:
+    """A needle entry moved onto the boundary, or (None, what was received, what is expected):
+    off the boundary (with the nearest point), or at a corner (a vertex where the boundary
+    turns by more than geometry.CORNER_TURN, or within the input tolerance of one)."""
+    snapped = snap_to_boundary(domain, entry)
+    if snapped is None:
+        return None, "", f"{on_boundary(domain)}; {nearest_note(domain, entry)}"
+    if len(domain.edges_at(snapped)) > 1 and not smooth_vertex(domain, snapped):
+        gap = float(np.linalg.norm(snapped - np.asarray(entry, dtype=float)))
+        where = ("a corner" if gap <= domain.tolerance
+                 else f"{gap:.3g} mm from the corner {shown_point(snapped)}")
+        return None, where, ("a point inside one edge (the entry normal is undefined at a corner; a point "
+                             f"within {domain.input_tolerance:g} mm of a vertex is the vertex)")
+    return as_pair(snapped), "", ""
+
+
+def segment_on_boundary(domain: Rectangle | PolygonDomain, segment) -> tuple[tuple | None, str]:
+    """A load or clamped segment with both ends moved onto the boundary, or (None, what is
+    expected): a straight piece of one edge, naming the nearest boundary point of an end off it."""
+    snapped = [snap_to_boundary(domain, end) for end in segment]
+    off = [f"its end {shown_point(end)} is off the boundary, {nearest_note(domain, end)}"
+           for end, moved in zip(segment, snapped) if moved is None]
+    if off:
+        return None, f"{segment_expectation(domain)}; " + "; ".join(off)
+    if domain.segment_edge(*snapped) is None:
+        why = ("its ends are one point" if np.array_equal(snapped[0], snapped[1])
+               else "its ends are on the boundary, not on one edge")
+        return None, f"{segment_expectation(domain)} ({why})"
+    return tuple(as_pair(end) for end in snapped), ""
+
+
+def inside_expectation(domain: Rectangle | PolygonDomain) -> str:
+    if isinstance(domain, Rectangle):
+        return f"a point inside [0, {domain.width:g}] x [0, {domain.height:g}] mm"
+    return f"a point inside the {domain.describe()}"
+
+
+def probe_in_tissue(domain: Rectangle | PolygonDomain, point) -> tuple[tuple[float, float] | None, str]:
+    """A probe inside the tissue as given, one just outside moved onto the boundary, or (None,
+    what is expected, naming the nearest boundary point)."""
+    if domain.contains(np.asarray(point, dtype=float)):
+        return tuple(point), ""
+    snapped = snap_to_boundary(domain, point)
+    if snapped is None:
+        return None, f"{inside_expectation(domain)}; {nearest_note(domain, point)}"
+    return as_pair(snapped), ""
+
+
+# --- which points moved ------------------------------------------------------------------------
+
+
+def _rounding(value: Any) -> float:
+    """Half a unit of the last decimal written (13.3333: 5e-5; 18.0: 0.05; 40: 0.5)."""
+    try:
+        exponent = Decimal(repr(value)).as_tuple().exponent
+    except (InvalidOperation, TypeError):
+        return 0.0
+    return 0.5 * 10.0 ** exponent if isinstance(exponent, int) else 0.0
+
+
+def given_points(raw: Any, path: tuple) -> Any:
+    """The value at `path` (keys and indices) in a file's data, None where there is none."""
+    for step in path:
+        try:
+            raw = raw[step]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return raw
+
+
+def log_moves(domain: Rectangle | PolygonDomain, moves: list[tuple[str, Any, Any]]) -> None:
+    """One log line per point (field, as given, as used) moved by more than round-off."""
+    for field, given, used in moves:
+        try:
+            given_xy = np.asarray([float(value) for value in given])
+        except (TypeError, ValueError):
+            continue
+        used_xy = np.asarray(used, dtype=float)
+        if given_xy.shape != (2,) or used_xy.shape != (2,):
+            continue
+        moved = np.abs(used_xy - given_xy)
+        distance = float(np.hypot(*moved))
+        if not math.isfinite(distance) or distance <= domain.tolerance:
+            continue
+        rounding = all(m <= _rounding(value) * (1 + 1e-9) for m, value in zip(moved, given))
+        log.log(logging.INFO if rounding else logging.WARNING,
+                "%s: %s lies %.3g mm off the boundary of the %s; the run uses %s on it%s", field,
+                "[" + ", ".join(map(repr, given)) + "]", distance, domain.describe(), shown_point(used_xy),
+                "" if rounding else " (more than the rounding of the digits given)")
