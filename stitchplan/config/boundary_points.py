@@ -45,11 +45,16 @@ def shown_point(point) -> str:
 def shown_as_given(points) -> str:
     """Points (a segment) as a file gives them ([[40.0, 5.0], ...]), a coordinate moved onto
     the boundary to the nanometre (33.333294 rather than 33.33329411764706)."""
+    return "[" + ", ".join(shown_point_as_given(point) for point in points) + "]"
+
+
+def shown_point_as_given(point) -> str:
+    """One point as shown_as_given shows a segment's ([0.0, 15.0], [13.333294, 26.666706])."""
     def number(value: float) -> str:
         short = shown_number(value)
         return repr(float(value)) if float(short) == float(value) else short
 
-    return "[" + ", ".join("[" + ", ".join(number(v) for v in point) + "]" for point in points) + "]"
+    return "[" + ", ".join(number(v) for v in point) + "]"
 
 
 def nearest_note(domain: Rectangle | PolygonDomain, point) -> str:

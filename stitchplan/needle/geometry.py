@@ -13,6 +13,7 @@ import numpy as np
 
 from ..config import Needle, Scenario
 from ..config.blocks import default_spacing_of
+from ..config.boundary_points import shown_point, shown_point_as_given
 from ..errors import InputError
 from ..geometry import CIRCLE_SEGMENTS, PolygonDomain, Rectangle, circle_center_at_entry, smooth_vertex
 from ..tissue.particles import RefinementZone, end_spacing
@@ -230,7 +231,7 @@ def scenario_needle(scenario: Scenario) -> NeedleGeometry:
     tissue, entry = scenario.tissue, np.asarray(scenario.needle.entry, dtype=float)
     where = _clamp_at(tissue, entry)
     if where is not None:
-        raise InputError(f"needle.entry: got {list(scenario.needle.entry)}, on {where}; expected a point "
+        raise InputError(f"needle.entry: got {shown_point_as_given(entry)}, on {where}; expected a point "
                          "on a free edge (a clamp holds the tissue where the needle would enter)")
     geometry = needle_geometry(scenario.needle, scenario.tissue.domain)
     for k, (_, kind) in enumerate(geometry.crossings):
@@ -238,11 +239,10 @@ def scenario_needle(scenario: Scenario) -> NeedleGeometry:
         where = _clamp_at(tissue, point)
         if where is not None:
             what = "the desired exit" if k == len(geometry.crossings) - 1 else f"its crossing {k + 1} ({kind})"
-            x, y = (round(value, 9) + 0.0 for value in point)  # no -0 or 1e-16 off an edge
             raise InputError(
-                f"needle: the {scenario.needle.radius:g} mm needle entering at {list(scenario.needle.entry)} "
+                f"needle: the {scenario.needle.radius:g} mm needle entering at {shown_point_as_given(entry)} "
                 f"turning {scenario.needle.turn} {'leaves' if kind == 'exit' else 'enters'} the tissue on "
-                f"{where}: {what} [{x:.4g}, {y:.4g}]; expected the needle's way out on a free edge (a clamp "
+                f"{where}: {what} {shown_point(point)}; expected the needle's way out on a free edge (a clamp "
                 "holds the tissue there: move the entry, turn the other way or change the clamps)")
     return geometry
 
