@@ -4,6 +4,8 @@
 The two kernels work on any displacement field; `track_step` and `locate_exit` apply them
 to an insertion: the tip point of a needle step (with the 'auto' fallback from the inverse
 gradient to Levenberg-Marquardt), and the boundary point where the tip leaves the tissue.
+`locate_reentry` finds where the tip crossing a wound's gap enters the deformed tissue again,
+by carrying the boundary with the displacement (no material point maps to a tip in the gap).
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from __future__ import annotations
 import logging
 import math
 import time
+import weakref
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -20,6 +24,8 @@ from ..events import Event, EventKind
 from .geometry import IDENTITY, length
 
 if TYPE_CHECKING:
+    import scipy.sparse as sp
+
     from .equilibrium import NeedleInsertion
 
 log = logging.getLogger(__name__)
@@ -274,56 +280,230 @@ def _boundary_crossing(insertion: NeedleInsertion, rotation: float, method: str,
     return insertion.domain.clip(tracked[fraction]), rotation + fraction * step
 
 
-# --- across a wound ------------------------------------------------------------------------------
+# --- across a wound ---------------------------------------------------------------------------
+#
+# The tip crossing a wound's gap is outside the tissue: no material point maps to it. Where it
+# enters the tissue again is found forward, by carrying the boundary with u, never by inverting
+# x = X + u(X) in the gap. (A fixed-point iteration X <- x - u(X), u continued from the nearest
+# tissue point, did that: near a round hole's middle the nearest wall point sweeps the wall as X
+# moves by tenths of a mm, the iteration hops between walls, and it failed on holes the needle
+# crosses near their middle, missing the tip by 0.16 mm on a 2 mm hole at the default spacing.)
+
+WALL_SAMPLES = 4  # boundary chords per local particle spacing
+MATERIAL_POINT_TOLERANCE = 0.1  # local particle spacings: what the field resolves
+MATERIAL_POINT_ITERATIONS = 30
+MATERIAL_POINT_STOP = 1e-13  # a Newton step below this times R ends the search for a material point
+WALL_REFINEMENT = 32  # pieces a chord is cut into when Brent's method stopped at a jump of u
+ROTATION_ROUNDOFF = 1e-12  # rad
 
 
-def material_point(insertion: NeedleInsertion, spatial: np.ndarray, iterations: int = 100) -> np.ndarray:
-    """The reference point X with X + u(X) = `spatial`, u continued outside the tissue by
-    its value at the nearest tissue point (NeedleInsertion.displacement): outside the tissue
-    exactly when `spatial` lies outside the deformed tissue (in a wound's gap). Fixed-point
-    iteration X <- x - u(X), a contraction while |grad u| < 1. Where u jumps (across a
-    hole's corner, where the visibility criterion cuts the particles' supports) no point
-    maps exactly; the last iterate is kept while X + u(X) misses `spatial` by at most
+@dataclass(frozen=True)
+class BoundarySamples:
+    """The tissue's boundary sampled at rest: each directed boundary edge (tissue on its left)
+    cut into WALL_SAMPLES chords per local particle spacing (a 2 mm hole's 96-gon edge, 0.13 mm,
+    is one chord at any spacing the model resolves), and the shape functions there. Chord k
+    joins samples k and k + 1 of one edge; an edge's last sample is the next edge's first, so
+    the chords close every boundary loop. Made once per model (boundary_samples)."""
+
+    reference: np.ndarray  # (n, 2) samples at rest
+    chords: np.ndarray  # (m,) the first sample of each chord
+    rows: sp.csr_matrix  # (n, n_free) N(X) T at the samples: u = rows @ free
+
+    @classmethod
+    def of(cls, insertion: NeedleInsertion) -> BoundarySamples:
+        edges = np.array(insertion.domain.boundary_segments(), dtype=float)  # (k, start | end, 2)
+        starts, ends = edges[:, 0], edges[:, 1]
+        lengths = np.linalg.norm(ends - starts, axis=1)
+        # first at the spacing at the edges' ends and middles, then at the finest spacing those
+        # samples meet (a long outline edge is graded toward the needle in between)
+        pieces = _chords_per_edge(insertion, np.vstack([starts, 0.5 * (starts + ends), ends]),
+                                  np.tile(np.arange(len(edges)), 3), lengths)
+        samples, edge, _ = _edge_samples(starts, ends, pieces)
+        samples, _, last = _edge_samples(starts, ends, _chords_per_edge(insertion, samples, edge, lengths))
+        samples = insertion.domain.clip(samples)  # as NeedleInsertion.displacement evaluates u
+        return cls(samples, np.flatnonzero(~last), insertion.model.free_rows_at(samples))
+
+
+def _chords_per_edge(insertion: NeedleInsertion, points: np.ndarray, edge: np.ndarray,
+                     lengths: np.ndarray) -> np.ndarray:
+    """Chords of each edge (k,): WALL_SAMPLES per the least local spacing at its `points`
+    (`edge`: the edge of each point)."""
+    spacing = np.full(len(lengths), np.inf)
+    np.minimum.at(spacing, edge, insertion.coupling.local_spacing(points))
+    return np.maximum(np.ceil(WALL_SAMPLES * lengths / spacing), 1).astype(int)
+
+
+def _edge_samples(starts: np.ndarray, ends: np.ndarray, pieces: np.ndarray):
+    """The ends of `pieces` equal chords of every edge starts-ends (k, 2), both edge ends
+    included: the samples (n, 2), the edge of each (n,) and whether it ends its edge (n,)."""
+    edge = np.repeat(np.arange(len(starts)), pieces + 1)
+    first = np.cumsum(pieces + 1) - (pieces + 1)  # (k,) each edge's first sample
+    along = (np.arange(len(edge)) - first[edge]) / pieces[edge]  # (n,) fraction along its edge
+    samples = starts[edge] + along[:, None] * (ends - starts)[edge]
+    last = np.zeros(len(edge), dtype=bool)
+    last[first + pieces] = True
+    return samples, edge, last
+
+
+_SAMPLES: dict[int, BoundarySamples] = {}  # by id of the tissue model, dropped with the model
+
+
+def boundary_samples(insertion: NeedleInsertion) -> BoundarySamples:
+    """The BoundarySamples of the insertion's model, made on its first re-entry (a plan's
+    passes and replays share the model)."""
+    key = id(insertion.model)
+    samples = _SAMPLES.get(key)
+    if samples is None:
+        samples = _SAMPLES[key] = BoundarySamples.of(insertion)
+        weakref.finalize(insertion.model, _SAMPLES.pop, key, None)
+    return samples
+
+
+class DeformedBoundary:
+    """The boundary samples carried by the displacement: the chords' spatial ends X + u(X)
+    (`spatial`, (n, 2)), closed polygons that bound the deformed tissue to within the chords'
+    sag (what the tip in a wound's gap is tested against and crosses)."""
+
+    def __init__(self, insertion: NeedleInsertion):
+        samples = boundary_samples(insertion)
+        self.reference, self.chords = samples.reference, samples.chords
+        self.spatial = samples.reference + samples.rows @ insertion.free  # (n, 2)
+
+    def contains(self, point: np.ndarray) -> bool:
+        """Whether the spatial point lies inside the deformed tissue: the even-odd rule, an odd
+        count of chords crossing the ray to its right."""
+        a, b = self.spatial[self.chords], self.spatial[self.chords + 1]  # (m, 2) each
+        x, y = float(point[0]), float(point[1])
+        straddle = (a[:, 1] > y) != (b[:, 1] > y)
+        a, b = a[straddle], b[straddle]
+        crossing_x = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+        return bool(np.count_nonzero(x < crossing_x) % 2)
+
+    def circle_crossings(self, center: np.ndarray, radius: float, rotation_of) -> tuple[np.ndarray, np.ndarray]:
+        """The chords that cross the circle of `radius` about `center` (c,), in the order of
+        the needle rotations where they cross it (`rotation_of` a spatial point's), (c,). A
+        chord from inside the circle to outside crosses it once."""
+        outside = np.linalg.norm(self.spatial - center, axis=1) > radius  # (n,)
+        chords = self.chords[outside[self.chords] != outside[self.chords + 1]]
+        a, b = self.spatial[chords], self.spatial[chords + 1]  # (c, 2) each
+        # |a + s (b - a) - center| = radius, 0 <= s <= 1: the far root from inside, else the near one
+        e, f = b - a, a - center
+        qa, qb, qc = np.sum(e * e, axis=1), np.sum(f * e, axis=1), np.sum(f * f, axis=1) - radius**2
+        root = np.sqrt(np.maximum(qb * qb - qa * qc, 0.0))
+        s = np.where(qc <= 0.0, -qb + root, -qb - root) / qa
+        rotations = rotation_of(a + s[:, None] * e)
+        order = np.argsort(rotations)
+        return chords[order], rotations[order]
+
+
+def material_point(insertion: NeedleInsertion, spatial: np.ndarray,
+                   iterations: int = MATERIAL_POINT_ITERATIONS) -> np.ndarray:
+    """The reference point X with X + u(X) = `spatial`, a point inside the deformed tissue:
+    Newton's method with F = I + grad u from X = x - u(x). Where u jumps (across a hole's
+    corner, where the visibility criterion cuts the particles' supports) no point maps
+    exactly: the last iterate is kept while X + u(X) misses `spatial` by at most
     MATERIAL_POINT_TOLERANCE local particle spacings (what the field resolves), and a
-    TipTrackingJump says so beyond, instead of a wrong point (on coarse models with circular
-    holes the miss reached 0.8-19 mm)."""
-    point = np.asarray(spatial, dtype=float).copy()
+    TipTrackingJump says so beyond."""
+    point = spatial - insertion.displacement(spatial)[0]
+    stop = MATERIAL_POINT_STOP * max(insertion.geometry.radius, 1.0)
     for _ in range(iterations):
-        following = spatial - insertion.displacement(point)[0]
-        if np.linalg.norm(following - point) <= 1e-13 * insertion.geometry.radius:
-            return following
-        point = following
+        u, grad = insertion.displacement(point, gradient=True)
+        try:
+            step = np.linalg.solve(IDENTITY + grad[0], point + u[0] - spatial)
+        except np.linalg.LinAlgError:
+            break
+        point = point - step
+        if length(step) <= stop:
+            break
     miss = float(np.linalg.norm(point + insertion.displacement(point)[0] - spatial))
     if miss > MATERIAL_POINT_TOLERANCE * float(insertion.coupling.local_spacing(point)[0]):
         raise TipTrackingJump(
-            f"no material point maps to the tip at ({spatial[0]:.4g}, {spatial[1]:.4g}) mm: the fixed-point "
-            f"iteration X = x - u(X) misses it by {miss:.3g} mm after {iterations} iterations (the displacement "
-            "jumps near the tissue's edge there): refine the spacing")
+            f"no material point maps to the tip at ({spatial[0]:.4g}, {spatial[1]:.4g}) mm: Newton's method on "
+            f"X + u(X) = x misses it by {miss:.3g} mm after {iterations} iterations (the displacement jumps near "
+            "the tissue's edge there): refine the spacing")
     return point
 
 
-MATERIAL_POINT_TOLERANCE = 0.1  # local particle spacings
+def _wall_point(insertion: NeedleInsertion, start: np.ndarray, end: np.ndarray, rotation_of,
+                earliest: float) -> tuple[np.ndarray, float]:
+    """The point X of the boundary chord start-end (at rest) whose position X + u(X) lies on
+    the needle's circle, and the needle rotation there: Brent's method along the chord on
+    |X + u(X) - O| - R, which differs in sign at its ends. Where u jumps along the wall (the
+    visibility criterion at a round hole's vertices) the zero found may be the jump: the chord
+    is then cut into WALL_REFINEMENT pieces, and of the zeros that X + u(X) meets within
+    MATERIAL_POINT_TOLERANCE local particle spacings the first in needle order from `earliest`
+    is taken; a TipTrackingJump when there is none (the deformed wall jumps across the circle)."""
+    center, radius = insertion.center, insertion.geometry.radius
+
+    def points(fractions):
+        return start + np.multiply.outer(fractions, end - start)  # (..., 2)
+
+    def off_circle(fraction):
+        x = points(fraction)
+        return np.linalg.norm(x + insertion.displacement(x).reshape(x.shape) - center, axis=-1) - radius
+
+    def bracketed(a: float, b: float) -> float:
+        fa, fb = float(off_circle(a)), float(off_circle(b))
+        if (fa > 0.0) == (fb > 0.0):  # the samples' u and this one differ by round-off at a zero
+            return a if abs(fa) <= abs(fb) else b
+        return brent_root(lambda fraction: float(off_circle(fraction)), a, b)
+
+    fraction = bracketed(0.0, 1.0)
+    miss = abs(float(off_circle(fraction)))
+    tolerance = MATERIAL_POINT_TOLERANCE * float(insertion.coupling.local_spacing(points(fraction))[0])
+    if miss > tolerance:
+        cuts = np.linspace(0.0, 1.0, WALL_REFINEMENT + 1)
+        values = off_circle(cuts)
+        zeros = [bracketed(cuts[k], cuts[k + 1]) for k in np.flatnonzero((values[:-1] > 0.0) != (values[1:] > 0.0))]
+        zeros = [zero for zero in zeros if abs(float(off_circle(zero))) <= tolerance]
+        spatial = {zero: points(zero) + insertion.displacement(points(zero))[0] for zero in zeros}
+        zeros = [zero for zero in zeros if rotation_of(spatial[zero]) >= earliest]
+        if not zeros:
+            point = points(fraction)
+            raise TipTrackingJump(
+                f"the deformed wall jumps across the needle by {miss:.3g} mm at the wall point ({point[0]:.4g}, "
+                f"{point[1]:.4g}) mm where the tip enters it (the displacement jumps along the tissue's edge there, "
+                f"by more than {MATERIAL_POINT_TOLERANCE:g} local particle spacings): refine the spacing")
+        fraction = min(zeros, key=lambda zero: rotation_of(spatial[zero]))
+    point = points(fraction)
+    return point, float(rotation_of(point + insertion.displacement(point)[0]))
 
 
 def locate_reentry(insertion: NeedleInsertion, start: float, end: float) -> tuple[np.ndarray, float] | None:
     """Where the rigid needle's tip, crossing a wound from rotation `start` to `end` about the
     current centre, enters the deformed tissue again: the reference boundary point and the
-    rotation there (Brent's method on the signed distance of the tip's material point), or
-    None while it stays in the gap."""
-    t0 = time.perf_counter()
-    geometry = insertion.geometry
-    found: dict[float, np.ndarray] = {}
+    rotation there, or None while the tip at `end` is still outside the deformed tissue.
 
-    def signed_distance(rotation: float) -> float:
-        if rotation not in found:
-            found[rotation] = material_point(insertion, geometry.tip(rotation, insertion.center))
-        return insertion.domain.outside_distance(found[rotation])
+    The boundary is carried forward (DeformedBoundary): the first crossing of the needle's arc
+    with it after `start` is where the tip enters, and the re-entry, a wall point at rest, is
+    found along that wall (_wall_point). A tip already inside at `start` (the wall moved over
+    it in the last equilibrium) enters there, at its material point."""
+    t0 = time.perf_counter()
+    geometry, center = insertion.geometry, insertion.center
+
+    def rotation_of(spatial: np.ndarray) -> np.ndarray:
+        """The needle rotation, within half a turn of `start`, at which the tip passes the polar
+        angle of the spatial points (..., 2) about the centre, (...)."""
+        angle = np.arctan2(spatial[..., 1] - center[1], spatial[..., 0] - center[0])
+        turned = geometry.sense * (angle - geometry.start_angle) - start
+        return start + np.mod(turned + math.pi, 2.0 * math.pi) - math.pi
 
     try:
-        if signed_distance(end) > 0.0:
+        boundary = DeformedBoundary(insertion)
+        if not boundary.contains(geometry.tip(end, center)):
             return None
-        rotation = start if signed_distance(start) <= 0.0 else brent_root(signed_distance, start, end)
-        return insertion.domain.clip(found[rotation]), rotation
+        tip = geometry.tip(start, center)
+        if boundary.contains(tip):
+            return insertion.domain.clip(material_point(insertion, tip)), start
+        chords, rotations = boundary.circle_crossings(center, geometry.radius, rotation_of)
+        ahead = chords[(rotations >= start - ROTATION_ROUNDOFF) & (rotations <= end + ROTATION_ROUNDOFF)]
+        if not len(ahead):  # the even-odd rule and the crossings count the same chords
+            raise TipTrackingJump(f"the tip lies inside the deformed tissue at {end:.3f} rad but its arc from "
+                                  f"{start:.3f} rad crosses no boundary")
+        # the first crossing after a start outside enters
+        point, rotation = _wall_point(insertion, boundary.reference[ahead[0]], boundary.reference[ahead[0] + 1],
+                                      rotation_of, start)
+        return point, min(max(rotation, start), end)
     except TipTrackingJump as jump:
         raise InsertionFailure(f"re-entry of the tip between needle rotations {start:.3f} and {end:.3f} rad: "
                                f"{jump}") from None
