@@ -214,16 +214,25 @@ def refuse_singular_stiffness(condition: float, discretization) -> None:
     direction, vanishes at the particles' alternating mode (k = pi / spacing) for a = 4
     spacings: at dilation 4 that mode's coefficients make no displacement, and from ~3 on
     they make almost none. Newton then stalls on such a model (sh12_100x100 at dilation 4
-    and half its spacing ran for more than 10 minutes at step 1)."""
+    and half its spacing ran for more than 10 minutes at step 1). At a dilation of 3 or less
+    (~1e4 at 2, ~2e6 at 3 on sh12_100x100: benchmarks/results/dilation_conditioning.md) the
+    kernels are not the cause: particles closer together than their spacing are, the same
+    alternating mode over half the distance (hole_near_stitch at 0.75 mm had ~3e13 from
+    boundary particles added between the lattice's own along its top edge), and the advice
+    is about those, not the dilation."""
     if not condition > STIFFNESS_CONDITION:
         return
     estimate = f"~{condition:.0e}" if math.isfinite(condition) else "infinite to rounding"
-    raise InputError(
-        f"discretization: dilation {discretization.dilation:g} with spacing {discretization.spacing:g} mm makes "
-        f"the tissue's stiffness nearly singular (condition number {estimate}, estimated; ~1e4 at dilation 2; "
-        f"above {STIFFNESS_CONDITION:.0e} its solves keep fewer than 4 of 16 digits): kernels wider than ~3 "
-        "spacings make the particles' coefficients nearly dependent; use a dilation of 3 or less (2 is the "
-        "default)")
+    found = (f"discretization: dilation {discretization.dilation:g} with spacing {discretization.spacing:g} mm "
+             f"makes the tissue's stiffness nearly singular (condition number {estimate}, estimated; ~1e4 at "
+             f"dilation 2; above {STIFFNESS_CONDITION:.0e} its solves keep fewer than 4 of 16 digits)")
+    if discretization.dilation > 3:
+        raise InputError(f"{found}: kernels wider than ~3 spacings make the particles' coefficients nearly "
+                         "dependent; use a dilation of 3 or less (2 is the default)")
+    raise InputError(f"{found}: at a dilation of 3 or less the kernels are not the cause; particles closer "
+                     "together than the spacing are, likely where the boundary crowds them (a sharp corner, "
+                     "tissue or boundary features thinner than the spacing); try another spacing, or change the "
+                     "shape there")
 
 
 class NeedleInsertion:

@@ -27,6 +27,8 @@ import os
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import NumericalFailure
+
 try:  # the `fast` extra; imported with the module, as scipy is, not within a run
     from cvxopt import cholmod, matrix as dense, spmatrix
 except (ImportError, OSError):
@@ -36,6 +38,11 @@ SUPERLU = "scipy SuperLU (splu, MMD_AT_PLUS_A ordering, symmetric mode)"
 CHOLMOD = "CHOLMOD Cholesky (cvxopt)"
 CHOLMOD_LDL = "CHOLMOD LDL^T (cvxopt, simplicial)"
 LDL_CHECK = 1e-10  # |A x - b| / |b| an L D L^T factor's solve must reach on a test vector
+
+
+class SingularMatrix(NumericalFailure):
+    """SuperLU met a zero pivot: the matrix is singular to rounding (scipy raises a bare
+    RuntimeError, which would end a command with a traceback)."""
 
 
 class SuperLUFactor:
@@ -49,7 +56,13 @@ class SuperLUFactor:
     def __init__(self, matrix: sp.spmatrix):
         from scipy.sparse.linalg import splu  # imported at start-up where SuperLU is the backend (below)
 
-        self._lu = splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        try:
+            self._lu = splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        except RuntimeError as error:  # "Factor is exactly singular"
+            raise SingularMatrix(
+                f"the {matrix.shape[0]} x {matrix.shape[1]} stiffness matrix is singular: SuperLU met a zero "
+                f"pivot ({error}); the particles' coefficients are dependent, as where particles crowd "
+                "together or tissue is thinner than the particle spacing resolves") from None
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         return self._lu.solve(rhs)

@@ -16,12 +16,13 @@ from .boundary_conditions import EssentialBoundary, boundary_particles, transfor
 from ..config import Discretization, Scenario, ScenarioError, Tissue
 from ..geometry import PolygonDomain, Rectangle, concatenated_ranges
 from .material import NeoHookean, PointwiseMaterial, SaintVenantKirchhoff, make_material
-from .particles import (END_GROWTH, end_zones, graded_lattice, graded_particles, grid_particles,
-                        leaf_quadrature, segment_breaks)
+from .particles import (END_GROWTH, GradedParticles, end_zones, graded_lattice, graded_particles,
+                        grid_particles, leaf_quadrature, segment_breaks)
 from .quadrature import cell_quadrature, natural_boundary_quadrature
 from .shape_functions import (ParticleSearch, ShapeFunctions, ShapePairs, SingularMomentMatrix,
                               Visibility, rk_shape_functions, rk_shape_pairs, rows_csr)
-from .shapes import corner_zones, fit_particles, region_index, shape_breaks, shaped_quadrature
+from .shapes import corner_zones, fit_particles, lattice_spacing, region_index, shape_breaks, shaped_quadrature
+from .thin_features import refuse_thin_tissue, singular_moment_message
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,9 @@ class TissueModel:
     visibility: Visibility | None = None
     # particles graded toward a needle: the particle spacing in its zone (zone_spacing)
     needle_spacing: float | None = None
+    # the shape functions at the particles themselves (NP, NP), where the build has checked
+    # them (a tissue with a hole or a notch); shape_functions_at(particles) returns them
+    particle_values: sp.csr_matrix | None = None
 
     @property
     def symmetric(self) -> bool:
@@ -78,6 +82,8 @@ class TissueModel:
                               self.visibility)
 
     def shape_functions_at(self, points: np.ndarray, gradients: bool = False) -> ShapeFunctions:
+        if points is self.particles and not gradients and self.particle_values is not None:
+            return ShapeFunctions(self.particle_values)
         points = np.atleast_2d(points)
         return self._shape_pairs(points, gradients).matrices(len(points), self.n_particles)
 
@@ -167,17 +173,20 @@ def build_tissue_model(
     visibility = (Visibility.of(domain, particles)
                   if isinstance(domain, PolygonDomain) and not domain.convex else None)
     constrained = boundary_particles(particles, tissue, prescribed_segments, spacing)
+    particle_values = None
     try:  # at the quadrature points, then at the boundary particles (eq. 3.31)
         shape = rk_shape_functions(points, particles, support, volumes, order, True, search,
                                    float(support.mean()), visibility)
         at_boundary = rk_shape_functions(particles[constrained.indices], particles, support, volumes,
                                          order, False, search, float(support.mean()), visibility).values
+        if visibility is not None:  # a hole or a notch: at every particle too, which the runs ask for
+            particle_values = rk_shape_functions(particles, particles, support, volumes, order, False, search,
+                                                 float(support.mean()), visibility).values
     except SingularMomentMatrix as error:
-        raise ScenarioError(
-            f"discretization: dilation {discretization.dilation:g} with spacing "
-            f"{discretization.spacing:g} mm (basis order {order}, quadrature order "
-            f"{discretization.quadrature_order}) gives a singular RK moment matrix ({error})"
-        ) from None
+        point = getattr(error, "point", None)
+        local = (float(support[search.nearest(np.atleast_2d(point))[0]]) / discretization.dilation
+                 if point is not None else discretization.spacing)
+        raise ScenarioError(singular_moment_message(tissue, discretization, local, error)) from None
     boundary = transformation(at_boundary, constrained, len(particles))
     free_map = boundary.free_map
     grad_x, grad_y = shape.grad_x @ free_map, shape.grad_y @ free_map
@@ -213,6 +222,7 @@ def build_tissue_model(
         visibility=visibility,
         needle_spacing=(zone_spacing(particles, support / discretization.dilation, needle_zone)
                         if needle_zone is not None and discretization.needle_spacing is not None else None),
+        particle_values=particle_values,
     )
 
 
@@ -246,7 +256,22 @@ def shaped_discretization(tissue: Tissue, discretization: Discretization, segmen
                            needle_zone: tuple | None):
     """Particles, supports, spacing and quadrature of a polygon tissue, holes or regions:
     the graded lattice over the bounding box with lines through every polygon vertex and
-    segment end, fitted to the shape (stitchplan.tissue.shapes)."""
+    segment end, fitted to the shape (stitchplan.tissue.shapes), once the shape has no tissue
+    thinner than the lattice resolves (stitchplan.tissue.thin_features)."""
+    graded = shaped_lattice(tissue, discretization, segments, needle_zone)
+    refuse_thin_tissue(tissue, lattice_spacing(graded))
+    particles, volumes, local = fit_particles(tissue, graded)
+    support = discretization.dilation * local
+    points, weights = shaped_quadrature(tissue, graded.cells, discretization.quadrature_order,
+                                        discretization.cells_per_spacing)
+    return particles, volumes, support, graded.fine_spacing, points, weights
+
+
+def shaped_lattice(tissue: Tissue, discretization: Discretization, segments: tuple = (),
+                   needle_zone: tuple | None = None) -> GradedParticles:
+    """The graded lattice over a shaped tissue's bounding box (in the tissue's coordinates),
+    before it is fitted to the shape: lines through the shape's and the segments' vertices,
+    graded toward re-entrant corners, segment ends and the needle."""
     domain = tissue.domain
     origin = np.asarray(domain.origin, dtype=float)
     xb, yb = segment_breaks(segments) if segments else ([], [])
@@ -267,12 +292,7 @@ def shaped_discretization(tissue: Tissue, discretization: Discretization, segmen
         graded = graded_lattice(size, discretization.spacing, ends, END_GROWTH, breaks)
     cells = graded.cells.copy()
     cells[:, :2] += origin
-    graded = replace(graded, particles=graded.particles + origin, cells=cells)
-    particles, volumes, local = fit_particles(tissue, graded)
-    support = discretization.dilation * local
-    points, weights = shaped_quadrature(tissue, graded.cells, discretization.quadrature_order,
-                                        discretization.cells_per_spacing)
-    return particles, volumes, support, graded.fine_spacing, points, weights
+    return replace(graded, particles=graded.particles + origin, cells=cells)
 
 
 def load_segments(scenario: Scenario) -> tuple[tuple, tuple]:

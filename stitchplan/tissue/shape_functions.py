@@ -17,6 +17,18 @@ from .neighbours import CellGrid
 from ..errors import SingularMomentMatrix
 
 
+class SingularMomentAt(SingularMomentMatrix):
+    """A singular moment matrix at `point` (mm), which the model's build looks at to say why
+    (too few particles, or particles on one line across tissue thinner than the spacing)."""
+
+    def __init__(self, message: str, point: np.ndarray):
+        super().__init__(message)
+        self.point = np.asarray(point, dtype=float).copy()
+
+    def __reduce__(self):  # pickled as it was made: replays send their failures between processes
+        return type(self), (str(self), self.point)
+
+
 @dataclass(frozen=True)
 class ShapeFunctions:
     """RK shape functions N_I(X) at a set of points; each matrix is (n_points, n_particles)."""
@@ -270,11 +282,10 @@ def rk_shape_pairs(
     m = basis_size(order)
     if (counts < m).any():
         bad = int(np.argmin(counts))
-        raise SingularMomentMatrix(
+        raise SingularMomentAt(
             f"point ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm is covered by "
             f"{counts[bad]} particles; the order-{order} basis needs at least {m}: "
-            "increase the dilation or refine the spacing"
-        )
+            "increase the dilation or refine the spacing", points[bad])
     scale = float(basis_scale if basis_scale is not None else support.mean())
     volume = volumes[cols]
     phi, dphi = tensor_kernel(offset, support[cols], gradients)
@@ -392,10 +403,10 @@ def _check_condition(eigenvalues: np.ndarray, which: np.ndarray, points: np.ndar
     if (~(rcond >= 1e-12)).any():
         worst = int(np.argmin(np.nan_to_num(rcond, nan=-np.inf)))
         bad = int(which[worst])
-        raise SingularMomentMatrix(
+        raise SingularMomentAt(
             f"moment matrix M(X) is singular at ({points[bad, 0]:.4g}, {points[bad, 1]:.4g}) mm "
-            f"(reciprocal condition {rcond[worst]:.2e}): increase the dilation"
-        )
+            f"(reciprocal condition {rcond[worst]:.2e}): the particles covering it lie nearly on one "
+            "line; increase the dilation or refine the spacing there", points[bad])
 
 
 def _inverse3(moment: np.ndarray) -> np.ndarray:

@@ -5,9 +5,11 @@ The graded lattice of `particles` is kept, with lines through the polygon vertic
 them (the coordinates of edges along x and y, so such edges never cut a background cell,
 and the corners: shape_breaks); particles outside the shape are dropped and particles are
 added along the boundary at the local spacing, every corner one of them, so free and
-clamped edges carry particles (fit_particles). A traced contour's vertices that turn little,
-and lines closer than a fraction of the spacing, are left out: the model's size follows the
-spacing, not the vertex count. Background cells cut by the boundary or by a region's edge
+clamped edges carry particles (fit_particles), but not between the lattice's own particles
+on an edge along a lattice line. A traced contour's vertices that turn little, a circular
+hole's (but where tissue beyond it is thin: circle_vertices), and lines closer than a
+fraction of the spacing, are left out: the model's size follows the spacing, not the vertex
+count. Background cells cut by the boundary or by a region's edge
 are split in four, recursively (CUT_LEVELS times); the cells no edge cuts are integrated
 whole (inside) or dropped (outside), the finest cut cells keep only their Gauss points
 inside the tissue. The quadrature thus follows the boundary and the material interfaces to
@@ -22,10 +24,13 @@ from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
 from ..geometry import CIRCLE_SEGMENTS, CORNER_TURN, EdgeGrid, PolygonDomain, concatenated_ranges, turns
 from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
+from .thin_features import wall_thickness
 
 CUT_LEVELS = 3  # halvings of a cut background cell
 MERGE = 0.35  # a boundary particle replaces lattice particles closer than this x local spacing
 THIN = 0.25  # x the spacing: a lattice line closer than this to a kept one is left out
+ALONG = 0.75  # x the local spacing: no particle added this close to a lattice particle on its edge
+NEAREST_ALONG = 4  # lattice particles on the boundary looked at around each added one
 
 
 def shape_breaks(tissue: Tissue, spacing: float | None = None) -> tuple[list[float], list[float]]:
@@ -225,6 +230,12 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     own = cKDTree(particles)
     distance, _ = own.query(added)
     new = distance > MERGE * added_local
+    # nor between the lattice's particles on an edge along a lattice line, which already
+    # stand there one local spacing apart: added ones would halve that spacing along the edge,
+    # a dilation of 4 there, whose alternating mode the stiffness barely resists
+    # (hole_near_stitch's top edge at 0.75 mm: K0's condition number ~3e13); a kept vertex
+    # stays whatever its distance
+    new &= ~_between_lattice_particles(domain, particles, added, added_local, kept, tol)
     added, added_local = added[new], added_local[new]
     if len(added):
         # lattice particles just inside the boundary next to an added one would nearly coincide
@@ -238,12 +249,44 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     return particles, volumes, local
 
 
+def _between_lattice_particles(domain: PolygonDomain, particles: np.ndarray, added: np.ndarray,
+                               added_local: np.ndarray, kept: np.ndarray, tol: float) -> np.ndarray:
+    """Mask (n,) of the `added` boundary points within ALONG x their local spacing of a
+    lattice particle on the same boundary edge (the midpoint between the two on the boundary:
+    not one across a thin strip of tissue), kept vertices (mask over domain.segment_starts)
+    excepted."""
+    from scipy.spatial import cKDTree
+
+    on_boundary = particles[domain.near_boundary(particles, tol)]
+    crowded = np.zeros(len(added), dtype=bool)
+    if len(on_boundary) == 0 or len(added) == 0:
+        return crowded
+    nearest = min(NEAREST_ALONG, len(on_boundary))
+    distance, index = cKDTree(on_boundary).query(added, nearest)  # (n, k): a few candidates each
+    distance, index = distance.reshape(len(added), nearest), index.reshape(len(added), nearest)
+    for k in range(nearest):  # a few columns
+        close = np.flatnonzero(distance[:, k] <= ALONG * added_local)
+        middle = 0.5 * (added[close] + on_boundary[index[close, k]])
+        crowded[close[domain.near_boundary(middle, tol)]] = True
+    if np.any(kept):
+        crowded &= cKDTree(domain.segment_starts[kept]).query(added)[0] > tol
+    return crowded
+
+
+def lattice_spacing(graded: GradedParticles):
+    """The local spacing of the lattice at points (n, 2): that of the nearest lattice particle."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(graded.particles)
+    return lambda points: graded.local_spacing[tree.query(np.asarray(points, dtype=float).reshape(-1, 2))[1]]
+
+
 def kept_vertices(tissue: Tissue, spacing_at: np.ndarray | None = None) -> np.ndarray:
     """Mask over the boundary edges' start vertices (domain.segment_starts) that carry a
     boundary particle: the corners (a turn above geometry.CORNER_TURN) but those closer than
     MERGE x the local spacing there (`spacing_at`, (E,)) to the corner before them, the ends
-    of clamped pieces, and the vertices of circular holes (the CIRCLE_SEGMENTS vertices of
-    each, as the shipped scenes were verified with). A traced contour's vertices that turn
+    of clamped pieces, and with `spacing_at` the vertices circle_vertices picks round each
+    circular hole (not all CIRCLE_SEGMENTS of them). A traced contour's vertices that turn
     less, and the crowded corners of a jagged one, are passed by at the local spacing."""
     domain = tissue.domain
     vertices = domain.segment_starts
@@ -264,10 +307,59 @@ def kept_vertices(tissue: Tissue, spacing_at: np.ndarray | None = None) -> np.nd
     for start, end in tissue.clamped_pieces():  # a clamped piece holds the particles at its ends
         kept |= (np.linalg.norm(vertices - start, axis=1) <= domain.tolerance) | \
             (np.linalg.norm(vertices - end, axis=1) <= domain.tolerance)
+    if spacing_at is not None:  # a circle's vertex next to a corner (where it crosses the outline) yields
+        circle = np.flatnonzero(circle_vertices(tissue, spacing_at) & ~kept)
+        if np.any(kept) and len(circle):
+            from scipy.spatial import cKDTree
+
+            distance, _ = cKDTree(vertices[kept]).query(vertices[circle])
+            circle = circle[distance >= MERGE * spacing_at[circle]]
+        kept[circle] = True
+    return kept
+
+
+BESIDE_THIN = 2.0  # x the local spacing: a circle's wall with less tissue beyond it than this ...
+DENSE = 1.0 / 2**CUT_LEVELS  # x the local spacing: ... keeps its vertices this far apart (the finest cut cell)
+
+
+def circle_vertices(tissue: Tissue, spacing_at: np.ndarray) -> np.ndarray:
+    """Mask over domain.segment_starts of the circular holes' vertices that carry a particle:
+    those with less than BESIDE_THIN x the local spacing h (`spacing_at`, (E,)) of tissue
+    beyond them (along the wall's normal, to the next boundary), every k-th of them so that
+    they stand at least DENSE x h apart (one vertex of a circle far below h); none elsewhere,
+    where the wall is followed one local spacing apart as any edge (boundary_points).
+
+    The tissue sees a hole's wall as a convex obstacle (visibility): a point near the wall
+    sees, of the wall's particles, those at the ends of the edge it is next to and few more.
+    Where the tissue beyond the wall is thick, particles there cover the point; in a strip
+    under a spacing or two thick (a hole near the outline or near another, a hole cut into
+    the outline at a shallow angle) the other side's particles may be all it sees, on one
+    line: with particles one spacing apart round it, a 6 mm hole 0.9 to 1.35 mm below the
+    edge of a block gave a singular moment matrix at 1.5 mm; with these, no strip over a
+    hole of 3 to 12 mm did from 0.45 x the spacing on (tissue.thin_features refuses less
+    than 0.5). Elsewhere the 96 vertices only crowd the wall (a 4 mm hole's 0.13 mm apart at
+    5 mm), and a hole far below the spacing with them: a 1 um hole moved a probe 60 mm away
+    by 1.25 %, one of 0.1 um stopped Newton; now one particle, < 0.01 %
+    (tests/test_thin_features.py)."""
+    domain = tissue.domain
+    vertices = domain.segment_starts
+    kept = np.zeros(len(vertices), dtype=bool)
     for hole in tissue.holes:
-        if hole.circle is not None:
-            r = np.hypot(*(vertices - hole.circle.center).T)
-            kept |= np.abs(r - hole.circle.radius) <= domain.tolerance
+        if hole.circle is None:
+            continue
+        center, radius = np.asarray(hole.circle.center, dtype=float), float(hole.circle.radius)
+        offset = vertices - center
+        on = np.flatnonzero(np.abs(np.hypot(*offset.T) - radius) <= domain.tolerance)  # inside or cut into the outline
+        if len(on) == 0:
+            continue
+        beside_thin = on[wall_thickness(tissue, on, BESIDE_THIN * spacing_at[on]) < BESIDE_THIN * spacing_at[on]]
+        if len(beside_thin) == 0:
+            continue
+        arc = 2.0 * np.pi * radius / CIRCLE_SEGMENTS
+        every = int(min(np.ceil(DENSE * float(spacing_at[beside_thin].min()) / arc), CIRCLE_SEGMENTS))
+        index = np.rint(np.arctan2(offset[beside_thin, 1], offset[beside_thin, 0]) * CIRCLE_SEGMENTS
+                        / (2.0 * np.pi)).astype(int) % CIRCLE_SEGMENTS
+        kept[beside_thin[index % every == 0]] = True
     return kept
 
 
