@@ -384,3 +384,29 @@ def test_load_labels_on_the_edges_of_a_narrow_hole_sit_beside_their_own_segments
             assert 20.0 <= x <= 30.0
     assert arrows[2].xy[0] == pytest.approx(-9.0)
     assert labels["F3"].xy[0] == pytest.approx(-9.0) and labels["F3"].get_ha() == "right"
+
+
+def test_a_circular_holes_deformed_outline_follows_its_vertices_not_only_its_particles():
+    """A circular hole's wall carries a particle one spacing apart, not one at each of its
+    vertices: its deformed outline takes every vertex, moved by the particles' displacement
+    interpolated along the wall, so a translated hole stays the same round 96-gon (drawn
+    through the particles alone it was a coarse polygon)."""
+    from stitchplan.io.plot_elements import deformed_loops, outline_loops
+    from stitchplan.tissue.model import model_for_scenario
+
+    scenario = parse_scenario({
+        "tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": ["right"],
+                   "material": {"lame_lambda": 0.189151, "lame_mu": 0.147688},
+                   "holes": [{"circle": {"center": [20.0, 15.0], "radius": 4.0}}]},
+        "discretization": {"spacing": 3.0}})
+    model = model_for_scenario(scenario)
+    shift = np.array([0.3, -0.2])
+    loops = deformed_loops(scenario.tissue.domain, model.particles, np.tile(shift, (len(model.particles), 1)))
+    hole = outline_loops(scenario.tissue.domain)[1]
+    drawn = loops[1][:-1]
+    assert len(drawn) >= len(hole)  # every vertex, and the wall's particles
+    radius = np.linalg.norm(drawn - (np.array([20.0, 15.0]) + shift), axis=1)
+    assert np.all(radius <= 4.0 + 1e-9) and np.all(radius >= 4.0 * np.cos(np.pi / len(hole)) - 1e-9)
+    np.testing.assert_allclose(np.sort(np.linalg.norm(hole - [20.0, 15.0], axis=1)), 4.0, atol=1e-9)
+    at_vertices = np.min(np.linalg.norm(drawn[:, None] - (hole + shift)[None], axis=2), axis=0)
+    assert np.max(at_vertices) < 1e-9

@@ -75,8 +75,11 @@ def _along_loop(points: np.ndarray, loop: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def deformed_loops(domain, particles: np.ndarray, displacement: np.ndarray,
                    scale: float = 1.0) -> list[np.ndarray]:
-    """The deformed outline: the particles on each reference loop, in order along it, moved
-    by `scale` x their displacement (the RK interpolant at the particles); closed polylines."""
+    """The deformed outline: the particles on each reference loop and the loop's vertices, in
+    order along it, moved by `scale` x the displacement (the RK interpolant at the particles,
+    linear along the loop between them at the vertices: a circular hole's wall carries a
+    particle one spacing apart, not one at each of its vertices, and its outline stays round);
+    closed polylines."""
     extent = float(np.ptp(particles, axis=0).max()) or 1.0
     loops = []
     for loop in outline_loops(domain):
@@ -84,9 +87,15 @@ def deformed_loops(domain, particles: np.ndarray, displacement: np.ndarray,
         on = distance <= 1e-6 * extent
         if on.sum() < 3:
             continue
+        perimeter = float(np.linalg.norm(np.diff(_closed(loop), axis=0), axis=1).sum())
+        _, vertex_arc = _along_loop(loop, loop)
         order = np.argsort(arc[on], kind="stable")
-        moved = (particles[on] + scale * displacement[on])[order]
-        loops.append(_closed(moved))
+        along, moved_by = arc[on][order], displacement[on][order]
+        at_vertices = np.column_stack([np.interp(vertex_arc, along, moved_by[:, i], period=perimeter)
+                                       for i in range(2)])
+        points = np.vstack([particles[on][order], loop])
+        moved = points + scale * np.vstack([moved_by, at_vertices])
+        loops.append(_closed(moved[np.argsort(np.concatenate([along, vertex_arc]), kind="stable")]))
     return loops
 
 
