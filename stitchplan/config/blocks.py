@@ -34,7 +34,7 @@ from ..geometry import (
     segments_touch,
     signed_area,
 )
-from .boundary_points import entry_on_boundary, segment_on_boundary, shown_as_given
+from .boundary_points import entry_on_boundary, placed, segment_on_boundary, shown_as_given
 from .fields import (
     BLOCK,
     EDGES,
@@ -601,13 +601,7 @@ class Load:
     @classmethod
     def _on_one_edge(cls, segment, info: ValidationInfo):
         """Both ends moved onto the boundary when within its input tolerance (boundary_points)."""
-        domain = (info.context or {}).get("domain")
-        if domain is None:
-            return segment
-        snapped, why = segment_on_boundary(domain, segment)
-        if snapped is None:
-            raise problem(why)
-        return snapped
+        return placed(segment, info.context, segment_on_boundary)
 
     @model_validator(mode="wrap")
     @classmethod

@@ -32,6 +32,22 @@ log = logging.getLogger(__name__)
 SHOWN_DECIMALS = 6  # a nanometre: a point shown so lies within 0.71 nm of its value, far inside the tolerance
 
 
+def placed(value, context: dict | None, place):
+    """A validator's `value` placed by `place(domain, value)` (segment_on_boundary,
+    probe_in_tissue: the moved value, or None and what was expected) on the domain of the
+    validation `context`; unchanged without one (a block made in Python). Raises the
+    expectation as the field's problem."""
+    from .fields import problem
+
+    domain = (context or {}).get("domain")
+    if domain is None:
+        return value
+    moved, expected = place(domain, value)
+    if moved is None:
+        raise problem(expected)
+    return moved
+
+
 def shown_number(value: float) -> str:
     """A coordinate to the nanometre, without trailing zeros (13.333333, 40, -0.5)."""
     text = f"{round(float(value), SHOWN_DECIMALS) + 0.0:.{SHOWN_DECIMALS}f}".rstrip("0").rstrip(".")

@@ -33,7 +33,8 @@ from .blocks import (
     parse_discretization,
     shape_domain,
 )
-from .boundary_points import given_points, inside_expectation, log_moves, probe_in_tissue, segment_expectation
+from .boundary_points import (given_points, inside_expectation, log_moves, placed, probe_in_tissue,
+                              segment_expectation)
 from .fields import (
     EDGES,
     INTEGRATIONS,
@@ -72,13 +73,7 @@ def _inside(point: tuple[float, float], domain: Rectangle | PolygonDomain) -> st
 def _probe_inside(point: tuple[float, float], info: ValidationInfo) -> tuple[float, float]:
     """A file's probe inside the tissue, or moved onto its boundary from just outside (within
     the input tolerance: boundary_points); further out, refused naming the nearest point."""
-    domain = (info.context or {}).get("domain")
-    if domain is None:
-        return point
-    snapped, expected = probe_in_tissue(domain, point)
-    if snapped is None:
-        raise problem(expected)
-    return snapped
+    return placed(point, info.context, probe_in_tissue)
 
 
 Probes = sequence(Annotated[Point, AfterValidator(_probe_inside)],
