@@ -117,7 +117,7 @@ class CholeskyFactor:
         """The solutions (n, k) for the k sparse right-hand sides `columns` (n, k), by CHOLMOD's
         sparse solve, which takes them in blocks (cvxopt's dense solve takes one column at a
         time): the verification replays of sh12_100x100 (3642 particles) and wound_closure
-        (4987) in 0.92x and 0.87x the time, those of ~1400 particles within the noise
+        (4963) in 0.93x the time, those of ~1400 particles within the noise
         (benchmarks/results/replay_solves.md)."""
         triplets = sp.coo_matrix(columns)
         stored = spmatrix(dense(triplets.data.astype(float)), dense(triplets.row.astype(np.int64)),
