@@ -62,7 +62,10 @@ def measure(scene: str, folder: Path, baseline: Path) -> dict:
     # and 1e-7 R (benchmarks/results/solver_tolerance.md): the plans then agree within the
     # planner's tolerance, not to the bit
     tolerance = load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml").planner.tolerance
-    if abs(baselines[-1][1]["verified_exit_error_mm"] - plans[-1][1]["verified_exit_error_mm"]) > tolerance:
+    # a shape scene whose particles BASELINE placed otherwise (hole_near_stitch: 514 then, 417 since
+    # its boundary particles stopped doubling the lattice's, tissue/shapes.py) plans on another model
+    same_model = baselines[-1][1]["particles"] == plans[-1][1]["particles"]
+    if same_model and abs(baselines[-1][1]["verified_exit_error_mm"] - plans[-1][1]["verified_exit_error_mm"]) > tolerance:
         raise RuntimeError(f"{scene}: verified exit error {plans[-1][1]['verified_exit_error_mm']} mm, at "
                            f"{BASELINE} {baselines[-1][1]['verified_exit_error_mm']} mm")
     plan, before = plans[-1][1], befores[-1][1]
@@ -93,6 +96,7 @@ def measure(scene: str, folder: Path, baseline: Path) -> dict:
         "unpredicted_rounds": len(before["verification"]["rounds"]),
         "unpredicted_verified_mm": before["verified_exit_error_mm"],
         "baseline_command_s": statistics.median(seconds for seconds, _ in baselines),
+        "baseline_particles": baselines[-1][1]["particles"],
     }
 
 
@@ -127,7 +131,9 @@ def main() -> None:
         "the same command on the scene's file with `planner.predicted_aim: false`, run alternately with "
         "it (the plan before the predicted aim). "
         f"*At {BASELINE}*: the same command with the code of commit {BASELINE}, run alternately with "
-        "them, its verified exit error checked within the planner's 0.001 mm (it solved a needle step to "
+        "them, its verified exit error checked within the planner's 0.001 mm where it placed the same "
+        "particles (a shape scene placed otherwise there plans on another model: its particles in "
+        "brackets) (it solved a needle step to "
         "5e-6 of the needle force and 1e-9 R, the code now to 1e-3 and 1e-7 R): there the helper started a "
         "replay it had dropped "
         "(the planner's second pass leaving the first pass's centres at a step the replay had passed) "
@@ -145,7 +151,8 @@ def main() -> None:
              "without the predicted aim: plan (s)", "rounds", "verified (mm)",
              "replay alone: whole command (s)", "replay alone: run (s)"],
             [[r["scene"], f"{r['particles']} / {r['refined_particles']}", r["plan_command_s"],
-              r["baseline_command_s"], r["planned_s"],
+              r["baseline_command_s"] if r["baseline_particles"] == r["particles"]
+              else f"{r['baseline_command_s']:.4g} (on {r['baseline_particles']} particles)", r["planned_s"],
               r["rounds"], r["first_round_verified_mm"], r["verified_mm"], r["unpredicted_command_s"],
               r["unpredicted_rounds"], r["unpredicted_verified_mm"], r["replay_command_s"], r["replay_s"]]
              for r in rows]),
