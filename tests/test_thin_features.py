@@ -257,6 +257,19 @@ def test_a_nearly_singular_stiffness_at_dilation_2_does_not_advise_the_dilation(
     refuse_singular_stiffness(1e4, Discretization(spacing=0.75, dilation=2.0))  # well conditioned: passes
 
 
+def test_a_nearly_singular_stiffness_names_the_particles_closest_for_their_spacing():
+    """Given the particles, the line says where to look: the pair closest for their local
+    spacing (here two particles 0.1 mm apart in a 1 mm lattice, at (2.05, 2))."""
+    from stitchplan.needle.equilibrium import refuse_singular_stiffness
+
+    lattice = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0)), axis=-1).reshape(-1, 2)
+    particles = np.vstack([lattice, [[2.1, 2.0]]])
+    with pytest.raises(InputError) as refused:
+        refuse_singular_stiffness(3e13, Discretization(spacing=1.0, dilation=2.0), particles, np.ones(len(particles)))
+    assert ("the particles closest for their spacing are 0.1 mm apart at [2.05, 2] (0.1 of the local spacing, "
+            "1 mm)") in str(refused.value)
+
+
 def test_a_singular_moment_matrix_keeps_its_point_across_processes():
     """Replays run in helper processes and send their failures back pickled: the point the
     build's line is made from survives the trip."""

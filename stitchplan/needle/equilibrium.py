@@ -202,12 +202,14 @@ class PreparedTissue:
         if self._factor is None:
             stiffness = self.stiffness_at_rest()
             factor = factorize(stiffness, symmetric_positive=True)
-            refuse_singular_stiffness(condition_estimate(stiffness, factor), self.scenario.discretization)
+            refuse_singular_stiffness(condition_estimate(stiffness, factor), self.scenario.discretization,
+                                      self.model.particles, self.model.support / self.scenario.discretization.dilation)
             self._factor = factor
         return self._factor
 
 
-def refuse_singular_stiffness(condition: float, discretization) -> None:
+def refuse_singular_stiffness(condition: float, discretization, particles: np.ndarray | None = None,
+                              local_spacing: np.ndarray | None = None) -> None:
     """Raise InputError where K0's `condition` number exceeds STIFFNESS_CONDITION. With a
     linear basis on evenly spaced particles the RK shape functions are the cubic-spline
     kernel's translates, and the kernel's Fourier transform, (sin(k a / 4) / (k a / 4))^4 per
@@ -219,7 +221,8 @@ def refuse_singular_stiffness(condition: float, discretization) -> None:
     kernels are not the cause: particles closer together than their spacing are, the same
     alternating mode over half the distance (hole_near_stitch at 0.75 mm had ~3e13 from
     boundary particles added between the lattice's own along its top edge), and the advice
-    is about those, not the dilation."""
+    is about those, not the dilation: with the `particles` (n, 2) and their `local_spacing`
+    (n,), the line names the pair closest for their spacing, where to look."""
     if not condition > STIFFNESS_CONDITION:
         return
     estimate = f"~{condition:.0e}" if math.isfinite(condition) else "infinite to rounding"
@@ -229,10 +232,29 @@ def refuse_singular_stiffness(condition: float, discretization) -> None:
     if discretization.dilation > 3:
         raise InputError(f"{found}: kernels wider than ~3 spacings make the particles' coefficients nearly "
                          "dependent; use a dilation of 3 or less (2 is the default)")
+    where = "" if particles is None or local_spacing is None else _closest_for_spacing(particles, local_spacing)
     raise InputError(f"{found}: at a dilation of 3 or less the kernels are not the cause; particles closer "
                      "together than the spacing are, likely where the boundary crowds them (a sharp corner, "
-                     "tissue or boundary features thinner than the spacing); try another spacing, or change the "
-                     "shape there")
+                     f"tissue or boundary features thinner than the spacing){where}; try another spacing, or "
+                     "change the shape there")
+
+
+def _closest_for_spacing(particles: np.ndarray, local_spacing: np.ndarray) -> str:
+    """'; the particles closest for their spacing are d mm apart at [x, y] (f of the local
+    spacing, h mm)': the pair whose distance over the smaller of their spacings is least."""
+    from scipy.spatial import cKDTree
+
+    from ..config.boundary_points import shown_point
+
+    if len(particles) < 2:
+        return ""
+    distance, index = cKDTree(particles).query(particles, k=2)
+    neighbour = index[:, 1]
+    spacing = np.minimum(local_spacing, local_spacing[neighbour])
+    k = int(np.argmin(distance[:, 1] / spacing))
+    middle = 0.5 * (particles[k] + particles[neighbour[k]])
+    return (f"; the particles closest for their spacing are {distance[k, 1]:.3g} mm apart at {shown_point(middle)} "
+            f"({distance[k, 1] / spacing[k]:.2g} of the local spacing, {spacing[k]:.3g} mm)")
 
 
 class NeedleInsertion:
