@@ -311,28 +311,30 @@ class Executor:
                 results.append(function(*args))
                 report(index, results[-1])
             return results
+        import queue
         from concurrent.futures import CancelledError
 
-        from dask.distributed import wait
         from distributed.scheduler import KilledWorker
 
         futures = self.client.map(function, *[list(column) for column in zip(*calls)],
                                   pure=False, retries=RETRIES)
         index_of = {future.key: index for index, future in enumerate(futures)}
         watch = _WorkerWatch(self, len(futures))
-        pending = list(futures)
+        # each task reports itself once finished (done, failed or cancelled), in completion order:
+        # waiting on all pending tasks after each completion costs the client O(tasks^2)
+        finished: queue.SimpleQueue = queue.SimpleQueue()
+        for future in futures:
+            future.add_done_callback(finished.put)
         try:
-            while pending:
-                try:
-                    done, not_done = wait(pending, timeout=min(WORKER_POLL_S, self.worker_wait),
-                                          return_when="FIRST_COMPLETED")
-                except TimeoutError:  # nothing completed meanwhile: are there workers at all?
-                    watch.check(len(futures) - len(pending))
-                    continue
+            for done in range(len(futures)):
+                while True:
+                    try:
+                        future = finished.get(timeout=min(WORKER_POLL_S, self.worker_wait))
+                        break
+                    except queue.Empty:  # nothing completed meanwhile: are there workers at all?
+                        watch.check(done)
                 watch.progressed()
-                for future in done:
-                    report(index_of[future.key], future.result())  # a task's bug is raised here
-                pending = list(not_done)
+                report(index_of[future.key], future.result())  # a task's bug is raised here
             return [future.result() for future in futures]
         except (KilledWorker, CancelledError) as error:  # the cluster's failure, not the task's
             raise ClusterFailure(f"{self.where} lost a task: {_brief(error)}") from None
