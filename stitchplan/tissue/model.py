@@ -259,8 +259,9 @@ def shaped_discretization(tissue: Tissue, discretization: Discretization, segmen
     segment end, fitted to the shape (stitchplan.tissue.shapes), once the shape has no tissue
     thinner than the lattice resolves (stitchplan.tissue.thin_features)."""
     graded = shaped_lattice(tissue, discretization, segments, needle_zone)
-    refuse_thin_tissue(tissue, lattice_spacing(graded))
-    particles, volumes, local = fit_particles(tissue, graded)
+    spacing_at = lattice_spacing(graded)
+    refuse_thin_tissue(tissue, spacing_at)
+    particles, volumes, local = fit_particles(tissue, graded, spacing_at)
     support = discretization.dilation * local
     points, weights = shaped_quadrature(tissue, graded.cells, discretization.quadrature_order,
                                         discretization.cells_per_spacing)

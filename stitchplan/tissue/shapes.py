@@ -207,11 +207,12 @@ def _split_n(cells: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([origins, sides], axis=2).reshape(-1, 4)
 
 
-def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fit_particles(tissue: Tissue, graded: GradedParticles,
+                  spacing_at=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The lattice's particles inside the shape plus particles along the boundary at the
     local spacing (boundary_points: every corner one of them); lattice particles closer than
-    MERGE x the local spacing to an added one are dropped. Returns particles, volumes, local
-    spacing."""
+    MERGE x the local spacing to an added one are dropped. `spacing_at`: the lattice's
+    lattice_spacing, when the caller has made it. Returns particles, volumes, local spacing."""
     domain = tissue.domain
     if not isinstance(domain, PolygonDomain):  # a rectangle with regions: the lattice fits
         return graded.particles, graded.volumes, graded.local_spacing
@@ -220,12 +221,10 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     tol = 1e-7 * max(domain.size)
     keep = domain.contains(graded.particles, tol)
     particles, volumes, local = graded.particles[keep], graded.volumes[keep], graded.local_spacing[keep]
-    tree = cKDTree(graded.particles)
-    _, near = tree.query(domain.segment_starts)
-    kept = kept_vertices(tissue, graded.local_spacing[near])
-    added = boundary_points(domain, kept, tree, graded.local_spacing)
-    _, near = tree.query(added)
-    added_local = graded.local_spacing[near]
+    spacing_at = spacing_at or lattice_spacing(graded)
+    kept = kept_vertices(tissue, spacing_at(domain.segment_starts))
+    added = boundary_points(domain, kept, spacing_at, float(graded.local_spacing.min()))
+    added_local = spacing_at(added)
     # an added particle onto an existing one (a lattice line along the edge): keep the old one
     own = cKDTree(particles)
     distance, _ = own.query(added)
@@ -235,12 +234,12 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     # a dilation of 4 there, whose alternating mode the stiffness barely resists
     # (hole_near_stitch's top edge at 0.75 mm: K0's condition number ~3e13); a kept vertex
     # stays whatever its distance
-    new &= ~_between_lattice_particles(domain, particles, added, added_local, kept, tol)
+    on_boundary = domain.near_boundary(particles, tol)
+    new &= ~_between_lattice_particles(domain, particles[on_boundary], added, added_local, kept, tol)
     added, added_local = added[new], added_local[new]
     if len(added):
         # lattice particles just inside the boundary next to an added one would nearly coincide
         distance, index = cKDTree(added).query(particles)
-        on_boundary = domain.near_boundary(particles, tol)
         crowded = (distance < MERGE * added_local[index]) & ~on_boundary
         particles, volumes, local = particles[~crowded], volumes[~crowded], local[~crowded]
     particles = np.concatenate([particles, added])
@@ -249,15 +248,14 @@ def fit_particles(tissue: Tissue, graded: GradedParticles) -> tuple[np.ndarray, 
     return particles, volumes, local
 
 
-def _between_lattice_particles(domain: PolygonDomain, particles: np.ndarray, added: np.ndarray,
+def _between_lattice_particles(domain: PolygonDomain, on_boundary: np.ndarray, added: np.ndarray,
                                added_local: np.ndarray, kept: np.ndarray, tol: float) -> np.ndarray:
     """Mask (n,) of the `added` boundary points within ALONG x their local spacing of a
-    lattice particle on the same boundary edge (the midpoint between the two on the boundary:
-    not one across a thin strip of tissue), kept vertices (mask over domain.segment_starts)
-    excepted."""
+    lattice particle on the boundary (`on_boundary`, (m, 2)) on the same edge (the midpoint
+    between the two on the boundary: not one across a thin strip of tissue), kept vertices
+    (mask over domain.segment_starts) excepted."""
     from scipy.spatial import cKDTree
 
-    on_boundary = particles[domain.near_boundary(particles, tol)]
     crowded = np.zeros(len(added), dtype=bool)
     if len(on_boundary) == 0 or len(added) == 0:
         return crowded
@@ -363,12 +361,12 @@ def circle_vertices(tissue: Tissue, spacing_at: np.ndarray) -> np.ndarray:
     return kept
 
 
-def boundary_points(domain: PolygonDomain, kept: np.ndarray, tree, local_spacing: np.ndarray) -> np.ndarray:
+def boundary_points(domain: PolygonDomain, kept: np.ndarray, spacing_at, finest: float) -> np.ndarray:
     """Points (n, 2) along every boundary loop one local spacing apart, a kept vertex (mask
     over domain.segment_starts) one of them: each loop is walked in runs from one kept vertex
     to the next (a loop with none from its first vertex), and a run's points lie where the
-    count of spacings int ds / h(s) (h of the nearest of the `tree`'s lattice particles,
-    sampled 8 times per finest spacing) passes a multiple of its total / round(total). A run
+    count of spacings int ds / h(s) (h = `spacing_at`, the lattice's lattice_spacing,
+    sampled 8 times per `finest` spacing) passes a multiple of its total / round(total). A run
     of one edge gives the same numbers as that edge taken alone."""
     starts, ends = domain.segment_starts, domain.segment_ends
     sizes = np.array([len(domain.outline)] + [len(hole) for hole in domain.holes])
@@ -384,13 +382,12 @@ def boundary_points(domain: PolygonDomain, kept: np.ndarray, tree, local_spacing
     single = np.diff(np.append(first, len(a))) == 1
     length = np.add.reduceat(edge_length, first)
     # samples t in [0, 1] along each run, as np.linspace(0, 1, intervals + 1)
-    intervals = np.maximum(np.ceil(8 * length / float(local_spacing.min())).astype(int), 2)
+    intervals = np.maximum(np.ceil(8 * length / finest).astype(int), 2)
     run = np.repeat(np.arange(len(first)), intervals + 1)
     step = concatenated_ranges(np.zeros(len(first), dtype=int), intervals + 1)
     t = step * (1.0 / intervals)[run]
     t[step == intervals[run]] = 1.0
-    _, near = tree.query(_along_runs(a, b, edge_length, first, single, length, run, t))
-    density = 1.0 / local_spacing[near]
+    density = 1.0 / spacing_at(_along_runs(a, b, edge_length, first, single, length, run, t))
     within = run[1:] == run[:-1]  # consecutive samples of one run
     increment = (0.5 * (density[1:] + density[:-1]) * np.diff(t) * length[run[1:]])[within]
     count = np.zeros(len(t))
