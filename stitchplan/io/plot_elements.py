@@ -87,8 +87,8 @@ def deformed_loops(domain, particles: np.ndarray, displacement: np.ndarray,
         on = distance <= 1e-6 * extent
         if on.sum() < 3:
             continue
-        perimeter = float(np.linalg.norm(np.diff(_closed(loop), axis=0), axis=1).sum())
-        _, vertex_arc = _along_loop(loop, loop)
+        lengths = np.linalg.norm(np.diff(_closed(loop), axis=0), axis=1)
+        perimeter, vertex_arc = float(lengths.sum()), np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
         order = np.argsort(arc[on], kind="stable")
         along, moved_by = arc[on][order], displacement[on][order]
         at_vertices = np.column_stack([np.interp(vertex_arc, along, moved_by[:, i], period=perimeter)

@@ -13,9 +13,9 @@ import numpy as np
 
 from ..config import Needle, Scenario
 from ..config.blocks import default_spacing_of
-from ..config.boundary_points import shown_point, shown_point_as_given
+from ..config.boundary_points import nearest_note, shown_point, shown_point_as_given
 from ..errors import InputError
-from ..geometry import CIRCLE_SEGMENTS, PolygonDomain, Rectangle, circle_center_at_entry, smooth_vertex
+from ..geometry import PolygonDomain, Rectangle, circle_center_at_entry, smooth_vertex
 from ..tissue.particles import RefinementZone, end_spacing
 
 
@@ -146,11 +146,6 @@ class BoundaryLoops:
         k = int(np.argmin(np.linalg.norm(candidates - point, axis=1)))
         return k, float(along[k]), candidates[k]
 
-    def nearest(self, point: np.ndarray) -> tuple[np.ndarray, float]:
-        """The boundary point nearest `point`, and how far it is (mm)."""
-        _, _, nearest = self._nearest(point)
-        return nearest, float(length(nearest - point))
-
     def position(self, point: np.ndarray) -> tuple[int, float]:
         """The loop of the boundary point nearest `point`, and the arc length along it there."""
         k, along, _ = self._nearest(point)
@@ -178,12 +173,8 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
     edges = domain.edges_at(needle.entry)
     entry = np.asarray(needle.entry, dtype=float)
     if not edges:
-        nearest, distance = BoundaryLoops.of(domain).nearest(entry)
-        circles = (f" (a circular hole is held as its inscribed {CIRCLE_SEGMENTS}-gon)"
-                   if getattr(domain, "holes", ()) else "")
         raise InputError(f"needle.entry: got {list(needle.entry)}, expected a point on the "
-                         f"boundary of the {domain.describe()}; the nearest is [{nearest[0]:.6g}, "
-                         f"{nearest[1]:.6g}], {distance:.3g} mm away{circles}")
+                         f"boundary of the {domain.describe()}; {nearest_note(domain, entry)}")
     # a vertex where the boundary hardly turns (a traced contour's, a circular hole's) has an
     # entry normal: the model treats it as a point inside an edge
     if len(edges) > 1 and not smooth_vertex(domain, entry):
