@@ -233,7 +233,8 @@ def insertion_in(field: TurnedHole, spacing: float = 1.0) -> SimpleNamespace:
 
     return SimpleNamespace(domain=domain, geometry=geometry, center=geometry.center.copy(), model=field,
                            free=field.coefficients(), displacement=displacement, timings={"tip_tracking": 0.0},
-                           coupling=SimpleNamespace(local_spacing=lambda p: np.full(len(np.atleast_2d(p)), spacing)))
+                           coupling=SimpleNamespace(local_spacing=lambda p: np.full(len(np.atleast_2d(p)), spacing)),
+                           tissue=SimpleNamespace(boundary_samples=None))  # its PreparedTissue's cache
 
 
 def far_wall_crossing(insertion: SimpleNamespace, field: TurnedHole) -> tuple[float, np.ndarray]:

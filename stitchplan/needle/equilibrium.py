@@ -160,6 +160,7 @@ class PreparedTissue:
         self.key = (scenario.tissue, scenario.discretization, scenario.needle)
         self.seconds = 0.0  # building the model and the particles' shape functions
         self._model = self._particle_values = self._factor = None
+        self.boundary_samples = None  # the boundary sampled at rest (tip_tracking.boundary_samples), once needed
 
     @property
     def built(self) -> bool:
@@ -276,7 +277,7 @@ class NeedleInsertion:
         self.timings = {"discretization": 0.0, "assembly": 0.0, "solve": 0.0, "tip_tracking": 0.0}
         self.events: list[Event] = []
         self._told_steered_direct = False  # that the planner's steps solve directly (once per run)
-        tissue = tissue or PreparedTissue(scenario)
+        tissue = self.tissue = tissue or PreparedTissue(scenario)
         if not tissue.fits(scenario):
             raise ValueError("a prepared tissue of another scenario's tissue or discretization")
         built_here = not tissue.built

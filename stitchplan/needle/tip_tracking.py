@@ -13,7 +13,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-import weakref
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -345,18 +344,13 @@ def _edge_samples(starts: np.ndarray, ends: np.ndarray, pieces: np.ndarray):
     return samples, edge, last
 
 
-_SAMPLES: dict[int, BoundarySamples] = {}  # by id of the tissue model, dropped with the model
-
-
 def boundary_samples(insertion: NeedleInsertion) -> BoundarySamples:
-    """The BoundarySamples of the insertion's model, made on its first re-entry (a plan's
-    passes and replays share the model)."""
-    key = id(insertion.model)
-    samples = _SAMPLES.get(key)
-    if samples is None:
-        samples = _SAMPLES[key] = BoundarySamples.of(insertion)
-        weakref.finalize(insertion.model, _SAMPLES.pop, key, None)
-    return samples
+    """The BoundarySamples of the insertion's model, made on its first re-entry and kept with
+    the model's PreparedTissue (a plan's passes and replays share it)."""
+    tissue = insertion.tissue
+    if tissue.boundary_samples is None:
+        tissue.boundary_samples = BoundarySamples.of(insertion)
+    return tissue.boundary_samples
 
 
 class DeformedBoundary:
