@@ -153,15 +153,6 @@ def _rounding(value: Any) -> float:
     return 0.5 * 10.0 ** exponent if isinstance(exponent, int) else 0.0
 
 
-def given_points(raw: Any, path: tuple) -> Any:
-    """The value at `path` (keys and indices) in a file's data, None where there is none."""
-    for step in path:
-        try:
-            raw = raw[step]
-        except (KeyError, IndexError, TypeError):
-            return None
-    return raw
-
 
 def log_moves(domain: Rectangle | PolygonDomain, moves: list[tuple[str, Any, Any]]) -> None:
     """One log line per point (field, as given, as used) moved by more than round-off."""

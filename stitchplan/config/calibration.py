@@ -36,7 +36,7 @@ from .blocks import (
     shape_domain,
     within_limits,
 )
-from .boundary_points import given_points, log_moves
+from .boundary_points import log_moves
 from .fields import (
     MATERIAL_MODELS,
     Name,
@@ -49,7 +49,7 @@ from .fields import (
     problem,
     sequence,
 )
-from .messages import combined, valid_or_none, validate
+from .messages import combined, valid_or_none, validate, value_at
 
 GRID_SCALES = ("log", "linear")
 MarkerFile = Annotated[str, Strict(), Field(min_length=1),
@@ -224,11 +224,11 @@ def parse_calibration(raw: Any) -> CalibrationFile:
             else:
                 raw = {**raw, "discretization": {**given, "spacing": default_spacing_of(size, None)}}
     calibration = validate(CalibrationFile, raw, "", root="calibration", context=context)
-    moves = [(f"tissue.clamped[{i}].segment[{k}]", given_points(raw, ("tissue", "clamped", i, "segment", k)), end)
+    moves = [(f"tissue.clamped[{i}].segment[{k}]", value_at(raw, ("tissue", "clamped", i, "segment", k)), end)
              for i, item in enumerate(calibration.tissue.tissue(Material()).clamped)
              for k, end in enumerate(getattr(item, "segment", ()))]
     moves += [(f"experiments[{j}].loads[{i}].segment[{k}]",
-               given_points(raw, ("experiments", j, "loads", i, "segment", k)), end)
+               value_at(raw, ("experiments", j, "loads", i, "segment", k)), end)
               for j, experiment in enumerate(calibration.experiments) for i, load in enumerate(experiment.loads)
               for k, end in enumerate(load.segment)]
     if context["domain"] is not None:

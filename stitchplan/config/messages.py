@@ -146,15 +146,20 @@ def _blocks(kind: Any) -> list[tuple[str, Any]]:
     return [(name, _strip(info.annotation)) for name, info in fields.items() if _keys(_strip(info.annotation))]
 
 
+def value_at(raw: Any, path: tuple) -> Any:
+    """The value at `path` (keys and indices) in a file's data, None where there is none."""
+    for step in path:
+        try:
+            raw = raw[step]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return raw
+
+
 def _given_key(raw: Any, loc: tuple) -> Any:
     """The key of the mapping at loc[:-1] in `raw` that pydantic names loc[-1]: it names a key
     `true` 1, `1.5` '1.5' and `null` 'None' (loc[-1] itself when `raw` does not lead there)."""
-    parent = raw
-    for step in loc[:-1]:
-        try:
-            parent = parent[step]
-        except (KeyError, IndexError, TypeError):
-            return loc[-1]
+    parent = value_at(raw, loc[:-1])
     if isinstance(parent, dict):
         for key in parent:
             if not isinstance(key, str) and (key == loc[-1] if isinstance(loc[-1], int) else str(key) == loc[-1]):

@@ -33,8 +33,7 @@ from .blocks import (
     parse_discretization,
     shape_domain,
 )
-from .boundary_points import (given_points, inside_expectation, log_moves, placed, probe_in_tissue,
-                              segment_expectation)
+from .boundary_points import inside_expectation, log_moves, placed, probe_in_tissue, segment_expectation
 from .fields import (
     EDGES,
     INTEGRATIONS,
@@ -49,7 +48,7 @@ from .fields import (
     problem,
     sequence,
 )
-from .messages import combined, input_error, valid_or_none, validate
+from .messages import combined, input_error, valid_or_none, validate, value_at
 from .study import StudySpec
 from .yaml_files import read_yaml, read_yaml_file
 
@@ -213,16 +212,16 @@ def moved_points(raw: Any, scenario_file: ScenarioFile) -> list[tuple[str, Any, 
     places on the boundary or inside the tissue: the needle entry, segment ends, probes."""
     points = []
     if scenario_file.needle is not None:
-        points.append(("needle.entry", given_points(raw, ("needle", "entry")), scenario_file.needle.entry))
+        points.append(("needle.entry", value_at(raw, ("needle", "entry")), scenario_file.needle.entry))
     for i, item in enumerate(scenario_file.tissue.clamped):
         for k, end in enumerate(getattr(item, "segment", ())):
             points.append((f"tissue.clamped[{i}].segment[{k}]",
-                           given_points(raw, ("tissue", "clamped", i, "segment", k)), end))
+                           value_at(raw, ("tissue", "clamped", i, "segment", k)), end))
     for i, load in enumerate(scenario_file.loads):
         for k, end in enumerate(load.segment):
-            points.append((f"loads[{i}].segment[{k}]", given_points(raw, ("loads", i, "segment", k)), end))
+            points.append((f"loads[{i}].segment[{k}]", value_at(raw, ("loads", i, "segment", k)), end))
     for i, point in enumerate(scenario_file.probes):
-        points.append((f"probes[{i}]", given_points(raw, ("probes", i)), point))
+        points.append((f"probes[{i}]", value_at(raw, ("probes", i)), point))
     return points
 
 
