@@ -61,7 +61,10 @@ them all; nothing raises the memory share: a smaller model is the way under it):
 - MAX_NEIGHBOURS = 400 particles in a kernel support (dilation 10): the RK functions stop
   being local well before (RKPM practice: dilation 1.5-3, 9-36 neighbours), and the
   tangent's cost grows with the square of the neighbours;
-- MEMORY_SHARE = 0.5 of the memory the machine has available now.
+- MEMORY_SHARE = 0.5 of the memory the machine has available now, for the runs a command
+  has going on at once together (check_resources `alongside`: a plan's passes, its
+  verification's and its replay at twice the spacing in helper processes; a simulate and its
+  estimate's replay), each helper with its own share of the interpreter (HELPER_BASE_MEMORY).
 
 The guard also refuses a model too coarse to mean anything (`_coarse_refusal`), the other
 side of a spacing typed wrong: a spacing above half the tissue's smaller side (fewer than
@@ -136,6 +139,11 @@ MINRES_TIME_FACTOR = 5.0
 MEMORY_PER_PARTICLE = 3.6e4  # bytes per particle at 1 000 particles
 MEMORY_EXPONENT = 1.28
 BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan loaded
+# a forked helper process's own share of the interpreter: its pages stay shared with the
+# command's until written, and reference counting writes to many of them (a helper replaying
+# at twice the spacing: 44 MB of proportional set size against ~11 MB its run is estimated
+# above BASE_MEMORY; benchmarks/results/memory_at_once.md)
+HELPER_BASE_MEMORY = 0.5 * BASE_MEMORY
 REFERENCE_PARTICLES = 1000.0
 REFERENCE_NEIGHBOURS = 16.0  # (2 x dilation)^2 at dilation 2
 REFERENCE_POINTS_PER_PARTICLE = 4.0  # 2 x 2 Gauss points per cell, one cell per particle
@@ -599,9 +607,18 @@ def _address_space_left() -> float | None:
 
 
 def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
-                    memory: float | None = None) -> None:
+                    memory: float | None = None, alongside: list[Estimate] | None = None) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
-    estimates otherwise. `memory`: bytes available (default: available_memory())."""
+    estimates otherwise. `memory`: bytes available (default: available_memory()).
+
+    `alongside`: runs that go on at the same time as `estimates` (a command's replays in
+    helper processes: the exit error estimate's and the predicted aim's at twice the
+    spacing), counted only in the memory all of them hold at once. Given (even empty), the
+    runs of `estimates` are taken to go on at once too, and their memory together must
+    stay within the share (_together_refusal): each within it alone still leaves the
+    machine's memory short when two or three hold as much (a plan at a small needle step:
+    its own passes, its verification's replays and the predicted aim's each keep their
+    steps' states)."""
     memory = available_memory() if memory is None else memory
     lines = []
     for item in estimates:
@@ -625,11 +642,15 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
                          f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
                          "--no-resource-check")
+    held = [*estimates, *(alongside or [])]
+    if not lines and alongside is not None and memory is not None and len(held) > 1 \
+            and _held_at_once(held) > limits.memory_share * memory:
+        lines.append(_together_refusal(held, limits.memory_share, memory))
     if lines:
         error = InputError("\n".join(lines))
         error.lines = lines
         raise error
-    for item in estimates:
+    for item in held:
         log.info("resources: %s", item.describe())
         if item.seconds > LONG_RUN_SECONDS:  # a run this long should not start in silence
             log.warning("a long run: estimated %s; -v shows its progress", item.describe())
@@ -659,6 +680,31 @@ def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: floa
     return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {_bytes(memory)} of "
             f"memory available{item.origin.derived} ({setting.note}estimated {item.describe()}); "
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
+
+
+def _held_at_once(held: list[Estimate]) -> float:
+    """Bytes of runs going on at once, each in its own process: the command's BASE_MEMORY,
+    a helper's HELPER_BASE_MEMORY (forked from the command, it shares part of the loaded
+    modules' pages), and the rest of each run."""
+    helpers = len(held) - 1
+    return BASE_MEMORY + sum(item.memory_bytes - BASE_MEMORY for item in held) + helpers * HELPER_BASE_MEMORY
+
+
+def _together_refusal(held: list[Estimate], share: float, memory: float) -> str:
+    """The line refusing runs that each fit the memory share but not all at once: it names
+    what drives the largest (what it could take, with the others' memory left out of the
+    share) and lists every run's estimate. The others follow the same fields (a spacing, a
+    needle step), so what lowers the largest lowers them too."""
+    largest = max(held, key=lambda item: item.memory_bytes)
+    total = _held_at_once(held)
+    budget = share * memory - (total - largest.memory_bytes)
+    setting = _memory_setting(largest, budget)
+    skips = list(dict.fromkeys(item.origin.skip for item in held if item.origin.skip))
+    skip = "".join(f"{advice}, " for advice in skips)
+    runs = "; ".join(item.describe() for item in held)
+    return (f"{setting.name}: got {setting.got}, expected runs within {share:.0%} of the {_bytes(memory)} of memory "
+            f"available when they run at once ({setting.note}estimated ~{_bytes(total)} together: {runs}); "
+            f"{setting.advice}, {skip}or {SKIP_GUARD}")
 
 
 def _coarse_refusal(item: Estimate) -> str | None:

@@ -26,7 +26,9 @@ from stitchplan.errors import InputError, NumericalFailure
 from stitchplan.resources import (
     BASE_MEMORY,
     COUNT_CAP,
+    HELPER_BASE_MEMORY,
     PLAN_RUNS,
+    VERIFICATION_RUNS,
     Limits,
     Origin,
     check_resources,
@@ -405,6 +407,84 @@ def test_the_cli_refuses_steps_too_many_for_the_memory(tmp_path, monkeypatch):
                            "800 MB of memory available (772 needle steps keep ~"), line
     assert line.endswith("take a larger step, or pass --no-resource-check to run it anyway")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
+def runs_at_once(step: float) -> tuple[list, list]:
+    """The 40 x 20 mm block's plan at `step`: its passes and its verification (the command's
+    own estimates), and the predicted aim's replay at twice the spacing (alongside)."""
+    scenario = parse_scenario(scene(needle__step=step))
+    own = [estimate(scenario, "insertion", "plan", PLAN_RUNS),
+           estimate(rescaled(scenario, 0.5), "insertion", "plan verification", VERIFICATION_RUNS,
+                    origin=verification_origin(scenario))]
+    return own, [estimate(rescaled(scenario, 2.0), "insertion", "plan's replay at twice the spacing")]
+
+
+def test_runs_that_go_on_at_once_are_refused_by_the_memory_they_hold_together():
+    """At 0.005 rad the plan (~350 MB), its verification (~650 MB) and the replay at twice the
+    spacing (~180 MB) each fit 800 MB, but not together (the interpreter counted once, and a
+    forked helper's own share of it for each helper): one line naming the needle step (what they keep
+    of their steps drives all three) with every run's estimate. Runs not said to go on at
+    once (no `alongside`) are checked one at a time, as before; at 0.01 rad they fit together."""
+    own, alongside = runs_at_once(0.005)
+    assert all(item.memory_bytes < 8e8 for item in own + alongside)
+    together = sum(item.memory_bytes for item in own + alongside) - 2 * (BASE_MEMORY - HELPER_BASE_MEMORY)
+    assert 1e9 < together < 1.6e9
+    check_resources(own, memory=1.6e9)  # one at a time: each fits
+    with pytest.raises(InputError) as error:
+        check_resources(own, memory=1.6e9, alongside=alongside)
+    (line,) = error.value.lines
+    assert line.startswith("needle.step: got 0.005 rad, expected runs within 50% of the 1.6 GB of memory available "
+                           "when they run at once ("), line
+    assert f"estimated ~{together / 1e9:.3g} GB together: plan: " in line
+    assert "; plan verification: " in line and "; plan's replay at twice the spacing: " in line
+    assert line.endswith("take a larger step, pass --no-verify to skip the verification, or pass "
+                         "--no-resource-check to run it anyway"), line
+    check_resources(*runs_at_once(0.01)[:1], memory=1.6e9, alongside=runs_at_once(0.01)[1])
+
+
+def test_the_cli_refuses_a_plan_whose_runs_do_not_fit_at_once(tmp_path, monkeypatch):
+    """The same plan through the CLI: refused in one line before any run, no file written;
+    with --no-verify (its passes and the estimate's replay at 2h, ~500 MB) it passes the guard."""
+    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: 1.6e9)
+
+    def not_reached(*args, **kwargs):
+        raise AssertionError("the run started past the guard")
+
+    monkeypatch.setattr("stitchplan.planning.verification.plan_verified", not_reached)
+    path = write(tmp_path, scene(needle__step=0.005))
+    export = tmp_path / "trajectory.csv"
+    result = CliRunner().invoke(app, ["plan", str(path), "--export", str(export), "--no-compare"])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith(f"error: {path}: needle.step: got 0.005 rad, expected runs within 50% of the 1.6 GB "
+                           "of memory available when they run at once"), line
+    assert "set planner.predicted_aim: false to skip the predicted aim" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+    result = CliRunner().invoke(app, ["plan", str(path), "--export", str(export), "--no-compare", "--no-verify"])
+    assert "AssertionError" in repr(result.exception), result.output  # past the guard, at the run
+
+
+def test_the_cli_counts_the_estimate_replay_of_a_simulate(tmp_path, monkeypatch):
+    """simulate at 0.0025 rad on the 40 x 20 mm block (~520 MB) fits 700 MB alone, not with
+    its exit error estimate's replay at twice the spacing (~410 MB) beside it: refused naming
+    --no-estimate too; with --no-estimate it passes the guard."""
+    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: 1.4e9)
+
+    def not_reached(*args, **kwargs):
+        raise AssertionError("the run started past the guard")
+
+    monkeypatch.setattr("stitchplan.planning.verification.simulate_with_estimate", not_reached)
+    path = write(tmp_path, scene(needle__step=0.0025))
+    summary = tmp_path / "summary.json"
+    result = CliRunner().invoke(app, ["simulate", str(path), "--summary", str(summary)])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith(f"error: {path}: needle.step: got 0.0025 rad, expected runs within 50% of the 1.4 GB "
+                           "of memory available when they run at once"), line
+    assert "; exit error estimate: " in line and "pass --no-estimate to skip the estimate" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+    result = CliRunner().invoke(app, ["simulate", str(path), "--no-estimate", "--summary", str(summary)])
+    assert "AssertionError" in repr(result.exception), result.output
 
 
 # --- ordinary inputs: unchanged ---------------------------------------------------------------

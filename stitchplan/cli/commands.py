@@ -14,9 +14,9 @@ from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOpt
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, SchedulerOption, WorkersOption,
                       _check_angular_speed, _check_outputs, _check_plot_scale, _check_plot_steps, _echo_events,
-                      _executor, _expected_steps, _guard, _limits, _load, _naming_files, _needle_geometry, _option_names,
-                      _parse_base_transform, _parse_steps, _plot_steps_note, _provenance, _setup_logging,
-                      _value)
+                      _estimate_run, _executor, _expected_steps, _guard, _limits, _load, _naming_files,
+                      _needle_geometry, _option_names, _parse_base_transform, _parse_steps, _plot_steps_note,
+                      _provenance, _setup_logging, _value)
 
 
 @app.command()
@@ -113,8 +113,10 @@ def simulate(
     _check_plot_steps(steps_to_plot, scenario)
     limits = _limits(max_particles, no_resource_check)
     if scenario.discretization.accuracy is None:
-        _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1), names=_option_names(spacing, dilation),
-               linear_solver=linear_solver)
+        names = _option_names(spacing, dilation)
+        _guard(scenario_path, limits, ("insertion", scenario, "simulate", 1), names=names, linear_solver=linear_solver,
+               alongside=[_estimate_run(scenario, "exit error estimate", "pass --no-estimate to skip the estimate",
+                                        names)] if estimate else [])
     with _naming_files(scenario_path):  # an accuracy the discretizations cannot reach names the file
         scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
                                                max_particles=None if limits is None else limits.max_particles)
@@ -207,7 +209,7 @@ def plan(
     scenario = replace(scenario, robot=robot,
                        planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
     from ..io import reports
-    from ..planning.verification import plan_replays, plan_verified, prediction_replays, replay_scenario
+    from ..planning.verification import plan_replays, plan_verified, prediction_replays, predicts_aim, replay_scenario
     from ..io.progress import progress_bar
 
     from ..resources import PLAN_RUNS, VERIFICATION_RUNS, verification_origin
@@ -217,10 +219,15 @@ def plan(
     names = _option_names(spacing, dilation)
 
     def guard(scenario) -> None:
+        # replays at twice the spacing go on alongside: the predicted aim's, or without the
+        # verification the exit error estimate's
+        at_2h = [] if verify and not predicts_aim(scenario, verify) else [_estimate_run(
+            scenario, "plan's replay at twice the spacing",
+            "set planner.predicted_aim: false to skip the predicted aim" if verify else "", names)]
         _guard(scenario_path, limits, ("insertion", scenario, "plan", PLAN_RUNS + compare),
                *([("insertion", replay_scenario(scenario, verify=True), "plan verification", VERIFICATION_RUNS,
                    verification_origin(scenario, names))] if verify else []), names=names,
-               linear_solver=linear_solver)
+               linear_solver=linear_solver, alongside=at_2h)
 
     _needle_geometry(scenario_path, scenario)  # a needle that cannot enter or exit, with the file named
     if scenario.discretization.accuracy is None:

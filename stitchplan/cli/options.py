@@ -235,20 +235,37 @@ def _limits(max_particles: Optional[int], no_resource_check: bool):
 
 
 def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
-           linear_solver: Optional[str] = None) -> None:
+           linear_solver: Optional[str] = None, alongside: Optional[list] = None) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.Origin of the run's discretization (default: the file's, with the fields in
-    `names` set by options, _option_names); `linear_solver`: the --linear-solver option.
-    Lines name the file, or the option."""
+    `names` set by options, _option_names); `linear_solver`: the --linear-solver option;
+    `alongside`: runs of the same form in helper processes at the same time, counted in the
+    memory held at once with `runs` (resources.check_resources; None: `runs` do not go on at
+    once). Lines name the file, or the option."""
     if limits is None:
         return
     from ..resources import Origin, check_resources, estimate
 
+    def estimates(given) -> list:
+        return [estimate(scenario, kind, label, count, origin=origin[0] if origin else Origin(names or {}),
+                         linear_solver=linear_solver)
+                for kind, scenario, label, count, *origin in given]
+
     with _naming_files(scenario_path):
-        check_resources([estimate(scenario, kind, label, count, origin=origin[0] if origin else Origin(names or {}),
-                                  linear_solver=linear_solver)
-                         for kind, scenario, label, count, *origin in runs], limits)
+        check_resources(estimates(runs), limits, alongside=None if alongside is None else estimates(alongside))
+
+
+def _estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:
+    """The exit error estimate's (or the predicted aim's) replay at twice the spacing, as a
+    run of `_guard`'s `alongside`; `skip` says how to leave it out."""
+    from ..planning.verification import replay_scenario
+    from ..resources import Origin
+
+    d = scenario.discretization
+    given = {"spacing": d.spacing, **({"needle_spacing": d.needle_spacing} if d.needle_spacing is not None else {})}
+    return ("insertion", replay_scenario(scenario, verify=False), label, 1,
+            Origin(dict(names or {}), given, derived=" in its replay at twice the spacing", skip=skip))
 
 
 def _option_names(spacing: Optional[float], dilation: Optional[float]) -> dict:
