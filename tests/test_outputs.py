@@ -105,6 +105,20 @@ def test_check_lists_every_problem_and_creates_nothing(tmp_path):
     assert snapshot(tmp_path) == before and not (tmp_path / "new").exists()
 
 
+def test_a_read_only_file_is_refused_and_kept_even_for_root(tmp_path, scene):
+    """A file with no write permission for anyone (chmod a-w) is refused as read-only, also
+    when the command runs as root, whose access test passes: kept as it was, nothing written."""
+    before = existing_outputs(tmp_path, "t.csv")
+    os.chmod(tmp_path / "t.csv", 0o444)
+    with pytest.raises(InputError) as caught:
+        OutputSet({"--export": tmp_path / "t.csv"}).check()
+    assert caught.value.lines == [f"--export: cannot write {tmp_path / 't.csv'}: the file is read-only"]
+    line = one_error_line(invoke("simulate", scene, "--no-estimate", "--summary", tmp_path / "t.csv"))
+    assert line.endswith(f"--summary: cannot write {tmp_path / 't.csv'}: the file is read-only"), line
+    assert snapshot(tmp_path) == before
+    assert (tmp_path / "t.csv").stat().st_mode & 0o777 == 0o444
+
+
 def test_an_output_cannot_be_the_folder_of_another(tmp_path):
     folder = tmp_path / "run"
     with pytest.raises(InputError) as caught:

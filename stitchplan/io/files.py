@@ -209,7 +209,8 @@ def _file_problem(label: str, path: Path) -> str | None:
     if target.exists() or target.is_symlink():
         if not target.is_file():
             return f"{label}: got {path}, not a regular file; expected a file name"
-        if not os.access(target, os.W_OK):
+        # no write permission for anyone: read-only, though root's access test passes
+        if not os.access(target, os.W_OK) or not target.stat().st_mode & 0o222:
             return f"{label}: cannot write {path}: the file is read-only"
     return None
 
