@@ -64,7 +64,9 @@ them all; nothing raises the memory share: a smaller model is the way under it):
 - MEMORY_SHARE = 0.5 of the memory the machine has available now, for the runs a command
   has going on at once together (check_resources `alongside`: a plan's passes, its
   verification's and its replay at twice the spacing in helper processes; a simulate and its
-  estimate's replay), each helper with its own share of the interpreter (HELPER_BASE_MEMORY).
+  estimate's replay; plan --uncertainty and the sampled plans of its local Dask workers),
+  each helper process with its own share of the interpreter (HELPER_BASE_MEMORY), each
+  worker with the whole of its own.
 
 The guard also refuses a model too coarse to mean anything (`_coarse_refusal`), the other
 side of a spacing typed wrong: a spacing above half the tissue's smaller side (fewer than
@@ -141,7 +143,7 @@ MEMORY_EXPONENT = 1.28
 BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan loaded
 # a forked helper process's own share of the interpreter: its pages stay shared with the
 # command's until written, and reference counting writes to many of them (a helper replaying
-# at twice the spacing: 44 MB of proportional set size against ~11 MB its run is estimated
+# at twice the spacing: 41-44 MB of proportional set size against ~11 MB its run is estimated
 # above BASE_MEMORY; benchmarks/results/memory_at_once.md)
 HELPER_BASE_MEMORY = 0.5 * BASE_MEMORY
 REFERENCE_PARTICLES = 1000.0
@@ -607,18 +609,21 @@ def _address_space_left() -> float | None:
 
 
 def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
-                    memory: float | None = None, alongside: list[Estimate] | None = None) -> None:
+                    memory: float | None = None, alongside: list[Estimate] | None = None,
+                    forked: bool = True) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
-    `alongside`: runs that go on at the same time as `estimates` (a command's replays in
-    helper processes: the exit error estimate's and the predicted aim's at twice the
-    spacing), counted only in the memory all of them hold at once. Given (even empty), the
+    `alongside`: runs that go on at the same time as `estimates` in other processes (a
+    command's replays in helper processes: the exit error estimate's and the predicted aim's
+    at twice the spacing; the sampled plans on local Dask workers), counted only in the
+    memory all of them hold at once. Given (even empty), the
     runs of `estimates` are taken to go on at once too, and their memory together must
     stay within the share (_together_refusal): each within it alone still leaves the
     machine's memory short when two or three hold as much (a plan at a small needle step:
     its own passes, its verification's replays and the predicted aim's each keep their
-    steps' states)."""
+    steps' states). `forked`: the processes of `alongside` are forked from this one (helpers,
+    sharing part of its interpreter's pages), not started afresh (Dask workers)."""
     memory = available_memory() if memory is None else memory
     lines = []
     for item in estimates:
@@ -644,15 +649,17 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                          "--no-resource-check")
     held = [*estimates, *(alongside or [])]
     if not lines and alongside is not None and memory is not None and len(held) > 1 \
-            and _held_at_once(held) > limits.memory_share * memory:
-        lines.append(_together_refusal(held, limits.memory_share, memory))
+            and _held_at_once(held, forked) > limits.memory_share * memory:
+        lines.append(_together_refusal(held, limits.memory_share, memory, forked))
     if lines:
         error = InputError("\n".join(lines))
         error.lines = lines
         raise error
     for item in held:
         log.info("resources: %s", item.describe())
-        if item.seconds > LONG_RUN_SECONDS:  # a run this long should not start in silence
+        # a run this long should not start in silence (the replays alongside take no longer
+        # than the runs they follow: the warning is the command's own runs')
+        if item.seconds > LONG_RUN_SECONDS and any(item is own for own in estimates):
             log.warning("a long run: estimated %s; -v shows its progress", item.describe())
 
 
@@ -682,23 +689,28 @@ def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: floa
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
 
 
-def _held_at_once(held: list[Estimate]) -> float:
-    """Bytes of runs going on at once, each in its own process: the command's BASE_MEMORY,
-    a helper's HELPER_BASE_MEMORY (forked from the command, it shares part of the loaded
-    modules' pages), and the rest of each run."""
+def _held_at_once(held: list[Estimate], forked: bool = True) -> float:
+    """Bytes of runs going on at once, each in its own process: every run's estimate, the
+    interpreter's BASE_MEMORY in it counted once for the command and, when the others are
+    `forked` helpers (sharing part of the loaded modules' pages), HELPER_BASE_MEMORY for each
+    of them; a process started afresh (a Dask worker) has the whole of its own."""
+    if not forked:
+        return sum(item.memory_bytes for item in held)
     helpers = len(held) - 1
     return BASE_MEMORY + sum(item.memory_bytes - BASE_MEMORY for item in held) + helpers * HELPER_BASE_MEMORY
 
 
-def _together_refusal(held: list[Estimate], share: float, memory: float) -> str:
+def _together_refusal(held: list[Estimate], share: float, memory: float, forked: bool = True) -> str:
     """The line refusing runs that each fit the memory share but not all at once: it names
-    what drives the largest (what it could take, with the others' memory left out of the
+    what drives the largest (what it could take, with the others' models left out of the
     share) and lists every run's estimate. The others follow the same fields (a spacing, a
     needle step), so what lowers the largest lowers them too."""
     largest = max(held, key=lambda item: item.memory_bytes)
-    total = _held_at_once(held)
-    budget = share * memory - (total - largest.memory_bytes)
-    setting = _memory_setting(largest, budget)
+    total = _held_at_once(held, forked)
+    # what the largest may take with the others' models beside it: a larger needle step
+    # lowers what every run keeps of its steps, so theirs count without it
+    others_kept = sum(item.step_memory for item in held) - largest.step_memory
+    setting = _memory_setting(largest, share * memory - (total - largest.memory_bytes - others_kept))
     skips = list(dict.fromkeys(item.origin.skip for item in held if item.origin.skip))
     skip = "".join(f"{advice}, " for advice in skips)
     runs = "; ".join(item.describe() for item in held)

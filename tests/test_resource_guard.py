@@ -487,6 +487,33 @@ def test_the_cli_counts_the_estimate_replay_of_a_simulate(tmp_path, monkeypatch)
     assert "AssertionError" in repr(result.exception), result.output
 
 
+def test_the_cli_counts_the_workers_of_a_plan_under_uncertainty(tmp_path, monkeypatch):
+    """plan --uncertainty at 0.005 rad on the 40 x 20 mm block: this process's runs and each
+    local worker's sampled plans (~350 MB each) fit 800 MB one at a time, not with two workers
+    beside this process: refused naming the needle step and --workers; with one worker it
+    passes the guard."""
+    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: 1.6e9)
+
+    def not_reached(*args, **kwargs):
+        raise AssertionError("the run started past the guard")
+
+    monkeypatch.setattr("stitchplan.uncertainty.robust.plan_under_uncertainty", not_reached)
+    path = write(tmp_path, scene(needle__step=0.005))
+    spread = write(tmp_path, {"samples": 4, "seed": 1, "parameters": {"friction": {"std": 0.001}}}, "spread.yaml")
+    export = tmp_path / "trajectory.csv"
+    arguments = ["plan", str(path), "--uncertainty", str(spread), "--export", str(export), "--no-verify"]
+    result = CliRunner().invoke(app, [*arguments, "--workers", "2"])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith(f"error: {path}: needle.step: got 0.005 rad, expected runs within 50% of the 1.6 GB "
+                           "of memory available when they run at once"), line
+    assert "; worker 1 of 2: sampled plans: " in line and "; worker 2 of 2: sampled plans: " in line
+    assert "pass --workers with fewer workers" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml", "spread.yaml"]
+    result = CliRunner().invoke(app, [*arguments, "--workers", "1"])
+    assert "AssertionError" in repr(result.exception), result.output
+
+
 # --- ordinary inputs: unchanged ---------------------------------------------------------------
 
 
@@ -568,7 +595,8 @@ def test_a_line_that_cannot_be_fitted_is_a_numerical_failure(tmp_path):
 
 def test_a_run_estimated_long_is_announced_before_it_starts(caplog):
     """Within the limits, a run estimated past LONG_RUN_SECONDS starts with a warning line
-    (shown by default, unlike the estimates of -v); a short one starts without."""
+    (shown by default, unlike the estimates of -v); a short one starts without, and so do the
+    replays alongside a command's runs (they follow those runs)."""
     from stitchplan.resources import LONG_RUN_SECONDS
 
     scenario = load_scenario(REPOSITORY / "configs" / "needle20_entry30.yaml")
@@ -581,6 +609,10 @@ def test_a_run_estimated_long_is_announced_before_it_starts(caplog):
         check_resources([long_run], memory=math.inf)
     assert [record.levelname for record in caplog.records] == ["WARNING"]
     assert caplog.records[0].getMessage().startswith("a long run: estimated simulate: ")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stitchplan"):  # a long replay alongside: no warning of its own
+        check_resources([short_run], memory=math.inf, alongside=[replace(long_run, label="exit error estimate")])
+    assert not caplog.records
 
 
 def test_minres_needle_steps_are_estimated_at_their_measured_cost():

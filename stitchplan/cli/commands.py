@@ -273,7 +273,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
     from ..planning.verification import replay_scenario, verify_exported
-    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, verification_origin
+    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, Origin, verification_origin
     from ..uncertainty.robust import check_target, plan_under_uncertainty, planned_tasks
     from ..uncertainty.sampling import draw
 
@@ -285,10 +285,15 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     check_target(scenario, str(scenario_path))
     draw(uncertainty, scenario)  # a distribution mostly below zero is refused before the runs
     tasks = planned_tasks(uncertainty)
+    # a local cluster's workers each hold a sampled plan's runs while this process holds its own
+    workers = executor.workers or 0
+    on_workers = Origin(dict(names), skip="pass --workers with fewer workers") if workers > 1 else Origin(dict(names))
     _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks),
            *([("insertion", replay_scenario(scenario, verify=True), "plan verification", VERIFICATION_RUNS + 1,
                verification_origin(scenario, names))] if verify else []), names=names,
-           linear_solver=options.get("linear_solver"))
+           linear_solver=options.get("linear_solver"),
+           alongside=[("insertion", scenario, f"worker {k + 1} of {workers}: sampled plans", PLAN_RUNS, on_workers)
+                      for k in range(workers)], forked=False)
     with executor, progress_bar("plans and sampled runs", tasks + 2) as advance:
         result = plan_under_uncertainty(scenario, uncertainty, executor, verify=verify,
                                         on_run=lambda description: advance(description=description), **options)

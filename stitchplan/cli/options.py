@@ -235,14 +235,15 @@ def _limits(max_particles: Optional[int], no_resource_check: bool):
 
 
 def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
-           linear_solver: Optional[str] = None, alongside: Optional[list] = None) -> None:
+           linear_solver: Optional[str] = None, alongside: Optional[list] = None, forked: bool = True) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.Origin of the run's discretization (default: the file's, with the fields in
     `names` set by options, _option_names); `linear_solver`: the --linear-solver option;
     `alongside`: runs of the same form in helper processes at the same time, counted in the
     memory held at once with `runs` (resources.check_resources; None: `runs` do not go on at
-    once). Lines name the file, or the option."""
+    once), in processes `forked` from this one or (False) Dask workers. Lines name the file,
+    or the option."""
     if limits is None:
         return
     from ..resources import Origin, check_resources, estimate
@@ -253,7 +254,8 @@ def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = No
                 for kind, scenario, label, count, *origin in given]
 
     with _naming_files(scenario_path):
-        check_resources(estimates(runs), limits, alongside=None if alongside is None else estimates(alongside))
+        check_resources(estimates(runs), limits, alongside=None if alongside is None else estimates(alongside),
+                        forked=forked)
 
 
 def _estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:
