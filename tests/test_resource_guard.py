@@ -497,7 +497,8 @@ def test_the_cli_counts_the_workers_of_a_plan_under_uncertainty(tmp_path, monkey
     def not_reached(*args, **kwargs):
         raise AssertionError("the run started past the guard")
 
-    monkeypatch.setattr("stitchplan.uncertainty.robust.plan_under_uncertainty", not_reached)
+    # the cluster is not started either (a Dask cluster sets malloc variables in os.environ)
+    monkeypatch.setattr("stitchplan.parallel.Executor.__enter__", not_reached)
     path = write(tmp_path, scene(needle__step=0.005))
     spread = write(tmp_path, {"samples": 4, "seed": 1, "parameters": {"friction": {"std": 0.001}}}, "spread.yaml")
     export = tmp_path / "trajectory.csv"
