@@ -389,20 +389,36 @@ def test_steps_too_many_for_the_memory_are_refused_naming_the_needle_step():
     assert line.startswith("needle.step: got 0.0012 rad, expected a step giving at most 2000 needle steps"), line
 
 
-def test_the_cli_refuses_steps_too_many_for_the_memory(tmp_path, monkeypatch):
-    """772 steps of 0.0025 rad on the 40 x 20 mm block keep ~420 MB: refused in one line on a
-    machine with 800 MB available, before the run (which would take seconds) starts."""
-    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: 8e8)
+def guarded(monkeypatch, memory: float, run: str):
+    """The CLI on a machine with `memory` bytes available, where reaching `run` (the
+    attribute that starts the command's runs) fails the test: returns a function invoking
+    the CLI, which gives (exit code, stderr lines, the invocation's exception)."""
+    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: memory)
 
     def not_reached(*args, **kwargs):
         raise AssertionError("the run started past the guard")
 
-    monkeypatch.setattr("stitchplan.planning.verification.simulate_with_estimate", not_reached)
+    monkeypatch.setattr(run, not_reached)
+
+    def invoke(*arguments) -> tuple[int, list[str], BaseException | None]:
+        result = CliRunner().invoke(app, [str(argument) for argument in arguments])
+        return result.exit_code, result.stderr.splitlines(), result.exception
+
+    return invoke
+
+
+def past_the_guard(invoked) -> bool:
+    """Whether an invocation of `guarded` passed the guard (and stopped at the run)."""
+    return "the run started past the guard" in repr(invoked[2])
+
+
+def test_the_cli_refuses_steps_too_many_for_the_memory(tmp_path, monkeypatch):
+    """772 steps of 0.0025 rad on the 40 x 20 mm block keep ~420 MB: refused in one line on a
+    machine with 800 MB available, before the run (which would take seconds) starts."""
+    invoke = guarded(monkeypatch, 8e8, "stitchplan.planning.verification.simulate_with_estimate")
     path = write(tmp_path, scene(needle__step=0.0025))
-    result = CliRunner().invoke(app, ["simulate", str(path), "--no-estimate", "--summary",
-                                      str(tmp_path / "summary.json")])
-    assert result.exit_code == 2, result.output
-    (line,) = result.stderr.splitlines()
+    code, (line,), _ = invoke("simulate", path, "--no-estimate", "--summary", tmp_path / "summary.json")
+    assert code == 2
     assert line.startswith(f"error: {path}: needle.step: got 0.0025 rad, expected a model within 50% of the "
                            "800 MB of memory available (772 needle steps keep ~"), line
     assert line.endswith("take a larger step, or pass --no-resource-check to run it anyway")
@@ -445,74 +461,52 @@ def test_runs_that_go_on_at_once_are_refused_by_the_memory_they_hold_together():
 def test_the_cli_refuses_a_plan_whose_runs_do_not_fit_at_once(tmp_path, monkeypatch):
     """The same plan through the CLI: refused in one line before any run, no file written;
     with --no-verify (its passes and the estimate's replay at 2h, ~500 MB) it passes the guard."""
-    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: 1.6e9)
-
-    def not_reached(*args, **kwargs):
-        raise AssertionError("the run started past the guard")
-
-    monkeypatch.setattr("stitchplan.planning.verification.plan_verified", not_reached)
+    invoke = guarded(monkeypatch, 1.6e9, "stitchplan.planning.verification.plan_verified")
     path = write(tmp_path, scene(needle__step=0.005))
-    export = tmp_path / "trajectory.csv"
-    result = CliRunner().invoke(app, ["plan", str(path), "--export", str(export), "--no-compare"])
-    assert result.exit_code == 2, result.output
-    (line,) = result.stderr.splitlines()
+    arguments = ["plan", path, "--export", tmp_path / "trajectory.csv", "--no-compare"]
+    code, (line,), _ = invoke(*arguments)
+    assert code == 2
     assert line.startswith(f"error: {path}: needle.step: got 0.005 rad, expected runs within 50% of the 1.6 GB "
                            "of memory available when they run at once"), line
     assert "set planner.predicted_aim: false to skip the predicted aim" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
-    result = CliRunner().invoke(app, ["plan", str(path), "--export", str(export), "--no-compare", "--no-verify"])
-    assert "AssertionError" in repr(result.exception), result.output  # past the guard, at the run
+    assert past_the_guard(invoke(*arguments, "--no-verify"))
 
 
 def test_the_cli_counts_the_estimate_replay_of_a_simulate(tmp_path, monkeypatch):
     """simulate at 0.0025 rad on the 40 x 20 mm block (~520 MB) fits 700 MB alone, not with
     its exit error estimate's replay at twice the spacing (~410 MB) beside it: refused naming
     --no-estimate too; with --no-estimate it passes the guard."""
-    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: 1.4e9)
-
-    def not_reached(*args, **kwargs):
-        raise AssertionError("the run started past the guard")
-
-    monkeypatch.setattr("stitchplan.planning.verification.simulate_with_estimate", not_reached)
+    invoke = guarded(monkeypatch, 1.4e9, "stitchplan.planning.verification.simulate_with_estimate")
     path = write(tmp_path, scene(needle__step=0.0025))
-    summary = tmp_path / "summary.json"
-    result = CliRunner().invoke(app, ["simulate", str(path), "--summary", str(summary)])
-    assert result.exit_code == 2, result.output
-    (line,) = result.stderr.splitlines()
+    arguments = ["simulate", path, "--summary", tmp_path / "summary.json"]
+    code, (line,), _ = invoke(*arguments)
+    assert code == 2
     assert line.startswith(f"error: {path}: needle.step: got 0.0025 rad, expected runs within 50% of the 1.4 GB "
                            "of memory available when they run at once"), line
     assert "; exit error estimate: " in line and "pass --no-estimate to skip the estimate" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
-    result = CliRunner().invoke(app, ["simulate", str(path), "--no-estimate", "--summary", str(summary)])
-    assert "AssertionError" in repr(result.exception), result.output
+    assert past_the_guard(invoke(*arguments, "--no-estimate"))
 
 
 def test_the_cli_counts_the_workers_of_a_plan_under_uncertainty(tmp_path, monkeypatch):
     """plan --uncertainty at 0.005 rad on the 40 x 20 mm block: this process's runs and each
     local worker's sampled plans (~350 MB each) fit 800 MB one at a time, not with two workers
     beside this process: refused naming the needle step and --workers; with one worker it
-    passes the guard."""
-    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: 1.6e9)
-
-    def not_reached(*args, **kwargs):
-        raise AssertionError("the run started past the guard")
-
-    # the cluster is not started either (a Dask cluster sets malloc variables in os.environ)
-    monkeypatch.setattr("stitchplan.parallel.Executor.__enter__", not_reached)
+    passes the guard. (The cluster is not started: a Dask cluster sets malloc variables in the
+    process's environment, which later tests' processes would inherit.)"""
+    invoke = guarded(monkeypatch, 1.6e9, "stitchplan.parallel.Executor.__enter__")
     path = write(tmp_path, scene(needle__step=0.005))
     spread = write(tmp_path, {"samples": 4, "seed": 1, "parameters": {"friction": {"std": 0.001}}}, "spread.yaml")
-    export = tmp_path / "trajectory.csv"
-    arguments = ["plan", str(path), "--uncertainty", str(spread), "--export", str(export), "--no-verify"]
-    result = CliRunner().invoke(app, [*arguments, "--workers", "2"])
-    assert result.exit_code == 2, result.output
-    (line,) = result.stderr.splitlines()
+    arguments = ["plan", path, "--uncertainty", spread, "--export", tmp_path / "trajectory.csv", "--no-verify"]
+    code, (line,), _ = invoke(*arguments, "--workers", 2)
+    assert code == 2
     assert line.startswith(f"error: {path}: needle.step: got 0.005 rad, expected runs within 50% of the 1.6 GB "
                            "of memory available when they run at once"), line
     assert "; worker 1 of 2: sampled plans: " in line and "; worker 2 of 2: sampled plans: " in line
     assert "pass --workers with fewer workers" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml", "spread.yaml"]
-    result = CliRunner().invoke(app, [*arguments, "--workers", "1"])
-    assert "AssertionError" in repr(result.exception), result.output
+    assert past_the_guard(invoke(*arguments, "--workers", 1))
 
 
 # --- ordinary inputs: unchanged ---------------------------------------------------------------
