@@ -17,7 +17,7 @@ the guard estimates
   plus for a needle run what it keeps of its steps until it ends (_step_memory, counted
   from the arrays the code keeps: each step's state with the saddle-point solver's dense
   (2Q)^2 blocks, 2Q ~ 4 x the steps, in doubling buffers the states share), which passes
-  the rest from a few hundred steps on (SH 1/2: 1.5 GB measured at 0.0025 rad, 0.10 GB at
+  the rest from a few hundred steps on (SH 1/2: 1.26 GB measured at 0.0025 rad, 0.10 GB at
   its 0.08 rad);
 - time: the tangent assembly B^T W B costs ~ quadrature points x neighbours^2 per Newton
   iteration and the factorization grows a little faster than the particles; seconds =
@@ -42,7 +42,7 @@ shared: the memory model is within 0.93-1.23x of every measured case, the time m
 0.78-1.6x of the dilation-2 cases, and the (neighbours/16)^2 time scaling overestimated the
 unfitted dilation-3 case (0.33x there; 0.96x in an earlier run of the same benchmark). What
 a needle run keeps of its steps is not fitted: the runs at 0.01 and 0.0025 rad on SH 1/2
-peak at 0.86 and 0.98x of the estimate (the slab's and the default steps' at 0.56-0.91x),
+peak at 0.79 and 0.80x of the estimate (the slab's and the default steps' at 0.55-0.92x),
 and their time per step grows with the steps taken (1.6x the estimate at 0.0025 rad). The
 memory limit is what protects the machine; the time is a guide, not a promise.
 
@@ -143,7 +143,7 @@ MEMORY_EXPONENT = 1.28
 BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan loaded
 # a forked helper process's own share of the interpreter: its pages stay shared with the
 # command's until written, and reference counting writes to many of them (a helper replaying
-# at twice the spacing: 41-44 MB of proportional set size against ~11 MB its run is estimated
+# at twice the spacing: 40-44 MB of proportional set size against ~11 MB its run is estimated
 # above BASE_MEMORY; benchmarks/results/memory_at_once.md)
 HELPER_BASE_MEMORY = 0.5 * BASE_MEMORY
 REFERENCE_PARTICLES = 1000.0
@@ -498,9 +498,10 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
       of the doubling stays (sum of capacities^2: ~4/3 of the last one's). Counted at their
       capacity, which the last one's resident rows approach (numpy asks for transparent huge
       pages for large arrays: 2Q_N rows written are resident whole), and which covers what the
-      allocator keeps of the steps' freed temporaries (SH 1/2 at 0.005 and 0.0025 rad: peaks
-      ~180 and ~430 MB above the resident bytes of the arrays kept, ~100 MB of them the
-      interpreter's and the model's);
+      allocator keeps of the steps' freed temporaries (SH 1/2 at 0.005 and 0.0025 rad, when
+      each state still held a copy of the load rows: peaks ~180 and ~430 MB above the
+      resident bytes of the arrays kept, ~100 MB of them the interpreter's and the model's;
+      the peaks are now 0.8x the estimate there, benchmarks/results/resource_costs.md);
     - the coupling's dense W and P (Q_k, m_k), new in each step's state (NeedleCoupling._partition;
       the point coupling's identity is both, (k + 1)^2): sum over the steps ~ N^3;
     - the track's arrays, new in each state (TRACK_BYTES_PER_POINT): ~ N^2;

@@ -351,30 +351,32 @@ def test_a_needle_run_is_estimated_to_keep_its_dense_blocks():
 # without --no-compare) on copies of the configs at these needle steps; the two-pass plan (the
 # 100 x 30 block at 0.005 rad) holds both passes' steps
 MEASURED_PEAKS = [
-    ("sh12_100x100", 0.08, "simulate", 98.3), ("sh12_100x100", 0.02, "simulate", 144.8),
-    ("sh12_100x100", 0.01, "simulate", 233.2), ("sh12_100x100", 0.005, "simulate", 509.2),
-    ("sh12_100x100", 0.0025, "simulate", 1481.5),
-    ("sh12_100x30", 0.08, "simulate", 82.6), ("sh12_100x30", 0.02, "simulate", 111.8),
-    ("sh12_100x30", 0.01, "simulate", 175.3), ("sh12_100x30", 0.005, "simulate", 400.7),
-    ("sh12_100x30", 0.0025, "simulate", 1252.0),
-    ("sh12_100x100", 0.01, "plan", 244.4), ("sh12_100x100", 0.005, "plan", 542.0),
-    ("sh12_100x100", 0.005, "compare", 951.8), ("sh12_100x30", 0.005, "plan", 820.8),
+    ("sh12_100x100", 0.08, "simulate", 98.4), ("sh12_100x100", 0.02, "simulate", 138.0),
+    ("sh12_100x100", 0.01, "simulate", 215.1), ("sh12_100x100", 0.005, "simulate", 441.2),
+    ("sh12_100x100", 0.0025, "simulate", 1206.0), ("sh12_100x30", 0.08, "simulate", 81.4),
+    ("sh12_100x30", 0.02, "simulate", 105.2), ("sh12_100x30", 0.01, "simulate", 158.6),
+    ("sh12_100x30", 0.005, "simulate", 332.2), ("sh12_100x30", 0.0025, "simulate", 976.1),
+    ("sh12_100x100", 0.01, "plan", 224.7), ("sh12_100x100", 0.005, "plan", 467.1),
+    ("sh12_100x100", 0.005, "compare", 807.0), ("sh12_100x30", 0.005, "plan", 663.3),
 ]
 
 
 @pytest.mark.parametrize("name, step, command, peak", MEASURED_PEAKS)
 def test_the_memory_estimate_bounds_the_measured_peaks(name, step, command, peak):
-    """From steps of 0.08 to 0.0025 rad (36 to 1205 taken) the measured peaks grow 15-fold;
-    the estimate stays above 0.85 of each (the two-pass plan's 0.92 the lowest: the guard
-    counts two runs' steps of a plan) and within twice it (a one-pass plan's 1.8 the highest)."""
+    """From steps of 0.08 to 0.0025 rad (36 to 1205 taken) the measured peaks grow 12-fold;
+    the estimate stays above 0.85 of each (the two-pass plan's 1.14 the lowest: the guard
+    counts two runs' steps of a plan) and within 2.1 times it (a one-pass plan's 2.07 the
+    highest: a plan may hold two runs' steps, one pass holds one). Since the states stopped
+    keeping a copy of the load rows each (the peaks were up to 1.28x these), the estimate,
+    unchanged, bounds the simulate peaks by 1.24-1.36x; it stayed within 2x of them before."""
     runs = {"simulate": 1, "plan": PLAN_RUNS, "compare": PLAN_RUNS + 1}[command]
     item = estimate(sh12(step, name), "insertion", command, runs)
-    assert 0.85 <= item.memory_bytes / (peak * 2**20) <= 2.0, item.describe()
+    assert 0.85 <= item.memory_bytes / (peak * 2**20) <= 2.1, item.describe()
 
 
 def test_steps_too_many_for_the_memory_are_refused_naming_the_needle_step():
     """SH 1/2 at 0.0025 rad: the tissue's model (~130 MB) fits 1 GB, what its 1257 steps
-    keep (~1.4 GB; a run peaked at 1.55 GB) does not: the refusal names the needle step,
+    keep (~1.4 GB estimated; a run peaked at 1.26 GB) does not: the refusal names the needle step,
     not the spacing; at the shipped 0.08 rad it runs."""
     line = refusal([estimate(sh12(0.0025), "insertion", "simulate")], memory=2e9)
     assert line.startswith("needle.step: got 0.0025 rad, expected a model within 50% of the 2 GB of memory "

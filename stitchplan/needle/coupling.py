@@ -179,11 +179,10 @@ def _joined(*matrices: sp.csr_matrix) -> sp.csr_matrix:
                     np.concatenate([matrix.indices for matrix in matrices]), indptr, matrices[0].shape[1])
 
 
-def _extended(top: sp.csr_matrix, block: RowBlock) -> sp.csr_matrix:
-    """[top; block] as one new CSR matrix."""
+def _block_matrix(block: RowBlock, columns: int) -> sp.csr_matrix:
+    """The block's rows as a CSR matrix of `columns` columns."""
     data, indices, counts = block
-    indptr = np.concatenate([top.indptr, top.nnz + np.cumsum(counts)])
-    return rows_csr(np.concatenate([top.data, data]), np.concatenate([top.indices, indices]), indptr, top.shape[1])
+    return rows_csr(data, indices, np.concatenate([[0], np.cumsum(counts)]), columns)
 
 
 def _own_rows(attributes: dict) -> dict:
@@ -300,12 +299,21 @@ class LoadQuadrature:
     """Points of Gamma_N carrying needle loads: reference points, their rows and forces (N)."""
 
     points: np.ndarray  # (L, 2)
-    rows: sp.csr_matrix  # N(X_l) T, (L, n_free)
+    # N(X_l) T, (L, n_free), in parts one under the other: the segments' Gauss points' rows
+    # (the track's, shared with every step's state) and those of the extra points. A state is
+    # kept per needle step: one matrix of all the rows, new in each, would make a long
+    # insertion's states grow with the square of its steps
+    row_parts: tuple[sp.csr_matrix, ...]
     magnitudes: np.ndarray  # (L,)
     # the points after the segments' Gauss points (a partly covered segment's), each as a
     # linear combination of its segment's two Gauss points: their indices and weights (P, 2)
     # each; None where the layout has other points (the smooth cutting profile)
     lumping: tuple[np.ndarray, np.ndarray] | None = (np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2)))
+
+    @property
+    def rows(self) -> sp.csr_matrix:
+        """N(X_l) T, (L, n_free), as one new matrix."""
+        return _joined(*self.row_parts)
 
 
 class NeedleCoupling:
@@ -356,7 +364,7 @@ class NeedleCoupling:
         self._constraint_segment = np.zeros(0, dtype=int)  # segment of each point, (Q,)
         self._constraint_along = np.zeros(0)  # t_q in [0, 1] along its segment, (Q,)
         self._constraint_length = np.zeros(0)  # ds_q: Gauss weight x segment length, mm, (Q,)
-        self.loads = LoadQuadrature(np.zeros((0, 2)), sp.csr_matrix((0, n_free)), np.zeros(0))
+        self.loads = LoadQuadrature(np.zeros((0, 2)), (sp.csr_matrix((0, n_free)),), np.zeros(0))
         self.previous_loads = self.loads
         self.load_factor = 1.0  # beta of Algorithm 1's ramp within a step
         self._track_rows: tuple[sp.csr_matrix, sp.csc_matrix, np.ndarray] | None = None  # _track
@@ -443,11 +451,11 @@ class NeedleCoupling:
             carried = self._shares.T @ forces
         self.previous_loads, self._track_rows = self.loads, None
         if len(part_points):
+            part_rows = _block_matrix(_block(rows, ends[3], ends[4]), rows.shape[1])
             self.loads = LoadQuadrature(np.vstack([self.segment_points, part_points]),
-                                        _extended(self.segment_rows, _block(rows, ends[3], ends[4])), magnitudes,
-                                        lumping)
+                                        (self.segment_rows, part_rows), magnitudes, lumping)
         else:
-            self.loads = LoadQuadrature(self.segment_points, self.segment_rows, magnitudes)
+            self.loads = LoadQuadrature(self.segment_points, (self.segment_rows,), magnitudes)
         return carried
 
     def _segment_spacing(self) -> np.ndarray:
@@ -645,7 +653,7 @@ class NeedleCoupling:
         terms then take one product with S and one with S^T: on these few rows scipy's
         per-product overhead, not the arithmetic, is the cost."""
         if self._track_rows is None:
-            rows = _joined(self.quadrature_rows, self.loads.rows, self.previous_loads.rows)
+            rows = _joined(self.quadrature_rows, *self.loads.row_parts, *self.previous_loads.row_parts)
             points = np.vstack([self.quadrature_points(), self.loads.points, self.previous_loads.points])
             self._track_rows = (rows, rows.T, points)  # S^T as a CSC view: no conversion
         return self._track_rows
