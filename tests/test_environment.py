@@ -42,8 +42,9 @@ def test_sigterm_ends_the_command_leaving_no_file(tmp_path):
     """The default action of SIGTERM would leave the outputs' temporaries beside the targets
     when it came while they were written; the command now unwinds and exits 128 + 15."""
     outputs = ["--export", tmp_path / "t.csv", "--summary", tmp_path / "s.json", "--out", tmp_path / "r.h5"]
-    run = command("plan", SH12, *outputs, stderr=subprocess.PIPE)
-    time.sleep(2.0)  # building and planning: 5 s or more in all
+    # at --spacing 2 the command takes ~7 s (its default spacing, ~1.8 s, could end before the signal)
+    run = command("plan", SH12, "--spacing", "2", *outputs, stderr=subprocess.PIPE)
+    time.sleep(2.0)
     run.send_signal(signal.SIGTERM)
     _, error = run.communicate(timeout=300)
     assert run.returncode == 128 + signal.SIGTERM, error
