@@ -618,13 +618,13 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     `alongside`: runs that go on at the same time as `estimates` in other processes (a
     command's replays in helper processes: the exit error estimate's and the predicted aim's
     at twice the spacing; the sampled plans on local Dask workers), counted only in the
-    memory all of them hold at once. Given (even empty), the
-    runs of `estimates` are taken to go on at once too, and their memory together must
-    stay within the share (_together_refusal): each within it alone still leaves the
-    machine's memory short when two or three hold as much (a plan at a small needle step:
-    its own passes, its verification's replays and the predicted aim's each keep their
-    steps' states). `forked`: the processes of `alongside` are forked from this one (helpers,
-    sharing part of its interpreter's pages), not started afresh (Dask workers)."""
+    memory all of them hold at once. Given (even empty), the runs of `estimates` are taken to
+    go on at once too, and their memory together must stay within the share
+    (_together_refusal): each within it alone still leaves the machine short when two or
+    three hold as much (a plan at a small needle step: its own passes, its verification's
+    replays and the predicted aim's each keep their steps' states). `forked`: the processes
+    of `alongside` are forked from this one (helpers, sharing part of its interpreter's
+    pages), not started afresh (Dask workers)."""
     memory = available_memory() if memory is None else memory
     lines = []
     for item in estimates:
