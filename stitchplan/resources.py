@@ -64,9 +64,9 @@ them all; nothing raises the memory share: a smaller model is the way under it):
 - MEMORY_SHARE = 0.5 of the memory the machine has available now, for the runs a command
   has going on at once together (check_resources `alongside`: a plan's passes, its
   verification's and its replay at twice the spacing in helper processes; a simulate and its
-  estimate's replay; plan --uncertainty and the sampled plans of its local Dask workers),
-  each helper process with its own share of the interpreter (HELPER_BASE_MEMORY), each
-  worker with the whole of its own.
+  estimate's replay; plan --uncertainty and the sampled plans of its local Dask workers;
+  the largest of a study's runs, as many as its local workers), each helper process with its
+  own share of the interpreter (HELPER_BASE_MEMORY), each worker with the whole of its own.
 
 The guard also refuses a model too coarse to mean anything (`_coarse_refusal`), the other
 side of a spacing typed wrong: a spacing above half the tissue's smaller side (fewer than
@@ -611,7 +611,7 @@ def _address_space_left() -> float | None:
 
 def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                     memory: float | None = None, alongside: list[Estimate] | None = None,
-                    forked: bool = True) -> None:
+                    forked: bool = True, at_once: int | None = None) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
@@ -624,7 +624,9 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     three hold as much (a plan at a small needle step: its own passes, its verification's
     replays and the predicted aim's each keep their steps' states). `forked`: the processes
     of `alongside` are forked from this one (helpers, sharing part of its interpreter's
-    pages), not started afresh (Dask workers)."""
+    pages), not started afresh (Dask workers). `at_once`: at most this many of `estimates`
+    go on at once (a study's runs on a local cluster's workers, one each): the largest are
+    counted together."""
     memory = available_memory() if memory is None else memory
     lines = []
     for item in estimates:
@@ -648,7 +650,8 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
                          f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
                          "--no-resource-check")
-    held = [*estimates, *(alongside or [])]
+    together = estimates if at_once is None else sorted(estimates, key=lambda item: -item.memory_bytes)[:at_once]
+    held = [*together, *(alongside or [])]
     if not lines and alongside is not None and memory is not None and len(held) > 1 \
             and _held_at_once(held, forked) > limits.memory_share * memory:
         lines.append(_together_refusal(held, limits.memory_share, memory, forked))
@@ -656,7 +659,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         error = InputError("\n".join(lines))
         error.lines = lines
         raise error
-    for item in held:
+    for item in [*estimates, *(alongside or [])]:
         log.info("resources: %s", item.describe())
         # a run this long should not start in silence (the replays alongside take no longer
         # than the runs they follow: the warning is the command's own runs')

@@ -511,6 +511,23 @@ def test_the_cli_counts_the_workers_of_a_plan_under_uncertainty(tmp_path, monkey
     assert past_the_guard(invoke(*arguments, "--workers", 1))
 
 
+def test_the_cli_counts_the_largest_study_runs_its_workers_hold_at_once(tmp_path, monkeypatch):
+    """A quick study at 0.005 rad on the 40 x 20 mm block: each run fits 500 MB (its largest
+    ~350 MB), its two largest on two local workers do not (~630 MB, each worker a process of
+    its own): refused naming the needle step; on one worker the runs go one at a time and it
+    passes the guard."""
+    invoke = guarded(monkeypatch, 1e9, "stitchplan.parallel.Executor.__enter__")
+    path = write(tmp_path, scene(needle__step=0.005))
+    arguments = ["study", path, "--quick", "--out", tmp_path / "study"]
+    code, (line,), _ = invoke(*arguments, "--workers", 2)
+    assert code == 2
+    assert line.startswith(f"error: {path}: needle.step: got 0.005 rad, expected runs within 50% of the 1 GB "
+                           "of memory available when they run at once"), line
+    assert line.count("; study run ") == 1 and "together: study run " in line  # the two largest
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+    assert past_the_guard(invoke(*arguments, "--workers", 1))
+
+
 # --- ordinary inputs: unchanged ---------------------------------------------------------------
 
 

@@ -383,9 +383,12 @@ def study(
         return Origin({"spacing": run.source, "needle_spacing": run.source},
                       {"spacing": run.spacing, "needle_spacing": run.spacing})
 
+    # on a local cluster its workers run as many at once, each in a process of its own
+    workers = executor.workers if executor.scheduler is None else None
     _guard(scenario_path, _limits(max_particles, no_resource_check),
            *[("insertion", run.scenario, f"study run {run.label!r}", repeats, origin(run))
-             for run in [*runs, reference]])
+             for run in [*runs, reference]],
+           **({"alongside": [], "forked": False, "at_once": workers} if workers else {}))
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
                            executor=executor)
