@@ -63,10 +63,11 @@ them all; nothing raises the memory share: a smaller model is the way under it):
   tangent's cost grows with the square of the neighbours;
 - MEMORY_SHARE = 0.5 of the memory the machine has available now, for the runs a command
   has going on at once together (check_resources `alongside`: a plan's passes, its
-  verification's and its replay at twice the spacing in helper processes; a simulate and its
-  estimate's replay; plan --uncertainty and the sampled plans of its local Dask workers;
-  the largest of a study's runs, as many as its local workers), each helper process with its
-  own share of the interpreter (HELPER_BASE_MEMORY), each worker with the whole of its own.
+  verification's replays in a helper process and its replay at twice the spacing; a
+  simulate and its estimate's replay; plan --uncertainty and the sampled plans of its local
+  Dask workers; the largest of a study's runs, as many as its local workers), each helper
+  process with its own share of the interpreter (HELPER_BASE_MEMORY), each worker with the
+  whole of its own.
 
 The guard also refuses a model too coarse to mean anything (`_coarse_refusal`), the other
 side of a spacing typed wrong: a spacing above half the tissue's smaller side (fewer than
@@ -615,10 +616,11 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
-    `alongside`: runs that go on at the same time as `estimates` in other processes (a
-    command's replays in helper processes: the exit error estimate's and the predicted aim's
-    at twice the spacing; the sampled plans on local Dask workers), counted only in the
-    memory all of them hold at once. Given (even empty), the runs of `estimates` are taken to
+    `alongside`: runs that go on at the same time as `estimates`, in other processes but for
+    the predicted aim's (a command's replays at twice the spacing: the exit error estimate's
+    in a helper process, the predicted aim's in this one, counted as a helper's; the sampled
+    plans on local Dask workers), counted only in the memory all of them hold at once.
+    Given (even empty), the runs of `estimates` are taken to
     go on at once too, and their memory together must stay within the share
     (_together_refusal): each within it alone still leaves the machine short when two or
     three hold as much (a plan at a small needle step: its own passes, its verification's

@@ -43,6 +43,7 @@ from stitchplan.planning.verification import (
     VERIFIED_FACTOR,
     exit_deviations,
     plan_verified,
+    prediction_replays,
     rescaled,
     simulate_with_estimate,
 )
@@ -211,3 +212,16 @@ def test_the_predicted_aim_re_aims_before_the_refined_replay_and_saves_a_round()
     assert plain.verification.rounds[0]["aimed_by"] == "none"
     assert plain.verification.rounds[0]["verified_exit_error_mm"] > threshold
     assert len(plain.verification.rounds) > 1
+
+
+def test_the_predicted_aim_replays_in_this_process_by_default():
+    """The replay at 2h for the predicted aim runs in the command's process after the first
+    pass (the refined replay in the helper is a verified plan's longest path; a second helper
+    took CPU from it: benchmarks/results/prediction_in_process.md); `background` asks for a
+    helper of its own, and with no predicted aim there is none."""
+    scenario = parse_scenario(scene_raw(30.0, 24.0, 4.0, 0.16))
+    with prediction_replays(scenario) as predictions:
+        assert predictions.where == "this process"
+    with prediction_replays(parse_scenario({**scene_raw(30.0, 24.0, 4.0, 0.16),
+                                            "planner": {"predicted_aim": False}})) as predictions:
+        assert predictions is None

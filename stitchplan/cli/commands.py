@@ -219,8 +219,8 @@ def plan(
     names = _option_names(spacing, dilation)
 
     def guard(scenario) -> None:
-        # replays at twice the spacing go on alongside: the predicted aim's, or without the
-        # verification the exit error estimate's
+        # a replay at twice the spacing goes on as well: the predicted aim's (in this process),
+        # or without the verification the exit error estimate's (in a helper)
         at_2h = [] if verify and not predicts_aim(scenario, verify) else [_estimate_run(
             scenario, "plan's replay at twice the spacing",
             "set planner.predicted_aim: false to skip the predicted aim" if verify else "", names)]
@@ -244,8 +244,8 @@ def plan(
                                 linear_solver=linear_solver, tip_tracking=tip_tracking)
         return
     expected = _expected_steps(scenario)
-    # the trajectory's replays (and the predicted aim's at 2h) go on in helper processes
-    # alongside (planning/replays.py)
+    # the trajectory's replays go on in a helper process alongside (planning/replays.py); the
+    # predicted aim's at 2h here, after the first pass (planning/verification.py)
     with (_naming_files(scenario_path),
           plan_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking) as replays,
           prediction_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking)

@@ -31,8 +31,8 @@ bites' difference the same way: the refined model's offset b_refined - b_base ai
 passes at the difference -(b_refined - b_base) on the base model (run_plan `bite_aim`).
 
 Predicted aim (planner.predicted_aim, the default). The first planner pass's trajectory is
-replayed at 2h too (a quarter of the planning model's particles; in a second helper process
-while the pass runs, `prediction_replays`), and the refined model's offset is predicted from
+replayed at 2h too (a quarter of the planning model's particles; in this process after the
+pass, `prediction_replays`), and the refined model's offset is predicted from
 the change between 2h and h: delta ~ (e_h - e_2h) / PREDICTED_RATIO. When |e_base + delta|
 is above VERIFIED_FACTOR x exit_tolerance, the passes from the second on aim at -delta
 (run_plan `retarget`), and the first round's refined replay judges that plan (a miss re-aims
@@ -208,9 +208,15 @@ def predicts_aim(scenario: Scenario, verify: bool = True) -> bool:
     return verify and scenario.planner.predicted_aim and not aims_at_bites(scenario)
 
 
-def prediction_replays(scenario: Scenario, verify: bool = True, background: bool = True, **options):
-    """replays_for the predicted aim's model at 2h, which replay the first planner pass while
-    the planning goes on (a context manager); None where plan_verified predicts no aim."""
+def prediction_replays(scenario: Scenario, verify: bool = True, background: bool = False, **options):
+    """replays_for the predicted aim's model at 2h, which replays the first planner pass (a
+    context manager); None where plan_verified predicts no aim. By default in this process,
+    after the pass: the refined model's replay in the helper is a verified plan's longest
+    path, and a second helper beside it took CPU from it; in this process the replay at 2h
+    fills time the planning would wait anyway (`plan --no-compare` 1-5 % faster on four
+    shipped scenes, the trajectories byte for byte the same,
+    benchmarks/results/prediction_in_process.md). `background`: a helper process of its own
+    while the pass runs."""
     if not predicts_aim(scenario, verify):
         return nullcontext(None)
     return replays_for(rescaled(scenario, ESTIMATE_FACTOR), background, **_replay_options(options))
@@ -280,8 +286,8 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     estimate of the planned run: from the refined replay, or without `verify` from a replay
     of the trajectory at 2h. `replays`: plan_replays's, which replay each planner pass while
     the planning goes on; by default the replays run here after it. `predictions`:
-    prediction_replays's, which replay the first pass at 2h for the predicted aim alongside;
-    by default that replay runs here after the pass."""
+    prediction_replays's, which replay the first pass at 2h for the predicted aim; by default
+    that replay runs here after the pass."""
     tissue = PreparedTissue(scenario)  # shared by the plan's runs and the re-planning rounds
     other = replay_scenario(scenario, verify)
     replays = replays or InlineReplays(other, **_replay_options(options))  # one model for every round
