@@ -217,17 +217,22 @@ class Origin:
         return self.given.get(key, run_value)
 
 
-def verification_origin(scenario: Scenario, names: Mapping[str, str] | None = None) -> Origin:
-    """The origin of a plan's verification model (planning.verification.replay_scenario): a
-    refusal names the scenario's own spacings (`names` as for the plan's model) and offers
-    --no-verify."""
+def replay_origin(scenario: Scenario, names: Mapping[str, str] | None, derived: str, skip: str) -> Origin:
+    """The origin of a model rescaled from the scenario's (a replay at another spacing): a
+    refusal names the scenario's own spacings (`names` as for the scenario's model), says
+    which replay in `derived` and how to leave it out in `skip`."""
     d = scenario.discretization
     given = {"spacing": d.spacing}
     if d.needle_spacing is not None:
         given["needle_spacing"] = d.needle_spacing
-    return Origin(dict(names or {}), given,
-                  derived=" in the plan's verification at half the spacing",
-                  skip="pass --no-verify to skip the verification")
+    return Origin(dict(names or {}), given, derived=derived, skip=skip)
+
+
+def verification_origin(scenario: Scenario, names: Mapping[str, str] | None = None) -> Origin:
+    """The origin of a plan's verification model (planning.verification.replay_scenario):
+    replay_origin offering --no-verify."""
+    return replay_origin(scenario, names, " in the plan's verification at half the spacing",
+                         "pass --no-verify to skip the verification")
 
 
 @dataclass(frozen=True)
@@ -661,12 +666,12 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         error = InputError("\n".join(lines))
         error.lines = lines
         raise error
-    for item in [*estimates, *(alongside or [])]:
+    for item in estimates:
         log.info("resources: %s", item.describe())
-        # a run this long should not start in silence (the replays alongside take no longer
-        # than the runs they follow: the warning is the command's own runs')
-        if item.seconds > LONG_RUN_SECONDS and any(item is own for own in estimates):
+        if item.seconds > LONG_RUN_SECONDS:  # a run this long should not start in silence
             log.warning("a long run: estimated %s; -v shows its progress", item.describe())
+    for item in alongside or []:  # they take no longer than the runs they go with: no warning of their own
+        log.info("resources: %s", item.describe())
 
 
 @dataclass(frozen=True)

@@ -287,7 +287,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     tasks = planned_tasks(uncertainty)
     # a local cluster's workers each hold a sampled plan's runs while this process holds its own
     workers = executor.workers or 0
-    on_workers = Origin(dict(names), skip="pass --workers with fewer workers") if workers > 1 else Origin(dict(names))
+    on_workers = Origin(dict(names), skip="pass --workers with fewer workers" if workers > 1 else "")
     _guard(scenario_path, limits, ("insertion", scenario, "plan --uncertainty", 2 * PLAN_RUNS + 1 + tasks),
            *([("insertion", replay_scenario(scenario, verify=True), "plan verification", VERIFICATION_RUNS + 1,
                verification_origin(scenario, names))] if verify else []), names=names,
@@ -383,12 +383,13 @@ def study(
         return Origin({"spacing": run.source, "needle_spacing": run.source},
                       {"spacing": run.spacing, "needle_spacing": run.spacing})
 
-    # on a local cluster its workers run as many at once, each in a process of its own
-    workers = executor.workers if executor.scheduler is None else None
+    # on a local cluster its workers run as many at once, each in a process of its own (None:
+    # a scheduler's workers, elsewhere; 0: one after another here)
+    workers = executor.workers
     _guard(scenario_path, _limits(max_particles, no_resource_check),
            *[("insertion", run.scenario, f"study run {run.label!r}", repeats, origin(run))
              for run in [*runs, reference]],
-           **({"alongside": [], "forked": False, "at_once": workers} if workers else {}))
+           alongside=[] if workers else None, forked=False, at_once=workers)
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
                            executor=executor)

@@ -263,12 +263,10 @@ def _estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None)
     """The exit error estimate's (or the predicted aim's) replay at twice the spacing, as a
     run of `_guard`'s `alongside`; `skip` says how to leave it out."""
     from ..planning.verification import replay_scenario
-    from ..resources import Origin
+    from ..resources import replay_origin
 
-    d = scenario.discretization
-    given = {"spacing": d.spacing, **({"needle_spacing": d.needle_spacing} if d.needle_spacing is not None else {})}
     return ("insertion", replay_scenario(scenario, verify=False), label, 1,
-            Origin(dict(names or {}), given, derived=" in its replay at twice the spacing", skip=skip))
+            replay_origin(scenario, names, " in its replay at twice the spacing", skip))
 
 
 def _option_names(spacing: Optional[float], dilation: Optional[float]) -> dict:
