@@ -46,7 +46,8 @@ COMMANDS = (
      ["plan", "{config}", "--uncertainty", str(UNCERTAINTY), "--workers", "2", "--no-verify", "--export",
       "{folder}/trajectory.csv"], (None, 0.02)),
 )
-ESTIMATE_LINE = re.compile(r"stitchplan\.resources: resources: (?P<label>[^:]+): .*?~(?P<amount>[\d.]+) (?P<unit>GB|MB|kB) memory")
+ESTIMATE_LINE = re.compile(r"stitchplan\.resources: resources: (?P<label>[^:]+): "
+                           r".*?~(?P<amount>[\d.]+) (?P<unit>GB|MB|kB) memory")
 UNITS = {"GB": 1e9, "MB": 1e6, "kB": 1e3}
 OWN_RUNS = ("plan", "simulate", "plan --uncertainty")  # the label a command's first estimate has
 
@@ -91,7 +92,7 @@ def run(arguments: list[str], log: Path) -> tuple[float, dict[int, float], float
 
 
 def main() -> None:
-    from stitchplan.resources import BASE_MEMORY, HELPER_BASE_MEMORY
+    from stitchplan.resources import held_at_once
 
     header = ["command", "needle step (rad)", "exit code", "wall (s)", "processes", "peak of each (MB)",
               "peak together (MB)", "guard's runs (MB)", "guard together (MB)", "measured / guard"]
@@ -113,11 +114,9 @@ def main() -> None:
                 # the last check's: plan --uncertainty checks the plan's runs, then its own with the workers'
                 first = max(k for k, (label, _) in enumerate(estimates) if label in OWN_RUNS)
                 estimates = estimates[first:]
-                if name.startswith("plan --uncertainty"):  # Dask workers: processes of their own
-                    together = sum(amount for _, amount in estimates)
-                else:
-                    together = (BASE_MEMORY + sum(amount - BASE_MEMORY for _, amount in estimates)
-                                + (len(estimates) - 1) * HELPER_BASE_MEMORY)
+                # as the guard sums them; Dask workers are processes of their own
+                together = held_at_once([amount for _, amount in estimates],
+                                        forked=not name.startswith("plan --uncertainty"))
                 rows.append([name, step or raw["needle"]["step"], code, wall, len(each),
                              " / ".join(f"{size / 1e6:.0f}" for size in sorted(each.values(), reverse=True)),
                              peak / 1e6, "; ".join(f"{label} {amount / 1e6:.0f}" for label, amount in estimates),

@@ -660,7 +660,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     together = estimates if at_once is None else sorted(estimates, key=lambda item: -item.memory_bytes)[:at_once]
     held = [*together, *(alongside or [])]
     if not lines and alongside is not None and memory is not None and len(held) > 1 \
-            and _held_at_once(held, forked) > limits.memory_share * memory:
+            and held_at_once([item.memory_bytes for item in held], forked) > limits.memory_share * memory:
         lines.append(_together_refusal(held, limits.memory_share, memory, forked))
     if lines:
         error = InputError("\n".join(lines))
@@ -700,15 +700,16 @@ def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: floa
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
 
 
-def _held_at_once(held: list[Estimate], forked: bool = True) -> float:
-    """Bytes of runs going on at once, each in its own process: every run's estimate, the
-    interpreter's BASE_MEMORY in it counted once for the command and, when the others are
-    `forked` helpers (sharing part of the loaded modules' pages), HELPER_BASE_MEMORY for each
-    of them; a process started afresh (a Dask worker) has the whole of its own."""
+def held_at_once(memory_bytes: list[float], forked: bool = True) -> float:
+    """Bytes of runs going on at once, each in its own process, from their estimates'
+    `memory_bytes`: the interpreter's BASE_MEMORY in them counted once for the command and,
+    when the others are `forked` helpers (sharing part of the loaded modules' pages),
+    HELPER_BASE_MEMORY for each of them; a process started afresh (a Dask worker) has the
+    whole of its own."""
     if not forked:
-        return sum(item.memory_bytes for item in held)
-    helpers = len(held) - 1
-    return BASE_MEMORY + sum(item.memory_bytes - BASE_MEMORY for item in held) + helpers * HELPER_BASE_MEMORY
+        return sum(memory_bytes)
+    helpers = len(memory_bytes) - 1
+    return BASE_MEMORY + sum(amount - BASE_MEMORY for amount in memory_bytes) + helpers * HELPER_BASE_MEMORY
 
 
 def _together_refusal(held: list[Estimate], share: float, memory: float, forked: bool = True) -> str:
@@ -717,7 +718,7 @@ def _together_refusal(held: list[Estimate], share: float, memory: float, forked:
     share) and lists every run's estimate. The others follow the same fields (a spacing, a
     needle step), so what lowers the largest lowers them too."""
     largest = max(held, key=lambda item: item.memory_bytes)
-    total = _held_at_once(held, forked)
+    total = held_at_once([item.memory_bytes for item in held], forked)
     # what the largest may take with the others' models beside it: a larger needle step
     # lowers what every run keeps of its steps, so theirs count without it
     others_kept = sum(item.step_memory for item in held) - largest.step_memory
