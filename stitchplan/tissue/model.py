@@ -259,9 +259,12 @@ def shaped_discretization(tissue: Tissue, discretization: Discretization, segmen
     segment end, fitted to the shape (stitchplan.tissue.shapes), once the shape has no tissue
     thinner than the lattice resolves (stitchplan.tissue.thin_features)."""
     graded = shaped_lattice(tissue, discretization, segments, needle_zone)
-    spacing_at = lattice_spacing(graded)
-    refuse_thin_tissue(tissue, spacing_at)
-    particles, volumes, local = fit_particles(tissue, graded, spacing_at)
+    if isinstance(tissue.domain, PolygonDomain):
+        spacing_at = lattice_spacing(graded)  # a KD-tree: a rectangle's commands need not import scipy.spatial
+        refuse_thin_tissue(tissue, spacing_at)
+        particles, volumes, local = fit_particles(tissue, graded, spacing_at)
+    else:  # a rectangle with regions: the lattice fits it
+        particles, volumes, local = graded.particles, graded.volumes, graded.local_spacing
     support = discretization.dilation * local
     points, weights = shaped_quadrature(tissue, graded.cells, discretization.quadrature_order,
                                         discretization.cells_per_spacing)

@@ -18,6 +18,8 @@ inside the tissue. The quadrature thus follows the boundary and the material int
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..config import Discretization, Tissue
@@ -208,20 +210,17 @@ def _split_n(cells: np.ndarray, n: int) -> np.ndarray:
 
 
 def fit_particles(tissue: Tissue, graded: GradedParticles,
-                  spacing_at=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The lattice's particles inside the shape plus particles along the boundary at the
-    local spacing (boundary_points: every corner one of them); lattice particles closer than
-    MERGE x the local spacing to an added one are dropped. `spacing_at`: the lattice's
-    lattice_spacing, when the caller has made it. Returns particles, volumes, local spacing."""
-    domain = tissue.domain
-    if not isinstance(domain, PolygonDomain):  # a rectangle with regions: the lattice fits
-        return graded.particles, graded.volumes, graded.local_spacing
+                  spacing_at: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lattice's particles inside a polygon tissue plus particles along the boundary at
+    the local spacing (boundary_points: every corner one of them); lattice particles closer
+    than MERGE x the local spacing to an added one are dropped. `spacing_at`: the lattice's
+    lattice_spacing. Returns particles, volumes, local spacing."""
     from scipy.spatial import cKDTree  # here: a rectangle's commands need not import scipy.spatial
 
+    domain = tissue.domain
     tol = 1e-7 * max(domain.size)
     keep = domain.contains(graded.particles, tol)
     particles, volumes, local = graded.particles[keep], graded.volumes[keep], graded.local_spacing[keep]
-    spacing_at = spacing_at or lattice_spacing(graded)
     kept = kept_vertices(tissue, spacing_at(domain.segment_starts))
     added = boundary_points(domain, kept, spacing_at, float(graded.local_spacing.min()))
     added_local = spacing_at(added)
