@@ -346,16 +346,22 @@ def boundary_edges(domain) -> tuple[np.ndarray, np.ndarray]:
             np.array([end for _, end in segments], dtype=float))
 
 
-def nearest_boundary_point(domain, point) -> tuple[np.ndarray, float]:
-    """The boundary point nearest `point` (2,), and how far it is (mm)."""
-    starts, ends = boundary_edges(domain)
+def nearest_on_edges(starts: np.ndarray, ends: np.ndarray, point) -> tuple[int, float, np.ndarray, float]:
+    """The point of the segments starts -> ends (k, 2) nearest `point` (2,): its segment,
+    the fraction along it, the point, and how far it is (mm)."""
     x = np.asarray(point, dtype=float)
     e = ends - starts  # (k, 2)
     along = np.clip(np.sum((x - starts) * e, axis=1) / np.sum(e * e, axis=1), 0.0, 1.0)
     candidates = starts + along[:, None] * e
     distances = np.linalg.norm(candidates - x, axis=1)
     k = int(np.argmin(distances))
-    return candidates[k], float(distances[k])
+    return k, float(along[k]), candidates[k], float(distances[k])
+
+
+def nearest_boundary_point(domain, point) -> tuple[np.ndarray, float]:
+    """The boundary point nearest `point` (2,), and how far it is (mm)."""
+    _, _, nearest, distance = nearest_on_edges(*boundary_edges(domain), point)
+    return nearest, distance
 
 
 def snap_to_boundary(domain, point) -> np.ndarray | None:

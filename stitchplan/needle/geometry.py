@@ -15,7 +15,7 @@ from ..config import Needle, Scenario
 from ..config.blocks import default_spacing_of
 from ..config.boundary_points import nearest_note, shown_point, shown_point_as_given
 from ..errors import InputError
-from ..geometry import PolygonDomain, Rectangle, circle_center_at_entry, smooth_vertex
+from ..geometry import PolygonDomain, Rectangle, boundary_edges, circle_center_at_entry, nearest_on_edges, smooth_vertex
 from ..tissue.particles import RefinementZone, end_spacing
 
 
@@ -127,9 +127,7 @@ class BoundaryLoops:
 
     @classmethod
     def of(cls, domain: Rectangle | PolygonDomain) -> BoundaryLoops:
-        segments = domain.boundary_segments()
-        starts = np.array([start for start, _ in segments], dtype=float)
-        ends = np.array([end for _, end in segments], dtype=float)
+        starts, ends = boundary_edges(domain)
         lengths = np.linalg.norm(ends - starts, axis=1)
         # a loop starts where an edge does not begin at the previous edge's end
         first_of_loop = np.concatenate([[True], np.any(starts[1:] != ends[:-1], axis=1)])
@@ -140,11 +138,8 @@ class BoundaryLoops:
     def _nearest(self, point: np.ndarray) -> tuple[int, float, np.ndarray]:
         """The edge holding the boundary point nearest `point`, the fraction along it there,
         and that point."""
-        edges = self.ends - self.starts
-        along = np.clip(np.sum((point - self.starts) * edges, axis=1) / np.sum(edges * edges, axis=1), 0.0, 1.0)
-        candidates = self.starts + along[:, None] * edges
-        k = int(np.argmin(np.linalg.norm(candidates - point, axis=1)))
-        return k, float(along[k]), candidates[k]
+        k, along, nearest, _ = nearest_on_edges(self.starts, self.ends, point)
+        return k, along, nearest
 
     def position(self, point: np.ndarray) -> tuple[int, float]:
         """The loop of the boundary point nearest `point`, and the arc length along it there."""

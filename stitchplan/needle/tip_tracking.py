@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import InsertionFailure, TipTrackingJump
 from ..events import Event, EventKind
+from ..geometry import boundary_edges
 from .geometry import IDENTITY, length
 
 if TYPE_CHECKING:
@@ -310,13 +311,12 @@ class BoundarySamples:
 
     @classmethod
     def of(cls, insertion: NeedleInsertion) -> BoundarySamples:
-        edges = np.array(insertion.domain.boundary_segments(), dtype=float)  # (k, start | end, 2)
-        starts, ends = edges[:, 0], edges[:, 1]
+        starts, ends = boundary_edges(insertion.domain)
         lengths = np.linalg.norm(ends - starts, axis=1)
         # first at the spacing at the edges' ends and middles, then at the finest spacing those
         # samples meet (a long outline edge is graded toward the needle in between)
         pieces = _chords_per_edge(insertion, np.vstack([starts, 0.5 * (starts + ends), ends]),
-                                  np.tile(np.arange(len(edges)), 3), lengths)
+                                  np.tile(np.arange(len(starts)), 3), lengths)
         samples, edge, _ = _edge_samples(starts, ends, pieces)
         samples, _, last = _edge_samples(starts, ends, _chords_per_edge(insertion, samples, edge, lengths))
         samples = insertion.domain.clip(samples)  # as NeedleInsertion.displacement evaluates u

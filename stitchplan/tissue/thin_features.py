@@ -32,7 +32,7 @@ import numpy as np
 
 from ..config import Tissue
 from ..errors import InputError
-from ..geometry import CIRCLE_SEGMENTS, PolygonDomain, turns
+from ..geometry import CIRCLE_SEGMENTS, PolygonDomain, nearest_on_edges, turns
 
 # Tissue thinner than this x the local particle spacing is refused. Measured with the check
 # off (deform on a 60 x 30 mm block clamped at the bottom, pulled on its right edge; ratios
@@ -286,9 +286,7 @@ def wall_field(tissue: Tissue, point: np.ndarray) -> str | None:
     x = np.asarray(point, dtype=float)
     for k, hole in enumerate(tissue.holes):
         a = hole.vertices()
-        d = np.roll(a, -1, axis=0) - a
-        t = np.clip(np.sum((x - a) * d, axis=1) / np.sum(d * d, axis=1), 0.0, 1.0)
-        if np.min(np.linalg.norm(a + t[:, None] * d - x, axis=1)) <= tol:
+        if nearest_on_edges(a, np.roll(a, -1, axis=0), x)[3] <= tol:
             return f"holes[{k}]"
     return None
 
