@@ -55,7 +55,7 @@ def _interpolant(model, displacement: np.ndarray):
     coefficients d solve u(X_I) = sum_J N_J(X_I) d_J (a sparse, square system)."""
     from scipy.sparse.linalg import splu
 
-    values = model.shape_functions_at(model.particles).values.tocsc()  # (NP, NP)
+    values = model.particle_shape_values().tocsc()  # (NP, NP)
     coefficients = splu(values).solve(np.ascontiguousarray(displacement, dtype=float))  # (NP, 2)
     return lambda points: model.shape_functions_at(points).values @ coefficients
 

@@ -182,7 +182,7 @@ class PreparedTissue:
             start = time.perf_counter()
             self._model = build_tissue_model(self.scenario.tissue, self.scenario.discretization,
                                              needle_zone=needle_zone(self.scenario))
-            self._particle_values = self._model.shape_functions_at(self._model.particles).values
+            self._particle_values = self._model.particle_shape_values()
             self.seconds = time.perf_counter() - start
 
     def fits(self, scenario: Scenario) -> bool:

@@ -148,7 +148,7 @@ def run_deform(
     timings["solve"] = time.perf_counter() - solve_start
     probes = np.asarray(scenario.probes, dtype=float).reshape(-1, 2)
     probe_displacements = interpolate(model, solution.coefficients, probes)
-    particle_displacements = interpolate(model, solution.coefficients, model.particles)
+    particle_displacements = model.particle_shape_values() @ solution.coefficients
     segment_reactions = reactions(model, scenario, solution.coefficients, assembler, full_external)
     wall = time.perf_counter() - start
     return DeformResult(scenario, model, solution.coefficients, particle_displacements, probes,

@@ -61,7 +61,7 @@ class TissueModel:
     # particles graded toward a needle: the particle spacing in its zone (zone_spacing)
     needle_spacing: float | None = None
     # the shape functions at the particles themselves (NP, NP), where the build has checked
-    # them (a tissue with a hole or a notch); shape_functions_at(particles) returns them
+    # them (a tissue with a hole or a notch); particle_shape_values() returns them
     particle_values: sp.csr_matrix | None = None
 
     @property
@@ -82,10 +82,14 @@ class TissueModel:
                               self.visibility)
 
     def shape_functions_at(self, points: np.ndarray, gradients: bool = False) -> ShapeFunctions:
-        if points is self.particles and not gradients and self.particle_values is not None:
-            return ShapeFunctions(self.particle_values)
         points = np.atleast_2d(points)
         return self._shape_pairs(points, gradients).matrices(len(points), self.n_particles)
+
+    def particle_shape_values(self) -> sp.csr_matrix:
+        """N_J(X_I) at the particles themselves (NP, NP): the build's, where it made them."""
+        if self.particle_values is not None:
+            return self.particle_values
+        return self.shape_functions_at(self.particles).values
 
     def free_rows_at(self, points: np.ndarray) -> sp.csr_matrix:
         """N(X) T (n, n_free): the shape functions at reference points acting on the free
