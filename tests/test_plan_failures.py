@@ -6,6 +6,8 @@ says what failed and the plan stands (small blocks, about a second each)."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from stitchplan.config.scenario import parse_scenario
@@ -13,6 +15,8 @@ from stitchplan.errors import InsertionFailure
 from stitchplan.events import EventKind
 from stitchplan.planning.planner import run_plan
 from stitchplan.planning.verification import plan_verified
+
+FAILED_ROUND_SECONDS = 0.3  # how long the failing round of the wall-time test takes
 
 
 def block(model: str, thickness: float, friction: float, cutting_force: float) -> dict:
@@ -87,3 +91,29 @@ def test_minres_asked_for_a_plan_says_the_planner_steps_solve_directly():
     told = [event for event in plan.planned.events if event.kind == EventKind.MINRES_FALLBACK]
     assert len(told) == 1 and told[0].message.startswith("the planner's steps solve directly, not by MINRES")
     assert plan.planned.solver_counts["minres_iterations"] == 0
+
+
+def test_a_failed_re_aimed_round_counts_in_the_planned_wall_time(monkeypatch):
+    """The time a verification round's failed passes took is the plan's too: the summary's
+    wall_seconds counts it, not only the rounds that ran to the exit."""
+    from stitchplan.planning import verification
+
+    scenario = parse_scenario({**block("saint-venant-kirchhoff", 10.0, 0.06, 0.7),
+                               "planner": {"predicted_aim": False}})
+    first_rounds = []
+
+    def failing_re_aim(*args, **kwargs):
+        if kwargs.get("aim") is None:
+            plan = run_plan(*args, **kwargs)
+            first_rounds.append(plan.planned.wall_seconds)
+            return plan
+        time.sleep(FAILED_ROUND_SECONDS)
+        raise InsertionFailure("step 3 (needle rotation 0.600 rad): det F = -0.1 at (1, 2) mm")
+
+    monkeypatch.setattr(verification, "run_plan", failing_re_aim)
+    monkeypatch.setattr(verification, "VERIFIED_FACTOR", 0.0)  # every round misses: a re-aimed one follows
+    plan = plan_verified(scenario, compare=False)
+    assert len(first_rounds) == 1 and len(plan.verification.rounds) == 1
+    assert any(event.kind == EventKind.PASS_FAILED and "verification round 2" in event.message
+               for event in plan.planned.events)
+    assert plan.planned.wall_seconds >= first_rounds[0] + FAILED_ROUND_SECONDS

@@ -22,7 +22,7 @@ e_base, is the base model's bias: the planner's passes are aimed at e_base = -de
 (shooting with the refined model's mismatch; planning.planner.run_plan `aim`, continuing the
 secant of the earlier passes) and the new trajectory is replayed again. At most
 MAX_CORRECTIONS such rounds; the trajectory with the smallest verified error is the one
-exported and reported (its `wall_seconds` then counts the passes of every round; the
+exported and reported (its `wall_seconds` then counts the passes of every round, a failed one's too; the
 replays' times are in the verification rounds). The trajectory is judged on the finer
 model: where the two models disagree by more than exit_tolerance, the planned (base-model)
 exit error of a corrected plan is about |delta|, and `exit_error_estimate_mm` says so too.
@@ -56,6 +56,7 @@ it replays (of the first pass, where the replay went on with a re-aimed one).
 from __future__ import annotations
 
 import logging
+import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 
@@ -343,6 +344,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
                 aim = -offset
                 log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at "
                          "(%.4g, %.4g) mm", *offset, *aim)
+            round_start = time.perf_counter()
             try:
                 again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
                                  tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
@@ -350,6 +352,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             except PlanningFailure:  # --strict
                 raise
             except NumericalFailure as failure:  # the re-aimed passes fail: the best round so far stands
+                planning_seconds += time.perf_counter() - round_start  # spent on the plan all the same
                 message = (f"verification round {correction + 1}: its re-aimed planner pass failed ({failure}); "
                            f"the best of the {correction} round{'s' if correction > 1 else ''} before it is "
                            "exported")
@@ -384,7 +387,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
         if not np.isfinite(miss) or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
             break
     miss, result, replayed, kept = best
-    # every pass of every round
+    # every pass of every round, the failed ones' too
     result.planned.wall_seconds, result.planned.timings = planning_seconds, planning_timings
     if np.isfinite(miss):
         _note_missed(result, miss, VERIFIED_FACTOR * settings.exit_tolerance,
