@@ -34,6 +34,24 @@ def test_defaults_of_a_minimal_file():
     assert parse_calibration(raw).fit.grid_scale == "linear"  # a log grid needs positive bounds
 
 
+def test_segment_ends_moved_onto_the_boundary_are_logged_by_their_fields(caplog):
+    """As in a scenario: a clamped piece's and an experiment load's segment ends typed a little
+    off the edge are moved onto it, each logged with its field (the segments of every
+    experiment's loads, the tissue's clamps as the tissue places them)."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="stitchplan")
+    raw = calibration_raw()
+    raw["tissue"]["clamped"] = [{"segment": [[100.0004, 10.0], [100.0, 50.0]]}]
+    raw["experiments"][0]["loads"][0]["segment"] = [[0.0, 24.0], [0.0002, 36.0]]
+    parse_calibration(raw)
+    records = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert [(level, message.split(": [")[0]) for level, message in records] == [
+        ("WARNING", "tissue.clamped[0].segment[0]"), ("WARNING", "experiments[0].loads[0].segment[1]")]
+    assert records[1][1].startswith("experiments[0].loads[0].segment[1]: [0.0002, 36.0] lies 0.0002 mm off the "
+                                    "boundary of the ")
+
+
 def test_every_problem_of_the_file_at_once():
     raw = calibration_raw()
     raw["tissue"].update(thickness=0, clamped=[], material={"lame_lambda": 0.2, "lame_mu": 0.1})

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from .messages import field_path, value_at
 from ..geometry import (
     CIRCLE_SEGMENTS,
     PolygonDomain,
@@ -152,6 +153,14 @@ def _rounding(value: Any) -> float:
         return 0.0
     return 0.5 * 10.0 ** exponent if isinstance(exponent, int) else 0.0
 
+
+
+def segment_ends(raw: Any, path: tuple, items) -> list[tuple[str, Any, Any]]:
+    """(field, as the file gives it, as the run uses it) of each end of the segments of
+    `items` (the validated list at `path` in the file's data `raw`; items without a segment,
+    a clamped edge named whole, have none): log_moves's points."""
+    return [(field_path("", (*path, i, "segment", k)), value_at(raw, (*path, i, "segment", k)), end)
+            for i, item in enumerate(items) for k, end in enumerate(getattr(item, "segment", ()))]
 
 
 def log_moves(domain: Rectangle | PolygonDomain, moves: list[tuple[str, Any, Any]]) -> None:

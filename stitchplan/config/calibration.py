@@ -36,7 +36,7 @@ from .blocks import (
     shape_domain,
     within_limits,
 )
-from .boundary_points import log_moves
+from .boundary_points import log_moves, segment_ends
 from .fields import (
     MATERIAL_MODELS,
     Name,
@@ -49,7 +49,7 @@ from .fields import (
     problem,
     sequence,
 )
-from .messages import combined, valid_or_none, validate, value_at
+from .messages import combined, valid_or_none, validate
 
 GRID_SCALES = ("log", "linear")
 MarkerFile = Annotated[str, Strict(), Field(min_length=1),
@@ -224,13 +224,9 @@ def parse_calibration(raw: Any) -> CalibrationFile:
             else:
                 raw = {**raw, "discretization": {**given, "spacing": default_spacing_of(size, None)}}
     calibration = validate(CalibrationFile, raw, "", root="calibration", context=context)
-    moves = [(f"tissue.clamped[{i}].segment[{k}]", value_at(raw, ("tissue", "clamped", i, "segment", k)), end)
-             for i, item in enumerate(calibration.tissue.tissue(Material()).clamped)
-             for k, end in enumerate(getattr(item, "segment", ()))]
-    moves += [(f"experiments[{j}].loads[{i}].segment[{k}]",
-               value_at(raw, ("experiments", j, "loads", i, "segment", k)), end)
-              for j, experiment in enumerate(calibration.experiments) for i, load in enumerate(experiment.loads)
-              for k, end in enumerate(load.segment)]
+    moves = segment_ends(raw, ("tissue", "clamped"), calibration.tissue.tissue(Material()).clamped)
+    for j, experiment in enumerate(calibration.experiments):
+        moves += segment_ends(raw, ("experiments", j, "loads"), experiment.loads)
     if context["domain"] is not None:
         log_moves(context["domain"], moves)
     return calibration

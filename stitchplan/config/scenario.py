@@ -33,7 +33,8 @@ from .blocks import (
     parse_discretization,
     shape_domain,
 )
-from .boundary_points import inside_expectation, log_moves, placed, probe_in_tissue, segment_expectation
+from .boundary_points import (inside_expectation, log_moves, placed, probe_in_tissue, segment_ends,
+                              segment_expectation)
 from .fields import (
     EDGES,
     INTEGRATIONS,
@@ -213,13 +214,8 @@ def moved_points(raw: Any, scenario_file: ScenarioFile) -> list[tuple[str, Any, 
     points = []
     if scenario_file.needle is not None:
         points.append(("needle.entry", value_at(raw, ("needle", "entry")), scenario_file.needle.entry))
-    for i, item in enumerate(scenario_file.tissue.clamped):
-        for k, end in enumerate(getattr(item, "segment", ())):
-            points.append((f"tissue.clamped[{i}].segment[{k}]",
-                           value_at(raw, ("tissue", "clamped", i, "segment", k)), end))
-    for i, load in enumerate(scenario_file.loads):
-        for k, end in enumerate(load.segment):
-            points.append((f"loads[{i}].segment[{k}]", value_at(raw, ("loads", i, "segment", k)), end))
+    points += segment_ends(raw, ("tissue", "clamped"), scenario_file.tissue.clamped)
+    points += segment_ends(raw, ("loads",), scenario_file.loads)
     for i, point in enumerate(scenario_file.probes):
         points.append((f"probes[{i}]", value_at(raw, ("probes", i)), point))
     return points
