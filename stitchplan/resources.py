@@ -65,7 +65,8 @@ them all; nothing raises the memory share: a smaller model is the way under it):
   has going on at once together (check_resources `alongside`: a plan's passes, its
   verification's replays in a helper process and its replay at twice the spacing; a
   simulate and its estimate's replay; plan --uncertainty and the sampled plans of its local
-  Dask workers; the largest of a study's runs, as many as its local workers), each helper
+  Dask workers; the largest of a study's runs, as many as its local workers, and the
+  study's own process, which runs none of them, with its interpreter), each helper
   process with its own share of the interpreter (HELPER_BASE_MEMORY), each worker with the
   whole of its own.
 
@@ -617,7 +618,7 @@ def _address_space_left() -> float | None:
 
 def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                     memory: float | None = None, alongside: list[Estimate] | None = None,
-                    forked: bool = True, at_once: int | None = None) -> None:
+                    forked: bool = True, at_once: int | None = None, idle_here: bool = False) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
@@ -633,7 +634,8 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     of `alongside` are forked from this one (helpers, sharing part of its interpreter's
     pages), not started afresh (Dask workers). `at_once`: at most this many of `estimates`
     go on at once (a study's runs on a local cluster's workers, one each): the largest are
-    counted together."""
+    counted together. `idle_here`: every run goes on in other processes (`forked` False: a
+    study's on its workers), and this one holds its interpreter (BASE_MEMORY) beside them."""
     memory = available_memory() if memory is None else memory
     lines = []
     for item in estimates:
@@ -659,9 +661,10 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                          "--no-resource-check")
     together = estimates if at_once is None else sorted(estimates, key=lambda item: -item.memory_bytes)[:at_once]
     held = [*together, *(alongside or [])]
-    if not lines and alongside is not None and memory is not None and len(held) > 1 \
-            and held_at_once([item.memory_bytes for item in held], forked) > limits.memory_share * memory:
-        lines.append(_together_refusal(held, limits.memory_share, memory, forked))
+    here = BASE_MEMORY if idle_here else 0.0
+    if not lines and alongside is not None and memory is not None and (len(held) > 1 or idle_here) \
+            and here + held_at_once([item.memory_bytes for item in held], forked) > limits.memory_share * memory:
+        lines.append(_together_refusal(held, limits.memory_share, memory, forked, here))
     if lines:
         error = InputError("\n".join(lines))
         error.lines = lines
@@ -712,20 +715,22 @@ def held_at_once(memory_bytes: list[float], forked: bool = True) -> float:
     return BASE_MEMORY + sum(amount - BASE_MEMORY for amount in memory_bytes) + helpers * HELPER_BASE_MEMORY
 
 
-def _together_refusal(held: list[Estimate], share: float, memory: float, forked: bool = True) -> str:
+def _together_refusal(held: list[Estimate], share: float, memory: float, forked: bool = True,
+                      here: float = 0.0) -> str:
     """The line refusing runs that each fit the memory share but not all at once: it names
     what drives the largest (what it could take, with the others' models left out of the
-    share) and lists every run's estimate. The others follow the same fields (a spacing, a
-    needle step), so what lowers the largest lowers them too."""
+    share) and lists every run's estimate, and `here`, the bytes this process holds beside
+    them when it runs none of them. The others follow the same fields (a spacing, a needle
+    step), so what lowers the largest lowers them too."""
     largest = max(held, key=lambda item: item.memory_bytes)
-    total = held_at_once([item.memory_bytes for item in held], forked)
+    total = here + held_at_once([item.memory_bytes for item in held], forked)
     # what the largest may take with the others' models beside it: a larger needle step
     # lowers what every run keeps of its steps, so theirs count without it
     others_kept = sum(item.step_memory for item in held) - largest.step_memory
     setting = _memory_setting(largest, share * memory - (total - largest.memory_bytes - others_kept))
     skips = list(dict.fromkeys(item.origin.skip for item in held if item.origin.skip))
     skip = "".join(f"{advice}, " for advice in skips)
-    runs = "; ".join(item.describe() for item in held)
+    runs = "; ".join([item.describe() for item in held] + ([f"this process: {_bytes(here)}"] if here else []))
     return (f"{setting.name}: got {setting.got}, expected runs within {share:.0%} of the {_bytes(memory)} of memory "
             f"available when they run at once ({setting.note}estimated ~{_bytes(total)} together: {runs}); "
             f"{setting.advice}, {skip}or {SKIP_GUARD}")

@@ -528,6 +528,26 @@ def test_the_cli_counts_the_largest_study_runs_its_workers_hold_at_once(tmp_path
     assert past_the_guard(invoke(*arguments, "--workers", 1))
 
 
+def test_a_study_on_workers_counts_this_process_beside_them(tmp_path, monkeypatch):
+    """The study's own process runs none of the runs but holds its interpreter while a local
+    worker holds the largest: where the share fits that run alone but not with the
+    interpreter beside it, one worker is refused too, the line listing this process."""
+    from stitchplan.study.sweep import plan_runs
+
+    raw = scene(needle__step=0.005)
+    runs, reference, repeats = plan_runs(parse_scenario(raw), True)
+    largest = max(estimate(run.scenario, "insertion", "study run", repeats).memory_bytes for run in [*runs, reference])
+    memory = 2.0 * (largest + 0.5 * BASE_MEMORY)  # a share between the run alone and the run with this process
+    invoke = guarded(monkeypatch, memory, "stitchplan.parallel.Executor.__enter__")
+    path = write(tmp_path, raw)
+    code, (line,), _ = invoke("study", path, "--quick", "--out", tmp_path / "study", "--workers", 1)
+    assert code == 2
+    assert "expected runs within 50% of the " in line and "when they run at once" in line, line
+    assert line.count("; study run ") == 0 and "together: study run " in line
+    assert f"; this process: {BASE_MEMORY / 1e6:.3g} MB)" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
 # --- ordinary inputs: unchanged ---------------------------------------------------------------
 
 
