@@ -165,6 +165,22 @@ SCENARIO_CASES = {
     "a friction of 1e7 N/mm": ("plan", scene(needle__friction=1e7),
                                [["scene.yaml: needle.friction: got 10000000.0, expected a number between 0 and 1e+06 "
                                  "(N/mm; a larger force on each millimetre of needle is a unit mistake)"]]),
+    # lengths and points of a scene: the geometry overflowed at 1e300 mm (a traceback), coincided
+    # at 1e-20 mm (NaN in the message of another field) and moved points 40 mm "onto" a 1e8 mm edge
+    "a needle radius of 1e300 mm": ("simulate", scene(needle__radius=1e300),
+                                    [["scene.yaml: needle.radius: got 1e+300, expected a positive number of at most "
+                                      "1000 (mm; a larger needle is a unit mistake)"]]),
+    **{f"a tissue {width:g} mm wide": ("deform", scene(tissue__size=[width, 20.0]),
+                                       [[f"scene.yaml: tissue.size[0]: got {width!r}, expected a positive number of "
+                                         "at most 10000 (mm; a tissue reaching beyond 10000 mm is a unit mistake)"]])
+       for width in (1e300, 1e8)},
+    "an outline vertex at 1e300 mm": ("deform", scene(tissue__size=None, tissue__outline=[[0.0, 0.0], [1e300, 0.0],
+                                                                                         [40.0, 20.0], [0.0, 20.0]]),
+                                      [["scene.yaml: tissue.outline[1][0]: got 1e+300, expected a number between "
+                                        "-10000 and 10000 (mm; a tissue reaching beyond 10000 mm is a unit mistake)"]]),
+    "a hole of radius 1e-20 mm": ("deform", scene(tissue__holes=[{"circle": {"center": [20.0, 10.0], "radius": 1e-20}}]),
+                                  [["scene.yaml: tissue.holes[0].circle.radius: got 1e-20, expected a number between "
+                                    "0.001 and 10000 (mm; a hole below a micrometre"]]),
     "a cutting edge longer than the needle": ("simulate", scene(needle__cutting_length=1000),
                                               [["scene.yaml: needle.cutting_length: got 1000 mm, expected at most "
                                                 "the needle's length 27.9 mm (radius 8.88 mm x arc 3.142 rad)"]]),

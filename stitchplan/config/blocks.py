@@ -47,6 +47,7 @@ from .fields import (
     Flag,
     LinearSolver,
     NeedleStep,
+    Number,
     Point,
     Positive,
     PositiveMM,
@@ -60,6 +61,7 @@ from .fields import (
     pair,
     problem,
     sequence,
+    within,
 )
 from .messages import combined, short, valid_or_none, validate
 
@@ -118,16 +120,39 @@ class Material:
     lame_mu: described(number("a positive number (MPa)", gt=0), "Lamé mu (shear modulus), MPa") = 0.147688
 
 
-Size = pair("a pair [W, H] of positive numbers (mm)", PositiveMM)
+# Lengths and points of a scene beyond 10 m (the robot's frame ends there too, MAX_BASE_OFFSET_MM)
+# are a unit mistake, not a tissue, and so are a circular hole below a micrometre (as a slab
+# thinner than that, THICKNESS_RANGE_MM) and a needle of a radius beyond a metre (a suture
+# needle's is 5-40 mm); at 1e300 mm the geometry overflows and at 1e-20 mm a hole's vertices
+# coincide, failing later without naming the field.
+MAX_SCENE_MM = 10_000.0
+MIN_HOLE_RADIUS_MM = 1e-3
+MAX_NEEDLE_RADIUS_MM = 1_000.0
+_BEYOND = f"(mm; a tissue reaching beyond {MAX_SCENE_MM:g} mm is a unit mistake)"
+SceneLength = Annotated[PositiveMM, within(0.0, MAX_SCENE_MM, f"a positive number of at most {MAX_SCENE_MM:g} {_BEYOND}"),
+                        Field(json_schema_extra={"maximum": MAX_SCENE_MM})]
+SceneCoordinate = Annotated[Number, within(-MAX_SCENE_MM, MAX_SCENE_MM,
+                                           f"a number between {-MAX_SCENE_MM:g} and {MAX_SCENE_MM:g} {_BEYOND}"),
+                            Field(json_schema_extra={"minimum": -MAX_SCENE_MM, "maximum": MAX_SCENE_MM})]
+ScenePoint = pair("a pair [x, y] of numbers (mm)", SceneCoordinate)
+Size = pair("a pair [W, H] of positive numbers (mm)", SceneLength)
 Edges = sequence(choice(EDGES), "a list of edges among " + ", ".join(EDGES))
-PolygonPoints = sequence(Point, "a list of at least three points [[x, y], ...] (mm)", min_length=3)
-SegmentPoints = pair("two points [[x0, y0], [x1, y1]] (mm)", Point)
+PolygonPoints = sequence(ScenePoint, "a list of at least three points [[x, y], ...] (mm)", min_length=3)
+SegmentPoints = pair("two points [[x0, y0], [x1, y1]] (mm)", ScenePoint)
+HoleRadius = Annotated[PositiveMM, within(MIN_HOLE_RADIUS_MM, MAX_SCENE_MM,
+                                          f"a number between {MIN_HOLE_RADIUS_MM:g} and {MAX_SCENE_MM:g} (mm; a hole "
+                                          f"below a micrometre or a tissue reaching beyond {MAX_SCENE_MM:g} mm is a "
+                                          "unit mistake)"),
+                       Field(json_schema_extra={"minimum": MIN_HOLE_RADIUS_MM, "maximum": MAX_SCENE_MM})]
+NeedleRadius = Annotated[PositiveMM, within(0.0, MAX_NEEDLE_RADIUS_MM, f"a positive number of at most "
+                                            f"{MAX_NEEDLE_RADIUS_MM:g} (mm; a larger needle is a unit mistake)"),
+                         Field(json_schema_extra={"maximum": MAX_NEEDLE_RADIUS_MM})]
 
 
 @block()
 class Circle:
-    center: described(Point, "centre, mm")
-    radius: described(PositiveMM, "radius, mm")
+    center: described(ScenePoint, "centre, mm")
+    radius: described(HoleRadius, f"radius, mm; {MIN_HOLE_RADIUS_MM:g} to {MAX_SCENE_MM:g}")
 
 
 @block()
@@ -519,10 +544,10 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
 
 @block(kw_only=True)
 class Needle:
-    radius: described(PositiveMM, "needle radius, mm")
+    radius: described(NeedleRadius, f"needle radius, mm; at most {MAX_NEEDLE_RADIUS_MM:g}")
     arc: described(number("a positive angle of at most 2*pi rad", gt=0, le=2 * math.pi),
                    "rad swept by the needle body (1/2 circle = pi)") = math.pi
-    entry: described(Point, "reference point on the boundary where the tip enters, mm")
+    entry: described(ScenePoint, "reference point on the boundary where the tip enters, mm")
     turn: described(choice(TURNS), "cw or ccw: the way the tip turns after entry")
     step: described(NeedleStep, "rad of needle rotation per step")
     friction: described(number("a non-negative number (N/mm)", ge=0),

@@ -101,6 +101,18 @@ def described(kind: Any, description: str, **schema: Any) -> Any:
     return Annotated[kind, Field(description=description, **({"json_schema_extra": schema} if schema else {}))]
 
 
+def within(low: float, high: float, expected: str) -> AfterValidator:
+    """Refuses, after the type's own check, a value outside [low, high] with `expected`: a
+    magnitude that is a unit mistake, told as such (a negative length keeps its type's message)."""
+
+    def check(value: float) -> float:
+        if not low <= value <= high:
+            raise problem(expected)
+        return value
+
+    return AfterValidator(check)
+
+
 Number = number("a number (mm)")
 Positive = number("a positive number", gt=0)
 PositiveMM = number("a positive number (mm)", gt=0)

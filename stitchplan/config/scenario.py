@@ -25,6 +25,7 @@ from .blocks import (
     Planner,
     Robot,
     RobotBlock,
+    ScenePoint,
     Solver,
     Tissue,
     block,
@@ -76,7 +77,7 @@ def _probe_inside(point: tuple[float, float], info: ValidationInfo) -> tuple[flo
     return placed(point, info.context, probe_in_tissue)
 
 
-Probes = sequence(Annotated[Point, AfterValidator(_probe_inside)],
+Probes = sequence(Annotated[ScenePoint, AfterValidator(_probe_inside)],
                   "a list of reference points [[x, y], ...] (mm)")
 LoadSteps = integer(1, 10000)
 
