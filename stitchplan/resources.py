@@ -148,6 +148,15 @@ BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan lo
 # at twice the spacing: 40-44 MB of proportional set size against ~11 MB its run is estimated
 # above BASE_MEMORY; benchmarks/results/memory_at_once.md)
 HELPER_BASE_MEMORY = 0.5 * BASE_MEMORY
+# What a command maps after the guard beyond its runs' memory, counted against an address-space
+# limit (`ulimit -v`): the libraries its run loads (cvxopt's and SciPy's OpenBLAS, LAPACK, SuperLU),
+# their buffers and the allocator's reservations. VmPeak - VmSize at the guard: 310 MB for
+# `deform configs/slab_edge_load.yaml` (a run estimated 13 MB above BASE_MEMORY), 158-231 MB for
+# simulate and plan on the shipped needle scenes. The address space a run maps grows ~2.3x as fast
+# as its memory (1824 MB for deform at spacing 1 mm, estimated 798 MB), which the memory share's
+# half covers. Past the limit an allocation fails: SuperLU then spun without end (SIGTERM unheard),
+# CHOLMOD crashed.
+ADDRESS_SPACE_RESERVE = 320e6
 REFERENCE_PARTICLES = 1000.0
 REFERENCE_NEIGHBOURS = 16.0  # (2 x dilation)^2 at dilation 2
 REFERENCE_POINTS_PER_PARTICLE = 4.0  # 2 x 2 Gauss points per cell, one cell per particle
@@ -574,8 +583,8 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
 
 def available_memory() -> float | None:
     """Bytes of memory available now (MemAvailable of /proc/meminfo, else the physical
-    memory), and no more than the process's address-space limit leaves (`ulimit -v`: past
-    it an allocation fails, in CHOLMOD by a crash); None when unknown."""
+    memory), and no more than the process's address-space limit leaves (`ulimit -v`) after
+    ADDRESS_SPACE_RESERVE; None when unknown."""
     memory = _system_memory()
     room = _address_space_left()
     if room is None:
@@ -599,7 +608,7 @@ def _system_memory() -> float | None:
 
 def _address_space_left() -> float | None:
     """Bytes the address-space limit (RLIMIT_AS) leaves above what the process maps now
-    (VmSize), None without a limit."""
+    (VmSize) and ADDRESS_SPACE_RESERVE, None without a limit."""
     try:
         import resource
 
@@ -610,7 +619,7 @@ def _address_space_left() -> float | None:
             mapped = next((float(line.split()[1]) * 1024.0 for line in handle if line.startswith("VmSize:")), 0.0)
     except (ImportError, OSError, ValueError):
         return None
-    return max(float(limit) - mapped, 0.0)
+    return max(float(limit) - mapped - ADDRESS_SPACE_RESERVE, 0.0)
 
 
 # --- the guard ---------------------------------------------------------------------------
@@ -699,8 +708,17 @@ def _particles_refusal(item: Estimate, limit: int) -> str:
 
 def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: float) -> str:
     return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {_bytes(memory)} of "
-            f"memory available{item.origin.derived} ({setting.note}estimated {item.describe()}); "
+            f"memory available{_limited()}{item.origin.derived} ({setting.note}estimated {item.describe()}); "
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
+
+
+def _limited() -> str:
+    """Where the address-space limit sets the memory available, a note saying so (the field a
+    refusal names is what lowers the cost; the limit is what makes it too high)."""
+    room, system = _address_space_left(), _system_memory()
+    if room is None or (system is not None and room > system):
+        return ""
+    return f" under the address-space limit (ulimit -v; {_bytes(ADDRESS_SPACE_RESERVE)} of it kept for libraries)"
 
 
 def held_at_once(memory_bytes: list[float], forked: bool = True) -> float:
@@ -732,7 +750,7 @@ def _together_refusal(held: list[Estimate], share: float, memory: float, forked:
     skip = "".join(f"{advice}, " for advice in skips)
     runs = "; ".join([item.describe() for item in held] + ([f"this process: {_bytes(here)}"] if here else []))
     return (f"{setting.name}: got {setting.got}, expected runs within {share:.0%} of the {_bytes(memory)} of memory "
-            f"available when they run at once ({setting.note}estimated ~{_bytes(total)} together: {runs}); "
+            f"available{_limited()} when they run at once ({setting.note}estimated ~{_bytes(total)} together: {runs}); "
             f"{setting.advice}, {skip}or {SKIP_GUARD}")
 
 

@@ -80,6 +80,25 @@ def test_the_resource_guard_counts_the_address_space_limit(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_an_address_space_limit_counts_what_a_run_maps_beyond_its_memory(tmp_path):
+    """At `ulimit -v 400000` the smallest deform's run (estimated ~107 MB) fitted half of what
+    the limit left (~270 MB), but the libraries and buffers the run maps took the address
+    space past the limit: SuperLU spun at an allocation that failed, for as long as it was
+    left running. The guard now keeps ADDRESS_SPACE_RESERVE of the room for them and refuses."""
+    def capped():
+        resource.setrlimit(resource.RLIMIT_AS, (400_000 * 1024, resource.RLIM_INFINITY))
+
+    run = subprocess.run([sys.executable, "-m", "stitchplan", "deform", "configs/slab_edge_load.yaml",
+                          "--probes-out", str(tmp_path / "probes.csv")], cwd=REPOSITORY, capture_output=True,
+                         preexec_fn=capped, timeout=120)
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.decode().startswith("error: configs/slab_edge_load.yaml: "), run.stderr
+    assert "expected a model within 50% of the " in run.stderr.decode()
+    assert " of memory available under the address-space limit (ulimit -v; 320 MB of it kept for libraries) " \
+        in run.stderr.decode()
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_deleted_working_directory_is_named_for_a_local_cluster(tmp_path):
     """The workers start in the working directory; its absence used to read as 'Nanny failed
     to start' under --workers."""
