@@ -42,8 +42,15 @@ def resolve(schema: dict, node: dict) -> dict:
 def problems(schema: dict, node: dict, value, path: str = "scenario") -> list[str]:
     """Where `value` breaks `node`: the keywords pydantic's schemas use ($ref, anyOf, type,
     enum, properties, required, additionalProperties, items, prefixItems, min/maxItems,
-    minimum, maximum, exclusiveMinimum, minLength)."""
+    minimum, maximum, exclusiveMinimum, minLength) and the blocks add (oneOf of required
+    keys that are not null, uniqueItems)."""
     node = resolve(schema, node)
+    if "not" in node:
+        return [] if problems(schema, node["not"], value, path) else [f"{path}: matches what is forbidden"]
+    if "oneOf" in node and isinstance(value, dict):
+        matching = [option for option in node["oneOf"] if not problems(schema, option, value, path)]
+        if len(matching) != 1:
+            return [f"{path}: matches {len(matching)} of oneOf {[option['required'] for option in node['oneOf']]}"]
     if "anyOf" in node:
         options = [problems(schema, option, value, path) for option in node["anyOf"]
                    if value is None or option.get("type") != "null"]
@@ -65,6 +72,8 @@ def problems(schema: dict, node: dict, value, path: str = "scenario") -> list[st
                             ("minItems", lambda b: len(value) < b), ("maxItems", lambda b: len(value) > b)):
         if keyword in node and broken(node[keyword]):
             found.append(f"{path}: breaks {keyword} {node[keyword]}")
+    if node.get("uniqueItems") and len({json.dumps(item, sort_keys=True) for item in value}) < len(value):
+        found.append(f"{path}: breaks uniqueItems")
     if isinstance(value, dict):
         properties = node.get("properties", {})
         found += [f"{path}.{key}: required" for key in node.get("required", []) if key not in value]
@@ -164,6 +173,27 @@ def test_the_check_refuses_what_the_schema_forbids(schema, slab_raw):
         "scenario.tissue.material.model: 'mooney-rivlin' not in ['saint-venant-kirchhoff', 'neo-hookean']",
         "scenario.tissue.thickness: breaks exclusiveMinimum 0",
     ]
+
+
+def test_the_schema_refuses_a_load_of_both_kinds_and_an_edge_clamped_twice(schema, slab_raw):
+    """As the tool does: a load gives exactly one of force and displacement, a hole one of
+    polygon and circle, and an edge is clamped at most once (the schema let all of them
+    through, so an editor's check disagreed with the command)."""
+    raw = copy.deepcopy(slab_raw)
+    raw["tissue"]["clamped"] = ["right", "right"]
+    raw["tissue"]["holes"] = [{"polygon": [[40, 20], [60, 20], [50, 30]], "circle": {"center": [50, 50], "radius": 5}}]
+    raw["loads"] = [{**raw["loads"][0], "displacement": [1.0, 0.0], "force": [1.0, 0.0]},
+                    {"segment": raw["loads"][0]["segment"]}]
+    assert sorted(problems(schema, schema, raw)) == [
+        "scenario.loads[0]: matches 2 of oneOf [['force'], ['displacement']]",
+        "scenario.loads[1]: matches 0 of oneOf [['force'], ['displacement']]",
+        "scenario.tissue.clamped: breaks uniqueItems",
+        "scenario.tissue.holes[0]: matches 2 of oneOf [['polygon'], ['circle']]",
+    ]
+    jsonschema = pytest.importorskip("jsonschema")
+    errors = sorted(jsonschema.Draft202012Validator(schema).iter_errors(raw), key=lambda e: list(e.absolute_path))
+    assert [list(error.absolute_path) for error in errors] == [
+        ["loads", 0], ["loads", 1], ["tissue", "clamped"], ["tissue", "holes", 0]]
 
 
 def test_jsonschema_agrees_when_installed(schema, slab_raw):

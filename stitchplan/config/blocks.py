@@ -66,8 +66,11 @@ from .fields import (
 from .messages import combined, short, valid_or_none, validate
 
 
-def _file_schema(required: tuple[str, ...], schema: dict) -> None:
-    """Fields a file must give although Python callers may leave them to their defaults."""
+def _file_schema(required: tuple[str, ...], one_of: tuple[str, ...], schema: dict) -> None:
+    """Fields a file must give although Python callers may leave them to their defaults, and
+    the fields of which a file gives exactly one (not null)."""
+    if one_of:
+        schema["oneOf"] = [{"required": [name], "properties": {name: {"not": {"type": "null"}}}} for name in one_of]
     if required:
         schema["required"] = sorted(set(schema.get("required", [])) | set(required))
         for name in required:
@@ -96,14 +99,17 @@ def _required_in_files(names: tuple[str, ...]):
     return model_validator(mode="wrap")(check)
 
 
-def block(*, file_required: tuple[str, ...] = (), title: str | None = None, **options):
+def block(*, file_required: tuple[str, ...] = (), one_of: tuple[str, ...] = (), title: str | None = None,
+          **options):
     """A frozen pydantic dataclass refusing unknown keys and non-finite numbers.
-    `file_required`: keys a file must give although the class has defaults for them."""
+    `file_required`: keys a file must give although the class has defaults for them;
+    `one_of`: keys of which a file gives exactly one (checked by the class, told to the JSON
+    Schema)."""
 
     def make(cls):
         if file_required:
             cls._file_required = _required_in_files(file_required)
-        config = ConfigDict(**BLOCK, json_schema_extra=functools.partial(_file_schema, file_required))
+        config = ConfigDict(**BLOCK, json_schema_extra=functools.partial(_file_schema, file_required, one_of))
         if title:
             config["title"] = title
         return dataclass(frozen=True, config=config, **options)(cls)
@@ -155,7 +161,7 @@ class Circle:
     radius: described(HoleRadius, f"radius, mm; {MIN_HOLE_RADIUS_MM:g} to {MAX_SCENE_MM:g}")
 
 
-@block()
+@block(one_of=("polygon", "circle"))
 class Hole:
     """A cut-out with free edges: a polygon or a circle (held as a polygon of
     geometry.CIRCLE_SEGMENTS edges with its vertices on the circle)."""
@@ -195,7 +201,8 @@ def counter_clockwise(vertices: np.ndarray) -> np.ndarray:
 
 Clamp = Annotated[Literal[EDGES] | ClampedSegment, Field(union_mode="left_to_right"),
                   expecting("an edge among " + ", ".join(EDGES) + " or {segment: [[x0, y0], [x1, y1]]}")]
-Clamps = sequence(Clamp, "a list of edges or {segment: ...} pieces of the boundary")
+Clamps = Annotated[sequence(Clamp, "a list of edges or {segment: ...} pieces of the boundary"),
+                   Field(json_schema_extra={"uniqueItems": True})]  # each edge at most once (Tissue)
 
 
 # Magnitudes beyond which a file's value is a unit mistake, not a tissue or a needle (as a
@@ -614,7 +621,7 @@ LoadForce = number(f"a number between {-MAX_LOAD_FORCE_N:g} and {MAX_LOAD_FORCE_
                    "on tissue is a unit mistake)", ge=-MAX_LOAD_FORCE_N, le=MAX_LOAD_FORCE_N)
 
 
-@block()
+@block(one_of=("force", "displacement"))
 class Load:
     segment: described(SegmentPoints, "straight piece of one edge, mm")
     force: described(pair("a pair [fx, fy] of numbers (N)", LoadForce) | None,
