@@ -49,17 +49,19 @@ def run_attributes(command: str, scenario, provenance: dict | None = None) -> di
 
 
 def discretization_summary(model) -> dict:
-    d = model.discretization
+    """Of a TissueModel or its ModelOutline (a replay from the helper process)."""
+    outline = model.outline()
+    d = outline.discretization
     return {
-        "particles": model.n_particles,
-        "spacing_mm": float(model.support.max() / d.dilation),  # the coarsest, for graded particles
-        "needle_spacing_mm": model.needle_spacing if d.needle_spacing is not None else None,
+        "particles": outline.n_particles,
+        "spacing_mm": outline.coarsest_spacing,  # the coarsest, for graded particles
+        "needle_spacing_mm": outline.needle_spacing if d.needle_spacing is not None else None,
         "needle_zone_radii": d.needle_zone if d.needle_spacing is not None else None,
         "dilation": d.dilation,
         "quadrature_order": d.quadrature_order,
         "basis_order": d.basis_order,
         "integration": d.integration,
-        "quadrature_points": len(model.quadrature_weights),
+        "quadrature_points": outline.quadrature_points,
     }
 
 

@@ -63,7 +63,7 @@ class NeedleStep:
 @dataclass
 class InsertionResult:
     scenario: Scenario
-    model: TissueModel
+    model: TissueModel  # a ModelOutline for a replay made in the helper process (planning/replays.py)
     geometry: NeedleGeometry
     steps: list[NeedleStep]
     displacements: np.ndarray  # (n_steps + 1, NP, 2) particle displacements, step 0 = rest

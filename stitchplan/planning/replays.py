@@ -20,7 +20,9 @@ starts a path known from the start (`simulate`'s estimate run) at once.
 Both kinds replay with run_insertion on the same inputs, one model kept for all their
 replays, each replay started from the one returned before it (run_insertion
 `start_from`, as the verification rounds want), so a result does not depend on where it
-ran (tests/test_replays.py). The helper is used where it can be: Linux (fork is its own
+ran (tests/test_replays.py); the helper sends it without its states and with its model's
+outline for the model (tissue.model.ModelOutline: what the summaries read), which is all the
+command reads of a replay. The helper is used where it can be: Linux (fork is its own
 way of starting a process; macOS's system libraries are not fork-safe), two or more cores,
 one thread in this process (forking a threaded process can deadlock the child), and
 STITCHPLAN_REPLAY_HELPER not 0; `replays_for` falls back to `InlineReplays` otherwise.
@@ -376,8 +378,11 @@ def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: i
             if job != message[1]:
                 result, error = None, RuntimeError(f"no replay for job {message[1]}")
             try:
+                # without its states and its model's matrices (~27 MB on the refined SH 1/2 model,
+                # ~0.1 s to pickle, send and load): the command reads only the outline of a replay's model
                 connection.send(("result", message[1],
-                                 None if result is None else replace(result, states=[]), error, steps_run))
+                                 None if result is None else replace(result, states=[], model=result.model.outline()),
+                                 error, steps_run))
             except OSError:  # the main process is gone
                 return
             steps_run = 0

@@ -27,6 +27,23 @@ from .thin_features import refuse_thin_tissue, singular_moment_message
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class ModelOutline:
+    """What a run's summary tells of its model (io.reports.discretization_summary) without
+    its matrices: a replay made in a helper process comes back with it, as the model's
+    operators and shape functions are ~27 MB to pickle and send on the refined SH 1/2 model
+    (planning/replays.py)."""
+
+    discretization: Discretization
+    n_particles: int
+    coarsest_spacing: float  # mm: the largest support over the dilation (graded particles)
+    needle_spacing: float | None
+    quadrature_points: int
+
+    def outline(self) -> ModelOutline:
+        return self
+
+
 @dataclass
 class TissueModel:
     """Particles, RK shape functions at the quadrature points and the boundary transformation.
@@ -75,6 +92,12 @@ class TissueModel:
     @property
     def n_free(self) -> int:
         return self.boundary.n_free
+
+    def outline(self) -> ModelOutline:
+        """What a run's summary tells of this model, without its matrices."""
+        return ModelOutline(self.discretization, self.n_particles,
+                            float(self.support.max() / self.discretization.dilation), self.needle_spacing,
+                            len(self.quadrature_weights))
 
     def _shape_pairs(self, points: np.ndarray, gradients: bool) -> ShapePairs:
         return rk_shape_pairs(points, self.particles, self.support, self.volumes,
