@@ -180,7 +180,7 @@ SCENARIO_CASES = {
                                         "-10000 and 10000 (mm; a tissue reaching beyond 10000 mm is a unit mistake)"]]),
     "a hole of radius 1e-20 mm": ("deform", scene(tissue__holes=[{"circle": {"center": [20.0, 10.0], "radius": 1e-20}}]),
                                   [["scene.yaml: tissue.holes[0].circle.radius: got 1e-20, expected a number between "
-                                    "0.001 and 10000 (mm; a hole below a micrometre"]]),
+                                    "1e-06 and 10000 (mm; a hole below a nanometre"]]),
     "a cutting edge longer than the needle": ("simulate", scene(needle__cutting_length=1000),
                                               [["scene.yaml: needle.cutting_length: got 1000 mm, expected at most "
                                                 "the needle's length 27.9 mm (radius 8.88 mm x arc 3.142 rad)"]]),

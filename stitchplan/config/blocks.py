@@ -127,12 +127,12 @@ class Material:
 
 
 # Lengths and points of a scene beyond 10 m (the robot's frame ends there too, MAX_BASE_OFFSET_MM)
-# are a unit mistake, not a tissue, and so are a circular hole below a micrometre (as a slab
-# thinner than that, THICKNESS_RANGE_MM) and a needle of a radius beyond a metre (a suture
-# needle's is 5-40 mm); at 1e300 mm the geometry overflows and at 1e-20 mm a hole's vertices
-# coincide, failing later without naming the field.
+# are a unit mistake, not a tissue, and so are a circular hole below a nanometre (a hole of
+# 0.1 um still runs: tests/test_thin_features.py) and a needle of a radius beyond a metre (a
+# suture needle's is 5-40 mm); at 1e300 mm the geometry overflows and at 1e-20 mm a hole's
+# vertices coincide, failing later without naming the field.
 MAX_SCENE_MM = 10_000.0
-MIN_HOLE_RADIUS_MM = 1e-3
+MIN_HOLE_RADIUS_MM = 1e-6
 MAX_NEEDLE_RADIUS_MM = 1_000.0
 _BEYOND = f"(mm; a tissue reaching beyond {MAX_SCENE_MM:g} mm is a unit mistake)"
 SceneLength = Annotated[PositiveMM, within(0.0, MAX_SCENE_MM, f"a positive number of at most {MAX_SCENE_MM:g} {_BEYOND}"),
@@ -147,7 +147,7 @@ PolygonPoints = sequence(ScenePoint, "a list of at least three points [[x, y], .
 SegmentPoints = pair("two points [[x0, y0], [x1, y1]] (mm)", ScenePoint)
 HoleRadius = Annotated[PositiveMM, within(MIN_HOLE_RADIUS_MM, MAX_SCENE_MM,
                                           f"a number between {MIN_HOLE_RADIUS_MM:g} and {MAX_SCENE_MM:g} (mm; a hole "
-                                          f"below a micrometre or a tissue reaching beyond {MAX_SCENE_MM:g} mm is a "
+                                          f"below a nanometre or a tissue reaching beyond {MAX_SCENE_MM:g} mm is a "
                                           "unit mistake)"),
                        Field(json_schema_extra={"minimum": MIN_HOLE_RADIUS_MM, "maximum": MAX_SCENE_MM})]
 NeedleRadius = Annotated[PositiveMM, within(0.0, MAX_NEEDLE_RADIUS_MM, f"a positive number of at most "
