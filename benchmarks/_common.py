@@ -6,6 +6,7 @@ puts benchmarks/ on sys.path, so `import _common` finds this file.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -14,6 +15,7 @@ import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -71,6 +73,38 @@ def config_command(name: str, config: Path, options: Sequence[str], folder: Path
     export = ["--export", str(folder / "trajectory.csv")] if name == "plan" else []
     return timed_command([name, str(config), *options, *export, "--summary", str(summary)], summary, cwd,
                          **environment)
+
+
+@contextlib.contextmanager
+def against(revision: str):
+    """The code of `revision` extracted (extract_revision) and two scratch folders (before,
+    now) for `alternated`, removed afterwards."""
+    with tempfile.TemporaryDirectory() as extracted, tempfile.TemporaryDirectory() as scratch:
+        folders = (Path(scratch) / "before", Path(scratch) / "now")
+        for folder in folders:
+            folder.mkdir()
+        yield extract_revision(revision, Path(extracted)), folders
+
+
+def alternated(name: str, scene: str, options: Sequence[str], baseline: Path, folders: tuple[Path, Path],
+               repeats: int, compared: Sequence[str]) -> list:
+    """scene_command of the code in `baseline` and of this code, alternating `repeats` times,
+    each writing into its own of `folders` (against): the two medians (s), their ratio (now
+    over before), how many pairs this code won, and whether every pair's summaries agree on
+    the `compared` keys and (for `plan`) their trajectories byte for byte ("yes" / "no")."""
+    before_folder, now_folder = folders
+    before, now, same = [], [], True
+    for _ in range(repeats):
+        seconds, old = scene_command(name, scene, options, before_folder, baseline)
+        before.append(seconds)
+        seconds, new = scene_command(name, scene, options, now_folder, REPO_ROOT)
+        now.append(seconds)
+        same &= all(old.get(key) == new.get(key) for key in compared)
+        if name == "plan":
+            same &= (before_folder / "trajectory.csv").read_bytes() == (now_folder / "trajectory.csv").read_bytes()
+    won = sum(b > n for b, n in zip(before, now))
+    return [statistics.median(before), statistics.median(now), statistics.median(now) / statistics.median(before),
+            f"{won} of {repeats}", "yes" if same else "no"]
 
 
 def worker_record(script: str, source: Path, *arguments: str) -> dict:
@@ -179,6 +213,12 @@ def write_report(name: str, lines: Sequence[str]) -> None:
     results_path(name).write_text(text)
     print()
     print(text)
+
+
+def write_results(stem: str, header: Sequence[str], rows: Sequence[Sequence[object]], lines: Sequence[str]) -> None:
+    """results/STEM.csv, and results/STEM.md: `lines` (title and text) and the table."""
+    write_csv(results_path(f"{stem}.csv"), header, rows)
+    write_report(f"{stem}.md", [*lines, "", markdown_table(header, rows)])
 
 
 def machine_note() -> str:
