@@ -62,7 +62,7 @@ NEWTON_TOLERANCES = {"mortar": (1e-3, 1e-7), "points": (5e-6, 1e-9)}
 ANDERSON_DEPTH = 5  # steps mixed by the accelerated modified Newton (AndersonMixing)
 # with the centre prescribed (unplanned runs, replays of a trajectory) the same depth so far: a
 # depth of 1 took 2 % fewer iterations over the refined replays of the shipped trajectories and 6 %
-# over those at twice the spacing, 2-6 % less time on six of the seven refined replays and 2 % more
+# over those at twice the spacing, 1.6-6 % less time on six of the seven refined replays and 2 % more
 # on wound_closure's (benchmarks/results/anderson_depth.md), but it moves the exit errors by up to
 # 1.5e-4 mm, within the needle steps' tolerances, past the regression pins and the sample runs,
 # which would be re-pinned and regenerated with it
