@@ -27,8 +27,14 @@ class Assembler:
     def __init__(self, model: TissueModel):
         self.model = model
         self.gradient = model.gradient
-        test = model.gradient if model.test_gradient is None else model.test_gradient
-        self.gradient_t = test.T.tocsr()  # B^T, or B~^T of the corrected test functions
+        self._test = model.gradient if model.test_gradient is None else model.test_gradient
+        # B^T (or B~^T of the corrected test functions) as the CSC view of B: a product with a
+        # vector adds each entry's terms in the order the CSR transpose does, to the last bit,
+        # from the arrays of B itself, one matrix less in memory beside the factor (the refined
+        # replay of sh12_100x100 in 0.94x the time, benchmarks/results/transposed_gradient.md);
+        # the CSR transpose is made for the explicit K only (tangent_matrix)
+        self.gradient_t = self._test.T
+        self._gradient_t_rows: sp.csr_matrix | None = None
         n_points = len(model.quadrature_weights)
         # block-diagonal (4 x 4 per point) as CSR with a fixed pattern: data order is (q, r, c)
         cols = (4 * np.arange(n_points)[:, None, None] + np.zeros((1, 4, 1), int) + np.arange(4)).ravel()
@@ -74,7 +80,9 @@ class Assembler:
     def tangent_matrix(self) -> sp.csr_matrix:
         """Explicit K at the last update (eq. 3.45)."""
         self._refresh_tangent()
-        return (self.gradient_t @ (self._pointwise @ self.gradient)).tocsr()
+        if self._gradient_t_rows is None:
+            self._gradient_t_rows = self._test.T.tocsr()
+        return (self._gradient_t_rows @ (self._pointwise @ self.gradient)).tocsr()
 
     def force_and_tangent(self, deformation_gradient: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
         internal = self.update(deformation_gradient)
