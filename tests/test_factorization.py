@@ -90,6 +90,33 @@ def test_cholesky_solves_like_superlu_and_falls_back_silently_where_not_positive
 
 
 @pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cvxopt) is not installed")
+def test_cholmods_matrix_is_the_lower_triangle_in_column_order():
+    """cholmod_matrix stores tril(A) as CHOLMOD keeps it (columns, rows ascending in each), the
+    values as given: for a canonical matrix and for one with unsorted and duplicate entries
+    (summed), which is left as it was."""
+    from stitchplan.tissue.factorization import cholmod_matrix
+
+    canonical = spd_matrix(30)
+    rng = np.random.default_rng(5)
+    # each row's entries given twice, as halves, in a shuffled order: CSR arrays as they are
+    row_of = np.repeat(np.arange(canonical.shape[0]), np.diff(canonical.indptr))
+    doubled = np.concatenate([np.arange(canonical.nnz)] * 2)
+    doubled = doubled[np.lexsort((rng.random(len(doubled)), row_of[doubled]))]
+    duplicated = sp.csr_matrix((canonical.data[doubled] / 2, canonical.indices[doubled], 2 * canonical.indptr),
+                               shape=canonical.shape)
+    assert duplicated.nnz == 2 * canonical.nnz and not duplicated.has_canonical_format
+    given = (duplicated.data.copy(), duplicated.indices.copy(), duplicated.indptr.copy())
+    for matrix in (canonical, duplicated):
+        stored = cholmod_matrix(matrix)
+        expected = sp.tril(matrix, format="csc")
+        expected.sum_duplicates()
+        colptr, rows, values = (np.array(part).ravel() for part in stored.CCS)
+        assert np.array_equal(colptr, expected.indptr) and np.array_equal(rows, expected.indices)
+        np.testing.assert_allclose(values, expected.data, rtol=1e-15, atol=0)
+    assert all(np.array_equal(a, b) for a, b in zip(given, (duplicated.data, duplicated.indices, duplicated.indptr)))
+
+
+@pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cvxopt) is not installed")
 def test_an_indefinite_factor_imports_no_scipy_sparse_linalg():
     """With CHOLMOD a symmetric indefinite matrix (K + H of the narrow SH 1/2 blocks) is
     factored without SuperLU, whose scipy.sparse.linalg costs ~0.07 s of start-up."""
