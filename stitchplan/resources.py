@@ -627,7 +627,7 @@ def _address_space_left() -> float | None:
 
 def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                     memory: float | None = None, alongside: list[Estimate] | None = None,
-                    forked: bool = True, at_once: int | None = None, idle_here: bool = False) -> None:
+                    forked: bool = True, workers: int | None = None) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
@@ -641,10 +641,10 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     three hold as much (a plan at a small needle step: its own passes, its verification's
     replays and the predicted aim's each keep their steps' states). `forked`: the processes
     of `alongside` are forked from this one (helpers, sharing part of its interpreter's
-    pages), not started afresh (Dask workers). `at_once`: at most this many of `estimates`
-    go on at once (a study's runs on a local cluster's workers, one each): the largest are
-    counted together. `idle_here`: every run goes on in other processes (`forked` False: a
-    study's on its workers), and this one holds its interpreter (BASE_MEMORY) beside them."""
+    pages), not started afresh (Dask workers). `workers`: the runs of `estimates` go on in
+    this many worker processes, one each at a time and none in this process (a study's on a
+    local cluster): the largest `workers` of them are counted together, beside this process's
+    interpreter (BASE_MEMORY)."""
     memory = available_memory() if memory is None else memory
     lines = []
     for item in estimates:
@@ -668,10 +668,10 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
                          f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
                          "--no-resource-check")
-    together = estimates if at_once is None else sorted(estimates, key=lambda item: -item.memory_bytes)[:at_once]
+    together = estimates if workers is None else sorted(estimates, key=lambda item: -item.memory_bytes)[:workers]
     held = [*together, *(alongside or [])]
-    here = BASE_MEMORY if idle_here else 0.0
-    if not lines and alongside is not None and memory is not None and (len(held) > 1 or idle_here) \
+    here = 0.0 if workers is None else BASE_MEMORY
+    if not lines and alongside is not None and memory is not None and (len(held) > 1 or workers is not None) \
             and here + held_at_once([item.memory_bytes for item in held], forked) > limits.memory_share * memory:
         lines.append(_together_refusal(held, limits.memory_share, memory, forked, here))
     if lines:

@@ -389,7 +389,7 @@ def study(
     _guard(scenario_path, _limits(max_particles, no_resource_check),
            *[("insertion", run.scenario, f"study run {run.label!r}", repeats, origin(run))
              for run in [*runs, reference]],
-           alongside=[] if workers else None, forked=False, at_once=workers, idle_here=bool(workers))
+           alongside=[] if workers else None, forked=False, workers=workers or None)
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
                            executor=executor)

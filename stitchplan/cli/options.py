@@ -236,16 +236,16 @@ def _limits(max_particles: Optional[int], no_resource_check: bool):
 
 def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
            linear_solver: Optional[str] = None, alongside: Optional[list] = None, forked: bool = True,
-           at_once: Optional[int] = None, idle_here: bool = False) -> None:
+           workers: Optional[int] = None) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.Origin of the run's discretization (default: the file's, with the fields in
     `names` set by options, _option_names); `linear_solver`: the --linear-solver option;
     `alongside`: runs of the same form in helper processes at the same time, counted in the
     memory held at once with `runs` (resources.check_resources; None: `runs` do not go on at
-    once), in processes `forked` from this one or (False) Dask workers; `at_once`: at most
-    this many of `runs` go on at once (check_resources), `idle_here`: all of them on workers
-    (check_resources). Lines name the file, or the option."""
+    once), in processes `forked` from this one or (False) Dask workers; `workers`: `runs` go
+    on in this many worker processes, none here (check_resources). Lines name the file, or
+    the option."""
     if limits is None:
         return
     from ..resources import Origin, check_resources, estimate
@@ -257,7 +257,7 @@ def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = No
 
     with _naming_files(scenario_path):
         check_resources(estimates(runs), limits, alongside=None if alongside is None else estimates(alongside),
-                        forked=forked, at_once=at_once, idle_here=idle_here)
+                        forked=forked, workers=workers)
 
 
 def _estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:

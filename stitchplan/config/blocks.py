@@ -135,24 +135,19 @@ MAX_SCENE_MM = 10_000.0
 MIN_HOLE_RADIUS_MM = 1e-6
 MAX_NEEDLE_RADIUS_MM = 1_000.0
 _BEYOND = f"(mm; a tissue reaching beyond {MAX_SCENE_MM:g} mm is a unit mistake)"
-SceneLength = Annotated[PositiveMM, within(0.0, MAX_SCENE_MM, f"a positive number of at most {MAX_SCENE_MM:g} {_BEYOND}"),
-                        Field(json_schema_extra={"maximum": MAX_SCENE_MM})]
-SceneCoordinate = Annotated[Number, within(-MAX_SCENE_MM, MAX_SCENE_MM,
-                                           f"a number between {-MAX_SCENE_MM:g} and {MAX_SCENE_MM:g} {_BEYOND}"),
-                            Field(json_schema_extra={"minimum": -MAX_SCENE_MM, "maximum": MAX_SCENE_MM})]
+SceneLength = within(PositiveMM, MAX_SCENE_MM, f"a positive number of at most {MAX_SCENE_MM:g} {_BEYOND}")
+SceneCoordinate = within(Number, MAX_SCENE_MM, f"a number between {-MAX_SCENE_MM:g} and {MAX_SCENE_MM:g} {_BEYOND}",
+                         low=-MAX_SCENE_MM)
 ScenePoint = pair("a pair [x, y] of numbers (mm)", SceneCoordinate)
 Size = pair("a pair [W, H] of positive numbers (mm)", SceneLength)
 Edges = sequence(choice(EDGES), "a list of edges among " + ", ".join(EDGES))
 PolygonPoints = sequence(ScenePoint, "a list of at least three points [[x, y], ...] (mm)", min_length=3)
 SegmentPoints = pair("two points [[x0, y0], [x1, y1]] (mm)", ScenePoint)
-HoleRadius = Annotated[PositiveMM, within(MIN_HOLE_RADIUS_MM, MAX_SCENE_MM,
-                                          f"a number between {MIN_HOLE_RADIUS_MM:g} and {MAX_SCENE_MM:g} (mm; a hole "
-                                          f"below a nanometre or a tissue reaching beyond {MAX_SCENE_MM:g} mm is a "
-                                          "unit mistake)"),
-                       Field(json_schema_extra={"minimum": MIN_HOLE_RADIUS_MM, "maximum": MAX_SCENE_MM})]
-NeedleRadius = Annotated[PositiveMM, within(0.0, MAX_NEEDLE_RADIUS_MM, f"a positive number of at most "
-                                            f"{MAX_NEEDLE_RADIUS_MM:g} (mm; a larger needle is a unit mistake)"),
-                         Field(json_schema_extra={"maximum": MAX_NEEDLE_RADIUS_MM})]
+HoleRadius = within(PositiveMM, MAX_SCENE_MM,
+                    f"a number between {MIN_HOLE_RADIUS_MM:g} and {MAX_SCENE_MM:g} (mm; a hole below a nanometre "
+                    f"or a tissue reaching beyond {MAX_SCENE_MM:g} mm is a unit mistake)", low=MIN_HOLE_RADIUS_MM)
+NeedleRadius = within(PositiveMM, MAX_NEEDLE_RADIUS_MM, f"a positive number of at most {MAX_NEEDLE_RADIUS_MM:g} "
+                      "(mm; a larger needle is a unit mistake)")
 
 
 @block()

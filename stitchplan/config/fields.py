@@ -101,16 +101,18 @@ def described(kind: Any, description: str, **schema: Any) -> Any:
     return Annotated[kind, Field(description=description, **({"json_schema_extra": schema} if schema else {}))]
 
 
-def within(low: float, high: float, expected: str) -> AfterValidator:
-    """Refuses, after the type's own check, a value outside [low, high] with `expected`: a
-    magnitude that is a unit mistake, told as such (a negative length keeps its type's message)."""
+def within(kind: Any, high: float, expected: str, low: float | None = None) -> Any:
+    """`kind` refusing, after its own check, a value above `high` (or below `low`; None: the
+    kind's own lower bound stands) with `expected`: a magnitude that is a unit mistake, told
+    as such (a negative length keeps its kind's message). The JSON Schema carries the bounds."""
 
     def check(value: float) -> float:
-        if not low <= value <= high:
+        if value > high or (low is not None and value < low):
             raise problem(expected)
         return value
 
-    return AfterValidator(check)
+    schema = {"maximum": high, **({"minimum": low} if low is not None else {})}
+    return Annotated[kind, AfterValidator(check), Field(json_schema_extra=schema)]
 
 
 Number = number("a number (mm)")
