@@ -147,7 +147,8 @@ def switched(changes: dict):
 def levers() -> list[tuple]:
     """The planned run with each lever off in turn: (scene, label, median s, least s, median s of
     tip tracking, Newton iterations, linear solves, right-hand-side columns they took,
-    factorizations, planned exit error mm)."""
+    factorizations, planned exit error mm); the counts are every planner pass's, as the plan
+    summary's (planning.planner.planning_work)."""
     from dataclasses import replace
 
     import numpy as np
@@ -299,13 +300,13 @@ def levers() -> list[tuple]:
                 runs.append(planner.run_plan(scenario, compare=False))
     rows = []
     for (scene, label, _, _), runs in zip(settings, results):
-        planned = runs[-1].planned
-        counts = planned.solver_counts
+        work = planner.planning_work(runs[-1])  # every pass's, as the summary counts them
+        counts = work["solver"]
         rows.append((scene, label, statistics.median(r.planned.wall_seconds for r in runs),
                      min(r.planned.wall_seconds for r in runs),
                      statistics.median(r.planned.timings["tip_tracking"] for r in runs),
-                     sum(s.newton_iterations for s in planned.steps), counts["linear_solves"],
-                     counts["solved_columns"], counts["factorizations"], planned.exit_error_mm))
+                     work["newton_iterations"], counts["linear_solves"],
+                     counts["solved_columns"], counts["factorizations"], runs[-1].planned.exit_error_mm))
         print(f"{scene} {label}: {rows[-1][2]:.2f} s (least {rows[-1][3]:.2f} s), {rows[-1][5]} Newton iterations",
               flush=True)
     assert saddle_point.factorize is chosen and planner.run_insertion is shared_run
@@ -516,9 +517,8 @@ def main() -> None:
         "Newton: every iteration of every solve, now one equilibrium solve per step (the centre is an "
         f"unknown of the step's Newton solve); {BASELINE}'s summary counted only the last solve of each "
         "step, so its counts are not comparable and are left out. Where a second pass ran (sh12_100x30), "
-        "the steps it takes over from the first pass (planning/planner.py PassPrefix) count the first pass's "
-        "wall time, Newton iterations and equilibrium solves; linear solves and factorizations are those "
-        "of the kept pass's own run.\n",
+        "the counts are both passes' (the summary's totals), and the steps it takes over from the first "
+        "pass (planning/planner.py PassPrefix) have the first pass's wall times.\n",
         common.markdown_table(
             ["scene", "particles", "steps", f"planned run {BASELINE} (s)", "planned run now (s)", "speed-up",
              "now with SuperLU only (s)", "speed-up with SuperLU", "now, replays in the process (s)",

@@ -11,8 +11,8 @@ faulted in again).
 `reuse_freed_memory` sets both thresholds where glibc's own adjustment ends: arrays up to
 32 MiB come from the heap, and up to 64 MiB (glibc's rule, twice the mmap threshold) stays
 at its top, so what the planner frees is reused rather than faulted in anew. The planned run
-and the whole command get faster and the peak memory stays the same (benchmarks/
-plan_speed.py, the allocator table). Where the process is not on glibc (musl, macOS,
+and the verified plan's whole command get faster (the shorter commands' within the noise) and
+the peak memory stays the same (benchmarks/plan_speed.py, the allocator table). Where the process is not on glibc (musl, macOS,
 Windows), or the user set glibc's MALLOC_MMAP_THRESHOLD_ or MALLOC_TRIM_THRESHOLD_,
 nothing changes.
 """
