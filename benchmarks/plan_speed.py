@@ -508,9 +508,10 @@ def main() -> None:
         "Now: with the installed backend (above); *SuperLU only*: the same code with "
         "STITCHPLAN_LINEAR_BACKEND=superlu, the path without the `fast` extra; *replays in the process*: "
         "STITCHPLAN_REPLAY_HELPER=0, the exit-error estimate's replay at 2h after the planned run in the "
-        "command's process instead of in the forked helper alongside it (planning/replays.py), whose "
-        "copy-on-write page faults slow the planned run a little (benchmarks/results/replay_helper.md), "
-        f"as no helper did at {BASELINE}. Steps: with the installed backend.\n",
+        "command's process instead of in the helper alongside it (planning/replays.py; forked as the "
+        "command starts, stitchplan/early_helper.py), which slows the planned run a little by running "
+        f"at the same time (benchmarks/results/replay_helper.md), as no helper did at {BASELINE}. Steps: "
+        "with the installed backend.\n",
         f"The planned run is the summary's `wall_seconds` of `plan CONFIG --no-compare` at {BASELINE} and of "
         "`plan CONFIG --no-compare --no-verify` now (the same run; verification did not exist then). "
         "Steps: wall time of each needle step (tip tracking, equilibrium and the planner's centre). "

@@ -143,10 +143,12 @@ MINRES_TIME_FACTOR = 5.0
 MEMORY_PER_PARTICLE = 3.6e4  # bytes per particle at 1 000 particles
 MEMORY_EXPONENT = 1.28
 BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan loaded
-# a forked helper process's own share of the interpreter: its pages stay shared with the
-# command's until written, and reference counting writes to many of them (a helper replaying
-# at twice the spacing: 40-44 MB of proportional set size against ~11 MB its run is estimated
-# above BASE_MEMORY; benchmarks/results/memory_at_once.md)
+# a helper process's own share of the interpreter: forked as the command starts
+# (stitchplan/early_helper.py), it imports its own modules, but the pages of the libraries
+# under them (numpy's, scipy's, OpenBLAS) are shared through the page cache (a helper
+# replaying at twice the spacing: 58 MB of proportional set size against ~11 MB its run is
+# estimated above BASE_MEMORY; 40-44 MB when it was forked after the imports, sharing their
+# pages until written; benchmarks/results/memory_at_once.md)
 HELPER_BASE_MEMORY = 0.5 * BASE_MEMORY
 # What a command maps after the guard beyond its runs' memory, counted against an address-space
 # limit (`ulimit -v`): the libraries its run loads (cvxopt's and SciPy's OpenBLAS, LAPACK, SuperLU),

@@ -339,3 +339,54 @@ def _running(pid: int) -> bool:
             return stat.read().split(")")[-1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+@pytest.mark.skipif(not helper_available(), reason="no helper process on this machine")
+def test_the_helper_forked_as_the_command_starts_gives_the_plan_made_without_it(tmp_path):
+    """`stitchplan plan` forks its helper before its imports (stitchplan/early_helper.py) and
+    hands it the scenario later: the trajectory and the verified and estimated errors are
+    those of the replays made in the command's process."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    scene = Path(__file__).resolve().parents[1] / "configs" / "needle20_entry30.yaml"
+    outputs = {}
+    for helper in ("1", "0"):
+        folder = tmp_path / helper
+        run = subprocess.run([sys.executable, "-m", "stitchplan", "plan", str(scene), "--no-compare", "--spacing", "6",
+                              "--export", str(folder / "t.csv"), "--summary", str(folder / "s.json"), "-v"],
+                             capture_output=True, text=True, env={**os.environ, "STITCHPLAN_REPLAY_HELPER": helper})
+        assert run.returncode == 0, run.stderr
+        summary = json.loads((folder / "s.json").read_text())
+        outputs[helper] = ((folder / "t.csv").read_bytes(), summary["verified_exit_error_mm"],
+                           summary["exit_error_estimate_mm"])
+        forked_early = "forked as the command started" in run.stderr
+        assert forked_early == (helper == "1"), run.stderr
+        assert summary["verification"]["replayed_in"] == ("helper process" if helper == "1" else "this process")
+    assert outputs["1"] == outputs["0"]
+
+
+@pytest.mark.skipif(not helper_available(), reason="no helper process on this machine")
+def test_a_helper_forked_for_no_replays_ends(tmp_path):
+    """A command that ends before it asks for its replays (refused input) leaves no helper:
+    it reads the end of its pipe once its imports are done. None is forked for --help, for a
+    plan under uncertainty (its replays run on a cluster) or for another command."""
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from stitchplan import early_helper\n"
+              "for arguments in (['plan', '--help'], ['plan', 'a.yaml', '--uncertainty', 'u.yaml'], ['deform', 'a.yaml']):\n"
+              "    early_helper.start_for(arguments, 'stitchplan.planning.replays:serve')\n"
+              "    assert early_helper._started is None, arguments\n"
+              "early_helper.start_for(['plan', 'a.yaml', '--export', 't.csv'], 'stitchplan.planning.replays:serve')\n"
+              "print(early_helper._started[0], flush=True)\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    helper = int(run.stdout)
+    deadline = time.monotonic() + 60.0  # its imports: ~0.3 s on an idle machine
+    while time.monotonic() < deadline and _running(helper):
+        time.sleep(0.05)
+    assert not _running(helper)

@@ -457,7 +457,8 @@ def test_the_executor_and_the_uncertainty_layer_import_nothing_above_them():
                                                                "stitchplan.config", "stitchplan.tissue",
                                                                "stitchplan.needle", "stitchplan.resources",
                                                                "stitchplan.parallel", "stitchplan.planning",
-                                                               "stitchplan.uncertainty", "stitchplan.events"))):
+                                                               "stitchplan.uncertainty", "stitchplan.events",
+                                                               "stitchplan.early_helper"))):
         code = (f"import sys, {module}\n"
                 "print(sorted(m for m in sys.modules if m.startswith(('stitchplan', 'dask', 'distributed'))))")
         loaded = eval(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

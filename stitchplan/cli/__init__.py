@@ -49,6 +49,10 @@ def main() -> None:
     from ..allocator import reuse_freed_memory
 
     reuse_freed_memory()  # before the commands' imports allocate
+    from ..early_helper import start_for
+
+    # the replay helper, before the command's imports (stitchplan/early_helper.py)
+    start_for(sys.argv[1:], server="stitchplan.planning.replays:serve")
     try:
         __getattr__("app")()
     except SystemExit as done:  # the command has ended (a bug's traceback is not caught here)

@@ -7,7 +7,9 @@ centre for step n is final once step n is done (planning.planner.run_plan stream
 pass through `begin`, `row` and `end`). `BackgroundReplays` forks a helper process that
 builds the second model (and factors its K0) while this process builds its own, then
 replays each pass as its centres arrive, on the machine's second core: the replay of the
-pass that is kept overlaps the planning instead of following it. A pass that is not kept
+pass that is kept overlaps the planning instead of following it. The `plan` and `simulate`
+commands fork it as they start, before their imports (stitchplan/early_helper.py), and hand
+it its scenario here; elsewhere it is forked here. A pass that is not kept
 is dropped at the helper's next step once the next pass begins (it reads what has come at
 every step), unless the next pass keeps every centre the replay has used so far (a re-aimed
 pass keeps the first pass's early steps): the replay then goes on with the next pass's
@@ -37,14 +39,15 @@ import logging
 import multiprocessing
 import os
 import signal
-import sys
-import threading
+import time
 from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
 
 from ..config import Scenario
+from .. import early_helper
+from ..early_helper import helper_available
 from ..errors import StitchplanError
 from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import CenterReplay, InsertionStopped, run_insertion
@@ -52,7 +55,6 @@ from ..needle.results import InsertionResult, StepsDone
 
 log = logging.getLogger(__name__)
 
-HELPER_VARIABLE = "STITCHPLAN_REPLAY_HELPER"  # 0: replays run in this process
 STOP_SECONDS = 1.0  # how long closing waits for the helper (idle unless a run failed) before terminating it
 
 
@@ -98,12 +100,19 @@ class BackgroundReplays(InlineReplays):
 
     def __init__(self, scenario: Scenario, **options):
         super().__init__(scenario, **options)
-        context = multiprocessing.get_context("fork")
-        self._connection, theirs = context.Pipe()
-        self._process = context.Process(target=_serve, args=(theirs, self._connection, scenario, options, os.getpid()),
-                                        daemon=True, name="stitchplan replays")
-        self._process.start()
-        theirs.close()
+        started = early_helper.take()  # forked as the command started (stitchplan/early_helper.py)
+        if started is not None:
+            self._process, self._connection = _StartedHelper(started[0]), started[1]
+            log.info("replays: the helper process forked as the command started (pid %d)", started[0])
+            self._connection.send(("serve", scenario, options, os.getpid()))
+        else:
+            context = multiprocessing.get_context("fork")
+            self._connection, theirs = context.Pipe()
+            self._process = context.Process(target=_serve, args=(theirs, self._connection, scenario, options,
+                                                                 os.getpid()),
+                                            daemon=True, name="stitchplan replays")
+            self._process.start()
+            theirs.close()
         self.jobs = 0  # replays started in the helper (streamed passes and whole paths)
         self.steps_run = 0  # needle steps of the helper's replays, of dropped passes too
         self._newest: tuple[int, np.ndarray | None] | None = None  # the helper's newest job and its path
@@ -212,17 +221,6 @@ class StreamTee:
     def end(self, centers: np.ndarray) -> None:
         for replays in self.replays:
             replays.end(centers)
-
-
-def helper_available() -> bool:
-    """Whether a forked helper process can run the replays (module docstring)."""
-    if os.environ.get(HELPER_VARIABLE, "") == "0":
-        return False
-    # fork only where it is the platform's own way (macOS's system libraries are not fork-safe)
-    if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
-        return False
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return cores >= 2 and threading.active_count() == 1
 
 
 @contextmanager
@@ -340,10 +338,46 @@ PR_SET_PDEATHSIG = 1  # prctl option: the signal this process gets when its pare
 
 
 def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: int) -> None:
+    """serve, in a helper forked by BackgroundReplays."""
+    parents_end.close()  # so that the main process's end of the pipe closing ends the loop
+    serve(connection, scenario, options, parent)
+
+
+class _StartedHelper:
+    """The helper early_helper forked, as BackgroundReplays uses a multiprocessing.Process."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+        self._ended = False
+
+    def is_alive(self) -> bool:
+        if not self._ended:
+            try:
+                self._ended = os.waitpid(self.pid, os.WNOHANG)[0] != 0
+            except ChildProcessError:  # reaped already
+                self._ended = True
+        return not self._ended
+
+    def join(self, timeout: float | None = None) -> None:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.is_alive() and (deadline is None or time.monotonic() < deadline):
+            time.sleep(0.002)
+
+    def terminate(self) -> None:
+        self._signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self._signal(signal.SIGKILL)
+
+    def _signal(self, number: int) -> None:
+        if self.is_alive():
+            os.kill(self.pid, number)
+
+
+def serve(connection, scenario: Scenario, options: dict, parent: int) -> None:
     """The helper's loop: jobs ("stream" or "path", job, warm-start job, entry centre or
     path), their rows and ends, "send" (the job's result back) and "stop"."""
     _end_with(parent)
-    parents_end.close()  # so that the main process's end of the pipe closing ends this loop
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process stops the helper
     logging.disable(logging.CRITICAL)  # the main process reports
     tissue = PreparedTissue(scenario)

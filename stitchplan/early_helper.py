@@ -1,0 +1,102 @@
+"""The replay helper process, started as a command starts (planning/replays.py runs it).
+
+A helper forked once the command has imported numpy, scipy and the package shares those
+pages with it, copy-on-write: every page either process then writes (CPython's reference
+counts and its specializing interpreter's bytecode caches write to most of the objects a
+run touches) is first copied, a page fault each, within the command's planned run. Forked
+here instead, before either has imported them, each process imports its own on
+its own core and the helper waits for its scenario (planning/replays.py
+`BackgroundReplays`); it is ready about when the command reaches it, as the two imports
+take about as long (benchmarks/results/replay_helper.md: the commands' own runs 0.99-1.09x
+as long with the helper forked late, the whole commands within the noise).
+
+This module imports nothing beyond the standard library's process tools, and the helper
+imports what it serves (`server`, named by the command line interface: planning/replays.py's
+`serve`) only after the fork. A helper no command asks for (the input was refused, the run
+ended early) reads the end of its pipe and exits.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+
+HELPER_VARIABLE = "STITCHPLAN_REPLAY_HELPER"  # 0: replays run in the command's process
+COMMANDS = ("plan", "simulate")  # the commands whose replays a helper runs
+
+_started: tuple[int, object] | None = None  # the helper forked here: (pid, the command's end of its pipe)
+
+
+def helper_available() -> bool:
+    """Whether a forked helper process can run the replays: Linux (fork is its own way of
+    starting a process; macOS's system libraries are not fork-safe), two or more cores, one
+    thread in this process (forking a threaded process can deadlock the child), and
+    STITCHPLAN_REPLAY_HELPER not 0."""
+    if os.environ.get(HELPER_VARIABLE, "") == "0" or not sys.platform.startswith("linux"):
+        return False
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return cores >= 2 and threading.active_count() == 1
+
+
+def start_for(arguments: list[str], server: str) -> None:
+    """Fork the helper when `arguments` (the command line after the program) run a command
+    whose replays it would run; the helper imports `server` ("module:function") and then
+    calls it with (its pipe end, the scenario, the options, the command's pid) as the
+    command sends them, and never returns from here."""
+    global _started
+    if _started is not None or not arguments or arguments[0] not in COMMANDS or not helper_available():
+        return
+    if any(option in arguments for option in ("--help", "--uncertainty")):  # no replays to run
+        return
+    from multiprocessing.connection import Pipe
+
+    try:
+        ours, theirs = Pipe()
+        pid = os.fork()
+    except OSError:  # no process to be had: the command forks one later, or replays itself
+        return
+    if pid == 0:
+        ours.close()
+        _helper(theirs, server)  # never returns
+    theirs.close()
+    _started = (pid, ours)
+
+
+def take() -> tuple[int, object] | None:
+    """The helper forked here, for the first replays that ask (pid, pipe end), or None."""
+    global _started
+    started, _started = _started, None
+    if started is not None and os.getpid() == _parent:
+        return started
+    return None
+
+
+_parent = os.getpid()
+
+
+def _helper(connection, server: str) -> None:
+    """The helper's life: import the replays, wait for the command's scenario, serve it; exit
+    without returning to the command's code (nor running its exit functions)."""
+    code = 0
+    try:
+        # the helper reports through its pipe only: its standard streams are the null device, so
+        # that a caller reading the command's output does not wait for a helper that outlives it
+        # (one the command never asked for ends once its imports are done)
+        null = os.open(os.devnull, os.O_RDWR)
+        for descriptor in (0, 1, 2):
+            os.dup2(null, descriptor)
+        import importlib
+
+        module, function = server.split(":")
+        serve = getattr(importlib.import_module(module), function)
+        try:
+            message = connection.recv()
+        except (EOFError, OSError):  # the command ended without replays
+            os._exit(0)
+        _, scenario, options, parent = message
+        serve(connection, scenario, options, parent)
+    except BaseException:  # noqa: BLE001 -- the command sees the pipe close and replays itself
+        code = 1
+    finally:
+        os._exit(code)
