@@ -165,8 +165,8 @@ class PreparedTissue:
         self.scenario = scenario
         # the model depends on these alone (the needle's: where the particles are graded)
         self.key = (scenario.tissue, scenario.discretization, scenario.needle)
-        self.seconds = 0.0  # building the model and the particles' shape functions
-        self._model = self._particle_values = self._factor = None
+        self.seconds = 0.0  # building the model
+        self._model = self._factor = None
         self.boundary_samples = None  # the boundary sampled at rest (tip_tracking.boundary_samples), once needed
 
     @property
@@ -178,18 +178,11 @@ class PreparedTissue:
         self._build()
         return self._model
 
-    @property
-    def particle_values(self) -> sp.csr_matrix:
-        """The shape functions at the particles, (NP, NP): particle displacements from coefficients."""
-        self._build()
-        return self._particle_values
-
     def _build(self) -> None:
         if self._model is None:
             start = time.perf_counter()
             self._model = build_tissue_model(self.scenario.tissue, self.scenario.discretization,
                                              needle_zone=needle_zone(self.scenario))
-            self._particle_values = self._model.particle_shape_values()
             self.seconds = time.perf_counter() - start
 
     def fits(self, scenario: Scenario) -> bool:
@@ -291,7 +284,6 @@ class NeedleInsertion:
         self.model = tissue.model
         if built_here:
             self.timings["discretization"] += tissue.seconds
-        self.particle_values = tissue.particle_values
         self.assembler = Assembler(self.model)
         self._last_internal: tuple[np.ndarray, np.ndarray] | None = None  # (free, f_int): _internal_force
         self.coupling = NeedleCoupling(self.model, self.geometry, self.needle, scenario.discretization.dilation)
@@ -358,7 +350,8 @@ class NeedleInsertion:
         return self.coupling.tip_row @ self.free
 
     def particle_displacements(self) -> np.ndarray:
-        return self.particle_values @ self.coefficients()
+        """u (NP, 2) at the particles (a run records its coefficients: InsertionResult.displacements)."""
+        return self.model.particle_shape_values() @ self.coefficients()
 
     # --- state -------------------------------------------------------------------------------
 

@@ -124,7 +124,7 @@ def run_insertion(
     entry_center = insertion.center.copy()
     control = control or FixedCenter()
     insertion.add_point(geometry.entry.copy())
-    displacements = [np.zeros_like(insertion.model.particles)]
+    coefficients = [np.zeros_like(insertion.model.particles)]  # d after each step (InsertionResult.displacements)
     steps: list[NeedleStep] = []
     states: list[Snapshot] = []  # the equilibrium after each step
     earlier = start_from.states if start_from is not None and start_from.model is insertion.model else []
@@ -143,7 +143,7 @@ def run_insertion(
             raise
         steps.append(record)
         states.append(insertion.snapshot(coupling=True))
-        displacements.append(insertion.particle_displacements())
+        coefficients.append(insertion.coefficients())  # a new array after each solve, never changed in place
         if on_step is not None:
             on_step(record)
 
@@ -208,7 +208,7 @@ def run_insertion(
                 solve_step(insertion, control, step, rotation, None, method, condition_numbers, started,
                            guess=_at(guesses, step, insertion))
                 continue
-            return _result(insertion, entry_center, steps, states, displacements, exit_point,
+            return _result(insertion, entry_center, steps, states, coefficients, exit_point,
                            exit_rotation, time.perf_counter() - wall_start, made)
         solve_step(insertion, control, step, rotation, point, method, condition_numbers, started,
                    fraction, _at(guesses, step, insertion), taken=taken)
@@ -393,7 +393,7 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
 
 def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[NeedleStep],
             states: list[Snapshot],
-            displacements: list[np.ndarray],
+            coefficients: list[np.ndarray],
             exit_point: np.ndarray, exit_rotation: float, wall_seconds: float,
             made: list[tuple[int, str, np.ndarray, float]]) -> InsertionResult:
     """The run's record once the tip has left the tissue at `exit_point` (the final exit, the
@@ -403,7 +403,7 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
     u_exit = insertion.displacement(np.vstack([exit_point, desired_exit]))  # achieved, desired
     result = InsertionResult(
         scenario=insertion.scenario, model=insertion.model, geometry=insertion.geometry,
-        entry_center=entry_center, steps=steps, displacements=np.asarray(displacements),
+        entry_center=entry_center, steps=steps, coefficients=np.asarray(coefficients),
         needle_points=insertion.points.copy(),
         desired_exit=desired_exit, desired_exit_def=desired_exit + u_exit[1],
         achieved_exit=exit_point, achieved_exit_def=exit_point + u_exit[0], exit_rotation=exit_rotation,

@@ -66,7 +66,7 @@ class InsertionResult:
     model: TissueModel  # a ModelOutline for a replay made in the helper process (planning/replays.py)
     geometry: NeedleGeometry
     steps: list[NeedleStep]
-    displacements: np.ndarray  # (n_steps + 1, NP, 2) particle displacements, step 0 = rest
+    coefficients: np.ndarray  # (n_steps + 1, NP, 2) particle coefficients d after each step, step 0 = rest
     needle_points: np.ndarray  # (k, 2) reference trajectory Gamma_N at exit
     desired_exit: np.ndarray
     desired_exit_def: np.ndarray
@@ -95,6 +95,23 @@ class InsertionResult:
     @property
     def exit_error_mm(self) -> float:
         return float(np.linalg.norm(self.achieved_exit_def - self.desired_exit_def))
+
+    @property
+    def displacements(self) -> np.ndarray:
+        """(n_steps + 1, NP, 2) particle displacements u(X_I) after each step, step 0 = rest:
+        the RK interpolant at the particles from `coefficients`, made when first read (by the
+        writers and plots; the planning reads none, and a run whose outputs do not show the
+        field makes none). Every step's in one product with the shape functions at the
+        particles, each value the sum a product per step would give. Not for a replay made in
+        the helper process (its model is a ModelOutline)."""
+        made = self.__dict__.get("_displacements")
+        if made is None:
+            steps, count, _ = self.coefficients.shape
+            stacked = self.coefficients.transpose(1, 0, 2).reshape(count, 2 * steps)  # (NP, steps x 2)
+            made = np.ascontiguousarray((self.model.particle_shape_values() @ stacked).reshape(count, steps, 2)
+                                        .transpose(1, 0, 2))
+            self.__dict__["_displacements"] = made
+        return made
 
     def center_after(self, step: int) -> np.ndarray:
         """The needle centre after `step` (0: the entry centre)."""
