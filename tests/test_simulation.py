@@ -97,8 +97,9 @@ def on_edge_distance(point, size) -> float:
 @pytest.fixture(scope="module")
 def direct_run():
     """The small scene (point coupling) with the direct solver and Levenberg-Marquardt tip tracking, with each
-    converged step's needle-point distances to the needle, recomputed from the state."""
-    distances = []
+    converged step's needle-point distances to the needle, recomputed from the state, and its particle
+    displacements made as the step ended."""
+    distances, particles = [], []
 
     class Inspect(FixedCenter):
         def correct(self, insertion, step, rotation):
@@ -106,11 +107,12 @@ def direct_run():
             u = insertion.model.shape_functions_at(insertion.points).values @ coefficients  # (k, 2)
             distances.append(np.linalg.norm(insertion.points + u - insertion.center, axis=1)
                              - insertion.geometry.radius)
+            particles.append(insertion.particle_displacements())  # the step's, made as it ends
             return 0
 
     result = run_insertion(small_scene(coupling="points"), control=Inspect(), linear_solver="direct",
                            tip_tracking="levenberg-marquardt")
-    return result, distances
+    return result, distances, particles
 
 
 def test_a_run_along_an_earlier_runs_centres_takes_its_steps_over():
@@ -295,7 +297,7 @@ def test_needle_points_stay_on_the_needle_after_every_step(direct_run):
     """After each converged step every needle point's spatial position X_k + u(X_k), computed
     afresh from the RK interpolant of the state, is on the circle to 1e-6 mm; the steps report
     the constraint violation below the solver's tolerance."""
-    result, distances = direct_run
+    result, distances, _ = direct_run
     assert len(distances) == len(result.steps) == 15
     for step, distance in enumerate(distances, start=1):
         assert len(distance) == step + 1  # entry plus one point per step
@@ -306,10 +308,20 @@ def test_needle_points_stay_on_the_needle_after_every_step(direct_run):
     assert np.linalg.norm(result.displacements[-1], axis=1).max() > 0.2
 
 
+def test_the_particle_displacements_made_when_read_are_each_steps_to_the_last_bit(direct_run):
+    """InsertionResult.displacements makes every step's particle displacements in one
+    product from the coefficients the run kept: the values a product as each step ended gave."""
+    result, _, particles = direct_run
+    assert result.displacements.shape == (len(result.steps) + 1, len(result.model.particles), 2)
+    assert not result.displacements[0].any()  # at rest
+    for step, made_then in enumerate(particles, start=1):
+        assert np.array_equal(result.displacements[step], made_then), step
+
+
 def test_tip_leaves_the_tissue_on_its_boundary(direct_run):
     """The achieved exit is a boundary point (1e-9 mm), reached after the last step, whose
     spatial position lies on the needle; the exit errors are the distances the summary reports."""
-    result, _ = direct_run
+    result, _, _ = direct_run
     size = result.scenario.tissue.size
     assert on_edge_distance(result.achieved_exit, size) <= 1e-9
     assert on_edge_distance(result.desired_exit, size) <= 1e-9
