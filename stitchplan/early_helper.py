@@ -47,7 +47,9 @@ def start_for(arguments: list[str], server: str) -> None:
     global _started
     if _started is not None or not arguments or arguments[0] not in COMMANDS or not helper_available():
         return
-    if any(option in arguments for option in ("--help", "--uncertainty")):  # no replays to run
+    # no replays to run: the help, a plan under uncertainty (its sampled runs go to a cluster),
+    # a simulate without its estimate
+    if any(option in arguments for option in ("--help", "--uncertainty", "--no-estimate")):
         return
     from multiprocessing.connection import Pipe
 

@@ -372,13 +372,15 @@ def test_the_helper_forked_as_the_command_starts_gives_the_plan_made_without_it(
 def test_a_helper_forked_for_no_replays_ends(tmp_path):
     """A command that ends before it asks for its replays (refused input) leaves no helper:
     it reads the end of its pipe once its imports are done. None is forked for --help, for a
-    plan under uncertainty (its replays run on a cluster) or for another command."""
+    plan under uncertainty (its replays run on a cluster), a simulate without its estimate or
+    for another command."""
     import subprocess
     import sys
 
     script = ("import sys\n"
               "from stitchplan import early_helper\n"
-              "for arguments in (['plan', '--help'], ['plan', 'a.yaml', '--uncertainty', 'u.yaml'], ['deform', 'a.yaml']):\n"
+              "for arguments in (['plan', '--help'], ['plan', 'a.yaml', '--uncertainty', 'u.yaml'],\n"
+              "                  ['simulate', 'a.yaml', '--no-estimate'], ['deform', 'a.yaml']):\n"
               "    early_helper.start_for(arguments, 'stitchplan.planning.replays:serve')\n"
               "    assert early_helper._started is None, arguments\n"
               "early_helper.start_for(['plan', 'a.yaml', '--export', 't.csv'], 'stitchplan.planning.replays:serve')\n"
