@@ -26,6 +26,7 @@ HELPER_VARIABLE = "STITCHPLAN_REPLAY_HELPER"  # 0: replays run in the command's 
 COMMANDS = ("plan", "simulate")  # the commands whose replays a helper runs
 
 _started: tuple[int, object] | None = None  # the helper forked here: (pid, the command's end of its pipe)
+_parent = os.getpid()  # the process that may take it (not a process forked from it later)
 
 
 def helper_available() -> bool:
@@ -72,9 +73,6 @@ def take() -> tuple[int, object] | None:
     if started is not None and os.getpid() == _parent:
         return started
     return None
-
-
-_parent = os.getpid()
 
 
 def _helper(connection, server: str) -> None:
