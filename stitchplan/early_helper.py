@@ -41,10 +41,8 @@ def helper_available() -> bool:
 
 
 def start_for(arguments: list[str], server: str) -> None:
-    """Fork the helper when `arguments` (the command line after the program) run a command
-    whose replays it would run; the helper imports `server` ("module:function") and then
-    calls it with (its pipe end, the scenario, the options, the command's pid) as the
-    command sends them, and never returns from here."""
+    """Fork the helper (`fork_helper`) when `arguments` (the command line after the program)
+    run a command whose replays it would run, for the first replays that ask (`take`)."""
     global _started
     if _started is not None or not arguments or arguments[0] not in COMMANDS or not helper_available():
         return
@@ -52,18 +50,26 @@ def start_for(arguments: list[str], server: str) -> None:
     # a simulate without its estimate
     if any(option in arguments for option in ("--help", "--uncertainty", "--no-estimate")):
         return
+    try:
+        _started = fork_helper(server)
+    except OSError:  # no process to be had: the command forks one later, or replays itself
+        pass
+
+
+def fork_helper(server: str) -> tuple[int, object]:
+    """A helper process, (pid, this process's end of its pipe): it imports `server`
+    ("module:function") and calls it with (its pipe end, the scenario, the options, the
+    command's pid) as this process sends them, and never returns from the fork. Raises
+    OSError where no process is to be had."""
     from multiprocessing.connection import Pipe
 
-    try:
-        ours, theirs = Pipe()
-        pid = os.fork()
-    except OSError:  # no process to be had: the command forks one later, or replays itself
-        return
+    ours, theirs = Pipe()
+    pid = os.fork()
     if pid == 0:
         ours.close()
         _helper(theirs, server)  # never returns
     theirs.close()
-    _started = (pid, ours)
+    return pid, ours
 
 
 def take() -> tuple[int, object] | None:
@@ -76,8 +82,8 @@ def take() -> tuple[int, object] | None:
 
 
 def _helper(connection, server: str) -> None:
-    """The helper's life: import the replays, wait for the command's scenario, serve it; exit
-    without returning to the command's code (nor running its exit functions)."""
+    """The helper's life: import `server`, wait for the scenario, serve it; exit without
+    returning to the forking process's code (nor running its exit functions)."""
     code = 0
     try:
         # the helper reports through its pipe only: its standard streams are the null device, so

@@ -642,8 +642,8 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     (_together_refusal): each within it alone still leaves the machine short when two or
     three hold as much (a plan at a small needle step: its own passes, its verification's
     replays and the predicted aim's each keep their steps' states). `forked`: the processes
-    of `alongside` are forked from this one (helpers, sharing part of its interpreter's
-    pages), not started afresh (Dask workers). `workers`: the runs of `estimates` go on in
+    of `alongside` are this command's helpers (HELPER_BASE_MEMORY of an interpreter each: the
+    libraries' pages shared), not Dask workers (a whole interpreter each). `workers`: the runs of `estimates` go on in
     this many worker processes, one each at a time and none in this process (a study's on a
     local cluster): the largest `workers` of them are counted together, beside this process's
     interpreter (BASE_MEMORY)."""
@@ -726,9 +726,8 @@ def _limited() -> str:
 def held_at_once(memory_bytes: list[float], forked: bool = True) -> float:
     """Bytes of runs going on at once, each in its own process, from their estimates'
     `memory_bytes`: the interpreter's BASE_MEMORY in them counted once for the command and,
-    when the others are `forked` helpers (sharing part of the loaded modules' pages),
-    HELPER_BASE_MEMORY for each of them; a process started afresh (a Dask worker) has the
-    whole of its own."""
+    when the others are `forked` helpers (the libraries' pages shared with the command),
+    HELPER_BASE_MEMORY for each of them; a Dask worker has the whole of its own."""
     if not forked:
         return sum(memory_bytes)
     helpers = len(memory_bytes) - 1

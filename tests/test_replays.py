@@ -174,7 +174,7 @@ def test_a_dropped_replay_gives_its_steps_to_the_pass_that_dropped_it(scenario):
     from the same start arrives that leaves the first pass's centres at step 2: the replay is
     dropped with the steps it had done (InsertionStopped), and the second pass's replay takes
     step 1 over from them (no Newton iteration), to the last bit the replay made here alone.
-    The messages come in the order the helper reads them (planning.replays._serve)."""
+    The messages come in the order the helper reads them (planning.replays.serve)."""
     from collections import deque
 
     from stitchplan.needle.equilibrium import PreparedTissue

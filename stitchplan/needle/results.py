@@ -4,6 +4,7 @@ the planner and the studies read)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -96,7 +97,7 @@ class InsertionResult:
     def exit_error_mm(self) -> float:
         return float(np.linalg.norm(self.achieved_exit_def - self.desired_exit_def))
 
-    @property
+    @cached_property
     def displacements(self) -> np.ndarray:
         """(n_steps + 1, NP, 2) particle displacements u(X_I) after each step, step 0 = rest:
         the RK interpolant at the particles from `coefficients`, made when first read (by the
@@ -104,14 +105,10 @@ class InsertionResult:
         field makes none). Every step's in one product with the shape functions at the
         particles, each value the sum a product per step would give. Not for a replay made in
         the helper process (its model is a ModelOutline)."""
-        made = self.__dict__.get("_displacements")
-        if made is None:
-            steps, count, _ = self.coefficients.shape
-            stacked = self.coefficients.transpose(1, 0, 2).reshape(count, 2 * steps)  # (NP, steps x 2)
-            made = np.ascontiguousarray((self.model.particle_shape_values() @ stacked).reshape(count, steps, 2)
-                                        .transpose(1, 0, 2))
-            self.__dict__["_displacements"] = made
-        return made
+        steps, count, _ = self.coefficients.shape
+        stacked = self.coefficients.transpose(1, 0, 2).reshape(count, 2 * steps)  # (NP, steps x 2)
+        return np.ascontiguousarray((self.model.particle_shape_values() @ stacked).reshape(count, steps, 2)
+                                    .transpose(1, 0, 2))
 
     def center_after(self, step: int) -> np.ndarray:
         """The needle centre after `step` (0: the entry centre)."""

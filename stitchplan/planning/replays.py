@@ -8,8 +8,8 @@ pass through `begin`, `row` and `end`). `BackgroundReplays` forks a helper proce
 builds the second model (and factors its K0) while this process builds its own, then
 replays each pass as its centres arrive, on the machine's second core: the replay of the
 pass that is kept overlaps the planning instead of following it. The `plan` and `simulate`
-commands fork it as they start, before their imports (stitchplan/early_helper.py), and hand
-it its scenario here; elsewhere it is forked here. A pass that is not kept
+commands fork it as they start, before their imports, and hand it its scenario here; a
+BackgroundReplays made without one forks its own the same way (early_helper.fork_helper). A pass that is not kept
 is dropped at the helper's next step once the next pass begins (it reads what has come at
 every step), unless the next pass keeps every centre the replay has used so far (a re-aimed
 pass keeps the first pass's early steps): the replay then goes on with the next pass's
@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import multiprocessing
 import os
 import signal
 import time
@@ -55,6 +54,7 @@ from ..needle.results import InsertionResult, StepsDone
 
 log = logging.getLogger(__name__)
 
+SERVER = f"{__name__}:serve"  # what the helper runs (early_helper.fork_helper)
 STOP_SECONDS = 1.0  # how long closing waits for the helper (idle unless a run failed) before terminating it
 
 
@@ -102,17 +102,11 @@ class BackgroundReplays(InlineReplays):
         super().__init__(scenario, **options)
         started = early_helper.take()  # forked as the command started (stitchplan/early_helper.py)
         if started is not None:
-            self._process, self._connection = _StartedHelper(started[0]), started[1]
             log.info("replays: the helper process forked as the command started (pid %d)", started[0])
-            self._connection.send(("serve", scenario, options, os.getpid()))
         else:
-            context = multiprocessing.get_context("fork")
-            self._connection, theirs = context.Pipe()
-            self._process = context.Process(target=_serve, args=(theirs, self._connection, scenario, options,
-                                                                 os.getpid()),
-                                            daemon=True, name="stitchplan replays")
-            self._process.start()
-            theirs.close()
+            started = early_helper.fork_helper(SERVER)
+        self._process, self._connection = _StartedHelper(started[0]), started[1]
+        self._connection.send(("serve", scenario, options, os.getpid()))
         self.jobs = 0  # replays started in the helper (streamed passes and whole paths)
         self.steps_run = 0  # needle steps of the helper's replays, of dropped passes too
         self._newest: tuple[int, np.ndarray | None] | None = None  # the helper's newest job and its path
@@ -337,14 +331,9 @@ def _end_with(parent: int) -> None:
 PR_SET_PDEATHSIG = 1  # prctl option: the signal this process gets when its parent dies
 
 
-def _serve(connection, parents_end, scenario: Scenario, options: dict, parent: int) -> None:
-    """serve, in a helper forked by BackgroundReplays."""
-    parents_end.close()  # so that the main process's end of the pipe closing ends the loop
-    serve(connection, scenario, options, parent)
-
-
 class _StartedHelper:
-    """The helper early_helper forked, as BackgroundReplays uses a multiprocessing.Process."""
+    """The helper process early_helper forked: its pid, whether it lives, waiting for its end
+    and ending it."""
 
     def __init__(self, pid: int):
         self.pid = pid
