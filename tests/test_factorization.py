@@ -140,3 +140,19 @@ def test_cholmods_warning_reaches_neither_stream_of_a_process_whose_output_is_a_
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
     assert result.stdout == f"backend {CHOLMOD_LDL}\n"
     assert result.stderr == ""
+
+
+def test_the_largest_row_sum_is_gershgorins_bound_with_empty_rows_and_duplicates():
+    """The condition estimate's largest eigenvalue bound, max_i sum_j |A_ij|, from the stored
+    values by row: rows without entries count zero (reduceat alone would give them the next
+    row's first value), duplicate entries each count."""
+    from stitchplan.tissue.factorization import _largest_row_sum
+
+    matrix = sp.csr_matrix((np.array([-3.0, 1.0, 2.0, -0.5]), np.array([0, 2, 1, 1]), np.array([0, 2, 2, 4, 4])),
+                           shape=(4, 3))  # rows 1 and 3 empty; row 2 holds column 1 twice
+    assert _largest_row_sum(matrix) == 4.0
+    assert _largest_row_sum(-matrix) == float(abs(matrix).sum(axis=1).max())
+    assert _largest_row_sum(sp.csr_matrix((3, 3))) == 0.0
+    dense = np.random.default_rng(5).standard_normal((30, 30))
+    dense[7] = 0.0
+    assert np.isclose(_largest_row_sum(sp.csr_matrix(dense)), np.abs(dense).sum(axis=1).max(), rtol=1e-15)
