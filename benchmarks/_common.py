@@ -123,7 +123,7 @@ def verification_replay(scene: str):
     from stitchplan.config.scenario import load_scenario
     from stitchplan.io.readers import read_center_path
     from stitchplan.needle.geometry import scenario_needle
-    from stitchplan.planning.verification import VERIFICATION_FACTOR, rescaled
+    from stitchplan.planning.replay_models import VERIFICATION_FACTOR, rescaled
 
     refined = rescaled(load_scenario(REPO_ROOT / "configs" / f"{scene}.yaml"), VERIFICATION_FACTOR)
     return refined, read_center_path(REPO_ROOT / "sample_runs" / scene / "trajectory.csv", scenario_needle(refined))

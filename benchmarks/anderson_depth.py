@@ -39,7 +39,7 @@ def main() -> None:
     from stitchplan.needle import equilibrium
     from stitchplan.needle.geometry import scenario_needle
     from stitchplan.needle.insertion import run_insertion
-    from stitchplan.planning.verification import rescaled
+    from stitchplan.planning.replay_models import rescaled
 
     header = ["scene", "run", "particles", *[f"iterations, depth {d}" for d in DEPTHS],
               *[f"seconds, depth {d}" for d in DEPTHS], "largest exit error difference (mm)"]

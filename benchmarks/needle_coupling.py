@@ -159,7 +159,7 @@ def scene(name: str, coupling: str):
 
 def variant(coupling: str) -> dict:
     """The options after a coupling's name: `c=2` the mortar elements' length in local spacings
-    (needle/coupling.py MULTIPLIER_SPACINGS, 1 by default), `ramp` the cutting force growing
+    (needle/track_layout.py MULTIPLIER_SPACINGS, 1 by default), `ramp` the cutting force growing
     with the cutting edge inside (`needle.cutting_ramp`), `smooth` the cutting force
     as the density (2 / l) sin^2(pi s / l) over the cutting length instead of the uniform one
     (needle/coupling.py CUTTING_PROFILE), `L=2` particles graded

@@ -365,7 +365,7 @@ def replay_renewals(scenes: tuple[str, ...] = ("sh12_100x30", "wound_closure")) 
     from stitchplan.io.readers import read_center_path
     from stitchplan.needle.geometry import scenario_needle
     from stitchplan.needle.insertion import run_insertion
-    from stitchplan.planning.verification import rescaled
+    from stitchplan.planning.replay_models import rescaled
 
     logging.getLogger("stitchplan").setLevel(logging.ERROR)
     now = equilibrium.renew_factor

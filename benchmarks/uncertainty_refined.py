@@ -9,7 +9,7 @@ On configs/sh12_100x100.yaml with the distributions of configs/uncertainty/uncer
    values) and without it (`--no-verify`: the plans aim at the planning model, as before the
    verification aimed them);
 2. each exported path replayed on every held-out sample at half the spacing (the refined
-   model the verification uses, planning.verification.rescaled), the same sampled scenarios;
+   model the verification uses, planning.replay_models.rescaled), the same sampled scenarios;
 3. per plan: the exit error statistics on the refined model (measured), those the summary
    reports, and how far each sample's own refined offset (refined - planning exit error
    vector) is from the one offset the report adds; and the exported path replayed on the
@@ -35,7 +35,7 @@ import _common as common  # noqa: E402
 from stitchplan.config.scenario import load_scenario  # noqa: E402
 from stitchplan.config.uncertainty import load_uncertainty  # noqa: E402
 from stitchplan.parallel import Executor  # noqa: E402
-from stitchplan.planning.verification import VERIFICATION_FACTOR, rescaled  # noqa: E402
+from stitchplan.planning.replay_models import VERIFICATION_FACTOR, rescaled  # noqa: E402
 from stitchplan.uncertainty.evaluation import run_sample  # noqa: E402
 from stitchplan.uncertainty.robust import exit_statistics, plan_under_uncertainty  # noqa: E402
 from stitchplan.uncertainty.sampling import with_parameters  # noqa: E402

@@ -10,6 +10,11 @@ its own core and the helper waits for its scenario (planning/replays.py
 take about as long (benchmarks/results/replay_helper.md: the commands' own runs 0.99-1.09x
 as long with the helper forked late, the whole commands within the noise).
 
+A command that has settled the helper's model and passed the resource guard before its own
+imports of the numerics hands it the scenario then (`hand`): the helper, its imports done
+first, builds that model while the command still imports (`plan`: its verification's refined
+model, cli.commands.plan). Otherwise the replays send it when they start.
+
 This module imports nothing beyond the standard library's process tools, and the helper
 imports what it serves (`server`, named by the command line interface: planning/replays.py's
 `serve`) only after the fork. A helper no command asks for (the input was refused, the run
@@ -26,6 +31,7 @@ HELPER_VARIABLE = "STITCHPLAN_REPLAY_HELPER"  # 0: replays run in the command's 
 COMMANDS = ("plan", "simulate")  # the commands whose replays a helper runs
 
 _started: tuple[int, object] | None = None  # the helper forked here: (pid, the command's end of its pipe)
+_handed: tuple | None = None  # what `hand` sent it: (scenario, options)
 _parent = os.getpid()  # the process that may take it (not a process forked from it later)
 
 
@@ -72,12 +78,29 @@ def fork_helper(server: str) -> tuple[int, object]:
     return pid, ours
 
 
-def take() -> tuple[int, object] | None:
-    """The helper forked here, for the first replays that ask (pid, pipe end), or None."""
-    global _started
-    started, _started = _started, None
+def hand(scenario, options: dict) -> None:
+    """Send the helper forked here its scenario and replay options now, as the replays would
+    (("serve", scenario, options, this process's pid)), for it to build its model meanwhile.
+    Call it only once the inputs are checked and the resource guard has passed: the helper
+    builds whatever it is handed. Does nothing without a helper, or once handed."""
+    global _handed
+    if _started is None or _handed is not None or os.getpid() != _parent:
+        return
+    try:
+        _started[1].send(("serve", scenario, options, os.getpid()))
+    except (OSError, ValueError):  # the helper is gone: the replays find out and replay themselves
+        return
+    _handed = (scenario, options)
+
+
+def take() -> tuple[int, object, tuple | None] | None:
+    """The helper forked here, for the first replays that ask: (pid, pipe end, what `hand`
+    sent it or None), or None."""
+    global _started, _handed
+    started, handed = _started, _handed
+    _started = _handed = None
     if started is not None and os.getpid() == _parent:
-        return started
+        return started[0], started[1], handed
     return None
 
 

@@ -241,7 +241,7 @@ def replay_origin(scenario: Scenario, names: Mapping[str, str] | None, derived: 
 
 
 def verification_origin(scenario: Scenario, names: Mapping[str, str] | None = None) -> Origin:
-    """The origin of a plan's verification model (planning.verification.replay_scenario):
+    """The origin of a plan's verification model (planning.replay_models.replay_scenario):
     replay_origin offering --no-verify."""
     return replay_origin(scenario, names, " in the plan's verification at half the spacing",
                          "pass --no-verify to skip the verification")
@@ -528,7 +528,7 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
     A renewed factor starts new buffers (SaddlePointSolver._use), which the states then keep
     as well: the measured runs renewed none (the factor of K0 solves their needle steps).
     Sums in floating point, finite for counts up to COUNT_CAP."""
-    from .needle.coupling import ARC_ENDS, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT
+    from .needle.track_layout import ARC_ENDS, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT
 
     needle, d = scenario.needle, scenario.discretization
     n = float(steps)

@@ -357,3 +357,27 @@ def test_bad_center_path_for_simulate(tmp_path, text, fragments):
     for fragment in fragments:
         assert fragment in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["path.csv", "scene.yaml"]
+
+
+def test_the_outputs_libraries_are_imported_ahead_only_for_the_outputs_asked_for():
+    """`plan` imports what writing its HDF5 log and plan.png needs while it waits for its
+    replay (reports.prepare_plan_outputs): h5py only with --out, matplotlib only with --plot."""
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from pathlib import Path\n"
+              "from stitchplan.io.reports import prepare_plan_outputs\n"
+              "def loaded():\n"
+              "    return 'h5py' in sys.modules, 'matplotlib.pyplot' in sys.modules\n"
+              "prepare_plan_outputs(None, None)\n"
+              "print(*loaded())\n"
+              "prepare_plan_outputs(Path('run.h5'), None)\n"
+              "print(*loaded())\n"
+              "prepare_plan_outputs(None, Path('plan.png'))\n"
+              "print(*loaded())\n"
+              "import matplotlib\n"
+              "print(matplotlib.get_backend().lower())\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split("\n")[:4] == ["False False", "True False", "True True", "agg"]

@@ -19,12 +19,8 @@ from stitchplan.errors import InputError
 from stitchplan.io.reports import discretization_summary
 from stitchplan.needle.geometry import scenario_needle
 from stitchplan.planning.replays import BackgroundReplays, InlineReplays, helper_available, replays_for
-from stitchplan.planning.verification import (
-    plan_replays,
-    plan_verified,
-    rescaled,
-    simulate_with_estimate,
-)
+from stitchplan.planning.replay_models import rescaled
+from stitchplan.planning.verification import plan_replays, plan_verified, simulate_with_estimate
 from stitchplan.planning.trajectory import exported_center
 
 
@@ -278,6 +274,30 @@ def test_the_replay_runs_here_when_the_helper_is_gone(scenario):
     assert replayed.achieved_exit_def.tolist() == expected.achieved_exit_def.tolist()
 
 
+def test_the_command_s_waiting_time_is_used_once_and_changes_no_replay(scenario):
+    """`while_waiting` (the outputs' imports of `plan`) runs the first time the command waits
+    for an answer that has not come, and not again; one that fails changes nothing."""
+    path = _fixed_path(scenario, 40)
+    expected = InlineReplays(scenario).replay(path).achieved_exit_def.tolist()
+    for work in ("records", "fails"):
+        calls = []
+
+        def waiting():
+            calls.append(work)
+            if work == "fails":
+                raise ImportError("no such library")
+
+        helper = BackgroundReplays(scenario, while_waiting=waiting)
+        try:
+            first = helper.replay(path)  # submitted now: its answer cannot be there yet
+            second = helper.replay(_fixed_path(scenario, 40, shift=0.1))
+        finally:
+            helper.close()
+        assert calls == [work]
+        assert first.achieved_exit_def.tolist() == expected
+        assert second.achieved_exit_def.tolist() != expected
+
+
 def test_simulate_estimate_by_the_helper_is_the_estimate_made_here(scenario):
     records = []
     for kind in (InlineReplays, BackgroundReplays):
@@ -344,8 +364,9 @@ def _running(pid: int) -> bool:
 @pytest.mark.skipif(not helper_available(), reason="no helper process on this machine")
 def test_the_helper_forked_as_the_command_starts_gives_the_plan_made_without_it(tmp_path):
     """`stitchplan plan` forks its helper before its imports (stitchplan/early_helper.py) and
-    hands it the scenario later: the trajectory and the verified and estimated errors are
-    those of the replays made in the command's process."""
+    hands it the refined model once its inputs are checked, before its own imports of the
+    numerics: the trajectory and the verified and estimated errors are those of the replays
+    made in the command's process."""
     import json
     import os
     import subprocess
@@ -364,8 +385,46 @@ def test_the_helper_forked_as_the_command_starts_gives_the_plan_made_without_it(
                            summary["exit_error_estimate_mm"])
         forked_early = "forked as the command started" in run.stderr
         assert forked_early == (helper == "1"), run.stderr
+        assert ("handed its scenario before the command's imports" in run.stderr) == (helper == "1")
         assert summary["verification"]["replayed_in"] == ("helper process" if helper == "1" else "this process")
     assert outputs["1"] == outputs["0"]
+
+
+@pytest.mark.skipif(not helper_available(), reason="no helper process on this machine")
+@pytest.mark.parametrize("handed", ["this model", "another model"])
+def test_a_helper_handed_its_model_early_replays_it_as_one_handed_it_later(handed):
+    """early_helper.hand sends the helper its model before the replays start (`plan`, once
+    its inputs are checked); replays of that model use it as it is, and replays of another
+    (the command changed its discretization after) end it and fork a helper of their own.
+    Either way the replay is the one made in this process."""
+    import subprocess
+    import sys
+
+    tests = Path(__file__).resolve().parent
+    script = ("import logging, sys\n"
+              f"sys.path.insert(0, {str(tests)!r})\n"
+              "logging.basicConfig(level=logging.INFO)\n"
+              "from stitchplan import early_helper\n"
+              "early_helper.start_for(['plan', 'a.yaml', '--export', 't.csv'], 'stitchplan.planning.replays:serve')\n"
+              "from test_replays import _fixed_path\n"
+              "from test_verification import scene_raw\n"
+              "from stitchplan.config.scenario import parse_scenario\n"
+              "from stitchplan.planning.replay_models import rescaled\n"
+              "from stitchplan.planning.replays import BackgroundReplays, InlineReplays\n"
+              "scenario = parse_scenario(scene_raw(20.0, 18.0, 5.0, 0.3))\n"
+              f"early_helper.hand(scenario if {handed == 'this model'} else rescaled(scenario, 2.0), {{}})\n"
+              "helper = BackgroundReplays(scenario)\n"
+              "path = _fixed_path(scenario, 40)\n"
+              "replayed = helper.replay(path)\n"
+              "where = helper.where\n"
+              "helper.close()\n"
+              "assert replayed.achieved_exit_def.tolist() == InlineReplays(scenario).replay(path).achieved_exit_def.tolist()\n"
+              "print(where)\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "helper process"
+    assert "handed its scenario before the command's imports" in run.stderr
+    assert ("handed another model" in run.stderr) == (handed == "another model")
 
 
 @pytest.mark.skipif(not helper_available(), reason="no helper process on this machine")

@@ -36,7 +36,7 @@ from stitchplan.resources import (
     model_size,
     verification_origin,
 )
-from stitchplan.planning.verification import rescaled
+from stitchplan.planning.replay_models import rescaled
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 PHANTOM = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}

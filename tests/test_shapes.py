@@ -518,7 +518,7 @@ def test_the_wound_is_graded_at_the_needle_to_the_spacing_it_asks_for(factor, ne
 
     from stitchplan.config.scenario import load_scenario
     from stitchplan.needle.geometry import needle_zone
-    from stitchplan.planning.verification import rescaled
+    from stitchplan.planning.replay_models import rescaled
     from stitchplan.tissue.model import model_for_scenario
 
     scenario = rescaled(load_scenario(CONFIGS / "wound_closure.yaml"), factor)

@@ -59,7 +59,7 @@ def test_hole_near_stitch_factors_at_a_quarter_of_its_spacing():
     the edge, a lattice line, already carries one spacing apart) made K0 nearly singular
     (condition ~3e13, the run refused); now ~1.3e4, as the block's own at that spacing."""
     from stitchplan.needle.equilibrium import PreparedTissue
-    from stitchplan.planning.verification import rescaled
+    from stitchplan.planning.replay_models import rescaled
     from stitchplan.tissue.factorization import condition_estimate
 
     scenario = rescaled(load_scenario(CONFIGS / "hole_near_stitch.yaml"), 0.25)
@@ -198,7 +198,7 @@ def test_no_shipped_shape_is_refused_at_its_spacing_half_or_a_quarter(scene):
     """The check on the lattice each model would build (the other shipped scenes are
     rectangles, which have no thin tissue): nothing under three local spacings thick."""
     from stitchplan.needle.geometry import needle_zone
-    from stitchplan.planning.verification import rescaled
+    from stitchplan.planning.replay_models import rescaled
     from stitchplan.tissue.model import load_segments, shaped_lattice
     from stitchplan.tissue.shapes import lattice_spacing
     from stitchplan.tissue.thin_features import thinnest_spot

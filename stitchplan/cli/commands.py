@@ -208,12 +208,9 @@ def plan(
         robot = replace(robot, angular_speed=angular_speed)
     scenario = replace(scenario, robot=robot,
                        planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
-    from ..io import reports
-    from ..planning.verification import plan_replays, plan_verified, prediction_replays, predicts_aim, replay_scenario
-    from ..io.progress import progress_bar
-
+    from .. import early_helper
+    from ..planning.replay_models import predicts_aim, replay_options, replay_scenario
     from ..resources import PLAN_RUNS, VERIFICATION_RUNS, verification_origin
-    from ..study.auto import resolve_accuracy
 
     limits = _limits(max_particles, no_resource_check)
     names = _option_names(spacing, dilation)
@@ -230,8 +227,16 @@ def plan(
                linear_solver=linear_solver, alongside=at_2h)
 
     _needle_geometry(scenario_path, scenario)  # a needle that cannot enter or exit, with the file named
+    options = {"linear_solver": linear_solver, "tip_tracking": tip_tracking}
     if scenario.discretization.accuracy is None:
         guard(scenario)
+        if uncertainty_path is None:  # its model settled and guarded: the helper builds it while this imports
+            early_helper.hand(replay_scenario(scenario, verify), replay_options(options))
+    from ..io import reports
+    from ..io.progress import progress_bar
+    from ..planning.verification import plan_replays, plan_verified, prediction_replays
+    from ..study.auto import resolve_accuracy
+
     with _naming_files(scenario_path):  # an accuracy the discretizations cannot reach names the file
         scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
                                                max_particles=None if limits is None else limits.max_particles)
@@ -247,9 +252,9 @@ def plan(
     # the trajectory's replays go on in a helper process alongside (planning/replays.py); the
     # predicted aim's at 2h here, after the first pass (planning/verification.py)
     with (_naming_files(scenario_path),
-          plan_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking) as replays,
-          prediction_replays(scenario, verify, linear_solver=linear_solver, tip_tracking=tip_tracking)
-          as predictions,
+          plan_replays(scenario, verify, while_waiting=lambda: reports.prepare_plan_outputs(out, plot),
+                       **options) as replays,
+          prediction_replays(scenario, verify, **options) as predictions,
           progress_bar("planned steps", (2 if compare else 1) * expected) as advance):
         result = plan_verified(scenario, compare=compare, verify=verify, linear_solver=linear_solver,
                                tip_tracking=tip_tracking, on_step=lambda record: advance(), replays=replays,

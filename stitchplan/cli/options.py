@@ -263,7 +263,7 @@ def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = No
 def _estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:
     """The exit error estimate's (or the predicted aim's) replay at twice the spacing, as a
     run of `_guard`'s `alongside`; `skip` says how to leave it out."""
-    from ..planning.verification import replay_scenario
+    from ..planning.replay_models import replay_scenario
     from ..resources import replay_origin
 
     return ("insertion", replay_scenario(scenario, verify=False), label, 1,

@@ -283,8 +283,7 @@ def legend_below(fig, axes, columns: int = 4, gap: float = 0.01, **options):
             if label not in labels and not label.startswith("_"):
                 handles.append(handle)
                 labels.append(label)
-    fig.canvas.draw()
-    renderer = fig.canvas.get_renderer()
+    renderer = fig.canvas.get_renderer()  # the boxes lay out what they measure: no draw needed
     boxes = np.array([fig.transFigure.inverted().transform(ax.get_tightbbox(renderer).get_points())
                       for ax in axes])  # (n_axes, 2 corners, 2)
     middle = 0.5 * (boxes[:, 0, 0].min() + boxes[:, 1, 0].max())
@@ -293,8 +292,9 @@ def legend_below(fig, axes, columns: int = 4, gap: float = 0.01, **options):
 
 
 def title_above(fig, axes, text: str, gap: float = 0.015, fontsize: float = 10):
-    """The figure's title just above the highest of `axes` (their titles included)."""
-    fig.canvas.draw()
+    """The figure's title just above the highest of `axes` (their titles included). The
+    axes' tight boxes apply their aspect and lay out their ticks and titles themselves, so no
+    draw of the whole figure comes first (each cost as much as the PNG's own two)."""
     renderer = fig.canvas.get_renderer()
     tops = [fig.transFigure.inverted().transform(ax.get_tightbbox(renderer).get_points())[1, 1]
             for ax in axes]

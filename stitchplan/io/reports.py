@@ -401,6 +401,19 @@ def _write_insertion_files(result, command: str, out: Path | None, summary: Path
                        estimate_mm=(extra_summary or {}).get("exit_error_estimate_mm"))
 
 
+def prepare_plan_outputs(out: Path | None = None, plot: Path | None = None) -> None:
+    """Import what writing the HDF5 run log (`out`) and plan.png (`plot`) needs, ahead of
+    write_plan_outputs: `plan` does it while it waits for its verification's replay
+    (planning/replays.py `while_waiting`), the import of matplotlib alone about a quarter of a
+    second that then no longer follows the replay."""
+    if out is not None:
+        import h5py  # noqa: F401
+    if plot is not None:
+        from .needle_plots import pyplot
+
+        pyplot()
+
+
 def write_plan_outputs(result, export: Path, out: Path | None = None, summary: Path | None = None,
                        plot: Path | None = None, provenance: dict | None = None,
                        uncertainty=None, uncertainty_plot: Path | None = None) -> None:

@@ -69,9 +69,9 @@ from ..config import Needle
 from ..tissue.model import TissueModel
 from ..tissue.shape_functions import rows_csr
 from .geometry import NeedleGeometry
+from .track_layout import ARC_ENDS, MORTAR, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, SEGMENT_ENDS
 
 GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on [0, 1]
-MULTIPLIER_SPACINGS = 1.0  # mortar multiplier elements span at least this many local spacings
 MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous piecewise linear
 PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter remainder at the entry)
 # mortar: the cutting force's density along the last cutting_length l mm of needle, s mm behind
@@ -87,9 +87,6 @@ CUTTING_PROFILE = "uniform"
 # cutting_share (tests/test_needle_coupling.py)
 SMOOTH_POINTS_PER_LENGTH = 8.0
 UNIFORM, SMOOTH = "uniform", "smooth"
-QUADRATURE_PER_ELEMENT = 2.0  # arc element ends: constraint Gauss points per segment >= this x segment / element
-POINTS, MORTAR = "points", "mortar"
-SEGMENT_ENDS, ARC_ENDS = "segments", "arc"  # `needle.multiplier_ends`: mortar element ends at needle points or exact arc lengths
 
 
 def cutting_density(s: np.ndarray, length: float) -> np.ndarray:

@@ -31,6 +31,7 @@ from ..needle.geometry import length, scenario_needle
 from ..needle.steering import CenterAim
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
+from .replay_models import aims_at_bites
 from .trajectory import exported_center, exported_centers
 
 log = logging.getLogger(__name__)
@@ -518,14 +519,3 @@ def symmetric_aim(result: InsertionResult, bite_aim: float = 0.0) -> np.ndarray:
     away = result.achieved_exit_def - result.bites["exit_wound_edge_def"]
     excess = result.bites["difference_mm"] - bite_aim
     return exit_error_vector(result) - excess * away / np.linalg.norm(away)
-
-
-def aims_at_bites(scenario: Scenario) -> bool:
-    """Whether the plan aims at equal bites: planner.target symmetric on a stitch across a
-    wound (elsewhere the target means the exit)."""
-    return scenario.planner.target == "symmetric" and bool(scenario_needle_gaps(scenario))
-
-
-def scenario_needle_gaps(scenario: Scenario) -> list:
-    """The wound gaps the scenario's undeformed needle circle crosses (none on a convex tissue)."""
-    return scenario_needle(scenario).gaps

@@ -39,6 +39,7 @@ import logging
 import os
 import signal
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import replace
 
@@ -96,17 +97,31 @@ class InlineReplays:
 
 
 class BackgroundReplays(InlineReplays):
-    """Replays run by a forked helper process (module docstring)."""
+    """Replays run by a forked helper process (module docstring). `while_waiting`: work of
+    the command's own that can go on while it waits for a replay (called once, the first
+    time the answer is not there yet; the outputs' libraries, cli.commands.plan)."""
 
-    def __init__(self, scenario: Scenario, **options):
+    def __init__(self, scenario: Scenario, while_waiting: Callable[[], None] | None = None, **options):
         super().__init__(scenario, **options)
+        self._while_waiting = while_waiting
         started = early_helper.take()  # forked as the command started (stitchplan/early_helper.py)
+        handed = None
         if started is not None:
-            log.info("replays: the helper process forked as the command started (pid %d)", started[0])
-        else:
-            started = early_helper.fork_helper(SERVER)
-        self._process, self._connection = _StartedHelper(started[0]), started[1]
-        self._connection.send(("serve", scenario, options, os.getpid()))
+            pid, connection, handed = started
+            log.info("replays: the helper process forked as the command started (pid %d)%s", pid,
+                     "" if handed is None else ", handed its scenario before the command's imports")
+            if handed is not None and handed != (scenario, options):  # it builds another model
+                log.info("replays: that helper was handed another model; forking one for this one")
+                connection.close()
+                discarded = _StartedHelper(pid)
+                discarded.terminate()
+                discarded.join(STOP_SECONDS)
+                started = handed = None
+        if started is None:
+            pid, connection = early_helper.fork_helper(SERVER)
+        self._process, self._connection = _StartedHelper(pid), connection
+        if handed is None:
+            self._connection.send(("serve", scenario, options, os.getpid()))
         self.jobs = 0  # replays started in the helper (streamed passes and whole paths)
         self.steps_run = 0  # needle steps of the helper's replays, of dropped passes too
         self._newest: tuple[int, np.ndarray | None] | None = None  # the helper's newest job and its path
@@ -156,6 +171,7 @@ class BackgroundReplays(InlineReplays):
             self.submit(centers)
         job = self._newest[0]
         self._send(("send", job))
+        self._use_the_wait()
         try:
             answer = self._connection.recv() if not self._failed else None
         except (OSError, EOFError):
@@ -174,6 +190,21 @@ class BackgroundReplays(InlineReplays):
         self._last_job = job
         self._last = result
         return result
+
+    def _use_the_wait(self) -> None:
+        """Run `while_waiting` (once) when the helper's answer has not come yet. What it does
+        the command does later anyway, so an answer that comes meanwhile costs nothing; a
+        failure there is left to meet again where the command needs it."""
+        work, self._while_waiting = self._while_waiting, None
+        try:
+            if work is None or self._failed or self._connection.poll():
+                return
+        except (OSError, EOFError):
+            return
+        try:
+            work()
+        except Exception as error:  # noqa: BLE001 -- met again, and reported, where the command needs it
+            log.info("replays: the work done while waiting failed (%s)", error)
 
     @property
     def where(self) -> str:
@@ -218,13 +249,15 @@ class StreamTee:
 
 
 @contextmanager
-def replays_for(scenario: Scenario, background: bool = True, **options):
+def replays_for(scenario: Scenario, background: bool = True, while_waiting: Callable[[], None] | None = None,
+                **options):
     """Replays on `scenario`'s model: by a helper process when `background` and
-    helper_available(), else here. Closes the helper on leaving."""
+    helper_available() (`while_waiting`: BackgroundReplays'), else here. Closes the helper
+    on leaving."""
     replays = None
     if background and helper_available():
         try:
-            replays = BackgroundReplays(scenario, **options)
+            replays = BackgroundReplays(scenario, while_waiting, **options)
         except OSError as error:  # no process to be had (fork refused): replay here
             log.info("replays: no helper process (%s); replaying in this process", error)
     replays = replays or InlineReplays(scenario, **options)

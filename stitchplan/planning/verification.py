@@ -62,21 +62,27 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import Scenario, with_discretization
+from ..config import Scenario
 from ..errors import InputError, NumericalFailure, PlanningFailure
 from ..events import Event, EventKind
 from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
-from .planner import PlanResult, add_timings, aims_at_bites, exit_error_vector, run_plan, symmetric_aim
+from .planner import PlanResult, add_timings, exit_error_vector, run_plan, symmetric_aim
+from .replay_models import (
+    ESTIMATE_FACTOR,
+    VERIFICATION_FACTOR,
+    predicts_aim,
+    replay_options,
+    replay_scenario,
+    rescaled,
+)
 from .replays import InlineReplays, StreamTee, replays_for
 from .trajectory import exported_centers
 
 log = logging.getLogger(__name__)
 
 ASSUMED_ORDER = 1.0  # convergence order of the exit point in the particle spacing (conservative)
-VERIFICATION_FACTOR = 0.5  # refined spacing / planning spacing
-ESTIMATE_FACTOR = 2.0  # the exit error estimate's second run: its spacing / the run's
 VERIFIED_FACTOR = 1.5  # a verified exit error within 1.5 x exit_tolerance needs no correction
 AIMED_TOLERANCE_FRACTION = 0.4  # passes with an aim stop within this x exit_tolerance of it
 MAX_CORRECTIONS = 2
@@ -139,16 +145,6 @@ def exit_deviations(result: InsertionResult, reference: InsertionResult) -> dict
             "deviation_mm": max(spatial, material, error) if compared else max(material, error)}
 
 
-def rescaled(scenario: Scenario, factor: float) -> Scenario:
-    """The scenario with every particle spacing scaled by `factor` (a graded arrangement
-    scales as a whole)."""
-    discretization = scenario.discretization
-    changes = {"spacing": discretization.spacing * factor}
-    if discretization.needle_spacing is not None and discretization.needle_refinement is None:
-        changes["needle_spacing"] = discretization.needle_spacing * factor
-    return with_discretization(scenario, **changes)
-
-
 def estimate_from(result: InsertionResult, other: InsertionResult, factor: float, other_spacing: float) -> ExitEstimate:
     """Richardson estimate of `result`'s exit error from a run at `factor` x its spacing."""
     deviations = exit_deviations(result, other)
@@ -162,12 +158,6 @@ def estimate_from(result: InsertionResult, other: InsertionResult, factor: float
     return ExitEstimate(estimate, basis, ASSUMED_ORDER, other_spacing, other.model.n_particles, deviations)
 
 
-def _replay_options(options: dict) -> dict:
-    """run_insertion's options for a replay on another model: not the step callback, nor
-    the dense condition numbers."""
-    return {key: value for key, value in options.items() if key not in ("on_step", "condition_numbers")}
-
-
 def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path: np.ndarray | None = None,
                         replays: InlineReplays | None = None, **options) -> ExitEstimate | None:
     """The exit error estimate of `result` from a coarser run (2h) of the same centre path
@@ -176,7 +166,7 @@ def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path
     `result`, when the coarse model cannot run the insertion."""
     try:
         coarse = rescaled(scenario, ESTIMATE_FACTOR)
-        other = (replays or InlineReplays(coarse, **_replay_options(options))).replay(center_path)
+        other = (replays or InlineReplays(coarse, **replay_options(options))).replay(center_path)
     except (InputError, NumericalFailure) as error:
         message = f"exit error estimate: the model at twice the spacing failed ({error}); no estimate"
         result.events.append(Event(EventKind.ACCURACY_CHECK, message))
@@ -193,20 +183,10 @@ def estimate_replays(scenario: Scenario, background: bool = True, estimate: bool
     return plan_replays(scenario, verify=False, background=background, **options)
 
 
-def replay_scenario(scenario: Scenario, verify: bool) -> Scenario:
-    """The model plan_verified replays its trajectory on: the refined one with `verify`,
-    else the exit error estimate's at 2h."""
-    return rescaled(scenario, VERIFICATION_FACTOR if verify else ESTIMATE_FACTOR)
-
-
-def plan_replays(scenario: Scenario, verify: bool = True, background: bool = True, **options):
-    """replays_for plan_verified's replays (replay_scenario; a context manager)."""
-    return replays_for(replay_scenario(scenario, verify), background, **_replay_options(options))
-
-
-def predicts_aim(scenario: Scenario, verify: bool = True) -> bool:
-    """Whether plan_verified predicts the refined model's offset (the module docstring)."""
-    return verify and scenario.planner.predicted_aim and not aims_at_bites(scenario)
+def plan_replays(scenario: Scenario, verify: bool = True, background: bool = True, while_waiting=None, **options):
+    """replays_for plan_verified's replays (replay_scenario; a context manager); `while_waiting`:
+    replays.BackgroundReplays'."""
+    return replays_for(replay_scenario(scenario, verify), background, while_waiting, **replay_options(options))
 
 
 def prediction_replays(scenario: Scenario, verify: bool = True, background: bool = False, **options):
@@ -220,7 +200,7 @@ def prediction_replays(scenario: Scenario, verify: bool = True, background: bool
     while the pass runs."""
     if not predicts_aim(scenario, verify):
         return nullcontext(None)
-    return replays_for(rescaled(scenario, ESTIMATE_FACTOR), background, **_replay_options(options))
+    return replays_for(rescaled(scenario, ESTIMATE_FACTOR), background, **replay_options(options))
 
 
 def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = None, estimate: bool = True,
@@ -242,7 +222,7 @@ def predicted_offset(scenario: Scenario, planned: InsertionResult, predictions: 
     run's trajectory, predicted from its replay at 2h (by `predictions`, prediction_replays's,
     when given) as (e(h) - e(2h)) / PREDICTED_RATIO; None when the model at 2h cannot replay it."""
     try:
-        coarse = predictions or InlineReplays(rescaled(scenario, ESTIMATE_FACTOR), **_replay_options(options))
+        coarse = predictions or InlineReplays(rescaled(scenario, ESTIMATE_FACTOR), **replay_options(options))
         replayed = coarse.replay(exported_centers(planned))
     except (InputError, NumericalFailure) as error:
         log.info("verification: no predicted offset, the model at twice the spacing failed (%s)", error)
@@ -291,7 +271,7 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     that replay runs here after the pass."""
     tissue = PreparedTissue(scenario)  # shared by the plan's runs and the re-planning rounds
     other = replay_scenario(scenario, verify)
-    replays = replays or InlineReplays(other, **_replay_options(options))  # one model for every round
+    replays = replays or InlineReplays(other, **replay_options(options))  # one model for every round
     predict = predicts_aim(scenario, verify)
     tee = StreamTee(replays, predictions) if predict and predictions is not None else None
     prediction: dict = {}  # the predicted offset, and whether the passes were aimed by it
@@ -417,7 +397,7 @@ def verify_exported(scenario: Scenario, result: PlanResult, **options) -> PlanRe
     replayed on the refined model at the scenario's values, once (not re-aimed by it), giving
     the plan's `verification` and `estimate`."""
     other = replay_scenario(scenario, verify=True)
-    replays = InlineReplays(other, **_replay_options(options))
+    replays = InlineReplays(other, **replay_options(options))
     try:
         replayed, no_replay = replay(replays, result.exported_centers)
     finally:

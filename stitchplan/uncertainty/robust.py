@@ -69,7 +69,8 @@ from ..config import Scenario
 from ..config.uncertainty import UNITS, Uncertainty
 from ..errors import InputError, NumericalFailure
 from ..parallel import Executor, run_all
-from ..planning.planner import PlanResult, aims_at_bites, exit_error_vector, run_plan
+from ..planning.planner import PlanResult, exit_error_vector, run_plan
+from ..planning.replay_models import aims_at_bites
 from ..planning.verification import AIMED_TOLERANCE_FRACTION, exit_offset, plan_verified
 from .evaluation import SampleRun, run_sample
 from .sampling import Design, draw, with_parameters
