@@ -8,7 +8,9 @@ pass through `begin`, `row` and `end`). `BackgroundReplays` forks a helper proce
 builds the second model (and factors its K0) while this process builds its own, then
 replays each pass as its centres arrive, on the machine's second core: the replay of the
 pass that is kept overlaps the planning instead of following it. The `plan` and `simulate`
-commands fork it as they start, before their imports, and hand it its scenario here; a
+commands fork it as they start, before their imports; `plan` hands it its scenario once its
+inputs are guarded, before its own imports of the numerics (early_helper.hand), and otherwise
+it is handed it here (a helper handed another model is ended and another forked); a
 BackgroundReplays made without one forks its own the same way (early_helper.fork_helper). A pass that is not kept
 is dropped at the helper's next step once the next pass begins (it reads what has come at
 every step), unless the next pass keeps every centre the replay has used so far (a re-aimed
