@@ -79,18 +79,23 @@ def fork_helper(server: str) -> tuple[int, object]:
 
 
 def hand(scenario, options: dict) -> None:
-    """Send the helper forked here its scenario and replay options now, as the replays would
-    (("serve", scenario, options, this process's pid)), for it to build its model meanwhile.
+    """Send the helper forked here its scenario and replay options now (`send_scenario`), as
+    the replays would, for it to build its model meanwhile.
     Call it only once the inputs are checked and the resource guard has passed: the helper
     builds whatever it is handed. Does nothing without a helper, or once handed."""
     global _handed
     if _started is None or _handed is not None or os.getpid() != _parent:
         return
     try:
-        _started[1].send(("serve", scenario, options, os.getpid()))
+        send_scenario(_started[1], scenario, options)
     except (OSError, ValueError):  # the helper is gone: the replays find out and replay themselves
         return
     _handed = (scenario, options)
+
+
+def send_scenario(connection, scenario, options: dict) -> None:
+    """Send a helper the scenario and replay options it serves (`_helper` reads them)."""
+    connection.send(("serve", scenario, options, os.getpid()))
 
 
 def take() -> tuple[int, object, tuple | None] | None:

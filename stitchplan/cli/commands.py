@@ -245,8 +245,7 @@ def plan(
     if uncertainty_path is not None:
         _plan_under_uncertainty(scenario_path, scenario, uncertainty_path, executor, auto_note, limits,
                                 verify=verify, names=names, export=export, out=out, summary=summary, plot=plot,
-                                uncertainty_plot=uncertainty_plot, provenance=provenance, quiet=quiet,
-                                linear_solver=linear_solver, tip_tracking=tip_tracking)
+                                uncertainty_plot=uncertainty_plot, provenance=provenance, quiet=quiet, **options)
         return
     expected = _expected_steps(scenario)
     # the trajectory's replays go on in a helper process alongside (planning/replays.py); the
@@ -256,9 +255,8 @@ def plan(
                        **options) as replays,
           prediction_replays(scenario, verify, **options) as predictions,
           progress_bar("planned steps", (2 if compare else 1) * expected) as advance):
-        result = plan_verified(scenario, compare=compare, verify=verify, linear_solver=linear_solver,
-                               tip_tracking=tip_tracking, on_step=lambda record: advance(), replays=replays,
-                               predictions=predictions)
+        result = plan_verified(scenario, compare=compare, verify=verify, on_step=lambda record: advance(),
+                               replays=replays, predictions=predictions, **options)
     if auto_note is not None:
         result.planned.events[:0] = [auto_note, *_accuracy_events(accuracy, result.estimate)]
     reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot,

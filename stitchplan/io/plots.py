@@ -43,9 +43,8 @@ def save(fig, path: str | Path) -> None:
     Cropped to its tight box at the PNG's dpi, padded as savefig's bbox_inches="tight" pads
     it, measured without the draw of the whole figure that "tight" makes first (the same PNG
     byte for byte, benchmarks/command_overlap.py)."""
-    import matplotlib.pyplot as plt
-
     import matplotlib
+    import matplotlib.pyplot as plt
 
     buffer = io.BytesIO()  # drawn in memory, so that a failed write names its file (files.write_bytes)
     try:

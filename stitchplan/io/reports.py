@@ -409,7 +409,7 @@ def prepare_plan_outputs(out: Path | None = None, plot: Path | None = None) -> N
     if out is not None:
         import h5py  # noqa: F401
     if plot is not None:
-        from .needle_plots import pyplot
+        from .plot_elements import pyplot
 
         pyplot()
 

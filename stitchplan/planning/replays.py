@@ -123,7 +123,7 @@ class BackgroundReplays(InlineReplays):
             pid, connection = early_helper.fork_helper(SERVER)
         self._process, self._connection = _StartedHelper(pid), connection
         if handed is None:
-            self._connection.send(("serve", scenario, options, os.getpid()))
+            early_helper.send_scenario(self._connection, scenario, options)
         self.jobs = 0  # replays started in the helper (streamed passes and whole paths)
         self.steps_run = 0  # needle steps of the helper's replays, of dropped passes too
         self._newest: tuple[int, np.ndarray | None] | None = None  # the helper's newest job and its path

@@ -77,8 +77,9 @@ class TissueModel:
     visibility: Visibility | None = None
     # particles graded toward a needle: the particle spacing in its zone (zone_spacing)
     needle_spacing: float | None = None
-    # the shape functions at the particles themselves (NP, NP), where the build has checked
-    # them (a tissue with a hole or a notch); particle_shape_values() returns them
+    # the shape functions at the particles themselves (NP, NP): made by the build where it
+    # checks them (a tissue with a hole or a notch), else by particle_shape_values() when first
+    # asked for, and kept (every run's displacements on this model and the plots read them)
     particle_values: sp.csr_matrix | None = None
 
     @property
@@ -109,10 +110,10 @@ class TissueModel:
         return self._shape_pairs(points, gradients).matrices(len(points), self.n_particles)
 
     def particle_shape_values(self) -> sp.csr_matrix:
-        """N_J(X_I) at the particles themselves (NP, NP): the build's, where it made them."""
-        if self.particle_values is not None:
-            return self.particle_values
-        return self.shape_functions_at(self.particles).values
+        """N_J(X_I) at the particles themselves (NP, NP), made once (`particle_values`)."""
+        if self.particle_values is None:
+            self.particle_values = self.shape_functions_at(self.particles).values
+        return self.particle_values
 
     def free_rows_at(self, points: np.ndarray) -> sp.csr_matrix:
         """N(X) T (n, n_free): the shape functions at reference points acting on the free
