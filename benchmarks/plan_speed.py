@@ -6,7 +6,7 @@
    verification), REPEATS times each, alternating so both see the same machine load. The
    planned run's time is the summary's `wall_seconds` (from the loaded scenario to the
    result, every pass); the whole command's process wall time is reported too. Now also with
-   SuperLU alone and with the estimate's replay in the command's process
+   scipy alone (no CHOLMOD) and with the estimate's replay in the command's process
    (STITCHPLAN_REPLAY_HELPER=0: no forked helper alongside, as at BASELINE), and
    the distribution of the needle steps' wall times, every Newton iteration, equilibrium
    solves, factorizations and linear solves (from the summary).
@@ -78,12 +78,12 @@ def compare_revisions(baseline: Path) -> list[dict]:
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         for scene in SCENES:
-            before, after, scipy_only, inline = [], [], [], []
+            before, after, scipy_only, inline = [], [], [], []  # scipy_only: the path without the `fast` extra
             for _ in range(REPEATS):
                 before.append(run_plan_command(baseline, scene, ["--no-compare"], folder))
                 after.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"], folder))
                 scipy_only.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"],
-                                                   folder, STITCHPLAN_LINEAR_BACKEND="superlu"))
+                                                   folder, STITCHPLAN_LINEAR_BACKEND="scipy"))
                 inline.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"],
                                                folder, STITCHPLAN_REPLAY_HELPER="0"))
             last = after[-1]
@@ -92,7 +92,7 @@ def compare_revisions(baseline: Path) -> list[dict]:
                 "scene": scene, "particles": last["particles"], "steps": last["steps"],
                 "baseline_planned_s": statistics.median(r["wall_seconds"] for r in before),
                 "planned_s": statistics.median(r["wall_seconds"] for r in after),
-                "superlu_planned_s": statistics.median(r["wall_seconds"] for r in scipy_only),
+                "scipy_planned_s": statistics.median(r["wall_seconds"] for r in scipy_only),
                 "inline_planned_s": statistics.median(r["wall_seconds"] for r in inline),
                 "inline_command_s": statistics.median(r["command_seconds"] for r in inline),
                 "baseline_least_s": min(r["wall_seconds"] for r in before),
@@ -108,12 +108,12 @@ def compare_revisions(baseline: Path) -> list[dict]:
                 "backend": last["solver"]["linear_solver_backend"],
             }
             row["speedup"] = row["baseline_planned_s"] / row["planned_s"]
-            row["superlu_speedup"] = row["baseline_planned_s"] / row["superlu_planned_s"]
+            row["scipy_speedup"] = row["baseline_planned_s"] / row["scipy_planned_s"]
             row["inline_speedup"] = row["baseline_planned_s"] / row["inline_planned_s"]
             row["least_speedup"] = row["baseline_least_s"] / row["least_s"]
             rows.append(row)
             print(f"{scene}: planned run {row['baseline_planned_s']:.2f} s at {BASELINE} -> {row['planned_s']:.2f} s "
-                  f"({row['speedup']:.1f}x; SuperLU {row['superlu_planned_s']:.2f} s, {row['superlu_speedup']:.1f}x; "
+                  f"({row['speedup']:.1f}x; scipy only {row['scipy_planned_s']:.2f} s, {row['scipy_speedup']:.1f}x; "
                   f"replays in the process {row['inline_planned_s']:.2f} s, {row['inline_speedup']:.1f}x), "
                   f"steps median {row['step_median_ms']:.1f} ms, p90 "
                   f"{row['step_p90_ms']:.1f} ms; whole command {row['command_s']:.2f} s", flush=True)
@@ -240,7 +240,7 @@ def levers() -> list[tuple]:
         ("sh12_100x100", "centre columns re-solved every iteration", {(equilibrium, "STALE_CENTER_MOVES"): 0.0}, None),
         ("sh12_100x100", "centre columns solved with the factor (not from the kept K^-1 E^T)",
          {(equilibrium, "CENTER_COLUMNS_ON_ROWS"): False}, None),
-        ("sh12_100x100", "SuperLU in symmetric mode (the scipy default path)",
+        ("sh12_100x100", "SuperLU in symmetric mode (without the `fast` extra, where the band is wide)",
          {(saddle_point, "factorize"): lambda m, **_: factorization.SuperLUFactor(m),
           (equilibrium, "factorize"): lambda m, **_: factorization.SuperLUFactor(m)}, None),
         ("sh12_100x100", "SuperLU without symmetric mode",
@@ -493,8 +493,8 @@ def main() -> None:
     for label, seconds in start_up.items():
         print(f"{label}: {seconds:.3f} s", flush=True)
 
-    header = ["scene", "particles", "steps", "baseline_planned_s", "planned_s", "speedup", "superlu_planned_s",
-              "superlu_speedup", "inline_planned_s", "inline_speedup", "baseline_least_s", "least_s",
+    header = ["scene", "particles", "steps", "baseline_planned_s", "planned_s", "speedup", "scipy_planned_s",
+              "scipy_speedup", "inline_planned_s", "inline_speedup", "baseline_least_s", "least_s",
               "least_speedup", "step_median_ms", "step_p90_ms", "step_max_ms", "newton", "solves", "factorizations",
               "linear_solves", "passes", "baseline_passes", "baseline_exit_mm", "exit_mm", "baseline_command_s",
               "command_s", "inline_command_s"]
@@ -505,8 +505,9 @@ def main() -> None:
         f"Generated by `python benchmarks/plan_speed.py` ({common.machine_note()}; load average "
         f"{load:.1f} at the end). Linear solver: {rows[0]['backend']}.\n",
         f"## Planned run before ({BASELINE}) and now, side by side (median of {REPEATS})\n",
-        "Now: with the installed backend (above); *SuperLU only*: the same code with "
-        "STITCHPLAN_LINEAR_BACKEND=superlu, the path without the `fast` extra; *replays in the process*: "
+        "Now: with the installed backend (above); *scipy only*: the same code with "
+        "STITCHPLAN_LINEAR_BACKEND=scipy, the path without the `fast` extra (LAPACK's banded Cholesky where "
+        "the band is narrow, SuperLU elsewhere: stitchplan/tissue/factorization.py); *replays in the process*: "
         "STITCHPLAN_REPLAY_HELPER=0, the exit-error estimate's replay at 2h after the planned run in the "
         "command's process instead of in the helper alongside it (planning/replays.py; forked as the "
         "command starts, stitchplan/early_helper.py), which slows the planned run a little by running "
@@ -522,14 +523,14 @@ def main() -> None:
         "pass (planning/planner.py PassPrefix) have the first pass's wall times.\n",
         common.markdown_table(
             ["scene", "particles", "steps", f"planned run {BASELINE} (s)", "planned run now (s)", "speed-up",
-             "now with SuperLU only (s)", "speed-up with SuperLU", "now, replays in the process (s)",
+             "now with scipy only (s)", "speed-up with scipy only", "now, replays in the process (s)",
              "speed-up, replays in the process", f"least of the {REPEATS} runs {BASELINE} / now (s)",
              "speed-up of the least",
              "step median (ms)", "step p90 (ms)", "step max (ms)", "Newton iterations", "equilibrium solves",
              "factorizations", "linear solves", f"passes {BASELINE} / now", f"planned exit error {BASELINE} (mm)",
              "planned exit error now (mm)"],
             [[r["scene"], r["particles"], r["steps"], r["baseline_planned_s"], r["planned_s"],
-              f"{r['speedup']:.2f}x", r["superlu_planned_s"], f"{r['superlu_speedup']:.2f}x",
+              f"{r['speedup']:.2f}x", r["scipy_planned_s"], f"{r['scipy_speedup']:.2f}x",
               r["inline_planned_s"], f"{r['inline_speedup']:.2f}x",
               f"{r['baseline_least_s']:.4g} / {r['least_s']:.4g}", f"{r['least_speedup']:.2f}x", r["step_median_ms"], r["step_p90_ms"], r["step_max_ms"], r["newton"],
               r["solves"], r["factorizations"], r["linear_solves"], f"{r['baseline_passes']} / {r['passes']}",

@@ -1,7 +1,7 @@
 """Sparse direct factorizations (stitchplan/tissue/factorization.py): SuperLU always, CHOLMOD's
 Cholesky from the optional `fast` extra for symmetric positive definite matrices, its L D L^T
-for symmetric indefinite ones (checked, and SuperLU where it fails), and the switch that
-turns CHOLMOD off."""
+for symmetric indefinite ones (checked, and SuperLU where it fails), LAPACK's banded Cholesky
+without CHOLMOD where the band is narrow, and the switches that turn them off."""
 
 from __future__ import annotations
 
@@ -156,3 +156,91 @@ def test_the_largest_row_sum_is_gershgorins_bound_with_empty_rows_and_duplicates
     dense = np.random.default_rng(5).standard_normal((30, 30))
     dense[7] = 0.0
     assert np.isclose(_largest_row_sum(sp.csr_matrix(dense)), np.abs(dense).sum(axis=1).max(), rtol=1e-15)
+
+
+def lattice_matrix(m: int = 12, seed: int = 6) -> sp.csr_matrix:
+    """A positive definite 5-point stencil on an m x m lattice with its rows shuffled: a
+    matrix whose band is narrow once reordered (2.2x its stored entries), wide as given."""
+    step = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(m, m))
+    lattice = (sp.kron(step, sp.eye(m)) + sp.kron(sp.eye(m), step)).tocsr()
+    shuffle = np.random.default_rng(seed).permutation(m * m)
+    return lattice[shuffle][:, shuffle].tocsr()
+
+
+def test_without_cholmod_a_narrow_band_is_factored_by_lapacks_banded_cholesky(monkeypatch):
+    """STITCHPLAN_LINEAR_BACKEND=scipy (the path without the `fast` extra): a positive definite
+    matrix that reverse Cuthill-McKee brings into a narrow band gets the banded Cholesky, which
+    solves one and several right-hand sides and sparse columns as SuperLU does."""
+    from stitchplan.tissue.factorization import BANDED, BandedCholeskyFactor
+
+    monkeypatch.setenv("STITCHPLAN_LINEAR_BACKEND", "scipy")
+    assert not cholesky_available()
+    matrix = lattice_matrix()
+    factor = factorize(matrix, symmetric_positive=True)
+    assert isinstance(factor, BandedCholeskyFactor) and factor.backend == BANDED
+    rng = np.random.default_rng(7)
+    rhs = rng.standard_normal((matrix.shape[0], 3))
+    given = rhs.copy()
+    reference = SuperLUFactor(matrix)
+    np.testing.assert_allclose(factor.solve(rhs), reference.solve(rhs), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(factor.solve(rhs[:, 1]), reference.solve(rhs[:, 1]), rtol=0, atol=1e-13)
+    assert factor.solve(rhs[:, 1]).shape == (matrix.shape[0],)
+    assert np.array_equal(rhs, given)  # the right-hand side is not overwritten
+    columns = sp.random(matrix.shape[0], 4, density=0.1, random_state=rng, format="csc")
+    np.testing.assert_allclose(factor.solve_columns(columns), reference.solve(columns.toarray()), rtol=0, atol=1e-13)
+    assert factorize(matrix).backend == SUPERLU  # not declared symmetric
+
+
+def test_the_band_holds_the_reordered_lower_triangle_and_leaves_the_matrix_as_given():
+    """narrow_band's (bandwidth + 1, n) array is the lower triangle of P A P^T by subdiagonal,
+    for a canonical matrix and one with unsorted and duplicate entries (summed in a copy)."""
+    from stitchplan.tissue.factorization import narrow_band
+
+    canonical = lattice_matrix()
+    n = canonical.shape[0]
+    band, order = narrow_band(canonical)
+    assert sorted(order) == list(range(n)) and band.shape == (13, n)  # the lattice's 12 + 1
+    permuted = canonical[order][:, order].toarray()
+    rebuilt = np.zeros((n, n))
+    for d in range(band.shape[0]):
+        rebuilt[np.arange(d, n), np.arange(n - d)] = band[d, :n - d]
+    np.testing.assert_array_equal(rebuilt, np.tril(permuted))
+    assert all(not band[d, n - d:].any() for d in range(1, band.shape[0]))  # the padding past the end
+    rng = np.random.default_rng(5)  # each row's entries given twice, as halves, shuffled
+    row_of = np.repeat(np.arange(n), np.diff(canonical.indptr))
+    doubled = np.concatenate([np.arange(canonical.nnz)] * 2)
+    doubled = doubled[np.lexsort((rng.random(len(doubled)), row_of[doubled]))]
+    duplicated = sp.csr_matrix((canonical.data[doubled] / 2, canonical.indices[doubled], 2 * canonical.indptr),
+                               shape=canonical.shape)
+    assert not duplicated.has_canonical_format
+    given = (duplicated.data.copy(), duplicated.indices.copy(), duplicated.indptr.copy())
+    again, same_order = narrow_band(duplicated)
+    assert np.array_equal(same_order, order)
+    np.testing.assert_allclose(again, band, rtol=1e-15, atol=0)
+    assert all(np.array_equal(a, b) for a, b in zip(given, (duplicated.data, duplicated.indices, duplicated.indptr)))
+
+
+def test_a_wide_band_an_indefinite_matrix_and_the_superlu_switch_go_to_superlu(monkeypatch):
+    """No band where it would hold more than BANDED_STORAGE times the stored entries (a
+    random sparse matrix), nor where the Cholesky meets a non-positive pivot (indefinite, or not
+    finite), nor with STITCHPLAN_LINEAR_BACKEND=superlu: SuperLU, as accurate."""
+    from stitchplan.tissue.factorization import BandedCholeskyFactor, narrow_band
+
+    monkeypatch.setenv("STITCHPLAN_LINEAR_BACKEND", "scipy")
+    scattered = sp.random(200, 200, density=0.01, random_state=np.random.default_rng(8))
+    wide = (scattered + scattered.T + 10.0 * sp.eye(200)).tocsr()  # a random graph: no narrow ordering
+    assert narrow_band(wide) is None
+    assert factorize(wide, symmetric_positive=True).backend == SUPERLU
+    indefinite = lattice_matrix() - 3.0 * sp.eye(144)
+    with pytest.raises(ValueError, match="not positive definite"):
+        BandedCholeskyFactor(narrow_band(indefinite))
+    factor = factorize(indefinite, symmetric_positive=True)
+    assert factor.backend == SUPERLU
+    rhs = np.cos(np.arange(144.0))
+    np.testing.assert_allclose(indefinite @ factor.solve(rhs), rhs, atol=1e-11)
+    broken = lattice_matrix().tolil()
+    broken[5, 5] = np.nan
+    with pytest.raises(ValueError, match="not positive definite"):
+        BandedCholeskyFactor(narrow_band(broken))
+    monkeypatch.setenv("STITCHPLAN_LINEAR_BACKEND", "superlu")
+    assert factorize(lattice_matrix(), symmetric_positive=True).backend == SUPERLU

@@ -1,13 +1,14 @@
 """Sparse direct factorizations: scipy's SuperLU always; CHOLMOD's Cholesky when the
 optional `fast` extra (the `cvxopt` wheel, which carries CHOLMOD and OpenBLAS) is installed
-and the matrix is symmetric positive definite.
+and the matrix is symmetric positive definite; without it, LAPACK's banded Cholesky (through
+scipy) for such a matrix whose rows reverse Cuthill-McKee brings into a narrow band.
 
 The needle's saddle-point solves reuse one factor of K + H over hundreds of Newton
 iterations, and every run factors K0 once: on the SH 1/2 scene (1900 dofs, 175 000
 nonzeros) CHOLMOD's Cholesky factors K0 in ~17 ms and solves in ~0.17 ms, against SuperLU's
 ~26 ms and ~0.34 ms (symmetric mode); on its model at half the spacing (the plan's
 verification, 7170 dofs) in ~0.12 s and ~3.6 ms against ~0.33 s and ~6.3 ms
-(benchmarks/results/model_build_speed.md). SuperLU stays the default and the fallback.
+(benchmarks/results/model_build_speed.md). SuperLU is the fallback of every other factor.
 
 A symmetric matrix the Cholesky finds not positive definite (the needle's constraint
 curvature H, or Saint Venant-Kirchhoff's tangent under strong compression, can make K + H
@@ -16,7 +17,19 @@ ordering, so one solve's residual is checked (LDL_CHECK) and SuperLU factors the
 where it fails. It keeps the indefinite K + H of the SH 1/2 100 x 30 and 100 x 40 blocks
 on CHOLMOD, so those runs import no scipy.sparse.linalg (~0.07 s; tests/test_factorization.py;
 benchmarks/plan_speed.py's levers table times them with SuperLU instead).
-STITCHPLAN_LINEAR_BACKEND=superlu turns CHOLMOD off.
+
+Without CHOLMOD, a small model's K0 and K + H are factored faster in a band than by SuperLU:
+reverse Cuthill-McKee leaves the needle20 scenes' K0 (1100-1200 dofs) a band 230-330 rows
+wide, which LAPACK's dpbtrf factors in 4-6 ms and dpbtrs solves in 0.09-0.14 ms, against
+SuperLU's 10 ms and 0.18-0.21 ms (benchmarks/results/banded_factor.md). A band holds
+n x (bandwidth + 1) numbers whatever the fill a sparse factor would have, and its solves take
+their columns one at a time, so where it is wide (sh12_100x100's K0, 1900 dofs, a band 403
+wide, 4.4 times K's stored entries) a planned run is slower with it; it is used only where it
+holds at most BANDED_STORAGE times K's stored entries. CHOLMOD's solves are faster still, so
+it stays off where CHOLMOD runs.
+
+STITCHPLAN_LINEAR_BACKEND=scipy turns CHOLMOD off (the path without the `fast` extra),
+STITCHPLAN_LINEAR_BACKEND=superlu CHOLMOD and the band.
 Every factor says which backend made it (`backend`), and the run summaries record it.
 """
 
@@ -35,14 +48,73 @@ except (ImportError, OSError):
     cholmod = None
 
 SUPERLU = "scipy SuperLU (splu, MMD_AT_PLUS_A ordering, symmetric mode)"
+BANDED = "LAPACK banded Cholesky (scipy dpbtrf, reverse Cuthill-McKee ordering)"
 CHOLMOD = "CHOLMOD Cholesky (cvxopt)"
 CHOLMOD_LDL = "CHOLMOD LDL^T (cvxopt, simplicial)"
 LDL_CHECK = 1e-10  # |A x - b| / |b| an L D L^T factor's solve must reach on a test vector
+BANDED_STORAGE = 4.0  # the band (n x (bandwidth + 1) numbers) at most this many times K's stored
+# entries: 2.1-3.6 on the shipped needle scenes' K0 whose planned runs it makes faster, 4.4 on
+# sh12_100x100's, whose it makes slower (benchmarks/banded_factor.py)
 
 
 class SingularMatrix(NumericalFailure):
     """SuperLU met a zero pivot: the matrix is singular to rounding (scipy raises a bare
     RuntimeError, which would end a command with a traceback)."""
+
+
+class BandedCholeskyFactor:
+    """L L^T of a symmetric positive definite matrix held as a band (LAPACK dpbtrf / dpbtrs
+    through scipy), its rows and columns renumbered by reverse Cuthill-McKee to narrow the
+    band; made from `narrow_band`. Raises ValueError where the matrix is not positive definite
+    (or not finite)."""
+
+    backend = BANDED
+
+    def __init__(self, band: tuple[np.ndarray, np.ndarray]):
+        from scipy.linalg.lapack import dpbtrf, dpbtrs  # imported at start-up without CHOLMOD (below)
+
+        lower, self._order = band
+        self._dpbtrs = dpbtrs
+        self._factor, info = dpbtrf(lower, lower=1, overwrite_ab=1)
+        if info != 0 or not np.isfinite(self._factor[0]).all():  # the factor's diagonal
+            raise ValueError("not positive definite")
+        self._position = np.empty_like(self._order)  # row i of the matrix is row position[i] of the band
+        self._position[self._order] = np.arange(len(self._order))
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        solution, _info = self._dpbtrs(self._factor, rhs[self._order], lower=1, overwrite_b=1)
+        return solution[self._position]
+
+    def solve_columns(self, columns: sp.spmatrix) -> np.ndarray:
+        """The solutions (n, k) for the k sparse right-hand sides `columns` (n, k)."""
+        return self.solve(columns.toarray())
+
+
+def narrow_band(matrix: sp.spmatrix) -> tuple[np.ndarray, np.ndarray] | None:
+    """The lower band of a symmetric matrix in reverse Cuthill-McKee order, as LAPACK's
+    banded Cholesky takes it ((bandwidth + 1, n), Fortran order: row d holds the d-th
+    subdiagonal), and that order; None where the band would hold more than BANDED_STORAGE
+    times the matrix's stored entries."""
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    matrix = sp.csr_matrix(matrix)
+    if not matrix.has_canonical_format:  # summed in a copy: the caller's arrays stay as they are
+        matrix = matrix.copy()
+        matrix.sum_duplicates()
+    n = matrix.shape[0]
+    order = reverse_cuthill_mckee(matrix, symmetric_mode=True)
+    position = np.empty(n, dtype=np.intp)
+    position[order] = np.arange(n)
+    rows = np.repeat(position, np.diff(matrix.indptr))
+    columns = position[matrix.indices]
+    lower = rows >= columns
+    diagonal = rows[lower] - columns[lower]  # which subdiagonal each lower entry is on
+    bandwidth = int(diagonal.max()) if len(diagonal) else 0
+    if n * (bandwidth + 1) > BANDED_STORAGE * max(matrix.nnz, 1):
+        return None
+    band = np.zeros((bandwidth + 1, n), order="F")
+    band[diagonal, columns[lower]] = matrix.data[lower]
+    return band, order
 
 
 class SuperLUFactor:
@@ -139,7 +211,7 @@ class LDLFactor(CholeskyFactor):
             raise ValueError("inaccurate without pivoting")
 
 
-Factor = SuperLUFactor | CholeskyFactor
+Factor = SuperLUFactor | BandedCholeskyFactor | CholeskyFactor
 
 
 def _probe(n: int) -> np.ndarray:
@@ -186,15 +258,27 @@ def _largest_row_sum(matrix: sp.spmatrix) -> float:
     return float(np.where(counts > 0, sums, 0.0).max())
 
 
+def _switch() -> str:
+    return os.environ.get("STITCHPLAN_LINEAR_BACKEND", "").lower()
+
+
 def cholesky_available() -> bool:
-    return cholmod is not None and os.environ.get("STITCHPLAN_LINEAR_BACKEND", "").lower() != "superlu"
+    return cholmod is not None and _switch() not in ("superlu", "scipy")
 
 
-# scipy.sparse.linalg (with scipy.linalg ~70 ms) is imported with this module where SuperLU
-# factors every matrix, so that a run's time is its own; with CHOLMOD it is imported the
-# first time SuperLU runs (an indefinite matrix whose L D L^T fails the check: none of the
-# shipped needle scenes')
+def band_allowed() -> bool:
+    """Whether a narrow band's Cholesky factors what CHOLMOD would (off with CHOLMOD, whose
+    solves are faster, and with STITCHPLAN_LINEAR_BACKEND=superlu)."""
+    return not cholesky_available() and _switch() != "superlu"
+
+
+# scipy.sparse.linalg (with scipy.linalg ~70 ms) and the band's modules are imported with this
+# module where scipy factors every matrix, so that a run's time is its own; with CHOLMOD
+# SuperLU's are imported the first time it runs (an indefinite matrix whose L D L^T fails the
+# check: none of the shipped needle scenes')
 if not cholesky_available():
+    import scipy.linalg.lapack  # noqa: F401
+    import scipy.sparse.csgraph  # noqa: F401
     import scipy.sparse.linalg  # noqa: F401
 
 
@@ -202,8 +286,9 @@ def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
     """A factor of `matrix` with `.solve(rhs)` (rhs (n,) or (n, k)) and `.backend`: where the
     caller knows the matrix is symmetric (`symmetric_positive`) and CHOLMOD is available, its
     Cholesky, or its L D L^T where the matrix is not positive definite (the needle's
-    constraint curvature H can make K + H indefinite); SuperLU otherwise or where the L D L^T
-    is not accurate."""
+    constraint curvature H can make K + H indefinite); without CHOLMOD, the banded Cholesky
+    where the matrix is symmetric positive definite and its band narrow (narrow_band);
+    SuperLU otherwise, or where the L D L^T is not accurate."""
     if symmetric_positive and cholesky_available():
         stored = cholmod_matrix(matrix)
         try:
@@ -214,4 +299,11 @@ def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
             return LDLFactor(matrix, stored)
         except ValueError:  # a pivot near zero
             pass
+    elif symmetric_positive and band_allowed():
+        band = narrow_band(matrix)
+        if band is not None:
+            try:
+                return BandedCholeskyFactor(band)
+            except ValueError:  # not positive definite
+                pass
     return SuperLUFactor(matrix)
