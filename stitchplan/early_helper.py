@@ -52,9 +52,9 @@ def start_for(arguments: list[str], server: str) -> None:
     global _started
     if _started is not None or not arguments or arguments[0] not in COMMANDS or not helper_available():
         return
-    # no replays to run: the help, a plan under uncertainty (its sampled runs go to a cluster),
-    # a simulate without its estimate
-    if any(option in arguments for option in ("--help", "--uncertainty", "--no-estimate")):
+    # no replays to run: the help, a plan under uncertainty (its sampled runs go to a cluster;
+    # `--uncertainty FILE` or `--uncertainty=FILE`), a simulate without its estimate
+    if any(argument.split("=", 1)[0] in ("--help", "--uncertainty", "--no-estimate") for argument in arguments):
         return
     try:
         _started = fork_helper(server)

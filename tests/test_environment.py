@@ -143,3 +143,15 @@ def test_a_non_ascii_scenario_path_under_an_ascii_locale_is_logged_escaped(tmp_p
     assert run.returncode == 0, error
     with h5py.File(tmp_path / "run.h5") as log:
         assert log.attrs["scenario"].endswith("Gr\\udcc3\\udcb6\\udcc3\\udc9fe \\udcc3\\udcbc/plain.yaml")
+
+
+def test_an_unknown_linear_backend_is_one_line_and_no_file(tmp_path):
+    """STITCHPLAN_LINEAR_BACKEND takes scipy or superlu; anything else ends the command before
+    any work (the helper process, which imports the same module, ends with it)."""
+    environment = {**os.environ, "STITCHPLAN_LINEAR_BACKEND": "cholmodd"}
+    run = command("plan", NEEDLE20, "--export", tmp_path / "t.csv", stderr=subprocess.PIPE, env=environment)
+    _, error = run.communicate(timeout=300)
+    lines = error.decode().splitlines()
+    assert run.returncode == 2 and list(tmp_path.iterdir()) == []
+    assert lines == ["error: STITCHPLAN_LINEAR_BACKEND: got 'cholmodd', expected scipy (no CHOLMOD, as without the "
+                     "fast extra) or superlu (scipy's SuperLU alone), or unset for the default"]

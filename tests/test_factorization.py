@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from stitchplan.tissue.factorization import (CHOLMOD, CHOLMOD_LDL, SUPERLU, SuperLUFactor, cholesky_available,
-                                              condition_estimate, factorize)
+from stitchplan.errors import InputError
+from stitchplan.tissue.factorization import (CHOLMOD, CHOLMOD_LDL, SUPERLU, SuperLUFactor, band_allowed,
+                                              cholesky_available, condition_estimate, factorize)
 
 
 def spd_matrix(n: int = 40, seed: int = 2) -> sp.csr_matrix:
@@ -66,6 +67,16 @@ def test_the_switch_turns_the_cholesky_off(monkeypatch):
     monkeypatch.setenv("STITCHPLAN_LINEAR_BACKEND", "superlu")
     assert not cholesky_available()
     assert factorize(spd_matrix(), symmetric_positive=True).backend == SUPERLU
+
+
+def test_an_unknown_switch_value_is_refused_naming_the_variable(monkeypatch):
+    """A misspelt backend used to run the default silently: the run then says it, and the
+    switch's values are taken whatever their case and surrounding blanks."""
+    monkeypatch.setenv("STITCHPLAN_LINEAR_BACKEND", "cholmodd")
+    with pytest.raises(InputError, match=r"STITCHPLAN_LINEAR_BACKEND: got 'cholmodd', expected scipy .* or superlu"):
+        cholesky_available()
+    monkeypatch.setenv("STITCHPLAN_LINEAR_BACKEND", " SuperLU ")
+    assert not cholesky_available() and not band_allowed()
 
 
 @pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cvxopt) is not installed")

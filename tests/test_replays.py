@@ -439,6 +439,7 @@ def test_a_helper_forked_for_no_replays_ends(tmp_path):
     script = ("import sys\n"
               "from stitchplan import early_helper\n"
               "for arguments in (['plan', '--help'], ['plan', 'a.yaml', '--uncertainty', 'u.yaml'],\n"
+              "                  ['plan', 'a.yaml', '--uncertainty=u.yaml'],\n"
               "                  ['simulate', 'a.yaml', '--no-estimate'], ['deform', 'a.yaml']):\n"
               "    early_helper.start_for(arguments, 'stitchplan.planning.replays:serve')\n"
               "    assert early_helper._started is None, arguments\n"

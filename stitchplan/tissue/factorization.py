@@ -29,7 +29,8 @@ holds at most BANDED_STORAGE times K's stored entries. CHOLMOD's solves are fast
 it stays off where CHOLMOD runs.
 
 STITCHPLAN_LINEAR_BACKEND=scipy turns CHOLMOD off (the path without the `fast` extra),
-STITCHPLAN_LINEAR_BACKEND=superlu CHOLMOD and the band.
+STITCHPLAN_LINEAR_BACKEND=superlu CHOLMOD and the band; any other value is an InputError (raised
+as this module is imported, which the commands do after checking their options).
 Every factor says which backend made it (`backend`), and the run summaries record it.
 """
 
@@ -40,7 +41,7 @@ import os
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import NumericalFailure
+from ..errors import InputError, NumericalFailure
 
 try:  # the `fast` extra; imported with the module, as scipy is, not within a run
     from cvxopt import cholmod, matrix as dense, spmatrix
@@ -52,6 +53,8 @@ BANDED = "LAPACK banded Cholesky (scipy dpbtrf, reverse Cuthill-McKee ordering)"
 CHOLMOD = "CHOLMOD Cholesky (cvxopt)"
 CHOLMOD_LDL = "CHOLMOD LDL^T (cvxopt, simplicial)"
 LDL_CHECK = 1e-10  # |A x - b| / |b| an L D L^T factor's solve must reach on a test vector
+BACKEND_VARIABLE = "STITCHPLAN_LINEAR_BACKEND"  # the factorizations the runs may use (module docstring)
+BACKEND_SWITCHES = {"scipy": "no CHOLMOD, as without the fast extra", "superlu": "scipy's SuperLU alone"}
 BANDED_STORAGE = 4.0  # the band (n x (bandwidth + 1) numbers) at most this many times K's stored
 # entries: 2.1-3.6 on the shipped needle scenes' K0 whose planned runs it makes faster, 4.4 on
 # sh12_100x100's, whose it makes slower (benchmarks/banded_factor.py)
@@ -259,7 +262,14 @@ def _largest_row_sum(matrix: sp.spmatrix) -> float:
 
 
 def _switch() -> str:
-    return os.environ.get("STITCHPLAN_LINEAR_BACKEND", "").lower()
+    """BACKEND_VARIABLE's value ("" unset); an InputError for a value it does not take."""
+    given = os.environ.get(BACKEND_VARIABLE, "")
+    switch = given.strip().lower()
+    if switch and switch not in BACKEND_SWITCHES:
+        raise InputError(f"{BACKEND_VARIABLE}: got {given!r}, expected "
+                         + " or ".join(f"{name} ({what})" for name, what in BACKEND_SWITCHES.items())
+                         + ", or unset for the default")
+    return switch
 
 
 def cholesky_available() -> bool:
