@@ -1,4 +1,4 @@
-"""The process's memory allocator, set once as a command starts.
+"""The process's memory allocator and Python's cyclic garbage collector, set as a command starts.
 
 glibc's malloc serves an allocation above its mmap threshold (128 KiB at first) with fresh
 pages from the system and returns them when it is freed; each time such a block is freed the
@@ -15,10 +15,21 @@ and the verified plan's whole command get faster (the shorter commands' within t
 the peak memory stays the same (benchmarks/plan_speed.py, the allocator table). Where the process is not on glibc (musl, macOS,
 Windows), or the user set glibc's MALLOC_MMAP_THRESHOLD_ or MALLOC_TRIM_THRESHOLD_,
 nothing changes.
+
+The command's imports (numpy, scipy, pydantic and the scenario's classes, typer) make some
+hundred thousand objects that live as long as the process, and the cyclic collector, run
+every few hundred allocations, passes over all of them again and again as they accumulate
+(benchmarks/results/import_collection.md). `pause_collection` turns it off as the command starts and
+`resume_collection`, which each command calls once its imports are done, moves what they
+made out of its reach (gc.freeze: the objects stay, freed by their reference counts as ever,
+but no collection visits them) and turns it on again. (Turned on without the freeze, its
+first collections visit everything the imports made and give most of the time back.) The
+replay helper, forked while the collector is off, does the same once its own imports are done.
 """
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 
@@ -45,3 +56,29 @@ def reuse_freed_memory() -> bool:
     # M_MMAP_THRESHOLD first: setting it also stops glibc's own adjustment of the trim threshold
     return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD,
                                                                                   TRIM_THRESHOLD_BYTES))
+
+
+_in_command = False  # this process runs the command line (cli.main, or a helper forked from it)
+_paused = False  # collection turned off by pause_collection, not yet resumed
+
+
+def pause_collection(command_start: bool = False) -> None:
+    """Turn the cyclic garbage collector off for imports (module docstring): as the command
+    starts (`command_start`, cli.main), and for imports a command makes later, in a process
+    the command line started only (not in a test's runner, whose collector stays as it is)."""
+    global _in_command, _paused
+    _in_command = _in_command or command_start
+    if _in_command and gc.isenabled():
+        gc.disable()
+        _paused = True
+
+
+def resume_collection() -> None:
+    """After pause_collection and the command's imports: freeze what exists now and turn the
+    collector on again. Does nothing where it was not paused here (a second call, a command
+    run by a test's runner)."""
+    global _paused
+    if _paused:
+        _paused = False
+        gc.freeze()
+        gc.enable()

@@ -122,8 +122,11 @@ def _helper(connection, server: str) -> None:
             os.dup2(null, descriptor)
         import importlib
 
+        from .allocator import resume_collection
+
         module, function = server.split(":")
         serve = getattr(importlib.import_module(module), function)
+        resume_collection()  # paused as the command started, before the fork (stitchplan/allocator.py)
         try:
             message = connection.recv()
         except (EOFError, OSError):  # the command ended without replays

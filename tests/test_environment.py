@@ -155,3 +155,26 @@ def test_an_unknown_linear_backend_is_one_line_and_no_file(tmp_path):
     assert run.returncode == 2 and list(tmp_path.iterdir()) == []
     assert lines == ["error: STITCHPLAN_LINEAR_BACKEND: got 'cholmodd', expected scipy (no CHOLMOD, as without the "
                      "fast extra) or superlu (scipy's SuperLU alone), or unset for the default"]
+
+
+def test_the_collector_is_paused_for_the_imports_only(tmp_path):
+    """The command turns Python's cyclic garbage collector off as it starts and on again once
+    its imports are done, what they made frozen out of its passes (stitchplan/allocator.py);
+    outside a command (a test's runner) the pause does nothing."""
+    import gc
+
+    from stitchplan import allocator
+
+    allocator.pause_collection()  # not a command's process: left as it is
+    assert gc.isenabled() and not allocator._paused
+    script = ("import atexit, gc, sys\n"
+              "from stitchplan.cli import main\n"
+              "atexit.register(lambda: sys.stderr.write(f'collector {gc.isenabled()} {gc.get_freeze_count()}\\n'))\n"
+              "sys.argv = ['stitchplan', *sys.argv[1:]]\n"
+              "main()\n")
+    for arguments in (["schema"], ["deform", REPOSITORY / "configs" / "slab_edge_load.yaml", "--spacing", "10"]):
+        run = subprocess.run([sys.executable, "-c", script, *map(str, arguments)], cwd=tmp_path, capture_output=True,
+                             text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        enabled, frozen = run.stderr.strip().splitlines()[-1].split()[1:]
+        assert enabled == "True" and int(frozen) > 10_000, arguments  # numpy's and pydantic's objects among them

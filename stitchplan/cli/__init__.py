@@ -46,8 +46,9 @@ def main() -> None:
         except OSError as error:
             _exit(stdout_failure(error))
         return
-    from ..allocator import reuse_freed_memory
+    from ..allocator import pause_collection, reuse_freed_memory
 
+    pause_collection(command_start=True)  # for the commands' imports, which resume it (stitchplan/allocator.py)
     reuse_freed_memory()  # before the commands' imports allocate
     from ..early_helper import start_for
 

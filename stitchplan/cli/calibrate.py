@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from ..allocator import resume_collection
 from .group import calibrate_app
 from .options import (DilationOption, MaxParticlesOption, NoResourceCheckOption, QuietOption, SpacingOption,
                       VerboseOption, _argv, _check_outputs, _guard_calibration, _limits, _option_names,
@@ -34,6 +35,7 @@ def calibrate_material(
     from ..io.calibration_reports import material_outputs, material_summary_line, write_material_outputs
     from ..io.progress import progress_bar
 
+    resume_collection()
     outputs = material_outputs(out, plot_dir)
     _check_outputs(outputs, {"CALIBRATION": calibration_path})
     problem = calibration.load_material_calibration(calibration_path, spacing, dilation)
@@ -66,6 +68,7 @@ def calibrate_needle(
     from .. import calibration
     from ..io.calibration_reports import needle_summary_line, write_needle_outputs
 
+    resume_collection()
     result = calibration.calibrate_needle(air, tissue, radius)
     write_needle_outputs(result, out, plot, command=_argv())
     typer.echo(needle_summary_line(result))

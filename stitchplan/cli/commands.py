@@ -9,6 +9,7 @@ from typing import Optional
 
 import typer
 
+from ..allocator import pause_collection, resume_collection
 from .group import app
 from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOption, ScenarioArgument,
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
@@ -54,6 +55,7 @@ def deform(
     from ..needle.geometry import needle_zone
     from ..tissue.deform import run_deform
 
+    resume_collection()
     # a needle scene's default particles are graded toward the needle: deform keeps them
     with _naming_files(scenario_path), progress_bar("load steps", scenario.load_steps) as advance:
         result = run_deform(scenario, on_step=lambda step, record: advance(), needle_zone=needle_zone(scenario))
@@ -107,6 +109,7 @@ def simulate(
     from ..planning.verification import estimate_replays, simulate_with_estimate
     from ..study.auto import resolve_accuracy
 
+    resume_collection()
     linear_solver, tip_tracking = _value(linear_solver), _value(tip_tracking)
     geometry = _needle_geometry(scenario_path, scenario)
     path = read_center_path(center_path, geometry) if center_path is not None else None
@@ -237,6 +240,7 @@ def plan(
     from ..planning.verification import plan_replays, plan_verified, prediction_replays
     from ..study.auto import resolve_accuracy
 
+    resume_collection()
     with _naming_files(scenario_path):  # an accuracy the discretizations cannot reach names the file
         scenario, auto_note = resolve_accuracy(scenario, tip_tracking, linear_solver,
                                                max_particles=None if limits is None else limits.max_particles)
@@ -271,6 +275,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     """plan --uncertainty: the robust plan over the file's parameter distributions, its
     sampled runs on the executor (stitchplan.uncertainty.robust); with `verify` the plans aimed
     for the refined model and the exported one replayed on it at the scenario's values."""
+    pause_collection()  # again, for the imports of the uncertainty's modules (stitchplan/allocator.py)
     from ..config.uncertainty import check_against_scenario, load_uncertainty
     from ..io import reports
     from ..io.progress import progress_bar
@@ -280,6 +285,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     from ..uncertainty.robust import check_target, plan_under_uncertainty, planned_tasks
     from ..uncertainty.sampling import draw
 
+    resume_collection()
     uncertainty = load_uncertainty(uncertainty_path)
     _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                     "--uncertainty-plot": uncertainty_plot},
@@ -378,6 +384,8 @@ def study(
     from ..io.progress import progress_bar
     from ..study.sweep import plan_runs, run_study, study_size
 
+    resume_collection()
+
     with _naming_files(scenario_path):
         runs, reference, repeats = plan_runs(scenario, quick)
     from ..resources import Origin
@@ -413,4 +421,5 @@ def schema(verbose: int = VerboseOption, quiet: bool = QuietOption) -> None:
     _setup_logging(verbose, quiet)
     from ..config import scenario_schema
 
+    resume_collection()
     typer.echo(json.dumps(scenario_schema(), indent=2))
