@@ -420,10 +420,14 @@ def startup() -> dict[str, float]:
 def ending() -> dict[str, float]:
     """`simulate configs/sh12_100x100.yaml --no-estimate` ended by the console entry point
     (cli.main: exit functions, then no module teardown) and by the app itself (the
-    interpreter's ordinary exit), alternating, median of STARTUP_REPEATS."""
+    interpreter's ordinary exit; the collector paused for the imports as cli.main pauses it,
+    stitchplan/allocator.py, so that only the end differs), alternating, median of
+    STARTUP_REPEATS."""
     scenario = str(common.REPO_ROOT / "configs" / "sh12_100x100.yaml")
     entries = {"console entry point (cli.main)": "from stitchplan.cli import main as run",
-               "the app's ordinary exit (cli.app)": "from stitchplan.cli import app as run"}
+               "the app's ordinary exit (cli.app)": "from stitchplan.allocator import pause_collection; "
+                                                    "pause_collection(command_start=True); "
+                                                    "from stitchplan.cli import app as run"}
     samples: dict[str, list[float]] = {label: [] for label in entries}
     for _ in range(STARTUP_REPEATS):
         for label, entry in entries.items():
