@@ -89,15 +89,18 @@ def against(revision: str):
 def alternated(name: str, scene: str, options: Sequence[str], baseline: Path, folders: tuple[Path, Path],
                repeats: int, compared: Sequence[str]) -> list:
     """scene_command of the code in `baseline` and of this code, alternating `repeats` times,
-    each writing into its own of `folders` (against): the two medians (s), their ratio (now
-    over before), how many pairs this code won, and whether every pair's summaries agree on
-    the `compared` keys and (for `plan`) their trajectories byte for byte ("yes" / "no")."""
+    each writing into its own of `folders` (against; "{folder}" in an option is replaced by
+    the side's folder): the two medians (s), their ratio (now over before), how many pairs
+    this code won, and whether every pair's summaries agree on the `compared` keys and (for
+    `plan`) their trajectories byte for byte ("yes" / "no")."""
     before_folder, now_folder = folders
     before, now, same = [], [], True
     for _ in range(repeats):
-        seconds, old = scene_command(name, scene, options, before_folder, baseline)
+        seconds, old = scene_command(name, scene, [option.format(folder=before_folder) for option in options],
+                                     before_folder, baseline)
         before.append(seconds)
-        seconds, new = scene_command(name, scene, options, now_folder, REPO_ROOT)
+        seconds, new = scene_command(name, scene, [option.format(folder=now_folder) for option in options],
+                                     now_folder, REPO_ROOT)
         now.append(seconds)
         same &= all(old.get(key) == new.get(key) for key in compared)
         if name == "plan":

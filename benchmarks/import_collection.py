@@ -65,20 +65,8 @@ def whole_commands() -> list[list]:
     rows = []
     with common.against(BASELINE) as (baseline, folders):
         for name, scene, label, options in COMMANDS:
-            seconds = {"before": [], "now": []}
-            same = True
-            for _ in range(REPEATS):
-                outputs = {}
-                for key, source, folder in (("before", baseline, folders[0]), ("now", common.REPO_ROOT, folders[1])):
-                    given = [option.format(folder=folder) for option in options]
-                    wall, summary = common.scene_command(name, scene, given, folder, source)
-                    seconds[key].append(wall)
-                    trajectory = (folder / "trajectory.csv").read_bytes() if name == "plan" else b""
-                    outputs[key] = ([summary.get(key) for key in COMPARED], trajectory)
-                same &= outputs["before"] == outputs["now"]
-            before, now = statistics.median(seconds["before"]), statistics.median(seconds["now"])
-            won = sum(b > n for b, n in zip(seconds["before"], seconds["now"]))
-            rows.append([scene, label, before, now, now / before, f"{won} of {REPEATS}", "yes" if same else "no"])
+            rows.append([scene, label, *common.alternated(name, scene, options, baseline, folders, REPEATS,
+                                                          COMPARED)])
             print(rows[-1], flush=True)
     return rows
 

@@ -19,8 +19,8 @@ nothing changes.
 The command's imports (numpy, scipy, pydantic and the scenario's classes, typer) make some
 hundred thousand objects that live as long as the process, none of them garbage, and the
 cyclic collector, run every few hundred allocations, looks for garbage among them as they
-accumulate: 152 collections during what `plan` imports, which take 0.315 s with it and
-0.282 s without (benchmarks/results/import_collection.md). `pause_collection` turns it off
+accumulate: 153 collections during what `plan` imports, which take 0.279 s with it and
+0.253 s without (benchmarks/results/import_collection.md). `pause_collection` turns it off
 as the command starts and `resume_collection`, which each command calls once its imports are
 done, moves what they made out of its reach (gc.freeze: the objects stay, freed by their
 reference counts as ever, but no collection visits them, the run's included) and turns it
