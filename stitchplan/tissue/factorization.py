@@ -273,7 +273,8 @@ def _switch() -> str:
 
 
 def cholesky_available() -> bool:
-    return cholmod is not None and _switch() not in ("superlu", "scipy")
+    switch = _switch()  # checked with or without CHOLMOD: refused as this module is imported
+    return cholmod is not None and switch not in ("superlu", "scipy")
 
 
 def band_allowed() -> bool:
