@@ -37,14 +37,8 @@ from stitchplan.config import load_scenario  # noqa: E402
 from stitchplan.config.scenario import parse_scenario  # noqa: E402
 from stitchplan.planning.planner import exit_error_vector, run_plan  # noqa: E402
 from stitchplan.planning.replays import InlineReplays  # noqa: E402
-from stitchplan.planning.verification import (  # noqa: E402
-    ESTIMATE_FACTOR,
-    PREDICTED_RATIO,
-    VERIFICATION_FACTOR,
-    VERIFIED_FACTOR,
-    plan_verified,
-    rescaled,
-)
+from stitchplan.planning.replay_models import ESTIMATE_FACTOR, VERIFICATION_FACTOR, rescaled  # noqa: E402
+from stitchplan.planning.verification import PREDICTED_RATIO, VERIFIED_FACTOR, plan_verified  # noqa: E402
 
 SCENES = ("sh12_100x100", "sh12_100x100_mid", "sh12_100x30", "sh12_100x40", "sh12_100x50", "hole_near_stitch",
           "skin_layered", "wound_closure", "needle20_entry18", "needle20_entry20", "needle20_entry25",

@@ -44,9 +44,9 @@ from stitchplan.planning.verification import (
     exit_deviations,
     plan_verified,
     prediction_replays,
-    rescaled,
     simulate_with_estimate,
 )
+from stitchplan.planning.replay_models import rescaled
 
 from conftest import TIGHT_NEEDLE_NEWTON
 

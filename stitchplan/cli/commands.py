@@ -280,7 +280,8 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
-    from ..planning.verification import replay_scenario, verify_exported
+    from ..planning.replay_models import replay_scenario
+    from ..planning.verification import verify_exported
     from ..resources import PLAN_RUNS, VERIFICATION_RUNS, Origin, verification_origin
     from ..uncertainty.robust import check_target, plan_under_uncertainty, planned_tasks
     from ..uncertainty.sampling import draw

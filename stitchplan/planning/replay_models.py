@@ -26,7 +26,8 @@ def rescaled(scenario: Scenario, factor: float) -> Scenario:
 
 def replay_scenario(scenario: Scenario, verify: bool) -> Scenario:
     """The model a plan replays its trajectory on (planning.verification.plan_verified): the
-    refined one with `verify`, else the exit error estimate's at 2h."""
+    refined one with `verify`, else the one at 2h (the exit error estimate's, and the
+    predicted aim's)."""
     return rescaled(scenario, VERIFICATION_FACTOR if verify else ESTIMATE_FACTOR)
 
 

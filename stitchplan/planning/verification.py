@@ -75,7 +75,6 @@ from .replay_models import (
     predicts_aim,
     replay_options,
     replay_scenario,
-    rescaled,
 )
 from .replays import InlineReplays, StreamTee, replays_for
 from .trajectory import exported_centers
@@ -165,7 +164,7 @@ def estimate_exit_error(scenario: Scenario, result: InsertionResult, center_path
     by `replays` on the 2h model (estimate_replays) when given. None, with an event on
     `result`, when the coarse model cannot run the insertion."""
     try:
-        coarse = rescaled(scenario, ESTIMATE_FACTOR)
+        coarse = replay_scenario(scenario, verify=False)
         other = (replays or InlineReplays(coarse, **replay_options(options))).replay(center_path)
     except (InputError, NumericalFailure) as error:
         message = f"exit error estimate: the model at twice the spacing failed ({error}); no estimate"
@@ -200,7 +199,7 @@ def prediction_replays(scenario: Scenario, verify: bool = True, background: bool
     while the pass runs."""
     if not predicts_aim(scenario, verify):
         return nullcontext(None)
-    return replays_for(rescaled(scenario, ESTIMATE_FACTOR), background, **replay_options(options))
+    return replays_for(replay_scenario(scenario, verify=False), background, **replay_options(options))
 
 
 def simulate_with_estimate(scenario: Scenario, center_path: np.ndarray | None = None, estimate: bool = True,
@@ -222,7 +221,7 @@ def predicted_offset(scenario: Scenario, planned: InsertionResult, predictions: 
     run's trajectory, predicted from its replay at 2h (by `predictions`, prediction_replays's,
     when given) as (e(h) - e(2h)) / PREDICTED_RATIO; None when the model at 2h cannot replay it."""
     try:
-        coarse = predictions or InlineReplays(rescaled(scenario, ESTIMATE_FACTOR), **replay_options(options))
+        coarse = predictions or InlineReplays(replay_scenario(scenario, verify=False), **replay_options(options))
         replayed = coarse.replay(exported_centers(planned))
     except (InputError, NumericalFailure) as error:
         log.info("verification: no predicted offset, the model at twice the spacing failed (%s)", error)
