@@ -330,9 +330,10 @@ def _particles(scenario: Scenario) -> tuple[int, bool]:
     lattice = _per_side(width, d.needle_spacing) * _per_side(height, d.needle_spacing)
     if lattice <= COUNT_EXACTLY_UP_TO:
         graded = graded_particles(scenario.tissue.bounding_size, d.spacing, d.needle_spacing,
-                                  np.asarray(zone[0], dtype=float), zone[1], points=zone[2])
+                                  np.asarray(zone[0], dtype=float), zone[1], d.needle_grading, points=zone[2])
         return len(graded.particles), True
-    return _graded_estimate(scenario.tissue.bounding_size, d.spacing, d.needle_spacing, zone), False
+    return _graded_estimate(scenario.tissue.bounding_size, d.spacing, d.needle_spacing, zone,
+                            d.needle_grading), False
 
 
 def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
@@ -391,8 +392,8 @@ def _shaped_estimate(scenario: Scenario, zone, segments, samples: int = 200) -> 
     zones = [(z.center, z.radius, z.spacing, END_GROWTH)
              for z in (*end_zones(tissue, segments, d), *corner_zones(tissue, d))]
     if zone is not None:
-        zones.append((np.asarray(zone[0], dtype=float), zone[1], d.needle_spacing, 0.5))
-        zones += [(z.center, z.radius, z.spacing, 0.5) for z in zone[2]]
+        zones.append((np.asarray(zone[0], dtype=float), zone[1], d.needle_spacing, d.needle_grading))
+        zones += [(z.center, z.radius, z.spacing, d.needle_grading) for z in zone[2]]
 
     def side(points: np.ndarray) -> np.ndarray:
         result = np.full(len(points), d.spacing)

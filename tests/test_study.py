@@ -282,6 +282,28 @@ def test_rk_functions_on_the_graded_set_reproduce_linear_fields(graded, rng):
     np.testing.assert_allclose(shape.grad_y @ field, -0.05, atol=1e-11)
 
 
+def test_a_steeper_needle_grading_coarsens_sooner_and_keeps_the_needle_zone(graded):
+    """discretization.needle_grading: the leaf side may grow by that many mm per mm beyond the
+    needle zone (0.5 by default, the fixture's); at 1.0 the zone's leaves are the same, a leaf
+    beyond it is never finer than at 0.5, and the slab, still tiled, holds fewer particles."""
+    from stitchplan.tissue.particles import graded_particles
+
+    default, center, radius = graded
+    steep = graded_particles((100.0, 100.0), 6.0, 1.5, center, radius, 1.0)
+    assert steep.cells[:, 2:].prod(axis=1).sum() == pytest.approx(1e4, rel=1e-12)
+    assert len(steep.particles) < len(default.particles)  # 538 against 603
+
+    def side_at(particles, points):  # the leaf side holding each point
+        cells = particles.cells
+        inside = ((points[:, None, :] >= cells[None, :, :2]) & (points[:, None, :] < cells[None, :, :2] + cells[None, :, 2:])).all(axis=2)
+        return cells[inside.argmax(axis=1), 2]
+
+    points = np.stack(np.meshgrid(np.linspace(0.5, 99.5, 60), np.linspace(0.5, 99.5, 60)), axis=-1).reshape(-1, 2)
+    zone = np.linalg.norm(points - center, axis=1) < radius
+    np.testing.assert_allclose(side_at(steep, points[zone]), side_at(default, points[zone]))
+    assert np.all(side_at(steep, points) >= side_at(default, points) - 1e-12)
+
+
 def test_needle_spacing_without_a_needle_is_refused():
     from stitchplan.tissue.model import model_for_scenario
 
@@ -296,6 +318,7 @@ def test_needle_spacing_without_a_needle_is_refused():
     ({"spacing": 4.0, "needle_spacing": 5.0}, "discretization.needle_spacing: got 5.0, expected a spacing (mm) no larger than spacing = 4 mm"),
     ({"accuracy": 0.0}, "discretization.accuracy: got 0.0, expected a number >= 0.001 (mm, exit point"),
     ({"needle_refinement": 0.5}, "discretization.needle_refinement: got 0.5, expected a number >= 1"),
+    ({"needle_grading": 0}, "discretization.needle_grading: got 0, expected a positive number (mm per mm)"),
     # two ways to one value: the one not taken would be dropped without a word
     ({"spacing": 4.0, "needle_spacing": 1.0, "needle_refinement": 2},
      "discretization.needle_spacing: got 1.0, expected either needle_spacing or needle_refinement "

@@ -460,6 +460,11 @@ class Discretization:
                                           "particles); at most spacing") = None
     needle_zone: described(number("a positive number (needle radii)", gt=0),
                            "graded zone around the needle centre, needle radii") = 1.5
+    # how fast the graded particles coarsen beyond the needle's zone: leaf side at most the
+    # needle spacing + needle_grading x the distance to the zone (2:1 balanced)
+    needle_grading: described(number("a positive number (mm per mm)", gt=0),
+                              "growth of the particle spacing per mm of distance beyond the "
+                              "needle zone") = 0.5
     # needle_spacing = spacing / needle_refinement when no needle_spacing is given, so that
     # `--spacing` refines the graded arrangement as a whole (the default for needle scenes)
     needle_refinement: described(number("a number >= 1 (spacing / spacing at the needle)", ge=1) | None,

@@ -57,6 +57,7 @@ def discretization_summary(model) -> dict:
         "spacing_mm": outline.coarsest_spacing,  # the coarsest, for graded particles
         "needle_spacing_mm": outline.needle_spacing if d.needle_spacing is not None else None,
         "needle_zone_radii": d.needle_zone if d.needle_spacing is not None else None,
+        "needle_grading": d.needle_grading if d.needle_spacing is not None else None,
         "dilation": d.dilation,
         "quadrature_order": d.quadrature_order,
         "basis_order": d.basis_order,

@@ -176,7 +176,8 @@ def build_tissue_model(
                                     "particles toward; remove it or add a `needle:` block")
             graded = graded_particles(tissue.size, discretization.spacing, discretization.needle_spacing,
                                       np.asarray(needle_zone[0], dtype=float), float(needle_zone[1]),
-                                      points=ends + tuple(needle_zone[2]), breaks=breaks)
+                                      discretization.needle_grading, points=ends + tuple(needle_zone[2]),
+                                      breaks=breaks)
         elif segments:
             graded = graded_lattice(tissue.size, discretization.spacing, ends, END_GROWTH, breaks)
         else:
@@ -319,7 +320,7 @@ def shaped_lattice(tissue: Tissue, discretization: Discretization, segments: tup
         needle_ends = tuple(replace(zone, center=zone.center - origin) for zone in needle_zone[2])
         graded = graded_particles(size, discretization.spacing, discretization.needle_spacing,
                                   np.asarray(needle_zone[0], dtype=float) - origin, float(needle_zone[1]),
-                                  points=ends + needle_ends, breaks=breaks)
+                                  discretization.needle_grading, points=ends + needle_ends, breaks=breaks)
     else:
         graded = graded_lattice(size, discretization.spacing, ends, END_GROWTH, breaks)
     cells = graded.cells.copy()
