@@ -69,11 +69,21 @@ the particles graded toward the needle's entry and exit. The committed results:
         --couplings "mortar b=2 d=3.5" "mortar ramp fixed b=2 d=3.5"
     python benchmarks/needle_coupling.py --couplings mortar "mortar ramp r=4 fixed d=3" "mortar ramp fixed d=3"
     python benchmarks/needle_coupling.py --couplings mortar --factors 2 0.25
+    python benchmarks/needle_coupling.py --scenes sh12_100x100 sh12_100x100_mid sh12_100x50 sh12_100x40 \
+        sh12_100x30 needle20_entry30 needle20_entry25 needle20_entry20 needle20_entry18 soft_t3 soft_t2.5 \
+        --couplings shipped "shipped z=1.5 g=0.5" "shipped g=0.5" "shipped z=1.1 g=0.5" \
+        --factors 2 1 0.7071067811865476 0.5 0.25
+    python benchmarks/needle_coupling.py --scenes skin_layered hole_near_stitch wound_closure \
+        thesis/table51_100x100 thesis/table51_100x50 thesis/table51_100x40 thesis/table51_100x30 \
+        thesis/needle20_entry30 thesis/needle20_entry25 thesis/needle20_entry20 thesis/needle20_entry18 \
+        thesis/needle20_fig510 --couplings shipped
 
-The last two ran every scene again with the needle steps' Newton tolerances of 1e-3 of the
-needle force and 1e-7 R: the mortar rows moved by at most 0.0011 mm (0.06 %) where the
-particles were the same. The commands before them took about 30 minutes on one core
-together, the last two 17 and 13 minutes (the h/4 runs 1-49 s each).
+The two commands before the `shipped` ones ran every scene again with the needle steps'
+Newton tolerances of 1e-3 of the needle force and 1e-7 R: the mortar rows moved by at most
+0.0011 mm (0.06 %) where the particles were the same. The commands before them took about 30
+minutes on one core together, those two 17 and 13 minutes (the h/4 runs 1-49 s each). The `shipped` rows of the
+SH 1/2 blocks and soft slabs took about 5 minutes per coupling (the variants `z=` and `g=`
+ran as `shipped` while the files had those settings; the commands above reproduce them).
 """
 
 from __future__ import annotations
@@ -94,7 +104,9 @@ matplotlib.use("Agg")
 import _common as common
 import matplotlib.pyplot as plt
 
-from stitchplan.config.scenario import load_scenario, with_discretization
+import yaml
+
+from stitchplan.config.scenario import load_scenario, parse_scenario, with_discretization
 from stitchplan.errors import InsertionFailure
 from stitchplan.needle import coupling as coupling_module
 from stitchplan.needle.insertion import run_insertion
@@ -113,6 +125,10 @@ FACTORS = (1.0, 1 / math.sqrt(2.0), 0.5)
 QUARTER = 0.25  # a fourth level, run with --factors 0.25: h, h/2, h/4 nest (ratio 2)
 DOUBLE = 2.0  # a coarser level, run with --factors 2: 2h, h, h/2 nest too, the default in the middle
 COUPLINGS = ("points", "mortar", "mortar-arc")
+SHIPPED_COUPLING = "shipped"  # the scene's file as it is: its coupling, discretization and needle keys
+# what the SH 1/2 and 20 mm needle files gained on 2026-12-05 (after 4f42f4e): every other
+# coupling starts from the files without them, as all rows before that date ran
+ADDED_NEEDLE_KEYS = ("cutting_ramp", "multiplier_length")
 FIELDS = ("scene", "coupling", "factor", "spacing_mm", "particles", "steps", "exit_error_mm", "seconds", "failure")
 
 
@@ -124,8 +140,9 @@ def _value(text: str) -> float | str:
 
 
 def scene(name: str, coupling: str):
-    """The scene's scenario with `coupling`: points, mortar, or mortar-arc (mortar with its
-    multiplier elements cut at exact arc lengths, `needle.multiplier_ends: arc`), and the
+    """The scene's scenario with `coupling`: shipped (its file as it is), points, mortar, or
+    mortar-arc (mortar with its multiplier elements cut at exact arc lengths,
+    `needle.multiplier_ends: arc`) on the file as before 2026-12-05 (shipped_file), and the
     coupling's `L=...` (discretization.needle_end_levels; see variant). A name
     `SCENE KEY=VALUE,...` overrides needle fields (e.g. `sh12_100x40 friction=0`: the
     cutting force alone; `needle20_entry30 tip_tracking=auto`: the thesis's inverse gradient)."""
@@ -134,15 +151,18 @@ def scene(name: str, coupling: str):
     coupling_name, coupling = coupling, coupling.partition(" ")[0]
     if coupling == "mortar-arc":
         coupling, needle["multiplier_ends"] = "mortar", "arc"
+    shipped = coupling == SHIPPED_COUPLING
+    base = shipped_file(name, previous=not shipped)
+    if shipped:
+        coupling = base.needle.coupling
     if name in SOFT:
-        base = load_scenario(CONFIGS / "sh12_100x100.yaml")
         material = replace(base.tissue.material, model="neo-hookean")
         base = replace(base, tissue=replace(base.tissue, thickness=SOFT[name], material=material))
-    else:
-        base = load_scenario(CONFIGS / f"{name}.yaml")
     options = variant(coupling_name)
     changes = {key: options[name] for key, name in (("needle_end_levels", "end_levels"),
                                                      ("needle_refinement", "refinement"),
+                                                     ("needle_zone", "zone"),
+                                                     ("needle_grading", "grading"),
                                                      ("dilation", "dilation"),
                                                      ("quadrature_order", "quadrature"),
                                                      ("basis_order", "basis"))
@@ -157,6 +177,27 @@ def scene(name: str, coupling: str):
     return replace(base, needle=replace(base.needle, coupling=coupling, **needle))
 
 
+def shipped_file(name: str, previous: bool):
+    """The scenario of a scene's file (configs/sh12_100x100.yaml for the soft slabs); with
+    `previous`, the SH 1/2 and 20 mm needle files as they were before they were discretized for
+    the needle: no discretization block (the default spacing, needle_refinement 2) and none of
+    ADDED_NEEDLE_KEYS."""
+    path = CONFIGS / ("sh12_100x100.yaml" if name in SOFT else f"{name}.yaml")
+    if not previous or not (name in SOFT or name in SHIPPED):
+        return load_scenario(path)
+    return parse_scenario(previous_data(path))
+
+
+def previous_data(path) -> dict:
+    """The data of an SH 1/2 or 20 mm needle file (a path in CONFIGS) as it was before it was
+    discretized for the needle: without its discretization block and ADDED_NEEDLE_KEYS."""
+    raw = yaml.safe_load(path.read_text())
+    raw.pop("discretization", None)
+    for key in ADDED_NEEDLE_KEYS:
+        raw["needle"].pop(key, None)
+    return raw
+
+
 def variant(coupling: str) -> dict:
     """The options after a coupling's name: `c=2` the mortar elements' length in local spacings
     (needle/track_layout.py MULTIPLIER_SPACINGS, 1 by default), `ramp` the cutting force growing
@@ -169,7 +210,10 @@ def variant(coupling: str) -> dict:
     needle (`needle.multiplier_length`: the multiplier space is not refined with the
     particles), `d=3` the kernel support (discretization.dilation, 2 by default), `q=4` Gauss
     points per direction per background cell (discretization.quadrature_order, 2 by default),
-    `b=2` the quadratic RK basis (discretization.basis_order, 1 by default)."""
+    `b=2` the quadratic RK basis (discretization.basis_order, 1 by default), `z=1.5` the needle
+    zone (discretization.needle_zone, needle radii) and `g=0.5` the grading beyond it
+    (discretization.needle_grading, mm per mm): on `shipped`, the SH 1/2 files' choices before
+    their needle_zone 1.25 and needle_grading 1.0."""
     tokens = coupling.split(" ")[1:]
     options = dict(token.split("=") for token in tokens if "=" in token)
     return {"spacings": float(options.get("c", coupling_module.MULTIPLIER_SPACINGS)),
@@ -180,6 +224,8 @@ def variant(coupling: str) -> dict:
             "ramp": "ramp" in tokens,
             "profile": coupling_module.SMOOTH if "smooth" in tokens else coupling_module.UNIFORM,
             "end_levels": int(options["L"]) if "L" in options else None,
+            "zone": float(options["z"]) if "z" in options else None,
+            "grading": float(options["g"]) if "g" in options else None,
             "refinement": float(options["r"]) if "r" in options else None}
 
 
@@ -274,7 +320,8 @@ def markdown(table: list[dict]) -> str:
              "change = e(h/2)/e(h) - 1; monotone: the differences keep their sign and shrink;",
              "rate p from the three levels (ratio sqrt(2)), where they are monotone. soft_t*: configs/sh12_100x100.yaml as",
              "neo-Hookean, thickness 3 / 2.5 mm. A failed run shows its InsertionFailure.", "",
-             "Couplings: `points` (the thesis's), `mortar` (the default: multiplier elements of whole track",
+             "Couplings: `shipped` (the scene's file as it is), `points` (the thesis's), `mortar` (the default "
+             "coupling: multiplier elements of whole track",
              "segments at least a local spacing long), `mortar-arc` (`needle.multiplier_ends: arc`: elements",
              "cut at exact arc lengths, one local spacing long). Options after the name: `L=n`",
              "(`discretization.needle_end_levels` n: particles graded toward the needle's entry and exit,",
@@ -288,7 +335,36 @@ def markdown(table: list[dict]) -> str:
              "Scenes `SCENE friction=0` / `SCENE cutting_force=0` split the exit error into the cutting",
              "force's and the friction's part; `SCENE step=...` changes the needle step. The",
              "multiplier-length variants (`c=...`) were measured in this file's earlier version (git",
-             "history): none met < 2 % everywhere.", "",
+             "history): none met < 2 % everywhere. Every coupling but `shipped` runs the SH 1/2 and 20 mm",
+             "needle files (and the soft slabs made from configs/sh12_100x100.yaml) as they were until",
+             "4f42f4e, without their `discretization:` block, `needle.cutting_ramp` and",
+             "`needle.multiplier_length` (shipped_file): every row before 2026-12-05 ran them so.", "",
+             "Reading (`shipped`, the files as they are since 2026-12-05): the SH 1/2 blocks with",
+             "particles 7.104 mm apart away from the needle and 0.888 mm within 1.25 r of its centre",
+             "(needle_refinement 8: 1.25 needle steps; needle_zone 1.25), coarsening by 1 mm per mm beyond",
+             "(needle_grading 1.0), multiplier elements fixed at 0.888 mm and the cutting force ramped in;",
+             "the 20 mm needle scenes with their default particles, elements fixed at 2.5 mm and the ramp.",
+             "From the default to half the spacing every shipped needle scene changes by < 2 %",
+             "(sh12_100x100 +1.66 %, sh12_100x100_mid -0.03 %, sh12_100x50 +0.59 %, sh12_100x40 +0.40 %,",
+             "sh12_100x30 +1.18 %, needle20 +1.48 to +1.99 %), and soft_t3 by +1.64 % (monotone, rate",
+             "4.37). The three levels h, h/sqrt(2), h/2 are monotone on six of the nine (sh12_100x100,",
+             "sh12_100x30 and the needle20 scenes, rates 1.78-4.64), not on sh12_100x100_mid,",
+             "sh12_100x50 and sh12_100x40, whose levels differ by 0.05-3.0 um (0.01-0.6 %) up and down",
+             "or without shrinking (sh12_100x40: 1.04 then 1.21 um): the swing with the track's place in",
+             "the lattice (below), now at the 0.888 mm needle spacing. With 2h and h/4 (ratio 2): 2h, h,",
+             "h/2 monotone on seven (sh12_100x40 too), h, h/2, h/4 on six (sh12_100x50, not",
+             "sh12_100x40 and sh12_100x30), soft_t3 on both. soft_t2.5 does not settle: +3.89 %, not",
+             "monotone (2.916, 3.033, 3.029 mm), and at h/4 its needle's load is no longer carried at",
+             "step 22. The particles the SH 1/2 files save away from the needle pay for those they add",
+             "near it on the 100 x 100 blocks (642 and 639 against 979 and 976), not on the narrower",
+             "ones (530, 545, 469 against 570, 479, 382); the runs' time is in results/plan_speed.md.",
+             "The zone and grading before (`shipped z=1.5 g=0.5`: 656-888 particles; `shipped g=0.5`,",
+             "zone 1.25: 538-735; `shipped z=1.1 g=0.5`: 477-663) gave exit errors within 0.4 % of",
+             "these at h and the same picture on the SH 1/2 blocks (< 2 %, monotone on three of five",
+             "where these files are on two), soft_t3 +1.68 %, +1.65 % and +2.90 %: the zone must reach past the track by more",
+             "than one needle spacing on a soft slab. The needle's spacing, not the one away from it,",
+             "sets the exit error (2h with r=4, below): that is what the files spend their particles",
+             "on. The rest of this reading is of the files before.", "",
              "Reading (default `mortar`, needle_end_levels 0): < 2 % on sh12_100x100 (+0.99 %),",
              "sh12_100x30 (-0.07 %), the four needle20 scenes (+0.50 to +1.17 %) and soft_t3 (+1.49 %),",
              "none of them monotone; not on sh12_100x100_mid (-3.34 %), sh12_100x50 (-2.47 %),",
@@ -453,7 +529,13 @@ def markdown(table: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-COLOURS = [f"C{number}" for number in range(10)] + ["black", "saddlebrown"]  # one per coupling in chart
+COLOURS = [f"C{number}" for number in range(10)] + ["dimgray", "saddlebrown"]  # one per coupling in chart
+
+
+def needle_refinement(name: str, coupling: str) -> float:
+    """Spacing over the spacing at the needle of the scene with `coupling` (1: uniform)."""
+    discretization = scene(name, coupling).discretization
+    return discretization.spacing / (discretization.needle_spacing or discretization.spacing)
 
 
 def chart(rows: list[dict], path) -> None:
@@ -469,13 +551,17 @@ def chart(rows: list[dict], path) -> None:
                 ("points", "o--"), ("mortar", "s-"), ("mortar-arc", "^:"), ("mortar L=2", "v-."),
                 ("mortar ramp", "D-"), ("mortar ramp L=2", "x-"), ("mortar r=3", "p-"), ("mortar r=4", "P-"),
                 ("mortar smooth", "*-"), ("mortar smooth ramp", "h-"), ("mortar ramp fixed d=3", "<-"),
-                ("mortar ramp r=4 fixed d=3", ">-"))):
-            points = sorted((float(r["spacing_mm"]), float(r["exit_error_mm"]))
-                            for (s, c, _), r in latest.items() if s == name and c == coupling and r["exit_error_mm"])
-            if points:  # one colour per coupling in every panel, as in the legend
-                axis.plot(*zip(*points), style, color=COLOURS[number], label=coupling)
+                ("mortar ramp r=4 fixed d=3", ">-"), (SHIPPED_COUPLING, "*-"))):
+            runs = [r for (s, c, _), r in latest.items() if s == name and c == coupling and r["exit_error_mm"]]
+            if not runs:
+                continue
+            refinement = needle_refinement(name, coupling)
+            points = sorted((float(r["spacing_mm"]) / refinement, float(r["exit_error_mm"])) for r in runs)
+            shipped = coupling == SHIPPED_COUPLING  # one colour per coupling in every panel, as in the legend
+            axis.plot(*zip(*points), style, color="black" if shipped else COLOURS[number], label=coupling,
+                      linewidth=2.2 if shipped else 1.2, markersize=9 if shipped else 5, zorder=3 if shipped else 2)
         axis.set_title(name, fontsize=9)
-        axis.set_xlabel("spacing (mm)", fontsize=8)
+        axis.set_xlabel("spacing at the needle (mm)", fontsize=8)
         axis.set_ylabel("exit error (mm)", fontsize=8)
         axis.invert_xaxis()
     for axis in axes.ravel()[len(scenes):]:
@@ -485,8 +571,9 @@ def chart(rows: list[dict], path) -> None:
         for handle, label in zip(*axis.get_legend_handles_labels()):
             handles.setdefault(label, handle)
     figure.legend(list(handles.values()), list(handles), loc="lower center", ncol=6, fontsize=9)
-    figure.suptitle("Unplanned exit error under refinement (x: the coarse spacing h): couplings, cutting-force "
-                    "ramp and profile, entry/exit grading, needle refinement 3 and 4; some also at 2h and h/4")
+    figure.suptitle("Unplanned exit error under refinement (x: the particle spacing at the needle): couplings, "
+                    "cutting-force ramp and profile, entry/exit grading, needle refinement 3 and 4, the files as "
+                    "shipped (black); some also at 2h and h/4", fontsize=10)
     figure.tight_layout(rect=(0, 0.05, 1, 0.98))
     figure.savefig(path, dpi=110)
     plt.close(figure)

@@ -347,44 +347,44 @@ def test_a_needle_run_is_estimated_to_keep_its_dense_blocks():
 
 
 # peak resident memory (MiB) measured with `/usr/bin/time -f %M python -m stitchplan simulate
-# CFG --no-estimate` (plan: `plan CFG --no-compare --no-verify --export x.csv`, `compare`
-# without --no-compare) on copies of the configs at these needle steps; the two-pass plan (the
-# 100 x 30 block at 0.005 rad) holds both passes' steps
+# CFG --no-estimate --no-resource-check` (plan: `plan CFG --no-compare --no-verify --export x.csv`,
+# `compare` without --no-compare) on copies of the configs at these needle steps, remeasured when
+# the SH 1/2 files were discretized for the needle (7.104 mm graded to 0.888 mm); the plans at
+# 0.005 rad hold two passes' steps
 MEASURED_PEAKS = [
-    ("sh12_100x100", 0.08, "simulate", 98.4), ("sh12_100x100", 0.02, "simulate", 138.0),
-    ("sh12_100x100", 0.01, "simulate", 215.1), ("sh12_100x100", 0.005, "simulate", 441.2),
-    ("sh12_100x100", 0.0025, "simulate", 1206.0), ("sh12_100x30", 0.08, "simulate", 81.4),
-    ("sh12_100x30", 0.02, "simulate", 105.2), ("sh12_100x30", 0.01, "simulate", 158.6),
-    ("sh12_100x30", 0.005, "simulate", 332.2), ("sh12_100x30", 0.0025, "simulate", 976.1),
-    ("sh12_100x100", 0.01, "plan", 224.7), ("sh12_100x100", 0.005, "plan", 467.1),
-    ("sh12_100x100", 0.005, "compare", 807.0), ("sh12_100x30", 0.005, "plan", 663.3),
+    ("sh12_100x100", 0.08, "simulate", 89.3), ("sh12_100x100", 0.02, "simulate", 124.9),
+    ("sh12_100x100", 0.01, "simulate", 198.9), ("sh12_100x100", 0.005, "simulate", 455.6),
+    ("sh12_100x100", 0.0025, "simulate", 1404.2), ("sh12_100x30", 0.08, "simulate", 84.2),
+    ("sh12_100x30", 0.02, "simulate", 114.1), ("sh12_100x30", 0.01, "simulate", 180.8),
+    ("sh12_100x30", 0.005, "simulate", 411.0), ("sh12_100x30", 0.0025, "simulate", 1264.8),
+    ("sh12_100x100", 0.01, "plan", 207.7), ("sh12_100x100", 0.005, "plan", 665.9),
+    ("sh12_100x100", 0.005, "compare", 1027.4), ("sh12_100x30", 0.005, "plan", 865.7),
 ]
 
 
 @pytest.mark.parametrize("name, step, command, peak", MEASURED_PEAKS)
 def test_the_memory_estimate_bounds_the_measured_peaks(name, step, command, peak):
-    """From steps of 0.08 to 0.0025 rad (36 to 1205 taken) the measured peaks grow 12-fold;
-    the estimate stays above 0.85 of each (the two-pass plan's 1.14 the lowest: the guard
-    counts two runs' steps of a plan) and within 2.1 times it (a one-pass plan's 2.07 the
-    highest: a plan may hold two runs' steps, one pass holds one). Since the states stopped
-    keeping a copy of the load rows each (the peaks were up to 1.28x these), the estimate,
-    unchanged, bounds the simulate peaks by 1.24-1.36x; it stayed within 2x of them before."""
+    """From steps of 0.08 to 0.0025 rad (37 to 1257 taken) the measured peaks grow 16-fold;
+    the estimate stays above 0.85 of each (the plan with its unplanned run at 0.005 rad 0.95
+    the lowest) and within 2.1 times it (a one-pass plan at 0.01 rad 1.82 the highest: a plan
+    may hold two runs' steps, one pass holds one); it bounds the simulate peaks by 1.16-1.31x. With the SH 1/2 files at the default spacing (979 particles, before they
+    were discretized for the needle) the same measurements gave 1.14-2.07."""
     runs = {"simulate": 1, "plan": PLAN_RUNS, "compare": PLAN_RUNS + 1}[command]
     item = estimate(sh12(step, name), "insertion", command, runs)
     assert 0.85 <= item.memory_bytes / (peak * 2**20) <= 2.1, item.describe()
 
 
 def test_steps_too_many_for_the_memory_are_refused_naming_the_needle_step():
-    """SH 1/2 at 0.0025 rad: the tissue's model (~130 MB) fits 1 GB, what its 1257 steps
-    keep (~1.4 GB estimated; a run peaked at 1.26 GB) does not: the refusal names the needle step,
+    """SH 1/2 at 0.0025 rad: the tissue's model (~115 MB) fits 1 GB, what its 1257 steps
+    keep (~1.6 GB estimated; a run peaked at 1.47 GB) does not: the refusal names the needle step,
     not the spacing; at the shipped 0.08 rad it runs."""
     line = refusal([estimate(sh12(0.0025), "insertion", "simulate")], memory=2e9)
     assert line.startswith("needle.step: got 0.0025 rad, expected a model within 50% of the 2 GB of memory "
-                           "available (1257 needle steps keep ~1.45 GB of states and solver blocks until the run "
-                           "ends; estimated simulate: 979 particles, 1257 needle steps"), line
+                           "available (1257 needle steps keep ~1.6 GB of states and solver blocks until the run "
+                           "ends; estimated simulate: 642 particles, 1257 needle steps"), line
     assert line.endswith("take a larger step, or pass --no-resource-check to run it anyway")
     plan = refusal([estimate(sh12(0.0025), "insertion", "plan", PLAN_RUNS)], memory=2e9)
-    assert "~1.45 GB of states and solver blocks until the run ends, 2.89 GB for the 2 runs held at once" in plan
+    assert "~1.6 GB of states and solver blocks until the run ends, 3.2 GB for the 2 runs held at once" in plan
     check_resources([estimate(sh12(0.08), "insertion", "simulate")], memory=2e9)
     # past the step limit too: one line, the step limit's
     line = refusal([estimate(sh12(0.0012), "insertion", "simulate")], memory=2e9)
