@@ -192,10 +192,10 @@ VERIFICATION_RUNS = 2
 # runs whose steps' states one process holds at once (_step_memory each), of the `runs` an
 # estimate counts: a plan holds its unplanned comparison (--compare), its first pass (later
 # passes take its early steps over: planning.planner.PassPrefix), its best pass so far and the
-# pass running, 1-4 runs (1 or 2 in the plans measured: on SH 1/2 at 0.005 rad 568 MB for one
-# pass, 998 MB with the comparison; 861 MB for two passes on its 100 x 30 block); a verification
-# its first replay while the second runs (run_insertion `start_from`). Two: within 2x of one and
-# of four
+# pass running, 1-4 runs (measured on SH 1/2 at 0.005 rad: 456 MiB for one run, 666 MiB for a
+# plan of two passes, 1027 MiB with the comparison, 866 MiB for the 100 x 30 block's two passes;
+# tests/test_resource_guard.py MEASURED_PEAKS); a verification its first replay while the second
+# runs (run_insertion `start_from`). Two: within 2x of one and of four
 HELD_RUNS = 2
 
 
