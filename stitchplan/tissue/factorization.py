@@ -272,15 +272,24 @@ def _switch() -> str:
     return switch
 
 
+def _path() -> str:
+    """What factors a symmetric positive definite matrix: "cholmod" (the `fast` extra, not
+    switched off), else "band" where its band is narrow (CHOLMOD's solves are faster), or
+    "superlu" with STITCHPLAN_LINEAR_BACKEND=superlu. The switch is checked with or without
+    CHOLMOD: a value it does not take is refused as this module is imported."""
+    switch = _switch()
+    if cholmod is not None and switch not in ("superlu", "scipy"):
+        return "cholmod"
+    return "superlu" if switch == "superlu" else "band"
+
+
 def cholesky_available() -> bool:
-    switch = _switch()  # checked with or without CHOLMOD: refused as this module is imported
-    return cholmod is not None and switch not in ("superlu", "scipy")
+    return _path() == "cholmod"
 
 
 def band_allowed() -> bool:
-    """Whether a narrow band's Cholesky factors what CHOLMOD would (off with CHOLMOD, whose
-    solves are faster, and with STITCHPLAN_LINEAR_BACKEND=superlu)."""
-    return not cholesky_available() and _switch() != "superlu"
+    """Whether a narrow band's Cholesky factors what CHOLMOD would."""
+    return _path() == "band"
 
 
 # scipy.sparse.linalg (with scipy.linalg ~70 ms) and the band's modules are imported with this
@@ -300,7 +309,8 @@ def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
     constraint curvature H can make K + H indefinite); without CHOLMOD, the banded Cholesky
     where the matrix is symmetric positive definite and its band narrow (narrow_band);
     SuperLU otherwise, or where the L D L^T is not accurate."""
-    if symmetric_positive and cholesky_available():
+    path = _path() if symmetric_positive else "superlu"
+    if path == "cholmod":
         stored = cholmod_matrix(matrix)
         try:
             return CholeskyFactor(stored)
@@ -310,7 +320,7 @@ def factorize(matrix: sp.spmatrix, symmetric_positive: bool = False) -> Factor:
             return LDLFactor(matrix, stored)
         except ValueError:  # a pivot near zero
             pass
-    elif symmetric_positive and band_allowed():
+    elif path == "band":
         band = narrow_band(matrix)
         if band is not None:
             try:
