@@ -21,6 +21,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 BENCH_DIR = Path(__file__).resolve().parent
 REPO_ROOT = BENCH_DIR.parent
@@ -130,6 +131,29 @@ def verification_replay(scene: str):
 
     refined = rescaled(load_scenario(REPO_ROOT / "configs" / f"{scene}.yaml"), VERIFICATION_FACTOR)
     return refined, read_center_path(REPO_ROOT / "sample_runs" / scene / "trajectory.csv", scenario_needle(refined))
+
+
+# what the SH 1/2 and 20 mm needle files gained on 2026-12-05 (after 4f42f4e), when they were
+# discretized for the needle (results/needle_coupling.md, coupling `shipped`)
+ADDED_NEEDLE_KEYS = ("cutting_ramp", "multiplier_length")
+
+
+def previous_data(path: Path) -> dict:
+    """The data of an SH 1/2 or 20 mm needle file as it was before it was discretized for the
+    needle: without its discretization block and ADDED_NEEDLE_KEYS."""
+    raw = yaml.safe_load(path.read_text())
+    raw.pop("discretization", None)
+    for key in ADDED_NEEDLE_KEYS:
+        raw["needle"].pop(key, None)
+    return raw
+
+
+def previous_config(scene: str, folder: Path) -> Path:
+    """configs/SCENE.yaml as previous_data gives it, written into `folder` (a file the code of
+    before 2026-12-05 reads, the keys it lacks left out)."""
+    path = folder / f"{scene}_previous.yaml"
+    path.write_text(yaml.safe_dump(previous_data(REPO_ROOT / "configs" / f"{scene}.yaml"), sort_keys=False))
+    return path
 
 
 def results_path(name: str) -> Path:

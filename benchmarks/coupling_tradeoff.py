@@ -72,20 +72,11 @@ def recipe(scene: str) -> str:
     return RECIPES[scene.split("_")[0]]
 
 
-def previous_config(scene: str, folder: Path) -> Path:
-    """configs/SCENE.yaml as it was shipped until 2026-12-05 (needle_coupling.previous_data),
-    written into `folder`: what this table measured as `shipped`."""
-    path = folder / f"{scene}_previous.yaml"
-    data = needle_coupling.previous_data(common.REPO_ROOT / "configs" / f"{scene}.yaml")
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
-
-
 def converged_config(scene: str, folder: Path) -> Path:
     """configs/SCENE.yaml as it was until 2026-12-05 with the converged configuration's four
     keys, written into `folder`; checked to load as the scenario needle_coupling.scene runs."""
     expected = needle_coupling.scene(scene, recipe(scene))
-    data = needle_coupling.previous_data(common.REPO_ROOT / "configs" / f"{scene}.yaml")
+    data = common.previous_data(common.REPO_ROOT / "configs" / f"{scene}.yaml")
     discretization = data.setdefault("discretization", {})
     discretization["dilation"] = expected.discretization.dilation
     discretization["needle_refinement"] = expected.discretization.needle_refinement
@@ -140,7 +131,7 @@ def measure(scenes: tuple[str, ...]) -> list[dict]:
         (folder / "baseline").mkdir()
         baseline = common.extract_revision(BASELINE, folder / "baseline", "stitchplan")
         for scene in scenes:
-            shipped = previous_config(scene, folder)
+            shipped = common.previous_config(scene, folder)  # the file as shipped until 2026-12-05
             configurations = {"shipped": (shipped, SHIPPED),
                               "converged": (converged_config(scene, folder), recipe(scene))}
             before, after = [], {name: [] for name in configurations}

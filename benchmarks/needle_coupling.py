@@ -106,8 +106,6 @@ matplotlib.use("Agg")
 import _common as common
 import matplotlib.pyplot as plt
 
-import yaml
-
 from stitchplan.config.scenario import load_scenario, parse_scenario, with_discretization
 from stitchplan.errors import InsertionFailure
 from stitchplan.needle import coupling as coupling_module
@@ -127,10 +125,10 @@ FACTORS = (1.0, 1 / math.sqrt(2.0), 0.5)
 QUARTER = 0.25  # a fourth level, run with --factors 0.25: h, h/2, h/4 nest (ratio 2)
 DOUBLE = 2.0  # a coarser level, run with --factors 2: 2h, h, h/2 nest too, the default in the middle
 COUPLINGS = ("points", "mortar", "mortar-arc")
-SHIPPED_COUPLING = "shipped"  # the scene's file as it is: its coupling, discretization and needle keys
-# what the SH 1/2 and 20 mm needle files gained on 2026-12-05 (after 4f42f4e): every other
-# coupling starts from the files without them, as all rows before that date ran
-ADDED_NEEDLE_KEYS = ("cutting_ramp", "multiplier_length")
+# the scene's file as it is: its coupling, discretization and needle keys; every other coupling
+# starts from the SH 1/2 and 20 mm needle files as they were until 4f42f4e (common.previous_data),
+# as all rows before 2026-12-05 ran
+SHIPPED_COUPLING = "shipped"
 FIELDS = ("scene", "coupling", "factor", "spacing_mm", "particles", "steps", "exit_error_mm", "seconds", "failure")
 
 
@@ -182,22 +180,11 @@ def scene(name: str, coupling: str):
 def shipped_file(name: str, previous: bool):
     """The scenario of a scene's file (configs/sh12_100x100.yaml for the soft slabs); with
     `previous`, the SH 1/2 and 20 mm needle files as they were before they were discretized for
-    the needle: no discretization block (the default spacing, needle_refinement 2) and none of
-    ADDED_NEEDLE_KEYS."""
+    the needle (common.previous_data: the default spacing, needle_refinement 2)."""
     path = CONFIGS / ("sh12_100x100.yaml" if name in SOFT else f"{name}.yaml")
     if not previous or not (name in SOFT or name in SHIPPED):
         return load_scenario(path)
-    return parse_scenario(previous_data(path))
-
-
-def previous_data(path) -> dict:
-    """The data of an SH 1/2 or 20 mm needle file (a path in CONFIGS) as it was before it was
-    discretized for the needle: without its discretization block and ADDED_NEEDLE_KEYS."""
-    raw = yaml.safe_load(path.read_text())
-    raw.pop("discretization", None)
-    for key in ADDED_NEEDLE_KEYS:
-        raw["needle"].pop(key, None)
-    return raw
+    return parse_scenario(common.previous_data(path))
 
 
 def variant(coupling: str) -> dict:

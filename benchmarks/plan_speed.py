@@ -57,24 +57,11 @@ from pathlib import Path  # noqa: E402
 import _common as common  # noqa: E402
 
 BASELINE = "19ff45d"
-# the shipped SH 1/2 and 20 mm needle files before they were discretized for the needle
-# (configs/sh12_100x100.yaml): BASELINE runs them as they were, the scene it was timed on
-PREVIOUS_FILES = "4f42f4e"
 SCENES = ("sh12_100x100", "sh12_100x100_mid", "sh12_100x50", "sh12_100x40", "sh12_100x30",
           "needle20_entry30", "needle20_entry25", "needle20_entry20", "needle20_entry18")
 REPEATS = 5
 LEVER_REPEATS = 9  # rounds of the in-process levers table
 STARTUP_REPEATS = 7
-
-
-def previous_file(scene: str, folder: Path) -> Path:
-    """configs/SCENE.yaml as at PREVIOUS_FILES, written into `folder`: the file BASELINE ran
-    in every comparison before the files were discretized for the needle (keys BASELINE does
-    not have)."""
-    path = folder / f"previous_{scene}.yaml"
-    path.write_text(subprocess.run(["git", "show", f"{PREVIOUS_FILES}:configs/{scene}.yaml"], cwd=common.REPO_ROOT,
-                                   check=True, capture_output=True, text=True).stdout)
-    return path
 
 
 def run_plan_command(source: Path, scene: str, options: list[str], folder: Path, config: Path | None = None,
@@ -94,7 +81,9 @@ def compare_revisions(baseline: Path) -> list[dict]:
         folder = Path(scratch)
         for scene in SCENES:
             before, after, scipy_only, inline = [], [], [], []  # scipy_only: the path without the `fast` extra
-            previous = previous_file(scene, folder)
+            # BASELINE runs the file as it was before it was discretized for the needle, the
+            # scene it was timed on (and keys it does not have left out)
+            previous = common.previous_config(scene, folder)
             for _ in range(REPEATS):
                 before.append(run_plan_command(baseline, scene, ["--no-compare"], folder, config=previous))
                 after.append(run_plan_command(common.REPO_ROOT, scene, ["--no-compare", "--no-verify", "-q"], folder))
@@ -535,7 +524,7 @@ def main() -> None:
         "with the installed backend.\n",
         f"The planned run is the summary's `wall_seconds` of `plan CONFIG --no-compare` at {BASELINE} and of "
         "`plan CONFIG --no-compare --no-verify` now (the same run; verification did not exist then). "
-        f"{BASELINE} runs each scene's file as it was shipped until {PREVIOUS_FILES} (the default spacing, "
+        f"{BASELINE} runs each scene's file as it was shipped until 2026-12-05 (the default spacing, "
         "graded to half of it at the needle); now runs the file as shipped now, whose particles are graded "
         "from twice the default spacing to 1.25 needle steps at the needle on the SH 1/2 blocks "
         "(benchmarks/results/needle_coupling.md, coupling `shipped`): the same scene planned, before and after. "
