@@ -87,6 +87,10 @@ def against(revision: str):
         yield extract_revision(revision, Path(extracted)), folders
 
 
+# a CSV of whole commands timed by `alternated` (its row after part, scene and what)
+ALTERNATED_COLUMNS = ["part", "scene", "what", "before (s)", "now (s)", "ratio", "pairs won now", "same"]
+
+
 def alternated(name: str, scene: str, options: Sequence[str], baseline: Path, folders: tuple[Path, Path],
                repeats: int, compared: Sequence[str]) -> list:
     """scene_command of the code in `baseline` and of this code, alternating `repeats` times,

@@ -130,7 +130,7 @@ def main() -> None:
     commands = whole_commands()
     plots = drawn_plots()
     common.write_csv(common.results_path("command_overlap.csv"),
-                     ["part", "scene", "what", "before (s)", "now (s)", "ratio", "pairs won now", "same"],
+                     common.ALTERNATED_COLUMNS,
                      [["command", scene, label, *rest] for scene, label, *rest in commands]
                      + [["plan.png", scene, f"unplanned run drawn: {compare}", before, now, ratio, "", same]
                         for scene, compare, before, now, ratio, same in plots])

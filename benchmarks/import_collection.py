@@ -92,7 +92,7 @@ def main() -> None:
     commands = whole_commands()
     imported = imports()
     common.write_csv(common.results_path("import_collection.csv"),
-                     ["part", "scene", "what", "before (s)", "now (s)", "ratio", "pairs won now", "same"],
+                     common.ALTERNATED_COLUMNS,
                      [["command", *row] for row in commands]
                      + [["plan's imports", "", label, "", seconds, "", "", ""]
                         for label, seconds, *_ in imported])
