@@ -169,6 +169,9 @@ FLOAT_BYTES = 8.0
 # each step): per needle point the points (16 bytes), the segments' two Gauss points and the
 # load points (32 each), the load magnitudes (16), segment fraction and spacing (8 each), gap (1)
 TRACK_BYTES_PER_POINT = 113.0
+# each further piece of a segment (track_layout.segment_subintervals) adds two Gauss points,
+# two load points and their magnitudes (32 + 32 + 16 bytes) and, with segment ends, two target radii (16)
+TRACK_BYTES_PER_PIECE = 96.0
 # with `multiplier_ends: arc` also per constraint quadrature point its point (16), segment,
 # position, length and target radius (8 each): NeedleCoupling._new_constraint_points
 ARC_BYTES_PER_QUADRATURE_POINT = 48.0
@@ -529,22 +532,26 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
     A renewed factor starts new buffers (SaddlePointSolver._use), which the states then keep
     as well: the measured runs renewed none (the factor of K0 solves their needle steps).
     Sums in floating point, finite for counts up to COUNT_CAP."""
-    from .needle.track_layout import ARC_ENDS, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT
+    from .needle.track_layout import ARC_ENDS, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, segment_subintervals
 
     needle, d = scenario.needle, scenario.discretization
     n = float(steps)
     sum_k, sum_k2 = n * (n + 1.0) / 2.0, n * (n + 1.0) * (2.0 * n + 1.0) / 6.0
     arc_ends = needle.coupling != POINTS and needle.multiplier_ends == ARC_ENDS
     # Q_k = per_segment k + first, m_k = slope k + offset; `arrays`: W and P, or one for both
+    pieces = 1.0
     if needle.coupling == POINTS:
         per_segment, first, slope, offset, arrays = 1.0, 1.0, 1.0, 1.0, 1.0
     else:
         at_needle = d.spacing if d.needle_spacing is None else d.needle_spacing
         element = max(MULTIPLIER_SPACINGS * at_needle, needle.multiplier_length or 0.0)
-        ratio = min(_per_side(scenario_needle(scenario).insertion_step, element), float(COUNT_CAP))
+        step_length = scenario_needle(scenario).insertion_step
+        ratio = min(_per_side(step_length, element), float(COUNT_CAP))
+        pieces = float(segment_subintervals(step_length, at_needle)) if at_needle > 0 else float(COUNT_CAP)
         # arc ends: at least 2 Gauss points per segment, QUADRATURE_PER_ELEMENT per element length;
-        # segment ends: whole segments of at least an element's length (at most one per segment)
-        per_segment = max(2.0, float(math.ceil(QUADRATURE_PER_ELEMENT * ratio))) if arc_ends else 2.0
+        # segment ends: the segments' Gauss points, 2 per piece; whole segments of at least an
+        # element's length (at most one per segment)
+        per_segment = max(2.0, float(math.ceil(QUADRATURE_PER_ELEMENT * ratio))) if arc_ends else 2.0 * pieces
         first, slope, offset, arrays = 0.0, ratio if arc_ends else min(ratio, 1.0), 2.0, 2.0
     weights = arrays * FLOAT_BYTES * (per_segment * slope * sum_k2 + (per_segment * offset + first * slope) * sum_k
                                       + first * offset * n)
@@ -554,7 +561,8 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
     capacities = start * (2.0 ** (doublings + 1) - 1.0)  # sum of c_j
     squares = start * start * (4.0 ** (doublings + 1) - 1.0) / 3.0  # sum of c_j^2
     blocks = FLOAT_BYTES * (squares + 2.0 * particles * capacities)
-    track = (TRACK_BYTES_PER_POINT + (ARC_BYTES_PER_QUADRATURE_POINT * per_segment if arc_ends else 0.0)) * sum_k
+    track = (TRACK_BYTES_PER_POINT + TRACK_BYTES_PER_PIECE * (pieces - 1.0)
+             + (ARC_BYTES_PER_QUADRATURE_POINT * per_segment if arc_ends else 0.0)) * sum_k
     return blocks + weights + track + STEP_BYTES_PER_PARTICLE * particles * n
 
 

@@ -13,7 +13,9 @@
   re-equilibrated state, for both couplings and the mortar's arc-length element ends;
 - `multiplier_ends: arc`: element ends at exact arc lengths a local spacing apart;
 - the residual's coupling terms, kept on joined rows for speed, against their definitions
-  written out point by point, for both couplings.
+  written out point by point, for both couplings;
+- segments longer than two particle spacings split into pieces with two Gauss points each
+  (track_layout.segment_subintervals): their loads, constraint and centre columns.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from test_simulation import advance_one, dense_rest_stiffness, small_scene, star
 
 from stitchplan.needle import coupling as coupling_module
 from stitchplan.needle.coupling import MULTIPLIER_ORDER, cutting_share
-from stitchplan.needle.track_layout import MULTIPLIER_SPACINGS
+from stitchplan.needle.track_layout import MULTIPLIER_SPACINGS, segment_subintervals
 from stitchplan.needle.equilibrium import NeedleInsertion
 
 
@@ -260,8 +262,8 @@ def test_center_sensitivity_matches_finite_differences(coupling):
     assert np.linalg.norm(jacobian - difference) <= 1e-3 * np.linalg.norm(difference)
 
 
-@pytest.mark.parametrize("cutting_length", [3.2, 3.0])
-def test_center_columns_on_the_constraint_rows_match_the_solved_ones(monkeypatch, cutting_length):
+@pytest.mark.parametrize("cutting_length, pieces", [(3.2, False), (3.0, False), (3.0, True)])
+def test_center_columns_on_the_constraint_rows_match_the_solved_ones(monkeypatch, cutting_length, pieces):
     """The centre's columns d(d, lambda)/dC from the kept K^-1 E^T (equilibrium
     CENTER_COLUMNS_ON_ROWS) against the same columns solved with the factor: equal to
     round-off where every load point is a segment Gauss point (cutting length two whole
@@ -269,7 +271,8 @@ def test_center_columns_on_the_constraint_rows_match_the_solved_ones(monkeypatch
     points on a partly covered segment are lumped onto its Gauss points (3 mm)."""
     from stitchplan.needle import equilibrium
 
-    insertion = started(small_scene(spacing=2.0, coupling="mortar", cutting_length=cutting_length), steps=5)
+    scene = PIECES_SCENE if pieces else {"spacing": 2.0, "coupling": "mortar"}
+    insertion = started(small_scene(**scene, cutting_length=cutting_length), steps=3 if pieces else 5)
     lumped = len(insertion.coupling.loads.lumping[0])
     target = insertion.geometry.desired_exit
     on_rows = insertion.center_sensitivity(target, refactor=True)
@@ -279,7 +282,7 @@ def test_center_columns_on_the_constraint_rows_match_the_solved_ones(monkeypatch
     if cutting_length == 3.2:
         assert lumped == 0 and difference < 1e-10
     else:
-        assert lumped == 2 and 0.0 < difference < 1e-3
+        assert lumped == (4 if pieces else 2) and 0.0 < difference < 1e-3
 
 
 def test_the_mortar_coupling_adds_a_multiplier_only_once_a_spacing_of_track_has_grown():
@@ -294,7 +297,11 @@ def test_the_mortar_coupling_adds_a_multiplier_only_once_a_spacing_of_track_has_
     assert counts[-1] <= 8 * 1.6 / (MULTIPLIER_SPACINGS * 4.0) + 2 < 9
 
 
-@pytest.mark.parametrize("coupling", ["points", "mortar", "mortar-arc"])
+# the small scene's 8 mm needle in 0.5 rad steps: 4 mm segments on a 1.5 mm grid, two pieces each
+PIECES_SCENE = {"spacing": 1.5, "coupling": "mortar", "step": 0.5}
+
+
+@pytest.mark.parametrize("coupling", ["points", "mortar", "mortar-arc", "mortar-pieces"])
 def test_the_coupling_terms_match_their_definitions_point_by_point(coupling):
     """The track's rows are kept as joined CSR blocks, a step's new points are evaluated
     together, and the residual's coupling terms come from one product with all of the
@@ -303,9 +310,11 @@ def test_the_coupling_terms_match_their_definitions_point_by_point(coupling):
     E = N (x) I_2, g = W^T (|x_q - C| - R_q), G lambda = sum_q N_q^T (mu_q n_q),
     f_needle = sum over both load sets of factor m_l N_l^T a_0(x_l) (eq. 3.64), the centre
     derivatives, and the tip's row."""
-    options = {"coupling": "mortar", "multiplier_ends": "arc"} if coupling == "mortar-arc" else {"coupling": coupling}
-    insertion = started(small_scene(spacing=2.0, **options), steps=4)
+    options = ({"coupling": "mortar", "multiplier_ends": "arc"} if coupling == "mortar-arc" else
+               PIECES_SCENE if coupling == "mortar-pieces" else {"coupling": coupling})
+    insertion = started(small_scene(**{"spacing": 2.0, **options}), steps=4 if coupling != "mortar-pieces" else 3)
     track, model, geometry = insertion.coupling, insertion.model, insertion.geometry
+    assert len(track.gauss) == (4 if coupling == "mortar-pieces" else 2)
     track.load_factor = 0.25
     rng = np.random.default_rng(3)
     free = 0.05 * rng.standard_normal(insertion.free.shape)
@@ -347,3 +356,50 @@ def test_the_aim_s_closed_form_spectral_norm():
     rng = np.random.default_rng(5)
     for matrix in [*rng.standard_normal((20, 2, 2)), np.eye(2), np.zeros((2, 2)), np.array([[1.0, 1.0], [1.0, 1.0]])]:
         assert spectral_norm(matrix) == pytest.approx(np.linalg.norm(matrix, 2), rel=1e-12, abs=1e-15)
+
+
+def test_a_segment_is_split_into_pieces_where_it_is_longer_than_two_spacings():
+    """Two Gauss points per piece, at most one particle spacing apart on average: the SH 1/2
+    needle's 0.71 mm segments stay whole at its 0.888 and 0.444 mm needle spacings, split in 2
+    and 4 at 0.222 and 0.111 mm; the 20 mm needle's 2 mm segments likewise at 2.5 ... 0.3125 mm."""
+    assert [segment_subintervals(0.7104, h) for h in (0.888, 0.444, 0.222, 0.111)] == [1, 1, 2, 4]
+    assert [segment_subintervals(2.0, h) for h in (2.5, 1.25, 0.625, 0.3125)] == [1, 1, 2, 4]
+    assert segment_subintervals(2.0, 1.0) == 1  # exactly two spacings: one piece
+
+
+def test_pieces_carry_the_loads_and_hold_the_track_on_the_chord(monkeypatch):
+    """4 mm segments on a 1.5 mm grid, 3 steps: four Gauss points per segment at the two-point
+    rule's places in each half, equal weights; friction x needle length on each segment,
+    the cutting force in total on the last cutting_length mm behind the tip (partly covered
+    tip segment: points of its own, lumped onto the two Gauss points around each); each
+    point asked to lie on the chord, sqrt(R^2 - t (1 - t) c^2) from the centre; after the
+    steps the needle points lie closer to the needle than with one piece per segment."""
+    insertion = started(small_scene(**PIECES_SCENE, cutting_length=3.0), steps=3)
+    track, needle, geometry = insertion.coupling, insertion.needle, insertion.geometry
+    segments = len(track.points) - 1
+    two_point = 0.5 + np.array([-0.5, 0.5]) / np.sqrt(3.0)
+    np.testing.assert_allclose(track.gauss, np.concatenate([two_point / 2, (1 + two_point) / 2]), rtol=0, atol=1e-15)
+    loads = track.loads
+    on_segments = loads.magnitudes[:4 * segments].reshape(segments, 4)
+    friction = needle.friction * geometry.insertion_step
+    np.testing.assert_allclose(on_segments[:-1].sum(axis=1), friction, rtol=1e-12)  # not cut: friction alone
+    assert loads.magnitudes.sum() == pytest.approx(friction * segments + needle.cutting_force, rel=1e-12)
+    indices, weights = loads.lumping
+    assert len(indices) == 4 and np.all(indices[:, 1] == indices[:, 0] + 1)
+    assert np.all(indices >= 4 * (segments - 1))  # on the tip segment's points
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0, rtol=0, atol=1e-14)
+    lumped = (weights[:, :, None] * track.segment_points[indices]).sum(axis=1)
+    np.testing.assert_allclose(lumped, loads.points[4 * segments:], rtol=0, atol=1e-12)  # linear along the segment
+    t = np.tile(track.gauss, segments)
+    chord = 2.0 * geometry.radius * np.sin(0.5 * geometry.step)
+    np.testing.assert_allclose(track.target_radius, np.sqrt(geometry.radius**2 - t * (1 - t) * chord**2), rtol=1e-14)
+
+    def off_the_needle(run: NeedleInsertion) -> np.ndarray:
+        u = run.displacement(run.points)
+        return np.abs(np.linalg.norm(run.points + u - run.center, axis=1) - geometry.radius)
+
+    monkeypatch.setattr(coupling_module, "segment_subintervals", lambda length, spacing: 1)
+    whole = started(small_scene(**PIECES_SCENE, cutting_length=3.0), steps=3)
+    assert len(whole.coupling.gauss) == 2
+    # the needle points held closer than by two points per segment (0.029 against 0.043 mm)
+    assert off_the_needle(insertion).max() < 0.8 * off_the_needle(whole).max()

@@ -5,7 +5,9 @@ configuration, joined by straight segments. It carries
 
 - friction `friction` N per mm of needle inside the tissue, along the needle (eq. 3.58):
   a line load on Gamma_N, each segment carrying the needle length R * step it stands for,
-  integrated with two Gauss points (eq. 3.64);
+  integrated with two Gauss points (eq. 3.64) on each of the segment's pieces (mortar: as
+  many pieces as keep the points at most a particle spacing apart, track_layout's
+  segment_subintervals; one on the shipped scenes at their spacing and at half of it);
 - the cutting force at the tip;
 - the constraint that keeps the track on the needle circle, g = |x(X) - C| - R = 0,
   written as a residual that Newton drives to zero (eq. 3.59-3.65), so the track does not
@@ -26,7 +28,7 @@ Two couplings (`needle.coupling`):
   particles can resolve keeps the discrete inf-sup condition (Babuska 1973, Brezzi 1974;
   mortar methods: Wohlmuth 2000; tests/test_needle_coupling.py checks the normalised Schur
   complement). The constraint is enforced weakly, g_j = int phi_j g(X(s)) ds / int phi_j ds
-  = 0 per multiplier (two Gauss points per segment), so lambda_j is a force. A Gauss point of a segment is asked to lie
+  = 0 per multiplier (the segments' Gauss points), so lambda_j is a force. A Gauss point of a segment is asked to lie
   on the chord between the needle points (see `target_radius`), not on the arc. The
   cutting force is spread uniformly over `cutting_length` mm of needle behind the tip (a
   physical length: the needle point's cutting edge and taper), not over one step; with
@@ -69,7 +71,8 @@ from ..config import Needle
 from ..tissue.model import TissueModel
 from ..tissue.shape_functions import rows_csr
 from .geometry import NeedleGeometry
-from .track_layout import ARC_ENDS, MORTAR, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, SEGMENT_ENDS
+from .track_layout import (ARC_ENDS, MORTAR, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, SEGMENT_ENDS,
+                           segment_subintervals)
 
 GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on [0, 1]
 MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous piecewise linear
@@ -82,11 +85,17 @@ PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter r
 # scaled to the whole force.
 CUTTING_PROFILE = "uniform"
 # smooth profile: Gauss points per cutting_length on a covered segment (its density is not a
-# polynomial): at least 2 on a wholly covered one (its friction Gauss points while 2 suffice),
+# polynomial): at least P on a wholly covered one (its P friction Gauss points while they suffice),
 # 4 on the partly covered one at the zone's end; 8 per l keeps the total within 0.5 % of
 # cutting_share (tests/test_needle_coupling.py)
 SMOOTH_POINTS_PER_LENGTH = 8.0
 UNIFORM, SMOOTH = "uniform", "smooth"
+
+
+def segment_gauss_points(pieces: int) -> np.ndarray:
+    """The two-point rule on each of `pieces` equal pieces of [0, 1], ascending, (2 pieces,);
+    every point weighs 1 / (2 pieces)."""
+    return ((np.arange(pieces)[:, None] + GAUSS_POINTS[None, :]) / pieces).ravel()
 
 
 def cutting_density(s: np.ndarray, length: float) -> np.ndarray:
@@ -303,7 +312,7 @@ class LoadQuadrature:
     row_parts: tuple[sp.csr_matrix, ...]
     magnitudes: np.ndarray  # (L,)
     # the points after the segments' Gauss points (a partly covered segment's), each as a
-    # linear combination of its segment's two Gauss points: their indices and weights (P, 2)
+    # linear combination of two of its segment's Gauss points: their indices and weights (P, 2)
     # each; None where the layout has other points (the smooth cutting profile)
     lumping: tuple[np.ndarray, np.ndarray] | None = (np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2)))
 
@@ -340,7 +349,13 @@ class NeedleCoupling:
         # for (1, less at a wound's walls where the tip left or re-entered mid-step)
         self.segment_gap = np.zeros(0, dtype=bool)
         self.segment_fraction = np.zeros(0)
-        self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, 2 per segment
+        # the segments' Gauss points: the two-point rule on each of `segment_subintervals`
+        # pieces of a segment (mortar; one piece for the point coupling), equal weights
+        at_needle = model.needle_spacing if model.needle_spacing is not None else model.spacing
+        pieces = 1 if self.kind == POINTS else segment_subintervals(geometry.insertion_step, at_needle)
+        self.gauss = segment_gauss_points(pieces)  # (P,) along a segment, in [0, 1]
+        self.gauss_weight = 1.0 / len(self.gauss)
+        self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, P per segment
         self.tip_row = np.zeros(n_free)  # N(X) T at the last needle point, dense
         self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
         # N(X_s) T at the segments' Gauss points; the constraint quadrature's rows N_q T with
@@ -368,11 +383,13 @@ class NeedleCoupling:
         # |x_q - C| the constraint asks of a quadrature point: the needle points lie on the
         # circle; a Gauss point at t of a segment lies on the chord between two needle points
         # one step apart, at sqrt(R^2 - t (1 - t) c^2) from C (c = 2 R sin(step / 2); t (1 - t)
-        # = 1/6 at both Gauss points). Asking R there would push the whole track outward
-        # by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm steps)
+        # = 1/6 at both Gauss points of one piece). Asking R there would push the whole track
+        # outward by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm
+        # steps). One value for all with one piece per segment, else per point (P per segment)
         self._chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
+        self._gauss_targets = np.sqrt(geometry.radius**2 - self.gauss * (1.0 - self.gauss) * self._chord**2)
         self.target_radius = (geometry.radius if self.kind == POINTS
-                              else np.zeros(0) if self.arc_ends
+                              else np.zeros(0) if self.arc_ends or pieces > 1
                               else math.sqrt(geometry.radius**2 - self._chord**2 / 6.0))
 
     # --- state -----------------------------------------------------------------------------
@@ -390,7 +407,7 @@ class NeedleCoupling:
 
     @property
     def segment_rows(self) -> sp.csr_matrix:
-        """N(X_s) T at the segments' Gauss points, (2 segments, n_free)."""
+        """N(X_s) T at the segments' Gauss points, (P segments, n_free)."""
         return self._segment_rows.matrix
 
     @property
@@ -417,8 +434,10 @@ class NeedleCoupling:
         forces = self.weights @ multipliers if self.multiplier_count else np.zeros(self.weights.shape[0])  # (Q,)
         new = np.zeros((0, 2))  # the new segment's Gauss points
         if len(self.points):
-            new = self.points[-1] + GAUSS_POINTS[:, None] * (reference_point - self.points[-1])
+            new = self.points[-1] + self.gauss[:, None] * (reference_point - self.points[-1])
             self.segment_points = np.vstack([self.segment_points, new])
+            if self.kind == MORTAR and not self.arc_ends and len(self.gauss) > 2:
+                self.target_radius = np.append(self.target_radius, self._gauss_targets)
             self.segment_gap = np.append(self.segment_gap, gap)
             self.segment_fraction = np.append(self.segment_fraction, 0.0 if gap else fraction)
         self.points = np.vstack([self.points, reference_point])
@@ -433,7 +452,7 @@ class NeedleCoupling:
         self.tip_row = np.bincount(rows.indices[:rows.indptr[1]], rows.data[:rows.indptr[1]],
                                    minlength=self.model.n_free)  # N(X_tip) T, dense (n_free,)
         if len(new):
-            self._segment_rows.append(_empty_block(2) if gap else _block(rows, 1, ends[2]))
+            self._segment_rows.append(_empty_block(len(self.gauss)) if gap else _block(rows, 1, ends[2]))
         if len(constraint_points):
             self._quadrature_rows.append(_block(rows, ends[2], ends[3]))
         if self.kind == POINTS:
@@ -537,9 +556,9 @@ class NeedleCoupling:
             marks = np.zeros(len(lengths), dtype=int)
             marks[starts[1:]] = 1
             nodes = np.append(arc[starts], arc[-1])  # element ends, (m_e + 1,)
-            s_q = (arc[:-1, None] + GAUSS_POINTS[None, :] * lengths[:, None]).ravel()  # (Q,)
-            ds = np.repeat(0.5 * lengths, 2)
-            element = np.repeat(np.cumsum(marks), 2)  # (Q,)
+            s_q = (arc[:-1, None] + self.gauss[None, :] * lengths[:, None]).ravel()  # (Q,)
+            ds = np.repeat(self.gauss_weight * lengths, len(self.gauss))
+            element = np.repeat(np.cumsum(marks), len(self.gauss))  # (Q,)
         elements = len(nodes) - 1
         q = np.arange(len(s_q))
         if MULTIPLIER_ORDER == 0:
@@ -560,9 +579,9 @@ class NeedleCoupling:
     def _load_layout(self) -> tuple[np.ndarray, np.ndarray]:
         """Friction on every segment's Gauss points (eq. 3.58, 3.64) and the cutting force:
         on the tip segment (points) or uniformly over the last `cutting_length` mm of needle
-        (mortar), two Gauss points per (part of a) segment (the smooth profile:
-        _smooth_cutting). Returns the magnitudes (N) on the segments' Gauss points followed
-        by those of the extra load points (a partly covered segment's), those points, (t, 2),
+        (mortar), on the segments' P Gauss points (a partly covered segment's covered part: P
+        points of its own; the smooth profile: _smooth_cutting). Returns the magnitudes (N)
+        on the segments' Gauss points followed by those of the extra load points (a partly covered segment's), those points, (t, 2),
         and their LoadQuadrature.lumping."""
         segments = len(self.points) - 1
         no_points = np.zeros((0, 2))
@@ -571,11 +590,12 @@ class NeedleCoupling:
             return np.zeros(0), no_points, no_lumping
         step_length = self.geometry.insertion_step  # needle length per segment, mm
         needle_length = step_length * self.segment_fraction  # needle length each segment stands for
-        friction = np.repeat(0.5 * self.needle.friction * needle_length, 2)
+        count, weight = len(self.gauss), self.gauss_weight
+        friction = np.repeat(weight * self.needle.friction * needle_length, count)
         cutting = self.needle.cutting_force
         if self.kind == POINTS or cutting == 0.0:
             magnitudes = friction.copy()
-            magnitudes[-2:] += 0.5 * cutting
+            magnitudes[-count:] += weight * cutting
             return magnitudes, no_points, no_lumping
         if CUTTING_PROFILE == SMOOTH:
             return (*self._smooth_cutting(friction, needle_length), None)
@@ -591,38 +611,43 @@ class NeedleCoupling:
         whole = np.flatnonzero(covered >= 1.0)
         part = np.flatnonzero((covered > 0.0) & (covered < 1.0))
         per_mm = cutting / (self.cutting_length if self.cutting_ramp else zone)
-        share = 0.5 * per_mm * needle_length  # N per Gauss point of a wholly covered segment
+        share = weight * per_mm * needle_length  # N per Gauss point of a wholly covered segment
         magnitudes = friction.copy()
-        magnitudes[(2 * whole[:, None] + np.arange(2)).ravel()] += np.repeat(share[whole], 2)
+        magnitudes[(count * whole[:, None] + np.arange(count)).ravel()] += np.repeat(share[whole], count)
         if not len(part):
             return magnitudes, no_points, no_lumping
         fraction = covered[part]
         start, end = self.points[part], self.points[part + 1]
-        along = 1.0 - fraction[:, None] + fraction[:, None] * GAUSS_POINTS[None, :]  # (t, 2)
+        along = 1.0 - fraction[:, None] + fraction[:, None] * self.gauss[None, :]  # (t, P)
         part_points = _along_segments(start, end, along)
-        upper = ((along - GAUSS_POINTS[0]) / (GAUSS_POINTS[1] - GAUSS_POINTS[0])).ravel()  # its weight
-        lumping = (np.repeat(2 * part[:, None] + np.arange(2), 2, axis=0), np.column_stack([1.0 - upper, upper]))
-        return np.concatenate([magnitudes, np.repeat(share[part] * fraction, 2)]), part_points, lumping
+        # each point lumped onto the two of its segment's Gauss points around it (the outer
+        # two beyond them), by linear interpolation along the segment
+        lower = np.clip(np.searchsorted(self.gauss, along, side="right") - 1, 0, count - 2)  # (t, P)
+        upper = ((along - self.gauss[lower]) / (self.gauss[lower + 1] - self.gauss[lower])).ravel()
+        first = (count * part[:, None] + lower).ravel()
+        lumping = (np.column_stack([first, first + 1]), np.column_stack([1.0 - upper, upper]))
+        return np.concatenate([magnitudes, np.repeat(share[part] * fraction, count)]), part_points, lumping
 
     def _smooth_cutting(self, friction: np.ndarray, needle_length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """_load_layout's magnitudes and extra points for the smooth cutting profile: the force
         cutting_density(s) ds (x cutting_force with the ramp, else scaled to the whole
         force) at Gauss points of the covered part of each segment, s the needle length
         between the point and the tip (a wound's gaps count zero). A wholly covered segment
-        uses its two friction Gauss points while SMOOTH_POINTS_PER_LENGTH asks no more; other
+        uses its P friction Gauss points while SMOOTH_POINTS_PER_LENGTH asks no more; other
         covered segments get points of their own (at least 4 on a partly covered one)."""
         length, cutting = self.cutting_length, self.needle.cutting_force
         no_points = np.zeros((0, 2))
         behind, covered = _covered(min(length, float(needle_length.sum())), needle_length)
-        count = np.maximum(np.where(covered >= 1.0, 2, 4),
+        own_count = len(self.gauss)
+        count = np.maximum(np.where(covered >= 1.0, own_count, 4),
                            np.ceil(SMOOTH_POINTS_PER_LENGTH * covered * needle_length / length - 1e-9)).astype(int)
-        reuse = np.flatnonzero((covered >= 1.0) & (count == 2))
-        own = np.flatnonzero((covered > 0.0) & ((covered < 1.0) | (count > 2)))
-        # the friction Gauss points: t = GAUSS_POINTS, s = behind + (1 - t) x needle length
+        reuse = np.flatnonzero((covered >= 1.0) & (count == own_count))
+        own = np.flatnonzero((covered > 0.0) & ((covered < 1.0) | (count > own_count)))
+        # the friction Gauss points: t = self.gauss, s = behind + (1 - t) x needle length
         on_segments = np.zeros_like(friction)
-        s = behind[reuse, None] + (1.0 - GAUSS_POINTS[None, :]) * needle_length[reuse, None]
-        on_segments[(2 * reuse[:, None] + np.arange(2)).ravel()] = (
-            cutting_density(s, length) * 0.5 * needle_length[reuse, None]).ravel()
+        s = behind[reuse, None] + (1.0 - self.gauss[None, :]) * needle_length[reuse, None]
+        on_segments[(own_count * reuse[:, None] + np.arange(own_count)).ravel()] = (
+            cutting_density(s, length) * self.gauss_weight * needle_length[reuse, None]).ravel()
         points, loads = [no_points], [np.zeros(0)]
         for n in np.unique(count[own]):  # a few distinct counts
             segment = own[count[own] == n]
@@ -717,7 +742,7 @@ class NeedleCoupling:
         K^-1 E^T, so these right-hand sides need no solve with its factor.
 
         Exact but for the cutting force's points on a partly covered segment: their force
-        change is lumped onto the segment's two Gauss points (LoadQuadrature.lumping), whose
+        change is lumped onto two of the segment's Gauss points (LoadQuadrature.lumping), whose
         rows interpolate theirs linearly along the segment. The columns only make the Jacobian
         of the planner's centre move (needle/steering.py; tests/test_needle_coupling.py bounds
         the change by 1e-3 of its norm), so the centre still settles where eq. 4.1 holds."""
