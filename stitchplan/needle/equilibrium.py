@@ -159,14 +159,15 @@ class PreparedTissue:
     its first saddle solves use this factor (SaddlePointSolver.start_at_rest). Made once per
     command and handed to each run on the same model (the planner's passes, the unplanned
     comparison, the verification's rounds); the model is built by the first run, K0's factor
-    when first asked for."""
+    when first asked for. `model`: one built elsewhere instead (a finite-element model of the
+    same tissue: benchmarks/needle_fem_reference.py)."""
 
-    def __init__(self, scenario: Scenario):
+    def __init__(self, scenario: Scenario, model: TissueModel | None = None):
         self.scenario = scenario
         # the model depends on these alone (the needle's: where the particles are graded)
         self.key = (scenario.tissue, scenario.discretization, scenario.needle)
         self.seconds = 0.0  # building the model
-        self._model = self._factor = None
+        self._model, self._factor = model, None
         self.boundary_samples = None  # the boundary sampled at rest (tip_tracking.boundary_samples), once needed
 
     @property
