@@ -403,3 +403,28 @@ def test_pieces_carry_the_loads_and_hold_the_track_on_the_chord(monkeypatch):
     assert len(whole.coupling.gauss) == 2
     # the needle points held closer than by two points per segment (0.029 against 0.043 mm)
     assert off_the_needle(insertion).max() < 0.8 * off_the_needle(whole).max()
+
+
+def test_split_segments_make_the_exit_error_converge_as_the_needle_zone_is_refined(monkeypatch):
+    """The small scene (1.6 mm segments) with particles 0.8, 0.4 and 0.2 mm apart around the
+    needle (2 mm away from it; the ramp, elements fixed at 2 mm): with the segments split into
+    pieces (1, 2, 4) the exit error's changes shrink at a rate near 3.5 (observed 2.5e-3 then
+    2.2e-4 mm); with two Gauss points per segment at every level they do not shrink like a
+    convergent sequence (6.0e-3 then 3.9e-3 mm, and 3.9e-3 again at 0.1 mm: the log-singular
+    displacement of point forces, benchmarks/results/needle_fem_reference.md)."""
+    from stitchplan.config.scenario import with_discretization
+    from stitchplan.needle.insertion import run_insertion
+
+    base = small_scene(spacing=2.0, coupling="mortar", cutting_ramp=True, multiplier_length=2.0)
+
+    def changes() -> np.ndarray:
+        errors = [run_insertion(with_discretization(base, needle_spacing=spacing)).exit_error_mm
+                  for spacing in (0.8, 0.4, 0.2)]
+        return np.diff(errors)
+
+    split = changes()
+    monkeypatch.setattr(coupling_module, "segment_subintervals", lambda length, spacing: 1)
+    whole = changes()
+    assert split[0] * split[1] > 0 and np.log2(split[0] / split[1]) > 2.0
+    assert whole[0] * whole[1] > 0 and np.log2(whole[0] / whole[1]) < 1.0
+    assert abs(split[1]) < 0.2 * abs(whole[1])
