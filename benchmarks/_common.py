@@ -252,6 +252,38 @@ def write_results(stem: str, header: Sequence[str], rows: Sequence[Sequence[obje
     write_report(f"{stem}.md", [*lines, "", markdown_table(header, rows)])
 
 
+def panels_legend(figure, axes, ncol: int, fontsize: int = 8) -> None:
+    """One legend for all of a figure's panels (`axes`, an array), below them, each label once:
+    no panel's data hidden behind a legend."""
+    handles = {}
+    for axis in axes.ravel():
+        for handle, label in zip(*axis.get_legend_handles_labels()):
+            handles.setdefault(label, handle)
+    figure.legend(list(handles.values()), list(handles), loc="lower center", ncol=ncol, fontsize=fontsize)
+
+
+def save_figure(figure, path: Path, rect: tuple[float, float, float, float]) -> None:
+    """Lay the figure out within `rect` (room for a legend or title outside it), write it, close it."""
+    import matplotlib.pyplot as plt
+
+    figure.tight_layout(rect=rect)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def csv_rows(path: Path) -> list[dict]:
+    """A results CSV's rows as dicts of strings (a script's --report rewrites its tables from them)."""
+    with path.open() as handle:
+        return list(csv.DictReader(handle))
+
+
+def publish(stem: str, text: str, draw: Callable[[list[dict], Path], None], rows: list[dict]) -> None:
+    """results/STEM.md (`text`) and results/STEM.png (`draw(rows, path)`), and the text printed."""
+    results_path(f"{stem}.md").write_text(text)
+    draw(rows, results_path(f"{stem}.png"))
+    print(text)
+
+
 def machine_note() -> str:
     import numpy
     import scipy

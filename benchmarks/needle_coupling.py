@@ -558,11 +558,7 @@ def chart(rows: list[dict], path) -> None:
         axis.invert_xaxis()
     for axis in axes.ravel()[len(scenes):]:
         axis.axis("off")
-    handles = {}
-    for axis in axes.ravel():  # one legend for all panels, below them (no panel's data hidden)
-        for handle, label in zip(*axis.get_legend_handles_labels()):
-            handles.setdefault(label, handle)
-    figure.legend(list(handles.values()), list(handles), loc="lower center", ncol=6, fontsize=9)
+    common.panels_legend(figure, axes, ncol=6, fontsize=9)
     figure.suptitle("Unplanned exit error under refinement (x: the particle spacing at the needle): couplings, "
                     "cutting-force ramp and profile, entry/exit grading, needle refinement 3 and 4, the files as "
                     "shipped (black); some also at 2h and h/4", fontsize=10)

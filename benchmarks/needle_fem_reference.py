@@ -33,7 +33,6 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import csv  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
@@ -284,24 +283,17 @@ def chart(rows: list[dict], path) -> None:
         axis.set_xlabel("particle spacing at the needle (mm)", fontsize=8)
         axis.set_ylabel("unplanned exit error (mm)", fontsize=8)
         axis.tick_params(labelsize=7)
-    handles = {}
-    for axis in axes.ravel():
-        for handle, label in zip(*axis.get_legend_handles_labels()):
-            handles.setdefault(label, handle)
-    figure.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=8)
+    common.panels_legend(figure, axes, ncol=len(models))
     figure.suptitle("Exit error under refinement: RK particles against linear triangles on the same particles",
                     fontsize=10)
-    figure.tight_layout(rect=(0, 0.05, 1, 0.96))
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    common.save_figure(figure, path, (0, 0.05, 1, 0.96))
 
 
 def main() -> None:
     logging.disable(logging.WARNING)
     csv_path = common.results_path("needle_fem_reference.csv")
     if "--report" in sys.argv[1:]:
-        with csv_path.open() as handle:
-            rows = list(csv.DictReader(handle))
+        rows = common.csv_rows(csv_path)
     else:
         jobs = [(scene, model, factor) for scene in SCENES for model in (*KINDS, *EXTRA.get(scene, ()))
                 for factor in FACTORS]
@@ -313,10 +305,7 @@ def main() -> None:
         rows = sorted(done, key=lambda row: order[(row["scene"], row["model"], row["factor"])])
         common.write_csv(csv_path, FIELDS, [[row[key] for key in FIELDS] for row in rows])
         rows = [{key: str(value) for key, value in row.items()} for row in rows]
-    text = markdown(rows)
-    common.results_path("needle_fem_reference.md").write_text(text)
-    chart(rows, common.results_path("needle_fem_reference.png"))
-    print(text)
+    common.publish("needle_fem_reference", markdown(rows), chart, rows)
 
 
 if __name__ == "__main__":

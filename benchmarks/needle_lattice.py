@@ -25,7 +25,6 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import csv  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -115,23 +114,16 @@ def chart(rows: list[dict], path) -> None:
         axis.set_title(f"{name}, spacing h x {float(factor):g}", fontsize=9)
         axis.set_xlabel("entry shift / needle spacing", fontsize=8)
         axis.set_ylabel("exit error (mm)", fontsize=8)
-    handles = {}
-    for axis in axes.ravel():
-        for handle, label in zip(*axis.get_legend_handles_labels()):
-            handles.setdefault(label, handle)
-    figure.legend(list(handles.values()), list(handles), loc="lower center", ncol=4, fontsize=8)
+    common.panels_legend(figure, axes, ncol=4)
     figure.suptitle("Unplanned exit error as the track moves through one needle spacing of the lattice")
-    figure.tight_layout(rect=(0, 0.08, 1, 0.96))
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    common.save_figure(figure, path, (0, 0.08, 1, 0.96))
 
 
 def main() -> None:
     logging.disable(logging.WARNING)
     csv_path = common.results_path("needle_lattice.csv")
     if "--report" in sys.argv[1:]:  # only rewrite the table and the chart from the CSV
-        with csv_path.open() as handle:
-            rows = list(csv.DictReader(handle))
+        rows = common.csv_rows(csv_path)
     else:
         rows = []
         for name in SCENES:
@@ -139,10 +131,7 @@ def main() -> None:
                 for variant in VARIANTS if factor == 1.0 else HALF_VARIANTS:
                     rows.append(lattice_sweep(name, variant, factor))
         common.write_csv(csv_path, FIELDS, [[row[key] for key in FIELDS] for row in rows])
-    text = markdown(rows)
-    common.results_path("needle_lattice.md").write_text(text)
-    chart(rows, common.results_path("needle_lattice.png"))
-    print(text)
+    common.publish("needle_lattice", markdown(rows), chart, rows)
 
 
 if __name__ == "__main__":
