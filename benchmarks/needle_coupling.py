@@ -123,6 +123,7 @@ THESIS = ("thesis/table51_100x100", "thesis/table51_100x50", "thesis/table51_100
 SOFT = {"soft_t3": 3.0, "soft_t2.5": 2.5}  # configs/sh12_100x100.yaml, neo-Hookean, thickness mm
 FACTORS = (1.0, 1 / math.sqrt(2.0), 0.5)
 QUARTER = 0.25  # a fourth level, run with --factors 0.25: h, h/2, h/4 nest (ratio 2)
+EIGHTH = 0.125  # a fifth level, run with --factors 0.125 (coupling `shipped`): h/2, h/4, h/8 nest
 DOUBLE = 2.0  # a coarser level, run with --factors 2: 2h, h, h/2 nest too, the default in the middle
 COUPLINGS = ("points", "mortar", "mortar-arc")
 # the scene's file as it is: its coupling, discretization and needle keys; every other coupling
@@ -276,15 +277,16 @@ def summarise(rows: list[dict]) -> list[dict]:
     keys = sorted({(s, c) for s, c, _ in latest}, key=lambda k: (k[0] not in order, order.index(k[0].split(" ")[0])
                                                                   if k[0].split(" ")[0] in order else 99, k[0], k[1]))
     for name, coupling in keys:
-        levels = [latest.get((name, coupling, f"{f:.4f}")) for f in FACTORS + (QUARTER, DOUBLE)]
+        levels = [latest.get((name, coupling, f"{f:.4f}")) for f in FACTORS + (QUARTER, DOUBLE, EIGHTH)]
         errors = [float(r["exit_error_mm"]) if r and r["exit_error_mm"] else None for r in levels]
         entry = {"scene": name, "coupling": coupling, "errors": errors,
                  "failures": [r["failure"] if r else "not run" for r in levels]}
-        e0, e1, e2, e3, coarse = errors
+        e0, e1, e2, e3, coarse, e4 = errors
         entry["change"] = (e2 - e0) / e0 if e0 is not None and e2 is not None else None
         entry["monotone"], entry["rate"] = convergence(e0, e1, e2, math.sqrt(2.0))
         entry["nested_monotone"], entry["nested_rate"] = convergence(e0, e2, e3, 2.0)
         entry["coarse_monotone"], entry["coarse_rate"] = convergence(coarse, e0, e2, 2.0)
+        entry["fine_monotone"], entry["fine_rate"] = convergence(e2, e3, e4, 2.0)
         table.append(entry)
     return table
 
@@ -343,7 +345,10 @@ def markdown(table: list[dict]) -> str:
              "the lattice (below), now at the 0.888 mm needle spacing. With 2h and h/4 (ratio 2): 2h, h,",
              "h/2 monotone on seven (sh12_100x40 too), h, h/2, h/4 on six (sh12_100x100, sh12_100x50",
              "and the needle20 scenes, rates 1.5-2.2; at h/4 the track's segments are in pieces since",
-             "99e2058), soft_t3 on both. soft_t2.5 does not settle: +3.89 %, not",
+             "99e2058), soft_t3 on both. One level further (h/8, `--factors 0.125`): h/2, h/4, h/8",
+             "monotone on eight of the nine (rates 0.45-2.36; from h/4 to h/8 +0.07 to +0.26 %), not on",
+             "sh12_100x30 (-0.18 then +0.51 um, 0.03 and 0.07 %); soft_t3 monotone only just (0.030 then",
+             "0.029 mm, rate 0.06: it does not settle). soft_t2.5 does not settle: +3.89 %, not",
              "monotone (2.916, 3.033, 3.029 mm), and at h/4 its needle's load is no longer carried at",
              "step 22. The particles the SH 1/2 files save away from the needle pay for those they add",
              "near it on the 100 x 100 blocks (642 and 639 against 979 and 976), not on the narrower",
@@ -503,21 +508,23 @@ def markdown(table: list[dict]) -> str:
              "thesis's 20 mm needle scenes entry18 and fig510 (Saint Venant-Kirchhoff) stop at h/sqrt(2) or",
              "h/2, their load no longer carried once the entry is refined; sh12_100x100 is not monotone",
              "(+3.45 %, with r=4 +1.01 %), needle20_entry30 +1.51 % (monotone, rate 2.51).", "",
-             "| scene | coupling | e(2h) | e(h) | e(h/√2) | e(h/2) | e(h/4) | change | monotone | rate p | "
-             "2h, h, h/2 monotone | rate p (ratio 2) | h, h/2, h/4 monotone | rate p (ratio 2) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| scene | coupling | e(2h) | e(h) | e(h/√2) | e(h/2) | e(h/4) | e(h/8) | change | monotone | rate p | "
+             "2h, h, h/2 monotone | rate p (ratio 2) | h, h/2, h/4 monotone | rate p (ratio 2) | "
+             "h/2, h/4, h/8 monotone | rate p (ratio 2) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     yes_no = {None: "—", True: "yes", False: "no"}
     for entry in table:
         e = entry["errors"]
         change = "—" if entry["change"] is None else f"{100 * entry['change']:+.2f} %"
         lines.append(f"| {entry['scene']} | {entry['coupling']} | {number(e[4])} | {number(e[0])} | {number(e[1])} | "
-                     f"{number(e[2])} | {number(e[3])} | {change} | {yes_no[entry['monotone']]} | "
+                     f"{number(e[2])} | {number(e[3])} | {number(e[5])} | {change} | {yes_no[entry['monotone']]} | "
                      f"{number(entry['rate'], 2)} | {yes_no[entry['coarse_monotone']]} | "
                      f"{number(entry['coarse_rate'], 2)} | {yes_no[entry['nested_monotone']]} | "
-                     f"{number(entry['nested_rate'], 2)} |")
+                     f"{number(entry['nested_rate'], 2)} | {yes_no[entry['fine_monotone']]} | "
+                     f"{number(entry['fine_rate'], 2)} |")
     failures = [(entry["scene"], entry["coupling"], f, text) for entry in table
-                for f, text in zip(("h", "h/√2", "h/2", "h/4", "2h"), entry["failures"])
-                if text and not (f in ("h/4", "2h") and text == "not run")]  # run for a few couplings only
+                for f, text in zip(("h", "h/√2", "h/2", "h/4", "2h", "h/8"), entry["failures"])
+                if text and not (f in ("h/4", "2h", "h/8") and text == "not run")]  # run for a few couplings only
     if failures:
         lines += ["", "Failed or missing runs:", ""]
         lines += [f"- {scene_name} {coupling} at {f}: {text}" for scene_name, coupling, f, text in failures]
@@ -564,10 +571,8 @@ def chart(rows: list[dict], path) -> None:
     common.panels_legend(figure, axes, ncol=6, fontsize=9)
     figure.suptitle("Unplanned exit error under refinement (x: the particle spacing at the needle): couplings, "
                     "cutting-force ramp and profile, entry/exit grading, needle refinement 3 and 4, the files as "
-                    "shipped (black); some also at 2h and h/4", fontsize=10)
-    figure.tight_layout(rect=(0, 0.05, 1, 0.98))
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+                    "shipped (black); some also at 2h, h/4 and h/8", fontsize=10)
+    common.save_figure(figure, path, (0, 0.05, 1, 0.98))
 
 
 def main() -> None:
