@@ -155,7 +155,8 @@ def _segment_of(coupling, points: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("cutting_length", [2.4, 10.0])  # 1.6 mm segments: own Gauss points / the friction ones
 @pytest.mark.parametrize("profile, ramp", [("uniform", False), ("uniform", True), ("smooth", False),
                                            ("smooth", True)])
-def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cutting_length):
+@pytest.mark.parametrize("pieces", [1, 3])  # each segment's Gauss points: two, or two on each of three pieces
+def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cutting_length, pieces):
     """The cutting force on the track after each needle point (no equilibrium needed: the
     loads depend on the reference track only), 8 steps with a wound's gap at the 4th: without
     the ramp the whole force; with it cutting_force x the profile's share of [0, l] inside
@@ -163,6 +164,7 @@ def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cu
     segment is its integral over the segment's needle length (s from the tip), within 0.5 %
     of the force: zero at the tip, the most at l / 2 behind it."""
     monkeypatch.setattr(coupling_module, "CUTTING_PROFILE", profile)
+    monkeypatch.setattr(coupling_module, "segment_subintervals", lambda length, spacing: pieces)
     scenario = small_scene(spacing=4.0, coupling="mortar", cutting_length=cutting_length, cutting_ramp=ramp)
     insertion = NeedleInsertion(scenario)
     coupling, geometry, needle = insertion.coupling, insertion.geometry, insertion.needle
@@ -173,9 +175,11 @@ def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cu
         insertion.add_point(geometry.tip(step * geometry.step), gap=gap, fraction=0.0 if gap else 1.0)
         segments = len(coupling.points) - 1
         needle_length = geometry.insertion_step * coupling.segment_fraction
-        friction = np.repeat(0.5 * needle.friction * needle_length, 2)
+        count = 2 * pieces  # Gauss points per segment
+        assert len(coupling.gauss) == count
+        friction = np.repeat(needle.friction * needle_length / count, count)
         magnitudes = coupling.loads.magnitudes
-        cutting = magnitudes - np.concatenate([friction, np.zeros(len(magnitudes) - 2 * segments)])
+        cutting = magnitudes - np.concatenate([friction, np.zeros(len(magnitudes) - count * segments)])
         inside = float(needle_length.sum())
         expected = needle.cutting_force * (cutting_share(inside, cutting_length, profile) if ramp else 1.0)
         rtol = 1e-12 if profile == "uniform" or not ramp else 5e-3
@@ -301,7 +305,7 @@ def test_the_mortar_coupling_adds_a_multiplier_only_once_a_spacing_of_track_has_
 PIECES_SCENE = {"spacing": 1.5, "coupling": "mortar", "step": 0.5}
 
 
-@pytest.mark.parametrize("coupling", ["points", "mortar", "mortar-arc", "mortar-pieces"])
+@pytest.mark.parametrize("coupling", ["points", "mortar", "mortar-arc", "mortar-pieces", "mortar-arc-pieces"])
 def test_the_coupling_terms_match_their_definitions_point_by_point(coupling):
     """The track's rows are kept as joined CSR blocks, a step's new points are evaluated
     together, and the residual's coupling terms come from one product with all of the
@@ -311,10 +315,12 @@ def test_the_coupling_terms_match_their_definitions_point_by_point(coupling):
     f_needle = sum over both load sets of factor m_l N_l^T a_0(x_l) (eq. 3.64), the centre
     derivatives, and the tip's row."""
     options = ({"coupling": "mortar", "multiplier_ends": "arc"} if coupling == "mortar-arc" else
-               PIECES_SCENE if coupling == "mortar-pieces" else {"coupling": coupling})
-    insertion = started(small_scene(**{"spacing": 2.0, **options}), steps=4 if coupling != "mortar-pieces" else 3)
+               PIECES_SCENE if coupling == "mortar-pieces" else
+               {**PIECES_SCENE, "multiplier_ends": "arc"} if coupling == "mortar-arc-pieces" else {"coupling": coupling})
+    pieces = coupling.endswith("pieces")
+    insertion = started(small_scene(**{"spacing": 2.0, **options}), steps=3 if pieces else 4)
     track, model, geometry = insertion.coupling, insertion.model, insertion.geometry
-    assert len(track.gauss) == (4 if coupling == "mortar-pieces" else 2)
+    assert len(track.gauss) == (4 if pieces else 2)
     track.load_factor = 0.25
     rng = np.random.default_rng(3)
     free = 0.05 * rng.standard_normal(insertion.free.shape)
