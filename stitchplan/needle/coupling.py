@@ -388,8 +388,10 @@ class NeedleCoupling:
         # steps). One value for all with one piece per segment, else per point (P per segment)
         self._chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
         self._gauss_targets = np.sqrt(geometry.radius**2 - self.gauss * (1.0 - self.gauss) * self._chord**2)
+        # segment ends in pieces: the segments' points ask their own radii, appended per segment
+        self._targets_per_point = self.kind == MORTAR and not self.arc_ends and pieces > 1
         self.target_radius = (geometry.radius if self.kind == POINTS
-                              else np.zeros(0) if self.arc_ends or pieces > 1
+                              else np.zeros(0) if self.arc_ends or self._targets_per_point
                               else math.sqrt(geometry.radius**2 - self._chord**2 / 6.0))
 
     # --- state -----------------------------------------------------------------------------
@@ -436,7 +438,7 @@ class NeedleCoupling:
         if len(self.points):
             new = self.points[-1] + self.gauss[:, None] * (reference_point - self.points[-1])
             self.segment_points = np.vstack([self.segment_points, new])
-            if self.kind == MORTAR and not self.arc_ends and len(self.gauss) > 2:
+            if self._targets_per_point:
                 self.target_radius = np.append(self.target_radius, self._gauss_targets)
             self.segment_gap = np.append(self.segment_gap, gap)
             self.segment_fraction = np.append(self.segment_fraction, 0.0 if gap else fraction)
