@@ -65,8 +65,8 @@ from stitchplan.io.readers import read_center_path  # noqa: E402
 from stitchplan.needle.geometry import needle_zone, scenario_needle  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 from stitchplan.tissue.boundary_conditions import boundary_particles, transformation  # noqa: E402
-from stitchplan.tissue.model import (TissueModel, _direction_gradient, _gradient_operator,  # noqa: E402
-                                     _material, build_tissue_model)
+from stitchplan.tissue.model import (TissueModel, build_tissue_model, direction_gradient_operator,  # noqa: E402
+                                     gradient_operator, material_at)
 from stitchplan.tissue.shape_functions import ShapePairs  # noqa: E402
 
 SCENES = ("sh12_100x100", "sh12_100x40", "needle20_entry30", "soft_t3", "soft_t3 friction=0", "soft_t3 cutting_force=0")
@@ -129,7 +129,7 @@ def finite_element_model(scenario) -> LinearTriangles:
     boundary = transformation(at_boundary, constrained, len(nodes))  # nodal values: T selects, T_g = I
     model = LinearTriangles(
         tissue=scenario.tissue, discretization=scenario.discretization,
-        material=_material(scenario.tissue, centroids), particles=nodes, support=particles_of.support,
+        material=material_at(scenario.tissue, centroids), particles=nodes, support=particles_of.support,
         volumes=particles_of.volumes, search=particles_of.search, quadrature_points=centroids,
         quadrature_weights=area * scenario.tissue.thickness, shape=None, boundary=boundary, gradient=None,
         direction_gradient=None, spacing=particles_of.spacing, needle_spacing=particles_of.needle_spacing,
@@ -137,8 +137,8 @@ def finite_element_model(scenario) -> LinearTriangles:
     model.triangulation = triangulation
     model.shape = model.shape_functions_at(centroids, gradients=True)
     grad_x, grad_y = model.shape.grad_x @ boundary.free_map, model.shape.grad_y @ boundary.free_map
-    model.gradient = _gradient_operator(grad_x, grad_y)
-    model.direction_gradient = _direction_gradient(grad_x, grad_y)
+    model.gradient = gradient_operator(grad_x, grad_y)
+    model.direction_gradient = direction_gradient_operator(grad_x, grad_y)
     _check_linear_field(model)
     return model
 

@@ -219,7 +219,7 @@ def build_tissue_model(
     boundary = transformation(at_boundary, constrained, len(particles))
     free_map = boundary.free_map
     grad_x, grad_y = shape.grad_x @ free_map, shape.grad_y @ free_map
-    gradient = _gradient_operator(grad_x, grad_y)
+    gradient = gradient_operator(grad_x, grad_y)
     test_gradient = None
     if discretization.integration == "vci":
         essential = [(np.asarray(a, float), np.asarray(b, float)) for a, b in prescribed_segments]
@@ -230,12 +230,12 @@ def build_tissue_model(
         at_natural = (rk_shape_functions(boundary_points, particles, support, volumes, order, False, search,
                                          float(support.mean()), visibility).values @ free_map
                       if len(boundary_points) else sp.csr_matrix((0, free_map.shape[1])))
-        test_gradient = _gradient_operator(*consistent_test_gradients(
+        test_gradient = gradient_operator(*consistent_test_gradients(
             shape.values @ free_map, grad_x, grad_y, weights, at_natural, normals, boundary_weights))
     return TissueModel(
         tissue=tissue,
         discretization=discretization,
-        material=_material(tissue, points),
+        material=material_at(tissue, points),
         particles=particles,
         support=support,
         volumes=volumes,
@@ -246,7 +246,7 @@ def build_tissue_model(
         boundary=boundary,
         gradient=gradient,
         spacing=spacing,
-        direction_gradient=_direction_gradient(grad_x, grad_y),
+        direction_gradient=direction_gradient_operator(grad_x, grad_y),
         test_gradient=test_gradient,
         visibility=visibility,
         needle_spacing=(zone_spacing(particles, support / discretization.dilation, needle_zone)
@@ -263,7 +263,7 @@ def zone_spacing(particles: np.ndarray, local_spacing: np.ndarray, needle_zone: 
     return float(np.median(local_spacing[inside])) if inside.any() else None
 
 
-def _material(tissue: Tissue, points: np.ndarray) -> SaintVenantKirchhoff | NeoHookean | PointwiseMaterial:
+def material_at(tissue: Tissue, points: np.ndarray) -> SaintVenantKirchhoff | NeoHookean | PointwiseMaterial:
     """The tissue's material, or with regions one per quadrature point (the first region
     holding the point, else the tissue's own)."""
     if not tissue.regions:
@@ -380,7 +380,7 @@ def consistent_test_gradients(values: sp.csr_matrix, grad_x: sp.csr_matrix, grad
     return corrected[0], corrected[1]
 
 
-def _direction_gradient(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matrix:
+def direction_gradient_operator(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matrix:
     """(nq, 2 n_free) with d Psi_p / d X_J at column 2 p + J, from the (nq, n_free) gradient
     matrices of the free functions."""
     n_free = grad_x.shape[1]
@@ -392,7 +392,7 @@ def _direction_gradient(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matr
     return joined
 
 
-def _gradient_operator(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matrix:
+def gradient_operator(grad_x: sp.spmatrix, grad_y: sp.spmatrix) -> sp.csr_matrix:
     """Rows (q, 2 i + J) -> d u_i / d X_J, columns interleaved free dofs (2 p + i), from the
     (nq, n_free) gradient matrices of the free functions."""
     n_points, n_free = grad_x.shape
