@@ -15,7 +15,7 @@ the same with `planner.predicted_aim: false` (the scene's file with that key cha
 re-aims only after the refined replay, and the same command with the code at BASELINE (before
 the helper's replay took over the steps of a replay it dropped, and before a replay's entry
 centre was the one its path gave: a trajectory's rounded entry centre took over no step),
-alternating with it; then the kept trajectory replayed alone (its whole command and its run,
+alternating with it (on the scene's file as it was then, _common.previous_config); then the kept trajectory replayed alone (its whole command and its run,
 the summary's `wall_seconds`), with its particle count checked against the verification's.
 
 Writes benchmarks/results/verified_floor.{csv,md} and prints the table. About 6 minutes.
@@ -53,9 +53,10 @@ def measure(scene: str, folder: Path, baseline: Path) -> dict:
     unpredicted = folder / f"{scene}_without_predicted_aim.yaml"
     unpredicted.write_text(yaml.safe_dump(raw))
     plans, befores, baselines = [], [], []
+    previous = common.previous_config(scene, folder)  # the file as BASELINE's code reads it
     for _ in range(REPEATS):  # alternating, so that a slower spell of the machine hits each
-        baselines.append(common.scene_command("plan", scene, ["--no-compare", "-q"], folder, baseline,
-                                              PYTHONPATH=str(baseline)))
+        baselines.append(common.config_command("plan", previous, ["--no-compare", "-q"], folder, baseline,
+                                               PYTHONPATH=str(baseline)))
         befores.append(common.config_command("plan", unpredicted, ["--no-compare", "-q"], folder, folder))
         plans.append(common.scene_command("plan", scene, ["--no-compare", "-q"], folder, folder))
     # BASELINE solved a needle step to 5e-6 of the needle force and 1e-9 R, the code now to 1e-3
@@ -130,7 +131,9 @@ def main() -> None:
         "predicted aim*: "
         "the same command on the scene's file with `planner.predicted_aim: false`, run alternately with "
         "it (the plan before the predicted aim). "
-        f"*At {BASELINE}*: the same command with the code of commit {BASELINE}, run alternately with "
+        f"*At {BASELINE}*: the same command with the code of commit {BASELINE} on the scene's file as it "
+        "was then (before the SH 1/2 and 20 mm needle files were discretized for the needle: "
+        "_common.previous_config), run alternately with "
         "them, its verified exit error checked within the planner's 0.001 mm where it placed the same "
         "particles (a shape scene placed otherwise there plans on another model: its particles in "
         "brackets) (it solved a needle step to "
