@@ -10,11 +10,13 @@ difference of. For each pair of consecutive levels: the change of the exit error
 achieved exit (spatial), of the desired exit's spatial position, and the largest change of
 the track's material tip point over steps TRACK_STEPS (where the needle has cut the tissue),
 and of the displacement of the entry point (the free edge's material point where the needle
-went in) after the exit.
+went in) after the exit; and at each level the free edge around the entry: its least stretch
+and how far its tangent turns (entry_edge), on sh12_100x100 and the 3 mm slab also with the
+tissue as linear triangles on the same particles (benchmarks/needle_fem_reference.py).
 A change that halves with each halving of the spacing converges at rate 1; the rate here is
 log2 of the ratio of consecutive changes.
 
-Writes benchmarks/results/exit_components.{csv,md} and prints the table. About 7 minutes (the
+Writes benchmarks/results/exit_components.{csv,md} and prints the table. About 12 minutes (the
 h/8 runs and soft_t2.5's failing h/4 take most of it).
 Run from the repository root:  python benchmarks/exit_components.py
 """
@@ -33,28 +35,37 @@ import numpy as np  # noqa: E402
 import _common as common  # noqa: E402
 import needle_coupling  # noqa: E402
 from stitchplan.config import with_discretization  # noqa: E402
+from needle_fem_reference import finite_element_model  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
+from stitchplan.needle.equilibrium import PreparedTissue  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
-SCENES = ("sh12_100x100", "sh12_100x100_mid", "soft_t3", "soft_t2.5")
+SCENES = ("sh12_100x100", "sh12_100x100_mid", "soft_t3", "soft_t2.5", "thesis/table51_100x30")
 FACTORS = (2.0, 1.0, 0.5, 0.25, 0.125)
 LEVELS = ("2h", "h", "h/2", "h/4", "h/8")
 TRACK_STEPS = (10, 20, 30)
+EDGE_SPAN = 3.0  # mm of the entry's edge on each side of the entry whose deformed shape is read
+EDGE_POINTS = 601
+TRIANGLE_SCENES = ("sh12_100x100", "soft_t3")  # the free edge also with the tissue as linear triangles
 COUPLING = needle_coupling.SHIPPED_COUPLING  # the scene's file as it is
 
 
-def runs(scene: str) -> list:
+def runs(scene: str, triangles: bool = False) -> list:
     """The scene's unplanned insertion at each of FACTORS x its spacing, up to the first
-    level that fails (its failure returned)."""
+    level that fails (its failure returned); `triangles`: the tissue as linear triangles on the
+    same particles (needle_fem_reference.finite_element_model)."""
     base = needle_coupling.scene(scene, COUPLING)
+    name = f"{scene} (triangles)" if triangles else scene
     results = []
     for factor in FACTORS:
+        scenario = with_discretization(base, spacing=base.discretization.spacing * factor)
         try:
-            result = run_insertion(with_discretization(base, spacing=base.discretization.spacing * factor))
+            tissue = PreparedTissue(scenario, finite_element_model(scenario)) if triangles else None
+            result = run_insertion(scenario, tissue=tissue)
         except InsertionFailure as failure:
-            print(f"{scene} at {factor:g} h: {failure}", flush=True)
+            print(f"{name} at {factor:g} h: {failure}", flush=True)
             return results, " ".join(str(failure).split())[:120]
-        print(f"{scene} at {factor:g} h: {result.model.n_particles} particles, exit error "
+        print(f"{name} at {factor:g} h: {result.model.n_particles} particles, exit error "
               f"{result.exit_error_mm:.4f} mm", flush=True)
         results.append(result)
     return results, ""
@@ -93,6 +104,39 @@ def rate(first: float | None, second: float | None) -> float | str:
     return math.log2(abs(first) / abs(second))
 
 
+def entry_edge(result) -> tuple[float, float] | None:
+    """The free edge through the entry, EDGE_SPAN mm on each side of it, once the tip has left
+    the tissue: its least stretch (deformed over reference length; an incompressible neo-Hookean
+    half-space in plane strain creases at about 0.65) and how far its tangent turns (degrees:
+    0 straight, 180 folded back on itself). None where the entry is not on a side of the rectangle."""
+    width, height = result.scenario.tissue.bounding_size
+    entry = np.asarray(result.geometry.entry, dtype=float)
+    along = np.linspace(-EDGE_SPAN, EDGE_SPAN, EDGE_POINTS)
+    if min(abs(entry[0]), abs(entry[0] - width)) < 1e-9 * width:
+        points = np.column_stack([np.full_like(along, entry[0]), np.clip(entry[1] + along, 0.0, height)])
+    elif min(abs(entry[1]), abs(entry[1] - height)) < 1e-9 * height:
+        points = np.column_stack([np.clip(entry[0] + along, 0.0, width), np.full_like(along, entry[1])])
+    else:
+        return None
+    deformed = points + result.model.shape_functions_at(points).values @ result.coefficients[-1]
+    pieces, lengths = np.diff(deformed, axis=0), np.linalg.norm(np.diff(points, axis=0), axis=1)
+    kept = lengths > 0.0  # the clipped ends repeat a point
+    stretch = np.linalg.norm(pieces[kept], axis=1) / lengths[kept]
+    angle = np.degrees(np.unwrap(np.arctan2(pieces[kept, 1], pieces[kept, 0])))
+    return float(stretch.min()), float(angle.max() - angle.min())
+
+
+def edge_rows(scene: str, results: list, kind: str) -> list[list]:
+    """entry_edge at each level as two rows of the table."""
+    edges = [entry_edge(result) for result in results]
+    if not edges or any(edge is None for edge in edges):
+        return []
+    blank = [""] * (2 * (len(FACTORS) - 1) - 2)
+    return [[scene, f"free edge within {EDGE_SPAN:g} mm of the entry{kind}, {label}, at "
+             f"{', '.join(LEVELS[:len(results)])}", " / ".join(f"{edge[index]:.3g}" for edge in edges), *blank]
+            for index, label in ((0, "least stretch"), (1, "turn of the tangent (deg)"))]
+
+
 def main() -> None:
     rows = []
     pairs = len(FACTORS) - 1
@@ -107,6 +151,9 @@ def main() -> None:
         if failure:
             levels += f" / {LEVELS[len(results)]}: {failure}"
         rows.append([scene, f"exit error (mm) at {', '.join(LEVELS)}", levels, *[""] * (2 * pairs - 2)])
+        rows += edge_rows(scene, results, "")
+        if scene in TRIANGLE_SCENES:
+            rows += edge_rows(scene, runs(scene, triangles=True)[0], ", linear triangles")
     header = ["scene", "part", *(f"{a} -> {b} (mm)" for a, b in zip(LEVELS, LEVELS[1:])),
               *(f"rate ({a}, {b}, {c})" for a, b, c in zip(LEVELS, LEVELS[1:], LEVELS[2:]))]
     common.write_csv(common.results_path("exit_components.csv"), header, rows)
@@ -115,9 +162,15 @@ def main() -> None:
         f"Generated by `python benchmarks/exit_components.py` ({common.machine_note()}). `simulate` "
         "(each scene's file as shipped) at nested spacings 2h, h, h/2, h/4 and h/8, h the file's "
         "spacing; soft_t3 and soft_t2.5 are configs/sh12_100x100.yaml as neo-Hookean slabs 3 and 2.5 mm "
-        "thick (benchmarks/needle_coupling.py). Exit error: its signed change between levels; the other "
+        "thick (benchmarks/needle_coupling.py), thesis/table51_100x30 the thesis's softest block "
+        "(configs/thesis). Exit error: its signed change between levels; the other "
         "parts: how far they moved (mm). Rate: log2 of the ratio of consecutive changes (1: the change "
-        "halves with the spacing).\n",
+        "halves with the spacing). The free edge through the needle's entry, once the tip has left: its "
+        "least stretch within 3 mm of the entry and how far its tangent turns there (0 degrees: straight, "
+        "180: folded back on itself; an incompressible neo-Hookean half-space compressed in plane strain "
+        "creases at a stretch of about 0.65, and a crease is a fold the model has no contact for); on "
+        "sh12_100x100 and soft_t3 also with the tissue as linear triangles on the same particles "
+        "(benchmarks/needle_fem_reference.py).\n",
         common.markdown_table(header, rows),
         "",
     ]
