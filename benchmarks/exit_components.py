@@ -34,8 +34,8 @@ import numpy as np  # noqa: E402
 
 import _common as common  # noqa: E402
 import needle_coupling  # noqa: E402
-from stitchplan.config import with_discretization  # noqa: E402
 from needle_fem_reference import finite_element_model  # noqa: E402
+from stitchplan.config import with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
 from stitchplan.needle.equilibrium import PreparedTissue  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
@@ -50,7 +50,7 @@ TRIANGLE_SCENES = ("sh12_100x100", "soft_t3")  # the free edge also with the tis
 COUPLING = needle_coupling.SHIPPED_COUPLING  # the scene's file as it is
 
 
-def runs(scene: str, triangles: bool = False) -> list:
+def runs(scene: str, triangles: bool = False) -> tuple[list, str]:
     """The scene's unplanned insertion at each of FACTORS x its spacing, up to the first
     level that fails (its failure returned); `triangles`: the tissue as linear triangles on the
     same particles (needle_fem_reference.finite_element_model)."""
