@@ -17,7 +17,7 @@ as a share of their mean, and the seconds of a run. `shipped` runs at h, h/2 and
 SH 1/2 block and needle20_entry30: the swing beside the changes between those levels
 (benchmarks/results/needle_coupling.md).
 
-Writes benchmarks/results/needle_lattice.{csv,md,png}. About 20 minutes. `--scenes`,
+Writes benchmarks/results/needle_lattice.{csv,md,png}. About 15 minutes. `--scenes`,
 `--variants`, `--factors` run a part (its rows replace the CSV's rows of the same scene,
 variant and spacing); `--report` only rewrites the table and chart from the CSV.
 Run from the repository root:  python benchmarks/needle_lattice.py
