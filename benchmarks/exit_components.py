@@ -107,8 +107,8 @@ def rate(first: float | None, second: float | None) -> float | str:
 def entry_edge(result) -> tuple[float, float] | None:
     """The free edge through the entry, EDGE_SPAN mm on each side of it, once the tip has left
     the tissue: its least stretch (deformed over reference length; an incompressible neo-Hookean
-    half-space in plane strain creases at about 0.65) and how far its tangent turns (degrees:
-    0 straight, 180 folded back on itself). None where the entry is not on a side of the rectangle."""
+    half-space creases at about 0.65) and how far its tangent turns (degrees: 0 straight, 180
+    folded back on itself). None where the entry is not on a side of the rectangle."""
     width, height = result.scenario.tissue.bounding_size
     entry = np.asarray(result.geometry.entry, dtype=float)
     along = np.linspace(-EDGE_SPAN, EDGE_SPAN, EDGE_POINTS)
@@ -167,8 +167,8 @@ def main() -> None:
         "parts: how far they moved (mm). Rate: log2 of the ratio of consecutive changes (1: the change "
         "halves with the spacing). The free edge through the needle's entry, once the tip has left: its "
         "least stretch within 3 mm of the entry and how far its tangent turns there (0 degrees: straight, "
-        "180: folded back on itself; an incompressible neo-Hookean half-space compressed in plane strain "
-        "creases at a stretch of about 0.65, and a crease is a fold the model has no contact for); on "
+        "180: folded back on itself; an incompressible neo-Hookean half-space creases at a stretch of "
+        "about 0.65, and a crease is a fold the model has no contact for); on "
         "sh12_100x100 and soft_t3 also with the tissue as linear triangles on the same particles "
         "(benchmarks/needle_fem_reference.py).\n",
         common.markdown_table(header, rows),
