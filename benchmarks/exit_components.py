@@ -11,7 +11,7 @@ achieved exit (spatial), of the desired exit's spatial position, and the largest
 the track's material tip point over steps TRACK_STEPS (where the needle has cut the tissue),
 and of the displacement of the entry point (the free edge's material point where the needle
 went in) after the exit; and at each level the free edge around the entry: its least stretch
-and how far its tangent turns (entry_edge), on sh12_100x100 and the 3 mm slab also with the
+and how far its tangent turns (edge_polyline, entry_edge), on sh12_100x100 and the 3 mm slab also with the
 tissue as linear triangles on the same particles (benchmarks/needle_fem_reference.py), and
 drawn for three scenes (edge_chart).
 A change that halves with each halving of the spacing converges at rate 1; the rate here is
@@ -90,7 +90,7 @@ def changes(coarse, fine) -> dict[str, float]:
 def entry_displacement(result) -> np.ndarray:
     """The displacement of the needle's entry point (a material point of the free edge) once
     the tip has left the tissue, mm (2,)."""
-    return result.model.shape_functions_at(result.geometry.entry[None]).values @ result.coefficients[-1]
+    return result.model.field_at(result.geometry.entry[None], result.coefficients[-1])[0][0]
 
 
 PARTS = (("exit_error", "exit error"), ("achieved_exit_def", "achieved exit (spatial)"),
@@ -119,15 +119,12 @@ def edge_polyline(result) -> tuple[np.ndarray, np.ndarray] | None:
         points = np.column_stack([np.clip(entry[0] + along, 0.0, width), np.full_like(along, entry[1])])
     else:
         return None
-    return points, points + result.model.shape_functions_at(points).values @ result.coefficients[-1]
+    return points, points + result.model.field_at(points, result.coefficients[-1])[0]
 
 
-def entry_edge(result) -> tuple[float, float] | None:
-    """edge_polyline's least stretch (deformed over reference length) and how far its tangent
-    turns (degrees: 0 straight, 180 folded back on itself); None as edge_polyline."""
-    edge = edge_polyline(result)
-    if edge is None:
-        return None
+def entry_edge(edge: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+    """An edge_polyline's least stretch (deformed over reference length) and how far its
+    tangent turns (degrees: 0 straight, 180 folded back on itself)."""
     points, deformed = edge
     pieces, lengths = np.diff(deformed, axis=0), np.linalg.norm(np.diff(points, axis=0), axis=1)
     kept = lengths > 0.0  # the clipped ends repeat a point
@@ -166,18 +163,19 @@ def edge_chart(edges: dict, path) -> None:
         axis.set_xlabel("x (mm)", fontsize=8)
         axis.set_ylabel("y (mm)", fontsize=8)
     common.panels_legend(figure, axes, ncol=len(LEVELS) + 1)
-    figure.suptitle(f"The free edge within {EDGE_SPAN:g} mm of the needle's entry, deformed, at each spacing (RK)")
+    figure.suptitle(f"The free edge within {EDGE_SPAN:g} mm of the needle's entry once the tip has left, at particle "
+                    "spacings 2h to h/8 (h: the scene file's spacing; RK model)")
     common.save_figure(figure, path, (0, 0.1, 1, 0.95))
 
 
-def edge_rows(scene: str, results: list, kind: str) -> list[list]:
-    """entry_edge at each level as two rows of the table."""
-    edges = [entry_edge(result) for result in results]
-    if not edges or any(edge is None for edge in edges):
+def edge_rows(scene: str, polylines: list, kind: str) -> list[list]:
+    """entry_edge of each level's edge_polyline as two rows of the table."""
+    if not polylines or any(polyline is None for polyline in polylines):
         return []
+    edges = [entry_edge(polyline) for polyline in polylines]
     blank = [""] * (2 * (len(FACTORS) - 1) - 2)
     return [[scene, f"free edge within {EDGE_SPAN:g} mm of the entry{kind}, {label}, at "
-             f"{', '.join(LEVELS[:len(results)])}", " / ".join(f"{edge[index]:.3g}" for edge in edges), *blank]
+             f"{', '.join(LEVELS[:len(edges)])}", " / ".join(f"{edge[index]:.3g}" for edge in edges), *blank]
             for index, label in ((0, "least stretch"), (1, "turn of the tangent (deg)"))]
 
 
@@ -186,9 +184,10 @@ def main() -> None:
     pairs = len(FACTORS) - 1
     for scene in SCENES:
         results, failure = runs(scene)
+        polylines = [edge_polyline(result) for result in results]
         if scene in CHART_SCENES:
-            edges[scene] = [(level, edge_polyline(result)[1], result.steps[-1].center, result.geometry.radius)
-                            for level, result in zip(LEVELS, results)]
+            edges[scene] = [(level, polyline[1], result.steps[-1].center, result.geometry.radius)
+                            for level, polyline, result in zip(LEVELS, polylines, results)]
         moved = [changes(a, b) for a, b in zip(results, results[1:])]
         for key, label in PARTS:
             values = [m[key] for m in moved] + [None] * (pairs - len(moved))
@@ -198,9 +197,10 @@ def main() -> None:
         if failure:
             levels += f" / {LEVELS[len(results)]}: {failure}"
         rows.append([scene, f"exit error (mm) at {', '.join(LEVELS)}", levels, *[""] * (2 * pairs - 2)])
-        rows += edge_rows(scene, results, "")
+        rows += edge_rows(scene, polylines, "")
         if scene in TRIANGLE_SCENES:
-            rows += edge_rows(scene, runs(scene, triangles=True)[0], ", linear triangles")
+            rows += edge_rows(scene, [edge_polyline(result) for result in runs(scene, triangles=True)[0]],
+                              ", linear triangles")
     header = ["scene", "part", *(f"{a} -> {b} (mm)" for a, b in zip(LEVELS, LEVELS[1:])),
               *(f"rate ({a}, {b}, {c})" for a, b, c in zip(LEVELS, LEVELS[1:], LEVELS[2:]))]
     common.write_csv(common.results_path("exit_components.csv"), header, rows)
