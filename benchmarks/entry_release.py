@@ -22,7 +22,7 @@ at h, h/sqrt2, h/2 and h/4 (h the file's spacing), the change from h to h/2 and 
 h/4, and the free edge within 3 mm of the entry once the tip has left (least stretch, turn of
 its tangent: exit_components.entry_edge).
 
-Writes benchmarks/results/entry_release.{csv,md}. About 10 minutes.
+Writes benchmarks/results/entry_release.{csv,md}. About 12 minutes.
 Run from the repository root:  python benchmarks/entry_release.py
 """
 
