@@ -3,8 +3,8 @@ tissue gets softer against the needle's loads.
 
 On the soft scenes the free edge at the needle's entry is drawn into a cusp that sharpens at
 every level (benchmarks/exit_components.py, entry_release.py), so their exit error does not
-settle. Here two needle scenes, each file as shipped but neo-Hookean, are run at h, h/2 and
-h/4 (h the file's spacing) with the slab's thickness swept (the forces are totals through it,
+settle. Here two needle scenes, each file as shipped but neo-Hookean, are run at h, h/2, h/4
+and h/8 (h the file's spacing; a level after one that stops is not run) with the slab's thickness swept (the forces are totals through it,
 so a thinner slab is a softer one against the same needle):
 
 - configs/sh12_100x100.yaml (SH 1/2 needle, friction 0.0602 N/mm, cutting force 0.7 N),
@@ -16,11 +16,11 @@ so a thinner slab is a softer one against the same needle):
 
 Each is placed by the needle's line load against the slab's shear stiffness,
 (friction + cutting_force / R) / (mu t): the friction per mm of needle and the cutting force
-per mm of needle radius over mu t (N/mm each). Reported: the exit errors, their changes from h
-to h/2 and from h/2 to h/4, and the free edge within 3 mm of the entry once the tip has left
+per mm of needle radius over mu t (N/mm each). Reported: the exit errors, their changes per
+halving, and the free edge within 3 mm of the entry once the tip has left
 (how far its tangent turns: exit_components.entry_edge) at each level.
 
-Writes benchmarks/results/softness_sweep.{csv,md,png}. About 7 minutes (`--report`: only the
+Writes benchmarks/results/softness_sweep.{csv,md,png}. About 25 minutes (`--report`: only the
 table and chart, from the CSV).
 Run from the repository root:  python benchmarks/softness_sweep.py
 """
@@ -45,8 +45,8 @@ from stitchplan.needle.insertion import run_insertion  # noqa: E402
 SH_THICKNESSES = (10.0, 6.0, 4.0, 3.5, 3.0, 2.75, 2.5)
 NEEDLE20_THICKNESSES = (100.0, 40.0, 20.0, 10.0, 6.0)
 THESIS_UNITS = 0.01  # N/cm^2 in MPa
-FACTORS = (1.0, 0.5, 0.25)
-LEVELS = ("h", "h/2", "h/4")
+FACTORS = (1.0, 0.5, 0.25, 0.125)
+LEVELS = ("h", "h/2", "h/4", "h/8")
 NEO_HOOKEAN, SVK = "neo-hookean", "saint-venant-kirchhoff"
 SH, NEEDLE20 = "sh12_100x100", "needle20_entry30 (N/cm^2)"
 FIELDS = ("family", "law", "thickness_mm", "load_ratio", "factor", "spacing_mm", "particles", "exit_error_mm",
@@ -91,6 +91,16 @@ def run(family: str, thickness: float, law: str, factor: float) -> dict:
     return row
 
 
+def ladder(family: str, thickness: float, law: str) -> list[dict]:
+    """The case's runs at FACTORS, up to the first that stops."""
+    rows = []
+    for factor in FACTORS:
+        rows.append(run(family, thickness, law, factor))
+        if rows[-1]["failure"]:
+            break
+    return rows
+
+
 def cases() -> list[tuple[str, float, str]]:
     return ([(SH, t, NEO_HOOKEAN) for t in SH_THICKNESSES] + [(NEEDLE20, t, NEO_HOOKEAN) for t in NEEDLE20_THICKNESSES]
             + [(NEEDLE20, 10.0, SVK)])
@@ -115,14 +125,15 @@ def change(a: float | None, b: float | None) -> float | None:
 
 
 def table(rows: list[dict]) -> tuple[list[str], list[list]]:
+    halvings = [f"{a} -> {b} (%)" for a, b in zip(LEVELS, LEVELS[1:])]
     header = ["scene", "law", "thickness (mm)", "load ratio", *(f"exit error at {level} (mm)" for level in LEVELS),
-              "h -> h/2 (%)", "h/2 -> h/4 (%)", "edge turn at h, h/2, h/4 (deg)"]
+              *halvings, f"edge turn at {', '.join(LEVELS)} (deg)"]
     body = []
     for case in ladders(rows):
         errors = [f"{e:.5f}" if e is not None else f"stops: {failure[:50]}"
                   for e, failure in zip(case["errors"], case["failures"])]
         turns = " / ".join(f"{t:.1f}" if t is not None else "—" for t in case["turns"])
-        changes = [change(*case["errors"][:2]), change(*case["errors"][1:])]
+        changes = [change(a, b) for a, b in zip(case["errors"], case["errors"][1:])]
         body.append([case["family"], case["law"], case["thickness"], case["ratio"], *errors,
                      *(f"{c:+.2f}" if c is not None else "—" for c in changes), turns])
     return header, body
@@ -136,27 +147,30 @@ def chart(rows: list[dict], path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axes = plt.subplots(1, 2, figsize=(12.5, 4.8), squeeze=False)
+    figure, axes = plt.subplots(1, 2, figsize=(12.5, 5.6), squeeze=False)
     changes, turns = axes[0]
     styles = {SH: ("tab:blue", "o"), NEEDLE20: ("tab:orange", "s")}
     for family, (color, marker) in styles.items():
         cases_ = [c for c in ladders(rows) if c["family"] == family and c["law"] == NEO_HOOKEAN]
         ratio = [c["ratio"] for c in cases_]
-        for index, (label, style) in enumerate((("h -> h/2", "-"), ("h/2 -> h/4", "--"))):
+        for index, style in enumerate(("-", "--", ":")):
+            label = f"{LEVELS[index]} -> {LEVELS[index + 1]}"
             values = [change(*c["errors"][index:index + 2]) for c in cases_]
             kept = [(x, abs(v)) for x, v in zip(ratio, values) if v is not None]
-            changes.plot(*zip(*kept), style, color=color, marker=marker, label=f"{family}: {label}")
-        for level, style in zip(LEVELS, (":", "--", "-")):
+            if not kept:
+                continue
+            changes.plot(*zip(*kept), linestyle=style, color=color, marker=marker, label=f"{family}: {label}")
+        for level, style in zip(LEVELS, ((0, (1, 3)), ":", "--", "-")):
             kept = [(c["ratio"], c["turns"][LEVELS.index(level)]) for c in cases_
                     if c["turns"][LEVELS.index(level)] is not None]
-            turns.plot(*zip(*kept), style, color=color, marker=marker, label=f"{family}: {level}")
+            turns.plot(*zip(*kept), linestyle=style, color=color, marker=marker, label=f"{family}: {level}")
     changes.axhline(2.0, color="k", lw=0.7, ls=":")
     changes.set(xlabel="(friction + cutting force / R) / (mu t)", ylabel="|change of the exit error| (%)",
                 title="The unplanned exit error per halving of the spacing")
     turns.set(xlabel="(friction + cutting force / R) / (mu t)", ylabel="turn of the tangent (deg)",
               title="The free edge within 3 mm of the entry after the exit")
     common.panels_legend(figure, axes, ncol=4)
-    common.save_figure(figure, path, rect=(0.0, 0.12, 1.0, 1.0))
+    common.save_figure(figure, path, rect=(0.0, 0.2, 1.0, 1.0))
 
 
 def main() -> None:
@@ -166,12 +180,12 @@ def main() -> None:
     if parser.parse_args().report:
         rows = common.csv_rows(csv_path)
     else:
-        rows = [run(family, thickness, law, factor) for family, thickness, law in cases() for factor in FACTORS]
+        rows = [row for case in cases() for row in ladder(*case)]
         common.write_csv(csv_path, FIELDS, [[row[key] for key in FIELDS] for row in rows])
     header, body = table(rows)
     text = "\n".join(["# Where the needle model stops converging",
                       f"Generated by `python benchmarks/softness_sweep.py` ({common.machine_note()}). "
-                      "`simulate` at h, h/2, h/4 (h the file's spacing) on configs/sh12_100x100.yaml and on "
+                      "`simulate` at h, h/2, h/4, h/8 (h the file's spacing; none after a level that stops) on configs/sh12_100x100.yaml and on "
                       "configs/needle20_entry30.yaml with lambda, mu read as N/cm^2 (configs/thesis), both "
                       "neo-Hookean (one Saint Venant-Kirchhoff row, the thesis's law), with the slab's thickness "
                       "swept. Load ratio: (friction + cutting force / R) / (mu t). Edge turn: how far the tangent "
