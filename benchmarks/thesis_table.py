@@ -188,8 +188,9 @@ def main() -> None:
         "- table 5.1: thickness 2.76 mm (forces as totals through it), neo-Hookean, Lame moduli "
         "in MPa, entry at mid-height + r on the left edge;",
         "- section 5.1.1: the thesis's code in cm, so lambda = 9.263 and mu = 1.029 are N/cm^2 "
-        "(0.01 MPa) and the model had unit thickness 1 cm = 10 mm; Saint Venant-Kirchhoff; the "
-        "entry of figure 5.10 is not stated (ours: top edge at (20, 100)).",
+        "(0.01 MPa) and the model had unit thickness 1 cm = 10 mm; neo-Hookean, not the thesis's "
+        "Saint Venant-Kirchhoff, which collapses in front of the tip when refined at this softness; "
+        "the entry of figure 5.10 is not stated (ours: top edge at (20, 100)).",
         "",
         common.markdown_table(shown, [[("-" if v is None or v == "" else v) for v in row]
                                       for row in rows]),
