@@ -130,7 +130,7 @@ def table(rows: list[dict]) -> tuple[list[str], list[list]]:
               *halvings, f"edge turn at {', '.join(LEVELS)} (deg)"]
     body = []
     for case in ladders(rows):
-        errors = [f"{e:.5f}" if e is not None else f"stops: {failure[:50]}"
+        errors = [f"{e:.5f}" if e is not None else "—" if failure == "not run" else f"stops: {failure[:50]}"
                   for e, failure in zip(case["errors"], case["failures"])]
         turns = " / ".join(f"{t:.1f}" if t is not None else "—" for t in case["turns"])
         changes = [change(a, b) for a, b in zip(case["errors"], case["errors"][1:])]
