@@ -35,7 +35,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import contextlib  # noqa: E402
 import math  # noqa: E402
-import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -44,9 +43,7 @@ import _common as common  # noqa: E402
 import exit_components  # noqa: E402
 import needle_coupling  # noqa: E402
 from stitchplan.config import with_discretization  # noqa: E402
-from stitchplan.errors import InsertionFailure  # noqa: E402
 from stitchplan.needle import coupling as coupling_module  # noqa: E402
-from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
 SCENES = ("soft_t3", "soft_t2.5", "thesis/table51_100x30", "sh12_100x100", "sh12_100x100_mid", "sh12_100x40")
 FACTORS = (1.0, 1.0 / math.sqrt(2.0), 0.5, 0.25)
@@ -132,18 +129,8 @@ def released(release: Release):
 def run(scene: str, release: Release, factor: float) -> dict:
     base = needle_coupling.scene(scene, needle_coupling.SHIPPED_COUPLING)
     spacing = base.discretization.spacing * factor
-    row = {"scene": scene, "release": release.name, "factor": f"{factor:.4f}", "spacing_mm": f"{spacing:.4f}"}
-    start = time.perf_counter()
-    try:
-        with released(release):
-            result = run_insertion(with_discretization(base, spacing=spacing))
-        stretch, turn = exit_components.entry_edge(exit_components.edge_polyline(result))
-        row.update(particles=result.model.n_particles, exit_error_mm=f"{result.exit_error_mm:.6f}",
-                   edge_least_stretch=f"{stretch:.4f}", edge_turn_deg=f"{turn:.2f}", failure="")
-    except InsertionFailure as failure:
-        row.update(particles="", exit_error_mm="", edge_least_stretch="", edge_turn_deg="",
-                   failure=str(failure)[:120].replace(",", ";"))
-    row["seconds"] = f"{time.perf_counter() - start:.1f}"
+    row = {"scene": scene, "release": release.name, "factor": f"{factor:.4f}", "spacing_mm": f"{spacing:.4f}",
+           **exit_components.edge_run(with_discretization(base, spacing=spacing), released(release))}
     print(row, flush=True)
     return row
 

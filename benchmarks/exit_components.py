@@ -29,7 +29,9 @@ import os
 # single-threaded BLAS, as the `stitchplan` command sets it
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import contextlib  # noqa: E402
 import math  # noqa: E402
+import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -131,6 +133,24 @@ def entry_edge(edge: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
     stretch = np.linalg.norm(pieces[kept], axis=1) / lengths[kept]
     angle = np.degrees(np.unwrap(np.arctan2(pieces[kept, 1], pieces[kept, 0])))
     return float(stretch.min()), float(angle.max() - angle.min())
+
+
+def edge_run(scenario, context=None) -> dict:
+    """One unplanned insertion of `scenario` (inside `context`, e.g. a patch of the model): its
+    particles, exit error and the entry's free edge after the exit (least stretch, turn of the
+    tangent), or the InsertionFailure, and the seconds it took, as CSV strings."""
+    start = time.perf_counter()
+    try:
+        with context or contextlib.nullcontext():
+            result = run_insertion(scenario)
+        stretch, turn = entry_edge(edge_polyline(result))
+        fields = {"particles": result.model.n_particles, "exit_error_mm": f"{result.exit_error_mm:.6f}",
+                  "edge_least_stretch": f"{stretch:.4f}", "edge_turn_deg": f"{turn:.2f}", "failure": ""}
+    except InsertionFailure as failure:
+        fields = {"particles": "", "exit_error_mm": "", "edge_least_stretch": "", "edge_turn_deg": "",
+                  "failure": str(failure)[:120].replace(",", ";")}
+    fields["seconds"] = f"{time.perf_counter() - start:.1f}"
+    return fields
 
 
 def edge_chart(edges: dict, path) -> None:

@@ -33,14 +33,11 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
 
 import _common as common  # noqa: E402
 import exit_components  # noqa: E402
 from stitchplan.config import load_scenario, with_discretization  # noqa: E402
-from stitchplan.errors import InsertionFailure  # noqa: E402
-from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
 SH_THICKNESSES = (10.0, 6.0, 4.0, 3.5, 3.0, 2.75, 2.5)
 NEEDLE20_THICKNESSES = (100.0, 40.0, 20.0, 10.0, 6.0)
@@ -76,17 +73,8 @@ def run(family: str, thickness: float, law: str, factor: float) -> dict:
     base = scenario(family, thickness, law)
     spacing = base.discretization.spacing * factor
     row = {"family": family, "law": law, "thickness_mm": f"{thickness:g}", "load_ratio": f"{load_ratio(base):.4f}",
-           "factor": f"{factor:.4f}", "spacing_mm": f"{spacing:.4f}"}
-    start = time.perf_counter()
-    try:
-        result = run_insertion(with_discretization(base, spacing=spacing))
-        stretch, turn = exit_components.entry_edge(exit_components.edge_polyline(result))
-        row.update(particles=result.model.n_particles, exit_error_mm=f"{result.exit_error_mm:.6f}",
-                   edge_turn_deg=f"{turn:.2f}", edge_least_stretch=f"{stretch:.4f}", failure="")
-    except InsertionFailure as failure:
-        row.update(particles="", exit_error_mm="", edge_turn_deg="", edge_least_stretch="",
-                   failure=str(failure)[:120].replace(",", ";"))
-    row["seconds"] = f"{time.perf_counter() - start:.1f}"
+           "factor": f"{factor:.4f}", "spacing_mm": f"{spacing:.4f}",
+           **exit_components.edge_run(with_discretization(base, spacing=spacing))}
     print(row, flush=True)
     return row
 
