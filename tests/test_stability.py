@@ -20,6 +20,8 @@ tool does about it (README, "Stability limits").
    stalls just above its tolerance, and the failure says so (not the material).
 7. A kernel four spacings wide: the stiffness is nearly singular and the run is refused; a
    Newton whose steps on fresh tangents raise the residual gives up on that load.
+8. The needle a line the tissue is held to, on tissue soft against its loads: the free edge
+   at the entry creases further at every refinement (the exit error does not settle there).
 """
 
 from __future__ import annotations
@@ -364,3 +366,39 @@ def test_newton_out_of_the_iterations_it_was_given_blames_the_cap_not_the_materi
     assert message.startswith("step 1 (needle rotation 0.200 rad): the needle's load could not be carried")
     assert message.endswith("; solver.max_iterations is 1 (the default 25): give Newton more iterations")
     assert "Saint Venant-Kirchhoff" not in message
+
+
+def _entry_edge_turn(result, span: float = 3.0) -> tuple[float, float]:
+    """The free edge x = 0 within `span` mm of the needle's entry once the tip has left: how
+    far its tangent turns (degrees) and its least stretch."""
+    entry = np.asarray(result.geometry.entry, dtype=float)
+    points = np.column_stack([np.zeros(601), entry[1] + np.linspace(-span, span, 601)])
+    deformed = points + result.model.field_at(points, result.coefficients[-1])[0]
+    pieces = np.diff(deformed, axis=0)
+    angle = np.degrees(np.unwrap(np.arctan2(pieces[:, 1], pieces[:, 0])))
+    stretch = np.linalg.norm(pieces, axis=1) / (2.0 * span / 600)
+    return float(angle.max() - angle.min()), float(stretch.min())
+
+
+def test_a_line_needle_in_soft_tissue_creases_the_entry_edge_at_every_refinement():
+    """8. The needle a line the tissue is held to: on a slab soft against the SH 1/2 needle's
+    loads (configs/sh12_100x100.yaml neo-Hookean, 3 mm thick) the free edge at the entry is
+    drawn into a cusp that half the spacing sharpens (its tangent turns 51 then 83 degrees;
+    benchmarks/results/softness_sweep.md), while 10 mm thick it stays nearly straight (6 then
+    8 degrees). A model of the puncture would change this test."""
+    from pathlib import Path
+
+    from stitchplan.config.scenario import load_scenario
+
+    base = load_scenario(Path(__file__).resolve().parent.parent / "configs" / "sh12_100x100.yaml")
+    edges = {}
+    for thickness in (3.0, 10.0):
+        material = replace(base.tissue.material, model="neo-hookean")
+        scene = replace(base, tissue=replace(base.tissue, thickness=thickness, material=material))
+        edges[thickness] = [_entry_edge_turn(run_insertion(with_discretization(
+            scene, spacing=scene.discretization.spacing * factor))) for factor in (1.0, 0.5)]
+    (soft_h, soft_stretch_h), (soft_half, soft_stretch_half) = edges[3.0]
+    (stiff_h, _), (stiff_half, _) = edges[10.0]
+    assert soft_half > soft_h + 20.0, edges
+    assert soft_stretch_half < soft_stretch_h - 0.08, edges
+    assert abs(stiff_half - stiff_h) < 3.0 and stiff_half < 15.0, edges
