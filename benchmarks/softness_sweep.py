@@ -138,8 +138,9 @@ def chart(rows: list[dict], path) -> None:
     figure, axes = plt.subplots(1, 2, figsize=(12.5, 5.6), squeeze=False)
     changes, turns = axes[0]
     styles = {SH: ("tab:blue", "o"), NEEDLE20: ("tab:orange", "s")}
+    every = ladders(rows)
     for family, (color, marker) in styles.items():
-        cases_ = [c for c in ladders(rows) if c["family"] == family and c["law"] == NEO_HOOKEAN]
+        cases_ = [c for c in every if c["family"] == family and c["law"] == NEO_HOOKEAN]
         ratio = [c["ratio"] for c in cases_]
         for index, style in enumerate(("-", "--", ":")):
             label = f"{LEVELS[index]} -> {LEVELS[index + 1]}"

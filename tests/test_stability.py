@@ -30,13 +30,14 @@ import re
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from stitchplan.cli import app
-from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discretization
+from stitchplan.config.scenario import ScenarioError, load_scenario, parse_scenario, with_discretization
 from stitchplan.errors import InputError, InsertionFailure
 from stitchplan.events import EventKind
 from stitchplan.needle.insertion import run_insertion
@@ -372,11 +373,12 @@ def _entry_edge_turn(result, span: float = 3.0) -> tuple[float, float]:
     """The free edge x = 0 within `span` mm of the needle's entry once the tip has left: how
     far its tangent turns (degrees) and its least stretch."""
     entry = np.asarray(result.geometry.entry, dtype=float)
-    points = np.column_stack([np.zeros(601), entry[1] + np.linspace(-span, span, 601)])
+    along = np.linspace(-span, span, 601)
+    points = np.column_stack([np.zeros_like(along), entry[1] + along])
     deformed = points + result.model.field_at(points, result.coefficients[-1])[0]
     pieces = np.diff(deformed, axis=0)
     angle = np.degrees(np.unwrap(np.arctan2(pieces[:, 1], pieces[:, 0])))
-    stretch = np.linalg.norm(pieces, axis=1) / (2.0 * span / 600)
+    stretch = np.linalg.norm(pieces, axis=1) / np.diff(along)
     return float(angle.max() - angle.min()), float(stretch.min())
 
 
@@ -386,10 +388,6 @@ def test_a_line_needle_in_soft_tissue_creases_the_entry_edge_at_every_refinement
     drawn into a cusp that half the spacing sharpens (its tangent turns 51 then 83 degrees;
     benchmarks/results/softness_sweep.md), while 10 mm thick it stays nearly straight (6 then
     8 degrees). A model of the puncture would change this test."""
-    from pathlib import Path
-
-    from stitchplan.config.scenario import load_scenario
-
     base = load_scenario(Path(__file__).resolve().parent.parent / "configs" / "sh12_100x100.yaml")
     edges = {}
     for thickness in (3.0, 10.0):
