@@ -142,6 +142,12 @@ def verification_replay(scene: str):
 ADDED_NEEDLE_KEYS = ("cutting_ramp", "multiplier_length")
 
 
+def file_at(revision: str, path: str) -> str:
+    """The text of the repository's file `path` as it was at git `revision`."""
+    return subprocess.run(["git", "show", f"{revision}:{path}"], cwd=REPO_ROOT, check=True,
+                          capture_output=True, text=True).stdout
+
+
 def previous_data(path: Path) -> dict:
     """The data of an SH 1/2 or 20 mm needle file as it was before it was discretized for the
     needle: without its discretization block and ADDED_NEEDLE_KEYS."""

@@ -45,7 +45,7 @@ import needle_coupling  # noqa: E402
 from stitchplan.config import with_discretization  # noqa: E402
 from stitchplan.needle import coupling as coupling_module  # noqa: E402
 
-SCENES = ("soft_t3", "soft_t2.5", "thesis/table51_100x30", "sh12_100x100", "sh12_100x100_mid", "sh12_100x40")
+SCENES = ("soft_t3", "soft_t2.5", needle_coupling.THESIS_FIT[3], "sh12_100x100", "sh12_100x100_mid", "sh12_100x40")
 FACTORS = (1.0, 1.0 / math.sqrt(2.0), 0.5, 0.25)
 LEVELS = ("h", "h/sqrt2", "h/2", "h/4")
 

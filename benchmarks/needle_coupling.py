@@ -43,12 +43,12 @@ the particles graded toward the needle's entry and exit. The committed results:
     python benchmarks/needle_coupling.py --scenes skin_layered hole_near_stitch wound_closure \
         thesis/needle20_entry30 thesis/needle20_entry25 thesis/needle20_entry20 \
         thesis/needle20_entry18 thesis/needle20_fig510 --couplings mortar --factors 2 1 0.7071067811865476 0.5
-    python benchmarks/needle_coupling.py --scenes thesis/table51_100x100 thesis/table51_100x50 \
-        thesis/table51_100x40 thesis/table51_100x30 --couplings mortar --factors 2 1 0.7071067811865476 0.5 0.25
-    python benchmarks/needle_coupling.py --scenes "thesis/table51_100x40 friction=0" \
-        "thesis/table51_100x40 cutting_force=0" "thesis/table51_100x30 friction=0" \
-        "thesis/table51_100x30 cutting_force=0" --couplings mortar "mortar ramp"
-    python benchmarks/needle_coupling.py --scenes thesis/table51_100x30 thesis/table51_100x40 \
+    python benchmarks/needle_coupling.py --scenes thesis/table51_100x100@f28e417 thesis/table51_100x50@f28e417 \
+        thesis/table51_100x40@f28e417 thesis/table51_100x30@f28e417 --couplings mortar --factors 2 1 0.7071067811865476 0.5 0.25
+    python benchmarks/needle_coupling.py --scenes "thesis/table51_100x40@f28e417 friction=0" \
+        "thesis/table51_100x40@f28e417 cutting_force=0" "thesis/table51_100x30@f28e417 friction=0" \
+        "thesis/table51_100x30@f28e417 cutting_force=0" --couplings mortar "mortar ramp"
+    python benchmarks/needle_coupling.py --scenes thesis/table51_100x30@f28e417 thesis/table51_100x40@f28e417 \
         --couplings "mortar L=1" "mortar ramp L=1" "mortar r=4" "mortar ramp"
     python benchmarks/needle_coupling.py --scenes sh12_100x100 sh12_100x100_mid sh12_100x50 sh12_100x40 \
         sh12_100x30 needle20_entry30 needle20_entry25 needle20_entry20 needle20_entry18 soft_t3 soft_t2.5 \
@@ -57,11 +57,11 @@ the particles graded toward the needle's entry and exit. The committed results:
         --couplings "mortar ramp r=4 d=3" "mortar ramp r=4 fixed d=3" "mortar ramp r=4 fixed d=2.8"
     python benchmarks/needle_coupling.py --scenes soft_t3 soft_t2.5 \
         --couplings "mortar ramp r=5 fixed d=3" "mortar ramp r=6 fixed d=3"
-    python benchmarks/needle_coupling.py --scenes skin_layered hole_near_stitch thesis/table51_100x100 \
-        thesis/table51_100x50 thesis/table51_100x40 thesis/table51_100x30 --couplings "mortar ramp r=4 fixed d=3"
+    python benchmarks/needle_coupling.py --scenes skin_layered hole_near_stitch thesis/table51_100x100@f28e417 \
+        thesis/table51_100x50@f28e417 thesis/table51_100x40@f28e417 thesis/table51_100x30@f28e417 --couplings "mortar ramp r=4 fixed d=3"
     python benchmarks/needle_coupling.py --scenes wound_closure thesis/needle20_entry30 thesis/needle20_entry25 \
         thesis/needle20_entry20 thesis/needle20_entry18 thesis/needle20_fig510 --couplings "mortar ramp fixed d=3"
-    python benchmarks/needle_coupling.py --scenes soft_t3 soft_t2.5 thesis/table51_100x40 thesis/table51_100x30 \
+    python benchmarks/needle_coupling.py --scenes soft_t3 soft_t2.5 thesis/table51_100x40@f28e417 thesis/table51_100x30@f28e417 \
         --couplings "mortar ramp r=4 fixed d=3 L=1"
     python benchmarks/needle_coupling.py --scenes thesis/needle20_entry18 thesis/needle20_fig510 needle20_entry30 \
         sh12_100x100 --couplings "mortar ramp fixed d=3 L=1" "mortar ramp r=4 fixed d=3 L=1"
@@ -74,7 +74,7 @@ the particles graded toward the needle's entry and exit. The committed results:
         --couplings shipped "shipped z=1.5 g=0.5" "shipped g=0.5" "shipped z=1.1 g=0.5" \
         --factors 2 1 0.7071067811865476 0.5 0.25
     python benchmarks/needle_coupling.py --scenes skin_layered hole_near_stitch wound_closure \
-        thesis/table51_100x100 thesis/table51_100x50 thesis/table51_100x40 thesis/table51_100x30 \
+        thesis/table51_100x100@f28e417 thesis/table51_100x50@f28e417 thesis/table51_100x40@f28e417 thesis/table51_100x30@f28e417 \
         thesis/needle20_entry30 thesis/needle20_entry25 thesis/needle20_entry20 thesis/needle20_entry18 \
         thesis/needle20_fig510 --couplings shipped
     python benchmarks/needle_coupling.py --scenes thesis/needle20_entry30 thesis/needle20_entry25 \
@@ -91,6 +91,14 @@ SH 1/2 blocks and soft slabs took about 5 minutes per coupling (the variants `z=
 ran as `shipped` while the files had those settings; the commands above reproduce them). The
 last command ran the thesis's 20 mm needle files as they are since 2026-12-05 (neo-Hookean,
 2.5 mm; about 2 minutes); their `shipped` rows before it were of the files before.
+The thesis's table 5.1 files as they are since 2026-12-05 (5 mm, the SH 1/2 files'
+discretization; benchmarks/thesis_table.py says why), about 3 minutes:
+
+    python benchmarks/needle_coupling.py --scenes thesis/table51_100x100 thesis/table51_100x50 \
+        thesis/table51_100x40 thesis/table51_100x30 --couplings shipped --factors 2 1 0.7071067811865476 0.5 0.25 0.125
+
+Rows of `thesis/table51_*@f28e417` are those files as they were until then (2.76 mm, the
+default discretization; THESIS_FIT): the commands above name them so, and rerun them so.
 """
 
 from __future__ import annotations
@@ -110,6 +118,7 @@ import matplotlib
 matplotlib.use("Agg")
 import _common as common
 import matplotlib.pyplot as plt
+import yaml
 
 from stitchplan.config.scenario import load_scenario, parse_scenario, with_discretization
 from stitchplan.errors import InsertionFailure
@@ -126,6 +135,9 @@ THESIS = ("thesis/table51_100x100", "thesis/table51_100x50", "thesis/table51_100
           "thesis/needle20_entry30", "thesis/needle20_entry25", "thesis/needle20_entry20",
           "thesis/needle20_entry18", "thesis/needle20_fig510")
 SOFT = {"soft_t3": 3.0, "soft_t2.5": 2.5}  # configs/sh12_100x100.yaml, neo-Hookean, thickness mm
+# the table 5.1 files as they were until they were read for a converged model: 2.76 mm thick,
+# the default discretization (fitted to the thesis's magnitudes; benchmarks/thesis_table.py)
+THESIS_FIT = tuple(f"{name}@f28e417" for name in THESIS[:4])
 FACTORS = (1.0, 1 / math.sqrt(2.0), 0.5)
 QUARTER = 0.25  # a fourth level, run with --factors 0.25: h, h/2, h/4 nest (ratio 2)
 EIGHTH = 0.125  # a fifth level, run with --factors 0.125 (coupling `shipped`): h/2, h/4, h/8 nest
@@ -186,7 +198,11 @@ def scene(name: str, coupling: str):
 def shipped_file(name: str, previous: bool):
     """The scenario of a scene's file (configs/sh12_100x100.yaml for the soft slabs); with
     `previous`, the SH 1/2 and 20 mm needle files as they were before they were discretized for
-    the needle (common.previous_data: the default spacing, needle_refinement 2)."""
+    the needle (common.previous_data: the default spacing, needle_refinement 2). A scene
+    `NAME@REVISION` is configs/NAME.yaml as it was at that git revision (THESIS_FIT)."""
+    name, _, revision = name.partition("@")
+    if revision:
+        return parse_scenario(yaml.safe_load(common.file_at(revision, f"configs/{name}.yaml")))
     path = CONFIGS / ("sh12_100x100.yaml" if name in SOFT else f"{name}.yaml")
     if not previous or not (name in SOFT or name in SHIPPED):
         return load_scenario(path)
@@ -278,7 +294,7 @@ def summarise(rows: list[dict]) -> list[dict]:
     latest = {}
     for row in rows:  # a later row of the same run replaces an earlier one
         latest[row["scene"], row["coupling"], row["factor"]] = row
-    order = list(SHIPPED + SHAPES + THESIS + tuple(SOFT))
+    order = list(SHIPPED + SHAPES + THESIS + THESIS_FIT + tuple(SOFT))
     keys = sorted({(s, c) for s, c, _ in latest}, key=lambda k: (k[0] not in order, order.index(k[0].split(" ")[0])
                                                                   if k[0].split(" ")[0] in order else 99, k[0], k[1]))
     for name, coupling in keys:
@@ -448,7 +464,8 @@ def markdown(table: list[dict]) -> str:
              "is wound_closure planned for equal bites, the same unplanned run): < 2 % on skin_layered",
              "(+0.93 %), hole_near_stitch (-0.70 %, monotone, rate 2.11; -2.37 % before its boundary",
              "particles stopped doubling the lattice's along its top edge), wound_closure (+0.04 %), the",
-             "thesis's table 5.1 100 x 100 and 100 x 50 blocks (-1.18 %, +1.69 %) and three of its four",
+             "thesis's table 5.1 100 x 100 and 100 x 50 blocks as read until git f28e417 (2.76 mm,",
+             "rows `@f28e417`: -1.18 %, +1.69 %) and three of its four",
              "20 mm needle scenes as they were until 2026-12-05 (Saint Venant-Kirchhoff at 5 mm:",
              "+1.46 to +1.87 %); not on thesis/needle20_entry18 (+2.71 %), thesis/needle20_fig510",
              "(+3.33 %; those files were monotone over 2h, h, h/2, rates 2.2-2.7), nor the soft table 5.1 blocks 100 x 40 (+4.20 %) and 100 x 30",
@@ -461,8 +478,11 @@ def markdown(table: list[dict]) -> str:
              "slowly. Neither the entry and exit graded (`L=1`, with or without `ramp`) nor the ramp",
              "alone brings them closer (100 x 30: +13.5, +13.8, +13.5 %; 100 x 40: +6.9, +7.2,",
              "+4.9 %); `r=4` does on 100 x 40 (+0.35 %, not monotone), not on 100 x 30 (+4.7 %).",
-             "benchmarks/thesis_table.py therefore compares the thesis's table 5.1 with a quarter of",
-             "the default spacing.", "",
+             "benchmarks/thesis_table.py therefore compared the thesis's table 5.1 with a quarter of",
+             "the default spacing. Since 2026-12-05 the table 5.1 files are read 5 mm thick with the SH",
+             "1/2 files' discretization (thesis_table.md's thickness sweep says why; `shipped` rows):",
+             "+0.15, +0.32, +0.33, +1.26 % from h to h/2, monotone over 2h, h, h/2 and over h/2, h/4,",
+             "h/8 on all four blocks.", "",
              "Why the levels go up and down: the exit error depends on where the track crosses the",
              "particle lattice. With the entry shifted through one needle spacing (benchmarks/",
              "needle_lattice.py) the default's exit error swings by 1.0-1.6 % of its value about the",
@@ -505,7 +525,8 @@ def markdown(table: list[dict]) -> str:
              "the approximation error of a smooth displacement; that the drift stays says it does not come",
              "from there.", "",
              "The same configuration on the other shipped needle scenes (`mortar ramp r=4 fixed d=3` on the",
-             "shape scenes with the SH 1/2 needle and the thesis's table 5.1 blocks; `mortar ramp fixed d=3`",
+             "shape scenes with the SH 1/2 needle and the thesis's table 5.1 blocks as read until git",
+             "f28e417, 2.76 mm thick; `mortar ramp fixed d=3`",
              "on wound_closure, whose 0.75 mm needle spacing is already below 1.25 needle steps, and on the",
              "thesis's 20 mm needle scenes) meets both on the thesis's 100 x 50 block (+1.55 %, rate 1.41)",
              "only. Below 2 % but not monotone: skin_layered (+0.60 %, differences 0.00053 then 0.00055",
@@ -556,7 +577,7 @@ def chart(rows: list[dict], path) -> None:
     latest = {}
     for row in rows:
         latest[row["scene"], row["coupling"], row["factor"]] = row
-    scenes = [s for s in SHIPPED + SHAPES + THESIS + tuple(SOFT) if any(k[0] == s for k in latest)]
+    scenes = [s for s in SHIPPED + SHAPES + THESIS + THESIS_FIT + tuple(SOFT) if any(k[0] == s for k in latest)]
     columns = 4
     figure, axes = plt.subplots(math.ceil(len(scenes) / columns), columns, figsize=(4 * columns, 3.2 * math.ceil(len(scenes) / columns)),
                                 squeeze=False)
