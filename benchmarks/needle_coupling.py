@@ -374,7 +374,7 @@ def markdown(table: list[dict]) -> str:
              "sh12_100x30 (-0.18 then +0.51 um, 0.03 and 0.07 %); soft_t3 monotone only just (0.030 then",
              "0.029 mm, rate 0.06: it does not settle). soft_t2.5 does not settle: +3.89 %, not",
              "monotone (2.916, 3.033, 3.029 mm), and at h/4 its needle's load is no longer carried at",
-             "step 22. The particles the SH 1/2 files save away from the needle pay for those they add",
+             "step 16. The particles the SH 1/2 files save away from the needle pay for those they add",
              "near it on the 100 x 100 blocks (642 and 639 against 979 and 976), not on the narrower",
              "ones (530, 545, 469 against 570, 479, 382); the runs' time is in results/plan_speed.md.",
              "The zone and grading before (`shipped z=1.5 g=0.5`: 656-888 particles; `shipped g=0.5`,",
