@@ -40,7 +40,7 @@ the particles graded toward the needle's entry and exit. The committed results:
         --couplings mortar --factors 1 0.7071067811865476 0.5 0.25
     python benchmarks/needle_coupling.py --couplings "mortar r=4" mortar points --factors 2
     python benchmarks/needle_coupling.py --couplings "mortar r=3" --factors 2
-    python benchmarks/needle_coupling.py --scenes skin_layered hole_near_stitch wound_closure \
+    python benchmarks/needle_coupling.py --scenes skin_layered@675e54b hole_near_stitch wound_closure \
         thesis/needle20_entry30 thesis/needle20_entry25 thesis/needle20_entry20 \
         thesis/needle20_entry18 thesis/needle20_fig510 --couplings mortar --factors 2 1 0.7071067811865476 0.5
     python benchmarks/needle_coupling.py --scenes thesis/table51_100x100@f28e417 thesis/table51_100x50@f28e417 \
@@ -57,7 +57,7 @@ the particles graded toward the needle's entry and exit. The committed results:
         --couplings "mortar ramp r=4 d=3" "mortar ramp r=4 fixed d=3" "mortar ramp r=4 fixed d=2.8"
     python benchmarks/needle_coupling.py --scenes soft_t3 soft_t2.5 \
         --couplings "mortar ramp r=5 fixed d=3" "mortar ramp r=6 fixed d=3"
-    python benchmarks/needle_coupling.py --scenes skin_layered hole_near_stitch thesis/table51_100x100@f28e417 \
+    python benchmarks/needle_coupling.py --scenes skin_layered@675e54b hole_near_stitch thesis/table51_100x100@f28e417 \
         thesis/table51_100x50@f28e417 thesis/table51_100x40@f28e417 thesis/table51_100x30@f28e417 --couplings "mortar ramp r=4 fixed d=3"
     python benchmarks/needle_coupling.py --scenes wound_closure thesis/needle20_entry30 thesis/needle20_entry25 \
         thesis/needle20_entry20 thesis/needle20_entry18 thesis/needle20_fig510 --couplings "mortar ramp fixed d=3"
@@ -73,7 +73,7 @@ the particles graded toward the needle's entry and exit. The committed results:
         sh12_100x30 needle20_entry30 needle20_entry25 needle20_entry20 needle20_entry18 soft_t3 soft_t2.5 \
         --couplings shipped "shipped z=1.5 g=0.5" "shipped g=0.5" "shipped z=1.1 g=0.5" \
         --factors 2 1 0.7071067811865476 0.5 0.25
-    python benchmarks/needle_coupling.py --scenes skin_layered hole_near_stitch wound_closure \
+    python benchmarks/needle_coupling.py --scenes skin_layered@675e54b hole_near_stitch wound_closure \
         thesis/table51_100x100@f28e417 thesis/table51_100x50@f28e417 thesis/table51_100x40@f28e417 thesis/table51_100x30@f28e417 \
         thesis/needle20_entry30 thesis/needle20_entry25 thesis/needle20_entry20 thesis/needle20_entry18 \
         thesis/needle20_fig510 --couplings shipped
@@ -99,6 +99,16 @@ discretization; benchmarks/thesis_table.py says why), about 3 minutes:
 
 Rows of `thesis/table51_*@f28e417` are those files as they were until then (2.76 mm, the
 default discretization; THESIS_FIT): the commands above name them so, and rerun them so.
+Likewise `skin_layered@675e54b`: configs/skin_layered.yaml before it took the cutting ramp
+(`needle.cutting_ramp`) on 2026-12-05, when the shape scenes' `shipped` rows also got 2h and h/4:
+
+    python benchmarks/needle_coupling.py --scenes skin_layered@675e54b hole_near_stitch wound_closure \
+        --couplings shipped --factors 2 0.25
+
+and the file as it is since, about 1 minute:
+
+    python benchmarks/needle_coupling.py --scenes skin_layered --couplings shipped \
+        --factors 2 1 0.7071067811865476 0.5 0.25 0.125
 """
 
 from __future__ import annotations
@@ -138,6 +148,7 @@ SOFT = {"soft_t3": 3.0, "soft_t2.5": 2.5}  # configs/sh12_100x100.yaml, neo-Hook
 # the table 5.1 files as they were until they were read for a converged model: 2.76 mm thick,
 # the default discretization (fitted to the thesis's magnitudes; benchmarks/thesis_table.py)
 THESIS_FIT = tuple(f"{name}@f28e417" for name in THESIS[:4])
+SHAPES_BEFORE = ("skin_layered@675e54b",)  # configs/skin_layered.yaml before its cutting ramp
 FACTORS = (1.0, 1 / math.sqrt(2.0), 0.5)
 QUARTER = 0.25  # a fourth level, run with --factors 0.25: h, h/2, h/4 nest (ratio 2)
 EIGHTH = 0.125  # a fifth level, run with --factors 0.125 (coupling `shipped`): h/2, h/4, h/8 nest
@@ -294,7 +305,7 @@ def summarise(rows: list[dict]) -> list[dict]:
     latest = {}
     for row in rows:  # a later row of the same run replaces an earlier one
         latest[row["scene"], row["coupling"], row["factor"]] = row
-    order = list(SHIPPED + SHAPES + THESIS + THESIS_FIT + tuple(SOFT))
+    order = list(SHIPPED + SHAPES + SHAPES_BEFORE + THESIS + THESIS_FIT + tuple(SOFT))
     keys = sorted({(s, c) for s, c, _ in latest}, key=lambda k: (k[0] not in order, order.index(k[0].split(" ")[0])
                                                                   if k[0].split(" ")[0] in order else 99, k[0], k[1]))
     for name, coupling in keys:
@@ -462,7 +473,10 @@ def markdown(table: list[dict]) -> str:
              "at 1.4-2x the cost; the shipped files keep the default 2.", "",
              "The shape scenes and the thesis's (`mortar` only; configs/wound_closure_symmetric.yaml",
              "is wound_closure planned for equal bites, the same unplanned run): < 2 % on skin_layered",
-             "(+0.93 %), hole_near_stitch (-0.70 %, monotone, rate 2.11; -2.37 % before its boundary",
+             "as it was until 675e54b (`skin_layered@675e54b`, the cutting force whole from the first step:",
+             "+0.93 %, its 2h, h, h/2, h/4 up and down by up to 2.1 %; with the ramp since: +0.12 %,",
+             "monotone over h, h/2, h/4, rate 2.34, `shipped`), hole_near_stitch (-0.70 %, monotone,",
+             "rate 2.11, and over 2h, h, h/2; -2.37 % before its boundary",
              "particles stopped doubling the lattice's along its top edge), wound_closure (+0.04 %), the",
              "thesis's table 5.1 100 x 100 and 100 x 50 blocks as read until git f28e417 (2.76 mm,",
              "rows `@f28e417`: -1.18 %, +1.69 %) and three of its four",
@@ -529,7 +543,7 @@ def markdown(table: list[dict]) -> str:
              "f28e417, 2.76 mm thick; `mortar ramp fixed d=3`",
              "on wound_closure, whose 0.75 mm needle spacing is already below 1.25 needle steps, and on the",
              "thesis's 20 mm needle scenes) meets both on the thesis's 100 x 50 block (+1.55 %, rate 1.41)",
-             "only. Below 2 % but not monotone: skin_layered (+0.60 %, differences 0.00053 then 0.00055",
+             "only. Below 2 % but not monotone: skin_layered@675e54b (+0.60 %, differences 0.00053 then 0.00055",
              "mm), hole_near_stitch (-0.00 %: +0.0009 then -0.0009 mm), wound_closure (-0.47 %: -0.0003",
              "then -0.0032 mm) and the thesis's 100 x 100 block (-1.36 %). Monotone but above 2 %: the soft",
              "table 5.1 blocks 100 x 40 (+2.54 %) and 100 x 30 (+5.87 %), and the thesis's 20 mm needle",
@@ -577,7 +591,8 @@ def chart(rows: list[dict], path) -> None:
     latest = {}
     for row in rows:
         latest[row["scene"], row["coupling"], row["factor"]] = row
-    scenes = [s for s in SHIPPED + SHAPES + THESIS + THESIS_FIT + tuple(SOFT) if any(k[0] == s for k in latest)]
+    scenes = [s for s in SHIPPED + SHAPES + SHAPES_BEFORE + THESIS + THESIS_FIT + tuple(SOFT)
+              if any(k[0] == s for k in latest)]
     columns = 4
     figure, axes = plt.subplots(math.ceil(len(scenes) / columns), columns, figsize=(4 * columns, 3.2 * math.ceil(len(scenes) / columns)),
                                 squeeze=False)
