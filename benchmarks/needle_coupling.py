@@ -149,6 +149,8 @@ SOFT = {"soft_t3": 3.0, "soft_t2.5": 2.5}  # configs/sh12_100x100.yaml, neo-Hook
 # the default discretization (fitted to the thesis's magnitudes; benchmarks/thesis_table.py)
 THESIS_FIT = tuple(f"{name}@f28e417" for name in THESIS[:4])
 SHAPES_BEFORE = ("skin_layered@675e54b",)  # configs/skin_layered.yaml before its cutting ramp
+# the scenes the table and the chart show, in their order
+REPORTED = SHIPPED + SHAPES + SHAPES_BEFORE + THESIS + THESIS_FIT + tuple(SOFT)
 FACTORS = (1.0, 1 / math.sqrt(2.0), 0.5)
 QUARTER = 0.25  # a fourth level, run with --factors 0.25: h, h/2, h/4 nest (ratio 2)
 EIGHTH = 0.125  # a fifth level, run with --factors 0.125 (coupling `shipped`): h/2, h/4, h/8 nest
@@ -305,7 +307,7 @@ def summarise(rows: list[dict]) -> list[dict]:
     latest = {}
     for row in rows:  # a later row of the same run replaces an earlier one
         latest[row["scene"], row["coupling"], row["factor"]] = row
-    order = list(SHIPPED + SHAPES + SHAPES_BEFORE + THESIS + THESIS_FIT + tuple(SOFT))
+    order = list(REPORTED)
     keys = sorted({(s, c) for s, c, _ in latest}, key=lambda k: (k[0] not in order, order.index(k[0].split(" ")[0])
                                                                   if k[0].split(" ")[0] in order else 99, k[0], k[1]))
     for name, coupling in keys:
@@ -591,8 +593,7 @@ def chart(rows: list[dict], path) -> None:
     latest = {}
     for row in rows:
         latest[row["scene"], row["coupling"], row["factor"]] = row
-    scenes = [s for s in SHIPPED + SHAPES + SHAPES_BEFORE + THESIS + THESIS_FIT + tuple(SOFT)
-              if any(k[0] == s for k in latest)]
+    scenes = [s for s in REPORTED if any(k[0] == s for k in latest)]
     columns = 4
     figure, axes = plt.subplots(math.ceil(len(scenes) / columns), columns, figsize=(4 * columns, 3.2 * math.ceil(len(scenes) / columns)),
                                 squeeze=False)

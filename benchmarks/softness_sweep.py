@@ -128,8 +128,8 @@ def table(rows: list[dict]) -> tuple[list[str], list[list]]:
 
 
 def chart(rows: list[dict], path) -> None:
-    """Left: the exit error's change per halving against the load ratio (the 2 % of #14's
-    criterion dotted); right: how far the entry's edge turns at each level."""
+    """Left: the exit error's change per halving against the load ratio (the coupling's 2 %
+    convergence criterion dotted); right: how far the entry's edge turns at each level."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -44,6 +44,7 @@ from pathlib import Path  # noqa: E402
 
 import _common as common  # noqa: E402
 import numpy as np  # noqa: E402
+from softness_sweep import change as relative_change  # noqa: E402
 from softness_sweep import load_ratio  # noqa: E402
 from stitchplan.config.scenario import load_scenario  # noqa: E402
 
@@ -146,10 +147,10 @@ def thickness_sweep(workdir: Path) -> list[list]:
     cases = [("neo-hookean", t) for t in SWEEP_THICKNESSES] + [("saint-venant-kirchhoff", t) for t in SVK_THICKNESSES]
     for law, thickness in cases:
         for name, _, thesis_unplanned, _ in SCENES[:4]:
-            def change(raw: dict) -> None:
+            def read_as(raw: dict) -> None:  # the case's thickness and law in the file's data
                 raw["tissue"]["thickness"] = thickness
                 raw["tissue"]["material"]["model"] = law
-            config = changed_copy(THESIS_DIR / f"{name}.yaml", workdir, f"{law}_t{thickness:g}", change)
+            config = changed_copy(THESIS_DIR / f"{name}.yaml", workdir, f"{law}_t{thickness:g}", read_as)
             scenario = load_scenario(config)
             spacing = scenario.discretization.spacing
             errors, failure = [], ""
@@ -161,7 +162,7 @@ def thickness_sweep(workdir: Path) -> list[list]:
                 errors.append(summary["exit_error_mm"])
             errors += [None] * (len(SWEEP_LEVELS) - len(errors))
             e0, e1, e2 = errors
-            change = None if e1 is None else 100.0 * (e1 - e0) / e0
+            change = relative_change(e0, e1)
             one_way = e2 is not None and (e1 - e0) * (e2 - e1) > 0
             rate = math.log(abs(e1 - e0) / abs(e2 - e1), 2.0) if one_way else None
             converged = one_way and abs(change) < CONVERGED_CHANGE
@@ -205,9 +206,9 @@ def sweep_chart(rows: list[dict], path: Path) -> None:
     right.set_xlabel("slab thickness (mm)")
     right.set_ylabel("unplanned exit error at h/4 (mm)")
     right.set_title("ours at h/4 (solid) and table 5.1 (dashed)", fontsize=10)
+    reading = load_scenario(THESIS_DIR / "table51_100x30.yaml").tissue.thickness  # the files' thickness
     for axis in (left, right):
-        axis.axvline(load_scenario(THESIS_DIR / "table51_100x30.yaml").tissue.thickness, color="gray",
-                     linestyle=":", linewidth=1)
+        axis.axvline(reading, color="gray", linestyle=":", linewidth=1)
     common.panels_legend(figure, np.array([left, right]), ncol=4, fontsize=9)
     figure.suptitle("Table 5.1's blocks against the thickness the thesis leaves open (dotted: the files' reading)",
                     fontsize=11)
