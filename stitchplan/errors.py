@@ -62,6 +62,11 @@ class NewtonExhausted(InsertionFailure):
     """Newton used up solver.max_iterations at a step with its forces still out of balance."""
 
 
+class UnstableEquilibrium(InsertionFailure):
+    """Newton converged, within a cut load ramp, to a state the tissue would not stay in: the
+    tangent's least stiffness on the needle's constraints is negative there (needle/stability.py)."""
+
+
 class ConstraintStall(InsertionFailure):
     """Newton balanced the forces but the needle constraints stalled above their tolerance:
     constraint rows nearly dependent (needle points closer together than the particles resolve)."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -466,11 +467,50 @@ def test_ramp_halves_the_increment_until_newton_converges():
     assert insertion.coupling.load_factor == 1.0 and insertion.ramp_increments == 2
 
 
+def test_ramp_refuses_an_unstable_state_and_takes_a_smaller_increment():
+    """Within a cut ramp a converged state whose least stiffness on the needle's constraints
+    is negative (reported so here, once) is refused like a failed Newton: the whole load
+    fails, the half converges to the "unstable" state and is refused, the quarter and then
+    3/4 are checked and kept, the whole load carried; the step ends where an unramped step
+    does, to 1e-8 mm (hyperelastic equilibrium does not depend on the path; both solved to
+    1e-10 of the needle force)."""
+    from stitchplan.needle.stability import SoftestMode
+
+    scenario = small_scene()
+    scenario = replace(scenario, solver=replace(scenario.solver, needle_residual_tolerance=1e-10))
+    direct = started(scenario)
+    advance_one(direct, 1)
+    insertion = started(scenario)
+    original = NeedleInsertion._newton
+    tried, checked = [], []
+
+    def limited(rotation, step, aim=None):
+        tried.append(insertion.coupling.load_factor)
+        if len(tried) == 1:
+            raise InsertionFailure("forced")
+        return original(insertion, rotation, step, aim)
+
+    softest = insertion.softest_mode
+
+    def reported():
+        checked.append(insertion.coupling.load_factor)
+        mode = softest()
+        return SoftestMode(-1.0, mode.mode) if len(checked) == 1 else mode
+
+    insertion._newton, insertion.softest_mode = limited, reported
+    advance_one(insertion, 1)
+    assert tried == [1.0, 0.5, 0.25, 0.75, 1.0]
+    assert checked == [0.5, 0.25, 0.75]  # the increments of the cut ramp, not the whole load's first try
+    assert insertion.coupling.load_factor == 1.0 and insertion.ramp_increments == 2
+    np.testing.assert_allclose(insertion.particle_displacements(), direct.particle_displacements(), rtol=0, atol=1e-8)
+
+
 def test_saint_venant_kirchhoff_too_soft_for_the_cutting_force_stops_naming_step_and_cure():
     """The small scene at an effective thickness of 1.5 mm (0.7 N / 1.5 mm on the phantom):
     SVK's stress in compression peaks and turns back, so the tissue in front of the tip has no
     equilibrium beyond ~90 % of the first step's load. The ramp carries what it can, then
-    stops with an InsertionFailure naming the step, the angle, the share carried, SVK's
+    stops with an InsertionFailure naming the step, the angle, the share carried, the tissue's
+    least stiffness on the needle's constraints falling (at the entry and tip), SVK's
     compression instability and `model: neo-hookean`; neo-Hookean runs the same scene."""
     soft = {"thickness": 1.5}
     with pytest.raises(InsertionFailure) as failure:
@@ -480,6 +520,11 @@ def test_saint_venant_kirchhoff_too_soft_for_the_cutting_force_stops_naming_step
     carried = float(message.split("carried: ")[1].split(" %")[0])
     assert 50.0 <= carried < 100.0
     assert f"the next {100 * RAMP_SMALLEST:.2g} % increment failed" in message
+    # the tissue gives way at the needle: its least stiffness on the constraints falls over the step
+    softening = re.search(r"least stiffness on the needle's constraints fell to (\d+) % of the step's start "
+                          r"\(at zero the tissue has no stable equilibrium\), its mode largest at \[0, 22.5\] mm, "
+                          r"the needle's entry and tip; ", message)
+    assert softening is not None and int(softening.group(1)) < 50, message
     assert "Saint Venant-Kirchhoff is unstable under strong compression" in message
     assert "`model: neo-hookean`" in message
     result = run_insertion(small_scene(material={"model": "neo-hookean", **PHANTOM}, **soft))

@@ -22,6 +22,10 @@ tool does about it (README, "Stability limits").
    Newton whose steps on fresh tangents raise the residual gives up on that load.
 8. The needle a line the tissue is held to, on tissue soft against its loads: the free edge
    at the entry creases further at every refinement (the exit error does not settle there).
+9. Where a step's load cannot be carried, the tangent's least stiffness on the needle's
+   constraints (needle/stability.py) tells the tissue giving way (falling toward zero, or
+   negative: an unstable state) from Newton failing; checked against the dense null-space
+   eigenvalue.
 """
 
 from __future__ import annotations
@@ -400,3 +404,100 @@ def test_a_line_needle_in_soft_tissue_creases_the_entry_edge_at_every_refinement
     assert soft_half > soft_h + 20.0, edges
     assert soft_stretch_half < soft_stretch_h - 0.08, edges
     assert abs(stiff_half - stiff_h) < 3.0 and stiff_half < 15.0, edges
+
+
+# --- 9. the tissue's least stiffness on the needle's constraints ----------------------------
+
+
+def _null_space_least(tangent: np.ndarray, constraints: np.ndarray) -> float:
+    """The smallest eigenvalue of `tangent` on null(constraints^T), densely."""
+    import scipy.linalg
+
+    basis = scipy.linalg.null_space(constraints.T)
+    return float(np.linalg.eigvalsh(basis.T @ tangent @ basis).min())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_least_stiffness_on_the_constraints_is_the_null_space_eigenvalue(seed):
+    """A tangent with three negative directions, two of them held by constraint columns that
+    mix them with the others: softest_mode gives the smallest eigenvalue on null(G^T) (to
+    1e-6 of K's mean diagonal), its mode satisfies G^T v = 0, and its sign follows whether
+    the constraints leave a negative direction free."""
+    import scipy.sparse as sp
+
+    from stitchplan.needle.stability import softest_mode
+
+    rng = np.random.default_rng(seed)
+    n, m = 60, 8
+    rotation, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    values = np.concatenate([[-0.4, -0.2, -0.1], rng.uniform(0.05, 2.0, n - 3)])
+    tangent = rotation @ np.diag(values) @ rotation.T
+    tangent = 0.5 * (tangent + tangent.T)
+    scale = np.abs(np.diag(tangent)).mean()
+    for held in (3, 2):  # all three negative directions held by the constraints, then two of them
+        constraints = np.column_stack([rotation[:, :held] + 0.3 * rotation[:, held:held + 1] @ rng.standard_normal(
+            (1, held)), rng.standard_normal((n, m - held))])
+        found = softest_mode(sp.csr_matrix(tangent), sp.csc_matrix(constraints))
+        expected = _null_space_least(tangent, constraints) / scale
+        assert found is not None
+        assert found.stiffness == pytest.approx(expected, abs=1e-6), (held, found.stiffness, expected)
+        assert np.abs(constraints.T @ found.mode).max() < 1e-9
+        assert (found.stiffness < 0.0) == (held < 3)
+
+
+def test_without_constraints_the_least_stiffness_is_the_smallest_eigenvalue():
+    """No constraint columns (m = 0): the smallest eigenvalue of the tangent itself."""
+    import scipy.sparse as sp
+
+    from stitchplan.needle.stability import softest_mode
+
+    tangent = sp.diags([2.0, 3.0, 4.0, 5.0, 6.0, -1.0]).tocsr()
+    found = softest_mode(tangent, sp.csc_matrix((6, 0)))
+    assert found.stiffness == pytest.approx(-1.0 / (21.0 / 6.0))
+    assert abs(found.mode[5]) == pytest.approx(1.0)
+    held = softest_mode(tangent, sp.csc_matrix(np.eye(6)[:, 5:]))
+    assert held.stiffness == pytest.approx(2.0 / (21.0 / 6.0))
+
+
+def test_a_step_the_tissue_cannot_carry_names_its_softening_and_where(monkeypatch):
+    """Neo-Hookean phantom 0.7 mm thick on the 40 x 30 mm block: the ramp carries 91 % of
+    step 2's load, and the failure says the tangent's least stiffness on the needle's
+    constraints fell over the step (to a few % of the step's start: a limit point ahead) with
+    its mode largest at the needle's entry (the tip 3.2 mm from it, within two spacings of
+    it too). 10 mm thick, with Newton made to fail beyond half of step 3's load, the failure
+    says the stiffness did not fall: Newton's failure, not the tissue's."""
+    from stitchplan.errors import InsertionFailure
+    from stitchplan.needle.equilibrium import NeedleInsertion
+    from stitchplan.needle.insertion import run_insertion
+
+    def phantom(thickness: float):
+        return parse_scenario({
+            "tissue": {"size": [40.0, 30.0], "thickness": thickness, "clamped": ["right"],
+                       "material": {"model": "neo-hookean", "lame_lambda": 0.189151, "lame_mu": 0.147688}},
+            "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2, "friction": 0.0602,
+                       "cutting_force": 0.7},
+            "discretization": {"spacing": 4.0}})
+
+    with pytest.raises(InsertionFailure) as failure:
+        run_insertion(phantom(0.7))
+    message = str(failure.value)
+    assert message.startswith("step 2 (needle rotation 0.400 rad): the needle's load could not be carried: 91 %")
+    percent = int(re.search(r"least stiffness on the needle's constraints fell to (\d+) % of the step's start", message)
+                  .group(1))
+    assert percent < 20, message
+    assert message.endswith("its mode largest at [0, 22.5] mm, the needle's entry and tip"), message
+
+    newton = NeedleInsertion._newton
+
+    def failing_beyond_half(insertion, rotation, step, aim=None):
+        if step == 3 and insertion.coupling.load_factor > 0.5:
+            raise InsertionFailure("forced")
+        return newton(insertion, rotation, step, aim)
+
+    monkeypatch.setattr(NeedleInsertion, "_newton", failing_beyond_half)
+    with pytest.raises(InsertionFailure) as failure:
+        run_insertion(phantom(10.0))
+    message = str(failure.value)
+    assert message.startswith("step 3 (needle rotation 0.600 rad): the needle's load could not be carried: 50 %")
+    assert message.endswith("did not fall over the step (100 % of the step's start): the tissue is not "
+                            "softening, Newton's steps failed"), message

@@ -15,7 +15,9 @@ somewhere) the increment is halved down to RAMP_SMALLEST of the step's load, and
 again after each success. Equilibrium of the hyperelastic tissue does not depend on the
 path, so a ramped step ends where the whole load would have (tests/test_simulation.py).
 A step whose load cannot be carried stops the run with an InsertionFailure naming the step,
-the angle and the share carried (for Saint Venant-Kirchhoff: its compression instability).
+the angle and the share carried, whether the tissue gave way (the tangent's least stiffness on
+the needle's constraints fallen over the step or negative, and where: needle/stability.py) or
+Newton failed, and for Saint Venant-Kirchhoff its compression instability.
 With the centre prescribed, Newton gives up on an increment once FRESH_FACTOR_LOSSES steps on
 a freshly factored tangent have raised the residual, rather than refactoring on to its last
 iteration: such steps go astray near an instability, and on the larger models each
@@ -36,7 +38,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..config import Scenario, Solver
-from ..errors import ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NewtonExhausted, NonFiniteResidual
+from ..config.boundary_points import shown_point
+from ..errors import (ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NewtonExhausted, NonFiniteResidual,
+                      UnstableEquilibrium)
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler, stiffness_at_rest
 from ..tissue.factorization import Factor, condition_estimate, factorize
@@ -46,6 +50,7 @@ from .coupling import NeedleCoupling
 from .geometry import IDENTITY, length, needle_zone, scenario_needle
 from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers
+from .stability import SoftestMode, mode_peak, softest_mode
 from .steering import CenterAim
 
 log = logging.getLogger(__name__)
@@ -246,8 +251,6 @@ def _closest_for_spacing(particles: np.ndarray, local_spacing: np.ndarray) -> st
     spacing, h mm)': the pair whose distance over the smaller of their spacings is least."""
     from scipy.spatial import cKDTree
 
-    from ..config.boundary_points import shown_point
-
     if len(particles) < 2:
         return ""
     distance, index = cKDTree(particles).query(particles, k=2)
@@ -444,12 +447,14 @@ class NeedleInsertion:
         if coupling.load_factor >= 1.0:
             return self._newton(rotation, step, aim)
         increment, newton, minres = 1.0, 0, 0
-        carried = self.snapshot()
+        carried = step_start = self.snapshot()
         while coupling.load_factor < 1.0:
             start = coupling.load_factor
             coupling.load_factor = min(1.0, start + increment)
             try:
                 its, minres_its, worst = self._newton(rotation, step, aim)
+                if increment < 1.0:  # a cut ramp: near an instability Newton may land on the unstable branch
+                    self._refuse_unstable(rotation, step)
             except InsertionFailure as failure:
                 coupling.load_factor = start
                 self.restore(carried)
@@ -459,7 +464,7 @@ class NeedleInsertion:
                          "the ramp goes on in increments of %.3g %%", step, rotation,
                          100 * min(1.0, start + 2 * increment), 100 * increment)
                 if increment < RAMP_SMALLEST:
-                    raise InsertionFailure(self._ramp_failure(rotation, step, start, failure)) from None
+                    raise InsertionFailure(self._ramp_failure(rotation, step, start, failure, step_start)) from None
                 self.ramp_increments += 1
                 continue
             newton, minres = newton + its, minres + minres_its
@@ -467,8 +472,25 @@ class NeedleInsertion:
             increment = min(1.0, 2.0 * increment)
         return newton, minres, worst
 
-    def _ramp_failure(self, rotation: float, step: int, carried: float, failure: InsertionFailure) -> str:
-        """What went wrong when even the smallest load increment fails, and what to try."""
+    def _refuse_unstable(self, rotation: float, step: int) -> None:
+        """An UnstableEquilibrium where the state Newton reached has a negative least stiffness
+        on the needle's constraints: the tissue would leave it, so the ramp takes a smaller
+        increment (on the 2.5 mm neo-Hookean slab at a quarter spacing, step 16's increment to
+        94 % of the load converged to such a state; in two halves it stays on the stable one,
+        benchmarks/results/entry_stability.md)."""
+        mode = self.softest_mode()
+        if mode is not None and mode.stiffness < 0.0:
+            particle = mode_peak(mode, self.model.boundary.free_map)
+            raise UnstableEquilibrium(
+                f"Newton reached an unstable state at step {step} (needle rotation {rotation:.3f} rad), "
+                f"{100 * self.coupling.load_factor:.3g} % of the step's load: the tangent's least stiffness on the "
+                f"needle's constraints is negative, its mode largest at "
+                f"{shown_point(self.model.particles[particle])} mm{self._place(particle)}")
+
+    def _ramp_failure(self, rotation: float, step: int, carried: float, failure: InsertionFailure,
+                      step_start: Snapshot) -> str:
+        """What went wrong when even the smallest load increment fails, and what to try. The
+        state is the last load carried; `step_start` the step's first."""
         message = (f"step {step} (needle rotation {rotation:.3f} rad): the needle's load could not be "
                    f"carried: {100 * carried:.0f} % of the step's cutting force and added friction held, "
                    f"the next {100 * RAMP_SMALLEST:.2g} % increment failed ({failure})")
@@ -479,6 +501,7 @@ class NeedleInsertion:
             # Newton ran out of the few iterations it was given: no sign of the material's doing
             return message + (f"; solver.max_iterations is {iterations} (the default "
                               f"{Solver().max_iterations}): give Newton more iterations")
+        message += self._stability_note(step_start)
         models = {self.scenario.tissue.material.model}
         models |= {region.material.model for region in getattr(self.scenario.tissue, "regions", None) or []}
         if "saint-venant-kirchhoff" in models:
@@ -486,6 +509,53 @@ class NeedleInsertion:
                         "turns back to zero as det F -> 0, so the tissue in front of the tip collapses): "
                         "use `model: neo-hookean`, which stiffens instead")
         return message
+
+    def softest_mode(self) -> SoftestMode | None:
+        """The least stiffness of the tangent on the needle's constraints at the current
+        state, and its mode (needle/stability.py)."""
+        state = self.residuals(self.free, self.multipliers, self.center)
+        return softest_mode(self._stiffness(self.multipliers, state)(),
+                            self.coupling.constraint_matrix(state.normal))
+
+    def _stability_note(self, step_start: Snapshot) -> str:
+        """Whether the tissue itself gave way where a step's load could not be carried: its
+        least stiffness on the needle's constraints at the last load carried, negative (the
+        state is unstable) or against the step's start (falling toward zero, a limit point,
+        or not: Newton's failure), and where its mode moves the tissue most. Empty where the
+        eigensolver does not answer or nothing of the step was carried to compare."""
+        now = self.softest_mode()
+        if now is None:
+            return ""
+        particle = mode_peak(now, self.model.boundary.free_map)
+        where = f"its mode largest at {shown_point(self.model.particles[particle])} mm{self._place(particle)}"
+        if now.stiffness < 0.0:
+            return (f"; the state carried is unstable: the tangent's least stiffness on the needle's constraints "
+                    f"is negative, {where}: the tissue buckles or creases there, which the model does not follow "
+                    "(the needle is a line and the tissue does not touch itself)")
+        if np.array_equal(step_start.free, self.free):  # nothing of the step carried: nothing to compare
+            return ""
+        carried = self.snapshot()
+        self.restore(step_start)
+        before = self.softest_mode()
+        self.restore(carried)
+        if before is None or before.stiffness <= 0.0:
+            return ""
+        percent = round(100.0 * now.stiffness / before.stiffness)
+        if percent < 100:
+            return (f"; the tangent's least stiffness on the needle's constraints fell to {percent} % of the "
+                    f"step's start (at zero the tissue has no stable equilibrium), {where}")
+        return (f"; the tangent's least stiffness on the needle's constraints did not fall over the step "
+                f"({percent} % of the step's start): the tissue is not softening, Newton's steps failed")
+
+    def _place(self, particle: int) -> str:
+        """`, the needle's entry`, `tip` or `entry and tip`: those of the two (reference) within two
+        of `particle`'s spacings of it; else nothing."""
+        near = 2.0 * self.model.support[particle] / self.scenario.discretization.dilation
+        where = self.model.particles[particle]
+        points = {"entry": self.geometry.entry, "tip": self.points[-1] if len(self.points) else None}
+        names = [name for name, point in points.items()
+                 if point is not None and length(where - np.asarray(point, dtype=float)) <= near]
+        return f", the needle's {' and '.join(names)}" if names else ""
 
     def _newton(self, rotation: float, step: int, aim: CenterAim | None = None) -> tuple[int, int, float]:
         """Newton on the saddle-point system (eq. 3.62) at the current load, about the
