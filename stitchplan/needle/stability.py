@@ -24,6 +24,10 @@ import scipy.sparse as sp
 
 PENALTY = 1e4  # c G G^T against K's mean diagonal: the constraints' directions far stiffer than any other
 MODES = 3  # eigenpairs nearest the shift: a negative one beside the small positive ones
+# the shift, x K's mean diagonal: just below zero, where an eigenvalue crossing zero along a load
+# path shows first (the loads carried arrive there in small increments); one far below it could
+# be missed, and a shift far from the spectrum's low end slows Lanczos down
+SHIFT = -1e-3
 
 
 @dataclass(frozen=True)
@@ -37,7 +41,8 @@ class SoftestMode:
 def softest_mode(tangent: sp.spmatrix, constraints: sp.spmatrix) -> SoftestMode | None:
     """The least stiffness of `tangent` (K + H, 2 n_free square) on the displacements the
     constraint columns (G, 2 n_free x m) allow; None where the eigensolver does not answer
-    (no convergence, a singular shifted matrix): the caller's message then goes without it."""
+    (no convergence, a singular shifted matrix, no memory for its factor): the caller's
+    message then goes without it."""
     import scipy.sparse.linalg as sla  # here: only a failing step asks, and the import costs every run's start-up
 
     tangent = sp.csr_matrix(tangent)
@@ -56,9 +61,9 @@ def softest_mode(tangent: sp.spmatrix, constraints: sp.spmatrix) -> SoftestMode 
     if count < 1:
         return None
     try:
-        values, vectors = sla.eigsh(penalized, k=count, sigma=-1e-3 * scale, which="LM")
-    except (sla.ArpackNoConvergence, sla.ArpackError, RuntimeError, ValueError):
-        return None
+        values, vectors = sla.eigsh(penalized, k=count, sigma=SHIFT * scale, which="LM")
+    except (sla.ArpackNoConvergence, sla.ArpackError, RuntimeError, ValueError, MemoryError):
+        return None  # the diagnosis never turns a failure it explains into another
     mode = vectors[:, int(np.argmin(values))]
     if constraints.shape[1]:  # onto G^T v = 0 exactly
         gram = (constraints.T @ constraints).toarray()
