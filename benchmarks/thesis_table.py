@@ -46,6 +46,7 @@ import _common as common  # noqa: E402
 import numpy as np  # noqa: E402
 from softness_sweep import change as relative_change  # noqa: E402
 from softness_sweep import load_ratio  # noqa: E402
+from stitchplan.config import Planner  # noqa: E402
 from stitchplan.config.scenario import load_scenario  # noqa: E402
 
 THESIS_DIR = common.REPO_ROOT / "configs" / "thesis"
@@ -129,11 +130,13 @@ def changed_copy(config: Path, workdir: Path, suffix: str, change) -> Path:
 
 
 def loosened(config: Path, workdir: Path, factor: float) -> Path:
-    """A copy of `config` with the planner's move limits `factor` times the defaults."""
+    """A copy of `config` with the planner's move limits `factor` times the defaults (config Planner)."""
+    defaults = Planner()
+
     def loosen(raw: dict) -> None:
         planner = raw.setdefault("planner", {})
-        planner["center_step_limit"] = 0.28 * factor
-        planner["center_second_difference_limit"] = 0.14 * factor
+        planner["center_step_limit"] = defaults.center_step_limit * factor
+        planner["center_second_difference_limit"] = defaults.center_second_difference_limit * factor
     return changed_copy(config, workdir, f"loose{factor:g}", loosen)
 
 
@@ -168,13 +171,9 @@ def thickness_sweep(workdir: Path) -> list[list]:
             converged = one_way and abs(change) < CONVERGED_CHANGE
             rows.append([law, thickness, load_ratio(scenario), name, *errors, change, "yes" if one_way else "no", rate,
                          "yes" if converged else "no", thesis_unplanned,
-                         _relative(e2, thesis_unplanned), failure])
+                         relative_change(thesis_unplanned, e2), failure])
             print(f"{name} at {thickness:g} mm, {law}: {errors} {failure}", flush=True)
     return rows
-
-
-def _relative(ours: float | None, thesis: float) -> float | None:
-    return None if ours is None else 100.0 * (ours - thesis) / thesis
 
 
 def sweep_chart(rows: list[dict], path: Path) -> None:
@@ -248,7 +247,7 @@ def main() -> None:
                 unplanned = summary["exit_error_mm" if simulate else "unplanned_exit_error_mm"]
                 planned = None if simulate else summary["exit_error_mm"]
                 rows.append([name, label, level, disc["spacing_mm"], disc["particles"],
-                             thesis_unplanned, unplanned, _relative(unplanned, thesis_unplanned),
+                             thesis_unplanned, unplanned, relative_change(thesis_unplanned, unplanned),
                              thesis_planned, planned, summary.get("exit_error_estimate_mm"),
                              summary["wall_seconds"],
                              "unplanned only (simulate)" if simulate else _planner_note(summary)])

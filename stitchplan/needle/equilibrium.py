@@ -480,12 +480,10 @@ class NeedleInsertion:
         benchmarks/results/entry_stability.md)."""
         mode = self.softest_mode()
         if mode is not None and mode.stiffness < 0.0:
-            particle = mode_peak(mode, self.model.boundary.free_map)
             raise UnstableEquilibrium(
                 f"Newton reached an unstable state at step {step} (needle rotation {rotation:.3f} rad), "
                 f"{100 * self.coupling.load_factor:.3g} % of the step's load: the tangent's least stiffness on the "
-                f"needle's constraints is negative, its mode largest at "
-                f"{shown_point(self.model.particles[particle])} mm{self._place(particle)}")
+                f"needle's constraints is negative, {self._mode_place(mode)}")
 
     def _ramp_failure(self, rotation: float, step: int, carried: float, failure: InsertionFailure,
                       step_start: Snapshot) -> str:
@@ -526,8 +524,7 @@ class NeedleInsertion:
         now = self.softest_mode()
         if now is None:
             return ""
-        particle = mode_peak(now, self.model.boundary.free_map)
-        where = f"its mode largest at {shown_point(self.model.particles[particle])} mm{self._place(particle)}"
+        where = self._mode_place(now)
         if now.stiffness < 0.0:
             return (f"; the state carried is unstable: the tangent's least stiffness on the needle's constraints "
                     f"is negative, {where}: the tissue buckles or creases there, which the model does not follow "
@@ -547,15 +544,17 @@ class NeedleInsertion:
         return (f"; the tangent's least stiffness on the needle's constraints did not fall over the step "
                 f"({percent} % of the step's start): the tissue is not softening, Newton's steps failed")
 
-    def _place(self, particle: int) -> str:
-        """`, the needle's entry`, `tip` or `entry and tip`: those of the two (reference) within two
-        of `particle`'s spacings of it; else nothing."""
+    def _mode_place(self, mode: SoftestMode) -> str:
+        """`its mode largest at [x, y] mm`, the particle it moves most, with `, the needle's entry`,
+        `tip` or `entry and tip`: those of the two (reference) within two of the particle's
+        spacings of it."""
+        particle = mode_peak(mode, self.model.boundary.free_map)
         near = 2.0 * self.model.support[particle] / self.scenario.discretization.dilation
         where = self.model.particles[particle]
         points = {"entry": self.geometry.entry, "tip": self.points[-1] if len(self.points) else None}
         names = [name for name, point in points.items()
                  if point is not None and length(where - np.asarray(point, dtype=float)) <= near]
-        return f", the needle's {' and '.join(names)}" if names else ""
+        return f"its mode largest at {shown_point(where)} mm" + (f", the needle's {' and '.join(names)}" if names else "")
 
     def _newton(self, rotation: float, step: int, aim: CenterAim | None = None) -> tuple[int, int, float]:
         """Newton on the saddle-point system (eq. 3.62) at the current load, about the
