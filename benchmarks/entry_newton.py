@@ -10,7 +10,7 @@ could be what stalls Newton. Here the shipped Newton is set beside `exact` Newto
 for the runs (a probe of the model, not an option of the package): every iteration on the
 full Jacobian, K + H + F with F = -d f_needle / dd (non-symmetric), the whole saddle matrix
 [[K + H + F, G], [G^T, 0]] LU-factored (scipy's SuperLU) at every iteration, no Anderson
-mixing, from step FROM on (the steps before as shipped, for time).
+mixing, from the step RUNS gives on (the steps before as shipped, for time).
 
 Runs: sh12_100x100 at h (exact from step 1: where Newton converges, what F changes) and
 soft_t2.5 at h/4 (exact from step 14). Then, at the last load exact Newton carried at step 16
@@ -18,9 +18,14 @@ soft_t2.5 at h/4 (exact from step 14). Then, at the last load exact Newton carri
 under the step's full load: |R(x + t d) - R(x) - t J d| for t = 1 .. 1e-4 along the Newton
 direction d = -J^-1 R(x) and along a random direction, for J with and without F. A remainder
 falling like t^2 says J is R's exact derivative; like t, that a term is missing. Along the
-Newton direction, |R(x + t d)| against t says how far Newton's linear model holds.
+Newton direction, |R(x + t d)| against t says how far Newton's linear model holds. Last,
+whether an equilibrium exists there at all: damped Newton (the full Jacobian with Armijo
+backtracking on |W R|, W scaling R by the step's tolerances) under rising loads of step 16
+(FLOOR_LOADS, each from the last load it converged under) and the least merit it reaches. Past a
+limit point of the equilibrium path that least residual is not zero (where it is least,
+J^T W^2 R = 0 with R != 0: J is singular).
 
-Writes benchmarks/results/entry_newton.{csv,md,png}. About 8 minutes; `--report` redraws the
+Writes benchmarks/results/entry_newton.{csv,md,png}. About 15 minutes; `--report` redraws the
 table and chart from the CSV.
 Run from the repository root:  python benchmarks/entry_newton.py
 """
@@ -33,6 +38,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import contextlib  # noqa: E402
+import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 
@@ -43,7 +49,7 @@ import scipy.sparse.linalg as spla  # noqa: E402
 import _common as common  # noqa: E402
 import needle_coupling  # noqa: E402
 from stitchplan.config import with_discretization  # noqa: E402
-from stitchplan.errors import InsertionFailure  # noqa: E402
+from stitchplan.errors import InsertionFailure, InvertedMaterial  # noqa: E402
 from stitchplan.needle import equilibrium as equilibrium_module  # noqa: E402
 from stitchplan.needle.equilibrium import NeedleInsertion  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
@@ -53,6 +59,11 @@ RUNS = (("sh12_100x100", "h", 1.0, 1), ("soft_t2.5", "h/4", 0.25, 14))  # scene,
 PROBE_STEP = 16  # soft_t2.5's step at h/4 whose last load carried is Taylor-tested
 STEPS = (1.0, 0.1, 0.01, 1e-3, 1e-4)  # t of the Taylor test
 NEWTON_LINE = (1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)  # t along the Newton direction
+FLOOR_LOADS = (0.875, 0.8875, 0.9, 0.9125, 0.925, 0.9375, 0.94375, 0.95, 0.9625, 0.975, 0.9875, 1.0)  # residual_floor
+FLOOR_ITERATIONS = 40  # damped Newton's iterations at most per load
+FLOOR_GAIN = 1e-3  # ... and FLOOR_STALL iterations in a row that lower its least merit by less than this share stop it
+FLOOR_STALL = 3
+BALANCED = 0.01  # a least merit at most this: an equilibrium (the reading's; damped Newton goes on to a tenth of it)
 
 
 def follower_stiffness(insertion: NeedleInsertion, free: np.ndarray, center: np.ndarray) -> sp.csr_matrix | None:
@@ -99,8 +110,8 @@ def exact_newton(from_step: int, kept: dict):
         exact["on"] = step >= from_step
         kept["insertion"] = insertion
         result = newton(insertion, rotation, step, aim)
-        if step == PROBE_STEP and insertion.coupling.load_factor >= 0.9:
-            kept["carried"] = (insertion.snapshot(), insertion.coupling.load_factor)
+        if step == PROBE_STEP:
+            kept.setdefault("states", []).append((insertion.coupling.load_factor, insertion.snapshot()))
         return result
 
     def timed_residuals(insertion, free, multipliers, center, rotation, step):
@@ -165,7 +176,7 @@ def taylor(kept: dict) -> list[dict]:
     """The Taylor test and the residual along the Newton direction at the last load carried at
     PROBE_STEP, under the step's full load (module docstring)."""
     insertion = kept["insertion"]
-    snapshot, carried = kept["carried"]
+    carried, snapshot = max(kept["states"], key=lambda state: state[0])
     insertion.restore(snapshot)
     insertion.coupling.load_factor = 1.0
     free, multipliers, center = insertion.free.ravel().copy(), insertion.multipliers.copy(), insertion.center.copy()
@@ -199,6 +210,78 @@ def taylor(kept: dict) -> list[dict]:
     return rows
 
 
+def damped_newton(insertion: NeedleInsertion) -> tuple[float, float, float, int, bool]:
+    """Newton on the full Jacobian with Armijo backtracking on the scaled merit
+    |(r_u / tol_r, g / tol_g)| (tol_r, tol_g the needle step's tolerances, so that converged
+    is a merit of about one or less) from the insertion's state under its current load, on past
+    the tolerance until the merit is BALANCED / 10 (Newton converges quadratically to an
+    equilibrium), FLOOR_STALL iterations in a row gain less than FLOOR_GAIN of it, or no step
+    along the Newton direction lowers it. Returns the least merit, |r_u| (N) and max |g| (mm)
+    there, the iterations and whether that iterate meets the step's tolerances; the insertion
+    is left at it."""
+    free, multipliers, center = insertion.free.ravel().copy(), insertion.multipliers.copy(), insertion.center.copy()
+    n = len(free)
+
+    def scaled(state) -> tuple[np.ndarray, float]:
+        weights = np.concatenate([np.full(n, 1.0 / (insertion.residual_tolerance * state.needle_force)),
+                                  np.full(len(state.violation), 1.0 / insertion.constraint_tolerance)])
+        return weights, float(np.linalg.norm(weights * np.concatenate([state.residual, state.violation])))
+
+    best = (math.inf, math.inf, math.inf, free, multipliers)
+    stalled, iteration = 0, 0
+    for iteration in range(FLOOR_ITERATIONS):
+        state = insertion.residuals(free.reshape(-1, 2), multipliers, center)
+        weights, merit = scaled(state)
+        if merit < best[0]:
+            stalled = stalled + 1 if merit > (1.0 - FLOOR_GAIN) * best[0] else 0
+            best = (merit, float(np.linalg.norm(state.residual)), state.worst_violation, free, multipliers)
+        else:
+            stalled += 1
+        if merit <= BALANCED / 10.0 or stalled >= FLOOR_STALL:  # far inside the tolerance, or no further
+            break
+        matrix, residual = jacobian(insertion, free, multipliers, center, with_follower=True)
+        direction = spla.splu(matrix).solve(-residual)
+        t = 1.0
+        while t >= 1e-4:
+            try:
+                trial = insertion.residuals((free + t * direction[:n]).reshape(-1, 2), multipliers + t * direction[n:],
+                                            center)
+                if scaled(trial)[1] <= (1.0 - 1e-4 * t) * merit:
+                    break
+            except InvertedMaterial:
+                pass
+            t *= 0.5
+        if t < 1e-4:
+            break
+        free, multipliers = free + t * direction[:n], multipliers + t * direction[n:]
+    merit, residual_norm, violation, free, multipliers = best
+    insertion.free, insertion.multipliers = free.reshape(-1, 2), multipliers
+    converged = residual_norm <= insertion.residual_tolerance * insertion.residuals(
+        insertion.free, multipliers, center).needle_force and violation <= insertion.constraint_tolerance
+    return merit, residual_norm, violation, iteration, converged
+
+
+def residual_floor(kept: dict) -> list[dict]:
+    """The least scaled merit damped_newton reaches at PROBE_STEP under each of FLOOR_LOADS,
+    each from the last load it converged under, starting at the largest load below 90 % exact
+    Newton carried: where the equilibrium path ends at a limit point, the least residual beyond
+    it is not zero."""
+    insertion = kept["insertion"]
+    start, snapshot = max((state for state in kept["states"] if state[0] < 0.9), key=lambda state: state[0])
+    rows = []
+    for load in (load for load in FLOOR_LOADS if load >= start):
+        insertion.restore(snapshot)
+        insertion.coupling.load_factor = load
+        merit, residual_norm, violation, iterations, converged = damped_newton(insertion)
+        if converged:
+            snapshot = insertion.snapshot()
+        rows.append({"table": "floor", "load": load, "least_merit": f"{merit:.4g}",
+                     "least_residual_N": f"{residual_norm:.4e}", "violation_mm": f"{violation:.3e}",
+                     "iterations": iterations, "converged": "yes" if converged else "no"})
+        print(rows[-1], flush=True)
+    return rows
+
+
 def report(rows: list[dict]) -> str:
     runs = [row for row in rows if row["table"] == "run"]
     taylor_rows = [row for row in rows if row["table"] == "taylor"]
@@ -227,7 +310,44 @@ def report(rows: list[dict]) -> str:
                  "", "|r_u| along the Newton direction (t = 1 is the full Newton step):", "",
                  common.markdown_table(["t", "|r_u(x + t d)| (N)"], [[f"{float(row['t']):g}", row["residual_N"]] for row in line]),
                  "", *reading(taylor_rows, line), ""]
+    floor = [row for row in rows if row["table"] == "floor"]
+    if floor:
+        text += ["Damped Newton (full Jacobian, Armijo backtracking on the merit |(r_u / tol_r, g / tol_g)|, the "
+                 "needle step's tolerances: converged is a merit of about one or less) at step 16 under rising loads, "
+                 "each from the last load it converged under, from the largest load below 90 % exact Newton carried: "
+                 "the least "
+                 f"merit it reaches (on past the tolerance to {BALANCED / 10:g}; it stops after {FLOOR_STALL} "
+                 f"iterations in a row gaining less than {100 * FLOOR_GAIN:g} %, or where no step along the Newton "
+                 "direction lowers the merit); converged: within the step's tolerances there:", "",
+                 common.markdown_table(["load (share of the step's)", "least merit", "|r_u| there (N)",
+                                        "max |g| there (mm)", "iterations", "converged"],
+                                       [[f"{float(row['load']):g}", row["least_merit"], row["least_residual_N"],
+                                         row["violation_mm"], row["iterations"], row["converged"]] for row in floor]),
+                 "", *floor_reading(floor), ""]
     return "\n".join(text) + "\n"
+
+
+def floor_reading(floor: list[dict]) -> list[str]:
+    """Where damped Newton still finds an equilibrium (quadratic convergence far inside the
+    tolerance) and where it stalls."""
+    balanced = [float(row["load"]) for row in floor if float(row["least_merit"]) <= BALANCED]
+    beyond = [row for row in floor if float(row["least_merit"]) > BALANCED]
+    if not balanced:
+        return ["Reading: no load balanced far inside the tolerance."]
+    text = (f"Reading: damped Newton balances the loads up to {100 * max(balanced):g} % of the step's far inside the "
+            f"tolerance (least merit <= {BALANCED:g}, Newton converging quadratically)")
+    if beyond:
+        merits = [float(row["least_merit"]) for row in beyond]
+        accepted = [f"{100 * float(row['load']):g}" for row in beyond if row["converged"] == "yes"]
+        text += (f"; from {100 * min(float(row['load']) for row in beyond):g} % on it stalls at a least merit of "
+                 f"{min(merits):.2g} to {max(merits):.2g} (the full Jacobian's steps no longer lowering it, or no step "
+                 "along the Newton direction doing so, as near a singular J): no equilibrium is found past "
+                 f"{100 * max(balanced):g} %, the step's path ends, as at a limit point, before "
+                 f"{100 * min(float(row['load']) for row in beyond):g} %")
+        if accepted:
+            text += (f". Within the step's tolerances all the same at {', '.join(accepted)} %: states the ramp "
+                     "may accept there are the tolerance's margin, not an equilibrium near")
+    return [text + "."]
 
 
 def reading(taylor_rows: list[dict], line: list[dict]) -> list[str]:
@@ -262,7 +382,9 @@ def chart(rows: list[dict], path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
+    floor = [row for row in rows if row["table"] == "floor"]
+    figure, axes = plt.subplots(1, 3 if floor else 2, figsize=(16 if floor else 11, 4.2))
+    left, right = axes[0], axes[1]
     for (tangent, direction), style in ((("K + H + F", "Newton"), "o-"), (("K + H + F", "random"), "s-"),
                                         (("K + H", "Newton"), "o--"), (("K + H", "random"), "s--")):
         own = [row for row in rows if row["table"] == "taylor" and row["tangent"] == tangent
@@ -283,6 +405,21 @@ def chart(rows: list[dict], path) -> None:
         right.set_ylabel("|r_u| (N)")
         right.set_title("Along the Newton direction at step 16's last load carried", fontsize=10)
         right.legend(fontsize=8)
+    if floor:
+        panel = axes[2]
+        loads = np.array([float(row["load"]) for row in floor])
+        least = np.array([float(row["least_merit"]) for row in floor])
+        converged = np.array([row["converged"] == "yes" for row in floor])
+        panel.semilogy(100 * loads[converged], least[converged], "o", color="tab:green",
+                       label="least merit, within the tolerances")
+        panel.semilogy(100 * loads[~converged], least[~converged], "x", color="tab:red", ms=8,
+                       label="least merit, outside them")
+        panel.axhline(1.0, ls=":", color="grey", label="tolerance (merit 1)")
+        panel.axhline(BALANCED, ls="--", color="grey", lw=0.8, label=f"balanced ({BALANCED:g})")
+        panel.set_xlabel("load (% of step 16's)")
+        panel.set_ylabel("least merit |(r_u / tol_r, g / tol_g)| reached")
+        panel.set_title("Damped Newton on the full Jacobian", fontsize=10)
+        panel.legend(fontsize=8)
     figure.suptitle("soft_t2.5 at h/4: Newton's model at the stop (exact tangent K + H + F)")
     common.save_figure(figure, path, (0, 0, 1, 0.93))
     plt.close(figure)
@@ -298,8 +435,9 @@ def main() -> None:
         kept: dict = {}
         rows.append(run(scene, level, factor, "shipped", from_step, {}))
         rows.append(run(scene, level, factor, "exact", from_step, kept))
-        if scene == "soft_t2.5" and "carried" in kept:
+        if scene == "soft_t2.5" and kept.get("states"):
             rows += taylor(kept)
+            rows += residual_floor(kept)
     header = sorted({key for row in rows for key in row})
     common.write_csv(common.results_path("entry_newton.csv"), header, [[row.get(key, "") for key in header]
                                                                         for row in rows])
