@@ -308,7 +308,7 @@ def report(rows: list[dict]) -> str:
                                        [[row["tangent"], row["direction"], f"{float(row['t']):g}", row["remainder"],
                                          row["remainder_over_t"], row["remainder_over_t2"]] for row in taylor_rows]),
                  "", "|r_u| along the Newton direction (t = 1 is the full Newton step):", "",
-                 common.markdown_table(["t", "|r_u(x + t d)| (N)"], [[f"{float(row['t']):g}", row["residual_N"]] for row in line]),
+                 common.markdown_table(["t", "‖r_u(x + t d)‖ (N)"], [[f"{float(row['t']):g}", row["residual_N"]] for row in line]),
                  "", *reading(taylor_rows, line), ""]
     floor = [row for row in rows if row["table"] == "floor"]
     if floor:
@@ -319,8 +319,8 @@ def report(rows: list[dict]) -> str:
                  f"merit it reaches (on past the tolerance to {BALANCED / 10:g}; it stops after {FLOOR_STALL} "
                  f"iterations in a row gaining less than {100 * FLOOR_GAIN:g} %, or where no step along the Newton "
                  "direction lowers the merit); converged: within the step's tolerances there:", "",
-                 common.markdown_table(["load (share of the step's)", "least merit", "|r_u| there (N)",
-                                        "max |g| there (mm)", "iterations", "converged"],
+                 common.markdown_table(["load (share of the step's)", "least merit", "‖r_u‖ there (N)",
+                                        "max abs(g) there (mm)", "iterations", "converged"],
                                        [[f"{float(row['load']):g}", row["least_merit"], row["least_residual_N"],
                                          row["violation_mm"], row["iterations"], row["converged"]] for row in floor]),
                  "", *floor_reading(floor), ""]
