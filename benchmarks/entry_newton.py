@@ -21,7 +21,9 @@ falling like t^2 says J is R's exact derivative; like t, that a term is missing.
 Newton direction, |R(x + t d)| against t says how far Newton's linear model holds. Last,
 whether an equilibrium exists there at all: damped Newton (the full Jacobian with Armijo
 backtracking on |W R|, W scaling R by the step's tolerances) under rising loads of step 16
-(FLOOR_LOADS, each from the last load it converged under) and the least merit it reaches. Past a
+(FLOOR_LOADS, each from the last load it converged under) and the least merit it reaches, with
+the free edge at the entry where it stops (entry_flanks: how far it folds, and how near its two
+sides, drawn along the needle, come to each other). Past a
 limit point of the equilibrium path that least residual is not zero (where it is least,
 J^T W^2 R = 0 with R != 0: J is singular).
 
@@ -41,12 +43,14 @@ import contextlib  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
 
 import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 import scipy.sparse.linalg as spla  # noqa: E402
 
 import _common as common  # noqa: E402
+import exit_components  # noqa: E402
 import needle_coupling  # noqa: E402
 from stitchplan.config import with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure, InvertedMaterial  # noqa: E402
@@ -63,6 +67,7 @@ FLOOR_LOADS = (0.875, 0.8875, 0.9, 0.9125, 0.925, 0.9375, 0.94375, 0.95, 0.9625,
 FLOOR_ITERATIONS = 40  # damped Newton's iterations at most per load
 FLOOR_GAIN = 1e-3  # ... and FLOOR_STALL iterations in a row that lower its least merit by less than this share stop it
 FLOOR_STALL = 3
+FLANK_SEPARATION = 0.5  # mm along the entry's edge: points further apart count as its two sides (entry_flanks)
 BALANCED = 0.01  # a least merit at most this: an equilibrium (the reading's; damped Newton goes on to a tenth of it)
 
 
@@ -261,6 +266,21 @@ def damped_newton(insertion: NeedleInsertion) -> tuple[float, float, float, int,
     return merit, residual_norm, violation, iteration, converged
 
 
+def entry_flanks(insertion: NeedleInsertion) -> tuple[float, float, float]:
+    """The free edge within exit_components.EDGE_SPAN of the needle's entry at the insertion's
+    state: its least stretch and how far its tangent turns (exit_components.entry_edge), and
+    the least distance between two of its points more than FLANK_SEPARATION mm apart along it
+    (the two sides of the entry drawn along the needle: how near they come to each other)."""
+    state = SimpleNamespace(scenario=insertion.scenario, geometry=insertion.geometry, model=insertion.model,
+                            coefficients=[insertion.coefficients()])
+    points, deformed = exit_components.edge_polyline(state)
+    stretch, turn = exit_components.entry_edge((points, deformed))
+    along = np.linalg.norm(points - points[0], axis=1)
+    apart = np.abs(along[:, None] - along[None, :]) > FLANK_SEPARATION
+    distance = np.linalg.norm(deformed[:, None, :] - deformed[None, :, :], axis=2)
+    return stretch, turn, float(distance[apart].min())
+
+
 def residual_floor(kept: dict) -> list[dict]:
     """The least scaled merit damped_newton reaches at PROBE_STEP under each of FLOOR_LOADS,
     each from the last load it converged under, starting at the largest load below 90 % exact
@@ -275,9 +295,11 @@ def residual_floor(kept: dict) -> list[dict]:
         merit, residual_norm, violation, iterations, converged = damped_newton(insertion)
         if converged:
             snapshot = insertion.snapshot()
+        stretch, turn, gap = entry_flanks(insertion)
         rows.append({"table": "floor", "load": load, "least_merit": f"{merit:.4g}",
                      "least_residual_N": f"{residual_norm:.4e}", "violation_mm": f"{violation:.3e}",
-                     "iterations": iterations, "converged": "yes" if converged else "no"})
+                     "iterations": iterations, "converged": "yes" if converged else "no",
+                     "edge_least_stretch": f"{stretch:.4f}", "edge_turn_deg": f"{turn:.2f}", "flank_gap_mm": f"{gap:.4f}"})
         print(rows[-1], flush=True)
     return rows
 
@@ -320,9 +342,12 @@ def report(rows: list[dict]) -> str:
                  f"iterations in a row gaining less than {100 * FLOOR_GAIN:g} %, or where no step along the Newton "
                  "direction lowers the merit); converged: within the step's tolerances there:", "",
                  common.markdown_table(["load (share of the step's)", "least merit", "‖r_u‖ there (N)",
-                                        "max abs(g) there (mm)", "iterations", "converged"],
+                                        "max abs(g) there (mm)", "iterations", "converged", "edge least stretch",
+                                        "edge turn (deg)", "gap between the entry's sides (mm)"],
                                        [[f"{float(row['load']):g}", row["least_merit"], row["least_residual_N"],
-                                         row["violation_mm"], row["iterations"], row["converged"]] for row in floor]),
+                                         row["violation_mm"], row["iterations"], row["converged"],
+                                         row.get("edge_least_stretch", ""), row.get("edge_turn_deg", ""),
+                                         row.get("flank_gap_mm", "")] for row in floor]),
                  "", *floor_reading(floor), ""]
     return "\n".join(text) + "\n"
 
@@ -347,7 +372,17 @@ def floor_reading(floor: list[dict]) -> list[str]:
         if accepted:
             text += (f". Within the step's tolerances all the same at {', '.join(accepted)} %: states the ramp "
                      "may accept there are the tolerance's margin, not an equilibrium near")
-    return [text + "."]
+    text += "."
+    gaps = [row for row in floor if row.get("flank_gap_mm")]
+    if gaps:
+        last = max((row for row in gaps if float(row["least_merit"]) <= BALANCED), key=lambda row: float(row["load"]),
+                   default=gaps[0])
+        text += (f" At the last load balanced ({100 * float(last['load']):g} %) the free edge at the entry is folded back "
+                 f"on itself (its tangent turns by {float(last['edge_turn_deg']):.0f} deg, its least stretch "
+                 f"{float(last['edge_least_stretch']):.3f}) and its two sides, drawn along the needle, lie "
+                 f"{1000 * float(last['flank_gap_mm']):.0f} um apart (points more than {FLANK_SEPARATION:g} mm apart "
+                 "along the edge); the needle, a line here, would hold them a wire's diameter apart.")
+    return [text]
 
 
 def reading(taylor_rows: list[dict], line: list[dict]) -> list[str]:
