@@ -90,9 +90,11 @@ def follower_stiffness(insertion: NeedleInsertion, free: np.ndarray, center: np.
 
 
 def jacobian(insertion: NeedleInsertion, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray,
-             with_follower: bool) -> tuple[sp.csc_matrix, np.ndarray]:
-    """The saddle matrix [[K + H (+ F), G], [G^T, 0]] at the state, and R = [r_u; g] there."""
-    state = insertion.residuals(free.reshape(-1, 2), multipliers, center)
+             with_follower: bool, state=None) -> tuple[sp.csc_matrix, np.ndarray]:
+    """The saddle matrix [[K + H (+ F), G], [G^T, 0]] at the state, and R = [r_u; g] there;
+    `state`: the residuals there where the caller has them (the assembler is then at the state)."""
+    if state is None:
+        state = insertion.residuals(free.reshape(-1, 2), multipliers, center)
     stiffness = insertion._stiffness(multipliers, state)()
     follower = follower_stiffness(insertion, free.reshape(-1, 2), center) if with_follower else None
     if follower is not None:
@@ -105,7 +107,7 @@ def jacobian(insertion: NeedleInsertion, free: np.ndarray, multipliers: np.ndarr
 @contextlib.contextmanager
 def exact_newton(from_step: int, kept: dict):
     """Newton on the full Jacobian from `from_step` on (see the module's docstring); `kept`
-    gets the insertion and, at PROBE_STEP, the snapshot of each load carried from 90 % on."""
+    gets the insertion and, at PROBE_STEP, each load carried with its snapshot."""
     newton, solve, stiffness = NeedleInsertion._newton, SaddlePointSolver.solve_direct, NeedleInsertion._stiffness
     residuals, renew, depth = NeedleInsertion._timed_residuals, equilibrium_module.renew_factor, \
         equilibrium_module.FIXED_CENTER_ANDERSON_DEPTH
@@ -227,31 +229,31 @@ def damped_newton(insertion: NeedleInsertion) -> tuple[float, float, float, int,
     free, multipliers, center = insertion.free.ravel().copy(), insertion.multipliers.copy(), insertion.center.copy()
     n = len(free)
 
-    def scaled(state) -> tuple[np.ndarray, float]:
-        weights = np.concatenate([np.full(n, 1.0 / (insertion.residual_tolerance * state.needle_force)),
-                                  np.full(len(state.violation), 1.0 / insertion.constraint_tolerance)])
-        return weights, float(np.linalg.norm(weights * np.concatenate([state.residual, state.violation])))
+    def scaled(state) -> float:
+        return math.hypot(float(np.linalg.norm(state.residual)) / (insertion.residual_tolerance * state.needle_force),
+                          float(np.linalg.norm(state.violation)) / insertion.constraint_tolerance)
 
-    best = (math.inf, math.inf, math.inf, free, multipliers)
+    best = (math.inf, math.inf, math.inf, math.inf, free, multipliers)  # merit, |r_u|, max |g|, |f_needle|, state
     stalled, iteration = 0, 0
     for iteration in range(FLOOR_ITERATIONS):
         state = insertion.residuals(free.reshape(-1, 2), multipliers, center)
-        weights, merit = scaled(state)
+        merit = scaled(state)
         if merit < best[0]:
             stalled = stalled + 1 if merit > (1.0 - FLOOR_GAIN) * best[0] else 0
-            best = (merit, float(np.linalg.norm(state.residual)), state.worst_violation, free, multipliers)
+            best = (merit, float(np.linalg.norm(state.residual)), state.worst_violation, state.needle_force,
+                    free, multipliers)
         else:
             stalled += 1
         if merit <= BALANCED / 10.0 or stalled >= FLOOR_STALL:  # far inside the tolerance, or no further
             break
-        matrix, residual = jacobian(insertion, free, multipliers, center, with_follower=True)
+        matrix, residual = jacobian(insertion, free, multipliers, center, with_follower=True, state=state)
         direction = spla.splu(matrix).solve(-residual)
         t = 1.0
         while t >= 1e-4:
             try:
                 trial = insertion.residuals((free + t * direction[:n]).reshape(-1, 2), multipliers + t * direction[n:],
                                             center)
-                if scaled(trial)[1] <= (1.0 - 1e-4 * t) * merit:
+                if scaled(trial) <= (1.0 - 1e-4 * t) * merit:
                     break
             except InvertedMaterial:
                 pass
@@ -259,10 +261,9 @@ def damped_newton(insertion: NeedleInsertion) -> tuple[float, float, float, int,
         if t < 1e-4:
             break
         free, multipliers = free + t * direction[:n], multipliers + t * direction[n:]
-    merit, residual_norm, violation, free, multipliers = best
+    merit, residual_norm, violation, needle_force, free, multipliers = best
     insertion.free, insertion.multipliers = free.reshape(-1, 2), multipliers
-    converged = residual_norm <= insertion.residual_tolerance * insertion.residuals(
-        insertion.free, multipliers, center).needle_force and violation <= insertion.constraint_tolerance
+    converged = residual_norm <= insertion.residual_tolerance * needle_force and violation <= insertion.constraint_tolerance
     return merit, residual_norm, violation, iteration, converged
 
 

@@ -30,7 +30,7 @@ The tangent is K + H, symmetric: the follower loads' own stiffness (friction and
 turn with the needle's tangent at their points) is left out, so that K + H is factored by
 Cholesky and kept over iterations. Measured with it in (benchmarks/results/entry_newton.md, the
 full Jacobian LU-factored at every iteration): sh12_100x100 takes 76 Newton iterations instead
-of 120 but 3.5 s instead of 0.2 s, the exit within 6e-6 mm; the 2.5 mm soft slab at a quarter
+of 120 but 3.6 s instead of 0.3 s, the exit within 6e-6 mm; the 2.5 mm soft slab at a quarter
 spacing stops at the same step and load, where Newton's linear model holds for 5 % of its step
 and no equilibrium is found past 88.75 % of the step's load (a limit point: the tissue, not Newton).
 """
