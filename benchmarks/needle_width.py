@@ -49,6 +49,7 @@ import re  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from unittest import mock  # noqa: E402
 
 import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
@@ -118,11 +119,8 @@ def needle_band(width: float, across: int):
         if width > 0:
             coupling.model = BandRows(model, geometry.center, width, across)
 
-    NeedleCoupling.__init__ = banded
-    try:
+    with mock.patch.object(NeedleCoupling, "__init__", banded):
         yield
-    finally:
-        NeedleCoupling.__init__ = build
 
 
 CONTACT_SPAN = 4.0  # mm of the entry's edge on each side checked against the needle's body
@@ -227,14 +225,12 @@ def entry_contact(width: float, penalty: float, augmented: bool = False):
                                        f"{AUGMENTED_UPDATES} pressure updates")
         return result
 
-    if penalty > 0:
-        NeedleInsertion.residuals, NeedleInsertion._stiffness = with_contact, stiffness_with_contact
-        NeedleInsertion.equilibrate = equilibrate_at
-    try:
+    if penalty <= 0:
         yield
-    finally:
-        NeedleInsertion.residuals, NeedleInsertion._stiffness = residuals, stiffness
-        NeedleInsertion.equilibrate = equilibrate
+        return
+    with mock.patch.multiple(NeedleInsertion, residuals=with_contact, _stiffness=stiffness_with_contact,
+                             equilibrate=equilibrate_at):
+        yield
 
 
 @contextlib.contextmanager
@@ -246,11 +242,8 @@ def kept_insertion(kept: dict):
         kept["insertion"] = insertion
         return equilibrate(insertion, *arguments, **keywords)
 
-    NeedleInsertion.equilibrate = keeping
-    try:
+    with mock.patch.object(NeedleInsertion, "equilibrate", keeping):
         yield
-    finally:
-        NeedleInsertion.equilibrate = equilibrate
 
 
 def run(scene: str, width: float, penalty: float, level: str, factor: float, augmented: bool = False) -> dict:
