@@ -413,9 +413,11 @@ def reading(rows: list[dict]) -> list[str]:
                     "stiffness, where reported, barely fallen): not at a limit point of the tissue (the penalty's active "
                     "set changing between iterations the suspect; not measured here). What moves least under "
                     "refinement on this slab is the needle's width with its body in contact with the entry's edge, the "
-                    "contact exact by an augmented Lagrangian at h and h/2; carrying it to finer spacings wants a "
-                    "Newton made for the contact (active-set or semismooth, the pressures ramped with the load) before "
-                    "it can be the model.")
+                    "contact exact by an augmented Lagrangian at h and h/2. Carrying it to finer spacings wants a "
+                    "Newton made for the contact (the new contacts brought in gradually within the step) or a model "
+                    "with no material inside the needle's width (the band's material, dragged along the needle, lies "
+                    "a quarter spacing from edge points held off its side at h/4; in the tissue the track is a cut "
+                    "whose walls carry the loads and touch the needle).")
     return ["".join(text)]
 
 
