@@ -83,10 +83,17 @@ def follower_stiffness(insertion: NeedleInsertion, free: np.ndarray, center: np.
         return None
     blocks = np.zeros((len(points), 2, 2))
     blocks[q:] = coupling._needle_force_turn(free, center)
+    return point_blocks_on_dofs(rows, blocks)
+
+
+def point_blocks_on_dofs(rows: sp.csr_matrix, blocks: np.ndarray) -> sp.csr_matrix:
+    """S^T blockdiag(blocks) S (2 n_free, 2 n_free): a 2 x 2 block per point (blocks (P, 2, 2))
+    carried to the dofs through the points' shape-function rows (P, n_free), interleaved."""
     interleaved = sp.kron(rows, sp.identity(2), format="csr")
-    turn = sp.bsr_matrix((blocks, np.arange(len(points)), np.arange(len(points) + 1)),
-                         shape=(2 * len(points), 2 * len(points))).tocsr()
-    return (interleaved.T @ turn @ interleaved).tocsr()
+    count = len(blocks)
+    block_diagonal = sp.bsr_matrix((blocks, np.arange(count), np.arange(count + 1)),
+                                   shape=(2 * count, 2 * count)).tocsr()
+    return (interleaved.T @ block_diagonal @ interleaved).tocsr()
 
 
 def jacobian(insertion: NeedleInsertion, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray,

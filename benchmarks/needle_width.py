@@ -65,9 +65,10 @@ from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
 ACROSS_PER_SPACING = 2  # Gauss points across the band per local particle spacing ...
 MIN_ACROSS = 4  # ... and at least this many
-SH12_NEEDLE_SPACING = 0.888  # configs/sh12_100x100.yaml: 7.104 mm / needle_refinement 8
+# the soft slabs' spacing at the needle, configs/sh12_100x100.yaml's (7.104 mm / needle_refinement 8)
+SOFT_NEEDLE_SPACING = needle_coupling.scene("soft_t2.5", needle_coupling.SHIPPED_COUPLING).discretization.needle_spacing
 LEVELS = (("h", 1.0), ("h/2", 0.5), ("h/4", 0.25))
-RESOLVED = tuple((name, 0.6 / SH12_NEEDLE_SPACING * factor) for name, factor in
+RESOLVED = tuple((name, 0.6 / SOFT_NEEDLE_SPACING * factor) for name, factor in
                  (("0.6 mm", 1.0), ("0.3 mm", 0.5), ("0.15 mm", 0.25)))  # one spacing across w = 0.6 at the first
 PENALTIES = (1.0, 10.0, 100.0)  # CONTACT_PENALTY of the runs with EntryContact
 # (scene, w mm, contact penalty or 0 for none, level, spacing factor, augmented Lagrangian)
@@ -178,12 +179,12 @@ class EntryContact:
             return np.zeros(n_dof), sp.csr_matrix((n_dof, n_dof))
         rows, normal = self.rows[active], normal[active]
         force = (-pushing[active] * self.side[active])[:, None] * normal  # dPi/dx per point
-        interleaved = sp.kron(rows, sp.identity(2), format="csr")
         blocks = self.penalty * normal[:, :, None] * normal[:, None, :]
-        count = len(normal)
-        block_diagonal = sp.bsr_matrix((blocks, np.arange(count), np.arange(count + 1)),
-                                       shape=(2 * count, 2 * count)).tocsr()
-        return (rows.T @ force).ravel(), (interleaved.T @ block_diagonal @ interleaved).tocsr()
+        return (rows.T @ force).ravel(), entry_newton.point_blocks_on_dofs(rows, blocks)
+
+    def penetration(self) -> float:
+        """How far the edge lies inside the needle at the last evaluation, mm (0: nowhere)."""
+        return -self.gap.min(initial=0.0)
 
 
 @contextlib.contextmanager
@@ -209,21 +210,20 @@ def entry_contact(width: float, penalty: float, augmented: bool = False):
     def equilibrate_at(insertion, rotation, step, *arguments, **keywords):
         insertion.rotation = rotation
         result = equilibrate(insertion, rotation, step, *arguments, **keywords)
-        contact = insertion.__dict__.get("entry_contact")
-        for _ in range(AUGMENTED_UPDATES if augmented and contact is not None else 0):
+        if not augmented:
+            return result
+        contact, allowed = insertion.entry_contact, AUGMENTED_PENETRATION * 0.5 * width
+        for update in range(AUGMENTED_UPDATES + 1):
             insertion.residuals(insertion.free, insertion.multipliers, insertion.center)  # contact.gap there
-            if -contact.gap.min(initial=0.0) <= AUGMENTED_PENETRATION * 0.5 * width:
+            if contact.penetration() <= allowed:
                 return result
-            contact.pressure = np.maximum(contact.pressure - contact.penalty * np.where(np.isfinite(contact.gap),
-                                                                                          contact.gap, 0.0), 0.0)
-            result = equilibrate(insertion, rotation, step, *arguments, **keywords)
-        if augmented and contact is not None:
-            insertion.residuals(insertion.free, insertion.multipliers, insertion.center)
-            if -contact.gap.min(initial=0.0) > AUGMENTED_PENETRATION * 0.5 * width:
-                raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): the entry's edge still "
-                                       f"{-1000 * contact.gap.min():.1f} um inside the needle after "
-                                       f"{AUGMENTED_UPDATES} pressure updates")
-        return result
+            if update < AUGMENTED_UPDATES:
+                touching = np.where(np.isfinite(contact.gap), contact.gap, 0.0)
+                contact.pressure = np.maximum(contact.pressure - contact.penalty * touching, 0.0)
+                result = equilibrate(insertion, rotation, step, *arguments, **keywords)
+        raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): the entry's edge still "
+                               f"{1000 * contact.penetration():.1f} um inside the needle after "
+                               f"{AUGMENTED_UPDATES} pressure updates")
 
     if penalty <= 0:
         yield
