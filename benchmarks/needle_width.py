@@ -471,6 +471,7 @@ def chart(rows: list[dict], path) -> None:
               ("soft_t2.5", lambda name, resolved: name in ("line", "w = 0.6 mm") or "contact" in name or resolved))
     figure, axes = plt.subplots(1, len(panels), figsize=(20, 6.2))
     for axis, (scene, shown) in zip(axes, panels):
+        stops_at: dict[float, int] = {}  # labels already at a spacing: the next one drawn above them
         for (own_scene, name, resolved), group in series(rows).items():
             if own_scene != scene or not shown(name, resolved):
                 continue
@@ -482,8 +483,11 @@ def chart(rows: list[dict], path) -> None:
                                   [float(row["exit_error_mm"]) for row in done], style, label=label)
             for row in group:
                 if row["failure"]:
-                    axis.axvline(float(row["needle_spacing_mm"]), color=lines[0].get_color(), ls=":", lw=1.2)
-                    axis.text(float(row["needle_spacing_mm"]), 0.02, " stops", transform=axis.get_xaxis_transform(),
+                    spacing = float(row["needle_spacing_mm"])
+                    axis.axvline(spacing, color=lines[0].get_color(), ls=":", lw=1.2)
+                    height = 0.02 + 0.13 * stops_at.get(spacing, 0)
+                    stops_at[spacing] = stops_at.get(spacing, 0) + 1
+                    axis.text(spacing, height, " stops", transform=axis.get_xaxis_transform(),
                               fontsize=7, color=lines[0].get_color(), rotation=90, va="bottom", ha="right")
         spacings = sorted({float(row["needle_spacing_mm"]) for row in rows if row["scene"] == scene}, reverse=True)
         axis.set_xticks(spacings, [f"{spacing:g}" for spacing in spacings], fontsize=8)
