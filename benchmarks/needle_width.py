@@ -88,27 +88,55 @@ COLUMNS = ["scene", "width_mm", "contact_penalty", "augmented", "level", "factor
            "failure", "edge_least_stretch", "edge_turn_deg", "flank_gap_mm", "seconds"]
 
 
-class BandRows:
-    """The tissue model as the coupling sees it, its rows averaged across the band."""
+class OffsetRows:
+    """The tissue model as the coupling sees it, each row it asks for at a point the weighted
+    sum of the rows at points set off from it along a normal: `offsets` (mm) with `weights`,
+    about the base and normal `frame` gives (BandRows; track_cut.FaceRows)."""
 
-    def __init__(self, model, center: np.ndarray, width: float, across: int):
-        self._model, self._center = model, np.asarray(center, dtype=float)
-        offsets, weights = np.polynomial.legendre.leggauss(across)
-        self._offsets, self._weights = 0.5 * width * offsets, 0.5 * weights
-        self._low, self._high = model.particles.min(axis=0), model.particles.max(axis=0)
+    offsets: np.ndarray
+    weights: np.ndarray
+
+    def __init__(self, model):
+        self._model = model
 
     def __getattr__(self, name: str):
         return getattr(self._model, name)
+
+    def frame(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The base points the offsets start from and the unit normals they go along, (n, 2) each."""
+        raise NotImplementedError
+
+    def placed(self, points: np.ndarray) -> np.ndarray:
+        """The offset points where the rows are evaluated."""
+        return points
 
     def free_rows_at(self, points: np.ndarray) -> sp.csr_matrix:
         points = np.atleast_2d(points)
         if not len(points):
             return self._model.free_rows_at(points)
-        normal = points - self._center
-        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-        rows = [weight * self._model.free_rows_at(np.clip(points + offset * normal, self._low, self._high))
-                for offset, weight in zip(self._offsets, self._weights)]
+        base, normal = self.frame(points)
+        rows = [weight * self._model.free_rows_at(self.placed(base + offset * normal))
+                for offset, weight in zip(self.offsets, self.weights)]
         return sum(rows[1:], rows[0]).tocsr()
+
+
+class BandRows(OffsetRows):
+    """The rows averaged across the band: Gauss-Legendre across [-w/2, w/2] along the
+    reference needle circle's normal, the points kept within the particles' box."""
+
+    def __init__(self, model, center: np.ndarray, width: float, across: int):
+        super().__init__(model)
+        self._center = np.asarray(center, dtype=float)
+        offsets, weights = np.polynomial.legendre.leggauss(across)
+        self.offsets, self.weights = 0.5 * width * offsets, 0.5 * weights
+        self._low, self._high = model.particles.min(axis=0), model.particles.max(axis=0)
+
+    def frame(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        normal = points - self._center
+        return points, normal / np.linalg.norm(normal, axis=1, keepdims=True)
+
+    def placed(self, points: np.ndarray) -> np.ndarray:
+        return np.clip(points, self._low, self._high)
 
 
 @contextlib.contextmanager
