@@ -293,6 +293,20 @@ def kept_insertion(kept: dict):
         yield
 
 
+def insertion_run(scenario, *contexts) -> tuple[str, str, NeedleInsertion]:
+    """One unplanned insertion inside `contexts` (patches of the model): its exit error or
+    failure (CSV strings) and the NeedleInsertion as it ended."""
+    kept = {}
+    with contextlib.ExitStack() as stack:
+        for context in (*contexts, kept_insertion(kept)):
+            stack.enter_context(context)
+        try:
+            outcome = f"{run_insertion(scenario).exit_error_mm:.6f}", ""
+        except InsertionFailure as failure:
+            outcome = "", " ".join(str(failure).split())
+    return *outcome, kept["insertion"]
+
+
 def run(scene: str, width: float, penalty: float, level: str, factor: float, augmented: bool = False) -> dict:
     """One insertion; with the entry's free edge where it ended (once the needle has left, or at
     the last load carried where it stopped): entry_newton.entry_flanks."""
@@ -300,20 +314,16 @@ def run(scene: str, width: float, penalty: float, level: str, factor: float, aug
     scenario = with_discretization(base, spacing=base.discretization.spacing * factor)
     spacing = scenario.discretization.needle_spacing or scenario.discretization.spacing
     across = max(MIN_ACROSS, math.ceil(ACROSS_PER_SPACING * width / spacing)) if width > 0 else 0
-    start, kept = time.perf_counter(), {}
-    with needle_band(width, across), entry_contact(width, penalty, augmented), kept_insertion(kept):
-        try:
-            result = run_insertion(scenario)
-            outcome = {"exit_error_mm": f"{result.exit_error_mm:.6f}", "failure": ""}
-        except InsertionFailure as failure:
-            outcome = {"exit_error_mm": "", "failure": " ".join(str(failure).split())}
+    start = time.perf_counter()
+    exit_error, failure, insertion = insertion_run(scenario, needle_band(width, across),
+                                                   entry_contact(width, penalty, augmented))
     seconds = time.perf_counter() - start
-    stretch, turn, gap = entry_newton.entry_flanks(kept["insertion"])
+    stretch, turn, gap = entry_newton.entry_flanks(insertion)
     row = {"scene": scene, "width_mm": f"{width:g}", "contact_penalty": f"{penalty:g}" if penalty else "",
            "augmented": "yes" if augmented else "",
            "level": level, "factor": f"{factor:.6g}", "needle_spacing_mm": f"{spacing:.4g}", "across": across,
-           **outcome, "edge_least_stretch": f"{stretch:.4f}", "edge_turn_deg": f"{turn:.1f}",
-           "flank_gap_mm": f"{gap:.4f}", "seconds": f"{seconds:.1f}"}
+           "exit_error_mm": exit_error, "failure": failure, "edge_least_stretch": f"{stretch:.4f}",
+           "edge_turn_deg": f"{turn:.1f}", "flank_gap_mm": f"{gap:.4f}", "seconds": f"{seconds:.1f}"}
     print(row, flush=True)
     return row
 

@@ -64,10 +64,8 @@ import needle_width  # noqa: E402
 import stitchplan.needle.equilibrium as equilibrium  # noqa: E402
 import stitchplan.tissue.model as tissue_model  # noqa: E402
 from stitchplan.config import with_discretization  # noqa: E402
-from stitchplan.errors import InsertionFailure  # noqa: E402
 from stitchplan.needle.coupling import NeedleCoupling  # noqa: E402
 from stitchplan.needle.equilibrium import NeedleInsertion  # noqa: E402
-from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
 CUT_SPAN = 8.0  # mm of the track from the entry that is cut (the fold is at the entry)
 FACE_OFFSET = 1e-3  # mm off the cut where a face is evaluated
@@ -274,35 +272,25 @@ def first_span(track: np.ndarray, points: int) -> np.ndarray:
     return np.column_stack([np.interp(along, arc, track[:, 0]), np.interp(along, arc, track[:, 1])])
 
 
-def insertion_run(scenario, context=contextlib.nullcontext()) -> tuple[str, str, object]:
-    """One unplanned insertion inside `context`: its exit error or failure (CSV strings) and
-    the NeedleInsertion as it ended."""
-    kept = {}
-    with context, needle_width.kept_insertion(kept):
-        try:
-            outcome = f"{run_insertion(scenario).exit_error_mm:.6f}", ""
-        except InsertionFailure as failure:
-            outcome = "", " ".join(str(failure).split())
-    return *outcome, kept["insertion"]
-
-
 def run(scene: str, level: str, factor: float, penalty: float, stations: int, element: int,
         cut_points: int) -> list[dict]:
     """The fixed point of the cut on one scene and level: a row per round."""
     base = needle_coupling.scene(scene, needle_coupling.SHIPPED_COUPLING)
     scenario = with_discretization(base, spacing=base.discretization.spacing * factor)
     spacing = scenario.discretization.needle_spacing or scenario.discretization.spacing
-    cut = first_span(insertion_run(scenario)[2].points, cut_points)  # the line needle's track
+    cut = first_span(needle_width.insertion_run(scenario)[2].points, cut_points)  # the line needle's track
     rows = []
     for round_ in range(1, ROUNDS + 1):
         start = time.perf_counter()
         visibility = CutVisibility(cut)
-        exit_error, failure, insertion = insertion_run(scenario, track_cut(visibility, penalty, stations, element))
+        exit_error, failure, insertion = needle_width.insertion_run(scenario,
+                                                                    track_cut(visibility, penalty, stations, element))
         _, along, _, distance = visibility.nearest(insertion.points)
         off = float(distance[along < CUT_SPAN - spacing].max(initial=0.0))
         stretch, turn, gap = entry_newton.entry_flanks(insertion)
         rows.append({"scene": scene, "level": level, "factor": f"{factor:g}", "needle_spacing_mm": f"{spacing:.4g}",
-                     "penalty": f"{penalty:g}", "stations": stations, "element": element, "cut_points": cut_points, "round": round_, "exit_error_mm": exit_error, "failure": failure,
+                     "penalty": f"{penalty:g}", "stations": stations, "element": element, "cut_points": cut_points,
+                     "round": round_, "exit_error_mm": exit_error, "failure": failure,
                      "track_off_cut_mm": f"{off:.4f}", "edge_least_stretch": f"{stretch:.4f}",
                      "edge_turn_deg": f"{turn:.1f}", "flank_gap_mm": f"{gap:.4f}",
                      "seconds": f"{time.perf_counter() - start:.1f}"})
@@ -384,8 +372,11 @@ def reading(rows: list[dict]) -> str:
             text.append(f"{scene}, {tie}: stops at every penalty ({short_failure(found[0][1][-1])})")
     coarse = sweep(rows, "soft_t2.5", 1, 1)
     sentence = "Reading: " + "; ".join(text) + "."
-    if coarse and not coarse[0][1][-1]["exit_error_mm"]:
-        sentence += (" With one station per particle spacing the runs stop (" + short_failure(coarse[0][1][-1]) + ").")
+    if coarse:
+        group = coarse[0][1]
+        stopped = [row for row in group if not row["exit_error_mm"]]
+        sentence += (f" With one station per particle spacing {len(stopped)} of its {len(group)} rounds stop"
+                     + (f" (the last: {short_failure(stopped[-1])})" if stopped else "") + ".")
     sentence += (" Tied at every station the answer follows the penalty (likely locking: the jump held to zero at more "
                  "points than the faces' coefficients can follow); tied per element it settles. ")
     resolution = [(points, value) for points, value in cut_points(rows) if math.isfinite(value)]
