@@ -52,7 +52,6 @@ import scipy.sparse.linalg as spla  # noqa: E402
 import _common as common  # noqa: E402
 import exit_components  # noqa: E402
 import needle_coupling  # noqa: E402
-from stitchplan.config import with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure, InvertedMaterial  # noqa: E402
 from stitchplan.needle import equilibrium as equilibrium_module  # noqa: E402
 from stitchplan.needle.equilibrium import NeedleInsertion  # noqa: E402
@@ -167,8 +166,7 @@ def exact_newton(from_step: int, kept: dict):
 
 
 def run(scene: str, level: str, factor: float, method: str, from_step: int, kept: dict) -> dict:
-    base = needle_coupling.scene(scene, needle_coupling.SHIPPED_COUPLING)
-    scenario = with_discretization(base, spacing=base.discretization.spacing * factor)
+    scenario = needle_coupling.refined(scene, factor)
     start = time.perf_counter()
     context = exact_newton(from_step, kept) if method == "exact" else contextlib.nullcontext()
     with context:

@@ -33,7 +33,6 @@ import numpy as np  # noqa: E402
 
 import _common as common  # noqa: E402
 import needle_coupling  # noqa: E402
-from stitchplan.config import with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
 from stitchplan.needle.equilibrium import NeedleInsertion  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
@@ -84,8 +83,7 @@ def recording(records: list[dict]):
 
 def run(scene: str, level: str, factor: float) -> list[dict]:
     """One unplanned run with its least stiffness after every load carried, as CSV rows."""
-    base = needle_coupling.scene(scene, needle_coupling.SHIPPED_COUPLING)
-    scenario = with_discretization(base, spacing=base.discretization.spacing * factor)
+    scenario = needle_coupling.refined(scene, factor)
     records: list[dict] = []
     start = time.perf_counter()
     with recording(records):

@@ -208,6 +208,13 @@ def scene(name: str, coupling: str):
     return replace(base, needle=replace(base.needle, coupling=coupling, **needle))
 
 
+def refined(name: str, factor: float):
+    """The scene as shipped (SHIPPED_COUPLING) with its spacings times `factor`, as
+    `stitchplan simulate --spacing` moves them."""
+    base = scene(name, SHIPPED_COUPLING)
+    return with_discretization(base, spacing=base.discretization.spacing * factor)
+
+
 def shipped_file(name: str, previous: bool):
     """The scenario of a scene's file (configs/sh12_100x100.yaml for the soft slabs); with
     `previous`, the SH 1/2 and 20 mm needle files as they were before they were discretized for

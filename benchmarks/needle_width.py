@@ -57,7 +57,6 @@ import scipy.sparse as sp  # noqa: E402
 import _common as common  # noqa: E402
 import entry_newton  # noqa: E402
 import needle_coupling  # noqa: E402
-from stitchplan.config import with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
 from stitchplan.needle.coupling import NeedleCoupling  # noqa: E402
 from stitchplan.needle.equilibrium import NeedleInsertion  # noqa: E402
@@ -173,7 +172,7 @@ class EntryContact:
     that the answer no longer depends on k. Its force joins r_u; its stiffness k N^T n n^T N
     (the curvature term of g, a force times 1/R, left out) joins K + H."""
 
-    def __init__(self, insertion, width: float, penalty: float = CONTACT_PENALTY):
+    def __init__(self, insertion, width: float, penalty: float = CONTACT_PENALTY, augmented: bool = False):
         geometry, model = insertion.geometry, insertion.model
         spacing = model.needle_spacing or model.spacing
         step = spacing / CONTACT_SAMPLES
@@ -188,10 +187,11 @@ class EntryContact:
         self.geometry, self.width = geometry, width
         self.pressure = np.zeros(len(points))  # augmented Lagrangian: each point's contact force, N (>= 0)
         self.gap = np.zeros(len(points))  # g at the last evaluation (where it counts; +inf elsewhere)
+        self.augmented, self.rotation = augmented, 0.0  # the needle's rotation at the step being solved
 
-    def terms(self, free: np.ndarray, center: np.ndarray, rotation: float) -> tuple[np.ndarray, sp.csr_matrix]:
+    def terms(self, insertion, free: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
         """The contact's force on r_u (2 n_free,) and its stiffness (2 n_free, 2 n_free)."""
-        geometry = self.geometry
+        geometry, rotation = self.geometry, self.rotation
         deformed = self.points + self.rows @ free.reshape(-1, 2)
         offset = deformed - center
         distance = np.linalg.norm(offset, axis=1)
@@ -216,67 +216,82 @@ class EntryContact:
         """How far the edge lies inside the needle at the last evaluation, mm (0: nowhere)."""
         return -self.gap.min(initial=0.0)
 
-
-@contextlib.contextmanager
-def entry_contact(width: float, penalty: float, augmented: bool = False):
-    """NeedleInsertion with EntryContact's terms while inside (nothing for a penalty 0);
-    `augmented`: the pressures updated after each equilibrium (Uzawa) until the penetration is
-    below AUGMENTED_PENETRATION of w/2 (an InsertionFailure if AUGMENTED_UPDATES do not get there),
-    an update Newton cannot follow made in smaller moves (raise_pressures)."""
-    residuals, stiffness, equilibrate = NeedleInsertion.residuals, NeedleInsertion._stiffness, \
-        NeedleInsertion.equilibrate
-
-    def with_contact(insertion, free, multipliers, center):
-        state = residuals(insertion, free, multipliers, center)
-        contact = insertion.__dict__.get("entry_contact")
-        if contact is None:
-            contact = insertion.entry_contact = EntryContact(insertion, width, penalty)
-        force, insertion.contact_stiffness = contact.terms(free, center, insertion.__dict__.get("rotation", 0.0))
-        return dataclasses.replace(state, residual=state.residual + force)
-
-    def stiffness_with_contact(insertion, multipliers, state):
-        tangent = stiffness(insertion, multipliers, state)
-        return lambda: (tangent() + insertion.contact_stiffness).tocsr()
-
-    def equilibrate_at(insertion, rotation, step, *arguments, **keywords):
-        insertion.rotation = rotation
+    def equilibrate(self, equilibrate, insertion, rotation, step, *arguments, **keywords):
+        """A step's equilibrium (`equilibrate`, the insertion's own); `augmented`: then the
+        pressures updated (Uzawa) until the penetration is below AUGMENTED_PENETRATION of w/2 (an
+        InsertionFailure if AUGMENTED_UPDATES do not get there), an update Newton cannot follow
+        made in smaller moves (raise_pressures)."""
+        self.rotation = rotation
         result = equilibrate(insertion, rotation, step, *arguments, **keywords)
-        if not augmented:
+        if not self.augmented:
             return result
-        contact, allowed = insertion.entry_contact, AUGMENTED_PENETRATION * 0.5 * width
+        allowed = AUGMENTED_PENETRATION * 0.5 * self.width
         for update in range(AUGMENTED_UPDATES + 1):
-            insertion.residuals(insertion.free, insertion.multipliers, insertion.center)  # contact.gap there
-            if contact.penetration() <= allowed:
+            insertion.residuals(insertion.free, insertion.multipliers, insertion.center)  # self.gap there
+            if self.penetration() <= allowed:
                 return result
             if update < AUGMENTED_UPDATES:
-                touching = np.where(np.isfinite(contact.gap), contact.gap, 0.0)
-                result = raise_pressures(insertion, np.maximum(contact.pressure - contact.penalty * touching, 0.0),
-                                         rotation, step, *arguments, **keywords)
+                touching = np.where(np.isfinite(self.gap), self.gap, 0.0)
+                result = self.raise_pressures(np.maximum(self.pressure - self.penalty * touching, 0.0), equilibrate,
+                                              insertion, rotation, step, *arguments, **keywords)
         raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): the entry's edge still "
-                               f"{1000 * contact.penetration():.1f} um inside the needle after "
+                               f"{1000 * self.penetration():.1f} um inside the needle after "
                                f"{AUGMENTED_UPDATES} pressure updates")
 
-    def raise_pressures(insertion, target, rotation, step, *arguments, **keywords):
-        """Equilibrium with the contact's pressures moved to `target`: the whole move first,
-        halved while Newton fails (from the state before it), down to AUGMENTED_SMALLEST_MOVE."""
-        contact, share = insertion.entry_contact, 1.0
-        start, before = contact.pressure, insertion.snapshot()
+    def raise_pressures(self, target, equilibrate, insertion, rotation, step, *arguments, **keywords):
+        """Equilibrium with the pressures moved to `target`: the whole move first, halved while
+        Newton fails (from the state before it), down to AUGMENTED_SMALLEST_MOVE."""
+        share, start, before = 1.0, self.pressure, insertion.snapshot()
         while True:
-            contact.pressure = start + share * (target - start)
+            self.pressure = start + share * (target - start)
             try:
                 return equilibrate(insertion, rotation, step, *arguments, **keywords)
             except InsertionFailure:
                 insertion.restore(before)
                 insertion.saddle.forget()
-                contact.pressure, share = start, 0.5 * share
+                self.pressure, share = start, 0.5 * share
                 if share < AUGMENTED_SMALLEST_MOVE:
                     raise
 
+
+@contextlib.contextmanager
+def added_term(make):
+    """NeedleInsertion with one more term while inside: `make(insertion)` builds it (once per
+    insertion), its `terms(insertion, free, center)` gives the force joining r_u and the
+    stiffness joining K + H, and its `equilibrate(equilibrate, insertion, rotation, step, ...)`
+    solves each step with the insertion's own `equilibrate` (EntryContact, track_cut.FaceTie)."""
+    residuals, stiffness, equilibrate = NeedleInsertion.residuals, NeedleInsertion._stiffness, \
+        NeedleInsertion.equilibrate
+
+    def term(insertion):
+        if "added_term" not in insertion.__dict__:
+            insertion.added_term = make(insertion)
+        return insertion.added_term
+
+    def with_term(insertion, free, multipliers, center):
+        state = residuals(insertion, free, multipliers, center)
+        force, insertion.added_stiffness = term(insertion).terms(insertion, free, center)
+        return dataclasses.replace(state, residual=state.residual + force)
+
+    def stiffness_with_term(insertion, multipliers, state):
+        tangent = stiffness(insertion, multipliers, state)
+        return lambda: (tangent() + insertion.added_stiffness).tocsr()
+
+    def equilibrate_with_term(insertion, *arguments, **keywords):
+        return term(insertion).equilibrate(equilibrate, insertion, *arguments, **keywords)
+
+    with mock.patch.multiple(NeedleInsertion, residuals=with_term, _stiffness=stiffness_with_term,
+                             equilibrate=equilibrate_with_term):
+        yield
+
+
+@contextlib.contextmanager
+def entry_contact(width: float, penalty: float, augmented: bool = False):
+    """NeedleInsertion with EntryContact while inside (nothing for a penalty 0)."""
     if penalty <= 0:
         yield
         return
-    with mock.patch.multiple(NeedleInsertion, residuals=with_contact, _stiffness=stiffness_with_contact,
-                             equilibrate=equilibrate_at):
+    with added_term(lambda insertion: EntryContact(insertion, width, penalty, augmented)):
         yield
 
 
@@ -310,8 +325,7 @@ def insertion_run(scenario, *contexts) -> tuple[str, str, NeedleInsertion]:
 def run(scene: str, width: float, penalty: float, level: str, factor: float, augmented: bool = False) -> dict:
     """One insertion; with the entry's free edge where it ended (once the needle has left, or at
     the last load carried where it stopped): entry_newton.entry_flanks."""
-    base = needle_coupling.scene(scene, needle_coupling.SHIPPED_COUPLING)
-    scenario = with_discretization(base, spacing=base.discretization.spacing * factor)
+    scenario = needle_coupling.refined(scene, factor)
     spacing = scenario.discretization.needle_spacing or scenario.discretization.spacing
     across = max(MIN_ACROSS, math.ceil(ACROSS_PER_SPACING * width / spacing)) if width > 0 else 0
     start = time.perf_counter()

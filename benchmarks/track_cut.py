@@ -46,7 +46,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import contextlib  # noqa: E402
-import dataclasses  # noqa: E402
 import math  # noqa: E402
 import re  # noqa: E402
 import sys  # noqa: E402
@@ -63,9 +62,7 @@ import needle_coupling  # noqa: E402
 import needle_width  # noqa: E402
 import stitchplan.needle.equilibrium as equilibrium  # noqa: E402
 import stitchplan.tissue.model as tissue_model  # noqa: E402
-from stitchplan.config import with_discretization  # noqa: E402
 from stitchplan.needle.coupling import NeedleCoupling  # noqa: E402
-from stitchplan.needle.equilibrium import NeedleInsertion  # noqa: E402
 
 CUT_SPAN = 8.0  # mm of the track from the entry that is cut (the fold is at the entry)
 FACE_OFFSET = 1e-3  # mm off the cut where a face is evaluated
@@ -194,26 +191,38 @@ class FaceTie:
         self.mean = sp.csr_matrix((1.0 / counts[group], (group, np.arange(len(group)))), shape=(len(counts), len(group)))
         material = insertion.scenario.tissue.material
         self.penalty = penalty * material.lame_mu * insertion.scenario.tissue.thickness * step / spacing * element
-        self.normal_means = (self.mean @ self.normal_rows).tocsr()
-        self.insertion, self.cut = insertion, cut
+        normal_means = (self.mean @ self.normal_rows).tocsr()
+        self.normal_part = normal_means.T @ normal_means  # A_n^T A_n: the same at every state
+        self.cut = cut
         self.tip_before = self.tip = 0.0  # the tip's arc length on the cut at the step's start, and now
         self.track_points = -1
+        self.stiffness_at = (None, None)  # (tip_before, tip, load factor), its stiffness
 
-    def follow_tip(self) -> None:
+    def follow_tip(self, insertion) -> None:
         """At a step's start: where the tip has got to on the cut."""
-        points = self.insertion.points
+        points = insertion.points
         if len(points) != self.track_points:
             self.track_points, self.tip_before = len(points), self.tip
             if len(points):
                 self.tip = float(self.cut.nearest(points[-1])[1][0])
 
-    def terms(self, free: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
-        passed = (self.along > self.tip_before) & (self.along <= self.tip)
-        sliding = np.where(self.along <= self.tip_before, 0.0,
-                           np.where(passed, 1.0 - self.insertion.coupling.load_factor, 1.0))
-        tangent_means = (self.mean @ sp.diags(sliding) @ self.tangent_rows).tocsr()
-        stiffness = self.penalty * (self.normal_means.T @ self.normal_means + tangent_means.T @ tangent_means)
-        return stiffness @ free.ravel(), stiffness.tocsr()
+    def stiffness(self, load_factor: float) -> sp.csr_matrix:
+        """k (A_n^T A_n + A_t^T A_t), A_t with this step's sliding c: made once per step and load."""
+        key = (self.tip_before, self.tip, load_factor)
+        if self.stiffness_at[0] != key:
+            passed = (self.along > self.tip_before) & (self.along <= self.tip)
+            sliding = np.where(self.along <= self.tip_before, 0.0, np.where(passed, 1.0 - load_factor, 1.0))
+            tangent_means = (self.mean @ sp.diags(sliding) @ self.tangent_rows).tocsr()
+            self.stiffness_at = (key, (self.penalty * (self.normal_part + tangent_means.T @ tangent_means)).tocsr())
+        return self.stiffness_at[1]
+
+    def terms(self, insertion, free: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+        stiffness = self.stiffness(insertion.coupling.load_factor)
+        return stiffness @ free.ravel(), stiffness
+
+    def equilibrate(self, equilibrate, insertion, *arguments, **keywords):
+        self.follow_tip(insertion)
+        return equilibrate(insertion, *arguments, **keywords)
 
 
 @contextlib.contextmanager
@@ -222,8 +231,6 @@ def track_cut(cut: CutVisibility, penalty: float, stations: int, element: int):
     terms in the insertion, while inside."""
     shape_functions, build = tissue_model.rk_shape_functions, tissue_model.build_tissue_model
     couple = NeedleCoupling.__init__
-    residuals, stiffness, equilibrate = NeedleInsertion.residuals, NeedleInsertion._stiffness, \
-        NeedleInsertion.equilibrate
 
     def seeing_across(points, particles, *arguments):  # the visibility argument, None on a rectangle
         arguments = list(arguments)
@@ -239,29 +246,10 @@ def track_cut(cut: CutVisibility, penalty: float, stations: int, element: int):
         couple(coupling, model, geometry, needle, dilation)
         coupling.model = FaceRows(model, cut)
 
-    def tie(insertion) -> FaceTie:
-        if "face_tie" not in insertion.__dict__:
-            insertion.face_tie = FaceTie(insertion, cut, penalty, stations, element)
-        return insertion.face_tie
-
-    def with_tie(insertion, free, multipliers, center):
-        state = residuals(insertion, free, multipliers, center)
-        force, insertion.tie_stiffness = tie(insertion).terms(free)
-        return dataclasses.replace(state, residual=state.residual + force)
-
-    def stiffness_with_tie(insertion, multipliers, state):
-        tangent = stiffness(insertion, multipliers, state)
-        return lambda: (tangent() + insertion.tie_stiffness).tocsr()
-
-    def equilibrate_at(insertion, *arguments, **keywords):
-        tie(insertion).follow_tip()
-        return equilibrate(insertion, *arguments, **keywords)
-
     with mock.patch.object(tissue_model, "rk_shape_functions", seeing_across), \
             mock.patch.object(equilibrium, "build_tissue_model", built), \
             mock.patch.object(NeedleCoupling, "__init__", faced), \
-            mock.patch.multiple(NeedleInsertion, residuals=with_tie, _stiffness=stiffness_with_tie,
-                                equilibrate=equilibrate_at):
+            needle_width.added_term(lambda insertion: FaceTie(insertion, cut, penalty, stations, element)):
         yield
 
 
@@ -275,8 +263,7 @@ def first_span(track: np.ndarray, points: int) -> np.ndarray:
 def run(scene: str, level: str, factor: float, penalty: float, stations: int, element: int,
         cut_points: int) -> list[dict]:
     """The fixed point of the cut on one scene and level: a row per round."""
-    base = needle_coupling.scene(scene, needle_coupling.SHIPPED_COUPLING)
-    scenario = with_discretization(base, spacing=base.discretization.spacing * factor)
+    scenario = needle_coupling.refined(scene, factor)
     spacing = scenario.discretization.needle_spacing or scenario.discretization.spacing
     cut = first_span(needle_width.insertion_run(scenario)[2].points, cut_points)  # the line needle's track
     rows = []
