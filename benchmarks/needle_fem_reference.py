@@ -24,12 +24,15 @@ nest: every particle of a level is one of the next), with
                the shipped plan (sample_runs/SCENE/trajectory.csv, planned at h) replayed: its
                exit error on finer models of either kind (sh12_100x100 and sh12_100x40).
 The soft slab also with its cutting force alone (`soft_t3 friction=0`) and its friction alone
-(`soft_t3 cutting_force=0`), RK only. Every run records the smallest det F over every
+(`soft_t3 cutting_force=0`), RK only; the 2.5 mm soft slab (soft_t2.5), whose RK run stops at
+h/4, in both kinds; and both soft slabs' triangles once more at h/16. Every run records the smallest det F over every
 quadrature point of every needle step, where it is (its distance from the needle's entry) and
 at which step: how much the tissue is compressed as the discretization is refined.
-soft_t3 is benchmarks/needle_coupling.py's soft slab (configs/sh12_100x100.yaml neo-Hookean, 3 mm).
+soft_t3 and soft_t2.5 are benchmarks/needle_coupling.py's soft slabs (configs/sh12_100x100.yaml
+neo-Hookean, 3 and 2.5 mm).
 
-Writes benchmarks/results/needle_fem_reference.{csv,md,png}. About 10 minutes on 2 cores.
+Writes benchmarks/results/needle_fem_reference.{csv,md,png}. About 30 minutes on 2 cores (the
+triangles at h/16: 115 000 particles, 7 GB).
 Run from the repository root:  python benchmarks/needle_fem_reference.py  (--report: only
 the tables and chart from the CSV)
 """
@@ -69,11 +72,16 @@ from stitchplan.tissue.model import (TissueModel, build_tissue_model, direction_
                                      gradient_operator, material_at)
 from stitchplan.tissue.shape_functions import ShapePairs  # noqa: E402
 
-SCENES = ("sh12_100x100", "sh12_100x40", "needle20_entry30", "soft_t3", "soft_t3 friction=0", "soft_t3 cutting_force=0")
+SCENES = ("sh12_100x100", "sh12_100x40", "needle20_entry30", "soft_t3", "soft_t3 friction=0", "soft_t3 cutting_force=0",
+          "soft_t2.5")
 FACTORS = (1.0, 0.5, 0.25, 0.125)
+FINEST = 0.0625  # the soft slabs' triangles once more: do their exit errors settle below h/8?
 KINDS = ("rk", "fe", "rk whole", "fe whole")
 EXTRA = {"sh12_100x100": ("rk steps/4", "rk plan", "fe plan"), "sh12_100x40": ("rk plan", "fe plan")}
-ONLY = {"soft_t3 friction=0": ("rk",), "soft_t3 cutting_force=0": ("rk",)}  # scenes run with these kinds alone
+ONLY = {"soft_t3 friction=0": ("rk",), "soft_t3 cutting_force=0": ("rk",),
+        "soft_t2.5": ("rk", "fe")}  # scenes run with these kinds alone
+FINER = {("soft_t3", "fe"), ("soft_t2.5", "fe")}  # run at FINEST as well
+LEVELS = (*FACTORS, FINEST)
 PLANS = common.REPO_ROOT / "sample_runs"  # SCENE/trajectory.csv, written by sample_runs/regenerate.sh
 STEP_DIVISOR = 4
 MIN_RATE = 0.4  # a Richardson limit only from a rate this high: at most ~3x the last difference added
@@ -188,7 +196,7 @@ def _run(scene: str, model: str, factor: float) -> dict:
         result = run_insertion(scenario, center_path=center_path, tissue=tissue)
         row.update(particles=result.model.n_particles, exit_error_mm=result.exit_error_mm, **compression(result))
     except InsertionFailure as failure:
-        row["failure"] = " ".join(str(failure).split())[:160]
+        row["failure"] = " ".join(str(failure).split())
     row["seconds"] = time.perf_counter() - start
     print(scene, model, f"h x {factor:g}", f"{row['exit_error_mm']:.6f}", row["failure"], flush=True)
     return row
@@ -209,6 +217,16 @@ def kinds_of(scene: str) -> tuple[str, ...]:
     return ONLY.get(scene, (*KINDS, *EXTRA.get(scene, ())))
 
 
+def factors_of(scene: str, model: str) -> tuple[float, ...]:
+    return LEVELS if (scene, model) in FINER else FACTORS
+
+
+def level_cells(group: list[dict], value) -> list[str]:
+    """One cell per LEVELS: value(row) where the run finished, "stops" where it failed, "-" where not run."""
+    by_factor = {float(row["factor"]): row for row in group}
+    return [("stops" if by_factor[f]["failure"] else value(by_factor[f])) if f in by_factor else "-" for f in LEVELS]
+
+
 def ladders(rows: list[dict]) -> dict[tuple[str, str], list[dict]]:
     groups: dict[tuple[str, str], list[dict]] = {}
     for row in rows:
@@ -219,8 +237,10 @@ def ladders(rows: list[dict]) -> dict[tuple[str, str], list[dict]]:
 def ladder_figures(group: list[dict]) -> dict:
     """Differences between successive levels, observed rates (ratio 2), the change from h to
     h/2 and, where the last three levels are monotone with a rate of at least MIN_RATE, their
-    Richardson limit (slower, the extrapolation would be many times the last difference)."""
-    errors = np.array([float(row["exit_error_mm"]) for row in group])
+    Richardson limit (slower, the extrapolation would be many times the last difference).
+    The ladder ends at its first failed run."""
+    levels = next((k for k, row in enumerate(group) if row["failure"]), len(group))
+    errors = np.array([float(row["exit_error_mm"]) for row in group[:levels]])
     differences = np.diff(errors)
     rates = [math.log2(abs(a / b)) if a * b > 0 and b != 0 else float("nan")
              for a, b in zip(differences[:-1], differences[1:])]
@@ -228,7 +248,7 @@ def ladder_figures(group: list[dict]) -> dict:
     if len(errors) >= 3 and np.isfinite(rates[-1]) and rates[-1] >= MIN_RATE:
         limit = errors[-1] + differences[-1] / (2.0 ** rates[-1] - 1.0)
     return {"errors": errors, "differences": differences, "rates": rates, "limit": limit,
-            "change": 100.0 * (errors[1] / errors[0] - 1.0)}
+            "change": 100.0 * (errors[1] / errors[0] - 1.0) if len(errors) > 1 else float("nan")}
 
 
 def markdown(rows: list[dict]) -> str:
@@ -242,16 +262,22 @@ def markdown(rows: list[dict]) -> str:
              "at every spacing (no pieces); `steps/4`: the needle step divided by 4. Differences d_k",
              "between successive levels; rate log2(d_k / d_k+1); limit: Richardson from the last three",
              "levels where they are monotone with a rate of at least 0.4. A failed run shows its InsertionFailure.", "",
-             "Reading (2026-12-05): the two discretizations approach one another (rk / fe - 1 from +3.6 to",
+             "Reading (2026-12-06): the two discretizations approach one another (rk / fe - 1 from +3.6 to",
              "+6.3 % at h to +0.15 to +0.54 % at h/8), so the exit errors are the model's, not the RK",
              "functions'; at h, RK is 1.1 to 2.9 % below the limit of its ladder on the SH 1/2 blocks and the",
              "20 mm needle scene, the triangles 5.4 to 8.0 %. With the track's segments whole (two Gauss",
              "points per segment at every spacing, as before segment_subintervals) both kept moving from",
              "h/4 to h/8 (+0.8 to +2.4 %): two points per 0.71 mm segment on particles 0.11 mm apart act as",
              "point forces, whose log-singular displacement does not converge; split into pieces, RK moves",
-             "by +0.10 to +0.26 % there. The 3 mm slab settles in neither (RK +0.030 and +0.029 mm per",
-             "halving from h/2 on), though its cutting force alone and its friction alone do (RK rates",
-             "3.1 and 1.7, then 1.7 and 0.5). On the SH 1/2 scenes, in both discretizations, the tissue is",
+             "by +0.10 to +0.26 % there. The 3 mm slab settles in neither to h/8 (RK +0.030 and +0.029 mm",
+             "per halving from h/2 on, the triangles +0.047 and +0.062 mm), though its cutting force alone",
+             "and its friction alone do (RK rates 3.1 and 1.7, then 1.7 and 0.5); the triangles at h/16 move",
+             "by +0.010 mm. The 2.5 mm slab has no limit in either: RK stops at h/4 (step 16) and h/8 (step",
+             "4); the triangles run to h/8 and move by +0.238, +0.106, +0.116 mm per halving (2.692 to",
+             "3.151 mm; +8.84 % from h to h/2, RK +3.89 %), the entry compressed further at every level",
+             "(det F 0.70 to 0.25), and at h/16 they stop at step 15 with the entry's material inverted",
+             "(det F = -286 at (0.093, 30) mm): the model fails there, not the RK functions.",
+             "On the SH 1/2 scenes, in both discretizations, the tissue is",
              "compressed most right at the needle's entry (within 0.02-0.9 mm of it), where the needle's",
              "loads meet the free edge, and more at every refinement: a singular point of the model. On the",
              "10 mm blocks (det F 0.90 to 0.71 from h to h/8, RK) and with either load alone on the 3 mm",
@@ -261,7 +287,7 @@ def markdown(rows: list[dict]) -> str:
              "the insertion's step is part of the model. The shipped plans replayed exit within 0.0036",
              "mm of their targets from h/2 on with either kind (h/8: RK 0.0036 and 0.0023 mm, the",
              "triangles 0.0025 and 0.0014 mm; the triangles at h, 6.7 % off themselves, 0.0071 mm).", ""]
-    header = ["scene", "model", "step (rad)", "h", "h/2", "h/4", "h/8", "h to h/2", "d (mm)", "rates",
+    header = ["scene", "model", "step (rad)", "h", "h/2", "h/4", "h/8", "h/16", "h to h/2", "d (mm)", "rates",
               "limit (mm)", "h from limit"]
     table = []
     for (scene, model), group in groups.items():
@@ -269,12 +295,11 @@ def markdown(rows: list[dict]) -> str:
             continue
         figures = ladder_figures(group)
         errors = figures["errors"]
-        level = {float(row["factor"]): float(row["exit_error_mm"]) for row in group}
         table.append([scene, model, common.fmt(float(group[0]["needle_step_rad"])),
-                      *(f"{level.get(f, float('nan')):.4f}" for f in FACTORS),
+                      *level_cells(group, lambda row: f"{float(row['exit_error_mm']):.4f}"),
                       f"{figures['change']:+.2f} %",
                       " ".join(f"{d:+.4f}" for d in figures["differences"]),
-                      " ".join(f"{r:.2f}" for r in figures["rates"]),
+                      " ".join(f"{r:.2f}" for r in figures["rates"]) or "-",
                       f"{figures['limit']:.4f}" if np.isfinite(figures["limit"]) else "-",
                       f"{100 * (errors[0] / figures['limit'] - 1):+.1f} %" if np.isfinite(figures["limit"]) else "-"])
     lines += ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
@@ -286,9 +311,12 @@ def markdown(rows: list[dict]) -> str:
             rk, fe = groups.get((scene, "rk" + suffix)), groups.get((scene, "fe" + suffix))
             if rk is None or fe is None:
                 continue
-            ratios = [100 * (float(a["exit_error_mm"]) / float(b["exit_error_mm"]) - 1) for a, b in zip(rk, fe)]
-            lines.append(f"| {scene} | {suffix.strip() or 'in pieces'} | "
-                         + " | ".join(f"{r:+.2f} %" for r in ratios) + " |")
+            rk_at, fe_at = ({float(row["factor"]): row for row in group} for group in (rk, fe))
+            ratios = ["-" if f not in rk_at or f not in fe_at
+                      else "stops" if rk_at[f]["failure"] or fe_at[f]["failure"]
+                      else f"{100 * (float(rk_at[f]['exit_error_mm']) / float(fe_at[f]['exit_error_mm']) - 1):+.2f} %"
+                      for f in FACTORS]
+            lines.append(f"| {scene} | {suffix.strip() or 'in pieces'} | " + " | ".join(ratios) + " |")
     lines += ["", "The shipped plans (sample_runs/SCENE/trajectory.csv, planned on the file's model at h)",
               "replayed on each level's model, RK and FE: their exit errors (mm).", "",
               "| scene | model | h | h/2 | h/4 | h/8 |", "|---|---|---|---|---|---|"]
@@ -297,11 +325,11 @@ def markdown(rows: list[dict]) -> str:
             lines.append(f"| {scene} | {model} | " + " | ".join(f"{float(row['exit_error_mm']):.4f}" for row in group) + " |")
     lines += ["", "The smallest det F over every quadrature point of every needle step (in brackets: its",
               "distance from the needle's entry, mm):", "",
-              "| scene | model | h | h/2 | h/4 | h/8 |", "|---|---|---|---|---|---|"]
+              "| scene | model | h | h/2 | h/4 | h/8 | h/16 |", "|---|---|---|---|---|---|---|"]
     for (scene, model), group in groups.items():
         if model in ("rk", "fe"):
-            lines.append(f"| {scene} | {model} | " + " | ".join(
-                f"{float(row['min_det_f']):.3f} ({float(row['min_det_f_from_entry_mm']):.2f})" for row in group) + " |")
+            lines.append(f"| {scene} | {model} | " + " | ".join(level_cells(
+                group, lambda row: f"{float(row['min_det_f']):.3f} ({float(row['min_det_f_from_entry_mm']):.2f})")) + " |")
     failures = [row for row in rows if row["failure"]]
     if failures:
         lines += ["", "Failed runs:", ""]
@@ -325,8 +353,13 @@ def chart(rows: list[dict], path) -> None:
             spacing = [float(row["needle_spacing_mm"]) for row in group]
             errors = [float(row["exit_error_mm"]) for row in group]
             spacings.update(spacing)
-            style = "o-" if model.startswith("rk") else "s--"
-            axis.plot(spacing, errors, style, ms=4, color=f"C{models.index(model)}", label=model)
+            style, color = ("o-" if model.startswith("rk") else "s--"), f"C{models.index(model)}"
+            axis.plot(spacing, errors, style, ms=4, color=color, label=model)
+            stop = next((k for k, row in enumerate(group) if row["failure"]), None)
+            if stop:  # where the ladder stops: an x at the failed level, at the height of the last that ran
+                axis.plot(spacing[stop], errors[stop - 1], "x", ms=7, color=color)
+                axis.annotate("stops", (spacing[stop], errors[stop - 1]), textcoords="offset points",
+                              xytext=(4, -10), fontsize=7, color=color)
         axis.set_xscale("log")
         axis.set_xticks(sorted(spacings), [f"{value:.3g}" for value in sorted(spacings)])
         axis.minorticks_off()
@@ -335,6 +368,8 @@ def chart(rows: list[dict], path) -> None:
         axis.set_xlabel("particle spacing at the needle (mm)", fontsize=8)
         axis.set_ylabel("unplanned exit error (mm)", fontsize=8)
         axis.tick_params(labelsize=7)
+    for axis in axes.ravel()[len(scenes):]:
+        axis.set_visible(False)
     common.panels_legend(figure, axes, ncol=len(models))
     figure.suptitle("Exit error under refinement: RK particles against linear triangles on the same particles",
                     fontsize=10)
@@ -347,7 +382,7 @@ def main() -> None:
     if "--report" in sys.argv[1:]:
         rows = common.csv_rows(csv_path)
     else:
-        jobs = [(scene, model, factor) for scene in SCENES for model in kinds_of(scene) for factor in FACTORS]
+        jobs = [(scene, model, factor) for scene in SCENES for model in kinds_of(scene) for factor in factors_of(scene, model)]
         with ProcessPoolExecutor(2) as pool:  # the finest (slowest) first, so the two workers end together
             done = list(pool.map(run, sorted(jobs, key=lambda job: job[2])))
         order = {job: k for k, job in enumerate(jobs)}
