@@ -25,9 +25,10 @@ nest: every particle of a level is one of the next), with
                exit error on finer models of either kind (sh12_100x100 and sh12_100x40).
 The soft slab also with its cutting force alone (`soft_t3 friction=0`) and its friction alone
 (`soft_t3 cutting_force=0`), RK only; the 2.5 mm soft slab (soft_t2.5), whose RK run stops at
-h/4, in both kinds; and both soft slabs' triangles once more at h/16. Every run records the smallest det F over every
-quadrature point of every needle step, where it is (its distance from the needle's entry) and
-at which step: how much the tissue is compressed as the discretization is refined.
+h/4, in both kinds; and both soft slabs' triangles once more at h/16. Every run records the
+smallest det F over every quadrature point of every needle step, where it is (its distance
+from the needle's entry) and at which step: how much the tissue is compressed as the
+discretization is refined.
 soft_t3 and soft_t2.5 are benchmarks/needle_coupling.py's soft slabs (configs/sh12_100x100.yaml
 neo-Hookean, 3 and 2.5 mm).
 
