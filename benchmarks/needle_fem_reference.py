@@ -228,6 +228,11 @@ def level_cells(group: list[dict], value) -> list[str]:
     return [("stops" if by_factor[f]["failure"] else value(by_factor[f])) if f in by_factor else "-" for f in LEVELS]
 
 
+def levels_run(group: list[dict]) -> int:
+    """How many of a ladder's levels (coarsest first) ran before its first failed run."""
+    return next((k for k, row in enumerate(group) if row["failure"]), len(group))
+
+
 def ladders(rows: list[dict]) -> dict[tuple[str, str], list[dict]]:
     groups: dict[tuple[str, str], list[dict]] = {}
     for row in rows:
@@ -240,8 +245,7 @@ def ladder_figures(group: list[dict]) -> dict:
     h/2 and, where the last three levels are monotone with a rate of at least MIN_RATE, their
     Richardson limit (slower, the extrapolation would be many times the last difference).
     The ladder ends at its first failed run."""
-    levels = next((k for k, row in enumerate(group) if row["failure"]), len(group))
-    errors = np.array([float(row["exit_error_mm"]) for row in group[:levels]])
+    errors = np.array([float(row["exit_error_mm"]) for row in group[:levels_run(group)]])
     differences = np.diff(errors)
     rates = [math.log2(abs(a / b)) if a * b > 0 and b != 0 else float("nan")
              for a, b in zip(differences[:-1], differences[1:])]
@@ -329,8 +333,9 @@ def markdown(rows: list[dict]) -> str:
               "| scene | model | h | h/2 | h/4 | h/8 | h/16 |", "|---|---|---|---|---|---|---|"]
     for (scene, model), group in groups.items():
         if model in ("rk", "fe"):
-            lines.append(f"| {scene} | {model} | " + " | ".join(level_cells(
-                group, lambda row: f"{float(row['min_det_f']):.3f} ({float(row['min_det_f_from_entry_mm']):.2f})")) + " |")
+            cells = level_cells(group, lambda row: f"{float(row['min_det_f']):.3f} "
+                                                   f"({float(row['min_det_f_from_entry_mm']):.2f})")
+            lines.append(f"| {scene} | {model} | " + " | ".join(cells) + " |")
     failures = [row for row in rows if row["failure"]]
     if failures:
         lines += ["", "Failed runs:", ""]
@@ -356,8 +361,8 @@ def chart(rows: list[dict], path) -> None:
             spacings.update(spacing)
             style, color = ("o-" if model.startswith("rk") else "s--"), f"C{models.index(model)}"
             axis.plot(spacing, errors, style, ms=4, color=color, label=model)
-            stop = next((k for k, row in enumerate(group) if row["failure"]), None)
-            if stop:  # where the ladder stops: an x at the failed level, at the height of the last that ran
+            stop = levels_run(group)
+            if 0 < stop < len(group):  # where the ladder stops: an x at the failed level, at the last that ran's height
                 axis.plot(spacing[stop], errors[stop - 1], "x", ms=7, color=color)
                 axis.annotate("stops", (spacing[stop], errors[stop - 1]), textcoords="offset points",
                               xytext=(4, -10), fontsize=7, color=color)
@@ -383,7 +388,8 @@ def main() -> None:
     if "--report" in sys.argv[1:]:
         rows = common.csv_rows(csv_path)
     else:
-        jobs = [(scene, model, factor) for scene in SCENES for model in kinds_of(scene) for factor in factors_of(scene, model)]
+        jobs = [(scene, model, factor) for scene in SCENES for model in kinds_of(scene)
+                for factor in factors_of(scene, model)]
         with ProcessPoolExecutor(2) as pool:  # the finest (slowest) first, so the two workers end together
             done = list(pool.map(run, sorted(jobs, key=lambda job: job[2])))
         order = {job: k for k, job in enumerate(jobs)}
