@@ -46,6 +46,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import contextlib  # noqa: E402
+import functools  # noqa: E402
 import math  # noqa: E402
 import re  # noqa: E402
 import sys  # noqa: E402
@@ -306,9 +307,15 @@ def settled(group: list[dict]) -> tuple[float, float]:
     return float(np.mean(values)), 0.5 * abs(values[-1] - values[0])
 
 
+@functools.cache
+def needle_width_rows() -> tuple[dict, ...]:
+    """needle_width.csv, read once: the report asks it for the line needle at every level."""
+    return tuple(common.csv_rows(common.results_path("needle_width.csv")))
+
+
 def line_needle(scene: str, level: str) -> str:
     """The package's line needle on `scene` at `level` (needle_width.csv; empty where it stopped)."""
-    found = [row["exit_error_mm"] for row in common.csv_rows(common.results_path("needle_width.csv"))
+    found = [row["exit_error_mm"] for row in needle_width_rows()
              if row["scene"] == scene and row["width_mm"] == "0" and row["level"] == level]
     return found[0] if found else ""
 
