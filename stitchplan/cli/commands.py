@@ -106,13 +106,21 @@ def simulate(
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.readers import read_center_path
+    from ..needle.geometry import entry_lean, scenario_needle
     from ..planning.verification import estimate_replays, simulate_with_estimate
     from ..study.auto import resolve_accuracy
 
     resume_collection()
     linear_solver, tip_tracking = _value(linear_solver), _value(tip_tracking)
     geometry = _needle_geometry(scenario_path, scenario)
-    path = read_center_path(center_path, geometry) if center_path is not None else None
+
+    def needle_for(first_center):
+        """The needle a path starting about `first_center` replays: a path planned with the
+        needle leaning at entry leans it (run_insertion does the same)."""
+        with _naming_files(scenario_path, center_path):
+            return scenario_needle(entry_lean(scenario, first_center))
+
+    path = read_center_path(center_path, geometry, needle_for) if center_path is not None else None
     _check_plot_steps(steps_to_plot, scenario)
     limits = _limits(max_particles, no_resource_check)
     if scenario.discretization.accuracy is None:

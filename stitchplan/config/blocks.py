@@ -549,6 +549,14 @@ def parse_discretization(raw: Any, path: str = "discretization") -> Discretizati
     return Discretization() if raw is None else validate(Discretization, raw, path)
 
 
+
+# the needle's lean at entry (needle.entry_tilt, planner.max_entry_tilt): up to 1 rad (57 deg)
+# from the orthogonal entry; nearer pi/2 the needle would run along the surface instead of in
+MAX_ENTRY_TILT = 1.0
+EntryTilt = number(f"an angle between {-MAX_ENTRY_TILT:g} and {MAX_ENTRY_TILT:g} rad", ge=-MAX_ENTRY_TILT,
+                   le=MAX_ENTRY_TILT)
+
+
 @block(kw_only=True)
 class Needle:
     radius: described(NeedleRadius, f"needle radius, mm; at most {MAX_NEEDLE_RADIUS_MM:g}")
@@ -583,6 +591,10 @@ class Needle:
     cutting_ramp: described(Flag, "mortar coupling: the cutting force grows with the cutting edge "
                                   "inside (cutting_force / cutting_length per mm) instead of acting "
                                   "whole from the first step") = False
+    # 0: the thesis's orthogonal entry, which also places the desired exit (needle/geometry.py)
+    entry_tilt: described(EntryTilt, "rad the needle leans from the orthogonal entry, turned about the "
+                                     "entry point; positive deepens the bite (a turn against the "
+                                     "needle's); the desired exit stays the orthogonal needle's") = 0.0
 
     _magnitudes_within_limits = within_limits(NEEDLE_LIMITS)
 
@@ -747,6 +759,24 @@ class Planner:
                       "on both sides of the wound, trading exit error for symmetry") = "exit"
     predicted_aim: described(Flag, "plan with verification: aim the passes after the first by the refined "
                              "model's offset predicted from a replay of the first pass at twice the spacing") = True
+    aim_entry_tilt: described(Flag, "lean the needle at entry (needle.entry_tilt, within max_entry_tilt) "
+                                    "so that the first pass, its centre path within the move limits, "
+                                    "exits at the desired exit; for scenes whose compensation the move "
+                                    "limits cannot carry") = False
+    max_entry_tilt: described(number(f"a positive angle of at most {MAX_ENTRY_TILT:g} rad", gt=0,
+                                     le=MAX_ENTRY_TILT),
+                              "rad the planner may lean the needle at entry (aim_entry_tilt)") = 0.35
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _lean_aims_the_exit(cls, data: Any, handler) -> Planner:
+        """aim_entry_tilt aims the exit; the symmetric target's aim follows the bites pass by
+        pass, which a lean chosen before the passes cannot."""
+        planner = handler(data)
+        if planner.aim_entry_tilt and planner.target == "symmetric":
+            raise problem("false with target symmetric (the lean is chosen for the exit, before the passes "
+                          "that aim the bites)", field="aim_entry_tilt", value=Shown("true"))
+        return planner
 
 
 # bounds of the robot's frame and speed (the same for `plan`'s --base-transform and

@@ -5,6 +5,7 @@ tissue, the needle, the tip paths and zooms on each run's exit error."""
 from __future__ import annotations
 
 import itertools
+import math
 from pathlib import Path
 
 import numpy as np
@@ -290,7 +291,9 @@ def plot_plan(path: str | Path, result):
     trajectory.plot(rotation, centers[:, 1] - centers[0, 1], label="O_y(t) - O_y(0)")
     trajectory.set_xlabel("needle rotation (rad)")
     trajectory.set_ylabel("centre offset from the entry centre (mm)")
-    trajectory.set_title("planned needle-centre trajectory O(t)", fontsize=9)
+    lean = planned.geometry.tilt  # O(0) leaning from the orthogonal entry's centre (planner.aim_entry_tilt)
+    trajectory.set_title("planned needle-centre trajectory O(t)" + (
+        f"\nthe needle leaning {lean:.3g} rad ({math.degrees(lean):.2g}°) at entry" if lean else ""), fontsize=9)
     trajectory.grid(alpha=0.3)
     trajectory.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8, frameon=False)
     headline = f"exit error {planned.exit_error_mm:.3g} mm planned"

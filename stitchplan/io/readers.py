@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ..decimals import parse_number, spells_a_number
 from ..errors import InputError
-from ..needle.geometry import NeedleGeometry
+from ..needle.geometry import ENTRY_TOLERANCE, LEAN_TOLERANCE, NeedleGeometry, length, on_entry_circle
 
 CENTER_PATH_COLUMNS = ("step", "center_x_mm", "center_y_mm")
 ANGLE_COLUMN = "angle_rad"
@@ -86,16 +86,24 @@ def _number(path: Path, line: int, name: str, text: str) -> float:
     return value
 
 
-def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None) -> np.ndarray:
+def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
+                     leaning: Callable[[np.ndarray], NeedleGeometry] | None = None) -> np.ndarray:
     """Needle centres (n, 2) in mm from a trajectory CSV as `stitchplan plan` exports it:
     row n holds step n, from 0, in the columns step, center_x_mm, center_y_mm; the other
     columns (tips, times, base frame) must hold numbers too but are not used. With the
     needle's `geometry`, the path must also fit that needle: its angle_rad, when the file has
     one, the needle's rotation schedule (check_angles), and its centres the needle's steps
-    and entry (check_center_path)."""
+    and entry (check_center_path). `leaning(row 0)`: the needle a path starting there replays
+    (needle.geometry.entry_lean: a plan may lean the needle at entry); a row 0 off the centre
+    at entry but within LEAN_TOLERANCE of the circle about the entry is put onto it."""
     table, row_numbers = read_table(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
     _check_steps(path, table["step"], row_numbers)
     centers = np.column_stack([table["center_x_mm"], table["center_y_mm"]])
+    if geometry is not None and leaning is not None:
+        placed = on_entry_circle(geometry, centers[0], LEAN_TOLERANCE)
+        if placed is not None and length(centers[0] - geometry.center) > ENTRY_TOLERANCE * geometry.radius:
+            centers[0] = placed
+        geometry = leaning(centers[0])
     if geometry is not None:
         if ANGLE_COLUMN in table:
             check_angles(path, table[ANGLE_COLUMN], geometry, row_numbers)
@@ -135,7 +143,6 @@ def check_angles(path: str | Path, angles: np.ndarray, geometry: NeedleGeometry,
 # MIN_STEP_SLACK) before or after the undeformed circle's exit: see check_center_path
 STEP_SLACK = 0.25
 MIN_STEP_SLACK = 2
-ENTRY_TOLERANCE = 0.01  # needle radii: row 0 is the needle centre at entry
 MAX_CENTER_MOVE = 3.0  # needle radii: how far any centre may lie from the entry centre
 
 
@@ -159,7 +166,7 @@ def check_center_path(path: str | Path, centers: np.ndarray, geometry: NeedleGeo
       written for another needle, step or scene is refused instead of being cut short or
       running out of rows mid-insertion;
     - row 0 is the needle centre at entry (within ENTRY_TOLERANCE radii): the tip starts at
-      the entry point;
+      the entry point (`geometry` leaning there when the path leans it: entry_lean);
     - every centre lies within MAX_CENTER_MOVE needle radii of the entry centre: the planner
       moves the centre to follow the tissue's displacement, at most 1.04 radii on the shipped
       plans (9.24 mm on sh12_100x30); a centre further away is not a compensation but a
@@ -176,7 +183,9 @@ def check_center_path(path: str | Path, centers: np.ndarray, geometry: NeedleGeo
     if start > ENTRY_TOLERANCE * geometry.radius:
         raise InputError(
             f"{path}: row {row_numbers[0]}, center_x_mm, center_y_mm: got [{centers[0, 0]:.6g}, {centers[0, 1]:.6g}], "
-            f"expected the needle centre at entry [{entry[0]:.6g}, {entry[1]:.6g}] (step 0)")
+            f"expected the needle centre at entry [{entry[0]:.6g}, {entry[1]:.6g}] (step 0), or one "
+            f"{geometry.radius:g} mm from the entry point [{geometry.entry[0]:.6g}, {geometry.entry[1]:.6g}] "
+            "(the needle leaning at entry)")
     distance = np.linalg.norm(centers - entry, axis=1)
     far = int(np.argmax(distance))
     if distance[far] > MAX_CENTER_MOVE * geometry.radius:

@@ -207,6 +207,8 @@ def insertion_summary(result) -> dict:
         "needle_tip_at_exit": tip_at_exit,
         "exit_to_needle_tip_mm": float(np.linalg.norm(result.achieved_exit_def - tip_at_exit)),
         "needle_center_at_entry": result.center_after(0),
+        # rad the needle leaned from the orthogonal entry (needle.entry_tilt, a plan's lean)
+        "needle_entry_tilt_rad": result.geometry.tilt,
         "needle_points": len(result.needle_points),
         "newton_iterations": int(sum(s.newton_iterations for s in steps)),  # every iteration of every solve
         "equilibrium_solves": int(sum(s.equilibrium_solves for s in steps)),
@@ -450,6 +452,8 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict, uncertai
         # point moves with the centre at least one for one); the Newton update goes on there
         "planner_eq42_failed_steps": [s.step for s in planned.steps if s.eq42_ratio >= 1.0],
         "planner_passes": result.passes,
+        # planner.aim_entry_tilt: the lean chosen and the first passes tried
+        "planner_entry_lean": result.lean.as_record() if result.lean is not None else None,
         # every pass's work, the discarded passes' included (the HDF5 steps: the exported run's)
         **planning_work(result),
         "trajectory_rows": len(rows),

@@ -55,7 +55,7 @@ from ..tissue.factorization import Factor, condition_estimate, factorize
 from ..tissue.model import TissueModel, build_tissue_model
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
-from .geometry import IDENTITY, length, needle_zone, scenario_needle
+from .geometry import IDENTITY, length, needle_zone, orthogonal, scenario_needle
 from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers
 from .stability import SoftestMode, mode_peak, softest_mode
@@ -165,6 +165,12 @@ class AndersonMixing:
         return step - (np.column_stack(self._states) + steps) @ gamma
 
 
+def tissue_key(scenario: Scenario) -> tuple:
+    """What a scenario's tissue model depends on (PreparedTissue)."""
+    scenario = orthogonal(scenario)
+    return scenario.tissue, scenario.discretization, scenario.needle
+
+
 class PreparedTissue:
     """What every insertion into one scenario's tissue at one discretization starts from: the
     tissue model, the shape functions at the particles, and K0 (the tangent at rest, eq. 3.72)
@@ -177,8 +183,9 @@ class PreparedTissue:
 
     def __init__(self, scenario: Scenario, model: TissueModel | None = None):
         self.scenario = scenario
-        # the model depends on these alone (the needle's: where the particles are graded)
-        self.key = (scenario.tissue, scenario.discretization, scenario.needle)
+        # the model depends on these alone (the needle's: where the particles are graded, the
+        # same for every lean of the needle at entry)
+        self.key = tissue_key(scenario)
         self.seconds = 0.0  # building the model
         self._model, self._factor = model, None
         self.boundary_samples = None  # the boundary sampled at rest (tip_tracking.boundary_samples), once needed
@@ -200,8 +207,8 @@ class PreparedTissue:
             self.seconds = time.perf_counter() - start
 
     def fits(self, scenario: Scenario) -> bool:
-        """Whether `scenario` has this tissue, discretization and needle."""
-        return self.key == (scenario.tissue, scenario.discretization, scenario.needle)
+        """Whether `scenario` has this tissue, discretization and needle (leaning or not)."""
+        return self.key == tissue_key(scenario)
 
     def stiffness_at_rest(self) -> sp.csr_matrix:
         """K0 (tissue.assembly.stiffness_at_rest)."""

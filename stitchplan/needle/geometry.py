@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import Needle, Scenario
-from ..config.blocks import default_spacing_of
+from ..config.blocks import MAX_ENTRY_TILT, default_spacing_of
 from ..config.boundary_points import nearest_note, shown_point, shown_point_as_given
 from ..errors import InputError
 from ..geometry import PolygonDomain, Rectangle, boundary_edges, circle_center_at_entry, nearest_on_edges, smooth_vertex
@@ -49,6 +49,7 @@ class NeedleGeometry:
     # every crossing of the undeformed circle with the boundary after the entry, in needle
     # order, the final exit last: (alpha, "exit" | "entry"); more than one with a wound
     crossings: tuple = ()
+    tilt: float = 0.0  # rad leaned from the orthogonal entry (needle.entry_tilt)
 
     @property
     def gaps(self) -> list[tuple[float, float]]:
@@ -164,7 +165,10 @@ class BoundaryLoops:
 def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> NeedleGeometry:
     """Centre on the boundary tangent at the entry (orthogonal entry), desired exit where the
     undeformed circle leaves the tissue for the last time within the needle's arc (the first
-    and only time on a convex tissue; SCENARIO.md, "Needle geometry", "Tissue shapes")."""
+    and only time on a convex tissue; SCENARIO.md, "Needle geometry", "Tissue shapes"). With
+    `needle.entry_tilt` the needle leans from there, turned about the entry point (positive:
+    against its turn, a deeper bite); its own circle then leaves the tissue elsewhere, while
+    the desired exit stays the orthogonal needle's."""
     edges = domain.edges_at(needle.entry)
     entry = np.asarray(needle.entry, dtype=float)
     if not edges:
@@ -177,37 +181,116 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
                          "inside one edge (the entry normal is undefined at a corner)")
     center, edge = circle_center_at_entry(domain, entry, needle.radius, needle.turn)
     sense = -1.0 if needle.turn == "cw" else 1.0
+    start_angle, rotation, crossings = _circle_through(needle, domain, entry, center, sense)
+    geometry = NeedleGeometry(needle.radius, needle.arc, center, start_angle, sense, needle.step, entry,
+                              edge, rotation, entry, crossings)
+    geometry = replace(geometry, desired_exit=geometry.tip(rotation))
+    if needle.entry_tilt == 0.0:
+        return geometry
+    center = entry + rotated(center - entry, -sense * needle.entry_tilt)
+    start_angle, rotation, crossings = _circle_through(needle, domain, entry, center, sense,
+                                                       f" leaning {needle.entry_tilt:.4g} rad")
+    if [kind for _, kind in crossings] != [kind for _, kind in geometry.crossings]:
+        raise InputError(
+            f"needle.entry_tilt: got {needle.entry_tilt:.4g} rad, which makes the needle cross the boundary "
+            f"{len(crossings)} times where the orthogonal needle crosses it {len(geometry.crossings)} times; "
+            "expected a lean that keeps the needle's way through the tissue (the same gaps and exit)")
+    return replace(geometry, center=center, start_angle=start_angle, exit_rotation=rotation, crossings=crossings,
+                   tilt=needle.entry_tilt)
+
+
+def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np.ndarray, center: np.ndarray,
+                    sense: float, lean: str = "") -> tuple[float, float, tuple]:
+    """(start angle, rotation at the final exit, crossings) of the needle's circle about
+    `center` from `entry`: refused where it leaves no exit within the arc, crosses the
+    boundary twice within a step, or exits within two steps."""
     start_angle = math.atan2(*(entry - center)[::-1])
     first = domain.first_exit_rotation(center, needle.radius, start_angle, sense)
     crossings = domain.circle_crossings(center, needle.radius, start_angle, sense, needle.arc)
     exits = [r for r, kind in crossings if kind == "exit"]
-    # the desired exit: the last point where the circle leaves the tissue within the arc
-    # (a convex tissue's only exit keeps first_exit_rotation's value)
+    # the last point where the circle leaves the tissue within the arc (the orthogonal needle's:
+    # the desired exit); a convex tissue's only exit keeps first_exit_rotation's value
     rotation = exits[-1] if len(exits) > 1 else first
+    entering = f"entering at {list(needle.entry)} turning {needle.turn}{lean}"
     if rotation is None or rotation > needle.arc + 1e-9:
         # the excess too: an entry a hair off a corner leaves a hair past the arc, which 4 digits hide
         reach = ("never leaves the tissue" if rotation is None
                  else f"leaves after {rotation:.4g} rad, {rotation - needle.arc:.2g} rad past its arc")
-        raise InputError(
-            f"needle: the {needle.radius:g} mm needle entering at {list(needle.entry)} turning "
-            f"{needle.turn} {reach}; expected an exit within its arc of {needle.arc:.4g} rad"
-        )
+        raise InputError(f"needle: the {needle.radius:g} mm needle {entering} {reach}; expected an exit within "
+                         f"its arc of {needle.arc:.4g} rad")
     crossings = (tuple((r, kind) for r, kind in crossings if r <= rotation + 1e-12) if len(exits) > 1
                  else ((rotation, "exit"),))
     if any(b - a < needle.step for (a, ka), (b, kb) in zip(crossings, crossings[1:])):
         raise InputError(
-            f"needle: the needle entering at {list(needle.entry)} turning {needle.turn} crosses the "
-            f"boundary at rotations {', '.join(f'{r:.3g}' for r, _ in crossings)} rad, expected crossings "
-            f"at least one step ({needle.step:g} rad) apart (a gap or a bite shorter than a step)")
+            f"needle: the needle {entering} crosses the boundary at rotations "
+            f"{', '.join(f'{r:.3g}' for r, _ in crossings)} rad, expected crossings at least one step "
+            f"({needle.step:g} rad) apart (a gap or a bite shorter than a step)")
     rotation_first = crossings[0][0]
     if rotation_first < 2 * needle.step:
         raise InputError(
-            f"needle: the needle entering at {list(needle.entry)} turning {needle.turn} exits after "
-            f"{rotation_first:.3g} rad, expected at least two steps of {needle.step:g} rad inside the tissue"
-        )
-    geometry = NeedleGeometry(needle.radius, needle.arc, center, start_angle, sense, needle.step, entry,
-                              edge, rotation, entry, crossings)
-    return replace(geometry, desired_exit=geometry.tip(rotation))
+            f"needle: the needle {entering} exits after {rotation_first:.3g} rad, expected at least two steps "
+            f"of {needle.step:g} rad inside the tissue")
+    return start_angle, rotation, crossings
+
+
+def rotated(vector: np.ndarray, angle: float) -> np.ndarray:
+    """`vector` (2,) turned counter-clockwise by `angle` rad."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]])
+
+
+def orthogonal(scenario: Scenario) -> Scenario:
+    """The scenario with its needle entering orthogonally (no needle.entry_tilt)."""
+    if scenario.needle is None or scenario.needle.entry_tilt == 0.0:
+        return scenario
+    return replace(scenario, needle=replace(scenario.needle, entry_tilt=0.0))
+
+
+def leaning(scenario: Scenario, tilt: float) -> Scenario:
+    """The scenario with its needle leaning `tilt` rad from the orthogonal entry."""
+    if scenario.needle.entry_tilt == tilt:
+        return scenario
+    return replace(scenario, needle=replace(scenario.needle, entry_tilt=float(tilt)))
+
+
+# a centre path's row 0 (needle radii): within ON_CIRCLE of the circle of the needle's radius
+# about the entry it leans the needle there (entry_lean), unless it is the needle's own centre
+# to as much; an exported trajectory's row 0 lies on that circle to its 1e-9 mm rounding, while
+# a centre merely moved off the entry, by d, lies d^2 / 2R off it or more. A trajectory file
+# (io/readers.py) may give row 0 within ENTRY_TOLERANCE of the centre at entry (the tip off the
+# entry by as much), or within LEAN_TOLERANCE of that circle (written with fewer digits: put
+# onto it, on_entry_circle)
+ON_CIRCLE = 1e-7
+ENTRY_TOLERANCE = 0.01
+LEAN_TOLERANCE = 1e-4
+
+
+def on_entry_circle(geometry: NeedleGeometry, center: np.ndarray, tolerance: float = ON_CIRCLE) -> np.ndarray | None:
+    """`center` moved onto the circle of the needle's radius about the entry, when within
+    `tolerance` radii of it; else None."""
+    arm = np.asarray(center, dtype=float) - geometry.entry
+    if abs(length(arm) - geometry.radius) > tolerance * geometry.radius:
+        return None
+    return geometry.entry + arm * (geometry.radius / length(arm))
+
+
+def entry_lean(scenario: Scenario, center: np.ndarray) -> Scenario:
+    """The scenario whose needle starts about `center` (a centre path's row 0): leaning from
+    the orthogonal entry where `center` lies on the circle of the needle's radius about the
+    entry (ON_CIRCLE) and is not the scenario's own centre; else the scenario as it is (the
+    replay moves the centre to row 0, and the tip with it)."""
+    geometry = scenario_needle(scenario)
+    center = np.asarray(center, dtype=float)
+    if length(center - geometry.center) <= ON_CIRCLE * geometry.radius or on_entry_circle(geometry, center) is None:
+        return scenario
+    upright = orthogonal(scenario)
+    arm, normal_arm = center - geometry.entry, scenario_needle(upright).center - geometry.entry
+    tilt = -geometry.sense * math.atan2(normal_arm[0] * arm[1] - normal_arm[1] * arm[0], normal_arm @ arm)
+    if abs(tilt) > MAX_ENTRY_TILT:
+        raise InputError(f"centre path: row 0 puts the needle centre at [{center[0]:.6g}, {center[1]:.6g}], leaning "
+                         f"the needle {tilt:.4g} rad from the orthogonal entry; expected a lean of at most "
+                         f"{MAX_ENTRY_TILT:g} rad")
+    return leaning(upright, tilt)
 
 
 def scenario_needle(scenario: Scenario) -> NeedleGeometry:
@@ -267,9 +350,11 @@ def needle_end_zones(scenario: Scenario, geometry: NeedleGeometry) -> tuple[Refi
 
 def needle_zone(scenario: Scenario) -> tuple[tuple[float, float], float, tuple[RefinementZone, ...]] | None:
     """(needle centre at entry, needle_zone x radius, zones at the entry and exit) when the
-    particles are graded toward the needle, else None: where the tissue model refines."""
+    particles are graded toward the needle, else None: where the tissue model refines. The
+    orthogonal needle's, whatever its lean: one model serves every lean the planner tries."""
     if scenario.needle is None or scenario.discretization.needle_spacing is None:
         return None
+    scenario = orthogonal(scenario)
     geometry = scenario_needle(scenario)
     return (tuple(geometry.center), scenario.discretization.needle_zone * geometry.radius,
             needle_end_zones(scenario, geometry))

@@ -21,7 +21,7 @@ from ..config import Scenario
 from ..errors import InputError, InsertionFailure
 from ..events import Event, EventKind
 from .equilibrium import NeedleInsertion, PreparedTissue
-from .geometry import BoundaryLoops, NeedleGeometry
+from .geometry import BoundaryLoops, NeedleGeometry, entry_lean
 from .results import InsertionResult, NeedleStep, Snapshot, StepsDone
 from .steering import CenterAim
 from .tip_tracking import locate_exit, locate_reentry, track_step
@@ -93,7 +93,8 @@ def run_insertion(
     """Insert the needle step by step until its tip leaves the tissue.
 
     `control` moves the centre during the run (the planner); `center_path` (n, 2) replays
-    prescribed centres instead, row n for step n (row 0 is the entry centre). With
+    prescribed centres instead, row n for step n (row 0 is the entry centre; on the circle of
+    the needle's radius about the entry it leans the needle there: geometry.entry_lean). With
     `condition_numbers` each step records the (dense) condition numbers of its saddle system.
     `tissue`: the scenario's PreparedTissue when another run on the same model made it.
     `start_from`: an earlier run on the same model along a nearby centre path (the
@@ -115,12 +116,15 @@ def run_insertion(
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
                          "chosen before the run (stitchplan.study.auto.resolve_accuracy)")
     wall_start = time.perf_counter()
-    insertion = NeedleInsertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking, tissue=tissue)
-    geometry = insertion.geometry
     if center_path is not None:
         control = CenterReplay(center_path)
-    if isinstance(control, CenterReplay):
-        insertion.move_center(control.predict(insertion.center, 0))  # row 0: the entry centre
+    replayed_entry = control.predict(None, 0) if isinstance(control, CenterReplay) else None  # row 0
+    if replayed_entry is not None:  # a path planned with the needle leaning at entry leans it
+        scenario = entry_lean(scenario, replayed_entry)
+    insertion = NeedleInsertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking, tissue=tissue)
+    geometry = insertion.geometry
+    if replayed_entry is not None:
+        insertion.move_center(replayed_entry)
     entry_center = insertion.center.copy()
     control = control or FixedCenter()
     insertion.add_point(geometry.entry.copy())

@@ -18,16 +18,17 @@ exit, the limits keep the centre from jumping between steps' best tries; the pas
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..config import Planner, Scenario
-from ..errors import NumericalFailure, PlanningFailure
+from ..errors import InputError, NumericalFailure, PlanningFailure
 from ..events import Event, EventKind
 from ..needle.equilibrium import NeedleInsertion, PreparedTissue
-from ..needle.geometry import length, scenario_needle
+from ..needle.geometry import leaning, length, scenario_needle
 from ..needle.steering import CenterAim
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
@@ -265,6 +266,7 @@ class PlanResult:
     shooting: PassOffsets | None = None  # where the passes ended, to continue from
     verification: object | None = None  # planning.verification.Verification, when verified
     estimate: object | None = None  # planning.verification.ExitEstimate of the planned run
+    lean: LeanSearch | None = None  # the needle's lean at entry, when the planner chose it
 
     @property
     def center_trajectory(self) -> np.ndarray:
@@ -321,8 +323,9 @@ class PassOffsets:
     again, so a pass costs only its late steps and e(c) stays one function of c.
     """
 
-    def __init__(self):
+    def __init__(self, tilt: float | None = None):
         self.offset = np.zeros(2)
+        self.tilt = tilt  # rad the needle leans at entry in these passes (planner.aim_entry_tilt)
         self.prefix: PassPrefix | None = None
         self.direction: np.ndarray | None = None
         self.slope = -1.0
@@ -352,6 +355,119 @@ class PassOffsets:
             self.slope = float(np.clip(slope, -3.0, -1.0 / 3.0))
         self._previous = (position, exit_along)
         self.offset = (position - along / self.slope) * self.direction
+
+
+# the needle's lean at entry (planner.aim_entry_tilt): first passes the search may run after
+# its start; the lean step (rad) of the undeformed exit's move that starts its secant, and the
+# least lean change a lean the geometry refuses may be halved to (at most LEAN_HALVINGS times)
+# toward the lean run last
+LEAN_RUNS = 6
+LEAN_STEP = 1e-3
+LEAN_HALVINGS = 30
+
+
+@dataclass
+class LeanSearch:
+    """The lean chosen (rad from the orthogonal entry), the first pass run there and the
+    steps a move limit held back in it, and every first pass the search ran: (lean, exit
+    error vector)."""
+
+    tilt: float
+    run: InsertionResult
+    limited_steps: list[int]
+    tries: list[tuple[float, np.ndarray]]
+    reason: str  # why the search stopped
+
+    def after(self, earlier: LeanSearch) -> LeanSearch:
+        """This search with an earlier round's tries before its own."""
+        return replace(self, tries=earlier.tries + self.tries)
+
+    def as_record(self) -> dict:
+        return {"entry_tilt_rad": self.tilt, "stopped": self.reason,
+                "tries": [{"entry_tilt_rad": tilt, "exit_error_vector_mm": error} for tilt, error in self.tries]}
+
+
+def lean_for_exit(scenario: Scenario, aim: np.ndarray, tolerance: float, first_pass, known: InsertionResult | None,
+                  tilt: float | None) -> LeanSearch:
+    """The lean of the needle at entry whose first planner pass (`first_pass(scenario)`:
+    Algorithm 2 with the move limits, offset zero) exits at `aim`, within planner.max_entry_tilt.
+
+    Where the tissue carries the desired exit further than the move limits let the centre
+    follow (thesis figure 5.10: 12 mm of centre travel, 0.35 mm a step allowed), no pass
+    offset reaches it; leaning the needle before it enters moves its whole path at no move
+    at all. The exit error's component along the first miss, g(lean), is driven to zero by a
+    secant started from the undeformed exit's move with the lean, from `tilt` (the passes'
+    lean so far, whose first pass is `known`; else the scenario's needle.entry_tilt), at most
+    LEAN_RUNS runs; the lean whose first pass came nearest is kept. A lean the needle's
+    geometry refuses is halved back toward the lean run last; a pass that fails ends the
+    search there (but a PlanningFailure, planner.strict, ends the plan)."""
+    limit = scenario.planner.max_entry_tilt
+    tilt = scenario.needle.entry_tilt if tilt is None else tilt
+    # a known first pass is the passes' own (their prefix keeps its limited steps): kept, it
+    # is not run again
+    run, limited = (known, []) if known is not None else first_pass(leaning(scenario, tilt))
+    tries = [(tilt, exit_error_vector(run))]
+    best = LeanSearch(tilt, run, limited, tries, "")
+    miss = tries[0][1] - aim
+    best_miss = length(miss)
+    if best_miss <= tolerance:
+        best.reason = "the first pass met its aim"
+        return best
+    direction = miss / length(miss)
+    # the undeformed exit's move with the lean, one way or the other (a half circle exiting
+    # through its entry edge cannot lean deeper: it would need more arc)
+    slope = 0.0
+    for change in (LEAN_STEP, -LEAN_STEP):
+        moved = _leaned_exit(scenario, tilt + change)
+        if moved is not None:
+            slope = float(direction @ (moved - _leaned_exit(scenario, tilt))) / change
+            break
+    points = [(tilt, float(direction @ miss))]
+    best.reason = f"{LEAN_RUNS} leans tried"
+    for _ in range(LEAN_RUNS):
+        if len(points) > 1 and points[-1][0] != points[-2][0]:
+            slope = (points[-1][1] - points[-2][1]) / (points[-1][0] - points[-2][0])
+        if slope == 0.0:
+            best.reason = "the exit does not move with the lean"
+            break
+        here, value = points[-1]
+        trial = float(np.clip(here - value / slope, -limit, limit))
+        # a lean the needle's geometry refuses (no exit within its arc, other crossings): halved toward here
+        halved = 0
+        while halved < LEAN_HALVINGS and _leaned_exit(scenario, trial) is None:
+            trial, halved = 0.5 * (here + trial), halved + 1
+        if halved and abs(trial - here) < LEAN_STEP:
+            best.reason = "the needle's geometry allows no lean further that way"
+            break
+        if trial == here:
+            best.reason = f"at planner.max_entry_tilt ({limit:g} rad)"
+            break
+        try:
+            run, limited = first_pass(leaning(scenario, trial))
+        except PlanningFailure:
+            raise
+        except NumericalFailure as failure:
+            best.reason = f"the pass at the lean {trial:.4g} rad failed: {failure}"
+            break
+        error = exit_error_vector(run)
+        tries.append((trial, error))
+        points.append((trial, float(direction @ (error - aim))))
+        if length(error - aim) < best_miss:
+            best.tilt, best.run, best.limited_steps, best_miss = trial, run, limited, length(error - aim)
+        if best_miss <= tolerance:
+            best.reason = "a first pass met its aim"
+            break
+    return best
+
+
+def _leaned_exit(scenario: Scenario, tilt: float) -> np.ndarray | None:
+    """Where the undeformed circle of the needle leaning `tilt` rad leaves the tissue; None
+    where the needle cannot lean so (needle.geometry.needle_geometry refuses it)."""
+    try:
+        geometry = scenario_needle(leaning(scenario, tilt))
+    except InputError:
+        return None
+    return geometry.tip(geometry.exit_rotation)
 
 
 def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
@@ -399,18 +515,40 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     target = settings.exit_tolerance if tolerance is None else tolerance
     start = time.perf_counter()
     offsets = shooting or PassOffsets()
+    as_given = scenario  # the unplanned comparison's needle
+    lean, ready = None, None  # the lean search, and its run at the lean chosen: the plan's first pass
+    timings: dict[str, float] = {}  # every pass's, summed as its wall time is
+    if settings.aim_entry_tilt:
+        def first_pass(leaned: Scenario) -> tuple[InsertionResult, list[int]]:
+            tracker = ExitTracker(settings, smooth=smooth)
+            run = run_insertion(leaned, control=tracker, on_step=_streamed(on_step, stream, leaned), tissue=tissue,
+                                **options)
+            add_timings(timings, run.timings)
+            return run, tracker.limited_steps
+
+        known = offsets.prefix.reference if offsets.prefix is not None else None
+        lean = lean_for_exit(scenario, aim, target, first_pass, known, offsets.tilt)
+        log.info("planning: the needle leans %.4g rad (%.3g deg) from the orthogonal entry, its first pass %.4g mm "
+                 "from the aim (%d leans tried; %s)", lean.tilt, math.degrees(lean.tilt),
+                 length(exit_error_vector(lean.run) - aim), len(lean.tries), lean.reason)
+        if lean.tilt != offsets.tilt:  # passes about another lean: their offsets start afresh
+            offsets, ready = PassOffsets(lean.tilt), (lean.run, lean.limited_steps)
+        scenario = leaning(scenario, lean.tilt)
     if offsets.last is not None:  # continuing with another aim: re-aim from the last pass
         offsets.advance(aim)
     passes = []
-    timings: dict[str, float] = {}  # every pass's, summed as its wall time is
     best, best_miss = None, np.inf
     for number in range(1, settings.max_passes + 1):
         # a symmetric target's aim follows the bites, the entry side's included: every step
         prefix = offsets.prefix.for_offset(offsets.offset) if offsets.prefix and not symmetric else None
         tracker = ExitTracker(settings, offsets.offset, smooth=smooth, prefix=prefix)
         try:
-            planned = run_insertion(scenario, control=tracker, on_step=_streamed(on_step, stream, scenario),
-                                    tissue=tissue, start_from=prefix.start() if prefix else None, **options)
+            if ready is not None:  # the lean search ran this pass already
+                (planned, tracker.limited_steps), ready = ready, None
+            else:
+                planned = run_insertion(scenario, control=tracker, on_step=_streamed(on_step, stream, scenario),
+                                        tissue=tissue, start_from=prefix.start() if prefix else None, **options)
+                add_timings(timings, planned.timings)
         except NumericalFailure as failure:
             if best is None or isinstance(failure, PlanningFailure):  # no pass to export, or --strict
                 raise
@@ -422,7 +560,6 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
             best.events.append(Event(EventKind.PASS_FAILED, message))
             log.info(message)
             break
-        add_timings(timings, planned.timings)
         own_iterations = sum(step.newton_iterations for step in planned.steps)  # before take_over
         own_solves = sum(step.equilibrium_solves for step in planned.steps)
         if prefix is not None:
@@ -461,8 +598,8 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     _note_rough_path(best, MoveLimits.for_needle(best.geometry, settings))
     # after the passes, so that the planned run's wall time counts building the model it runs on
     # whether or not the comparison runs (and a helper replaying the passes has their centres sooner)
-    unplanned = run_insertion(scenario, on_step=on_step, tissue=tissue, **options) if compare else None
-    return PlanResult(best, unplanned, passes, shooting=offsets)
+    unplanned = run_insertion(as_given, on_step=on_step, tissue=tissue, **options) if compare else None
+    return PlanResult(best, unplanned, passes, shooting=offsets, lean=lean)
 
 
 def add_timings(total: dict[str, float], more: dict[str, float]) -> None:

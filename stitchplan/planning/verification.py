@@ -342,7 +342,8 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
             add_timings(planning_timings, again.planned.timings)
             for record in again.passes:
                 record["round"] = correction + 1
-            result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting)
+            result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting,
+                                lean=again.lean.after(result.lean) if again.lean else None)
         replayed, no_replay = replay(replays, result.exported_centers)  # started from the round before's
         if correction > 0:
             aimed_by = "refined offset"

@@ -1,0 +1,193 @@
+"""The needle leaning at entry (needle.entry_tilt) and the planner choosing the lean
+(planner.aim_entry_tilt):
+
+- the geometry: a leaning needle is the orthogonal one turned about the entry point, the sign
+  as documented (positive: a deeper bite), the desired exit the orthogonal needle's; leans
+  the geometry or the config cannot take are refused with the field named;
+- a centre path whose row 0 lies on the circle about the entry leans the replayed needle
+  (a plan's trajectory replays as planned, from the scenario as given), while a row 0 moved
+  off that circle keeps moving the needle as before; one model serves every lean;
+- the planner: where the move limits cannot carry the compensation (a soft corner scene like
+  thesis figure 5.10's), the orthogonal plan misses by more than a millimetre and the leaning
+  one reaches the exit with the limits held; `simulate --center-path` replays its file to the
+  planned exit error.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from stitchplan.cli import app
+from stitchplan.config.scenario import ScenarioError, parse_scenario
+from stitchplan.needle.equilibrium import PreparedTissue
+from stitchplan.needle.geometry import entry_lean, leaning, orthogonal, scenario_needle
+from stitchplan.needle.insertion import run_insertion
+from stitchplan.planning.planner import center_moves, run_plan
+from stitchplan.planning.trajectory import exported_centers
+
+RADIUS = 8.88
+
+
+def corner_scene(mu=0.05, limit=0.1, lean=True, tilt=0.0) -> dict:
+    """A 40 x 40 mm neo-Hookean block clamped on the right; the needle enters the top edge
+    one radius from the left corner and exits through the free left edge (figure 5.10's
+    layout), 0.16 rad steps, the move limits `limit` (second difference half of it)."""
+    return {"tissue": {"size": [40.0, 40.0], "thickness": 10.0, "clamped": ["right"],
+                       "material": {"model": "neo-hookean", "lame_lambda": 0.189151, "lame_mu": mu}},
+            "discretization": {"spacing": 4.0},
+            "needle": {"radius": RADIUS, "entry": [RADIUS, 40.0], "turn": "cw", "step": 0.16,
+                       "friction": 0.0602, "cutting_force": 0.7, "entry_tilt": tilt},
+            "planner": {"center_step_limit": limit, "center_second_difference_limit": limit / 2,
+                        "aim_entry_tilt": lean}}
+
+
+# --- geometry -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("tilt", [-0.3, 0.2, 0.5])
+def test_a_leaning_needle_is_the_orthogonal_one_turned_about_its_entry(tilt):
+    upright = scenario_needle(parse_scenario(corner_scene(tilt=0.0)))
+    leaned = scenario_needle(parse_scenario(corner_scene(tilt=tilt)))
+    entry = np.array([RADIUS, 40.0])
+    assert leaned.tilt == tilt and upright.tilt == 0.0
+    np.testing.assert_allclose(leaned.tip(0.0), entry, atol=1e-12)  # the tip still at the entry
+    np.testing.assert_allclose(np.linalg.norm(leaned.center - entry), RADIUS, rtol=1e-14)
+    # turned by the lean against the needle's (clockwise) turn: counter-clockwise
+    a, b = upright.center - entry, leaned.center - entry
+    assert math.atan2(a[0] * b[1] - a[1] * b[0], a @ b) == pytest.approx(tilt, abs=1e-12)
+    np.testing.assert_array_equal(leaned.desired_exit, upright.desired_exit)  # (0, 40 - R)
+    np.testing.assert_allclose(upright.desired_exit, [0.0, 40.0 - RADIUS], atol=1e-9)
+    exit_point = leaned.tip(leaned.exit_rotation)  # its own circle leaves the tissue there
+    assert abs(exit_point[0]) < 1e-9 or abs(exit_point[1]) < 1e-9
+    # positive: a deeper bite (the needle reaches further below the entry edge)
+    depth = lambda geometry: geometry.center[1] - geometry.radius  # noqa: E731
+    assert (depth(leaned) < depth(upright)) == (tilt > 0)
+
+
+def test_leans_the_needle_cannot_take_are_refused_naming_the_field():
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(corner_scene(tilt=1.2))
+    assert "needle.entry_tilt: got 1.2, expected an angle between -1 and 1 rad" in str(error.value)
+    # a half circle exiting through its entry edge has no arc left for a deeper bite
+    flat = corner_scene(tilt=0.1)
+    flat["needle"]["entry"] = [30.0, 40.0]
+    with pytest.raises(ScenarioError) as error:
+        scenario_needle(parse_scenario(flat))
+    assert "turning cw leaning 0.1 rad leaves after" in str(error.value)
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario({**corner_scene(), "planner": {"aim_entry_tilt": True, "target": "symmetric"}})
+    assert "planner.aim_entry_tilt: got true, expected false with target symmetric" in str(error.value)
+
+
+# --- replays --------------------------------------------------------------------------------
+
+
+def test_a_centre_path_starting_on_the_circle_about_the_entry_leans_the_needle():
+    scenario = parse_scenario(corner_scene(lean=False))
+    leaned = leaning(scenario, 0.25)
+    center = scenario_needle(leaned).center
+    assert entry_lean(scenario, center).needle.entry_tilt == pytest.approx(0.25, abs=1e-12)
+    assert entry_lean(leaned, center) is leaned
+    assert orthogonal(leaned) == scenario
+    # a centre moved off the entry (by 0.1 mm across the needle's arm: 6e-5 radii off the
+    # circle) moves the needle, as before
+    moved = scenario_needle(scenario).center + [0.1, 0.0]
+    assert entry_lean(scenario, moved) is scenario
+    # one model for every lean
+    tissue = PreparedTissue(scenario)
+    assert tissue.fits(leaned)
+    # the fixed leaning needle and its centre replayed from the scenario as given: the same run
+    fixed = run_insertion(leaned, tissue=tissue)
+    path = np.repeat(center[None, :], len(fixed.steps) + 2, axis=0)
+    replayed = run_insertion(scenario, center_path=path, tissue=tissue)
+    assert replayed.geometry.tilt == pytest.approx(0.25, abs=1e-12)
+    assert replayed.exit_error_mm == pytest.approx(fixed.exit_error_mm, abs=1e-9)
+    assert replayed.exit_error_mm != pytest.approx(run_insertion(scenario, tissue=tissue).exit_error_mm, abs=1e-3)
+
+
+# --- the planner ----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def plans():
+    """The corner scene planned upright and leaning, with the move limits 0.1 mm per 0.08 rad."""
+    return {lean: run_plan(parse_scenario(corner_scene(lean=lean))) for lean in (False, True)}
+
+
+def test_where_the_move_limits_cannot_carry_the_plan_the_lean_does(plans):
+    upright, leaned = plans[False], plans[True]
+    scale = 0.16 / 0.08  # the limits scale with the step
+    for plan in (upright, leaned):
+        moves, second = center_moves(exported_centers(plan.planned))
+        assert moves.max() <= 0.1 * scale + 1e-6 and second.max() <= 0.05 * scale + 1e-6
+    assert upright.planned.exit_error_mm > 1.0  # held back by the limits
+    assert leaned.planned.exit_error_mm < 0.01
+    tilt = leaned.planned.geometry.tilt
+    assert 0.0 < tilt <= leaned.planned.scenario.planner.max_entry_tilt
+    assert leaned.lean.tilt == tilt and len(leaned.lean.tries) >= 2
+    assert leaned.lean.tries[0][0] == 0.0  # the search starts upright
+    # the comparison is the needle as the scenario gives it: upright
+    assert leaned.unplanned.geometry.tilt == 0.0
+    assert leaned.unplanned.exit_error_mm == upright.unplanned.exit_error_mm
+    # the trajectory starts with the tip at the entry and the centre a radius from it
+    row0 = exported_centers(leaned.planned)[0]
+    assert np.linalg.norm(row0 - [RADIUS, 40.0]) == pytest.approx(RADIUS, rel=1e-9)
+
+
+def test_the_plans_trajectory_file_replays_to_its_exit_error(plans, tmp_path):
+    """`plan --export` then `simulate --center-path` on the same scenario file: the replay
+    leans the needle as planned and lands where the plan did."""
+    scene = tmp_path / "corner.yaml"
+    scene.write_text(json.dumps(corner_scene()))
+    runner = CliRunner()
+    planned = runner.invoke(app, ["plan", str(scene), "--export", str(tmp_path / "t.csv"), "--no-verify",
+                                  "--summary", str(tmp_path / "plan.json")])
+    assert planned.exit_code == 0, planned.output
+    replayed = runner.invoke(app, ["simulate", str(scene), "--center-path", str(tmp_path / "t.csv"),
+                                   "--no-estimate", "--summary", str(tmp_path / "replay.json")])
+    assert replayed.exit_code == 0, replayed.output
+    plan, replay = (json.loads((tmp_path / name).read_text()) for name in ("plan.json", "replay.json"))
+    assert plan["needle_entry_tilt_rad"] == pytest.approx(plans[True].planned.geometry.tilt, abs=1e-12)
+    assert plan["planner_entry_lean"]["entry_tilt_rad"] == plan["needle_entry_tilt_rad"]
+    assert replay["needle_entry_tilt_rad"] == pytest.approx(plan["needle_entry_tilt_rad"], abs=1e-9)
+    # the plan's centres settle within its solver's tolerances, the replay's are prescribed
+    # (test_plan_cli's replay of an upright plan: 1e-3 mm)
+    assert replay["exit_error_mm"] == pytest.approx(plan["exit_error_mm"], abs=1e-4)
+
+
+def test_a_row_0_written_with_six_digits_still_leans_the_needle(plans, tmp_path):
+    """A trajectory file whose row 0 was rounded (six significant digits: ~1e-6 radii off the
+    circle about the entry) replays the same lean to the rounding."""
+    from stitchplan.io.readers import read_center_path
+
+    scenario = parse_scenario(corner_scene())
+    centers = exported_centers(plans[True].planned)
+    rows = ["step,center_x_mm,center_y_mm"] + [f"{k},{x:.6g},{y:.6g}" for k, (x, y) in enumerate(centers)]
+    path = tmp_path / "rounded.csv"
+    path.write_text("\n".join(rows) + "\n")
+    geometry = scenario_needle(scenario)
+    read = read_center_path(path, geometry, lambda first: scenario_needle(entry_lean(scenario, first)))
+    assert np.linalg.norm(read[0] - [RADIUS, 40.0]) == pytest.approx(RADIUS, rel=1e-12)
+    assert entry_lean(scenario, read[0]).needle.entry_tilt == pytest.approx(plans[True].planned.geometry.tilt,
+                                                                            abs=1e-5)
+
+
+def test_a_row_0_leaning_too_far_is_refused_naming_the_file(tmp_path):
+    scene = tmp_path / "corner.yaml"
+    scene.write_text(json.dumps(corner_scene(lean=False)))
+    entry = np.array([RADIUS, 40.0])
+    arm = scenario_needle(parse_scenario(corner_scene())).center - entry
+    turned = entry + np.array([[math.cos(1.3), -math.sin(1.3)], [math.sin(1.3), math.cos(1.3)]]) @ arm
+    rows = ["step,center_x_mm,center_y_mm", f"0,{float(turned[0])!r},{float(turned[1])!r}"]
+    rows += [f"{k},{float(turned[0])!r},{float(turned[1])!r}" for k in range(1, 12)]
+    (tmp_path / "t.csv").write_text("\n".join(rows) + "\n")
+    result = CliRunner().invoke(app, ["simulate", str(scene), "--center-path", str(tmp_path / "t.csv"),
+                                      "--no-estimate"])
+    assert result.exit_code == 2
+    assert f"{tmp_path / 't.csv'}: centre path: row 0 puts the needle centre at" in result.output
+    assert "leaning the needle 1.3 rad from the orthogonal entry; expected a lean of at most 1 rad" in result.output
