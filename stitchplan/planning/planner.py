@@ -518,13 +518,17 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     as_given = scenario  # the unplanned comparison's needle
     lean, ready = None, None  # the lean search, and its run at the lean chosen: the plan's first pass
     timings: dict[str, float] = {}  # every pass's, summed as its wall time is
+
+    def run_pass(leaned: Scenario, tracker: ExitTracker, prefix: PassPrefix | None = None) -> InsertionResult:
+        run = run_insertion(leaned, control=tracker, on_step=_streamed(on_step, stream, leaned), tissue=tissue,
+                            start_from=prefix.start() if prefix else None, **options)
+        add_timings(timings, run.timings)
+        return run
+
     if settings.aim_entry_tilt:
         def first_pass(leaned: Scenario) -> tuple[InsertionResult, list[int]]:
             tracker = ExitTracker(settings, smooth=smooth)
-            run = run_insertion(leaned, control=tracker, on_step=_streamed(on_step, stream, leaned), tissue=tissue,
-                                **options)
-            add_timings(timings, run.timings)
-            return run, tracker.limited_steps
+            return run_pass(leaned, tracker), tracker.limited_steps
 
         known = offsets.prefix.reference if offsets.prefix is not None else None
         lean = lean_for_exit(scenario, aim, target, first_pass, known, offsets.tilt)
@@ -546,9 +550,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
             if ready is not None:  # the lean search ran this pass already
                 (planned, tracker.limited_steps), ready = ready, None
             else:
-                planned = run_insertion(scenario, control=tracker, on_step=_streamed(on_step, stream, scenario),
-                                        tissue=tissue, start_from=prefix.start() if prefix else None, **options)
-                add_timings(timings, planned.timings)
+                planned = run_pass(scenario, tracker, prefix)
         except NumericalFailure as failure:
             if best is None or isinstance(failure, PlanningFailure):  # no pass to export, or --strict
                 raise
