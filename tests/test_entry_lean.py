@@ -191,3 +191,18 @@ def test_a_row_0_leaning_too_far_is_refused_naming_the_file(tmp_path):
     assert result.exit_code == 2
     assert f"{tmp_path / 't.csv'}: centre path: row 0 puts the needle centre at" in result.output
     assert "leaning the needle 1.3 rad from the orthogonal entry; expected a lean of at most 1 rad" in result.output
+
+
+@pytest.mark.parametrize("block, field, value, fragment", [
+    ("needle", "entry_tilt", "steep", "needle.entry_tilt: got 'steep', expected an angle between -1 and 1 rad"),
+    ("needle", "entry_tilt", -1.5, "needle.entry_tilt: got -1.5, expected an angle between -1 and 1 rad"),
+    ("planner", "max_entry_tilt", 0.0, "planner.max_entry_tilt: got 0.0, expected a positive angle of at most 1 rad"),
+    ("planner", "max_entry_tilt", 1.2, "planner.max_entry_tilt: got 1.2, expected a positive angle of at most 1 rad"),
+    ("planner", "aim_entry_tilt", "yes", "planner.aim_entry_tilt: got 'yes', expected true or false"),
+])
+def test_bad_lean_fields_are_refused_naming_the_field(block, field, value, fragment):
+    raw = corner_scene()
+    raw[block][field] = value
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(raw)
+    assert fragment in str(error.value)
