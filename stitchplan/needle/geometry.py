@@ -187,7 +187,7 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
     geometry = replace(geometry, desired_exit=geometry.tip(rotation))
     if needle.entry_tilt == 0.0:
         return geometry
-    center = entry + rotated(center - entry, -sense * needle.entry_tilt)
+    center = entry - needle.radius * unit(start_angle - sense * needle.entry_tilt)  # turned about the entry
     start_angle, rotation, crossings = _circle_through(needle, domain, entry, center, sense,
                                                        f" leaning {needle.entry_tilt:.4g} rad")
     if [kind for _, kind in crossings] != [kind for _, kind in geometry.crossings]:
@@ -231,12 +231,6 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
             f"needle: the needle {entering} exits after {rotation_first:.3g} rad, expected at least two steps "
             f"of {needle.step:g} rad inside the tissue")
     return start_angle, rotation, crossings
-
-
-def rotated(vector: np.ndarray, angle: float) -> np.ndarray:
-    """`vector` (2,) turned counter-clockwise by `angle` rad."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]])
 
 
 def orthogonal(scenario: Scenario) -> Scenario:
@@ -284,8 +278,8 @@ def entry_lean(scenario: Scenario, center: np.ndarray) -> Scenario:
     if length(center - geometry.center) <= ON_CIRCLE * geometry.radius or on_entry_circle(geometry, center) is None:
         return scenario
     upright = orthogonal(scenario)
-    arm, normal_arm = center - geometry.entry, scenario_needle(upright).center - geometry.entry
-    tilt = -geometry.sense * math.atan2(normal_arm[0] * arm[1] - normal_arm[1] * arm[0], normal_arm @ arm)
+    start_angle = math.atan2(*(geometry.entry - center)[::-1])  # as needle_geometry leans it
+    tilt = -geometry.sense * math.remainder(start_angle - scenario_needle(upright).start_angle, 2.0 * math.pi)
     if abs(tilt) > MAX_ENTRY_TILT:
         raise InputError(f"centre path: row 0 puts the needle centre at [{center[0]:.6g}, {center[1]:.6g}], leaning "
                          f"the needle {tilt:.4g} rad from the orthogonal entry; expected a lean of at most "
