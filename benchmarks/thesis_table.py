@@ -108,6 +108,25 @@ def _planner_note(summary: dict) -> str:
     return "; ".join(notes)
 
 
+def _result_row(scene: tuple, level: str, spacing: float | None, summary: dict, simulate: bool = False) -> list:
+    """A thesis_table.csv row: `scene` (name, label, thesis unplanned, thesis planned) run at
+    `level` (`spacing` asked for), from its summary (with `simulate`: the unplanned run alone)."""
+    name, label, thesis_unplanned, thesis_planned = scene
+    if "error" in summary:
+        print(f"{name} {level}: FAILED {summary['error']}", flush=True)
+        return [name, label, level, spacing, None, thesis_unplanned, None, None, thesis_planned, None, None, None,
+                summary["error"]]
+    disc = summary["discretization"]
+    unplanned = summary["exit_error_mm" if simulate else "unplanned_exit_error_mm"]
+    planned = None if simulate else summary["exit_error_mm"]
+    print(f"{name} {level}: unplanned {unplanned} mm, planned {planned} mm, {summary['wall_seconds']:.1f} s",
+          flush=True)
+    return [name, label, level, disc["spacing_mm"], disc["particles"], thesis_unplanned, unplanned,
+            relative_change(thesis_unplanned, unplanned), thesis_planned, planned,
+            summary.get("exit_error_estimate_mm"), summary["wall_seconds"],
+            "unplanned only (simulate)" if simulate else _planner_note(summary)]
+
+
 LEVELS = (("default", 1.0), ("half", 0.5), ("quarter", 0.25))  # x the file's spacing
 LOOSE_LIMITS = (1.5, 2.0, 2.5, 3.0, 10.0)  # the move limits x these, for the trade-off table
 HELD_BACK = 0.01  # mm: a default-level plan further off than this, its move limits held, is rerun loosened
@@ -241,35 +260,16 @@ def main() -> None:
                 spacing = None if level == "default" else default_spacing * factor
                 simulate = level == "quarter"
                 summary = run_scene(config, workdir, spacing, simulate)
-                if "error" in summary:
-                    rows.append([name, label, level, spacing, None, thesis_unplanned, None, None,
-                                 thesis_planned, None, None, None, summary["error"]])
-                    print(f"{name} {level}: FAILED {summary['error']}", flush=True)
-                    continue
-                disc = summary["discretization"]
-                if level == "default":  # the file's spacing, as benchmarks/needle_coupling.py halves it
+                rows.append(_result_row((name, label, thesis_unplanned, thesis_planned), level, spacing, summary,
+                                        simulate))
+                if "error" not in summary and level == "default":
+                    # the file's spacing, as benchmarks/needle_coupling.py halves it
                     default_spacing = load_scenario(config).discretization.spacing
-                unplanned = summary["exit_error_mm" if simulate else "unplanned_exit_error_mm"]
-                planned = None if simulate else summary["exit_error_mm"]
-                rows.append([name, label, level, disc["spacing_mm"], disc["particles"],
-                             thesis_unplanned, unplanned, relative_change(thesis_unplanned, unplanned),
-                             thesis_planned, planned, summary.get("exit_error_estimate_mm"),
-                             summary["wall_seconds"],
-                             "unplanned only (simulate)" if simulate else _planner_note(summary)])
-                print(f"{name} {level}: unplanned {unplanned} mm, planned {planned} mm, "
-                      f"{summary['wall_seconds']:.1f} s", flush=True)
         configs = {name: THESIS_DIR / f"{name}.yaml" for name, *_ in SCENES}
-        for name, label, thesis_unplanned, thesis_planned in (scene for scene in SCENES if scene[0] in LEANING):
-            configs[name] = changed_copy(configs[name], workdir, "upright",
-                                         lambda raw: raw["planner"].update(aim_entry_tilt=False))
-            summary = run_scene(configs[name], workdir, None)
-            disc = summary["discretization"]
-            rows.append([name, label, "default, upright", disc["spacing_mm"], disc["particles"], thesis_unplanned,
-                         summary["unplanned_exit_error_mm"],
-                         relative_change(thesis_unplanned, summary["unplanned_exit_error_mm"]), thesis_planned,
-                         summary["exit_error_mm"], summary.get("exit_error_estimate_mm"), summary["wall_seconds"],
-                         _planner_note(summary)])
-            print(f"{name} upright: planned {summary['exit_error_mm']} mm", flush=True)
+        for scene in (scene for scene in SCENES if scene[0] in LEANING):
+            configs[scene[0]] = changed_copy(configs[scene[0]], workdir, "upright",
+                                             lambda raw: raw["planner"].update(aim_entry_tilt=False))
+            rows.append(_result_row(scene, "default, upright", None, run_scene(configs[scene[0]], workdir, None)))
         loose = []
         held_back = [row[0] for row in rows if row[2] in ("default", "default, upright") and row[9] is not None
                      and row[9] > HELD_BACK and "move limits held" in row[12]]
