@@ -40,7 +40,10 @@ def read_table(path: str | Path, required: Sequence[str], expected: str) -> tupl
     # rows of empty cells (',,,' as spreadsheets save blank rows) are blank lines too
     rows = [(number, row) for (number, _), row in zip(lines, csv.reader(line for _, line in lines))
             if any(cell.strip() for cell in row)]
-    header = [name.strip() for name in rows[0][1]] if rows else []
+    if not rows:
+        raise InputError(f"{path}: got an empty file (no header, no rows); expected a header with at least "
+                         f"{', '.join(required)} ({expected})")
+    header = [name.strip() for name in rows[0][1]]
     missing = [name for name in required if name not in header]
     if missing:
         raise InputError(f"{path}: columns {header} lack {missing}; expected at least "
