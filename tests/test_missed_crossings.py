@@ -217,3 +217,41 @@ def test_a_crossing_back_through_the_wall_just_crossed_is_that_wall():
     assert geometry.exit_made(loops, np.array([32.0, 22.25]), 1) == 2  # the exits ahead alone: a false final exit
     assert geometry.crossing_made(loops, np.array([28.0, 23.0]), "exit", 2, back=1) == 1  # back out of the far wall
     assert geometry.crossing_made(loops, np.array([23.4, 30.0]), "exit", 2, back=1) == 2
+
+
+def sagging_notch_scene() -> dict:
+    """A 60 x 30 mm slab clamped on its right edge only, a notch 8 mm deep in its top (SCENARIO.md's
+    outline) that the undeformed circle passes 0.84 mm below: the needle's loads sag the free
+    left part by ~1.8 mm, and the tip comes out into the notch at 1.31 rad of a pi arc."""
+    return {"name": "sagging notch",
+            "tissue": {"outline": [[0, 0], [60, 0], [60, 30], [34, 30], [32, 22], [28, 22], [26, 30], [0, 30]],
+                       "thickness": 10.0, "material": dict(PHANTOM), "clamped": ["right"]},
+            "needle": {**NEEDLE, "entry": [20.0, 30.0], "turn": "ccw"}}
+
+
+def test_a_tip_out_into_a_gap_the_undeformed_circle_does_not_cross_ends_the_run(tmp_path):
+    """The tip's exit into the notch is not the final exit: the needle's circle meets the tissue
+    again ahead (the notch's far wall). A crossing the undeformed circle does not make is not
+    followed, so the run stops naming the step, both points and what to change, with exit 1
+    and no summary (it used to report that exit as the final one, 12.1 mm off, without an
+    event). The same slab clamped at the bottom does not sag and exits through the top."""
+    import yaml
+
+    with pytest.raises(InsertionFailure, match=r"^step 17: the needle tip left the tissue through the outer "
+                                               r"boundary at \[27\.8\d, 22\.7\d\] at needle rotation 1\.310 rad, "
+                                               r"1\.832 rad before the undeformed circle's final exit at \[37\.76, 30\], "
+                                               r"and its circle enters the deformed tissue again at \[3[12]\.\d+, "
+                                               r"2[01]\.\d+\] \(deformed position, needle rotation 1\.9\d\d rad\)"):
+        run_insertion(parse_scenario(sagging_notch_scene()))
+    scenario = tmp_path / "notch.yaml"
+    scenario.write_text(yaml.safe_dump(sagging_notch_scene(), sort_keys=False))
+    out = CliRunner().invoke(app, ["simulate", str(scenario), "--no-estimate", "--summary", str(tmp_path / "s.json")])
+    assert out.exit_code == 1, out.output
+    assert "such a crossing is not followed; move the entry or change the radius" in out.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notch.yaml"]
+
+    clamped_below = sagging_notch_scene()
+    clamped_below["tissue"]["clamped"] = ["bottom"]
+    result = run_insertion(parse_scenario(clamped_below))
+    assert result.achieved_exit[1] == pytest.approx(30.0, abs=1e-6)  # out through the top, beyond the notch
+    assert result.exit_error_mm < 1.0

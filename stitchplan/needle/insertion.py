@@ -24,7 +24,7 @@ from .equilibrium import NeedleInsertion, PreparedTissue
 from .geometry import BoundaryLoops, NeedleGeometry, entry_lean
 from .results import InsertionResult, NeedleStep, Snapshot, StepsDone
 from .steering import CenterAim
-from .tip_tracking import locate_exit, locate_reentry, track_step
+from .tip_tracking import entry_ahead, locate_exit, locate_reentry, track_step
 
 log = logging.getLogger(__name__)
 
@@ -212,6 +212,8 @@ def run_insertion(
                 solve_step(insertion, control, step, rotation, None, method, condition_numbers, started,
                            guess=_at(guesses, step, insertion))
                 continue
+            if (ahead_entry := entry_ahead(insertion, exit_rotation, geometry.arc)) is not None:
+                raise _left_into_uncrossed_gap(insertion, loops, step, exit_point, exit_rotation, ahead_entry)
             return _result(insertion, entry_center, steps, states, coefficients, exit_point,
                            exit_rotation, time.perf_counter() - wall_start, made)
         solve_step(insertion, control, step, rotation, point, method, condition_numbers, started,
@@ -285,6 +287,24 @@ def _left_for_good(insertion: NeedleInsertion, step: int, wall: tuple[int, str, 
         f"step {step}: the needle tip left the tissue into a wound at {_point_text(point)} at needle rotation "
         f"{rotation:.3f} rad (crossing {crossing + 1} of the undeformed circle) and did not enter it again within "
         f"the needle's arc of {geometry.arc:.4g} rad")
+
+
+def _left_into_uncrossed_gap(insertion: NeedleInsertion, loops: BoundaryLoops, step: int, exit_point: np.ndarray,
+                             exit_rotation: float, ahead_entry: tuple[np.ndarray, float]) -> InsertionFailure:
+    """The failure of a run whose tip left the tissue where the undeformed circle stays inside
+    (the deformed tissue carried a notch's or a hole's wall across the needle's path): the
+    needle's circle enters the tissue again ahead, so the tip has not left for good, and a
+    crossing the undeformed circle does not make is not followed."""
+    geometry = insertion.geometry
+    point, rotation = ahead_entry
+    return InsertionFailure(
+        f"step {step}: the needle tip left the tissue through {loops.describe(exit_point)} at "
+        f"{_point_text(exit_point)} at needle rotation {exit_rotation:.3f} rad, {geometry.exit_rotation - exit_rotation:.3f} "
+        f"rad before the undeformed circle's final exit at {_point_text(geometry.desired_exit)}, and its circle enters "
+        f"the deformed tissue again at {_point_text(point)} (deformed position, needle rotation {rotation:.3f} rad): the tissue's "
+        "deformation carried the boundary across the needle's path where the undeformed circle crosses none, and "
+        "such a crossing is not followed; move the entry or change the radius so that the undeformed circle "
+        "crosses that gap or clears it by more than the tissue moves")
 
 
 def _reentry(insertion: NeedleInsertion, step: int, start: float, end: float) -> tuple[np.ndarray, float] | None:

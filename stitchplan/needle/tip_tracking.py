@@ -463,6 +463,45 @@ def _wall_point(insertion: NeedleInsertion, start: np.ndarray, end: np.ndarray, 
     return point, float(rotation_of(point + insertion.displacement(point)[0]))
 
 
+def _rotation_about(insertion: NeedleInsertion, start: float):
+    """The needle rotation, within half a turn of `start`, at which the tip about the current
+    centre passes the polar angle of spatial points (..., 2), as a function of them."""
+    geometry, center = insertion.geometry, insertion.center
+
+    def rotation_of(spatial: np.ndarray) -> np.ndarray:
+        angle = np.arctan2(spatial[..., 1] - center[1], spatial[..., 0] - center[0])
+        turned = geometry.sense * (angle - geometry.start_angle) - start
+        return start + np.mod(turned + math.pi, 2.0 * math.pi) - math.pi
+    return rotation_of
+
+
+# a circle crossing the deformed boundary within this share of a needle step after the tip's
+# exit is that exit (the sampled boundary's chords sag a little off the located exit)
+ENTRY_AHEAD_MARGIN = 0.25
+
+
+def entry_ahead(insertion: NeedleInsertion, start: float, end: float) -> tuple[np.ndarray, float] | None:
+    """Where the rigid needle's circle about the current centre, past the tip's exit at
+    rotation `start`, enters the deformed tissue again before rotation `end` (the needle's
+    arc): the spatial point and the rotation, or None when the rest of the arc stays outside.
+    A tip leaving for good has air ahead; tissue ahead means the deformation carried the
+    boundary across the needle's path."""
+    geometry, center = insertion.geometry, insertion.center
+    if end <= start:
+        return None
+    t0 = time.perf_counter()
+    try:
+        boundary = DeformedBoundary(insertion)
+        _, rotations = boundary.circle_crossings(center, geometry.radius, _rotation_about(insertion, start))
+        ahead = rotations[(rotations > start + ENTRY_AHEAD_MARGIN * geometry.step) & (rotations < end)]
+        for rotation, after in zip(ahead, [*ahead[1:], end]):
+            if boundary.contains(geometry.tip(0.5 * (rotation + after), center)):
+                return geometry.tip(float(rotation), center), float(rotation)
+        return None
+    finally:
+        insertion.timings["tip_tracking"] += time.perf_counter() - t0
+
+
 def locate_reentry(insertion: NeedleInsertion, start: float, end: float) -> tuple[np.ndarray, float] | None:
     """Where the rigid needle's tip, crossing a wound from rotation `start` to `end` about the
     current centre, enters the deformed tissue again: the reference boundary point and the
@@ -474,14 +513,7 @@ def locate_reentry(insertion: NeedleInsertion, start: float, end: float) -> tupl
     it in the last equilibrium) enters there, at its material point."""
     t0 = time.perf_counter()
     geometry, center = insertion.geometry, insertion.center
-
-    def rotation_of(spatial: np.ndarray) -> np.ndarray:
-        """The needle rotation, within half a turn of `start`, at which the tip passes the polar
-        angle of the spatial points (..., 2) about the centre, (...)."""
-        angle = np.arctan2(spatial[..., 1] - center[1], spatial[..., 0] - center[0])
-        turned = geometry.sense * (angle - geometry.start_angle) - start
-        return start + np.mod(turned + math.pi, 2.0 * math.pi) - math.pi
-
+    rotation_of = _rotation_about(insertion, start)
     try:
         boundary = DeformedBoundary(insertion)
         if not boundary.contains(geometry.tip(end, center)):
