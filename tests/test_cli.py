@@ -198,6 +198,13 @@ def test_usage_error_is_one_line_with_exit_code_2(slab_path, args, expected):
     assert line.count("--spacing") <= 1
 
 
+def test_a_problem_two_models_of_a_plan_share_is_said_once(tmp_path):
+    """--dilation out of range is refused for the planned and the refined model alike: one line."""
+    result = invoke("plan", write_needle_scene(tmp_path), "--export", tmp_path / "t.csv", "--dilation", "50")
+    assert one_error_line(result, 2).startswith("error: --dilation: got 50, expected at most 10")
+    assert not (tmp_path / "t.csv").exists()
+
+
 def test_usage_error_from_the_console_entry_point(tmp_path):
     """The real entry point (no CliRunner): a missing required option is one line on stderr."""
     run = run_module("plan", tmp_path / "scene.yaml")

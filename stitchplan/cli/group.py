@@ -167,8 +167,10 @@ class _HeldStream(io.StringIO):
 
 
 def _echo_errors(lines: list[str]) -> None:
+    """One `error:` line per problem: a check that two models of a run make alike (an option
+    out of range for the planned and the refined model, or for two experiments) says it once."""
     try:
-        for line in lines:
+        for line in dict.fromkeys(lines):
             typer.echo(f"error: {line}", err=True)
     except OSError:  # stderr cannot be written (a full disk): the exit code still tells
         pass
