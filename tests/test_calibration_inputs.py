@@ -172,7 +172,8 @@ def test_a_misfit_that_overflows_everywhere_is_one_clear_error(tmp_path):
     with pytest.raises(InputError) as raised:
         calibration.fit_material(problem)
     message = str(raised.value)
-    assert message.startswith("fit: could not evaluate any moduli in lame_lambda [0.01, 2.0], lame_mu [0.01, 2.0]")
+    assert message.startswith(f"{problem.source}: fit: could not evaluate any moduli in lame_lambda [0.01, 2.0], "
+                              "lame_mu [0.01, 2.0]")
     assert "every grid point tried" in message
     assert "in experiments[0] ('left-pull'): the misfit f = inf overflows" in message
 
@@ -188,7 +189,7 @@ def test_forward_solves_failing_everywhere_name_the_experiment(tmp_path, monkeyp
         calibration.fit_material(problem)
     message = str(raised.value)
     assert "\n" not in message
-    assert message.startswith("fit: could not evaluate any moduli in lame_lambda [0.01, 2.0]")
+    assert message.startswith(f"{problem.source}: fit: could not evaluate any moduli in lame_lambda [0.01, 2.0]")
     assert ("the forward model failed at every grid point tried (1 of 16, the others softer still), in "
             "experiments[0] ('left-pull'): Newton failed at load step 2 (load fraction 0.1672); expected ranges "
             "where the tissue can carry the loads") in message

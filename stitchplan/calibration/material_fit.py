@@ -136,11 +136,13 @@ def grid_axes(fit: FitSettings) -> tuple[np.ndarray, np.ndarray]:
     return space(*fit.lame_lambda, fit.grid_points), space(*fit.lame_mu, fit.grid_points)
 
 
-def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., None]) -> GridSearch:
+def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., None],
+                source: str = "") -> GridSearch:
     """f on the grid, from the stiffest corner towards the softest in a serpentine, so each
     solve warm-starts from a neighbour that deformed less. Under force loads a point softer
     in both moduli than one that failed is not tried: it would deform even more. A point
-    whose forward model fails, or whose cost is not finite, stays nan and is never the best."""
+    whose forward model fails, or whose cost is not finite, stays nan and is never the best;
+    none left is an InputError naming `source` (the calibration file) and its fit ranges."""
     lambdas, mus = grid_axes(fit)
     cost = np.full((len(lambdas), len(mus)), np.nan)
     failures: list[tuple[int, int]] = []  # where a solve failed: softer points are skipped
@@ -170,7 +172,7 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
     failed = int(np.isnan(cost).sum())
     if failed == cost.size:
         raise InputError(
-            f"fit: could not evaluate any moduli in lame_lambda {list(fit.lame_lambda)}, lame_mu "
+            (f"{source}: " if source else "") + f"fit: could not evaluate any moduli in lame_lambda {list(fit.lame_lambda)}, lame_mu "
             f"{list(fit.lame_mu)} MPa: the forward model failed at every grid point tried ({tried} of "
             f"{cost.size}" + (", the others softer still" if tried < cost.size else "") + "), "
             + "; ".join(f"in {label}: {cause}" for label, cause in failed_experiments.items())
@@ -396,7 +398,7 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
     start = time.perf_counter()
     misfit = MarkerMisfit(problem)
     with progress("grid search", problem.fit.grid_points ** 2) as advance:
-        grid = grid_search(misfit, problem.fit, advance)
+        grid = grid_search(misfit, problem.fit, advance, problem.source)
     grid_solves, grid_evaluations = misfit.solves, len(misfit.evaluations)
     with progress("least squares", None) as advance:
         refinement = refine(misfit, problem, grid.best, float(np.nanmin(grid.cost)), advance)
