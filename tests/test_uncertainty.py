@@ -129,6 +129,11 @@ def test_options_of_uncertainty_without_it_and_bad_pairs_are_refused(tmp_path):
     assert "--summary" in line and "expected a file other than the input from_calibration" in line
     assert (tmp_path / "fitted.yaml").read_bytes() == before
     assert not (tmp_path / "t.csv").exists()
+    line = one_error_line(invoke("plan", scenario, "--export", tmp_path / "t.csv", "--uncertainty", path,
+                                 "--no-compare", "--workers", "0"))
+    assert line.startswith("error: --no-compare: got it with --uncertainty FILE, whose report compares the "
+                           "unplanned, nominal and robust exits"), line
+    assert not (tmp_path / "t.csv").exists()
 
 
 # --- the design ------------------------------------------------------------------------------
@@ -569,6 +574,26 @@ def test_a_std_above_the_scenarios_value_is_refused_up_front(tmp_path):
     assert line.startswith(f"error: {path}: parameters.cutting_force.std: got 1e+300, expected at most the "
                            f"scenario's value 0.7 N ({scenario_path}: needle.cutting_force)"), line
     assert not out.exists()
+
+
+def test_an_unverified_plan_under_uncertainty_estimates_its_error_as_plan_does(tmp_path):
+    """--no-verify skips the refined replays, not the estimate: the exported plan's
+    exit_error_estimate_mm comes from its path replayed at twice the spacing, as `plan
+    --no-verify` gives it (the nominal plan's, the same path here)."""
+    scenario_path = write(tmp_path, small_raw())
+    path = write(tmp_path, _thickness_only(samples=2), "u.yaml")
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
+                    tmp_path / "s.json", "--no-verify", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    summary = _strict_json(tmp_path / "s.json")
+    assert summary["verified_exit_error_mm"] is None
+    plain = invoke("plan", scenario_path, "--export", tmp_path / "p.csv", "--summary", tmp_path / "p.json",
+                   "--no-verify")
+    assert plain.exit_code == 0, plain.output
+    expected = _strict_json(tmp_path / "p.json")["exit_error_estimate_mm"]
+    assert expected is not None and expected > 0.0
+    assert summary["exit_error_estimate_mm"] == pytest.approx(expected, rel=1e-9)
+    assert "discretization error estimate" in result.output
 
 
 def test_two_training_samples_do_not_test_the_mean_shift(tmp_path):

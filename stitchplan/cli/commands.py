@@ -202,6 +202,9 @@ def plan(
                               ("--scheduler", scheduler)):
             if value is not None:
                 raise InputError(f"{option}: got {value}, expected it only with --uncertainty FILE")
+    elif not compare:
+        raise InputError("--no-compare: got it with --uncertainty FILE, whose report compares the unplanned, nominal "
+                         "and robust exits over the samples; expected it without --uncertainty")
     executor = _executor(workers, scheduler)
     _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                     "--uncertainty-plot": uncertainty_plot},
@@ -289,7 +292,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
     from ..planning.replay_models import replay_scenario
-    from ..planning.verification import verify_exported
+    from ..planning.verification import estimate_exit_error, verify_exported
     from ..resources import PLAN_RUNS, VERIFICATION_RUNS, Origin, verification_origin
     from ..uncertainty.robust import check_target, plan_under_uncertainty, planned_tasks
     from ..uncertainty.sampling import draw
@@ -331,6 +334,8 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
                     "with that offset added")
     else:
         note = "the plans under uncertainty are not verified on a refined model (--no-verify)"
+        # as plan --no-verify: the exported plan's estimate from its path replayed at twice the spacing
+        plan.estimate = estimate_exit_error(scenario, plan.planned, plan.exported_centers, **options)
     plan.planned.events.insert(0, _note_event(note))
     if auto_note is not None:
         plan.planned.events.insert(0, auto_note)
