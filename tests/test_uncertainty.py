@@ -56,10 +56,14 @@ def test_from_calibration_gives_the_moduli_spread_and_the_file_overrides_it(tmp_
     np.testing.assert_allclose(resolved.std, [0.0129, 0.002, 0.5])  # lame_mu: the file's own
     assert resolved.sources == {"lame_lambda": "calibration", "lame_mu": "file", "thickness": "file"}
     np.testing.assert_allclose(resolved.correlation, [[1, -0.9903, 0], [-0.9903, 1, 0], [0, 0, 1]])
-    # an explicit correlation replaces the calibration's
+    assert resolved.as_record()["correlation"] == [{"between": ["lame_lambda", "lame_mu"], "value": -0.9903,
+                                                    "source": "calibration"}]
+    # an explicit correlation replaces the calibration's, and the record says so
     again = write(tmp_path, {"samples": 8, "from_calibration": "fitted.yaml",
                              "correlation": [{"between": ["lame_mu", "lame_lambda"], "value": -0.5}]}, "v.yaml")
     assert load_uncertainty(again).correlation[0, 1] == -0.5
+    assert load_uncertainty(again).as_record()["correlation"] == [
+        {"between": ["lame_lambda", "lame_mu"], "value": -0.5, "source": "file"}]
 
 
 BAD_FILES = [

@@ -22,7 +22,7 @@ scenario's value, and uncertain moduli on a scenario with material regions.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -120,6 +120,7 @@ class Uncertainty:
     sources: dict[str, str]  # name -> "file" or "calibration"
     path: str  # the uncertainty file
     calibration: str | None  # the calibrate material output read, if any
+    correlation_sources: dict[frozenset, str] = field(default_factory=dict)  # pair -> "file" | "calibration"
 
     @property
     def covariance(self) -> np.ndarray:
@@ -129,7 +130,8 @@ class Uncertainty:
         return {"samples": self.samples, "seed": self.seed,
                 "parameters": {name: {"std": float(s), "units": UNITS[name], "source": self.sources[name]}
                                for name, s in zip(self.names, self.std)},
-                "correlation": [{"between": [a, b], "value": float(self.correlation[i, j])}
+                "correlation": [{"between": [a, b], "value": float(self.correlation[i, j]),
+                                 "source": self.correlation_sources.get(frozenset((a, b)), "file")}
                                 for i, a in enumerate(self.names) for j, b in enumerate(self.names)
                                 if i < j and self.correlation[i, j] != 0.0],
                 "from_calibration": self.calibration}
@@ -160,12 +162,14 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
     std: dict[str, float] = {}
     sources: dict[str, str] = {}
     pairs: dict[frozenset, float] = {}
+    pair_sources: dict[frozenset, str] = {}
     calibration = None
     if spec.from_calibration is not None:
         calibration = path.parent / spec.from_calibration
         std, pair_value = calibration_spread(calibration, path)
         sources = {name: "calibration" for name in std}
         pairs[frozenset(("lame_lambda", "lame_mu"))] = pair_value
+        pair_sources[frozenset(("lame_lambda", "lame_mu"))] = "calibration"
     given = spec.parameters or Spreads()
     for name in PARAMETERS:
         spread = getattr(given, name)
@@ -173,6 +177,7 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
             std[name], sources[name] = spread.std, "file"
     for entry in spec.correlation:
         pairs[frozenset(entry.between)] = entry.value
+        pair_sources[frozenset(entry.between)] = "file"
     names = tuple(name for name in PARAMETERS if name in std)
     lines = []
     if not names:
@@ -201,7 +206,7 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
                            f"definite correlation matrix (its smallest eigenvalue is {smallest:.3g})"]) from None
     return Uncertainty(spec.samples, spec.seed, names, np.array([std[name] for name in names]), matrix,
                        {name: sources[name] for name in names}, str(path),
-                       None if calibration is None else str(calibration))
+                       None if calibration is None else str(calibration), pair_sources)
 
 
 def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float], float]:
