@@ -469,7 +469,7 @@ def probe_scheduler(address: str, timeout: float | None = None) -> None:
     except Exception as error:  # noqa: BLE001 -- whatever a server that is not a scheduler makes of it
         if type(error) is OSError:  # connect() gave up: nothing listening, or the host unreachable
             why = _why_unreachable(address, timeout - connecting) or _brief(_last_cause(error))
-            raise InputError(f"--scheduler: cannot connect to {address} within {connecting:g} s ({why}); "
+            raise InputError(f"--scheduler: cannot connect to {address} within {timeout:g} s ({why}); "
                              f"{expected}") from None
         raise InputError(f"--scheduler: {address} does not answer as a Dask scheduler (its reply could "
                          f"not be read: {_brief(error)}); {expected}") from None

@@ -86,6 +86,7 @@ BAD_FILES = [
     ({"parameters": {"friction": None, "thickness": {"std": 1.0}}},  # `friction:` left blank
      "parameters.friction: got null, expected a mapping {std: ...} giving the parameter's standard deviation"),
     ({"from_calibration": "missing.yaml"}, "from_calibration: "),
+    ({"from_calibration": "."}, ": cannot be read (a folder), expected a `stitchplan calibrate material` output"),
     ({"from_calibration": "fitted_displacement_only.yaml"},
      "fit.standard_uncertainty: got {'lame_lambda': null, 'lame_mu': null}, expected positive standard "
      "uncertainties of lame_lambda and lame_mu (MPa); the calibration did not identify the moduli"),
@@ -617,6 +618,13 @@ def test_two_training_samples_do_not_test_the_mean_shift(tmp_path):
     np.testing.assert_allclose(block["robust_aim_mm"], own, atol=1e-12)
     assert block["robust"] == block["nominal"]
     assert any("Hotelling's T^2 needs at least 3" in note for note in block["notes"])
+    # its notes go to stderr with the plan's, and -q leaves them out
+    assert "note: the mean exit shift" in result.stderr and "Hotelling's T^2 needs at least 3" in result.stderr
+    assert "note:" not in result.stdout
+    quiet = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "q.csv", "--workers", "0",
+                   "-q")
+    assert quiet.exit_code == 0, quiet.output
+    assert "note:" not in quiet.output
 
 
 def test_the_mean_shift_test_uses_the_small_sample_quantile_and_refuses_a_singular_covariance():

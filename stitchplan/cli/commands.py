@@ -15,9 +15,9 @@ from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOpt
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, SchedulerOption, WorkersOption,
                       _check_angular_speed, _check_outputs, _check_plot_scale, _check_plot_steps, _echo_events,
-                      _estimate_run, _executor, _expected_steps, _guard, _limits, _load, _naming_files,
-                      _needle_geometry, _option_names, _parse_base_transform, _parse_steps, _plot_steps_note,
-                      _provenance, _setup_logging, _value)
+                      _echo_notes, _estimate_run, _executor, _expected_steps, _guard, _limits, _load,
+                      _naming_files, _needle_geometry, _option_names, _parse_base_transform, _parse_steps,
+                      _plot_steps_note, _provenance, _setup_logging, _value)
 
 
 @app.command()
@@ -344,6 +344,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     typer.echo(reports.plan_line(plan, export))
     for line in uncertainty_lines(result):
         typer.echo(line)
+    _echo_notes(result.notes, quiet)
     _echo_events(plan.planned.events, quiet)
 
 
@@ -369,7 +370,7 @@ def _note_event(message: str):
 @app.command()
 def study(
     scenario_path: Path = ScenarioArgument,
-    out: Path = typer.Option(..., "--out", help="Folder for study.csv and speed_accuracy.png."),
+    out: Path = typer.Option(..., "--out", help="Folder for study.csv, study.json and speed_accuracy.png."),
     quick: bool = typer.Option(False, "--quick", help="A tiny sweep: two families, two spacings."),
     workers: Optional[int] = WorkersOption,
     scheduler: Optional[str] = SchedulerOption,
@@ -422,6 +423,7 @@ def study(
     for line in summary_lines(result):
         typer.echo(line)
     typer.echo(f"study: wrote {csv_path}, {png_path} and {json_path}")
+    _echo_notes(result.notes, quiet)
 
 
 @app.command()

@@ -289,6 +289,13 @@ def _guard_calibration(calibration_path: Path, problem, limits, names: Optional[
         for k, experiment in enumerate(problem.experiments)], names=names)
 
 
+def _echo_notes(notes, quiet: bool) -> None:
+    """A command's notes as `note:` lines on stderr (none with -q)."""
+    if not quiet:
+        for note in notes:
+            typer.echo(f"note: {note}", err=True)
+
+
 def _echo_events(events, quiet: bool, shown: int = 3) -> None:
     """The first `shown` events of a run as `note:` lines on stderr (none with -q)."""
     if quiet:

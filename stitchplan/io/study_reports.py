@@ -76,7 +76,8 @@ def write_study_outputs(result: StudyResult, out: str | Path, provenance: dict |
 
 
 def summary_lines(result: StudyResult) -> list[str]:
-    """What `stitchplan study` prints: the counts, the reference, the Pareto front, the notes."""
+    """What `stitchplan study` prints: the counts, the reference, the Pareto front (its notes go
+    to stderr with the runs' notes)."""
     ok = [r for r in result.runs if r.ok]
     lines = [f"study: {len(result.runs)} runs ({len(ok)} ok, {len(result.runs) - len(ok)} failed); "
              f"reference {result.reference.label}: {result.reference.particles} particles, "
@@ -84,4 +85,4 @@ def summary_lines(result: StudyResult) -> list[str]:
     for run in sorted(result.front, key=lambda r: r.wall_seconds):
         lines.append(f"  Pareto: {run.label:32s} {run.particles:6d} particles {run.wall_seconds:7.2f} s  "
                      f"deviation {run.deviation_mm:.4f} mm")
-    return lines + [f"note: {note}" for note in result.notes]
+    return lines

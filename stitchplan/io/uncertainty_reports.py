@@ -182,7 +182,7 @@ def uncertainty_lines(result: UncertaintyResult) -> list[str]:
         exported = "  (exported)" if label == result.exported else ""
         lines.append(f"  {label:9s} {shown}{exported}")
     lines.append(result.dominance_line())
-    return lines + [f"note: {note}" for note in result.notes]
+    return lines
 
 
 def plot_title(result: UncertaintyResult, scenario_name: str = "") -> str:
