@@ -90,6 +90,30 @@ def test_a_bad_shape_is_refused_in_one_line(tmp_path, case):
     assert_refused(result, tmp_path, {"scene.yaml"}, [["scene.yaml: ", *fragments]])
 
 
+CROSSED_HOLE = [[10, 5], [20, 12], [20, 5], [10, 12]]
+
+
+@pytest.mark.parametrize(("changes", "expected"), [
+    # a field that fails keeps the tissue from being checked whole: its shape is checked on its own
+    ({"thickness": -1, "holes": [{"polygon": CROSSED_HOLE}]},
+     [["tissue.thickness: got -1"], ["tissue.holes[0]: got [[10.0, 5.0]", "expected a simple polygon"]]),
+    ({"material": {**PHANTOM, "lame_mu": -1},
+      "regions": [{"polygon": [[50, 0], [60, 0], [60, 5]], "material": PHANTOM}]},
+     [["tissue.material.lame_mu: got -1"], ["tissue.regions[0].polygon:", "a region overlapping the tissue"]]),
+    # polygons that are not simple do not hide one another
+    ({"outline": [[0, 0], [40, 20], [40, 0], [0, 20]], "holes": [{"polygon": CROSSED_HOLE}]},
+     [["tissue.outline: got", "expected a simple polygon"], ["tissue.holes[0]: got", "expected a simple polygon"]]),
+    ({"holes": [{"polygon": CROSSED_HOLE}],
+      "regions": [{"polygon": [[0, 18], [40, 20], [40, 18], [0, 20]], "material": PHANTOM}]},
+     [["tissue.holes[0]: got", "expected a simple polygon"],
+      ["tissue.regions[0].polygon: got", "expected a simple polygon"]]),
+])
+def test_every_problem_of_a_shape_is_said_at_once(tmp_path, changes, expected):
+    write_scene(tmp_path, shaped(**changes))
+    result = invoke(tmp_path, "deform", "scene.yaml", *OUTPUTS["deform"])
+    assert_refused(result, tmp_path, {"scene.yaml"}, [["scene.yaml: ", *fragments] for fragments in expected])
+
+
 @pytest.mark.parametrize(("command", "change", "fragments"), [
     ("deform", {"loads": [{"segment": [[20.0, 14.0], [20.0, 10.0]], "force": [1.0, 0.0]}]},
      ["loads[0].segment: got [[20.0, 14.0], [20.0, 10.0]]", "one edge of the polygon tissue"]),

@@ -314,27 +314,26 @@ def shape_loops(tissue: Tissue) -> tuple[np.ndarray | None, list[tuple[int, np.n
         outline = np.asarray(tissue.outline, dtype=float)
         tol = 1e-9 * float(np.ptp(outline, axis=0).max())
         why = polygon_problem(outline, tol)
-        if why:
-            return None, [], False, [problem(why, field="outline", value=tissue.outline)]
+        if why:  # the holes' own polygons are checked all the same, so that every problem is said at once
+            return None, [], False, [problem(why, field="outline", value=tissue.outline),
+                                     *_hole_polygon_problems(tissue, tol)]
         outer = counter_clockwise(outline)
     else:
         w, h = tissue.size
         outer = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
         tol = 1e-9 * max(w, h)
-    problems, inside, reaching = [], [], []
+    inside, reaching = [], []
     outer_domain = PolygonDomain(outer)
+    problems = _hole_polygon_problems(tissue, tol)
+    if problems:
+        return None, [], False, problems
     for i, hole in enumerate(tissue.holes):
         vertices = hole.vertices()
-        why = polygon_problem(vertices, tol) if hole.polygon is not None else None
-        if why:
-            problems.append(problem(why, field=f"holes[{i}]", value=_shown(hole)))
-        elif np.all(outer_domain._inside_strict(vertices) & (outer_domain.distance(vertices) > tol)) \
+        if np.all(outer_domain._inside_strict(vertices) & (outer_domain.distance(vertices) > tol)) \
                 and not _loops_touch(vertices, outer, tol):
             inside.append((i, vertices))
         else:
             reaching.append((i, vertices))
-    if problems:
-        return None, [], False, problems
     if reaching:
         cut, why, idle = cut_outline(outer, [vertices for _, vertices in reaching], tol)
         expected = "a hole inside the tissue outline, not touching it, or one cutting into it that leaves " \
@@ -371,6 +370,25 @@ def shape_loops(tissue: Tissue) -> tuple[np.ndarray | None, list[tuple[int, np.n
     return outer, inside, bool(reaching), problems
 
 
+def _hole_polygon_problems(tissue: Tissue, tol: float) -> list:
+    """The holes given as polygons that are not simple ones."""
+    return [problem(why, field=f"holes[{i}]", value=_shown(hole)) for i, hole in enumerate(tissue.holes)
+            if hole.polygon is not None and (why := polygon_problem(hole.vertices(), tol))]
+
+
+def _region_polygon_problems(tissue: Tissue, tol: float | None) -> dict[int, Any]:
+    """The problems of the regions whose polygons are not simple ones, by region (`tol`: the
+    tissue's, None to take the region's own size when the tissue has no valid shape)."""
+    problems = {}
+    for i, region in enumerate(tissue.regions):
+        vertices = np.asarray(region.polygon, dtype=float)
+        own = 1e-9 * float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+        why = polygon_problem(vertices, own if tol is None else tol)
+        if why:
+            problems[i] = problem(why, field=f"regions[{i}].polygon", value=region.polygon)
+    return problems
+
+
 def _shown(hole: Hole):
     return hole.polygon if hole.polygon is not None else asdict(hole.circle)
 
@@ -381,15 +399,15 @@ def shape_problems(tissue: Tissue) -> list:
     touching the outline at a point, cutting it apart or overlapping each other, regions
     outside the tissue, clamped pieces off the boundary or named edges on a polygon."""
     problems = list(tissue.loops[3])
-    if problems:
-        return problems
+    if problems:  # the regions' own polygons do not depend on the shape
+        return problems + list(_region_polygon_problems(tissue, None).values())
     domain = tissue.domain
+    not_simple = _region_polygon_problems(tissue, domain.tolerance)
+    problems = list(not_simple.values())
     for i, region in enumerate(tissue.regions):
-        vertices = np.asarray(region.polygon, dtype=float)
-        why = polygon_problem(vertices, domain.tolerance)
-        if why:
-            problems.append(problem(why, field=f"regions[{i}].polygon", value=region.polygon))
+        if i in not_simple:
             continue
+        vertices = np.asarray(region.polygon, dtype=float)
         if not _overlaps(PolygonDomain(counter_clockwise(vertices)), domain):
             problems.append(problem("a region overlapping the tissue (this one holds no tissue)",
                                     field=f"regions[{i}].polygon", value=region.polygon))

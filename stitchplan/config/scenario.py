@@ -204,9 +204,27 @@ def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = 
         resolved = _with_default_spacing(raw, size)
         context["default_spacing_unknown"] = resolved is None
         raw = raw if resolved is None else resolved
-    scenario_file = validate(ScenarioFile, raw, "", root="scenario", context=context)
+    try:
+        scenario_file = validate(ScenarioFile, raw, "", root="scenario", context=context)
+    except InputError as error:
+        raise input_error([*error.lines, *_shape_lines(raw, error.lines)]) from None
     log_moves(scenario_file.tissue.domain, moved_points(raw, scenario_file))
     return scenario_file.scenario(source_text, source_sha256)
+
+
+def _shape_lines(raw: Any, known: list[str]) -> list[str]:
+    """The problems of the tissue's shape (size or outline, holes, regions, clamped) not among
+    `known`: a tissue whose other fields fail (a negative thickness, say) is not checked as a
+    whole, so its shape is checked on its own, that every problem is said at once."""
+    tissue = raw.get("tissue") if isinstance(raw, dict) else None
+    if not isinstance(tissue, dict):
+        return []
+    shape = {key: tissue[key] for key in ("size", "outline", "holes", "regions", "clamped") if key in tissue}
+    try:
+        validate(Tissue, {**shape, "thickness": 1.0, "material": Material()}, "tissue")
+    except InputError as error:
+        return [line for line in error.lines if line not in known]
+    return []
 
 
 def moved_points(raw: Any, scenario_file: ScenarioFile) -> list[tuple[str, Any, Any]]:
