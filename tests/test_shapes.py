@@ -76,6 +76,8 @@ BAD_SHAPES = {
     "clamped segment off the boundary": (shaped(clamped=[{"segment": [[0, 1], [40, 1]]}]),
                                          ["tissue.clamped[0].segment: got [[0.0, 1.0], [40.0, 1.0]]",
                                           "a non-empty straight piece of one edge of the polygon tissue"]),
+    "unknown key of a clamped segment": (shaped(clamped=[{"segment": [[0, 0], [40, 0]], "fixed": True}]),
+                                         ["tissue.clamped[0]: unknown key 'fixed', expected one of: segment"]),
     "named edge on a polygon": (shaped(clamped=["top"]),
                                 ["tissue.clamped[0]: got 'top'", "a side of the outline's bounding box that holds "
                                  "exactly one outline edge"]),
@@ -100,6 +102,10 @@ CROSSED_HOLE = [[10, 5], [20, 12], [20, 5], [10, 12]]
     ({"material": {**PHANTOM, "lame_mu": -1},
       "regions": [{"polygon": [[50, 0], [60, 0], [60, 5]], "material": PHANTOM}]},
      [["tissue.material.lame_mu: got -1"], ["tissue.regions[0].polygon:", "a region overlapping the tissue"]]),
+    # a clamped {segment: ...} piece's own keys, misspelt: the missing key and the close one
+    ({"clamped": [{"segmnt": [[0, 0], [40, 0]]}]},
+     [["tissue.clamped[0].segment: missing, required: two points"],
+      ["tissue.clamped[0]: unknown key 'segmnt', expected one of: segment (did you mean 'segment'?)"]]),
     # polygons that are not simple do not hide one another
     ({"outline": [[0, 0], [40, 20], [40, 0], [0, 20]], "holes": [{"polygon": CROSSED_HOLE}]},
      [["tissue.outline: got", "expected a simple polygon"], ["tissue.holes[0]: got", "expected a simple polygon"]]),

@@ -20,6 +20,7 @@ from pydantic import (
     Field,
     ValidationError,
     ValidationInfo,
+    WrapValidator,
     field_validator,
     model_validator,
 )
@@ -63,7 +64,7 @@ from .fields import (
     sequence,
     within,
 )
-from .messages import combined, short, valid_or_none, validate
+from .messages import adapter, combined, short, valid_or_none, validate
 
 
 def _file_schema(required: tuple[str, ...], one_of: tuple[str, ...], schema: dict) -> None:
@@ -194,8 +195,25 @@ def counter_clockwise(vertices: np.ndarray) -> np.ndarray:
     return vertices if signed_area(vertices) > 0 else vertices[::-1].copy()
 
 
-Clamp = Annotated[Literal[EDGES] | ClampedSegment, Field(union_mode="left_to_right"),
-                  expecting("an edge among " + ", ".join(EDGES) + " or {segment: [[x0, y0], [x1, y1]]}")]
+CLAMP_EXPECTED = "an edge among " + ", ".join(EDGES) + " or {segment: [[x0, y0], [x1, y1]]}"
+
+
+def _clamp_item(value: Any, handler) -> Any:
+    """A clamped item: a mapping is a {segment: ...} piece, its own errors kept (an unknown or
+    missing key named); anything else an edge's name."""
+    if isinstance(value, dict):
+        try:
+            return adapter(ClampedSegment).validate_python(value)
+        except ValidationError as error:
+            raise combined(error.errors()) from None
+    try:
+        return handler(value)
+    except ValidationError:
+        raise problem(CLAMP_EXPECTED) from None
+
+
+_clamp_item.expected = CLAMP_EXPECTED  # read by the message of a missing field
+Clamp = Annotated[Literal[EDGES] | ClampedSegment, Field(union_mode="left_to_right"), WrapValidator(_clamp_item)]
 Clamps = Annotated[sequence(Clamp, "a list of edges or {segment: ...} pieces of the boundary"),
                    Field(json_schema_extra={"uniqueItems": True})]  # each edge at most once (Tissue)
 

@@ -183,15 +183,17 @@ def _keys(block: Any) -> list[str]:
 
 
 def _strip(kind: Any) -> Any:
-    """The type inside Optional[...] and Annotated[...]."""
+    """The type inside Optional[...] and Annotated[...]; of a union of a name and a block
+    (tissue.clamped's edge or {segment: ...}) the block, whose keys a mapping has."""
     while True:
         if typing.get_origin(kind) is typing.Annotated:
             kind = typing.get_args(kind)[0]
         elif typing.get_origin(kind) in (typing.Union, types.UnionType):
             args = [a for a in typing.get_args(kind) if a is not type(None)]
-            if len(args) != 1:
+            blocks = [a for a in args if _keys(_strip(a))]
+            if len(args) != 1 and len(blocks) != 1:
                 return kind
-            kind = args[0]
+            kind = args[0] if len(args) == 1 else blocks[0]
         else:
             return kind
 
