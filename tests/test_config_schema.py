@@ -196,6 +196,20 @@ def test_the_schema_refuses_a_load_of_both_kinds_and_an_edge_clamped_twice(schem
         ["loads", 0], ["loads", 1], ["tissue", "clamped"], ["tissue", "holes", 0]]
 
 
+def test_the_schema_wants_exactly_one_of_size_and_outline(schema, slab_raw):
+    """As the tool does (`tissue.size: got both`): the schema let a tissue with both, or with
+    neither, through."""
+    both = copy.deepcopy(slab_raw)
+    both["tissue"]["outline"] = [[0, 0], [100, 0], [100, 60], [0, 60]]
+    neither = copy.deepcopy(slab_raw)
+    del neither["tissue"]["size"]
+    assert problems(schema, schema, both) == ["scenario.tissue: matches 2 of oneOf [['size'], ['outline']]"]
+    assert problems(schema, schema, neither) == ["scenario.tissue: matches 0 of oneOf [['size'], ['outline']]"]
+    jsonschema = pytest.importorskip("jsonschema")
+    for raw in (both, neither):
+        assert [list(e.absolute_path) for e in jsonschema.Draft202012Validator(schema).iter_errors(raw)] == [["tissue"]]
+
+
 def test_jsonschema_agrees_when_installed(schema, slab_raw):
     jsonschema = pytest.importorskip("jsonschema")
     for path in CONFIGS:

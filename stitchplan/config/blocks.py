@@ -257,7 +257,7 @@ def within_limits(limits: dict) -> Any:
     return model_validator(mode="wrap")(check)
 
 
-@block(file_required=("thickness", "material"))
+@block(file_required=("thickness", "material"), one_of=("size", "outline"))
 class Tissue:
     """The tissue: the rectangle `size` or the polygon `outline` (clockwise accepted and walked
     counter-clockwise), optional holes and material regions (SCENARIO.md)."""

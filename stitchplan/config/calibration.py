@@ -98,7 +98,7 @@ MuLow = number(f"a number of at least {MIN_SEARCH_MODULUS:g} (MPa; 1 Pa, softer 
                ge=MIN_SEARCH_MODULUS)
 
 
-@block(title="tissue", file_required=("thickness",))
+@block(title="tissue", file_required=("thickness",), one_of=("size", "outline"))
 class CalibrationTissue:
     """The tissue of a calibration: a scenario's tissue without its material."""
 
