@@ -125,11 +125,15 @@ def _needle_frame(runs_and_steps, margin: float) -> np.ndarray:
                    np.asarray(run.desired_exit).reshape(1, 2)]
         if run.desired_exit_def is not None:
             points.append(np.asarray(run.desired_exit_def).reshape(1, 2))
-        # holes near the needle belong in the view: they shape the tissue around it
-        for hole in getattr(run.scenario.tissue.domain, "holes", ()):
+        # holes and the outline's corners near the needle belong in the view: they shape the
+        # tissue around it (a wound's bottom below the needle)
+        domain = run.scenario.tissue.domain
+        for hole in getattr(domain, "holes", ()):
             gap = np.linalg.norm(np.asarray(hole) - run.geometry.center, axis=1).min()
             if gap < 1.5 * run.geometry.radius:
                 points.append(np.asarray(hole))
+        corners = np.asarray(getattr(domain, "outline", np.empty((0, 2))))
+        points.append(corners[np.linalg.norm(corners - run.geometry.center, axis=1) < 1.5 * run.geometry.radius])
     return np.vstack(points)
 
 
