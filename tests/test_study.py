@@ -32,7 +32,7 @@ from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discr
 from stitchplan.config.study import StudyFamily
 from stitchplan.io.study_reports import COLUMNS
 from stitchplan.planning.verification import exit_deviations
-from stitchplan.study.sweep import StudyRun, pareto_front, plan_runs
+from stitchplan.study.sweep import StudyRun, pareto_front, plan_runs, run_study
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
 REQUIRED_COLUMNS = ("family", "spacing_mm", "dilation", "quadrature_order", "basis_order", "step_rad",
@@ -113,6 +113,13 @@ def test_quick_study_is_two_families_of_two_spacings_and_a_finer_reference():
     runs, reference, _ = plan_runs(parse_scenario(tiny_raw(SWEEP)), quick=True)
     assert len(runs) == 4 and {r.family for r in runs} == {"uniform", "graded x4"}
     assert reference.spacing < min(r.spacing for r in runs)
+
+
+def test_a_quick_study_says_it_left_the_scenarios_study_block_aside():
+    result = run_study(parse_scenario(tiny_raw(SWEEP)), quick=True)
+    assert {run.family for run in result.runs} == {"uniform", "graded x4", "reference"}
+    assert any(note.startswith("--quick: the scenario's study: block was not used") for note in result.notes)
+    assert not any(note.startswith("--quick") for note in run_study(parse_scenario(tiny_raw()), quick=True).notes)
 
 
 # --- the CLI on real files -------------------------------------------------------------------

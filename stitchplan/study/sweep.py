@@ -236,6 +236,9 @@ def run_study(scenario: Scenario, quick: bool = False,
     report = on_run or (lambda run: None)
     runs, reference, repeats = plan_runs(scenario, quick)
     notes: list[str] = []
+    if quick and scenario.study is not None:
+        notes.append("--quick: the scenario's study: block was not used (the quick sweep's two families at "
+                     "1.4 h and h instead)")
     done = run_all(run_timed, [*runs, reference], [repeats] * len(runs) + [1], executor=executor,
                    on_result=lambda index, run: report(run))
     runs, reference = done[:-1], done[-1]  # from a cluster: the workers' copies
