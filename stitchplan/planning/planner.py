@@ -138,7 +138,7 @@ class PassPrefix:
         ended with (its last step when it did not end held): the drift the offset
         compensates comes after those steps, and the steps from there on still move the exit.
         It enters there as a jump of the aimed centre, which the second-difference limit
-        passes only when small: up to REAIM_FRACTION of that limit (0.0375 mm per 0.08 rad
+        passes only when small: up to REAIM_FRACTION of that limit (0.035 mm per 0.08 rad
         by default). The thesis's table 5.1 100 x 100 block, whose first pass misses by
         0.21 mm, took 3 passes to 0.00025 mm with the offset from step 1 and was still
         0.021 mm off after 4 with it from step 15."""
