@@ -126,6 +126,18 @@ def test_arc_too_short_to_exit_is_refused():
     assert "expected an exit within its arc of 1.571 rad" in message
 
 
+def test_a_half_circle_entering_a_slanted_edge_within_round_off_is_accepted():
+    """An entry kept to the bit 4.8e-8 mm off a slanted edge (within the boundary's round-off)
+    turns the half circle's exit 1.1e-8 rad past pi: the default arc of pi holds it (it was
+    refused as leaving past its arc)."""
+    from stitchplan.geometry import PolygonDomain
+
+    domain = PolygonDomain(np.array([[0.0, 0.0], [96.83, 0.0], [87.71, 48.96], [9.13, 48.96]]))
+    assert 0.0 < domain.distance(np.array([[90.807515, 32.331235]]))[0] < domain.tolerance
+    geometry = needle_geometry(make_needle((90.807515, 32.331235), "cw", radius=4.57), domain)
+    assert 0.0 < geometry.exit_rotation - math.pi < 2e-8
+
+
 def test_exit_within_two_steps_is_refused():
     """An entry 0.5 mm from the bottom corner turning towards it exits almost at once."""
     with pytest.raises(ScenarioError, match="expected at least two steps of 0.4 rad"):

@@ -212,7 +212,10 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
     # the desired exit); a convex tissue's only exit keeps first_exit_rotation's value
     rotation = exits[-1] if len(exits) > 1 else first
     entering = f"entering at {list(needle.entry)} turning {needle.turn}{lean}"
-    if rotation is None or rotation > needle.arc + 1e-9:
+    # an entry kept to the bit within the boundary's round-off (domain.tolerance) turns the exit by
+    # up to about that offset over the radius: a half circle on a slanted edge leaves 1e-8 rad past pi
+    slack = 1e-9 + 4.0 * domain.tolerance / needle.radius
+    if rotation is None or rotation > needle.arc + slack:
         # the excess too: an entry a hair off a corner leaves a hair past the arc, which 4 digits hide
         reach = ("never leaves the tissue" if rotation is None
                  else f"leaves after {rotation:.4g} rad, {rotation - needle.arc:.2g} rad past its arc")
