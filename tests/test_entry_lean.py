@@ -158,6 +158,10 @@ def test_the_plans_trajectory_file_replays_to_its_exit_error(plans, tmp_path):
     # the plan's centres settle within its solver's tolerances, the replay's are prescribed
     # (test_plan_cli's replay of an upright plan: 1e-3 mm)
     assert replay["exit_error_mm"] == pytest.approx(plan["exit_error_mm"], abs=1e-4)
+    # the final exit's crossing record is judged against the same desired exit, the upright needle's
+    for summary in (plan, replay):
+        assert summary["crossings"][-1]["desired"] == summary["desired_exit"]
+        assert summary["crossings"][-1]["error_mm"] == pytest.approx(summary["exit_error_mm"], rel=1e-12)
 
 
 def test_a_row_0_written_with_six_digits_still_leans_the_needle(plans, tmp_path):

@@ -50,6 +50,9 @@ class NeedleGeometry:
     # order, the final exit last: (alpha, "exit" | "entry"); more than one with a wound
     crossings: tuple = ()
     tilt: float = 0.0  # rad leaned from the orthogonal entry (needle.entry_tilt)
+    # the orthogonal needle's point of each crossing, the last the desired exit: what a leaning
+    # needle aims at (its own circle's crossings are `crossings`); () for the crossings' own points
+    desired_points: tuple = ()
 
     @property
     def gaps(self) -> list[tuple[float, float]]:
@@ -60,6 +63,11 @@ class NeedleGeometry:
     def crossing_point(self, k: int) -> np.ndarray:
         """The undeformed circle's point at crossing k, (2,)."""
         return self.tip(self.crossings[k][0])
+
+    def desired_point(self, k: int) -> np.ndarray:
+        """Where crossing k should be made, (2,): the undeformed circle's point, the orthogonal
+        needle's for a leaning one (the last is the desired exit)."""
+        return self.desired_points[k] if self.desired_points else self.crossing_point(k)
 
     def exit_made(self, loops: BoundaryLoops, point: np.ndarray, first: int) -> int | None:
         """Which crossing of the undeformed circle a tip that leaves the tissue at the boundary
@@ -195,8 +203,9 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
             f"needle.entry_tilt: got {needle.entry_tilt:.4g} rad, which makes the needle cross the boundary "
             f"{len(crossings)} times where the orthogonal needle crosses it {len(geometry.crossings)} times; "
             "expected a lean that keeps the needle's way through the tissue (the same gaps and exit)")
+    desired = tuple(geometry.crossing_point(k) for k in range(len(geometry.crossings)))
     return replace(geometry, center=center, start_angle=start_angle, exit_rotation=rotation, crossings=crossings,
-                   tilt=needle.entry_tilt)
+                   tilt=needle.entry_tilt, desired_points=desired)
 
 
 def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np.ndarray, center: np.ndarray,

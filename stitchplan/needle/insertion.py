@@ -461,7 +461,7 @@ def _crossings(insertion: NeedleInsertion, made: list[tuple[int, str, np.ndarray
     crossings in order, by index). A wall the tip crossed more than once (back into the tissue
     through a bulging wall and out again) keeps the last time, the one before it went on."""
     geometry = insertion.geometry
-    desired = np.array([geometry.crossing_point(k) for k in range(len(geometry.crossings))])
+    desired = np.array([geometry.desired_point(k) for k in range(len(geometry.crossings))])
     # the last crossing of each wall made in its own direction (not a crossing back through it)
     achieved = {crossing: point for crossing, kind, point, _ in made if kind == geometry.crossings[crossing][1]}
     reached = np.array([achieved[k] for k in sorted(achieved)]).reshape(-1, 2)
