@@ -302,3 +302,20 @@ def test_a_far_wall_whose_displacement_jumps_across_the_needle_stops_the_run_nam
                                                r"jumps across the needle by 0\.2 mm at the wall point .* refine the "
                                                r"spacing"):
         locate_reentry(insertion, rotation - 0.5 * step, rotation + 0.5 * step)
+
+
+def test_a_track_point_tracked_into_a_hole_fails_its_step_by_name():
+    """A soft slab whose hole's wall bulges round the tip: the tip crosses back through the
+    wall it left, and the track's next segment reaches 0.01 mm into the hole at rest, where no
+    particle's kernel reaches. The step stops naming itself, the point and why (it used to end
+    in the shape functions' 'covered by 0 particles ... refine the spacing', no step named)."""
+    raw = {"tissue": {"size": [100.0, 40.0], "thickness": 10.0, "clamped": ["right"],
+                      "material": {"model": "neo-hookean", "lame_lambda": 0.38, "lame_mu": 0.3},
+                      "holes": [{"circle": {"center": [50.0, 30.0], "radius": 2.5}}]},
+           "discretization": {"spacing": 2.0, "needle_refinement": 2},
+           "needle": {"radius": 8.3, "entry": [43.0, 40.0], "turn": "ccw", "step": 0.14, "friction": 0.06,
+                      "cutting_force": 0.7}}
+    with pytest.raises(InsertionFailure, match=r"^step 11 \(needle rotation 1\.540 rad\): the needle's track "
+                                               r"reaches \[50\.5\d, 32\.4\d\], 0\.01\d\d mm outside the tissue at "
+                                               r"rest \(in a hole or a gap\), where no particle's kernel reaches"):
+        run_insertion(parse_scenario(raw))

@@ -20,6 +20,7 @@ import numpy as np
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure
 from ..events import Event, EventKind
+from ..tissue.shape_functions import SingularMomentAt
 from .equilibrium import NeedleInsertion, PreparedTissue
 from .geometry import BoundaryLoops, NeedleGeometry, entry_lean
 from .results import InsertionResult, NeedleStep, Snapshot, StepsDone
@@ -178,7 +179,7 @@ def run_insertion(
                                       made[-1][0])
             made.append((crossing, "entry", entry_point, entry_rotation))
             ahead = _ahead_after(geometry, made[-1])
-            insertion.add_point(entry_point, gap=True)
+            _add_point(insertion, step, rotation, entry_point, gap=True)
             in_gap = False
             _log_crossing(insertion, step, made)
             point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
@@ -207,7 +208,7 @@ def run_insertion(
                 _log_crossing(insertion, step, made)
                 if rotation >= geometry.arc:  # too late in the arc to enter again
                     raise _left_for_good(insertion, step, made[-1])
-                insertion.add_point(exit_point, fraction=(exit_rotation - start) / geometry.step)
+                _add_point(insertion, step, rotation, exit_point, fraction=(exit_rotation - start) / geometry.step)
                 in_gap = True
                 solve_step(insertion, control, step, rotation, None, method, condition_numbers, started,
                            guess=_at(guesses, step, insertion))
@@ -370,6 +371,20 @@ def _at(states: list[Snapshot], step: int, insertion: NeedleInsertion) -> Snapsh
     return Snapshot(insertion.free + (after.free - before), after.multipliers, after.center, after.violation)
 
 
+def _add_point(insertion: NeedleInsertion, step: int, rotation: float, point: np.ndarray, **options) -> None:
+    """insertion.add_point, a point of the new track segment that no particle's kernel covers
+    (a tip tracked past a wall, into a hole) failing the step by name."""
+    try:
+        insertion.add_point(point, **options)
+    except SingularMomentAt as error:
+        outside = insertion.domain.outside_distance(error.point)
+        why = (f"{outside:.3g} mm outside the tissue at rest (in a hole or a gap), where no particle's kernel "
+               "reaches: the tip was tracked past a wall the deformed tissue had moved; a finer spacing at that "
+               "wall may carry it" if outside > insertion.domain.tolerance else str(error))
+        raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): the needle's track reaches "
+                               f"{_point_text(error.point)}, {why}") from None
+
+
 def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, rotation: float,
                  point: np.ndarray | None, method: str, condition_numbers: bool, started: float,
                  fraction: float = 1.0, guess: Snapshot | None = None, taken: Snapshot | None = None) -> NeedleStep:
@@ -387,7 +402,7 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
         insertion.take_over(taken)
     else:
         if point is not None:
-            insertion.add_point(point, fraction=fraction)
+            _add_point(insertion, step, rotation, point, fraction=fraction)
         _, minres_iterations, _ = insertion.equilibrate(rotation, step, aim, guess)
     if point is None:
         point = insertion.points[-1]
