@@ -120,6 +120,28 @@ def test_every_problem_of_a_shape_is_said_at_once(tmp_path, changes, expected):
     assert_refused(result, tmp_path, {"scene.yaml"}, [["scene.yaml: ", *fragments] for fragments in expected])
 
 
+@pytest.mark.parametrize(("clamp", "spacing", "held"), [
+    ([[29.0, 0.0], [31.0, 0.0]], 4.0, "no particle"),  # the lattice falls at x = 28 and 32
+    ([[29.0, 0.0], [31.0, 0.0]], 3.0, "one particle ([30.0, 0.0])"),
+])
+def test_a_clamp_holding_fewer_than_two_particles_is_refused_by_name(tmp_path, clamp, spacing, held):
+    """One held particle lets the tissue turn about it, none leaves it free: the stiffness is
+    singular. Said as the clamp's problem (it was blamed on the dilation, or on particles
+    crowding at a place far from the clamp); a longer clamp or a finer spacing runs."""
+    raw = {"tissue": {"size": [60.0, 40.0], "thickness": 10.0, "material": dict(PHANTOM),
+                      "clamped": [{"segment": clamp}]},
+           "discretization": {"spacing": spacing},
+           "loads": [{"segment": [[0.0, 10.0], [0.0, 30.0]], "force": [-0.5, 0.0]}]}
+    write_scene(tmp_path, raw)
+    result = invoke(tmp_path, "deform", "scene.yaml", *OUTPUTS["deform"])
+    assert_refused(result, tmp_path, {"scene.yaml"}, [[
+        f"scene.yaml: tissue.clamped: got clamped pieces holding {held} of the model; expected at least two "
+        "held particles", "lengthen the clamp or refine the spacing"]])
+    raw["tissue"]["clamped"] = [{"segment": [[26.0, 0.0], [34.0, 0.0]]}]
+    write_scene(tmp_path, raw)
+    assert invoke(tmp_path, "deform", "scene.yaml", *OUTPUTS["deform"]).exit_code == 0
+
+
 @pytest.mark.parametrize(("command", "change", "fragments"), [
     ("deform", {"loads": [{"segment": [[20.0, 14.0], [20.0, 10.0]], "force": [1.0, 0.0]}]},
      ["loads[0].segment: got [[20.0, 14.0], [20.0, 10.0]]", "one edge of the polygon tissue"]),
@@ -466,14 +488,16 @@ def test_a_symmetric_plan_is_verified_and_re_aimed_by_its_bites():
 
 def traced(vertices: int, spacing: float = 3.0) -> dict:
     """A 60 x 30 mm ellipse traced with `vertices` points (a contour's smooth vertices, each
-    turning 2 pi / vertices) around a 4 mm circular hole, clamped on one bottom edge, pulled
-    on its right edge."""
+    turning 2 pi / vertices) around a 4 mm circular hole, clamped on its bottom edges within
+    ~6 mm of the bottom (one edge holds at most one particle at 3 mm on the 200-gon, which
+    would leave the tissue free to turn), pulled on its right edge."""
     angle = 2 * np.pi * np.arange(vertices) / vertices
     outline = np.stack([30 + 30 * np.cos(angle), 15 + 15 * np.sin(angle)], axis=1).round(9).tolist()
-    bottom = 3 * vertices // 4
+    bottom, side = 3 * vertices // 4, max(1, round(6.0 * vertices / 145.3))
     return {"tissue": {"outline": outline, "thickness": 10.0, "material": dict(PHANTOM),
                        "holes": [{"circle": {"center": [30.0, 10.0], "radius": 2.0}}],
-                       "clamped": [{"segment": [outline[bottom], outline[bottom + 1]]}]},
+                       "clamped": [{"segment": [outline[k], outline[k + 1]]}
+                                   for k in range(bottom - side, bottom + side)]},
             "discretization": {"spacing": spacing},
             "loads": [{"segment": [outline[0], outline[1]], "force": [0.1, 0.0]}],
             "probes": [[30.0, 20.0]]}

@@ -75,6 +75,14 @@ def boundary_particles(
                 f"spacing {spacing:g} mm: lengthen it or refine the spacing"
             )
     indices = np.flatnonzero(group > -2)
+    # clamps or displacement segments that hold fewer than two particles leave the tissue free to
+    # turn about the one (a tissue given none is a Python caller's unconstrained model: files refuse it)
+    if len(indices) < 2 and (tissue.clamped or prescribed_segments):
+        held = "no particle" if len(indices) == 0 else f"one particle ({particles[indices[0]].round(6).tolist()})"
+        raise InputError(
+            f"tissue.clamped: got clamped pieces{' and displacement segments' if prescribed_segments else ''} "
+            f"holding {held} of the model; expected at least two held particles, or the tissue "
+            "moves or turns rigidly (no unique solution): lengthen the clamp or refine the spacing")
     return ConstrainedParticles(indices, group[indices])
 
 
