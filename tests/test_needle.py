@@ -138,6 +138,34 @@ def test_a_half_circle_entering_a_slanted_edge_within_round_off_is_accepted():
     assert 0.0 < geometry.exit_rotation - math.pi < 2e-8
 
 
+@pytest.mark.parametrize(("domain", "needle", "fragment"), [
+    # an entry from within a 4 mm hole: the 16 mm needle's body crosses the tissue beyond it
+    ("hole", ((28.0, 25.0), "cw", 8.0, math.pi, 0.0), "1.5 rad back along its arc of 3.142"),
+    # a needle of nearly a full turn: its tail is where the tip is about to cut
+    ("slab", ((30.0, 40.0), "cw", 10.0, 6.0, 0.0), "4.71 rad back along its arc of 6 rad"),
+    # a deeper bite by a lean dips the half circle's tail below the surface (configs/hole_near_stitch.yaml)
+    ("hole near", ((30.0, 30.0), "cw", 8.88, math.pi, 0.35), "leaning 0.35 rad lies in the tissue"),
+])
+def test_a_needle_whose_body_lies_in_the_tissue_before_it_enters_is_refused(domain, needle, fragment):
+    """The driver holds the needle from outside: only its tip may touch the tissue at the
+    start. These were accepted and run (exit 0), the needle's tail in uncut tissue."""
+    from stitchplan.geometry import PolygonDomain, circle_polygon
+
+    shape = {"hole": PolygonDomain.rectangle((60.0, 40.0), (circle_polygon((30.0, 25.0), 2.0),)),
+             "hole near": PolygonDomain.rectangle((60.0, 30.0), (circle_polygon((21.12, 16.5), 2.5),)),
+             "slab": Rectangle.of_size((60.0, 40.0))}[domain]
+    entry, turn, radius, arc, tilt = needle
+    with pytest.raises(ScenarioError) as error:
+        needle_geometry(Needle(radius=radius, arc=arc, entry=entry, turn=turn, step=0.1, friction=0.05,
+                               cutting_force=0.5, entry_tilt=tilt), shape)
+    message = str(error.value)
+    assert message.startswith("needle: the ") and fragment in message, message
+    assert "expected its body outside the tissue, held from there, with only its tip at the entry" in message
+    # upright, the same half circle on the slab keeps its body above the surface
+    needle_geometry(Needle(radius=8.0, arc=math.pi, entry=(30.0, 40.0), turn="cw", step=0.1, friction=0.05,
+                           cutting_force=0.5), Rectangle.of_size((60.0, 40.0)))
+
+
 def test_exit_within_two_steps_is_refused():
     """An entry 0.5 mm from the bottom corner turning towards it exits almost at once."""
     with pytest.raises(ScenarioError, match="expected at least two steps of 0.4 rad"):

@@ -194,7 +194,7 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
                               edge, rotation, entry, crossings)
     geometry = replace(geometry, desired_exit=geometry.tip(rotation))
     if needle.entry_tilt == 0.0:
-        return geometry
+        return _body_outside(geometry, needle, domain)
     center = entry - needle.radius * unit(start_angle - sense * needle.entry_tilt)  # turned about the entry
     start_angle, rotation, crossings = _circle_through(needle, domain, entry, center, sense,
                                                        f" leaning {needle.entry_tilt:.4g} rad")
@@ -204,8 +204,33 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
             f"{len(crossings)} times where the orthogonal needle crosses it {len(geometry.crossings)} times; "
             "expected a lean that keeps the needle's way through the tissue (the same gaps and exit)")
     desired = tuple(geometry.crossing_point(k) for k in range(len(geometry.crossings)))
-    return replace(geometry, center=center, start_angle=start_angle, exit_rotation=rotation, crossings=crossings,
-                   tilt=needle.entry_tilt, desired_points=desired)
+    return _body_outside(replace(geometry, center=center, start_angle=start_angle, exit_rotation=rotation,
+                                 crossings=crossings, tilt=needle.entry_tilt, desired_points=desired),
+                         needle, domain, f" leaning {needle.entry_tilt:.4g} rad")
+
+
+# rad between the points of the needle's body checked against the tissue at the start
+BODY_SAMPLE = 0.005
+
+
+def _body_outside(geometry: NeedleGeometry, needle: Needle, domain: Rectangle | PolygonDomain,
+                  lean: str = "") -> NeedleGeometry:
+    """`geometry`, refused when the needle's body (its arc behind the tip, which the driver
+    holds from outside) lies in the tissue when the tip touches the entry: a needle whose tail
+    is already in uncut tissue (an arc near a full turn, an entry from within a hole, a lean
+    that dips the tail below the surface) is no place a needle can be."""
+    rotations = -np.linspace(geometry.arc, 0.0, max(2, math.ceil(geometry.arc / BODY_SAMPLE)), endpoint=False)
+    body = np.array([geometry.tip(r) for r in rotations])
+    inside = domain.contains(body) & (domain.distance(body) > domain.input_tolerance)
+    if inside.any():
+        deepest = int(np.argmax(np.where(inside, domain.distance(body), -1.0)))
+        raise InputError(
+            f"needle: the {needle.radius:g} mm needle entering at {list(needle.entry)} turning {needle.turn}{lean} "
+            f"lies in the tissue behind its tip before it enters (at {shown_point(body[deepest])}, "
+            f"{-rotations[deepest]:.3g} rad back along its arc of {geometry.arc:.4g} rad); expected its body "
+            f"outside the tissue, held from there, with only its tip at the entry (a shorter needle.arc, "
+            f"another entry{' or less lean' if lean else ''})")
+    return geometry
 
 
 def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np.ndarray, center: np.ndarray,
