@@ -220,10 +220,14 @@ def _body_outside(geometry: NeedleGeometry, needle: Needle, domain: Rectangle | 
     is already in uncut tissue (an arc near a full turn, an entry from within a hole, a lean
     that dips the tail below the surface) is no place a needle can be."""
     rotations = -np.linspace(geometry.arc, 0.0, max(2, math.ceil(geometry.arc / BODY_SAMPLE)), endpoint=False)
-    body = np.array([geometry.tip(r) for r in rotations])
-    inside = domain.contains(body) & (domain.distance(body) > domain.input_tolerance)
-    if inside.any():
-        deepest = int(np.argmax(np.where(inside, domain.distance(body), -1.0)))
+    body = geometry.tip(rotations)  # (n, 2)
+    inside = domain.contains(body)
+    if not inside.any():
+        return geometry
+    depth = np.zeros(len(body))
+    depth[inside] = domain.distance(body[inside])
+    if depth.max() > domain.input_tolerance:
+        deepest = int(np.argmax(depth))
         raise InputError(
             f"needle: the {needle.radius:g} mm needle entering at {list(needle.entry)} turning {needle.turn}{lean} "
             f"lies in the tissue behind its tip before it enters (at {shown_point(body[deepest])}, "
