@@ -172,7 +172,8 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
     failed = int(np.isnan(cost).sum())
     if failed == cost.size:
         raise InputError(
-            (f"{source}: " if source else "") + f"fit: could not evaluate any moduli in lame_lambda {list(fit.lame_lambda)}, lame_mu "
+            (f"{source}: " if source else "")
+            + f"fit: could not evaluate any moduli in lame_lambda {list(fit.lame_lambda)}, lame_mu "
             f"{list(fit.lame_mu)} MPa: the forward model failed at every grid point tried ({tried} of "
             f"{cost.size}" + (", the others softer still" if tried < cost.size else "") + "), "
             + "; ".join(f"in {label}: {cause}" for label, cause in failed_experiments.items())
