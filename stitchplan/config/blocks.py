@@ -56,7 +56,6 @@ from .fields import (
     TipTracking,
     choice,
     described,
-    expecting,
     integer,
     number,
     pair,
