@@ -238,8 +238,8 @@ def test_a_tip_out_into_a_gap_the_undeformed_circle_does_not_cross_ends_the_run(
     import yaml
 
     with pytest.raises(InsertionFailure, match=r"^step 17: the needle tip left the tissue through the outer "
-                                               r"boundary at \[27\.8\d, 22\.7\d\] at needle rotation 1\.310 rad, "
-                                               r"1\.832 rad before the undeformed circle's final exit at \[37\.76, 30\], "
+                                               r"boundary at \[27\.8\d, 22\.7\d\] at needle rotation 1\.310 rad "
+                                               r"\(the undeformed circle's final exit: \[37\.76, 30\] at 3\.142 rad\), "
                                                r"and its circle enters the deformed tissue again at \[3[12]\.\d+, "
                                                r"2[01]\.\d+\] \(deformed position, needle rotation 1\.9\d\d rad\)"):
         run_insertion(parse_scenario(sagging_notch_scene()))

@@ -143,8 +143,6 @@ def test_a_half_circle_entering_a_slanted_edge_within_round_off_is_accepted():
     ("hole", ((28.0, 25.0), "cw", 8.0, math.pi, 0.0), "1.5 rad back along its arc of 3.142"),
     # a needle of nearly a full turn: its tail is where the tip is about to cut
     ("slab", ((30.0, 40.0), "cw", 10.0, 6.0, 0.0), "4.71 rad back along its arc of 6 rad"),
-    # a deeper bite by a lean dips the half circle's tail below the surface (configs/hole_near_stitch.yaml)
-    ("hole near", ((30.0, 30.0), "cw", 8.88, math.pi, 0.35), "leaning 0.35 rad lies in the tissue"),
 ])
 def test_a_needle_whose_body_lies_in_the_tissue_before_it_enters_is_refused(domain, needle, fragment):
     """The driver holds the needle from outside: only its tip may touch the tissue at the
@@ -152,7 +150,6 @@ def test_a_needle_whose_body_lies_in_the_tissue_before_it_enters_is_refused(doma
     from stitchplan.geometry import PolygonDomain, circle_polygon
 
     shape = {"hole": PolygonDomain.rectangle((60.0, 40.0), (circle_polygon((30.0, 25.0), 2.0),)),
-             "hole near": PolygonDomain.rectangle((60.0, 30.0), (circle_polygon((21.12, 16.5), 2.5),)),
              "slab": Rectangle.of_size((60.0, 40.0))}[domain]
     entry, turn, radius, arc, tilt = needle
     with pytest.raises(ScenarioError) as error:
@@ -164,6 +161,22 @@ def test_a_needle_whose_body_lies_in_the_tissue_before_it_enters_is_refused(doma
     # upright, the same half circle on the slab keeps its body above the surface
     needle_geometry(Needle(radius=8.0, arc=math.pi, entry=(30.0, 40.0), turn="cw", step=0.1, friction=0.05,
                            cutting_force=0.5), Rectangle.of_size((60.0, 40.0)))
+
+
+def test_an_arc_that_ends_in_a_wounds_far_wall_is_refused():
+    """configs/wound_closure.yaml's needle cut to 2.8 rad: its circle leaves through the near
+    wall and enters the far one, and the arc ends inside. It was taken as a stitch whose final
+    exit is the near wall, then stopped at that wall (exit 1)."""
+    from stitchplan.geometry import PolygonDomain
+
+    wound = PolygonDomain(np.array([[0.0, 0.0], [60.0, 0.0], [60.0, 30.0], [32.0, 30.0], [32.0, 18.0],
+                                    [28.0, 18.0], [28.0, 30.0], [0.0, 30.0]]))
+    with pytest.raises(ScenarioError) as error:
+        needle_geometry(make_needle((38.88, 30.0), "cw", radius=8.88, arc=2.8), wound)
+    assert str(error.value).startswith("needle.arc: got 2.8 rad; the needle entering at [38.88, 30.0] turning cw "
+                                       "enters the tissue again after 1.798 rad and does not leave it within its arc")
+    assert needle_geometry(make_needle((38.88, 30.0), "cw", radius=8.88), wound).exit_rotation == pytest.approx(
+        math.pi, abs=1e-6)
 
 
 def test_exit_within_two_steps_is_refused():

@@ -259,6 +259,11 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
                  else f"leaves after {rotation:.4g} rad, {rotation - needle.arc:.2g} rad past its arc")
         raise InputError(f"needle: the {needle.radius:g} mm needle {entering} {reach}; expected an exit within "
                          f"its arc of {needle.arc:.4g} rad")
+    if crossings and crossings[-1][1] == "entry":  # back in the tissue (a wound's far wall) when the arc ends
+        entered = crossings[-1][0]
+        raise InputError(f"needle.arc: got {needle.arc:.4g} rad; the needle {entering} enters the tissue again after "
+                         f"{entered:.4g} rad and does not leave it within its arc; expected an exit within its arc "
+                         "(a longer needle.arc, another entry or radius)")
     crossings = (tuple((r, kind) for r, kind in crossings if r <= rotation + 1e-12) if len(exits) > 1
                  else ((rotation, "exit"),))
     if any(b - a < needle.step for (a, ka), (b, kb) in zip(crossings, crossings[1:])):

@@ -298,15 +298,14 @@ def _left_into_uncrossed_gap(insertion: NeedleInsertion, loops: BoundaryLoops, s
     crossing the undeformed circle does not make is not followed."""
     geometry = insertion.geometry
     point, rotation = ahead_entry
-    early = geometry.exit_rotation - exit_rotation
     return InsertionFailure(
         f"step {step}: the needle tip left the tissue through {loops.describe(exit_point)} at "
-        f"{_point_text(exit_point)} at needle rotation {exit_rotation:.3f} rad, {early:.3f} rad before the "
-        f"undeformed circle's final exit at {_point_text(geometry.desired_exit)}, and its circle enters the deformed "
-        f"tissue again at {_point_text(point)} (deformed position, needle rotation {rotation:.3f} rad): the "
-        "tissue's deformation carried the boundary across the needle's path where the undeformed circle crosses "
-        "none, and such a crossing is not followed; move the entry or change the radius so that the undeformed "
-        "circle crosses that gap or clears it by more than the tissue moves")
+        f"{_point_text(exit_point)} at needle rotation {exit_rotation:.3f} rad (the undeformed circle's final "
+        f"exit: {_point_text(geometry.desired_exit)} at {geometry.exit_rotation:.3f} rad), and its circle enters "
+        f"the deformed tissue again at {_point_text(point)} (deformed position, needle rotation {rotation:.3f} "
+        "rad): the tissue's deformation carried the boundary across the needle's path where the undeformed circle "
+        "crosses none, and such a crossing is not followed; move the entry or change the radius so that the "
+        "undeformed circle crosses that gap or clears it by more than the tissue moves")
 
 
 def _reentry(insertion: NeedleInsertion, step: int, start: float, end: float) -> tuple[np.ndarray, float] | None:
