@@ -224,16 +224,20 @@ def fit_particles(tissue: Tissue, graded: GradedParticles,
     kept = kept_vertices(tissue, spacing_at(domain.segment_starts))
     added = boundary_points(domain, kept, spacing_at, float(graded.local_spacing.min()))
     added_local = spacing_at(added)
-    # an added particle onto an existing one (a lattice line along the edge): keep the old one
-    own = cKDTree(particles)
-    distance, _ = own.query(added)
+    # an added particle onto a lattice particle on the boundary (a lattice line along the edge):
+    # keep the lattice's; one just inside gives way to the added one below, so that the boundary
+    # (a clamp, a displacement segment) is held at every local spacing along it
+    on_boundary = domain.near_boundary(particles, tol)
+    if on_boundary.any():
+        distance, _ = cKDTree(particles[on_boundary]).query(added)
+    else:
+        distance = np.full(len(added), np.inf)
     new = distance > MERGE * added_local
     # nor between the lattice's particles on an edge along a lattice line, which already
     # stand there one local spacing apart: added ones would halve that spacing along the edge,
     # a dilation of 4 there, whose alternating mode the stiffness barely resists
     # (hole_near_stitch's top edge at 0.75 mm: K0's condition number ~3e13); a kept vertex
     # stays whatever its distance
-    on_boundary = domain.near_boundary(particles, tol)
     new &= ~_between_lattice_particles(domain, particles[on_boundary], added, added_local, kept, tol)
     added, added_local = added[new], added_local[new]
     if len(added):
