@@ -210,3 +210,23 @@ def test_bad_lean_fields_are_refused_naming_the_field(block, field, value, fragm
     with pytest.raises(ScenarioError) as error:
         parse_scenario(raw)
     assert fragment in str(error.value)
+
+
+def test_a_lean_that_leaves_through_another_wall_is_refused():
+    """The upright 8.18 mm needle's arc of 2.27 rad ends past its exit into a round hole (its
+    desired exit on the hole's wall); leaned by -0.594 rad its circle leaves through the top
+    surface instead, as many crossings of the same kinds: that lean was accepted, its exit
+    judged against the hole's wall. A lean keeps the walls too."""
+    from stitchplan.config.scenario import Needle
+    from stitchplan.geometry import PolygonDomain, circle_polygon
+    from stitchplan.needle.geometry import needle_geometry
+
+    domain = PolygonDomain.rectangle((60.0, 30.0), (circle_polygon((10.355, 23.719), 1.678),))
+    needle = dict(radius=8.181, arc=2.269, entry=(24.736, 30.0), turn="cw", step=0.08, friction=0.05,
+                  cutting_force=0.5)
+    upright = needle_geometry(Needle(**needle), domain)
+    assert domain.distance(upright.desired_exit[None])[0] < 1e-6 and upright.desired_exit[1] < 29.0  # the hole's wall
+    with pytest.raises(ScenarioError) as error:
+        needle_geometry(Needle(**needle, entry_tilt=-0.594), domain)
+    assert str(error.value).startswith("needle.entry_tilt: got -0.594 rad, which makes the needle cross the boundary "
+                                       "through other walls than the orthogonal needle")

@@ -198,10 +198,19 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
     center = entry - needle.radius * unit(start_angle - sense * needle.entry_tilt)  # turned about the entry
     start_angle, rotation, crossings = _circle_through(needle, domain, entry, center, sense,
                                                        f" leaning {needle.entry_tilt:.4g} rad")
-    if [kind for _, kind in crossings] != [kind for _, kind in geometry.crossings]:
+    loops = BoundaryLoops.of(domain) if isinstance(domain, PolygonDomain) and domain.holes else None
+
+    def way(circle: NeedleGeometry, rotations) -> list:
+        """Each crossing's kind and the boundary loop it lies on (the outline or a hole's wall)."""
+        return [(kind, 0 if loops is None else loops.position(circle.tip(r))[0]) for r, kind in rotations]
+
+    leaned = replace(geometry, center=center, start_angle=start_angle)
+    if way(leaned, crossings) != way(geometry, geometry.crossings):
+        how = (f"{len(crossings)} times where the orthogonal needle crosses it {len(geometry.crossings)} times"
+               if len(crossings) != len(geometry.crossings) else
+               "through other walls than the orthogonal needle (a hole's for the outline, or another hole's)")
         raise InputError(
-            f"needle.entry_tilt: got {needle.entry_tilt:.4g} rad, which makes the needle cross the boundary "
-            f"{len(crossings)} times where the orthogonal needle crosses it {len(geometry.crossings)} times; "
+            f"needle.entry_tilt: got {needle.entry_tilt:.4g} rad, which makes the needle cross the boundary {how}; "
             "expected a lean that keeps the needle's way through the tissue (the same gaps and exit)")
     desired = tuple(geometry.crossing_point(k) for k in range(len(geometry.crossings)))
     return _body_outside(replace(geometry, center=center, start_angle=start_angle, exit_rotation=rotation,
