@@ -52,7 +52,7 @@ def corner_scene(mu=0.05, limit=0.1, lean=True, tilt=0.0) -> dict:
 @pytest.mark.parametrize("tilt", [-0.3, 0.2, 0.5])
 def test_a_leaning_needle_is_the_orthogonal_one_turned_about_its_entry(tilt):
     upright = scenario_needle(parse_scenario(corner_scene(tilt=0.0)))
-    leaned = scenario_needle(parse_scenario(corner_scene(tilt=tilt)))
+    leaned = scenario_needle(parse_scenario(corner_scene(tilt=tilt, lean=False)))
     entry = np.array([RADIUS, 40.0])
     assert leaned.tilt == tilt and upright.tilt == 0.0
     np.testing.assert_allclose(leaned.tip(0.0), entry, atol=1e-12)  # the tip still at the entry
@@ -78,7 +78,8 @@ def test_leans_the_needle_cannot_take_are_refused_naming_the_field():
     flat["needle"]["entry"] = [30.0, 40.0]
     with pytest.raises(ScenarioError) as error:
         scenario_needle(parse_scenario(flat))
-    assert "turning cw leaning 0.1 rad leaves after" in str(error.value)
+    assert str(error.value).startswith("needle.entry_tilt: the 8.88 mm needle entering at [30.0, 40.0] turning cw "
+                                       "leaning 0.1 rad leaves after")
     with pytest.raises(ScenarioError) as error:
         parse_scenario({**corner_scene(), "planner": {"aim_entry_tilt": True, "target": "symmetric"}})
     assert "planner.aim_entry_tilt: got true, expected false with target symmetric" in str(error.value)
@@ -203,6 +204,9 @@ def test_a_row_0_leaning_too_far_is_refused_naming_the_file(tmp_path):
     ("planner", "max_entry_tilt", 0.0, "planner.max_entry_tilt: got 0.0, expected a positive angle of at most 1 rad"),
     ("planner", "max_entry_tilt", 1.2, "planner.max_entry_tilt: got 1.2, expected a positive angle of at most 1 rad"),
     ("planner", "aim_entry_tilt", "yes", "planner.aim_entry_tilt: got 'yes', expected true or false"),
+    # the search starts from the needle's own lean: beyond max_entry_tilt (0.35) it was the plan's
+    ("needle", "entry_tilt", -0.5, "needle.entry_tilt: got -0.5, expected a lean of at most "
+                                   "planner.max_entry_tilt (0.35 rad) either way with planner.aim_entry_tilt"),
 ])
 def test_bad_lean_fields_are_refused_naming_the_field(block, field, value, fragment):
     raw = corner_scene()

@@ -140,6 +140,18 @@ class ScenarioFile:
             raise combined(problems)
         return self
 
+    @model_validator(mode="after")
+    def _lean_within_the_search(self) -> ScenarioFile:
+        """With planner.aim_entry_tilt the lean search starts from the needle's own lean, and
+        keeps within planner.max_entry_tilt: a lean given beyond it would be the plan's."""
+        planner, needle = self.planner, self.needle
+        if planner is not None and needle is not None and planner.aim_entry_tilt \
+                and abs(needle.entry_tilt) > planner.max_entry_tilt:
+            raise problem(f"a lean of at most planner.max_entry_tilt ({planner.max_entry_tilt:g} rad) either way with "
+                          "planner.aim_entry_tilt (the lean search starts from it)", field="needle.entry_tilt",
+                          value=needle.entry_tilt)
+        return self
+
     def scenario(self, source_text: str = "", source_sha256: str | None = None) -> Scenario:
         return Scenario(
             tissue=self.tissue,

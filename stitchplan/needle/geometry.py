@@ -238,7 +238,8 @@ def _body_outside(geometry: NeedleGeometry, needle: Needle, domain: Rectangle | 
     if depth.max() > domain.input_tolerance:
         deepest = int(np.argmax(depth))
         raise InputError(
-            f"needle: the {needle.radius:g} mm needle entering at {list(needle.entry)} turning {needle.turn}{lean} "
+            f"{'needle.entry_tilt' if lean else 'needle'}: the {needle.radius:g} mm needle entering at "
+            f"{list(needle.entry)} turning {needle.turn}{lean} "
             f"lies in the tissue behind its tip before it enters (at {shown_point(body[deepest])}, "
             f"{-rotations[deepest]:.3g} rad back along its arc of {geometry.arc:.4g} rad); expected its body "
             f"outside the tissue, held from there, with only its tip at the entry (a shorter needle.arc, "
@@ -259,6 +260,7 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
     # the desired exit); a convex tissue's only exit keeps first_exit_rotation's value
     rotation = exits[-1] if len(exits) > 1 else first
     entering = f"entering at {list(needle.entry)} turning {needle.turn}{lean}"
+    field = "needle.entry_tilt" if lean else "needle"  # a lean's own refusal names it
     # an entry kept to the bit within the boundary's round-off (domain.tolerance) turns the exit by
     # up to about that offset over the radius: a half circle on a slanted edge leaves 1e-8 rad past pi
     slack = 1e-9 + 4.0 * domain.tolerance / needle.radius
@@ -266,7 +268,7 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
         # the excess too: an entry a hair off a corner leaves a hair past the arc, which 4 digits hide
         reach = ("never leaves the tissue" if rotation is None
                  else f"leaves after {rotation:.4g} rad, {rotation - needle.arc:.2g} rad past its arc")
-        raise InputError(f"needle: the {needle.radius:g} mm needle {entering} {reach}; expected an exit within "
+        raise InputError(f"{field}: the {needle.radius:g} mm needle {entering} {reach}; expected an exit within "
                          f"its arc of {needle.arc:.4g} rad")
     if crossings and crossings[-1][1] == "entry":  # back in the tissue (a wound's far wall) when the arc ends
         entered = crossings[-1][0]
@@ -277,13 +279,13 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
                  else ((rotation, "exit"),))
     if any(b - a < needle.step for (a, ka), (b, kb) in zip(crossings, crossings[1:])):
         raise InputError(
-            f"needle: the needle {entering} crosses the boundary at rotations "
+            f"{field}: the needle {entering} crosses the boundary at rotations "
             f"{', '.join(f'{r:.3g}' for r, _ in crossings)} rad, expected crossings at least one step "
             f"({needle.step:g} rad) apart (a gap or a bite shorter than a step)")
     rotation_first = crossings[0][0]
     if rotation_first < 2 * needle.step:
         raise InputError(
-            f"needle: the needle {entering} exits after {rotation_first:.3g} rad, expected at least two steps "
+            f"{field}: the needle {entering} exits after {rotation_first:.3g} rad, expected at least two steps "
             f"of {needle.step:g} rad inside the tissue")
     return start_angle, rotation, crossings
 
