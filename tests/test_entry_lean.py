@@ -234,3 +234,16 @@ def test_a_lean_that_leaves_through_another_wall_is_refused():
         needle_geometry(Needle(**needle, entry_tilt=-0.594), domain)
     assert str(error.value).startswith("needle.entry_tilt: got -0.594 rad, which makes the needle cross the boundary "
                                        "through other walls than the orthogonal needle")
+
+
+def test_a_later_rounds_search_lists_the_pass_it_starts_from_once():
+    """A verification round's search starts from the pass the earlier round chose, kept and
+    not run again: the merged record lists it once (it read as two tries of one lean)."""
+    from stitchplan.planning.planner import LeanSearch
+
+    chosen = (0.055, np.array([-4.9e-6, -1.4e-4]))
+    earlier = LeanSearch(0.055, None, [], [(0.0, np.array([0.0099, 0.2533])), chosen], "a first pass met its aim")
+    later = LeanSearch(0.1, None, [], [(0.055, chosen[1].copy()), (0.1, np.array([-0.0075, -0.2117]))], "at max")
+    assert [tilt for tilt, _ in later.after(earlier).tries] == [0.0, 0.055, 0.1]
+    fresh = LeanSearch(0.1, None, [], [(0.07, np.array([1e-3, 2e-3]))], "")  # a search that ran its own first pass
+    assert [tilt for tilt, _ in fresh.after(earlier).tries] == [0.0, 0.055, 0.07]

@@ -379,8 +379,11 @@ class LeanSearch:
     reason: str  # why the search stopped
 
     def after(self, earlier: LeanSearch) -> LeanSearch:
-        """This search with an earlier round's tries before its own."""
-        return replace(self, tries=earlier.tries + self.tries)
+        """This search with an earlier round's tries before its own; its first, the pass the
+        earlier round chose (kept, not run again), listed once."""
+        tilt, error = self.tries[0] if self.tries else (None, None)
+        again = any(t == tilt and np.array_equal(e, error) for t, e in earlier.tries)
+        return replace(self, tries=earlier.tries + self.tries[1 if again else 0:])
 
     def as_record(self) -> dict:
         return {"entry_tilt_rad": self.tilt, "stopped": self.reason,
