@@ -298,12 +298,8 @@ def _echo_notes(notes, quiet: bool) -> None:
 
 def _echo_events(events, quiet: bool, shown: int = 3) -> None:
     """The first `shown` events of a run as `note:` lines on stderr (none with -q)."""
-    if quiet:
-        return
-    for event in events[:shown]:
-        typer.echo(f"note: {event.message}", err=True)
-    if len(events) > shown:
-        typer.echo(f"note: {len(events) - shown} more notes in the summary and run log", err=True)
+    more = [f"{len(events) - shown} more notes in the summary and run log"] if len(events) > shown else []
+    _echo_notes([event.message for event in events[:shown]] + more, quiet)
 
 
 def _parse_base_transform(text: Optional[str]):

@@ -195,27 +195,32 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
     geometry = replace(geometry, desired_exit=geometry.tip(rotation))
     if needle.entry_tilt == 0.0:
         return _body_outside(geometry, needle, domain)
+    lean = f" leaning {needle.entry_tilt:.4g} rad"
     center = entry - needle.radius * unit(start_angle - sense * needle.entry_tilt)  # turned about the entry
-    start_angle, rotation, crossings = _circle_through(needle, domain, entry, center, sense,
-                                                       f" leaning {needle.entry_tilt:.4g} rad")
+    start_angle, rotation, crossings = _circle_through(needle, domain, entry, center, sense, lean)
+    leaned = replace(geometry, center=center, start_angle=start_angle, exit_rotation=rotation, crossings=crossings,
+                     tilt=needle.entry_tilt,
+                     desired_points=tuple(geometry.crossing_point(k) for k in range(len(geometry.crossings))))
     loops = BoundaryLoops.of(domain) if isinstance(domain, PolygonDomain) and domain.holes else None
 
-    def way(circle: NeedleGeometry, rotations) -> list:
+    def way(circle: NeedleGeometry) -> list:
         """Each crossing's kind and the boundary loop it lies on (the outline or a hole's wall)."""
-        return [(kind, 0 if loops is None else loops.position(circle.tip(r))[0]) for r, kind in rotations]
+        return [(kind, 0 if loops is None else loops.position(circle.crossing_point(k))[0])
+                for k, (_, kind) in enumerate(circle.crossings)]
 
-    leaned = replace(geometry, center=center, start_angle=start_angle)
-    if way(leaned, crossings) != way(geometry, geometry.crossings):
+    if way(leaned) != way(geometry):
         how = (f"{len(crossings)} times where the orthogonal needle crosses it {len(geometry.crossings)} times"
                if len(crossings) != len(geometry.crossings) else
                "through other walls than the orthogonal needle (a hole's for the outline, or another hole's)")
         raise InputError(
             f"needle.entry_tilt: got {needle.entry_tilt:.4g} rad, which makes the needle cross the boundary {how}; "
             "expected a lean that keeps the needle's way through the tissue (the same gaps and exit)")
-    desired = tuple(geometry.crossing_point(k) for k in range(len(geometry.crossings)))
-    return _body_outside(replace(geometry, center=center, start_angle=start_angle, exit_rotation=rotation,
-                                 crossings=crossings, tilt=needle.entry_tilt, desired_points=desired),
-                         needle, domain, f" leaning {needle.entry_tilt:.4g} rad")
+    return _body_outside(leaned, needle, domain, lean)
+
+
+def _field(lean: str) -> str:
+    """The field a refused needle geometry names: a lean's own refusal names the lean."""
+    return "needle.entry_tilt" if lean else "needle"
 
 
 # rad between the points of the needle's body checked against the tissue at the start
@@ -238,9 +243,8 @@ def _body_outside(geometry: NeedleGeometry, needle: Needle, domain: Rectangle | 
     if depth.max() > domain.input_tolerance:
         deepest = int(np.argmax(depth))
         raise InputError(
-            f"{'needle.entry_tilt' if lean else 'needle'}: the {needle.radius:g} mm needle entering at "
-            f"{list(needle.entry)} turning {needle.turn}{lean} "
-            f"lies in the tissue behind its tip before it enters (at {shown_point(body[deepest])}, "
+            f"{_field(lean)}: the {needle.radius:g} mm needle entering at {list(needle.entry)} turning "
+            f"{needle.turn}{lean} lies in the tissue behind its tip before it enters (at {shown_point(body[deepest])}, "
             f"{-rotations[deepest]:.3g} rad back along its arc of {geometry.arc:.4g} rad); expected its body "
             f"outside the tissue, held from there, with only its tip at the entry (a shorter needle.arc, "
             f"another entry{' or less lean' if lean else ''})")
@@ -260,7 +264,7 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
     # the desired exit); a convex tissue's only exit keeps first_exit_rotation's value
     rotation = exits[-1] if len(exits) > 1 else first
     entering = f"entering at {list(needle.entry)} turning {needle.turn}{lean}"
-    field = "needle.entry_tilt" if lean else "needle"  # a lean's own refusal names it
+    field = _field(lean)
     # an entry kept to the bit within the boundary's round-off (domain.tolerance) turns the exit by
     # up to about that offset over the radius: a half circle on a slanted edge leaves 1e-8 rad past pi
     slack = 1e-9 + 4.0 * domain.tolerance / needle.radius
