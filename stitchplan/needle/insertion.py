@@ -13,7 +13,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -117,110 +117,171 @@ def run_insertion(
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
                          "chosen before the run (stitchplan.study.auto.resolve_accuracy)")
     wall_start = time.perf_counter()
+    insertion, control = _needle_at_entry(scenario, control, center_path, linear_solver, tip_tracking, tissue)
+    run = _Run(insertion, control, condition_numbers, on_step, start_from, take_over_only, wall_start)
+    geometry = insertion.geometry
+    limit = math.ceil(2.0 * math.pi / geometry.step) + 2
+    for step in range(1, limit + 1):  # Algorithm 1: rotate the needle by one step
+        rotation = step * geometry.step
+        started = time.perf_counter()  # the step's wall time counts tracking its tip
+        tip = run.step_in_gap(step, rotation, started) if run.in_gap else run.track_in_tissue(step, rotation)
+        if tip is None:  # the tip still in a wound's gap: the step is solved and recorded
+            continue
+        if insertion.domain.outside_distance(tip.point) > 0.0:
+            if (result := run.tip_outside(step, rotation, tip, started)) is not None:
+                return result  # through the final exit
+        else:
+            run.solve(step, rotation, tip.point, tip.method, started, tip.fraction, tip.taken)
+    raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
+                           f"(needle rotation {limit * geometry.step:.3f} rad)")
+
+
+def _needle_at_entry(scenario: Scenario, control: CenterControl | None, center_path: np.ndarray | None,
+                     linear_solver: str | None, tip_tracking: str | None,
+                     tissue: PreparedTissue | None) -> tuple[NeedleInsertion, CenterControl]:
+    """The needle insertion with the needle at its entry, and the run's centre control (a
+    replay of `center_path` when given, the fixed centre when none): a replayed path's row 0
+    leans the needle as the path was planned (geometry.entry_lean)."""
     if center_path is not None:
         control = CenterReplay(center_path)
     replayed_entry = control.predict(None, 0) if isinstance(control, CenterReplay) else None  # row 0
     if replayed_entry is not None:  # a path planned with the needle leaning at entry leans it
         scenario = entry_lean(scenario, replayed_entry)
     insertion = NeedleInsertion(scenario, linear_solver=linear_solver, tip_tracking=tip_tracking, tissue=tissue)
-    geometry = insertion.geometry
     if replayed_entry is not None:
         insertion.move_center(replayed_entry)
-    entry_center = insertion.center.copy()
-    control = control or FixedCenter()
-    insertion.add_point(geometry.entry.copy())
-    coefficients = [np.zeros_like(insertion.model.particles)]  # d after each step (InsertionResult.displacements)
-    steps: list[NeedleStep] = []
-    states: list[Snapshot] = []  # the equilibrium after each step
-    earlier = start_from.states if start_from is not None and start_from.model is insertion.model else []
-    guesses = [] if take_over_only else earlier  # where the steps not taken over start their Newton solve
-    # every centre so far the earlier run's (a needle across no wound, whose steps' records
-    # hold their tracked tip points)
-    followed = bool(earlier) and not geometry.gaps
+    return insertion, control or FixedCenter()
 
-    def solve_step(*needle_step_arguments, **keywords) -> None:
-        """_needle_step, and its record and state kept; a control that stops the run
-        (InsertionStopped) gets the steps done before it."""
-        try:
-            record = _needle_step(*needle_step_arguments, **keywords)
-        except InsertionStopped as stopped:
-            stopped.done = StepsDone(insertion.model, geometry, entry_center, steps, insertion.events, states)
-            raise
-        steps.append(record)
-        states.append(insertion.snapshot(coupling=True))
-        coefficients.append(insertion.coefficients())  # a new array after each solve, never changed in place
-        if on_step is not None:
-            on_step(record)
 
-    loops = BoundaryLoops.of(insertion.domain)
-    # the tip's boundary crossings in order, (index into geometry.crossings, "exit" | "entry",
-    # reference point, rotation): each matched to the undeformed circle's crossing it makes,
-    # or to the wall it crosses back through (a crossing of the other kind: a soft wall that
-    # bulged round the tip); the ones passed over missed
-    made: list[tuple[int, str, np.ndarray, float]] = []
-    ahead = 0  # the first crossing of the undeformed circle the tip has yet to make (or miss)
-    in_gap = False
-    limit = math.ceil(2.0 * math.pi / geometry.step) + 2
-    for step in range(1, limit + 1):
-        rotation = step * geometry.step
-        started = time.perf_counter()
+class _TrackedTip(NamedTuple):
+    """The tip's material point after a step and how it was tracked; `fraction` the part of a
+    step the track segment ending there spans (less after entering from a wound's gap),
+    `taken` the earlier run's state after the step when this run follows that run's tip."""
+
+    point: np.ndarray
+    method: str
+    fraction: float = 1.0
+    taken: Snapshot | None = None
+
+
+class _Run:
+    """One run_insertion's state between needle steps (Algorithm 1): the needle insertion,
+    the tip's boundary crossings so far, the earlier run it follows, and the steps' records
+    (NeedleStep, the equilibrium after each, the displacement coefficients d after each)."""
+
+    def __init__(self, insertion: NeedleInsertion, control: CenterControl, condition_numbers: bool,
+                 on_step: Callable[[NeedleStep], None] | None, start_from: InsertionResult | StepsDone | None,
+                 take_over_only: bool, wall_start: float):
+        self.insertion, self.geometry, self.control = insertion, insertion.geometry, control
+        self.condition_numbers, self.on_step, self.wall_start = condition_numbers, on_step, wall_start
+        self.entry_center = insertion.center.copy()
+        insertion.add_point(self.geometry.entry.copy())  # Gamma_N starts at the entry
+        # d after each step, the entry's first (InsertionResult.displacements)
+        self.coefficients = [np.zeros_like(insertion.model.particles)]
+        self.steps: list[NeedleStep] = []
+        self.states: list[Snapshot] = []  # the equilibrium after each step
+        self.start_from = start_from
+        self.earlier = start_from.states if start_from is not None and start_from.model is insertion.model else []
+        self.guesses = [] if take_over_only else self.earlier  # where the steps not taken over start their Newton solve
+        # every centre so far the earlier run's (a needle across no wound, whose steps' records
+        # hold their tracked tip points)
+        self.followed = bool(self.earlier) and not self.geometry.gaps
+        self.loops = BoundaryLoops.of(insertion.domain)
+        # the tip's boundary crossings in order, (index into geometry.crossings, "exit" | "entry",
+        # reference point, rotation): each matched to the undeformed circle's crossing it makes,
+        # or to the wall it crosses back through (a crossing of the other kind: a soft wall that
+        # bulged round the tip); the ones passed over missed
+        self.made: list[tuple[int, str, np.ndarray, float]] = []
+        self.ahead = 0  # the first crossing of the undeformed circle the tip has yet to make (or miss)
+        self.in_gap = False  # the tip crossing a wound: no new needle point until it re-enters
+
+    def track_in_tissue(self, step: int, rotation: float) -> _TrackedTip:
+        """The tip's new material point (eq. 3.66-3.70), tracked about the previous step's
+        centre, or the earlier run's while this run has taken that run's centres."""
+        geometry, made = self.geometry, self.made
+        if rotation > geometry.arc and made and _crossed_back(geometry, made[-1]):
+            raise _stayed_on_near_side(self.insertion, step, rotation, made)
+        self.followed = (self.followed and step <= len(self.earlier)
+                         and np.array_equal(self.start_from.center_after(step - 1), self.insertion.center))
+        taken = self.earlier[step - 1] if self.followed else None
+        if taken is not None:
+            return _TrackedTip(*_tracked_before(self.start_from, step, self.insertion), taken=taken)
+        return _TrackedTip(*track_step(self.insertion, step, rotation))  # about the previous step's centre
+
+    def step_in_gap(self, step: int, rotation: float, started: float) -> _TrackedTip | None:
+        """A step of the tip crossing a wound's gap: where the tip enters the tissue again
+        within the step (added to the track) and its point tracked on from there; None while
+        it stays in the gap, the step then solved with no new needle point."""
+        insertion, geometry, wall = self.insertion, self.geometry, self.made[-1]
         previous = rotation - geometry.step
-        if in_gap:  # the tip crosses a wound: no new needle point until it re-enters
-            # the needle turns no further than its arc through a wound: the tip enters again within it
-            entered = _reentry(insertion, step, max(previous, made[-1][3]), min(rotation, geometry.arc))
-            if entered is None:
-                if rotation >= geometry.arc:
-                    raise _left_for_good(insertion, step, made[-1])
-                solve_step(insertion, control, step, rotation, None, "gap", condition_numbers, started,
-                           guess=_at(guesses, step, insertion))
-                continue
-            entry_point, entry_rotation = entered
-            crossing = _crossing_made(insertion, loops, step, "entry", entry_point, entry_rotation, ahead,
-                                      made[-1][0])
-            made.append((crossing, "entry", entry_point, entry_rotation))
-            ahead = _ahead_after(geometry, made[-1])
-            _add_point(insertion, step, rotation, entry_point, gap=True)
-            in_gap = False
-            _log_crossing(insertion, step, made)
-            point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
-            fraction = (rotation - entry_rotation) / geometry.step
-        else:
-            if rotation > geometry.arc and made and _crossed_back(geometry, made[-1]):
-                raise _stayed_on_near_side(insertion, step, rotation, made)
-            followed = (followed and step <= len(earlier)
-                        and np.array_equal(start_from.center_after(step - 1), insertion.center))
-            taken = earlier[step - 1] if followed else None
-            if taken is not None:
-                point, method = _tracked_before(start_from, step, insertion)
-            else:
-                point, method = track_step(insertion, step, rotation)  # about the previous step's centre
-            fraction = 1.0
-        if insertion.domain.outside_distance(point) > 0.0:
-            start = max(previous, made[-1][3]) if made else previous
-            exit_point, exit_rotation = locate_exit(insertion, start, method,
-                                                    (rotation - start) if start != previous else None)
-            crossing = _crossing_made(insertion, loops, step, "exit", exit_point, exit_rotation, ahead,
-                                      made[-1][0] if made else None)
-            made.append((crossing, "exit", exit_point, exit_rotation))
-            ahead = _ahead_after(geometry, made[-1])
-            if crossing < len(geometry.crossings) - 1:
-                # a wound's wall: the track reaches the wall, the tip goes on in the gap
-                _log_crossing(insertion, step, made)
-                if rotation >= geometry.arc:  # too late in the arc to enter again
-                    raise _left_for_good(insertion, step, made[-1])
-                _add_point(insertion, step, rotation, exit_point, fraction=(exit_rotation - start) / geometry.step)
-                in_gap = True
-                solve_step(insertion, control, step, rotation, None, method, condition_numbers, started,
-                           guess=_at(guesses, step, insertion))
-                continue
-            if (ahead_entry := entry_ahead(insertion, exit_rotation, geometry.arc)) is not None:
-                raise _left_into_uncrossed_gap(insertion, loops, step, exit_point, exit_rotation, ahead_entry)
-            return _result(insertion, entry_center, steps, states, coefficients, exit_point,
-                           exit_rotation, time.perf_counter() - wall_start, made)
-        solve_step(insertion, control, step, rotation, point, method, condition_numbers, started,
-                   fraction, _at(guesses, step, insertion), taken=taken)
-    raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
-                           f"(needle rotation {limit * geometry.step:.3f} rad)")
+        # the needle turns no further than its arc through a wound: the tip enters again within it
+        entered = _reentry(insertion, step, max(previous, wall[3]), min(rotation, geometry.arc))
+        if entered is None:
+            if rotation >= geometry.arc:
+                raise _left_for_good(insertion, step, wall)
+            self.solve(step, rotation, None, "gap", started)
+            return None
+        entry_point, entry_rotation = entered
+        self._cross(step, "entry", entry_point, entry_rotation, back=wall[0])
+        _add_point(insertion, step, rotation, entry_point, gap=True)
+        self.in_gap = False
+        _log_crossing(insertion, step, self.made)
+        point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
+        return _TrackedTip(point, method, (rotation - entry_rotation) / geometry.step)
+
+    def tip_outside(self, step: int, rotation: float, tip: _TrackedTip, started: float) -> InsertionResult | None:
+        """The tip tracked outside the tissue: where it left within the step and which
+        crossing of the undeformed circle that makes. Through a wound's wall the track reaches
+        the wall and the tip goes on in the gap (None); through the final exit, the run's
+        result."""
+        insertion, geometry = self.insertion, self.geometry
+        previous = rotation - geometry.step
+        start = max(previous, self.made[-1][3]) if self.made else previous  # after an entry within the step
+        exit_point, exit_rotation = locate_exit(insertion, start, tip.method,
+                                                (rotation - start) if start != previous else None)
+        crossing = self._cross(step, "exit", exit_point, exit_rotation,
+                               back=self.made[-1][0] if self.made else None)
+        if crossing < len(geometry.crossings) - 1:
+            _log_crossing(insertion, step, self.made)
+            if rotation >= geometry.arc:  # too late in the arc to enter again
+                raise _left_for_good(insertion, step, self.made[-1])
+            _add_point(insertion, step, rotation, exit_point, fraction=(exit_rotation - start) / geometry.step)
+            self.in_gap = True
+            self.solve(step, rotation, None, tip.method, started)
+            return None
+        if (ahead_entry := entry_ahead(insertion, exit_rotation, geometry.arc)) is not None:
+            raise _left_into_uncrossed_gap(insertion, self.loops, step, exit_point, exit_rotation, ahead_entry)
+        return _result(insertion, self.entry_center, self.steps, self.states, self.coefficients, exit_point,
+                       exit_rotation, time.perf_counter() - self.wall_start, self.made)
+
+    def _cross(self, step: int, kind: str, point: np.ndarray, rotation: float, back: int | None) -> int:
+        """Keep the tip's boundary crossing at `point` (`kind`: "exit" or "entry"), matched by
+        _crossing_made (`back`: the crossing made last, whose wall the tip may cross back
+        through), and the crossing ahead after it; returns the index it matched."""
+        crossing = _crossing_made(self.insertion, self.loops, step, kind, point, rotation, self.ahead, back)
+        self.made.append((crossing, kind, point, rotation))
+        self.ahead = _ahead_after(self.geometry, self.made[-1])
+        return crossing
+
+    def solve(self, step: int, rotation: float, point: np.ndarray | None, method: str, started: float,
+              fraction: float = 1.0, taken: Snapshot | None = None) -> None:
+        """_needle_step, its Newton solve started from the earlier run's change over the step
+        (_at), and its record and state kept; a control that stops the run (InsertionStopped)
+        gets the steps done before it."""
+        insertion = self.insertion
+        guess = _at(self.guesses, step, insertion)
+        try:
+            record = _needle_step(insertion, self.control, step, rotation, point, method, self.condition_numbers,
+                                  started, fraction, guess, taken=taken)
+        except InsertionStopped as stopped:
+            stopped.done = StepsDone(insertion.model, self.geometry, self.entry_center, self.steps, insertion.events,
+                                     self.states)
+            raise
+        self.steps.append(record)
+        self.states.append(insertion.snapshot(coupling=True))
+        self.coefficients.append(insertion.coefficients())  # a new array after each solve, never changed in place
+        if self.on_step is not None:
+            self.on_step(record)
 
 
 def _crossed_back(geometry: NeedleGeometry, crossing_made: tuple[int, str, np.ndarray, float]) -> bool:
