@@ -625,15 +625,7 @@ class NeedleInsertion:
                 solution, its = self._minres_step(state, multipliers, constraints, rhs, rotation, step)
                 minres_total += its
             elif self.linear_method == "minres" and not self._told_steered_direct:
-                # MINRES solves the symmetric saddle-point system; the centre as a third unknown
-                # (CenterAim) borders it with the exit's rows, which only the direct path takes
-                message = ("the planner's steps solve directly, not by MINRES (--linear-solver minres): with the "
-                           "centre as an unknown the Newton system is no longer the saddle-point system MINRES is "
-                           "preconditioned for; MINRES solves the steps whose centre is fixed (simulate, the "
-                           "replays)")
-                self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
-                self._told_steered_direct = True
-                log.info(message)
+                self._tell_steered_direct(step, rotation)
             if solution is None:
                 # keep the factor of K while Newton contracts fast; renew it when it slows
                 refactor = renew_factor(measure, previous, earlier, aim is not None)
@@ -668,22 +660,42 @@ class NeedleInsertion:
                     solution[-2:] = aim.feasible(center + solution[-2:]) - center
             free, multipliers, center = free + solution[:n_dof], multipliers + solution[n_dof:-2], center + solution[-2:]
         self._count(iteration)
+        raise self._not_converged(step, rotation, iteration, state.needle_force, residual_norm, worst, finite,
+                                  forces_balance)
+
+    def _tell_steered_direct(self, step: int, rotation: float) -> None:
+        """The event, once per run, that the planner's steps solve directly under `--linear-solver
+        minres`: MINRES solves the symmetric saddle-point system; the centre as a third unknown
+        (CenterAim) borders it with the exit's rows, which only the direct path takes."""
+        message = ("the planner's steps solve directly, not by MINRES (--linear-solver minres): with the "
+                   "centre as an unknown the Newton system is no longer the saddle-point system MINRES is "
+                   "preconditioned for; MINRES solves the steps whose centre is fixed (simulate, the "
+                   "replays)")
+        self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
+        self._told_steered_direct = True
+        log.info(message)
+
+    def _not_converged(self, step: int, rotation: float, iteration: int, needle_force: float, residual_norm: float,
+                       worst: float, finite: bool, forces_balance: bool) -> InsertionFailure:
+        """Why _newton stopped short of equilibrium at its last `iteration`: a residual that is
+        not finite, the forces out of balance after solver.max_iterations, or the forces balanced
+        with the needle constraints stalled above their tolerance."""
         if not finite:
-            raise NonFiniteResidual(
+            return NonFiniteResidual(
                 f"Newton stopped at step {step} (needle rotation {rotation:.3f} rad): the residual is not finite "
-                f"after {iteration} iterations (needle force {state.needle_force:.3e} N): the loads or the "
+                f"after {iteration} iterations (needle force {needle_force:.3e} N): the loads or the "
                 "deformation overflow floating point")
         message = (f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
-                   f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after {settings.max_iterations} "
-                   "iterations")
+                   f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after "
+                   f"{self.scenario.solver.max_iterations} iterations")
         if not forces_balance:
-            raise NewtonExhausted(message)
+            return NewtonExhausted(message)
         remedy = "refine the spacing or lengthen the needle step"
         if self.needle.coupling == "points":
             remedy = "refine the spacing, lengthen the needle step or use `needle.coupling: mortar`"
-        raise ConstraintStall(f"{message}; the forces balance, but the needle constraints stall above their "
-                              f"tolerance of {self.constraint_tolerance:.3e} mm: their rows are nearly dependent, "
-                              f"needle points closer together than the particles resolve ({remedy})")
+        return ConstraintStall(f"{message}; the forces balance, but the needle constraints stall above their "
+                               f"tolerance of {self.constraint_tolerance:.3e} mm: their rows are nearly dependent, "
+                               f"needle points closer together than the particles resolve ({remedy})")
 
     def _accept(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, worst: float,
                 iterations: int) -> None:
