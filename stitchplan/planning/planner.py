@@ -404,63 +404,77 @@ def lean_for_exit(scenario: Scenario, aim: np.ndarray, tolerance: float, first_p
     LEAN_RUNS runs; the lean whose first pass came nearest is kept. A lean the needle's
     geometry refuses is halved back toward the lean run last; a pass that fails ends the
     search there (but a PlanningFailure, planner.strict, ends the plan)."""
-    limit = scenario.planner.max_entry_tilt
     tilt = scenario.needle.entry_tilt if tilt is None else tilt
     # a known first pass is the passes' own (their prefix keeps its limited steps): kept, it
     # is not run again
     run, limited = (known, []) if known is not None else first_pass(leaning(scenario, tilt))
-    tries = [(tilt, exit_error_vector(run))]
-    best = LeanSearch(tilt, run, limited, tries, "")
-    miss = tries[0][1] - aim
-    best_miss = length(miss)
-    if best_miss <= tolerance:
+    best = LeanSearch(tilt, run, limited, [(tilt, exit_error_vector(run))], "")
+    miss = best.tries[0][1] - aim
+    if length(miss) <= tolerance:
         best.reason = "the first pass met its aim"
         return best
     direction = miss / length(miss)
-    # the undeformed exit's move with the lean, one way or the other (a half circle exiting
-    # through its entry edge cannot lean deeper: it would need more arc)
-    slope = 0.0
+    slope = _undeformed_lean_slope(scenario, tilt, direction)
+    best.reason = _lean_secant(scenario, aim, tolerance, first_pass, best, direction, slope)
+    return best
+
+
+def _undeformed_lean_slope(scenario: Scenario, tilt: float, direction: np.ndarray) -> float:
+    """The secant's first slope dg/dlean: the undeformed exit's move along `direction` with
+    the lean, one way or the other (a half circle exiting through its entry edge cannot lean
+    deeper: it would need more arc); 0 where it leans neither way."""
     for change in (LEAN_STEP, -LEAN_STEP):
         moved = _leaned_exit(scenario, tilt + change)
         if moved is not None:
-            slope = float(direction @ (moved - _leaned_exit(scenario, tilt))) / change
-            break
-    points = [(tilt, float(direction @ miss))]
-    best.reason = f"{LEAN_RUNS} leans tried"
+            return float(direction @ (moved - _leaned_exit(scenario, tilt))) / change
+    return 0.0
+
+
+def _lean_secant(scenario: Scenario, aim: np.ndarray, tolerance: float, first_pass, best: LeanSearch,
+                 direction: np.ndarray, slope: float) -> str:
+    """lean_for_exit's secant on g(lean) = direction . (e(lean) - aim) from `best`, its one
+    try so far, for at most LEAN_RUNS first passes: each run is added to best.tries, and the
+    lean whose first pass came nearest the aim is kept in `best`. Returns why it stopped."""
+    best_miss = length(best.tries[0][1] - aim)
+    points = [(best.tilt, float(direction @ (best.tries[0][1] - aim)))]  # (lean, g)
     for _ in range(LEAN_RUNS):
         if len(points) > 1 and points[-1][0] != points[-2][0]:
             slope = (points[-1][1] - points[-2][1]) / (points[-1][0] - points[-2][0])
         if slope == 0.0:
-            best.reason = "the exit does not move with the lean"
-            break
-        here, value = points[-1]
-        trial = float(np.clip(here - value / slope, -limit, limit))
-        # a lean the needle's geometry refuses (no exit within its arc, other crossings): halved toward here
-        halved = 0
-        while halved < LEAN_HALVINGS and _leaned_exit(scenario, trial) is None:
-            trial, halved = 0.5 * (here + trial), halved + 1
-        if halved and abs(trial - here) < LEAN_STEP:
-            best.reason = "the needle's geometry allows no lean further that way"
-            break
-        if trial == here:
-            best.reason = f"at planner.max_entry_tilt ({limit:g} rad)"
-            break
+            return "the exit does not move with the lean"
+        trial, stop = _next_lean(scenario, *points[-1], slope)
+        if stop is not None:
+            return stop
         try:
             run, limited = first_pass(leaning(scenario, trial))
         except PlanningFailure:
             raise
         except NumericalFailure as failure:
-            best.reason = f"the pass at the lean {trial:.4g} rad failed: {failure}"
-            break
+            return f"the pass at the lean {trial:.4g} rad failed: {failure}"
         error = exit_error_vector(run)
-        tries.append((trial, error))
+        best.tries.append((trial, error))
         points.append((trial, float(direction @ (error - aim))))
         if length(error - aim) < best_miss:
             best.tilt, best.run, best.limited_steps, best_miss = trial, run, limited, length(error - aim)
         if best_miss <= tolerance:
-            best.reason = "a first pass met its aim"
-            break
-    return best
+            return "a first pass met its aim"
+    return f"{LEAN_RUNS} leans tried"
+
+
+def _next_lean(scenario: Scenario, here: float, value: float, slope: float) -> tuple[float, str | None]:
+    """The secant's step from the lean `here` (where g = `value`), within planner.max_entry_tilt,
+    and why the search stops there instead (None: it goes on). A lean the needle's geometry
+    refuses (no exit within its arc, other crossings) is halved toward `here`."""
+    limit = scenario.planner.max_entry_tilt
+    trial = float(np.clip(here - value / slope, -limit, limit))
+    halved = 0
+    while halved < LEAN_HALVINGS and _leaned_exit(scenario, trial) is None:
+        trial, halved = 0.5 * (here + trial), halved + 1
+    if halved and abs(trial - here) < LEAN_STEP:
+        return trial, "the needle's geometry allows no lean further that way"
+    if trial == here:
+        return trial, f"at planner.max_entry_tilt ({limit:g} rad)"
+    return trial, None
 
 
 def _leaned_exit(scenario: Scenario, tilt: float) -> np.ndarray | None:
@@ -514,97 +528,142 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     settings = scenario.planner
     tissue = tissue or PreparedTissue(scenario)  # built by the first run
     aim = np.zeros(2) if aim is None else np.asarray(aim, dtype=float)
-    symmetric = aims_at_bites(scenario)  # each pass aims the exit at equal bites
     target = settings.exit_tolerance if tolerance is None else tolerance
+    passes = _PlanPasses(scenario, tissue, shooting or PassOffsets(), aim, target, smooth, on_step, stream, options)
     start = time.perf_counter()
-    offsets = shooting or PassOffsets()
-    as_given = scenario  # the unplanned comparison's needle
-    lean, ready = None, None  # the lean search, and its run at the lean chosen: the plan's first pass
-    timings: dict[str, float] = {}  # every pass's, summed as its wall time is
-
-    def run_pass(leaned: Scenario, tracker: ExitTracker, prefix: PassPrefix | None = None) -> InsertionResult:
-        run = run_insertion(leaned, control=tracker, on_step=_streamed(on_step, stream, leaned), tissue=tissue,
-                            start_from=prefix.start() if prefix else None, **options)
-        add_timings(timings, run.timings)
-        return run
-
-    if settings.aim_entry_tilt:
-        def first_pass(leaned: Scenario) -> tuple[InsertionResult, list[int]]:
-            tracker = ExitTracker(settings, smooth=smooth)
-            return run_pass(leaned, tracker), tracker.limited_steps
-
-        known = offsets.prefix.reference if offsets.prefix is not None else None
-        lean = lean_for_exit(scenario, aim, target, first_pass, known, offsets.tilt)
-        log.info("planning: the needle leans %.4g rad (%.3g deg) from the orthogonal entry, its first pass %.4g mm "
-                 "from the aim (%d leans tried; %s)", lean.tilt, math.degrees(lean.tilt),
-                 length(exit_error_vector(lean.run) - aim), len(lean.tries), lean.reason)
-        if lean.tilt != offsets.tilt:  # passes about another lean: their offsets start afresh
-            offsets, ready = PassOffsets(lean.tilt), (lean.run, lean.limited_steps)
-        scenario = leaning(scenario, lean.tilt)
-    if offsets.last is not None:  # continuing with another aim: re-aim from the last pass
-        offsets.advance(aim)
-    passes = []
-    best, best_miss = None, np.inf
-    for number in range(1, settings.max_passes + 1):
-        # a symmetric target's aim follows the bites, the entry side's included: every step
-        prefix = offsets.prefix.for_offset(offsets.offset) if offsets.prefix and not symmetric else None
-        tracker = ExitTracker(settings, offsets.offset, smooth=smooth, prefix=prefix)
-        try:
-            if ready is not None:  # the lean search ran this pass already
-                (planned, tracker.limited_steps), ready = ready, None
-            else:
-                planned = run_pass(scenario, tracker, prefix)
-        except NumericalFailure as failure:
-            if best is None or isinstance(failure, PlanningFailure):  # no pass to export, or --strict
-                raise
-            # a later pass moved the centre where the model fails: the best pass so far stands
-            # (planner_passes lists the passes that ran to the exit)
-            message = (f"planner pass {number} (offset ({offsets.offset[0]:.4g}, {offsets.offset[1]:.4g}) mm) "
-                       f"failed: {failure}; the best of the {number - 1} pass{'es' if number > 2 else ''} "
-                       "before it is exported")
-            best.events.append(Event(EventKind.PASS_FAILED, message))
-            log.info(message)
-            break
-        own_iterations = sum(step.newton_iterations for step in planned.steps)  # before take_over
-        own_solves = sum(step.equilibrium_solves for step in planned.steps)
-        if prefix is not None:
-            prefix.take_over(planned)
-        elif not offsets.offset.any():  # the plan's first pass: later passes take over its early steps
-            offsets.prefix = PassPrefix.of(planned, tracker.limited_steps, settings)
-        if stream is not None:
-            stream.end(exported_centers(planned))
-        mismatch = final_mismatch(planned)
-        error = exit_error_vector(planned)
-        if symmetric and planned.bites is not None:
-            aim = symmetric_aim(planned, bite_aim)
-        elif symmetric:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
-            log.info("planning pass %d: the tip crossed no wound (no bites); the pass keeps its exit aim", number)
-        miss = float(np.linalg.norm(error - aim))
-        passes.append({"pass": number, "offset_mm": offsets.offset.copy(), "exit_error_mm": planned.exit_error_mm,
-                       "exit_error_vector_mm": error, "aim_mm": aim.copy(), "final_mismatch_mm": mismatch,
-                       "limited_steps": tracker.limited_steps,
-                       "first_aimed_step": prefix.first_aimed if prefix else 1,
-                       "newton_iterations": own_iterations, "equilibrium_solves": own_solves,
-                       "solver": {key: planned.solver_counts[key] for key in SOLVER_COUNTS},
-                       "wall_seconds": planned.wall_seconds})
-        log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
-                 *offsets.offset, planned.exit_error_mm, miss)
-        retargeted = retarget(planned) if retarget is not None and number == 1 else None
-        if retargeted is not None:
-            aim, target = np.asarray(retargeted[0], dtype=float), retargeted[1]
-            miss = float(np.linalg.norm(error - aim))
-        if miss < best_miss:
-            best, best_miss = planned, miss
-        offsets.record(error)
-        if miss <= target:
-            break
-        offsets.advance(aim)
-    best.wall_seconds, best.timings = time.perf_counter() - start, timings
+    lean = passes.choose_lean() if settings.aim_entry_tilt else None
+    if passes.offsets.last is not None:  # continuing with another aim: re-aim from the last pass
+        passes.offsets.advance(passes.aim)
+    best = passes.shoot(bite_aim, retarget)
+    best.wall_seconds, best.timings = time.perf_counter() - start, passes.timings
     _note_rough_path(best, MoveLimits.for_needle(best.geometry, settings))
     # after the passes, so that the planned run's wall time counts building the model it runs on
-    # whether or not the comparison runs (and a helper replaying the passes has their centres sooner)
-    unplanned = run_insertion(as_given, on_step=on_step, tissue=tissue, **options) if compare else None
-    return PlanResult(best, unplanned, passes, shooting=offsets, lean=lean)
+    # whether or not the comparison runs (and a helper replaying the passes has their centres sooner);
+    # the comparison's needle is the scenario's as given, not leaned
+    unplanned = run_insertion(scenario, on_step=on_step, tissue=tissue, **options) if compare else None
+    return PlanResult(best, unplanned, passes.records, shooting=passes.offsets, lean=lean)
+
+
+class _PlanPasses:
+    """run_plan's passes of Algorithm 2: the scene and model they run on, the aim of the exit
+    error they stop within `target` of, the secant over their offsets c_k (eq. 4.1,
+    PassOffsets), their records (planner_passes) and timings, and the best pass so far."""
+
+    def __init__(self, scenario: Scenario, tissue: PreparedTissue, offsets: PassOffsets, aim: np.ndarray,
+                 target: float, smooth: bool, on_step, stream, options: dict):
+        self.scenario = scenario  # leaned by choose_lean when the planner chooses the lean
+        self.settings = scenario.planner
+        self.symmetric = aims_at_bites(scenario)  # each pass aims the exit at equal bites
+        self.tissue, self.offsets, self.aim, self.target = tissue, offsets, aim, target
+        self.smooth, self.on_step, self.stream, self.options = smooth, on_step, stream, options
+        self.timings: dict[str, float] = {}  # every pass's, summed as its wall time is
+        self.records: list[dict] = []
+        self.best: InsertionResult | None = None
+        self.best_miss = np.inf
+        self.ready: tuple[InsertionResult, list[int]] | None = None  # the lean search's run at its lean
+
+    def run(self, leaned: Scenario, tracker: ExitTracker, prefix: PassPrefix | None = None) -> InsertionResult:
+        """One pass of Algorithm 2 on the shared model (each step's centre solving eq. 4.1 with
+        the tracker's offset), its centres handed to `stream`."""
+        run = run_insertion(leaned, control=tracker, on_step=_streamed(self.on_step, self.stream, leaned),
+                            tissue=self.tissue, start_from=prefix.start() if prefix else None, **self.options)
+        add_timings(self.timings, run.timings)
+        return run
+
+    def first_pass(self, leaned: Scenario) -> tuple[InsertionResult, list[int]]:
+        """lean_for_exit's first pass (offset zero) and the steps a move limit held back in it."""
+        tracker = ExitTracker(self.settings, smooth=self.smooth)
+        return self.run(leaned, tracker), tracker.limited_steps
+
+    def choose_lean(self) -> LeanSearch:
+        """The needle's lean at entry (planner.aim_entry_tilt, lean_for_exit); the passes then
+        run leaning so, the search's run there their first pass."""
+        offsets = self.offsets
+        known = offsets.prefix.reference if offsets.prefix is not None else None
+        lean = lean_for_exit(self.scenario, self.aim, self.target, self.first_pass, known, offsets.tilt)
+        log.info("planning: the needle leans %.4g rad (%.3g deg) from the orthogonal entry, its first pass %.4g mm "
+                 "from the aim (%d leans tried; %s)", lean.tilt, math.degrees(lean.tilt),
+                 length(exit_error_vector(lean.run) - self.aim), len(lean.tries), lean.reason)
+        if lean.tilt != offsets.tilt:  # passes about another lean: their offsets start afresh
+            self.offsets, self.ready = PassOffsets(lean.tilt), (lean.run, lean.limited_steps)
+        self.scenario = leaning(self.scenario, lean.tilt)
+        return lean
+
+    def shoot(self, bite_aim: float, retarget) -> InsertionResult:
+        """Passes, each offset by the secant on the one before, until one exits within
+        `target` of the aim or planner.max_passes have run; the best of them."""
+        for number in range(1, self.settings.max_passes + 1):
+            # a symmetric target's aim follows the bites, the entry side's included: every step
+            offsets = self.offsets
+            prefix = offsets.prefix.for_offset(offsets.offset) if offsets.prefix and not self.symmetric else None
+            tracker = ExitTracker(self.settings, offsets.offset, smooth=self.smooth, prefix=prefix)
+            try:
+                planned = self._next_pass(tracker, prefix)
+            except NumericalFailure as failure:
+                if self.best is None or isinstance(failure, PlanningFailure):  # no pass to export, or --strict
+                    raise
+                self._note_failed(number, failure)
+                break
+            error, miss = self._record(number, planned, tracker, prefix, bite_aim)
+            retargeted = retarget(planned) if retarget is not None and number == 1 else None
+            if retargeted is not None:
+                self.aim, self.target = np.asarray(retargeted[0], dtype=float), retargeted[1]
+                miss = float(np.linalg.norm(error - self.aim))
+            if miss < self.best_miss:
+                self.best, self.best_miss = planned, miss
+            offsets.record(error)
+            if miss <= self.target:
+                break
+            offsets.advance(self.aim)
+        return self.best
+
+    def _next_pass(self, tracker: ExitTracker, prefix: PassPrefix | None) -> InsertionResult:
+        if self.ready is not None:  # the lean search ran this pass already
+            (planned, tracker.limited_steps), self.ready = self.ready, None
+            return planned
+        return self.run(self.scenario, tracker, prefix)
+
+    def _note_failed(self, number: int, failure: NumericalFailure) -> None:
+        """A later pass moved the centre where the model fails: the best pass so far stands
+        (planner_passes lists the passes that ran to the exit)."""
+        offset = self.offsets.offset
+        message = (f"planner pass {number} (offset ({offset[0]:.4g}, {offset[1]:.4g}) mm) "
+                   f"failed: {failure}; the best of the {number - 1} pass{'es' if number > 2 else ''} "
+                   "before it is exported")
+        self.best.events.append(Event(EventKind.PASS_FAILED, message))
+        log.info(message)
+
+    def _record(self, number: int, planned: InsertionResult, tracker: ExitTracker, prefix: PassPrefix | None,
+                bite_aim: float) -> tuple[np.ndarray, float]:
+        """The pass's record (its own work, before the prefix's is counted in), the first
+        pass kept as the later passes' prefix, and (symmetric) the aim moved to its bites;
+        returns its exit error vector and its distance from the aim."""
+        own_iterations = sum(step.newton_iterations for step in planned.steps)  # before take_over
+        own_solves = sum(step.equilibrium_solves for step in planned.steps)
+        offset = self.offsets.offset
+        if prefix is not None:
+            prefix.take_over(planned)
+        elif not offset.any():  # the plan's first pass: later passes take over its early steps
+            self.offsets.prefix = PassPrefix.of(planned, tracker.limited_steps, self.settings)
+        if self.stream is not None:
+            self.stream.end(exported_centers(planned))
+        mismatch = final_mismatch(planned)
+        error = exit_error_vector(planned)
+        if self.symmetric and planned.bites is not None:
+            self.aim = symmetric_aim(planned, bite_aim)
+        elif self.symmetric:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
+            log.info("planning pass %d: the tip crossed no wound (no bites); the pass keeps its exit aim", number)
+        miss = float(np.linalg.norm(error - self.aim))
+        self.records.append({"pass": number, "offset_mm": offset.copy(), "exit_error_mm": planned.exit_error_mm,
+                             "exit_error_vector_mm": error, "aim_mm": self.aim.copy(), "final_mismatch_mm": mismatch,
+                             "limited_steps": tracker.limited_steps,
+                             "first_aimed_step": prefix.first_aimed if prefix else 1,
+                             "newton_iterations": own_iterations, "equilibrium_solves": own_solves,
+                             "solver": {key: planned.solver_counts[key] for key in SOLVER_COUNTS},
+                             "wall_seconds": planned.wall_seconds})
+        log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
+                 *offset, planned.exit_error_mm, miss)
+        return error, miss
 
 
 def add_timings(total: dict[str, float], more: dict[str, float]) -> None:

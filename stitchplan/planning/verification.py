@@ -59,6 +59,7 @@ import logging
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -272,108 +273,166 @@ def plan_verified(scenario: Scenario, compare: bool = True, verify: bool = True,
     other = replay_scenario(scenario, verify)
     replays = replays or InlineReplays(other, **replay_options(options))  # one model for every round
     predict = predicts_aim(scenario, verify)
-    tee = StreamTee(replays, predictions) if predict and predictions is not None else None
-    prediction: dict = {}  # the predicted offset, and whether the passes were aimed by it
+    prediction = _PredictedAim(scenario, replays, predictions if predict else None, options)
+    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=prediction.tee or replays,
+                      retarget=prediction.retarget if predict else None, **options)
+    # planner.target symmetric on a stitch across a wound: the bites' difference is judged (and
+    # re-aimed on the refined model) as the exit error is otherwise
+    symmetric = scenario.planner.target == "symmetric" and result.planned.bites is not None
+    if not verify:
+        return _estimated(scenario, result, replays, symmetric, **options)
+    rounds = _VerificationRounds(scenario, result, tissue, replays, symmetric, on_step, options)
+    miss, replayed = rounds.verify(1, "predicted offset" if prediction.aimed else "none", prediction.offset)
+    for number in range(2, MAX_CORRECTIONS + 2):  # the re-aimed rounds
+        # no replay, or (symmetric) a refined track that does not cross the wound: nothing to re-aim by
+        if not np.isfinite(miss) or miss <= VERIFIED_FACTOR * scenario.planner.exit_tolerance:
+            break
+        if not rounds.re_plan(number, replayed):  # its passes failed: the best round so far stands
+            break
+        miss, replayed = rounds.verify(number, "refined offset")
+    return rounds.exported(other.discretization.spacing)
 
-    def retarget(first_pass: InsertionResult):
-        """After the first pass: aim the passes at -delta where the refined replay is
-        predicted to miss (the module docstring)."""
-        if tee is not None:
-            tee.replays = (replays,)  # the later passes: the refined model's replays only
-        offset = predicted_offset(scenario, first_pass, predictions, **options)
+
+class _PredictedAim:
+    """plan_verified's run_plan `retarget`: after the first pass, the passes aimed at -delta
+    where the refined replay is predicted to miss (the module docstring, predicted aim), with
+    the first pass's centres handed to `predictions` (prediction_replays's; None: no
+    prediction, or its replay runs here after the pass) beside the refined model's replays."""
+
+    def __init__(self, scenario: Scenario, replays: InlineReplays, predictions: InlineReplays | None, options: dict):
+        self.scenario, self.replays, self.predictions, self.options = scenario, replays, predictions, options
+        self.tee = StreamTee(replays, predictions) if predictions is not None else None
+        self.offset: np.ndarray | None = None  # the predicted offset
+        self.aimed = False  # whether the passes were aimed by it
+
+    def retarget(self, first_pass: InsertionResult) -> tuple[np.ndarray, float] | None:
+        """(aim, tolerance) for the passes after `first_pass`, or None to keep theirs."""
+        if self.tee is not None:
+            self.tee.replays = (self.replays,)  # the later passes: the refined model's replays only
+        offset = predicted_offset(self.scenario, first_pass, self.predictions, **self.options)
         if offset is None:
             return None
-        prediction["offset"] = offset
-        tolerance = scenario.planner.exit_tolerance
+        self.offset = offset
+        tolerance = self.scenario.planner.exit_tolerance
         if np.linalg.norm(exit_error_vector(first_pass) + offset) <= VERIFIED_FACTOR * tolerance:
             return None  # the refined replay is predicted to pass
-        prediction["aimed"] = True
+        self.aimed = True
         log.info("verification: refined model's exit offset predicted from 2h (%.4g, %.4g) mm; the passes aim at "
                  "(%.4g, %.4g) mm", *offset, *-offset)
         return -offset, AIMED_TOLERANCE_FRACTION * tolerance
 
-    result = run_plan(scenario, compare=compare, on_step=on_step, tissue=tissue, stream=tee or replays,
-                      retarget=retarget if predict else None, **options)
-    settings = scenario.planner
-    # planner.target symmetric on a stitch across a wound: the bites' difference is judged (and
-    # re-aimed on the refined model) as the exit error is otherwise
-    symmetric = settings.target == "symmetric" and result.planned.bites is not None
-    if not verify:
-        result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, replays=replays,
-                                              **options)
-        _note_missed(result, _verified_miss(result.planned, symmetric), settings.exit_tolerance,
-                     "on the planning model", symmetric)
-        return result
-    spacing = other.discretization.spacing
-    rounds, best, replayed = [], None, None  # best: (verified miss, plan, replay, its round's record)
-    for record in result.passes:
-        record["round"] = 1
-    planning_seconds, planning_timings = result.planned.wall_seconds, dict(result.planned.timings)
-    for correction in range(MAX_CORRECTIONS + 1):
-        if correction:
-            bite_aim = 0.0
-            if symmetric:
-                bite_offset = replayed.bites["difference_mm"] - result.planned.bites["difference_mm"]
-                bite_aim = -bite_offset
-                aim = symmetric_aim(result.planned, bite_aim)
-                log.info("verification: refined model's bite-difference offset %.4g mm; re-planning aimed at "
-                         "a difference of %.4g mm", bite_offset, bite_aim)
-            else:
-                offset = exit_offset(replayed, result.planned)
-                aim = -offset
-                log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at "
-                         "(%.4g, %.4g) mm", *offset, *aim)
-            round_start = time.perf_counter()
-            try:
-                again = run_plan(scenario, compare=False, on_step=on_step, aim=aim, shooting=result.shooting,
-                                 tolerance=AIMED_TOLERANCE_FRACTION * settings.exit_tolerance, tissue=tissue,
-                                 bite_aim=bite_aim, stream=replays, **options)
-            except PlanningFailure:  # --strict
-                raise
-            except NumericalFailure as failure:  # the re-aimed passes fail: the best round so far stands
-                planning_seconds += time.perf_counter() - round_start  # spent on the plan all the same
-                message = (f"verification round {correction + 1}: its re-aimed planner pass failed ({failure}); "
-                           f"the best of the {correction} round{'s' if correction > 1 else ''} before it is "
-                           "exported")
-                best[1].planned.events.append(Event(EventKind.PASS_FAILED, message))
-                log.info(message)
-                break
-            planning_seconds += again.planned.wall_seconds
-            add_timings(planning_timings, again.planned.timings)
-            for record in again.passes:
-                record["round"] = correction + 1
-            result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting,
-                                lean=again.lean.after(result.lean) if again.lean else None)
-        replayed, no_replay = replay(replays, result.exported_centers)  # started from the round before's
-        if correction > 0:
-            aimed_by = "refined offset"
-        else:
-            aimed_by = "predicted offset" if prediction.get("aimed") else "none"
-        verified = _round_record(correction + 1, aimed_by, result.planned, replayed, no_replay)
-        if correction == 0 and "offset" in prediction:
-            verified["predicted_offset_mm"] = prediction["offset"].tolist()
-        if symmetric:
-            verified["planned_bite_difference_mm"] = result.planned.bites["difference_mm"]
+
+def _estimated(scenario: Scenario, result: PlanResult, replays: InlineReplays, symmetric: bool,
+               **options) -> PlanResult:
+    """An unverified plan with its exit error estimate from the replay at 2h, and an event
+    where it misses the target on the planning model."""
+    result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, replays=replays,
+                                          **options)
+    _note_missed(result, _verified_miss(result.planned, symmetric), scenario.planner.exit_tolerance,
+                 "on the planning model", symmetric)
+    return result
+
+
+class _Round(NamedTuple):
+    """A verification round: its miss on the refined model (_verified_miss), its plan, the replay, its record."""
+
+    miss: float
+    plan: PlanResult
+    replayed: InsertionResult | None
+    record: dict
+
+
+class _VerificationRounds:
+    """plan_verified's rounds: each round's plan replayed on the refined model and recorded,
+    the best round so far, and the planning time of every pass of every round."""
+
+    def __init__(self, scenario: Scenario, result: PlanResult, tissue: PreparedTissue, replays: InlineReplays,
+                 symmetric: bool, on_step, options: dict):
+        self.scenario, self.settings, self.tissue, self.replays = scenario, scenario.planner, tissue, replays
+        self.symmetric, self.on_step, self.options = symmetric, on_step, options
+        self.result = result  # the latest round's plan
+        for record in result.passes:
+            record["round"] = 1
+        self.planning_seconds, self.planning_timings = result.planned.wall_seconds, dict(result.planned.timings)
+        self.records: list[dict] = []  # Verification.rounds
+        self.best: _Round | None = None
+
+    def verify(self, number: int, aimed_by: str,
+               predicted: np.ndarray | None = None) -> tuple[float, InsertionResult | None]:
+        """Round `number`'s plan replayed on the refined model (started from the round
+        before's) and recorded; its miss there and the replay."""
+        planned = self.result.planned
+        replayed, no_replay = replay(self.replays, self.result.exported_centers)
+        verified = _round_record(number, aimed_by, planned, replayed, no_replay)
+        if predicted is not None:
+            verified["predicted_offset_mm"] = predicted.tolist()
+        if self.symmetric:
+            verified["planned_bite_difference_mm"] = planned.bites["difference_mm"]
             verified["verified_bite_difference_mm"] = (None if replayed is None or replayed.bites is None
                                                        else replayed.bites["difference_mm"])
-        rounds.append(verified)
-        miss = _verified_miss(replayed, symmetric)
+        self.records.append(verified)
+        miss = _verified_miss(replayed, self.symmetric)
         log.info("verification round %d: planned exit error %.4g mm, on the refined model %.4g mm%s",
-                 correction + 1, result.planned.exit_error_mm, np.inf if replayed is None else replayed.exit_error_mm,
-                 f" (bite difference {miss:.4g} mm)" if symmetric else "")
-        if best is None or miss < best[0]:
-            best = (miss, result, replayed, verified)
-        # no replay, or (symmetric) a refined track that does not cross the wound: nothing to re-aim by
-        if not np.isfinite(miss) or miss <= VERIFIED_FACTOR * settings.exit_tolerance:
-            break
-    miss, result, replayed, kept = best
-    # every pass of every round, the failed ones' too
-    result.planned.wall_seconds, result.planned.timings = planning_seconds, planning_timings
-    if np.isfinite(miss):
-        _note_missed(result, miss, VERIFIED_FACTOR * settings.exit_tolerance,
-                     f"on the refined model (spacing {spacing:.4g} mm)", symmetric)
-    return _verified(scenario, result, Verification(spacing, replayed, rounds, replays.where, kept["aimed_by"],
-                                                    kept.get("no_replay")), **options)
+                 number, planned.exit_error_mm, np.inf if replayed is None else replayed.exit_error_mm,
+                 f" (bite difference {miss:.4g} mm)" if self.symmetric else "")
+        if self.best is None or miss < self.best.miss:
+            self.best = _Round(miss, self.result, replayed, verified)
+        return miss, replayed
+
+    def re_plan(self, number: int, replayed: InsertionResult) -> bool:
+        """Round `number`'s plan: the passes re-aimed by the refined model's offset, going on
+        with the secant of the passes before; False when they fail (the best round so far stands)."""
+        aim, bite_aim = self._aim_by_offset(replayed)
+        round_start = time.perf_counter()
+        try:
+            again = run_plan(self.scenario, compare=False, on_step=self.on_step, aim=aim, shooting=self.result.shooting,
+                             tolerance=AIMED_TOLERANCE_FRACTION * self.settings.exit_tolerance, tissue=self.tissue,
+                             bite_aim=bite_aim, stream=self.replays, **self.options)
+        except PlanningFailure:  # --strict
+            raise
+        except NumericalFailure as failure:
+            self.planning_seconds += time.perf_counter() - round_start  # spent on the plan all the same
+            message = (f"verification round {number}: its re-aimed planner pass failed ({failure}); "
+                       f"the best of the {number - 1} round{'s' if number > 2 else ''} before it is exported")
+            self.best.plan.planned.events.append(Event(EventKind.PASS_FAILED, message))
+            log.info(message)
+            return False
+        self.planning_seconds += again.planned.wall_seconds
+        add_timings(self.planning_timings, again.planned.timings)
+        for record in again.passes:
+            record["round"] = number
+        result = self.result
+        self.result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting,
+                                 lean=again.lean.after(result.lean) if again.lean else None)
+        return True
+
+    def _aim_by_offset(self, replayed: InsertionResult) -> tuple[np.ndarray, float]:
+        """The re-aimed passes' aim of the exit error vector and of the bites' difference
+        (run_plan `aim`, `bite_aim`): minus the refined model's offset (the module docstring)."""
+        planned = self.result.planned
+        if self.symmetric:
+            bite_offset = replayed.bites["difference_mm"] - planned.bites["difference_mm"]
+            bite_aim = -bite_offset
+            log.info("verification: refined model's bite-difference offset %.4g mm; re-planning aimed at "
+                     "a difference of %.4g mm", bite_offset, bite_aim)
+            return symmetric_aim(planned, bite_aim), bite_aim
+        offset = exit_offset(replayed, planned)
+        aim = -offset
+        log.info("verification: refined model's exit offset (%.4g, %.4g) mm; re-planning aimed at "
+                 "(%.4g, %.4g) mm", *offset, *aim)
+        return aim, 0.0
+
+    def exported(self, spacing: float) -> PlanResult:
+        """The best round's plan, its wall time and timings every pass of every round's (the
+        failed ones' too), with its verification and exit error estimate."""
+        best = self.best
+        best.plan.planned.wall_seconds, best.plan.planned.timings = self.planning_seconds, self.planning_timings
+        if np.isfinite(best.miss):
+            _note_missed(best.plan, best.miss, VERIFIED_FACTOR * self.settings.exit_tolerance,
+                         f"on the refined model (spacing {spacing:.4g} mm)", self.symmetric)
+        verification = Verification(spacing, best.replayed, self.records, self.replays.where, best.record["aimed_by"],
+                                    best.record.get("no_replay"))
+        return _verified(self.scenario, best.plan, verification, **self.options)
 
 
 def _note_missed(result: PlanResult, miss: float, accepted: float, where: str, symmetric: bool) -> None:
