@@ -40,7 +40,9 @@ order, as the offset barely moves with the parameters (on sh12_100x100 each held
 sample's own offset is within 0.7 µm of the 14 µm added: benchmarks/results/uncertainty_refined.md),
 while the plans land -delta off on the planning model by design. When the robust
 plan is worse than the nominal one there in mean or 95th percentile (or fails more
-samples), the nominal plan is exported instead and the summary says so.
+samples), the nominal plan is exported instead and the summary says so. The exported plan is
+then checked as `plan` checks its own (check_exported_plan): with `verify` replayed on the
+refined model at the scenario's values, else its exit error estimated at twice the spacing.
 
 Sensitivity: central finite differences of the exit error vector (and of the achieved exit
 point) per parameter, the nominal plan's path replayed at the scenario's value +- h,
@@ -61,17 +63,20 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.stats import f as f_distribution
 
 from ..config import Scenario
-from ..config.uncertainty import UNITS, Uncertainty
+from ..config.uncertainty import UNITS, Uncertainty, check_against_scenario
 from ..errors import InputError, NumericalFailure
+from ..events import Event, EventKind
 from ..parallel import Executor, run_all
 from ..planning.planner import PlanResult, exit_error_vector, run_plan
 from ..planning.replay_models import aims_at_bites
-from ..planning.verification import AIMED_TOLERANCE_FRACTION, exit_offset, plan_verified
+from ..planning.verification import (AIMED_TOLERANCE_FRACTION, estimate_exit_error, exit_offset, plan_verified,
+                                     verify_exported)
 from .evaluation import SampleRun, run_sample
 from .sampling import Design, draw, with_parameters
 
@@ -298,6 +303,15 @@ def check_target(scenario: Scenario, source: str = "scenario") -> None:
                          "under uncertainty with planner.target: exit)")
 
 
+def check_inputs(uncertainty: Uncertainty, scenario: Scenario, scenario_path: str | Path) -> None:
+    """Refuse, before any run, what plan_under_uncertainty could not honour: parameters the
+    scenario cannot vary as the file asks (config.uncertainty.check_against_scenario), a
+    symmetric target (check_target) and a distribution mostly below zero (draw)."""
+    check_against_scenario(uncertainty, scenario, scenario_path)
+    check_target(scenario, str(scenario_path))
+    draw(uncertainty, scenario)
+
+
 def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executor: Executor | None = None,
                            on_run: Callable[[str], None] | None = None, verify: bool = False,
                            **options) -> UncertaintyResult:
@@ -372,6 +386,37 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
                                shift_significance=significance, shift_threshold=threshold, refined_offset=offset)
     _choose(result)
     return result
+
+
+def check_exported_plan(scenario: Scenario, result: UncertaintyResult, verify: bool = False,
+                        **options) -> PlanResult:
+    """The exported plan checked as `plan` checks its own, with an accuracy-check event first
+    among its planned run's saying how: with `verify` replayed on the refined model at the
+    scenario's values (verify_exported), else its exit error estimated from its path
+    replayed at twice the spacing (as `plan --no-verify` estimates it)."""
+    plan = result.exported_plan
+    if verify:
+        if plan.verification is None:  # the re-aimed robust plan; the nominal one was verified as `plan` verifies
+            verify_exported(scenario, plan, **options)
+        note = _verification_note(result.refined_offset)
+    else:
+        note = "the plans under uncertainty are not verified on a refined model (--no-verify)"
+        plan.estimate = estimate_exit_error(scenario, plan.planned, plan.exported_centers, **options)
+    plan.planned.events.insert(0, Event(EventKind.ACCURACY_CHECK, note))
+    return plan
+
+
+def _verification_note(offset: np.ndarray | None) -> str:
+    """What the refined model did for the plans: aimed them by its offset for the nominal
+    plan's path (None: that path could not be replayed on it)."""
+    if offset is None:
+        return ("verification: the nominal plan's trajectory could not be replayed on the refined model: no "
+                "refined offset is added to the plans' statistics, and a re-aimed robust plan aims by the mean "
+                "shift alone")
+    return (f"verification: the plans aim for the refined model (its exit offset for the nominal plan's path, "
+            f"({offset[0]:.3g}, {offset[1]:.3g}) mm), the exported plan replayed on it at the scenario's "
+            "values; the sampled runs replay on the planning model, the plans' exit errors are reported "
+            "with that offset added")
 
 
 def _runs(executor: Executor | None, scenarios: list[Scenario], paths: list, options: dict,

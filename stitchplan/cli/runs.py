@@ -1,0 +1,73 @@
+"""The runs of `simulate` and `plan` once their inputs are checked: the discretization chosen
+for an asked accuracy, and the run with its replays and progress bar, input errors naming
+their file.
+
+Imported inside those commands, with their imports of the numerics (this module's bring
+numpy, scipy and the solvers), before the collector resumes (stitchplan/allocator.py). What
+it calls is looked up in its module at each call, as the commands' own imports did."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+from ..io import progress, readers, reports
+from ..needle import geometry as needle_geometry
+from ..planning import verification
+from ..study import auto
+from .options import _expected_steps, _naming_files
+
+
+def _resolve_accuracy(scenario_path: Path, scenario, limits, linear_solver: Optional[str] = None,
+                      tip_tracking: Optional[str] = None):
+    """study.auto.resolve_accuracy within the resource guard's particle limit (`limits`; None:
+    unchecked): the scenario with the discretization chosen for its `accuracy`, and the note
+    saying so (None without one). An accuracy the discretizations cannot reach names the file."""
+    with _naming_files(scenario_path):
+        return auto.resolve_accuracy(scenario, tip_tracking, linear_solver,
+                                     max_particles=None if limits is None else limits.max_particles)
+
+
+def _read_center_path(scenario_path: Path, center_path: Path, scenario, geometry):
+    """The needle centres of the --center-path file, checked against the scenario's needle
+    `geometry`, its rows' errors naming the file."""
+
+    def needle_for(first_center):
+        """The needle a path starting about `first_center` replays: a path planned with the
+        needle leaning at entry leans it (run_insertion does the same)."""
+        with _naming_files(scenario_path, center_path):
+            return needle_geometry.scenario_needle(needle_geometry.entry_lean(scenario, first_center))
+
+    return readers.read_center_path(center_path, geometry, needle_for)
+
+
+def _simulate_with_replays(scenario_path: Path, scenario, center_path: Optional[Path], path, estimate: bool,
+                           condition_numbers: bool, linear_solver: Optional[str] = None,
+                           tip_tracking: Optional[str] = None):
+    """planning.verification.simulate_with_estimate of the centre `path` (None: fixed) with a
+    progress bar: (result, exit error estimate or None)."""
+    # the estimate's run at 2h goes on in a helper process alongside (planning/replays.py)
+    with (_naming_files(scenario_path, center_path),
+          verification.estimate_replays(scenario, estimate=estimate, linear_solver=linear_solver,
+                                        tip_tracking=tip_tracking) as replays,
+          progress.progress_bar("needle steps", _expected_steps(scenario)) as advance):
+        return verification.simulate_with_estimate(
+            scenario, center_path=path, estimate=estimate, linear_solver=linear_solver,
+            tip_tracking=tip_tracking, condition_numbers=condition_numbers, on_step=lambda record: advance(),
+            replays=replays)
+
+
+def _plan_with_replays(scenario_path: Path, scenario, compare: bool, verify: bool, out: Optional[Path],
+                       plot: Optional[Path], **options):
+    """planning.verification.plan_verified with a progress bar; the run log's and the plot's
+    writers are imported while the planning waits for a replay (io.reports.prepare_plan_outputs)."""
+    expected = _expected_steps(scenario)
+    # the trajectory's replays go on in a helper process alongside (planning/replays.py); the
+    # predicted aim's at 2h here, after the first pass (planning/verification.py)
+    with (_naming_files(scenario_path),
+          verification.plan_replays(scenario, verify, while_waiting=lambda: reports.prepare_plan_outputs(out, plot),
+                                    **options) as replays,
+          verification.prediction_replays(scenario, verify, **options) as predictions,
+          progress.progress_bar("planned steps", (2 if compare else 1) * expected) as advance):
+        return verification.plan_verified(scenario, compare=compare, verify=verify, on_step=lambda record: advance(),
+                                          replays=replays, predictions=predictions, **options)
