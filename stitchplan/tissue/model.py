@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.sparse as sp
 
-from .boundary_conditions import EssentialBoundary, boundary_particles, transformation
+from .boundary_conditions import ConstrainedParticles, EssentialBoundary, boundary_particles, transformation
 from ..config import Discretization, Scenario, ScenarioError, Tissue
 from ..geometry import PolygonDomain, Rectangle, concatenated_ranges
 from .material import NeoHookean, PointwiseMaterial, SaintVenantKirchhoff, make_material
@@ -25,6 +25,9 @@ from .shapes import corner_zones, fit_particles, lattice_spacing, region_index, 
 from .thin_features import refuse_thin_tissue, singular_moment_message
 
 log = logging.getLogger(__name__)
+
+NO_NEEDLE_TO_GRADE_TOWARD = ("discretization.needle_spacing: needs a needle to grade the "
+                             "particles toward; remove it or add a `needle:` block")
 
 
 @dataclass(frozen=True)
@@ -163,96 +166,149 @@ def build_tissue_model(
     inside an edge, where the solution is singular (see end_zones).
     """
     segments = tuple(prescribed_segments) + tuple(force_segments)
-    domain = tissue.domain
-    if isinstance(domain, PolygonDomain) or tissue.regions:
-        particles, volumes, support, spacing, points, weights = shaped_discretization(
-            tissue, discretization, segments, needle_zone)
-    else:
-        breaks = segment_breaks(segments) if segments else ((), ())
-        ends = end_zones(tissue, segments, discretization)
-        if discretization.needle_spacing is not None:
-            if needle_zone is None:
-                raise ScenarioError("discretization.needle_spacing: needs a needle to grade the "
-                                    "particles toward; remove it or add a `needle:` block")
-            graded = graded_particles(tissue.size, discretization.spacing, discretization.needle_spacing,
-                                      np.asarray(needle_zone[0], dtype=float), float(needle_zone[1]),
-                                      discretization.needle_grading, points=ends + tuple(needle_zone[2]),
-                                      breaks=breaks)
-        elif segments:
-            graded = graded_lattice(tissue.size, discretization.spacing, ends, END_GROWTH, breaks)
-        else:
-            graded = None
-        if graded is not None:
-            particles, volumes = graded.particles, graded.volumes
-            spacing = graded.fine_spacing
-            support = discretization.dilation * graded.local_spacing
-            points, weights = leaf_quadrature(graded.cells, discretization.quadrature_order,
-                                              discretization.cells_per_spacing)
-        else:
-            particles, volumes, dx, dy = grid_particles(tissue.size, discretization.spacing)
-            spacing = max(dx, dy)
-            support = np.full(len(particles), discretization.dilation * spacing)
-            n_cells = (
-                int(round(tissue.size[0] / dx)) * discretization.cells_per_spacing,
-                int(round(tissue.size[1] / dy)) * discretization.cells_per_spacing,
-            )
-            points, weights = cell_quadrature(tissue.size, n_cells, discretization.quadrature_order)
-    search = ParticleSearch.of(particles, support)
-    order = discretization.basis_order
-    visibility = (Visibility.of(domain, particles)
-                  if isinstance(domain, PolygonDomain) and not domain.convex else None)
+    particles, volumes, support, spacing, points, weights = particles_and_quadrature(
+        tissue, discretization, segments, needle_zone)
+    functions = ParticleFunctions.of(particles, support, volumes, discretization.basis_order, tissue.domain)
     constrained = boundary_particles(particles, tissue, prescribed_segments, spacing)
-    particle_values = None
-    try:  # at the quadrature points, then at the boundary particles (eq. 3.31)
-        shape = rk_shape_functions(points, particles, support, volumes, order, True, search,
-                                   float(support.mean()), visibility)
-        at_boundary = rk_shape_functions(particles[constrained.indices], particles, support, volumes,
-                                         order, False, search, float(support.mean()), visibility).values
-        if visibility is not None:  # a hole or a notch: at every particle too, which the runs ask for
-            particle_values = rk_shape_functions(particles, particles, support, volumes, order, False, search,
-                                                 float(support.mean()), visibility).values
-    except SingularMomentMatrix as error:
-        point = getattr(error, "point", None)
-        local = (float(support[search.nearest(np.atleast_2d(point))[0]]) / discretization.dilation
-                 if point is not None else discretization.spacing)
-        raise ScenarioError(singular_moment_message(tissue, discretization, local, error)) from None
-    boundary = transformation(at_boundary, constrained, len(particles))
+    shape, at_boundary, particle_values = evaluated_shape_functions(functions, points, constrained, tissue,
+                                                                    discretization)
+    boundary = transformation(at_boundary, constrained, len(particles))  # T of eq. 3.37
     free_map = boundary.free_map
-    grad_x, grad_y = shape.grad_x @ free_map, shape.grad_y @ free_map
+    grad_x, grad_y = shape.grad_x @ free_map, shape.grad_y @ free_map  # (nq, n_free) each
     gradient = gradient_operator(grad_x, grad_y)
     test_gradient = None
-    if discretization.integration == "vci":
-        essential = [(np.asarray(a, float), np.asarray(b, float)) for a, b in prescribed_segments]
-        essential += tissue.clamped_pieces()
-        boundary_points, normals, boundary_weights = natural_boundary_quadrature(
-            tissue.bounding_size, essential, spacing, discretization.quadrature_order + 2,
-            None if isinstance(domain, Rectangle) else outward_edges(domain))
-        at_natural = (rk_shape_functions(boundary_points, particles, support, volumes, order, False, search,
-                                         float(support.mean()), visibility).values @ free_map
-                      if len(boundary_points) else sp.csr_matrix((0, free_map.shape[1])))
+    if discretization.integration == "vci":  # Petrov-Galerkin: only the test side is corrected
+        at_natural, normals, boundary_weights = natural_boundary_functions(
+            functions, free_map, tissue, discretization, prescribed_segments, spacing)
         test_gradient = gradient_operator(*consistent_test_gradients(
             shape.values @ free_map, grad_x, grad_y, weights, at_natural, normals, boundary_weights))
     return TissueModel(
-        tissue=tissue,
-        discretization=discretization,
-        material=material_at(tissue, points),
-        particles=particles,
-        support=support,
-        volumes=volumes,
-        search=search,
-        quadrature_points=points,
-        quadrature_weights=weights * tissue.thickness,
-        shape=shape,
-        boundary=boundary,
-        gradient=gradient,
-        spacing=spacing,
+        tissue=tissue, discretization=discretization, material=material_at(tissue, points),
+        particles=particles, support=support, volumes=volumes, search=functions.search,
+        quadrature_points=points, quadrature_weights=weights * tissue.thickness,
+        shape=shape, boundary=boundary, gradient=gradient, spacing=spacing,
         direction_gradient=direction_gradient_operator(grad_x, grad_y),
-        test_gradient=test_gradient,
-        visibility=visibility,
+        test_gradient=test_gradient, visibility=functions.visibility,
         needle_spacing=(zone_spacing(particles, support / discretization.dilation, needle_zone)
                         if needle_zone is not None and discretization.needle_spacing is not None else None),
         particle_values=particle_values,
     )
+
+
+def particles_and_quadrature(tissue: Tissue, discretization: Discretization, segments: tuple,
+                             needle_zone: tuple | None):
+    """Particles (NP, 2), their volumes (NP,) and kernel supports (NP,), the finest lattice
+    step (mm), and the quadrature points (nq, 2) and area weights (nq,): a polygon tissue's or
+    one with regions (shaped_discretization), else the rectangle's graded lattice
+    (rectangle_lattice) with Gauss points on its leaf cells, or without grading its uniform
+    grid (grid_discretization)."""
+    if isinstance(tissue.domain, PolygonDomain) or tissue.regions:
+        return shaped_discretization(tissue, discretization, segments, needle_zone)
+    graded = rectangle_lattice(tissue, discretization, segments, needle_zone)
+    if graded is None:
+        return grid_discretization(tissue.size, discretization)
+    spacing = graded.fine_spacing
+    support = discretization.dilation * graded.local_spacing
+    points, weights = leaf_quadrature(graded.cells, discretization.quadrature_order,
+                                      discretization.cells_per_spacing)
+    return graded.particles, graded.volumes, support, spacing, points, weights
+
+
+def rectangle_lattice(tissue: Tissue, discretization: Discretization, segments: tuple,
+                      needle_zone: tuple | None) -> GradedParticles | None:
+    """A rectangular tissue's graded lattice, with lines through every segment end: toward the
+    needle (discretization.needle_spacing) and the segment ends inside an edge (end_zones),
+    or toward those ends alone; None without needle grading or load segments (a uniform grid)."""
+    breaks = segment_breaks(segments) if segments else ((), ())
+    ends = end_zones(tissue, segments, discretization)
+    if discretization.needle_spacing is not None:
+        if needle_zone is None:
+            raise ScenarioError(NO_NEEDLE_TO_GRADE_TOWARD)
+        return graded_particles(tissue.size, discretization.spacing, discretization.needle_spacing,
+                                np.asarray(needle_zone[0], dtype=float), float(needle_zone[1]),
+                                discretization.needle_grading, points=ends + tuple(needle_zone[2]),
+                                breaks=breaks)
+    if segments:
+        return graded_lattice(tissue.size, discretization.spacing, ends, END_GROWTH, breaks)
+    return None
+
+
+def grid_discretization(size: tuple[float, float], discretization: Discretization):
+    """The uniform grid's particles, volumes, supports (dilation x the largest line interval),
+    that interval, and Gauss points on cells_per_spacing cells per grid interval (the tuple of
+    particles_and_quadrature)."""
+    particles, volumes, dx, dy = grid_particles(size, discretization.spacing)
+    spacing = max(dx, dy)
+    support = np.full(len(particles), discretization.dilation * spacing)
+    n_cells = (
+        int(round(size[0] / dx)) * discretization.cells_per_spacing,
+        int(round(size[1] / dy)) * discretization.cells_per_spacing,
+    )
+    points, weights = cell_quadrature(size, n_cells, discretization.quadrature_order)
+    return particles, volumes, support, spacing, points, weights
+
+
+@dataclass(frozen=True, eq=False)
+class ParticleFunctions:
+    """The RK shape functions of the particles being built, at any reference points: their
+    neighbour search, and on a non-convex tissue (a hole or a notch) the visibility criterion."""
+
+    particles: np.ndarray  # (NP, 2)
+    support: np.ndarray  # (NP,)
+    volumes: np.ndarray  # (NP,)
+    order: int  # of the basis
+    search: ParticleSearch
+    visibility: Visibility | None
+
+    @classmethod
+    def of(cls, particles: np.ndarray, support: np.ndarray, volumes: np.ndarray, order: int,
+           domain: Rectangle | PolygonDomain) -> ParticleFunctions:
+        search = ParticleSearch.of(particles, support)
+        visibility = (Visibility.of(domain, particles)
+                      if isinstance(domain, PolygonDomain) and not domain.convex else None)
+        return cls(particles, support, volumes, order, search, visibility)
+
+    def at(self, points: np.ndarray, gradients: bool = False) -> ShapeFunctions:
+        """rk_shape_functions at `points`, the basis scaled by the mean support (as the
+        model's basis_scale)."""
+        return rk_shape_functions(points, self.particles, self.support, self.volumes, self.order, gradients,
+                                  self.search, float(self.support.mean()), self.visibility)
+
+
+def evaluated_shape_functions(functions: ParticleFunctions, points: np.ndarray, constrained: ConstrainedParticles,
+                              tissue: Tissue, discretization: Discretization):
+    """The shape functions with their gradients at the quadrature points, their values at the
+    boundary particles (D^b and D^nb of eq. 3.31-3.32: (Nb, NP)) and, on a tissue with a hole
+    or a notch, at every particle (NP, NP; else None). A singular moment matrix is refused
+    with the ScenarioError that says why (thin_features.singular_moment_message)."""
+    particle_values = None
+    try:  # at the quadrature points, then at the boundary particles (eq. 3.31)
+        shape = functions.at(points, True)
+        at_boundary = functions.at(functions.particles[constrained.indices]).values
+        if functions.visibility is not None:  # a hole or a notch: at every particle too, which the runs ask for
+            particle_values = functions.at(functions.particles).values
+    except SingularMomentMatrix as error:
+        point = getattr(error, "point", None)
+        local = (float(functions.support[functions.search.nearest(np.atleast_2d(point))[0]])
+                 / discretization.dilation if point is not None else discretization.spacing)
+        raise ScenarioError(singular_moment_message(tissue, discretization, local, error)) from None
+    return shape, at_boundary, particle_values
+
+
+def natural_boundary_functions(functions: ParticleFunctions, free_map: sp.csr_matrix, tissue: Tissue,
+                               discretization: Discretization, prescribed_segments: tuple, spacing: float):
+    """The free functions N T (nb, n_free) at the quadrature points of the natural boundary
+    (all but the clamped pieces and the prescribed-displacement segments), their outward
+    normals (nb, 2) and lengths (nb,): the boundary side of consistent_test_gradients."""
+    essential = [(np.asarray(a, float), np.asarray(b, float)) for a, b in prescribed_segments]
+    essential += tissue.clamped_pieces()
+    domain = tissue.domain
+    boundary_points, normals, boundary_weights = natural_boundary_quadrature(
+        tissue.bounding_size, essential, spacing, discretization.quadrature_order + 2,
+        None if isinstance(domain, Rectangle) else outward_edges(domain))
+    at_natural = (functions.at(boundary_points).values @ free_map
+                  if len(boundary_points) else sp.csr_matrix((0, free_map.shape[1])))
+    return at_natural, normals, boundary_weights
 
 
 def zone_spacing(particles: np.ndarray, local_spacing: np.ndarray, needle_zone: tuple) -> float | None:
@@ -315,8 +371,7 @@ def shaped_lattice(tissue: Tissue, discretization: Discretization, segments: tup
     size = tuple(domain.size)
     if discretization.needle_spacing is not None:
         if needle_zone is None:
-            raise ScenarioError("discretization.needle_spacing: needs a needle to grade the "
-                                "particles toward; remove it or add a `needle:` block")
+            raise ScenarioError(NO_NEEDLE_TO_GRADE_TOWARD)
         needle_ends = tuple(replace(zone, center=zone.center - origin) for zone in needle_zone[2])
         graded = graded_particles(size, discretization.spacing, discretization.needle_spacing,
                                   np.asarray(needle_zone[0], dtype=float) - origin, float(needle_zone[1]),

@@ -110,57 +110,92 @@ def graded_lattice(size: tuple[float, float], base: float, zones: tuple[Refineme
     breaks (grid_lines), each coarse cell split into 2^l x 2^l leaves where a zone asks for
     it (leaf side <= zone spacing + growth x distance to the zone), 2:1 balanced."""
     width, height = size
-    levels = max([max(int(round(np.log2(base / zone.spacing))), 0) for zone in zones] + [0])
+    levels = max([_zone_level(base, zone) for zone in zones] + [0])
     coarse_x, coarse_y = grid_lines(width, base, breaks[0]), grid_lines(height, base, breaks[1])
     nx0, ny0 = len(coarse_x) - 1, len(coarse_y) - 1
-    # the finest lattice is held as dense arrays: cap its size (memory), coarser at the zones
-    cap = max(int(np.floor(0.5 * np.log2(MAX_LATTICE_CELLS / (nx0 * ny0)))), 0)
-    if levels > cap:
-        log.info("graded particles: %d refinement levels capped at %d (at most %d lattice cells); "
-                 "the finest spacing is %.3g mm instead of %.3g mm", levels, cap, MAX_LATTICE_CELLS,
-                 base / 2**cap, base / 2**levels)
-        levels = cap
-    n = 2**levels
-    fx, fy = nx0 * n, ny0 * n  # finest lattice: fx x fy cells
+    levels = _capped_levels(levels, base, nx0 * ny0)
+    n = 2**levels  # finest lattice: nx0 n x ny0 n cells
     (xs, step_x), (ys, step_y) = _subdivided(coarse_x, n), _subdivided(coarse_y, n)  # (fx + 1,), (fy + 1,)
     xc, yc = _middles(xs, step_x), _middles(ys, step_y)
     # side of the coarse cell holding each finest cell, (fx, fy)
     side0 = (max(width / nx0, height / ny0) if step_x and step_y else
              np.maximum(np.repeat(np.diff(coarse_x), n)[:, None], np.repeat(np.diff(coarse_y), n)[None, :]))
+    required = _required_levels(zones, base, levels, growth, xc, yc, side0)
+    corner, side = _leaf_cells(_balanced_leaf_levels(required, levels), levels)
+    particles, volumes, local, cells = _corner_particles(corner, side, xs, step_x, ys, step_y)
+    fine = max(step_x or float(np.diff(xs).max()), step_y or float(np.diff(ys).max()))
+    coarse = fine * n if step_x and step_y else max(float(np.diff(coarse_x).max()),
+                                                    float(np.diff(coarse_y).max()))
+    return GradedParticles(particles, volumes, local, cells, fine, coarse)
+
+
+def _zone_level(base: float, zone: RefinementZone) -> int:
+    """The halvings of `base` that bring it to about the zone's spacing (none below zero)."""
+    return max(int(round(np.log2(base / zone.spacing))), 0)
+
+
+def _capped_levels(levels: int, base: float, coarse_cells: int) -> int:
+    """`levels`, or fewer where the finest lattice would pass MAX_LATTICE_CELLS cells: it is
+    held as dense arrays (memory), so the zones get coarser leaves instead."""
+    cap = max(int(np.floor(0.5 * np.log2(MAX_LATTICE_CELLS / coarse_cells))), 0)
+    if levels > cap:
+        log.info("graded particles: %d refinement levels capped at %d (at most %d lattice cells); "
+                 "the finest spacing is %.3g mm instead of %.3g mm", levels, cap, MAX_LATTICE_CELLS,
+                 base / 2**cap, base / 2**levels)
+        return cap
+    return levels
+
+
+def _required_levels(zones: tuple[RefinementZone, ...], base: float, levels: int, growth: float,
+                     xc: np.ndarray, yc: np.ndarray, side0: float | np.ndarray) -> np.ndarray:
+    """The level each finest cell's leaf must reach for the zones, (fx, fy): the halvings of its
+    coarse cell's side `side0` down to the zones' target side there (zone spacing + growth x
+    distance to the zone), from the finest cells' centres xc (fx,) and yc (fy,)."""
     # the coarse cells exceed `base` a little where grid_lines rounds them to fit the edges or
     # the breaks, so a zone's cells may ask for one level more than its own (4x the particles
     # there): each zone's levels are capped at its own, zones of one level taken together
     def own_level(zone: RefinementZone) -> int:
-        return min(max(int(round(np.log2(base / zone.spacing))), 0), levels)
+        return min(_zone_level(base, zone), levels)
 
-    required = np.zeros((fx, fy), dtype=int)
+    required = np.zeros((len(xc), len(yc)), dtype=int)
     for cap in sorted({own_level(zone) for zone in zones}):
         group = [zone for zone in zones if own_level(zone) == cap]
-        target = np.full((fx, fy), np.inf)
+        target = np.full((len(xc), len(yc)), np.inf)
         for zone in group:
             distance = np.hypot(xc[:, None] - zone.center[0], yc[None, :] - zone.center[1]) - zone.radius
             target = np.minimum(target, zone.spacing * (1.0 + 1e-9) + growth * np.maximum(distance, 0.0))
         with np.errstate(divide="ignore"):  # no zone: target inf, no refinement
             required = np.maximum(required, np.clip(np.ceil(np.log2(side0 / target)), 0, cap).astype(int))
+    return required
 
-    def leaf_levels(required: np.ndarray) -> np.ndarray:
-        """Level of the leaf holding each finest cell: the smallest l whose level-l ancestor
-        needs no split (no finest cell inside asks for more than l)."""
-        leaf = np.full_like(required, levels)
-        for level in range(levels - 1, -1, -1):
-            b = 2 ** (levels - level)
-            block = required.reshape(fx // b, b, fy // b, b).max(axis=(1, 3))
-            leaf = np.where(np.repeat(np.repeat(block, b, 0), b, 1) <= level, level, leaf)
-        return leaf
 
-    leaf = leaf_levels(required)
-    while True:  # 2:1 balance: a leaf's neighbours are at most one level coarser
+def _leaf_levels(required: np.ndarray, levels: int) -> np.ndarray:
+    """Level of the leaf holding each finest cell: the smallest l whose level-l ancestor
+    needs no split (no finest cell inside asks for more than l)."""
+    fx, fy = required.shape
+    leaf = np.full_like(required, levels)
+    for level in range(levels - 1, -1, -1):
+        b = 2 ** (levels - level)
+        block = required.reshape(fx // b, b, fy // b, b).max(axis=(1, 3))
+        leaf = np.where(np.repeat(np.repeat(block, b, 0), b, 1) <= level, level, leaf)
+    return leaf
+
+
+def _balanced_leaf_levels(required: np.ndarray, levels: int) -> np.ndarray:
+    """_leaf_levels after 2:1 balance: a leaf's neighbours are at most one level coarser."""
+    leaf = _leaf_levels(required, levels)
+    while True:
         balanced = np.maximum(required, _neighbourhood_max(leaf) - 1)
         if np.array_equal(balanced, required):
-            break
+            return leaf
         required = balanced
-        leaf = leaf_levels(required)
+        leaf = _leaf_levels(required, levels)
 
+
+def _leaf_cells(leaf: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
+    """The leaf cells of the finest cells' leaf levels (fx, fy): lower-left corners on the
+    finest lattice (nc, 2) and sides in finest cells (nc,), by level."""
+    fx, fy = leaf.shape
     corners, sides = [], []
     i, j = np.meshgrid(np.arange(fx), np.arange(fy), indexing="ij")
     for level in range(levels + 1):
@@ -168,24 +203,27 @@ def graded_lattice(size: tuple[float, float], base: float, zones: tuple[Refineme
         first = (leaf == level) & (i % b == 0) & (j % b == 0)
         corners.append(np.stack([i[first], j[first]], axis=1))
         sides.append(np.full(int(first.sum()), b))
-    corner = np.concatenate(corners)  # (nc, 2) lower-left corner on the finest lattice
-    side = np.concatenate(sides)  # (nc,) in finest cells
+    return np.concatenate(corners), np.concatenate(sides)
+
+
+def _corner_particles(corner: np.ndarray, side: np.ndarray, xs: np.ndarray, step_x: float | None,
+                      ys: np.ndarray, step_y: float | None):
+    """Particles at the leaf cells' corners (NP, 2), once each, with volumes (NP,) a quarter
+    of each adjacent leaf, local spacings (NP,) the largest side of those leaves, and the
+    leaves (nc, 4: x0, y0, width, height) on the finest lattice lines xs, ys."""
     offsets = np.array([[0, 0], [1, 0], [0, 1], [1, 1]])
     lattice = corner[:, None, :] + offsets[None] * side[:, None, None]  # (nc, 4, 2)
-    keys = lattice[..., 0] * (fy + 1) + lattice[..., 1]
+    lines_y = len(ys)  # fy + 1
+    keys = lattice[..., 0] * lines_y + lattice[..., 1]
     unique, inverse = np.unique(keys.ravel(), return_inverse=True)
-    particles = np.stack([xs[unique // (fy + 1)], ys[unique % (fy + 1)]], axis=1)
+    particles = np.stack([xs[unique // lines_y], ys[unique % lines_y]], axis=1)
     cell_w, x0 = _extent(xs, step_x, corner[:, 0], side)
     cell_h, y0 = _extent(ys, step_y, corner[:, 1], side)
     volumes = np.zeros(len(unique))
     np.add.at(volumes, inverse, np.repeat(cell_w * cell_h / 4.0, 4))
     local = np.zeros(len(unique))
     np.maximum.at(local, inverse, np.repeat(np.maximum(cell_w, cell_h), 4))
-    cells = np.column_stack([x0, y0, cell_w, cell_h])
-    fine = max(step_x or float(np.diff(xs).max()), step_y or float(np.diff(ys).max()))
-    coarse = fine * n if step_x and step_y else max(float(np.diff(coarse_x).max()),
-                                                    float(np.diff(coarse_y).max()))
-    return GradedParticles(particles, volumes, local, cells, fine, coarse)
+    return particles, volumes, local, np.column_stack([x0, y0, cell_w, cell_h])
 
 
 def _neighbourhood_max(levels: np.ndarray) -> np.ndarray:

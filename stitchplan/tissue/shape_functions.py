@@ -291,11 +291,21 @@ def rk_shape_pairs(
     phi, dphi = tensor_kernel(offset, support[cols], gradients)
     phi = phi * volume
     h = _basis(offset / scale, order)  # (pairs, m)
+    dphi = None if dphi is None else dphi * volume[:, None]
+    maps = _MAPS[order] / scale  # D / s, (2, m, m)
     if len(points) == 1:  # tip tracking: one point per call, where numpy's call overhead is the cost
-        shape, grad = _one_point(h, phi, None if dphi is None else dphi * volume[:, None], _MAPS[order] / scale,
-                                 points)
-        return ShapePairs(rows, cols, indptr, shape, grad)
+        shape, grad = _one_point(h, phi, dphi, maps, points)
+    else:
+        shape, grad = _many_points(h, phi, dphi, maps, rows, indptr, order, points)
+    return ShapePairs(rows, cols, indptr, shape, grad)
 
+
+def _many_points(h: np.ndarray, phi: np.ndarray, dphi: np.ndarray | None, maps: np.ndarray, rows: np.ndarray,
+                 indptr: np.ndarray, order: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """rk_shape_pairs' values (pairs,) and gradients (pairs, 2) at many points (`points`, their
+    pairs grouped by `rows` and `indptr`) from the pairs' basis H (pairs, m), kernel phi dV
+    (pairs,) and kernel gradient dphi dV (pairs, 2) (None: no gradients), with the derivative
+    maps D / s (2, m, m): each point's moment matrix M(X) (eq. 3.20) summed over its pairs."""
     # M(X) = sum H H^T phi from its upper triangle, (pairs, m (m + 1) / 2) products, not m^2
     upper, full = _TRIANGLES[order]
     hh = _upper_products(h, upper)  # (pairs, u)
@@ -308,14 +318,12 @@ def rk_shape_pairs(
     b = inverse[:, :, 0]  # M^-1 H(0), H(0) = e_1 (M symmetric), (n, m)
     corrected = _row_dot(b, rows, h)  # H(0)^T M^-1 H, (pairs,)
     shape = corrected * phi
-    if not gradients:
-        return ShapePairs(rows, cols, indptr, shape, None)
+    if dphi is None:
+        return shape, None
 
     # dH/dX_k = D_k H / s, so sum (dH H^T + H dH^T) phi = (D_k M + M D_k^T) / s and only
     # sum H H^T dphi_k is a new sum over the pairs; then dM^-1 H(0) = -M^-1 dM b and
     # grad N_I = (dM^-1 H(0) + D_k^T b / s) . H phi + H(0)^T M^-1 H dphi_k
-    dphi = dphi * volume[:, None]
-    maps = _MAPS[order] / scale
     grad = np.empty((len(rows), 2))
     for k in range(2):
         dmoment = moment_sum(dphi[:, k])
@@ -324,7 +332,7 @@ def rk_shape_pairs(
         db = -(inverse @ (dmoment @ b[:, :, None]))[:, :, 0]
         weights = db + b @ maps[k]  # (n, m): dM^-1 H(0) + D_k^T b / s
         grad[:, k] = _row_dot(weights, rows, h) * phi + corrected * dphi[:, k]
-    return ShapePairs(rows, cols, indptr, shape, grad)
+    return shape, grad
 
 
 def _one_point(h: np.ndarray, phi: np.ndarray, dphi: np.ndarray | None, maps: np.ndarray,

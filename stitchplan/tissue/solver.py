@@ -246,47 +246,11 @@ def solve_static(
     """
     problem = StaticProblem(model, assembler or Assembler(model), external_force, prescribed)
     linear = linear or TangentSolver()
-    free = np.zeros((model.n_free, 2))
-    previous_increment = np.zeros_like(free)
+    path = LoadPath(problem, settings, linear, float(np.linalg.norm(external_force)), model.spacing,
+                    1.0 / load_steps)
     report = NewtonReport()
-    reference_force = float(np.linalg.norm(external_force))
-    # largest out-of-balance force a step started from: the force scale of displacement
-    # control, where a step whose predictor is already exact starts at round-off
-    out_of_balance = 0.0
-    fraction = 0.0
-    nominal = 1.0 / load_steps
-
     for step in range(1, load_steps + 1):
-        target = step / load_steps
-        cuts = iterations = 0
-        size = nominal
-        while fraction < target - 1e-12:
-            trial = min(fraction + size, target)
-            scale = (trial - fraction) / nominal
-            problem.load_fraction = trial
-            start = free + scale * previous_increment  # secant predictor
-            try:
-                x, its, residual, increment, initial = newton(
-                    problem, start.ravel(), settings, max(trial * reference_force, out_of_balance),
-                    model.spacing, linear)
-            except (SolverDivergence, InvertedMaterial) as failure:
-                if cuts >= settings.max_step_cuts:
-                    raise SolverDivergence(
-                        f"Newton failed at load step {step} (load fraction {trial:.4f}) after "
-                        f"{cuts} step cuts: {failure}"
-                    ) from None
-                cuts += 1
-                size *= 0.5
-                previous_increment = np.zeros_like(free)
-                log.info("load step %d: cutting to %.4g (%s)", step, size, failure)
-                continue
-            out_of_balance = max(out_of_balance, initial)
-            new_free = x.reshape(-1, 2)
-            previous_increment = (new_free - free) / scale
-            free = new_free
-            fraction = trial
-            iterations += its
-        record = StepRecord(target, iterations, residual, increment, cuts)
+        record = path.step(step, step / load_steps)
         report.steps.append(record)
         if on_step is not None:
             on_step(step, record)
@@ -294,5 +258,62 @@ def solve_static(
     report.factorizations = linear.factorizations
     report.krylov_iterations = linear.krylov_iterations
     report.linear_solver, report.linear_solver_backends = linear.mode, list(linear.backends)
-    coefficients = model.coefficients(free, prescribed)
-    return StaticSolution(free, coefficients, report)
+    coefficients = model.coefficients(path.free, prescribed)
+    return StaticSolution(path.free, coefficients, report)
+
+
+class LoadPath:
+    """solve_static's march along the load fraction: the free coefficients (n_free, 2) reached
+    at `fraction`, each increment started from the secant predictor (the last increment per
+    nominal step) and halved where Newton fails."""
+
+    def __init__(self, problem: StaticProblem, settings: Solver, linear: TangentSolver,
+                 reference_force: float, length_scale: float, nominal: float):
+        self.problem, self.settings, self.linear = problem, settings, linear
+        self.reference_force, self.length_scale, self.nominal = reference_force, length_scale, nominal
+        self.free = np.zeros((problem.model.n_free, 2))
+        self.previous_increment = np.zeros_like(self.free)
+        # largest out-of-balance force a step started from: the force scale of displacement
+        # control, where a step whose predictor is already exact starts at round-off
+        self.out_of_balance = 0.0
+        self.fraction = 0.0
+
+    def step(self, step: int, target: float) -> StepRecord:
+        """Load step `step`, up to load fraction `target`: increments of the nominal size, the
+        size halved at each failure, at most settings.max_step_cuts times."""
+        cuts = iterations = 0
+        size = self.nominal
+        while self.fraction < target - 1e-12:
+            trial = min(self.fraction + size, target)
+            scale = (trial - self.fraction) / self.nominal
+            try:
+                x, its, residual, increment, initial = self._newton(trial, scale)
+            except (SolverDivergence, InvertedMaterial) as failure:
+                if cuts >= self.settings.max_step_cuts:
+                    raise SolverDivergence(
+                        f"Newton failed at load step {step} (load fraction {trial:.4f}) after "
+                        f"{cuts} step cuts: {failure}"
+                    ) from None
+                cuts += 1
+                size *= 0.5
+                self.previous_increment = np.zeros_like(self.free)
+                log.info("load step %d: cutting to %.4g (%s)", step, size, failure)
+                continue
+            self._accept(x, trial, scale, initial)
+            iterations += its
+        return StepRecord(target, iterations, residual, increment, cuts)
+
+    def _newton(self, trial: float, scale: float) -> tuple[np.ndarray, int, float, float, float]:
+        """newton at load fraction `trial` from the secant predictor, `scale` nominal steps on."""
+        self.problem.load_fraction = trial
+        start = self.free + scale * self.previous_increment  # secant predictor
+        return newton(self.problem, start.ravel(), self.settings,
+                      max(trial * self.reference_force, self.out_of_balance), self.length_scale, self.linear)
+
+    def _accept(self, x: np.ndarray, trial: float, scale: float, initial: float) -> None:
+        """Move to the converged free coefficients `x` at load fraction `trial`."""
+        self.out_of_balance = max(self.out_of_balance, initial)
+        new_free = x.reshape(-1, 2)
+        self.previous_increment = (new_free - self.free) / scale
+        self.free = new_free
+        self.fraction = trial
