@@ -239,7 +239,7 @@ def test_a_lean_that_leaves_through_another_wall_is_refused():
 def test_a_later_rounds_search_lists_the_pass_it_starts_from_once():
     """A verification round's search starts from the pass the earlier round chose, kept and
     not run again: the merged record lists it once (it read as two tries of one lean)."""
-    from stitchplan.planning.planner import LeanSearch
+    from stitchplan.planning.entry_lean import LeanSearch
 
     chosen = (0.055, np.array([-4.9e-6, -1.4e-4]))
     earlier = LeanSearch(0.055, None, [], [(0.0, np.array([0.0099, 0.2533])), chosen], "a first pass met its aim")
