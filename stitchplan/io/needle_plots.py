@@ -230,6 +230,10 @@ def _label_box(offset: np.ndarray, width: float = 110.0, height: float = 34.0) -
     return np.array([[x0, y0], [x0 + width, y0], [x0, y0 + height], [x0 + width, y0 + height]])
 
 
+# each run's deformed outline: the planned run's as every figure draws it, the unplanned one's dotted
+RUN_OUTLINES = {"planned": DEFORMED, "unplanned": {"color": "darkorange", "ls": ":", "lw": 1.5}}
+
+
 def plot_plan(path: str | Path, result):
     """plan.png of `stitchplan plan`: planned and unplanned paths over the planned run's
     deformed tissue, each run's desired exit with its own error, zooms on both exits, and the
@@ -239,67 +243,98 @@ def plot_plan(path: str | Path, result):
     runs = [(planned, "planned", "crimson", "o")]
     if unplanned is not None:
         runs.append((unplanned, "unplanned", "darkorange", "s"))
-    geometry, tissue = planned.geometry, planned.scenario.tissue
-    particles = planned.model.particles
     fig = plt.figure(figsize=(15.0, 6.4))
     grid = fig.add_gridspec(2, 3, width_ratios=[2.1, 1.0, 1.5], wspace=0.35, hspace=0.45)
     main = fig.add_subplot(grid[:, 0])
     zooms = [fig.add_subplot(grid[k, 1]) for k in range(len(runs))]
     trajectory = fig.add_subplot(grid[:, 2])
     norm = magnitude_norm(*(run.displacements[-1] for run, *_ in runs))
-    displacement = planned.displacements[-1]
-    outlines = {"planned": DEFORMED, "unplanned": {"color": "darkorange", "ls": ":", "lw": 1.5}}
-    draw_outline(main, tissue.domain, particles, displacement, deformed_label="tissue outline, planned run")
-    draw_regions(main, tissue)
-    if unplanned is not None:
-        for k, loop in enumerate(deformed_loops(tissue.domain, particles, unplanned.displacements[-1])):
-            main.plot(*loop.T, **outlines["unplanned"], label="tissue outline, unplanned run" if k == 0 else None)
-    dots = main.scatter(*(particles + displacement).T, s=6, c=np.linalg.norm(displacement, axis=1),
-                        cmap=CMAP, norm=norm, zorder=2)
-    outward = _exit_direction(planned)
-    offsets = _label_offsets(runs, outward)
-    for run, who, colour, marker in runs:
-        style = "-" if who == "planned" else "--"
-        main.plot(*_tip_path(run).T, style, color=colour, lw=2, label=f"{who} tip path")
-        center, rotation = _state(run, len(run.steps))
-        main.plot(*_needle_body(run.geometry, center, rotation).T, style, color=colour, lw=1, alpha=0.5)
-        main.plot(*run.desired_exit_def, "x", color=colour, ms=10, mew=2.5,
-                  label=f"{who} run: desired exit (deformed)")
-        main.plot(*run.achieved_exit_def, marker, mfc="none", mec=colour, ms=10, mew=1.8,
-                  label=f"{who} run: achieved exit")
-        offset = offsets[who]
-        main.annotate(f"{who} exit error\n{run.exit_error_mm:.3g} mm", run.desired_exit_def, xytext=offset,
-                      textcoords="offset points", fontsize=8, color=colour, zorder=6, **_alignment(offset),
-                      bbox={"boxstyle": "round", "fc": "white", "ec": colour, "alpha": 0.85},
-                      arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.8})
-    main.plot(*planned.desired_exit, "+", color="0.4", ms=9, mew=1.5, label="desired exit, at rest")
-    view = _needle_frame([(run, len(run.steps)) for run, *_ in runs], 0.0)
-    frame(main, view, margin=0.08)
-    for _ in range(2):  # widen the frame until the error labels (sized in points) fit inside
-        main.apply_aspect()
-        points_per_mm = main.get_window_extent().width / np.ptp(main.get_xlim()) * 72.0 / fig.dpi
-        labels = [np.asarray(run.desired_exit_def) + corner / points_per_mm
-                  for run, who, *_ in runs for corner in _label_box(offsets[who])]
-        frame(main, np.vstack([view, *labels]), margin=0.08)
-    draw_clamps(main, tissue, 0.1 * geometry.radius)
-    label_mm(main)
-    main.set_title("tip paths over the planned run's deformed tissue", fontsize=9)
+    dots = _draw_planned_tissue(main, planned, unplanned, norm)
+    _draw_runs_over_tissue(fig, main, runs)
     fig.colorbar(dots, ax=main, label="|u| displacement (mm): planned run; zooms: each run", shrink=0.8,
                  pad=0.02)
     for ax, (run, who, colour, marker) in zip(zooms, runs):
-        _exit_zoom(ax, run, norm, colour, who, marker, outline=outlines[who],
+        _exit_zoom(ax, run, norm, colour, who, marker, outline=RUN_OUTLINES[who],
                    outline_label=f"tissue outline, {who} run")
+    _draw_center_trajectory(trajectory, result)
+    title_above(fig, [main, *zooms, trajectory], _plan_headline(result), fontsize=11)
+    legend_below(fig, [main, *zooms], columns=4)
+    save(fig, path)
+    return fig
+
+
+def _draw_planned_tissue(ax, planned, unplanned, norm):
+    """The planned run's deformed tissue (its outline, regions and particles coloured by |u|)
+    and the unplanned run's outline; returns the particles' scatter, for the colour bar."""
+    tissue, particles = planned.scenario.tissue, planned.model.particles
+    displacement = planned.displacements[-1]
+    draw_outline(ax, tissue.domain, particles, displacement, deformed_label="tissue outline, planned run")
+    draw_regions(ax, tissue)
+    if unplanned is not None:
+        for k, loop in enumerate(deformed_loops(tissue.domain, particles, unplanned.displacements[-1])):
+            ax.plot(*loop.T, **RUN_OUTLINES["unplanned"], label="tissue outline, unplanned run" if k == 0 else None)
+    return ax.scatter(*(particles + displacement).T, s=6, c=np.linalg.norm(displacement, axis=1),
+                      cmap=CMAP, norm=norm, zorder=2)
+
+
+def _draw_runs_over_tissue(fig, ax, runs) -> None:
+    """Each run's tip path, needle, desired and achieved exit and its exit error's label, the
+    desired exit at rest, then the frame widened to hold the labels, and the clamps."""
+    planned = runs[0][0]
+    offsets = _label_offsets(runs, _exit_direction(planned))
+    for run, who, colour, marker in runs:
+        style = "-" if who == "planned" else "--"
+        ax.plot(*_tip_path(run).T, style, color=colour, lw=2, label=f"{who} tip path")
+        center, rotation = _state(run, len(run.steps))
+        ax.plot(*_needle_body(run.geometry, center, rotation).T, style, color=colour, lw=1, alpha=0.5)
+        ax.plot(*run.desired_exit_def, "x", color=colour, ms=10, mew=2.5, label=f"{who} run: desired exit (deformed)")
+        ax.plot(*run.achieved_exit_def, marker, mfc="none", mec=colour, ms=10, mew=1.8,
+                label=f"{who} run: achieved exit")
+        offset = offsets[who]
+        ax.annotate(f"{who} exit error\n{run.exit_error_mm:.3g} mm", run.desired_exit_def, xytext=offset,
+                    textcoords="offset points", fontsize=8, color=colour, zorder=6, **_alignment(offset),
+                    bbox={"boxstyle": "round", "fc": "white", "ec": colour, "alpha": 0.85},
+                    arrowprops={"arrowstyle": "-", "color": colour, "lw": 0.8})
+    ax.plot(*planned.desired_exit, "+", color="0.4", ms=9, mew=1.5, label="desired exit, at rest")
+    _frame_with_labels(fig, ax, runs, offsets)
+    draw_clamps(ax, planned.scenario.tissue, 0.1 * planned.geometry.radius)
+    label_mm(ax)
+    ax.set_title("tip paths over the planned run's deformed tissue", fontsize=9)
+
+
+def _frame_with_labels(fig, ax, runs, offsets: dict[str, np.ndarray]) -> None:
+    """Frame the needles, tip paths and exits, then widen the frame until the exit-error
+    labels (sized in points, so their size in mm follows the frame) fit inside."""
+    view = _needle_frame([(run, len(run.steps)) for run, *_ in runs], 0.0)
+    frame(ax, view, margin=0.08)
+    for _ in range(2):
+        ax.apply_aspect()
+        points_per_mm = ax.get_window_extent().width / np.ptp(ax.get_xlim()) * 72.0 / fig.dpi
+        labels = [np.asarray(run.desired_exit_def) + corner / points_per_mm
+                  for run, who, *_ in runs for corner in _label_box(offsets[who])]
+        frame(ax, np.vstack([view, *labels]), margin=0.08)
+
+
+def _draw_center_trajectory(ax, result) -> None:
+    """The planned needle centre's offset from the entry centre against the needle rotation."""
+    planned = result.planned
     centers = result.center_trajectory
-    rotation = np.arange(len(centers)) * geometry.step
-    trajectory.plot(rotation, centers[:, 0] - centers[0, 0], label="O_x(t) - O_x(0)")
-    trajectory.plot(rotation, centers[:, 1] - centers[0, 1], label="O_y(t) - O_y(0)")
-    trajectory.set_xlabel("needle rotation (rad)")
-    trajectory.set_ylabel("centre offset from the entry centre (mm)")
+    rotation = np.arange(len(centers)) * planned.geometry.step
+    ax.plot(rotation, centers[:, 0] - centers[0, 0], label="O_x(t) - O_x(0)")
+    ax.plot(rotation, centers[:, 1] - centers[0, 1], label="O_y(t) - O_y(0)")
+    ax.set_xlabel("needle rotation (rad)")
+    ax.set_ylabel("centre offset from the entry centre (mm)")
     lean = planned.geometry.tilt  # O(0) leaning from the orthogonal entry's centre (planner.aim_entry_tilt)
-    trajectory.set_title("planned needle-centre trajectory O(t)" + (
+    ax.set_title("planned needle-centre trajectory O(t)" + (
         f"\nthe needle leaning {lean:.3g} rad ({math.degrees(lean):.2g}°) at entry" if lean else ""), fontsize=9)
-    trajectory.grid(alpha=0.3)
-    trajectory.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8, frameon=False)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8, frameon=False)
+
+
+def _plan_headline(result) -> str:
+    """plan.png's title: the scenario, both runs' exit errors, the steps and particles, and
+    the accuracy checks that ran (the discretization error estimate, the refined replay)."""
+    planned, unplanned = result.planned, result.unplanned
     headline = f"exit error {planned.exit_error_mm:.3g} mm planned"
     verification = getattr(result, "verification", None)
     if verification is not None and verification.aimed_by != "none":  # the planning model's bias offset
@@ -316,11 +351,7 @@ def plot_plan(path: str | Path, result):
         checks.append(f"trajectory replayed on a refined model (spacing {verification.spacing_mm:.3g} mm): "
                       f"exit error {verification.result.exit_error_mm:.3g} mm"
                       + (f", bites differ by {bites['difference_mm']:+.2g} mm" if bites else ""))
-    title_above(fig, [main, *zooms, trajectory],
-                f"{_name(planned.scenario, 'plan')}: {headline}" + "".join(f"\n{c}" for c in checks), fontsize=11)
-    legend_below(fig, [main, *zooms], columns=4)
-    save(fig, path)
-    return fig
+    return f"{_name(planned.scenario, 'plan')}: {headline}" + "".join(f"\n{c}" for c in checks)
 
 
 # --- study ----------------------------------------------------------------------------------

@@ -148,11 +148,8 @@ def plot_speed_accuracy(path: str | Path, study):
     study.json, found on `deviation_mm`): ringed on both panels and joined on the left.
     The right panel does not look for a front of its own, which would be another set of
     runs under the same name."""
-    import math
-
     plt = pyplot()
     runs = [r for r in study.runs if r is not study.reference]
-    failures = [r for r in runs if not r.ok]
     families = list(dict.fromkeys(r.family for r in runs))
     colours = plt.get_cmap("tab10")
     fig, axes = plt.subplots(1, 2, figsize=(13.0, 5.8))
@@ -161,51 +158,84 @@ def plot_speed_accuracy(path: str | Path, study):
               ("exit_deviation_mm", "achieved exit (spatial) deviation from the finest run (mm)"))
     accuracy = getattr(study.auto, "accuracy", None)
     for ax, (key, xlabel) in zip(axes, panels):
-        done = [r for r in runs if r.ok and key in r.deviations]
-        values = [r.deviations[key] for r in done]
-        floor = min([v for v in values if v > 0] or [1e-3]) / 3.0
-        top = max(values or [1.0]) * 3.0
-        times = [r.wall_seconds for r in done] or [r.wall_seconds for r in runs]
-        low, high = min(times) / 1.5, max(times) * 1.5
+        _speed_accuracy_panel(ax, key, xlabel, runs, families, colours, accuracy)
+    axes[0].set_title("exit point: spatial, material and exit-error vector", fontsize=9)
+    axes[1].set_title("achieved exit, spatial position only (achieved_exit_def)\n"
+                      "ringed: the study's front, found on deviation_mm (left)", fontsize=9)
+    title_above(fig, list(axes), _speed_accuracy_headline(study, runs))
+    legend_below(fig, list(axes), columns=6)
+    save(fig, path)
+    return fig
 
-        def x_of(run, key=key, floor=floor):
-            return max(run.deviations[key], floor)
 
-        for k, family in enumerate(families):
-            members = sorted((r for r in done if r.family == family), key=lambda r: r.spacing, reverse=True)
-            style = {"color": colours(k % 10)}
-            if family == "auto":
-                style = {"color": "crimson", "marker": "*", "ms": 16, "ls": "none"}
-            else:
-                style.update(marker="o", ms=5, lw=0.8)
-            if members:
-                ax.plot([x_of(r) for r in members], [r.wall_seconds for r in members], label=family, **style)
-            failed = [r for r in failures if r.family == family]
-            if failed:  # times clipped to the successful runs' range (failures before a solve are instant)
-                ax.plot([top] * len(failed), [min(max(r.wall_seconds, low), high) for r in failed], "x",
-                        color=colours(k % 10), ms=8, mew=2, clip_on=False,
-                        label=f"{family}: {len(failed)} failed (deviation unknown)")
-        front = sorted((r for r in done if r.pareto), key=lambda r: r.wall_seconds)
-        if front and key == "deviation_mm":  # a staircase only on the measure the front is found on
-            ax.step([x_of(r) for r in front], [r.wall_seconds for r in front], where="pre", color="black",
-                    lw=1.2, alpha=0.6)
-        if front:
-            ax.plot([x_of(r) for r in front], [r.wall_seconds for r in front], "o", mfc="none", mec="black",
-                    ms=11, label=PARETO_LABEL)
-        if accuracy is not None and key == "deviation_mm":
-            ax.axvline(accuracy, color="crimson", ls="--", lw=1, label=f"auto target {accuracy:g} mm")
-        if failures:
-            ax.axvline(top, color="0.6", lw=0.8, ls=":")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_ylim(low, high)
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel("wall time (s)")
-        ax.grid(alpha=0.3, which="both")
-        ax.get_xlim()  # settles the automatic x limits before the tick labels are chosen
-        readable_log_axis(ax.xaxis)
-        readable_log_axis(ax.yaxis)
+def _speed_accuracy_panel(ax, key: str, xlabel: str, runs, families: list[str], colours,
+                          accuracy: float | None) -> None:
+    """One panel of speed_accuracy.png: each family's runs, wall time against the deviation
+    `key` (deviations of 0 drawn at a floor below the least one), its failed runs as crosses
+    at the right edge, the study's front ringed (and, on `deviation_mm`, joined), the auto
+    target's accuracy; log axes over the successful runs' wall times."""
+    failures = [r for r in runs if not r.ok]
+    done = [r for r in runs if r.ok and key in r.deviations]
+    values = [r.deviations[key] for r in done]
+    floor = min([v for v in values if v > 0] or [1e-3]) / 3.0
+    top = max(values or [1.0]) * 3.0
+    times = [r.wall_seconds for r in done] or [r.wall_seconds for r in runs]
+    low, high = min(times) / 1.5, max(times) * 1.5
+
+    def x_of(run):
+        return max(run.deviations[key], floor)
+
+    for k, family in enumerate(families):
+        members = sorted((r for r in done if r.family == family), key=lambda r: r.spacing, reverse=True)
+        if members:
+            ax.plot([x_of(r) for r in members], [r.wall_seconds for r in members], label=family,
+                    **_family_style(family, colours(k % 10)))
+        failed = [r for r in failures if r.family == family]
+        if failed:  # times clipped to the successful runs' range (failures before a solve are instant)
+            ax.plot([top] * len(failed), [min(max(r.wall_seconds, low), high) for r in failed], "x",
+                    color=colours(k % 10), ms=8, mew=2, clip_on=False,
+                    label=f"{family}: {len(failed)} failed (deviation unknown)")
+    front = sorted((r for r in done if r.pareto), key=lambda r: r.wall_seconds)
+    if front and key == "deviation_mm":  # a staircase only on the measure the front is found on
+        ax.step([x_of(r) for r in front], [r.wall_seconds for r in front], where="pre", color="black",
+                lw=1.2, alpha=0.6)
+    if front:
+        ax.plot([x_of(r) for r in front], [r.wall_seconds for r in front], "o", mfc="none", mec="black",
+                ms=11, label=PARETO_LABEL)
+    if accuracy is not None and key == "deviation_mm":
+        ax.axvline(accuracy, color="crimson", ls="--", lw=1, label=f"auto target {accuracy:g} mm")
+    if failures:
+        ax.axvline(top, color="0.6", lw=0.8, ls=":")
+    _log_log_axes(ax, xlabel, (low, high))
+
+
+def _family_style(family: str, colour) -> dict:
+    """A method family's markers: the accuracy-driven discretization (`auto`) a lone star."""
+    if family == "auto":
+        return {"color": "crimson", "marker": "*", "ms": 16, "ls": "none"}
+    return {"color": colour, "marker": "o", "ms": 5, "lw": 0.8}
+
+
+def _log_log_axes(ax, xlabel: str, wall_times: tuple[float, float]) -> None:
+    """Log scales with readable tick labels, the wall-time range, the axis labels and a grid."""
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_ylim(*wall_times)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("wall time (s)")
+    ax.grid(alpha=0.3, which="both")
+    ax.get_xlim()  # settles the automatic x limits before the tick labels are chosen
+    readable_log_axis(ax.xaxis)
+    readable_log_axis(ax.yaxis)
+
+
+def _speed_accuracy_headline(study, runs) -> str:
+    """speed_accuracy.png's title: the scenario, the runs and failures, the finest run and the
+    fastest one with its deviation."""
+    import math
+
     reference = study.reference
+    failures = [r for r in runs if not r.ok]
     done = [r for r in runs if r.ok]
     counts = f"{len(runs) + 1} runs" + (f", {len(failures)} failed (crosses at the right)" if failures else "")
     best = min(done, key=lambda r: r.wall_seconds) if done else None
@@ -215,10 +245,4 @@ def plot_speed_accuracy(path: str | Path, study):
     if best is not None:
         headline += (f"; fastest run: {best.label}, {best.wall_seconds:.2f} s, "
                      f"deviation {best.deviations.get('deviation_mm', math.nan):.3g} mm")
-    axes[0].set_title("exit point: spatial, material and exit-error vector", fontsize=9)
-    axes[1].set_title("achieved exit, spatial position only (achieved_exit_def)\n"
-                      "ringed: the study's front, found on deviation_mm (left)", fontsize=9)
-    title_above(fig, list(axes), headline)
-    legend_below(fig, list(axes), columns=6)
-    save(fig, path)
-    return fig
+    return headline

@@ -433,14 +433,42 @@ def write_plan_outputs(result, export: Path, out: Path | None = None, summary: P
 
 def _write_plan_files(result, files: dict[str, Path], provenance: dict, uncertainty=None) -> None:
     """Writes to the temporaries `files` of an OutputSet."""
-    from ..planning.planner import planning_work
     from ..planning.trajectory import trajectory_table
 
     export, out, summary, plot = (files.get(label) for label in ("--export", "--out", "--summary", "--plot"))
-    planned, unplanned = result.planned, result.unplanned
+    planned = result.planned
     columns, table = trajectory_table(planned, planned.scenario.robot)
     rows = [[int(row[0])] + list(row[1:]) for row in table]
-    extra = {
+    extra = _plan_summary(result, columns, table)
+    datasets = _plan_datasets(result, columns, table)
+    units = {"planner/trajectory": column_units(columns)}
+    if uncertainty is not None:
+        from .uncertainty_reports import uncertainty_datasets, uncertainty_summary
+
+        extra.update(uncertainty_summary(uncertainty))
+        groups, group_units = uncertainty_datasets(uncertainty)
+        datasets.update(groups)
+        units.update(group_units)
+    write_csv(export, columns, rows, precision=None)  # the doubles the verification replayed, to the last bit
+    _write_insertion_files(planned, "plan", out, summary, None, extra_summary=extra,
+                           extra_datasets=datasets, provenance=provenance, units=units)
+    if plot is not None:
+        from .needle_plots import plot_plan
+
+        plot_plan(plot, result)
+    if files.get("--uncertainty-plot") is not None:
+        from .uncertainty_reports import plot_uncertainty
+
+        plot_uncertainty(files["--uncertainty-plot"], uncertainty, planned.scenario.name)
+
+
+def _plan_summary(result, columns: list[str], table: np.ndarray) -> dict:
+    """What a plan's summary adds to its planned run's: the unplanned run's exit, the
+    planner's passes, lean and work, and the trajectory's shape and accuracy."""
+    from ..planning.planner import planning_work
+
+    planned, unplanned = result.planned, result.unplanned
+    return {
         "unplanned_exit_error_mm": unplanned.exit_error_mm if unplanned else None,
         "unplanned_exit_error_material_mm": unplanned.exit_error_material_mm if unplanned else None,
         "unplanned_achieved_exit_def": unplanned.achieved_exit_def if unplanned else None,
@@ -456,10 +484,16 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict, uncertai
         "planner_entry_lean": result.lean.as_record() if result.lean is not None else None,
         # every pass's work, the discarded passes' included (the HDF5 steps: the exported run's)
         **planning_work(result),
-        "trajectory_rows": len(rows),
+        "trajectory_rows": len(table),
         "trajectory_columns": columns,
         **plan_accuracy_summary(result, table[:, 2:4]),
     }
+
+
+def _plan_datasets(result, columns: list[str], table: np.ndarray) -> dict[str, dict]:
+    """What a plan's HDF5 run log adds to its planned run's: the planner's group (centre
+    trajectory, exit displacements, iterations, trajectory table) and the unplanned run's."""
+    planned, unplanned = result.planned, result.unplanned
     datasets = {
         "planner": {
             "center_trajectory": result.center_trajectory,
@@ -480,22 +514,4 @@ def _write_plan_files(result, files: dict[str, Path], provenance: dict, uncertai
             "exit_error_mm": unplanned.exit_error_mm,
             "final_displacement": unplanned.displacements[-1],
         }
-    units = {"planner/trajectory": column_units(columns)}
-    if uncertainty is not None:
-        from .uncertainty_reports import uncertainty_datasets, uncertainty_summary
-
-        extra.update(uncertainty_summary(uncertainty))
-        groups, group_units = uncertainty_datasets(uncertainty)
-        datasets.update(groups)
-        units.update(group_units)
-    write_csv(export, columns, rows, precision=None)  # the doubles the verification replayed, to the last bit
-    _write_insertion_files(planned, "plan", out, summary, None, extra_summary=extra,
-                           extra_datasets=datasets, provenance=provenance, units=units)
-    if plot is not None:
-        from .needle_plots import plot_plan
-
-        plot_plan(plot, result)
-    if files.get("--uncertainty-plot") is not None:
-        from .uncertainty_reports import plot_uncertainty
-
-        plot_uncertainty(files["--uncertainty-plot"], uncertainty, planned.scenario.name)
+    return datasets

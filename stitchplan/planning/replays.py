@@ -404,75 +404,95 @@ def serve(connection, scenario: Scenario, options: dict, parent: int) -> None:
     _end_with(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process stops the helper
     logging.disable(logging.CRITICAL)  # the main process reports
-    tissue = PreparedTissue(scenario)
-    try:  # now, while the main process builds its own model and plans
-        tissue.model
-        tissue.factor_at_rest()
-    except Exception:  # noqa: BLE001 -- the replay meets it again and reports it
-        pass
-    inbox: collections.deque = collections.deque()
-
-    def receive():
-        return inbox.popleft() if inbox else connection.recv()
-
-    def pending() -> bool:
-        return bool(inbox) or connection.poll()
-
-    done: tuple = (None, None, None)  # the newest finished job: (job, result, error)
-    # the newest replay made from no earlier one, or the steps it had done when dropped
-    alone: InsertionResult | StepsDone | None = None
-    steps_run = 0  # needle steps of every replay since the last answer, dropped ones too
-    sent: tuple[int | None, InsertionResult | None] = (None, None)  # the replay last sent back
+    server = _ReplayServer(connection, scenario, options)
     while True:
         try:
-            message = receive()
+            message = server.receive()
         except (EOFError, OSError):
             return
         kind = message[0]
         if kind == "stop":
             return
         if kind == "send":
-            job, result, error = done
-            if job != message[1]:
-                result, error = None, RuntimeError(f"no replay for job {message[1]}")
-            try:
-                # without its states and its model's matrices (~27 MB on the refined SH 1/2 model,
-                # ~0.1 s to pickle, send and load): the command reads only the outline of a replay's model
-                connection.send(("result", message[1],
-                                 None if result is None else replace(result, states=[], model=result.model.outline()),
-                                 error, steps_run))
-            except OSError:  # the main process is gone
-                return
-            steps_run = 0
-            sent = (message[1], result)
-            continue
-        if kind not in ("stream", "path"):
-            continue  # the rows and end of a dropped job
-        job, warm, payload = message[1], message[2], message[3]
-        start = sent[1] if warm is not None and warm == sent[0] else None
+            if not server.send_back(message[1]):
+                return  # the main process is gone
+        elif kind in ("stream", "path"):
+            server.replay(message)
+        # other messages are the rows and end of a dropped job
+
+
+class _ReplayServer:
+    """What the helper keeps between messages: its model (built and factored at once, while
+    the main process builds its own model and plans), the messages a streamed replay put back,
+    the newest finished job, the replay to take steps over from and the work since the last
+    answer."""
+
+    def __init__(self, connection, scenario: Scenario, options: dict):
+        self.connection, self.scenario, self.options = connection, scenario, options
+        self.tissue = PreparedTissue(scenario)
+        try:  # now, while the main process builds its own model and plans
+            self.tissue.model
+            self.tissue.factor_at_rest()
+        except Exception:  # noqa: BLE001 -- the replay meets it again and reports it
+            pass
+        self.inbox: collections.deque = collections.deque()
+        self.done: tuple = (None, None, None)  # the newest finished job: (job, result, error)
+        # the newest replay made from no earlier one, or the steps it had done when dropped
+        self.alone: InsertionResult | StepsDone | None = None
+        self.steps_run = 0  # needle steps of every replay since the last answer, dropped ones too
+        self.sent: tuple[int | None, InsertionResult | None] = (None, None)  # the replay last sent back
+
+    def receive(self):
+        return self.inbox.popleft() if self.inbox else self.connection.recv()
+
+    def pending(self) -> bool:
+        return bool(self.inbox) or self.connection.poll()
+
+    def send_back(self, job) -> bool:
+        """Answer "send": the finished job's result (or why there is none) and the steps run
+        since the last answer; False if the main process is gone."""
+        finished, result, error = self.done
+        if finished != job:
+            result, error = None, RuntimeError(f"no replay for job {job}")
+        try:
+            # without its states and its model's matrices (~27 MB on the refined SH 1/2 model,
+            # ~0.1 s to pickle, send and load): the command reads only the outline of a replay's model
+            self.connection.send(("result", job,
+                                  None if result is None else replace(result, states=[], model=result.model.outline()),
+                                  error, self.steps_run))
+        except OSError:
+            return False
+        self.steps_run = 0
+        self.sent = (job, result)
+        return True
+
+    def replay(self, message: tuple) -> None:
+        """Run a "stream" or "path" job to its end, or until a newer message drops it."""
+        kind, job, warm, payload = message[0], message[1], message[2], message[3]
+        start = self.sent[1] if warm is not None and warm == self.sent[0] else None
         # a replay from no earlier one takes over the steps where its centres are those of the
         # last such replay (a re-aimed pass keeps the first pass's early steps), to the last bit
         # what it would compute
-        take_over_only = warm is None and alone is not None
+        take_over_only = warm is None and self.alone is not None
         if take_over_only:
-            start = alone
+            start = self.alone
         if kind == "stream":
-            control, path = _StreamedPath(receive, pending, inbox, message), None
+            control, path = _StreamedPath(self.receive, self.pending, self.inbox, message), None
         else:
             control, path = None, payload
         try:
-            result, error = run_insertion(scenario, control=control, center_path=path, tissue=tissue,
-                                          start_from=start, take_over_only=take_over_only, **options), None
+            result, error = run_insertion(self.scenario, control=control, center_path=path, tissue=self.tissue,
+                                          start_from=start, take_over_only=take_over_only, **self.options), None
         except _Superseded as dropped:
-            steps_run += control.steps
+            self.steps_run += control.steps
             if warm is None and dropped.done is not None and dropped.done.steps:
-                alone = dropped.done  # the pass that dropped it keeps its first centres
-            continue
+                self.alone = dropped.done  # the pass that dropped it keeps its first centres
+            return
         except StitchplanError as failure:
             result, error = None, failure
         except Exception as failure:  # noqa: BLE001 -- the main process replays and reports it
             result, error = None, RuntimeError(f"{type(failure).__name__}: {failure}")
-        done = (control.job if kind == "stream" else job, result, error)
+        self.done = (control.job if kind == "stream" else job, result, error)
         if warm is None and result is not None:
-            alone = result
-        steps_run += len(result.steps) if result is not None else getattr(control, "steps", 0)
+            self.alone = result
+        self.steps_run += len(result.steps) if result is not None else getattr(control, "steps", 0)

@@ -324,33 +324,19 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     check_target(scenario)
     report = on_run or (lambda description: None)
     design = draw(uncertainty, scenario)
-    names = uncertainty.names
-    train = [with_parameters(scenario, names, values) for values in design.train]
-    held = [with_parameters(scenario, names, values) for values in design.held_out]
     steps = np.minimum(uncertainty.std * SENSITIVITY_STEP, design.nominal / 2.0)
-    probes = [with_parameters(scenario, (name,), [design.nominal[k] + sign * steps[k]])
-              for k, name in enumerate(names) for sign in (1.0, -1.0)]
-    if verify:
-        nominal = plan_verified(scenario, compare=True, **options)
-        refined = nominal.verification.result
-        offset = None if refined is None else exit_offset(refined, nominal.planned)
-    else:
-        nominal, offset = run_plan(scenario, compare=True, **options), None
+    train, held, probes = _sampled_scenarios(scenario, uncertainty.names, design, steps)
+    nominal, offset = _nominal_plan(scenario, verify, options)
     report("nominal plan")
-    path = nominal.exported_centers
-    first = _runs(executor, [*train, *held, *held, *probes],
-                  [path] * len(train) + [None] * len(held) + [path] * (len(held) + len(probes)),
-                  options, report)
-    n = uncertainty.samples
-    training, unplanned, nominal_held, probe_runs = first[:n], first[n:2 * n], first[2 * n:3 * n], first[3 * n:]
+    training, unplanned, nominal_held, probe_runs = _replay_nominal(nominal, train, held, probes, executor, options,
+                                                                    report)
     _refuse_all_failed(training, unplanned, nominal_held)
-    sensitivities = _sensitivities(names, uncertainty.std, steps, probe_runs)
-    notes: list[str] = []
+    sensitivities = _sensitivities(uncertainty.names, uncertainty.std, steps, probe_runs)
+    held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": nominal_held}
     ok = [run.exit_error for run in training if run.ok]
     if len(ok) < 2:
-        notes.append(f"{len(ok)} of {n} training runs succeeded: no mean shift to aim with; the nominal plan "
-                     "is exported")
-        held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": nominal_held}
+        notes = [f"{len(ok)} of {uncertainty.samples} training runs succeeded: no mean shift to aim with; the "
+                 "nominal plan is exported"]
         return UncertaintyResult(uncertainty, design, nominal, None, "nominal", np.zeros(2), training, held_out,
                                  sensitivities, _where(executor), notes, refined_offset=offset)
     own = exit_error_vector(nominal.planned)  # where the nominal plan exits on the planning model
@@ -358,34 +344,80 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     shift = deviations.mean(axis=0)
     significance, threshold = shift_significance(deviations), shift_threshold(len(ok))
     if significance is None or significance < threshold:  # aiming at noise only adds it to every exit
-        if significance is None:
-            why = (f"{len(ok)} training runs succeeded, and Hotelling's T^2 needs at least 3" if len(ok) < 3 else
-                   "the training deviations have no spread in some direction (a singular covariance)")
-            notes.append(f"the mean exit shift ({shift[0]:.3g}, {shift[1]:.3g}) mm cannot be tested against the "
-                         f"training samples' sampling noise ({why}): the robust plan is the nominal plan")
-        else:
-            notes.append(f"the mean exit shift ({shift[0]:.3g}, {shift[1]:.3g}) mm is within the training samples' "
-                         f"sampling noise (Hotelling T^2 {significance:.3g} < {threshold:.3g}, its 95 % quantile "
-                         f"for {len(ok)} samples): the robust plan is the nominal plan")
-        held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": nominal_held}
+        notes = [_unaimed_note(shift, significance, threshold, len(ok))]
         return UncertaintyResult(uncertainty, design, nominal, nominal, "robust", shift, training, held_out,
                                  sensitivities, _where(executor), notes, aim=own, deviations=deviations,
                                  shift_significance=significance, shift_threshold=threshold, refined_offset=offset)
     aim = -shift if offset is None else -shift - offset  # the refined model's exit centred on the desired one
     log.info("mean exit shift over %d training samples (%.4g, %.4g) mm, T^2 %.3g >= %.3g; re-planning aimed "
              "at (%.4g, %.4g) mm", len(ok), *shift, significance, threshold, *aim)
-    robust = run_plan(scenario, compare=False, aim=aim, shooting=nominal.shooting,
-                      tolerance=AIMED_TOLERANCE_FRACTION * scenario.planner.exit_tolerance, **options)
-    robust.unplanned = nominal.unplanned
-    robust.passes = nominal.passes + [{**record, "round": "robust"} for record in robust.passes]
+    robust = _robust_plan(scenario, nominal, aim, options)
     report("robust plan")
     robust_held = _runs(executor, held, [robust.exported_centers] * len(held), options, report)
     held_out = {"unplanned": unplanned, "nominal": nominal_held, "robust": robust_held}
     result = UncertaintyResult(uncertainty, design, nominal, robust, "robust", shift, training, held_out,
-                               sensitivities, _where(executor), notes, aim=aim, deviations=deviations,
+                               sensitivities, _where(executor), [], aim=aim, deviations=deviations,
                                shift_significance=significance, shift_threshold=threshold, refined_offset=offset)
     _choose(result)
     return result
+
+
+def _sampled_scenarios(scenario: Scenario, names: tuple[str, ...], design: Design,
+                       steps: np.ndarray) -> tuple[list[Scenario], list[Scenario], list[Scenario]]:
+    """The scenario at the training and the held-out parameter sets, and the sensitivity
+    probes: each parameter at its value + and - its step `steps[k]`, the others at theirs."""
+    train = [with_parameters(scenario, names, values) for values in design.train]
+    held = [with_parameters(scenario, names, values) for values in design.held_out]
+    probes = [with_parameters(scenario, (name,), [design.nominal[k] + sign * steps[k]])
+              for k, name in enumerate(names) for sign in (1.0, -1.0)]
+    return train, held, probes
+
+
+def _nominal_plan(scenario: Scenario, verify: bool, options: dict) -> tuple[PlanResult, np.ndarray | None]:
+    """The plan on the scenario's values with its unplanned run (step 1 of the module
+    docstring) and the refined model's exit offset of its path: with `verify` plan_verified's
+    (None when its path could not be replayed there), else run_plan's and None."""
+    if not verify:
+        return run_plan(scenario, compare=True, **options), None
+    nominal = plan_verified(scenario, compare=True, **options)
+    refined = nominal.verification.result
+    return nominal, None if refined is None else exit_offset(refined, nominal.planned)
+
+
+def _replay_nominal(nominal: PlanResult, train: list[Scenario], held: list[Scenario], probes: list[Scenario],
+                    executor: Executor | None, options: dict, report: Callable[[str], None]) -> tuple[list, ...]:
+    """One batch of sampled runs: the nominal path on the training samples, the fixed centre
+    (unplanned) and the nominal path on the held-out ones, the nominal path on the probes;
+    returns the runs of these four groups."""
+    path = nominal.exported_centers
+    runs = _runs(executor, [*train, *held, *held, *probes],
+                 [path] * len(train) + [None] * len(held) + [path] * (len(held) + len(probes)), options, report)
+    n, m = len(train), len(train) + len(held)
+    return runs[:n], runs[n:m], runs[m:m + len(held)], runs[m + len(held):]
+
+
+def _unaimed_note(shift: np.ndarray, significance: float | None, threshold: float | None, successes: int) -> str:
+    """Why the robust plan is the nominal plan: the mean exit shift over `successes` training
+    runs is within their sampling noise, or cannot be tested against it."""
+    if significance is None:
+        why = (f"{successes} training runs succeeded, and Hotelling's T^2 needs at least 3" if successes < 3 else
+               "the training deviations have no spread in some direction (a singular covariance)")
+        return (f"the mean exit shift ({shift[0]:.3g}, {shift[1]:.3g}) mm cannot be tested against the "
+                f"training samples' sampling noise ({why}): the robust plan is the nominal plan")
+    return (f"the mean exit shift ({shift[0]:.3g}, {shift[1]:.3g}) mm is within the training samples' "
+            f"sampling noise (Hotelling T^2 {significance:.3g} < {threshold:.3g}, its 95 % quantile "
+            f"for {successes} samples): the robust plan is the nominal plan")
+
+
+def _robust_plan(scenario: Scenario, nominal: PlanResult, aim: np.ndarray, options: dict) -> PlanResult:
+    """The plan again on the scenario's values, its passes aiming the exit error at `aim` and
+    continuing the nominal plan's secant (step 3); its record carries the nominal plan's
+    unplanned run and passes before its own."""
+    robust = run_plan(scenario, compare=False, aim=aim, shooting=nominal.shooting,
+                      tolerance=AIMED_TOLERANCE_FRACTION * scenario.planner.exit_tolerance, **options)
+    robust.unplanned = nominal.unplanned
+    robust.passes = nominal.passes + [{**record, "round": "robust"} for record in robust.passes]
+    return robust
 
 
 def check_exported_plan(scenario: Scenario, result: UncertaintyResult, verify: bool = False,
