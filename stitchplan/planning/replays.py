@@ -101,7 +101,7 @@ class InlineReplays:
 class BackgroundReplays(InlineReplays):
     """Replays run by a forked helper process (module docstring). `while_waiting`: work of
     the command's own that can go on while it waits for a replay (called once, the first
-    time the answer is not there yet; the outputs' libraries, cli.commands.plan)."""
+    time the answer is not there yet; the outputs' libraries, cli.runs._plan_with_replays)."""
 
     def __init__(self, scenario: Scenario, while_waiting: Callable[[], None] | None = None, **options):
         super().__init__(scenario, **options)
