@@ -37,6 +37,7 @@ and no equilibrium is found past 88.75 % of the step's load (a limit point: the 
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -163,6 +164,89 @@ class AndersonMixing:
         steps = np.column_stack(self._steps)
         gamma = np.linalg.lstsq(steps, step, rcond=1e-10)[0]
         return step - (np.column_stack(self._states) + steps) @ gamma
+
+
+@dataclass(frozen=True)
+class _Balance:
+    """How far one Newton iterate is from equilibrium (NeedleInsertion._balance; converged as
+    the module docstring says)."""
+
+    residual_norm: float  # |r_u|, N
+    worst: float  # max |g|, mm
+    needle_force: float  # |f_needle|, N
+    finite: bool  # |r_u| and |f_needle| finite
+    forces_balance: bool  # |r_u| within its tolerance
+    balanced: bool  # and every |g| within its own
+
+    @functools.cached_property
+    def measure(self) -> float:
+        """The convergence measure |r_u| / |f_needle| + max |g| (renew_factor)."""
+        return self.residual_norm / max(self.needle_force, 1e-12) + self.worst
+
+
+@dataclass
+class _NewtonHistory:
+    """What one Newton solve of a needle step (NeedleInsertion._newton) remembers from its
+    earlier iterations: the convergence measure at the last two direct solves (when to renew
+    the kept factor of K + H), the measure where a fresh factor was made and the steps on one
+    that raised it (when to give up), the Anderson mixing of the modified Newton steps, and in
+    a planner's step (`planned`: the centre an unknown, eq. 4.1) d(d, lambda)/dC and the last
+    centre move."""
+
+    planned: bool
+    previous: float = math.inf  # the convergence measure at the last direct solve (inf after a centre move)
+    earlier: float = math.inf  # and at the one before
+    factored_at: float | None = None  # the measure where the last step's factor was made
+    losses: int = 0  # steps on a fresh factor that raised the residual
+    per_center: np.ndarray | None = None  # d(d, lambda)/dC (n + m, 2)
+    moved: float = math.inf  # the last centre move, mm
+    minres_iterations: int = 0
+
+    def __post_init__(self) -> None:
+        self.mixing = AndersonMixing(ANDERSON_DEPTH if self.planned else FIXED_CENTER_ANDERSON_DEPTH)
+
+    def lost_fresh_factor(self, measure: float, forces_balance: bool) -> bool:
+        """Whether the solve gives up: the step on a freshly made factor raised the measure above
+        where it was made (the forces not yet balanced), for the FRESH_FACTOR_LOSSES-th time."""
+        if self.factored_at is not None and measure > self.factored_at and not forces_balance:
+            self.losses += 1
+            if self.losses >= FRESH_FACTOR_LOSSES:
+                return True
+        self.factored_at = None
+        return False
+
+    def stale_center_columns(self, tolerance: float) -> bool:
+        """Whether d(d, lambda)/dC is to be solved (again): not yet, or the centre moved more than
+        STALE_CENTER_MOVES x `tolerance`."""
+        return self.per_center is None or self.moved > STALE_CENTER_MOVES * tolerance
+
+    def renew(self, measure: float) -> bool:
+        """Whether the direct solve at `measure` renews the factor of K + H: kept while Newton
+        contracts fast, renewed when it slows (renew_factor)."""
+        refactor = renew_factor(measure, self.previous, self.earlier, self.planned)
+        if refactor and not self.planned:  # a Newton step on the tangent here, which must not lose
+            self.factored_at = measure
+        self.earlier = self.previous
+        return refactor
+
+    def solved_directly(self, measure: float, refactor: bool) -> None:
+        if refactor or measure > self.previous:
+            self.mixing.reset()  # another iteration map (new factor), or a step that failed
+        self.previous = measure
+
+    def moved_center(self, move: np.ndarray, tolerance: float) -> None:
+        self.moved = length(move)
+        if self.moved > tolerance:
+            self.previous = math.inf  # the next residual measures the move, not the factor
+
+    def mix(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, step: np.ndarray,
+            aim: CenterAim | None) -> np.ndarray:
+        """The modified Newton `step` at the iterate mixed with the earlier ones (AndersonMixing);
+        with `aim` (steering) the mixed centre kept within the move limits."""
+        mixed = self.mixing.step(np.concatenate([free, multipliers, center]), step)
+        if aim is not None:
+            mixed[-2:] = aim.feasible(center + mixed[-2:]) - center
+        return mixed
 
 
 def tissue_key(scenario: Scenario) -> tuple:
@@ -573,95 +657,121 @@ class NeedleInsertion:
 
     def _newton(self, rotation: float, step: int, aim: CenterAim | None = None) -> tuple[int, int, float]:
         """Newton on the saddle-point system (eq. 3.62) at the current load, about the
-        current centre or, with `aim`, with the centre as a third unknown (CenterAim).
+        current centre or, with `aim`, with the centre as a third unknown (CenterAim, eq. 4.1).
+        Each iteration: the residuals; converged?; a step of the linearised system, by MINRES
+        (eq. 3.71-3.74) or on a kept factor of K + H renewed when Newton slows, whose steps are
+        Anderson-mixed (Walker and Ni 2011); with `aim`, the centre's move; the update. What the
+        iterations remember is a _NewtonHistory.
         Returns (Newton iterations, MINRES iterations, max |g_e| in mm)."""
         settings = self.scenario.solver
         free, multipliers, center = self.free.ravel().copy(), self.multipliers.copy(), self.center.copy()
         n_dof = len(free)
-        minres_total = 0
-        previous = earlier = math.inf  # the convergence measure one and two iterations back
-        factored_at, losses = None, 0  # the measure where the last step's factor was made; steps it lost
-        mixing = AndersonMixing(ANDERSON_DEPTH if aim is not None else FIXED_CENTER_ANDERSON_DEPTH)
-        per_center, moved = None, math.inf  # d(d, lambda)/dC (n + m, 2), and the last centre move
+        history = _NewtonHistory(planned=aim is not None)
         for iteration in range(settings.max_iterations + 1):
             state = self._timed_residuals(free.reshape(-1, 2), multipliers, center, rotation, step)
-            residual_norm, worst = length(state.residual), state.worst_violation
-            # a needle force so large that its norm overflows would make every residual look small
-            finite = math.isfinite(residual_norm) and math.isfinite(state.needle_force)
-            forces_balance = finite and residual_norm <= self.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
-            balanced = forces_balance and worst <= self.constraint_tolerance
+            balance = self._balance(state)
             steering = aim is not None and aim.held is None
             log.debug("step %d (needle rotation %.3f rad), load %.3g, Newton iteration %d: residual %.3e N "
                       "(needle force %.3e N), constraint violation %.3e mm", step, rotation,
-                      self.coupling.load_factor, iteration, residual_norm, state.needle_force, worst)
-            if balanced and not steering:
-                self._accept(free, multipliers, center, worst, iteration)
-                return iteration, minres_total, worst
-            if iteration == settings.max_iterations or not finite:
+                      self.coupling.load_factor, iteration, balance.residual_norm, state.needle_force, balance.worst)
+            if balance.balanced and not steering:
+                self._accept(free, multipliers, center, balance.worst, iteration)
+                return iteration, history.minres_iterations, balance.worst
+            if iteration == settings.max_iterations or not balance.finite:
                 break
-            measure = residual_norm / max(state.needle_force, 1e-12) + worst
-            if factored_at is not None and measure > factored_at and not forces_balance:
-                losses += 1
-                if losses >= FRESH_FACTOR_LOSSES:
-                    self._count(iteration)
-                    raise InsertionFailure(
-                        f"Newton diverged at step {step} (needle rotation {rotation:.3f} rad): {losses} steps on "
-                        f"a freshly factored tangent raised the residual (now {residual_norm:.3e} N, constraint "
-                        f"violation {worst:.3e} mm)")
-            factored_at = None
-            rhs = -np.concatenate([state.residual, state.violation])
-            fresh = steering and (per_center is None or moved > STALE_CENTER_MOVES * aim.tolerance)
-            on_rows = None
-            if fresh:  # and the equilibrium's change per unit move of the centre
-                columns, on_rows = self._center_columns(free.reshape(-1, 2), multipliers, center, state)
-                if columns is not None:
-                    rhs = np.column_stack([rhs, columns])
-            t0 = time.perf_counter()
-            solution, modified = None, False  # modified: a direct solve on a kept factor (mixed)
-            if balanced and not fresh:  # steering in equilibrium: only the centre's move is left to check
-                solution = np.zeros_like(rhs)
-            elif self.linear_method == "minres" and not steering:
-                constraints = self.coupling.constraint_matrix(state.normal)
-                solution, its = self._minres_step(state, multipliers, constraints, rhs, rotation, step)
-                minres_total += its
-            elif self.linear_method == "minres" and not self._told_steered_direct:
-                self._tell_steered_direct(step, rotation)
-            if solution is None:
-                # keep the factor of K while Newton contracts fast; renew it when it slows
-                refactor = renew_factor(measure, previous, earlier, aim is not None)
-                if refactor and aim is None:  # a Newton step on the tangent here, which must not lose
-                    factored_at = measure
-                earlier = previous
-                solution = self.saddle.solve_direct(self._stiffness(multipliers, state), rhs,
-                                                    refactor, self.coupling.expanded_rows,
-                                                    self.coupling.normal_weights(state.normal), on_rows)
-                if refactor or measure > previous:
-                    mixing.reset()  # another iteration map (new factor), or a step that failed
-                previous, modified = measure, True
-            self.timings["solve"] += time.perf_counter() - t0
+            if history.lost_fresh_factor(balance.measure, balance.forces_balance):
+                self._count(iteration)
+                raise self._diverged(step, rotation, history.losses, balance)
+            fresh = steering and history.stale_center_columns(aim.tolerance)
+            rhs, on_rows = self._newton_rhs(state, free, multipliers, center, fresh)
+            solution, modified = self._linear_step(state, multipliers, rhs, on_rows, balance, history, fresh,
+                                                   steering, rotation, step)
             if fresh:
-                solution, per_center = solution[:, 0], solution[:, 1:]
+                solution, history.per_center = solution[:, 0], solution[:, 1:]
             if steering:
-                move = aim.update(free, center, np.column_stack([solution[:n_dof], per_center[:n_dof]]),
-                                  self.free_rows(aim.exit_point), balanced)
-                if balanced and move is None:  # the centre has settled
-                    self._accept(free, multipliers, center, worst, iteration)
-                    return iteration, minres_total, worst
-                move = np.zeros(2) if move is None else move
-                moved = length(move)
-                solution = np.concatenate([solution + per_center @ move, move])
-                if moved > aim.tolerance:
-                    previous = math.inf  # the next residual measures the move, not the factor
+                solution = self._steer(aim, history, free, center, solution, balance.balanced)
+                if solution is None:  # the centre has settled
+                    self._accept(free, multipliers, center, balance.worst, iteration)
+                    return iteration, history.minres_iterations, balance.worst
             else:
                 solution = np.concatenate([solution, np.zeros(2)])  # the centre stays
             if modified:
-                solution = mixing.step(np.concatenate([free, multipliers, center]), solution)
-                if steering:  # the mixed centre kept within the move limits
-                    solution[-2:] = aim.feasible(center + solution[-2:]) - center
+                solution = history.mix(free, multipliers, center, solution, aim if steering else None)
             free, multipliers, center = free + solution[:n_dof], multipliers + solution[n_dof:-2], center + solution[-2:]
         self._count(iteration)
-        raise self._not_converged(step, rotation, iteration, state.needle_force, residual_norm, worst, finite,
-                                  forces_balance)
+        raise self._not_converged(step, rotation, iteration, state.needle_force, balance.residual_norm, balance.worst,
+                                  balance.finite, balance.forces_balance)
+
+    def _balance(self, state: Residuals) -> _Balance:
+        """How far the iterate of `state` is from equilibrium, against the step's tolerances."""
+        residual_norm, worst = length(state.residual), state.worst_violation
+        # a needle force so large that its norm overflows would make every residual look small
+        finite = math.isfinite(residual_norm) and math.isfinite(state.needle_force)
+        forces_balance = finite and residual_norm <= self.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
+        balanced = forces_balance and worst <= self.constraint_tolerance
+        return _Balance(residual_norm, worst, state.needle_force, finite, forces_balance, balanced)
+
+    def _newton_rhs(self, state: Residuals, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray,
+                    fresh: bool) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """-(r_u, g) of eq. 3.62 and, where the centre's columns are to be solved again (`fresh`),
+        the equilibrium's change per unit move of the centre: as columns beside it, or as the
+        saddle solver's `on_rows` (_center_columns)."""
+        rhs = -np.concatenate([state.residual, state.violation])
+        on_rows = None
+        if fresh:
+            columns, on_rows = self._center_columns(free.reshape(-1, 2), multipliers, center, state)
+            if columns is not None:
+                rhs = np.column_stack([rhs, columns])
+        return rhs, on_rows
+
+    def _linear_step(self, state: Residuals, multipliers: np.ndarray, rhs: np.ndarray,
+                     on_rows: tuple[np.ndarray, np.ndarray] | None, balance: _Balance, history: _NewtonHistory,
+                     fresh: bool, steering: bool, rotation: float, step: int) -> tuple[np.ndarray, bool]:
+        """The Newton step for `rhs` (its columns solved together), and whether it is a modified
+        Newton step (_direct_step, to be mixed). By MINRES (eq. 3.71-3.74) where asked for and the
+        centre is fixed, directly where MINRES stagnates; directly in the planner's steps (the
+        centre's rows border the system MINRES is preconditioned for: _tell_steered_direct)."""
+        t0 = time.perf_counter()
+        solution, modified = None, False
+        if balance.balanced and not fresh:  # steering in equilibrium: only the centre's move is left to check
+            solution = np.zeros_like(rhs)
+        elif self.linear_method == "minres" and not steering:
+            constraints = self.coupling.constraint_matrix(state.normal)
+            solution, its = self._minres_step(state, multipliers, constraints, rhs, rotation, step)
+            history.minres_iterations += its
+        elif self.linear_method == "minres" and not self._told_steered_direct:
+            self._tell_steered_direct(step, rotation)
+        if solution is None:
+            solution, modified = self._direct_step(state, multipliers, rhs, on_rows, balance.measure, history), True
+        self.timings["solve"] += time.perf_counter() - t0
+        return solution, modified
+
+    def _direct_step(self, state: Residuals, multipliers: np.ndarray, rhs: np.ndarray,
+                     on_rows: tuple[np.ndarray, np.ndarray] | None, measure: float,
+                     history: _NewtonHistory) -> np.ndarray:
+        """The step by block elimination on the kept factor of K + H (SaddlePointSolver.solve_direct),
+        renewed where Newton slows (_NewtonHistory.renew): a modified Newton step."""
+        refactor = history.renew(measure)
+        solution = self.saddle.solve_direct(self._stiffness(multipliers, state), rhs,
+                                            refactor, self.coupling.expanded_rows,
+                                            self.coupling.normal_weights(state.normal), on_rows)
+        history.solved_directly(measure, refactor)
+        return solution
+
+    def _steer(self, aim: CenterAim, history: _NewtonHistory, free: np.ndarray, center: np.ndarray,
+               solution: np.ndarray, balanced: bool) -> np.ndarray | None:
+        """The step with the centre's move (CenterAim.update, eq. 4.1) appended, the equilibrium's
+        part moved with it by d(d, lambda)/dC; None where the tissue is balanced and the centre
+        settled or held."""
+        n_dof = len(free)
+        per_center = history.per_center
+        move = aim.update(free, center, np.column_stack([solution[:n_dof], per_center[:n_dof]]),
+                          self.free_rows(aim.exit_point), balanced)
+        if balanced and move is None:
+            return None
+        move = np.zeros(2) if move is None else move
+        history.moved_center(move, aim.tolerance)
+        return np.concatenate([solution + per_center @ move, move])
 
     def _tell_steered_direct(self, step: int, rotation: float) -> None:
         """The event, once per run, that the planner's steps solve directly under `--linear-solver
@@ -674,6 +784,14 @@ class NeedleInsertion:
         self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
         self._told_steered_direct = True
         log.info(message)
+
+    def _diverged(self, step: int, rotation: float, losses: int, balance: _Balance) -> InsertionFailure:
+        """Why _newton gave up: `losses` steps on a freshly factored tangent raised the residual
+        (FRESH_FACTOR_LOSSES)."""
+        return InsertionFailure(
+            f"Newton diverged at step {step} (needle rotation {rotation:.3f} rad): {losses} steps on "
+            f"a freshly factored tangent raised the residual (now {balance.residual_norm:.3e} N, constraint "
+            f"violation {balance.worst:.3e} mm)")
 
     def _not_converged(self, step: int, rotation: float, iteration: int, needle_force: float, residual_norm: float,
                        worst: float, finite: bool, forces_balance: bool) -> InsertionFailure:
