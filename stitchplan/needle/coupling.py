@@ -329,6 +329,17 @@ class NeedleCoupling:
         self.model = model
         self.geometry = geometry
         self.needle = needle
+        self._read_options(needle, geometry)
+        self._spacing = model.support / dilation  # local particle spacing, (NP,)
+        pieces = self._segment_pieces()
+        self._start_track(pieces)
+        self._start_rows()
+        self._start_multipliers()
+        self._start_loads()
+        self._start_target_radius(pieces)
+
+    def _read_options(self, needle: Needle, geometry: NeedleGeometry) -> None:
+        """The coupling's options from the needle block (config Needle)."""
         self.kind = getattr(needle, "coupling", POINTS)
         self.cutting_length = float(getattr(needle, "cutting_length", geometry.insertion_step))
         # `needle.cutting_ramp` (mortar): False, the whole cutting force from the first step on
@@ -341,8 +352,17 @@ class NeedleCoupling:
         # MULTIPLIER_SPACINGS local spacings (0: none); fixed in mm, the multiplier space stays
         # the same when the particles are refined
         self.multiplier_length = float(getattr(needle, "multiplier_length", None) or 0.0)
-        n_free = model.n_free
-        self._spacing = model.support / dilation  # local particle spacing, (NP,)
+        self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
+
+    def _segment_pieces(self) -> int:
+        """The pieces of a segment that carry two Gauss points each: `segment_subintervals` at the
+        particle spacing at the needle (mortar), one for the point coupling."""
+        model = self.model
+        at_needle = model.needle_spacing if model.needle_spacing is not None else model.spacing
+        return 1 if self.kind == POINTS else segment_subintervals(self.geometry.insertion_step, at_needle)
+
+    def _start_track(self, pieces: int) -> None:
+        """Gamma_N without points, and the Gauss points its segments will have."""
         self.points = np.zeros((0, 2))  # Gamma_N, reference, (k, 2)
         # per segment: a gap the needle crosses outside the tissue (a wound: no load, no
         # constraint, zero length along the track), and the share of a needle step it stands
@@ -351,19 +371,22 @@ class NeedleCoupling:
         self.segment_fraction = np.zeros(0)
         # the segments' Gauss points: the two-point rule on each of `segment_subintervals`
         # pieces of a segment (mortar; one piece for the point coupling), equal weights
-        at_needle = model.needle_spacing if model.needle_spacing is not None else model.spacing
-        pieces = 1 if self.kind == POINTS else segment_subintervals(geometry.insertion_step, at_needle)
         self.gauss = segment_gauss_points(pieces)  # (P,) along a segment, in [0, 1]
         self.gauss_weight = 1.0 / len(self.gauss)
         self.segment_points = np.zeros((0, 2))  # Gauss points of the segments, P per segment
-        self.tip_row = np.zeros(n_free)  # N(X) T at the last needle point, dense
-        self.arc_ends = self.kind == MORTAR and getattr(needle, "multiplier_ends", SEGMENT_ENDS) == ARC_ENDS
-        # N(X_s) T at the segments' Gauss points; the constraint quadrature's rows N_q T with
-        # their interleaved form (the needle points, the segments' Gauss points, or the arc
-        # ends' own Gauss points)
+        self.tip_row = np.zeros(self.model.n_free)  # N(X) T at the last needle point, dense
+
+    def _start_rows(self) -> None:
+        """N(X_s) T at the segments' Gauss points; the constraint quadrature's rows N_q T with
+        their interleaved form (the needle points, the segments' Gauss points, or the arc ends'
+        own Gauss points)."""
+        n_free = self.model.n_free
         self._segment_rows = GrowingRows(n_free, interleaved=self.kind == MORTAR and not self.arc_ends)
         self._quadrature_rows = (self._segment_rows if self.kind == MORTAR and not self.arc_ends
                                  else GrowingRows(n_free, interleaved=True))
+
+    def _start_multipliers(self) -> None:
+        """No multipliers yet, and (multiplier_ends "arc") no constraint quadrature of its own."""
         # dense: W and P have a few entries per row and columns, m ~ Q / 2
         self.weights = np.zeros((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
         self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
@@ -376,16 +399,22 @@ class NeedleCoupling:
         self._constraint_segment = np.zeros(0, dtype=int)  # segment of each point, (Q,)
         self._constraint_along = np.zeros(0)  # t_q in [0, 1] along its segment, (Q,)
         self._constraint_length = np.zeros(0)  # ds_q: Gauss weight x segment length, mm, (Q,)
-        self.loads = LoadQuadrature(np.zeros((0, 2)), (sp.csr_matrix((0, n_free)),), np.zeros(0))
+
+    def _start_loads(self) -> None:
+        """No needle loads yet, the ramp's load factor at one."""
+        self.loads = LoadQuadrature(np.zeros((0, 2)), (sp.csr_matrix((0, self.model.n_free)),), np.zeros(0))
         self.previous_loads = self.loads
         self.load_factor = 1.0  # beta of Algorithm 1's ramp within a step
         self._track_rows: tuple[sp.csr_matrix, sp.csc_matrix, np.ndarray] | None = None  # _track
-        # |x_q - C| the constraint asks of a quadrature point: the needle points lie on the
-        # circle; a Gauss point at t of a segment lies on the chord between two needle points
-        # one step apart, at sqrt(R^2 - t (1 - t) c^2) from C (c = 2 R sin(step / 2); t (1 - t)
-        # = 1/6 at both Gauss points of one piece). Asking R there would push the whole track
-        # outward by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm
-        # steps). One value for all with one piece per segment, else per point (P per segment)
+
+    def _start_target_radius(self, pieces: int) -> None:
+        """|x_q - C| the constraint asks of a quadrature point: the needle points lie on the
+        circle; a Gauss point at t of a segment lies on the chord between two needle points one
+        step apart, at sqrt(R^2 - t (1 - t) c^2) from C (c = 2 R sin(step / 2); t (1 - t) = 1/6
+        at both Gauss points of one piece). Asking R there would push the whole track outward
+        by the chord's sag, c^2 / 12R on average (0.017 mm for the 20 mm needle's 2 mm steps).
+        One value for all with one piece per segment, else per point (P per segment)."""
+        geometry = self.geometry
         self._chord = 2.0 * geometry.radius * math.sin(0.5 * geometry.step)
         self._gauss_targets = np.sqrt(geometry.radius**2 - self.gauss * (1.0 - self.gauss) * self._chord**2)
         # segment ends in pieces: the segments' points ask their own radii, appended per segment
