@@ -327,54 +327,86 @@ def shape_loops(tissue: Tissue) -> tuple[np.ndarray | None, list[tuple[int, np.n
         given = "both" if tissue.size is not None else "neither"
         return None, [], False, [problem("exactly one of 'size' [W, H] or 'outline' (a polygon)", field="size",
                                          value=Shown(given))]
-    if tissue.outline is not None:
-        outline = np.asarray(tissue.outline, dtype=float)
-        tol = 1e-9 * float(np.ptp(outline, axis=0).max())
-        why = polygon_problem(outline, tol)
-        if why:  # the holes' own polygons are checked all the same, so that every problem is said at once
-            return None, [], False, [problem(why, field="outline", value=tissue.outline),
-                                     *_hole_polygon_problems(tissue, tol)]
-        outer = counter_clockwise(outline)
-    else:
-        w, h = tissue.size
-        outer = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
-        tol = 1e-9 * max(w, h)
-    inside, reaching = [], []
-    outer_domain = PolygonDomain(outer)
-    problems = _hole_polygon_problems(tissue, tol)
+    outer, tol, outline_problems = _outer_loop(tissue)
+    # the holes' own polygons are checked all the same, so that every problem is said at once
+    problems = outline_problems + _hole_polygon_problems(tissue, tol)
     if problems:
         return None, [], False, problems
+    inside, reaching = _inside_or_reaching(tissue, outer, tol)
+    if reaching:
+        outer, problems = _cut_out(tissue, outer, reaching, tol)
+        if problems:
+            return None, [], False, problems
+        problems = _holes_reached_by_cut(tissue, outer, inside, reaching, tol)
+    return outer, inside, bool(reaching), problems + _overlapping_holes(tissue, inside, tol)
+
+
+def _outer_loop(tissue: Tissue) -> tuple[np.ndarray | None, float, list]:
+    """The outline (counter-clockwise) or the rectangle of `size`, the tolerance of the shape's
+    checks (1e-9 of its larger side), and the problem of an outline that is not a simple
+    polygon (None as the loop)."""
+    if tissue.outline is None:
+        w, h = tissue.size
+        return np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]), 1e-9 * max(w, h), []
+    outline = np.asarray(tissue.outline, dtype=float)
+    tol = 1e-9 * float(np.ptp(outline, axis=0).max())
+    why = polygon_problem(outline, tol)
+    if why:
+        return None, tol, [problem(why, field="outline", value=tissue.outline)]
+    return counter_clockwise(outline), tol, []
+
+
+def _inside_or_reaching(tissue: Tissue, outer: np.ndarray, tol: float) -> tuple[list, list]:
+    """The holes as (index in `holes`, vertices): those inside the outer loop and apart from
+    it, and those that reach or cross it."""
+    inside, reaching = [], []
+    outer_domain = PolygonDomain(outer)
     for i, hole in enumerate(tissue.holes):
         vertices = hole.vertices()
-        if np.all(outer_domain._inside_strict(vertices) & (outer_domain.distance(vertices) > tol)) \
-                and not _loops_touch(vertices, outer, tol):
+        if _inside_and_apart(vertices, outer_domain, tol):
             inside.append((i, vertices))
         else:
             reaching.append((i, vertices))
-    if reaching:
-        cut, why, idle = cut_outline(outer, [vertices for _, vertices in reaching], tol)
-        expected = "a hole inside the tissue outline, not touching it, or one cutting into it that leaves " \
-                   "one simple piece of tissue"
-        for k in idle:
-            i = reaching[k][0]
-            problems.append(problem(f"{expected} (this one holds no tissue)", field=f"holes[{i}]",
-                                    value=_shown(tissue.holes[i])))
-        if not problems and cut is None:
-            i = reaching[0][0]
-            others = ", ".join(f"holes[{j}]" for j, _ in reaching[1:])
-            problems.append(problem(f"{expected} (cut out of the outline{' with ' + others if others else ''}, "
-                                    f"it leaves {why})", field=f"holes[{i}]", value=_shown(tissue.holes[i])))
-        if problems:
-            return None, [], False, problems
-        outer = cut
-        cut_domain = PolygonDomain(outer)
-        for i, vertices in inside:
-            if not np.all(cut_domain._inside_strict(vertices) & (cut_domain.distance(vertices) > tol)) \
-                    or _loops_touch(vertices, outer, tol):
-                problems.append(problem("a hole inside the tissue, apart from the holes cut into its outline ("
-                                        + ", ".join(f"holes[{j}]" for j, _ in reaching) + ")",
-                                        field=f"holes[{i}]", value=_shown(tissue.holes[i])))
-    loops = []
+    return inside, reaching
+
+
+def _inside_and_apart(vertices: np.ndarray, domain: PolygonDomain, tol: float) -> bool:
+    """Whether a hole lies inside a domain without holes, more than `tol` from its outline."""
+    return (bool(np.all(domain._inside_strict(vertices) & (domain.distance(vertices) > tol)))
+            and not _loops_touch(vertices, domain.outline, tol))
+
+
+def _cut_out(tissue: Tissue, outer: np.ndarray, reaching: list, tol: float) -> tuple[np.ndarray | None, list]:
+    """The outer loop with the `reaching` holes cut out of it (geometry.cut_outline), and the
+    problems of the cut: a hole that holds no tissue, or what is left not one simple piece."""
+    cut, why, idle = cut_outline(outer, [vertices for _, vertices in reaching], tol)
+    expected = "a hole inside the tissue outline, not touching it, or one cutting into it that leaves " \
+               "one simple piece of tissue"
+    problems = []
+    for k in idle:
+        i = reaching[k][0]
+        problems.append(problem(f"{expected} (this one holds no tissue)", field=f"holes[{i}]",
+                                value=_shown(tissue.holes[i])))
+    if not problems and cut is None:
+        i = reaching[0][0]
+        others = ", ".join(f"holes[{j}]" for j, _ in reaching[1:])
+        problems.append(problem(f"{expected} (cut out of the outline{' with ' + others if others else ''}, "
+                                f"it leaves {why})", field=f"holes[{i}]", value=_shown(tissue.holes[i])))
+    return cut, problems
+
+
+def _holes_reached_by_cut(tissue: Tissue, cut: np.ndarray, inside: list, reaching: list, tol: float) -> list:
+    """The problems of the holes inside the outline that the cut outline no longer holds apart."""
+    cut_domain = PolygonDomain(cut)
+    return [problem("a hole inside the tissue, apart from the holes cut into its outline ("
+                    + ", ".join(f"holes[{j}]" for j, _ in reaching) + ")",
+                    field=f"holes[{i}]", value=_shown(tissue.holes[i]))
+            for i, vertices in inside if not _inside_and_apart(vertices, cut_domain, tol)]
+
+
+def _overlapping_holes(tissue: Tissue, inside: list, tol: float) -> list:
+    """The problems of the holes inside that overlap or touch one before them (the first such)."""
+    loops, problems = [], []
     for i, vertices in inside:
         for j, other in loops:
             if _loops_touch(vertices, other, tol) or PolygonDomain(other)._inside_strict(vertices[:1])[0] \
@@ -384,7 +416,7 @@ def shape_loops(tissue: Tissue) -> tuple[np.ndarray | None, list[tuple[int, np.n
                 break
         else:
             loops.append((i, vertices))
-    return outer, inside, bool(reaching), problems
+    return problems
 
 
 def _hole_polygon_problems(tissue: Tissue, tol: float) -> list:
