@@ -76,8 +76,9 @@ class CenterAim:
     def update(self, free: np.ndarray, center: np.ndarray, solution: np.ndarray, exit_row: np.ndarray,
                balanced: bool) -> np.ndarray | None:
         """The centre move of one Newton iteration, or None: settled (when `balanced`) or
-        held. `free` (n_free, 2) and `center` are the iterate, `solution` (2 n_free, 3) the
-        saddle solve's displacement columns [dd_0, D], `exit_row` N(X_exit) T, dense (n_free,)."""
+        held. `free` (2 n_free,: x, y interleaved) and `center` are the iterate, `solution`
+        (2 n_free, 3) the saddle solve's displacement columns [dd_0, D], `exit_row`
+        N(X_exit) T, dense (n_free,)."""
         def at_exit(column: np.ndarray) -> np.ndarray:
             return exit_row @ column.reshape(-1, 2)
 
