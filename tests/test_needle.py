@@ -354,6 +354,22 @@ def test_the_factor_is_renewed_by_the_planner_rule_or_when_newton_loses_ground()
     assert not renew_factor(0.3, 1.0, 2.0, planned=True) and not renew_factor(0.3, 1.0, 2.0, planned=False)
 
 
+def test_anderson_mixing_remembers_the_plain_step_not_what_the_caller_made_of_it():
+    """AndersonMixing (Walker and Ni 2011, type II) differences the plain steps f(x_k): a
+    caller that changes the step it got back (the planner keeps the mixed centre within the
+    move limits, in place) must not change the f(x_0) the next mixing differences against."""
+    from stitchplan.needle.equilibrium import AndersonMixing
+
+    rng = np.random.default_rng(3)
+    states, steps = rng.normal(size=(3, 6)), rng.normal(size=(3, 6))
+    untouched, clipped = AndersonMixing(5), AndersonMixing(5)
+    untouched.step(states[0], steps[0])
+    first = clipped.step(states[0], steps[0].copy())
+    first[-2:] = 0.0  # as a centre held by the move limits
+    for state, step in zip(states[1:], steps[1:]):
+        np.testing.assert_array_equal(clipped.step(state, step), untouched.step(state, step))
+
+
 @pytest.mark.parametrize("clamped, where", [(["left"], "the clamped left edge"),
                                              ([{"segment": [[0.0, 10.0], [0.0, 20.0]]}],
                                               "a clamped segment of the boundary")])

@@ -158,7 +158,7 @@ class AndersonMixing:
             self._states.append(state - self._last[0])
             self._steps.append(step - self._last[1])
             del self._states[:-self.depth], self._steps[:-self.depth]
-        self._last = (state, step)
+        self._last = (state, step.copy())  # the plain step, whatever the caller does to the one returned
         if not self._steps:
             return step
         steps = np.column_stack(self._steps)
