@@ -409,7 +409,7 @@ def test_a_run_estimated_above_the_accuracy_it_was_chosen_for_says_so():
     says both, never silence beside a contradicting summary."""
     from types import SimpleNamespace
 
-    from stitchplan.cli.commands import _accuracy_events
+    from stitchplan.cli.runs import _accuracy_events
     from stitchplan.events import EventKind
 
     above = SimpleNamespace(estimate_mm=0.0129, other_spacing_mm=9.96)

@@ -601,6 +601,32 @@ def test_an_unverified_plan_under_uncertainty_estimates_its_error_as_plan_does(t
     assert "discretization error estimate" in result.output
 
 
+def test_a_plan_under_uncertainty_chosen_for_an_accuracy_says_when_its_estimate_is_above_it(tmp_path, monkeypatch):
+    """With discretization.accuracy, plan --uncertainty puts the auto discretization's note
+    first and, where the exported plan's own estimate comes out above the accuracy asked, the
+    accuracy check after it, as plan does (cli/runs.py _put_accuracy_notes_first). The choice
+    itself is stood in for by the 5 mm scene (its search is study/auto.py's, tested there)."""
+    from stitchplan.config.scenario import parse_scenario
+    from stitchplan.events import Event, EventKind
+
+    chosen = parse_scenario(small_raw())
+
+    def choose(scenario, tip_tracking=None, linear_solver=None, max_particles=None):
+        return chosen, Event(EventKind.AUTO_DISCRETIZATION, "auto discretization: the 5 mm scene")
+
+    monkeypatch.setattr("stitchplan.study.auto.resolve_accuracy", choose)
+    scenario_path = write(tmp_path, {**small_raw(), "discretization": {"accuracy": 0.001}})
+    path = write(tmp_path, _thickness_only(samples=2), "u.yaml")
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
+                    tmp_path / "s.json", "--no-verify", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    summary = _strict_json(tmp_path / "s.json")
+    assert summary["exit_error_estimate_mm"] > 0.001
+    kinds = [(event["kind"], event["message"]) for event in summary["events"]]
+    assert kinds[0] == ("auto-discretization", "auto discretization: the 5 mm scene")
+    assert kinds[1][0] == "accuracy-check" and kinds[1][1].startswith("accuracy: the run's own exit error estimate")
+
+
 def test_two_training_samples_do_not_test_the_mean_shift(tmp_path):
     """With 2 training runs the deviations' covariance is singular: T^2 is not defined, the
     summary says null (valid JSON, no Infinity) with a note, and the nominal plan is not re-aimed."""

@@ -104,7 +104,7 @@ def simulate(
     accuracy = scenario.discretization.accuracy  # asked for; resolve_accuracy clears it
     provenance = _provenance(scenario_path, scenario)
     from ..io import reports
-    from .runs import _read_center_path, _resolve_accuracy, _simulate_with_replays
+    from .runs import _put_accuracy_notes_first, _read_center_path, _resolve_accuracy, _simulate_with_replays
 
     resume_collection()
     options = {"linear_solver": _value(linear_solver), "tip_tracking": _value(tip_tracking)}
@@ -201,7 +201,7 @@ def plan(
     # before the numerics' imports, which the replay helper spends building its model (none under uncertainty)
     _guard_and_hand_replay_model(scenario_path, scenario, guard, verify, options, hand=uncertainty_path is None)
     from ..io import reports
-    from .runs import _plan_with_replays, _resolve_accuracy
+    from .runs import _plan_with_replays, _put_accuracy_notes_first, _resolve_accuracy
 
     resume_collection()
     scenario, auto_note = _resolve_accuracy(scenario_path, scenario, limits, **options)
@@ -210,7 +210,8 @@ def plan(
     if uncertainty_path is not None:
         _plan_under_uncertainty(scenario_path, scenario, uncertainty_path, executor, auto_note, limits,
                                 verify=verify, names=names, export=export, out=out, summary=summary, plot=plot,
-                                uncertainty_plot=uncertainty_plot, provenance=provenance, quiet=quiet, **options)
+                                uncertainty_plot=uncertainty_plot, provenance=provenance, quiet=quiet, accuracy=accuracy,
+                                **options)
         return
     result = _plan_with_replays(scenario_path, scenario, compare, verify, out, plot, **options)
     _put_accuracy_notes_first(result.planned.events, auto_note, accuracy, result.estimate)
@@ -233,32 +234,6 @@ def _guard_and_hand_replay_model(scenario_path: Path, scenario, guard, verify: b
             from ..planning.replay_models import replay_options, replay_scenario
 
             early_helper.hand(replay_scenario(scenario, verify), replay_options(options))
-
-
-def _put_accuracy_notes_first(events: list, auto_note, accuracy: float | None, estimate) -> None:
-    """The auto discretization's note (None: none chosen) first among a run's `events`, and
-    after it the accuracy check of _accuracy_events."""
-    if auto_note is not None:
-        events[:0] = [auto_note, *_accuracy_events(accuracy, estimate)]
-
-
-def _accuracy_events(accuracy: float | None, estimate) -> list:
-    """An accuracy-check event where the run's own exit error estimate (from a run at twice
-    its spacing) is above the `accuracy` the auto discretization chose the run for by its
-    estimate (from runs at h and h/2): both stand in the summary, so the difference is said."""
-    if accuracy is None or estimate is None or estimate.estimate_mm <= accuracy:
-        return []
-    return [_note_event(f"accuracy: the run's own exit error estimate, {estimate.estimate_mm:.3g} mm (from "
-                        f"the run at {estimate.other_spacing_mm:.3g} mm), is above the {accuracy:g} mm "
-                        "asked for, which the auto discretization met by its estimate from two finer "
-                        "runs (first note); the two estimate the same error from different pairs of "
-                        "runs: for a firmer bound ask for a smaller accuracy")]
-
-
-def _note_event(message: str):
-    from ..events import Event, EventKind
-
-    return Event(EventKind.ACCURACY_CHECK, message)
 
 
 @app.command()

@@ -29,16 +29,19 @@ def _check_uncertainty_options(uncertainty_path: Optional[Path], compare: bool, 
 
 def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Path, executor, auto_note, limits,
                             verify: bool, names: dict, export: Path, out, summary, plot, uncertainty_plot,
-                            provenance: dict, quiet: bool, **options) -> None:
+                            provenance: dict, quiet: bool, accuracy: float | None = None, **options) -> None:
     """plan --uncertainty: the robust plan over the file's parameter distributions, its
     sampled runs on the executor (stitchplan.uncertainty.robust); with `verify` the plans aimed
-    for the refined model and the exported one replayed on it at the scenario's values."""
+    for the refined model and the exported one replayed on it at the scenario's values. With
+    `auto_note` (the discretization chosen for the scenario's `accuracy`) its notes come
+    first, as `plan`'s do."""
     pause_collection()  # again, for the imports of the uncertainty's modules (stitchplan/allocator.py)
     from ..config.uncertainty import load_uncertainty
     from ..io import reports
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
     from ..uncertainty.robust import check_exported_plan, check_inputs, plan_under_uncertainty, planned_tasks
+    from .runs import _put_accuracy_notes_first
 
     resume_collection()
     uncertainty = load_uncertainty(uncertainty_path)
@@ -53,8 +56,7 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
         result = plan_under_uncertainty(scenario, uncertainty, executor, verify=verify,
                                         on_run=lambda description: advance(description=description), **options)
     plan = check_exported_plan(scenario, result, verify, **options)
-    if auto_note is not None:
-        plan.planned.events.insert(0, auto_note)
+    _put_accuracy_notes_first(plan.planned.events, auto_note, accuracy, plan.estimate)
     reports.write_plan_outputs(plan, export=export, out=out, summary=summary, plot=plot, provenance=provenance,
                                uncertainty=result, uncertainty_plot=uncertainty_plot)
     typer.echo(reports.plan_line(plan, export))

@@ -71,3 +71,29 @@ def _plan_with_replays(scenario_path: Path, scenario, compare: bool, verify: boo
           progress.progress_bar("planned steps", (2 if compare else 1) * expected) as advance):
         return verification.plan_verified(scenario, compare=compare, verify=verify, on_step=lambda record: advance(),
                                           replays=replays, predictions=predictions, **options)
+
+
+def _put_accuracy_notes_first(events: list, auto_note, accuracy: float | None, estimate) -> None:
+    """The auto discretization's note (None: none chosen) first among a run's `events`, and
+    after it the accuracy check of _accuracy_events."""
+    if auto_note is not None:
+        events[:0] = [auto_note, *_accuracy_events(accuracy, estimate)]
+
+
+def _accuracy_events(accuracy: float | None, estimate) -> list:
+    """An accuracy-check event where the run's own exit error estimate (from a run at twice
+    its spacing) is above the `accuracy` the auto discretization chose the run for by its
+    estimate (from runs at h and h/2): both stand in the summary, so the difference is said."""
+    if accuracy is None or estimate is None or estimate.estimate_mm <= accuracy:
+        return []
+    return [_note_event(f"accuracy: the run's own exit error estimate, {estimate.estimate_mm:.3g} mm (from "
+                        f"the run at {estimate.other_spacing_mm:.3g} mm), is above the {accuracy:g} mm "
+                        "asked for, which the auto discretization met by its estimate from two finer "
+                        "runs (first note); the two estimate the same error from different pairs of "
+                        "runs: for a firmer bound ask for a smaller accuracy")]
+
+
+def _note_event(message: str):
+    from ..events import Event, EventKind
+
+    return Event(EventKind.ACCURACY_CHECK, message)
