@@ -355,12 +355,11 @@ def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
     estimated = _shaped_estimate(scenario, zone, segments)
     if estimated > COUNT_SHAPED_UP_TO:
         return replace(nominal, particles=estimated)
-    particles, _, support, _, points, _ = shaped_discretization(scenario.tissue, scenario.discretization,
-                                                                 segments, zone)
-    square = _mean_square_neighbours(scenario.tissue.domain, points, particles, support)
+    shaped = shaped_discretization(scenario.tissue, scenario.discretization, segments, zone)
+    square = _mean_square_neighbours(scenario.tissue.domain, shaped.points, shaped.particles, shaped.support)
     crowding = square / nominal.neighbours ** 2 if math.isfinite(nominal.neighbours) else 1.0
-    return replace(nominal, particles=len(particles), exact=True,
-                   points_per_particle=len(points) / max(len(particles), 1), crowding=max(crowding, 1.0))
+    return replace(nominal, particles=len(shaped.particles), exact=True,
+                   points_per_particle=len(shaped.points) / max(len(shaped.particles), 1), crowding=max(crowding, 1.0))
 
 
 def _mean_square_neighbours(domain, points: np.ndarray, particles: np.ndarray, support: np.ndarray) -> float:

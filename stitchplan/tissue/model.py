@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -195,8 +196,19 @@ def build_tissue_model(
     )
 
 
+class ParticlesAndQuadrature(NamedTuple):
+    """The particles of a discretized tissue and its quadrature (particles_and_quadrature)."""
+
+    particles: np.ndarray  # (NP, 2)
+    volumes: np.ndarray  # (NP,)
+    support: np.ndarray  # (NP,) kernel support radii
+    spacing: float  # the finest lattice step, mm
+    points: np.ndarray  # (nq, 2) quadrature points
+    weights: np.ndarray  # (nq,) area weights
+
+
 def particles_and_quadrature(tissue: Tissue, discretization: Discretization, segments: tuple,
-                             needle_zone: tuple | None):
+                             needle_zone: tuple | None) -> ParticlesAndQuadrature:
     """Particles (NP, 2), their volumes (NP,) and kernel supports (NP,), the finest lattice
     step (mm), and the quadrature points (nq, 2) and area weights (nq,): a polygon tissue's or
     one with regions (shaped_discretization), else the rectangle's graded lattice
@@ -211,7 +223,7 @@ def particles_and_quadrature(tissue: Tissue, discretization: Discretization, seg
     support = discretization.dilation * graded.local_spacing
     points, weights = leaf_quadrature(graded.cells, discretization.quadrature_order,
                                       discretization.cells_per_spacing)
-    return graded.particles, graded.volumes, support, spacing, points, weights
+    return ParticlesAndQuadrature(graded.particles, graded.volumes, support, spacing, points, weights)
 
 
 def rectangle_lattice(tissue: Tissue, discretization: Discretization, segments: tuple,
@@ -233,10 +245,9 @@ def rectangle_lattice(tissue: Tissue, discretization: Discretization, segments: 
     return None
 
 
-def grid_discretization(size: tuple[float, float], discretization: Discretization):
+def grid_discretization(size: tuple[float, float], discretization: Discretization) -> ParticlesAndQuadrature:
     """The uniform grid's particles, volumes, supports (dilation x the largest line interval),
-    that interval, and Gauss points on cells_per_spacing cells per grid interval (the tuple of
-    particles_and_quadrature)."""
+    that interval, and Gauss points on cells_per_spacing cells per grid interval."""
     particles, volumes, dx, dy = grid_particles(size, discretization.spacing)
     spacing = max(dx, dy)
     support = np.full(len(particles), discretization.dilation * spacing)
@@ -245,7 +256,7 @@ def grid_discretization(size: tuple[float, float], discretization: Discretizatio
         int(round(size[1] / dy)) * discretization.cells_per_spacing,
     )
     points, weights = cell_quadrature(size, n_cells, discretization.quadrature_order)
-    return particles, volumes, support, spacing, points, weights
+    return ParticlesAndQuadrature(particles, volumes, support, spacing, points, weights)
 
 
 @dataclass(frozen=True, eq=False)
@@ -338,7 +349,7 @@ def outward_edges(domain: PolygonDomain) -> list[tuple[np.ndarray, np.ndarray, n
 
 
 def shaped_discretization(tissue: Tissue, discretization: Discretization, segments: tuple,
-                           needle_zone: tuple | None):
+                           needle_zone: tuple | None) -> ParticlesAndQuadrature:
     """Particles, supports, spacing and quadrature of a polygon tissue, holes or regions:
     the graded lattice over the bounding box with lines through every polygon vertex and
     segment end, fitted to the shape (stitchplan.tissue.shapes), once the shape has no tissue
@@ -353,7 +364,7 @@ def shaped_discretization(tissue: Tissue, discretization: Discretization, segmen
     support = discretization.dilation * local
     points, weights = shaped_quadrature(tissue, graded.cells, discretization.quadrature_order,
                                         discretization.cells_per_spacing)
-    return particles, volumes, support, graded.fine_spacing, points, weights
+    return ParticlesAndQuadrature(particles, volumes, support, graded.fine_spacing, points, weights)
 
 
 def shaped_lattice(tissue: Tissue, discretization: Discretization, segments: tuple = (),
