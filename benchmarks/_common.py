@@ -27,6 +27,7 @@ BENCH_DIR = Path(__file__).resolve().parent
 REPO_ROOT = BENCH_DIR.parent
 RESULTS_DIR = BENCH_DIR / "results"
 SCENARIO_PATH = REPO_ROOT / "configs" / "slab_edge_load.yaml"
+REVISION_FILE = ".benchmark-revision"  # in a baseline's extracted folder: the revision it holds
 
 
 # `stitchplan ARGS` in a fresh process of this Python, from whatever code PYTHONPATH puts first
@@ -40,6 +41,7 @@ def extract_revision(revision: str, folder: Path, *paths: str) -> Path:
     archive = subprocess.run(["git", "archive", revision, *paths], check=True, capture_output=True,
                              cwd=REPO_ROOT).stdout
     subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
+    (folder / REVISION_FILE).write_text(revision)  # for command_failure
     return folder
 
 
@@ -55,9 +57,23 @@ def timed_command(arguments: list[str], summary: Path, cwd: Path, **environment:
     """One `stitchplan ARGUMENTS` process (command_environment with `environment`, in `cwd`),
     which writes its summary to `summary`: its wall time (s) and the summary."""
     start = time.perf_counter()
-    subprocess.run([*STITCHPLAN, *arguments], check=True, capture_output=True, cwd=cwd,
-                   env=command_environment(**environment))
+    done = subprocess.run([*STITCHPLAN, *arguments], capture_output=True, cwd=cwd,
+                          env=command_environment(**environment))
+    if done.returncode != 0:
+        raise SystemExit(command_failure(arguments, cwd, done))
     return time.perf_counter() - start, json.loads(summary.read_text())
+
+
+def command_failure(arguments: Sequence[str], cwd: Path, done: subprocess.CompletedProcess) -> str:
+    """One line for a timed command that failed: which code ran it (a baseline's revision,
+    extract_revision) and the command's last line on stderr. A baseline older than the scene
+    files' keys refuses them (exit 2): its comparison ran on the files of its day, recorded in
+    its results file."""
+    marker = Path(cwd) / REVISION_FILE
+    code = f"the code of {marker.read_text()}" if marker.exists() else f"the code in {cwd}"
+    lines = done.stderr.decode(errors="replace").strip().splitlines()
+    return (f"stitchplan {' '.join(map(str, arguments[:2]))} with {code} exited {done.returncode}: "
+            f"{lines[-1] if lines else '(nothing on stderr)'}")
 
 
 def scene_command(name: str, scene: str, options: Sequence[str], folder: Path, cwd: Path,
