@@ -493,8 +493,8 @@ def test_config_imports_no_layer_above_it():
     import subprocess
     import sys
 
-    modules = ["fields", "messages", "yaml_files", "boundary_points", "blocks", "study", "scenario", "schema",
-               "calibration", "uncertainty"]
+    modules = ["fields", "messages", "yaml_files", "boundary_points", "tissue_shape", "blocks", "load_checks",
+               "study", "scenario", "schema", "calibration", "uncertainty"]
     for module in modules:
         code = (f"import sys, stitchplan.config.{module}\n"
                 "print(sorted(m for m in sys.modules if m.startswith('stitchplan')))")

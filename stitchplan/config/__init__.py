@@ -7,7 +7,10 @@ Modules, each importing only those before it (and stitchplan.errors, stitchplan.
 - yaml_files: reading YAML (duplicate keys, merge keys, alias bombs and non-UTF-8 text refused);
 - boundary_points: points a file places on the boundary, moved onto it within the input
   tolerance or refused naming the nearest boundary point;
+- tissue_shape: a tissue's outline, holes, regions and clamps made into the shape the model
+  uses, or the problems that stop it;
 - blocks: tissue, material, discretization, needle, loads, solver, planner, robot;
+- load_checks: loads off the clamped edges and apart from each other, a slab held in place;
 - study: the optional `study:` block;
 - scenario: the scenario file and Scenario, default spacing, load_scenario;
 - schema: the JSON Schema of scenario files;

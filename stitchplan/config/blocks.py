@@ -3,7 +3,8 @@ planner, robot) as validated, frozen dataclasses.
 
 They are pydantic dataclasses: constructing one validates it, `dataclasses.replace` gives a
 validated copy, `asdict` and hashing work as for plain dataclasses. Units as in
-SCENARIO.md: mm, N, MPa, rad.
+SCENARIO.md: mm, N, MPa, rad. The checks of a tissue's shape are tissue_shape's; those of the
+loads against the clamped edges, load_checks'.
 """
 
 from __future__ import annotations
@@ -26,16 +27,8 @@ from pydantic import (
 )
 from pydantic.dataclasses import dataclass
 
-from ..geometry import (
-    PolygonDomain,
-    Rectangle,
-    circle_polygon,
-    cut_outline,
-    polygon_problem,
-    segments_touch,
-    signed_area,
-)
-from .boundary_points import entry_on_boundary, placed, segment_on_boundary, shown_as_given
+from ..geometry import PolygonDomain, Rectangle, circle_polygon
+from .boundary_points import entry_on_boundary, placed, segment_on_boundary
 from .fields import (
     BLOCK,
     EDGES,
@@ -63,7 +56,8 @@ from .fields import (
     sequence,
     within,
 )
-from .messages import adapter, combined, short, valid_or_none, validate
+from .messages import Shown, adapter, combined, short, valid_or_none, validate
+from .tissue_shape import clamps_on_boundary, counter_clockwise, shape_loops, shape_problems
 
 
 def _file_schema(required: tuple[str, ...], one_of: tuple[str, ...], schema: dict) -> None:
@@ -189,11 +183,6 @@ class ClampedSegment:
     segment: described(SegmentPoints, "straight piece of the boundary held fixed, mm")
 
 
-def counter_clockwise(vertices: np.ndarray) -> np.ndarray:
-    """The polygon walked counter-clockwise (a clockwise one reversed)."""
-    return vertices if signed_area(vertices) > 0 else vertices[::-1].copy()
-
-
 CLAMP_EXPECTED = "an edge among " + ", ".join(EDGES) + " or {segment: [[x0, y0], [x1, y1]]}"
 
 
@@ -317,173 +306,6 @@ class Tissue:
                 for item in self.clamped]
 
 
-def shape_loops(tissue: Tissue) -> tuple[np.ndarray | None, list[tuple[int, np.ndarray]], bool, list]:
-    """The tissue's outer boundary (counter-clockwise), the holes inside it as (index in
-    `holes`, vertices), whether holes were cut out of the outline, and the problems that
-    stop the shape (naming their fields). A hole that reaches or crosses the outline is cut
-    out of it (SCENARIO.md's first hole: the tissue is the outline minus the hole), as long
-    as one simple piece of tissue is left."""
-    if (tissue.size is None) == (tissue.outline is None):
-        given = "both" if tissue.size is not None else "neither"
-        return None, [], False, [problem("exactly one of 'size' [W, H] or 'outline' (a polygon)", field="size",
-                                         value=Shown(given))]
-    outer, tol, outline_problems = _outer_loop(tissue)
-    # the holes' own polygons are checked all the same, so that every problem is said at once
-    problems = outline_problems + _hole_polygon_problems(tissue, tol)
-    if problems:
-        return None, [], False, problems
-    inside, reaching = _inside_or_reaching(tissue, outer, tol)
-    if reaching:
-        outer, problems = _cut_out(tissue, outer, reaching, tol)
-        if problems:
-            return None, [], False, problems
-        problems = _holes_reached_by_cut(tissue, outer, inside, reaching, tol)
-    return outer, inside, bool(reaching), problems + _overlapping_holes(tissue, inside, tol)
-
-
-def _outer_loop(tissue: Tissue) -> tuple[np.ndarray | None, float, list]:
-    """The outline (counter-clockwise) or the rectangle of `size`, the tolerance of the shape's
-    checks (1e-9 of its larger side), and the problem of an outline that is not a simple
-    polygon (None as the loop)."""
-    if tissue.outline is None:
-        w, h = tissue.size
-        return np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]), 1e-9 * max(w, h), []
-    outline = np.asarray(tissue.outline, dtype=float)
-    tol = 1e-9 * float(np.ptp(outline, axis=0).max())
-    why = polygon_problem(outline, tol)
-    if why:
-        return None, tol, [problem(why, field="outline", value=tissue.outline)]
-    return counter_clockwise(outline), tol, []
-
-
-def _inside_or_reaching(tissue: Tissue, outer: np.ndarray, tol: float) -> tuple[list, list]:
-    """The holes as (index in `holes`, vertices): those inside the outer loop and apart from
-    it, and those that reach or cross it."""
-    inside, reaching = [], []
-    outer_domain = PolygonDomain(outer)
-    for i, hole in enumerate(tissue.holes):
-        vertices = hole.vertices()
-        if _inside_and_apart(vertices, outer_domain, tol):
-            inside.append((i, vertices))
-        else:
-            reaching.append((i, vertices))
-    return inside, reaching
-
-
-def _inside_and_apart(vertices: np.ndarray, domain: PolygonDomain, tol: float) -> bool:
-    """Whether a hole lies inside a domain without holes, more than `tol` from its outline."""
-    return (bool(np.all(domain._inside_strict(vertices) & (domain.distance(vertices) > tol)))
-            and not _loops_touch(vertices, domain.outline, tol))
-
-
-def _cut_out(tissue: Tissue, outer: np.ndarray, reaching: list, tol: float) -> tuple[np.ndarray | None, list]:
-    """The outer loop with the `reaching` holes cut out of it (geometry.cut_outline), and the
-    problems of the cut: a hole that holds no tissue, or what is left not one simple piece."""
-    cut, why, idle = cut_outline(outer, [vertices for _, vertices in reaching], tol)
-    expected = "a hole inside the tissue outline, not touching it, or one cutting into it that leaves " \
-               "one simple piece of tissue"
-    problems = []
-    for k in idle:
-        i = reaching[k][0]
-        problems.append(problem(f"{expected} (this one holds no tissue)", field=f"holes[{i}]",
-                                value=_shown(tissue.holes[i])))
-    if not problems and cut is None:
-        i = reaching[0][0]
-        others = ", ".join(f"holes[{j}]" for j, _ in reaching[1:])
-        problems.append(problem(f"{expected} (cut out of the outline{' with ' + others if others else ''}, "
-                                f"it leaves {why})", field=f"holes[{i}]", value=_shown(tissue.holes[i])))
-    return cut, problems
-
-
-def _holes_reached_by_cut(tissue: Tissue, cut: np.ndarray, inside: list, reaching: list, tol: float) -> list:
-    """The problems of the holes inside the outline that the cut outline no longer holds apart."""
-    cut_domain = PolygonDomain(cut)
-    return [problem("a hole inside the tissue, apart from the holes cut into its outline ("
-                    + ", ".join(f"holes[{j}]" for j, _ in reaching) + ")",
-                    field=f"holes[{i}]", value=_shown(tissue.holes[i]))
-            for i, vertices in inside if not _inside_and_apart(vertices, cut_domain, tol)]
-
-
-def _overlapping_holes(tissue: Tissue, inside: list, tol: float) -> list:
-    """The problems of the holes inside that overlap or touch one before them (the first such)."""
-    loops, problems = [], []
-    for i, vertices in inside:
-        for j, other in loops:
-            if _loops_touch(vertices, other, tol) or PolygonDomain(other)._inside_strict(vertices[:1])[0] \
-                    or PolygonDomain(vertices)._inside_strict(other[:1])[0]:
-                problems.append(problem(f"a hole apart from holes[{j}] (they overlap or touch)",
-                                        field=f"holes[{i}]", value=_shown(tissue.holes[i])))
-                break
-        else:
-            loops.append((i, vertices))
-    return problems
-
-
-def _hole_polygon_problems(tissue: Tissue, tol: float) -> list:
-    """The holes given as polygons that are not simple ones."""
-    return [problem(why, field=f"holes[{i}]", value=_shown(hole)) for i, hole in enumerate(tissue.holes)
-            if hole.polygon is not None and (why := polygon_problem(hole.vertices(), tol))]
-
-
-def _region_polygon_problems(tissue: Tissue, tol: float | None) -> dict[int, Any]:
-    """The problems of the regions whose polygons are not simple ones, by region (`tol`: the
-    tissue's, None to take the region's own size when the tissue has no valid shape)."""
-    problems = {}
-    for i, region in enumerate(tissue.regions):
-        vertices = np.asarray(region.polygon, dtype=float)
-        own = 1e-9 * float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
-        why = polygon_problem(vertices, own if tol is None else tol)
-        if why:
-            problems[i] = problem(why, field=f"regions[{i}].polygon", value=region.polygon)
-    return problems
-
-
-def _shown(hole: Hole):
-    return hole.polygon if hole.polygon is not None else asdict(hole.circle)
-
-
-def shape_problems(tissue: Tissue) -> list:
-    """Why a tissue's shape is not one the model can hold, as problems naming its fields:
-    size and outline both or neither, a self-intersecting outline, holes outside the tissue,
-    touching the outline at a point, cutting it apart or overlapping each other, regions
-    outside the tissue, clamped pieces off the boundary or named edges on a polygon."""
-    problems = list(tissue.loops[3])
-    if problems:  # the regions' own polygons do not depend on the shape
-        return problems + list(_region_polygon_problems(tissue, None).values())
-    domain = tissue.domain
-    not_simple = _region_polygon_problems(tissue, domain.tolerance)
-    problems = list(not_simple.values())
-    for i, region in enumerate(tissue.regions):
-        if i in not_simple:
-            continue
-        vertices = np.asarray(region.polygon, dtype=float)
-        if not _overlaps(PolygonDomain(counter_clockwise(vertices)), domain):
-            problems.append(problem("a region overlapping the tissue (this one holds no tissue)",
-                                    field=f"regions[{i}].polygon", value=region.polygon))
-    for i, item in enumerate(tissue.clamped):
-        if isinstance(item, str):
-            if isinstance(domain, PolygonDomain) and not domain.edge_names and item not in domain.aliases:
-                problems.append(problem("{segment: [[x0, y0], [x1, y1]]}, or the name of a side of the "
-                                        "outline's bounding box that holds exactly one outline edge",
-                                        field=f"clamped[{i}]", value=item))
-    return problems + clamps_on_boundary(tissue.clamped, domain)[1]
-
-
-def clamps_on_boundary(clamped: tuple, domain: Rectangle | PolygonDomain) -> tuple[tuple, list]:
-    """The clamped items with each segment's ends moved onto the boundary (boundary_points),
-    and the problems of the segments that are not a straight piece of one edge."""
-    items, problems = [], []
-    for i, item in enumerate(clamped):
-        if isinstance(item, ClampedSegment):
-            segment, why = segment_on_boundary(domain, item.segment)
-            if segment is None:
-                problems.append(problem(why, field=f"clamped[{i}].segment", value=[list(p) for p in item.segment]))
-            elif segment != tuple(item.segment):
-                item = ClampedSegment(segment=segment)
-        items.append(item)
-    return tuple(items), problems
-
-
 def shape_domain(tissue: Any) -> Rectangle | PolygonDomain | None:
     """The domain of a file's `tissue:` block from its shape keys alone (size or outline and
     holes), or None when they are not valid (their own errors are reported elsewhere)."""
@@ -492,25 +314,6 @@ def shape_domain(tissue: Any) -> Rectangle | PolygonDomain | None:
     shape = {key: tissue[key] for key in ("size", "outline", "holes") if key in tissue}
     valid = valid_or_none(Tissue, {**shape, "thickness": 1.0, "material": Material()})
     return None if valid is None else valid.domain
-
-
-def _loops_touch(a: np.ndarray, b: np.ndarray, tol: float) -> bool:
-    """Whether an edge of loop a comes within tol of an edge of loop b."""
-    a0, a1 = a[:, None, :], np.roll(a, -1, axis=0)[:, None, :]
-    b0, b1 = b[None], np.roll(b, -1, axis=0)[None]
-    return bool(np.any(segments_touch(a0, a1, b0, b1, tol)))
-
-
-def _overlaps(region: PolygonDomain, domain) -> bool:
-    """Whether the region holds tissue: a lattice of 200 x 200 points over the region's
-    bounding box with some point inside both (regions thinner than 1/200 of their box count
-    as empty)."""
-    low, high = region.origin, region.origin + np.array(region.size)
-    t = (np.arange(200) + 0.5) / 200
-    points = np.stack(np.meshgrid(low[0] + t * (high[0] - low[0]), low[1] + t * (high[1] - low[1])),
-                      axis=-1).reshape(-1, 2)
-    points = points[region._inside_strict(points)]
-    return bool(np.any(domain.contains(points))) if len(points) else False
 
 
 @block(title="discretization")
@@ -729,67 +532,6 @@ class Load:
 
 
 ONE_KIND = "exactly one of 'force' (N) or 'displacement' (mm)"
-
-
-class Shown(str):
-    """A value shown as it reads (no quotes) in an error line."""
-
-    def __repr__(self) -> str:
-        return str(self)
-
-
-def shared_length(a, b, tol: float) -> float:
-    """Length (mm) two straight segments a, b (pairs of points) have in common: > 0 only
-    when they are collinear and overlap by more than a point."""
-    start, end = np.asarray(a[0], float), np.asarray(a[1], float)
-    length = float(np.linalg.norm(end - start))
-    if length == 0.0:
-        return 0.0
-    direction = (end - start) / length
-    relative = np.asarray(b, float) - start  # (2, 2)
-    across = np.abs(relative[:, 0] * direction[1] - relative[:, 1] * direction[0])
-    if np.any(across > tol):
-        return 0.0
-    along = np.sort(relative @ direction)
-    return max(0.0, min(length, along[1]) - max(0.0, along[0]))
-
-
-def load_problems(loads, clamped: tuple, domain: Rectangle | PolygonDomain | None, path: str = "loads") -> list:
-    """The loads' conflicts with each other and with the clamped edges, as problems naming
-    `path[i].segment`: a load on a clamped edge (the clamp holds every particle there, so
-    a force would be dropped and a displacement overruled), and two loads sharing more than
-    a point of the boundary (one would silently win)."""
-    if domain is None:
-        return []
-    tol = domain.tolerance
-    problems = []
-    # clamped segments as the run uses them (ends moved onto the boundary), so that a load on a
-    # slanted edge meets the clamp on it as typed
-    clamped = clamps_on_boundary(tuple(clamped), domain)[0]
-    clamped_edges = [(name, domain.edge(name)) if isinstance(name, str) else
-                     (f"clamped[{k}] segment", getattr(name, "segment", name)) for k, name in enumerate(clamped)]
-    for i, load in enumerate(loads):
-        segment = Shown(shown_as_given(load.segment))
-        on_clamp = [name for name, edge in clamped_edges if shared_length(edge, load.segment, tol) > tol]
-        if on_clamp:
-            problems.append(problem(
-                f"a segment off the clamped edges (the {on_clamp[0]} edge is clamped: it neither "
-                f"moves nor takes a load; remove it from tissue.clamped or move the load)",
-                field=f"{path}[{i}].segment", value=segment))
-            continue
-        for j in range(i):
-            common = shared_length(loads[j].segment, load.segment, tol)
-            if common > tol:
-                other = shown_as_given(loads[j].segment)
-                problems.append(problem(
-                    f"a segment sharing at most an end point with {path}[{j}].segment {other} "
-                    f"(they share {common:.4g} mm; one load would overrule the other there)",
-                    field=f"{path}[{i}].segment", value=segment))
-    return problems
-
-
-HELD = ("at least one clamped edge or a displacement load: forces alone leave the slab free "
-        "to move and turn rigidly (no unique solution)")
 
 
 @block(title="solver")

@@ -26,13 +26,11 @@ from .blocks import (
     Load,
     Material,
     PolygonPoints,
-    Shown,
     Size,
     Solver,
     Tissue,
     block,
     default_spacing_of,
-    load_problems,
     shape_domain,
     within_limits,
 )
@@ -49,7 +47,8 @@ from .fields import (
     problem,
     sequence,
 )
-from .messages import combined, valid_or_none, validate
+from .load_checks import load_problems
+from .messages import Shown, combined, valid_or_none, validate
 
 GRID_SCALES = ("log", "linear")
 MarkerFile = Annotated[str, Strict(), Field(min_length=1),

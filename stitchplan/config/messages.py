@@ -75,6 +75,13 @@ class _Null:
         return "null"
 
 
+class Shown(str):
+    """A value shown as it reads (no quotes) in an error line."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
 def short(value: Any) -> str:
     """The value as given, on one short line (tuples shown as the lists a file gives, a
     blank value as YAML's null)."""

@@ -17,7 +17,6 @@ from pydantic import AfterValidator, ValidationInfo, model_validator
 from ..errors import InputError, ScenarioError
 from ..geometry import PolygonDomain, Rectangle
 from .blocks import (
-    HELD,
     Discretization,
     Load,
     Material,
@@ -30,7 +29,6 @@ from .blocks import (
     Tissue,
     block,
     default_spacing_of,
-    load_problems,
     parse_discretization,
     shape_domain,
 )
@@ -50,6 +48,7 @@ from .fields import (
     problem,
     sequence,
 )
+from .load_checks import HELD, load_problems
 from .messages import combined, input_error, valid_or_none, validate, value_at
 from .study import StudySpec
 from .yaml_files import read_yaml, read_yaml_file
