@@ -4,14 +4,14 @@ that the outline, holes, regions and clamped pieces make one simple piece of tis
 problem naming its field (SCENARIO.md).
 
 The functions read a tissue block (stitchplan.config.blocks.Tissue) by its fields and import
-no block at run time: blocks builds on them (Tissue.loops, Tissue.domain, the validation of a
+no block: blocks builds on them (Tissue.loops, Tissue.domain, the validation of a
 Tissue and of its clamped segments).
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -27,8 +27,9 @@ from .boundary_points import segment_on_boundary
 from .fields import problem
 from .messages import Shown
 
-if TYPE_CHECKING:
-    from .blocks import Hole, Tissue
+# a blocks.Tissue and a blocks.Hole, read by their fields (blocks imports this module)
+TissueBlock = Any
+HoleBlock = Any
 
 
 def counter_clockwise(vertices: np.ndarray) -> np.ndarray:
@@ -36,7 +37,7 @@ def counter_clockwise(vertices: np.ndarray) -> np.ndarray:
     return vertices if signed_area(vertices) > 0 else vertices[::-1].copy()
 
 
-def shape_loops(tissue: Tissue) -> tuple[np.ndarray | None, list[tuple[int, np.ndarray]], bool, list]:
+def shape_loops(tissue: TissueBlock) -> tuple[np.ndarray | None, list[tuple[int, np.ndarray]], bool, list]:
     """The tissue's outer boundary (counter-clockwise), the holes inside it as (index in
     `holes`, vertices), whether holes were cut out of the outline, and the problems that
     stop the shape (naming their fields). A hole that reaches or crosses the outline is cut
@@ -60,7 +61,7 @@ def shape_loops(tissue: Tissue) -> tuple[np.ndarray | None, list[tuple[int, np.n
     return outer, inside, bool(reaching), problems + _overlapping_holes(tissue, inside, tol)
 
 
-def _outer_loop(tissue: Tissue) -> tuple[np.ndarray | None, float, list]:
+def _outer_loop(tissue: TissueBlock) -> tuple[np.ndarray | None, float, list]:
     """The outline (counter-clockwise) or the rectangle of `size`, the tolerance of the shape's
     checks (1e-9 of its larger side), and the problem of an outline that is not a simple
     polygon (None as the loop)."""
@@ -75,7 +76,7 @@ def _outer_loop(tissue: Tissue) -> tuple[np.ndarray | None, float, list]:
     return counter_clockwise(outline), tol, []
 
 
-def _inside_or_reaching(tissue: Tissue, outer: np.ndarray, tol: float) -> tuple[list, list]:
+def _inside_or_reaching(tissue: TissueBlock, outer: np.ndarray, tol: float) -> tuple[list, list]:
     """The holes as (index in `holes`, vertices): those inside the outer loop and apart from
     it, and those that reach or cross it."""
     inside, reaching = [], []
@@ -95,7 +96,7 @@ def _inside_and_apart(vertices: np.ndarray, domain: PolygonDomain, tol: float) -
             and not _loops_touch(vertices, domain.outline, tol))
 
 
-def _cut_out(tissue: Tissue, outer: np.ndarray, reaching: list, tol: float) -> tuple[np.ndarray | None, list]:
+def _cut_out(tissue: TissueBlock, outer: np.ndarray, reaching: list, tol: float) -> tuple[np.ndarray | None, list]:
     """The outer loop with the `reaching` holes cut out of it (geometry.cut_outline), and the
     problems of the cut: a hole that holds no tissue, or what is left not one simple piece."""
     cut, why, idle = cut_outline(outer, [vertices for _, vertices in reaching], tol)
@@ -114,7 +115,7 @@ def _cut_out(tissue: Tissue, outer: np.ndarray, reaching: list, tol: float) -> t
     return cut, problems
 
 
-def _holes_reached_by_cut(tissue: Tissue, cut: np.ndarray, inside: list, reaching: list, tol: float) -> list:
+def _holes_reached_by_cut(tissue: TissueBlock, cut: np.ndarray, inside: list, reaching: list, tol: float) -> list:
     """The problems of the holes inside the outline that the cut outline no longer holds apart."""
     cut_domain = PolygonDomain(cut)
     return [problem("a hole inside the tissue, apart from the holes cut into its outline ("
@@ -123,7 +124,7 @@ def _holes_reached_by_cut(tissue: Tissue, cut: np.ndarray, inside: list, reachin
             for i, vertices in inside if not _inside_and_apart(vertices, cut_domain, tol)]
 
 
-def _overlapping_holes(tissue: Tissue, inside: list, tol: float) -> list:
+def _overlapping_holes(tissue: TissueBlock, inside: list, tol: float) -> list:
     """The problems of the holes inside that overlap or touch one before them (the first such)."""
     loops, problems = [], []
     for i, vertices in inside:
@@ -138,13 +139,13 @@ def _overlapping_holes(tissue: Tissue, inside: list, tol: float) -> list:
     return problems
 
 
-def _hole_polygon_problems(tissue: Tissue, tol: float) -> list:
+def _hole_polygon_problems(tissue: TissueBlock, tol: float) -> list:
     """The holes given as polygons that are not simple ones."""
     return [problem(why, field=f"holes[{i}]", value=_shown(hole)) for i, hole in enumerate(tissue.holes)
             if hole.polygon is not None and (why := polygon_problem(hole.vertices(), tol))]
 
 
-def _region_polygon_problems(tissue: Tissue, tol: float | None) -> dict[int, Any]:
+def _region_polygon_problems(tissue: TissueBlock, tol: float | None) -> dict[int, Any]:
     """The problems of the regions whose polygons are not simple ones, by region (`tol`: the
     tissue's, None to take the region's own size when the tissue has no valid shape)."""
     problems = {}
@@ -157,11 +158,11 @@ def _region_polygon_problems(tissue: Tissue, tol: float | None) -> dict[int, Any
     return problems
 
 
-def _shown(hole: Hole):
+def _shown(hole: HoleBlock):
     return hole.polygon if hole.polygon is not None else asdict(hole.circle)
 
 
-def shape_problems(tissue: Tissue) -> list:
+def shape_problems(tissue: TissueBlock) -> list:
     """Why a tissue's shape is not one the model can hold, as problems naming its fields:
     size and outline both or neither, a self-intersecting outline, holes outside the tissue,
     touching the outline at a point, cutting it apart or overlapping each other, regions
