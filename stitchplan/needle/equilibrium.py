@@ -699,8 +699,7 @@ class NeedleInsertion:
                 solution = history.mix(free, multipliers, center, solution, aim if steering else None)
             free, multipliers, center = free + solution[:n_dof], multipliers + solution[n_dof:-2], center + solution[-2:]
         self._count(iteration)
-        raise self._not_converged(step, rotation, iteration, state.needle_force, balance.residual_norm, balance.worst,
-                                  balance.finite, balance.forces_balance)
+        raise self._not_converged(step, rotation, iteration, balance)
 
     def _balance(self, state: Residuals) -> _Balance:
         """How far the iterate of `state` is from equilibrium, against the step's tolerances."""
@@ -793,20 +792,19 @@ class NeedleInsertion:
             f"a freshly factored tangent raised the residual (now {balance.residual_norm:.3e} N, constraint "
             f"violation {balance.worst:.3e} mm)")
 
-    def _not_converged(self, step: int, rotation: float, iteration: int, needle_force: float, residual_norm: float,
-                       worst: float, finite: bool, forces_balance: bool) -> InsertionFailure:
+    def _not_converged(self, step: int, rotation: float, iteration: int, balance: _Balance) -> InsertionFailure:
         """Why _newton stopped short of equilibrium at its last `iteration`: a residual that is
         not finite, the forces out of balance after solver.max_iterations, or the forces balanced
         with the needle constraints stalled above their tolerance."""
-        if not finite:
+        if not balance.finite:
             return NonFiniteResidual(
                 f"Newton stopped at step {step} (needle rotation {rotation:.3f} rad): the residual is not finite "
-                f"after {iteration} iterations (needle force {needle_force:.3e} N): the loads or the "
+                f"after {iteration} iterations (needle force {balance.needle_force:.3e} N): the loads or the "
                 "deformation overflow floating point")
         message = (f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
-                   f"{residual_norm:.3e} N, constraint violation {worst:.3e} mm after "
+                   f"{balance.residual_norm:.3e} N, constraint violation {balance.worst:.3e} mm after "
                    f"{self.scenario.solver.max_iterations} iterations")
-        if not forces_balance:
+        if not balance.forces_balance:
             return NewtonExhausted(message)
         remedy = "refine the spacing or lengthen the needle step"
         if self.needle.coupling == "points":
