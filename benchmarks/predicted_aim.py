@@ -35,7 +35,7 @@ import yaml  # noqa: E402
 import _common as common  # noqa: E402
 from stitchplan.config import load_scenario  # noqa: E402
 from stitchplan.config.scenario import parse_scenario  # noqa: E402
-from stitchplan.planning.planner import exit_error_vector, run_plan  # noqa: E402
+from stitchplan.planning.planner import run_plan  # noqa: E402
 from stitchplan.planning.replays import InlineReplays  # noqa: E402
 from stitchplan.planning.replay_models import ESTIMATE_FACTOR, VERIFICATION_FACTOR, rescaled  # noqa: E402
 from stitchplan.planning.verification import PREDICTED_RATIO, VERIFIED_FACTOR, plan_verified  # noqa: E402
@@ -57,9 +57,9 @@ def measure(scene: str) -> dict:
     threshold = VERIFIED_FACTOR * scenario.planner.exit_tolerance
     unaimed = run_plan(replace(scenario, planner=replace(scenario.planner, max_passes=1)), compare=False)
     centers = unaimed.exported_centers
-    at = {factor: exit_error_vector(InlineReplays(rescaled(scenario, factor)).replay(centers))
+    at = {factor: InlineReplays(rescaled(scenario, factor)).replay(centers).exit_error_vector_mm
           for factor in (ESTIMATE_FACTOR, VERIFICATION_FACTOR)}
-    e_h = exit_error_vector(unaimed.planned)
+    e_h = unaimed.planned.exit_error_vector_mm
     coarse_change, fine_change = e_h - at[ESTIMATE_FACTOR], at[VERIFICATION_FACTOR] - e_h
     predicted = coarse_change / PREDICTED_RATIO
     row = {"scene": scene, "planned_mm": float(np.linalg.norm(e_h)),

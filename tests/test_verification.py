@@ -33,7 +33,6 @@ from stitchplan.needle.insertion import run_insertion
 from stitchplan.planning.planner import (
     MoveLimits,
     PassOffsets,
-    exit_error_vector,
     path_smoothness,
     run_plan,
 )
@@ -205,7 +204,7 @@ def test_the_predicted_aim_re_aims_before_the_refined_replay_and_saves_a_round()
     first = aimed.verification.rounds[0]
     first_pass = run_plan(parse_scenario({**raw, "planner": {"max_passes": 1}}), compare=False)
     coarse = run_insertion(rescaled(scenario, 2.0), center_path=first_pass.exported_centers)
-    expected = (exit_error_vector(first_pass.planned) - exit_error_vector(coarse)) / PREDICTED_RATIO
+    expected = (first_pass.planned.exit_error_vector_mm - coarse.exit_error_vector_mm) / PREDICTED_RATIO
     assert first["aimed_by"] == "predicted offset"
     np.testing.assert_allclose(first["predicted_offset_mm"], expected, rtol=1e-9, atol=1e-12)
     assert len(aimed.verification.rounds) == 1 and aimed.verification.exit_error_mm <= threshold

@@ -97,6 +97,11 @@ class InsertionResult:
     def exit_error_mm(self) -> float:
         return float(np.linalg.norm(self.achieved_exit_def - self.desired_exit_def))
 
+    @property
+    def exit_error_vector_mm(self) -> np.ndarray:
+        """achieved_exit_def - desired_exit_def (mm): the exit error the planner's passes aim."""
+        return np.asarray(self.achieved_exit_def - self.desired_exit_def, dtype=float)
+
     @cached_property
     def displacements(self) -> np.ndarray:
         """(n_steps + 1, NP, 2) particle displacements u(X_I) after each step, step 0 = rest:

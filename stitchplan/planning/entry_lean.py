@@ -51,11 +51,11 @@ class LeanSearch:
                 "tries": [{"entry_tilt_rad": tilt, "exit_error_vector_mm": error} for tilt, error in self.tries]}
 
 
-def lean_for_exit(scenario: Scenario, aim: np.ndarray, tolerance: float, first_pass, exit_error,
+def lean_for_exit(scenario: Scenario, aim: np.ndarray, tolerance: float, first_pass,
                   known: InsertionResult | None, tilt: float | None) -> LeanSearch:
     """The lean of the needle at entry whose first planner pass (`first_pass(scenario)`:
-    Algorithm 2 with the move limits, offset zero) exits at `aim`, within planner.max_entry_tilt;
-    `exit_error(run)` is a pass's exit error vector (planner.exit_error_vector).
+    Algorithm 2 with the move limits, offset zero) exits at `aim` (its exit_error_vector_mm),
+    within planner.max_entry_tilt.
 
     Where the tissue carries the desired exit further than the move limits let the centre
     follow (thesis figure 5.10: 12 mm of centre travel, 0.35 mm a step allowed), no pass
@@ -70,14 +70,14 @@ def lean_for_exit(scenario: Scenario, aim: np.ndarray, tolerance: float, first_p
     # a known first pass is the passes' own (their prefix keeps its limited steps): kept, it
     # is not run again
     run, limited = (known, []) if known is not None else first_pass(leaning(scenario, tilt))
-    best = LeanSearch(tilt, run, limited, [(tilt, exit_error(run))], "")
+    best = LeanSearch(tilt, run, limited, [(tilt, run.exit_error_vector_mm)], "")
     miss = best.tries[0][1] - aim
     if length(miss) <= tolerance:
         best.reason = "the first pass met its aim"
         return best
     direction = miss / length(miss)
     slope = _undeformed_lean_slope(scenario, tilt, direction)
-    best.reason = _lean_secant(scenario, aim, tolerance, first_pass, exit_error, best, direction, slope)
+    best.reason = _lean_secant(scenario, aim, tolerance, first_pass, best, direction, slope)
     return best
 
 
@@ -92,7 +92,7 @@ def _undeformed_lean_slope(scenario: Scenario, tilt: float, direction: np.ndarra
     return 0.0
 
 
-def _lean_secant(scenario: Scenario, aim: np.ndarray, tolerance: float, first_pass, exit_error,
+def _lean_secant(scenario: Scenario, aim: np.ndarray, tolerance: float, first_pass,
                  best: LeanSearch, direction: np.ndarray, slope: float) -> str:
     """lean_for_exit's secant on g(lean) = direction . (e(lean) - aim) from `best`, its one
     try so far, for at most LEAN_RUNS first passes: each run is added to best.tries, and the
@@ -113,7 +113,7 @@ def _lean_secant(scenario: Scenario, aim: np.ndarray, tolerance: float, first_pa
             raise
         except NumericalFailure as failure:
             return f"the pass at the lean {trial:.4g} rad failed: {failure}"
-        error = exit_error(run)
+        error = run.exit_error_vector_mm
         best.tries.append((trial, error))
         points.append((trial, float(direction @ (error - aim))))
         if length(error - aim) < best_miss:

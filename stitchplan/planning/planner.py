@@ -303,11 +303,6 @@ def final_mismatch(result: InsertionResult) -> np.ndarray:
     return result.geometry.center + last.exit_displacement - last.center
 
 
-def exit_error_vector(result: InsertionResult) -> np.ndarray:
-    """achieved_exit_def - desired_exit_def (mm)."""
-    return np.asarray(result.achieved_exit_def - result.desired_exit_def, dtype=float)
-
-
 class PassOffsets:
     """The offsets c_k of the planning passes, a secant search along the exit edge.
 
@@ -451,11 +446,11 @@ class _PlanPasses:
         passes then run leaning so, the search's run there their first pass."""
         offsets = self.offsets
         known = offsets.prefix.reference if offsets.prefix is not None else None
-        lean = lean_for_exit(self.scenario, self.aim, self.target, self.first_pass, exit_error_vector, known,
+        lean = lean_for_exit(self.scenario, self.aim, self.target, self.first_pass, known,
                              offsets.tilt)
         log.info("planning: the needle leans %.4g rad (%.3g deg) from the orthogonal entry, its first pass %.4g mm "
                  "from the aim (%d leans tried; %s)", lean.tilt, math.degrees(lean.tilt),
-                 length(exit_error_vector(lean.run) - self.aim), len(lean.tries), lean.reason)
+                 length(lean.run.exit_error_vector_mm - self.aim), len(lean.tries), lean.reason)
         if lean.tilt != offsets.tilt:  # passes about another lean: their offsets start afresh
             self.offsets, self.ready = PassOffsets(lean.tilt), (lean.run, lean.limited_steps)
         self.scenario = leaning(self.scenario, lean.tilt)
@@ -520,7 +515,7 @@ class _PlanPasses:
         if self.stream is not None:
             self.stream.end(exported_centers(planned))
         mismatch = final_mismatch(planned)
-        error = exit_error_vector(planned)
+        error = planned.exit_error_vector_mm
         if self.symmetric and planned.bites is not None:
             self.aim = symmetric_aim(planned, bite_aim)
         elif self.symmetric:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
@@ -591,4 +586,4 @@ def symmetric_aim(result: InsertionResult, bite_aim: float = 0.0) -> np.ndarray:
     edge when the exit side is the longer one."""
     away = result.achieved_exit_def - result.bites["exit_wound_edge_def"]
     excess = result.bites["difference_mm"] - bite_aim
-    return exit_error_vector(result) - excess * away / np.linalg.norm(away)
+    return result.exit_error_vector_mm - excess * away / np.linalg.norm(away)

@@ -69,7 +69,7 @@ from ..events import Event, EventKind
 from ..needle.equilibrium import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
-from .planner import PlanResult, add_timings, exit_error_vector, run_plan, symmetric_aim
+from .planner import PlanResult, add_timings, run_plan, symmetric_aim
 from .replay_models import (
     ESTIMATE_FACTOR,
     VERIFICATION_FACTOR,
@@ -138,7 +138,7 @@ def exit_deviations(result: InsertionResult, reference: InsertionResult) -> dict
     exit and the exit-error vector differed by 0.015 mm."""
     spatial = float(np.linalg.norm(result.achieved_exit_def - reference.achieved_exit_def))
     material = float(np.linalg.norm(result.achieved_exit - reference.achieved_exit))
-    error = float(np.linalg.norm(exit_error_vector(result) - exit_error_vector(reference)))
+    error = float(np.linalg.norm(result.exit_error_vector_mm - reference.exit_error_vector_mm))
     compared = len(result.steps) == len(reference.steps)
     return {"exit_deviation_mm": spatial, "material_exit_deviation_mm": material,
             "exit_error_deviation_mm": error, "spatial_compared": compared,
@@ -227,13 +227,13 @@ def predicted_offset(scenario: Scenario, planned: InsertionResult, predictions: 
     except (InputError, NumericalFailure) as error:
         log.info("verification: no predicted offset, the model at twice the spacing failed (%s)", error)
         return None
-    return (exit_error_vector(planned) - exit_error_vector(replayed)) / PREDICTED_RATIO
+    return (planned.exit_error_vector_mm - replayed.exit_error_vector_mm) / PREDICTED_RATIO
 
 
 def exit_offset(replayed: InsertionResult, planned: InsertionResult) -> np.ndarray:
     """The refined model's exit offset delta = e_refined - e_base for the same trajectory (the
     module docstring): what the passes aim by."""
-    return exit_error_vector(replayed) - exit_error_vector(planned)
+    return replayed.exit_error_vector_mm - planned.exit_error_vector_mm
 
 
 def replay(replays: InlineReplays, centers: np.ndarray) -> tuple[InsertionResult | None, str | None]:
@@ -314,7 +314,7 @@ class _PredictedAim:
             return None
         self.offset = offset
         tolerance = self.scenario.planner.exit_tolerance
-        if np.linalg.norm(exit_error_vector(first_pass) + offset) <= VERIFIED_FACTOR * tolerance:
+        if np.linalg.norm(first_pass.exit_error_vector_mm + offset) <= VERIFIED_FACTOR * tolerance:
             return None  # the refined replay is predicted to pass
         self.aimed = True
         log.info("verification: refined model's exit offset predicted from 2h (%.4g, %.4g) mm; the passes aim at "

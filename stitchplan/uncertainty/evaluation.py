@@ -17,7 +17,6 @@ import numpy as np
 from ..config import Scenario
 from ..needle.insertion import run_insertion
 from ..parallel import RUN_FAILURES
-from ..planning.planner import exit_error_vector
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +49,6 @@ def run_sample(scenario: Scenario, centers: np.ndarray | None, options: dict | N
         reason = f"{type(error).__name__}: {error}"
         log.info("sampled run failed: %s", reason)
         return SampleRun(reason=reason, wall_seconds=time.perf_counter() - start)
-    return SampleRun(exit_error_vector(result), np.asarray(result.achieved_exit_def, dtype=float),
+    return SampleRun(result.exit_error_vector_mm, np.asarray(result.achieved_exit_def, dtype=float),
                      wall_seconds=result.wall_seconds, steps=len(result.steps),
                      newton_iterations=int(sum(s.newton_iterations for s in result.steps)))

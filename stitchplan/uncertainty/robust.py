@@ -73,7 +73,7 @@ from ..config.uncertainty import UNITS, Uncertainty, check_against_scenario
 from ..errors import InputError, NumericalFailure
 from ..events import Event, EventKind
 from ..parallel import Executor, run_all
-from ..planning.planner import PlanResult, exit_error_vector, run_plan
+from ..planning.planner import PlanResult, run_plan
 from ..planning.replay_models import aims_at_bites
 from ..planning.verification import (AIMED_TOLERANCE_FRACTION, estimate_exit_error, exit_offset, plan_verified,
                                      verify_exported)
@@ -162,7 +162,7 @@ class UncertaintyResult:
         and the robust (d_i + aim) plans."""
         if self.aim is None:
             return None
-        own = exit_error_vector(self.nominal.planned)
+        own = self.nominal.planned.exit_error_vector_mm
         return {"nominal": exit_statistics(self.on_refined_model(self.deviations + own, "nominal")),
                 "robust": exit_statistics(self.on_refined_model(self.deviations + self.aim, "robust"))}
 
@@ -339,7 +339,7 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
                  "nominal plan is exported"]
         return UncertaintyResult(uncertainty, design, nominal, None, "nominal", np.zeros(2), training, held_out,
                                  sensitivities, _where(executor), notes, refined_offset=offset)
-    own = exit_error_vector(nominal.planned)  # where the nominal plan exits on the planning model
+    own = nominal.planned.exit_error_vector_mm  # where the nominal plan exits on the planning model
     deviations = np.asarray(ok) - own  # (n_ok, 2)
     shift = deviations.mean(axis=0)
     significance, threshold = shift_significance(deviations), shift_threshold(len(ok))
