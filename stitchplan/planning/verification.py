@@ -138,7 +138,8 @@ def exit_deviations(result: InsertionResult, reference: InsertionResult) -> dict
     exit and the exit-error vector differed by 0.015 mm."""
     spatial = float(np.linalg.norm(result.achieved_exit_def - reference.achieved_exit_def))
     material = float(np.linalg.norm(result.achieved_exit - reference.achieved_exit))
-    error = float(np.linalg.norm(result.exit_error_vector_mm - reference.exit_error_vector_mm))
+    error = float(np.linalg.norm((result.achieved_exit_def - result.desired_exit_def)
+                                 - (reference.achieved_exit_def - reference.desired_exit_def)))
     compared = len(result.steps) == len(reference.steps)
     return {"exit_deviation_mm": spatial, "material_exit_deviation_mm": material,
             "exit_error_deviation_mm": error, "spatial_compared": compared,
