@@ -194,7 +194,7 @@ def clamps_on_boundary(clamped: tuple, domain: Rectangle | PolygonDomain) -> tup
     and the problems of the segments that are not a straight piece of one edge."""
     items, problems = [], []
     for i, item in enumerate(clamped):
-        if hasattr(item, "segment"):  # a ClampedSegment; a str names an edge
+        if not isinstance(item, str):  # a ClampedSegment (a str names an edge)
             segment, why = segment_on_boundary(domain, item.segment)
             if segment is None:
                 problems.append(problem(why, field=f"clamped[{i}].segment", value=[list(p) for p in item.segment]))
