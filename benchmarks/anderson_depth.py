@@ -2,7 +2,7 @@
 replays of a plan's trajectory (the verification's at half the spacing, the estimate's and the
 predicted aim's at twice the spacing).
 
-A needle step's modified Newton iteration mixes its last steps (needle/equilibrium.py
+A needle step's modified Newton iteration mixes its last steps (needle/newton.py
 AndersonMixing), ANDERSON_DEPTH of them where the planner's centre is an unknown of the solve.
 With the centre prescribed a step converges in ~3-4 iterations from the step before, and the
 mixing has at most two or three earlier steps to combine. For each scene with a shipped
@@ -36,9 +36,10 @@ RUNS = (("replay at h/2", 0.5, True), ("unplanned at h", 1.0, False), ("replay a
 def main() -> None:
     from stitchplan.config.scenario import load_scenario
     from stitchplan.io.readers import read_center_path
-    from stitchplan.needle import equilibrium
+    from stitchplan.needle import newton
     from stitchplan.needle.geometry import scenario_needle
     from stitchplan.needle.insertion import run_insertion
+    from stitchplan.needle.prepared_tissue import PreparedTissue
     from stitchplan.planning.replay_models import rescaled
 
     header = ["scene", "run", "particles", *[f"iterations, depth {d}" for d in DEPTHS],
@@ -51,11 +52,11 @@ def main() -> None:
             scenario = rescaled(base, factor)
             path = (read_center_path(common.REPO_ROOT / "sample_runs" / scene / "trajectory.csv",
                                      scenario_needle(scenario)) if replayed else None)
-            tissue = equilibrium.PreparedTissue(scenario)
+            tissue = PreparedTissue(scenario)
             tissue.factor_at_rest()
             iterations, seconds, exits = [], [], []
             for depth in DEPTHS:
-                equilibrium.FIXED_CENTER_ANDERSON_DEPTH = depth
+                newton.FIXED_CENTER_ANDERSON_DEPTH = depth
                 least = float("inf")
                 for _ in range(REPEATS):
                     start = time.perf_counter()

@@ -58,7 +58,7 @@ def command_prefix(prefix: list[str]):
 
 def matrices_table() -> list[list]:
     from stitchplan.config import load_scenario
-    from stitchplan.needle.equilibrium import PreparedTissue
+    from stitchplan.needle.prepared_tissue import PreparedTissue
     from stitchplan.planning.replay_models import rescaled
     from stitchplan.tissue import factorization
 

@@ -33,7 +33,7 @@ import scipy.sparse.linalg as spla  # noqa: E402
 
 import _common as common  # noqa: E402
 from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
-from stitchplan.needle.equilibrium import STIFFNESS_CONDITION, PreparedTissue  # noqa: E402
+from stitchplan.needle.prepared_tissue import STIFFNESS_CONDITION, PreparedTissue  # noqa: E402
 from stitchplan.errors import InputError  # noqa: E402
 from stitchplan.tissue.factorization import condition_estimate, factorize, solve_residual  # noqa: E402
 

@@ -53,7 +53,7 @@ import _common as common  # noqa: E402
 import exit_components  # noqa: E402
 import needle_coupling  # noqa: E402
 from stitchplan.errors import InsertionFailure, InvertedMaterial  # noqa: E402
-from stitchplan.needle import equilibrium as equilibrium_module  # noqa: E402
+from stitchplan.needle import newton as newton_module  # noqa: E402
 from stitchplan.needle.equilibrium import NeedleInsertion  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 from stitchplan.needle.saddle_point import SaddlePointSolver  # noqa: E402
@@ -115,8 +115,8 @@ def exact_newton(from_step: int, kept: dict):
     """Newton on the full Jacobian from `from_step` on (see the module's docstring); `kept`
     gets the insertion and, at PROBE_STEP, each load carried with its snapshot."""
     newton, solve, stiffness = NeedleInsertion._newton, SaddlePointSolver.solve_direct, NeedleInsertion._stiffness
-    residuals, renew, depth = NeedleInsertion._timed_residuals, equilibrium_module.renew_factor, \
-        equilibrium_module.FIXED_CENTER_ANDERSON_DEPTH
+    residuals, renew, depth = NeedleInsertion._timed_residuals, newton_module.renew_factor, \
+        newton_module.FIXED_CENTER_ANDERSON_DEPTH
     exact = {"on": False}
 
     def newton_step(insertion, rotation, step, aim=None):
@@ -151,8 +151,8 @@ def exact_newton(from_step: int, kept: dict):
 
     NeedleInsertion._newton, NeedleInsertion._timed_residuals = newton_step, timed_residuals
     NeedleInsertion._stiffness, SaddlePointSolver.solve_direct = full_stiffness, full_solve
-    equilibrium_module.renew_factor = lambda *args: True if exact["on"] else renew(*args)
-    equilibrium_module.FIXED_CENTER_ANDERSON_DEPTH = 0 if from_step <= 1 else depth
+    newton_module.renew_factor = lambda *args: True if exact["on"] else renew(*args)
+    newton_module.FIXED_CENTER_ANDERSON_DEPTH = 0 if from_step <= 1 else depth
     refuse = NeedleInsertion._refuse_unstable  # its eigensolver takes a symmetric tangent
     NeedleInsertion._refuse_unstable = lambda insertion, rotation, step: None if exact["on"] else \
         refuse(insertion, rotation, step)
@@ -161,7 +161,7 @@ def exact_newton(from_step: int, kept: dict):
     finally:
         NeedleInsertion._newton, NeedleInsertion._timed_residuals = newton, residuals
         NeedleInsertion._stiffness, SaddlePointSolver.solve_direct = stiffness, solve
-        equilibrium_module.renew_factor, equilibrium_module.FIXED_CENTER_ANDERSON_DEPTH = renew, depth
+        newton_module.renew_factor, newton_module.FIXED_CENTER_ANDERSON_DEPTH = renew, depth
         NeedleInsertion._refuse_unstable = refuse
 
 

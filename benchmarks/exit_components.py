@@ -40,7 +40,7 @@ import needle_coupling  # noqa: E402
 from needle_fem_reference import finite_element_model  # noqa: E402
 from stitchplan.config import with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
-from stitchplan.needle.equilibrium import PreparedTissue  # noqa: E402
+from stitchplan.needle.prepared_tissue import PreparedTissue  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
 SCENES = ("sh12_100x100", "sh12_100x100_mid", "soft_t3", "soft_t2.5", needle_coupling.THESIS_FIT[3],

@@ -64,7 +64,7 @@ from scipy.spatial import Delaunay  # noqa: E402
 from stitchplan.config.scenario import with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
 from stitchplan.needle import coupling as coupling_module  # noqa: E402
-from stitchplan.needle.equilibrium import PreparedTissue  # noqa: E402
+from stitchplan.needle.prepared_tissue import PreparedTissue  # noqa: E402
 from stitchplan.io.readers import read_center_path  # noqa: E402
 from stitchplan.needle.geometry import needle_zone, scenario_needle  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402

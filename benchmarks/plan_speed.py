@@ -24,7 +24,7 @@
    solving every step.
 3. The whole command with the default verification on sh12_100x100, median of REPEATS.
 4. Replays of the shipped trajectories at half the spacing with the factor renewed as now
-   and as a planner's step renews it (needle/equilibrium.py renew_factor).
+   and as a planner's step renews it (needle/newton.py renew_factor).
 5. The allocator: the planned run, the whole command, the process's page faults and its
    peak memory with glibc malloc's thresholds set as the command sets them
    (stitchplan/allocator.py) and with glibc's default.
@@ -160,6 +160,8 @@ def levers() -> list[tuple]:
 
     import stitchplan.needle.equilibrium as equilibrium
     import stitchplan.needle.insertion as insertion
+    import stitchplan.needle.newton as newton
+    import stitchplan.needle.prepared_tissue as prepared_tissue
     import stitchplan.needle.saddle_point as saddle_point
     import stitchplan.needle.tip_tracking as tip_tracking
     from stitchplan.tissue.assembly import Assembler
@@ -241,16 +243,16 @@ def levers() -> list[tuple]:
     backend = factorization.factorize(_spd_probe(), symmetric_positive=True).backend
     settings = [  # (scene, label, module attributes, scenario change)
         ("sh12_100x100", f"all levers (now; {backend})", {}, None),
-        ("sh12_100x100", "without Anderson mixing", {(equilibrium, "ANDERSON_DEPTH"): 0}, None),
-        ("sh12_100x100", "centre columns re-solved every iteration", {(equilibrium, "STALE_CENTER_MOVES"): 0.0}, None),
+        ("sh12_100x100", "without Anderson mixing", {(newton, "ANDERSON_DEPTH"): 0}, None),
+        ("sh12_100x100", "centre columns re-solved every iteration", {(newton, "STALE_CENTER_MOVES"): 0.0}, None),
         ("sh12_100x100", "centre columns solved with the factor (not from the kept K^-1 E^T)",
          {(equilibrium, "CENTER_COLUMNS_ON_ROWS"): False}, None),
         ("sh12_100x100", "SuperLU in symmetric mode (without the `fast` extra, where the band is wide)",
          {(saddle_point, "factorize"): lambda m, **_: factorization.SuperLUFactor(m),
-          (equilibrium, "factorize"): lambda m, **_: factorization.SuperLUFactor(m)}, None),
+          (prepared_tissue, "factorize"): lambda m, **_: factorization.SuperLUFactor(m)}, None),
         ("sh12_100x100", "SuperLU without symmetric mode",
          {(saddle_point, "factorize"): lambda m, **_: GeneralLU(m),
-          (equilibrium, "factorize"): lambda m, **_: GeneralLU(m)}, None),
+          (prepared_tissue, "factorize"): lambda m, **_: GeneralLU(m)}, None),
         ("sh12_100x100", "tip tracking by scipy's Levenberg-Marquardt only (no Newton first)",
          {(tip_tracking, "NEWTON_TIP_ITERATIONS"): 0}, None),
         ("sh12_100x100", "needle tolerances 5e-6 and 1e-9 R (the defaults before 1e-3 and 1e-7 R)", {},
@@ -258,7 +260,7 @@ def levers() -> list[tuple]:
         ("sh12_100x100", "residual tolerance 1e-6 (the default before 5e-6)", {}, tolerance(1e-6)),
         ("sh12_100x100", "residual tolerance 1e-8 (the default before 1e-6)", {}, tolerance(1e-8)),
         ("sh12_100x100", "K0 as B^T diag(w A) B over the 4 nq rows of B (not from the direction gradients)",
-         {(equilibrium, "stiffness_at_rest"): general_stiffness_at_rest}, None),
+         {(prepared_tissue, "stiffness_at_rest"): general_stiffness_at_rest}, None),
         ("needle20_entry25", "all levers (now)", {}, None),
         ("needle20_entry25", "needle tolerances 5e-6 and 1e-9 R (the defaults before 1e-3 and 1e-7 R)", {},
          tolerance(5e-6)),
@@ -365,7 +367,7 @@ def replay_renewals(scenes: tuple[str, ...] = ("sh12_100x30", "wound_closure")) 
     only when the iteration's measure exceeds both of the last two) and as a planner's step renews it
     (contraction below REFACTOR_CONTRACTION), alternating, median of REPEATS: (scene,
     variant, s, factorizations, Newton iterations, exit error mm)."""
-    import stitchplan.needle.equilibrium as equilibrium
+    import stitchplan.needle.newton as newton
     from stitchplan.config.scenario import load_scenario
     from stitchplan.io.readers import read_center_path
     from stitchplan.needle.geometry import scenario_needle
@@ -373,7 +375,7 @@ def replay_renewals(scenes: tuple[str, ...] = ("sh12_100x30", "wound_closure")) 
     from stitchplan.planning.replay_models import rescaled
 
     logging.getLogger("stitchplan").setLevel(logging.ERROR)
-    now = equilibrium.renew_factor
+    now = newton.renew_factor
     variants = (("now: renewed when the measure exceeds the last two", now),
                 ("renewed as a planner's step renews it", lambda measure, previous, earlier, planned:
                  now(measure, previous, earlier, True)))
@@ -386,7 +388,7 @@ def replay_renewals(scenes: tuple[str, ...] = ("sh12_100x30", "wound_closure")) 
         results: dict[str, list] = {label: [] for label, _ in variants}
         for _ in range(REPEATS):
             for label, rule in variants:
-                with switched({(equilibrium, "renew_factor"): rule}):
+                with switched({(newton, "renew_factor"): rule}):
                     start = time.perf_counter()
                     replayed = run_insertion(fine, center_path=path)
                     results[label].append((time.perf_counter() - start, replayed))
@@ -596,7 +598,7 @@ def main() -> None:
         "## Replays on the refined model: when the factor is renewed\n",
         f"The shipped trajectory replayed at half the spacing (as the verification does), median of {REPEATS}, "
         "with the factor of K + H renewed as now for a prescribed centre (only when the modified Newton "
-        "iteration's convergence measure exceeds both of the last two; needle/equilibrium.py renew_factor) and as a "
+        "iteration's convergence measure exceeds both of the last two; needle/newton.py renew_factor) and as a "
         "planner's step renews it (an iteration contracting by less than REFACTOR_CONTRACTION).\n",
         common.markdown_table(["scene", "variant", "replay (s)", "factorizations", "Newton iterations",
                                "exit error (mm)"], [list(row) for row in renewal_rows]),

@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 
 from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
-from stitchplan.needle.equilibrium import newton_tolerances  # noqa: E402
+from stitchplan.needle.newton import newton_tolerances  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 from stitchplan.planning.planner import run_plan  # noqa: E402
 from stitchplan.tissue.deform import run_deform  # noqa: E402

@@ -51,7 +51,7 @@ def worker(scene: str, spacing: float | None) -> dict:
     import numpy as np
 
     from stitchplan.config import load_scenario, with_discretization
-    from stitchplan.needle.equilibrium import PreparedTissue
+    from stitchplan.needle.prepared_tissue import PreparedTissue
     from stitchplan.needle.insertion import run_insertion
     from stitchplan.planning.planner import run_plan
 

@@ -61,7 +61,7 @@ import _common as common  # noqa: E402
 import entry_newton  # noqa: E402
 import needle_coupling  # noqa: E402
 import needle_width  # noqa: E402
-import stitchplan.needle.equilibrium as equilibrium  # noqa: E402
+import stitchplan.needle.prepared_tissue as prepared_tissue  # noqa: E402
 import stitchplan.tissue.model as tissue_model  # noqa: E402
 from stitchplan.needle.coupling import NeedleCoupling  # noqa: E402
 
@@ -248,7 +248,7 @@ def track_cut(cut: CutVisibility, penalty: float, stations: int, element: int):
         coupling.model = FaceRows(model, cut)
 
     with mock.patch.object(tissue_model, "rk_shape_functions", seeing_across), \
-            mock.patch.object(equilibrium, "build_tissue_model", built), \
+            mock.patch.object(prepared_tissue, "build_tissue_model", built), \
             mock.patch.object(NeedleCoupling, "__init__", faced), \
             needle_width.added_term(lambda insertion: FaceTie(insertion, cut, penalty, stations, element)):
         yield

@@ -154,7 +154,7 @@ def test_stiffness_at_rest_of_material_regions():
     """Each quadrature point's own lambda and mu (a layered tissue, PointwiseMaterial)."""
     from conftest import CONFIGS
     from stitchplan.config.scenario import load_scenario
-    from stitchplan.needle.equilibrium import PreparedTissue
+    from stitchplan.needle.prepared_tissue import PreparedTissue
     from stitchplan.tissue.material import PointwiseMaterial
 
     model = PreparedTissue(load_scenario(CONFIGS / "skin_layered.yaml")).model

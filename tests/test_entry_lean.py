@@ -24,7 +24,7 @@ from typer.testing import CliRunner
 
 from stitchplan.cli import app
 from stitchplan.config.scenario import ScenarioError, parse_scenario
-from stitchplan.needle.equilibrium import PreparedTissue
+from stitchplan.needle.prepared_tissue import PreparedTissue
 from stitchplan.needle.geometry import entry_lean, leaning, orthogonal, scenario_needle
 from stitchplan.needle.insertion import run_insertion
 from stitchplan.planning.planner import center_moves, run_plan

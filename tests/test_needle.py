@@ -340,10 +340,10 @@ def test_shipped_sh12_block_series_follows_one_entry_rule(name, height):
 
 
 def test_the_factor_is_renewed_by_the_planner_rule_or_when_newton_loses_ground():
-    """needle/equilibrium.py renew_factor: a planner's step renews the factor of K + H when an
+    """needle/newton.py renew_factor: a planner's step renews the factor of K + H when an
     iteration contracts by less than REFACTOR_CONTRACTION; a prescribed centre only when the
     measure exceeds both of the last two iterations'."""
-    from stitchplan.needle.equilibrium import REFACTOR_CONTRACTION, renew_factor
+    from stitchplan.needle.newton import REFACTOR_CONTRACTION, renew_factor
 
     slow = 0.9  # contracted, but by less than the planner's rule asks
     assert REFACTOR_CONTRACTION < 0.9
@@ -358,7 +358,7 @@ def test_anderson_mixing_remembers_the_plain_step_not_what_the_caller_made_of_it
     """AndersonMixing (Walker and Ni 2011, type II) differences the plain steps f(x_k): a
     caller that changes the step it got back (the planner keeps the mixed centre within the
     move limits, in place) must not change the f(x_0) the next mixing differences against."""
-    from stitchplan.needle.equilibrium import AndersonMixing
+    from stitchplan.needle.newton import AndersonMixing
 
     rng = np.random.default_rng(3)
     states, steps = rng.normal(size=(3, 6)), rng.normal(size=(3, 6))

@@ -53,7 +53,7 @@ from conftest import CONFIGS, REPOSITORY
 # PassPrefix): 0.00033 -> 0.00047 mm; the scenes planned in one pass did not move.
 # sh12_100x100's planned value re-pinned when the residual tolerance became 5e-6 of the
 # needle force and the centre's mixed Newton update was projected into its move limits
-# (needle/equilibrium.py; before, the mixing could carry a centre up to 5e-6 mm past a
+# (needle/newton.py; before, the mixing could carry a centre up to 5e-6 mm past a
 # limit): 0.00067 -> 0.00032 mm; every unplanned value moved < 2.5e-7 mm, every other
 # planned value < 2e-4 mm.
 # Re-pinned when a needle step's Newton stopped at 1e-3 of the needle force and a track within

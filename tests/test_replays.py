@@ -173,7 +173,7 @@ def test_a_dropped_replay_gives_its_steps_to_the_pass_that_dropped_it(scenario):
     The messages come in the order the helper reads them (planning.replays.serve)."""
     from collections import deque
 
-    from stitchplan.needle.equilibrium import PreparedTissue
+    from stitchplan.needle.prepared_tissue import PreparedTissue
     from stitchplan.needle.insertion import run_insertion
     from stitchplan.planning.replays import _StreamedPath, _Superseded
 

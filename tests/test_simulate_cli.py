@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 import stitchplan
 from stitchplan.cli import app
-from stitchplan.needle.equilibrium import NEWTON_TOLERANCES
+from stitchplan.needle.newton import NEWTON_TOLERANCES
 
 TRACK_TOLERANCE = NEWTON_TOLERANCES["mortar"][1] * 8.0  # |g| <= tolerance x R, R = 8 mm here
 

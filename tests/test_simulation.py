@@ -34,12 +34,9 @@ from stitchplan.config.scenario import load_scenario, parse_scenario
 from stitchplan.errors import InsertionFailure
 from stitchplan.events import EventKind
 from stitchplan.needle import tip_tracking
-from stitchplan.needle.equilibrium import (
-    RAMP_SMALLEST,
-    NeedleInsertion,
-    PreparedTissue,
-    newton_tolerances,
-)
+from stitchplan.needle.equilibrium import RAMP_SMALLEST, NeedleInsertion
+from stitchplan.needle.newton import newton_tolerances
+from stitchplan.needle.prepared_tissue import PreparedTissue
 from stitchplan.needle.insertion import FixedCenter, run_insertion
 from stitchplan.needle.tip_tracking import track_step
 from stitchplan.planning.planner import run_plan

@@ -58,7 +58,7 @@ def test_hole_near_stitch_factors_at_a_quarter_of_its_spacing():
     """At 0.75 mm the particles added along the top edge between the lattice's own (which
     the edge, a lattice line, already carries one spacing apart) made K0 nearly singular
     (condition ~3e13, the run refused); now ~1.3e4, as the block's own at that spacing."""
-    from stitchplan.needle.equilibrium import PreparedTissue
+    from stitchplan.needle.prepared_tissue import PreparedTissue
     from stitchplan.planning.replay_models import rescaled
     from stitchplan.tissue.factorization import condition_estimate
 
@@ -246,7 +246,7 @@ def test_without_the_check_a_thin_strip_ends_in_one_line(tmp_path, monkeypatch, 
 def test_a_nearly_singular_stiffness_at_dilation_2_does_not_advise_the_dilation():
     """K0 nearly singular at a dilation of 3 or less is not the kernels' doing: the line
     names crowded particles instead of advising a dilation the run already uses."""
-    from stitchplan.needle.equilibrium import refuse_singular_stiffness
+    from stitchplan.needle.prepared_tissue import refuse_singular_stiffness
 
     with pytest.raises(InputError) as narrow:
         refuse_singular_stiffness(3e13, Discretization(spacing=0.75, dilation=2.0))
@@ -260,7 +260,7 @@ def test_a_nearly_singular_stiffness_at_dilation_2_does_not_advise_the_dilation(
 def test_a_nearly_singular_stiffness_names_the_particles_closest_for_their_spacing():
     """Given the particles, the line says where to look: the pair closest for their local
     spacing (here two particles 0.1 mm apart in a 1 mm lattice, at (2.05, 2))."""
-    from stitchplan.needle.equilibrium import refuse_singular_stiffness
+    from stitchplan.needle.prepared_tissue import refuse_singular_stiffness
 
     lattice = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0)), axis=-1).reshape(-1, 2)
     particles = np.vstack([lattice, [[2.1, 2.0]]])

@@ -542,7 +542,7 @@ class Solver:
     max_iterations: described(integer(1, 500), "Newton iterations per load or needle step") = 25
     max_step_cuts: described(integer(0, 30), "halvings of a load step that fails to converge") = 6
     # a needle step's modified Newton stops on both; unset, they follow the coupling
-    # (needle/equilibrium.py NEWTON_TOLERANCES)
+    # (needle/newton.py NEWTON_TOLERANCES)
     needle_residual_tolerance: described(Positive | None, "needle steps' Newton: force residual / needle force "
                                          "(default 1e-3; 5e-6 with needle.coupling points)") = None
     needle_constraint_tolerance: described(Positive | None, "needle steps' Newton: largest distance of the "

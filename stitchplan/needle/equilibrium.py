@@ -25,6 +25,9 @@ factorization of an indefinite K + H costs seconds.
 
 Converged means |r_u| <= needle_residual_tolerance x |f_needle| and every |g| <=
 needle_constraint_tolerance x R (config Solver; NEWTON_TOLERANCES where they are unset).
+Newton's parts (its tolerances and tuning, the factor's renewal, Anderson mixing, what a solve
+remembers) are needle/newton.py's; the tissue model and K0's factor that every insertion
+starts from, needle/prepared_tissue.py's.
 
 The tangent is K + H, symmetric: the follower loads' own stiffness (friction and cutting force
 turn with the needle's tangent at their points) is left out, so that K + H is factored by
@@ -37,11 +40,9 @@ and no equilibrium is found past 88.75 % of the step's load (a limit point: the 
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -51,12 +52,12 @@ from ..config.boundary_points import shown_point
 from ..errors import (ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NewtonExhausted, NonFiniteResidual,
                       UnstableEquilibrium)
 from ..events import Event, EventKind
-from ..tissue.assembly import Assembler, stiffness_at_rest
-from ..tissue.factorization import Factor, condition_estimate, factorize
-from ..tissue.model import TissueModel, build_tissue_model
+from ..tissue.assembly import Assembler
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
-from .geometry import IDENTITY, length, needle_zone, orthogonal, scenario_needle
+from .geometry import IDENTITY, length, scenario_needle
+from .newton import Residuals, _Balance, _NewtonHistory, newton_tolerances
+from .prepared_tissue import PreparedTissue
 from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers
 from .stability import SoftestMode, mode_peak, softest_mode
@@ -64,301 +65,8 @@ from .steering import CenterAim
 
 log = logging.getLogger(__name__)
 
-# a needle step's Newton tolerances (|r_u| / |f_needle|, |g| / R) by coupling, where the
-# scenario's solver block leaves them unset. The mortar coupling's leave at most 1.4e-4 mm in
-# the exit points of the shipped needle scenes, their verification replays and SH 1/2 on
-# uniform 4 and 6 mm particles, 7x below the planner's 0.001 mm tolerance, in 0.6x the
-# Newton iterations of 5e-6 and 1e-9 (benchmarks/results/solver_tolerance.md). The point
-# coupling's constraint rows become nearly dependent where several needle points share a
-# particle spacing, and the same residual then leaves more (5.4e-4 mm on the 4 mm particles,
-# 0.014 mm on the 6 mm ones; 2.3e-5 and 0.0067 mm at 1e-4): it keeps 5e-6 and 1e-9.
-NEWTON_TOLERANCES = {"mortar": (1e-3, 1e-7), "points": (5e-6, 1e-9)}
-ANDERSON_DEPTH = 5  # steps mixed by the accelerated modified Newton (AndersonMixing)
-# with the centre prescribed (unplanned runs, replays of a trajectory) the same depth so far: a
-# depth of 1 took 2 % fewer iterations over the refined replays of the shipped trajectories and 6 %
-# over those at twice the spacing, 1.6-6 % less time on six of the seven refined replays and 2 % more
-# on wound_closure's (benchmarks/results/anderson_depth.md), but it moves the exit errors by up to
-# 1.5e-4 mm, within the needle steps' tolerances, past the regression pins and the sample runs,
-# which would be re-pinned and regenerated with it
-FIXED_CENTER_ANDERSON_DEPTH = ANDERSON_DEPTH
-STALE_CENTER_MOVES = 10.0  # d(d, lambda)/dC is re-solved while the centre moves more than this x tolerance
 CENTER_COLUMNS_ON_ROWS = True  # d(d, lambda)/dC from the kept K^-1 E^T where the coupling allows (_center_columns)
-REFACTOR_CONTRACTION = 0.5  # a planner's step renews the factor of K + H below this contraction (renew_factor)
 RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
-# K0's condition number (condition_estimate) above which a discretization is refused as
-# nearly singular: its solves then keep fewer than 4 of double precision's 16 digits. 1e4 at
-# dilation 2 on SH 1/2, 4e6 at 3, 2e10 at 3.5 and 5e15 at 4 (benchmarks/results/dilation_conditioning.md)
-STIFFNESS_CONDITION = 1e12
-FRESH_FACTOR_LOSSES = 2  # steps on a fresh factor that may raise the residual before a solve gives up (_newton)
-
-
-def newton_tolerances(scenario: Scenario) -> tuple[float, float]:
-    """A needle step's Newton tolerances (|r_u| / |f_needle|, |g| / R): the solver block's,
-    or NEWTON_TOLERANCES of the scenario's coupling where it leaves them unset."""
-    residual, constraint = NEWTON_TOLERANCES[scenario.needle.coupling]
-    solver = scenario.solver
-    return (residual if solver.needle_residual_tolerance is None else solver.needle_residual_tolerance,
-            constraint if solver.needle_constraint_tolerance is None else solver.needle_constraint_tolerance)
-
-
-def renew_factor(measure: float, previous: float, earlier: float, planned: bool) -> bool:
-    """Whether the modified Newton iteration renews the factor of K + H, from its
-    convergence measure now, one and two iterations back. A planner's step (`planned`)
-    renews it when an iteration contracts by less than REFACTOR_CONTRACTION. With the
-    centre prescribed (unplanned runs, replays) only when the measure exceeds both of the
-    last two (the iteration lost ground over two iterations): with Anderson mixing the
-    iteration on an older factor still converges, if more slowly, and on the refined models a
-    factorization costs tens of iterations (benchmarks/plan_speed.py, the replays' table: on
-    the wound's replay at 0.75 mm the planner's rule renews it three times, which costs more
-    than the 58 iterations they save). The planner's steps keep the faster renewal: changing
-    it moves their plans within the planner's tolerance, which the shipped plans and pins
-    would then have to follow."""
-    if planned:
-        return measure > REFACTOR_CONTRACTION * previous
-    return measure > previous and measure > earlier
-
-
-@dataclass(frozen=True)
-class Residuals:
-    """The residuals of eq. 3.62 at one state, with what their linearisation needs."""
-
-    residual: np.ndarray  # r_u = f_int - f_needle + G lambda, (2 n_free,)
-    violation: np.ndarray  # g_k = |x_k - C| - R, (k,)
-    normal: np.ndarray  # n_k, (k, 2)
-    rho: np.ndarray  # |x_k - C|, (k,)
-    needle_force: float  # |f_needle|, N
-
-    @property
-    def worst_violation(self) -> float:
-        return float(np.abs(self.violation).max()) if len(self.violation) else 0.0
-
-
-class AndersonMixing:
-    """Anderson acceleration of the modified Newton iteration x <- x + f(x), f the step
-    solved with an older factor of K + H (Walker and Ni 2011, type II): the next step is
-    the combination of the last `depth` steps whose linearised step is smallest, which for
-    a linear problem is GMRES on the old-factor-preconditioned system. Modified Newton
-    contracts by ~0.1-0.2 per iteration on the needle scenes; mixing makes it superlinear
-    without refactorizing."""
-
-    def __init__(self, depth: int):
-        self.depth = depth
-        self.reset()
-
-    def reset(self) -> None:
-        self._last: tuple[np.ndarray, np.ndarray] | None = None
-        self._states: list[np.ndarray] = []
-        self._steps: list[np.ndarray] = []
-
-    def step(self, state: np.ndarray, step: np.ndarray) -> np.ndarray:
-        """The accelerated increment at `state` given the plain step f(state)."""
-        if self.depth == 0:
-            return step
-        if self._last is not None and len(self._last[0]) == len(state):
-            self._states.append(state - self._last[0])
-            self._steps.append(step - self._last[1])
-            del self._states[:-self.depth], self._steps[:-self.depth]
-        self._last = (state, step.copy())  # the plain step, whatever the caller does to the one returned
-        if not self._steps:
-            return step
-        steps = np.column_stack(self._steps)
-        gamma = np.linalg.lstsq(steps, step, rcond=1e-10)[0]
-        return step - (np.column_stack(self._states) + steps) @ gamma
-
-
-@dataclass(frozen=True)
-class _Balance:
-    """How far one Newton iterate is from equilibrium (NeedleInsertion._balance; converged as
-    the module docstring says)."""
-
-    residual_norm: float  # |r_u|, N
-    worst: float  # max |g|, mm
-    needle_force: float  # |f_needle|, N
-    finite: bool  # |r_u| and |f_needle| finite
-    forces_balance: bool  # |r_u| within its tolerance
-    balanced: bool  # and every |g| within its own
-
-    @functools.cached_property
-    def measure(self) -> float:
-        """The convergence measure |r_u| / |f_needle| + max |g| (renew_factor)."""
-        return self.residual_norm / max(self.needle_force, 1e-12) + self.worst
-
-
-@dataclass
-class _NewtonHistory:
-    """What one Newton solve of a needle step (NeedleInsertion._newton) remembers from its
-    earlier iterations: the convergence measure at the last two direct solves (when to renew
-    the kept factor of K + H), the measure where a fresh factor was made and the steps on one
-    that raised it (when to give up), the Anderson mixing of the modified Newton steps, and in
-    a planner's step (`planned`: the centre an unknown, eq. 4.1) d(d, lambda)/dC and the last
-    centre move."""
-
-    planned: bool
-    previous: float = math.inf  # the convergence measure at the last direct solve (inf after a centre move)
-    earlier: float = math.inf  # and at the one before
-    factored_at: float | None = None  # the measure where the last step's factor was made
-    losses: int = 0  # steps on a fresh factor that raised the residual
-    per_center: np.ndarray | None = None  # d(d, lambda)/dC (n + m, 2)
-    moved: float = math.inf  # the last centre move, mm
-    minres_iterations: int = 0
-
-    def __post_init__(self) -> None:
-        self.mixing = AndersonMixing(ANDERSON_DEPTH if self.planned else FIXED_CENTER_ANDERSON_DEPTH)
-
-    def lost_fresh_factor(self, measure: float, forces_balance: bool) -> bool:
-        """Whether the solve gives up: the step on a freshly made factor raised the measure above
-        where it was made (the forces not yet balanced), for the FRESH_FACTOR_LOSSES-th time."""
-        if self.factored_at is not None and measure > self.factored_at and not forces_balance:
-            self.losses += 1
-            if self.losses >= FRESH_FACTOR_LOSSES:
-                return True
-        self.factored_at = None
-        return False
-
-    def stale_center_columns(self, tolerance: float) -> bool:
-        """Whether d(d, lambda)/dC is to be solved (again): not yet, or the centre moved more than
-        STALE_CENTER_MOVES x `tolerance`."""
-        return self.per_center is None or self.moved > STALE_CENTER_MOVES * tolerance
-
-    def renew(self, measure: float) -> bool:
-        """Whether the direct solve at `measure` renews the factor of K + H: kept while Newton
-        contracts fast, renewed when it slows (renew_factor)."""
-        refactor = renew_factor(measure, self.previous, self.earlier, self.planned)
-        if refactor and not self.planned:  # a Newton step on the tangent here, which must not lose
-            self.factored_at = measure
-        self.earlier = self.previous
-        return refactor
-
-    def solved_directly(self, measure: float, refactor: bool) -> None:
-        if refactor or measure > self.previous:
-            self.mixing.reset()  # another iteration map (new factor), or a step that failed
-        self.previous = measure
-
-    def moved_center(self, move: np.ndarray, tolerance: float) -> None:
-        self.moved = length(move)
-        if self.moved > tolerance:
-            self.previous = math.inf  # the next residual measures the move, not the factor
-
-    def mix(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, step: np.ndarray,
-            aim: CenterAim | None) -> np.ndarray:
-        """The modified Newton `step` at the iterate mixed with the earlier ones (AndersonMixing);
-        with `aim` (steering) the mixed centre kept within the move limits."""
-        mixed = self.mixing.step(np.concatenate([free, multipliers, center]), step)
-        if aim is not None:
-            mixed[-2:] = aim.feasible(center + mixed[-2:]) - center
-        return mixed
-
-
-def tissue_key(scenario: Scenario) -> tuple:
-    """What a scenario's tissue model depends on (PreparedTissue)."""
-    scenario = orthogonal(scenario)
-    return scenario.tissue, scenario.discretization, scenario.needle
-
-
-class PreparedTissue:
-    """What every insertion into one scenario's tissue at one discretization starts from: the
-    tissue model, the shape functions at the particles, and K0 (the tangent at rest, eq. 3.72)
-    with its factor. Each insertion starts at rest with no multipliers, where K + H = K0, so
-    its first saddle solves use this factor (SaddlePointSolver.start_at_rest). Made once per
-    command and handed to each run on the same model (the planner's passes, the unplanned
-    comparison, the verification's rounds); the model is built by the first run, K0's factor
-    when first asked for. `model`: one built elsewhere instead (a finite-element model of the
-    same tissue: benchmarks/needle_fem_reference.py)."""
-
-    def __init__(self, scenario: Scenario, model: TissueModel | None = None):
-        self.scenario = scenario
-        # the model depends on these alone (the needle's: where the particles are graded, the
-        # same for every lean of the needle at entry)
-        self.key = tissue_key(scenario)
-        self.seconds = 0.0  # building the model
-        self._model, self._factor = model, None
-        self.boundary_samples = None  # the boundary sampled at rest (tip_tracking.boundary_samples), once needed
-
-    @property
-    def built(self) -> bool:
-        return self._model is not None
-
-    @property
-    def model(self) -> TissueModel:
-        self._build()
-        return self._model
-
-    def _build(self) -> None:
-        if self._model is None:
-            start = time.perf_counter()
-            self._model = build_tissue_model(self.scenario.tissue, self.scenario.discretization,
-                                             needle_zone=needle_zone(self.scenario))
-            self.seconds = time.perf_counter() - start
-
-    def fits(self, scenario: Scenario) -> bool:
-        """Whether `scenario` has this tissue, discretization and needle (leaning or not)."""
-        return self.key == tissue_key(scenario)
-
-    def stiffness_at_rest(self) -> sp.csr_matrix:
-        """K0 (tissue.assembly.stiffness_at_rest)."""
-        return stiffness_at_rest(self.model)
-
-    @property
-    def factorized(self) -> bool:
-        return self._factor is not None
-
-    def factor_at_rest(self) -> Factor:
-        """The factor of K0, made the first time it is asked for; InputError where K0 is
-        nearly singular (refuse_singular_stiffness)."""
-        if self._factor is None:
-            stiffness = self.stiffness_at_rest()
-            factor = factorize(stiffness, symmetric_positive=True)
-            refuse_singular_stiffness(condition_estimate(stiffness, factor), self.scenario.discretization,
-                                      self.model.particles, self.model.support / self.scenario.discretization.dilation)
-            self._factor = factor
-        return self._factor
-
-
-def refuse_singular_stiffness(condition: float, discretization, particles: np.ndarray | None = None,
-                              local_spacing: np.ndarray | None = None) -> None:
-    """Raise InputError where K0's `condition` number exceeds STIFFNESS_CONDITION. With a
-    linear basis on evenly spaced particles the RK shape functions are the cubic-spline
-    kernel's translates, and the kernel's Fourier transform, (sin(k a / 4) / (k a / 4))^4 per
-    direction, vanishes at the particles' alternating mode (k = pi / spacing) for a = 4
-    spacings: at dilation 4 that mode's coefficients make no displacement, and from ~3 on
-    they make almost none. Newton then stalls on such a model (sh12_100x100 at dilation 4
-    and half its spacing ran for more than 10 minutes at step 1). At a dilation of 3 or less
-    (~1e4 at 2, ~2e6 at 3 on sh12_100x100: benchmarks/results/dilation_conditioning.md) the
-    kernels are not the cause: particles closer together than their spacing are, the same
-    alternating mode over half the distance (hole_near_stitch at 0.75 mm had ~3e13 from
-    boundary particles added between the lattice's own along its top edge), and the advice
-    is about those, not the dilation: with the `particles` (n, 2) and their `local_spacing`
-    (n,), the line names the pair closest for their spacing, where to look."""
-    if not condition > STIFFNESS_CONDITION:
-        return
-    estimate = f"~{condition:.0e}" if math.isfinite(condition) else "infinite to rounding"
-    found = (f"discretization: dilation {discretization.dilation:g} with spacing {discretization.spacing:g} mm "
-             f"makes the tissue's stiffness nearly singular (condition number {estimate}, estimated; ~1e4 at "
-             f"dilation 2; above {STIFFNESS_CONDITION:.0e} its solves keep fewer than 4 of 16 digits)")
-    if discretization.dilation > 3:
-        raise InputError(f"{found}: kernels wider than ~3 spacings make the particles' coefficients nearly "
-                         "dependent; use a dilation of 3 or less (2 is the default)")
-    where = "" if particles is None or local_spacing is None else _closest_for_spacing(particles, local_spacing)
-    raise InputError(f"{found}: at a dilation of 3 or less the kernels are not the cause; particles closer "
-                     "together than the spacing are, likely where the boundary crowds them (a sharp corner, "
-                     f"tissue or boundary features thinner than the spacing){where}; try another spacing, or "
-                     "change the shape there")
-
-
-def _closest_for_spacing(particles: np.ndarray, local_spacing: np.ndarray) -> str:
-    """'; the particles closest for their spacing are d mm apart at [x, y] (f of the local
-    spacing, h mm)': the pair whose distance over the smaller of their spacings is least."""
-    from scipy.spatial import cKDTree
-
-    if len(particles) < 2:
-        return ""
-    distance, index = cKDTree(particles).query(particles, k=2)
-    neighbour = index[:, 1]
-    spacing = np.minimum(local_spacing, local_spacing[neighbour])
-    k = int(np.argmin(distance[:, 1] / spacing))
-    middle = 0.5 * (particles[k] + particles[neighbour[k]])
-    return (f"; the particles closest for their spacing are {distance[k, 1]:.3g} mm apart at {shown_point(middle)} "
-            f"({distance[k, 1] / spacing[k]:.2g} of the local spacing, {spacing[k]:.3g} mm)")
 
 
 class NeedleInsertion:

@@ -21,8 +21,9 @@ from ..config import Scenario
 from ..errors import InputError, InsertionFailure
 from ..events import Event, EventKind
 from ..tissue.shape_functions import SingularMomentAt
-from .equilibrium import NeedleInsertion, PreparedTissue
+from .equilibrium import NeedleInsertion
 from .geometry import BoundaryLoops, NeedleGeometry, entry_lean
+from .prepared_tissue import PreparedTissue
 from .results import InsertionResult, NeedleStep, Snapshot, StepsDone
 from .steering import CenterAim
 from .tip_tracking import entry_ahead, locate_exit, locate_reentry, track_step
@@ -517,7 +518,7 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
                        "minres_iterations": insertion.saddle.minres_iterations,
                        "minres_fallbacks": insertion.saddle.fallbacks,
                        "tangent_products": insertion.assembler.tangent_products,
-                       # the needle steps' Newton stopped at these (needle/equilibrium.py newton_tolerances)
+                       # the needle steps' Newton stopped at these (needle/newton.py newton_tolerances)
                        "needle_residual_tolerance": insertion.newton_tolerances[0],
                        "needle_constraint_tolerance": insertion.newton_tolerances[1]},
         crossings=crossings,

@@ -116,7 +116,7 @@ class SaddlePointSolver:
     Newton iterations, and counts of the work done.
 
     `factor_at_rest` returns the factor of K0, the tangent at zero deformation (made when
-    first asked for, and kept by whoever made it: needle.equilibrium.PreparedTissue): the
+    first asked for, and kept by whoever made it: needle.prepared_tissue.PreparedTissue): the
     MINRES preconditioner, the condition numbers, and the first direct solves of an insertion
     (start_at_rest) use it.
     """

@@ -27,10 +27,11 @@ import numpy as np
 from ..config import Planner, Scenario
 from ..errors import NumericalFailure, PlanningFailure
 from ..events import Event, EventKind
-from ..needle.equilibrium import NeedleInsertion, PreparedTissue
+from ..needle.equilibrium import NeedleInsertion
 from ..needle.geometry import leaning, length, scenario_needle
 from ..needle.steering import CenterAim
 from ..needle.insertion import run_insertion
+from ..needle.prepared_tissue import PreparedTissue
 from ..needle.results import InsertionResult
 from .entry_lean import LeanSearch, lean_for_exit
 from .replay_models import aims_at_bites

@@ -51,7 +51,7 @@ from ..config import Scenario
 from .. import early_helper
 from ..early_helper import helper_available
 from ..errors import StitchplanError
-from ..needle.equilibrium import PreparedTissue
+from ..needle.prepared_tissue import PreparedTissue
 from ..needle.insertion import CenterReplay, InsertionStopped, run_insertion
 from ..needle.results import InsertionResult, StepsDone
 

@@ -66,7 +66,7 @@ import numpy as np
 from ..config import Scenario
 from ..errors import InputError, NumericalFailure, PlanningFailure
 from ..events import Event, EventKind
-from ..needle.equilibrium import PreparedTissue
+from ..needle.prepared_tissue import PreparedTissue
 from ..needle.insertion import run_insertion
 from ..needle.results import InsertionResult
 from .planner import PlanResult, add_timings, run_plan, symmetric_aim
