@@ -133,6 +133,7 @@ import yaml
 from stitchplan.config.scenario import load_scenario, parse_scenario, with_discretization
 from stitchplan.errors import InsertionFailure
 from stitchplan.needle import coupling as coupling_module
+from stitchplan.needle import load_quadrature
 from stitchplan.needle.insertion import run_insertion
 
 CONFIGS = common.REPO_ROOT / "configs"
@@ -253,7 +254,7 @@ def variant(coupling: str) -> dict:
             "quadrature": int(options["q"]) if "q" in options else None,
             "basis": int(options["b"]) if "b" in options else None,
             "ramp": "ramp" in tokens,
-            "profile": coupling_module.SMOOTH if "smooth" in tokens else coupling_module.UNIFORM,
+            "profile": load_quadrature.SMOOTH if "smooth" in tokens else load_quadrature.UNIFORM,
             "end_levels": int(options["L"]) if "L" in options else None,
             "zone": float(options["z"]) if "z" in options else None,
             "grading": float(options["g"]) if "g" in options else None,

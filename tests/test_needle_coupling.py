@@ -25,7 +25,8 @@ import pytest
 from test_simulation import advance_one, dense_rest_stiffness, small_scene, started
 
 from stitchplan.needle import coupling as coupling_module
-from stitchplan.needle.coupling import MULTIPLIER_ORDER, cutting_share
+from stitchplan.needle.coupling import MULTIPLIER_ORDER
+from stitchplan.needle.load_quadrature import cutting_share
 from stitchplan.needle.track_layout import MULTIPLIER_SPACINGS, segment_subintervals
 from stitchplan.needle.equilibrium import NeedleInsertion
 

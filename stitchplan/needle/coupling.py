@@ -69,12 +69,12 @@ import scipy.sparse as sp
 
 from ..config import Needle
 from ..tissue.model import TissueModel
-from ..tissue.shape_functions import rows_csr
+from .constraint_rows import GrowingRows, _block, _block_matrix, _empty_block, _joined
 from .geometry import NeedleGeometry
+from .load_quadrature import SMOOTH, LoadQuadrature, cutting_density, segment_gauss_points
 from .track_layout import (ARC_ENDS, MORTAR, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, SEGMENT_ENDS,
                            segment_subintervals)
 
-GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on [0, 1]
 MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous piecewise linear
 PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter remainder at the entry)
 # mortar: the cutting force's density along the last cutting_length l mm of needle, s mm behind
@@ -89,30 +89,6 @@ CUTTING_PROFILE = "uniform"
 # 4 on the partly covered one at the zone's end; 8 per l keeps the total within 0.5 % of
 # cutting_share (tests/test_needle_coupling.py)
 SMOOTH_POINTS_PER_LENGTH = 8.0
-UNIFORM, SMOOTH = "uniform", "smooth"
-
-
-def segment_gauss_points(pieces: int) -> np.ndarray:
-    """The two-point rule on each of `pieces` equal pieces of [0, 1], ascending, (2 pieces,);
-    every point weighs 1 / (2 pieces)."""
-    return ((np.arange(pieces)[:, None] + GAUSS_POINTS[None, :]) / pieces).ravel()
-
-
-def cutting_density(s: np.ndarray, length: float) -> np.ndarray:
-    """The smooth cutting profile's density (1/mm) at s mm of needle behind the tip:
-    (2 / l) sin^2(pi s / l) on [0, l], zero beyond; its integral over [0, l] is one."""
-    s = np.asarray(s, dtype=float)
-    return np.where((s >= 0.0) & (s <= length), 2.0 / length * np.sin(math.pi * s / length) ** 2, 0.0)
-
-
-def cutting_share(inside: float, length: float, profile: str = SMOOTH) -> float:
-    """The share of the cutting force on the first `inside` mm of [0, l] behind the tip: the
-    density's integral, z / l - sin(2 pi z / l) / (2 pi) for the smooth profile (z = min(inside, l)),
-    z / l for the uniform one."""
-    z = min(max(inside, 0.0), length)
-    if profile == UNIFORM:
-        return z / length
-    return z / length - math.sin(2.0 * math.pi * z / length) / (2.0 * math.pi)
 
 
 def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> list[int]:
@@ -150,47 +126,6 @@ def _along_segments(start: np.ndarray, end: np.ndarray, along: np.ndarray) -> np
     return (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
 
 
-# Rows of the track's sparse matrices are handled as blocks (data, indices, entries per row):
-# joining arrays and building one CSR matrix per change costs less than scipy's slicing and
-# stacking of these few rows.
-RowBlock = tuple[np.ndarray, np.ndarray, np.ndarray]
-
-
-def _block(rows: sp.csr_matrix, start: int, stop: int) -> RowBlock:
-    """rows[start:stop] as a block."""
-    first, last = rows.indptr[start], rows.indptr[stop]
-    return rows.data[first:last], rows.indices[first:last], np.diff(rows.indptr[start:stop + 1])
-
-
-def _empty_block(count: int) -> RowBlock:
-    """`count` rows of zeros."""
-    return np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros(count, dtype=np.int64)
-
-
-def _interleaved(block: RowBlock) -> RowBlock:
-    """N T acting on interleaved dofs: row q becomes rows (q, 0) and (q, 1) with columns
-    (p, 0) and (p, 1) (a row's columns stay in their order)."""
-    data, indices, counts = block
-    row = np.repeat(np.arange(len(counts)), counts)
-    order = np.argsort(np.concatenate([2 * row, 2 * row + 1]), kind="stable")
-    return (np.concatenate([data, data])[order], np.concatenate([2 * indices, 2 * indices + 1])[order],
-            np.repeat(counts, 2))
-
-
-def _joined(*matrices: sp.csr_matrix) -> sp.csr_matrix:
-    """CSR matrices of one width one under the other, as one new matrix."""
-    offsets = np.cumsum([0] + [matrix.nnz for matrix in matrices[:-1]])
-    indptr = np.concatenate([[0]] + [matrix.indptr[1:] + offset for matrix, offset in zip(matrices, offsets)])
-    return rows_csr(np.concatenate([matrix.data for matrix in matrices]),
-                    np.concatenate([matrix.indices for matrix in matrices]), indptr, matrices[0].shape[1])
-
-
-def _block_matrix(block: RowBlock, columns: int) -> sp.csr_matrix:
-    """The block's rows as a CSR matrix of `columns` columns."""
-    data, indices, counts = block
-    return rows_csr(data, indices, np.concatenate([[0], np.cumsum(counts)]), columns)
-
-
 def _own_rows(attributes: dict) -> dict:
     """A coupling's attributes with copies of its growing rows, which append in place (the
     segment and quadrature rows may be one object, and stay one), without the caches a state
@@ -204,93 +139,6 @@ def _own_rows(attributes: dict) -> dict:
     return attributes
 
 
-class AppendedRows:
-    """A CSR matrix whose rows are only ever appended, in buffers with room to grow: each
-    append writes past the rows before it, and `matrix` is the rows so far as views of the
-    buffers. A copy (a kept state) shares the buffers with the original; the first append
-    after a copy moves to buffers of its own, so a state's rows are never written again."""
-
-    def __init__(self, columns: int):
-        self.columns = columns
-        self._data, self._indices = np.zeros(0), np.zeros(0, dtype=np.int32)
-        self._indptr = np.zeros(1, dtype=np.int32)
-        self._rows, self._owned = 0, True
-        self.matrix = rows_csr(self._data, self._indices, self._indptr, columns)
-
-    def __copy__(self) -> AppendedRows:
-        other = object.__new__(AppendedRows)
-        other.__dict__.update(self.__dict__)
-        other._owned = False  # its next append must not write into buffers the original fills
-        return other
-
-    def append(self, block: RowBlock) -> None:
-        data, indices, counts = block
-        nnz, rows = int(self._indptr[self._rows]), self._rows
-        new_nnz, new_rows = nnz + len(data), rows + len(counts)
-        if not self._owned or new_nnz > len(self._data) or new_rows + 1 > len(self._indptr):
-            self._data = _grown(self._data, nnz, new_nnz)
-            self._indices = _grown(self._indices, nnz, new_nnz)
-            self._indptr = _grown(self._indptr, rows + 1, new_rows + 1)
-            self._owned = True
-        self._data[nnz:new_nnz] = data
-        self._indices[nnz:new_nnz] = indices
-        self._indptr[rows + 1:new_rows + 1] = nnz + np.cumsum(counts)
-        self._rows = new_rows
-        self.matrix = rows_csr(self._data[:new_nnz], self._indices[:new_nnz], self._indptr[:new_rows + 1],
-                               self.columns)
-
-
-def _grown(buffer: np.ndarray, kept: int, needed: int) -> np.ndarray:
-    """A new buffer of at least `needed` entries (twice the old size, for the appends to come)
-    holding the first `kept` entries of `buffer`."""
-    grown = np.empty(max(needed, 2 * len(buffer), 16), dtype=buffer.dtype)
-    grown[:kept] = buffer[:kept]
-    return grown
-
-
-class GrowingRows:
-    """Shape-function rows N(X_q) T of points that are only ever appended (the track's and
-    its constraint quadrature's), with their interleaved form E (`interleaved`), each in
-    AppendedRows; E^T is formed once per change, when first asked for (and not kept in a
-    copy: a kept state's)."""
-
-    def __init__(self, columns: int, interleaved: bool = False):
-        self._matrix = AppendedRows(columns)  # N_q T, (Q, n_free)
-        self._expanded = AppendedRows(2 * columns) if interleaved else None  # E, (2Q, 2 n_free)
-        self._expanded_t: sp.csr_matrix | None = None
-
-    def __copy__(self) -> GrowingRows:
-        other = object.__new__(GrowingRows)
-        other._matrix = copy.copy(self._matrix)
-        other._expanded = None if self._expanded is None else copy.copy(self._expanded)
-        other._expanded_t = None
-        return other
-
-    @property
-    def matrix(self) -> sp.csr_matrix:
-        return self._matrix.matrix
-
-    @property
-    def expanded(self) -> sp.csr_matrix | None:
-        return None if self._expanded is None else self._expanded.matrix
-
-    def __len__(self) -> int:
-        return self.matrix.shape[0]
-
-    def append(self, block: RowBlock) -> None:
-        self._matrix.append(block)
-        if self._expanded is not None:
-            self._expanded.append(_interleaved(block))
-            self._expanded_t = None
-
-    @property
-    def expanded_t(self) -> sp.csr_matrix:
-        """E^T (2 n_free, 2Q), kept until the rows grow."""
-        if self._expanded_t is None:
-            self._expanded_t = self.expanded.T.tocsr()
-        return self._expanded_t
-
-
 @dataclass(frozen=True)
 class ConstraintValues:
     """The needle constraints at one state (eq. 3.59-3.61)."""
@@ -299,27 +147,6 @@ class ConstraintValues:
     normal: np.ndarray  # n_q = (x_q - C) / |x_q - C|, (Q, 2)
     rho: np.ndarray  # |x_q - C|, (Q,)
 
-
-@dataclass(frozen=True)
-class LoadQuadrature:
-    """Points of Gamma_N carrying needle loads: reference points, their rows and forces (N)."""
-
-    points: np.ndarray  # (L, 2)
-    # N(X_l) T, (L, n_free), in parts one under the other: the segments' Gauss points' rows
-    # (the track's, shared with every step's state) and those of the extra points. A state is
-    # kept per needle step: one matrix of all the rows, new in each, would make a long
-    # insertion's states grow with the square of its steps
-    row_parts: tuple[sp.csr_matrix, ...]
-    magnitudes: np.ndarray  # (L,)
-    # the points after the segments' Gauss points (a partly covered segment's), each as a
-    # linear combination of two of its segment's Gauss points: their indices and weights (P, 2)
-    # each; None where the layout has other points (the smooth cutting profile)
-    lumping: tuple[np.ndarray, np.ndarray] | None = (np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2)))
-
-    @property
-    def rows(self) -> sp.csr_matrix:
-        """N(X_l) T, (L, n_free), as one new matrix."""
-        return _joined(*self.row_parts)
 
 
 class NeedleCoupling:
