@@ -4,7 +4,7 @@
 twice the spacing in helper processes while it plans (planning/replays.py); `simulate`
 replays the exit error estimate's run at twice the spacing beside its own; `plan
 --uncertainty` runs its sampled plans on the workers of a local Dask cluster while it holds
-its own. The guard (resources.check_resources `alongside`) holds their memory together within
+its own. The guard (resources.guard.check_resources `alongside`) holds their memory together within
 its share: the interpreter counted once and HELPER_BASE_MEMORY for each forked helper, the
 whole estimate for each Dask worker (a process started afresh). Here
 each command runs on configs/sh12_100x100.yaml at its needle step and at 0.005 rad (what the
@@ -92,7 +92,7 @@ def run(arguments: list[str], log: Path) -> tuple[float, dict[int, float], float
 
 
 def main() -> None:
-    from stitchplan.resources import held_at_once
+    from stitchplan.resources.costs import held_at_once
 
     header = ["command", "needle step (rad)", "exit code", "wall (s)", "processes", "peak of each (MB)",
               "peak together (MB)", "guard's runs (MB)", "guard together (MB)", "measured / guard"]
@@ -133,7 +133,7 @@ def main() -> None:
         "sampled every 20 ms. "
         "Guard's runs: the estimates the command logs with -v; together: their sum with the interpreter's "
         "BASE_MEMORY counted once and HELPER_BASE_MEMORY for each forked helper (a Dask worker's estimate whole), "
-        "what resources.check_resources holds within half the memory available.",
+        "what resources.guard.check_resources holds within half the memory available.",
         "",
         common.markdown_table(header, rows),
     ]

@@ -1,14 +1,14 @@
-"""What runs cost: the constants of the resource guard (stitchplan/resources.py).
+"""What runs cost: the constants of the resource guard (stitchplan/resources/costs.py).
 
 Each case runs in a fresh Python process, so that its peak resident memory (ru_maxrss) is
 its own: deform on configs/slab_edge_load.yaml at several spacings (and one wider kernel,
 dilation 3), and the unplanned insertion (stitchplan.needle.run_insertion) on
 configs/sh12_100x100.yaml at its default and half spacing, and at needle steps far below its
-0.08 rad (what a run keeps of its steps, resources._step_memory, then dominates its memory).
-For each case the guard's own estimate of the model (resources.model_size: particles,
-neighbours, quadrature points) and of the run (resources.estimate: its memory, and the part
-of it the needle steps keep) is printed next to the measured wall time of the run (the
-result's wall_seconds) and peak memory.
+0.08 rad (what a run keeps of its steps, resources.costs._step_memory, then dominates its
+memory). For each case the guard's own estimate of the model (resources.model_size.model_size:
+particles, neighbours, quadrature points) and of the run (resources.costs.estimate: its
+memory, and the part of it the needle steps keep) is printed next to the measured wall time
+of the run (the result's wall_seconds) and peak memory.
 
 Fitted (least squares in log-log over the dilation-2 cases at the scenarios' needle steps):
 
@@ -57,17 +57,18 @@ CHILD = r"""
 import json, resource, sys, time
 from dataclasses import replace
 from stitchplan.config import load_scenario, with_discretization
-from stitchplan import resources
+from stitchplan.resources.costs import estimate
+from stitchplan.resources.model_size import model_size
 kind, path, spacing, dilation, step = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4]), sys.argv[5]
 scenario = with_discretization(load_scenario(path), spacing=None if spacing == "none" else float(spacing),
                                dilation=dilation)
 if step != "none":
     scenario = replace(scenario, needle=replace(scenario.needle, step=float(step)))
-size = resources.model_size(scenario)
+size = model_size(scenario)
 row = {"particles_estimated": size.particles, "neighbours": size.neighbours,
        "points_per_particle": size.points_per_particle}
 if kind != "baseline":
-    guard = resources.estimate(scenario, kind)
+    guard = estimate(scenario, kind)
     row.update(guard_memory=guard.memory_bytes, step_memory=guard.step_memory, guard_steps=guard.steps)
 if kind == "baseline":
     from stitchplan.tissue.deform import run_deform
@@ -96,7 +97,7 @@ def run_case(kind: str, path, spacing, dilation: float, step=None) -> dict:
 
 
 def main() -> None:
-    from stitchplan import resources
+    from stitchplan.resources import costs
 
     baseline = run_case("baseline", SLAB, 5.0, 2.0)["peak_bytes"]
     rows = []
@@ -112,9 +113,9 @@ def main() -> None:
     fit = [r for r in ok if r["dilation"] == 2.0 and r["needle_step"] in ("", "scenario's")]
 
     def relative(r):
-        return (r["particles"] / resources.REFERENCE_PARTICLES,
-                min(r["neighbours"], r["particles"]) / resources.REFERENCE_NEIGHBOURS,
-                r["points_per_particle"] / resources.REFERENCE_POINTS_PER_PARTICLE)
+        return (r["particles"] / costs.REFERENCE_PARTICLES,
+                min(r["neighbours"], r["particles"]) / costs.REFERENCE_NEIGHBOURS,
+                r["points_per_particle"] / costs.REFERENCE_POINTS_PER_PARTICLE)
 
     # time: log(t / (steps n^2 q)) = log c_kind + p log P, one c per kind, a common p
     design, target = [], []
@@ -124,14 +125,14 @@ def main() -> None:
         target.append(np.log(r["wall"] / (r["steps"] * n ** 2 * q)))
     coefficients, *_ = np.linalg.lstsq(np.asarray(design, float), np.asarray(target), rcond=None)
     time_exponent = float(coefficients[0])
-    per_step = {"deform": float(np.exp(coefficients[1])) / resources.REFERENCE_PARTICLES,
-                "insertion": float(np.exp(coefficients[2])) / resources.REFERENCE_PARTICLES}
+    per_step = {"deform": float(np.exp(coefficients[1])) / costs.REFERENCE_PARTICLES,
+                "insertion": float(np.exp(coefficients[2])) / costs.REFERENCE_PARTICLES}
     # memory above the baseline and the kept steps: log(m / (n q)) = log m0 + q log P
     x = [np.log(relative(r)[0]) for r in fit]
     y = [np.log(max(r["peak_bytes"] - baseline - r["step_memory"], 1e6) / (relative(r)[1] * relative(r)[2]))
          for r in fit]
     memory_exponent, log_m = np.polyfit(x, y, 1)
-    per_particle = float(np.exp(log_m)) / resources.REFERENCE_PARTICLES
+    per_particle = float(np.exp(log_m)) / costs.REFERENCE_PARTICLES
 
     header = ["kind", "scene", "spacing (mm)", "dilation", "needle step (rad)", "particles", "guard's count",
               "steps", "guard's steps", "wall (s)", "peak memory (MB)", "guard: kept steps (MB)", "fit: time (s)",
@@ -143,13 +144,13 @@ def main() -> None:
                           "failed: " + r["failed"]] + [""] * (len(header) - 6))
             continue
         _, n, q = relative(r)
-        p = r["particles_estimated"] / resources.REFERENCE_PARTICLES  # the guard predicts from its count
-        predicted_time = per_step[r["kind"]] * resources.REFERENCE_PARTICLES * p ** time_exponent * n ** 2 * q * r["steps"]
-        predicted_memory = (baseline + per_particle * resources.REFERENCE_PARTICLES * p ** memory_exponent * n * q
+        p = r["particles_estimated"] / costs.REFERENCE_PARTICLES  # the guard predicts from its count
+        predicted_time = per_step[r["kind"]] * costs.REFERENCE_PARTICLES * p ** time_exponent * n ** 2 * q * r["steps"]
+        predicted_memory = (baseline + per_particle * costs.REFERENCE_PARTICLES * p ** memory_exponent * n * q
                             + r["step_memory"])
-        # the constants stitchplan/resources.py has now (its memory: resources.estimate's, kept steps included)
-        guard_time = (resources.SECONDS_PER_PARTICLE_STEP[r["kind"]] * resources.REFERENCE_PARTICLES
-                      * p ** resources.TIME_EXPONENT * n ** 2 * q * r["steps"])
+        # the constants stitchplan/resources/costs.py has now (its memory: costs.estimate's, kept steps included)
+        guard_time = (costs.SECONDS_PER_PARTICLE_STEP[r["kind"]] * costs.REFERENCE_PARTICLES
+                      * p ** costs.TIME_EXPONENT * n ** 2 * q * r["steps"])
         table.append([r["kind"], r["scene"], r["spacing"], r["dilation"], r["needle_step"], r["particles"],
                       r["particles_estimated"], r["steps"], r["guard_steps"], r["wall"], r["peak_bytes"] / 1e6,
                       r["step_memory"] / 1e6, predicted_time, predicted_memory / 1e6, r["wall"] / predicted_time,
@@ -175,17 +176,17 @@ def main() -> None:
         f"- MEMORY_PER_PARTICLE: {per_particle:.3g} bytes, MEMORY_EXPONENT: {memory_exponent:.3g}",
         f"- BASE_MEMORY: {baseline:.3g} bytes",
         "",
-        "The guard's predictions use its own particle and step counts (resources.model_size and the "
+        "The guard's predictions use its own particle and step counts (resources.model_size.model_size and the "
         "undeformed circle's steps, made before anything is built); the fit uses the particles and "
         "steps the run had. 'Kept steps': what the guard estimates a needle run keeps of its steps "
-        "until it ends (resources._step_memory: the saddle-point solver's doubling buffers, the "
+        "until it ends (resources.costs._step_memory: the saddle-point solver's doubling buffers, the "
         "coupling's dense weights and the track's arrays of every step's state, the per-step "
         "displacements), part of both memory predictions. The ratios compare each measured case with "
         "the prediction (1 = exact); the dilation-3 case was not fitted and checks the "
         "(neighbours/16)^2 time and (neighbours/16) memory scaling, the small-step cases the kept "
         "steps (their time per step grows with the steps taken, which the time model does not follow). "
-        "'Guard now': the same ratios with the constants stitchplan/resources.py has, its memory "
-        "resources.estimate's (a memory ratio below 1: the guard bounds the run's peak from above).",
+        "'Guard now': the same ratios with the constants stitchplan/resources/costs.py has, its memory "
+        "resources.costs.estimate's (a memory ratio below 1: the guard bounds the run's peak from above).",
     ]
     common.write_report("resource_costs.md", lines)
 

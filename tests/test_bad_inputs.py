@@ -451,7 +451,7 @@ def test_the_guard_counts_the_particles_the_needle_model_builds():
 
     from stitchplan.config import parse_scenario, with_discretization
     from stitchplan.needle.geometry import needle_zone
-    from stitchplan.resources import _graded_estimate, model_size
+    from stitchplan.resources.model_size import _graded_estimate, model_size
     from stitchplan.tissue.model import model_for_scenario
 
     base = parse_scenario(scene(loads=None, probes=None, discretization=None))  # graded default
@@ -473,7 +473,9 @@ def test_the_guard_scales_memory_and_time_with_particles_and_neighbours():
     runs."""
     from stitchplan.config import parse_scenario, with_discretization
     from stitchplan.errors import InputError
-    from stitchplan.resources import BASE_MEMORY, Limits, check_resources, estimate
+    from stitchplan.resources.costs import BASE_MEMORY, estimate
+    from stitchplan.resources.guard import check_resources
+    from stitchplan.resources.limits import Limits
 
     base = parse_scenario(scene(discretization={"spacing": 2.0}))
     coarse, fine = estimate(base, "deform"), estimate(with_discretization(base, spacing=1.0), "deform")

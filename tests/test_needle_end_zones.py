@@ -11,7 +11,7 @@ import pytest
 
 from stitchplan.config.scenario import load_scenario, with_discretization
 from stitchplan.needle.geometry import needle_zone, scenario_needle
-from stitchplan.resources import model_size
+from stitchplan.resources.model_size import model_size
 from stitchplan.tissue.model import model_for_scenario
 
 from conftest import CONFIGS

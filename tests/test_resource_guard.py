@@ -23,19 +23,11 @@ from typer.testing import CliRunner
 from stitchplan.cli import app
 from stitchplan.config import load_scenario, parse_scenario, with_discretization
 from stitchplan.errors import InputError, NumericalFailure
-from stitchplan.resources import (
-    BASE_MEMORY,
-    COUNT_CAP,
-    HELPER_BASE_MEMORY,
-    PLAN_RUNS,
-    VERIFICATION_RUNS,
-    Limits,
-    Origin,
-    check_resources,
-    estimate,
-    model_size,
-    verification_origin,
-)
+from stitchplan.resources.costs import BASE_MEMORY, HELPER_BASE_MEMORY, PLAN_RUNS, VERIFICATION_RUNS, estimate
+from stitchplan.resources.guard import check_resources
+from stitchplan.resources.limits import Limits
+from stitchplan.resources.model_size import COUNT_CAP, model_size
+from stitchplan.resources.origin import Origin, verification_origin
 from stitchplan.planning.replay_models import rescaled
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -312,7 +304,7 @@ def test_particles_past_the_memory_share_name_the_spacing():
 def test_the_memory_refusal_of_the_cli_does_not_offer_max_particles(tmp_path, monkeypatch):
     """The reproducer: dilation 10 with --max-particles raised is still refused, and the
     line says what governs the memory (on a machine with SMALL_MEMORY available)."""
-    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: SMALL_MEMORY)
+    monkeypatch.setattr("stitchplan.resources.guard.available_memory", lambda: SMALL_MEMORY)
     path = write(tmp_path, scene(discretization={"spacing": 0.2}))
     result = CliRunner().invoke(app, ["simulate", str(path), "--no-estimate", "--dilation", "10",
                                       "--max-particles", "1000000"])
@@ -341,7 +333,7 @@ def test_a_needle_run_is_estimated_to_keep_its_dense_blocks():
     assert item.memory_bytes >= BASE_MEMORY + last_block
     points = estimate(sh12(0.0025, coupling="points"), "insertion", "simulate")
     assert points.memory_bytes >= BASE_MEMORY + 8.0 * sum((k + 1) ** 2 for k in range(1, points.steps + 1))
-    # a plan holds two runs' steps at once (resources.HELD_RUNS), a simulate one
+    # a plan holds two runs' steps at once (resources.costs.HELD_RUNS), a simulate one
     plan = estimate(sh12(0.0025), "insertion", "plan", PLAN_RUNS)
     assert plan.step_memory == pytest.approx(2.0 * item.step_memory)
 
@@ -395,7 +387,7 @@ def guarded(monkeypatch, memory: float, run: str):
     """The CLI on a machine with `memory` bytes available, where reaching `run` (the
     attribute that starts the command's runs) fails the test: returns a function invoking
     the CLI, which gives (exit code, stderr lines, the invocation's exception)."""
-    monkeypatch.setattr("stitchplan.resources.available_memory", lambda: memory)
+    monkeypatch.setattr("stitchplan.resources.guard.available_memory", lambda: memory)
 
     def not_reached(*args, **kwargs):
         raise AssertionError("the run started past the guard")
@@ -631,7 +623,7 @@ def test_a_run_estimated_long_is_announced_before_it_starts(caplog):
     """Within the limits, a run estimated past LONG_RUN_SECONDS starts with a warning line
     (shown by default, unlike the estimates of -v); a short one starts without, and so do the
     replays alongside a command's runs (they follow those runs)."""
-    from stitchplan.resources import LONG_RUN_SECONDS
+    from stitchplan.resources.guard import LONG_RUN_SECONDS
 
     scenario = load_scenario(REPOSITORY / "configs" / "needle20_entry30.yaml")
     long_run = estimate(with_discretization(scenario, spacing=1.5, dilation=10.0), "insertion", "simulate")
@@ -652,7 +644,7 @@ def test_a_run_estimated_long_is_announced_before_it_starts(caplog):
 def test_minres_needle_steps_are_estimated_at_their_measured_cost():
     """MINRES runs take 3.5-7.4x the direct solve's time on SH 1/2 (simulate_speed.md): the
     estimate follows the scenario's solver or the option's, and leaves deform alone."""
-    from stitchplan.resources import MINRES_TIME_FACTOR
+    from stitchplan.resources.costs import MINRES_TIME_FACTOR
 
     scenario = load_scenario(REPOSITORY / "configs" / "sh12_100x100.yaml")
     direct = estimate(scenario, "insertion", "simulate").seconds

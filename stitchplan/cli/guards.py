@@ -25,7 +25,7 @@ def _guard_plan(scenario_path: Path, limits, names: dict, scenario, verify: bool
     aim's (in this process), or without the verification the exit error estimate's (in a
     helper)."""
     from ..planning.replay_models import predicts_aim
-    from ..resources import PLAN_RUNS, VERIFICATION_RUNS
+    from ..resources.costs import PLAN_RUNS, VERIFICATION_RUNS
 
     at_2h = [] if verify and not predicts_aim(scenario, verify) else [_estimate_run(
         scenario, "plan's replay at twice the spacing",
@@ -40,7 +40,8 @@ def _guard_plan_under_uncertainty(scenario_path: Path, limits, names: dict, scen
     """plan --uncertainty's runs (its plans and `tasks` sampled runs) and its verification's,
     beside a sampled plan's runs on each of a local cluster's `workers` (None: a scheduler's,
     elsewhere, not counted)."""
-    from ..resources import PLAN_RUNS, VERIFICATION_RUNS, Origin
+    from ..resources.costs import PLAN_RUNS, VERIFICATION_RUNS
+    from ..resources.origin import Origin
 
     # a local cluster's workers each hold a sampled plan's runs while this process holds its own
     workers = workers or 0
@@ -57,7 +58,7 @@ def _verification(scenario, names: dict, count: int, verify: bool) -> list[tuple
     if not verify:
         return []
     from ..planning.replay_models import replay_scenario
-    from ..resources import verification_origin
+    from ..resources.origin import verification_origin
 
     return [("insertion", replay_scenario(scenario, verify=True), "plan verification", count,
              verification_origin(scenario, names))]
@@ -68,7 +69,7 @@ def _guard_study(scenario_path: Path, limits, runs: list, reference, repeats: in
     study field that set the run's spacing. On a local cluster its `workers` run as many at
     once, each in a process of its own (None: a scheduler's workers, elsewhere; 0: one after
     another here)."""
-    from ..resources import Origin
+    from ..resources.origin import Origin
 
     def origin(run) -> Origin:
         return Origin({"spacing": run.source, "needle_spacing": run.source},

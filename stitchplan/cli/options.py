@@ -229,7 +229,7 @@ def _limits(max_particles: Optional[int], no_resource_check: bool):
     """The resource guard's limits (None: no check)."""
     if no_resource_check:
         return None
-    from ..resources import Limits
+    from ..resources.limits import Limits
 
     return Limits() if max_particles is None else Limits(max_particles=max_particles)
 
@@ -239,16 +239,18 @@ def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = No
            workers: Optional[int] = None) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
-    resources.Origin of the run's discretization (default: the file's, with the fields in
+    resources.origin.Origin of the run's discretization (default: the file's, with the fields in
     `names` set by options, _option_names); `linear_solver`: the --linear-solver option;
     `alongside`: runs of the same form in helper processes at the same time, counted in the
-    memory held at once with `runs` (resources.check_resources; None: `runs` do not go on at
+    memory held at once with `runs` (resources.guard.check_resources; None: `runs` do not go on at
     once), in processes `forked` from this one or (False) Dask workers; `workers`: `runs` go
     on in this many worker processes, none here (check_resources). Lines name the file, or
     the option."""
     if limits is None:
         return
-    from ..resources import Origin, check_resources, estimate
+    from ..resources.costs import estimate
+    from ..resources.guard import check_resources
+    from ..resources.origin import Origin
 
     def estimates(given) -> list:
         return [estimate(scenario, kind, label, count, origin=origin[0] if origin else Origin(names or {}),
@@ -264,7 +266,7 @@ def _estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None)
     """The exit error estimate's (or the predicted aim's) replay at twice the spacing, as a
     run of `_guard`'s `alongside`; `skip` says how to leave it out."""
     from ..planning.replay_models import replay_scenario
-    from ..resources import replay_origin
+    from ..resources.origin import replay_origin
 
     return ("insertion", replay_scenario(scenario, verify=False), label, 1,
             replay_origin(scenario, names, " in its replay at twice the spacing", skip))

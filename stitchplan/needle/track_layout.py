@@ -1,6 +1,6 @@
 """How densely the needle coupling (needle/coupling.py) lays its multipliers and constraint
 points along the track, and its kinds, as numbers and names only: the resource guard
-(stitchplan/resources.py) counts a run's constraints from them before `plan` imports the
+(stitchplan/resources/costs.py) counts a run's constraints from them before `plan` imports the
 numerics (cli.commands.plan hands its helper the refined model meanwhile).
 """
 

@@ -33,7 +33,7 @@ Methods, chosen on the first (cheapest) pair's discretization, the cheaper where
   (accuracy/10) and is at least 20 % faster; otherwise `direct`.
 
 Limits: no trial runs a model beyond the resource guard's particle limit
-(stitchplan.resources; `max_particles`, None for none). As soon as the first pair gives an
+(stitchplan.resources.limits; `max_particles`, None for none). As soon as the first pair gives an
 error constant, an accuracy that even the finest allowed model cannot reach (e(h_floor) >
 accuracy, h_floor the finest needle spacing within the limit) is refused with the accuracy
 that model would reach, instead of a search that halves on into models no machine holds.
@@ -54,7 +54,8 @@ from typing import TYPE_CHECKING
 from ..config import Scenario
 from ..errors import InputError
 from ..events import Event, EventKind
-from ..resources import MAX_PARTICLES, model_size
+from ..resources.limits import MAX_PARTICLES
+from ..resources.model_size import model_size
 from ..planning.verification import exit_deviations
 from .runner import InsertionRun, events_of, run_timed
 

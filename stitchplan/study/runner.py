@@ -25,7 +25,7 @@ from ..needle.insertion import run_insertion
 # project's errors, degenerate linear algebra, a model too big for the machine; shared
 # with the sampled runs of `plan --uncertainty`
 from ..parallel import RUN_FAILURES
-from ..resources import model_size
+from ..resources.model_size import model_size
 
 if TYPE_CHECKING:
     from ..needle.results import InsertionResult

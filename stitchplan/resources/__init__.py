@@ -1,0 +1,97 @@
+"""The resource guard: what a run will cost, estimated before anything heavy is built, and
+refused past documented limits.
+
+It sits above needle/ (it needs the needle geometry for the step count and the needle zone
+of graded particles) and below planning/ and study/ (the auto discretization asks it for
+the finest model allowed); the commands call `check_resources` before any run.
+
+A run's size is known from the scenario alone: the particles (counted from the particle
+arrangement without building shape functions, or estimated from the spacing where even the
+count would be costly), the kernel's neighbours per point (dilation), the quadrature
+points, and the steps (load steps of deform, needle steps until the tip exits). From these
+the guard estimates
+
+- memory: the sparse shape-function, gradient and tangent matrices and the LU factor grow
+  like particles x neighbours; bytes = MEMORY_PER_PARTICLE x particles^MEMORY_EXPONENT x
+  (neighbours / 16) x (quadrature points per particle / 4), plus the interpreter's share,
+  plus for a needle run what it keeps of its steps until it ends (_step_memory, counted
+  from the arrays the code keeps: each step's state with the saddle-point solver's dense
+  (2Q)^2 blocks, 2Q ~ 4 x the steps, in doubling buffers the states share), which passes
+  the rest from a few hundred steps on (SH 1/2: 1.26 GB measured at 0.0025 rad, 0.10 GB at
+  its 0.08 rad);
+- time: the tangent assembly B^T W B costs ~ quadrature points x neighbours^2 per Newton
+  iteration and the factorization grows a little faster than the particles; seconds =
+  SECONDS_PER_PARTICLE_STEP x particles^TIME_EXPONENT x steps x (neighbours / 16)^2 x
+  (quadrature points per particle / 4) x runs, x MINRES_TIME_FACTOR for needle runs whose
+  steps MINRES solves.
+
+A shaped tissue (an outline, holes, regions) is not a lattice the spacing alone counts: its
+particles and quadrature points are placed as the model places them (a traced contour's
+boundary particles, a circular hole's CIRCLE_SEGMENTS, the cut cells' extra Gauss points),
+and both costs are multiplied by its `crowding`, the mean square of the particles a
+quadrature point sees over a regular lattice's (16^2 at dilation 2), counted on a sample of
+the points: boundary particles carry the support of the lattice around them, so around a
+small hole a point sees several times the usual particles (measured on the audit's scenes
+and the shipped shaped ones, deform: memory 0.52-0.89x of the estimate; time 1.0-1.5x, and
+up to 2.4x where the solve of a point-like load on a traced outline needs many Newton
+iterations).
+
+The constants come from `python benchmarks/resource_costs.py` (benchmarks/results/
+resource_costs.md), measured on the 2-core machine the tool is developed on, which is
+shared: the memory model is within 0.93-1.23x of every measured case, the time model within
+0.78-1.6x of the dilation-2 cases, and the (neighbours/16)^2 time scaling overestimated the
+unfitted dilation-3 case (0.33x there; 0.96x in an earlier run of the same benchmark). What
+a needle run keeps of its steps is not fitted: the runs at 0.01 and 0.0025 rad on SH 1/2
+peak at 0.79 and 0.80x of the estimate (the slab's and the default steps' at 0.55-0.92x),
+and their time per step grows with the steps taken (1.6x the estimate at 0.0025 rad). The
+memory limit is what protects the machine; the time is a guide, not a promise.
+
+Limits (Limits; the CLI's --max-particles raises the first, --no-resource-check skips
+them all; nothing raises the memory share: a smaller model is the way under it):
+
+- MAX_PARTICLES = 50 000: a deform at 1 mm spacing on the 100 x 100 mm slab (10 447
+  particles) took 30 s and 0.77 GB; 50 000 particles are estimated at ~3 min and ~5.6 GB
+  per 10-step solve, a plan (several insertions and a verification model of 4x the
+  particles) at hours;
+- MAX_NEEDLE_STEPS = 2 000: the shipped needles take 15-40 steps; 2 000 steps over a half
+  circle advance the SH needle's tip by radius x step ~ 0.014 mm each, 1/130 of the default
+  particle spacing at the needle (1.78 mm): nothing the model resolves, while the run time
+  grows with every step, and the memory it keeps with their square (~4.6 GB estimated at
+  2 000 steps, past the memory share on many machines: then refused naming needle.step);
+- MAX_NEIGHBOURS = 400 particles in a kernel support (dilation 10): the RK functions stop
+  being local well before (RKPM practice: dilation 1.5-3, 9-36 neighbours), and the
+  tangent's cost grows with the square of the neighbours;
+- MEMORY_SHARE = 0.5 of the memory the machine has available now, for the runs a command
+  has going on at once together (check_resources `alongside`: a plan's passes, its
+  verification's replays in a helper process and its replay at twice the spacing; a
+  simulate and its estimate's replay; plan --uncertainty and the sampled plans of its local
+  Dask workers; the largest of a study's runs, as many as its local workers, and the
+  study's own process, which runs none of them, with its interpreter), each helper
+  process with its own share of the interpreter (HELPER_BASE_MEMORY), each worker with the
+  whole of its own.
+
+The guard also refuses a model too coarse to mean anything (`_coarse_refusal`), the other
+side of a spacing typed wrong: a spacing above half the tissue's smaller side (fewer than
+three particles across it), or a spacing at the needle above the needle's radius (the
+needle's curve then falls between a few particles: on the SH 1/2 block, `--spacing 200`
+runs on 4 particles to an exit error of 0.0175 mm, with an estimate of 0 from a second run on
+the same 4 particles, against 0.4685 mm at half the default spacing).
+
+A refusal names what drives the estimate past the limit (`_particle_setting`,
+`_memory_setting`): the spacing, or the needle zone's refinement or spacing when the
+coarse spacing alone would fit, or, when the spacing is the default of a file giving none,
+the needle radius or the tissue's size that sets it; past the memory share with a standard
+kernel fitting, the dilation or the quadrature points, and the needle step when the run
+would fit but for what it keeps of its steps. A field set elsewhere than the scenario file's
+`discretization:` block
+(an option, a study's spacing, a plan's verification model) is named as the caller's
+`Origin` says. Counts are estimated in floating point and held at COUNT_CAP, so any finite
+positive input ends in a refusal, never in an overflow.
+
+Its modules, each importing only those before it: `limits` (Limits and their defaults),
+`model_size` (ModelSize, model_size: particles, neighbours, quadrature points, steps),
+`origin` (Origin: what set a run's discretization), `formatting` (counts, bytes and
+durations as messages write them), `costs` (Estimate, estimate: time and memory,
+held_at_once), `machine` (available_memory) and `guard` (check_resources, its refusals and
+the settings they name).
+"""

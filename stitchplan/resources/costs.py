@@ -1,0 +1,216 @@
+"""What a run will cost: its time and memory estimated from its model size (Estimate, estimate)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..config import Discretization, Scenario
+from ..needle.geometry import needle_zone, scenario_needle
+from .formatting import _bytes, _count, _duration
+from .model_size import COUNT_CAP, ModelSize, _grid_count, _needle_steps, _per_side, model_size
+from .origin import Origin, _radius_default, _size_default
+
+# from benchmarks/results/resource_costs.md (python benchmarks/resource_costs.py): the time
+# constants a fit of the code as it is (fits vary with the machine's load: the exponent by
+# 1.07-1.19 over two runs; the file's "guard now" columns check these against every run); the
+# memory constants an earlier fit's (git history), kept because they bound every measured peak
+# from above, where the latest fits' sublinear exponent (the fixed cost of a run's first imports
+# spread over few particles) falls below the largest one
+SECONDS_PER_PARTICLE_STEP = {"deform": 6.5e-5, "insertion": 1.5e-5}  # at 1 000 particles
+TIME_EXPONENT = 1.07  # seconds ~ particles^TIME_EXPONENT
+# a needle run with `linear_solver: minres` against the direct solve the constants above were
+# fitted on: 3.5-4.6x on SH 1/2 from 324 to 979 particles, 7.4x at 2601 (mortar coupling;
+# benchmarks/results/simulate_speed.md, "Where MINRES stagnates")
+MINRES_TIME_FACTOR = 5.0
+MEMORY_PER_PARTICLE = 3.6e4  # bytes per particle at 1 000 particles
+MEMORY_EXPONENT = 1.28
+BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan loaded
+# a helper process's own share of the interpreter: forked as the command starts
+# (stitchplan/early_helper.py), it imports its own modules, but the pages of the libraries
+# under them (numpy's, scipy's, OpenBLAS) are shared through the page cache (a helper
+# replaying at twice the spacing: 58 MB of proportional set size against ~11 MB its run is
+# estimated above BASE_MEMORY; 40-44 MB when it was forked after the imports, sharing their
+# pages until written; benchmarks/results/memory_at_once.md)
+HELPER_BASE_MEMORY = 0.5 * BASE_MEMORY
+REFERENCE_PARTICLES = 1000.0
+REFERENCE_NEIGHBOURS = 16.0  # (2 x dilation)^2 at dilation 2
+REFERENCE_POINTS_PER_PARTICLE = 4.0  # 2 x 2 Gauss points per cell, one cell per particle
+# what a needle run keeps of its steps until it ends (_step_memory, from the arrays the code
+# keeps; checked against measured peaks in benchmarks/results/resource_costs.md)
+FLOAT_BYTES = 8.0
+# a step's state holds its own copy of the track's arrays (NeedleCoupling.add makes new ones
+# each step): per needle point the points (16 bytes), the segments' two Gauss points and the
+# load points (32 each), the load magnitudes (16), segment fraction and spacing (8 each), gap (1)
+TRACK_BYTES_PER_POINT = 113.0
+# each further piece of a segment (track_layout.segment_subintervals) adds two Gauss points,
+# two load points and their magnitudes (32 + 32 + 16 bytes) and, with segment ends, two target radii (16)
+TRACK_BYTES_PER_PIECE = 96.0
+# with `multiplier_ends: arc` also per constraint quadrature point its point (16), segment,
+# position, length and target radius (8 each): NeedleCoupling._new_constraint_points
+ARC_BYTES_PER_QUADRATURE_POINT = 48.0
+# per particle of each step: the state's free coefficients (16, Snapshot.free) and the tip's
+# dense shape-function row (8, NeedleCoupling.tip_row), and the particle displacements (16),
+# held twice at the end (run_insertion's list and InsertionResult's array)
+STEP_BYTES_PER_PARTICLE = 56.0
+# a run may take a few more steps than the undeformed circle's (a planned run on SH 1/2:
+# 628 for 611 at 0.005 rad): the solver's buffers are counted for this many times the steps,
+# so that a run just past a doubling is not estimated at a quarter of its largest buffer
+STEP_MARGIN = 1.1
+# runs of a plan on its model (planner passes; benchmarks/results/plan_speed.md: a planned run
+# takes ~2.5 unplanned ones) and replays on the verification model (half the spacing)
+PLAN_RUNS = 3
+VERIFICATION_RUNS = 2
+# runs whose steps' states one process holds at once (_step_memory each), of the `runs` an
+# estimate counts: a plan holds its unplanned comparison (--compare), its first pass (later
+# passes take its early steps over: planning.planner.PassPrefix), its best pass so far and the
+# pass running, 1-4 runs (measured on SH 1/2 at 0.005 rad: 456 MiB for one run, 666 MiB for a
+# plan of two passes, 1027 MiB with the comparison, 866 MiB for the 100 x 30 block's two passes;
+# tests/test_resource_guard.py MEASURED_PEAKS); a verification its first replay while the second
+# runs (run_insertion `start_from`). Two: within 2x of one and of four
+HELD_RUNS = 2
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The estimated cost of one command's runs, with what a refusal needs to name its cause."""
+
+    label: str  # e.g. "deform", "simulate", "plan verification"
+    size: ModelSize
+    steps: int  # load steps or needle steps of one run, at most COUNT_CAP
+    step_kind: str  # "load steps" or "needle steps"
+    runs: float  # runs of that size (plan: planned passes and the comparison)
+    memory_bytes: float
+    seconds: float
+    spacing: float  # the discretization's spacing, mm
+    needle_step: float | None  # rad per needle step (insertions)
+    discretization: Discretization
+    origin: Origin
+    # particles of a uniform grid at the spacing when the model is graded toward the needle
+    # (what the spacing alone costs), None when the model is that grid
+    coarse_particles: float | None
+    radius_default: float | None  # the needle radius, when the spacing is the default following it
+    tissue_size: tuple[float, float] | None = None  # the tissue's bounding box, mm
+    needle_radius: float | None = None  # mm (insertions)
+    step_memory: float = 0.0  # bytes of memory_bytes that needle runs keep of their steps (_step_memory)
+    # the tissue's field ("tissue.size" or "tissue.outline") when the spacing is the default its
+    # size sets (a scenario giving no spacing, and no needle radius setting it: _size_default)
+    size_default: str | None = None
+
+    def describe(self) -> str:
+        about = "" if self.size.exact else "about "
+        runs = f" in each of {self.runs:g} runs" if self.runs != 1 else ""
+        # costs of a count held at COUNT_CAP are lower bounds
+        memory = "over " if self.size.particles >= COUNT_CAP else "~"
+        time = "over " if self.size.particles >= COUNT_CAP or self.steps >= COUNT_CAP else "~"
+        return (f"{self.label}: {_count(self.size.particles, about)} particles, {_count(self.steps)} "
+                f"{self.step_kind}{runs}, {memory}{_bytes(self.memory_bytes)} memory, {time}{_duration(self.seconds)}")
+
+
+def _scale(size: ModelSize) -> tuple[float, float]:
+    """(memory, time) factors of a model relative to one reference particle; a crowded shaped
+    tissue's by its `crowding` (the tangent's nonzeros and its assembly both)."""
+    particles = max(size.particles, 1)
+    neighbours = size.effective_neighbours / REFERENCE_NEIGHBOURS
+    points = size.points_per_particle / REFERENCE_POINTS_PER_PARTICLE
+    relative = particles / REFERENCE_PARTICLES
+    memory = (MEMORY_PER_PARTICLE * REFERENCE_PARTICLES * relative ** MEMORY_EXPONENT * neighbours * points
+              * size.crowding)
+    time = REFERENCE_PARTICLES * relative ** TIME_EXPONENT * neighbours ** 2 * points * size.crowding
+    return memory, time
+
+
+def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
+    """Bytes a needle run of `steps` steps keeps of them until it ends: run_insertion keeps
+    every step's state (its Snapshot with the needle coupling's and the saddle-point
+    solver's) and particle displacements. With Q_k constraint quadrature points and m_k
+    multipliers after step k (2k and ~k x step length / element length + 2 with the mortar
+    coupling, k + 1 and k + 1 with the point coupling), and P particles (bounding the free ones):
+
+    - the saddle-point solver's E K^-1 E^T (2Q, 2Q) and K^-1 E^T (2 n_free, 2Q)
+      (SaddlePointSolver._grow) live in buffers whose capacity doubles from the first step's
+      2Q_1 to at least 2Q_N; every state holds a view of the buffer then in use, so every buffer
+      of the doubling stays (sum of capacities^2: ~4/3 of the last one's). Counted at their
+      capacity, which the last one's resident rows approach (numpy asks for transparent huge
+      pages for large arrays: 2Q_N rows written are resident whole), and which covers what the
+      allocator keeps of the steps' freed temporaries (SH 1/2 at 0.005 and 0.0025 rad, when
+      each state still held a copy of the load rows: peaks ~180 and ~430 MB above the
+      resident bytes of the arrays kept, ~100 MB of them the interpreter's and the model's;
+      the peaks are now 0.8x the estimate there, benchmarks/results/resource_costs.md);
+    - the coupling's dense W and P (Q_k, m_k), new in each step's state (NeedleCoupling._partition;
+      the point coupling's identity is both, (k + 1)^2): sum over the steps ~ N^3;
+    - the track's arrays, new in each state (TRACK_BYTES_PER_POINT): ~ N^2;
+    - STEP_BYTES_PER_PARTICLE per particle and step.
+
+    A renewed factor starts new buffers (SaddlePointSolver._use), which the states then keep
+    as well: the measured runs renewed none (the factor of K0 solves their needle steps).
+    Sums in floating point, finite for counts up to COUNT_CAP."""
+    from ..needle.track_layout import ARC_ENDS, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, segment_subintervals
+
+    needle, d = scenario.needle, scenario.discretization
+    n = float(steps)
+    sum_k, sum_k2 = n * (n + 1.0) / 2.0, n * (n + 1.0) * (2.0 * n + 1.0) / 6.0
+    arc_ends = needle.coupling != POINTS and needle.multiplier_ends == ARC_ENDS
+    # Q_k = per_segment k + first, m_k = slope k + offset; `arrays`: W and P, or one for both
+    pieces = 1.0
+    if needle.coupling == POINTS:
+        per_segment, first, slope, offset, arrays = 1.0, 1.0, 1.0, 1.0, 1.0
+    else:
+        at_needle = d.spacing if d.needle_spacing is None else d.needle_spacing
+        element = max(MULTIPLIER_SPACINGS * at_needle, needle.multiplier_length or 0.0)
+        step_length = scenario_needle(scenario).insertion_step
+        ratio = min(_per_side(step_length, element), float(COUNT_CAP))
+        pieces = float(segment_subintervals(step_length, at_needle)) if at_needle > 0 else float(COUNT_CAP)
+        # arc ends: at least 2 Gauss points per segment, QUADRATURE_PER_ELEMENT per element length;
+        # segment ends: the segments' Gauss points, 2 per piece; whole segments of at least an
+        # element's length (at most one per segment)
+        per_segment = max(2.0, float(math.ceil(QUADRATURE_PER_ELEMENT * ratio))) if arc_ends else 2.0 * pieces
+        first, slope, offset, arrays = 0.0, ratio if arc_ends else min(ratio, 1.0), 2.0, 2.0
+    weights = arrays * FLOAT_BYTES * (per_segment * slope * sum_k2 + (per_segment * offset + first * slope) * sum_k
+                                      + first * offset * n)
+    # the doubling buffers' capacities c_0 2^j, j = 0..J, c_0 = 2 Q_1, c_0 2^J >= 2 Q_N
+    start, end = 2.0 * (per_segment + first), 2.0 * (per_segment * STEP_MARGIN * n + first)
+    doublings = max(math.ceil(math.log2(end / start) - 1e-9), 0)
+    capacities = start * (2.0 ** (doublings + 1) - 1.0)  # sum of c_j
+    squares = start * start * (4.0 ** (doublings + 1) - 1.0) / 3.0  # sum of c_j^2
+    blocks = FLOAT_BYTES * (squares + 2.0 * particles * capacities)
+    track = (TRACK_BYTES_PER_POINT + TRACK_BYTES_PER_PIECE * (pieces - 1.0)
+             + (ARC_BYTES_PER_QUADRATURE_POINT * per_segment if arc_ends else 0.0)) * sum_k
+    return blocks + weights + track + STEP_BYTES_PER_PARTICLE * particles * n
+
+
+def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: float = 1.0,
+             origin: Origin | None = None, linear_solver: str | None = None) -> Estimate:
+    """The cost of `runs` runs of `kind` ("deform" or "insertion") on the scenario; `origin`:
+    what set its discretization, when not (all of) the scenario file's `discretization:`;
+    `linear_solver`: the needle steps' where an option overrides the scenario's."""
+    size = model_size(scenario)
+    if kind == "deform":
+        steps, step_kind = scenario.load_steps, "load steps"
+    else:
+        steps, step_kind = _needle_steps(scenario), "needle steps"
+    memory, time = _scale(size)
+    kept = 0.0 if kind == "deform" else min(runs, HELD_RUNS) * _step_memory(scenario, size.particles, steps)
+    seconds = SECONDS_PER_PARTICLE_STEP[kind] * time * steps * runs
+    if kind != "deform" and (linear_solver or scenario.needle.linear_solver) == "minres":
+        seconds *= MINRES_TIME_FACTOR
+    d, origin = scenario.discretization, origin or Origin()
+    graded = needle_zone(scenario) is not None
+    radius_default = _radius_default(scenario, origin)
+    return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory + kept, seconds,
+                    d.spacing, None if kind == "deform" else scenario.needle.step, d, origin,
+                    _grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
+                    radius_default, tuple(scenario.tissue.bounding_size),
+                    None if kind == "deform" else scenario.needle.radius, kept,
+                    None if radius_default is not None else _size_default(scenario, origin))
+
+
+def held_at_once(memory_bytes: list[float], forked: bool = True) -> float:
+    """Bytes of runs going on at once, each in its own process, from their estimates'
+    `memory_bytes`: the interpreter's BASE_MEMORY in them counted once for the command and,
+    when the others are `forked` helpers (the libraries' pages shared with the command),
+    HELPER_BASE_MEMORY for each of them; a Dask worker has the whole of its own."""
+    if not forked:
+        return sum(memory_bytes)
+    helpers = len(memory_bytes) - 1
+    return BASE_MEMORY + sum(amount - BASE_MEMORY for amount in memory_bytes) + helpers * HELPER_BASE_MEMORY

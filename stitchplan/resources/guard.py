@@ -1,0 +1,246 @@
+"""The guard: refuses runs past the limits, in one line each naming the setting that lowers the cost."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+from ..config import DEFAULT_NEEDLE_REFINEMENT
+from ..errors import InputError
+from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate, _scale,
+                    held_at_once)
+from .formatting import _amount, _bytes, _count
+from .limits import Limits
+from .machine import ADDRESS_SPACE_RESERVE, _address_space_left, _system_memory, available_memory
+from .model_size import _capped
+
+log = logging.getLogger(__package__)  # "stitchplan.resources", the name its records carry
+
+# runs estimated longer than this are announced by a warning line before they start (the
+# time is a guide: benchmarks/results/resource_costs.md)
+LONG_RUN_SECONDS = 600.0
+# what lifts each limit: --max-particles raises the particle limit only; nothing but
+# skipping the guard passes the memory share
+OVERRIDE = "raise --max-particles or pass --no-resource-check to run it anyway"
+SKIP_GUARD = "pass --no-resource-check to run it anyway"
+
+
+def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
+                    memory: float | None = None, alongside: list[Estimate] | None = None,
+                    forked: bool = True, workers: int | None = None) -> None:
+    """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
+    estimates otherwise. `memory`: bytes available (default: available_memory()).
+
+    `alongside`: runs that go on at the same time as `estimates`, in other processes but for
+    the predicted aim's (a command's replays at twice the spacing: the exit error estimate's
+    in a helper process, the predicted aim's in this one, counted as a helper's; the sampled
+    plans on local Dask workers), counted only in the memory all of them hold at once.
+    Given (even empty), the runs of `estimates` are taken to
+    go on at once too, and their memory together must stay within the share
+    (_together_refusal): each within it alone still leaves the machine short when two or
+    three hold as much (a plan at a small needle step: its own passes, its verification's
+    replays and the predicted aim's each keep their steps' states). `forked`: the processes
+    of `alongside` are this command's helpers (HELPER_BASE_MEMORY of an interpreter each: the
+    libraries' pages shared), not Dask workers (a whole interpreter each). `workers`: the runs of `estimates` go on in
+    this many worker processes, one each at a time and none in this process (a study's on a
+    local cluster): the largest `workers` of them are counted together, beside this process's
+    interpreter (BASE_MEMORY)."""
+    memory = available_memory() if memory is None else memory
+    lines = []
+    for item in estimates:
+        size, what = item.size, f"estimated {item.describe()}"
+        too_many_steps = item.needle_step is not None and item.steps > limits.max_needle_steps
+        if size.neighbours > limits.max_neighbours:
+            most = math.sqrt(limits.max_neighbours) / 2.0
+            lines.append(f"{item.origin.name('dilation')}: got {item.discretization.dilation:g}, expected at "
+                         f"most {most:g} (a kernel support of {_amount(size.neighbours)} particles per point, "
+                         f"at most {limits.max_neighbours}; RKPM uses 1.5-3)")
+        elif size.particles > limits.max_particles:
+            lines.append(_particles_refusal(item, limits.max_particles))
+        elif memory is not None and item.memory_bytes > limits.memory_share * memory:
+            setting = _memory_setting(item, limits.memory_share * memory)
+            if not (setting.name == "needle.step" and too_many_steps):  # the step limit's line below names it
+                lines.append(_memory_refusal(item, setting, limits.memory_share, memory))
+        coarse = _coarse_refusal(item)
+        if coarse is not None:
+            lines.append(coarse)
+        if too_many_steps:
+            lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
+                         f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
+                         "--no-resource-check")
+    together = estimates if workers is None else sorted(estimates, key=lambda item: -item.memory_bytes)[:workers]
+    held = [*together, *(alongside or [])]
+    here = 0.0 if workers is None else BASE_MEMORY
+    if not lines and alongside is not None and memory is not None and (len(held) > 1 or workers is not None) \
+            and here + held_at_once([item.memory_bytes for item in held], forked) > limits.memory_share * memory:
+        lines.append(_together_refusal(held, limits.memory_share, memory, forked, here))
+    if lines:
+        error = InputError("\n".join(lines))
+        error.lines = lines
+        raise error
+    for item in estimates:
+        log.info("resources: %s", item.describe())
+        if item.seconds > LONG_RUN_SECONDS:  # a run this long should not start in silence
+            log.warning("a long run: estimated %s; -v shows its progress", item.describe())
+    for item in alongside or []:  # they take no longer than the runs they go with: no warning of their own
+        log.info("resources: %s", item.describe())
+
+
+@dataclass(frozen=True)
+class Setting:
+    """What a refusal names: the field or option, the value it got, what it should give
+    (completed by "at most N particles"), how to lower the cost by it, and how it reaches
+    the model (ends in "; " when given)."""
+
+    name: str
+    got: str
+    expected: str
+    advice: str
+    note: str = ""
+
+
+def _particles_refusal(item: Estimate, limit: int) -> str:
+    setting = _particle_setting(item, lambda particles: particles <= limit)
+    return (f"{setting.name}: got {setting.got}, expected {setting.expected} at most {limit} particles"
+            f"{item.origin.derived} ({setting.note}estimated {item.describe()}); {setting.advice}, "
+            f"{_skip(item)}or {OVERRIDE}")
+
+
+def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: float) -> str:
+    return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {_bytes(memory)} of "
+            f"memory available{_limited()}{item.origin.derived} ({setting.note}estimated {item.describe()}); "
+            f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
+
+
+def _limited() -> str:
+    """Where the address-space limit sets the memory available, a note saying so (the field a
+    refusal names is what lowers the cost; the limit is what makes it too high)."""
+    room, system = _address_space_left(), _system_memory()
+    if room is None or (system is not None and room > system):
+        return ""
+    return f" under the address-space limit (ulimit -v; {_bytes(ADDRESS_SPACE_RESERVE)} of it kept for libraries)"
+
+
+def _together_refusal(held: list[Estimate], share: float, memory: float, forked: bool = True,
+                      here: float = 0.0) -> str:
+    """The line refusing runs that each fit the memory share but not all at once: it names
+    what drives the largest (what it could take, with the others' models left out of the
+    share) and lists every run's estimate, and `here`, the bytes this process holds beside
+    them when it runs none of them. The others follow the same fields (a spacing, a needle
+    step), so what lowers the largest lowers them too."""
+    largest = max(held, key=lambda item: item.memory_bytes)
+    total = here + held_at_once([item.memory_bytes for item in held], forked)
+    # what the largest may take with the others' models beside it: a larger needle step
+    # lowers what every run keeps of its steps, so theirs count without it
+    others_kept = sum(item.step_memory for item in held) - largest.step_memory
+    setting = _memory_setting(largest, share * memory - (total - largest.memory_bytes - others_kept))
+    skips = list(dict.fromkeys(item.origin.skip for item in held if item.origin.skip))
+    skip = "".join(f"{advice}, " for advice in skips)
+    runs = "; ".join([item.describe() for item in held] + ([f"this process: {_bytes(here)}"] if here else []))
+    return (f"{setting.name}: got {setting.got}, expected runs within {share:.0%} of the {_bytes(memory)} of memory "
+            f"available{_limited()} when they run at once ({setting.note}estimated ~{_bytes(total)} together: {runs}); "
+            f"{setting.advice}, {skip}or {SKIP_GUARD}")
+
+
+def _coarse_refusal(item: Estimate) -> str | None:
+    """The line refusing a model too coarse for its tissue or needle (the package's docstring), or
+    None. A needle spacing that follows the spacing (needle_refinement, or no grading) is
+    named as the spacing."""
+    d, origin = item.discretization, item.origin
+    spacing = origin.value("spacing", d.spacing)
+    width, height = item.tissue_size
+    if d.spacing > min(width, height) / 2.0:
+        # the spacing as set (a study's at the needle) may differ from the model's coarse one
+        coarse = "" if math.isclose(spacing, d.spacing) else f" (a coarse spacing of {d.spacing:.3g} mm)"
+        return (f"{origin.name('spacing')}: got {spacing:g} mm{coarse}, expected at most half the tissue's smaller side "
+                f"({width:g} x {height:g} mm), so that at least three particles span it{item.origin.derived}; "
+                f"refine it, {_skip(item)}or {SKIP_GUARD}")
+    at_needle = d.spacing if d.needle_spacing is None else d.needle_spacing
+    if item.needle_radius is None or at_needle <= item.needle_radius:
+        return None
+    if d.needle_spacing is not None and d.needle_refinement is None:
+        name, got = origin.name("needle_spacing"), f"{origin.value('needle_spacing', d.needle_spacing):g} mm"
+    else:
+        name, got = origin.name("spacing"), f"{spacing:g} mm"
+        if d.needle_spacing is not None:
+            got += f" (a needle spacing of {at_needle:.3g} mm)"
+    return (f"{name}: got {got}, expected a spacing at the needle of at most its radius, {item.needle_radius:g} mm, "
+            f"so that the particles follow the needle's curve{item.origin.derived}; refine it, {_skip(item)}or "
+            f"{SKIP_GUARD}")
+
+
+def _skip(item: Estimate) -> str:
+    return f"{item.origin.skip}, " if item.origin.skip else ""
+
+
+def _particle_setting(item: Estimate, fits: Callable[[float], bool]) -> Setting:
+    """What makes the particles too many for `fits`: the spacing, unless a uniform grid at
+    the spacing would fit and the needle zone is refined past the default; then the needle
+    zone's refinement or its own spacing."""
+    d, origin = item.discretization, item.origin
+    if item.coarse_particles is None or not fits(item.coarse_particles):
+        return _spacing_setting(item)
+    derived = d.needle_refinement is not None and math.isclose(d.needle_spacing, d.spacing / d.needle_refinement)
+    if derived and d.needle_refinement <= DEFAULT_NEEDLE_REFINEMENT:
+        return _spacing_setting(item)  # the default grading follows the spacing: coarsening it coarsens both
+    if derived:
+        spacing = origin.value("spacing", d.spacing)
+        return Setting(origin.name("needle_refinement"), f"{d.needle_refinement:g}", "a refinement giving",
+                       "lower it", f"a needle spacing of {spacing:g} mm / {d.needle_refinement:g} = "
+                       f"{spacing / d.needle_refinement:.3g} mm; ")
+    return Setting(origin.name("needle_spacing"), f"{origin.value('needle_spacing', d.needle_spacing):g} mm",
+                   "a needle spacing giving", "coarsen it")
+
+
+def _spacing_setting(item: Estimate) -> Setting:
+    d, origin = item.discretization, item.origin
+    spacing = origin.value("spacing", d.spacing)
+    if item.radius_default is not None:  # the file gives no spacing: the radius sets it
+        width, height = item.tissue_size
+        return Setting("needle.radius", f"{item.radius_default:g} mm",
+                       f"a radius whose default particle spacing (here {spacing:.3g} mm) gives",
+                       f"check that it and the tissue's size ({width:g} x {height:g} mm) are in mm, "
+                       "or give discretization.spacing")
+    if item.size_default is not None:  # the file gives no spacing: the tissue's size sets it
+        width, height = item.tissue_size
+        shape = "size" if item.size_default == "tissue.size" else "outline"
+        got = f"[{width:g}, {height:g}] mm" if shape == "size" else f"an outline of {width:g} x {height:g} mm"
+        return Setting(item.size_default, got,
+                       f"a {shape} whose default particle spacing (here {spacing:.3g} mm) gives",
+                       "check that it is in mm, or give discretization.spacing")
+    return Setting(origin.name("spacing"), f"{spacing:g} mm", "a spacing giving", "coarsen it")
+
+
+def _memory_setting(item: Estimate, budget: float) -> Setting:
+    """What takes the memory past `budget`: the needle step when the run would fit without
+    what it keeps of its steps (_step_memory); else the particles (as _particle_setting) when
+    even a standard kernel (dilation 2, 2 x 2 Gauss points per particle) would pass it, else
+    the larger of the kernel's two factors, its support (dilation) or its quadrature points."""
+    size, d, origin = item.size, item.discretization, item.origin
+    if item.needle_step is not None and item.memory_bytes - item.step_memory <= budget:
+        held = min(item.runs, HELD_RUNS)
+        both = f", {_bytes(item.step_memory)} for the {held:g} runs held at once" if held > 1 else ""
+        return Setting("needle.step", f"{item.needle_step:g} rad", "", "take a larger step",
+                       f"{_count(item.steps)} needle steps keep ~{_bytes(item.step_memory / held)} of states and "
+                       f"solver blocks until the run ends{both}; ")
+
+    def fits_with_a_standard_kernel(particles: float) -> bool:
+        standard = replace(size, particles=_capped(particles), neighbours=min(size.neighbours, REFERENCE_NEIGHBOURS),
+                           points_per_particle=min(size.points_per_particle, REFERENCE_POINTS_PER_PARTICLE))
+        return BASE_MEMORY + _scale(standard)[0] <= budget
+
+    if not fits_with_a_standard_kernel(size.particles):
+        return _particle_setting(item, fits_with_a_standard_kernel)
+    neighbours = size.effective_neighbours / REFERENCE_NEIGHBOURS
+    points = size.points_per_particle / REFERENCE_POINTS_PER_PARTICLE
+    if neighbours >= points:
+        return Setting(origin.name("dilation"), f"{d.dilation:g}", "", "lower it (RKPM uses 1.5-3)",
+                       f"a kernel support of {_amount(size.effective_neighbours)} particles per point takes "
+                       f"{neighbours:.3g} times the memory of dilation 2's {REFERENCE_NEIGHBOURS:g}; ")
+    order, cells = d.quadrature_order, d.cells_per_spacing
+    key, got = ("quadrature_order", order) if order * order / 4 >= cells * cells else ("cells_per_spacing", cells)
+    return Setting(origin.name(key), f"{got}", "", "lower it",
+                   f"{order} x {order} Gauss points in each of {cells} x {cells} cells per particle take "
+                   f"{points:.3g} times the memory of the default 2 x 2 in one; ")
