@@ -164,7 +164,7 @@ SHIPPED_COUPLING = "shipped"
 FIELDS = ("scene", "coupling", "factor", "spacing_mm", "particles", "steps", "exit_error_mm", "seconds", "failure")
 
 
-def _value(text: str) -> float | str:
+def choice_value(text: str) -> float | str:
     try:
         return float(text)
     except ValueError:
@@ -179,7 +179,7 @@ def scene(name: str, coupling: str):
     `SCENE KEY=VALUE,...` overrides needle fields (e.g. `sh12_100x40 friction=0`: the
     cutting force alone; `needle20_entry30 tip_tracking=auto`: the thesis's inverse gradient)."""
     name, _, overrides = name.partition(" ")
-    needle = {key: _value(value) for key, value in (item.split("=") for item in overrides.split(",") if item)}
+    needle = {key: choice_value(value) for key, value in (item.split("=") for item in overrides.split(",") if item)}
     coupling_name, coupling = coupling, coupling.partition(" ")[0]
     if coupling == "mortar-arc":
         coupling, needle["multiplier_ends"] = "mortar", "arc"

@@ -23,7 +23,7 @@ import pytest
 from typer.testing import CliRunner
 
 from stitchplan.cli import app
-from stitchplan.cli.options import _check_angular_speed, _parse_base_transform
+from stitchplan.cli.options import check_angular_speed, parse_base_transform
 from stitchplan.config import Robot, load_scenario
 from stitchplan.config.blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
 from stitchplan.errors import InputError
@@ -234,22 +234,22 @@ def test_robot_options_at_their_bounds_give_a_finite_trajectory(geometry):
                                   "90,1", "90,1,2,3"])
 def test_base_transforms_out_of_range_are_refused(text):
     with pytest.raises(InputError) as caught:
-        _parse_base_transform(text)
+        parse_base_transform(text)
     assert str(caught.value) == (f"--base-transform: got {text!r}, expected ROTATION_DEG,TX_MM,TY_MM: three numbers "
                                  f"with |ROTATION_DEG| <= 360 and |TX_MM|, |TY_MM| <= 10000 (mm)")
 
 
 def test_base_transforms_within_range_are_read():
-    assert _parse_base_transform("90,400,120") == (90.0, (400.0, 120.0))
-    assert _parse_base_transform(" -360 , 10000 , -1e4 ") == (-360.0, (10000.0, -10000.0))
+    assert parse_base_transform("90,400,120") == (90.0, (400.0, 120.0))
+    assert parse_base_transform(" -360 , 10000 , -1e4 ") == (-360.0, (10000.0, -10000.0))
 
 
 def test_angular_speeds_too_slow_for_finite_times_are_refused():
-    _check_angular_speed(MIN_ANGULAR_SPEED)
+    check_angular_speed(MIN_ANGULAR_SPEED)
     for speed in (5e-324, 9e-7, 0.0, -1.0, math.inf, math.nan):
         with pytest.raises(InputError, match=re.escape(f"--angular-speed: got {speed!r}, expected a positive "
                                                        f"speed in rad/s of at least 1e-06")):
-            _check_angular_speed(speed)
+            check_angular_speed(speed)
 
 
 # --- the commands ---------------------------------------------------------------------------------

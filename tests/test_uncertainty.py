@@ -604,7 +604,7 @@ def test_an_unverified_plan_under_uncertainty_estimates_its_error_as_plan_does(t
 def test_a_plan_under_uncertainty_chosen_for_an_accuracy_says_when_its_estimate_is_above_it(tmp_path, monkeypatch):
     """With discretization.accuracy, plan --uncertainty puts the auto discretization's note
     first and, where the exported plan's own estimate comes out above the accuracy asked, the
-    accuracy check after it, as plan does (cli/runs.py _put_accuracy_notes_first). The choice
+    accuracy check after it, as plan does (cli/runs.py put_accuracy_notes_first). The choice
     itself is stood in for by the 5 mm scene (its search is study/auto.py's, tested there)."""
     from stitchplan.config.scenario import parse_scenario
     from stitchplan.events import Event, EventKind

@@ -10,8 +10,8 @@ import typer
 from ..allocator import resume_collection
 from .group import calibrate_app
 from .options import (DilationOption, MaxParticlesOption, NoResourceCheckOption, QuietOption, SpacingOption,
-                      VerboseOption, _argv, _check_outputs, _guard_calibration, _limits, _option_names,
-                      _setup_logging)
+                      VerboseOption, check_command_outputs, command_line_argv, guard_calibration, guard_limits,
+                      option_names, setup_logging)
 
 
 @calibrate_app.command("material")
@@ -30,21 +30,21 @@ def calibrate_material(
     quiet: bool = QuietOption,
 ) -> None:
     """Fit lame_lambda and lame_mu to marker displacements (grid search, then least squares)."""
-    _setup_logging(verbose, quiet)
+    setup_logging(verbose, quiet)
     from .. import calibration
     from ..io.calibration_reports import material_outputs, material_summary_line, write_material_outputs
     from ..io.progress import progress_bar
 
     resume_collection()
     outputs = material_outputs(out, plot_dir)
-    _check_outputs(outputs, {"CALIBRATION": calibration_path})
+    check_command_outputs(outputs, {"CALIBRATION": calibration_path})
     problem = calibration.load_material_calibration(calibration_path, spacing, dilation)
-    _guard_calibration(calibration_path, problem, _limits(max_particles, no_resource_check),
-                       names=_option_names(spacing, dilation))
-    _check_outputs(outputs, {f"markers of experiments[{k}]": experiment.source
-                             for k, experiment in enumerate(problem.experiments)})
+    guard_calibration(calibration_path, problem, guard_limits(max_particles, no_resource_check),
+                      names=option_names(spacing, dilation))
+    check_command_outputs(outputs, {f"markers of experiments[{k}]": experiment.source
+                                    for k, experiment in enumerate(problem.experiments)})
     result = calibration.fit_material(problem, progress=progress_bar)
-    write_material_outputs(result, out, plot_dir, command=_argv())
+    write_material_outputs(result, out, plot_dir, command=command_line_argv())
     typer.echo(material_summary_line(result))
 
 
@@ -62,15 +62,15 @@ def calibrate_needle(
     quiet: bool = QuietOption,
 ) -> None:
     """Fit needle friction (N/mm) and cutting force (N) to force recordings in air and tissue."""
-    _setup_logging(verbose, quiet)
-    _check_outputs({"--out": out, "--plot": plot}, {"--air": air, "--tissue": tissue})
+    setup_logging(verbose, quiet)
+    check_command_outputs({"--out": out, "--plot": plot}, {"--air": air, "--tissue": tissue})
     _check_two_recordings(air, tissue)
     from .. import calibration
     from ..io.calibration_reports import needle_summary_line, write_needle_outputs
 
     resume_collection()
     result = calibration.calibrate_needle(air, tissue, radius)
-    write_needle_outputs(result, out, plot, command=_argv())
+    write_needle_outputs(result, out, plot, command=command_line_argv())
     typer.echo(needle_summary_line(result))
 
 

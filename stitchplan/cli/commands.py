@@ -14,14 +14,15 @@ import typer
 
 from ..allocator import resume_collection
 from .group import app
-from .guards import _guard_plan, _guard_simulate, _guard_study
+from .guards import guard_plan, guard_simulate, guard_study
 from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOption, ScenarioArgument,
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, SchedulerOption, WorkersOption,
-                      _check_angular_speed, _check_outputs, _check_plot_scale, _check_plot_steps, _echo_events,
-                      _echo_notes, _executor, _guard, _limits, _load, _naming_files, _needle_geometry, _option_names,
-                      _parse_base_transform, _parse_steps, _plot_steps_note, _provenance, _setup_logging, _value)
-from .plan_under_uncertainty import _check_uncertainty_options, _plan_under_uncertainty
+                      check_angular_speed, check_command_outputs, check_plot_scale_option, check_plot_steps,
+                      checked_needle_geometry, choice_value, command_executor, echo_events, echo_notes, guard_limits,
+                      guard_runs, load_with_options, naming_files, option_names, parse_base_transform, parse_steps,
+                      plot_steps_note, run_provenance, setup_logging)
+from .plan_under_uncertainty import check_uncertainty_options, run_plan_under_uncertainty
 
 
 @app.command()
@@ -43,17 +44,17 @@ def deform(
     quiet: bool = QuietOption,
 ) -> None:
     """Static large-deformation solve of the slab under the scenario's `loads`."""
-    _setup_logging(verbose, quiet)
-    _check_plot_scale(plot_scale, plot)
-    _check_outputs({"--probes-out": probes_out, "--reactions-out": reactions_out, "--summary": summary,
+    setup_logging(verbose, quiet)
+    check_plot_scale_option(plot_scale, plot)
+    check_command_outputs({"--probes-out": probes_out, "--reactions-out": reactions_out, "--summary": summary,
                     "--out": out, "--plot": plot}, {"SCENARIO": scenario_path})
-    scenario = _load(scenario_path, spacing, dilation)
+    scenario = load_with_options(scenario_path, spacing, dilation)
     from ..config.scenario import require_loads
 
     require_loads(scenario, scenario_path)
-    _guard(scenario_path, _limits(max_particles, no_resource_check), ("deform", scenario, "deform", 1),
-           names=_option_names(spacing, dilation))
-    provenance = _provenance(scenario_path, scenario)
+    guard_runs(scenario_path, guard_limits(max_particles, no_resource_check), ("deform", scenario, "deform", 1),
+               names=option_names(spacing, dilation))
+    provenance = run_provenance(scenario_path, scenario)
     from ..io import reports
     from ..io.progress import progress_bar
     from ..needle.geometry import needle_zone
@@ -61,7 +62,7 @@ def deform(
 
     resume_collection()
     # a needle scene's default particles are graded toward the needle: deform keeps them
-    with _naming_files(scenario_path), progress_bar("load steps", scenario.load_steps) as advance:
+    with naming_files(scenario_path), progress_bar("load steps", scenario.load_steps) as advance:
         result = run_deform(scenario, on_step=lambda step, record: advance(), needle_zone=needle_zone(scenario))
     reports.write_deform_outputs(result, probes_out=probes_out, reactions_out=reactions_out,
                                  summary=summary, out=out, plot=plot, provenance=provenance,
@@ -96,35 +97,35 @@ def simulate(
 
     Thesis Algorithm 1. With --center-path the centre follows a trajectory instead (replay).
     """
-    _setup_logging(verbose, quiet)
-    _check_outputs({"--out": out, "--summary": summary, "--plot": plot},
+    setup_logging(verbose, quiet)
+    check_command_outputs({"--out": out, "--summary": summary, "--plot": plot},
                    {"SCENARIO": scenario_path, "--center-path": center_path})
     steps_to_plot = _steps_to_plot(plot_steps, plot)
-    scenario = _load(scenario_path, spacing, dilation)
+    scenario = load_with_options(scenario_path, spacing, dilation)
     accuracy = scenario.discretization.accuracy  # asked for; resolve_accuracy clears it
-    provenance = _provenance(scenario_path, scenario)
+    provenance = run_provenance(scenario_path, scenario)
     from ..io import reports
-    from .runs import _put_accuracy_notes_first, _read_center_path, _resolve_accuracy, _simulate_with_replays
+    from .runs import put_accuracy_notes_first, read_center_path_option, resolve_accuracy_guarded, simulate_with_replays
 
     resume_collection()
-    options = {"linear_solver": _value(linear_solver), "tip_tracking": _value(tip_tracking)}
-    geometry = _needle_geometry(scenario_path, scenario)
-    path = _read_center_path(scenario_path, center_path, scenario, geometry) if center_path is not None else None
-    _check_plot_steps(steps_to_plot, scenario)
-    limits = _limits(max_particles, no_resource_check)
+    options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
+    geometry = checked_needle_geometry(scenario_path, scenario)
+    path = read_center_path_option(scenario_path, center_path, scenario, geometry) if center_path is not None else None
+    check_plot_steps(steps_to_plot, scenario)
+    limits = guard_limits(max_particles, no_resource_check)
     if accuracy is None:
-        _guard_simulate(scenario_path, limits, _option_names(spacing, dilation), scenario, estimate,
-                        options["linear_solver"])
-    scenario, auto_note = _resolve_accuracy(scenario_path, scenario, limits, **options)
-    result, error_estimate = _simulate_with_replays(scenario_path, scenario, center_path, path, estimate,
-                                                    condition_numbers, **options)
-    _put_accuracy_notes_first(result.events, auto_note, accuracy, error_estimate)
+        guard_simulate(scenario_path, limits, option_names(spacing, dilation), scenario, estimate,
+                       options["linear_solver"])
+    scenario, auto_note = resolve_accuracy_guarded(scenario_path, scenario, limits, **options)
+    result, error_estimate = simulate_with_replays(scenario_path, scenario, center_path, path, estimate,
+                                                   condition_numbers, **options)
+    put_accuracy_notes_first(result.events, auto_note, accuracy, error_estimate)
     reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
                                     plot_steps=steps_to_plot, provenance=provenance,
                                     extra_summary=reports.exit_estimate_summary(error_estimate))
     typer.echo(reports.insertion_line(result, "simulate", error_estimate))
-    _plot_steps_note(steps_to_plot, result, quiet)
-    _echo_events(result.events, quiet)
+    plot_steps_note(steps_to_plot, result, quiet)
+    echo_events(result.events, quiet)
 
 
 def _steps_to_plot(plot_steps: Optional[str], plot: Optional[Path]) -> Optional[list[int]]:
@@ -133,7 +134,7 @@ def _steps_to_plot(plot_steps: Optional[str], plot: Optional[Path]) -> Optional[
 
     if plot_steps is not None and plot is None:
         raise InputError(f"--plot-steps: got {plot_steps}, expected it only with --plot PNG")
-    return _parse_steps(plot_steps)
+    return parse_steps(plot_steps)
 
 
 @app.command()
@@ -179,46 +180,46 @@ def plan(
     Thesis Algorithm 2. By default also runs the unplanned insertion for comparison, and
     replays the trajectory on a model of half the particle spacing (verified exit error).
     """
-    _setup_logging(verbose, quiet)
-    _check_uncertainty_options(uncertainty_path, compare,
+    setup_logging(verbose, quiet)
+    check_uncertainty_options(uncertainty_path, compare,
                                {"--uncertainty-plot": uncertainty_plot, "--workers": workers, "--scheduler": scheduler})
-    executor = _executor(workers, scheduler)
-    _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
+    executor = command_executor(workers, scheduler)
+    check_command_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                     "--uncertainty-plot": uncertainty_plot},
                    {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path})
-    options = {"linear_solver": _value(linear_solver), "tip_tracking": _value(tip_tracking)}
-    _check_angular_speed(angular_speed)
-    transform = _parse_base_transform(base_transform)
-    scenario = _load(scenario_path, spacing, dilation)
+    options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
+    check_angular_speed(angular_speed)
+    transform = parse_base_transform(base_transform)
+    scenario = load_with_options(scenario_path, spacing, dilation)
     accuracy = scenario.discretization.accuracy  # asked for; resolve_accuracy clears it
-    provenance = _provenance(scenario_path, scenario)
+    provenance = run_provenance(scenario_path, scenario)
     from ..planning.plan_options import with_plan_options
 
     scenario = with_plan_options(scenario, transform, angular_speed, strict)
-    limits, names = _limits(max_particles, no_resource_check), _option_names(spacing, dilation)
-    guard = partial(_guard_plan, scenario_path, limits, names, verify=verify, compare=compare,
+    limits, names = guard_limits(max_particles, no_resource_check), option_names(spacing, dilation)
+    guard = partial(guard_plan, scenario_path, limits, names, verify=verify, compare=compare,
                     linear_solver=options["linear_solver"])
     # before the numerics' imports, which the replay helper spends building its model (none under uncertainty)
     _guard_and_hand_replay_model(scenario_path, scenario, guard, verify, options, hand=uncertainty_path is None)
     from ..io import reports
-    from .runs import _plan_with_replays, _put_accuracy_notes_first, _resolve_accuracy
+    from .runs import plan_with_replays, put_accuracy_notes_first, resolve_accuracy_guarded
 
     resume_collection()
-    scenario, auto_note = _resolve_accuracy(scenario_path, scenario, limits, **options)
+    scenario, auto_note = resolve_accuracy_guarded(scenario_path, scenario, limits, **options)
     if auto_note is not None:
         guard(scenario)  # the verification model of the chosen discretization
     if uncertainty_path is not None:
-        _plan_under_uncertainty(scenario_path, scenario, uncertainty_path, executor, auto_note, limits,
-                                verify=verify, names=names, export=export, out=out, summary=summary, plot=plot,
-                                uncertainty_plot=uncertainty_plot, provenance=provenance, quiet=quiet, accuracy=accuracy,
-                                **options)
+        run_plan_under_uncertainty(scenario_path, scenario, uncertainty_path, executor, auto_note, limits,
+                                   verify=verify, names=names, export=export, out=out, summary=summary, plot=plot,
+                                   uncertainty_plot=uncertainty_plot, provenance=provenance, quiet=quiet,
+                                   accuracy=accuracy, **options)
         return
-    result = _plan_with_replays(scenario_path, scenario, compare, verify, out, plot, **options)
-    _put_accuracy_notes_first(result.planned.events, auto_note, accuracy, result.estimate)
+    result = plan_with_replays(scenario_path, scenario, compare, verify, out, plot, **options)
+    put_accuracy_notes_first(result.planned.events, auto_note, accuracy, result.estimate)
     reports.write_plan_outputs(result, export=export, out=out, summary=summary, plot=plot,
                                provenance=provenance)
     typer.echo(reports.plan_line(result, export))
-    _echo_events(result.planned.events, quiet)
+    echo_events(result.planned.events, quiet)
 
 
 def _guard_and_hand_replay_model(scenario_path: Path, scenario, guard, verify: bool, options: dict,
@@ -226,7 +227,7 @@ def _guard_and_hand_replay_model(scenario_path: Path, scenario, guard, verify: b
     """A needle that cannot enter or exit refused with the file named; then, when the scenario
     settles its model (no `accuracy` to resolve), the resource `guard`, and with `hand` the
     replay helper (stitchplan/early_helper.py) handed the model the plan's replays run on."""
-    _needle_geometry(scenario_path, scenario)
+    checked_needle_geometry(scenario_path, scenario)
     if scenario.discretization.accuracy is None:
         guard(scenario)
         if hand:
@@ -254,30 +255,30 @@ def study(
     and compares each run's exit point and wall time with the finest run's. The runs are
     tasks on a Dask cluster (--workers, --scheduler); wall times compare best with one worker.
     """
-    _setup_logging(verbose, quiet)
+    setup_logging(verbose, quiet)
     _check_study_folder(out)
     from ..io.study_reports import study_outputs, summary_lines, write_study_outputs
 
-    executor = _executor(workers, scheduler)
-    _check_outputs(study_outputs(out), {"SCENARIO": scenario_path})
-    scenario = _load(scenario_path, None, None)
-    _needle_geometry(scenario_path, scenario)  # the sweep needs a needle that enters and exits
+    executor = command_executor(workers, scheduler)
+    check_command_outputs(study_outputs(out), {"SCENARIO": scenario_path})
+    scenario = load_with_options(scenario_path, None, None)
+    checked_needle_geometry(scenario_path, scenario)  # the sweep needs a needle that enters and exits
     from ..io.progress import progress_bar
     from ..study.sweep import plan_runs, run_study, study_size
 
     resume_collection()
-    with _naming_files(scenario_path):
+    with naming_files(scenario_path):
         runs, reference, repeats = plan_runs(scenario, quick)
-    _guard_study(scenario_path, _limits(max_particles, no_resource_check), runs, reference, repeats,
-                 executor.workers)
+    guard_study(scenario_path, guard_limits(max_particles, no_resource_check), runs, reference, repeats,
+                executor.workers)
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
                            executor=executor)
-    csv_path, png_path, json_path = write_study_outputs(result, out, _provenance(scenario_path, scenario))
+    csv_path, png_path, json_path = write_study_outputs(result, out, run_provenance(scenario_path, scenario))
     for line in summary_lines(result):
         typer.echo(line)
     typer.echo(f"study: wrote {csv_path}, {png_path} and {json_path}")
-    _echo_notes(result.notes, quiet)
+    echo_notes(result.notes, quiet)
 
 
 def _check_study_folder(out: Path) -> None:
@@ -296,7 +297,7 @@ def schema(verbose: int = VerboseOption, quiet: bool = QuietOption) -> None:
     """
     import json
 
-    _setup_logging(verbose, quiet)
+    setup_logging(verbose, quiet)
     from ..config import scenario_schema
 
     resume_collection()

@@ -56,7 +56,7 @@ QuietOption = typer.Option(False, "--quiet", "-q",
                            help="Errors only: no warnings, notes or progress bar.")
 
 
-def _setup_logging(verbose: int, quiet: bool = False) -> None:
+def setup_logging(verbose: int, quiet: bool = False) -> None:
     """-q: errors only; default: warnings; -v: progress (INFO); -vv: every iteration (DEBUG)."""
     from ..errors import InputError
     from ..io.progress import configure_terminal
@@ -66,13 +66,14 @@ def _setup_logging(verbose: int, quiet: bool = False) -> None:
     configure_terminal(verbose=int(verbose), quiet=quiet)
 
 
-def _load(scenario_path: Path, spacing: Optional[float], dilation: Optional[float]):
+def load_with_options(scenario_path: Path, spacing: Optional[float], dilation: Optional[float]):
     from ..config import load_scenario, with_discretization
 
     return with_discretization(load_scenario(scenario_path), spacing=spacing, dilation=dilation)
 
 
-def _check_outputs(outputs: dict[str, Optional[Path]], inputs: Optional[dict[str, Optional[Path]]] = None) -> None:
+def check_command_outputs(outputs: dict[str, Optional[Path]],
+                          inputs: Optional[dict[str, Optional[Path]]] = None) -> None:
     """Fail before any work if an output cannot be written or is the same file as another
     output or an input: `{option: path}` each (None: not given). A figure option's file
     must be named .png: the figures are PNG, and other bytes under .pdf or .svg would
@@ -96,7 +97,7 @@ def _check_outputs(outputs: dict[str, Optional[Path]], inputs: Optional[dict[str
 def _given_value(option: str) -> Optional[str]:
     """The text given for `option` on the command line, as typed (a Path drops a trailing
     slash), or None."""
-    argv = _argv() or []
+    argv = command_line_argv() or []
     for k, arg in enumerate(argv):
         if arg == option and k + 1 < len(argv):
             return argv[k + 1]
@@ -108,27 +109,27 @@ def _given_value(option: str) -> Optional[str]:
 PNG_OPTIONS = ("--plot", "--uncertainty-plot")
 
 
-def _provenance(scenario_path: Optional[Path] = None, scenario=None) -> dict:
+def run_provenance(scenario_path: Optional[Path] = None, scenario=None) -> dict:
     """Version, command line (argv), scenario path and the SHA-256 of the `scenario` as
     loaded, time: for the summaries."""
     from ..io.files import provenance
 
-    return provenance(_argv(), scenario_path, getattr(scenario, "source_sha256", None))
+    return provenance(command_line_argv(), scenario_path, getattr(scenario, "source_sha256", None))
 
 
-def _argv() -> Optional[list[str]]:
+def command_line_argv() -> Optional[list[str]]:
     """The command line as a list (kept by cli.group.Commands), None outside a command."""
     from .group import COMMAND_LINE
 
     return COMMAND_LINE.get()
 
 
-def _value(choice: Optional[Enum]) -> Optional[str]:
+def choice_value(choice: Optional[Enum]) -> Optional[str]:
     return None if choice is None else choice.value
 
 
 
-def _parse_steps(text: Optional[str]) -> Optional[list[int]]:
+def parse_steps(text: Optional[str]) -> Optional[list[int]]:
     from ..errors import InputError
 
     if not text:
@@ -147,23 +148,23 @@ TipTrackingOption = typer.Option(
     "Levenberg-Marquardt (overrides the scenario).")
 
 
-def _expected_steps(scenario) -> int:
+def scenario_expected_steps(scenario) -> int:
     from ..needle.geometry import scenario_needle
 
     return scenario_needle(scenario).expected_steps
 
 
-def _needle_geometry(scenario_path: Path, scenario):
+def checked_needle_geometry(scenario_path: Path, scenario):
     """The scenario's needle geometry; a needle that cannot enter or exit is refused with
     the file named."""
     from ..needle.geometry import scenario_needle
 
-    with _naming_files(scenario_path):
+    with naming_files(scenario_path):
         return scenario_needle(scenario)
 
 
 @contextmanager
-def _naming_files(scenario_path: Path, center_path: Optional[Path] = None):
+def naming_files(scenario_path: Path, center_path: Optional[Path] = None):
     """Input errors met after the scenario was loaded (the needle, the resource guard, the
     model's build, a replayed centre path) name what they concern: the option for a line
     that starts with one, the centre path's file for its rows, the scenario's for the rest."""
@@ -183,21 +184,21 @@ def _naming_files(scenario_path: Path, center_path: Optional[Path] = None):
         raise input_error(named) from None
 
 
-def _check_plot_steps(steps: Optional[list[int]], scenario) -> None:
+def check_plot_steps(steps: Optional[list[int]], scenario) -> None:
     """--plot-steps within the run: 0 (the entry) to the last step before the undeformed
     circle's exit (the needle geometry knows it before the run)."""
     from ..errors import InputError
 
     if not steps:
         return
-    last = _expected_steps(scenario) - 1
+    last = scenario_expected_steps(scenario) - 1
     outside = [step for step in steps if not 0 <= step <= last]
     if outside:
         raise InputError(f"--plot-steps: got {','.join(map(str, outside))}, expected steps between 0 "
                          f"(the entry) and {last} (the needle's last step before its tip exits)")
 
 
-def _plot_steps_note(steps: Optional[list[int]], result, quiet: bool) -> None:
+def plot_steps_note(steps: Optional[list[int]], result, quiet: bool) -> None:
     """A note when the run ended before a requested step (the plot then draws its last)."""
     late = [step for step in steps or () if step > len(result.steps)]
     if late and not quiet:
@@ -225,7 +226,7 @@ NoResourceCheckOption = typer.Option(
     "the resource guard's limits.")
 
 
-def _limits(max_particles: Optional[int], no_resource_check: bool):
+def guard_limits(max_particles: Optional[int], no_resource_check: bool):
     """The resource guard's limits (None: no check)."""
     if no_resource_check:
         return None
@@ -234,13 +235,13 @@ def _limits(max_particles: Optional[int], no_resource_check: bool):
     return Limits() if max_particles is None else Limits(max_particles=max_particles)
 
 
-def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
-           linear_solver: Optional[str] = None, alongside: Optional[list] = None, forked: bool = True,
-           workers: Optional[int] = None) -> None:
+def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
+               linear_solver: Optional[str] = None, alongside: Optional[list] = None, forked: bool = True,
+               workers: Optional[int] = None) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.origin.Origin of the run's discretization (default: the file's, with the fields in
-    `names` set by options, _option_names); `linear_solver`: the --linear-solver option;
+    `names` set by options, option_names); `linear_solver`: the --linear-solver option;
     `alongside`: runs of the same form in helper processes at the same time, counted in the
     memory held at once with `runs` (resources.guard.check_resources; None: `runs` do not go on at
     once), in processes `forked` from this one or (False) Dask workers; `workers`: `runs` go
@@ -257,14 +258,14 @@ def _guard(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = No
                          linear_solver=linear_solver)
                 for kind, scenario, label, count, *origin in given]
 
-    with _naming_files(scenario_path):
+    with naming_files(scenario_path):
         check_resources(estimates(runs), limits, alongside=None if alongside is None else estimates(alongside),
                         forked=forked, workers=workers)
 
 
-def _estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:
+def estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:
     """The exit error estimate's (or the predicted aim's) replay at twice the spacing, as a
-    run of `_guard`'s `alongside`; `skip` says how to leave it out."""
+    run of `guard_runs`'s `alongside`; `skip` says how to leave it out."""
     from ..planning.replay_models import replay_scenario
     from ..resources.origin import replay_origin
 
@@ -272,39 +273,39 @@ def _estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None)
             replay_origin(scenario, names, " in its replay at twice the spacing", skip))
 
 
-def _option_names(spacing: Optional[float], dilation: Optional[float]) -> dict:
+def option_names(spacing: Optional[float], dilation: Optional[float]) -> dict:
     """The discretization fields that command-line options set, named as the options."""
     given = {"spacing": ("--spacing", spacing), "dilation": ("--dilation", dilation)}
     return {field: option for field, (option, value) in given.items() if value is not None}
 
 
-def _guard_calibration(calibration_path: Path, problem, limits, names: Optional[dict] = None) -> None:
+def guard_calibration(calibration_path: Path, problem, limits, names: Optional[dict] = None) -> None:
     """The resource guard on the forward model of each experiment of a material calibration
     (run once per forward evaluation of the fit: grid^2 + max_evaluations times)."""
     from ..config import Scenario
 
     fit = problem.fit
     evaluations = fit.grid_points ** 2 + fit.max_evaluations
-    _guard(calibration_path, limits, *[
+    guard_runs(calibration_path, limits, *[
         ("deform", Scenario(tissue=problem.tissue, discretization=problem.discretization, loads=experiment.loads,
                             load_steps=experiment.load_steps), f"experiments[{k}]", evaluations)
         for k, experiment in enumerate(problem.experiments)], names=names)
 
 
-def _echo_notes(notes, quiet: bool) -> None:
+def echo_notes(notes, quiet: bool) -> None:
     """A command's notes as `note:` lines on stderr (none with -q)."""
     if not quiet:
         for note in notes:
             typer.echo(f"note: {note}", err=True)
 
 
-def _echo_events(events, quiet: bool, shown: int = 3) -> None:
+def echo_events(events, quiet: bool, shown: int = 3) -> None:
     """The first `shown` events of a run as `note:` lines on stderr (none with -q)."""
     more = [f"{len(events) - shown} more notes in the summary and run log"] if len(events) > shown else []
-    _echo_notes([event.message for event in events[:shown]] + more, quiet)
+    echo_notes([event.message for event in events[:shown]] + more, quiet)
 
 
-def _parse_base_transform(text: Optional[str]):
+def parse_base_transform(text: Optional[str]):
     """ROTATION_DEG,TX_MM,TY_MM within the bounds that keep the base-frame columns of
     trajectory.csv meaningful (planning.trajectory)."""
     from ..errors import InputError
@@ -323,7 +324,7 @@ def _parse_base_transform(text: Optional[str]):
     return rotation, (tx, ty)
 
 
-def _check_angular_speed(speed: Optional[float]) -> None:
+def check_angular_speed(speed: Optional[float]) -> None:
     """--angular-speed: slower than MIN_ANGULAR_SPEED, time_s would overflow to inf."""
     from ..errors import InputError
     from ..config.blocks import MIN_ANGULAR_SPEED
@@ -333,7 +334,7 @@ def _check_angular_speed(speed: Optional[float]) -> None:
                          f"{MIN_ANGULAR_SPEED:g}")
 
 
-def _check_plot_scale(scale: float, plot: Optional[Path]) -> None:
+def check_plot_scale_option(scale: float, plot: Optional[Path]) -> None:
     """deform --plot-scale, before the run: positive and at most io.plots.MAX_PLOT_SCALE (near
     1e308 the drawn positions overflow), and given with the --plot it draws (without one it
     would be dropped without a word). plot_deformed checks the scale again when it draws."""
@@ -359,7 +360,7 @@ SchedulerOption = typer.Option(
     "ws://, wss://) instead of a local one; a scheduler that does not answer within 5 s is an error.")
 
 
-def _executor(workers: Optional[int], scheduler: Optional[str]):
+def command_executor(workers: Optional[int], scheduler: Optional[str]):
     """The executor of a command's independent runs (stitchplan.parallel.Executor), not yet
     started: --workers (0 to 4 x the usable cores) and the form of the --scheduler address are
     checked here, before any work, as InputErrors; the scheduler is reached when the executor

@@ -9,11 +9,11 @@ from typing import Optional
 import typer
 
 from ..allocator import pause_collection, resume_collection
-from .guards import _guard_plan_under_uncertainty
-from .options import _check_outputs, _echo_events, _echo_notes
+from .guards import guard_plan_under_uncertainty
+from .options import check_command_outputs, echo_events, echo_notes
 
 
-def _check_uncertainty_options(uncertainty_path: Optional[Path], compare: bool, only_with_it: dict) -> None:
+def check_uncertainty_options(uncertainty_path: Optional[Path], compare: bool, only_with_it: dict) -> None:
     """Refuse the options `only_with_it` ({option: value}, None: not given) without
     --uncertainty, and --no-compare with it."""
     from ..errors import InputError
@@ -27,9 +27,9 @@ def _check_uncertainty_options(uncertainty_path: Optional[Path], compare: bool, 
                          "and robust exits over the samples; expected it without --uncertainty")
 
 
-def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Path, executor, auto_note, limits,
-                            verify: bool, names: dict, export: Path, out, summary, plot, uncertainty_plot,
-                            provenance: dict, quiet: bool, accuracy: float | None = None, **options) -> None:
+def run_plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Path, executor, auto_note, limits,
+                               verify: bool, names: dict, export: Path, out, summary, plot, uncertainty_plot,
+                               provenance: dict, quiet: bool, accuracy: float | None = None, **options) -> None:
     """plan --uncertainty: the robust plan over the file's parameter distributions, its
     sampled runs on the executor (stitchplan.uncertainty.robust); with `verify` the plans aimed
     for the refined model and the exported one replayed on it at the scenario's values. With
@@ -41,26 +41,26 @@ def _plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: Pat
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
     from ..uncertainty.robust import check_exported_plan, check_inputs, plan_under_uncertainty, planned_tasks
-    from .runs import _put_accuracy_notes_first
+    from .runs import put_accuracy_notes_first
 
     resume_collection()
     uncertainty = load_uncertainty(uncertainty_path)
-    _check_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
+    check_command_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                     "--uncertainty-plot": uncertainty_plot},
                    {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration})
     check_inputs(uncertainty, scenario, scenario_path)
     tasks = planned_tasks(uncertainty)
-    _guard_plan_under_uncertainty(scenario_path, limits, names, scenario, verify, tasks, executor.workers,
-                                  options.get("linear_solver"))
+    guard_plan_under_uncertainty(scenario_path, limits, names, scenario, verify, tasks, executor.workers,
+                                 options.get("linear_solver"))
     with executor, progress_bar("plans and sampled runs", tasks + 2) as advance:
         result = plan_under_uncertainty(scenario, uncertainty, executor, verify=verify,
                                         on_run=lambda description: advance(description=description), **options)
     plan = check_exported_plan(scenario, result, verify, **options)
-    _put_accuracy_notes_first(plan.planned.events, auto_note, accuracy, plan.estimate)
+    put_accuracy_notes_first(plan.planned.events, auto_note, accuracy, plan.estimate)
     reports.write_plan_outputs(plan, export=export, out=out, summary=summary, plot=plot, provenance=provenance,
                                uncertainty=result, uncertainty_plot=uncertainty_plot)
     typer.echo(reports.plan_line(plan, export))
     for line in uncertainty_lines(result):
         typer.echo(line)
-    _echo_notes(result.notes, quiet)
-    _echo_events(plan.planned.events, quiet)
+    echo_notes(result.notes, quiet)
+    echo_events(plan.planned.events, quiet)

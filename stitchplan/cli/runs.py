@@ -15,56 +15,56 @@ from ..io import progress, readers, reports
 from ..needle import geometry as needle_geometry
 from ..planning import verification
 from ..study import auto
-from .options import _expected_steps, _naming_files
+from .options import scenario_expected_steps, naming_files
 
 
-def _resolve_accuracy(scenario_path: Path, scenario, limits, linear_solver: Optional[str] = None,
-                      tip_tracking: Optional[str] = None):
+def resolve_accuracy_guarded(scenario_path: Path, scenario, limits, linear_solver: Optional[str] = None,
+                             tip_tracking: Optional[str] = None):
     """study.auto.resolve_accuracy within the resource guard's particle limit (`limits`; None:
     unchecked): the scenario with the discretization chosen for its `accuracy`, and the note
     saying so (None without one). An accuracy the discretizations cannot reach names the file."""
-    with _naming_files(scenario_path):
+    with naming_files(scenario_path):
         return auto.resolve_accuracy(scenario, tip_tracking, linear_solver,
                                      max_particles=None if limits is None else limits.max_particles)
 
 
-def _read_center_path(scenario_path: Path, center_path: Path, scenario, geometry):
+def read_center_path_option(scenario_path: Path, center_path: Path, scenario, geometry):
     """The needle centres of the --center-path file, checked against the scenario's needle
     `geometry`, its rows' errors naming the file."""
 
     def needle_for(first_center):
         """The needle a path starting about `first_center` replays: a path planned with the
         needle leaning at entry leans it (run_insertion does the same)."""
-        with _naming_files(scenario_path, center_path):
+        with naming_files(scenario_path, center_path):
             return needle_geometry.scenario_needle(needle_geometry.entry_lean(scenario, first_center))
 
     return readers.read_center_path(center_path, geometry, needle_for)
 
 
-def _simulate_with_replays(scenario_path: Path, scenario, center_path: Optional[Path], path, estimate: bool,
-                           condition_numbers: bool, linear_solver: Optional[str] = None,
-                           tip_tracking: Optional[str] = None):
+def simulate_with_replays(scenario_path: Path, scenario, center_path: Optional[Path], path, estimate: bool,
+                          condition_numbers: bool, linear_solver: Optional[str] = None,
+                          tip_tracking: Optional[str] = None):
     """planning.verification.simulate_with_estimate of the centre `path` (None: fixed) with a
     progress bar: (result, exit error estimate or None)."""
     # the estimate's run at 2h goes on in a helper process alongside (planning/replays.py)
-    with (_naming_files(scenario_path, center_path),
+    with (naming_files(scenario_path, center_path),
           verification.estimate_replays(scenario, estimate=estimate, linear_solver=linear_solver,
                                         tip_tracking=tip_tracking) as replays,
-          progress.progress_bar("needle steps", _expected_steps(scenario)) as advance):
+          progress.progress_bar("needle steps", scenario_expected_steps(scenario)) as advance):
         return verification.simulate_with_estimate(
             scenario, center_path=path, estimate=estimate, linear_solver=linear_solver,
             tip_tracking=tip_tracking, condition_numbers=condition_numbers, on_step=lambda record: advance(),
             replays=replays)
 
 
-def _plan_with_replays(scenario_path: Path, scenario, compare: bool, verify: bool, out: Optional[Path],
-                       plot: Optional[Path], **options):
+def plan_with_replays(scenario_path: Path, scenario, compare: bool, verify: bool, out: Optional[Path],
+                      plot: Optional[Path], **options):
     """planning.verification.plan_verified with a progress bar; the run log's and the plot's
     writers are imported while the planning waits for a replay (io.reports.prepare_plan_outputs)."""
-    expected = _expected_steps(scenario)
+    expected = scenario_expected_steps(scenario)
     # the trajectory's replays go on in a helper process alongside (planning/replays.py); the
     # predicted aim's at 2h here, after the first pass (planning/verification.py)
-    with (_naming_files(scenario_path),
+    with (naming_files(scenario_path),
           verification.plan_replays(scenario, verify, while_waiting=lambda: reports.prepare_plan_outputs(out, plot),
                                     **options) as replays,
           verification.prediction_replays(scenario, verify, **options) as predictions,
@@ -73,7 +73,7 @@ def _plan_with_replays(scenario_path: Path, scenario, compare: bool, verify: boo
                                           replays=replays, predictions=predictions, **options)
 
 
-def _put_accuracy_notes_first(events: list, auto_note, accuracy: float | None, estimate) -> None:
+def put_accuracy_notes_first(events: list, auto_note, accuracy: float | None, estimate) -> None:
     """The auto discretization's note (None: none chosen) first among a run's `events`, and
     after it the accuracy check of _accuracy_events."""
     if auto_note is not None:

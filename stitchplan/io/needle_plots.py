@@ -24,7 +24,7 @@ from .plot_elements import (
     pyplot,
     title_above,
 )
-from .plots import _name, save
+from .plots import shown_name, save
 
 
 def _needle_body(geometry, center, rotation: float) -> np.ndarray:
@@ -179,7 +179,7 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
         ax.set_title(f"step {step} of {last}, needle rotated {rotation:.2f} rad", fontsize=9)
     _exit_zoom(zoom, result, norm, "crimson", "simulated", "o", desired_colour="blue")
     fig.colorbar(dots, ax=list(axes[0]), label="|u| displacement (mm)", shrink=0.8, pad=0.02)
-    title_above(fig, axes[0], f"{_name(result.scenario, 'simulate')}: needle insertion without planning\n"
+    title_above(fig, axes[0], f"{shown_name(result.scenario, 'simulate')}: needle insertion without planning\n"
                 f"exit error {result.exit_error_mm:.3g} mm (material point "
                 f"{result.exit_error_material_mm:.3g} mm), {last} steps, "
                 f"{result.model.n_particles} particles"
@@ -351,7 +351,7 @@ def _plan_headline(result) -> str:
         checks.append(f"trajectory replayed on a refined model (spacing {verification.spacing_mm:.3g} mm): "
                       f"exit error {verification.result.exit_error_mm:.3g} mm"
                       + (f", bites differ by {bites['difference_mm']:+.2g} mm" if bites else ""))
-    return f"{_name(planned.scenario, 'plan')}: {headline}" + "".join(f"\n{c}" for c in checks)
+    return f"{shown_name(planned.scenario, 'plan')}: {headline}" + "".join(f"\n{c}" for c in checks)
 
 
 # --- study ----------------------------------------------------------------------------------

@@ -60,7 +60,7 @@ def save(fig, path: str | Path) -> None:
     write_bytes(path, buffer.getbuffer())
 
 
-def _name(scenario, fallback: str) -> str:
+def shown_name(scenario, fallback: str) -> str:
     return getattr(scenario, "name", "") or fallback
 
 
@@ -110,7 +110,7 @@ def plot_deformed(path: str | Path, result, scale: float = 1.0):
     draw_clamps(ax, tissue, 0.025 * size)
     label_mm(ax)
     loads = len(scenario.loads)
-    title = (f"{_name(scenario, 'deform')}: deformed under {loads} load{'s' if loads != 1 else ''}"
+    title = (f"{shown_name(scenario, 'deform')}: deformed under {loads} load{'s' if loads != 1 else ''}"
              f" ({scenario.load_steps} load steps)\nlargest |u| {magnitude.max():.3g} mm")
     if len(result.probes):
         at_probes = np.linalg.norm(result.probe_displacements, axis=1)
@@ -239,7 +239,7 @@ def _speed_accuracy_headline(study, runs) -> str:
     done = [r for r in runs if r.ok]
     counts = f"{len(runs) + 1} runs" + (f", {len(failures)} failed (crosses at the right)" if failures else "")
     best = min(done, key=lambda r: r.wall_seconds) if done else None
-    headline = (f"{_name(study.scenario, 'study')}: speed against accuracy of the needle insertion, {counts}\n"
+    headline = (f"{shown_name(study.scenario, 'study')}: speed against accuracy of the needle insertion, {counts}\n"
                 f"deviations from the finest run {reference.label}: {reference.particles} particles, "
                 f"{reference.wall_seconds:.2f} s")
     if best is not None:

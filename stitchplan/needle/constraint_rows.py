@@ -19,13 +19,13 @@ from ..tissue.shape_functions import rows_csr
 RowBlock = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def _block(rows: sp.csr_matrix, start: int, stop: int) -> RowBlock:
+def row_block(rows: sp.csr_matrix, start: int, stop: int) -> RowBlock:
     """rows[start:stop] as a block."""
     first, last = rows.indptr[start], rows.indptr[stop]
     return rows.data[first:last], rows.indices[first:last], np.diff(rows.indptr[start:stop + 1])
 
 
-def _empty_block(count: int) -> RowBlock:
+def empty_row_block(count: int) -> RowBlock:
     """`count` rows of zeros."""
     return np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros(count, dtype=np.int64)
 
@@ -40,7 +40,7 @@ def _interleaved(block: RowBlock) -> RowBlock:
             np.repeat(counts, 2))
 
 
-def _joined(*matrices: sp.csr_matrix) -> sp.csr_matrix:
+def joined_rows(*matrices: sp.csr_matrix) -> sp.csr_matrix:
     """CSR matrices of one width one under the other, as one new matrix."""
     offsets = np.cumsum([0] + [matrix.nnz for matrix in matrices[:-1]])
     indptr = np.concatenate([[0]] + [matrix.indptr[1:] + offset for matrix, offset in zip(matrices, offsets)])
@@ -48,7 +48,7 @@ def _joined(*matrices: sp.csr_matrix) -> sp.csr_matrix:
                     np.concatenate([matrix.indices for matrix in matrices]), indptr, matrices[0].shape[1])
 
 
-def _block_matrix(block: RowBlock, columns: int) -> sp.csr_matrix:
+def row_block_matrix(block: RowBlock, columns: int) -> sp.csr_matrix:
     """The block's rows as a CSR matrix of `columns` columns."""
     data, indices, counts = block
     return rows_csr(data, indices, np.concatenate([[0], np.cumsum(counts)]), columns)

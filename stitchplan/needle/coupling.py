@@ -69,7 +69,7 @@ import scipy.sparse as sp
 
 from ..config import Needle
 from ..tissue.model import TissueModel
-from .constraint_rows import GrowingRows, _block, _block_matrix, _empty_block, _joined
+from .constraint_rows import GrowingRows, row_block, row_block_matrix, empty_row_block, joined_rows
 from .geometry import NeedleGeometry
 from .load_quadrature import SMOOTH, LoadQuadrature, cutting_density, segment_gauss_points
 from .track_layout import (ARC_ENDS, MORTAR, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, SEGMENT_ENDS,
@@ -310,11 +310,11 @@ class NeedleCoupling:
         self.tip_row = np.bincount(rows.indices[:rows.indptr[1]], rows.data[:rows.indptr[1]],
                                    minlength=self.model.n_free)  # N(X_tip) T, dense (n_free,)
         if len(new):
-            self._segment_rows.append(_empty_block(len(self.gauss)) if gap else _block(rows, 1, ends[2]))
+            self._segment_rows.append(empty_row_block(len(self.gauss)) if gap else row_block(rows, 1, ends[2]))
         if len(constraint_points):
-            self._quadrature_rows.append(_block(rows, ends[2], ends[3]))
+            self._quadrature_rows.append(row_block(rows, ends[2], ends[3]))
         if self.kind == POINTS:
-            self._quadrature_rows.append(_block(rows, 0, 1))
+            self._quadrature_rows.append(row_block(rows, 0, 1))
             self.weights = np.eye(len(self.points))
             self._shares = self.weights
             self.multiplier_count = len(self.points)
@@ -325,7 +325,7 @@ class NeedleCoupling:
             carried = self._shares.T @ forces
         self.previous_loads, self._track_rows = self.loads, None
         if len(part_points):
-            part_rows = _block_matrix(_block(rows, ends[3], ends[4]), rows.shape[1])
+            part_rows = row_block_matrix(row_block(rows, ends[3], ends[4]), rows.shape[1])
             self.loads = LoadQuadrature(np.vstack([self.segment_points, part_points]),
                                         (self.segment_rows, part_rows), magnitudes, lumping)
         else:
@@ -533,7 +533,7 @@ class NeedleCoupling:
         terms then take one product with S and one with S^T: on these few rows scipy's
         per-product overhead, not the arithmetic, is the cost."""
         if self._track_rows is None:
-            rows = _joined(self.quadrature_rows, *self.loads.row_parts, *self.previous_loads.row_parts)
+            rows = joined_rows(self.quadrature_rows, *self.loads.row_parts, *self.previous_loads.row_parts)
             points = np.vstack([self.quadrature_points(), self.loads.points, self.previous_loads.points])
             self._track_rows = (rows, rows.T, points)  # S^T as a CSC view: no conversion
         return self._track_rows

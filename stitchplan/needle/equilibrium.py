@@ -56,7 +56,7 @@ from ..tissue.assembly import Assembler
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
 from .geometry import IDENTITY, length, scenario_needle
-from .newton import Residuals, _Balance, _NewtonHistory, newton_tolerances
+from .newton import Residuals, Balance, NewtonHistory, newton_tolerances
 from .prepared_tissue import PreparedTissue
 from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers
@@ -369,12 +369,12 @@ class NeedleInsertion:
         Each iteration: the residuals; converged?; a step of the linearised system, by MINRES
         (eq. 3.71-3.74) or on a kept factor of K + H renewed when Newton slows, whose steps are
         Anderson-mixed (Walker and Ni 2011); with `aim`, the centre's move; the update. What the
-        iterations remember is a _NewtonHistory.
+        iterations remember is a NewtonHistory.
         Returns (Newton iterations, MINRES iterations, max |g_e| in mm)."""
         settings = self.scenario.solver
         free, multipliers, center = self.free.ravel().copy(), self.multipliers.copy(), self.center.copy()
         n_dof = len(free)
-        history = _NewtonHistory(planned=aim is not None)
+        history = NewtonHistory(planned=aim is not None)
         for iteration in range(settings.max_iterations + 1):
             state = self._timed_residuals(free.reshape(-1, 2), multipliers, center, rotation, step)
             balance = self._balance(state)
@@ -409,14 +409,14 @@ class NeedleInsertion:
         self._count(iteration)
         raise self._not_converged(step, rotation, iteration, balance)
 
-    def _balance(self, state: Residuals) -> _Balance:
+    def _balance(self, state: Residuals) -> Balance:
         """How far the iterate of `state` is from equilibrium, against the step's tolerances."""
         residual_norm, worst = length(state.residual), state.worst_violation
         # a needle force so large that its norm overflows would make every residual look small
         finite = math.isfinite(residual_norm) and math.isfinite(state.needle_force)
         forces_balance = finite and residual_norm <= self.residual_tolerance * max(state.needle_force, 1e-6) + 1e-12
         balanced = forces_balance and worst <= self.constraint_tolerance
-        return _Balance(residual_norm, worst, state.needle_force, finite, forces_balance, balanced)
+        return Balance(residual_norm, worst, state.needle_force, finite, forces_balance, balanced)
 
     def _newton_rhs(self, state: Residuals, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray,
                     fresh: bool) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
@@ -432,7 +432,7 @@ class NeedleInsertion:
         return rhs, on_rows
 
     def _linear_step(self, state: Residuals, multipliers: np.ndarray, rhs: np.ndarray,
-                     on_rows: tuple[np.ndarray, np.ndarray] | None, balance: _Balance, history: _NewtonHistory,
+                     on_rows: tuple[np.ndarray, np.ndarray] | None, balance: Balance, history: NewtonHistory,
                      fresh: bool, steering: bool, rotation: float, step: int) -> tuple[np.ndarray, bool]:
         """The Newton step for `rhs` (its columns solved together), and whether it is a modified
         Newton step (_direct_step, to be mixed). By MINRES (eq. 3.71-3.74) where asked for and the
@@ -455,9 +455,9 @@ class NeedleInsertion:
 
     def _direct_step(self, state: Residuals, multipliers: np.ndarray, rhs: np.ndarray,
                      on_rows: tuple[np.ndarray, np.ndarray] | None, measure: float,
-                     history: _NewtonHistory) -> np.ndarray:
+                     history: NewtonHistory) -> np.ndarray:
         """The step by block elimination on the kept factor of K + H (SaddlePointSolver.solve_direct),
-        renewed where Newton slows (_NewtonHistory.renew): a modified Newton step."""
+        renewed where Newton slows (NewtonHistory.renew): a modified Newton step."""
         refactor = history.renew(measure)
         solution = self.saddle.solve_direct(self._stiffness(multipliers, state), rhs,
                                             refactor, self.coupling.expanded_rows,
@@ -465,7 +465,7 @@ class NeedleInsertion:
         history.solved_directly(measure, refactor)
         return solution
 
-    def _steer(self, aim: CenterAim, history: _NewtonHistory, free: np.ndarray, center: np.ndarray,
+    def _steer(self, aim: CenterAim, history: NewtonHistory, free: np.ndarray, center: np.ndarray,
                solution: np.ndarray, balanced: bool) -> np.ndarray | None:
         """The step with the centre's move (CenterAim.update, eq. 4.1) appended, the equilibrium's
         part moved with it by d(d, lambda)/dC; None where the tissue is balanced and the centre
@@ -492,7 +492,7 @@ class NeedleInsertion:
         self._told_steered_direct = True
         log.info(message)
 
-    def _diverged(self, step: int, rotation: float, losses: int, balance: _Balance) -> InsertionFailure:
+    def _diverged(self, step: int, rotation: float, losses: int, balance: Balance) -> InsertionFailure:
         """Why _newton gave up: `losses` steps on a freshly factored tangent raised the residual
         (FRESH_FACTOR_LOSSES)."""
         return InsertionFailure(
@@ -500,7 +500,7 @@ class NeedleInsertion:
             f"a freshly factored tangent raised the residual (now {balance.residual_norm:.3e} N, constraint "
             f"violation {balance.worst:.3e} mm)")
 
-    def _not_converged(self, step: int, rotation: float, iteration: int, balance: _Balance) -> InsertionFailure:
+    def _not_converged(self, step: int, rotation: float, iteration: int, balance: Balance) -> InsertionFailure:
         """Why _newton stopped short of equilibrium at its last `iteration`: a residual that is
         not finite, the forces out of balance after solver.max_iterations, or the forces balanced
         with the needle constraints stalled above their tolerance."""

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .constraint_rows import _joined
+from .constraint_rows import joined_rows
 
 GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on [0, 1]
 UNIFORM, SMOOTH = "uniform", "smooth"
@@ -61,4 +61,4 @@ class LoadQuadrature:
     @property
     def rows(self) -> sp.csr_matrix:
         """N(X_l) T, (L, n_free), as one new matrix."""
-        return _joined(*self.row_parts)
+        return joined_rows(*self.row_parts)

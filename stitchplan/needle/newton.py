@@ -1,8 +1,8 @@
 """The parts of a needle step's Newton solve (NeedleInsertion._newton, needle/equilibrium.py):
 its tolerances (newton_tolerances) and tuning constants, when the kept factor of K + H is
 renewed (renew_factor), the residuals of eq. 3.62 at one iterate (Residuals) and how far they
-are from equilibrium (_Balance), and what one solve remembers from its earlier iterations
-(_NewtonHistory), among them the Anderson mixing of its modified Newton steps
+are from equilibrium (Balance), and what one solve remembers from its earlier iterations
+(NewtonHistory), among them the Anderson mixing of its modified Newton steps
 (AndersonMixing; Walker and Ni 2011).
 """
 
@@ -115,7 +115,7 @@ class AndersonMixing:
 
 
 @dataclass(frozen=True)
-class _Balance:
+class Balance:
     """How far one Newton iterate is from equilibrium (NeedleInsertion._balance; converged as
     needle/equilibrium.py's docstring says)."""
 
@@ -133,7 +133,7 @@ class _Balance:
 
 
 @dataclass
-class _NewtonHistory:
+class NewtonHistory:
     """What one Newton solve of a needle step (NeedleInsertion._newton) remembers from its
     earlier iterations: the convergence measure at the last two direct solves (when to renew
     the kept factor of K + H), the measure where a fresh factor was made and the steps on one

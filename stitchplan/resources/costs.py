@@ -7,9 +7,9 @@ from dataclasses import dataclass
 
 from ..config import Discretization, Scenario
 from ..needle.geometry import needle_zone, scenario_needle
-from .formatting import _bytes, _count, _duration
-from .model_size import COUNT_CAP, ModelSize, _grid_count, _needle_steps, _per_side, model_size
-from .origin import Origin, _radius_default, _size_default
+from .formatting import bytes_text, count_text, duration_text
+from .model_size import COUNT_CAP, ModelSize, grid_count, needle_steps, per_side, model_size
+from .origin import Origin, radius_default_of, size_default_of
 
 # from benchmarks/results/resource_costs.md (python benchmarks/resource_costs.py): the time
 # constants a fit of the code as it is (fits vary with the machine's load: the exponent by
@@ -94,7 +94,7 @@ class Estimate:
     needle_radius: float | None = None  # mm (insertions)
     step_memory: float = 0.0  # bytes of memory_bytes that needle runs keep of their steps (_step_memory)
     # the tissue's field ("tissue.size" or "tissue.outline") when the spacing is the default its
-    # size sets (a scenario giving no spacing, and no needle radius setting it: _size_default)
+    # size sets (a scenario giving no spacing, and no needle radius setting it: size_default_of)
     size_default: str | None = None
 
     def describe(self) -> str:
@@ -103,11 +103,12 @@ class Estimate:
         # costs of a count held at COUNT_CAP are lower bounds
         memory = "over " if self.size.particles >= COUNT_CAP else "~"
         time = "over " if self.size.particles >= COUNT_CAP or self.steps >= COUNT_CAP else "~"
-        return (f"{self.label}: {_count(self.size.particles, about)} particles, {_count(self.steps)} "
-                f"{self.step_kind}{runs}, {memory}{_bytes(self.memory_bytes)} memory, {time}{_duration(self.seconds)}")
+        return (f"{self.label}: {count_text(self.size.particles, about)} particles, {count_text(self.steps)} "
+                f"{self.step_kind}{runs}, {memory}{bytes_text(self.memory_bytes)} memory, "
+                f"{time}{duration_text(self.seconds)}")
 
 
-def _scale(size: ModelSize) -> tuple[float, float]:
+def size_scale(size: ModelSize) -> tuple[float, float]:
     """(memory, time) factors of a model relative to one reference particle; a crowded shaped
     tissue's by its `crowding` (the tangent's nonzeros and its assembly both)."""
     particles = max(size.particles, 1)
@@ -159,7 +160,7 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
         at_needle = d.spacing if d.needle_spacing is None else d.needle_spacing
         element = max(MULTIPLIER_SPACINGS * at_needle, needle.multiplier_length or 0.0)
         step_length = scenario_needle(scenario).insertion_step
-        ratio = min(_per_side(step_length, element), float(COUNT_CAP))
+        ratio = min(per_side(step_length, element), float(COUNT_CAP))
         pieces = float(segment_subintervals(step_length, at_needle)) if at_needle > 0 else float(COUNT_CAP)
         # arc ends: at least 2 Gauss points per segment, QUADRATURE_PER_ELEMENT per element length;
         # segment ends: the segments' Gauss points, 2 per piece; whole segments of at least an
@@ -188,21 +189,21 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
     if kind == "deform":
         steps, step_kind = scenario.load_steps, "load steps"
     else:
-        steps, step_kind = _needle_steps(scenario), "needle steps"
-    memory, time = _scale(size)
+        steps, step_kind = needle_steps(scenario), "needle steps"
+    memory, time = size_scale(size)
     kept = 0.0 if kind == "deform" else min(runs, HELD_RUNS) * _step_memory(scenario, size.particles, steps)
     seconds = SECONDS_PER_PARTICLE_STEP[kind] * time * steps * runs
     if kind != "deform" and (linear_solver or scenario.needle.linear_solver) == "minres":
         seconds *= MINRES_TIME_FACTOR
     d, origin = scenario.discretization, origin or Origin()
     graded = needle_zone(scenario) is not None
-    radius_default = _radius_default(scenario, origin)
+    radius_default = radius_default_of(scenario, origin)
     return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory + kept, seconds,
                     d.spacing, None if kind == "deform" else scenario.needle.step, d, origin,
-                    _grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
+                    grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
                     radius_default, tuple(scenario.tissue.bounding_size),
                     None if kind == "deform" else scenario.needle.radius, kept,
-                    None if radius_default is not None else _size_default(scenario, origin))
+                    None if radius_default is not None else size_default_of(scenario, origin))
 
 
 def held_at_once(memory_bytes: list[float], forked: bool = True) -> float:

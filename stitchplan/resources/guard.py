@@ -9,12 +9,12 @@ from dataclasses import dataclass, replace
 
 from ..config import DEFAULT_NEEDLE_REFINEMENT
 from ..errors import InputError
-from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate, _scale,
+from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate, size_scale,
                     held_at_once)
-from .formatting import _amount, _bytes, _count
+from .formatting import amount_text, bytes_text, count_text
 from .limits import Limits
-from .machine import ADDRESS_SPACE_RESERVE, _address_space_left, _system_memory, available_memory
-from .model_size import _capped
+from .machine import ADDRESS_SPACE_RESERVE, address_space_left, system_memory, available_memory
+from .model_size import capped_count
 
 log = logging.getLogger(__package__)  # "stitchplan.resources", the name its records carry
 
@@ -55,7 +55,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         if size.neighbours > limits.max_neighbours:
             most = math.sqrt(limits.max_neighbours) / 2.0
             lines.append(f"{item.origin.name('dilation')}: got {item.discretization.dilation:g}, expected at "
-                         f"most {most:g} (a kernel support of {_amount(size.neighbours)} particles per point, "
+                         f"most {most:g} (a kernel support of {amount_text(size.neighbours)} particles per point, "
                          f"at most {limits.max_neighbours}; RKPM uses 1.5-3)")
         elif size.particles > limits.max_particles:
             lines.append(_particles_refusal(item, limits.max_particles))
@@ -109,7 +109,7 @@ def _particles_refusal(item: Estimate, limit: int) -> str:
 
 
 def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: float) -> str:
-    return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {_bytes(memory)} of "
+    return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {bytes_text(memory)} of "
             f"memory available{_limited()}{item.origin.derived} ({setting.note}estimated {item.describe()}); "
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
 
@@ -117,10 +117,10 @@ def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: floa
 def _limited() -> str:
     """Where the address-space limit sets the memory available, a note saying so (the field a
     refusal names is what lowers the cost; the limit is what makes it too high)."""
-    room, system = _address_space_left(), _system_memory()
+    room, system = address_space_left(), system_memory()
     if room is None or (system is not None and room > system):
         return ""
-    return f" under the address-space limit (ulimit -v; {_bytes(ADDRESS_SPACE_RESERVE)} of it kept for libraries)"
+    return f" under the address-space limit (ulimit -v; {bytes_text(ADDRESS_SPACE_RESERVE)} of it kept for libraries)"
 
 
 def _together_refusal(held: list[Estimate], share: float, memory: float, forked: bool = True,
@@ -138,9 +138,10 @@ def _together_refusal(held: list[Estimate], share: float, memory: float, forked:
     setting = _memory_setting(largest, share * memory - (total - largest.memory_bytes - others_kept))
     skips = list(dict.fromkeys(item.origin.skip for item in held if item.origin.skip))
     skip = "".join(f"{advice}, " for advice in skips)
-    runs = "; ".join([item.describe() for item in held] + ([f"this process: {_bytes(here)}"] if here else []))
-    return (f"{setting.name}: got {setting.got}, expected runs within {share:.0%} of the {_bytes(memory)} of memory "
-            f"available{_limited()} when they run at once ({setting.note}estimated ~{_bytes(total)} together: {runs}); "
+    runs = "; ".join([item.describe() for item in held] + ([f"this process: {bytes_text(here)}"] if here else []))
+    return (f"{setting.name}: got {setting.got}, expected runs within {share:.0%} of the {bytes_text(memory)} of "
+            f"memory available{_limited()} when they run at once ({setting.note}estimated ~{bytes_text(total)} "
+            f"together: {runs}); "
             f"{setting.advice}, {skip}or {SKIP_GUARD}")
 
 
@@ -221,15 +222,16 @@ def _memory_setting(item: Estimate, budget: float) -> Setting:
     size, d, origin = item.size, item.discretization, item.origin
     if item.needle_step is not None and item.memory_bytes - item.step_memory <= budget:
         held = min(item.runs, HELD_RUNS)
-        both = f", {_bytes(item.step_memory)} for the {held:g} runs held at once" if held > 1 else ""
+        both = f", {bytes_text(item.step_memory)} for the {held:g} runs held at once" if held > 1 else ""
         return Setting("needle.step", f"{item.needle_step:g} rad", "", "take a larger step",
-                       f"{_count(item.steps)} needle steps keep ~{_bytes(item.step_memory / held)} of states and "
-                       f"solver blocks until the run ends{both}; ")
+                       f"{count_text(item.steps)} needle steps keep ~{bytes_text(item.step_memory / held)} of states "
+                       f"and solver blocks until the run ends{both}; ")
 
     def fits_with_a_standard_kernel(particles: float) -> bool:
-        standard = replace(size, particles=_capped(particles), neighbours=min(size.neighbours, REFERENCE_NEIGHBOURS),
+        standard = replace(size, particles=capped_count(particles),
+                           neighbours=min(size.neighbours, REFERENCE_NEIGHBOURS),
                            points_per_particle=min(size.points_per_particle, REFERENCE_POINTS_PER_PARTICLE))
-        return BASE_MEMORY + _scale(standard)[0] <= budget
+        return BASE_MEMORY + size_scale(standard)[0] <= budget
 
     if not fits_with_a_standard_kernel(size.particles):
         return _particle_setting(item, fits_with_a_standard_kernel)
@@ -237,7 +239,7 @@ def _memory_setting(item: Estimate, budget: float) -> Setting:
     points = size.points_per_particle / REFERENCE_POINTS_PER_PARTICLE
     if neighbours >= points:
         return Setting(origin.name("dilation"), f"{d.dilation:g}", "", "lower it (RKPM uses 1.5-3)",
-                       f"a kernel support of {_amount(size.effective_neighbours)} particles per point takes "
+                       f"a kernel support of {amount_text(size.effective_neighbours)} particles per point takes "
                        f"{neighbours:.3g} times the memory of dilation 2's {REFERENCE_NEIGHBOURS:g}; ")
     order, cells = d.quadrature_order, d.cells_per_spacing
     key, got = ("quadrature_order", order) if order * order / 4 >= cells * cells else ("cells_per_spacing", cells)

@@ -19,14 +19,14 @@ def available_memory() -> float | None:
     """Bytes of memory available now (MemAvailable of /proc/meminfo, else the physical
     memory), and no more than the process's address-space limit leaves (`ulimit -v`) after
     ADDRESS_SPACE_RESERVE; None when unknown."""
-    memory = _system_memory()
-    room = _address_space_left()
+    memory = system_memory()
+    room = address_space_left()
     if room is None:
         return memory
     return room if memory is None else min(memory, room)
 
 
-def _system_memory() -> float | None:
+def system_memory() -> float | None:
     try:
         with open("/proc/meminfo") as handle:
             for line in handle:
@@ -40,7 +40,7 @@ def _system_memory() -> float | None:
         return None
 
 
-def _address_space_left() -> float | None:
+def address_space_left() -> float | None:
     """Bytes the address-space limit (RLIMIT_AS) leaves above what the process maps now
     (VmSize) and ADDRESS_SPACE_RESERVE, None without a limit."""
     try:

@@ -67,8 +67,8 @@ def _particles(scenario: Scenario) -> tuple[int, bool]:
     if zone is None:  # the uniform grid of tissue.particles.grid_particles
         # load segments add grid lines through their ends and a grading toward them
         # (tissue.particles.end_zones): the grid is then a lower bound (~5-30 % below)
-        return _capped(_grid_count(scenario.tissue.bounding_size, d.spacing)), not scenario.loads
-    lattice = _per_side(width, d.needle_spacing) * _per_side(height, d.needle_spacing)
+        return capped_count(grid_count(scenario.tissue.bounding_size, d.spacing)), not scenario.loads
+    lattice = per_side(width, d.needle_spacing) * per_side(height, d.needle_spacing)
     if lattice <= COUNT_EXACTLY_UP_TO:
         graded = graded_particles(scenario.tissue.bounding_size, d.spacing, d.needle_spacing,
                                   np.asarray(zone[0], dtype=float), zone[1], d.needle_grading, points=zone[2])
@@ -156,22 +156,22 @@ def _shaped_estimate(scenario: Scenario, zone, segments, samples: int = 200) -> 
             length = np.linalg.norm(ends - starts, axis=1)
             spacing = side(along.reshape(-1, 2)).reshape(len(starts), 8)
             lattice += np.sum(length[:, None] / 8 / spacing) + np.count_nonzero(kept_vertices(tissue))
-    return _capped(float(lattice)) if math.isfinite(lattice) else COUNT_CAP
+    return capped_count(float(lattice)) if math.isfinite(lattice) else COUNT_CAP
 
 
-def _per_side(length: float, side: float) -> float:
+def per_side(length: float, side: float) -> float:
     """length / side; inf for a side that underflowed to 0 (a spacing over a refinement)."""
     return length / side if side > 0 else math.inf
 
 
-def _grid_count(size: tuple[float, float], spacing: float) -> float:
+def grid_count(size: tuple[float, float], spacing: float) -> float:
     """Particles of the uniform grid at `spacing` (tissue.particles.grid_particles), as a
     float: a fine spacing's count passes any integer a float can hold."""
-    nx, ny = (max(float(np.rint(_per_side(length, spacing))), 1.0) for length in size)
+    nx, ny = (max(float(np.rint(per_side(length, spacing))), 1.0) for length in size)
     return (nx + 1.0) * (ny + 1.0)
 
 
-def _capped(count: float) -> int:
+def capped_count(count: float) -> int:
     return int(min(count, COUNT_CAP))
 
 
@@ -190,10 +190,10 @@ def _graded_estimate(size, spacing: float, fine: float, zone, growth: float = 0.
         side = np.minimum(side, point.spacing + growth * np.maximum(near, 0.0))
     side = np.clip(side, None, max(spacing, fine))
     with np.errstate(divide="ignore", over="ignore"):  # a side too small for a float: inf, then capped
-        return _capped(float(np.sum(width * height / samples ** 2 / side ** 2)))
+        return capped_count(float(np.sum(width * height / samples ** 2 / side ** 2)))
 
 
-def _needle_steps(scenario: Scenario) -> int:
+def needle_steps(scenario: Scenario) -> int:
     """The needle steps until the tip exits (NeedleGeometry.expected_steps), at most
     COUNT_CAP: a step of a few 1e-324 rad gives more steps than an integer conversion takes."""
     geometry = scenario_needle(scenario)

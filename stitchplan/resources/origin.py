@@ -50,7 +50,7 @@ def verification_origin(scenario: Scenario, names: Mapping[str, str] | None = No
                          "pass --no-verify to skip the verification")
 
 
-def _radius_default(scenario: Scenario, origin: Origin) -> float | None:
+def radius_default_of(scenario: Scenario, origin: Origin) -> float | None:
     """The needle radius when the run's spacing is the default that follows it (a scenario
     giving no spacing: config.blocks.default_spacing_of), else None."""
     if scenario.needle is None or "spacing" in origin.names:
@@ -62,7 +62,7 @@ def _radius_default(scenario: Scenario, origin: Origin) -> float | None:
     return radius if follows_radius and math.isclose(spacing, default, rel_tol=1e-9) else None
 
 
-def _size_default(scenario: Scenario, origin: Origin) -> str | None:
+def size_default_of(scenario: Scenario, origin: Origin) -> str | None:
     """The tissue's field setting the run's spacing ("tissue.size", or "tissue.outline" for a
     polygon) when the spacing is the default of a scenario giving none that the tissue's size
     sets (config.blocks.default_spacing_of: a twentieth of the smaller side without a needle,
