@@ -286,7 +286,7 @@ def solve_skfem_shape(scenario: Scenario, h: float, grading: int = 3) -> SkfemRu
     singular), elements outside the tissue removed, each element's Lame moduli those of the
     region holding its centre. Clamped edges or segments u = 0; force segments dead
     tractions (displacement segments are not implemented here)."""
-    from stitchplan.geometry import on_segment
+    from stitchplan.geometry.segments import on_segment
     from stitchplan.tissue.shapes import region_index
 
     start = time.perf_counter()

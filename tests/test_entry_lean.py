@@ -222,7 +222,8 @@ def test_a_lean_that_leaves_through_another_wall_is_refused():
     surface instead, as many crossings of the same kinds: that lean was accepted, its exit
     judged against the hole's wall. A lean keeps the walls too."""
     from stitchplan.config.scenario import Needle
-    from stitchplan.geometry import PolygonDomain, circle_polygon
+    from stitchplan.geometry.polygon_domain import PolygonDomain
+    from stitchplan.geometry.polygons import circle_polygon
     from stitchplan.needle.geometry import needle_geometry
 
     domain = PolygonDomain.rectangle((60.0, 30.0), (circle_polygon((10.355, 23.719), 1.678),))

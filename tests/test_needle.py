@@ -11,7 +11,7 @@ import pytest
 
 from stitchplan.config.scenario import Needle, ScenarioError, load_scenario, parse_scenario
 from stitchplan.errors import TipTrackingJump
-from stitchplan.geometry import Rectangle
+from stitchplan.geometry.rectangle import Rectangle
 from stitchplan.needle.geometry import needle_geometry
 from stitchplan.needle.tip_tracking import inverse_gradient_step, levenberg_marquardt_tip
 
@@ -105,7 +105,7 @@ def test_an_entry_on_a_smooth_vertex_enters_along_the_mean_normal():
     """A vertex of a traced contour or a circular hole, where the boundary turns by a few
     degrees, is no corner: the needle enters along the mean of its two edges' normals (the
     radial direction on a polygon inscribed in a circle)."""
-    from stitchplan.geometry import PolygonDomain
+    from stitchplan.geometry.polygon_domain import PolygonDomain
 
     angles = np.linspace(np.pi, 0.0, 49)  # a top edge bulging as a half circle of radius 40
     arc = np.stack([50.0 + 40.0 * np.cos(angles), 30.0 + 40.0 * np.sin(angles)], axis=1)
@@ -130,7 +130,7 @@ def test_a_half_circle_entering_a_slanted_edge_within_round_off_is_accepted():
     """An entry kept to the bit 4.8e-8 mm off a slanted edge (within the boundary's round-off)
     turns the half circle's exit 1.1e-8 rad past pi: the default arc of pi holds it (it was
     refused as leaving past its arc)."""
-    from stitchplan.geometry import PolygonDomain
+    from stitchplan.geometry.polygon_domain import PolygonDomain
 
     domain = PolygonDomain(np.array([[0.0, 0.0], [96.83, 0.0], [87.71, 48.96], [9.13, 48.96]]))
     assert 0.0 < domain.distance(np.array([[90.807515, 32.331235]]))[0] < domain.tolerance
@@ -147,7 +147,8 @@ def test_a_half_circle_entering_a_slanted_edge_within_round_off_is_accepted():
 def test_a_needle_whose_body_lies_in_the_tissue_before_it_enters_is_refused(domain, needle, fragment):
     """The driver holds the needle from outside: only its tip may touch the tissue at the
     start. These were accepted and run (exit 0), the needle's tail in uncut tissue."""
-    from stitchplan.geometry import PolygonDomain, circle_polygon
+    from stitchplan.geometry.polygon_domain import PolygonDomain
+    from stitchplan.geometry.polygons import circle_polygon
 
     shape = {"hole": PolygonDomain.rectangle((60.0, 40.0), (circle_polygon((30.0, 25.0), 2.0),)),
              "slab": Rectangle.of_size((60.0, 40.0))}[domain]
@@ -167,7 +168,7 @@ def test_an_arc_that_ends_in_a_wounds_far_wall_is_refused():
     """configs/wound_closure.yaml's needle cut to 2.8 rad: its circle leaves through the near
     wall and enters the far one, and the arc ends inside. It was taken as a stitch whose final
     exit is the near wall, then stopped at that wall (exit 1)."""
-    from stitchplan.geometry import PolygonDomain
+    from stitchplan.geometry.polygon_domain import PolygonDomain
 
     wound = PolygonDomain(np.array([[0.0, 0.0], [60.0, 0.0], [60.0, 30.0], [32.0, 30.0], [32.0, 18.0],
                                     [28.0, 18.0], [28.0, 30.0], [0.0, 30.0]]))

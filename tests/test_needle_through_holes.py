@@ -31,7 +31,8 @@ from test_bad_inputs import OUTPUTS, invoke, write_scene
 
 from stitchplan.config.scenario import parse_scenario
 from stitchplan.errors import InsertionFailure
-from stitchplan.geometry import CIRCLE_SEGMENTS, PolygonDomain, circle_polygon
+from stitchplan.geometry.polygon_domain import PolygonDomain
+from stitchplan.geometry.polygons import CIRCLE_SEGMENTS, circle_polygon
 from stitchplan.needle.geometry import scenario_needle
 from stitchplan.needle.insertion import _bites, run_insertion
 from stitchplan.needle.tip_tracking import MATERIAL_POINT_TOLERANCE, locate_reentry

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from stitchplan.config.scenario import parse_scenario
-from stitchplan.geometry import on_segment
+from stitchplan.geometry.segments import on_segment
 from stitchplan.tissue.deform import external_forces, interpolate, run_deform
 from stitchplan.tissue.model import model_for_scenario
 

@@ -19,7 +19,7 @@ from test_bad_inputs import OUTPUTS, assert_refused, invoke, write_scene
 
 from stitchplan.config import Discretization, Material, Tissue
 from stitchplan.config.scenario import parse_scenario
-from stitchplan.geometry import circle_polygon
+from stitchplan.geometry.polygons import circle_polygon
 from stitchplan.tissue.model import build_tissue_model
 from stitchplan.tissue.shape_functions import rk_shape_functions
 
@@ -508,7 +508,7 @@ def test_a_traced_contour_builds_the_particles_its_spacing_implies():
     lattice line through every vertex made the 200-gon's 5159 at this spacing, 371 the
     40-gon's), one local spacing apart along the outline (its perimeter 145 mm / 3 mm), and
     the quadrature still integrates the shape's area."""
-    from stitchplan.geometry import PolygonDomain
+    from stitchplan.geometry.polygon_domain import PolygonDomain
 
     models = {}
     for vertices in (40, 200):
@@ -528,11 +528,11 @@ def test_a_traced_contour_builds_the_particles_its_spacing_implies():
 
 def test_the_geometry_queries_answer_as_over_all_edges():
     """Inside, near-the-boundary and crossing tests look only at the edges near each point
-    (geometry.EdgeGrid); on a 300-vertex contour with three circular holes they give the
+    (geometry.edge_grid.EdgeGrid); on a 300-vertex contour with three circular holes they give the
     answers of the same tests over every (point, edge) pair, bit for bit: random points,
     points on every edge and every vertex, random segments and segments between boundary
     points."""
-    from stitchplan.geometry import _point_segment_distance, segments_cross
+    from stitchplan.geometry.segments import _point_segment_distance, segments_cross
 
     raw = traced(300)
     raw["tissue"]["holes"] = [{"circle": {"center": [x, 14.0], "radius": 2.0}} for x in (15.0, 30.0, 45.0)]

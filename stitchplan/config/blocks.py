@@ -27,7 +27,9 @@ from pydantic import (
 )
 from pydantic.dataclasses import dataclass
 
-from ..geometry import PolygonDomain, Rectangle, circle_polygon
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.polygons import circle_polygon
+from ..geometry.rectangle import Rectangle
 from .boundary_points import entry_on_boundary, placed, segment_on_boundary
 from .fields import (
     BLOCK,
@@ -153,7 +155,7 @@ class Circle:
 @block(one_of=("polygon", "circle"))
 class Hole:
     """A cut-out with free edges: a polygon or a circle (held as a polygon of
-    geometry.CIRCLE_SEGMENTS edges with its vertices on the circle)."""
+    geometry.polygons.CIRCLE_SEGMENTS edges with its vertices on the circle)."""
 
     polygon: described(PolygonPoints | None, "vertices, mm") = None
     circle: described(Circle | None, "{center: [x, y], radius: r}, mm") = None

@@ -2,11 +2,12 @@
 segments) or inside it (probes), as a person types or measures them.
 
 A point within the domain's input tolerance of the boundary (a micrometre; see
-geometry.INPUT_TOLERANCE_MM) is moved onto it (geometry.snap_to_boundary) and the run uses the
-moved point; the checks that follow (a corner, a clamped edge, one edge holding a segment)
-judge the moved point. A point further off is refused with the nearest boundary point, written
-to the nanometre so that it is accepted when pasted back. `log_moves` says which points moved:
-at INFO when a move is within the rounding of the digits typed, at WARNING when it is more.
+geometry.bounding_box.INPUT_TOLERANCE_MM) is moved onto it (geometry.boundary.snap_to_boundary)
+and the run uses the moved point; the checks that follow (a corner, a clamped edge, one edge
+holding a segment) judge the moved point. A point further off is refused with the nearest
+boundary point, written to the nanometre so that it is accepted when pasted back. `log_moves`
+says which points moved: at INFO when a move is within the rounding of the digits typed, at
+WARNING when it is more.
 """
 
 from __future__ import annotations
@@ -19,14 +20,10 @@ from typing import Any
 import numpy as np
 
 from .messages import field_path, value_at
-from ..geometry import (
-    CIRCLE_SEGMENTS,
-    PolygonDomain,
-    Rectangle,
-    nearest_boundary_point,
-    smooth_vertex,
-    snap_to_boundary,
-)
+from ..geometry.boundary import nearest_boundary_point, smooth_vertex, snap_to_boundary
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.polygons import CIRCLE_SEGMENTS
+from ..geometry.rectangle import Rectangle
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +94,7 @@ def as_pair(point) -> tuple[float, float]:
 def entry_on_boundary(domain: Rectangle | PolygonDomain, entry) -> tuple[tuple[float, float] | None, str, str]:
     """A needle entry moved onto the boundary, or (None, what was received, what is expected):
     off the boundary (with the nearest point), or at a corner (a vertex where the boundary
-    turns by more than geometry.CORNER_TURN, or within the input tolerance of one)."""
+    turns by more than geometry.polygons.CORNER_TURN, or within the input tolerance of one)."""
     snapped = snap_to_boundary(domain, entry)
     if snapped is None:
         return None, "", f"{on_boundary(domain)}; {nearest_note(domain, entry)}"

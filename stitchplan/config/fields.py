@@ -21,7 +21,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from ..geometry import EDGE_NAMES
+from ..geometry.rectangle import EDGE_NAMES
 from .messages import combined
 
 EDGES = EDGE_NAMES

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import PolygonDomain, Rectangle
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.rectangle import Rectangle
 from .boundary_points import shown_as_given
 from .fields import problem
 from .messages import Shown

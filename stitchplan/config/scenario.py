@@ -15,7 +15,8 @@ import numpy as np
 from pydantic import AfterValidator, ValidationInfo, model_validator
 
 from ..errors import InputError, ScenarioError
-from ..geometry import PolygonDomain, Rectangle
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.rectangle import Rectangle
 from .blocks import (
     Discretization,
     Load,

@@ -15,14 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import (
-    PolygonDomain,
-    Rectangle,
-    cut_outline,
-    polygon_problem,
-    segments_touch,
-    signed_area,
-)
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.polygons import cut_outline, polygon_problem, signed_area
+from ..geometry.rectangle import Rectangle
+from ..geometry.segments import segments_touch
 from .boundary_points import segment_on_boundary
 from .fields import problem
 from .messages import Shown
@@ -97,7 +93,7 @@ def _inside_and_apart(vertices: np.ndarray, domain: PolygonDomain, tol: float) -
 
 
 def _cut_out(tissue: TissueBlock, outer: np.ndarray, reaching: list, tol: float) -> tuple[np.ndarray | None, list]:
-    """The outer loop with the `reaching` holes cut out of it (geometry.cut_outline), and the
+    """The outer loop with the `reaching` holes cut out of it (geometry.polygons.cut_outline), and the
     problems of the cut: a hole that holds no tissue, or what is left not one simple piece."""
     cut, why, idle = cut_outline(outer, [vertices for _, vertices in reaching], tol)
     expected = "a hole inside the tissue outline, not touching it, or one cutting into it that leaves " \

@@ -15,7 +15,9 @@ from ..config import Needle, Scenario
 from ..config.blocks import MAX_ENTRY_TILT, default_spacing_of
 from ..config.boundary_points import nearest_note, shown_point, shown_point_as_given
 from ..errors import InputError
-from ..geometry import PolygonDomain, Rectangle, boundary_edges, circle_center_at_entry, nearest_on_edges, smooth_vertex
+from ..geometry.boundary import boundary_edges, nearest_on_edges, smooth_vertex
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.rectangle import Rectangle, circle_center_at_entry
 from ..tissue.particles import RefinementZone, end_spacing
 
 

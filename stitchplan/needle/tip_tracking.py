@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InsertionFailure, TipTrackingJump
 from ..events import Event, EventKind
-from ..geometry import boundary_edges
+from ..geometry.boundary import boundary_edges
 from .geometry import IDENTITY, length
 
 if TYPE_CHECKING:

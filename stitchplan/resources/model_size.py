@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import Scenario
-from ..geometry import PolygonDomain
+from ..geometry.polygon_domain import PolygonDomain
 from ..needle.geometry import needle_zone, scenario_needle
 from ..tissue.particles import graded_particles
 from .limits import MAX_PARTICLES

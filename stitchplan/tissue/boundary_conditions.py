@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from ..config import Tissue
 from ..errors import InputError
-from ..geometry import on_segment
+from ..geometry.segments import on_segment
 
 CLAMPED = -1
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from .assembly import Assembler
 from ..config import Scenario
-from ..geometry import on_segment
+from ..geometry.segments import on_segment
 from .model import TissueModel, model_for_scenario
 from .quadrature import gauss_legendre
 from .solver import NewtonReport, StepRecord, solve_static

@@ -15,7 +15,9 @@ import scipy.sparse as sp
 
 from .boundary_conditions import ConstrainedParticles, EssentialBoundary, boundary_particles, transformation
 from ..config import Discretization, Scenario, ScenarioError, Tissue
-from ..geometry import PolygonDomain, Rectangle, concatenated_ranges
+from ..geometry.edge_grid import concatenated_ranges
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.rectangle import Rectangle
 from .material import NeoHookean, PointwiseMaterial, SaintVenantKirchhoff, make_material
 from .particles import (END_GROWTH, GradedParticles, end_zones, graded_lattice, graded_particles,
                         grid_particles, leaf_quadrature, segment_breaks)

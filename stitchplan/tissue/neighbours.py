@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import concatenated_ranges
+from ..geometry.edge_grid import concatenated_ranges
 
 _CELL_LIMIT = 2**30  # cell coordinates are clipped here: a point far outside finds no cell
 FEW_POINTS = 4  # up to here `within` takes the points one by one

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
-from ..geometry import smooth_vertex
+from ..geometry.boundary import smooth_vertex
 from .quadrature import cell_quadrature
 
 log = logging.getLogger(__name__)
@@ -274,7 +274,7 @@ def end_spacing(spacing: float, reference: float, reference_levels: int = 3) -> 
 
 def end_zones(tissue: Tissue, segments, discretization: Discretization) -> tuple[RefinementZone, ...]:
     """Refinement zones (points) at the load-segment ends that lie inside an edge or at a
-    vertex where the boundary hardly turns (a traced contour's: geometry.smooth_vertex;
+    vertex where the boundary hardly turns (a traced contour's: geometry.boundary.smooth_vertex;
     corners are left as they are); none with discretization.segment_end_levels 0."""
     if discretization.segment_end_levels == 0:
         return ()

@@ -90,7 +90,7 @@ class Visibility:
     `clearance` (NP,) is each particle's distance to the boundary: a segment shorter than
     it cannot reach the boundary, only the others are tested."""
 
-    domain: object  # geometry.PolygonDomain
+    domain: object  # geometry.polygon_domain.PolygonDomain
     clearance: np.ndarray
 
     @classmethod

@@ -24,7 +24,9 @@ import numpy as np
 
 from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
-from ..geometry import CIRCLE_SEGMENTS, CORNER_TURN, EdgeGrid, PolygonDomain, concatenated_ranges, turns
+from ..geometry.edge_grid import EdgeGrid, concatenated_ranges
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.polygons import CIRCLE_SEGMENTS, CORNER_TURN, turns
 from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
 from .thin_features import wall_thickness
 
@@ -138,7 +140,7 @@ def cutting_edges(tissue: Tissue) -> tuple[np.ndarray, np.ndarray]:
 def cells_cut(cells: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """Mask (nc,) of cells (x0, y0, width, height) whose open interior some edge passes
     through (Liang-Barsky clipping, against the cell shrunk by round-off, of the edges whose
-    boxes meet the cell: geometry.EdgeGrid)."""
+    boxes meet the cell: geometry.edge_grid.EdgeGrid)."""
     cut = np.zeros(len(cells), dtype=bool)
     if len(starts) == 0 or len(cells) == 0:
         return cut
@@ -284,7 +286,7 @@ def lattice_spacing(graded: GradedParticles):
 
 def kept_vertices(tissue: Tissue, spacing_at: np.ndarray | None = None) -> np.ndarray:
     """Mask over the boundary edges' start vertices (domain.segment_starts) that carry a
-    boundary particle: the corners (a turn above geometry.CORNER_TURN) but those closer than
+    boundary particle: the corners (a turn above geometry.polygons.CORNER_TURN) but those closer than
     MERGE x the local spacing there (`spacing_at`, (E,)) to the corner before them, the ends
     of clamped pieces, and with `spacing_at` the vertices circle_vertices picks round each
     circular hole (not all CIRCLE_SEGMENTS of them). A traced contour's vertices that turn

@@ -32,7 +32,9 @@ import numpy as np
 
 from ..config import Tissue
 from ..errors import InputError
-from ..geometry import CIRCLE_SEGMENTS, PolygonDomain, nearest_on_edges, turns
+from ..geometry.boundary import nearest_on_edges
+from ..geometry.polygon_domain import PolygonDomain
+from ..geometry.polygons import CIRCLE_SEGMENTS, turns
 
 # Tissue thinner than this x the local particle spacing is refused. Measured with the check
 # off (deform on a 60 x 30 mm block clamped at the bottom, pulled on its right edge; ratios
@@ -110,7 +112,7 @@ def thinnest_spot(tissue: Tissue, spacing_at: Callable[[np.ndarray], np.ndarray]
 class _Boundary:
     """Per boundary edge (domain.segment_starts order): its loop, the arc length from its
     loop's first vertex to its start, its length, the turn at its start vertex
-    (geometry.turns, tissue on the left: > 0 convex), whether it lies on a circular hole's
+    (geometry.polygons.turns, tissue on the left: > 0 convex), whether it lies on a circular hole's
     wall; per loop its perimeter and first edge."""
 
     domain: PolygonDomain

@@ -1,0 +1,94 @@
+"""Polygons as vertex arrays: area, turns, circles as polygons, the simple-polygon check, cutting an outline."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .edge_grid import EdgeGrid
+from .segments import _point_segment_distance, segments_touch
+
+
+def signed_area(vertices: np.ndarray) -> float:
+    """Shoelace area: positive for a counter-clockwise polygon."""
+    x, y = vertices[:, 0], vertices[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+CIRCLE_SEGMENTS = 96  # chord error R (1 - cos(pi/96)) = 5.4e-4 R: microns for mm-sized holes
+
+
+def circle_polygon(center, radius: float, segments: int = CIRCLE_SEGMENTS) -> np.ndarray:
+    """A circle as a counter-clockwise regular polygon with vertices on it, (segments, 2)."""
+    angles = 2.0 * np.pi * np.arange(segments) / segments
+    return np.asarray(center, dtype=float) + radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+
+
+CORNER_TURN = 0.35  # rad (20 deg): a vertex turning more is a corner (a 40-gon's turn 9 deg, a circle's 3.75)
+
+
+def turns(loop: np.ndarray) -> np.ndarray:
+    """Signed turn (rad) of the boundary at each vertex of a closed loop (k, 2): > 0 a left
+    turn (a convex corner when the tissue is on the left), 0 straight on."""
+    before = loop - np.roll(loop, 1, axis=0)
+    after = np.roll(loop, -1, axis=0) - loop
+    return np.arctan2(before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0], np.sum(before * after, axis=1))
+
+
+def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
+    """Why `vertices` (k, 2) is not a simple polygon (None when it is): fewer than three
+    vertices, a repeated vertex, no area, or two edges that cross or touch."""
+    k = len(vertices)
+    if k < 3:
+        return "at least three vertices"
+    starts, ends = vertices, np.roll(vertices, -1, axis=0)
+    if np.any(np.linalg.norm(ends - starts, axis=1) <= tol):
+        return "a polygon without repeated consecutive vertices (an edge has zero length)"
+    # the pairs of edges (i < j) whose boxes, grown by tol, meet: the others cannot touch
+    grid = EdgeGrid.of(starts, ends)
+    low, high = np.minimum(starts, ends) - 2 * tol, np.maximum(starts, ends) + 2 * tol
+    found = [(i, j) for i, j in grid.pairs(low, high) if len(i)]
+    i, j = (np.concatenate(parts) for parts in zip(*found)) if found else (np.zeros(0, int),) * 2
+    i, j = i[i < j], j[i < j]
+    adjacent = (j == i + 1) | ((i == 0) & (j == k - 1))
+    touch = segments_touch(starts[i], ends[i], starts[j], ends[j], tol)
+    # adjacent edges share their common vertex; they must not fold back onto each other
+    forward = (j == i + 1)[:, None]
+    other_i = np.where(forward, starts[i], ends[i])
+    other_j = np.where(forward, ends[j], starts[j])
+    folded = (_point_segment_distance(other_i, starts[j], ends[j]) <= tol) | \
+        (_point_segment_distance(other_j, starts[i], ends[i]) <= tol)
+    bad = np.flatnonzero(np.where(adjacent, folded, touch))
+    if len(bad):
+        first = bad[np.lexsort((j[bad], i[bad]))[0]]  # the first pair in (i, j) order
+        a, b = int(i[first]), int(j[first])
+        return f"a simple polygon (its edges from vertex {a} and from vertex {b} cross or touch)"
+    if abs(signed_area(vertices)) <= tol * tol:
+        return "a polygon enclosing an area"
+    return None
+
+
+def cut_outline(outline: np.ndarray, cuts: list[np.ndarray],
+                tol: float) -> tuple[np.ndarray | None, str, list[int]]:
+    """The outline (k, 2) with the polygons `cuts` (holes that reach or cross it) cut out:
+    its vertices counter-clockwise, or None and why the rest is not one simple polygon
+    (nothing left, several pieces, a pinch where a cut only touches the outline); and the
+    indices of the cuts that hold no tissue (none of their area inside the outline).
+    Slivers thinner than `tol` are dropped. Shapely (GEOS) does the polygon difference,
+    whose degenerate cases (a cut's edge along the outline's, a vertex on an edge) it
+    handles."""
+    import shapely
+
+    tissue, pieces = shapely.Polygon(outline), [shapely.Polygon(cut) for cut in cuts]
+    idle = [i for i, piece in enumerate(pieces) if tissue.intersection(piece).area <= tol * tol]
+    rest = shapely.simplify(tissue.difference(shapely.union_all(pieces)), tol, preserve_topology=True)
+    if rest.is_empty or rest.area <= tol * tol:
+        return None, "no tissue", idle
+    if rest.geom_type != "Polygon":
+        return None, f"{len(rest.geoms)} separate pieces of tissue", idle
+    if len(rest.interiors):
+        return None, "an outline pinched where a cut touches it at a point", idle
+    vertices = np.asarray(rest.exterior.coords, dtype=float)[:-1]
+    why = polygon_problem(vertices, tol)
+    if why:
+        return None, f"an outline that is not {why}", idle
+    return (vertices if signed_area(vertices) > 0 else vertices[::-1].copy()), "", idle
