@@ -532,7 +532,7 @@ def test_the_geometry_queries_answer_as_over_all_edges():
     answers of the same tests over every (point, edge) pair, bit for bit: random points,
     points on every edge and every vertex, random segments and segments between boundary
     points."""
-    from stitchplan.geometry.segments import _point_segment_distance, segments_cross
+    from stitchplan.geometry.segments import point_segment_distance, segments_cross
 
     raw = traced(300)
     raw["tissue"]["holes"] = [{"circle": {"center": [x, 14.0], "radius": 2.0}} for x in (15.0, 30.0, 45.0)]
@@ -548,7 +548,7 @@ def test_the_geometry_queries_answer_as_over_all_edges():
             cross = a[None, :, 0] + (x[:, None, 1] - a[None, :, 1]) * (b - a)[None, :, 0] / (b - a)[None, :, 1]
         return np.count_nonzero(straddle & (x[:, None, 0] < cross), axis=1) % 2 == 1
 
-    distance = _point_segment_distance(points[:, None], a[None], b[None]).min(axis=1)
+    distance = point_segment_distance(points[:, None], a[None], b[None]).min(axis=1)
     assert np.array_equal(domain._inside_strict(points), inside(points))
     assert np.array_equal(domain.distance(points), distance)
     for tol in (domain.tolerance, 0.01, 0.5):
@@ -557,7 +557,7 @@ def test_the_geometry_queries_answer_as_over_all_edges():
     ends = np.concatenate([starts[:3000] + rng.normal(size=(3000, 2)) * 4.0, on_edges[rng.permutation(len(on_edges))]])
     crossed = segments_cross(starts[:, None], ends[:, None], a[None], b[None], 1e-7 * 60.0).any(axis=1)
     middle = 0.5 * (starts + ends)
-    gap = ~inside(middle) & (_point_segment_distance(middle[:, None], a[None], b[None]).min(axis=1) > 1e-7 * 60.0)
+    gap = ~inside(middle) & (point_segment_distance(middle[:, None], a[None], b[None]).min(axis=1) > 1e-7 * 60.0)
     assert np.array_equal(domain.blocked(starts, ends), crossed | gap)
     assert 0 < domain.blocked(starts, ends).sum() < len(starts)
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from .polygons import CORNER_TURN
-from .segments import _cross
+from .segments import cross_2d
 
 
 def smooth_vertex(domain, point) -> bool:
@@ -18,7 +18,7 @@ def smooth_vertex(domain, point) -> bool:
         return False
     (a0, a1), (b0, b1) = (domain.edge(name) for name in names)
     d, e = a1 - a0, b1 - b0
-    return abs(math.atan2(float(_cross(d, e)), float(np.dot(d, e)))) <= CORNER_TURN
+    return abs(math.atan2(float(cross_2d(d, e)), float(np.dot(d, e)))) <= CORNER_TURN
 
 
 def boundary_edges(domain) -> tuple[np.ndarray, np.ndarray]:

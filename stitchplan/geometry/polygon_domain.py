@@ -11,7 +11,7 @@ import numpy as np
 
 from .bounding_box import BoundingBox
 from .edge_grid import FEW_EDGES, FEW_PAIRS, PAIR_BLOCK, EdgeGrid
-from .segments import _cross, _point_segment_distance, on_segment, segments_cross
+from .segments import cross_2d, on_segment, point_segment_distance, segments_cross
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,7 +73,7 @@ class PolygonDomain(BoundingBox):
         if self.holes:
             return False
         d = np.roll(self.outline, -1, axis=0) - self.outline
-        return bool(np.all(_cross(d, np.roll(d, -1, axis=0)) >= -self.tolerance**2))
+        return bool(np.all(cross_2d(d, np.roll(d, -1, axis=0)) >= -self.tolerance**2))
 
     def describe(self) -> str:
         holes = f" with {len(self.holes)} hole{'s' if len(self.holes) != 1 else ''}" if self.holes else ""
@@ -110,7 +110,7 @@ class PolygonDomain(BoundingBox):
         """Names of the boundary edges holding the point (two at a vertex)."""
         tol = self.tolerance if tol is None else tol
         x = np.asarray(point, dtype=float)
-        d = _point_segment_distance(x[None], self.segment_starts, self.segment_ends)
+        d = point_segment_distance(x[None], self.segment_starts, self.segment_ends)
         return [self.segment_names[k] for k in np.flatnonzero(d <= tol)]
 
     def segment_edge(self, start, end, tol: float | None = None) -> str | None:
@@ -157,8 +157,8 @@ class PolygonDomain(BoundingBox):
         rows = max(PAIR_BLOCK // len(self.segment_starts), 1)
         for chunk in range(0, len(flat), rows):  # (rows x edges) work arrays
             part = flat[chunk:chunk + rows, None, :]
-            out[chunk:chunk + rows] = _point_segment_distance(part, self.segment_starts[None],
-                                                              self.segment_ends[None]).min(axis=1)
+            out[chunk:chunk + rows] = point_segment_distance(part, self.segment_starts[None],
+                                                             self.segment_ends[None]).min(axis=1)
         return out.reshape(points.shape[:-1])
 
     def near_boundary(self, flat: np.ndarray, tol: float) -> np.ndarray:
@@ -167,7 +167,7 @@ class PolygonDomain(BoundingBox):
         near = np.zeros(len(flat), dtype=bool)
         pad = 2.0 * tol + self.tolerance  # the boxes of the edges within tol meet the point's
         for q, e in self.candidates(flat - pad, flat + pad):
-            close = _point_segment_distance(flat[q], self.segment_starts[e], self.segment_ends[e]) <= tol
+            close = point_segment_distance(flat[q], self.segment_starts[e], self.segment_ends[e]) <= tol
             near[q[close]] = True
         return near
 

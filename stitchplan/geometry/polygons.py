@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .edge_grid import EdgeGrid
-from .segments import _point_segment_distance, segments_touch
+from .segments import point_segment_distance, segments_touch
 
 
 def signed_area(vertices: np.ndarray) -> float:
@@ -55,8 +55,8 @@ def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
     forward = (j == i + 1)[:, None]
     other_i = np.where(forward, starts[i], ends[i])
     other_j = np.where(forward, ends[j], starts[j])
-    folded = (_point_segment_distance(other_i, starts[j], ends[j]) <= tol) | \
-        (_point_segment_distance(other_j, starts[i], ends[i]) <= tol)
+    folded = (point_segment_distance(other_i, starts[j], ends[j]) <= tol) | \
+        (point_segment_distance(other_j, starts[i], ends[i]) <= tol)
     bad = np.flatnonzero(np.where(adjacent, folded, touch))
     if len(bad):
         first = bad[np.lexsort((j[bad], i[bad]))[0]]  # the first pair in (i, j) order

@@ -16,7 +16,7 @@ def on_segment(points: np.ndarray, start, end, tol: float) -> np.ndarray:
     return (across <= tol) & (along >= -tol) & (along <= length + tol)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross_2d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
@@ -27,8 +27,8 @@ def segments_cross(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray, t
     d, e = q - p, b - a
     length_d = np.maximum(np.linalg.norm(d, axis=-1), 1e-300)
     length_e = np.maximum(np.linalg.norm(e, axis=-1), 1e-300)
-    o1, o2 = _cross(d, a - p) / length_d, _cross(d, b - p) / length_d  # a, b seen from p-q
-    o3, o4 = _cross(e, p - a) / length_e, _cross(e, q - a) / length_e  # p, q seen from a-b
+    o1, o2 = cross_2d(d, a - p) / length_d, cross_2d(d, b - p) / length_d  # a, b seen from p-q
+    o3, o4 = cross_2d(e, p - a) / length_e, cross_2d(e, q - a) / length_e  # p, q seen from a-b
     return (((o1 > tol) & (o2 < -tol)) | ((o1 < -tol) & (o2 > tol))) & \
         (((o3 > tol) & (o4 < -tol)) | ((o3 < -tol) & (o4 > tol)))
 
@@ -37,12 +37,12 @@ def segments_touch(p, q, a, b, tol: float) -> np.ndarray:
     """Mask of segment pairs that come within `tol` of each other (crossing, touching,
     overlapping)."""
     p, q, a, b = (np.asarray(v, dtype=float) for v in (p, q, a, b))
-    close = np.minimum.reduce([_point_segment_distance(p, a, b), _point_segment_distance(q, a, b),
-                               _point_segment_distance(a, p, q), _point_segment_distance(b, p, q)])
+    close = np.minimum.reduce([point_segment_distance(p, a, b), point_segment_distance(q, a, b),
+                               point_segment_distance(a, p, q), point_segment_distance(b, p, q)])
     return (close <= tol) | segments_cross(p, q, a, b, 0.0)
 
 
-def _point_segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def point_segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     e = b - a
     t = np.clip(np.sum((x - a) * e, axis=-1) / np.maximum(np.sum(e * e, axis=-1), 1e-300), 0.0, 1.0)
     return np.linalg.norm(x - (a + t[..., None] * e), axis=-1)
