@@ -47,7 +47,7 @@ def deform(
     setup_logging(verbose, quiet)
     check_plot_scale_option(plot_scale, plot)
     check_command_outputs({"--probes-out": probes_out, "--reactions-out": reactions_out, "--summary": summary,
-                    "--out": out, "--plot": plot}, {"SCENARIO": scenario_path})
+                           "--out": out, "--plot": plot}, {"SCENARIO": scenario_path})
     scenario = load_with_options(scenario_path, spacing, dilation)
     from ..config.scenario import require_loads
 
@@ -185,7 +185,7 @@ def plan(
                                {"--uncertainty-plot": uncertainty_plot, "--workers": workers, "--scheduler": scheduler})
     executor = command_executor(workers, scheduler)
     check_command_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
-                    "--uncertainty-plot": uncertainty_plot},
+                           "--uncertainty-plot": uncertainty_plot},
                    {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path})
     options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
     check_angular_speed(angular_speed)

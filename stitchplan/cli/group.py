@@ -186,7 +186,7 @@ def usage_message(error, click_errors) -> str:
     """One line in the project's style: `--spacing: got 'abc', expected a number`."""
     param = getattr(error, "param", None)
     if (isinstance(error, click_errors.BadParameter) and param is not None
-        and not isinstance(error, click_errors.MissingParameter)):
+            and not isinstance(error, click_errors.MissingParameter)):
         name = "/".join(param.opts) if getattr(param, "opts", None) else param.human_readable_name
         return f"{name}: {_bad_value(error)}"
     message = error.format_message().strip().rstrip(".")

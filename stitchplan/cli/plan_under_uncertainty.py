@@ -46,7 +46,7 @@ def run_plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: 
     resume_collection()
     uncertainty = load_uncertainty(uncertainty_path)
     check_command_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
-                    "--uncertainty-plot": uncertainty_plot},
+                           "--uncertainty-plot": uncertainty_plot},
                    {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration})
     check_inputs(uncertainty, scenario, scenario_path)
     tasks = planned_tasks(uncertainty)
