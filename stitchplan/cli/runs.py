@@ -15,7 +15,7 @@ from ..io import progress, readers, reports
 from ..needle import geometry as needle_geometry
 from ..planning import verification
 from ..study import auto
-from .options import scenario_expected_steps, naming_files
+from .options import naming_files, scenario_expected_steps
 
 
 def resolve_accuracy_guarded(scenario_path: Path, scenario, limits, linear_solver: Optional[str] = None,

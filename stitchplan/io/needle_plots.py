@@ -24,7 +24,7 @@ from .plot_elements import (
     pyplot,
     title_above,
 )
-from .plots import shown_name, save
+from .plots import save, shown_name
 
 
 def _needle_body(geometry, center, rotation: float) -> np.ndarray:

@@ -69,7 +69,7 @@ import scipy.sparse as sp
 
 from ..config import Needle
 from ..tissue.model import TissueModel
-from .constraint_rows import GrowingRows, row_block, row_block_matrix, empty_row_block, joined_rows
+from .constraint_rows import GrowingRows, empty_row_block, joined_rows, row_block, row_block_matrix
 from .geometry import NeedleGeometry
 from .load_quadrature import SMOOTH, LoadQuadrature, cutting_density, segment_gauss_points
 from .track_layout import (ARC_ENDS, MORTAR, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, SEGMENT_ENDS,

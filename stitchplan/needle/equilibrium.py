@@ -56,7 +56,7 @@ from ..tissue.assembly import Assembler
 from ..tissue.solver import checked
 from .coupling import NeedleCoupling
 from .geometry import IDENTITY, length, scenario_needle
-from .newton import Residuals, Balance, NewtonHistory, newton_tolerances
+from .newton import Balance, NewtonHistory, Residuals, newton_tolerances
 from .prepared_tissue import PreparedTissue
 from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from ..config import Discretization, Scenario
 from ..needle.geometry import needle_zone, scenario_needle
 from .formatting import bytes_text, count_text, duration_text
-from .model_size import COUNT_CAP, ModelSize, grid_count, needle_steps, per_side, model_size
+from .model_size import COUNT_CAP, ModelSize, grid_count, model_size, needle_steps, per_side
 from .origin import Origin, radius_default_of, size_default_of
 
 # from benchmarks/results/resource_costs.md (python benchmarks/resource_costs.py): the time

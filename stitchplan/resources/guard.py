@@ -9,11 +9,11 @@ from dataclasses import dataclass, replace
 
 from ..config import DEFAULT_NEEDLE_REFINEMENT
 from ..errors import InputError
-from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate, size_scale,
-                    held_at_once)
+from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate, held_at_once,
+                    size_scale)
 from .formatting import amount_text, bytes_text, count_text
 from .limits import Limits
-from .machine import ADDRESS_SPACE_RESERVE, address_space_left, system_memory, available_memory
+from .machine import ADDRESS_SPACE_RESERVE, address_space_left, available_memory, system_memory
 from .model_size import capped_count
 
 log = logging.getLogger(__package__)  # "stitchplan.resources", the name its records carry
