@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 import _common as common  # noqa: E402
 from stitchplan.config.scenario import load_scenario  # noqa: E402
 from stitchplan.config.uncertainty import load_uncertainty  # noqa: E402
-from stitchplan.parallel import Executor  # noqa: E402
+from stitchplan.parallel.executor import Executor  # noqa: E402
 from stitchplan.planning.replay_models import VERIFICATION_FACTOR, rescaled  # noqa: E402
 from stitchplan.uncertainty.evaluation import run_sample  # noqa: E402
 from stitchplan.uncertainty.robust import exit_statistics, plan_under_uncertainty  # noqa: E402

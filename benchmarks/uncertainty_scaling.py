@@ -6,8 +6,8 @@ On configs/sh12_100x100.yaml with the distributions of configs/uncertainty/uncer
 2. SAMPLES sampled scenarios (the design's training points) replayed with that path
    (stitchplan.uncertainty.evaluation.run_sample, the command's task), one after another in
    this process (workers 0), then on a local Dask cluster of 1 and of 2 worker processes
-   (stitchplan.parallel.Executor, as the command starts it). Samples per second = SAMPLES /
-   the wall time of the map (cluster start-up timed apart);
+   (stitchplan.parallel.executor.Executor, as the command starts it). Samples per second =
+   SAMPLES / the wall time of the map (cluster start-up timed apart);
 3. the projected wall time of a 64-sample robust plan on N workers from the measured
    per-sample cost: cluster start-up + nominal plan + ceil((3 x 64 + 2 k) / N) replays +
    robust plan + ceil(64 / N) replays (k uncertain parameters: two sensitivity runs each),
@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 import _common as common  # noqa: E402
 from stitchplan.config.scenario import load_scenario  # noqa: E402
 from stitchplan.config.uncertainty import load_uncertainty  # noqa: E402
-from stitchplan.parallel import Executor  # noqa: E402
+from stitchplan.parallel.executor import Executor  # noqa: E402
 from stitchplan.planning.planner import run_plan  # noqa: E402
 from stitchplan.uncertainty.evaluation import run_sample  # noqa: E402
 from stitchplan.uncertainty.robust import planned_tasks  # noqa: E402

@@ -19,18 +19,14 @@ from pathlib import Path
 import pytest
 from test_plan_cli import invoke, one_error_line, small_raw, write
 
-from stitchplan import parallel
 from stitchplan.errors import InputError
-from stitchplan.parallel import (
-    ClusterFailure,
-    Executor,
-    check_scheduler_address,
-    check_workers,
-    dask_logs_to_package,
-    dask_setup,
-    max_workers,
-    probe_scheduler,
-)
+from stitchplan.parallel import scheduler
+from stitchplan.parallel import workers as parallel_workers
+from stitchplan.parallel.dask_logs import dask_logs_to_package, dask_setup
+from stitchplan.parallel.executor import Executor
+from stitchplan.parallel.failures import ClusterFailure
+from stitchplan.parallel.scheduler import check_scheduler_address, probe_scheduler
+from stitchplan.parallel.workers import check_workers, max_workers
 
 SCENARIO = Path(__file__).resolve().parents[1] / "configs" / "needle20_entry30.yaml"
 UNCERTAINTY = {"samples": 2, "seed": 1, "parameters": {"thickness": {"std": 0.2}}}
@@ -94,8 +90,8 @@ def test_the_commands_refuse_a_malformed_address_at_once(tmp_path, command, addr
 
 
 def test_the_worker_count_is_bounded_by_the_usable_cores(monkeypatch):
-    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {0, 3})  # 2 of the machine's cores
-    assert max_workers() == 8 and parallel.default_workers() == 2
+    monkeypatch.setattr(parallel_workers.os, "sched_getaffinity", lambda pid: {0, 3})  # 2 of the machine's cores
+    assert max_workers() == 8 and parallel_workers.default_workers() == 2
     check_workers(0, None)
     check_workers(8, None)
     for workers in (9, 100000, -1):
@@ -103,7 +99,7 @@ def test_the_worker_count_is_bounded_by_the_usable_cores(monkeypatch):
             check_workers(workers, None)
         assert str(refused.value) == (f"--workers: got {workers}, expected a number of worker processes from 0 to 8 "
                                       "(at most 4 x the 2 CPU cores this process may use; 0: run in this process)")
-    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {1})
+    monkeypatch.setattr(parallel_workers.os, "sched_getaffinity", lambda pid: {1})
     with pytest.raises(InputError, match=r"from 0 to 4 \(at most 4 x the 1 CPU core this"):
         check_workers(5, None)
 
@@ -118,8 +114,8 @@ def test_the_commands_refuse_a_worker_count_out_of_bounds_at_once(tmp_path, comm
     line = one_error_line(invoke(command, SCENARIO, *outputs, "--workers", workers))
     assert time.perf_counter() - start < FAST
     assert line == (f"error: --workers: got {workers}, expected a number of worker processes from 0 to "
-                    f"{max_workers()} (at most 4 x the {parallel.usable_cores()} CPU "
-                    f"core{'s' if parallel.usable_cores() > 1 else ''} this process may use; 0: run in this process)")
+                    f"{max_workers()} (at most 4 x the {parallel_workers.usable_cores()} CPU "
+                    f"core{'s' if parallel_workers.usable_cores() > 1 else ''} this process may use; 0: run in this process)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["u.yaml"]
 
 
@@ -213,7 +209,7 @@ def test_a_closed_port_is_refused_naming_the_reason(closed_port):
 @pytest.mark.parametrize("server", ["silent", "http", "closed_port"])
 def test_the_plan_command_ends_in_one_line_at_an_address_without_a_scheduler(tmp_path, monkeypatch, request, server):
     address = request.getfixturevalue(server)
-    monkeypatch.setattr(parallel, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(scheduler, "CONNECT_TIMEOUT_S", 1.0)
     scenario = write(tmp_path, small_raw())
     uncertainty = write(tmp_path, UNCERTAINTY, "u.yaml")
     start = time.perf_counter()

@@ -489,7 +489,7 @@ def test_the_cli_counts_the_workers_of_a_plan_under_uncertainty(tmp_path, monkey
     beside this process: refused naming the needle step and --workers; with one worker it
     passes the guard. (The cluster is not started: a Dask cluster sets malloc variables in the
     process's environment, which later tests' processes would inherit.)"""
-    invoke = guarded(monkeypatch, 1.6e9, "stitchplan.parallel.Executor.__enter__")
+    invoke = guarded(monkeypatch, 1.6e9, "stitchplan.parallel.executor.Executor.__enter__")
     path = write(tmp_path, scene(needle__step=0.005))
     spread = write(tmp_path, {"samples": 4, "seed": 1, "parameters": {"friction": {"std": 0.001}}}, "spread.yaml")
     arguments = ["plan", path, "--uncertainty", spread, "--export", tmp_path / "trajectory.csv", "--no-verify"]
@@ -508,7 +508,7 @@ def test_the_cli_counts_the_largest_study_runs_its_workers_hold_at_once(tmp_path
     ~350 MB), its two largest on two local workers do not (~630 MB, each worker a process of
     its own): refused naming the needle step; on one worker the runs go one at a time and it
     passes the guard."""
-    invoke = guarded(monkeypatch, 1e9, "stitchplan.parallel.Executor.__enter__")
+    invoke = guarded(monkeypatch, 1e9, "stitchplan.parallel.executor.Executor.__enter__")
     path = write(tmp_path, scene(needle__step=0.005))
     arguments = ["study", path, "--quick", "--out", tmp_path / "study"]
     code, (line,), _ = invoke(*arguments, "--workers", 2)
@@ -530,7 +530,7 @@ def test_a_study_on_workers_counts_this_process_beside_them(tmp_path, monkeypatc
     runs, reference, repeats = plan_runs(parse_scenario(raw), True)
     largest = max(estimate(run.scenario, "insertion", "study run", repeats).memory_bytes for run in [*runs, reference])
     memory = 2.0 * (largest + 0.5 * BASE_MEMORY)  # a share between the run alone and the run with this process
-    invoke = guarded(monkeypatch, memory, "stitchplan.parallel.Executor.__enter__")
+    invoke = guarded(monkeypatch, memory, "stitchplan.parallel.executor.Executor.__enter__")
     path = write(tmp_path, raw)
     code, (line,), _ = invoke("study", path, "--quick", "--out", tmp_path / "study", "--workers", 1)
     assert code == 2

@@ -24,7 +24,7 @@ from test_plan_cli import invoke, one_error_line, small_raw, write
 from stitchplan.config import parse_scenario
 from stitchplan.config.uncertainty import load_uncertainty, parse_uncertainty, resolve_uncertainty
 from stitchplan.errors import InputError, SolverDivergence
-from stitchplan.parallel import Executor
+from stitchplan.parallel.executor import Executor
 from stitchplan.uncertainty import evaluation
 from stitchplan.uncertainty.evaluation import run_sample
 from stitchplan.uncertainty.robust import LABELS, exit_statistics, plan_under_uncertainty
@@ -462,7 +462,7 @@ def test_the_executor_and_the_uncertainty_layer_import_nothing_above_them():
     import subprocess
     import sys
 
-    for module, allowed in (("stitchplan.parallel", ("stitchplan.errors", "stitchplan.parallel")),
+    for module, allowed in (("stitchplan.parallel.executor", ("stitchplan.errors", "stitchplan.parallel")),
                             ("stitchplan.uncertainty.robust", ("stitchplan.errors", "stitchplan.geometry",
                                                                "stitchplan.config", "stitchplan.tissue",
                                                                "stitchplan.needle", "stitchplan.resources",

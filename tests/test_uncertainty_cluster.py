@@ -2,8 +2,8 @@
 the sets it counts.
 
 A cluster without a worker (none attached, or all lost) ends the run as one ClusterFailure
-within the wait allowed (stitchplan.parallel.WORKER_WAIT_S, cut here to about a second),
-never as a hang; a Ctrl-C of the whole process group during a local-cluster run ends with the
+within the wait allowed (stitchplan.parallel.workers.WORKER_WAIT_S, cut here to about a
+second), never as a hang; a Ctrl-C of the whole process group during a local-cluster run ends with the
 command's exit code and nothing of the workers on stderr; and the console line and the
 summary tie each failure count to its sample set. The cluster tests take a few seconds each.
 """
@@ -24,11 +24,15 @@ import pytest
 from test_plan_cli import invoke, small_raw, write
 from test_uncertainty import _failing_on, _thickness_only
 
-from stitchplan import parallel
 from stitchplan.config import parse_scenario
 from stitchplan.config.uncertainty import load_uncertainty
 from stitchplan.errors import InputError
-from stitchplan.parallel import ClusterFailure, Executor, signals_deferred, worker_wait_seconds
+from stitchplan.parallel import executor as parallel_executor
+from stitchplan.parallel import workers as parallel_workers
+from stitchplan.parallel.executor import Executor
+from stitchplan.parallel.failures import ClusterFailure
+from stitchplan.parallel.signals import signals_deferred
+from stitchplan.parallel.workers import worker_wait_seconds
 from stitchplan.uncertainty.sampling import draw
 
 WAIT = 1.0  # s: the wait for a worker in these tests
@@ -38,9 +42,9 @@ QUIET_SCHEDULER = {"dashboard_address": "127.0.0.1:0"}  # not 8787, which anothe
 
 @pytest.fixture
 def short_wait(monkeypatch):
-    monkeypatch.setattr(parallel, "WORKER_WAIT_S", WAIT)
-    monkeypatch.setattr(parallel, "WORKER_POLL_S", 0.2)
-    monkeypatch.delenv(parallel.WORKER_WAIT_VARIABLE, raising=False)
+    monkeypatch.setattr(parallel_workers, "WORKER_WAIT_S", WAIT)
+    monkeypatch.setattr(parallel_executor, "WORKER_POLL_S", 0.2)
+    monkeypatch.delenv(parallel_workers.WORKER_WAIT_VARIABLE, raising=False)
 
 
 def bounded(run, seconds: float = BOUND):
@@ -72,12 +76,12 @@ def sleeps(seconds: float) -> float:
 
 
 def test_the_wait_for_workers_is_a_setting_in_seconds(monkeypatch):
-    monkeypatch.delenv(parallel.WORKER_WAIT_VARIABLE, raising=False)
-    assert worker_wait_seconds() == parallel.WORKER_WAIT_S == 60.0
-    monkeypatch.setenv(parallel.WORKER_WAIT_VARIABLE, "2.5")
+    monkeypatch.delenv(parallel_workers.WORKER_WAIT_VARIABLE, raising=False)
+    assert worker_wait_seconds() == parallel_workers.WORKER_WAIT_S == 60.0
+    monkeypatch.setenv(parallel_workers.WORKER_WAIT_VARIABLE, "2.5")
     assert worker_wait_seconds() == 2.5
     for bad in ("0", "-1", "soon", "inf", "nan"):
-        monkeypatch.setenv(parallel.WORKER_WAIT_VARIABLE, bad)
+        monkeypatch.setenv(parallel_workers.WORKER_WAIT_VARIABLE, bad)
         with pytest.raises(InputError) as refused:
             worker_wait_seconds()
         assert str(refused.value).startswith(f"STITCHPLAN_WORKER_WAIT: got {bad!r}, expected the seconds")
@@ -125,7 +129,7 @@ def test_a_cluster_that_loses_its_workers_says_how_many_tasks_were_done(short_wa
 def test_tasks_wait_for_a_worker_that_comes_in_time(short_wait, monkeypatch):
     from dask.distributed import LocalCluster
 
-    monkeypatch.setattr(parallel, "WORKER_WAIT_S", 20.0)
+    monkeypatch.setattr(parallel_workers, "WORKER_WAIT_S", 20.0)
     with LocalCluster(n_workers=0, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=None,
                       scheduler_kwargs=QUIET_SCHEDULER, silence_logs=logging.CRITICAL) as cluster:
         threading.Timer(1.5, lambda: cluster.scale(1)).start()

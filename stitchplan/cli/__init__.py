@@ -76,9 +76,9 @@ def _exit(code: int) -> None:
     which the teardown's collections made too)."""
     import atexit
 
-    parallel = sys.modules.get("stitchplan.parallel")
-    if parallel is not None:  # a cluster closed by the exit functions (after Ctrl-C) logs as it goes
-        parallel.dask_logs_to_package_until_exit()
+    dask_logs = sys.modules.get("stitchplan.parallel.dask_logs")
+    if dask_logs is not None:  # a cluster closed by the exit functions (after Ctrl-C) logs as it goes
+        dask_logs.dask_logs_to_package_until_exit()
     run_exit_functions = getattr(atexit, "_run_exitfuncs", None)
     if run_exit_functions is None:  # not CPython's atexit: the ordinary exit
         sys.exit(code)

@@ -349,7 +349,7 @@ def check_plot_scale_option(scale: float, plot: Optional[Path]) -> None:
 
 
 
-WorkersOption = typer.Option(  # checked with --scheduler by stitchplan.parallel.check_workers
+WorkersOption = typer.Option(  # checked with --scheduler by stitchplan.parallel.workers.check_workers
     None, "--workers", metavar="N",
     help="Run the independent runs on a local Dask cluster of N single-threaded worker processes "
     "(default: the CPU cores this process may use; at most 4 times as many; 0: one after another in "
@@ -361,10 +361,10 @@ SchedulerOption = typer.Option(
 
 
 def command_executor(workers: Optional[int], scheduler: Optional[str]):
-    """The executor of a command's independent runs (stitchplan.parallel.Executor), not yet
-    started: --workers (0 to 4 x the usable cores) and the form of the --scheduler address are
+    """The executor of a command's independent runs (stitchplan.parallel.executor.Executor), not
+    yet started: --workers (0 to 4 x the usable cores) and the form of the --scheduler address are
     checked here, before any work, as InputErrors; the scheduler is reached when the executor
     starts."""
-    from ..parallel import Executor
+    from ..parallel.executor import Executor
 
     return Executor(workers=workers, scheduler=scheduler)

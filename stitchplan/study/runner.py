@@ -24,7 +24,7 @@ from ..needle.insertion import run_insertion
 # what a run may end with because of its configuration (recorded with its reason): the
 # project's errors, degenerate linear algebra, a model too big for the machine; shared
 # with the sampled runs of `plan --uncertainty`
-from ..parallel import RUN_FAILURES
+from ..parallel.failures import RUN_FAILURES
 from ..resources.model_size import model_size
 
 if TYPE_CHECKING:

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field, replace
 from ..config import Scenario
 from ..config.study import StudyFamily, StudySpec
 from ..errors import InputError, NumericalFailure
-from ..parallel import Executor, run_all
+from ..parallel.executor import Executor, run_all
 from .auto import AutoChoice, choose_discretization
 from ..planning.verification import exit_deviations
 from .runner import InsertionRun, run_timed

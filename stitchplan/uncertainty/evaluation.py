@@ -2,8 +2,8 @@
 a Dask task. The task function is top-level and returns a small record (no model, no
 displacement history), so it pickles cheaply and a worker anywhere can run it.
 
-A run that fails (parallel.RUN_FAILURES: a numerical failure, a replayed path that ends
-before the tip leaves the tissue) is recorded with its reason, never raised."""
+A run that fails (parallel.failures.RUN_FAILURES: a numerical failure, a replayed path that
+ends before the tip leaves the tissue) is recorded with its reason, never raised."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import numpy as np
 
 from ..config import Scenario
 from ..needle.insertion import run_insertion
-from ..parallel import RUN_FAILURES
+from ..parallel.failures import RUN_FAILURES
 
 log = logging.getLogger(__name__)
 

@@ -52,8 +52,8 @@ scenario's values.
 Only the exit is aimed at: planner.target `symmetric` on a stitch across a wound (equal bites)
 is refused (check_target).
 
-Every sampled run is a task on the executor (parallel.Executor); the two plans run in this
-process. When every run on a sampled parameter set fails (training and held-out), the result
+Every sampled run is a task on the executor (parallel.executor.Executor); the two plans run in
+this process. When every run on a sampled parameter set fails (training and held-out), the result
 would say nothing about the uncertainty: that is a NumericalFailure naming how many failed
 and the first reason; some failed runs are recorded and counted.
 """
@@ -72,7 +72,7 @@ from ..config import Scenario
 from ..config.uncertainty import UNITS, Uncertainty, check_against_scenario
 from ..errors import InputError, NumericalFailure
 from ..events import Event, EventKind
-from ..parallel import Executor, run_all
+from ..parallel.executor import Executor, run_all
 from ..planning.planner import PlanResult, run_plan
 from ..planning.replay_models import aims_at_bites
 from ..planning.verification import (AIMED_TOLERANCE_FRACTION, estimate_exit_error, exit_offset, plan_verified,
