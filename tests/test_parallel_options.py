@@ -115,7 +115,8 @@ def test_the_commands_refuse_a_worker_count_out_of_bounds_at_once(tmp_path, comm
     assert time.perf_counter() - start < FAST
     assert line == (f"error: --workers: got {workers}, expected a number of worker processes from 0 to "
                     f"{max_workers()} (at most 4 x the {parallel_workers.usable_cores()} CPU "
-                    f"core{'s' if parallel_workers.usable_cores() > 1 else ''} this process may use; 0: run in this process)")
+                    f"core{'s' if parallel_workers.usable_cores() > 1 else ''} this process may use; "
+                    "0: run in this process)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["u.yaml"]
 
 

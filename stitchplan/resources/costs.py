@@ -146,7 +146,8 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
     A renewed factor starts new buffers (SaddlePointSolver._use), which the states then keep
     as well: the measured runs renewed none (the factor of K0 solves their needle steps).
     Sums in floating point, finite for counts up to COUNT_CAP."""
-    from ..needle.track_layout import ARC_ENDS, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, segment_subintervals
+    from ..needle.track_layout import (ARC_ENDS, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT,
+                                       segment_subintervals)
 
     needle, d = scenario.needle, scenario.discretization
     n = float(steps)

@@ -155,8 +155,8 @@ def _coarse_refusal(item: Estimate) -> str | None:
     if d.spacing > min(width, height) / 2.0:
         # the spacing as set (a study's at the needle) may differ from the model's coarse one
         coarse = "" if math.isclose(spacing, d.spacing) else f" (a coarse spacing of {d.spacing:.3g} mm)"
-        return (f"{origin.name('spacing')}: got {spacing:g} mm{coarse}, expected at most half the tissue's smaller side "
-                f"({width:g} x {height:g} mm), so that at least three particles span it{item.origin.derived}; "
+        return (f"{origin.name('spacing')}: got {spacing:g} mm{coarse}, expected at most half the tissue's smaller "
+                f"side ({width:g} x {height:g} mm), so that at least three particles span it{item.origin.derived}; "
                 f"refine it, {_skip(item)}or {SKIP_GUARD}")
     at_needle = d.spacing if d.needle_spacing is None else d.needle_spacing
     if item.needle_radius is None or at_needle <= item.needle_radius:
