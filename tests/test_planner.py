@@ -278,3 +278,19 @@ def test_a_plan_that_misses_its_target_says_so(verify):
     assert misses[0].message.startswith(f"plan: the tip exits {miss:.4g} mm from the desired exit {where}, "
                                         f"above the {accepted:.4g} mm accepted, after {len(result.passes)} planner "
                                         "passes")
+
+
+def test_passes_held_back_at_every_step_search_between_their_offsets_and_stop_once_settled():
+    """Centre moves held to 0.005 mm per step: a larger offset moves the exit away from the aim
+    (the second pass misses by more than the first), so the later passes search between the
+    offsets run instead of going on along the secant, and stop before max_passes once the
+    next offset is within the exit tolerance of one run; the best pass is the nearest."""
+    raw = scene((20.0, 20.0), (0.0, 18.0), "cw", ["right"], spacing=5.0, step=0.3,
+                planner={"center_step_limit": 0.005, "max_passes": 8})
+    result = run_plan(parse_scenario(raw), compare=False)
+    offsets = [float(np.linalg.norm(record["offset_mm"])) for record in result.passes]
+    misses = [record["exit_error_mm"] for record in result.passes]
+    assert result.shooting.searching and misses[1] > misses[0]
+    assert max(offsets[2:]) <= offsets[1] + 1e-12  # between the passes run, not past them
+    assert len(result.passes) < 8 and result.shooting.closest_tried() < 0.005
+    assert result.planned.exit_error_mm == min(misses)

@@ -224,3 +224,45 @@ def test_the_predicted_aim_replays_in_this_process_by_default():
     with prediction_replays(parse_scenario({**scene_raw(30.0, 24.0, 4.0, 0.16),
                                             "planner": {"predicted_aim": False}})) as predictions:
         assert predictions is None
+
+
+
+def _shoot(offsets, exit_along, passes):
+    """The offsets s of `passes` passes whose exit error along y is exit_along(s), aimed at zero."""
+    run = []
+    for _ in range(passes):
+        position = offsets.offset[1]
+        run.append(position)
+        offsets.record(np.array([0.0, exit_along(position)]))
+        offsets.advance(np.zeros(2))
+    return np.array(run)
+
+
+def test_pass_offsets_search_between_the_passes_once_the_exit_moves_with_the_offset():
+    # the exit comes no closer to the aim than 0.2 mm, at s = 0.7 mm (the move limits hold it)
+    def exit_along(s):
+        return 0.2 + 0.6 * (s - 0.7) ** 2 if s > 0.3 else 0.5 - 0.55 * s
+
+    offsets = PassOffsets()
+    run = _shoot(offsets, exit_along, 4)
+    # s = 0, then 0.5 (de/ds = -1), then the secant (slope -0.55) to 0.906, past the nearest exit:
+    # the exit moved with the offset there, so the fourth pass is the parabola's vertex between
+    np.testing.assert_allclose(run[:3], [0.0, 0.5, 0.5 + 0.224 / 0.552], rtol=1e-3)
+    assert offsets.searching
+    assert 0.5 < run[3] < run[2] and abs(run[3] - 0.7) < 1e-3
+    assert abs(offsets.offset[1] - 0.7) < 1e-3 and offsets.closest_tried() < 1e-3  # settled: run_plan stops
+    # without the search the secant (its slope clipped at -1/3) would have gone on to 0.906 + 3 x 0.2254 mm
+
+
+def test_pass_offsets_search_takes_the_root_between_passes_on_either_side_of_the_aim():
+    # after s = 0.5 the exit first runs back past the aim (roots at 0.794 and 1.456 mm), then away
+    def exit_along(s):
+        return 0.5 - 0.1 * s if s < 0.5 else 0.45 - 2.0 * (s - 0.5) + 1.6 * (s - 0.5) ** 2
+
+    offsets = PassOffsets()
+    run = _shoot(offsets, exit_along, 5)
+    assert offsets.searching  # 0.5 -> 1.85 (slope -0.1 clipped to -1/3) moved the exit away: 0.45 -> 0.666
+    assert np.all((run[3:] > 0.5) & (run[3:] < 1.85))  # between the passes run
+    assert exit_along(run[3]) > 0.0 > exit_along(run[4])  # the vertex, then past the aim: a bracket
+    root = 0.5 + (2.0 - np.sqrt(4.0 - 4 * 1.6 * 0.45)) / 3.2
+    assert abs(offsets.offset[1] - root) < 1e-9  # the parabola's root in it (exit_along is one there)

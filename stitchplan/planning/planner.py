@@ -315,6 +315,15 @@ class PassOffsets:
     later round or a predicted aim changes the aim, not e(c)), kept within [-3, -1/3] so that
     a pass held back by the move limits cannot send the next one far off.
 
+    Where the move limits hold the centre back from the start, a larger offset can move the
+    exit away from the aim as well as toward it: once a secant's slope comes out zero or
+    positive, the offsets stop extrapolating and search between the passes already run for
+    the exit nearest the aim (`searching`, _offset_between): the root between two passes on
+    either side of the aim, else the vertex of the parabola through the nearest pass and its
+    neighbours (a golden-section point when the vertex falls outside them), so the passes close
+    in on the nearest exit the limits allow instead of running off; run_plan's passes stop
+    once the next offset is within the exit tolerance of one already run (`closest_tried`).
+
     The offset of every pass after the first acts from the same step on (`prefix`, set from
     the first pass): the steps before it are the first pass's, taken over rather than solved
     again, so a pass costs only its late steps and e(c) stays one function of c.
@@ -327,7 +336,9 @@ class PassOffsets:
         self.direction: np.ndarray | None = None
         self.slope = -1.0
         self.last: tuple[float, np.ndarray] | None = None  # (s, e) of the last pass run
+        self.tried: dict[float, float] = {}  # s: t . e of every pass advanced from
         self._previous: tuple[float, float] | None = None  # (s, t . e) of the pass before
+        self.searching = False  # a secant slope came out >= 0: offsets between the passes run
 
     @property
     def position(self) -> float:
@@ -349,9 +360,60 @@ class PassOffsets:
         along, exit_along = float(self.direction @ miss), float(self.direction @ error)
         if self._previous is not None and position != self._previous[0]:
             slope = (exit_along - self._previous[1]) / (position - self._previous[0])
+            self.searching = self.searching or slope >= 0.0
             self.slope = float(np.clip(slope, -3.0, -1.0 / 3.0))
-        self._previous = (position, exit_along)
-        self.offset = (position - along / self.slope) * self.direction
+        self._previous, self.tried[position] = (position, exit_along), exit_along
+        if self.searching:
+            self.offset = _offset_between(self.tried, exit_along - along) * self.direction
+        else:
+            self.offset = (position - along / self.slope) * self.direction
+
+    def closest_tried(self) -> float:
+        """mm between the next pass's offset and the nearest one already run (along the search)."""
+        return min(abs(self.position - position) for position in self.tried)
+
+
+GOLDEN_SECTION = (3.0 - math.sqrt(5.0)) / 2.0  # the smaller golden-section fraction of an interval
+
+
+def _offset_between(tried: dict[float, float], aim_along: float) -> float:
+    """The next offset s of PassOffsets' search, within the passes `tried` (s: t . e), about
+    the pass nearest the aim: with a neighbour (in s) on the aim's other side, the root
+    between them of the parabola through it and its two neighbours (of their secant when it
+    has no two neighbours or the parabola no root there); else the vertex of the parabola
+    through |t . e - aim| at the three, or a golden-section point of the wider side when that
+    parabola has no minimum between them; the midpoint toward its neighbour when the nearest
+    pass is the first or last in s."""
+    positions, exits = np.array(sorted(tried.items())).T
+    misses = exits - aim_along
+    best = int(np.argmin(np.abs(misses)))
+    sides = [k for k in (best - 1, best + 1) if 0 <= k < len(positions)]
+    three = positions[best - 1:best + 2] if len(sides) == 2 else None
+    for k in sides:
+        if misses[k] * misses[best] < 0.0:
+            low, high = sorted((positions[best], positions[k]))
+            if three is not None:
+                roots = np.roots(_parabola(three, misses[best - 1:best + 2]))
+                inside = [root.real for root in roots if root.imag == 0.0 and low < root.real < high]
+                if inside:
+                    return float(inside[0])
+            return float(positions[best] - misses[best] * (positions[k] - positions[best]) / (misses[k] - misses[best]))
+    if three is None:
+        return float(0.5 * (positions[best] + positions[sides[0]]))
+    curvature, slope, _ = _parabola(three, np.abs(misses[best - 1:best + 2]))
+    vertex = -slope / (2.0 * curvature) if curvature > 0.0 else np.nan
+    if three[0] < vertex < three[2]:
+        return float(vertex)
+    wider_end = three[0] if three[1] - three[0] > three[2] - three[1] else three[2]
+    return float(three[1] + GOLDEN_SECTION * (wider_end - three[1]))
+
+
+def _parabola(points: np.ndarray, values: np.ndarray) -> tuple[float, float, float]:
+    """(A, B, C) of A s^2 + B s + C through three (point, value) pairs (divided differences)."""
+    (a, b, c), (fa, fb, fc) = points, values
+    first = (fb - fa) / (b - a)
+    curvature = ((fc - fb) / (c - b) - first) / (c - a)
+    return curvature, first - curvature * (a + b), fa - first * a + curvature * a * b
 
 
 def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
@@ -482,7 +544,15 @@ class _PlanPasses:
             offsets.record(error)
             if miss <= self.target:
                 break
+            searching = offsets.searching
             offsets.advance(self.aim)
+            if offsets.searching and not searching:
+                log.info("planning pass %d: the exit moved with the offset, not against it (the move limits hold "
+                         "the centre back): the next passes search between the passes run", number)
+            if offsets.searching and offsets.closest_tried() < self.target:
+                log.info("planning: the passes settled within %.3g mm of an offset already run; the best of "
+                         "them stands", self.target)
+                break
         return self.best
 
     def _next_pass(self, tracker: ExitTracker, prefix: PassPrefix | None) -> InsertionResult:
