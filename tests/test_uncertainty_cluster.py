@@ -144,6 +144,17 @@ def _map_on(address: str, function, *arguments):
 # --- Ctrl-C --------------------------------------------------------------------------------------
 
 
+@pytest.fixture
+def ctrl_c_interrupts():
+    """Ctrl-C as a terminal's foreground job has it: a shell that starts pytest in the
+    background (`&`) has it ignore SIGINT, and so the commands it starts, which then rightly
+    do not stop on it."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+@pytest.mark.usefixtures("ctrl_c_interrupts")
 def test_signals_are_deferred_until_the_block_closes():
     reached = []
     with pytest.raises(KeyboardInterrupt), signals_deferred():
@@ -160,12 +171,14 @@ def signal_handling() -> str:
     return repr(signal.getsignal(signal.SIGINT))
 
 
+@pytest.mark.usefixtures("ctrl_c_interrupts")
 def test_a_local_clusters_workers_ignore_ctrl_c():
     with Executor(workers=1) as executor:
         assert list(executor.client.run(signal_handling).values()) == [repr(signal.SIG_IGN)]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # this process keeps it
 
 
+@pytest.mark.usefixtures("ctrl_c_interrupts")
 def test_ctrl_c_during_a_local_cluster_run_is_the_commands_exit_alone(tmp_path):
     """SIGINT to the process group, as a terminal sends it, during the sampled runs: exit code
     130, no output file, no process left, and on stderr only the command's own log lines (-v;

@@ -547,8 +547,8 @@ class _PlanPasses:
             searching = offsets.searching
             offsets.advance(self.aim)
             if offsets.searching and not searching:
-                log.info("planning pass %d: a larger offset moved the exit away from the aim (the move limits "
-                         "hold the centre back): the next passes search between the offsets run", number)
+                log.info("planning pass %d: the exit moved along with the offset rather than against it (the move "
+                         "limits hold the centre back): the next passes search between the offsets run", number)
             if offsets.searching and offsets.closest_tried() < self.target:
                 log.info("planning: the passes settled within %.3g mm of an offset already run; the best of "
                          "them stands", self.target)
