@@ -56,19 +56,23 @@ class MoveLimits:
 
     step_mm: float
     second_difference_mm: float
-    last_step: int  # the last step before the undeformed circle's exit
+    last_step: int  # the step the centre brakes toward: the last before the tip is expected to leave
 
     @classmethod
-    def for_needle(cls, geometry, settings: Planner) -> MoveLimits:
+    def for_needle(cls, geometry, settings: Planner, exit_steps: int | None = None) -> MoveLimits:
         """The scenario's limits (planner.center_step_limit and
-        center_second_difference_limit, stated per REFERENCE_STEP) at the needle's step."""
+        center_second_difference_limit, stated per REFERENCE_STEP) at the needle's step,
+        braking toward the last step before the undeformed circle's exit, or toward the
+        last of `exit_steps` (a pass's steps in the tissue) when the tip left earlier."""
         scale = geometry.step / REFERENCE_STEP
-        return cls(settings.center_step_limit * scale, settings.center_second_difference_limit * scale,
-                   geometry.expected_steps - 1)
+        last_step = geometry.expected_steps - 1
+        if exit_steps is not None:
+            last_step = min(last_step, exit_steps)
+        return cls(settings.center_step_limit * scale, settings.center_second_difference_limit * scale, last_step)
 
     def speed(self, step: int) -> float:
         """The largest move at `step`, braking one step early (the tip may leave a step
-        before the undeformed circle would)."""
+        before it was expected to)."""
         return min(self.step_mm, self.second_difference_mm * max(self.last_step - step, 1))
 
     def project(self, candidate: np.ndarray, centers: list[np.ndarray], step: int) -> np.ndarray:
@@ -194,16 +198,19 @@ class ExitTracker:
     event (raised with `strict`). That happens when the needle is deep in the tissue: the
     material enclosed by the arc and the free edge then follows the needle almost rigidly
     and no centre move changes their relative position. With `smooth` every centre lies
-    within MoveLimits of the centres before it (`limited_steps`: the steps a limit held back).
-    With a `prefix` the steps before prefix.first_aimed keep the plan's first pass's centres.
+    within MoveLimits of the centres before it (`limited_steps`: the steps a limit held back),
+    braking toward the step before the undeformed circle's exit or, given `exit_steps` (the
+    first pass's steps in the tissue), toward the last of those if earlier. With a `prefix`
+    the steps before prefix.first_aimed keep the plan's first pass's centres.
     """
 
     def __init__(self, settings: Planner, offset: np.ndarray | None = None, smooth: bool = True,
-                 prefix: PassPrefix | None = None):
+                 prefix: PassPrefix | None = None, exit_steps: int | None = None):
         self.settings = settings
         self.offset = np.zeros(2) if offset is None else np.asarray(offset, dtype=float)
         self.smooth = smooth  # keep the centres within MoveLimits
         self.prefix = prefix
+        self.exit_steps = exit_steps
         self.limits: MoveLimits | None = None
         self.centers: list[np.ndarray] = []  # O(t_n) of the steps so far, O(t_0) first
         self.limited_steps: list[int] = []  # steps whose centre a move limit held back
@@ -220,7 +227,7 @@ class ExitTracker:
 
     def aim(self, insertion: NeedleInsertion, step: int, rotation: float) -> CenterAim | None:
         if self.smooth and self.limits is None:
-            self.limits = MoveLimits.for_needle(insertion.geometry, self.settings)
+            self.limits = MoveLimits.for_needle(insertion.geometry, self.settings, self.exit_steps)
         if self._taken_over(step):
             self._aim = None  # the first pass's centre, held
             return None
@@ -465,7 +472,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         passes.offsets.advance(passes.aim)
     best = passes.shoot(bite_aim, retarget)
     best.wall_seconds, best.timings = time.perf_counter() - start, passes.timings
-    _note_rough_path(best, MoveLimits.for_needle(best.geometry, settings))
+    _note_rough_path(best, passes.best_limits or MoveLimits.for_needle(best.geometry, settings))
     # after the passes, so that the planned run's wall time counts building the model it runs on
     # whether or not the comparison runs (and a helper replaying the passes has their centres sooner);
     # the comparison's needle is the scenario's as given, not leaned
@@ -489,6 +496,7 @@ class _PlanPasses:
         self.records: list[dict] = []
         self.best: InsertionResult | None = None
         self.best_miss = np.inf
+        self.best_limits: MoveLimits | None = None  # the move limits the best pass kept (smooth)
         self.ready: tuple[InsertionResult, list[int]] | None = None  # the lean search's run at its lean
 
     def run(self, leaned: Scenario, tracker: ExitTracker, prefix: PassPrefix | None = None) -> InsertionResult:
@@ -526,7 +534,10 @@ class _PlanPasses:
             # a symmetric target's aim follows the bites, the entry side's included: every step
             offsets = self.offsets
             prefix = offsets.prefix.for_offset(offsets.offset) if offsets.prefix and not self.symmetric else None
-            tracker = ExitTracker(self.settings, offsets.offset, smooth=self.smooth, prefix=prefix)
+            # brake toward where the first pass's tip left, when it left before the undeformed circle
+            exit_steps = len(offsets.prefix.reference.steps) if offsets.prefix is not None else None
+            tracker = ExitTracker(self.settings, offsets.offset, smooth=self.smooth, prefix=prefix,
+                                  exit_steps=exit_steps)
             try:
                 planned = self._next_pass(tracker, prefix)
             except NumericalFailure as failure:
@@ -541,6 +552,7 @@ class _PlanPasses:
                 miss = float(np.linalg.norm(error - self.aim))
             if miss < self.best_miss:
                 self.best, self.best_miss = planned, miss
+                self.best_limits = tracker.limits
             offsets.record(error)
             if miss <= self.target:
                 break
@@ -613,8 +625,9 @@ def add_timings(total: dict[str, float], more: dict[str, float]) -> None:
 def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:
     """An event on a pass whose exported centre path breaks the move limits (a robot told to
     follow it would be told too late): the planner keeps them step by step, braking toward the
-    step before the undeformed circle's exit, so a tip that leaves earlier stops the centre at
-    the exit row from a speed the braking had not yet taken off."""
+    step before the undeformed circle's exit (in the passes after the first, toward the first
+    pass's last step in the tissue if earlier), so a tip that leaves two steps or more earlier
+    stops the centre at the exit row from a speed the braking had not yet taken off."""
     moves, second = center_moves(exported_centers(result))
     broken = []
     slack = 1e-6  # mm: the limits hold to round-off, and the exported centres are rounded to 1e-9 mm
@@ -628,8 +641,8 @@ def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:
     if not broken:
         return
     steps = len(result.steps)
-    why = (f": the tip left the tissue after step {steps}, before step {limits.last_step + 1}, the last before "
-           "the undeformed circle's exit, which the centre brakes toward" if steps < limits.last_step + 1 else "")
+    why = (f": the tip left the tissue after step {steps}, before step {limits.last_step}, the step the centre "
+           "brakes toward" if steps < limits.last_step else "")
     message = (f"plan: the exported centre path breaks the planner's move limits with {' and '.join(broken)}"
                f"{why}; slow the robot there or loosen planner.center_step_limit / "
                "center_second_difference_limit knowingly")
