@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 import yaml
 
@@ -66,13 +67,36 @@ def test_a_verification_replay_that_fails_leaves_the_plan_unverified():
                message.endswith("(spacing 2 mm); verified exit error unknown") for message in checks)
 
 
-def test_a_path_that_stops_short_of_its_braking_says_it_breaks_the_move_limits():
+def test_a_best_pass_that_left_early_is_run_again_braking_toward_its_exit():
     """The first pass brakes toward the step before the undeformed circle's exit; on a soft
-    block the tip leaves steps earlier and the centre stops at the exit row from full speed,
-    and here that pass is the best. The summary's max_center_second_difference_mm shows it;
-    an event says so and why."""
+    block its tip leaves three steps earlier, from full speed, and here it is the best pass.
+    It is run once more with its offset, braking toward the step its tip left after: that
+    path keeps the move limits and is exported, its exit a little further off."""
     from stitchplan.planning.planner import MoveLimits, path_smoothness
 
+    scenario = parse_scenario(block("neo-hookean", 3.0, 0.3, 1.5))
+    plan = run_plan(scenario, compare=False)
+    limits = MoveLimits.for_needle(plan.planned.geometry, scenario.planner)
+    first, braked = plan.passes[0], plan.passes[-1]
+    assert first["braking_step"] == limits.last_step
+    assert braked["braking_step"] == len(plan.shooting.prefix.reference.steps) < limits.last_step - 1
+    np.testing.assert_array_equal(braked["offset_mm"], first["offset_mm"])
+    assert min(record["exit_error_mm"] for record in plan.passes[:-1]) == first["exit_error_mm"]
+    assert plan.planned.exit_error_mm == braked["exit_error_mm"]
+    assert braked["exit_error_mm"] == pytest.approx(first["exit_error_mm"], abs=0.05)
+    moves, second = path_smoothness(plan.exported_centers)
+    assert moves <= limits.step_mm + 1e-6 and second <= limits.second_difference_mm + 1e-6
+    assert not [event for event in plan.planned.events if event.kind == EventKind.PATH_LIMITS_EXCEEDED]
+
+
+def test_a_path_that_stops_short_of_its_braking_says_it_breaks_the_move_limits(monkeypatch):
+    """Were the best pass not run again braking toward its exit (a rerun that fails), its
+    centre stops at the exit row from full speed. The summary's
+    max_center_second_difference_mm shows it; an event says so and why."""
+    from stitchplan.planning import planner
+    from stitchplan.planning.planner import MoveLimits, path_smoothness
+
+    monkeypatch.setattr(planner._PlanPasses, "_brake_for_exit", lambda passes, number, bite_aim: None)
     scenario = parse_scenario(block("neo-hookean", 3.0, 0.3, 1.5))
     plan = run_plan(scenario, compare=False)
     limits = MoveLimits.for_needle(plan.planned.geometry, scenario.planner)

@@ -472,7 +472,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
         passes.offsets.advance(passes.aim)
     best = passes.shoot(bite_aim, retarget)
     best.wall_seconds, best.timings = time.perf_counter() - start, passes.timings
-    _note_rough_path(best, passes.best_limits or MoveLimits.for_needle(best.geometry, settings))
+    _note_rough_path(best, passes.best_limits())
     # after the passes, so that the planned run's wall time counts building the model it runs on
     # whether or not the comparison runs (and a helper replaying the passes has their centres sooner);
     # the comparison's needle is the scenario's as given, not leaned
@@ -496,7 +496,8 @@ class _PlanPasses:
         self.records: list[dict] = []
         self.best: InsertionResult | None = None
         self.best_miss = np.inf
-        self.best_limits: MoveLimits | None = None  # the move limits the best pass kept (smooth)
+        # the best pass's offset, prefix and the move limits it kept (None: not smooth)
+        self.best_pass: tuple[np.ndarray, PassPrefix | None, MoveLimits | None] | None = None
         self.ready: tuple[InsertionResult, list[int]] | None = None  # the lean search's run at its lean
 
     def run(self, leaned: Scenario, tracker: ExitTracker, prefix: PassPrefix | None = None) -> InsertionResult:
@@ -552,7 +553,7 @@ class _PlanPasses:
                 miss = float(np.linalg.norm(error - self.aim))
             if miss < self.best_miss:
                 self.best, self.best_miss = planned, miss
-                self.best_limits = tracker.limits
+                self.best_pass = (offsets.offset.copy(), prefix, tracker.limits)
             offsets.record(error)
             if miss <= self.target:
                 break
@@ -565,11 +566,45 @@ class _PlanPasses:
                 log.info("planning: the passes settled within %.3g mm of an offset already run; the best of "
                          "them stands", self.target)
                 break
+        if self.smooth:
+            self._brake_for_exit(self.records[-1]["pass"] + 1, bite_aim)
         return self.best
 
+    def best_limits(self) -> MoveLimits:
+        """The move limits the best pass kept (the scenario's, braking toward the undeformed
+        circle's exit, without `smooth`)."""
+        return self.best_pass[2] or MoveLimits.for_needle(self.best.geometry, self.settings)
+
+    def _brake_for_exit(self, number: int, bite_aim: float) -> None:
+        """The best pass run again with its offset, braking toward the step its tip left
+        after, when that tip left two steps or more before the step the centre braked toward
+        (a first pass, braking toward the undeformed circle's exit, or a later one leaving
+        before the first): its centre stopped at the exit row from a speed the move limits
+        do not allow. The rerun is the plan's when its path keeps them (the centre braking
+        sooner, its exit a little further off); it is not one of the secant's passes."""
+        best, limits = self.best, self.best_limits()
+        if len(best.steps) >= limits.last_step or not _broken_limits(exported_centers(best), limits):
+            return
+        offset, prefix, _ = self.best_pass
+        tracker = ExitTracker(self.settings, offset, smooth=True, prefix=prefix, exit_steps=len(best.steps))
+        try:
+            braked = self.run(self.scenario, tracker, prefix)
+        except NumericalFailure as failure:
+            log.info("planning pass %d (the best pass braking toward step %d) failed: %s", number, len(best.steps),
+                     failure)
+            return
+        _, miss = self._record(number, braked, tracker, prefix, bite_aim, offset, rerun=True)
+        if _broken_limits(exported_centers(braked), tracker.limits):
+            return
+        log.info("planning pass %d: the best pass braking toward step %d, where its tip left, keeps the move limits "
+                 "(%.4g mm from the aim, %.4g mm before)", number, len(best.steps), miss, self.best_miss)
+        self.best, self.best_miss = braked, miss
+        self.best_pass = (offset, prefix, tracker.limits)
+
     def _next_pass(self, tracker: ExitTracker, prefix: PassPrefix | None) -> InsertionResult:
-        if self.ready is not None:  # the lean search ran this pass already
+        if self.ready is not None:  # the lean search ran this pass already, as a first pass
             (planned, tracker.limited_steps), self.ready = self.ready, None
+            tracker.limits = MoveLimits.for_needle(planned.geometry, self.settings) if self.smooth else None
             return planned
         return self.run(self.scenario, tracker, prefix)
 
@@ -584,30 +619,32 @@ class _PlanPasses:
         log.info(message)
 
     def _record(self, number: int, planned: InsertionResult, tracker: ExitTracker, prefix: PassPrefix | None,
-                bite_aim: float) -> tuple[np.ndarray, float]:
+                bite_aim: float, offset: np.ndarray | None = None, rerun: bool = False) -> tuple[np.ndarray, float]:
         """The pass's record (its own work, before the prefix's is counted in), the first
         pass kept as the later passes' prefix, and (symmetric) the aim moved to its bites;
-        returns its exit error vector and its distance from the aim."""
+        returns its exit error vector and its distance from the aim. A `rerun` of a pass
+        with its `offset` (_brake_for_exit) is recorded only."""
         own_iterations = sum(step.newton_iterations for step in planned.steps)  # before take_over
         own_solves = sum(step.equilibrium_solves for step in planned.steps)
-        offset = self.offsets.offset
+        offset = self.offsets.offset if offset is None else offset
         if prefix is not None:
             prefix.take_over(planned)
-        elif not offset.any():  # the plan's first pass: later passes take over its early steps
+        elif not offset.any() and not rerun:  # the plan's first pass: later passes take over its early steps
             self.offsets.prefix = PassPrefix.of(planned, tracker.limited_steps, self.settings)
         if self.stream is not None:
             self.stream.end(exported_centers(planned))
         mismatch = final_mismatch(planned)
         error = planned.exit_error_vector_mm
-        if self.symmetric and planned.bites is not None:
+        if self.symmetric and planned.bites is not None and not rerun:
             self.aim = symmetric_aim(planned, bite_aim)
-        elif self.symmetric:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
+        elif self.symmetric and not rerun:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
             log.info("planning pass %d: the tip crossed no wound (no bites); the pass keeps its exit aim", number)
         miss = float(np.linalg.norm(error - self.aim))
         self.records.append({"pass": number, "offset_mm": offset.copy(), "exit_error_mm": planned.exit_error_mm,
                              "exit_error_vector_mm": error, "aim_mm": self.aim.copy(), "final_mismatch_mm": mismatch,
                              "limited_steps": tracker.limited_steps,
                              "first_aimed_step": prefix.first_aimed if prefix else 1,
+                             "braking_step": tracker.limits.last_step if tracker.limits else None,  # smooth
                              "newton_iterations": own_iterations, "equilibrium_solves": own_solves,
                              "solver": {key: planned.solver_counts[key] for key in SOLVER_COUNTS},
                              "wall_seconds": planned.wall_seconds})
@@ -627,17 +664,10 @@ def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:
     follow it would be told too late): the planner keeps them step by step, braking toward the
     step before the undeformed circle's exit (in the passes after the first, toward the first
     pass's last step in the tissue if earlier), so a tip that leaves two steps or more earlier
-    stops the centre at the exit row from a speed the braking had not yet taken off."""
-    moves, second = center_moves(exported_centers(result))
-    broken = []
-    slack = 1e-6  # mm: the limits hold to round-off, and the exported centres are rounded to 1e-9 mm
-    if len(moves) and moves.max() > limits.step_mm + slack:
-        k = int(np.argmax(moves))
-        broken.append(f"a move of {moves[k]:.3g} mm into row {k + 1} (limit {limits.step_mm:.3g} mm)")
-    if len(second) and second.max() > limits.second_difference_mm + slack:
-        k = int(np.argmax(second))
-        broken.append(f"a second difference of {second[k]:.3g} mm at row {k + 2} (limit "
-                      f"{limits.second_difference_mm:.3g} mm)")
+    stops the centre at the exit row from a speed the braking had not yet taken off, where the
+    best pass run again braking toward its exit (_PlanPasses._brake_for_exit) failed or broke
+    them too."""
+    broken = _broken_limits(exported_centers(result), limits)
     if not broken:
         return
     steps = len(result.steps)
@@ -648,6 +678,21 @@ def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:
                "center_second_difference_limit knowingly")
     result.events.append(Event(EventKind.PATH_LIMITS_EXCEEDED, message))
     log.info(message)
+
+
+def _broken_limits(centers: np.ndarray, limits: MoveLimits) -> list[str]:
+    """The move limits a centre path (n, 2) breaks, each as the largest breach and its row."""
+    moves, second = center_moves(centers)
+    broken = []
+    slack = 1e-6  # mm: the limits hold to round-off, and the exported centres are rounded to 1e-9 mm
+    if len(moves) and moves.max() > limits.step_mm + slack:
+        k = int(np.argmax(moves))
+        broken.append(f"a move of {moves[k]:.3g} mm into row {k + 1} (limit {limits.step_mm:.3g} mm)")
+    if len(second) and second.max() > limits.second_difference_mm + slack:
+        k = int(np.argmax(second))
+        broken.append(f"a second difference of {second[k]:.3g} mm at row {k + 2} (limit "
+                      f"{limits.second_difference_mm:.3g} mm)")
+    return broken
 
 
 def _streamed(on_step, stream, scenario: Scenario):
