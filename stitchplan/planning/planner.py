@@ -583,7 +583,7 @@ class _PlanPasses:
         do not allow. The rerun is the plan's when its path keeps them (the centre braking
         sooner, its exit a little further off); it is not one of the secant's passes."""
         best, limits = self.best, self.best_limits()
-        if len(best.steps) >= limits.last_step or not _broken_limits(exported_centers(best), limits):
+        if len(best.steps) > limits.last_step - 2 or not _broken_limits(exported_centers(best), limits):
             return
         offset, prefix, _ = self.best_pass
         tracker = ExitTracker(self.settings, offset, smooth=True, prefix=prefix, exit_steps=len(best.steps))
