@@ -96,7 +96,7 @@ def test_a_path_that_stops_short_of_its_braking_says_it_breaks_the_move_limits(m
     from stitchplan.planning import planner
     from stitchplan.planning.planner import MoveLimits, path_smoothness
 
-    monkeypatch.setattr(planner._PlanPasses, "_brake_for_exit", lambda passes, number, bite_aim: None)
+    monkeypatch.setattr(planner._PlanPasses, "_brake_for_exit", lambda passes, number: None)
     scenario = parse_scenario(block("neo-hookean", 3.0, 0.3, 1.5))
     plan = run_plan(scenario, compare=False)
     limits = MoveLimits.for_needle(plan.planned.geometry, scenario.planner)

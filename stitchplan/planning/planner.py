@@ -567,7 +567,7 @@ class _PlanPasses:
                          "them stands", self.target)
                 break
         if self.smooth:
-            self._brake_for_exit(self.records[-1]["pass"] + 1, bite_aim)
+            self._brake_for_exit(self.records[-1]["pass"] + 1)
         return self.best
 
     def best_limits(self) -> MoveLimits:
@@ -575,7 +575,7 @@ class _PlanPasses:
         circle's exit, without `smooth`)."""
         return self.best_pass[2] or MoveLimits.for_needle(self.best.geometry, self.settings)
 
-    def _brake_for_exit(self, number: int, bite_aim: float) -> None:
+    def _brake_for_exit(self, number: int) -> None:
         """The best pass run again with its offset, braking toward the step its tip left
         after, when that tip left two steps or more before the step the centre braked toward
         (a first pass, braking toward the undeformed circle's exit, or a later one leaving
@@ -593,7 +593,7 @@ class _PlanPasses:
             log.info("planning pass %d (the best pass braking toward step %d) failed: %s", number, len(best.steps),
                      failure)
             return
-        _, miss = self._record(number, braked, tracker, prefix, bite_aim, offset, rerun=True)
+        miss = self._add_record(number, braked, tracker, prefix, offset)
         if _broken_limits(exported_centers(braked), tracker.limits):
             return
         log.info("planning pass %d: the best pass braking toward step %d, where its tip left, keeps the move limits "
@@ -619,30 +619,34 @@ class _PlanPasses:
         log.info(message)
 
     def _record(self, number: int, planned: InsertionResult, tracker: ExitTracker, prefix: PassPrefix | None,
-                bite_aim: float, offset: np.ndarray | None = None, rerun: bool = False) -> tuple[np.ndarray, float]:
-        """The pass's record (its own work, before the prefix's is counted in), the first
-        pass kept as the later passes' prefix, and (symmetric) the aim moved to its bites;
-        returns its exit error vector and its distance from the aim. A `rerun` of a pass
-        with its `offset` (_brake_for_exit) is recorded only."""
+                bite_aim: float) -> tuple[np.ndarray, float]:
+        """A pass of the secant: the first kept as the later passes' prefix, (symmetric) the
+        aim moved to its bites, and its record (_add_record); returns its exit error vector
+        and its distance from the aim."""
+        offset = self.offsets.offset
+        if prefix is None and not offset.any():  # the plan's first pass: later passes take over its early steps
+            self.offsets.prefix = PassPrefix.of(planned, tracker.limited_steps, self.settings)
+        if self.symmetric and planned.bites is not None:
+            self.aim = symmetric_aim(planned, bite_aim)
+        elif self.symmetric:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
+            log.info("planning pass %d: the tip crossed no wound (no bites); the pass keeps its exit aim", number)
+        return planned.exit_error_vector_mm, self._add_record(number, planned, tracker, prefix, offset)
+
+    def _add_record(self, number: int, planned: InsertionResult, tracker: ExitTracker, prefix: PassPrefix | None,
+                    offset: np.ndarray) -> float:
+        """The pass's record in planner_passes (its own work, before the prefix's is counted
+        in), its final centres handed to `stream`; returns its distance from the aim."""
         own_iterations = sum(step.newton_iterations for step in planned.steps)  # before take_over
         own_solves = sum(step.equilibrium_solves for step in planned.steps)
-        offset = self.offsets.offset if offset is None else offset
         if prefix is not None:
             prefix.take_over(planned)
-        elif not offset.any() and not rerun:  # the plan's first pass: later passes take over its early steps
-            self.offsets.prefix = PassPrefix.of(planned, tracker.limited_steps, self.settings)
         if self.stream is not None:
             self.stream.end(exported_centers(planned))
-        mismatch = final_mismatch(planned)
         error = planned.exit_error_vector_mm
-        if self.symmetric and planned.bites is not None and not rerun:
-            self.aim = symmetric_aim(planned, bite_aim)
-        elif self.symmetric and not rerun:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
-            log.info("planning pass %d: the tip crossed no wound (no bites); the pass keeps its exit aim", number)
         miss = float(np.linalg.norm(error - self.aim))
         self.records.append({"pass": number, "offset_mm": offset.copy(), "exit_error_mm": planned.exit_error_mm,
-                             "exit_error_vector_mm": error, "aim_mm": self.aim.copy(), "final_mismatch_mm": mismatch,
-                             "limited_steps": tracker.limited_steps,
+                             "exit_error_vector_mm": error, "aim_mm": self.aim.copy(),
+                             "final_mismatch_mm": final_mismatch(planned), "limited_steps": tracker.limited_steps,
                              "first_aimed_step": prefix.first_aimed if prefix else 1,
                              "braking_step": tracker.limits.last_step if tracker.limits else None,  # smooth
                              "newton_iterations": own_iterations, "equilibrium_solves": own_solves,
@@ -650,7 +654,7 @@ class _PlanPasses:
                              "wall_seconds": planned.wall_seconds})
         log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
                  *offset, planned.exit_error_mm, miss)
-        return error, miss
+        return miss
 
 
 def add_timings(total: dict[str, float], more: dict[str, float]) -> None:
