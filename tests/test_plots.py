@@ -176,6 +176,16 @@ def test_insertion_plot_shares_one_colour_scale_and_zooms_on_the_exit(plan_resul
     assert x1 - x0 < 3 * run.exit_error_mm + 0.01  # sized to the error, so the error shows
 
 
+def test_insertion_plot_draws_steps_past_the_runs_end_once(plan_result, tmp_path):
+    """Steps the run did not reach draw its last step, one panel for all of them."""
+    run = plan_result.unplanned
+    last = len(run.steps)
+    fig = needle_plots.plot_insertion(tmp_path / "insertion.png", run, [2, last + 1, last + 2])
+    titles = [ax.get_title() for ax in data_axes(fig)[:-1]]  # the step panels, the zoom last
+    assert titles == [f"step 2 of {last}, needle rotated {run.steps[1].rotation:.2f} rad",
+                      f"step {last} of {last}, needle rotated {run.steps[-1].rotation:.2f} rad"]
+
+
 def test_plan_plot_marks_each_runs_error_at_its_own_desired_exit(plan_result, tmp_path):
     fig = needle_plots.plot_plan(tmp_path / "plan.png", plan_result)
     assert is_png(tmp_path / "plan.png")

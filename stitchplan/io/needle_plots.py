@@ -143,7 +143,8 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
     `estimate_mm`: the discretization error estimate of the exit point, for the title."""
     plt = pyplot()
     last = len(result.steps)
-    chosen = [min(max(int(s), 0), last) for s in (steps or [last])]
+    # steps past the run's end draw its last step, once (the command's note says so)
+    chosen = list(dict.fromkeys(min(max(int(s), 0), last) for s in (steps or [last])))
     n = len(chosen)
     fig = plt.figure(figsize=(4.4 * n + 5.0, 5.0))
     grid = fig.add_gridspec(1, n + 2, width_ratios=[1.0] * n + [0.12, 0.85], wspace=0.12)
@@ -286,7 +287,8 @@ def _draw_runs_over_tissue(fig, ax, runs) -> None:
         style = "-" if who == "planned" else "--"
         ax.plot(*_tip_path(run).T, style, color=colour, lw=2, label=f"{who} tip path")
         center, rotation = _state(run, len(run.steps))
-        ax.plot(*_needle_body(run.geometry, center, rotation).T, style, color=colour, lw=1, alpha=0.5)
+        ax.plot(*_needle_body(run.geometry, center, rotation).T, style, color=colour, lw=1, alpha=0.5,
+                label=f"{who} run: needle at its last step")
         ax.plot(*run.desired_exit_def, "x", color=colour, ms=10, mew=2.5, label=f"{who} run: desired exit (deformed)")
         ax.plot(*run.achieved_exit_def, marker, mfc="none", mec=colour, ms=10, mew=1.8,
                 label=f"{who} run: achieved exit")
