@@ -114,11 +114,24 @@ def test_simulate_options_reach_the_simulation(tmp_path, write_scenario):
     assert data["solver"]["linear_solver_backends"] == [data["solver"]["linear_solver_backend"]]
     assert data["tip_tracking"] == ["inverse-gradient"]
     assert data["discretization"]["spacing_mm"] == pytest.approx(8.0)
+    assert data["discretization"]["requested_spacing_mm"] == 8.0
     with h5py.File(run) as handle:
         saddle = handle["steps/condition_saddle"][:]
         preconditioned = handle["steps/condition_preconditioned"][:]
     assert np.all(np.isfinite(saddle)) and np.all(np.isfinite(preconditioned))
     assert np.all(preconditioned < saddle)  # the block preconditioner helps at every step
+
+
+def test_summary_gives_the_spacing_asked_for_beside_the_one_placed(tmp_path, write_scenario):
+    """A spacing that does not divide the tissue's size: the particles are fitted to it (a
+    whole number of spacings across), the summary keeps both."""
+    scenario = write_scenario(scene_raw(), "scene.yaml")
+    summary = tmp_path / "summary.json"
+    result = invoke(scenario, "--summary", summary, "--spacing", "7.7", "--no-estimate")
+    assert result.exit_code == 0, result.output
+    discretization = json.loads(summary.read_text())["discretization"]
+    assert discretization["requested_spacing_mm"] == 7.7
+    assert discretization["spacing_mm"] != pytest.approx(7.7) and abs(discretization["spacing_mm"] - 7.7) < 1.0
 
 
 @pytest.mark.parametrize("entry,fragment", [

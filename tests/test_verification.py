@@ -148,6 +148,9 @@ def test_plan_reports_verification_and_smoothness(planned_small):
     assert summary["max_center_step_mm"] <= 0.3 * 0.3 / 0.08 + 1e-12  # limits scale with the step
     assert summary["max_center_second_difference_mm"] <= 0.15 * 0.3 / 0.08 + 1e-12
     assert summary["discretization"]["spacing_mm"] > 0 and summary["discretization"]["particles"] > 0
+    # the spacing --spacing takes: the verification's is half the plan's
+    assert summary["verification_spacing_mm"] == 0.5 * summary["discretization"]["requested_spacing_mm"]
+    assert summary["verification"]["discretization"]["requested_spacing_mm"] == summary["verification_spacing_mm"]
 
 
 def test_verified_exit_error_is_a_replay_at_the_verification_spacing(planned_small, tmp_path):

@@ -55,6 +55,8 @@ def discretization_summary(model) -> dict:
     return {
         "particles": outline.n_particles,
         "spacing_mm": outline.coarsest_spacing,  # the coarsest, for graded particles
+        # the scenario's spacing (or --spacing's), before the particles are fitted to the tissue
+        "requested_spacing_mm": d.spacing,
         "needle_spacing_mm": outline.needle_spacing if d.needle_spacing is not None else None,
         "needle_zone_radii": d.needle_zone if d.needle_spacing is not None else None,
         "needle_grading": d.needle_grading if d.needle_spacing is not None else None,
