@@ -220,7 +220,7 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
     paths = plotted_paths(result)
     plans = "the plan (robust = nominal)" if result.robust_is_nominal else "the plans"
     for ax, shown, title in ((axes[0], paths, f"unplanned and {plans} (x, y scaled separately)"),
-                             (axes[1], paths[1:], f"{plans}, enlarged")):
+                             (axes[1], paths[1:], f"{plans}, enlarged (x, y scaled separately)")):
         for label, name in shown:
             errors = result.errors(label)
             marker = "s" if label == result.exported else "o"
