@@ -310,6 +310,16 @@ def test_bad_plan_options(tmp_path, options, fragments):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
 
 
+@pytest.mark.parametrize("command,argument", [("deform", "SCENARIO"), ("simulate", "SCENARIO"),
+                                              ("plan", "SCENARIO"), ("calibrate", "CALIBRATION_PATH")])
+def test_an_empty_input_path_is_named_not_read_as_the_working_folder(tmp_path, monkeypatch, command, argument):
+    monkeypatch.chdir(tmp_path)
+    arguments = ["material", "", "--out", "fitted.yaml"] if command == "calibrate" else ["", "--summary", "s.json"]
+    line = one_error_line(invoke(command, *arguments))
+    assert line == f"error: {argument}: got an empty path, expected a file name"
+    assert list(tmp_path.iterdir()) == []
+
+
 def _without_needle() -> dict:
     raw = scene_raw()
     del raw["needle"]

@@ -11,12 +11,13 @@ from ..allocator import resume_collection
 from .group import calibrate_app
 from .options import (DilationOption, MaxParticlesOption, NoResourceCheckOption, QuietOption, SpacingOption,
                       VerboseOption, check_command_outputs, command_line_argv, guard_calibration, guard_limits,
-                      option_names, setup_logging)
+                      named_file, option_names, setup_logging)
 
 
 @calibrate_app.command("material")
 def calibrate_material(
-    calibration_path: Path = typer.Argument(..., help="Calibration YAML: tissue, experiments "
+    calibration_path: Path = typer.Argument(..., callback=named_file,
+                                            help="Calibration YAML: tissue, experiments "
                                             "(loads + markers CSV x,y,x_def,y_def), fit ranges."),
     out: Path = typer.Option(..., "--out",
                              help="Fitted YAML: `material:` block, fit quality, diagnostics."),

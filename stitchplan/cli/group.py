@@ -187,7 +187,10 @@ def usage_message(error, click_errors) -> str:
     param = getattr(error, "param", None)
     if (isinstance(error, click_errors.BadParameter) and param is not None
             and not isinstance(error, click_errors.MissingParameter)):
-        name = "/".join(param.opts) if getattr(param, "opts", None) else param.human_readable_name
+        if getattr(param, "param_type_name", "") == "argument":  # as --help shows it: SCENARIO
+            name = param.metavar or param.name.upper()
+        else:
+            name = "/".join(param.opts) if getattr(param, "opts", None) else param.human_readable_name
         return f"{name}: {_bad_value(error)}"
     message = error.format_message().strip().rstrip(".")
     message = message[:1].lower() + message[1:]

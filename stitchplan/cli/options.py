@@ -41,7 +41,16 @@ def _dilation_above_one(value: Optional[float]) -> Optional[float]:
     return value
 
 
-ScenarioArgument = typer.Argument(..., metavar="SCENARIO",
+def named_file(value: Optional[Path]) -> Optional[Path]:
+    """An input file's argument: an empty one given as '' becomes Path('.'), the working
+    folder, which would be reported as a folder that cannot be read."""
+    argv = command_line_argv() or []
+    if value is not None and str(value) == "." and "" in argv and "." not in argv:
+        raise typer.BadParameter("got an empty path, expected a file name")
+    return value
+
+
+ScenarioArgument = typer.Argument(..., metavar="SCENARIO", callback=named_file,
                                   help="Scenario YAML file (see README: Scenario format).")
 SpacingOption = typer.Option(None, "--spacing", callback=_positive_spacing,
                              help="Particle spacing in mm (overrides the scenario).")
