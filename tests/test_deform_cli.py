@@ -213,6 +213,8 @@ BAD_INPUTS = [
      ["tissue.material.lame_mu", "-0.2", "positive"]),
     ("zero spacing option", lambda r: r, ["--spacing", "0"], ["--spacing", "0.0", "positive number"]),
     ("small dilation option", lambda r: r, ["--dilation", "0.5"], ["--dilation", "0.5", "> 1"]),
+    ("probes to write but none", lambda r: with_changes(r, probes=[]), [],
+     ["--probes-out", "probes.csv", "expected probes to write", "has no `probes`"]),
 ]
 
 # the same, for a numerical method failing on an accepted input: exit code 1
