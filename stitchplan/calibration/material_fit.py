@@ -174,8 +174,10 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
         raise InputError(
             (f"{source}: " if source else "")
             + f"fit: could not evaluate any moduli in lame_lambda {list(fit.lame_lambda)}, lame_mu "
-            f"{list(fit.lame_mu)} MPa: the forward model failed at every grid point tried ({tried} of "
-            f"{cost.size}" + (", the others softer still" if tried < cost.size else "") + "), "
+            f"{list(fit.lame_mu)} MPa: the forward model failed at "
+            + (f"all {cost.size} grid points, " if tried == cost.size else
+               f"the {tried} stiffest grid point{'s' if tried > 1 else ''} tried, the {cost.size - tried} "
+               f"others softer still (not tried), ")
             + "; ".join(f"in {label}: {cause}" for label, cause in failed_experiments.items())
             + "; expected ranges where the tissue can carry the loads (raise the lower bounds or reduce the loads)")
     i, j = np.unravel_index(np.nanargmin(cost), cost.shape)
