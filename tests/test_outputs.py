@@ -87,6 +87,17 @@ def existing_outputs(folder: Path, *names: str) -> dict[str, bytes]:
 # --- the transaction itself --------------------------------------------------------------
 
 
+@pytest.mark.parametrize("name", ["/dev/stdout", "/dev/stderr", "/dev/fd/1", "/proc/self/fd/1"])
+def test_a_process_stream_is_refused_as_an_output(tmp_path, name):
+    """Redirected to a file, /dev/stdout resolves to that file, which the output's rename
+    would replace (losing the command's own lines); to a pipe, to nothing writable."""
+    if not os.path.exists(name):
+        pytest.skip(f"no {name} here")
+    with pytest.raises(InputError) as caught:
+        OutputSet({"--summary": name}).check()
+    assert caught.value.lines == [f"--summary: got {name}, a process's stream; expected a file name"]
+
+
 def test_check_lists_every_problem_and_creates_nothing(tmp_path):
     blocker = tmp_path / "blocker"
     blocker.write_text("a file, not a folder")

@@ -97,7 +97,7 @@ def check_command_outputs(outputs: dict[str, Optional[Path]],
     for option, path in outputs.items():
         given = _given_value(option)
         if path is not None and given == "":  # Path("") is ".", the working folder
-            raise InputError(f"{option}: got an empty path; expected a file name")
+            raise InputError(f"{option}: got an empty path, expected a file name")
         if path is not None and given is not None and given.endswith(("/", os.sep)):
             raise InputError(f"{option}: got {given}, a folder name (it ends in /); expected a file name")
     check_outputs(outputs, inputs)

@@ -31,6 +31,7 @@ import io
 import json
 import math
 import os
+import re
 import shutil
 import stat
 import tempfile
@@ -201,9 +202,16 @@ def _path_problem(label: str, path: Path, error: OSError) -> str:
     return f"{label}: cannot write {path}: {reason}"
 
 
+# names of a process's own streams: whatever they stand for (a redirected file, a pipe), an
+# output is written whole beside its target and renamed onto it, which a stream cannot take
+_STREAM_NAMES = re.compile(r"/dev/(stdin|stdout|stderr)$|/dev/fd/|/proc/[^/]+/fd/")
+
+
 def _file_problem(label: str, path: Path) -> str | None:
     """What about the target itself stops `path` from being written, or None."""
     target = _target(path)
+    if any(_STREAM_NAMES.match(str(name)) for name in (Path(os.path.abspath(path)), target)):
+        return f"{label}: got {path}, a process's stream; expected a file name"
     if target.is_dir():
         return f"{label}: got {path}, a folder; expected a file name"
     if target.exists() or target.is_symlink():
