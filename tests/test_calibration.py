@@ -318,6 +318,13 @@ def test_needle_refuses_non_positive_radius(tmp_path, radius, fragment):
     assert_refused(result, out, "--radius", fragment, "positive number (mm)")
 
 
+def test_needle_refuses_an_output_named_for_another_format(tmp_path):
+    air, tissue = write_recordings(tmp_path)
+    out = tmp_path / "needle.json"  # the fitted block is YAML, to paste into a scenario
+    result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", RADIUS, "--out", out)
+    assert_refused(result, out, "--out", "a JSON file name; expected a YAML file name (.yaml, .yml)")
+
+
 def test_needle_refuses_missing_file(tmp_path):
     _, tissue = write_recordings(tmp_path)
     out = tmp_path / "needle.yaml"

@@ -299,8 +299,11 @@ def test_strict_planning_fails_with_one_line_naming_the_step(tmp_path, how):
     (["--angular-speed", "0"], ["--angular-speed", "got 0.0", "expected a positive speed"]),
     (["--angular-speed", "inf"], ["--angular-speed", "got inf", "expected a positive speed"]),
     (["--out", ""], ["--out", "got an empty path", "expected a file name"]),  # not "." as a folder
+    (["--out", "run.json"], ["--out: got run.json, a JSON file name; expected an HDF5 file name (.h5, .hdf5)"]),
+    (["--out", "run.yaml"], ["--out: got run.yaml, a YAML file name; expected an HDF5 file name"]),
 ])
-def test_bad_plan_options(tmp_path, options, fragments):
+def test_bad_plan_options(tmp_path, monkeypatch, options, fragments):
+    monkeypatch.chdir(tmp_path)  # an output named alone would land here, where the check looks
     scenario = write(tmp_path, scene_raw())
     result = invoke("plan", scenario, "--export", tmp_path / "trajectory.csv", "--summary",
                     tmp_path / "summary.json", *options)

@@ -38,12 +38,13 @@ def calibrate_material(
 
     resume_collection()
     outputs = material_outputs(out, plot_dir)
-    check_command_outputs(outputs, {"CALIBRATION": calibration_path})
+    check_command_outputs(outputs, {"CALIBRATION": calibration_path})  # --out's format once the markers are known
     problem = calibration.load_material_calibration(calibration_path, spacing, dilation)
     guard_calibration(calibration_path, problem, guard_limits(max_particles, no_resource_check),
                       names=option_names(spacing, dilation))
     check_command_outputs(outputs, {f"markers of experiments[{k}]": experiment.source
-                                    for k, experiment in enumerate(problem.experiments)})
+                                    for k, experiment in enumerate(problem.experiments)},
+                          out_format="YAML")
     result = calibration.fit_material(problem, progress=progress_bar)
     write_material_outputs(result, out, plot_dir, command=command_line_argv())
     typer.echo(material_summary_line(result))
@@ -64,7 +65,8 @@ def calibrate_needle(
 ) -> None:
     """Fit needle friction (N/mm) and cutting force (N) to force recordings in air and tissue."""
     setup_logging(verbose, quiet)
-    check_command_outputs({"--out": out, "--plot": plot}, {"--air": air, "--tissue": tissue})
+    check_command_outputs({"--out": out, "--plot": plot}, {"--air": air, "--tissue": tissue},
+                          out_format="YAML")
     _check_two_recordings(air, tissue)
     from .. import calibration
     from ..io.calibration_reports import needle_summary_line, write_needle_outputs

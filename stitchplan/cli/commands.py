@@ -47,7 +47,7 @@ def deform(
     setup_logging(verbose, quiet)
     check_plot_scale_option(plot_scale, plot)
     check_command_outputs({"--probes-out": probes_out, "--reactions-out": reactions_out, "--summary": summary,
-                           "--out": out, "--plot": plot}, {"SCENARIO": scenario_path})
+                           "--out": out, "--plot": plot}, {"SCENARIO": scenario_path}, out_format="HDF5")
     scenario = load_with_options(scenario_path, spacing, dilation)
     from ..config.scenario import require_loads
 
@@ -104,7 +104,7 @@ def simulate(
     """
     setup_logging(verbose, quiet)
     check_command_outputs({"--out": out, "--summary": summary, "--plot": plot},
-                   {"SCENARIO": scenario_path, "--center-path": center_path})
+                          {"SCENARIO": scenario_path, "--center-path": center_path}, out_format="HDF5")
     steps_to_plot = _steps_to_plot(plot_steps, plot)
     scenario = load_with_options(scenario_path, spacing, dilation)
     accuracy = scenario.discretization.accuracy  # asked for; resolve_accuracy clears it
@@ -191,7 +191,7 @@ def plan(
     executor = command_executor(workers, scheduler)
     check_command_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                            "--uncertainty-plot": uncertainty_plot},
-                   {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path})
+                          {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path}, out_format="HDF5")
     options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
     check_angular_speed(angular_speed)
     transform = parse_base_transform(base_transform)

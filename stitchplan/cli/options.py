@@ -82,11 +82,14 @@ def load_with_options(scenario_path: Path, spacing: Optional[float], dilation: O
 
 
 def check_command_outputs(outputs: dict[str, Optional[Path]],
-                          inputs: Optional[dict[str, Optional[Path]]] = None) -> None:
+                          inputs: Optional[dict[str, Optional[Path]]] = None,
+                          out_format: Optional[str] = None) -> None:
     """Fail before any work if an output cannot be written or is the same file as another
     output or an input: `{option: path}` each (None: not given). A figure option's file
     must be named .png: the figures are PNG, and other bytes under .pdf or .svg would
-    mislead whatever opens them."""
+    mislead whatever opens them. A file named for another of the formats written (a run
+    log `--out run.json`, a `--summary s.h5`: two outputs swapped) is refused; a name of no
+    such format is the user's choice. `out_format`: what `--out` writes (HDF5, YAML)."""
     from ..errors import InputError
     from ..io.files import check_outputs
 
@@ -100,7 +103,23 @@ def check_command_outputs(outputs: dict[str, Optional[Path]],
             raise InputError(f"{option}: got an empty path, expected a file name")
         if path is not None and given is not None and given.endswith(("/", os.sep)):
             raise InputError(f"{option}: got {given}, a folder name (it ends in /); expected a file name")
-    check_outputs(outputs, inputs)
+    check_outputs(outputs, inputs)  # first: an output that would overwrite an input says so
+    _check_output_formats(outputs, {**OUTPUT_FORMATS, "--out": out_format})
+
+
+def _check_output_formats(outputs: dict[str, Optional[Path]], formats: dict[str, Optional[str]]) -> None:
+    """No output named for another format than it writes (`formats`: option -> format, None
+    for not checked)."""
+    from ..errors import InputError
+
+    for option, path in outputs.items():
+        written = formats.get(option)
+        named = next((name for name, suffixes in FORMAT_SUFFIXES.items()
+                      if path is not None and path.suffix.lower() in suffixes), None)
+        if written is not None and named is not None and named != written:
+            article = "an" if written[0] in "AEFHILMNORSX" else "a"  # as the letter is spoken
+            raise InputError(f"{option}: got {path}, a {named} file name; expected {article} {written} file name "
+                             f"({', '.join(FORMAT_SUFFIXES[written])})")
 
 
 def _given_value(option: str) -> Optional[str]:
@@ -116,6 +135,9 @@ def _given_value(option: str) -> Optional[str]:
 
 
 PNG_OPTIONS = ("--plot", "--uncertainty-plot")
+FORMAT_SUFFIXES = {"HDF5": (".h5", ".hdf5"), "JSON": (".json",), "CSV": (".csv",), "YAML": (".yaml", ".yml"),
+                   "PNG": (".png",)}
+OUTPUT_FORMATS = {"--summary": "JSON", "--export": "CSV", "--probes-out": "CSV", "--reactions-out": "CSV"}
 
 
 def run_provenance(scenario_path: Optional[Path] = None, scenario=None) -> dict:

@@ -47,7 +47,8 @@ def run_plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: 
     uncertainty = load_uncertainty(uncertainty_path)
     check_command_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                            "--uncertainty-plot": uncertainty_plot},
-                   {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration})
+                          {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration},
+                          out_format="HDF5")
     check_inputs(uncertainty, scenario, scenario_path)
     tasks = planned_tasks(uncertainty)
     guard_plan_under_uncertainty(scenario_path, limits, names, scenario, verify, tasks, executor.workers,
