@@ -9,12 +9,12 @@ import typer
 
 from ..allocator import resume_collection
 from .group import calibrate_app
-from .options import (DilationOption, MaxParticlesOption, NoResourceCheckOption, QuietOption, SpacingOption,
-                      VerboseOption, check_command_outputs, command_line_argv, guard_calibration, guard_limits,
-                      named_file, option_names, setup_logging)
+from .options import (CalibrationDilationOption, CalibrationSpacingOption, MaxParticlesOption,
+                      NoResourceCheckOption, QuietOption, VerboseOption, check_command_outputs, command_line_argv,
+                      guard_calibration, guard_limits, named_file, option_names, setup_logging)
 
 
-@calibrate_app.command("material")
+@calibrate_app.command("material", short_help="Fit lame_lambda and lame_mu to marker displacements.")
 def calibrate_material(
     calibration_path: Path = typer.Argument(..., callback=named_file,
                                             help="Calibration YAML: tissue, experiments "
@@ -23,8 +23,8 @@ def calibrate_material(
                              help="Fitted YAML: `material:` block, fit quality, diagnostics."),
     plot_dir: Optional[Path] = typer.Option(
         None, "--plot-dir", help="Folder for cost_surface.png and marker_residuals.png."),
-    spacing: Optional[float] = SpacingOption,
-    dilation: Optional[float] = DilationOption,
+    spacing: Optional[float] = CalibrationSpacingOption,
+    dilation: Optional[float] = CalibrationDilationOption,
     max_particles: Optional[int] = MaxParticlesOption,
     no_resource_check: bool = NoResourceCheckOption,
     verbose: int = VerboseOption,
@@ -50,7 +50,7 @@ def calibrate_material(
     typer.echo(material_summary_line(result))
 
 
-@calibrate_app.command("needle")
+@calibrate_app.command("needle", short_help="Fit friction and cutting force to force recordings.")
 def calibrate_needle(
     air: Path = typer.Option(..., "--air", help="CSV angle_rad,force_N: needle rotated in air."),
     tissue: Path = typer.Option(..., "--tissue", help="CSV angle_rad,force_N: needle rotated into "

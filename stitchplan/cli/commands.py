@@ -17,7 +17,7 @@ from .group import app
 from .guards import guard_plan, guard_simulate, guard_study
 from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOption, ScenarioArgument,
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
-                      MaxParticlesOption, NoResourceCheckOption, SchedulerOption, WorkersOption,
+                      MaxParticlesOption, NoResourceCheckOption, SchedulerOption, SchemaVerboseOption, WorkersOption,
                       check_angular_speed, check_command_outputs, check_plot_scale_option, check_plot_steps,
                       checked_needle_geometry, choice_value, command_executor, echo_events, echo_notes, guard_limits,
                       guard_runs, load_with_options, naming_files, option_names, parse_base_transform, parse_steps,
@@ -25,7 +25,7 @@ from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOpt
 from .plan_under_uncertainty import check_uncertainty_options, run_plan_under_uncertainty
 
 
-@app.command()
+@app.command(short_help="Static solve of the slab under the scenario's loads.")
 def deform(
     scenario_path: Path = ScenarioArgument,
     probes_out: Optional[Path] = typer.Option(None, "--probes-out", help="CSV x,y,ux,uy per probe."),
@@ -75,7 +75,7 @@ def deform(
     typer.echo(reports.deform_line(result))
 
 
-@app.command()
+@app.command(short_help="Needle insertion with the needle centre held fixed.")
 def simulate(
     scenario_path: Path = ScenarioArgument,
     out: Optional[Path] = typer.Option(None, "--out", help="HDF5 run log."),
@@ -142,7 +142,7 @@ def _steps_to_plot(plot_steps: Optional[str], plot: Optional[Path]) -> Optional[
     return parse_steps(plot_steps)
 
 
-@app.command()
+@app.command(short_help="Plan and export the needle-centre trajectory.")
 def plan(
     scenario_path: Path = ScenarioArgument,
     export: Path = typer.Option(..., "--export", help="Trajectory CSV for the manipulator."),
@@ -242,7 +242,7 @@ def _guard_and_hand_replay_model(scenario_path: Path, scenario, guard, verify: b
             early_helper.hand(replay_scenario(scenario, verify), replay_options(options))
 
 
-@app.command()
+@app.command(short_help="Speed against accuracy over discretizations and methods.")
 def study(
     scenario_path: Path = ScenarioArgument,
     out: Path = typer.Option(..., "--out", help="Folder for study.csv, study.json and speed_accuracy.png."),
@@ -294,8 +294,8 @@ def _check_study_folder(out: Path) -> None:
         raise InputError(f"--out: {out} is a file, expected a folder")
 
 
-@app.command()
-def schema(verbose: int = VerboseOption, quiet: bool = QuietOption) -> None:
+@app.command(short_help="Print the JSON Schema of scenario files.")
+def schema(verbose: int = SchemaVerboseOption, quiet: bool = QuietOption) -> None:
     """Print the JSON Schema of scenario files, for editors and validators.
 
     For example: stitchplan schema > scenario.schema.json

@@ -56,11 +56,17 @@ SpacingOption = typer.Option(None, "--spacing", callback=_positive_spacing,
                              help="Particle spacing in mm (overrides the scenario).")
 DilationOption = typer.Option(None, "--dilation", callback=_dilation_above_one,
                               help="Kernel support / spacing (overrides the scenario).")
+CalibrationSpacingOption = typer.Option(None, "--spacing", callback=_positive_spacing,
+                                        help="Particle spacing in mm (overrides the calibration file).")
+CalibrationDilationOption = typer.Option(None, "--dilation", callback=_dilation_above_one,
+                                         help="Kernel support / spacing (overrides the calibration file).")
 SummaryOption = typer.Option(None, "--summary", help="Write a JSON summary here.")
 VerboseOption = typer.Option(
     0, "--verbose", "-v", count=True, show_default=False, metavar="",
-    help="Log progress on stderr: load steps with their Newton iterations, needle steps; "
-    "-vv also every Newton iteration.")
+    help="Log progress on stderr (load steps and needle steps with their Newton iterations, the "
+    "fit's evaluations); -vv also every Newton iteration.")
+SchemaVerboseOption = typer.Option(0, "--verbose", "-v", count=True, show_default=False, metavar="",
+                                   help="Accepted as by the other commands; the schema has no progress to log.")
 QuietOption = typer.Option(False, "--quiet", "-q",
                            help="Errors only: no warnings, notes or progress bar.")
 
@@ -253,7 +259,7 @@ MaxParticlesOption = typer.Option(
     help="Refuse models of more than N particles (default 50000; see README: resource guard).")
 NoResourceCheckOption = typer.Option(
     False, "--no-resource-check",
-    help="Run even when the estimated particles, needle steps, kernel neighbours or memory pass "
+    help="Run even when the estimated particles, needle steps, kernel neighbours or memory exceed "
     "the resource guard's limits.")
 
 
@@ -382,12 +388,13 @@ def check_plot_scale_option(scale: float, plot: Optional[Path]) -> None:
 
 WorkersOption = typer.Option(  # checked with --scheduler by stitchplan.parallel.workers.check_workers
     None, "--workers", metavar="N",
-    help="Run the independent runs on a local Dask cluster of N single-threaded worker processes "
-    "(default: the CPU cores this process may use; at most 4 times as many; 0: one after another in "
-    "this process).")
+    help="Run the independent runs (study's, or plan's with --uncertainty) on a local Dask cluster of N "
+    "single-threaded worker processes (default: the CPU cores this process may use; at most 4 times as "
+    "many; 0: one after another in this process).")
 SchedulerOption = typer.Option(
     None, "--scheduler", metavar="ADDRESS",
-    help="Run the independent runs on the running Dask cluster at ADDRESS (tcp://HOST:PORT, or tls://, "
+    help="Run the independent runs (study's, or plan's with --uncertainty) on the running Dask cluster "
+    "at ADDRESS (tcp://HOST:PORT, or tls://, "
     "ws://, wss://) instead of a local one; a scheduler that does not answer within 5 s is an error.")
 
 
