@@ -502,7 +502,7 @@ def test_ramp_refuses_an_unstable_state_and_takes_a_smaller_increment():
     np.testing.assert_allclose(insertion.particle_displacements(), direct.particle_displacements(), rtol=0, atol=1e-8)
 
 
-def test_saint_venant_kirchhoff_too_soft_for_the_cutting_force_stops_naming_step_and_cure():
+def test_saint_venant_kirchhoff_too_soft_for_the_cutting_force_stops_naming_step_and_cure(caplog):
     """The small scene at an effective thickness of 1.5 mm (0.7 N / 1.5 mm on the phantom):
     SVK's stress in compression peaks and turns back, so the tissue in front of the tip has no
     equilibrium beyond ~90 % of the first step's load. The ramp carries what it can, then
@@ -510,9 +510,12 @@ def test_saint_venant_kirchhoff_too_soft_for_the_cutting_force_stops_naming_step
     least stiffness on the needle's constraints falling (at the entry and tip), SVK's
     compression instability and `model: neo-hookean`; neo-Hookean runs the same scene."""
     soft = {"thickness": 1.5}
-    with pytest.raises(InsertionFailure) as failure:
+    with pytest.raises(InsertionFailure) as failure, caplog.at_level("INFO", logger="stitchplan.needle"):
         run_insertion(small_scene(material={"model": "saint-venant-kirchhoff", **PHANTOM}, **soft))
     message = str(failure.value)
+    # the last cut the log announces is the increment the error says failed
+    announced = [r.getMessage() for r in caplog.records if "the ramp goes on" in r.getMessage()]
+    assert announced and announced[-1].endswith(f"in increments of {100 * RAMP_SMALLEST:.3g} %")
     assert message.startswith("step 1 (needle rotation 0.200 rad): the needle's load could not be carried: ")
     carried = float(message.split("carried: ")[1].split(" %")[0])
     assert 50.0 <= carried < 100.0

@@ -267,11 +267,11 @@ class NeedleInsertion:
                 self.restore(carried)
                 self.saddle.forget()  # the factor of a failed iterate is no start for the next
                 increment *= 0.5
-                log.info("step %d (needle rotation %.3f rad): Newton failed at %.0f %% of the step's load; "
+                if increment < RAMP_SMALLEST:  # the error says where it stopped, no "goes on" before it
+                    raise InsertionFailure(self._ramp_failure(rotation, step, start, failure, step_start)) from None
+                log.info("step %d (needle rotation %.3f rad): Newton failed at %.3g %% of the step's load; "
                          "the ramp goes on in increments of %.3g %%", step, rotation,
                          100 * min(1.0, start + 2 * increment), 100 * increment)
-                if increment < RAMP_SMALLEST:
-                    raise InsertionFailure(self._ramp_failure(rotation, step, start, failure, step_start)) from None
                 self.ramp_increments += 1
                 continue
             newton, minres = newton + its, minres + minres_its
