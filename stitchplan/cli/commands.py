@@ -52,13 +52,13 @@ def deform(
     from ..config.scenario import require_loads
 
     require_loads(scenario, scenario_path)
+    guard_runs(scenario_path, guard_limits(max_particles, no_resource_check), ("deform", scenario, "deform", 1),
+               names=option_names(spacing, dilation))
     if probes_out is not None and not scenario.probes:  # else a CSV of its header alone
         from ..errors import InputError
 
         raise InputError(f"--probes-out: got {probes_out}, expected probes to write: {scenario_path} "
                          f"has no `probes` (reference points, mm)")
-    guard_runs(scenario_path, guard_limits(max_particles, no_resource_check), ("deform", scenario, "deform", 1),
-               names=option_names(spacing, dilation))
     provenance = run_provenance(scenario_path, scenario)
     from ..io import reports
     from ..io.progress import progress_bar
