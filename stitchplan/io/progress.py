@@ -29,7 +29,7 @@ def stderr_console():
 def configure_terminal(verbose: int = 0, quiet: bool = False) -> None:
     """Route the `stitchplan` loggers to stderr at the level the options ask for: through
     rich on a terminal, as plain `LEVEL logger: message` lines otherwise (one line a record,
-    for log files). A second call replaces the first (tests run many commands in a process)."""
+    for log files; a warning as `warning: message`). A second call replaces the first (tests run many commands in a process)."""
     level = logging.ERROR if quiet else {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
     if quiet:  # errors only: matplotlib's notes (its cache folder, a glyph a font lacks) too
         logging.getLogger("matplotlib").setLevel(logging.ERROR)
@@ -44,11 +44,21 @@ def configure_terminal(verbose: int = 0, quiet: bool = False) -> None:
                               log_time_format="[%X]")
     else:
         handler = _StderrHandler()
-        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        handler.setFormatter(_PlainFormatter("%(levelname)s %(name)s: %(message)s"))
     handler.stitchplan_terminal = True
     logger.addHandler(handler)
     logger.setLevel(level)
     _settings["bars"] = not quiet
+
+
+class _PlainFormatter(logging.Formatter):
+    """A warning as the command's own `error:` and `note:` lines (`warning: ...`, what a user
+    sees without -v); progress and iterations (-v, -vv) keep their level and logger."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        if record.levelno >= logging.WARNING:
+            return f"{record.levelname.lower()}: {record.getMessage()}"
+        return super().format(record)
 
 
 class _StderrHandler(logging.StreamHandler):
