@@ -54,11 +54,6 @@ def deform(
     require_loads(scenario, scenario_path)
     guard_runs(scenario_path, guard_limits(max_particles, no_resource_check), ("deform", scenario, "deform", 1),
                names=option_names(spacing, dilation))
-    if probes_out is not None and not scenario.probes:  # else a CSV of its header alone
-        from ..errors import InputError
-
-        raise InputError(f"--probes-out: got {probes_out}, expected probes to write: {scenario_path} "
-                         f"has no `probes` (reference points, mm)")
     provenance = run_provenance(scenario_path, scenario)
     from ..io import reports
     from ..io.progress import progress_bar
@@ -73,6 +68,9 @@ def deform(
                                  summary=summary, out=out, plot=plot, provenance=provenance,
                                  plot_scale=plot_scale)
     typer.echo(reports.deform_line(result))
+    if probes_out is not None and not scenario.probes:
+        echo_notes([f"--probes-out: {scenario_path} has no `probes` (reference points, mm); {probes_out} holds "
+                    "the header alone"], quiet)
 
 
 @app.command(short_help="Needle insertion with the needle centre held fixed.")
