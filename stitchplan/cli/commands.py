@@ -189,7 +189,8 @@ def plan(
     executor = command_executor(workers, scheduler)
     check_command_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                            "--uncertainty-plot": uncertainty_plot},
-                          {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path}, out_format="HDF5")
+                          {"SCENARIO": scenario_path, "--uncertainty": uncertainty_path},
+                          out_format="HDF5" if uncertainty_path is None else None)  # else with from_calibration
     options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
     check_angular_speed(angular_speed)
     transform = parse_base_transform(base_transform)

@@ -95,7 +95,8 @@ def check_command_outputs(outputs: dict[str, Optional[Path]],
     must be named .png: the figures are PNG, and other bytes under .pdf or .svg would
     mislead whatever opens them. A file named for another of the formats written (a run
     log `--out run.json`, a `--summary s.h5`: two outputs swapped) is refused; a name of no
-    such format is the user's choice. `out_format`: what `--out` writes (HDF5, YAML)."""
+    such format is the user's choice. `out_format`: what `--out` writes (HDF5, YAML); None: no
+    format checked here, where a later call knows more inputs (an output over an input says more)."""
     from ..errors import InputError
     from ..io.files import check_outputs
 
@@ -110,12 +111,12 @@ def check_command_outputs(outputs: dict[str, Optional[Path]],
         if path is not None and given is not None and given.endswith(("/", os.sep)):
             raise InputError(f"{option}: got {given}, a folder name (it ends in /); expected a file name")
     check_outputs(outputs, inputs)  # first: an output that would overwrite an input says so
-    _check_output_formats(outputs, {**OUTPUT_FORMATS, "--out": out_format})
+    if out_format is not None:
+        _check_output_formats(outputs, {**OUTPUT_FORMATS, "--out": out_format})
 
 
-def _check_output_formats(outputs: dict[str, Optional[Path]], formats: dict[str, Optional[str]]) -> None:
-    """No output named for another format than it writes (`formats`: option -> format, None
-    for not checked)."""
+def _check_output_formats(outputs: dict[str, Optional[Path]], formats: dict[str, str]) -> None:
+    """No output named for another format than it writes (`formats`: option -> format)."""
     from ..errors import InputError
 
     for option, path in outputs.items():
