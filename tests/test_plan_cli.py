@@ -301,6 +301,7 @@ def test_strict_planning_fails_with_one_line_naming_the_step(tmp_path, how):
     (["--out", ""], ["--out", "got an empty path", "expected a file name"]),  # not "." as a folder
     (["--out", "run.json"], ["--out: got run.json, a JSON file name; expected an HDF5 file name (.h5, .hdf5)"]),
     (["--out", "run.yaml"], ["--out: got run.yaml, a YAML file name; expected an HDF5 file name"]),
+    (["--out", "run.h5", "--summary", "s.h5"], ["--summary: got s.h5, an HDF5 file name; expected a JSON file name"]),
 ])
 def test_bad_plan_options(tmp_path, monkeypatch, options, fragments):
     monkeypatch.chdir(tmp_path)  # an output named alone would land here, where the check looks

@@ -124,9 +124,13 @@ def _check_output_formats(outputs: dict[str, Optional[Path]], formats: dict[str,
         named = next((name for name, suffixes in FORMAT_SUFFIXES.items()
                       if path is not None and path.suffix.lower() in suffixes), None)
         if written is not None and named is not None and named != written:
-            article = "an" if written[0] in "AEFHILMNORSX" else "a"  # as the letter is spoken
-            raise InputError(f"{option}: got {path}, a {named} file name; expected {article} {written} file name "
+            raise InputError(f"{option}: got {path}, {_a(named)} file name; expected {_a(written)} file name "
                              f"({', '.join(FORMAT_SUFFIXES[written])})")
+
+
+def _a(acronym: str) -> str:
+    """'an HDF5', 'a JSON': the article as the first letter is spoken."""
+    return f"{'an' if acronym[0] in 'AEFHILMNORSX' else 'a'} {acronym}"
 
 
 def _given_value(option: str) -> Optional[str]:
