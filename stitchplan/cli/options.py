@@ -124,11 +124,11 @@ def _check_output_formats(outputs: dict[str, Optional[Path]], formats: dict[str,
         named = next((name for name, suffixes in FORMAT_SUFFIXES.items()
                       if path is not None and path.suffix.lower() in suffixes), None)
         if written is not None and named is not None and named != written:
-            raise InputError(f"{option}: got {path}, {_a(named)} file name; expected {_a(written)} file name "
-                             f"({', '.join(FORMAT_SUFFIXES[written])})")
+            raise InputError(f"{option}: got {path}, {_with_article(named)} file name; expected "
+                             f"{_with_article(written)} file name ({', '.join(FORMAT_SUFFIXES[written])})")
 
 
-def _a(acronym: str) -> str:
+def _with_article(acronym: str) -> str:
     """'an HDF5', 'a JSON': the article as the first letter is spoken."""
     return f"{'an' if acronym[0] in 'AEFHILMNORSX' else 'a'} {acronym}"
 
@@ -399,8 +399,8 @@ WorkersOption = typer.Option(  # checked with --scheduler by stitchplan.parallel
 SchedulerOption = typer.Option(
     None, "--scheduler", metavar="ADDRESS",
     help="Run the independent runs (study's, or plan's with --uncertainty) on the running Dask cluster "
-    "at ADDRESS (tcp://HOST:PORT, or tls://, "
-    "ws://, wss://) instead of a local one; a scheduler that does not answer within 5 s is an error.")
+    "at ADDRESS (tcp://HOST:PORT, or tls://, ws://, wss://) instead of a local one; a scheduler that "
+    "does not answer within 5 s is an error.")
 
 
 def command_executor(workers: Optional[int], scheduler: Optional[str]):

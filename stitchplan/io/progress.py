@@ -29,7 +29,8 @@ def stderr_console():
 def configure_terminal(verbose: int = 0, quiet: bool = False) -> None:
     """Route the `stitchplan` loggers to stderr at the level the options ask for: through
     rich on a terminal, as plain `LEVEL logger: message` lines otherwise (one line a record,
-    for log files; a warning as `warning: message`). A second call replaces the first (tests run many commands in a process)."""
+    for log files; a warning as `warning: message`). A second call replaces the first (tests
+    run many commands in a process)."""
     level = logging.ERROR if quiet else {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
     if quiet:  # errors only: matplotlib's notes (its cache folder, a glyph a font lacks) too
         logging.getLogger("matplotlib").setLevel(logging.ERROR)
