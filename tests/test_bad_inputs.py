@@ -168,8 +168,15 @@ SCENARIO_CASES = {
     # lengths and points of a scene: the geometry overflowed at 1e300 mm (a traceback), coincided
     # at 1e-20 mm (NaN in the message of another field) and moved points 40 mm "onto" a 1e8 mm edge
     "a needle radius of 1e300 mm": ("simulate", scene(needle__radius=1e300),
-                                    [["scene.yaml: needle.radius: got 1e+300, expected a positive number of at most "
-                                      "1000 (mm; a larger needle is a unit mistake)"]]),
+                                    [["scene.yaml: needle.radius: got 1e+300, expected a number between 0.05 and "
+                                      "1000 (mm; a suture needle's radius is about 1-40 mm"]]),
+    # refused before only by the spacing check ("refine it"), and run to 0 steps without it
+    **{f"a needle radius of {radius:g} mm": ("simulate", scene(needle__radius=radius),
+                                             [[f"scene.yaml: needle.radius: got {radius!r}, expected a number between "
+                                               "0.05 and 1000 (mm; a suture needle's radius is about 1-40 mm: a "
+                                               "smaller or larger one is a unit mistake, such as metres written for "
+                                               "mm)"]])
+       for radius in (1e-300, 0.00888)},
     **{f"a tissue {width:g} mm wide": ("deform", scene(tissue__size=[width, 20.0]),
                                        [[f"scene.yaml: tissue.size[0]: got {width!r}, expected a positive number of "
                                          "at most 10000 (mm; a tissue reaching beyond 10000 mm is a unit mistake)"]])

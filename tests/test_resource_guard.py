@@ -69,7 +69,6 @@ def refusal(estimates, memory: float = LARGE_MEMORY, limits: Limits | None = Non
 @pytest.mark.parametrize("raw, name", [
     (scene(discretization={"spacing": 1e-300}), "discretization.spacing: got 1e-300 mm"),
     (scene(discretization={"spacing": 5e-324}), "discretization.spacing: got 4.94066e-324 mm"),
-    (scene(needle__radius=1e-200), "needle.radius: got 1e-200 mm"),
     (scene(discretization={"needle_refinement": 1e200}), "discretization.needle_refinement: got 1e+200"),
     (scene(discretization={"spacing": 1e-300, "needle_refinement": 1e300}),
      "discretization.spacing: got 1e-300 mm"),  # a needle spacing that underflows to 0
@@ -158,7 +157,7 @@ def write(folder: Path, raw: dict, name: str = "scene.yaml") -> Path:
 
 @pytest.mark.parametrize("raw, options, fragments", [
     (scene(), ["--spacing", "1e-300"], ["got 1e-300 mm", "over 1e+15 particles"]),
-    (scene(needle__radius=1e-200), [], ["scene.yaml: needle.radius: got 1e-200 mm", "give discretization.spacing"]),
+    (scene(needle__radius=1e-200), [], ["scene.yaml: needle.radius: got 1e-200, expected a number between 0.05"]),
     (scene(discretization={"needle_refinement": 1e200}), [],
      ["scene.yaml: discretization.needle_refinement: got 1e+200", "2 mm / 1e+200"]),
     (scene(discretization={"needle_refinement": 1000}), [],
@@ -222,9 +221,9 @@ def test_a_refinement_names_the_refinement_not_the_spacing():
 def test_a_needle_radius_that_sets_the_default_spacing_is_named():
     """A file giving no spacing gets one from the needle radius: a tiny radius is named,
     and with --spacing given the spacing is."""
-    scenario = parse_scenario(scene(needle__radius=0.01))
+    scenario = parse_scenario(scene(needle__radius=0.05))
     line = refusal([estimate(scenario, "insertion")])
-    assert line.startswith("needle.radius: got 0.01 mm, expected a radius whose default particle spacing")
+    assert line.startswith("needle.radius: got 0.05 mm, expected a radius whose default particle spacing")
     given = with_discretization(scenario, spacing=0.004)
     line = refusal([estimate(given, "insertion", origin=Origin({"spacing": "--spacing"}))])
     assert line.startswith("--spacing: got 0.004 mm")

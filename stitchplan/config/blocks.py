@@ -124,12 +124,15 @@ class Material:
 
 # Lengths and points of a scene beyond 10 m (the robot's frame ends there too, MAX_BASE_OFFSET_MM)
 # are a unit mistake, not a tissue, and so are a circular hole below a nanometre (a hole of
-# 0.1 um still runs: tests/test_thin_features.py) and a needle of a radius beyond a metre (a
-# suture needle's is 5-40 mm); at 1e300 mm the geometry overflows and at 1e-20 mm a hole's
-# vertices coincide, failing later without naming the field.
+# 0.1 um still runs: tests/test_thin_features.py) and a needle of a radius beyond a metre or
+# below 0.05 mm (a suture needle's is 5-40 mm, a microsurgical one's about 1 mm; 0.05 mm
+# catches every one of them written in metres); at 1e300 mm the geometry overflows and at
+# 1e-20 mm a hole's vertices coincide, failing later without naming the field, and a needle
+# of 1e-300 mm ran 0 steps.
 MAX_SCENE_MM = 10_000.0
 MIN_HOLE_RADIUS_MM = 1e-6
-MAX_NEEDLE_RADIUS_MM = 1_000.0
+NEEDLE_RADIUS_RANGE_MM = (0.05, 1_000.0)
+MIN_NEEDLE_RADIUS_MM, MAX_NEEDLE_RADIUS_MM = NEEDLE_RADIUS_RANGE_MM
 _BEYOND = f"(mm; a tissue reaching beyond {MAX_SCENE_MM:g} mm is a unit mistake)"
 SceneLength = within(PositiveMM, MAX_SCENE_MM, f"a positive number of at most {MAX_SCENE_MM:g} {_BEYOND}")
 SceneCoordinate = within(Number, MAX_SCENE_MM, f"a number between {-MAX_SCENE_MM:g} and {MAX_SCENE_MM:g} {_BEYOND}",
@@ -142,8 +145,10 @@ SegmentPoints = pair("two points [[x0, y0], [x1, y1]] (mm)", ScenePoint)
 HoleRadius = within(PositiveMM, MAX_SCENE_MM,
                     f"a number between {MIN_HOLE_RADIUS_MM:g} and {MAX_SCENE_MM:g} (mm; a hole below a nanometre "
                     f"or a tissue reaching beyond {MAX_SCENE_MM:g} mm is a unit mistake)", low=MIN_HOLE_RADIUS_MM)
-NeedleRadius = within(PositiveMM, MAX_NEEDLE_RADIUS_MM, f"a positive number of at most {MAX_NEEDLE_RADIUS_MM:g} "
-                      "(mm; a larger needle is a unit mistake)")
+NeedleRadius = within(PositiveMM, MAX_NEEDLE_RADIUS_MM,
+                      f"a number between {MIN_NEEDLE_RADIUS_MM:g} and {MAX_NEEDLE_RADIUS_MM:g} (mm; a suture "
+                      "needle's radius is about 1-40 mm: a smaller or larger one is a unit mistake, such as "
+                      "metres written for mm)", low=MIN_NEEDLE_RADIUS_MM)
 
 
 @block()
@@ -431,7 +436,7 @@ EntryTilt = number(f"an angle between {-MAX_ENTRY_TILT:g} and {MAX_ENTRY_TILT:g}
 
 @block(kw_only=True)
 class Needle:
-    radius: described(NeedleRadius, f"needle radius, mm; at most {MAX_NEEDLE_RADIUS_MM:g}")
+    radius: described(NeedleRadius, f"needle radius, mm; {MIN_NEEDLE_RADIUS_MM:g} to {MAX_NEEDLE_RADIUS_MM:g}")
     arc: described(number("a positive angle of at most 2*pi rad", gt=0, le=2 * math.pi),
                    "rad swept by the needle body (1/2 circle = pi)") = math.pi
     entry: described(ScenePoint, "reference point on the boundary where the tip enters, mm")

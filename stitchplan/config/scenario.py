@@ -22,6 +22,7 @@ from .blocks import (
     Load,
     Material,
     Needle,
+    NeedleRadius,
     Planner,
     Robot,
     RobotBlock,
@@ -43,7 +44,6 @@ from .fields import (
     TIP_TRACKING,
     Name,
     Point,
-    PositiveMM,
     described,
     integer,
     problem,
@@ -193,7 +193,7 @@ def _with_default_spacing(raw: dict, size: tuple[float, float] | None) -> dict |
     if not isinstance(given, dict) or "spacing" in given:
         return raw
     needle = raw.get("needle")
-    radius = valid_or_none(PositiveMM, needle.get("radius")) if isinstance(needle, dict) else None
+    radius = valid_or_none(NeedleRadius, needle.get("radius")) if isinstance(needle, dict) else None
     if size is None or (needle is not None and radius is None):
         return None
     values = {**given, "spacing": default_spacing_of(size, radius)}
