@@ -154,6 +154,11 @@ SCENARIO_CASES = {
     "a force of 1e300 N": ("deform", scene(loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [-1e300, 0.5]}]),
                            [["scene.yaml: loads[0].force[0]: got -1e+300, expected a number between -1e+06 and "
                              "1e+06 (N"]]),
+    # ran into the first load step (det F = -6e296) and failed there naming no field, exit 1
+    "a displacement of 1e300 mm": ("deform", scene(loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]],
+                                                           "displacement": [1e300, 0.0]}]),
+                                   [["scene.yaml: loads[0].displacement[0]: got 1e+300, expected a number between "
+                                     "-10000 and 10000 (mm; a larger displacement is a unit mistake)"]]),
     **{f"a slab {thickness:g} mm thick": ("deform", scene(tissue__thickness=thickness),
                                           [[f"scene.yaml: tissue.thickness: got {thickness!r}, expected a number "
                                             "between 0.001 and 10000 (mm; a thinner or thicker slab is a unit "

@@ -18,6 +18,7 @@ from stitchplan.config import (
     LINEAR_SOLVERS,
     MATERIAL_MODELS,
     TIP_TRACKING,
+    ScenarioError,
     load_scenario,
     scenario_schema,
 )
@@ -172,7 +173,41 @@ def test_the_check_refuses_what_the_schema_forbids(schema, slab_raw):
         "scenario.needle.turn: 'up' not in ['cw', 'ccw']",
         "scenario.tissue.material.model: 'mooney-rivlin' not in ['saint-venant-kirchhoff', 'neo-hookean']",
         "scenario.tissue.thickness: breaks exclusiveMinimum 0",
+        "scenario.tissue.thickness: breaks minimum 0.001",
     ]
+
+
+@pytest.mark.parametrize("change, field", [
+    (lambda raw: raw["tissue"].update(thickness=5e-4), "tissue.thickness"),
+    (lambda raw: raw["tissue"].update(thickness=2e4), "tissue.thickness"),
+    (lambda raw: raw["loads"][0].update(force=None, displacement=[2e4, 0.0]), "loads[0].displacement[0]"),
+    (lambda raw: raw["loads"][0].update(force=None, displacement=[0.0, -2e4]), "loads[0].displacement[1]"),
+    (lambda raw: raw.update(needle={"radius": 0.01, "entry": [0.0, 30.0], "turn": "cw", "step": 0.1}),
+     "needle.radius"),
+])
+def test_the_schema_states_the_bounds_the_tool_enforces(schema, slab_raw, change, field):
+    """A thickness of 0.0005 mm passed the schema (exclusiveMinimum 0) and the tool refused it;
+    a displacement had no bound in either, and 1e300 mm failed in the first load step."""
+    raw = copy.deepcopy(slab_raw)
+    change(raw)
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(raw)
+    assert [line.split(":")[0] for line in error.value.lines] == [field]
+    assert problems(schema, schema, raw), field
+    within = copy.deepcopy(slab_raw)
+    within["loads"][0].update(force=None, displacement=[1e4, -1e4])
+    within["tissue"]["thickness"] = 1e-3
+    parse_scenario(within)
+    assert problems(schema, schema, within) == []
+
+
+def test_the_schema_gives_no_default_a_file_does_not_get(schema):
+    """A file without a spacing gets one from its tissue and needle (min(W, H)/20, 2r/5 with a
+    needle), and a needle scene a needle_refinement of 2: the schema said 5.0 and null."""
+    properties = schema["$defs"]["Discretization"]["properties"]
+    assert "default" not in properties["spacing"] and "default" not in properties["needle_refinement"]
+    assert "min(W, H)/20" in properties["spacing"]["description"]
+    assert properties["dilation"]["default"] == 2.0  # the defaults a file does get stay
 
 
 def test_the_schema_refuses_a_load_of_both_kinds_and_an_edge_clamped_twice(schema, slab_raw):

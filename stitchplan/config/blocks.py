@@ -260,7 +260,7 @@ class Tissue:
     size: described(Size | None, "[W, H] mm: the rectangle [0, W] x [0, H]; or give outline") = None
     thickness: described(PositiveMM, f"out-of-plane thickness t, mm (file forces are totals over t); "
                                       f"{THICKNESS_RANGE_MM[0]:g} to {THICKNESS_RANGE_MM[1]:g}",
-                         maximum=THICKNESS_RANGE_MM[1]) = 1.0
+                         minimum=THICKNESS_RANGE_MM[0], maximum=THICKNESS_RANGE_MM[1]) = 1.0
     material: described(Material, "hyperelastic material") = dataclasses_field(default_factory=Material)
     clamped: described(Clamps, "edges held fixed: any of " + ", ".join(EDGES)
                        + " (rectangles), or {segment: [[x0, y0], [x1, y1]]} pieces of the boundary") = ()
@@ -325,8 +325,9 @@ def shape_domain(tissue: Any) -> Rectangle | PolygonDomain | None:
 
 @block(title="discretization")
 class Discretization:
+    # a file without a spacing gets default_spacing_of's, not the 5 mm of Python callers
     spacing: described(PositiveMM, "particle spacing, mm; default min(W, H)/20, with a needle 2r/5 "
-                                   "(at most max(W, H)/20 and min(W, H)/8)") = 5.0
+                                   "(at most max(W, H)/20 and min(W, H)/8)", drop=("default",)) = 5.0
     dilation: described(Dilation, "kernel support a = dilation x spacing") = 2.0
     quadrature_order: described(QuadratureOrder, "Gauss points per direction per background cell") = 2
     basis_order: described(BasisOrder, "1 linear, 2 quadratic RK basis") = 1
@@ -346,7 +347,7 @@ class Discretization:
     # `--spacing` refines the graded arrangement as a whole (the default for needle scenes)
     needle_refinement: described(number("a number >= 1 (spacing / spacing at the needle)", ge=1) | None,
                                  "needle_spacing = spacing / needle_refinement; default 2 with a "
-                                 "needle and no spacing") = None
+                                 "needle and no spacing", drop=("default",)) = None
     # particles graded toward the ends of load segments inside an edge, where the solution
     # is singular (stitchplan.tissue.particles.end_spacing): leaf side there spacing / 2^levels,
     # levels = segment_end_levels at the default spacing, one more per halving; 0: none
@@ -504,10 +505,14 @@ class Needle:
 
 
 # a load's force components: a total of a mega-newton on a slab of tissue is a unit mistake
-# (kN or mN read as N), and near 1e300 N the solver's norms overflow
+# (kN or mN read as N), and near 1e300 N the solver's norms overflow; a prescribed
+# displacement moving the boundary beyond the scene's 10 m is one too (at 1e300 mm the first
+# load step failed with det F = -6e296, naming no field)
 MAX_LOAD_FORCE_N = 1e6
 LoadForce = number(f"a number between {-MAX_LOAD_FORCE_N:g} and {MAX_LOAD_FORCE_N:g} (N; a larger total force "
                    "on tissue is a unit mistake)", ge=-MAX_LOAD_FORCE_N, le=MAX_LOAD_FORCE_N)
+LoadDisplacement = number(f"a number between {-MAX_SCENE_MM:g} and {MAX_SCENE_MM:g} (mm; a larger displacement "
+                          "is a unit mistake)", ge=-MAX_SCENE_MM, le=MAX_SCENE_MM)
 
 
 @block(one_of=("force", "displacement"))
@@ -515,7 +520,7 @@ class Load:
     segment: described(SegmentPoints, "straight piece of one edge, mm")
     force: described(pair("a pair [fx, fy] of numbers (N)", LoadForce) | None,
                      "N total, spread uniformly over the segment") = None
-    displacement: described(pair("a pair [ux, uy] of numbers (mm)") | None,
+    displacement: described(pair("a pair [ux, uy] of numbers (mm)", LoadDisplacement) | None,
                             "mm, prescribed on the segment") = None
 
     @field_validator("segment")

@@ -95,10 +95,18 @@ def choice(values: tuple, expected: str | None = None) -> Any:
     return Annotated[Literal[values], expecting(expected)]
 
 
-def described(kind: Any, description: str, **schema: Any) -> Any:
+def described(kind: Any, description: str, *, drop: tuple[str, ...] = (), **schema: Any) -> Any:
     """`kind` with a description for the JSON Schema, and further `schema` keywords (a
-    `maximum` that a file's values keep, checked by the block)."""
-    return Annotated[kind, Field(description=description, **({"json_schema_extra": schema} if schema else {}))]
+    `maximum` that a file's values keep, checked by the block); `drop`: keywords the schema
+    must not state (a Python default that is not the one a file gets). With `drop`, `kind`
+    must carry no schema keywords of its own (within's): pydantic ignores the callable then."""
+    extra: Any = schema
+    if drop:
+        def extra(field_schema: dict) -> None:
+            for key in drop:
+                field_schema.pop(key, None)
+            field_schema.update(schema)
+    return Annotated[kind, Field(description=description, **({"json_schema_extra": extra} if extra else {}))]
 
 
 def within(kind: Any, high: float, expected: str, low: float | None = None) -> Any:
