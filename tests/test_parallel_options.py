@@ -29,7 +29,7 @@ from stitchplan.parallel.scheduler import check_scheduler_address, probe_schedul
 from stitchplan.parallel.workers import check_workers, max_workers
 
 SCENARIO = Path(__file__).resolve().parents[1] / "configs" / "needle20_entry30.yaml"
-UNCERTAINTY = {"samples": 2, "seed": 1, "parameters": {"thickness": {"std": 0.2}}}
+UNCERTAINTY = {"samples": 3, "seed": 1, "parameters": {"thickness": {"std": 0.2}}}
 FAST = 10.0  # s: a refusal before any work (Python, typer, numpy imports) takes well under this
 
 

@@ -85,9 +85,10 @@ def _whole(value: Any) -> int:
         raise problem("an integer") from None
 
 
-def integer(low: int, high: int) -> Any:
+def integer(low: int, high: int, why: str = "") -> Any:
+    """An integer within [low, high]; `why` explains the bounds in the message."""
     return Annotated[int, Field(ge=low, le=high), BeforeValidator(_whole),
-                     expecting(f"an integer between {low} and {high}")]
+                     expecting(f"an integer between {low} and {high}" + (f" ({why})" if why else ""))]
 
 
 def choice(values: tuple, expected: str | None = None) -> Any:

@@ -39,6 +39,10 @@ UNITS = {"lame_lambda": "MPa", "lame_mu": "MPa", "friction": "N/mm", "cutting_fo
          "thickness": "mm"}
 PARAMETERS = tuple(UNITS)
 MAX_SAMPLES = 10_000
+# the robust plan re-aims only when the training runs' mean exit shift stands out of their
+# noise, by Hotelling's T^2, which needs 3 deviations (uncertainty.robust.shift_significance):
+# with 2 the robust plan could only ever be the nominal one
+MIN_SAMPLES = 3
 
 Parameter = choice(PARAMETERS, "one of " + ", ".join(PARAMETERS))
 CalibrationFile = Annotated[str, Strict(), Field(min_length=1),
@@ -87,7 +91,10 @@ class Correlation:
 class UncertaintyFile:
     """An uncertainty file as written."""
 
-    samples: described(integer(2, MAX_SAMPLES), "parameter sets drawn (and as many held out)")
+    samples: described(integer(MIN_SAMPLES, MAX_SAMPLES,
+                               f"training runs, and as many held out; the robust plan's test of the mean exit shift "
+                               f"needs at least {MIN_SAMPLES}"),
+                       "parameter sets that train the robust plan (and as many held out)")
     seed: described(integer(0, 2 ** 32 - 1), "seed of the low-discrepancy design") = 0
     from_calibration: described(CalibrationFile | None, "`calibrate material` output: lame_lambda and "
                                                         "lame_mu std and correlation") = None
