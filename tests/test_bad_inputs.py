@@ -110,6 +110,31 @@ SCENARIO_CASES = {
                         [["scene.yaml: needle.radius: got -1.0, expected a positive number (mm)"]]),
     "two problems, two lines": ("simulate", scene(needle__radius=-1.0, tissue__colour="red"),
                                 [["tissue: unknown key 'colour'"], ["needle.radius: got -1.0"]]),
+    # one misspelt key, one line (it said too that the key it is close to was missing, or that
+    # the load gave neither force nor displacement)
+    "a misspelt load key": ("deform", scene(loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]], "forces": [-1.0, 0.5]}]),
+                            [["scene.yaml: loads[0]: unknown key 'forces', expected one of: segment, force, "
+                              "displacement (did you mean 'force'? loads[0] gives neither 'force' nor "
+                              "'displacement')"]]),
+    "a misspelt block": ("deform", {"tissue2" if k == "tissue" else k: v for k, v in scene().items()},
+                         [["scene.yaml: scenario: unknown key 'tissue2', expected one of: name, tissue,",
+                           "(did you mean 'tissue'? tissue is missing)"]]),
+    "a misspelt key of a block": ("simulate", scene(needle__radius=None, needle__radis=8.88),
+                                  [["scene.yaml: needle: unknown key 'radis'",
+                                    "(did you mean 'radius'? needle.radius is missing)"]]),
+    "a misspelt size": ("deform", scene(tissue__size=None, tissue__sise=[40.0, 20.0]),
+                        [["scene.yaml: tissue: unknown key 'sise'",
+                          "(did you mean 'size'? tissue gives neither 'size' nor 'outline')"]]),
+    # a block given a wrong value beside a stray key close to its name: each needs mending
+    "a bad block beside a stray key": ("simulate", {**scene(needle=5), "needleX": BASE["needle"]},
+                                       [["scene.yaml: needle: got 5, expected a mapping"],
+                                        ["scene.yaml: scenario: unknown key 'needleX'", "(did you mean 'needle'?)"]]),
+    "two misspelt keys, two lines": ("simulate", scene(needle__radius=None, needle__radis=8.88,
+                                                       loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]],
+                                                               "displacment": [1.0, 0.0]}]),
+                                     [["needle: unknown key 'radis'", "needle.radius is missing)"],
+                                      ["loads[0]: unknown key 'displacment'", "(did you mean 'displacement'? "
+                                       "loads[0] gives neither 'force' nor 'displacement')"]]),
     "entry off the boundary": ("simulate", scene(needle__entry=[5.0, 12.0]),
                                [["scene.yaml: needle.entry: got [5.0, 12.0]", "on the boundary"]]),
     "needle never leaves": ("plan", scene(needle__arc=0.5),

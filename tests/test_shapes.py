@@ -102,10 +102,10 @@ CROSSED_HOLE = [[10, 5], [20, 12], [20, 5], [10, 12]]
     ({"material": {**PHANTOM, "lame_mu": -1},
       "regions": [{"polygon": [[50, 0], [60, 0], [60, 5]], "material": PHANTOM}]},
      [["tissue.material.lame_mu: got -1"], ["tissue.regions[0].polygon:", "a region overlapping the tissue"]]),
-    # a clamped {segment: ...} piece's own keys, misspelt: the missing key and the close one
+    # a clamped {segment: ...} piece's own key, misspelt: one line, saying the close key is missing
     ({"clamped": [{"segmnt": [[0, 0], [40, 0]]}]},
-     [["tissue.clamped[0].segment: missing, required: two points"],
-      ["tissue.clamped[0]: unknown key 'segmnt', expected one of: segment (did you mean 'segment'?)"]]),
+     [["tissue.clamped[0]: unknown key 'segmnt', expected one of: segment (did you mean 'segment'? "
+       "tissue.clamped[0].segment is missing)"]]),
     # polygons that are not simple do not hide one another
     ({"outline": [[0, 0], [40, 20], [40, 0], [0, 20]], "holes": [{"polygon": CROSSED_HOLE}]},
      [["tissue.outline: got", "expected a simple polygon"], ["tissue.holes[0]: got", "expected a simple polygon"]]),

@@ -168,8 +168,9 @@ class Hole:
     @model_validator(mode="after")
     def _one_shape(self) -> Hole:
         if (self.polygon is None) == (self.circle is None):
-            raise problem("exactly one of 'polygon' or 'circle'",
-                          value=Shown("both" if self.polygon is not None else "neither"))
+            both = self.polygon is not None
+            raise problem("exactly one of 'polygon' or 'circle'", value=Shown("both" if both else "neither"),
+                          absent=() if both else ("polygon", "circle"))
         return self
 
     def vertices(self) -> np.ndarray:
@@ -540,7 +541,9 @@ class Load:
         given = [key for key in ("displacement", "force") if data.get(key) is not None]
         if len(given) == 1:
             return handler(data)
-        raise combined([*_field_errors(handler, data), problem(ONE_KIND, value=given or Shown("neither"))])
+        raise combined([*_field_errors(handler, data),
+                        problem(ONE_KIND, value=given or Shown("neither"), absent=() if given else ("force",
+                                                                                                  "displacement"))])
 
 
 ONE_KIND = "exactly one of 'force' (N) or 'displacement' (mm)"

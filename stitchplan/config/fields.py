@@ -37,15 +37,20 @@ BLOCK = ConfigDict(extra="forbid", allow_inf_nan=False)
 NOT_GIVEN = object()
 
 
-def problem(expected: str, field: str | None = None, value: Any = NOT_GIVEN) -> PydanticCustomError:
+def problem(expected: str, field: str | None = None, value: Any = NOT_GIVEN,
+            absent: tuple[str, ...] = ()) -> PydanticCustomError:
     """The error of a check: `expected` completes "<field>: got <value>, expected ...".
     `field` names a field below the validated one (a check of a whole block reporting on one
-    of its fields); `value` replaces the input as the value shown."""
+    of its fields); `value` replaces the input as the value shown; `absent`: keys of the
+    validated block whose absence the problem is (a misspelling of one is told once,
+    messages.merged_typos)."""
     context: dict[str, Any] = {"expected": expected}
     if field is not None:
         context["field"] = field
     if value is not NOT_GIVEN:
         context["value"] = value
+    if absent:
+        context["absent"] = tuple(absent)
     return PydanticCustomError("expected", "expected {expected}", context)
 
 

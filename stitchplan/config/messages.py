@@ -108,23 +108,65 @@ def field_path(base: str, loc: tuple) -> str:
     return path
 
 
+class Line(str):
+    """An error line that merged_typos can join with another: `mapping` (the field path of
+    the mapping it is about), `suggests` (an unknown key's near key there) and `absent` (the
+    keys whose absence it reports)."""
+
+    mapping: str = ""
+    suggests: str | None = None
+    absent: tuple[str, ...] = ()
+
+    @classmethod
+    def of(cls, text: str, mapping: str, suggests: str | None = None, absent: tuple[str, ...] = ()) -> Line:
+        line = cls(text)
+        line.mapping, line.suggests, line.absent = mapping, suggests, tuple(absent)
+        return line
+
+
+def merged_typos(lines: list[str]) -> list[str]:
+    """`lines` with one line per misspelt key: an unknown key whose near key is the one a
+    line of the same mapping reports missing (or among those whose absence it reports, as a
+    load giving neither force nor displacement) is one mistake, told on the unknown key's line,
+    which says what is missing; that line is dropped."""
+    absent = {(line.mapping, key): line for line in lines if isinstance(line, Line) for key in line.absent}
+    merged, dropped = [], set()
+    for line in lines:
+        other = absent.get((line.mapping, line.suggests)) if isinstance(line, Line) and line.suggests else None
+        if other is None:
+            merged.append(line)
+            continue
+        dropped.add(id(other))
+        if len(other.absent) == 1:
+            what = f"{field_path(other.mapping, (other.absent[0],))} is missing"
+        else:
+            what = (f"{other.mapping or 'the file'} gives neither "
+                    + " nor ".join(repr(key) for key in other.absent))
+        merged.append(f"{line[:-1]} {what})")  # into the "(did you mean ...?)" that ends it
+    return [line for line in merged if id(line) not in dropped]
+
+
 def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "value",
                 raw: Any = None) -> list[str]:
     """One line per error of `error`; `raw`, the data validated, shows unknown keys as given."""
     lines = []
     for e in error.errors(include_url=False):
         loc, ctx = tuple(e["loc"]), e.get("ctx") or {}
+        mapping = field_path(base, loc)  # of a problem of the block at loc (before ctx's field)
         if "field" in ctx:
             loc += tuple(ctx["field"].split("."))
         path = field_path(base, loc) or root
         value = ctx.get("value", e.get("input"))
         if e["type"] == "expected":
-            lines.append(f"{path}: got {short(value)}, expected {ctx['expected']}")
+            lines.append(Line.of(f"{path}: got {short(value)}, expected {ctx['expected']}", mapping,
+                                 absent=ctx.get("absent", ())))
         elif e["type"] == "missing":
             what = expected_of(kind, loc)
-            lines.append(f"{path}: missing, required" + (f": {what}" if what else ""))
+            lines.append(Line.of(f"{path}: missing, required" + (f": {what}" if what else ""),
+                                 field_path(base, loc[:-1]), absent=loc[-1:]))
         elif e["type"] in ("extra_forbidden", "unexpected_keyword_argument", "invalid_key"):
-            lines.append(_unknown_key(kind, loc, field_path(base, loc[:-1]) or root, raw))
+            text, close = _unknown_key(kind, loc, field_path(base, loc[:-1]) or root, raw)
+            lines.append(Line.of(text, field_path(base, loc[:-1]), suggests=close))
         elif e["type"] in MAPPING_ERRORS:
             keys = _keys(_block_at(kind, loc))
             what = "a mapping" + (f" with keys among: {', '.join(keys)}" if keys else "")
@@ -133,18 +175,20 @@ def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "
         else:
             what = e["msg"].removeprefix("Input should be ").removeprefix("Value error, ")
             lines.append(f"{path}: got {short(value)}, expected {what}")
-    return lines
+    return merged_typos(lines)
 
 
-def _unknown_key(kind: Any, loc: tuple, parent: str, raw: Any = None) -> str:
+def _unknown_key(kind: Any, loc: tuple, parent: str, raw: Any = None) -> tuple[str, str | None]:
+    """The line of an unknown key, and the near key it suggests (None: none, or the key
+    belongs in another block)."""
     key, allowed = _given_key(raw, loc), _keys(_block_at(kind, loc[:-1]))
     line = f"{parent}: unknown key {_as_written(key)}, expected one of: {', '.join(allowed)}"
     home = [name for name, block in _blocks(kind) if name != (loc[-2] if len(loc) > 1 else None)
             and str(key) in _keys(block)]
     if home:  # a key of another block: say where it goes, not a near spelling here
-        return line + f" ({_as_written(key)} belongs in {' or '.join(home)})"
+        return line + f" ({_as_written(key)} belongs in {' or '.join(home)})", None
     close = difflib.get_close_matches(str(key), allowed, n=1)
-    return line + (f" (did you mean {close[0]!r}?)" if close else "")
+    return (line + f" (did you mean {close[0]!r}?)", close[0]) if close else (line, None)
 
 
 def _blocks(kind: Any) -> list[tuple[str, Any]]:

@@ -50,7 +50,7 @@ from .fields import (
     sequence,
 )
 from .load_checks import HELD, load_problems
-from .messages import combined, input_error, valid_or_none, validate, value_at
+from .messages import combined, input_error, merged_typos, valid_or_none, validate, value_at
 from .study import StudySpec
 from .yaml_files import read_yaml, read_yaml_file
 
@@ -219,7 +219,7 @@ def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = 
     try:
         scenario_file = validate(ScenarioFile, raw, "", root="scenario", context=context)
     except InputError as error:
-        raise input_error([*error.lines, *_shape_lines(raw, error.lines)]) from None
+        raise input_error(merged_typos([*error.lines, *_shape_lines(raw, error.lines)])) from None
     log_moves(scenario_file.tissue.domain, moved_points(raw, scenario_file))
     return scenario_file.scenario(source_text, source_sha256)
 

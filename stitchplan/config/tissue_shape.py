@@ -42,7 +42,7 @@ def shape_loops(tissue: TissueBlock) -> tuple[np.ndarray | None, list[tuple[int,
     if (tissue.size is None) == (tissue.outline is None):
         given = "both" if tissue.size is not None else "neither"
         return None, [], False, [problem("exactly one of 'size' [W, H] or 'outline' (a polygon)", field="size",
-                                         value=Shown(given))]
+                                         value=Shown(given), absent=("size", "outline") if given == "neither" else ())]
     outer, tol, outline_problems = _outer_loop(tissue)
     # the holes' own polygons are checked all the same, so that every problem is said at once
     problems = outline_problems + _hole_polygon_problems(tissue, tol)
