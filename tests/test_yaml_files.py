@@ -20,6 +20,7 @@ from typer.testing import CliRunner
 
 from stitchplan.cli import app
 from stitchplan.config import ScenarioError, load_scenario, read_yaml
+from stitchplan.calibration import load_material_calibration
 from stitchplan.config.uncertainty import load_uncertainty
 
 # a 40 x 20 mm slab with a needle and a force on the left edge: every field below is valid
@@ -185,6 +186,50 @@ def test_every_merge_key_is_reported_with_the_duplicate_keys(tmp_path):
         f"{path}: line 18: " + MERGE.format(inside=" in loads[2]"),
         f"{path}: line 20: duplicate key 'segment' (first given at line 19) in loads[2], expected each key once",
     ]
+
+
+def test_a_merge_key_does_not_hide_the_other_problems(tmp_path):
+    """The merge key's line stopped the reading: an unknown key and a negative radius beside it
+    went unsaid. The other problems follow it, found in the data with the merge followed (the
+    thickness it merges is not also missing)."""
+    text = "base: &slab {thickness: 10.0}\n" + SCENE.replace("  thickness: 10.0\n", "  <<: *slab\n").replace(
+        "  radius: 8.88\n", "  radius: -8.88\n")
+    path = write(tmp_path, text)
+    assert refusal(path) == [
+        f"{path}: line 5: " + MERGE.format(inside=" in tissue"),
+        f"{path}: needle.radius: got -8.88, expected a positive number (mm)",
+        (f"{path}: scenario: unknown key 'base', expected one of: name, tissue, discretization, needle, loads, "
+         "load_steps, probes, solver, planner, robot, study"),
+    ]
+
+
+def test_a_duplicate_key_does_not_hide_the_other_problems(tmp_path):
+    path = write(tmp_path, SCENE.replace("  step: 0.2\n", "  step: 0.2\n  step: -1\n"))
+    assert refusal(path) == [
+        f"{path}: line 13: duplicate key 'step' (first given at line 12) in needle, expected each key once",
+        f"{path}: needle.step: got -1, expected a positive angle of at most 0.5 rad per step",
+    ]
+
+
+def test_a_merge_key_of_a_scalar_is_its_one_line(tmp_path):
+    """`<<: 5` cannot be followed: its line alone, not also the YAML reader's complaint."""
+    path = write(tmp_path, SCENE.replace("  thickness: 10.0\n", "  thickness: 10.0\n  <<: 5\n") + "colour: red\n")
+    assert refusal(path) == [f"{path}: line 5: " + MERGE.format(inside=" in tissue")]
+
+
+def test_the_uncertainty_and_calibration_files_list_a_merge_key_with_their_other_problems(tmp_path):
+    path = write(tmp_path, "samples: 3\n<<: {seed: 1}\nparameters: {thicknes: {std: 1.0}}\n", "u.yaml")
+    with pytest.raises(ScenarioError) as error:
+        load_uncertainty(path)
+    assert error.value.lines == [f"{path}: line 2: " + MERGE.format(inside=""),
+                                 (f"{path}: parameters: unknown key 'thicknes', expected one of: lame_lambda, "
+                                  "lame_mu, friction, cutting_force, thickness (did you mean 'thickness'?)")]
+    calibration = write(tmp_path, "tissue: {<<: {thickness: 10.0}, size: [100.0, 60.0], clamped: [right]}\n"
+                        "experiments: []\nfit: {lame_lambda: [0.01, 2.0], lame_mu: [0.01, 2.0]}\n", "c.yaml")
+    with pytest.raises(ScenarioError) as error:
+        load_material_calibration(calibration)
+    assert error.value.lines[0] == f"{calibration}: line 1: " + MERGE.format(inside=" in tissue")
+    assert len(error.value.lines) == 2 and error.value.lines[1].startswith(f"{calibration}: experiments: got []")
 
 
 def test_the_command_refuses_a_merge_key_in_one_line(tmp_path):

@@ -17,7 +17,6 @@ from ..config import (
     Solver,
     Tissue,
     input_error,
-    read_yaml,
 )
 from ..config.calibration import (
     GRID_SCALES,
@@ -26,6 +25,7 @@ from ..config.calibration import (
     FitBlock,
     parse_calibration,
 )
+from ..config.yaml_files import read_yaml_file, with_key_problems
 from ..errors import InputError
 from .tables import read_columns
 
@@ -173,11 +173,8 @@ def load_material_calibration(path: str | Path, spacing: float | None = None,
     """Read and validate a calibration YAML; marker files are relative to it. `spacing` and
     `dilation` override its discretization (the CLI options)."""
     path = Path(path)
-    raw, _ = read_yaml(path)
-    try:
-        problem = parse_material_calibration(raw, path.parent, str(path))
-    except InputError as error:
-        raise input_error([f"{path}: {line}" for line in getattr(error, "lines", [str(error)])]) from None
+    problem = with_key_problems(read_yaml_file(path, keys_later=True), path,
+                                lambda raw: parse_material_calibration(raw, path.parent, str(path)))
     overrides = {k: v for k, v in {"spacing": spacing, "dilation": dilation}.items() if v is not None}
     if overrides:
         problem = replace(problem, discretization=problem.discretization.replaced(**overrides))

@@ -52,7 +52,7 @@ from .fields import (
 from .load_checks import HELD, load_problems
 from .messages import combined, input_error, merged_typos, valid_or_none, validate, value_at
 from .study import StudySpec
-from .yaml_files import read_yaml, read_yaml_file
+from .yaml_files import read_yaml, read_yaml_file, with_key_problems
 
 __all__ = [
     "DEFAULT_NEEDLE_REFINEMENT", "EDGES", "INTEGRATIONS", "LINEAR_SOLVERS", "MATERIAL_MODELS",
@@ -254,11 +254,8 @@ def moved_points(raw: Any, scenario_file: ScenarioFile) -> list[tuple[str, Any, 
 
 def load_scenario(path: str | Path) -> Scenario:
     """The scenario of a YAML file; every error line starts with the file's path."""
-    file = read_yaml_file(path)  # read once: the checksum is of the bytes parsed
-    try:
-        return parse_scenario(file.data, file.text, file.sha256)
-    except InputError as error:
-        raise input_error([f"{path}: {line}" for line in error.lines]) from None
+    file = read_yaml_file(path, keys_later=True)  # read once: the checksum is of the bytes parsed
+    return with_key_problems(file, path, lambda data: parse_scenario(data, file.text, file.sha256))
 
 
 def require_loads(scenario: Scenario, source: str | Path) -> None:

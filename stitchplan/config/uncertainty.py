@@ -32,7 +32,7 @@ from pydantic import Field, Strict, field_validator, model_validator
 from .blocks import block
 from .fields import choice, described, expecting, integer, number, pair, problem, sequence
 from .messages import input_error, short, validate
-from .yaml_files import read_yaml
+from .yaml_files import read_yaml, read_yaml_file, with_key_problems
 
 # the uncertain parameters and their units (the scenario's fields they replace: UNITS order)
 UNITS = {"lame_lambda": "MPa", "lame_mu": "MPa", "friction": "N/mm", "cutting_force": "N",
@@ -151,14 +151,7 @@ def parse_uncertainty(raw: Any) -> UncertaintyFile:
 
 def load_uncertainty(path: str | Path) -> Uncertainty:
     """The resolved uncertainty of a file; every error line starts with the file's path."""
-    raw, _ = read_yaml(path)
-    try:
-        spec = parse_uncertainty(raw)
-    except Exception as error:
-        lines = getattr(error, "lines", None)
-        if lines is None:
-            raise
-        raise input_error([f"{path}: {line}" for line in lines]) from None
+    spec = with_key_problems(read_yaml_file(path, keys_later=True), path, parse_uncertainty)
     return resolve_uncertainty(spec, path)
 
 

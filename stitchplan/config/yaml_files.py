@@ -6,7 +6,8 @@ where YAML 1.1 would silently read 300, True, False or a date. Refused besides s
 errors: text that is not UTF-8, a key given twice in one mapping (the second would silently
 win; every such key of a file is reported at once), YAML 1.1's merge key `<<` (YAML 1.2 has
 none, and the keys it merges give way silently to the mapping's own: a second way to give a
-key twice), tags without a plain-data meaning, and
+key twice; both are listed with the file's other problems, read_yaml_file's keys_later), tags
+without a plain-data meaning, and
 aliases beyond a small bound (an "alias bomb" expands a few lines into billions of values),
 and nesting deeper than a bound (the loader recurses once per level: 500 nested `[` would
 end in Python's recursion limit)."""
@@ -16,12 +17,16 @@ from __future__ import annotations
 import hashlib
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import yaml
 
+from ..errors import InputError
 from .messages import input_error
+
+T = TypeVar("T")
 
 MAX_ALIASES = 100  # alias uses per file
 MAX_VALUES = 100_000  # values after expanding every alias
@@ -71,6 +76,7 @@ class _Loader(yaml.SafeLoader):
         super().__init__(stream)
         self.aliases = 0
         self.depth = 0
+        self.key_problems: list[str] = []
 
     def compose_node(self, parent, index):
         if self.check_event(yaml.AliasEvent):
@@ -91,9 +97,7 @@ class _Loader(yaml.SafeLoader):
         if node is not None:
             if self.aliases:
                 _count_values(node, {})
-            problems = _key_problems(self, node)
-            if problems:
-                raise _Refused(*problems)
+            self.key_problems = _key_problems(self, node)
         return node
 
     def construct_yaml_int(self, node) -> int:
@@ -233,9 +237,27 @@ def _duplicate_line(key: Any, marks: list, path: str) -> tuple[tuple[int, int], 
 
 def parse_yaml(text: str) -> Any:
     """The data of one YAML document (raises _Refused or yaml.YAMLError)."""
+    data, problems = _parse_keys_apart(text)
+    if problems:
+        raise _Refused(*problems)
+    return data
+
+
+def _parse_keys_apart(text: str) -> tuple[Any, list[str]]:
+    """The data of one YAML document and the lines refusing its keys (duplicate and merge
+    keys, _key_problems), which need not stop it: the data is built as YAML 1.1 would build
+    it (the last of a duplicate key, the merged keys followed), so that the file's other
+    problems can be listed with them, the ones left once the keys are written out once.
+    Raises _Refused or yaml.YAMLError for what stops the reading."""
     loader = _Loader(text)
     try:
-        return loader.get_single_data()
+        node = loader.get_single_node()
+        try:
+            return (None if node is None else loader.construct_document(node)), loader.key_problems
+        except yaml.YAMLError:
+            if loader.key_problems:  # a merge of a scalar (`<<: 5`) cannot be followed: its line says so
+                raise _Refused(*loader.key_problems) from None
+            raise
     finally:
         loader.dispose()
 
@@ -244,11 +266,15 @@ class YamlFile(NamedTuple):
     data: Any
     text: str
     sha256: str  # of the bytes read, the ones parsed (a pipe cannot be read a second time)
+    # lines refusing duplicate and merge keys, naming the file, for the reader to list with the
+    # other problems of the data (read_yaml_file's keys_later)
+    key_problems: tuple[str, ...] = ()
 
 
-def read_yaml_file(path: str | Path) -> YamlFile:
+def read_yaml_file(path: str | Path, keys_later: bool = False) -> YamlFile:
     """The data, text and SHA-256 of a YAML file, read once; every problem is an InputError
-    naming the file."""
+    naming the file. With `keys_later` duplicate and merge keys are not raised but returned
+    in `key_problems`, for the reader to list with the problems of the data (with_key_problems)."""
     path = Path(path)
     try:
         content = path.read_bytes()
@@ -261,7 +287,9 @@ def read_yaml_file(path: str | Path) -> YamlFile:
         line = f"{path}: not UTF-8 text (byte {byte} at offset {error.start}), expected a YAML text file"
         raise input_error([line]) from None
     try:
-        data = parse_yaml(text)
+        data, problems = _parse_keys_apart(text)
+        if problems and not keys_later:
+            raise _Refused(*problems)
     except _Refused as error:
         raise input_error([f"{path}: {line}" for line in error.lines]) from None
     except RecursionError:  # MAX_DEPTH stops the loader first; any deeper recursion ends here too
@@ -276,10 +304,23 @@ def read_yaml_file(path: str | Path) -> YamlFile:
                                "are read inside quoted text alone); expected spaces: replace the tab by "
                                "spaces"]) from None
         raise input_error([f"{path}: not valid YAML{where}" + (f" ({problem})" if problem else "")]) from None
-    return YamlFile(data, text, hashlib.sha256(content).hexdigest())
+    return YamlFile(data, text, hashlib.sha256(content).hexdigest(), tuple(f"{path}: {line}" for line in problems))
+
+
+def with_key_problems(file: YamlFile, path: str | Path, parse: Callable[[Any], T]) -> T:
+    """parse(file.data) for a file read with keys_later, every problem of the file listed at
+    once: its key problems first, then parse's InputError lines (each given the file's path)."""
+    try:
+        result = parse(file.data)
+    except InputError as error:
+        lines = getattr(error, "lines", None) or [str(error)]
+        raise input_error([*file.key_problems, *(f"{path}: {line}" for line in lines)]) from None
+    if file.key_problems:
+        raise input_error(list(file.key_problems))
+    return result
 
 
 def read_yaml(path: str | Path) -> tuple[Any, str]:
     """The data and the text of a YAML file; every problem is an InputError naming the file."""
-    data, text, _ = read_yaml_file(path)
-    return data, text
+    file = read_yaml_file(path)
+    return file.data, file.text
