@@ -80,7 +80,16 @@ BAD_SHAPES = {
                                          ["tissue.clamped[0]: unknown key 'fixed', expected one of: segment"]),
     "named edge on a polygon": (shaped(clamped=["top"]),
                                 ["tissue.clamped[0]: got 'top'", "a side of the outline's bounding box that holds "
-                                 "exactly one outline edge"]),
+                                 "one straight piece of the outline (its top side holds 2 separate pieces: "
+                                 "outline[2], outline[6])"]),
+    "named side without an edge": (shaped(outline=[[0, 0], [40, 0], [40, 20], [30, 25], [20, 20], [0, 20]],
+                                          holes=None, clamped=["top"]),
+                                   ["tissue.clamped[0]: got 'top'", "(no outline edge lies along its top side)"]),
+    # a vertex turning by 0.01 rad is no corner for an entry, but a load's line bends there
+    "segment over a bent vertex": (shaped(outline=[[0, 0], [20, 0.1], [40, 0], [40, 20], [0, 20]], holes=None,
+                                          clamped=[{"segment": [[0, 0], [40, 0]]}]),
+                                   ["tissue.clamped[0].segment: got [[0.0, 0.0], [40.0, 0.0]]",
+                                    "(its ends are on the boundary, not on one edge or one straight run of edges)"]),
 }
 
 
@@ -104,8 +113,8 @@ CROSSED_HOLE = [[10, 5], [20, 12], [20, 5], [10, 12]]
      [["tissue.material.lame_mu: got -1"], ["tissue.regions[0].polygon:", "a region overlapping the tissue"]]),
     # a clamped {segment: ...} piece's own key, misspelt: one line, saying the close key is missing
     ({"clamped": [{"segmnt": [[0, 0], [40, 0]]}]},
-     [["tissue.clamped[0]: unknown key 'segmnt', expected one of: segment (did you mean 'segment'? "
-       "tissue.clamped[0].segment is missing)"]]),
+     [[("tissue.clamped[0]: unknown key 'segmnt', expected one of: segment (did you mean 'segment'? "
+        "tissue.clamped[0].segment is missing)")]]),
     # polygons that are not simple do not hide one another
     ({"outline": [[0, 0], [40, 20], [40, 0], [0, 20]], "holes": [{"polygon": CROSSED_HOLE}]},
      [["tissue.outline: got", "expected a simple polygon"], ["tissue.holes[0]: got", "expected a simple polygon"]]),
@@ -204,6 +213,42 @@ def test_a_hole_cut_into_the_outline_is_the_outline_drawn_with_the_cut(tmp_path)
     assert particles[0] == particles[1]
     assert np.abs(probes[1]).max() > 0.1  # the load moves the probes
     np.testing.assert_allclose(probes[0], probes[1], rtol=0.0, atol=1e-9)
+
+
+SPLIT_PHANTOM = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}
+SPLIT_PROBES = [[10.0, 10.0], [30.0, 20.0], [50.0, 35.0], [0.0, 20.0], [45.0, 40.0]]
+
+
+def split_slab(outline: list, clamped: list, loads: list) -> dict:
+    return {"tissue": {"outline": outline, "thickness": 10.0, "material": SPLIT_PHANTOM, "clamped": clamped},
+            "loads": loads, "probes": SPLIT_PROBES}
+
+
+@pytest.mark.parametrize("x", [30.0, 31.3])  # on the 2 mm lattice, and off it
+@pytest.mark.parametrize("split, clamped, loads", [
+    ("bottom", [{"segment": [[0.0, 0.0], [60.0, 0.0]]}], [{"segment": [[0.0, 10.0], [0.0, 30.0]], "force": [-1.0, 0.5]}]),
+    ("bottom", ["bottom"], [{"segment": [[0.0, 10.0], [0.0, 30.0]], "force": [-1.0, 0.5]}]),
+    ("top", ["bottom"], [{"segment": [[0.0, 40.0], [60.0, 40.0]], "force": [0.5, 1.0]}]),
+    ("top", ["bottom"], [{"segment": [[60.0, 40.0], [0.0, 40.0]], "displacement": [0.5, 1.0]}]),
+], ids=["clamped segment", "clamped side", "force", "displacement"])
+def test_a_straight_side_split_by_a_vertex_holds_a_segment_along_it_whole(x, split, clamped, loads):
+    """A vertex on a straight side ([x, 0] on the bottom, [x, 40] on the top of a 60 x 40 mm
+    slab) split it into two edges, and a clamp or load along the whole side was refused as
+    not on one edge. It acts on the whole side: `deform` gives the same particles and, to the
+    bit, the same probe displacements and reactions as the slab without the vertex (a vertex
+    where the boundary does not turn adds no particle or lattice line, on the lattice or off)."""
+    plain = [[0.0, 0.0], [60.0, 0.0], [60.0, 40.0], [0.0, 40.0]]
+    outline = [plain[0], [x, 0.0], *plain[1:]] if split == "bottom" else [*plain[:3], [x, 40.0], plain[3]]
+    from stitchplan.tissue.deform import run_deform
+
+    whole, halves = (run_deform(parse_scenario(split_slab(shape, clamped, loads))) for shape in (plain, outline))
+    assert len(halves.scenario.tissue.domain.outline) == 5
+    np.testing.assert_array_equal(halves.model.particles, whole.model.particles)
+    assert np.abs(whole.probe_displacements).max() > 0.1  # the load moves the probes
+    np.testing.assert_allclose(halves.probe_displacements, whole.probe_displacements, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(halves.reactions, whole.reactions, rtol=0.0, atol=1e-12)
+    held = halves.model.boundary.indices[halves.model.boundary.group == -1]  # the clamped particles
+    assert np.ptp(halves.model.particles[held, 0]) == 60.0  # the clamp holds the whole bottom side
 
 
 def test_holes_cut_notches_into_a_rectangle_and_its_corners():

@@ -84,6 +84,7 @@ def on_boundary(domain: Rectangle | PolygonDomain) -> str:
 
 
 def segment_expectation(domain: Rectangle | PolygonDomain) -> str:
+    # one edge, or consecutive edges on one straight line (PolygonDomain.straight_run)
     return f"a non-empty straight piece of one edge of the {domain.describe()}"
 
 
@@ -117,7 +118,7 @@ def segment_on_boundary(domain: Rectangle | PolygonDomain, segment) -> tuple[tup
         return None, f"{segment_expectation(domain)}; " + "; ".join(off)
     if domain.segment_edge(*snapped) is None:
         why = ("its ends are one point" if np.array_equal(snapped[0], snapped[1])
-               else "its ends are on the boundary, not on one edge")
+               else "its ends are on the boundary, not on one edge or one straight run of edges")
         return None, f"{segment_expectation(domain)} ({why})"
     return tuple(as_pair(end) for end in snapped), ""
 

@@ -180,9 +180,18 @@ def shape_problems(tissue: TissueBlock) -> list:
         if isinstance(item, str):
             if isinstance(domain, PolygonDomain) and not domain.edge_names and item not in domain.aliases:
                 problems.append(problem("{segment: [[x0, y0], [x1, y1]]}, or the name of a side of the "
-                                        "outline's bounding box that holds exactly one outline edge",
-                                        field=f"clamped[{i}]", value=item))
+                                        "outline's bounding box that holds one straight piece of the outline "
+                                        f"({_side_found(domain, item)})", field=f"clamped[{i}]", value=item))
     return problems + clamps_on_boundary(tissue.clamped, domain)[1]
+
+
+def _side_found(domain: PolygonDomain, side: str) -> str:
+    """What a side of an outline's bounding box holds, when it is not one straight piece."""
+    pieces = domain.side_pieces[side]
+    if not pieces:
+        return f"no outline edge lies along its {side} side"
+    shown = [" + ".join(domain.segment_names[k] for k in piece) for piece in pieces]
+    return f"its {side} side holds {len(pieces)} separate pieces: " + ", ".join(shown)
 
 
 def clamps_on_boundary(clamped: tuple, domain: Rectangle | PolygonDomain) -> tuple[tuple, list]:

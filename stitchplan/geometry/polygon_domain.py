@@ -37,9 +37,9 @@ class PolygonDomain(BoundingBox):
 
     def __post_init__(self):
         loops = [self.outline] + [hole[::-1] for hole in self.holes]  # tissue on the left
-        names, starts, ends = [], [], []
+        names, starts, ends, following = [], [], [], []
         for j, loop in enumerate(loops):
-            count = len(loop)
+            count, first = len(loop), len(names)
             for i in range(count):  # reversed hole: walked edge i is the hole's edge m - 2 - i
                 if j == 0:
                     names.append(self.edge_names[i] if self.edge_names else f"outline[{i}]")
@@ -47,22 +47,27 @@ class PolygonDomain(BoundingBox):
                     names.append(f"holes[{j - 1}][{(count - 2 - i) % count}]")
             starts.append(loop)
             ends.append(np.roll(loop, -1, axis=0))
+            following.append(first + (np.arange(count) + 1) % count)
         object.__setattr__(self, "segment_names", tuple(names))
         object.__setattr__(self, "segment_starts", np.concatenate(starts))
         object.__setattr__(self, "segment_ends", np.concatenate(ends))
+        object.__setattr__(self, "next_edge", np.concatenate(following))  # (edges,) the edge after each in its loop
         low, high = self.outline.min(axis=0), self.outline.max(axis=0)
-        # a side of the bounding box that holds exactly one outline edge answers to its name
-        # (the outline's right edge is `right`), as a rectangle's edges do
-        aliases = {}
+        # a side of the bounding box that holds one straight piece of the outline (one edge, or
+        # consecutive ones: a vertex on a straight side) answers to its name (the outline's right
+        # edge is `right`), as a rectangle's edges do; side_pieces keeps what each side holds
+        aliases, side_pieces = {}, {}
         if not self.edge_names:
             tol = 1e-9 * float(np.max(high - low))
             starts, ends = self.outline, np.roll(self.outline, -1, axis=0)
             for name, axis, value in (("left", 0, low[0]), ("right", 0, high[0]), ("bottom", 1, low[1]),
                                       ("top", 1, high[1])):
                 on = np.flatnonzero((np.abs(starts[:, axis] - value) <= tol) & (np.abs(ends[:, axis] - value) <= tol))
-                if len(on) == 1:
-                    aliases[name] = int(on[0])
-        object.__setattr__(self, "aliases", aliases)
+                side_pieces[name] = _runs(on.tolist(), len(self.outline))
+                if len(side_pieces[name]) == 1:
+                    aliases[name] = side_pieces[name][0]
+        object.__setattr__(self, "aliases", aliases)  # name -> the outline edges it names, in walking order
+        object.__setattr__(self, "side_pieces", side_pieces)
         object.__setattr__(self, "origin", low)
         object.__setattr__(self, "width", float(high[0] - low[0]))
         object.__setattr__(self, "height", float(high[1] - low[1]))
@@ -85,17 +90,22 @@ class PolygonDomain(BoundingBox):
 
     # --- edges ----------------------------------------------------------------------------
 
-    def _index(self, name: str) -> int:
+    def _indices(self, name: str) -> tuple[int, ...]:
+        """The edges a name stands for: one, or a side's straight run of them (aliases)."""
         if name in self.aliases:
             return self.aliases[name]
         try:
-            return self.segment_names.index(name)
+            return (self.segment_names.index(name),)
         except ValueError:
             raise KeyError(name) from None
 
+    def _index(self, name: str) -> int:
+        return self._indices(name)[0]
+
     def edge(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        k = self._index(name)
-        return self.segment_starts[k].copy(), self.segment_ends[k].copy()
+        """Ends of the named edge (of a side's straight run of edges: its first start, last end)."""
+        run = self._indices(name)
+        return self.segment_starts[run[0]].copy(), self.segment_ends[run[-1]].copy()
 
     def inward_normal(self, name: str) -> np.ndarray:
         k = self._index(name)
@@ -114,11 +124,44 @@ class PolygonDomain(BoundingBox):
         return [self.segment_names[k] for k in np.flatnonzero(d <= tol)]
 
     def segment_edge(self, start, end, tol: float | None = None) -> str | None:
-        """The boundary edge holding the whole non-empty segment start-end, or None."""
+        """The boundary edge holding the whole non-empty segment start-end (for a segment along
+        consecutive edges on one straight line, straight_run's, the one at `start`), or None."""
         if np.allclose(start, end, rtol=0.0, atol=0.0):
             return None
         common = set(self.edges_at(start, tol)) & set(self.edges_at(end, tol))
-        return sorted(common)[0] if common else None
+        if common:
+            return sorted(common)[0]
+        at_end = set(self._edges_holding(end, tol))
+        for k in self._edges_holding(start, tol):
+            if at_end & set(self.straight_run(k, tol)):
+                return self.segment_names[k]
+        return None
+
+    def straight_run(self, k: int, tol: float | None = None) -> list[int]:
+        """Edge k and the consecutive edges before and after it in its loop that lie on its
+        line to round-off (tol: the domain's; a vertex on a straight side turns by none, while
+        a traced contour's turn, which an entry takes as no corner, bends a load's line), in
+        walking order."""
+        tol = self.tolerance if tol is None else tol
+        a, b = self.segment_starts[k], self.segment_ends[k]
+        direction = (b - a) / float(np.hypot(*(b - a)))
+
+        def on_line(j: int) -> bool:
+            ends = np.stack([self.segment_starts[j], self.segment_ends[j]]) - a  # (2, 2)
+            return bool(np.all(np.abs(cross_2d(ends, direction)) <= tol))
+
+        before = {int(j): i for i, j in enumerate(self.next_edge)}  # the edge before each
+        run = [k]
+        while (j := int(self.next_edge[run[-1]])) != k and on_line(j):
+            run.append(j)
+        while (j := before[run[0]]) not in run and on_line(j):
+            run.insert(0, j)
+        return run
+
+    def _edges_holding(self, point, tol: float | None = None) -> list[int]:
+        tol = self.tolerance if tol is None else tol
+        x = np.asarray(point, dtype=float)
+        return np.flatnonzero(point_segment_distance(x[None], self.segment_starts, self.segment_ends) <= tol).tolist()
 
     # --- inside, outside ------------------------------------------------------------------
 
@@ -262,6 +305,20 @@ class PolygonDomain(BoundingBox):
             if kind == "exit":
                 return rotation
         return None
+
+
+def _runs(indices: list[int], count: int) -> list[tuple[int, ...]]:
+    """The sorted edge `indices` of a loop of `count` edges as runs of consecutive ones (the
+    loop's last edge followed by its first), each in walking order."""
+    chosen = set(indices)
+    firsts = [i for i in indices if (i - 1) % count not in chosen]
+    runs = []
+    for first in firsts:
+        run = [first]
+        while (following := (run[-1] + 1) % count) in chosen and following != first:
+            run.append(following)
+        runs.append(tuple(run))
+    return runs
 
 
 def circle_crossings(domain, starts: np.ndarray, ends: np.ndarray, center: np.ndarray, radius: float,
