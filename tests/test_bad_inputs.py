@@ -113,9 +113,9 @@ SCENARIO_CASES = {
     # one misspelt key, one line (it said too that the key it is close to was missing, or that
     # the load gave neither force nor displacement)
     "a misspelt load key": ("deform", scene(loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]], "forces": [-1.0, 0.5]}]),
-                            [["scene.yaml: loads[0]: unknown key 'forces', expected one of: segment, force, "
-                              "displacement (did you mean 'force'? loads[0] gives neither 'force' nor "
-                              "'displacement')"]]),
+                            [[("scene.yaml: loads[0]: unknown key 'forces', expected one of: segment, force, "
+                               "displacement (did you mean 'force'? loads[0] gives neither 'force' nor "
+                               "'displacement')")]]),
     "a misspelt block": ("deform", {"tissue2" if k == "tissue" else k: v for k, v in scene().items()},
                          [["scene.yaml: scenario: unknown key 'tissue2', expected one of: name, tissue,",
                            "(did you mean 'tissue'? tissue is missing)"]]),
@@ -133,8 +133,8 @@ SCENARIO_CASES = {
                                                        loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]],
                                                                "displacment": [1.0, 0.0]}]),
                                      [["needle: unknown key 'radis'", "needle.radius is missing)"],
-                                      ["loads[0]: unknown key 'displacment'", "(did you mean 'displacement'? "
-                                       "loads[0] gives neither 'force' nor 'displacement')"]]),
+                                      ["loads[0]: unknown key 'displacment'",
+                                       "(did you mean 'displacement'? loads[0] gives neither 'force' nor"]]),
     "entry off the boundary": ("simulate", scene(needle__entry=[5.0, 12.0]),
                                [["scene.yaml: needle.entry: got [5.0, 12.0]", "on the boundary"]]),
     "needle never leaves": ("plan", scene(needle__arc=0.5),
@@ -182,8 +182,8 @@ SCENARIO_CASES = {
     # ran into the first load step (det F = -6e296) and failed there naming no field, exit 1
     "a displacement of 1e300 mm": ("deform", scene(loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]],
                                                            "displacement": [1e300, 0.0]}]),
-                                   [["scene.yaml: loads[0].displacement[0]: got 1e+300, expected a number between "
-                                     "-10000 and 10000 (mm; a larger displacement is a unit mistake)"]]),
+                                   [[("scene.yaml: loads[0].displacement[0]: got 1e+300, expected a number between "
+                                      "-10000 and 10000 (mm; a larger displacement is a unit mistake)")]]),
     **{f"a slab {thickness:g} mm thick": ("deform", scene(tissue__thickness=thickness),
                                           [[f"scene.yaml: tissue.thickness: got {thickness!r}, expected a number "
                                             "between 0.001 and 10000 (mm; a thinner or thicker slab is a unit "
@@ -198,14 +198,14 @@ SCENARIO_CASES = {
     # lengths and points of a scene: the geometry overflowed at 1e300 mm (a traceback), coincided
     # at 1e-20 mm (NaN in the message of another field) and moved points 40 mm "onto" a 1e8 mm edge
     "a needle radius of 1e300 mm": ("simulate", scene(needle__radius=1e300),
-                                    [["scene.yaml: needle.radius: got 1e+300, expected a number between 0.05 and "
-                                      "1000 (mm; a suture needle's radius is about 1-40 mm"]]),
+                                    [[("scene.yaml: needle.radius: got 1e+300, expected a number between 0.05 and "
+                                       "1000 (mm; a suture needle's radius is about 1-40 mm")]]),
     # refused before only by the spacing check ("refine it"), and run to 0 steps without it
     **{f"a needle radius of {radius:g} mm": ("simulate", scene(needle__radius=radius),
-                                             [[f"scene.yaml: needle.radius: got {radius!r}, expected a number between "
-                                               "0.05 and 1000 (mm; a suture needle's radius is about 1-40 mm: a "
-                                               "smaller or larger one is a unit mistake, such as metres written for "
-                                               "mm)"]])
+                                             [[(f"scene.yaml: needle.radius: got {radius!r}, expected a number "
+                                                "between 0.05 and 1000 (mm; a suture needle's radius is about 1-40 "
+                                                "mm: a smaller or larger one is a unit mistake, such as metres "
+                                                "written for mm)")]])
        for radius in (1e-300, 0.00888)},
     **{f"a tissue {width:g} mm wide": ("deform", scene(tissue__size=[width, 20.0]),
                                        [[f"scene.yaml: tissue.size[0]: got {width!r}, expected a positive number of "

@@ -69,8 +69,8 @@ def test_from_calibration_gives_the_moduli_spread_and_the_file_overrides_it(tmp_
 BAD_FILES = [
     ({"samples": 1}, "u.yaml: samples: got 1, expected an integer between 3 and 10000"),
     # accepted before, while the robust plan it asked for could only ever be the nominal one
-    ({"samples": 2}, "u.yaml: samples: got 2, expected an integer between 3 and 10000 (training runs, and as many "
-                     "held out; the robust plan's test of the mean exit shift needs at least 3)"),
+    ({"samples": 2}, ("u.yaml: samples: got 2, expected an integer between 3 and 10000 (training runs, and as many "
+                      "held out; the robust plan's test of the mean exit shift needs at least 3)")),
     ({"parameters": {"thicknes": {"std": 1.0}}}, "unknown key 'thicknes'"),
     ({"parameters": {"thickness": {"std": 0.0}}}, "parameters.thickness.std: got 0.0, expected a positive number"),
     ({"correlation": [{"between": ["lame_mu", "thickness"], "value": 1.0}]},

@@ -18,9 +18,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from stitchplan.calibration import load_material_calibration
 from stitchplan.cli import app
 from stitchplan.config import ScenarioError, load_scenario, read_yaml
-from stitchplan.calibration import load_material_calibration
 from stitchplan.config.uncertainty import load_uncertainty
 
 # a 40 x 20 mm slab with a needle and a force on the left edge: every field below is valid
