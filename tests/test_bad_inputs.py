@@ -362,17 +362,17 @@ def center_rows(count: int, shift=(0.0, 0.0), first=(0.0, 3.12)) -> str:
 
 PATH_CASES = {
     "nan": ("step,center_x_mm,center_y_mm\n0,0,3.12\n1,nan,3.12\n",
-            [["path.csv: row 3, center_x_mm: got 'nan', expected a finite number"]]),
+            [["path.csv: line 3, center_x_mm: got 'nan', expected a finite number"]]),
     "wrong columns": ("step,x,y\n0,0,3.12\n", [["path.csv: columns ['step', 'x', 'y'] lack"]]),
     "steps not 0, 1, 2": ("step,center_x_mm,center_y_mm\n1,0,3.12\n2,0,3.12\n",
-                          [["path.csv: row 2, step: got 1, expected 0"]]),
+                          [["path.csv: line 2, step: got 1, expected 0"]]),
     "200 rows for a 10-step run": (center_rows(200), [["path.csv: rows: got 200, expected 8 to 14"]]),
     "too few rows": (center_rows(3), [["path.csv: rows: got 3, expected 8 to 14"]]),
     "centres 500 mm away": (center_rows(11, shift=(500.0, 0.0)),
-                            [["path.csv: row 3, center_x_mm, center_y_mm: got [500, 3.12]",
+                            [["path.csv: line 3, center_x_mm, center_y_mm: got [500, 3.12]",
                               "from the entry centre [0, 3.12]; expected at most 3 needle radii"]]),
     "row 0 not at the entry centre": (center_rows(11, first=(1.0, 3.12)),
-                                      [["path.csv: row 2, center_x_mm, center_y_mm: got [1, 3.12]",
+                                      [["path.csv: line 2, center_x_mm, center_y_mm: got [1, 3.12]",
                                         "expected the needle centre at entry [0, 3.12]"]]),
     "binary": (b"\x00\xff\xfe\x89", [["path.csv: not a text file"]]),
 }

@@ -330,7 +330,7 @@ def test_needle_refuses_missing_file(tmp_path):
     out = tmp_path / "needle.yaml"
     result = run("calibrate", "needle", "--air", tmp_path / "nope.csv", "--tissue", tissue,
                  "--radius", RADIUS, "--out", out)
-    assert_refused(result, out, "--air", "nope.csv", "file not found")
+    assert_refused(result, out, "--air", "nope.csv", "cannot be read (No such file or directory)")
 
 
 def _mutate_markers_missing(folder, data):
@@ -363,11 +363,12 @@ def _mutate_bad_model(folder, data):
 
 BAD_CALIBRATIONS = {
     "missing markers file": (_mutate_markers_missing, ["experiments[0].markers", "missing.csv",
-                                                       "file not found"]),
+                                                       "cannot be read (No such file or directory)"]),
     "unknown key": (_mutate_unknown_key, ["fit", "unknown key 'grdi'", "expected one of"]),
     "marker columns": (_mutate_marker_columns, ["experiments[0].markers", "'x,y,xd,yd'",
                                                 "'x,y,x_def,y_def'"]),
-    "marker outside": (_mutate_marker_outside, ["line 3", "(120, 10)", "inside [0, 100] x [0, 60]"]),
+    "marker outside": (_mutate_marker_outside, ["line 3, x, y: got the rest position [120, 10] mm",
+                                                "inside [0, 100] x [0, 60]"]),
     "material given": (_mutate_material_given, ["tissue.material", "fit.model"]),
     "range reversed": (_mutate_bad_range, ["fit.lame_mu", "[2.0, 0.01]", "low < high"]),
     "unknown model": (_mutate_bad_model, ["fit.model", "'mooney-rivlin'", "neo-hookean"]),

@@ -47,6 +47,17 @@ def marker_calibration(folder, rows: str, fit: dict | None = None):
 MOVED = "10,10,10.5,10.2\n50,30,50.3,30.1\n"
 
 
+def test_a_marker_column_named_twice_is_refused_as_named_twice(tmp_path):
+    """As a --center-path's: the header said only that it was not x,y,x_def,y_def."""
+    path = marker_calibration(tmp_path, MOVED)
+    (tmp_path / "markers0.csv").write_text("x,x,x_def,y_def\n" + MOVED)
+    with pytest.raises(InputError) as error:
+        calibration.load_material_calibration(path)
+    markers = tmp_path / "markers0.csv"
+    assert error.value.lines == [(f"{path}: experiments[0].markers: {markers}: line 1, column 2: got 'x' again, "
+                                  "expected each column once (the header lacks y)")]
+
+
 # --- markers that did not move ----------------------------------------------------------
 
 

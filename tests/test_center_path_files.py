@@ -86,7 +86,7 @@ def test_comment_and_blank_lines_are_skipped_and_rows_keep_their_line_numbers(tm
     np.testing.assert_array_equal(read_center_path(path, geometry)[1], [float(rows[1][2]), float(rows[1][3])])
     lines[7] = ",".join([rows[2][0], "nan", *rows[2][2:]])  # step 2's angle, on line 8 of the file
     path.write_text("\n".join(lines) + "\n")
-    assert refusal(path, geometry) == f"{path}: row 8, angle_rad: got 'nan', expected a finite number"
+    assert refusal(path, geometry) == f"{path}: line 8, angle_rad: got 'nan', expected a finite number"
 
 
 def test_centres_off_the_needle_are_named_by_their_line(tmp_path, geometry):
@@ -94,12 +94,12 @@ def test_centres_off_the_needle_are_named_by_their_line(tmp_path, geometry):
     rows = trajectory_rows(geometry)
     rows[0][2] = "1"
     path = write_rows(tmp_path, rows, "# off the entry\n" + HEADER)
-    assert refusal(path, geometry).startswith(f"{path}: row 3, center_x_mm, center_y_mm: got [1, 10], "
+    assert refusal(path, geometry).startswith(f"{path}: line 3, center_x_mm, center_y_mm: got [1, 10], "
                                               "expected the needle centre at entry [0, 10]")
     rows = trajectory_rows(geometry)
     rows[4][2] = "500"
     path = write_rows(tmp_path, rows, "# far away\n" + HEADER)
-    assert refusal(path, geometry).startswith(f"{path}: row 7, center_x_mm, center_y_mm: got [500, ")
+    assert refusal(path, geometry).startswith(f"{path}: line 7, center_x_mm, center_y_mm: got [500, ")
 
 
 def test_a_path_of_centres_only_follows_the_scenarios_schedule(tmp_path, geometry):
@@ -116,13 +116,13 @@ def test_a_path_for_another_needle_step_is_refused(tmp_path, geometry):
     """Rows written for 0.1 rad steps replayed with 0.12 rad steps: the first row differs."""
     path = write_rows(tmp_path, trajectory_rows(geometry))
     line = refusal(path, replace(geometry, step=0.12))
-    assert line == f"{path}: row 3, angle_rad: got 0.1, expected 0.12 (step 1 of the needle's 0.12 rad steps)"
+    assert line == f"{path}: line 3, angle_rad: got 0.1, expected 0.12 (step 1 of the needle's 0.12 rad steps)"
 
 
 def test_doubled_angles_are_refused(tmp_path, geometry):
     rows = [[row[0], f"{2 * float(row[1]):.9g}", *row[2:]] for row in trajectory_rows(geometry)]
     line = refusal(write_rows(tmp_path, rows), geometry)
-    assert "row 3, angle_rad: got 0.2, expected 0.1" in line
+    assert "line 3, angle_rad: got 0.2, expected 0.1" in line
 
 
 def test_the_exit_row_carries_the_full_step(tmp_path, geometry):
@@ -132,7 +132,7 @@ def test_the_exit_row_carries_the_full_step(tmp_path, geometry):
     last = len(rows) - 1
     rows[-1][1] = f"{geometry.exit_rotation:.9g}"  # within the last step: not what plan writes
     line = refusal(write_rows(tmp_path, rows), geometry)
-    assert f"row {last + 2}, angle_rad: got {geometry.exit_rotation:.9g}, expected {last * geometry.step:.9g}" in line
+    assert f"line {last + 2}, angle_rad: got {geometry.exit_rotation:.9g}, expected {last * geometry.step:.9g}" in line
 
 
 def test_the_angle_tolerance_covers_the_printed_digits_and_nothing_more(tmp_path, geometry):
@@ -142,17 +142,17 @@ def test_the_angle_tolerance_covers_the_printed_digits_and_nothing_more(tmp_path
     rows = trajectory_rows(needle)
     assert read_center_path(write_rows(tmp_path, rows), needle).shape == (needle.expected_steps + 1, 2)
     rows[5][1] = f"{5 * needle.step + 10 * ANGLE_TOLERANCE:.12g}"
-    assert "row 7, angle_rad" in refusal(write_rows(tmp_path, rows), needle)
+    assert "line 7, angle_rad" in refusal(write_rows(tmp_path, rows), needle)
 
 
 # --- steps, numbers, row lengths ------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("edit,message", [
-    (lambda rows: rows[:5] + rows[6:], "row 7, step: got 6, expected 5 (one row per needle step"),  # a gap
-    (lambda rows: rows[:6] + rows[5:], "row 8, step: got 5, expected 6"),  # a repeated row
+    (lambda rows: rows[:5] + rows[6:], "line 7, step: got 6, expected 5 (one row per needle step"),  # a gap
+    (lambda rows: rows[:6] + rows[5:], "line 8, step: got 5, expected 6"),  # a repeated row
     (lambda rows: [["1.5", *rows[1][1:]] if k == 1 else row for k, row in enumerate(rows)],
-     "row 3, step: got 1.5, expected 1"),
+     "line 3, step: got 1.5, expected 1"),
 ])
 def test_a_bad_step_sequence_names_its_first_row(tmp_path, geometry, edit, message):
     line = refusal(write_rows(tmp_path, edit(trajectory_rows(geometry))), geometry)
@@ -172,21 +172,28 @@ def test_a_bad_step_sequence_names_its_first_row(tmp_path, geometry, edit, messa
 def test_every_cell_is_a_plain_finite_number(tmp_path, geometry, column, text, expected):
     rows = trajectory_rows(geometry)
     rows[3][column] = text
-    assert refusal(write_rows(tmp_path, rows), geometry) == f"{tmp_path / 'path.csv'}: row 5, {expected}"
+    assert refusal(write_rows(tmp_path, rows), geometry) == f"{tmp_path / 'path.csv'}: line 5, {expected}"
 
 
 def test_rows_of_another_length_than_the_header_are_refused(tmp_path, geometry):
     rows = trajectory_rows(geometry)
     path = write_rows(tmp_path, rows[:4] + [rows[4] + ["1"]] + rows[5:])
-    assert refusal(path, geometry) == f"{path}: row 6: got 7 cells, expected 6 as in the header ({HEADER})"
+    assert refusal(path, geometry) == f"{path}: line 6: got 7 cells, expected 6 as in the header ({HEADER})"
     path = write_rows(tmp_path, rows[:4] + [rows[4][:-1]] + rows[5:])
-    assert refusal(path, geometry) == (f"{path}: row 6, tip_y_mm: missing; got 5 cells, expected 6 as in "
+    assert refusal(path, geometry) == (f"{path}: line 6, tip_y_mm: missing; got 5 cells, expected 6 as in "
                                        f"the header ({HEADER})")
 
 
 def test_a_column_named_twice_is_refused(tmp_path, geometry):
     path = write_rows(tmp_path, [row + [row[2]] for row in trajectory_rows(geometry)], HEADER + ",center_x_mm")
-    assert refusal(path, geometry) == f"{path}: row 1, column 7: got 'center_x_mm' again, expected each column once"
+    assert refusal(path, geometry) == f"{path}: line 1, column 7: got 'center_x_mm' again, expected each column once"
+
+
+def test_a_column_named_twice_instead_of_a_required_one_is_refused_as_named_twice(tmp_path, geometry):
+    """center_x_mm typed where center_y_mm belongs: said only that center_y_mm was missing."""
+    path = write_rows(tmp_path, trajectory_rows(geometry), HEADER.replace("center_y_mm", "center_x_mm"))
+    assert refusal(path, geometry) == (f"{path}: line 1, column 4: got 'center_x_mm' again, expected each column "
+                                       "once (the header lacks center_y_mm)")
 
 
 def test_parse_number_takes_plain_decimals_only():
@@ -275,7 +282,7 @@ def test_plan_exports_what_simulate_replays_and_refuses_it_for_another_step(tmp_
     other.write_text(SCENE.read_text().replace("step: 0.1\n", "step: 0.12\n"))
     result = runner.invoke(app, ["simulate", str(other), "--no-estimate", "--center-path", str(trajectory),
                                  "--summary", str(tmp_path / "summary.json")])
-    assert one_error_line(result) == (f"error: {trajectory}: row 3, angle_rad: got 0.1, expected 0.12 "
+    assert one_error_line(result) == (f"error: {trajectory}: line 3, angle_rad: got 0.1, expected 0.12 "
                                       f"(step 1 of the needle's 0.12 rad steps)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["step012.yaml", "trajectory.csv"]
 

@@ -92,8 +92,11 @@ def test_yaml_and_marker_problems_come_together_naming_the_file(tmp_path):
         load_material_calibration(path)
     assert len(error.value.lines) == 2
     assert all(line.startswith(f"{path}: experiments[") for line in error.value.lines)
-    assert "line 3: got rest position (120, 10) mm, expected a point inside" in error.value.lines[0]
-    assert "absent.csv: file not found" in error.value.lines[1]
+    # worded as the other CSV readers' lines: `file: line N, column: got ...`, a missing file
+    # as a missing scenario
+    assert "markers.csv: line 3, x, y: got the rest position [120, 10] mm, expected a point inside" \
+        in error.value.lines[0]
+    assert error.value.lines[1].endswith("absent.csv: cannot be read (No such file or directory)")
 
 
 def test_shipped_calibration_input_validates():
@@ -120,6 +123,6 @@ def test_a_marker_given_twice_is_refused_naming_both_lines(tmp_path):
     (tmp_path / "markers.csv").write_text("x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n10,10,10.4,10\n")
     path = tmp_path / "calib.yaml"
     path.write_text(yaml.safe_dump(raw))
-    with pytest.raises(InputError, match=r"experiments\[0\].markers: .*markers.csv line 4: got rest position \(10, 10\) "
-                                         r"mm again \(first at line 2\), expected each marker once"):
+    with pytest.raises(InputError, match=r"experiments\[0\].markers: .*markers.csv: line 4, x, y: got the rest position "
+                                         r"\[10, 10\] mm again \(first at line 2\), expected each marker once"):
         load_material_calibration(path)

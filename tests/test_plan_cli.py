@@ -353,13 +353,13 @@ def test_bad_scenario_for_plan(tmp_path, raw, fragments):
 @pytest.mark.parametrize("text,fragments", [
     ("step,x,y\n0,0,19.12\n", ["path.csv: columns ['step', 'x', 'y'] lack ['center_x_mm', 'center_y_mm']",
                                "expected at least step, center_x_mm, center_y_mm"]),
-    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv: row 2, center_y_mm: got 'abc', expected a number"]),
-    ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0\n", ["path.csv: row 3, center_y_mm: missing"]),
-    ("step,center_x_mm,center_y_mm\n0,inf,9.12\n", ["path.csv: row 2, center_x_mm: got 'inf', expected a finite number"]),
+    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv: line 2, center_y_mm: got 'abc', expected a number"]),
+    ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0\n", ["path.csv: line 3, center_y_mm: missing"]),
+    ("step,center_x_mm,center_y_mm\n0,inf,9.12\n", ["path.csv: line 2, center_x_mm: got 'inf', expected a finite number"]),
     ("", ["path.csv: got an empty file (no header, no rows); expected a header with at least step, center_x_mm, center_y_mm"]),
     ("# only a comment\n\n", ["path.csv: got an empty file"]),
     ("step,center_x_mm,center_y_mm\n", ["path.csv: no rows below the header"]),
-    ("step,center_x_mm,center_y_mm\n1,0,9.12\n2,0,9.12\n", ["path.csv: row 2, step: got 1", "expected 0"]),
+    ("step,center_x_mm,center_y_mm\n1,0,9.12\n2,0,9.12\n", ["path.csv: line 2, step: got 1", "expected 0"]),
     ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0,9.12\n", ["path.csv: rows: got 2, expected",
                                                             "as `stitchplan plan` exports them"]),
 ])

@@ -89,7 +89,7 @@ BAD_FILES = [
     ({"parameters": {"friction": None, "thickness": {"std": 1.0}}},  # `friction:` left blank
      "parameters.friction: got null, expected a mapping {std: ...} giving the parameter's standard deviation"),
     ({"from_calibration": "missing.yaml"}, "from_calibration: "),
-    ({"from_calibration": "."}, ": cannot be read (a folder), expected a `stitchplan calibrate material` output"),
+    ({"from_calibration": "."}, ": cannot be read (Is a directory), expected a `stitchplan calibrate material` output"),
     ({"from_calibration": "fitted_displacement_only.yaml"},
      "fit.standard_uncertainty: got {'lame_lambda': null, 'lame_mu': null}, expected positive standard "
      "uncertainties of lame_lambda and lame_mu (MPa); the calibration did not identify the moduli"),

@@ -92,8 +92,8 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
     if len(outside):
         k = outside[0]
         raise InputError(
-            f"{path}.markers: {markers_path} line {lines[k]}: got rest position "
-            f"({rest[k, 0]:g}, {rest[k, 1]:g}) mm, expected a point inside "
+            f"{path}.markers: {markers_path}: line {lines[k]}, x, y: got the rest position "
+            f"[{rest[k, 0]:g}, {rest[k, 1]:g}] mm, expected a point inside "
             + (f"[0, {tissue.size[0]:g}] x [0, {tissue.size[1]:g}] mm" if tissue.outline is None and not tissue.holes
                else f"the {tissue.domain.describe()}"))
     # a marker given twice would weigh twice in the least squares
@@ -102,8 +102,8 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
     if len(again):
         k = again[0]
         raise InputError(
-            f"{path}.markers: {markers_path} line {lines[k]}: got rest position ({rest[k, 0]:g}, {rest[k, 1]:g}) mm "
-            f"again (first at line {lines[first[inverse.ravel()[k]]]}), expected each marker once")
+            f"{path}.markers: {markers_path}: line {lines[k]}, x, y: got the rest position [{rest[k, 0]:g}, "
+            f"{rest[k, 1]:g}] mm again (first at line {lines[first[inverse.ravel()[k]]]}), expected each marker once")
     deformed = np.stack([data["x_def"], data["y_def"]], axis=1)
     check_displacements(rest, deformed, lines, max(tissue.bounding_size), f"{path}.markers: {markers_path}")
     return Experiment(

@@ -35,8 +35,6 @@ def read_columns(path: str | Path, columns: tuple[str, ...],
         with open(path, newline="", encoding="utf-8-sig") as handle:
             lines = [(number, line) for number, line in enumerate(handle, start=1)
                      if line.strip() and not line.lstrip().startswith("#")]
-    except FileNotFoundError:
-        raise InputError(f"{where}: file not found") from None
     except (OSError, UnicodeDecodeError) as error:
         reason = getattr(error, "strerror", None) or type(error).__name__
         raise InputError(f"{where}: cannot be read ({reason})") from None
@@ -44,6 +42,12 @@ def read_columns(path: str | Path, columns: tuple[str, ...],
         raise InputError(f"{where}: empty, expected a header {','.join(columns)} and data rows")
     rows = list(csv.reader(line for _, line in lines))
     header = [name.strip() for name in rows[0]]
+    again = [k for k, name in enumerate(header) if name in header[:k]]
+    if again:  # perhaps the column missing, misnamed
+        k, lacking = again[0], [name for name in columns if name not in header]
+        lacks = f" (the header lacks {', '.join(lacking)})" if lacking else ""
+        raise InputError(f"{where}: line {lines[0][0]}, column {k + 1}: got {header[k]!r} again, expected each "
+                         f"column once{lacks}")
     if sorted(header) != sorted(columns):
         raise InputError(f"{where}: columns: got {','.join(header)!r}, expected the columns "
                          f"{','.join(columns)!r} (in any order, no others)")

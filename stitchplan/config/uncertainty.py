@@ -213,7 +213,7 @@ def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float
     """lame_lambda and lame_mu std and their correlation from a `calibrate material` output."""
     where = f"{source}: from_calibration: {calibration}"
     if not calibration.is_file():
-        what = "a folder" if calibration.is_dir() else "no such file"
+        what = "Is a directory" if calibration.is_dir() else "No such file or directory"  # as the OS says it
         raise input_error([f"{where}: cannot be read ({what}), expected a `stitchplan calibrate "
                            "material` output (path relative to the uncertainty file)"])
     try:

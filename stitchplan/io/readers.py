@@ -1,10 +1,10 @@
 """Readers of the files a user gives besides the scenario: CSV tables with named columns.
 
-Every problem is an InputError with one line naming the file and, for a bad value, the row
-and the column. Rows are counted as a spreadsheet shows them: the line number in the file,
-so with the header on the first line the first values are row 2. As in the calibration
-recordings, blank lines and lines starting with '#' are skipped (a file may carry a comment
-header).
+Every problem is an InputError with one line naming the file and, for a bad value, the line
+and the column (`file: line 5, center_x_mm: got ...`, as the calibration inputs' errors): the
+line number in the file, the row a spreadsheet shows, so with the header on the first line the
+first values are on line 2. As in the calibration recordings, blank lines and lines starting
+with '#' are skipped (a file may carry a comment header).
 """
 
 from __future__ import annotations
@@ -45,10 +45,10 @@ def read_table(path: str | Path, required: Sequence[str], expected: str) -> tupl
                          f"{', '.join(required)} ({expected})")
     header = [name.strip() for name in rows[0][1]]
     missing = [name for name in required if name not in header]
+    _check_header(path, rows[0][0], header, missing)  # a column given twice first: it may be the one missing
     if missing:
         raise InputError(f"{path}: columns {header} lack {missing}; expected at least "
                          f"{', '.join(required)} ({expected})")
-    _check_header(path, rows[0][0], header)
     if len(rows) < 2:
         raise InputError(f"{path}: no rows below the header; expected {expected}")
     values = np.array([_row_values(path, number, row, header) for number, row in rows[1:]])  # (rows, columns)
@@ -56,24 +56,26 @@ def read_table(path: str | Path, required: Sequence[str], expected: str) -> tupl
     return {name: values[:, k] for k, name in enumerate(header)}, row_numbers
 
 
-def _check_header(path: Path, line: int, header: list[str]) -> None:
-    """Every column named, and named once: a value must not depend on which one is read."""
+def _check_header(path: Path, line: int, header: list[str], missing: list[str]) -> None:
+    """Every column named, and named once: a value must not depend on which one is read
+    (`missing`: required columns the header lacks, told with a column given twice)."""
     for k, name in enumerate(header):
         if not name:
-            raise InputError(f"{path}: row {line}, column {k + 1}: got no name, expected a column name "
+            raise InputError(f"{path}: line {line}, column {k + 1}: got no name, expected a column name "
                              f"(header {','.join(header)})")
         if name in header[:k]:
-            raise InputError(f"{path}: row {line}, column {k + 1}: got {name!r} again, expected each "
-                             f"column once")
+            lacks = f" (the header lacks {', '.join(missing)})" if missing else ""
+            raise InputError(f"{path}: line {line}, column {k + 1}: got {name!r} again, expected each "
+                             f"column once{lacks}")
 
 
 def _row_values(path: Path, line: int, row: list[str], header: list[str]) -> list[float]:
     """A row of as many cells as the header, each a finite number."""
     if len(row) < len(header):
-        raise InputError(f"{path}: row {line}, {header[len(row)]}: missing; got {len(row)} cells, expected "
+        raise InputError(f"{path}: line {line}, {header[len(row)]}: missing; got {len(row)} cells, expected "
                          f"{len(header)} as in the header ({','.join(header)})")
     if len(row) > len(header):
-        raise InputError(f"{path}: row {line}: got {len(row)} cells, expected {len(header)} as in the "
+        raise InputError(f"{path}: line {line}: got {len(row)} cells, expected {len(header)} as in the "
                          f"header ({','.join(header)})")
     return [_number(path, line, name, text) for name, text in zip(header, row)]
 
@@ -81,11 +83,11 @@ def _row_values(path: Path, line: int, row: list[str], header: list[str]) -> lis
 def _number(path: Path, line: int, name: str, text: str) -> float:
     text = text.strip()
     if not text:
-        raise InputError(f"{path}: row {line}, {name}: missing; expected a number")
+        raise InputError(f"{path}: line {line}, {name}: missing; expected a number")
     value = parse_number(text)
     if value is None:
         finite = "a finite number" if spells_a_number(text) else "a number"
-        raise InputError(f"{path}: row {line}, {name}: got {text!r}, expected {finite}")
+        raise InputError(f"{path}: line {line}, {name}: got {text!r}, expected {finite}")
     return value
 
 
@@ -119,7 +121,7 @@ def _check_steps(path: str | Path, steps: np.ndarray, row_numbers: np.ndarray) -
     wrong = np.flatnonzero(steps != np.arange(len(steps)))
     if wrong.size:
         k = wrong[0]
-        raise InputError(f"{path}: row {row_numbers[k]}, step: got {steps[k]:g}, expected {k} (one row per needle "
+        raise InputError(f"{path}: line {row_numbers[k]}, step: got {steps[k]:g}, expected {k} (one row per needle "
                          f"step, numbered 0, 1, 2, ... in order)")
 
 
@@ -138,7 +140,7 @@ def check_angles(path: str | Path, angles: np.ndarray, geometry: NeedleGeometry,
     off = np.flatnonzero(np.abs(angles - expected) > ANGLE_TOLERANCE * np.maximum(1.0, np.abs(expected)))
     if off.size:
         k = off[0]
-        raise InputError(f"{path}: row {row_numbers[k]}, angle_rad: got {angles[k]:.9g}, expected {expected[k]:.9g} "
+        raise InputError(f"{path}: line {row_numbers[k]}, angle_rad: got {angles[k]:.9g}, expected {expected[k]:.9g} "
                          f"(step {k} of the needle's {geometry.step:g} rad steps)")
 
 
@@ -185,7 +187,7 @@ def check_center_path(path: str | Path, centers: np.ndarray, geometry: NeedleGeo
     start = float(np.linalg.norm(centers[0] - entry))
     if start > ENTRY_TOLERANCE * geometry.radius:
         raise InputError(
-            f"{path}: row {row_numbers[0]}, center_x_mm, center_y_mm: got [{centers[0, 0]:.6g}, {centers[0, 1]:.6g}], "
+            f"{path}: line {row_numbers[0]}, center_x_mm, center_y_mm: got [{centers[0, 0]:.6g}, {centers[0, 1]:.6g}], "
             f"expected the needle centre at entry [{entry[0]:.6g}, {entry[1]:.6g}] (step 0), or one "
             f"{geometry.radius:g} mm from the entry point [{geometry.entry[0]:.6g}, {geometry.entry[1]:.6g}] "
             "(the needle leaning at entry)")
@@ -193,7 +195,7 @@ def check_center_path(path: str | Path, centers: np.ndarray, geometry: NeedleGeo
     far = int(np.argmax(distance))
     if distance[far] > MAX_CENTER_MOVE * geometry.radius:
         raise InputError(
-            f"{path}: row {row_numbers[far]}, center_x_mm, center_y_mm: got [{centers[far, 0]:.6g}, "
+            f"{path}: line {row_numbers[far]}, center_x_mm, center_y_mm: got [{centers[far, 0]:.6g}, "
             f"{centers[far, 1]:.6g}], {distance[far]:.4g} mm from the entry centre "
             f"[{entry[0]:.6g}, {entry[1]:.6g}]; expected at most {MAX_CENTER_MOVE:g} needle radii "
             f"({MAX_CENTER_MOVE * geometry.radius:.4g} mm) from it")
