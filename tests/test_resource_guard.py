@@ -582,17 +582,17 @@ def calibrate(folder: Path, radius: str):
                                     "--radius", radius, "--out", str(folder / "needle.yaml")])
 
 
-@pytest.mark.parametrize("radius", ["1e-300", "0.05", "1001", "1e160"])
+@pytest.mark.parametrize("radius", ["1e-300", "0.049", "1001", "1e160"])
 def test_a_needle_radius_outside_the_bounds_is_refused(tmp_path, radius):
     recordings(tmp_path)
     result = calibrate(tmp_path, radius)
     assert result.exit_code == 2, result.output
     (line,) = result.stderr.splitlines()
-    assert line.startswith(f"error: --radius: got {float(radius)!r}, expected a positive number (mm) from 0.1 to 1000")
+    assert line.startswith(f"error: --radius: got {float(radius)!r}, expected a positive number (mm) from 0.05 to 1000")
     assert not (tmp_path / "needle.yaml").exists()
 
 
-@pytest.mark.parametrize("radius", ["0.1", "8.88", "1000"])
+@pytest.mark.parametrize("radius", ["0.05", "8.88", "1000"])
 def test_a_needle_radius_at_the_bounds_fits_finite_values(tmp_path, radius):
     recordings(tmp_path)
     result = calibrate(tmp_path, radius)

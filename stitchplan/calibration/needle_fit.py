@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config.blocks import NEEDLE_RADIUS_RANGE_MM
 from ..errors import InputError, NumericalFailure
 from .tables import read_columns
 
@@ -32,13 +33,11 @@ MIN_R_SQUARED = 0.9  # below this the corrected force is not a line in the inser
 # larger value is a unit slip (mN recorded as N) or a corrupt file, and a fit to it would
 # only overflow.
 MAX_FORCE_N = 100.0
-# needle radius bounds (mm). Suture needles measure about 1 to 40 mm in radius (the thesis's
-# SH 1/2: 8.88 mm; the shipped scenes: 6 to 20 mm); a tenth of a millimetre and a metre leave
-# room for odd needles and models, while a value outside is a unit slip (m or micrometres
-# given as mm). Within them the inserted lengths radius x angle stay within a few decades of
-# 1 mm, so the line's least-squares system [1, length] is far from singular in double precision.
-MIN_RADIUS_MM = 0.1
-MAX_RADIUS_MM = 1000.0
+# needle radius bounds (mm): a scenario's (config.blocks, NEEDLE_RADIUS_RANGE_MM), outside which
+# a value is a unit slip (m or micrometres given as mm). Within them the inserted lengths
+# radius x angle stay within a few decades of 1 mm, so the line's least-squares system
+# [1, length] is far from singular in double precision.
+MIN_RADIUS_MM, MAX_RADIUS_MM = NEEDLE_RADIUS_RANGE_MM
 
 
 @dataclass

@@ -55,9 +55,9 @@ def calibrate_needle(
     air: Path = typer.Option(..., "--air", help="CSV angle_rad,force_N: needle rotated in air."),
     tissue: Path = typer.Option(..., "--tissue", help="CSV angle_rad,force_N: needle rotated into "
                                 "the tissue, angle from the moment the tip touches it."),
-    # the bounds are calibration.needle_fit's MIN_RADIUS_MM and MAX_RADIUS_MM (not imported:
-    # numpy would slow --help down)
-    radius: float = typer.Option(..., "--radius", help="Needle radius, mm (0.1 to 1000)."),
+    # the bounds are config.blocks' NEEDLE_RADIUS_RANGE_MM, a scenario's (not imported: pydantic
+    # and numpy would slow --help down)
+    radius: float = typer.Option(..., "--radius", help="Needle radius, mm (0.05 to 1000)."),
     out: Path = typer.Option(..., "--out", help="YAML with friction, cutting_force and diagnostics."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="PNG of the recordings and the fit."),
     verbose: int = VerboseOption,
