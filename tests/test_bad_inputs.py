@@ -283,7 +283,7 @@ def test_points_typed_on_a_slanted_edge_run_from_the_boundary(tmp_path):
     result = invoke(tmp_path, "deform", "scene.yaml", *OUTPUTS["deform"])
     assert result.exit_code == 0, result.output
     assert [line for line in result.stderr.splitlines() if "off the boundary" in line] == [
-        "warning: probes[0]: [40.0004, 10.0] lies 0.0004 mm off the boundary of "
+        f"warning: {tmp_path / 'scene.yaml'}: probes[0]: [40.0004, 10.0] lies 0.0004 mm off the boundary of "
         "the polygon tissue (4 vertices); the run uses [40, 10] on it (more than the rounding of the digits given)"]
     probes = np.loadtxt(tmp_path / "probes.csv", delimiter=",", skiprows=1)
     assert probes[0, :2].tolist() == [40.0, 10.0]

@@ -44,11 +44,13 @@ def test_segment_ends_moved_onto_the_boundary_are_logged_by_their_fields(caplog)
     raw = calibration_raw()
     raw["tissue"]["clamped"] = [{"segment": [[100.0004, 10.0], [100.0, 50.0]]}]
     raw["experiments"][0]["loads"][0]["segment"] = [[0.0, 24.0], [0.0002, 36.0]]
-    parse_calibration(raw)
+    parse_calibration(raw, "calibration.yaml")  # named as the file's errors name it
     records = [(r.levelname, r.getMessage()) for r in caplog.records]
     assert [(level, message.split(": [")[0]) for level, message in records] == [
-        ("WARNING", "tissue.clamped[0].segment[0]"), ("WARNING", "experiments[0].loads[0].segment[1]")]
-    assert records[1][1].startswith("experiments[0].loads[0].segment[1]: [0.0002, 36.0] lies 0.0002 mm off the "
+        ("WARNING", "calibration.yaml: tissue.clamped[0].segment[0]"),
+        ("WARNING", "calibration.yaml: experiments[0].loads[0].segment[1]")]
+    assert records[1][1].startswith("calibration.yaml: experiments[0].loads[0].segment[1]: [0.0002, 36.0] lies "
+                                    "0.0002 mm off the "
                                     "boundary of the ")
 
 

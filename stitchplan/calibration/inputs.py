@@ -141,7 +141,7 @@ def check_displacements(rest: np.ndarray, deformed: np.ndarray, lines: np.ndarra
 def parse_material_calibration(raw: Any, folder: Path, source: str = "") -> MaterialCalibration:
     """The calibration of a file's data (stitchplan.config.calibration validates it; every
     problem of the file and of its marker files is reported at once)."""
-    spec: CalibrationFile = parse_calibration(raw)
+    spec: CalibrationFile = parse_calibration(raw, source)
     fit = fit_settings(spec.fit)
     tissue = spec.tissue.tissue(Material(fit.model, *_start_point(fit)))
     experiments, problems = [], []

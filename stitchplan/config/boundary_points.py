@@ -161,8 +161,9 @@ def segment_ends(raw: Any, path: tuple, items) -> list[tuple[str, Any, Any]]:
             for i, item in enumerate(items) for k, end in enumerate(getattr(item, "segment", ()))]
 
 
-def log_moves(domain: Rectangle | PolygonDomain, moves: list[tuple[str, Any, Any]]) -> None:
-    """One log line per point (field, as given, as used) moved by more than round-off."""
+def log_moves(domain: Rectangle | PolygonDomain, moves: list[tuple[str, Any, Any]], source: str = "") -> None:
+    """One log line per point (field, as given, as used) moved by more than round-off, naming
+    the file `source` when given, as the file's errors do."""
     for field, given, used in moves:
         try:
             given_xy = np.asarray([float(value) for value in given])
@@ -177,6 +178,7 @@ def log_moves(domain: Rectangle | PolygonDomain, moves: list[tuple[str, Any, Any
             continue
         rounding = all(m <= _rounding(value) * (1 + 1e-9) for m, value in zip(moved, given))
         log.log(logging.INFO if rounding else logging.WARNING,
-                "%s: %s lies %.3g mm off the boundary of the %s; the run uses %s on it%s", field,
+                "%s%s: %s lies %.3g mm off the boundary of the %s; the run uses %s on it%s",
+                f"{source}: " if source else "", field,
                 "[" + ", ".join(map(repr, given)) + "]", distance, domain.describe(), shown_point(used_xy),
                 "" if rounding else " (more than the rounding of the digits given)")

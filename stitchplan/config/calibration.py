@@ -203,9 +203,10 @@ class CalibrationFile:
     solver: described(Solver | None, "Newton settings") = None
 
 
-def parse_calibration(raw: Any) -> CalibrationFile:
+def parse_calibration(raw: Any, source: str = "") -> CalibrationFile:
     """The validated calibration file; an InputError lists every problem of it. Without a
-    spacing the discretization gets a twentieth of the smaller side."""
+    spacing the discretization gets a twentieth of the smaller side. `source`: its path, for
+    its warnings."""
     context: dict[str, Any] = {"domain": None}
     if isinstance(raw, dict):
         tissue = raw.get("tissue")
@@ -227,5 +228,5 @@ def parse_calibration(raw: Any) -> CalibrationFile:
     for j, experiment in enumerate(calibration.experiments):
         moves += segment_ends(raw, ("experiments", j, "loads"), experiment.loads)
     if context["domain"] is not None:
-        log_moves(context["domain"], moves)
+        log_moves(context["domain"], moves, source)
     return calibration

@@ -202,9 +202,10 @@ def _with_default_spacing(raw: dict, size: tuple[float, float] | None) -> dict |
     return {**raw, "discretization": values}
 
 
-def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = None) -> Scenario:
+def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = None,
+                   source: str = "") -> Scenario:
     """A scenario from the data of a file (its text and the SHA-256 of its bytes kept for
-    run logs); an InputError lists every problem of it."""
+    run logs; `source`, its path, for its warnings); an InputError lists every problem of it."""
     context: dict[str, Any] = {"domain": None}
     if isinstance(raw, dict):
         domain = shape_domain(raw.get("tissue"))
@@ -220,7 +221,7 @@ def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = 
         scenario_file = validate(ScenarioFile, raw, "", root="scenario", context=context)
     except InputError as error:
         raise input_error(merged_typos([*error.lines, *_shape_lines(raw, error.lines)])) from None
-    log_moves(scenario_file.tissue.domain, moved_points(raw, scenario_file))
+    log_moves(scenario_file.tissue.domain, moved_points(raw, scenario_file), source)
     return scenario_file.scenario(source_text, source_sha256)
 
 
@@ -255,7 +256,7 @@ def moved_points(raw: Any, scenario_file: ScenarioFile) -> list[tuple[str, Any, 
 def load_scenario(path: str | Path) -> Scenario:
     """The scenario of a YAML file; every error line starts with the file's path."""
     file = read_yaml_file(path, keys_later=True)  # read once: the checksum is of the bytes parsed
-    return with_key_problems(file, path, lambda data: parse_scenario(data, file.text, file.sha256))
+    return with_key_problems(file, path, lambda data: parse_scenario(data, file.text, file.sha256, str(path)))
 
 
 def require_loads(scenario: Scenario, source: str | Path) -> None:
