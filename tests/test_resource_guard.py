@@ -656,6 +656,56 @@ def test_minres_needle_steps_are_estimated_at_their_measured_cost():
     assert estimate(slab, "deform", linear_solver="minres").seconds == estimate(slab, "deform").seconds
 
 
+def test_condition_numbers_are_estimated_at_their_measured_cost():
+    """simulate --condition-numbers takes each step's dense eigenvalues: 0.59 s a step on the
+    642 particles of SH 1/2 and 6.1 s on 1379, 115 and 437 MB more at the peak
+    (benchmarks/results/condition_costs.md), where the guard estimated the run without them at
+    0.37 s in all. Its estimate now adds 0.7-1.3x the measured time and bounds the memory from
+    above; the estimate replay (no condition numbers) and deform are left alone."""
+    scenario = load_scenario(REPOSITORY / "configs" / "sh12_100x100.yaml")
+    for spacing, per_step, added in ((7.104, 0.589, 115e6), (4.5, 6.15, 437e6)):
+        model = with_discretization(scenario, spacing=spacing)
+        plain = estimate(model, "insertion", "simulate")
+        dense = estimate(model, "insertion", "simulate", condition_numbers=True)
+        assert 0.7 < (dense.seconds - plain.seconds) / (per_step * dense.steps) < 1.3
+        assert added < dense.memory_bytes - plain.memory_bytes < 1.5 * added
+    slab = load_scenario(REPOSITORY / "configs" / "slab_edge_load.yaml")
+    assert estimate(slab, "deform", condition_numbers=True) == estimate(slab, "deform")
+
+
+def test_condition_numbers_taking_too_long_are_refused_naming_the_option(tmp_path, monkeypatch):
+    """The reproducer: --spacing 3.55 on SH 1/2 (2104 particles) was estimated at ~1.3 s and
+    took ~25 s a needle step with --condition-numbers; refused in one line naming the option,
+    what a step takes and the particles that fit, no file written. Without the option, or at
+    the file's own spacing (~25 s in all), it passes the guard."""
+    invoke = guarded(monkeypatch, LARGE_MEMORY, "stitchplan.planning.verification.simulate_with_estimate")
+    config = REPOSITORY / "configs" / "sh12_100x100.yaml"
+    summary = tmp_path / "summary.json"
+    code, (line,), _ = invoke("simulate", config, "--no-estimate", "--condition-numbers", "--spacing", "3.55",
+                              "--summary", summary)
+    assert code == 2
+    assert line.startswith("error: --condition-numbers: got a dense saddle system of 4208 unknowns (2 x 2104 "
+                           "particles) in each of 40 needle steps, expected condition numbers within 10 min (~22 s "
+                           "a step, ~14.9 min in all; estimated simulate: 2104 particles, 40 needle steps, "), line
+    assert line.endswith("leave it out or coarsen --spacing to at most ~1842 particles, or pass "
+                         "--no-resource-check to run it anyway"), line
+    assert not summary.exists()
+    assert past_the_guard(invoke("simulate", config, "--no-estimate", "--spacing", "3.55"))
+    assert past_the_guard(invoke("simulate", config, "--no-estimate", "--condition-numbers"))
+
+
+def test_condition_numbers_past_the_memory_share_name_the_option():
+    """At 5.5 mm on SH 1/2 (972 particles, ~1.5 min of condition numbers) the run fits 500 MB
+    without its dense matrices (~270 MB), not with them: the memory refusal names the option."""
+    model = with_discretization(load_scenario(REPOSITORY / "configs" / "sh12_100x100.yaml"), spacing=5.5)
+    check_resources([estimate(model, "insertion", "simulate")], memory=5e8)
+    line = refusal([estimate(model, "insertion", "simulate", condition_numbers=True)], memory=5e8)
+    assert line.startswith("--condition-numbers: got a dense saddle system of 1944 unknowns, expected a model "
+                           "within 50% of the 500 MB of memory available (~272 MB of dense matrices for the "
+                           "condition numbers of 972 particles; "), line
+    assert line.endswith("leave it out or coarsen the spacing, or pass --no-resource-check to run it anyway"), line
+
+
 # --- shaped tissues: the guard counts the particles the model places --------------------------
 
 

@@ -11,9 +11,11 @@ from .options import estimate_run, guard_runs
 
 
 def guard_simulate(scenario_path: Path, limits, names: dict, scenario, estimate: bool,
-                   linear_solver: Optional[str] = None) -> None:
-    """simulate's run, and with `estimate` its replay at twice the spacing in a helper."""
+                   linear_solver: Optional[str] = None, condition_numbers: bool = False) -> None:
+    """simulate's run (with its dense `condition_numbers`), and with `estimate` its replay at
+    twice the spacing in a helper."""
     guard_runs(scenario_path, limits, ("insertion", scenario, "simulate", 1), names=names, linear_solver=linear_solver,
+               condition_numbers=condition_numbers,
                alongside=[estimate_run(scenario, "exit error estimate", "pass --no-estimate to skip the estimate",
                                        names)] if estimate else [])
 

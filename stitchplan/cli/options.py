@@ -279,7 +279,7 @@ def guard_limits(max_particles: Optional[int], no_resource_check: bool):
 
 def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
                linear_solver: Optional[str] = None, alongside: Optional[list] = None, forked: bool = True,
-               workers: Optional[int] = None) -> None:
+               workers: Optional[int] = None, condition_numbers: bool = False) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.origin.Origin of the run's discretization (default: the file's, with the fields in
@@ -287,21 +287,22 @@ def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] 
     `alongside`: runs of the same form in helper processes at the same time, counted in the
     memory held at once with `runs` (resources.guard.check_resources; None: `runs` do not go on at
     once), in processes `forked` from this one or (False) Dask workers; `workers`: `runs` go
-    on in this many worker processes, none here (check_resources). Lines name the file, or
-    the option."""
+    on in this many worker processes, none here (check_resources); `condition_numbers`: `runs`
+    take each needle step's dense condition numbers (--condition-numbers; not their replays).
+    Lines name the file, or the option."""
     if limits is None:
         return
     from ..resources.costs import estimate
     from ..resources.guard import check_resources
     from ..resources.origin import Origin
 
-    def estimates(given) -> list:
+    def estimates(given, condition: bool = False) -> list:
         return [estimate(scenario, kind, label, count, origin=origin[0] if origin else Origin(names or {}),
-                         linear_solver=linear_solver)
+                         linear_solver=linear_solver, condition_numbers=condition)
                 for kind, scenario, label, count, *origin in given]
 
     with naming_files(scenario_path):
-        check_resources(estimates(runs), limits, alongside=None if alongside is None else estimates(alongside),
+        check_resources(estimates(runs, condition_numbers), limits, alongside=None if alongside is None else estimates(alongside),
                         forked=forked, workers=workers)
 
 

@@ -23,7 +23,11 @@ the guard estimates
   iteration and the factorization grows a little faster than the particles; seconds =
   SECONDS_PER_PARTICLE_STEP x particles^TIME_EXPONENT x steps x (neighbours / 16)^2 x
   (quadrature points per particle / 4) x runs, x MINRES_TIME_FACTOR for needle runs whose
-  steps MINRES solves.
+  steps MINRES solves;
+- with `simulate --condition-numbers`, each needle step's dense condition numbers
+  (condition_costs): CONDITION_SECONDS x (2 x particles / 1000)^3 seconds a step and
+  CONDITION_MATRICES dense (2 x particles)^2 arrays of memory (benchmarks/results/
+  condition_costs.md: 0.6-0.9 s a step on SH 1/2's 642 particles, the run alone 0.2 s).
 
 A shaped tissue (an outline, holes, regions) is not a lattice the spacing alone counts: its
 particles and quadrature points are placed as the model places them (a traced contour's
@@ -61,6 +65,9 @@ them all; nothing raises the memory share: a smaller model is the way under it):
 - MAX_NEIGHBOURS = 400 particles in a kernel support (dilation 10): the RK functions stop
   being local well before (RKPM practice: dilation 1.5-3, 9-36 neighbours), and the
   tangent's cost grows with the square of the neighbours;
+- MAX_CONDITION_SECONDS = 600 s of `--condition-numbers` (a diagnostic of small models: the
+  thesis's figures use 441 particles; at 2104 particles they take ~22 s a step, 15 min over
+  SH 1/2's 40 steps, against ~1 s for the run), refused naming the option;
 - MEMORY_SHARE = 0.5 of the memory the machine has available now, for the runs a command
   has going on at once together (check_resources `alongside`: a plan's passes, its
   verification's replays in a helper process and its replay at twice the spacing; a

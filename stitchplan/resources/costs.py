@@ -23,6 +23,16 @@ TIME_EXPONENT = 1.07  # seconds ~ particles^TIME_EXPONENT
 # fitted on: 3.5-4.6x on SH 1/2 from 324 to 979 particles, 7.4x at 2601 (mortar coupling;
 # benchmarks/results/simulate_speed.md, "Where MINRES stagnates")
 MINRES_TIME_FACTOR = 5.0
+# `simulate --condition-numbers`: each needle step forms the saddle matrix, K0^-1, its Cholesky
+# factor and the preconditioned matrix densely and takes two sets of eigenvalues
+# (needle.saddle_point.condition_numbers), ~unknowns^3 time and ~unknowns^2 memory with
+# unknowns = 2 x particles. From benchmarks/results/condition_costs.md (python
+# benchmarks/condition_costs.py, two runs on a shared machine): 0.27-0.32 s x (unknowns / 1000)^3
+# a step at 972 and 1379 particles, 0.28-0.40 at 642, more below (0.1-0.3 s a step, where the
+# dense part is not yet most of it); at the peak 7.2-8.8 arrays of unknowns^2 floats from 642
+# particles up, 12 at 265 (5 MB above 9, which the tissue's memory model's margin there covers)
+CONDITION_SECONDS = 0.3  # per needle step at 1000 unknowns
+CONDITION_MATRICES = 9.0  # dense (unknowns, unknowns) float arrays alive at once
 MEMORY_PER_PARTICLE = 3.6e4  # bytes per particle at 1 000 particles
 MEMORY_EXPONENT = 1.28
 BASE_MEMORY = 94e6  # bytes: the interpreter with numpy, scipy and stitchplan loaded
@@ -96,6 +106,9 @@ class Estimate:
     # the tissue's field ("tissue.size" or "tissue.outline") when the spacing is the default its
     # size sets (a scenario giving no spacing, and no needle radius setting it: size_default_of)
     size_default: str | None = None
+    # simulate --condition-numbers: seconds and bytes of memory_bytes of its dense condition numbers
+    condition_seconds: float = 0.0
+    condition_memory: float = 0.0
 
     def describe(self) -> str:
         about = "" if self.size.exact else "about "
@@ -181,11 +194,21 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
     return blocks + weights + track + STEP_BYTES_PER_PARTICLE * particles * n
 
 
+def condition_costs(particles: float, steps: float) -> tuple[float, float]:
+    """(seconds, bytes) of a needle run's dense condition numbers over `steps` steps of a model
+    of `particles` (CONDITION_SECONDS, CONDITION_MATRICES); finite up to COUNT_CAP."""
+    unknowns = 2.0 * float(particles)
+    return (CONDITION_SECONDS * (unknowns / 1000.0) ** 3 * float(steps),
+            CONDITION_MATRICES * FLOAT_BYTES * unknowns * unknowns)
+
+
 def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: float = 1.0,
-             origin: Origin | None = None, linear_solver: str | None = None) -> Estimate:
+             origin: Origin | None = None, linear_solver: str | None = None,
+             condition_numbers: bool = False) -> Estimate:
     """The cost of `runs` runs of `kind` ("deform" or "insertion") on the scenario; `origin`:
     what set its discretization, when not (all of) the scenario file's `discretization:`;
-    `linear_solver`: the needle steps' where an option overrides the scenario's."""
+    `linear_solver`: the needle steps' where an option overrides the scenario's;
+    `condition_numbers`: each needle step takes its dense condition numbers (condition_costs)."""
     size = model_size(scenario)
     if kind == "deform":
         steps, step_kind = scenario.load_steps, "load steps"
@@ -196,15 +219,21 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
     seconds = SECONDS_PER_PARTICLE_STEP[kind] * time * steps * runs
     if kind != "deform" and (linear_solver or scenario.needle.linear_solver) == "minres":
         seconds *= MINRES_TIME_FACTOR
+    condition_seconds, condition_memory = (condition_costs(size.particles, steps)
+                                           if condition_numbers and kind != "deform" else (0.0, 0.0))
+    condition_seconds *= runs
+    seconds += condition_seconds
     d, origin = scenario.discretization, origin or Origin()
     graded = needle_zone(scenario) is not None
     radius_default = radius_default_of(scenario, origin)
-    return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory + kept, seconds,
+    return Estimate(label or kind, size, steps, step_kind, runs, BASE_MEMORY + memory + kept + condition_memory,
+                    seconds,
                     d.spacing, None if kind == "deform" else scenario.needle.step, d, origin,
                     grid_count(scenario.tissue.bounding_size, d.spacing) if graded else None,
                     radius_default, tuple(scenario.tissue.bounding_size),
                     None if kind == "deform" else scenario.needle.radius, kept,
-                    None if radius_default is not None else size_default_of(scenario, origin))
+                    None if radius_default is not None else size_default_of(scenario, origin),
+                    condition_seconds, condition_memory)
 
 
 def held_at_once(memory_bytes: list[float], forked: bool = True) -> float:

@@ -9,12 +9,14 @@ from dataclasses import dataclass, replace
 
 from ..config import DEFAULT_NEEDLE_REFINEMENT
 from ..errors import InputError
-from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate, held_at_once,
-                    size_scale)
-from .formatting import amount_text, bytes_text, count_text
+from .costs import (BASE_MEMORY, CONDITION_SECONDS, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE,
+                    Estimate, held_at_once, size_scale)
+from .formatting import amount_text, bytes_text, count_text, duration_text
 from .limits import Limits
 from .machine import ADDRESS_SPACE_RESERVE, address_space_left, available_memory, system_memory
 from .model_size import capped_count
+
+CONDITION_OPTION = "--condition-numbers"
 
 log = logging.getLogger(__package__)  # "stitchplan.resources", the name its records carry
 
@@ -52,6 +54,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     for item in estimates:
         size, what = item.size, f"estimated {item.describe()}"
         too_many_steps = item.needle_step is not None and item.steps > limits.max_needle_steps
+        too_long = item.condition_seconds > limits.max_condition_seconds
         if size.neighbours > limits.max_neighbours:
             most = math.sqrt(limits.max_neighbours) / 2.0
             lines.append(f"{item.origin.name('dilation')}: got {item.discretization.dilation:g}, expected at "
@@ -61,7 +64,8 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             lines.append(_particles_refusal(item, limits.max_particles))
         elif memory is not None and item.memory_bytes > limits.memory_share * memory:
             setting = _memory_setting(item, limits.memory_share * memory)
-            if not (setting.name == "needle.step" and too_many_steps):  # the step limit's line below names it
+            # the step limit's and the condition numbers' lines below name these
+            if not (setting.name == "needle.step" and too_many_steps or setting.name == CONDITION_OPTION and too_long):
                 lines.append(_memory_refusal(item, setting, limits.memory_share, memory))
         coarse = _coarse_refusal(item)
         if coarse is not None:
@@ -70,6 +74,8 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
                          f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
                          "--no-resource-check")
+        if too_long and not too_many_steps:  # fewer steps are the way under both
+            lines.append(_condition_refusal(item, limits.max_condition_seconds))
     together = estimates if workers is None else sorted(estimates, key=lambda item: -item.memory_bytes)[:workers]
     held = [*together, *(alongside or [])]
     here = 0.0 if workers is None else BASE_MEMORY
@@ -143,6 +149,20 @@ def _together_refusal(held: list[Estimate], share: float, memory: float, forked:
             f"memory available{_limited()} when they run at once ({setting.note}estimated ~{bytes_text(total)} "
             f"together: {runs}); "
             f"{setting.advice}, {skip}or {SKIP_GUARD}")
+
+
+def _condition_refusal(item: Estimate, limit: float) -> str:
+    """The line refusing a run whose dense condition numbers (simulate --condition-numbers) take
+    longer than `limit` seconds: what they take a step, and the particles they would fit."""
+    steps = item.steps * item.runs
+    unknowns = count_text(capped_count(2.0 * item.size.particles))
+    fitting = 500.0 * (limit / (CONDITION_SECONDS * steps)) ** (1.0 / 3.0)  # unknowns = 2 x particles
+    return (f"{CONDITION_OPTION}: got a dense saddle system of {unknowns} unknowns (2 x "
+            f"{count_text(item.size.particles)} particles) in each of {count_text(item.steps)} needle steps, expected "
+            f"condition numbers within {duration_text(limit)}{item.origin.derived} (~"
+            f"{duration_text(item.condition_seconds / steps)} a step, ~{duration_text(item.condition_seconds)} in all; "
+            f"estimated {item.describe()}); leave it out or coarsen {item.origin.name('spacing')} to at most "
+            f"~{fitting:.0f} particles, or {SKIP_GUARD}")
 
 
 def _coarse_refusal(item: Estimate) -> str | None:
@@ -220,6 +240,11 @@ def _memory_setting(item: Estimate, budget: float) -> Setting:
     even a standard kernel (dilation 2, 2 x 2 Gauss points per particle) would pass it, else
     the larger of the kernel's two factors, its support (dilation) or its quadrature points."""
     size, d, origin = item.size, item.discretization, item.origin
+    if item.condition_memory and item.memory_bytes - item.condition_memory <= budget:
+        return Setting(CONDITION_OPTION, f"a dense saddle system of {count_text(capped_count(2.0 * size.particles))} unknowns",
+                       "", "leave it out or coarsen the spacing",
+                       f"~{bytes_text(item.condition_memory)} of dense matrices for the condition numbers of "
+                       f"{count_text(size.particles)} particles; ")
     if item.needle_step is not None and item.memory_bytes - item.step_memory <= budget:
         held = min(item.runs, HELD_RUNS)
         both = f", {bytes_text(item.step_memory)} for the {held:g} runs held at once" if held > 1 else ""
