@@ -21,10 +21,12 @@ coupling's own checks).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import re
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -462,6 +464,74 @@ def test_ramp_halves_the_increment_until_newton_converges():
     advance_one(insertion, 1)
     assert tried == [1.0, 0.5, 0.25, 0.75, 1.0]
     assert insertion.coupling.load_factor == 1.0 and insertion.ramp_increments == 2
+
+
+def test_a_long_ramp_reports_its_cuts_and_warns_once(monkeypatch, caplog):
+    """The ramp reports each cut and each increment carried (on_ramp: the progress bar's note),
+    and a step still cutting after LONG_STEP_SECONDS says so once by a warning, which is shown
+    without -v (a 100 mm x 0.5 mm strip's first step cut for minutes with nothing on screen).
+    The limit is patched to 0 here; at its 30 s this step gives no warning."""
+    insertion = started(small_scene())
+    original = NeedleInsertion._newton
+    tried, reported = [], []
+
+    def limited(rotation, step, aim=None):
+        tried.append(insertion.coupling.load_factor)
+        if len(tried) <= 2:
+            raise InsertionFailure("forced")
+        return original(insertion, rotation, step, aim)
+
+    insertion._newton = limited
+    insertion.on_ramp = lambda *state: reported.append(state)
+    monkeypatch.setattr("stitchplan.needle.equilibrium.LONG_STEP_SECONDS", 0.0)
+    with caplog.at_level("WARNING", logger="stitchplan"):
+        advance_one(insertion, 1)
+    assert reported == [(1, 0.0, 0.5), (1, 0.0, 0.25), (1, 0.25, 0.5), (1, 0.75, 1.0)]
+    (record,) = caplog.records
+    assert record.levelname == "WARNING" and record.getMessage().startswith(
+        f"step 1 (needle rotation {insertion.geometry.step:.3f} rad) is still cutting its load after ")
+    assert record.getMessage().endswith("0 % carried, the ramp goes on in increments of 50 % down to 1.56 % "
+                                        "(-v shows each cut)")
+    caplog.clear()
+    monkeypatch.undo()
+    again = started(small_scene())
+    tries = []
+
+    def once(rotation, step, aim=None):
+        tries.append(step)
+        if len(tries) == 1:
+            raise InsertionFailure("forced")
+        return original(again, rotation, step, aim)
+
+    again._newton = once
+    with caplog.at_level("WARNING", logger="stitchplan"):
+        advance_one(again, 1)
+    assert not caplog.records
+
+
+def test_the_progress_bar_notes_a_step_cutting_its_load(monkeypatch):
+    """simulate hands the run an on_ramp that sets the bar's label to the ramp's state, and its
+    step callback puts the label back."""
+    from stitchplan.cli import runs
+    from stitchplan.io import progress
+
+    calls = []
+
+    @contextlib.contextmanager
+    def bar(label, total):
+        yield lambda n=1, description=None: calls.append((n, description))
+
+    def simulated(scenario, **options):
+        options["on_ramp"](4, 0.375, 0.125)
+        options["on_step"](None)
+        return "result", None
+
+    monkeypatch.setattr(progress, "progress_bar", bar)
+    monkeypatch.setattr("stitchplan.planning.verification.simulate_with_estimate", simulated)
+    scenario = small_scene()
+    assert runs.simulate_with_replays(Path("scene.yaml"), scenario, None, None, False, False) == ("result", None)
+    assert calls == [(0, "needle steps (step 4: 38 % of its load carried, increments of 12.5 %)"),
+                     (1, "needle steps")]
 
 
 def test_ramp_refuses_an_unstable_state_and_takes_a_smaller_increment():

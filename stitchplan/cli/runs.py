@@ -53,8 +53,9 @@ def simulate_with_replays(scenario_path: Path, scenario, center_path: Optional[P
           progress.progress_bar("needle steps", scenario_expected_steps(scenario)) as advance):
         return verification.simulate_with_estimate(
             scenario, center_path=path, estimate=estimate, linear_solver=linear_solver,
-            tip_tracking=tip_tracking, condition_numbers=condition_numbers, on_step=lambda record: advance(),
-            replays=replays)
+            tip_tracking=tip_tracking, condition_numbers=condition_numbers,
+            on_step=lambda record: advance(description="needle steps"),
+            on_ramp=_ramp_note(advance, "needle steps"), replays=replays)
 
 
 def plan_with_replays(scenario_path: Path, scenario, compare: bool, verify: bool, out: Optional[Path],
@@ -69,8 +70,17 @@ def plan_with_replays(scenario_path: Path, scenario, compare: bool, verify: bool
                                     **options) as replays,
           verification.prediction_replays(scenario, verify, **options) as predictions,
           progress.progress_bar("planned steps", (2 if compare else 1) * expected) as advance):
-        return verification.plan_verified(scenario, compare=compare, verify=verify, on_step=lambda record: advance(),
-                                          replays=replays, predictions=predictions, **options)
+        return verification.plan_verified(scenario, compare=compare, verify=verify,
+                                          on_step=lambda record: advance(description="planned steps"),
+                                          on_ramp=_ramp_note(advance, "planned steps"), replays=replays,
+                                          predictions=predictions, **options)
+
+
+def _ramp_note(advance, label: str):
+    """run_insertion's on_ramp: the bar's label says how far a step's ramp has carried its
+    load while it cuts it (a step's own label again once the step is done)."""
+    return lambda step, carried, increment: advance(0, description=(
+        f"{label} (step {step}: {100 * carried:.0f} % of its load carried, increments of {100 * increment:.3g} %)"))
 
 
 def put_accuracy_notes_first(events: list, auto_note, accuracy: float | None, estimate) -> None:

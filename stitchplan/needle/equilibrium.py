@@ -43,6 +43,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -67,6 +68,9 @@ log = logging.getLogger(__name__)
 
 CENTER_COLUMNS_ON_ROWS = True  # d(d, lambda)/dC from the kept K^-1 E^T where the coupling allows (_center_columns)
 RAMP_SMALLEST = 1.0 / 64.0  # Algorithm 1's ramp: the smallest load increment tried within a step
+# a step whose ramp is still cutting its load after this long says so by a warning (shown without
+# -v; each cut is logged at INFO): a 0.5 mm thin strip's first step cut for minutes in silence
+LONG_STEP_SECONDS = 30.0
 
 
 class NeedleInsertion:
@@ -112,6 +116,9 @@ class NeedleInsertion:
         self.residual_tolerance = self.newton_tolerances[0]
         self.constraint_tolerance = self.newton_tolerances[1] * self.geometry.radius  # mm
         self.ramp_increments = 0  # load increments beyond the first, over the run
+        # called with (step, load carried, next increment) as the ramp cuts or carries an
+        # increment (run_insertion's on_ramp: a progress bar's note)
+        self.on_ramp: Callable[[int, float, float], None] | None = None
         self._free_rows: dict[tuple[float, ...], np.ndarray] = {}
         # every Newton iteration of every solve (the planner's centre tries and failed ramp
         # increments included), and the solves
@@ -255,6 +262,7 @@ class NeedleInsertion:
             return self._newton(rotation, step, aim)
         increment, newton, minres = 1.0, 0, 0
         carried = step_start = self.snapshot()
+        started, warned = time.perf_counter(), False
         while coupling.load_factor < 1.0:
             start = coupling.load_factor
             coupling.load_factor = min(1.0, start + increment)
@@ -273,11 +281,28 @@ class NeedleInsertion:
                          "the ramp goes on in increments of %.3g %%", step, rotation,
                          100 * min(1.0, start + 2 * increment), 100 * increment)
                 self.ramp_increments += 1
+                warned = self._ramp_progress(step, rotation, start, increment, started, warned)
                 continue
             newton, minres = newton + its, minres + minres_its
             carried = self.snapshot()
             increment = min(1.0, 2.0 * increment)
+            if coupling.load_factor < 1.0:
+                warned = self._ramp_progress(step, rotation, coupling.load_factor, increment, started, warned)
         return newton, minres, worst
+
+    def _ramp_progress(self, step: int, rotation: float, carried: float, increment: float, started: float,
+                       warned: bool) -> bool:
+        """Report the ramp's state (on_ramp), and once a step, past LONG_STEP_SECONDS, a warning
+        line; whether it has been given."""
+        if self.on_ramp is not None:
+            self.on_ramp(step, carried, increment)
+        elapsed = time.perf_counter() - started
+        if warned or elapsed < LONG_STEP_SECONDS:
+            return warned
+        log.warning("step %d (needle rotation %.3f rad) is still cutting its load after %.0f s: %.0f %% carried, "
+                    "the ramp goes on in increments of %.3g %% down to %.3g %% (-v shows each cut)", step, rotation,
+                    elapsed, 100 * carried, 100 * increment, 100 * RAMP_SMALLEST)
+        return True
 
     def _refuse_unstable(self, rotation: float, step: int) -> None:
         """An UnstableEquilibrium where the state Newton reached has a negative least stiffness

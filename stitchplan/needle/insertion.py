@@ -91,6 +91,7 @@ def run_insertion(
     tissue: PreparedTissue | None = None,
     start_from: InsertionResult | StepsDone | None = None,
     take_over_only: bool = False,
+    on_ramp: Callable[[int, float, float], None] | None = None,
 ) -> InsertionResult:
     """Insert the needle step by step until its tip leaves the tissue.
 
@@ -112,13 +113,16 @@ def run_insertion(
     `take_over_only` the earlier run gives only those steps and no Newton starts: a run made
     from no earlier run along centres that agree with `start_from`'s (itself made from none)
     up to some step, which then ends as if made alone, to the last bit; `start_from` may then
-    be the steps a stopped run had done (InsertionStopped).
+    be the steps a stopped run had done (InsertionStopped). `on_ramp` is called with (step,
+    load carried, next increment) as a step's ramp cuts or carries its load
+    (NeedleInsertion.equilibrate).
     """
     if scenario.discretization.accuracy is not None:
         raise InputError("discretization.accuracy: got an accuracy target, expected a discretization "
                          "chosen before the run (stitchplan.study.auto.resolve_accuracy)")
     wall_start = time.perf_counter()
     insertion, control = _needle_at_entry(scenario, control, center_path, linear_solver, tip_tracking, tissue)
+    insertion.on_ramp = on_ramp
     run = _Run(insertion, control, condition_numbers, on_step, start_from, take_over_only, wall_start)
     geometry = insertion.geometry
     limit = math.ceil(2.0 * math.pi / geometry.step) + 2

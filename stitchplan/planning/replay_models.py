@@ -32,9 +32,9 @@ def replay_scenario(scenario: Scenario, verify: bool) -> Scenario:
 
 
 def replay_options(options: dict) -> dict:
-    """run_insertion's options for a replay on another model: not the step callback, nor
-    the dense condition numbers."""
-    return {key: value for key, value in options.items() if key not in ("on_step", "condition_numbers")}
+    """run_insertion's options for a replay on another model: not the step and ramp
+    callbacks, nor the dense condition numbers."""
+    return {key: value for key, value in options.items() if key not in ("on_step", "on_ramp", "condition_numbers")}
 
 
 def aims_at_bites(scenario: Scenario) -> bool:
