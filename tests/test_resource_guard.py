@@ -762,3 +762,57 @@ def test_the_cli_refuses_a_traced_contour_past_max_particles(tmp_path):
     assert len(lines) == 1 and lines[0].startswith(f"error: {path}: discretization.spacing: got 3 mm"), lines
     assert f"at most {count - 1} particles" in lines[0] and f"estimated deform: {count} particles" in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
+# --- an address-space limit (ulimit -v) ------------------------------------------------------
+
+
+def under_address_limit(kilobytes: int, *arguments, cwd: Path = REPOSITORY):
+    """`python -m stitchplan ARGUMENTS` in a process whose address space is limited to
+    `kilobytes` (ulimit -v), as the tester's shell ran it."""
+    import os
+    import resource
+    import subprocess
+    import sys
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (kilobytes * 1024, kilobytes * 1024))
+
+    return subprocess.run([sys.executable, "-m", "stitchplan", *map(str, arguments)], capture_output=True, text=True,
+                          cwd=cwd, preexec_fn=limit, timeout=120, check=False,
+                          env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="Linux: the loader's mmap of the libraries")
+@pytest.mark.parametrize("command", [["simulate", "configs/sh12_100x100.yaml", "--no-estimate"],
+                                     ["study", "configs/sh12_100x100.yaml"]])
+def test_libraries_that_do_not_fit_the_address_space_limit_are_one_error_line(tmp_path, command):
+    """The reproducer: under `ulimit -v 150000` simulate printed a 59-line traceback (an
+    ImportError as scipy's OpenBLAS failed to map) before its guard ran; now one `error:` line
+    names the limit, exit code 2, and no output is written."""
+    summary = tmp_path / "summary.json"
+    options = ["--out", tmp_path / "study"] if command[0] == "study" else ["--summary", summary]
+    done = under_address_limit(150000, *command, *options)
+    assert done.returncode == 2, done.stderr
+    (line,) = done.stderr.splitlines()
+    assert line.startswith("error: the numerical libraries could not be loaded within the process's address-space "
+                           "limit (ulimit -v 150000) of 154 MB ("), line
+    assert line.endswith("raise the limit: their imports alone map ~300 MB of address space")
+    assert sorted(tmp_path.iterdir()) == []
+
+
+def test_a_failed_library_load_without_a_limit_stays_a_bug(monkeypatch):
+    """Without an address-space limit (or for an ImportError of another cause) the error is
+    not the limit's: address_space_failure gives no line, and the traceback stays."""
+    import resource
+
+    from stitchplan.cli.group import address_space_failure
+
+    mapped = ImportError("libscipy_openblas.so: failed to map segment from shared object")
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+    assert address_space_failure(mapped) is None
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (400000 * 1024, resource.RLIM_INFINITY))
+    assert address_space_failure(ImportError("No module named 'scipy'")) is None
+    assert address_space_failure(mapped).startswith("the numerical libraries could not be loaded within the "
+                                                    "process's address-space limit (ulimit -v 400000) of 410 MB")
+    assert address_space_failure(MemoryError()).startswith("out of memory within the process's address-space limit")

@@ -122,9 +122,40 @@ def exit_code(run: Callable[[], Any]) -> int:
         if error is not stdout.failure:
             raise
         return stdout_failure(error)
+    except (ImportError, MemoryError) as error:
+        line = address_space_failure(error)
+        if line is None:  # not the limit's doing: a bug, with its traceback
+            raise
+        _echo_errors([line])
+        return 2
     finally:
         sys.stdout = stdout.stream
     return result if isinstance(result, int) else 0  # click returns typer.Exit's code
+
+
+# what the dynamic loader says when mapping a library fails for want of address space
+_MAP_FAILURES = ("failed to map segment", "cannot allocate memory", "cannot map zero-fill pages")
+
+
+def address_space_failure(error: BaseException) -> str | None:
+    """The `error:` line for a library that could not be loaded (an ImportError from the
+    loader's mmap) or memory that could not be had (MemoryError) under the process's
+    address-space limit (RLIMIT_AS, `ulimit -v`); None without such a limit, or for an
+    ImportError of another cause. Under `ulimit -v 150000` importing scipy's OpenBLAS fails
+    before any guard can run."""
+    import resource
+
+    limit, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if limit == resource.RLIM_INFINITY:
+        return None
+    if isinstance(error, ImportError) and not any(text in str(error).lower() for text in _MAP_FAILURES):
+        return None
+    limit_text = f"the process's address-space limit (ulimit -v {limit // 1024}) of {limit / 1e6:.0f} MB"
+    if isinstance(error, ImportError):
+        # VmSize after simulate's imports: ~290 MB, of which ~80 MB resident
+        return (f"the numerical libraries could not be loaded within {limit_text} ({error}); raise the limit: "
+                "their imports alone map ~300 MB of address space")
+    return f"out of memory within {limit_text}; raise the limit, or make the run smaller"
 
 
 class _HeldStream(io.StringIO):
