@@ -816,3 +816,32 @@ def test_a_failed_library_load_without_a_limit_stays_a_bug(monkeypatch):
     assert address_space_failure(mapped).startswith("the numerical libraries could not be loaded within the "
                                                     "process's address-space limit (ulimit -v 400000) of 410 MB")
     assert address_space_failure(MemoryError()).startswith("out of memory within the process's address-space limit")
+
+
+def test_an_address_space_limit_too_small_for_any_model_names_the_limit():
+    """Under `ulimit -v 400000` simulate said `discretization.spacing: got 7.104 mm, expected a
+    model within 50% of the 0 kB of memory available`: the limit less what the process mapped
+    and a 320 MB reserve, halved, had nothing left, and a field was blamed. The address space a
+    run needs is now estimated apart from the machine's memory (machine.address_space_needed:
+    simulate on SH 1/2 ran under 409 MB at the least, deform on the slab under 448 MB), and where
+    no model would fit the line names the limit and what the run needs; a limit with room for
+    the run passes; one with room for a smaller model names the spacing."""
+    from stitchplan.resources.machine import address_space_needed
+
+    scenario = load_scenario(REPOSITORY / "configs" / "sh12_100x100.yaml")
+    item = estimate(scenario, "insertion", "simulate")
+    needed = address_space_needed(226e6, item.memory_bytes, BASE_MEMORY)
+    assert 409e6 < needed < 1.3 * 409e6  # bounds the least limit it ran under, within 30 %
+    with pytest.raises(InputError) as error:
+        check_resources([item], memory=LARGE_MEMORY, space=(400000 * 1024.0, 226e6))
+    (line,) = error.value.lines
+    assert line.startswith("ulimit -v: got 400000 (the process's address-space limit of 410 MB; 226 MB mapped now), "
+                           f"expected at least ~{needed / 1e6:.3g} MB for this run ("), line
+    assert " 0 kB" not in line and "spacing" not in line
+    check_resources([item], memory=LARGE_MEMORY, space=(needed + 1e6, 226e6))
+    fine = estimate(with_discretization(scenario, spacing=1.0), "insertion", "simulate")
+    with pytest.raises(InputError) as error:
+        check_resources([fine], memory=LARGE_MEMORY, space=(700000 * 1024.0, 226e6))
+    (line,) = error.value.lines
+    assert line.startswith("discretization.spacing: got 1 mm, expected a model within the ~"), line
+    assert "memory the process's address-space limit of 717 MB (ulimit -v 700000) leaves it" in line

@@ -68,6 +68,10 @@ them all; nothing raises the memory share: a smaller model is the way under it):
 - MAX_CONDITION_SECONDS = 600 s of `--condition-numbers` (a diagnostic of small models: the
   thesis's figures use 441 particles; at 2104 particles they take ~22 s a step, 15 min over
   SH 1/2's 40 steps, against ~1 s for the run), refused naming the option;
+- under an address-space limit (ulimit -v), the address space a run of this process maps
+  (machine.address_space_needed: the numerics' imports, the libraries and buffers a run maps
+  besides, 2.3x its arrays); past the limit the refusal names it, or the setting that drives
+  the model where a smaller one would fit;
 - MEMORY_SHARE = 0.5 of the memory the machine has available now, for the runs a command
   has going on at once together (check_resources `alongside`: a plan's passes, its
   verification's replays in a helper process and its replay at twice the spacing; a
@@ -99,6 +103,6 @@ Its modules, each importing only those before it: `limits` (Limits and their def
 `model_size` (ModelSize, model_size: particles, neighbours, quadrature points, steps),
 `origin` (Origin: what set a run's discretization), `formatting` (counts, bytes and
 durations as messages write them), `costs` (Estimate, estimate: time and memory,
-held_at_once), `machine` (available_memory) and `guard` (check_resources, its refusals and
+held_at_once), `machine` (available_memory, address_space_needed) and `guard` (check_resources, its refusals and
 the settings they name).
 """

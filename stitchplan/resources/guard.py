@@ -13,7 +13,7 @@ from .costs import (BASE_MEMORY, CONDITION_SECONDS, HELD_RUNS, REFERENCE_NEIGHBO
                     Estimate, held_at_once, size_scale)
 from .formatting import amount_text, bytes_text, count_text, duration_text
 from .limits import Limits
-from .machine import ADDRESS_SPACE_RESERVE, address_space_left, available_memory, system_memory
+from .machine import ADDRESS_GROWTH, ADDRESS_SPACE_RESERVE, address_space, address_space_needed, available_memory
 from .model_size import capped_count
 
 CONDITION_OPTION = "--condition-numbers"
@@ -31,7 +31,8 @@ SKIP_GUARD = "pass --no-resource-check to run it anyway"
 
 def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                     memory: float | None = None, alongside: list[Estimate] | None = None,
-                    forked: bool = True, workers: int | None = None) -> None:
+                    forked: bool = True, workers: int | None = None,
+                    space: tuple[float, float] | None = None) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
@@ -48,8 +49,12 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     libraries' pages shared), not Dask workers (a whole interpreter each). `workers`: the runs of `estimates` go on in
     this many worker processes, one each at a time and none in this process (a study's on a
     local cluster): the largest `workers` of them are counted together, beside this process's
-    interpreter (BASE_MEMORY)."""
+    interpreter (BASE_MEMORY). `space`: (the address-space limit, what the process maps now)
+    in bytes (default: machine.address_space(), None without a limit): a run of this process
+    that needs more address space than the limit allows (machine.address_space_needed) is
+    refused naming the limit."""
     memory = available_memory() if memory is None else memory
+    space = address_space() if space is None else space
     lines = []
     for item in estimates:
         size, what = item.size, f"estimated {item.describe()}"
@@ -67,6 +72,9 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             # the step limit's and the condition numbers' lines below name these
             if not (setting.name == "needle.step" and too_many_steps or setting.name == CONDITION_OPTION and too_long):
                 lines.append(_memory_refusal(item, setting, limits.memory_share, memory))
+        elif space is not None and workers is None and \
+                address_space_needed(space[1], item.memory_bytes, BASE_MEMORY) > space[0]:
+            lines.append(_address_space_refusal(item, *space))
         coarse = _coarse_refusal(item)
         if coarse is not None:
             lines.append(coarse)
@@ -116,17 +124,29 @@ def _particles_refusal(item: Estimate, limit: int) -> str:
 
 def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: float) -> str:
     return (f"{setting.name}: got {setting.got}, expected a model within {share:.0%} of the {bytes_text(memory)} of "
-            f"memory available{_limited()}{item.origin.derived} ({setting.note}estimated {item.describe()}); "
+            f"memory available{item.origin.derived} ({setting.note}estimated {item.describe()}); "
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
 
 
-def _limited() -> str:
-    """Where the address-space limit sets the memory available, a note saying so (the field a
-    refusal names is what lowers the cost; the limit is what makes it too high)."""
-    room, system = address_space_left(), system_memory()
-    if room is None or (system is not None and room > system):
-        return ""
-    return f" under the address-space limit (ulimit -v; {bytes_text(ADDRESS_SPACE_RESERVE)} of it kept for libraries)"
+def _address_space_refusal(item: Estimate, limit: float, mapped: float) -> str:
+    """The line refusing a run that fits the machine's memory but not the process's address-space
+    limit (a run short of address space crashes or hangs): the setting that drives the model
+    past what the limit leaves, as a memory refusal names it, where a model would fit at all;
+    else the limit itself, what to change."""
+    needed = address_space_needed(mapped, item.memory_bytes, BASE_MEMORY)
+    budget = BASE_MEMORY + (limit - address_space_needed(mapped, BASE_MEMORY, BASE_MEMORY)) / ADDRESS_GROWTH
+    if budget > BASE_MEMORY:
+        setting = _memory_setting(item, budget)
+        return (f"{setting.name}: got {setting.got}, expected a model within the ~{bytes_text(budget)} of memory the "
+                f"process's address-space limit of {bytes_text(limit)} (ulimit -v {limit / 1024:.0f}) leaves it"
+                f"{item.origin.derived} ({setting.note}estimated {item.describe()}); {setting.advice}, raise the "
+                f"limit (ulimit -v {math.ceil(needed / 1024)}), {_skip(item)}or {SKIP_GUARD}")
+    arrays = max(item.memory_bytes - BASE_MEMORY, 0.0)
+    return (f"ulimit -v: got {limit / 1024:.0f} (the process's address-space limit of {bytes_text(limit)}; "
+            f"{bytes_text(mapped)} mapped now), expected at least ~{bytes_text(needed)} for this run{item.origin.derived} "
+            f"({ADDRESS_GROWTH:g} x its ~{bytes_text(arrays)} of arrays, and {bytes_text(ADDRESS_SPACE_RESERVE)} of "
+            f"libraries and buffers beyond the numerics' imports; estimated {item.describe()}); raise the limit "
+            f"(ulimit -v {math.ceil(needed / 1024)}), {_skip(item)}or {SKIP_GUARD}")
 
 
 def _together_refusal(held: list[Estimate], share: float, memory: float, forked: bool = True,
@@ -146,7 +166,7 @@ def _together_refusal(held: list[Estimate], share: float, memory: float, forked:
     skip = "".join(f"{advice}, " for advice in skips)
     runs = "; ".join([item.describe() for item in held] + ([f"this process: {bytes_text(here)}"] if here else []))
     return (f"{setting.name}: got {setting.got}, expected runs within {share:.0%} of the {bytes_text(memory)} of "
-            f"memory available{_limited()} when they run at once ({setting.note}estimated ~{bytes_text(total)} "
+            f"memory available when they run at once ({setting.note}estimated ~{bytes_text(total)} "
             f"together: {runs}); "
             f"{setting.advice}, {skip}or {SKIP_GUARD}")
 

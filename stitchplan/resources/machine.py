@@ -4,26 +4,23 @@ from __future__ import annotations
 
 import os
 
-# What a command maps after the guard beyond its runs' memory, counted against an address-space
-# limit (`ulimit -v`): the libraries its run loads (cvxopt's and SciPy's OpenBLAS, LAPACK, SuperLU),
-# their buffers and the allocator's reservations. VmPeak - VmSize at the guard: 310 MB for
-# `deform configs/slab_edge_load.yaml` (a run estimated 13 MB above BASE_MEMORY), 158-231 MB for
-# simulate and plan on the shipped needle scenes. The address space a run maps grows ~2.3x as fast
-# as its memory (1824 MB for deform at spacing 1 mm, estimated 798 MB), which the memory share's
-# half covers. Past the limit an allocation fails: SuperLU then spun without end (SIGTERM unheard),
-# CHOLMOD crashed.
-ADDRESS_SPACE_RESERVE = 320e6
+# An address-space limit (`ulimit -v`, RLIMIT_AS) counts what a process maps, not what it
+# touches: a run needs max(VmSize now, NUMERICS_MAPPED) + ADDRESS_SPACE_RESERVE + ADDRESS_GROWTH
+# x (its memory estimate - BASE_MEMORY) under it (address_space_needed). Measured as the least
+# `ulimit -v` each command ran under (--no-resource-check; OPENBLAS_NUM_THREADS=1): deform
+# slab_edge_load 448 MB (its run estimated 13 MB above BASE_MEMORY), at spacing 2 614 MB (122 MB);
+# simulate sh12_100x100 409 MB (28 MB), at spacing 3.55 448 MB (117 MB); plan --no-verify 427 MB
+# (37 MB): this model asks 1.04-1.6x of those. Short of it a run failed badly: SuperLU spun at a
+# failed allocation (SIGTERM unheard), CHOLMOD crashed.
+NUMERICS_MAPPED = 255e6  # VmSize once a command has imported the numerics (simulate at its guard)
+ADDRESS_SPACE_RESERVE = 180e6  # what a run maps beyond that besides its arrays: libraries loaded late, buffers
+ADDRESS_GROWTH = 2.3  # address space mapped per byte of a run's memory (deform at spacing 1 mm: 1824 MB for 798)
 
 
 def available_memory() -> float | None:
     """Bytes of memory available now (MemAvailable of /proc/meminfo, else the physical
-    memory), and no more than the process's address-space limit leaves (`ulimit -v`) after
-    ADDRESS_SPACE_RESERVE; None when unknown."""
-    memory = system_memory()
-    room = address_space_left()
-    if room is None:
-        return memory
-    return room if memory is None else min(memory, room)
+    memory); None when unknown. An address-space limit is checked apart (address_space)."""
+    return system_memory()
 
 
 def system_memory() -> float | None:
@@ -40,9 +37,9 @@ def system_memory() -> float | None:
         return None
 
 
-def address_space_left() -> float | None:
-    """Bytes the address-space limit (RLIMIT_AS) leaves above what the process maps now
-    (VmSize) and ADDRESS_SPACE_RESERVE, None without a limit."""
+def address_space() -> tuple[float, float] | None:
+    """(the address-space limit, RLIMIT_AS, and what the process maps now, VmSize), in bytes;
+    None without a limit."""
     try:
         import resource
 
@@ -53,4 +50,10 @@ def address_space_left() -> float | None:
             mapped = next((float(line.split()[1]) * 1024.0 for line in handle if line.startswith("VmSize:")), 0.0)
     except (ImportError, OSError, ValueError):
         return None
-    return max(float(limit) - mapped - ADDRESS_SPACE_RESERVE, 0.0)
+    return float(limit), mapped
+
+
+def address_space_needed(mapped: float, run_memory: float, base_memory: float) -> float:
+    """Bytes of address space a run estimated at `run_memory` (BASE_MEMORY `base_memory`
+    included) needs in a process mapping `mapped` bytes now (the constants above)."""
+    return max(mapped, NUMERICS_MAPPED) + ADDRESS_SPACE_RESERVE + ADDRESS_GROWTH * max(run_memory - base_memory, 0.0)
