@@ -447,20 +447,26 @@ def advance_one(insertion: NeedleInsertion, step: int) -> None:
     insertion.equilibrate(rotation, step)
 
 
-def test_ramp_halves_the_increment_until_newton_converges():
-    """A Newton that fails above 30 % of the step's load: the ramp halves its increment
-    (1, 1/2, 1/4) and then climbs 1/4 -> 1/2 -> 1 in doubling increments, the load carried."""
-    insertion = started(small_scene())
-    original = NeedleInsertion._newton
-    tried = []
+def failing_first_tries(insertion: NeedleInsertion, failures: int) -> list[float]:
+    """Make the insertion's Newton fail its first `failures` tries; returns the load factors
+    it is tried at, as they come."""
+    original, tried = NeedleInsertion._newton, []
 
     def limited(rotation, step, aim=None):
         tried.append(insertion.coupling.load_factor)
-        if len(tried) <= 2:
+        if len(tried) <= failures:
             raise InsertionFailure("forced")
         return original(insertion, rotation, step, aim)
 
     insertion._newton = limited
+    return tried
+
+
+def test_ramp_halves_the_increment_until_newton_converges():
+    """A Newton that fails above 30 % of the step's load: the ramp halves its increment
+    (1, 1/2, 1/4) and then climbs 1/4 -> 1/2 -> 1 in doubling increments, the load carried."""
+    insertion = started(small_scene())
+    tried = failing_first_tries(insertion, 2)
     advance_one(insertion, 1)
     assert tried == [1.0, 0.5, 0.25, 0.75, 1.0]
     assert insertion.coupling.load_factor == 1.0 and insertion.ramp_increments == 2
@@ -472,16 +478,8 @@ def test_a_long_ramp_reports_its_cuts_and_warns_once(monkeypatch, caplog):
     without -v (a 100 mm x 0.5 mm strip's first step cut for minutes with nothing on screen).
     The limit is patched to 0 here; at its 30 s this step gives no warning."""
     insertion = started(small_scene())
-    original = NeedleInsertion._newton
-    tried, reported = [], []
-
-    def limited(rotation, step, aim=None):
-        tried.append(insertion.coupling.load_factor)
-        if len(tried) <= 2:
-            raise InsertionFailure("forced")
-        return original(insertion, rotation, step, aim)
-
-    insertion._newton = limited
+    reported = []
+    failing_first_tries(insertion, 2)
     insertion.on_ramp = lambda *state: reported.append(state)
     monkeypatch.setattr("stitchplan.needle.equilibrium.LONG_STEP_SECONDS", 0.0)
     with caplog.at_level("WARNING", logger="stitchplan"):
@@ -495,15 +493,7 @@ def test_a_long_ramp_reports_its_cuts_and_warns_once(monkeypatch, caplog):
     caplog.clear()
     monkeypatch.undo()
     again = started(small_scene())
-    tries = []
-
-    def once(rotation, step, aim=None):
-        tries.append(step)
-        if len(tries) == 1:
-            raise InsertionFailure("forced")
-        return original(again, rotation, step, aim)
-
-    again._newton = once
+    failing_first_tries(again, 1)
     with caplog.at_level("WARNING", logger="stitchplan"):
         advance_one(again, 1)
     assert not caplog.records
