@@ -282,8 +282,8 @@ def test_plan_exports_what_simulate_replays_and_refuses_it_for_another_step(tmp_
     other.write_text(SCENE.read_text().replace("step: 0.1\n", "step: 0.12\n"))
     result = runner.invoke(app, ["simulate", str(other), "--no-estimate", "--center-path", str(trajectory),
                                  "--summary", str(tmp_path / "summary.json")])
-    assert one_error_line(result) == (f"error: {trajectory}: line 3, angle_rad: got 0.1, expected 0.12 "
-                                      f"(step 1 of the needle's 0.12 rad steps)")
+    assert one_error_line(result) == (f"error: --center-path: {trajectory}: line 3, angle_rad: got 0.1, expected "
+                                      f"0.12 (step 1 of the needle's 0.12 rad steps)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["step012.yaml", "trajectory.csv"]
 
 
