@@ -87,7 +87,7 @@ def existing_outputs(folder: Path, *names: str) -> dict[str, bytes]:
 # --- the transaction itself --------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["/dev/stdout", "/dev/stderr", "/dev/fd/1", "/proc/self/fd/1"])
+@pytest.mark.parametrize("name", ["/dev/stdout", "/dev/stderr", "/dev/fd/1", "/proc/self/fd/1", "//dev/stdout"])
 def test_a_process_stream_is_refused_as_an_output(tmp_path, name):
     """Redirected to a file, /dev/stdout resolves to that file, which the output's rename
     would replace (losing the command's own lines); to a pipe, to nothing writable."""
@@ -554,6 +554,23 @@ def test_a_command_whose_standard_output_is_full_writes_no_file(tmp_path, scene)
     assert run.returncode == 2
     assert run.stderr == "error: cannot write standard output: No space left on device\n"
     assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("how", ["the file itself", "a link to /dev/stdout"])
+def test_the_file_standard_output_goes_to_is_refused_as_an_output(tmp_path, scene, how):
+    """`--summary s.json > s.json`, or a link to /dev/stdout with standard output redirected to
+    a file: the renamed summary would replace that file, and the command's own line with it."""
+    captured = tmp_path / "captured.txt"
+    named = captured if how == "the file itself" else tmp_path / "summary.json"
+    if named != captured:
+        named.symlink_to("/dev/stdout")
+    with open(captured, "w") as redirected:
+        run = subprocess.run([sys.executable, "-m", "stitchplan", "deform", str(scene), "--summary", str(named)],
+                             stdout=redirected, stderr=subprocess.PIPE, text=True,
+                             env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    assert run.returncode == 2
+    assert run.stderr == f"error: --summary: got {named}, a process's stream; expected a file name\n"
+    assert captured.read_text() == ""
 
 
 @pytest.mark.parametrize("form", ["separate", "joined"])

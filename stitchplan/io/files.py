@@ -204,13 +204,33 @@ def _path_problem(label: str, path: Path, error: OSError) -> str:
 
 # names of a process's own streams: whatever they stand for (a redirected file, a pipe), an
 # output is written whole beside its target and renamed onto it, which a stream cannot take
-_STREAM_NAMES = re.compile(r"/dev/(stdin|stdout|stderr)$|/dev/fd/|/proc/[^/]+/fd/")
+# (POSIX keeps a leading `//`, so the slashes may be doubled)
+_STREAM_NAMES = re.compile(r"/+dev/+(stdin|stdout|stderr)$|/+dev/+fd/|/+proc/+[^/]+/+fd/")
+
+
+def _is_stream(path: Path, target: Path) -> bool:
+    """`path` names one of this process's standard streams, by name or (a symbolic link to
+    one, standard output redirected to that very file) by being the file one is written to."""
+    if any(_STREAM_NAMES.match(str(name)) for name in (Path(os.path.abspath(path)), target)):
+        return True
+    try:
+        written = os.stat(target)
+    except OSError:  # not there yet: no stream writes to it
+        return False
+    for descriptor in (1, 2):
+        try:
+            stream = os.fstat(descriptor)
+        except OSError:  # closed
+            continue
+        if (stream.st_dev, stream.st_ino) == (written.st_dev, written.st_ino):
+            return True
+    return False
 
 
 def _file_problem(label: str, path: Path) -> str | None:
     """What about the target itself stops `path` from being written, or None."""
     target = _target(path)
-    if any(_STREAM_NAMES.match(str(name)) for name in (Path(os.path.abspath(path)), target)):
+    if _is_stream(path, target):
         return f"{label}: got {path}, a process's stream; expected a file name"
     if target.is_dir():
         return f"{label}: got {path}, a folder; expected a file name"
