@@ -39,6 +39,7 @@ OUTPUTS = {  # output options of each command, all in tmp_path
     "deform": ["--probes-out", "probes.csv", "--reactions-out", "reactions.csv", "--summary", "summary.json"],
     "simulate": ["--summary", "summary.json", "--out", "run.h5"],
     "plan": ["--export", "trajectory.csv", "--summary", "summary.json"],
+    "study": [],
 }
 
 
@@ -325,6 +326,19 @@ OPTION_CASES = {
                                   [["--plot-steps: got 3, expected it only with --plot PNG"]]),
     "a plot not named .png": ("plan", ["--plot", "plan.pdf"],
                               [["--plot: got plan.pdf, expected a file name ending in .png"]]),
+    # every output named for another format, each on its line (given after OUTPUTS: the last counts)
+    "outputs named for other formats": ("deform", ["--summary", "s.h5", "--probes-out", "p.yaml", "--plot", "x.svg"],
+                                        [["--probes-out: got", "p.yaml, a YAML file name; expected a CSV file name"],
+                                         ["--summary: got", "s.h5, an HDF5 file name; expected a JSON file name"],
+                                         ["--plot: got", "x.svg, expected a file name ending in .png"]]),
+    "an empty plot name": ("deform", ["--plot", ""], [["--plot: got an empty path, expected a file name"]]),
+    "an empty centre path": ("simulate", ["--center-path", ""],
+                             [["--center-path: got an empty path, expected a file name"]]),
+    "an empty uncertainty file": ("plan", ["--uncertainty", ""],
+                                  [["--uncertainty: got an empty path, expected a file name"]]),
+    "a missing uncertainty file": ("plan", ["--uncertainty", "absent.yaml"],
+                                   [["--uncertainty: ", "absent.yaml: cannot be read (No such file or directory)"]]),
+    "an empty study folder": ("study", ["--out", ""], [["--out: got an empty path, expected a folder name"]]),
 }
 
 

@@ -52,8 +52,10 @@ def calibrate_material(
 
 @calibrate_app.command("needle", short_help="Fit friction and cutting force to force recordings.")
 def calibrate_needle(
-    air: Path = typer.Option(..., "--air", help="CSV angle_rad,force_N: needle rotated in air."),
-    tissue: Path = typer.Option(..., "--tissue", help="CSV angle_rad,force_N: needle rotated into "
+    air: Path = typer.Option(..., "--air", callback=named_file,
+                             help="CSV angle_rad,force_N: needle rotated in air."),
+    tissue: Path = typer.Option(..., "--tissue", callback=named_file,
+                                help="CSV angle_rad,force_N: needle rotated into "
                                 "the tissue, angle from the moment the tip touches it."),
     # the bounds are config.blocks' NEEDLE_RADIUS_RANGE_MM, a scenario's (not imported: pydantic
     # and numpy would slow --help down)

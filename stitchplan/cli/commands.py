@@ -19,9 +19,9 @@ from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOpt
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, SchedulerOption, SchemaVerboseOption, WorkersOption,
                       check_angular_speed, check_command_outputs, check_plot_scale_option, check_plot_steps,
-                      checked_needle_geometry, choice_value, command_executor, echo_events, echo_notes, guard_limits,
-                      guard_runs, load_with_options, naming_files, option_names, parse_base_transform, parse_steps,
-                      plot_steps_note, run_provenance, setup_logging)
+                      checked_needle_geometry, choice_value, command_executor, echo_events, echo_notes, given_value,
+                      guard_limits, guard_runs, load_with_options, named_file, naming_files, option_names,
+                      parse_base_transform, parse_steps, plot_steps_note, run_provenance, setup_logging)
 from .plan_under_uncertainty import check_uncertainty_options, run_plan_under_uncertainty
 
 
@@ -90,7 +90,8 @@ def simulate(
         "growing with the particles cubed, with 9 dense matrices of (2 x particles)^2 numbers; the resource "
         "guard refuses more than 10 min of them)."),
     center_path: Optional[Path] = typer.Option(
-        None, "--center-path", help="Replay needle centres from a trajectory CSV (row n = step n)."),
+        None, "--center-path", callback=named_file,
+        help="Replay needle centres from a trajectory CSV (row n = step n)."),
     estimate: bool = typer.Option(
         True, "--estimate/--no-estimate",
         help="Estimate the exit point's discretization error from a second run at twice the spacing."),
@@ -163,7 +164,7 @@ def plan(
         True, "--verify/--no-verify",
         help="Replay the trajectory on a model of half the spacing, re-aiming if it misses there."),
     uncertainty_path: Optional[Path] = typer.Option(
-        None, "--uncertainty",
+        None, "--uncertainty", callback=named_file,
         help="Uncertainty YAML (see README: Planning under uncertainty): export the robust plan, "
         "with exit-error bands over sampled parameters and sensitivities in the summary."),
     uncertainty_plot: Optional[Path] = typer.Option(
@@ -292,8 +293,10 @@ def _check_study_folder(out: Path) -> None:
     """--out names a folder (made if missing), not a file."""
     from ..errors import InputError
 
+    if given_value("--out") == "":  # Path("") is ".", the working folder
+        raise InputError("--out: got an empty path, expected a folder name")
     if out.exists() and not out.is_dir():
-        raise InputError(f"--out: {out} is a file, expected a folder")
+        raise InputError(f"--out: got {out}, a file; expected a folder")
 
 
 @app.command(short_help="Print the JSON Schema of scenario files.")

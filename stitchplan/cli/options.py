@@ -97,35 +97,39 @@ def check_command_outputs(outputs: dict[str, Optional[Path]],
     log `--out run.json`, a `--summary s.h5`: two outputs swapped) is refused; a name of no
     such format is the user's choice. `out_format`: what `--out` writes (HDF5, YAML); None: no
     format checked here, where a later call knows more inputs (an output over an input says more)."""
+    from ..config import input_error
     from ..errors import InputError
     from ..io.files import check_outputs
 
-    for option in PNG_OPTIONS:
-        path = outputs.get(option)
-        if path is not None and path.suffix.lower() != ".png":
-            raise InputError(f"{option}: got {path}, expected a file name ending in .png (the figures are PNG)")
     for option, path in outputs.items():
-        given = _given_value(option)
+        given = given_value(option)
         if path is not None and given == "":  # Path("") is ".", the working folder
             raise InputError(f"{option}: got an empty path, expected a file name")
         if path is not None and given is not None and given.endswith(("/", os.sep)):
             raise InputError(f"{option}: got {given}, a folder name (it ends in /); expected a file name")
     check_outputs(outputs, inputs)  # first: an output that would overwrite an input says so
-    if out_format is not None:
-        _check_output_formats(outputs, {**OUTPUT_FORMATS, "--out": out_format})
+    formats = {} if out_format is None else {**OUTPUT_FORMATS, "--out": out_format}
+    lines = _output_format_problems(outputs, formats)
+    if lines:
+        raise input_error(lines)
 
 
-def _check_output_formats(outputs: dict[str, Optional[Path]], formats: dict[str, str]) -> None:
-    """No output named for another format than it writes (`formats`: option -> format)."""
-    from ..errors import InputError
-
+def _output_format_problems(outputs: dict[str, Optional[Path]], formats: dict[str, str]) -> list[str]:
+    """A line for each figure not named .png and each output named for another format than it
+    writes (`formats`: option -> format)."""
+    lines = []
     for option, path in outputs.items():
+        if path is None:
+            continue
+        if option in PNG_OPTIONS and path.suffix.lower() != ".png":
+            lines.append(f"{option}: got {path}, expected a file name ending in .png (the figures are PNG)")
+            continue
         written = formats.get(option)
-        named = next((name for name, suffixes in FORMAT_SUFFIXES.items()
-                      if path is not None and path.suffix.lower() in suffixes), None)
+        named = next((name for name, suffixes in FORMAT_SUFFIXES.items() if path.suffix.lower() in suffixes), None)
         if written is not None and named is not None and named != written:
-            raise InputError(f"{option}: got {path}, {_with_article(named)} file name; expected "
-                             f"{_with_article(written)} file name ({', '.join(FORMAT_SUFFIXES[written])})")
+            lines.append(f"{option}: got {path}, {_with_article(named)} file name; expected "
+                         f"{_with_article(written)} file name ({', '.join(FORMAT_SUFFIXES[written])})")
+    return lines
 
 
 def _with_article(acronym: str) -> str:
@@ -133,16 +137,17 @@ def _with_article(acronym: str) -> str:
     return f"{'an' if acronym[0] in 'AEFHILMNORSX' else 'a'} {acronym}"
 
 
-def _given_value(option: str) -> Optional[str]:
+def given_value(option: str) -> Optional[str]:
     """The text given for `option` on the command line, as typed (a Path drops a trailing
     slash), or None."""
     argv = command_line_argv() or []
-    for k, arg in enumerate(argv):
+    given = None
+    for k, arg in enumerate(argv):  # the last one, as the option takes it
         if arg == option and k + 1 < len(argv):
-            return argv[k + 1]
-        if arg.startswith(option + "="):
-            return arg[len(option) + 1:]
-    return None
+            given = argv[k + 1]
+        elif arg.startswith(option + "="):
+            given = arg[len(option) + 1:]
+    return given
 
 
 PNG_OPTIONS = ("--plot", "--uncertainty-plot")
@@ -224,6 +229,20 @@ def naming_files(scenario_path: Path, center_path: Optional[Path] = None):
                 line = f"{scenario_path}: {line}"
             named.append(line)
         raise input_error(named) from None
+
+
+@contextmanager
+def naming_option(option: str, path: Path):
+    """Input errors about the file an option gives (the lines starting with its path) name the
+    option first, as `--center-path: path.csv: line 5, ...`."""
+    from ..config import input_error
+    from ..errors import InputError
+
+    try:
+        yield
+    except InputError as error:
+        lines = getattr(error, "lines", None) or [str(error)]
+        raise input_error([f"{option}: {line}" if line.startswith(f"{path}:") else line for line in lines]) from None
 
 
 def check_plot_steps(steps: Optional[list[int]], scenario) -> None:

@@ -10,7 +10,7 @@ import typer
 
 from ..allocator import pause_collection, resume_collection
 from .guards import guard_plan_under_uncertainty
-from .options import check_command_outputs, echo_events, echo_notes
+from .options import check_command_outputs, echo_events, echo_notes, naming_option
 
 
 def check_uncertainty_options(uncertainty_path: Optional[Path], compare: bool, only_with_it: dict) -> None:
@@ -44,7 +44,8 @@ def run_plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: 
     from .runs import put_accuracy_notes_first
 
     resume_collection()
-    uncertainty = load_uncertainty(uncertainty_path)
+    with naming_option("--uncertainty", uncertainty_path):
+        uncertainty = load_uncertainty(uncertainty_path)
     check_command_outputs({"--export": export, "--out": out, "--summary": summary, "--plot": plot,
                            "--uncertainty-plot": uncertainty_plot},
                           {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration},

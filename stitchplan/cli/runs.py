@@ -11,13 +11,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-from ..config import input_error
-from ..errors import InputError
 from ..io import progress, readers, reports
 from ..needle import geometry as needle_geometry
 from ..planning import verification
 from ..study import auto
-from .options import naming_files, scenario_expected_steps
+from .options import naming_files, naming_option, scenario_expected_steps
 
 
 def resolve_accuracy_guarded(scenario_path: Path, scenario, limits, linear_solver: Optional[str] = None,
@@ -40,12 +38,8 @@ def read_center_path_option(scenario_path: Path, center_path: Path, scenario, ge
         with naming_files(scenario_path, center_path):
             return needle_geometry.scenario_needle(needle_geometry.entry_lean(scenario, first_center))
 
-    try:
+    with naming_option("--center-path", center_path):  # as --air's and --tissue's lines do
         return readers.read_center_path(center_path, geometry, needle_for)
-    except InputError as error:  # the file's own lines name the option too, as --air's and --tissue's do
-        lines = getattr(error, "lines", None) or [str(error)]
-        raise input_error([f"--center-path: {line}" if line.startswith(f"{center_path}:") else line
-                           for line in lines]) from None
 
 
 def simulate_with_replays(scenario_path: Path, scenario, center_path: Optional[Path], path, estimate: bool,
