@@ -472,6 +472,25 @@ def test_ramp_halves_the_increment_until_newton_converges():
     assert insertion.coupling.load_factor == 1.0 and insertion.ramp_increments == 2
 
 
+def test_ramp_does_not_try_the_whole_load_again_from_where_it_failed():
+    """Carried to 50 %, the doubled increment is capped at the whole load; when that fails,
+    its half reaches the whole load again from the same state: the ramp goes on to 75 %
+    instead of a second, identical try (and a third at a quarter)."""
+    insertion = started(small_scene())
+    original, tried = NeedleInsertion._newton, []
+
+    def failing_whole_twice(rotation, step, aim=None):
+        tried.append(insertion.coupling.load_factor)
+        if tried.count(1.0) <= 2 and insertion.coupling.load_factor == 1.0:
+            raise InsertionFailure("forced")
+        return original(insertion, rotation, step, aim)
+
+    insertion._newton = failing_whole_twice
+    advance_one(insertion, 1)
+    assert tried == [1.0, 0.5, 1.0, 0.75, 1.0]
+    assert insertion.coupling.load_factor == 1.0
+
+
 def test_a_long_ramp_reports_its_cuts_and_warns_once(monkeypatch, caplog):
     """The ramp reports each cut and each increment carried (on_ramp: the progress bar's note),
     and a step still cutting after LONG_STEP_SECONDS says so once by a warning, which is shown
@@ -579,7 +598,7 @@ def test_saint_venant_kirchhoff_too_soft_for_the_cutting_force_stops_naming_step
     assert message.startswith("step 1 (needle rotation 0.200 rad): the needle's load could not be carried: ")
     carried = float(message.split("carried: ")[1].split(" %")[0])
     assert 50.0 <= carried < 100.0
-    assert f"the next {100 * RAMP_SMALLEST:.2g} % increment failed" in message
+    assert f"the next {100 * RAMP_SMALLEST:.3g} % increment failed" in message
     # the tissue gives way at the needle: its least stiffness on the constraints falls over the step
     softening = re.search(r"least stiffness on the needle's constraints fell to (\d+) % of the step's start "
                           r"\(at zero the tissue has no stable equilibrium\), its mode largest at \[0, 22.5\] mm, "

@@ -271,15 +271,18 @@ class NeedleInsertion:
                 if increment < 1.0:  # a cut ramp: near an instability Newton may land on the unstable branch
                     self._refuse_unstable(rotation, step)
             except InsertionFailure as failure:
-                coupling.load_factor = start
+                failed, coupling.load_factor = coupling.load_factor, start
                 self.restore(carried)
                 self.saddle.forget()  # the factor of a failed iterate is no start for the next
                 increment *= 0.5
+                # a doubled increment capped at the whole load: its halves may reach the whole
+                # load again, a try of the same state at the same load, which fails alike
+                while start + increment >= failed and increment >= RAMP_SMALLEST:
+                    increment *= 0.5
                 if increment < RAMP_SMALLEST:  # the error says where it stopped, no "goes on" before it
                     raise InsertionFailure(self._ramp_failure(rotation, step, start, failure, step_start)) from None
                 log.info("step %d (needle rotation %.3f rad): Newton failed at %.3g %% of the step's load; "
-                         "the ramp goes on in increments of %.3g %%", step, rotation,
-                         100 * min(1.0, start + 2 * increment), 100 * increment)
+                         "the ramp goes on in increments of %.3g %%", step, rotation, 100 * failed, 100 * increment)
                 self.ramp_increments += 1
                 warned = self._ramp_progress(step, rotation, start, increment, started, warned)
                 continue
@@ -322,8 +325,8 @@ class NeedleInsertion:
         """What went wrong when even the smallest load increment fails, and what to try. The
         state is the last load carried; `step_start` the step's first."""
         message = (f"step {step} (needle rotation {rotation:.3f} rad): the needle's load could not be "
-                   f"carried: {100 * carried:.0f} % of the step's cutting force and added friction held, "
-                   f"the next {100 * RAMP_SMALLEST:.2g} % increment failed ({failure})")
+                   f"carried: {100 * carried:.3g} % of the step's cutting force and added friction held, "
+                   f"the next {100 * RAMP_SMALLEST:.3g} % increment failed ({failure})")
         if isinstance(failure, (NonFiniteResidual, ConstraintStall)):  # not the material's doing
             return message
         iterations = self.scenario.solver.max_iterations
