@@ -69,8 +69,8 @@ def deform(
                                  plot_scale=plot_scale)
     typer.echo(reports.deform_line(result))
     if probes_out is not None and not scenario.probes:
-        echo_notes([f"--probes-out: {scenario_path} has no `probes` (reference points, mm); {probes_out} holds "
-                    "the header alone"], quiet)
+        echo_notes([(f"--probes-out: {scenario_path} has no `probes` (reference points, mm); {probes_out} holds "
+                     "the header alone")], quiet)
 
 
 @app.command(short_help="Needle insertion with the needle centre held fixed.")
