@@ -202,6 +202,12 @@ def condition_costs(particles: float, steps: float) -> tuple[float, float]:
             CONDITION_MATRICES * FLOAT_BYTES * unknowns * unknowns)
 
 
+def condition_particles_within(seconds: float, steps: float) -> float:
+    """The particles whose condition numbers over `steps` steps take `seconds` (condition_costs's
+    time, inverted)."""
+    return 0.5 * 1000.0 * (seconds / (CONDITION_SECONDS * float(steps))) ** (1.0 / 3.0)
+
+
 def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: float = 1.0,
              origin: Origin | None = None, linear_solver: str | None = None,
              condition_numbers: bool = False) -> Estimate:

@@ -9,11 +9,12 @@ from dataclasses import dataclass, replace
 
 from ..config import DEFAULT_NEEDLE_REFINEMENT
 from ..errors import InputError
-from .costs import (BASE_MEMORY, CONDITION_SECONDS, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE,
-                    Estimate, held_at_once, size_scale)
+from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate,
+                    condition_particles_within, held_at_once, size_scale)
 from .formatting import amount_text, bytes_text, count_text, duration_text
 from .limits import Limits
-from .machine import ADDRESS_GROWTH, ADDRESS_SPACE_RESERVE, address_space, address_space_needed, available_memory
+from .machine import (ADDRESS_GROWTH, ADDRESS_SPACE_RESERVE, address_space, address_space_needed, available_memory,
+                      memory_within_address_space)
 from .model_size import capped_count
 
 CONDITION_OPTION = "--condition-numbers"
@@ -134,7 +135,7 @@ def _address_space_refusal(item: Estimate, limit: float, mapped: float) -> str:
     past what the limit leaves, as a memory refusal names it, where a model would fit at all;
     else the limit itself, what to change."""
     needed = address_space_needed(mapped, item.memory_bytes, BASE_MEMORY)
-    budget = BASE_MEMORY + (limit - address_space_needed(mapped, BASE_MEMORY, BASE_MEMORY)) / ADDRESS_GROWTH
+    budget = memory_within_address_space(limit, mapped, BASE_MEMORY)
     if budget > BASE_MEMORY:
         setting = _memory_setting(item, budget)
         return (f"{setting.name}: got {setting.got}, expected a model within the ~{bytes_text(budget)} of memory the "
@@ -143,7 +144,8 @@ def _address_space_refusal(item: Estimate, limit: float, mapped: float) -> str:
                 f"limit (ulimit -v {math.ceil(needed / 1024)}), {_skip(item)}or {SKIP_GUARD}")
     arrays = max(item.memory_bytes - BASE_MEMORY, 0.0)
     return (f"ulimit -v: got {limit / 1024:.0f} (the process's address-space limit of {bytes_text(limit)}; "
-            f"{bytes_text(mapped)} mapped now), expected at least ~{bytes_text(needed)} for this run{item.origin.derived} "
+            f"{bytes_text(mapped)} mapped now), expected at least ~{bytes_text(needed)} for this "
+            f"run{item.origin.derived} "
             f"({ADDRESS_GROWTH:g} x its ~{bytes_text(arrays)} of arrays, and {bytes_text(ADDRESS_SPACE_RESERVE)} of "
             f"libraries and buffers beyond the numerics' imports; estimated {item.describe()}); raise the limit "
             f"(ulimit -v {math.ceil(needed / 1024)}), {_skip(item)}or {SKIP_GUARD}")
@@ -176,7 +178,7 @@ def _condition_refusal(item: Estimate, limit: float) -> str:
     longer than `limit` seconds: what they take a step, and the particles they would fit."""
     steps = item.steps * item.runs
     unknowns = count_text(capped_count(2.0 * item.size.particles))
-    fitting = 500.0 * (limit / (CONDITION_SECONDS * steps)) ** (1.0 / 3.0)  # unknowns = 2 x particles
+    fitting = condition_particles_within(limit, steps)
     return (f"{CONDITION_OPTION}: got a dense saddle system of {unknowns} unknowns (2 x "
             f"{count_text(item.size.particles)} particles) in each of {count_text(item.steps)} needle steps, expected "
             f"condition numbers within {duration_text(limit)}{item.origin.derived} (~"
@@ -261,7 +263,8 @@ def _memory_setting(item: Estimate, budget: float) -> Setting:
     the larger of the kernel's two factors, its support (dilation) or its quadrature points."""
     size, d, origin = item.size, item.discretization, item.origin
     if item.condition_memory and item.memory_bytes - item.condition_memory <= budget:
-        return Setting(CONDITION_OPTION, f"a dense saddle system of {count_text(capped_count(2.0 * size.particles))} unknowns",
+        unknowns = count_text(capped_count(2.0 * size.particles))
+        return Setting(CONDITION_OPTION, f"a dense saddle system of {unknowns} unknowns",
                        "", "leave it out or coarsen the spacing",
                        f"~{bytes_text(item.condition_memory)} of dense matrices for the condition numbers of "
                        f"{count_text(size.particles)} particles; ")

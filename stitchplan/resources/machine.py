@@ -57,3 +57,9 @@ def address_space_needed(mapped: float, run_memory: float, base_memory: float) -
     """Bytes of address space a run estimated at `run_memory` (BASE_MEMORY `base_memory`
     included) needs in a process mapping `mapped` bytes now (the constants above)."""
     return max(mapped, NUMERICS_MAPPED) + ADDRESS_SPACE_RESERVE + ADDRESS_GROWTH * max(run_memory - base_memory, 0.0)
+
+
+def memory_within_address_space(limit: float, mapped: float, base_memory: float) -> float:
+    """The largest run memory estimate (BASE_MEMORY `base_memory` included) whose address space
+    fits under `limit` in a process mapping `mapped` bytes now (address_space_needed, inverted)."""
+    return base_memory + (limit - address_space_needed(mapped, base_memory, base_memory)) / ADDRESS_GROWTH
