@@ -41,11 +41,18 @@ def _dilation_above_one(value: Optional[float]) -> Optional[float]:
     return value
 
 
-def named_file(value: Optional[Path]) -> Optional[Path]:
-    """An input file's argument: an empty one given as '' becomes Path('.'), the working
-    folder, which would be reported as a folder that cannot be read."""
+def named_file(param: typer.CallbackParam, value: Optional[Path]) -> Optional[Path]:
+    """An input file's argument or option: an empty one given as '' becomes Path('.'), the
+    working folder, which would be reported as a folder that cannot be read. An option's text
+    is the one given for it (given_value); an argument's, a lone '' on the command line."""
+    if value is None or str(value) != ".":
+        return value
     argv = command_line_argv() or []
-    if value is not None and str(value) == "." and "" in argv and "." not in argv:
+    if param.param_type_name == "option":
+        empty = any(given_value(name) == "" for name in param.opts)
+    else:
+        empty = "" in argv and "." not in argv
+    if empty:
         raise typer.BadParameter("got an empty path, expected a file name")
     return value
 
