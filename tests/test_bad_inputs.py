@@ -495,9 +495,10 @@ def test_calibration_loads_meet_the_same_checks(tmp_path):
 
 
 def test_the_guard_counts_the_particles_the_needle_model_builds():
-    """The guard's count (before anything is built) is the model's own: uniform grids and the
-    needle-graded arrangement of the tiny needle scene, at two spacings; and the estimate used
-    when the graded lattice is too large to count lies within 25 % of the count."""
+    """The guard's count (before anything is built) is the model's own: uniform grids, the
+    needle-graded arrangement of the tiny needle scene, at two spacings, and a deform scene's
+    grid graded toward its load segment's ends; and the estimate used when the graded
+    lattice is too large to count lies within 25 % of the count."""
     from dataclasses import replace
 
     from stitchplan.config import parse_scenario, with_discretization
@@ -515,6 +516,9 @@ def test_the_guard_counts_the_particles_the_needle_model_builds():
         if d.needle_spacing is not None:
             approximate = _graded_estimate(scenario.tissue.size, d.spacing, d.needle_spacing, needle_zone(scenario))
             assert abs(approximate / size.particles - 1) < 0.25
+    pulled = parse_scenario(scene(needle=None, discretization={"spacing": 2.0}))  # graded toward the ends
+    size, model = model_size(pulled), model_for_scenario(pulled)
+    assert size.exact and size.particles == model.n_particles > 21 * 11
 
 
 def test_the_guard_scales_memory_and_time_with_particles_and_neighbours():
@@ -528,7 +532,7 @@ def test_the_guard_scales_memory_and_time_with_particles_and_neighbours():
     from stitchplan.resources.guard import check_resources
     from stitchplan.resources.limits import Limits
 
-    base = parse_scenario(scene(discretization={"spacing": 2.0}))
+    base = parse_scenario(scene(loads=None, discretization={"spacing": 2.0}))  # a uniform grid
     coarse, fine = estimate(base, "deform"), estimate(with_discretization(base, spacing=1.0), "deform")
     ratio = fine.size.particles / coarse.size.particles
     assert ratio > 3.5

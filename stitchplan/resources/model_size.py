@@ -10,7 +10,6 @@ import numpy as np
 from ..config import Scenario
 from ..geometry.polygon_domain import PolygonDomain
 from ..needle.geometry import needle_zone, scenario_needle
-from ..tissue.particles import graded_particles
 from .limits import MAX_PARTICLES
 
 # finest lattice (cells) up to which graded particles are counted exactly (~0.4 s at the
@@ -62,19 +61,25 @@ def model_size(scenario: Scenario) -> ModelSize:
 
 
 def _particles(scenario: Scenario) -> tuple[int, bool]:
-    d, (width, height) = scenario.discretization, scenario.tissue.bounding_size
-    zone = needle_zone(scenario)
+    """A rectangle's particles: placed and counted as the model places them (tissue.model's
+    rectangle_lattice: graded toward the needle and the load segments' ends, with lines
+    through those ends) up to COUNT_EXACTLY_UP_TO cells at the finest lattice step of the
+    needle or the spacing, estimated beyond it."""
+    from ..tissue.model import load_segments, rectangle_lattice
+
+    d, tissue = scenario.discretization, scenario.tissue
+    (width, height), zone = tissue.bounding_size, needle_zone(scenario)
+    finest = d.spacing if zone is None else min(d.spacing, d.needle_spacing)
+    if per_side(width, finest) * per_side(height, finest) <= COUNT_EXACTLY_UP_TO:
+        held, pulled = load_segments(scenario)
+        graded = rectangle_lattice(tissue, d, held + pulled, zone)
+        if graded is not None:
+            return len(graded.particles), True
     if zone is None:  # the uniform grid of tissue.particles.grid_particles
         # load segments add grid lines through their ends and a grading toward them
         # (tissue.particles.end_zones): the grid is then a lower bound (~5-30 % below)
-        return capped_count(grid_count(scenario.tissue.bounding_size, d.spacing)), not scenario.loads
-    lattice = per_side(width, d.needle_spacing) * per_side(height, d.needle_spacing)
-    if lattice <= COUNT_EXACTLY_UP_TO:
-        graded = graded_particles(scenario.tissue.bounding_size, d.spacing, d.needle_spacing,
-                                  np.asarray(zone[0], dtype=float), zone[1], d.needle_grading, points=zone[2])
-        return len(graded.particles), True
-    return _graded_estimate(scenario.tissue.bounding_size, d.spacing, d.needle_spacing, zone,
-                            d.needle_grading), False
+        return capped_count(grid_count(tissue.bounding_size, d.spacing)), not scenario.loads
+    return _graded_estimate(tissue.bounding_size, d.spacing, d.needle_spacing, zone, d.needle_grading), False
 
 
 def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
