@@ -216,6 +216,13 @@ def test_a_refinement_names_the_refinement_not_the_spacing():
     assert refusal([fine_zone]).startswith("discretization.needle_spacing: got 0.005 mm")
     default = estimate(parse_scenario(scene(discretization={"spacing": 0.02, "needle_refinement": 2})), "insertion")
     assert refusal([default]).startswith("discretization.spacing: got 0.02 mm")
+    # a plan's verification: the file's refinement at half its spacing, both needle spacings said
+    scenario = parse_scenario(scene(discretization={"spacing": 2.0, "needle_refinement": 500}))
+    verification = estimate(rescaled(scenario, 0.5), "insertion", "plan verification", 2,
+                            origin=verification_origin(scenario))
+    line = refusal([verification])
+    assert line.startswith("discretization.needle_refinement: got 500, expected a refinement giving at most"), line
+    assert "a needle spacing of 2 mm / 500 = 0.004 mm, the run's 1 mm / 500 = 0.002 mm;" in line
 
 
 def test_a_needle_radius_that_sets_the_default_spacing_is_named():

@@ -229,10 +229,12 @@ def _particle_setting(item: Estimate, fits: Callable[[float], bool]) -> Setting:
     if derived and d.needle_refinement <= DEFAULT_NEEDLE_REFINEMENT:
         return _spacing_setting(item)  # the default grading follows the spacing: coarsening it coarsens both
     if derived:
-        spacing = origin.value("spacing", d.spacing)
-        return Setting(origin.name("needle_refinement"), f"{d.needle_refinement:g}", "a refinement giving",
-                       "lower it", f"a needle spacing of {spacing:g} mm / {d.needle_refinement:g} = "
-                       f"{spacing / d.needle_refinement:.3g} mm; ")
+        spacing, refinement = origin.value("spacing", d.spacing), d.needle_refinement
+        note = f"a needle spacing of {spacing:g} mm / {refinement:g} = {spacing / refinement:.3g} mm"
+        if not math.isclose(spacing, d.spacing):  # a replay's (a plan's verification at half the spacing)
+            note += f", the run's {d.spacing:.4g} mm / {refinement:g} = {d.needle_spacing:.3g} mm"
+        return Setting(origin.name("needle_refinement"), f"{refinement:g}", "a refinement giving", "lower it",
+                       f"{note}; ")
     return Setting(origin.name("needle_spacing"), f"{origin.value('needle_spacing', d.needle_spacing):g} mm",
                    "a needle spacing giving", "coarsen it")
 
