@@ -186,6 +186,16 @@ def test_insertion_plot_draws_steps_past_the_runs_end_once(plan_result, tmp_path
                       f"step {last} of {last}, needle rotated {run.steps[-1].rotation:.2f} rad"]
 
 
+def test_insertion_plot_names_the_exits_markers_where_no_step_panel_draws_them(plan_result, tmp_path):
+    """The exits are drawn in the last step's panel and the zoom: without the last step the
+    zoom's markers give the legend its entries."""
+    run = plan_result.unplanned
+    for steps in ([2], [2, len(run.steps)]):
+        fig = needle_plots.plot_insertion(tmp_path / "insertion.png", run, steps)
+        entries = [text.get_text() for legend in fig.legends for text in legend.get_texts()]
+        assert entries.count("desired exit, deformed") == 1 and entries.count("achieved exit") == 1, entries
+
+
 def test_plan_plot_marks_each_runs_error_at_its_own_desired_exit(plan_result, tmp_path):
     fig = needle_plots.plot_plan(tmp_path / "plan.png", plan_result)
     assert is_png(tmp_path / "plan.png")

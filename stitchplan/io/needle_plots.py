@@ -83,10 +83,12 @@ def _boundary_near(domain, point: np.ndarray, reach: float) -> list[np.ndarray]:
 
 
 def _exit_zoom(ax, run, norm, colour: str, who: str, marker: str, desired_colour: str | None = None,
-               outline: dict | None = None, outline_label: str = "tissue outline, deformed") -> None:
+               outline: dict | None = None, outline_label: str = "tissue outline, deformed",
+               exit_labels: tuple[str, str] | None = None) -> None:
     """The exit seen closely, in mm from the run's desired exit (deformed): the tissue there
     (the RK interpolant, not a polyline), the tip's last path, the desired and achieved exit
-    and the error between them. The window is sized to the error."""
+    (legend entries `exit_labels`, where no other panel draws them) and the error between
+    them. The window is sized to the error."""
     desired, achieved = np.asarray(run.desired_exit_def), np.asarray(run.achieved_exit_def)
     error = float(run.exit_error_mm)
     half = max(1.3 * error, 2e-3)
@@ -104,8 +106,9 @@ def _exit_zoom(ax, run, norm, colour: str, who: str, marker: str, desired_colour
     tips = _tip_path(run) - desired
     ax.plot(*tips.T, ".-", color=colour, lw=1.2, ms=4)
     ax.plot([0.0, achieved[0] - desired[0]], [0.0, achieved[1] - desired[1]], ":", color=colour, lw=1.2)
-    ax.plot(0.0, 0.0, "x", color=desired_colour or colour, ms=11, mew=2.5)
-    ax.plot(*(achieved - desired), marker, mfc="none", mec=colour, ms=11, mew=1.8)
+    desired_label, achieved_label = exit_labels or (None, None)
+    ax.plot(0.0, 0.0, "x", color=desired_colour or colour, ms=11, mew=2.5, label=desired_label)
+    ax.plot(*(achieved - desired), marker, mfc="none", mec=colour, ms=11, mew=1.8, label=achieved_label)
     ax.set_xlim(centre[0] - half, centre[0] + half)
     ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_aspect("equal")
@@ -178,7 +181,9 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
         else:
             ax.tick_params(labelleft=False)
         ax.set_title(f"step {step} of {last}, needle rotated {rotation:.2f} rad", fontsize=9)
-    _exit_zoom(zoom, result, norm, "crimson", "simulated", "o", desired_colour="blue")
+    # the exits' entries come from the last step's panel, or the zoom where no panel shows it
+    _exit_zoom(zoom, result, norm, "crimson", "simulated", "o", desired_colour="blue",
+               exit_labels=("desired exit, deformed", "achieved exit"))
     fig.colorbar(dots, ax=list(axes[0]), label="|u| displacement (mm)", shrink=0.8, pad=0.02)
     title_above(fig, axes[0], f"{shown_name(result.scenario, 'simulate')}: needle insertion without planning\n"
                 f"exit error {result.exit_error_mm:.3g} mm (material point "
