@@ -32,7 +32,7 @@ from test_bad_inputs import OUTPUTS, invoke, write_scene
 from stitchplan.config.scenario import parse_scenario
 from stitchplan.errors import InsertionFailure
 from stitchplan.geometry.polygon_domain import PolygonDomain
-from stitchplan.geometry.polygons import CIRCLE_SEGMENTS, circle_polygon
+from stitchplan.geometry.polygons import circle_polygon
 from stitchplan.needle.geometry import scenario_needle
 from stitchplan.needle.insertion import _bites, run_insertion
 from stitchplan.needle.tip_tracking import MATERIAL_POINT_TOLERANCE, locate_reentry
@@ -42,7 +42,6 @@ SIZE = [60.0, 30.0]
 ENTRY, FINAL_EXIT = np.array([38.88, 30.0]), np.array([21.12, 30.0])  # the needle's centre: (30, 30)
 # the needle's deepest point (30, 21.12) is the hole's centre: the scene that crashed
 HOLE = {"circle": {"center": [30.0, 21.12], "radius": 2.0}}
-CHORD = 2.0 * 2.0 * math.sin(math.pi / CIRCLE_SEGMENTS)  # a 2 mm circle's 96-gon edge, 0.131 mm
 
 
 def scene(hole: dict, spacing: float = 4.0, step: float = 0.1) -> dict:
@@ -98,11 +97,10 @@ def test_a_needle_across_a_circular_hole_lists_its_crossings_and_bites():
     assert off_wall[1] < 1e-9  # a point of the wall's 96-gon (to round-off)
     assert max(off_wall) < 0.1  # next to the wall: the jump, not a lost point
     check_crossings_and_bites(result)
-    # each wound edge: a vertex of the hole's 96-gon, an end of the edge nearest its crossing
-    center, radius = np.array(HOLE["circle"]["center"]), HOLE["circle"]["radius"]
+    # each wound edge: the point of the hole's 96-gon nearest its crossing
     for edge, crossing, off in zip(("entry_wound_edge", "exit_wound_edge"), result.crossings, off_wall):
-        assert np.linalg.norm(result.bites[edge] - center) == pytest.approx(radius, abs=1e-9)
-        assert np.linalg.norm(result.bites[edge] - crossing["achieved"]) <= CHORD + off
+        assert float(domain.distance(result.bites[edge])) < 1e-9
+        assert np.linalg.norm(result.bites[edge] - crossing["achieved"]) == pytest.approx(off, abs=1e-9)
     # the hole is centred on the needle's deepest point: the bites match at rest within a
     # chord and the crossings' deviations
     assert result.bites["entry_side_at_rest_mm"] == pytest.approx(result.bites["exit_side_at_rest_mm"], abs=0.2)
@@ -123,10 +121,11 @@ def test_simulate_across_a_circular_hole_writes_its_summary(tmp_path):
 
 
 @pytest.mark.parametrize("off", [0.0, 0.01, 0.05])
-def test_the_wound_edge_of_a_crossing_off_the_wall_is_the_nearest_edges_end(off):
+def test_the_wound_edge_of_a_crossing_off_a_holes_wall_is_the_nearest_wall_point(off):
     """_bites on a still tissue (u = 0): wall crossings on the hole's 96-gon or `off` mm
-    inside the tissue find the edge they lie nearest, and its end nearest the entry (first
-    wall) or the final exit (last wall). Only crossings on the wall (off = 0) passed before."""
+    inside the tissue find the point of the wall they lie nearest (only crossings on the wall,
+    off = 0, passed once; then the wound edge was the end of that edge nearer the entry or the
+    final exit, a vertex that moved by a chord between two models of the same stitch)."""
     center, radius = np.array([30.0, 21.12]), 2.0
     hole = circle_polygon(center, radius)
     domain = PolygonDomain.rectangle(SIZE, holes=(hole,))
@@ -138,9 +137,9 @@ def test_the_wound_edge_of_a_crossing_off_the_wall_is_the_nearest_edges_end(off)
         walls.append(on_edge + off * (on_edge - center) / np.linalg.norm(on_edge - center))
     crossings = [{"achieved": walls[0]}, {"achieved": walls[1]}, {"achieved": FINAL_EXIT}]
     bites = _bites(insertion, crossings)
-    nearest_ends = [hole[[8, 9]], hole[[44, 45]]]
-    expected = [ends[np.argmin(np.linalg.norm(ends - toward, axis=1))]
-                for ends, toward in zip(nearest_ends, (ENTRY, FINAL_EXIT))]
+    # each crossing's foot on its edge (moved off along the radius, not the edge's normal)
+    expected = [hole[k] + np.dot(wall - hole[k], hole[k + 1] - hole[k]) / np.sum((hole[k + 1] - hole[k]) ** 2)
+                * (hole[k + 1] - hole[k]) for k, wall in zip((8, 44), walls)]
     assert np.allclose(bites["entry_wound_edge"], expected[0]) and np.allclose(bites["exit_wound_edge"], expected[1])
     assert bites["entry_side_mm"] == pytest.approx(np.linalg.norm(expected[0] - ENTRY))
     assert bites["exit_side_mm"] == pytest.approx(np.linalg.norm(expected[1] - FINAL_EXIT))

@@ -158,6 +158,15 @@ class PolygonDomain(BoundingBox):
             run.insert(0, j)
         return run
 
+    def nearest_boundary_point(self, point) -> tuple[np.ndarray, bool]:
+        """The boundary point nearest `point`, and whether its edge is the outline's (not a hole's)."""
+        x = np.asarray(point, dtype=float)
+        a, e = self.segment_starts, self.segment_ends - self.segment_starts
+        t = np.clip(np.sum((x - a) * e, axis=1) / np.maximum(np.sum(e * e, axis=1), 1e-300), 0.0, 1.0)
+        nearest = a + t[:, None] * e  # (edges, 2)
+        k = int(np.argmin(np.linalg.norm(nearest - x, axis=1)))
+        return nearest[k], k < len(self.outline)
+
     def _edges_holding(self, point, tol: float | None = None) -> list[int]:
         tol = self.tolerance if tol is None else tol
         x = np.asarray(point, dtype=float)

@@ -563,9 +563,10 @@ def _crossings(insertion: NeedleInsertion, made: list[tuple[int, str, np.ndarray
 
 def _bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
     """The stitch's bites across a wound: on the entry side the deformed distance from the
-    needle's entry to the wound edge (the end of the wall the tip left through nearest the
-    entry), on the exit side from the final exit to the edge of the wall it came back in
-    through; and their difference (the symmetry surgeons look for).
+    needle's entry to the wound edge (a cut's: the end of the wall the tip left through nearest
+    the entry, its lip on the surface; a hole's, which reaches no surface: the point of its wall
+    the tip left through), on the exit side from the final exit to the edge of the wall it came
+    back in through; and their difference (the symmetry surgeons look for).
 
     A wall crossing's achieved point is the tip's material point, which need not lie on the
     wall: the visibility criterion makes u jump within hundredths of a mm of a hole's wall
@@ -573,12 +574,16 @@ def _bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
     distance the crossing is root-found on can jump across zero there, and the point found
     lies up to that jump inside the tissue (0.008 mm at the SH 1/2 needle's default spacing
     across a 2 mm hole). The wall crossed is the boundary edge nearest the point (both edges at
-    a vertex), however near."""
+    a vertex), however near; a hole's wall point is the nearest to it (not an end of its
+    edge: a circle's 96-gon would put the bite's end at whichever vertex lies nearer)."""
     domain, geometry = insertion.domain, insertion.geometry
     tol = 1e-6 * max(domain.size)
 
     def edge_near(point: np.ndarray, toward: np.ndarray) -> np.ndarray:
-        off = float(domain.distance(point))
+        wall_point, cut = domain.nearest_boundary_point(point)
+        if not cut:  # a hole's wall
+            return wall_point
+        off = float(np.linalg.norm(wall_point - point))
         if off > tol:
             log.info("wound crossing %s lies %.3g mm off the boundary (u jumps near the wall); "
                      "its wall is the nearest boundary edge", np.round(point, 6).tolist(), off)
