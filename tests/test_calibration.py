@@ -550,12 +550,29 @@ def test_needle_fit_with_a_negative_value_fails_and_writes_nothing(tmp_path, tis
     result, out, plot = _needle_run(tmp_path, tissue_force)
     assert result.exit_code == 1, result.output
     lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: needle fit: the fit gave "), result.output
+    tissue, air = tmp_path / "tissue.csv", tmp_path / "air.csv"
+    assert len(lines) == 1 and lines[0].startswith(f"error: --tissue {tissue} and --air {air}: needle fit: the fit "
+                                                   "gave "), result.output
     assert "expected >= 0" in lines[0] and "Traceback" not in result.output
     for fragment in fragments:
         assert fragment in lines[0], (fragment, lines[0])
     assert not out.exists() and not plot.exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith((".needle.yaml.", ".forces.png."))]
+
+
+def test_needle_fit_of_a_tissue_recording_equal_to_the_air_one_says_it_shows_no_force(tmp_path):
+    """Two copies of one recording: friction and cutting force zero to round-off, either sign,
+    within their uncertainty; the error says so, not that the recording starts below the air's."""
+    air, tissue = write_recordings(tmp_path, noise=(0.01, 0.01))
+    tissue.write_text(air.read_text())
+    out, plot = tmp_path / "needle.yaml", tmp_path / "forces.png"
+    result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", RADIUS,
+                 "--out", out, "--plot", plot)
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 1 and len(lines) == 1, result.output
+    assert "standard uncertainty, the tissue recording shows no force above the air's" in lines[0], lines[0]
+    assert "starts below" not in lines[0] and "is --tissue the recording" not in lines[0]
+    assert not out.exists() and not plot.exists()
 
 
 def test_needle_refuses_one_recording_as_both_air_and_tissue(tmp_path):

@@ -72,7 +72,7 @@ class MarkerMisfit:
         self.measured = np.concatenate([e.measured for e in problem.experiments])  # (n, 2)
         self._cache: dict[tuple[float, float], tuple[np.ndarray, np.ndarray | None, list]] = {}
         self.evaluations: list[np.ndarray] = []
-        self.particles = self.experiments[0].model.n_particles
+        self.particles = [e.model.n_particles for e in self.experiments]  # each experiment's model
 
     @property
     def force_controlled(self) -> bool:
@@ -89,9 +89,13 @@ class MarkerMisfit:
         if cached is not None and (cached[1] is not None or not jacobian):
             return cached
         self.evaluations.append(np.array(key))
+        iterations = self.newton_iterations
         predictions = [self._predict(k, np.array(key), jacobian, quick) for k in range(len(self.experiments))]
         simulated = [q for q, _ in predictions]
         residual = (self.measured - np.concatenate(simulated)).ravel()
+        with np.errstate(over="ignore"):  # an overflowing misfit is the caller's to judge
+            log.info("evaluation %d: lame_lambda %.6g MPa, lame_mu %.6g MPa: misfit %.6g mm^2 (%d Newton iterations)",
+                     len(self.evaluations), *key, float(residual @ residual), self.newton_iterations - iterations)
         derivative = -np.concatenate([dq for _, dq in predictions]).reshape(-1, 2) if jacobian else None
         self._cache[key] = (residual, derivative, simulated)
         return self._cache[key]
@@ -382,7 +386,7 @@ class MaterialFit:
     grid_solves: int
     cold_starts: int
     newton_iterations: int
-    particles: int
+    particles: list[int]  # each experiment's model
     wall_seconds: float
     warnings: list[str] = field(default_factory=list)
 

@@ -153,11 +153,15 @@ def refuse_negative(tissue_fit: LineFit, friction_sigma: float, cutting_sigma: f
     if found:
         # only a negative value beyond its noise says the recordings are the wrong way round
         significant = friction < -2.0 * friction_sigma or cutting < -2.0 * cutting_sigma
-        hint = ("is --tissue the recording in tissue and --air the one in air?" if significant else
-                "zero within twice its standard uncertainty: the recordings show none above the air's "
-                "(record more of the insertion, or a tissue that grips the needle)")
-        raise NumericalFailure(f"needle fit: the fit gave {' and '.join(gave for gave, _ in found)}, expected "
-                               f">= 0: {', and '.join(why for _, why in found)}; {hint}")
+        gave = " and ".join(gave for gave, _ in found)
+        if significant:
+            raise NumericalFailure(f"needle fit: the fit gave {gave}, expected >= 0: "
+                                   f"{', and '.join(why for _, why in found)}; is --tissue the recording in tissue "
+                                   "and --air the one in air?")
+        raise NumericalFailure(f"needle fit: the fit gave {gave}, expected >= 0: zero within twice "
+                               f"{'its' if len(found) == 1 else 'their'} standard uncertainty, the tissue recording "
+                               "shows no force above the air's (record more of the insertion, or a tissue that "
+                               "grips the needle)")
 
 
 LATE_START = 0.1  # the tissue recording's first angle over its span beyond which the touch was missed
@@ -177,7 +181,7 @@ def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit:
     span = air_angle[-1] - air_angle[0]
     if tissue_angle[0] < air_angle[0] - 0.01 * span or tissue_angle[-1] > air_angle[-1] + 0.01 * span:
         warnings.append(
-            f"the tissue recording ({tissue_angle[0]:.3g} to {tissue_angle[-1]:.3g} rad) reaches beyond "
+            f"the tissue recording ({tissue_angle[0]:.3g} to {tissue_angle[-1]:.3g} rad) reaches outside "
             f"the air recording ({air_angle[0]:.3g} to {air_angle[-1]:.3g} rad): the background is "
             "extrapolated there")
     if tissue_fit.r_squared < MIN_R_SQUARED:
@@ -234,6 +238,9 @@ def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> Need
     if tissue_angle[0] < 0:
         raise InputError(f"--tissue: {tissue}: angle_rad: got {tissue_angle[0]:g} first, expected "
                          "angles >= 0 rad (rotation since the tip touched the tissue)")
-    result = fit_needle(air_angle, air_force, tissue_angle, tissue_force, radius)
+    try:
+        result = fit_needle(air_angle, air_force, tissue_angle, tissue_force, radius)
+    except NumericalFailure as failure:  # the recordings' doing: name them
+        raise NumericalFailure(f"--tissue {tissue} and --air {air}: {failure}") from None
     result.sources = (str(air), str(tissue))
     return result

@@ -9,14 +9,15 @@ import typer
 
 from ..allocator import resume_collection
 from .group import calibrate_app
-from .options import (CalibrationDilationOption, CalibrationSpacingOption, MaxParticlesOption,
-                      NoResourceCheckOption, QuietOption, VerboseOption, check_command_outputs, command_line_argv,
-                      guard_calibration, guard_limits, named_file, option_names, setup_logging)
+from .options import (CalibrationDilationOption, CalibrationNoResourceCheckOption, CalibrationSpacingOption,
+                      MaterialFitVerboseOption, MaxParticlesOption, NeedleFitVerboseOption, QuietOption,
+                      check_command_outputs, command_line_argv, guard_calibration, guard_limits, named_file,
+                      option_names, setup_logging)
 
 
 @calibrate_app.command("material", short_help="Fit lame_lambda and lame_mu to marker displacements.")
 def calibrate_material(
-    calibration_path: Path = typer.Argument(..., callback=named_file,
+    calibration_path: Path = typer.Argument(..., metavar="CALIBRATION", callback=named_file,
                                             help="Calibration YAML: tissue, experiments "
                                             "(loads + markers CSV x,y,x_def,y_def), fit ranges."),
     out: Path = typer.Option(..., "--out",
@@ -26,8 +27,8 @@ def calibrate_material(
     spacing: Optional[float] = CalibrationSpacingOption,
     dilation: Optional[float] = CalibrationDilationOption,
     max_particles: Optional[int] = MaxParticlesOption,
-    no_resource_check: bool = NoResourceCheckOption,
-    verbose: int = VerboseOption,
+    no_resource_check: bool = CalibrationNoResourceCheckOption,
+    verbose: int = MaterialFitVerboseOption,
     quiet: bool = QuietOption,
 ) -> None:
     """Fit lame_lambda and lame_mu to marker displacements (grid search, then least squares)."""
@@ -62,7 +63,7 @@ def calibrate_needle(
     radius: float = typer.Option(..., "--radius", help="Needle radius, mm (0.05 to 1000)."),
     out: Path = typer.Option(..., "--out", help="YAML with friction, cutting_force and diagnostics."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="PNG of the recordings and the fit."),
-    verbose: int = VerboseOption,
+    verbose: int = NeedleFitVerboseOption,
     quiet: bool = QuietOption,
 ) -> None:
     """Fit needle friction (N/mm) and cutting force (N) to force recordings in air and tissue."""

@@ -70,8 +70,15 @@ CalibrationDilationOption = typer.Option(None, "--dilation", callback=_dilation_
 SummaryOption = typer.Option(None, "--summary", help="Write a JSON summary here.")
 VerboseOption = typer.Option(
     0, "--verbose", "-v", count=True, show_default=False, metavar="",
-    help="Log progress on stderr (load steps and needle steps with their Newton iterations, the "
-    "fit's evaluations); -vv also every Newton iteration.")
+    help="Log progress on stderr (load steps and needle steps with their Newton iterations); -vv also every "
+    "Newton iteration.")
+MaterialFitVerboseOption = typer.Option(
+    0, "--verbose", "-v", count=True, show_default=False, metavar="",
+    help="Log progress on stderr (each of the fit's evaluations: the moduli tried, their misfit and Newton "
+    "iterations); -vv also every Newton iteration.")
+NeedleFitVerboseOption = typer.Option(0, "--verbose", "-v", count=True, show_default=False, metavar="",
+                                      help="Accepted as by the other commands; the needle fit is one linear "
+                                      "least-squares solve, with no progress to log.")
 SchemaVerboseOption = typer.Option(0, "--verbose", "-v", count=True, show_default=False, metavar="",
                                    help="Accepted as by the other commands; the schema has no progress to log.")
 QuietOption = typer.Option(False, "--quiet", "-q",
@@ -292,6 +299,9 @@ NoResourceCheckOption = typer.Option(
     False, "--no-resource-check",
     help="Run even when the estimated particles, needle steps, kernel neighbours or memory exceed "
     "the resource guard's limits.")
+CalibrationNoResourceCheckOption = typer.Option(
+    False, "--no-resource-check",
+    help="Run even when the estimated particles, kernel neighbours or memory exceed the resource guard's limits.")
 
 
 def guard_limits(max_particles: Optional[int], no_resource_check: bool):

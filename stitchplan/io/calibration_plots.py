@@ -27,11 +27,12 @@ def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.nda
                       cost: np.ndarray, grid_best: tuple[float, float], optimum: tuple[float, float],
                       refinement: np.ndarray | None = None, log_axes: bool = True, name: str = "",
                       residual: tuple[float, float] | None = None,
-                      uncertainty: tuple[float | None, float | None] = (None, None)):
+                      uncertainty: tuple[float | None, float | None] = (None, None), identifiable: bool = True):
     """Marker misfit f(lambda, mu) (eq. A.3) on the calibration grid, cost (n_lambda, n_mu) in
     mm^2 with nan where the solve failed; the grid's best point, the least-squares path and
     the optimum marked. `residual`: mean and standard deviation of the marker distances at the
-    optimum (mm), shown in the title with the fitted moduli and their `uncertainty`."""
+    optimum (mm), shown in the title with the fitted moduli and their `uncertainty`, and
+    whether the moduli are `identifiable` (the command's summary line flags them alike)."""
     from matplotlib import patheffects
     from matplotlib.colors import LogNorm
 
@@ -78,7 +79,9 @@ def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.nda
              f"{value(optimum[0], uncertainty[0])} MPa, mu = {value(optimum[1], uncertainty[1])} MPa")
     if residual is not None:
         title += f"\nmarker residual {residual[0]:.3g} ± {residual[1]:.2g} mm"
-    ax.set_title(title, fontsize=10)
+    if not identifiable:
+        title += "\nNOT identifiable: see the fitted YAML's warnings"
+    ax.set_title(title, fontsize=10, color="black" if identifiable else "darkred")
     legend_below(fig, [ax], columns=2)
     save(fig, path)
     return fig

@@ -122,7 +122,8 @@ def _material_diagnostics(result: MaterialFit) -> dict:
             "failed_points": grid.failed,
         },
         "least_squares": {**result.optimizer, "start": [_round(v) for v in grid.best]},
-        "discretization": {"particles": result.particles, "spacing_mm": d.spacing,
+        "discretization": {"particles": sum(result.particles), "experiment_particles": result.particles,
+                           "spacing_mm": d.spacing,
                            "dilation": d.dilation, "quadrature_order": d.quadrature_order,
                            "basis_order": d.basis_order},
         "source": problem.source,
@@ -149,14 +150,14 @@ def _material_plots_to(result: MaterialFit, cost_path: Path, residuals_path: Pat
                       (result.lame_lambda, result.lame_mu), result.path,
                       log_axes=problem.fit.grid_scale == "log", name=problem.name,
                       residual=(float(result.distances.mean()), _spread(result.distances)),
-                      uncertainty=result.standard_uncertainty)
+                      uncertainty=result.standard_uncertainty, identifiable=result.identifiable)
     plot_marker_residuals(residuals_path, problem.tissue, problem.experiments, result.simulated,
                           name=problem.name)
 
 
 def material_outputs(out: str | Path, plot_dir: str | Path | None = None) -> dict[str, Path | None]:
     """The files `calibrate material` writes, by label."""
-    plots = {} if plot_dir is None else {f"--plot-dir ({name})": Path(plot_dir) / name
+    plots = {} if plot_dir is None else {f"--plot-dir's {name}": Path(plot_dir) / name
                                          for name in MATERIAL_PLOTS}
     return {"--out": Path(out), **plots}
 

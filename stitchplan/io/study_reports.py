@@ -43,7 +43,7 @@ def study_row(run: StudyRun) -> list:
 
 def study_outputs(out: str | Path) -> dict[str, Path]:
     """The files `stitchplan study --out DIR` writes, by label."""
-    return {f"--out ({name})": Path(out) / name for name in ("study.csv", "speed_accuracy.png", "study.json")}
+    return {f"--out's {name}": Path(out) / name for name in ("study.csv", "speed_accuracy.png", "study.json")}
 
 
 def study_record(result: StudyResult, provenance: dict | None = None) -> dict:
