@@ -114,7 +114,7 @@ REGION_COLOURS = ("tab:orange", "tab:cyan", "tab:pink", "tab:olive", "tab:brown"
 
 def draw_regions(ax, tissue) -> None:
     """Material regions at rest: a light fill and a dotted edge each, labelled with their
-    moduli (the first region holding a point gives its material, so later ones are drawn
+    material law and moduli (the first region holding a point gives its material, so later ones are drawn
     underneath), clipped to the tissue (a region may reach past it)."""
     from matplotlib.patches import PathPatch, Polygon
     from matplotlib.path import Path as DrawnPath
@@ -133,8 +133,8 @@ def draw_regions(ax, tissue) -> None:
         material = region.material
         patch = ax.add_patch(Polygon(np.asarray(region.polygon, dtype=float), closed=True, facecolor=colour,
                                      alpha=0.15, edgecolor=colour, ls=":", lw=1.2, zorder=0.5,
-                                     label=f"region {k}: lambda {material.lame_lambda:g}, "
-                                           f"mu {material.lame_mu:g} MPa"))
+                                     label=f"region {k} (at rest): {material.model}, lambda "
+                                           f"{material.lame_lambda:g}, mu {material.lame_mu:g} MPa"))
         patch.set_clip_path(inside)
 
 
