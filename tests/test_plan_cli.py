@@ -315,7 +315,7 @@ def test_bad_plan_options(tmp_path, monkeypatch, options, fragments):
 
 
 @pytest.mark.parametrize("command,argument", [("deform", "SCENARIO"), ("simulate", "SCENARIO"),
-                                              ("plan", "SCENARIO"), ("calibrate", "CALIBRATION_PATH")])
+                                              ("plan", "SCENARIO"), ("calibrate", "CALIBRATION")])
 def test_an_empty_input_path_is_named_not_read_as_the_working_folder(tmp_path, monkeypatch, command, argument):
     monkeypatch.chdir(tmp_path)
     arguments = ["material", "", "--out", "fitted.yaml"] if command == "calibrate" else ["", "--summary", "s.json"]

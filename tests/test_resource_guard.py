@@ -621,7 +621,8 @@ def test_a_line_that_cannot_be_fitted_is_a_numerical_failure(tmp_path):
     result = calibrate(tmp_path, "8.88")
     assert result.exit_code == 1, result.output
     (line,) = result.stderr.splitlines()
-    assert line.startswith("error: needle fit: the tissue line") and "singular" in line
+    assert line.startswith(f"error: --tissue {tmp_path / 'tissue.csv'} and --air {tmp_path / 'air.csv'}: needle fit: "
+                           "the tissue line") and "singular" in line
     assert "Traceback" not in result.output and not (tmp_path / "needle.yaml").exists()
 
 

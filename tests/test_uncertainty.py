@@ -418,6 +418,45 @@ def test_a_re_aimed_robust_plan_aims_by_the_shift_and_the_refined_offset_and_is_
     assert replayed["exit_error_mm"] == pytest.approx(summary["verified_exit_error_mm"], abs=1e-6)
 
 
+def test_where_the_nominal_plan_is_exported_robust_names_it_everywhere(tmp_path, monkeypatch):
+    """A re-aimed robust plan judged worse than the nominal one: the summary's `robust`
+    statistics and held-out mean are the exported (nominal) plan's, the candidate's stand
+    beside them as `robust_candidate`, the printed lines say which is which, and the run log
+    says which plan trajectory.csv holds and how the samples were drawn."""
+    from stitchplan.uncertainty import robust
+
+    monkeypatch.setattr(robust, "shift_threshold", lambda n: 0.0)  # a robust plan of its own
+
+    def prefer_nominal(result) -> None:
+        result.exported = "nominal"
+        result.notes.append("the nominal plan is exported")
+
+    monkeypatch.setattr(robust, "_choose", prefer_nominal)
+    scenario_path = write(tmp_path, {**small_raw(), "solver": TIGHT_NEEDLE_NEWTON})
+    path = write(tmp_path, {"samples": 4, "seed": 7, "parameters": {"thickness": {"std": 1.0},
+                                                                    "cutting_force": {"std": 0.1}}}, "u.yaml")
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
+                    tmp_path / "s.json", "--out", tmp_path / "run.h5", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    block = json.loads((tmp_path / "s.json").read_text())["uncertainty"]
+    assert block["exported"] == "nominal"
+    assert block["robust"] == block["nominal"] and block["robust_candidate"] != block["nominal"]
+    means = block["held_out_mean_exit_error_mm"]
+    assert means["robust"] == means["nominal"] and means["robust_candidate"] != means["nominal"]
+    lines = {line.split()[0]: line for line in result.stdout.splitlines() if line.startswith("  ")}
+    assert lines["nominal"].endswith("(exported)")
+    assert lines["robust"].endswith("(the robust candidate, not exported)")
+    assert f"{block['robust_candidate']['p95_mm']:.4f} mm" in lines["robust"]
+    with h5py.File(tmp_path / "run.h5") as log:
+        group = log["uncertainty"]
+        assert group["exported"][()].decode() == "nominal" and group["exported"].attrs["units"] == "text"
+        assert group["seed"][()] == 7 and group["samples"][()] == 4
+        assert group["uncertainty_file"][()].decode() == str(path)
+        distributions = json.loads(group["distributions"][()].decode())
+        assert distributions["seed"] == 7 and set(distributions["parameters"]) == {"cutting_force", "thickness"}
+        assert group["mean_shift_t2_threshold"][()] == 0.0
+
+
 def test_the_run_log_and_the_png(planned):
     folder, result = planned
     assert result.exit_code == 0, result.output

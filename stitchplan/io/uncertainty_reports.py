@@ -5,6 +5,8 @@ ellipses, and the sensitivities). The plan's own files are io.reports' (the expo
 
 from __future__ import annotations
 
+import json
+
 import math
 from pathlib import Path
 
@@ -64,8 +66,11 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "exported": result.exported,
         "robust_candidate": stats["robust"] if result.exported != "robust" and robust_plan is not None else None,
         "evaluated_samples": int(result.evaluated.sum()),
-        "held_out_mean_exit_error_mm": {label: _vector(result.errors(label).mean(axis=0))
-                                        if result.evaluated.any() else None for label in LABELS},
+        # keyed as the statistics above: `robust` the exported plan, `robust_candidate` the other
+        "held_out_mean_exit_error_mm": {
+            **{label: _held_out_mean(result, result.exported if label == "robust" else label) for label in LABELS},
+            **({"robust_candidate": _held_out_mean(result, "robust")}
+               if result.exported != "robust" and robust_plan is not None else {})},
         "robust_design": ROBUST_DESIGN,
         "statistics_model": STATISTICS_MODEL[result.refined_offset is not None],
         "refined_offset_mm": _vector(result.refined_offset),
@@ -120,6 +125,11 @@ def finite_only(block: dict) -> dict:
     return cleaned
 
 
+def _held_out_mean(result: UncertaintyResult, label: str) -> list[float] | None:
+    """The mean exit error vector of a path's held-out runs where every path ran (mm)."""
+    return _vector(result.errors(label).mean(axis=0)) if result.evaluated.any() else None
+
+
 def _mean_wall(result: UncertaintyResult) -> float | None:
     walls = [run.wall_seconds for group in [result.training, *result.held_out.values()] for run in group if run.ok]
     return float(np.mean(walls)) if walls else None
@@ -141,6 +151,16 @@ def uncertainty_datasets(result: UncertaintyResult) -> tuple[dict, dict]:
                                  for s in result.sensitivities]),
         "sensitivity_step": np.array([s.step for s in result.sensitivities]),
         "mean_shift": result.shift,
+        # how the samples were drawn and which plan trajectory.csv holds (held_out/robust below is
+        # the robust plan's runs, also where the nominal one was exported instead)
+        "samples": result.uncertainty.samples,
+        "seed": result.uncertainty.seed,
+        "exported": result.exported,
+        "mean_shift_t2": np.nan if result.shift_significance is None else result.shift_significance,
+        "mean_shift_t2_threshold": np.nan if result.shift_threshold is None else result.shift_threshold,
+        "uncertainty_file": result.uncertainty.path,
+        "from_calibration": result.uncertainty.calibration or "",
+        "distributions": json.dumps(result.uncertainty.as_record()),  # the file as resolved (stds, correlations)
         # the planned paths' exit_error below are the planning model's; the summary adds this offset
         **({} if result.refined_offset is None else {"refined_offset": result.refined_offset}),
     }}
@@ -149,7 +169,10 @@ def uncertainty_datasets(result: UncertaintyResult) -> tuple[dict, dict]:
              "uncertainty/training_parameters": parameter_units, "uncertainty/held_out_parameters": parameter_units,
              "uncertainty/sensitivity": ",".join(per_unit(name) for name in names),
              "uncertainty/sensitivity_step": parameter_units, "uncertainty/mean_shift": "mm",
-             "uncertainty/refined_offset": "mm"}
+             "uncertainty/refined_offset": "mm", "uncertainty/samples": "1", "uncertainty/seed": "1",
+             "uncertainty/exported": "text", "uncertainty/mean_shift_t2": "1",
+             "uncertainty/mean_shift_t2_threshold": "1", "uncertainty/uncertainty_file": "text",
+             "uncertainty/from_calibration": "text", "uncertainty/distributions": "text"}
     runs = {"training/nominal": result.training, **{f"held_out/{label}": result.held_out[label] for label in LABELS}}
     for key, group in runs.items():
         name = f"uncertainty/{key}"
@@ -180,6 +203,8 @@ def uncertainty_lines(result: UncertaintyResult) -> list[str]:
         s = stats[label]
         shown = "n/a" if s["mean_mm"] is None else f"{s['mean_mm']:.4f} / {s['p95_mm']:.4f} mm"
         exported = "  (exported)" if label == result.exported else ""
+        if label == "robust" and result.exported != "robust":
+            exported = "  (the robust candidate, not exported)"
         lines.append(f"  {label:9s} {shown}{exported}")
     lines.append(result.dominance_line())
     return lines
