@@ -200,6 +200,18 @@ def test_a_server_that_answers_something_else_is_refused(http):
     assert elapsed < 3
 
 
+def test_a_server_whose_banner_reads_as_a_huge_message_is_refused_without_the_allocation():
+    """A banner (an SSH server's) whose first bytes Dask reads as a frame length of exabytes: the
+    line says the reply is not Dask's protocol, not numpy's failed allocation."""
+    server = FakeServer(b"SSH-2.0-OpenSSH_9.6\r\n" + b"x" * 64)
+    try:
+        message, _ = refusal(server.address)
+    finally:
+        server.close()
+    assert "its reply could not be read: it is not Dask's protocol" in message, message
+    assert "MemoryError" not in message and "EiB" not in message
+
+
 def test_a_closed_port_is_refused_naming_the_reason(closed_port):
     message, elapsed = refusal(closed_port)
     assert message == (f"--scheduler: cannot connect to {closed_port} within 1 s (ConnectionRefusedError: "

@@ -30,7 +30,8 @@ EXIT_CODES = (
     "says what and where); 2 unusable input: a scenario field, an option or an input file "
     "(`error:` lines name it, the value received and what was expected), or an output that "
     "cannot be written, standard output included. A reader that closes the pipe early "
-    "(`| head`) ends the command quietly with 1. A traceback is a bug in stitchplan (exit "
+    "(`| head`) ends the command quietly with 1; an interrupt with 128 + the signal (130 for "
+    "Ctrl-C, 143 for SIGTERM), no output written. A traceback is a bug in stitchplan (exit "
     "code 1): please report it."
 )
 

@@ -95,7 +95,11 @@ def short(value: Any) -> str:
         return v
 
     text = " ".join(repr(plain(value)).split())
-    return text if len(text) <= MAX_VALUE_CHARS else text[:MAX_VALUE_CHARS - 4] + " ..."
+    if len(text) <= MAX_VALUE_CHARS:
+        return text
+    cut = text[:MAX_VALUE_CHARS - 4]
+    cut = cut[:cut.rfind(" ")] if " " in cut[MAX_VALUE_CHARS // 2:] else cut  # not in a word's middle
+    return cut + (" ...'" if text[0] == "'" and text[-1] == "'" else " ...")  # a string's quote closed
 
 
 def field_path(base: str, loc: tuple) -> str:

@@ -80,7 +80,7 @@ def summary_lines(result: StudyResult) -> list[str]:
     to stderr with the runs' notes)."""
     ok = [r for r in result.runs if r.ok]
     lines = [f"study: {len(result.runs)} runs ({len(ok)} ok, {len(result.runs) - len(ok)} failed); "
-             f"reference {result.reference.label}: {result.reference.particles} particles, "
+             f"{result.reference.label}: {result.reference.particles} particles, "
              f"{result.reference.wall_seconds:.2f} s"]
     for run in sorted(result.front, key=lambda r: r.wall_seconds):
         lines.append(f"  Pareto: {run.label:32s} {run.particles:6d} particles {run.wall_seconds:7.2f} s  "

@@ -98,8 +98,11 @@ def probe_scheduler(address: str, timeout: float | None = None) -> None:
             why = _why_unreachable(address, timeout - connecting) or brief_error(_last_cause(error))
             raise InputError(f"--scheduler: cannot connect to {address} within {timeout:g} s ({why}); "
                              f"{expected}") from None
+        # a MemoryError: Dask's frame reader took another protocol's bytes (a banner) for a length
+        read = ("it is not Dask's protocol: its first bytes read as the length of a message too long to hold"
+                if isinstance(error, MemoryError) else brief_error(error))
         raise InputError(f"--scheduler: {address} does not answer as a Dask scheduler (its reply could "
-                         f"not be read: {brief_error(error)}); {expected}") from None
+                         f"not be read: {read}); {expected}") from None
     kind = reply.get("type") if isinstance(reply, dict) else None
     if kind != "Scheduler":
         what = f"a Dask {kind}" if isinstance(kind, str) else f"a reply of type {type(reply).__name__}"
