@@ -388,6 +388,19 @@ def test_the_plans_statistics_are_on_the_refined_model_by_its_offset_of_the_nomi
     assert "on the refined model" in result.stdout
 
 
+def plan_re_aimed(folder):
+    """`plan --uncertainty` on the small scene (4 samples of thickness and cutting force, in
+    this process), with every mean shift taken as significant by the caller: (scenario file,
+    uncertainty file, the command's result), its outputs t.csv, s.json and run.h5 in `folder`."""
+    scenario_path = write(folder, {**small_raw(), "solver": TIGHT_NEEDLE_NEWTON})
+    path = write(folder, {"samples": 4, "seed": 7, "parameters": {"thickness": {"std": 1.0},
+                                                                  "cutting_force": {"std": 0.1}}}, "u.yaml")
+    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", folder / "t.csv", "--summary",
+                    folder / "s.json", "--out", folder / "run.h5", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    return scenario_path, path, result
+
+
 def test_a_re_aimed_robust_plan_aims_by_the_shift_and_the_refined_offset_and_is_verified(tmp_path, monkeypatch):
     """Every shift taken as significant (a zero threshold): the robust plan is planned again,
     aimed at -s - delta on the planning model, and replayed on the refined model itself; its
@@ -395,12 +408,7 @@ def test_a_re_aimed_robust_plan_aims_by_the_shift_and_the_refined_offset_and_is_
     from stitchplan.uncertainty import robust
 
     monkeypatch.setattr(robust, "shift_threshold", lambda n: 0.0)
-    scenario_path = write(tmp_path, {**small_raw(), "solver": TIGHT_NEEDLE_NEWTON})
-    path = write(tmp_path, {"samples": 4, "seed": 7, "parameters": {"thickness": {"std": 1.0},
-                                                                    "cutting_force": {"std": 0.1}}}, "u.yaml")
-    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
-                    tmp_path / "s.json", "--out", tmp_path / "run.h5", "--workers", "0")
-    assert result.exit_code == 0, result.output
+    scenario_path, path, result = plan_re_aimed(tmp_path)
     summary = json.loads((tmp_path / "s.json").read_text())
     block = summary["uncertainty"]
     offset = np.asarray(block["refined_offset_mm"])
@@ -432,12 +440,7 @@ def test_where_the_nominal_plan_is_exported_robust_names_it_everywhere(tmp_path,
         result.notes.append("the nominal plan is exported")
 
     monkeypatch.setattr(robust, "_choose", prefer_nominal)
-    scenario_path = write(tmp_path, {**small_raw(), "solver": TIGHT_NEEDLE_NEWTON})
-    path = write(tmp_path, {"samples": 4, "seed": 7, "parameters": {"thickness": {"std": 1.0},
-                                                                    "cutting_force": {"std": 0.1}}}, "u.yaml")
-    result = invoke("plan", scenario_path, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
-                    tmp_path / "s.json", "--out", tmp_path / "run.h5", "--workers", "0")
-    assert result.exit_code == 0, result.output
+    scenario_path, path, result = plan_re_aimed(tmp_path)
     block = json.loads((tmp_path / "s.json").read_text())["uncertainty"]
     assert block["exported"] == "nominal"
     assert block["robust"] == block["nominal"] and block["robust_candidate"] != block["nominal"]
