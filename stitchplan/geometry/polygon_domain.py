@@ -11,7 +11,7 @@ import numpy as np
 
 from .bounding_box import BoundingBox
 from .edge_grid import FEW_EDGES, FEW_PAIRS, PAIR_BLOCK, EdgeGrid
-from .segments import cross_2d, on_segment, point_segment_distance, segments_cross
+from .segments import cross_2d, on_segment, point_segment_distance, point_segment_foot, segments_cross
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,9 +161,7 @@ class PolygonDomain(BoundingBox):
     def nearest_boundary_point(self, point) -> tuple[np.ndarray, bool]:
         """The boundary point nearest `point`, and whether its edge is the outline's (not a hole's)."""
         x = np.asarray(point, dtype=float)
-        a, e = self.segment_starts, self.segment_ends - self.segment_starts
-        t = np.clip(np.sum((x - a) * e, axis=1) / np.maximum(np.sum(e * e, axis=1), 1e-300), 0.0, 1.0)
-        nearest = a + t[:, None] * e  # (edges, 2)
+        nearest = point_segment_foot(x[None], self.segment_starts, self.segment_ends)  # (edges, 2)
         k = int(np.argmin(np.linalg.norm(nearest - x, axis=1)))
         return nearest[k], k < len(self.outline)
 

@@ -42,7 +42,12 @@ def segments_touch(p, q, a, b, tol: float) -> np.ndarray:
     return (close <= tol) | segments_cross(p, q, a, b, 0.0)
 
 
-def point_segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def point_segment_foot(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The point (..., 2) of each segment a-b nearest x."""
     e = b - a
     t = np.clip(np.sum((x - a) * e, axis=-1) / np.maximum(np.sum(e * e, axis=-1), 1e-300), 0.0, 1.0)
-    return np.linalg.norm(x - (a + t[..., None] * e), axis=-1)
+    return a + t[..., None] * e
+
+
+def point_segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(x - point_segment_foot(x, a, b), axis=-1)
