@@ -98,7 +98,11 @@ def plot_deformed(path: str | Path, result, scale: float = 1.0):
     draw_regions(ax, tissue)
     moved = particles + scale * u
     dots = ax.scatter(*moved.T, s=8, c=magnitude, cmap=CMAP, norm=magnitude_norm(u), zorder=2)
-    fig.colorbar(dots, ax=ax, label="|u| displacement (mm)", shrink=0.8)
+    # the bar as tall as the tissue's drawn box (not the figure's), so the legend below both stays clear of it
+    from mpl_toolkits.axes_grid1 import make_axes_locatable
+
+    fig.colorbar(dots, cax=make_axes_locatable(ax).append_axes("right", size="3%", pad=0.15),
+                 label="|u| displacement (mm)")
 
     def move(points):
         return points + scale * interpolate(result.model, result.coefficients, points)
