@@ -623,8 +623,8 @@ def test_a_std_above_the_scenarios_value_is_refused_up_front(tmp_path):
     out = tmp_path / "out"
     line = one_error_line(invoke("plan", scenario_path, "--uncertainty", path, "--export", out / "t.csv",
                                  "--workers", "0"))
-    assert line.startswith(f"error: {path}: parameters.cutting_force.std: got 1e+300, expected at most the "
-                           f"scenario's value 0.7 N ({scenario_path}: needle.cutting_force)"), line
+    assert line.startswith(f"error: --uncertainty: {path}: parameters.cutting_force.std: got 1e+300, expected at "
+                           f"most the scenario's value 0.7 N ({scenario_path}: needle.cutting_force)"), line
     assert not out.exists()
 
 
@@ -750,8 +750,8 @@ def test_uncertain_moduli_on_a_scenario_with_material_regions_are_refused(tmp_pa
     out = tmp_path / "out"
     line = one_error_line(invoke("plan", scenario_path, "--uncertainty", path, "--export", out / "t.csv",
                                  "--workers", "0"))
-    expected = (f"error: {path}: parameters.lame_mu: got {{std: 0.01}}, expected no uncertain moduli for a "
-                f"scenario with material regions ({scenario_path} has 1 region in tissue.regions")
+    expected = (f"error: --uncertainty: {path}: parameters.lame_mu: got {{std: 0.01}}, expected no uncertain "
+                f"moduli for a scenario with material regions ({scenario_path} has 1 region in tissue.regions")
     assert line.startswith(expected), line
     assert not out.exists()
     scenario = parse_scenario(_with_region())

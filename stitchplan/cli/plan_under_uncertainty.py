@@ -50,7 +50,8 @@ def run_plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: 
                            "--uncertainty-plot": uncertainty_plot},
                           {"--uncertainty": uncertainty_path, "from_calibration": uncertainty.calibration},
                           out_format="HDF5")
-    check_inputs(uncertainty, scenario, scenario_path)
+    with naming_option("--uncertainty", uncertainty_path):  # its lines against the scenario's values too
+        check_inputs(uncertainty, scenario, scenario_path)
     tasks = planned_tasks(uncertainty)
     guard_plan_under_uncertainty(scenario_path, limits, names, scenario, verify, tasks, executor.workers,
                                  options.get("linear_solver"))
