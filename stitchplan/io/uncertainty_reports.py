@@ -221,7 +221,9 @@ def plot_title(result: UncertaintyResult, scenario_name: str = "") -> str:
         return (f"{name}: no held-out sample ran every path ({result.failed_held_out_samples} samples with a failed "
                 f"run); {result.exported} plan exported")
     basis = "" if result.refined_offset is None else " (plans: on the refined model)"
-    return (f"{name}: exit error on {evaluated} held-out samples{basis}; {result.exported} plan p95 "
+    failed = result.failed_held_out_samples
+    left_out = f" ({failed} of {result.uncertainty.samples} left out: a failed run)" if failed else ""
+    return (f"{name}: exit error on {evaluated} held-out samples{left_out}{basis}; {result.exported} plan p95 "
             f"{exported:.3g} mm, unplanned {unplanned:.3g} mm")
 
 
@@ -233,6 +235,18 @@ def plotted_paths(result: UncertaintyResult) -> list[tuple[str, str]]:
     return [(label, f"{label}{' (exported)' if label == result.exported else ''}") for label in LABELS]
 
 
+def _room_for_labels(fig, ax, ends: list[float], labels: list) -> float:
+    """The x limit that keeps each label, drawn from its bar's end, inside the panel: a bar
+    ending at b with a label w pixels wide in a panel p pixels wide needs b p / (p - w), and at
+    least 1.9 x the widest bar."""
+    renderer = fig.canvas.get_renderer()
+    panel = ax.get_window_extent(renderer).width
+    widest = max(ends + [1e-6])
+    needed = [end * panel / (panel - label.get_window_extent(renderer).width) for end, label in zip(ends, labels)
+              if label.get_window_extent(renderer).width < 0.9 * panel]
+    return max([1.9 * widest, *needed])
+
+
 def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name: str = ""):
     """uncertainty.png: (a) the exit error vectors of the three paths on the held-out samples
     (two where the robust plan is the nominal one: plotted_paths), the desired exit at the
@@ -242,10 +256,11 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
     from matplotlib.ticker import MaxNLocator
 
     fig, axes = plt.subplots(1, 3, figsize=(14.0, 4.6), gridspec_kw={"width_ratios": [1.0, 1.0, 0.9]})
+    fig.subplots_adjust(wspace=0.5)  # before the labels' room is measured
     paths = plotted_paths(result)
     plans = "the plan (robust = nominal)" if result.robust_is_nominal else "the plans"
-    for ax, shown, title in ((axes[0], paths, f"unplanned and {plans} (x, y scaled separately)"),
-                             (axes[1], paths[1:], f"{plans}, enlarged (x, y scaled separately)")):
+    for ax, shown, title in ((axes[0], paths, f"unplanned and {plans}\n(x, y scaled separately)"),
+                             (axes[1], paths[1:], f"{plans}, enlarged\n(x, y scaled separately)")):
         for label, name in shown:
             errors = result.errors(label)
             marker = "s" if label == result.exported else "o"
@@ -276,15 +291,16 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
     moves = [Z_95 * s.spread_mm if s.exit_error is not None and math.isfinite(s.spread_mm) else 0.0
              for s in result.sensitivities]
     bars = ax.barh(names, moves, color="0.45")
+    labels = []
     for bar, s in zip(bars, result.sensitivities):
         text = "failed" if s.exit_error is None else (f"{np.linalg.norm(s.exit_error):.3g} {per_unit(s.name)}"
                                                        f" x 1.96 x {s.std:g}")
-        ax.text(bar.get_width(), bar.get_y() + bar.get_height() / 2, " " + text, va="center", fontsize=7)
-    ax.set_xlim(0.0, max(moves + [1e-6]) * 1.9)
+        labels.append(ax.text(bar.get_width(), bar.get_y() + bar.get_height() / 2, " " + text, va="center",
+                              fontsize=7))
+    ax.set_xlim(0.0, _room_for_labels(fig, ax, moves, labels))
     ax.invert_yaxis()
     ax.set_xlabel("95 % exit move from the parameter alone (mm)")
     ax.set_title("sensitivity of the exit (nominal path)", fontsize=9)
-    fig.subplots_adjust(wspace=0.5)
     title_above(fig, list(axes), plot_title(result, scenario_name))
     legend_below(fig, list(axes[:2]), columns=4)
     save(fig, path)
