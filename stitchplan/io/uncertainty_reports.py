@@ -241,10 +241,9 @@ def _room_for_labels(fig, ax, ends: list[float], labels: list) -> float:
     least 1.9 x the widest bar."""
     renderer = fig.canvas.get_renderer()
     panel = ax.get_window_extent(renderer).width
-    widest = max(ends + [1e-6])
-    needed = [end * panel / (panel - label.get_window_extent(renderer).width) for end, label in zip(ends, labels)
-              if label.get_window_extent(renderer).width < 0.9 * panel]
-    return max([1.9 * widest, *needed])
+    widths = [label.get_window_extent(renderer).width for label in labels]
+    needed = [end * panel / (panel - width) for end, width in zip(ends, widths) if width < 0.9 * panel]
+    return max([1.9 * max(ends + [1e-6]), *needed])
 
 
 def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name: str = ""):
