@@ -628,6 +628,19 @@ def test_a_std_above_the_scenarios_value_is_refused_up_front(tmp_path):
     assert not out.exists()
 
 
+def test_a_std_too_small_to_move_the_value_is_refused_up_front(tmp_path):
+    """std 1e-300 on a 10 mm thickness: every sample and the sensitivity's step are 10 mm in
+    double precision, and the sensitivity read 0; refused before any run, with the bound."""
+    scenario_path = write(tmp_path, small_raw())  # thickness 10 mm
+    path = write(tmp_path, {"samples": 3, "parameters": {"thickness": {"std": 1e-300}}}, "u.yaml")
+    out = tmp_path / "out"
+    line = one_error_line(invoke("plan", scenario_path, "--uncertainty", path, "--export", out / "t.csv",
+                                 "--workers", "0"))
+    assert line.startswith(f"error: --uncertainty: {path}: parameters.thickness.std: got 1e-300, expected at "
+                           f"least {2 * np.spacing(10.0):.3g} mm"), line
+    assert not out.exists()
+
+
 def test_an_unverified_plan_under_uncertainty_estimates_its_error_as_plan_does(tmp_path):
     """--no-verify skips the refined replays, not the estimate: the exported plan's
     exit_error_estimate_mm comes from its path replayed at twice the spacing, as `plan

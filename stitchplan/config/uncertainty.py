@@ -268,7 +268,10 @@ def check_against_scenario(uncertainty: Uncertainty, scenario, scenario_path: st
       values that overflow the model);
     - lame_lambda or lame_mu on a scenario with material `regions`: a sample replaces
       tissue.material only, so the regions' moduli would stay fixed and the spread and the
-      sensitivity would leave them out (no region-wise meaning is defined)."""
+      sensitivity would leave them out (no region-wise meaning is defined);
+    - a std that does not move the value in double precision: the sensitivity's step, half a
+      std (uncertainty.robust), must change it, else the samples and the step are the value
+      itself and the sensitivity reads 0 (a std of 1e-300 on a 10 mm thickness)."""
     values = scenario_values(scenario, uncertainty.names)
     regions = len(getattr(scenario.tissue, "regions", ()) or ())
     lines = []
@@ -285,6 +288,12 @@ def check_against_scenario(uncertainty: Uncertainty, scenario, scenario_path: st
                          f"{value:g} {UNITS[name]} ({scenario_path}: {where}.{name}): a larger std puts more than "
                          "16 % of the normal at or below 0, and truncated to positive values it is no longer "
                          "centred on the scenario's value")
+        elif std < 2.0 * np.spacing(value):
+            std_field = field if uncertainty.sources.get(name) == "calibration" else f"{field}.std"
+            lines.append(f"{uncertainty.path}: {std_field}: got {std:g}, expected at least "
+                         f"{2.0 * np.spacing(value):.3g} {UNITS[name]}, a std that moves the scenario's value "
+                         f"{value:g} ({scenario_path}: {where}.{name}) in double precision: half a std, the "
+                         "sensitivity's step, would leave it as it is")
         if name in ("lame_lambda", "lame_mu") and regions:
             counted = f"{regions} region{'s' * (regions > 1)}"
             lines.append(f"{uncertainty.path}: {field}: got {{std: {std:g}}}, expected no uncertain moduli for a "
