@@ -156,6 +156,11 @@ def test_round_trip_noise_free_through_the_cli(tmp_path):
                                              + diagnostics["refinement_forward_solves"])
     assert 0 < diagnostics["grid_forward_solves"] <= 2 * 4 * 4  # 2 experiments, 4 x 4 grid
     assert diagnostics["wall_seconds"] > 0
+    # what ran, as deform's summary says it: the factorizations and each experiment's model
+    from stitchplan.tissue.factorization import SUPERLU
+    assert SUPERLU in diagnostics["linear_solver_backends"]  # the sensitivities' LU
+    particles = diagnostics["discretization"]["experiment_particles"]
+    assert len(particles) == 2 and diagnostics["discretization"]["particles"] == sum(particles)
     for name in ("cost_surface.png", "marker_residuals.png"):
         assert (plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

@@ -194,7 +194,7 @@ def test_a_row_0_leaning_too_far_is_refused_naming_the_file(tmp_path):
     result = CliRunner().invoke(app, ["simulate", str(scene), "--center-path", str(tmp_path / "t.csv"),
                                       "--no-estimate"])
     assert result.exit_code == 2
-    assert f"{tmp_path / 't.csv'}: centre path: row 0 puts the needle centre at" in result.output
+    assert f"--center-path: {tmp_path / 't.csv'}: row 0 puts the needle centre at" in result.output
     assert "leaning the needle 1.3 rad from the orthogonal entry; expected a lean of at most 1 rad" in result.output
 
 

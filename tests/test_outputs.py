@@ -353,6 +353,46 @@ def test_deform_summary_and_run_log_carry_provenance_and_units(tmp_path, scene):
     _check_run_log(tmp_path / "run.h5", scene, "deform")
 
 
+def test_a_scenario_with_a_bom_is_stored_as_the_bytes_it_hashes(tmp_path, scene):
+    """A spreadsheet's byte-order mark: the run log's scenario text, encoded, is the file,
+    whose SHA-256 it records (the text left the mark out)."""
+    marked = tmp_path / "marked.yaml"
+    marked.write_bytes(b"\xef\xbb\xbf" + scene.read_bytes())
+    result = invoke("deform", marked, "--out", tmp_path / "run.h5")
+    assert result.exit_code == 0, result.output
+    with h5py.File(tmp_path / "run.h5") as log:
+        text = log["scenario/text"][()]
+        text = text if isinstance(text, bytes) else text.encode()
+        assert hashlib.sha256(text).hexdigest() == log.attrs["scenario_sha256"]
+        assert text == marked.read_bytes()
+
+
+def test_python_m_stitchplan_records_its_command_as_arguments(tmp_path, scene):
+    """Under `python -m stitchplan` the program's name is three arguments of the recorded
+    command line, which subprocess can run again as it stands."""
+    result = CliRunner().invoke(app, ["deform", str(scene), "--summary", str(tmp_path / "s.json")],
+                                prog_name="python -m stitchplan")
+    assert result.exit_code == 0, result.output
+    command = json.loads((tmp_path / "s.json").read_text())["command"]
+    assert command[:4] == ["python", "-m", "stitchplan", "deform"], command
+
+
+def test_a_replay_records_its_centre_path_and_its_sha256(tmp_path, scene):
+    """simulate --center-path: the summary and the run log name the path's file and its
+    SHA-256, as they do the scenario's."""
+    planned = invoke("plan", scene, "--export", tmp_path / "t.csv", "--no-compare", "--no-verify")
+    assert planned.exit_code == 0, planned.output
+    path = tmp_path / "t.csv"
+    result = invoke("simulate", scene, "--center-path", path, "--summary", tmp_path / "s.json", "--out",
+                    tmp_path / "run.h5", "--no-estimate")
+    assert result.exit_code == 0, result.output
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    record = json.loads((tmp_path / "s.json").read_text())
+    assert record["center_path"] == str(path) and record["center_path_sha256"] == digest
+    with h5py.File(tmp_path / "run.h5") as log:
+        assert log.attrs["center_path"] == str(path) and log.attrs["center_path_sha256"] == digest
+
+
 def _check_run_log(path: Path, scene: Path, command: str) -> dict[str, str]:
     units = {}
     with h5py.File(path) as log:

@@ -219,7 +219,7 @@ def test_a_path_that_ends_before_the_exit_fails_alike(scenario):
             messages.append(str(failure.value))
         finally:
             replays.close()
-    assert messages[0] == messages[1] and "rows end before the tip exits" in messages[0]
+    assert messages[0] == messages[1] and "rows: got 3, expected one per step until the tip exits" in messages[0]
 
 
 def test_a_failed_replay_is_reported_alike(scenario, monkeypatch):

@@ -289,7 +289,7 @@ def test_run_sample_records_a_replay_that_ends_before_the_exit():
     scenario = parse_scenario(small_raw())
     centers = np.repeat([[0.0, 18.0 - 8.88]], 3, axis=0)  # three rows: the tip has not left yet
     run = run_sample(scenario, centers)
-    assert not run.ok and run.reason.startswith("InputError: centre path: 3 rows end before the tip exits")
+    assert not run.ok and run.reason.startswith("InputError: centre path: rows: got 3, expected one per step until the tip exits")
     assert np.isnan(run.exit_error).all()
 
 

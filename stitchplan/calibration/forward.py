@@ -162,6 +162,8 @@ class ExperimentModel:
             columns.append(self.assembler.gradient_t @ (first_piola * weights).reshape(-1))
         # the assembler was last updated at the converged state, so this is K there
         tangent = factorize(self.assembler.tangent_matrix())
+        if tangent.backend not in self.linear.backends:  # recorded with the static solves' (diagnostics)
+            self.linear.backends.append(tangent.backend)
         dfree = -tangent.solve(np.stack(columns, axis=1))  # (2 n_free, 2)
         du = self.marker_free @ dfree.reshape(model.n_free, 4)  # (n, 4): (xy, theta)
         return du.reshape(-1, 2, 2)

@@ -115,6 +115,11 @@ class MarkerMisfit:
         return sum(e.solves for e in self.experiments)
 
     @property
+    def backends(self) -> list[str]:
+        """The sparse factorizations that ran (tissue.factorization's `backend`), in order met."""
+        return list(dict.fromkeys(backend for e in self.experiments for backend in e.linear.backends))
+
+    @property
     def cold_starts(self) -> int:
         return sum(e.cold_starts for e in self.experiments)
 
@@ -387,6 +392,7 @@ class MaterialFit:
     cold_starts: int
     newton_iterations: int
     particles: list[int]  # each experiment's model
+    linear_solver_backends: list[str]  # the sparse factorizations that ran, static solves and sensitivities
     wall_seconds: float
     warnings: list[str] = field(default_factory=list)
 
@@ -443,6 +449,7 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         cold_starts=misfit.cold_starts,
         newton_iterations=misfit.newton_iterations,
         particles=misfit.particles,
+        linear_solver_backends=misfit.backends,
         wall_seconds=time.perf_counter() - start,
         warnings=warnings,
     )

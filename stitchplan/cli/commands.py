@@ -118,6 +118,10 @@ def simulate(
     options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
     geometry = checked_needle_geometry(scenario_path, scenario)
     path = read_center_path_option(scenario_path, center_path, scenario, geometry) if center_path is not None else None
+    if center_path is not None:  # the replay's path recorded as its scenario is (of the file as read)
+        from ..io.files import sha256
+
+        provenance.update(center_path=str(center_path), center_path_sha256=sha256(center_path))
     check_plot_steps(steps_to_plot, scenario)
     limits = guard_limits(max_particles, no_resource_check)
     if accuracy is None:

@@ -46,7 +46,8 @@ class Commands(TyperGroup):
 
     def make_context(self, info_name, args, parent=None, **extra):
         """Keeps the command line (argv as a list) in COMMAND_LINE for the outputs' provenance."""
-        COMMAND_LINE.set([info_name or "stitchplan", *args])
+        # `python -m stitchplan` is the program's name under -m: three arguments of the command line
+        COMMAND_LINE.set([*(info_name or "stitchplan").split(), *args])
         return super().make_context(info_name, args, parent=parent, **extra)
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):

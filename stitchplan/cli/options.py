@@ -228,7 +228,8 @@ def checked_needle_geometry(scenario_path: Path, scenario):
 def naming_files(scenario_path: Path, center_path: Optional[Path] = None):
     """Input errors met after the scenario was loaded (the needle, the resource guard, the
     model's build, a replayed centre path) name what they concern: the option for a line
-    that starts with one, the centre path's file for its rows, the scenario's for the rest."""
+    that starts with one, --center-path and its file for the path's rows (as its reading's
+    errors do), the scenario's for the rest."""
     from ..config import input_error
     from ..errors import InputError
 
@@ -237,8 +238,8 @@ def naming_files(scenario_path: Path, center_path: Optional[Path] = None):
     except InputError as error:
         named = []
         for line in getattr(error, "lines", str(error).splitlines()):
-            if center_path is not None and line.startswith("centre path:"):
-                line = f"{center_path}: {line}"
+            if center_path is not None and line.startswith("centre path: "):
+                line = f"--center-path: {center_path}: {line.removeprefix('centre path: ')}"
             elif not line.startswith(("--", f"{scenario_path}:")):
                 line = f"{scenario_path}: {line}"
             named.append(line)

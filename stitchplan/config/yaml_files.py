@@ -281,13 +281,13 @@ def read_yaml_file(path: str | Path, keys_later: bool = False) -> YamlFile:
     except OSError as error:
         raise input_error([f"{path}: cannot be read ({error.strerror or error})"]) from None
     try:
-        text = content.decode("utf-8-sig")
+        text = content.decode("utf-8")  # a spreadsheet's BOM kept: the text is the bytes sha256 hashes
     except UnicodeDecodeError as error:
         byte = f"0x{content[error.start]:02x}"
         line = f"{path}: not UTF-8 text (byte {byte} at offset {error.start}), expected a YAML text file"
         raise input_error([line]) from None
     try:
-        data, problems = _parse_keys_apart(text)
+        data, problems = _parse_keys_apart(text.removeprefix("\ufeff"))
         if problems and not keys_later:
             raise _Refused(*problems)
     except _Refused as error:

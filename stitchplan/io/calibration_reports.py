@@ -122,6 +122,8 @@ def _material_diagnostics(result: MaterialFit) -> dict:
             "failed_points": grid.failed,
         },
         "least_squares": {**result.optimizer, "start": [_round(v) for v in grid.best]},
+        # the sparse factorizations of the forward solves and sensitivities, as deform's `solver` gives them
+        "linear_solver_backends": result.linear_solver_backends,
         "discretization": {"particles": sum(result.particles), "experiment_particles": result.particles,
                            "spacing_mm": d.spacing,
                            "dilation": d.dilation, "quadrature_order": d.quadrature_order,

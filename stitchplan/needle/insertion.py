@@ -75,8 +75,8 @@ class CenterReplay(FixedCenter):
 
     def predict(self, center: np.ndarray, step: int) -> np.ndarray:
         if step >= len(self.path):
-            raise InputError(f"centre path: {len(self.path)} rows end before the tip exits "
-                             f"(step {step}); expected one row per step")
+            raise InputError(f"centre path: rows: got {len(self.path)}, expected one per step until the tip exits "
+                             f"(it is still in the tissue at step {step})")
         return self.path[step]
 
 
