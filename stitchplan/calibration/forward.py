@@ -73,6 +73,7 @@ class ExperimentModel:
         self.marker_values = self.model.shape_functions_at(experiment.markers).values  # (n, NP)
         self.marker_free = (self.marker_values @ self.model.boundary.free_map).tocsr()  # (n, n_free)
         self.linear = TangentSolver()
+        self.sensitivity_backends: list[str] = []  # the sensitivities' factorizations (the static solves': linear's)
         self._solutions: list[tuple[np.ndarray, np.ndarray]] = []  # (theta, free (n_free, 2))
         self.solves = 0
         self.cold_starts = 0
@@ -162,8 +163,8 @@ class ExperimentModel:
             columns.append(self.assembler.gradient_t @ (first_piola * weights).reshape(-1))
         # the assembler was last updated at the converged state, so this is K there
         tangent = factorize(self.assembler.tangent_matrix())
-        if tangent.backend not in self.linear.backends:  # recorded with the static solves' (diagnostics)
-            self.linear.backends.append(tangent.backend)
+        if tangent.backend not in self.sensitivity_backends:
+            self.sensitivity_backends.append(tangent.backend)
         dfree = -tangent.solve(np.stack(columns, axis=1))  # (2 n_free, 2)
         du = self.marker_free @ dfree.reshape(model.n_free, 4)  # (n, 4): (xy, theta)
         return du.reshape(-1, 2, 2)

@@ -117,7 +117,8 @@ class MarkerMisfit:
     @property
     def backends(self) -> list[str]:
         """The sparse factorizations that ran (tissue.factorization's `backend`), in order met."""
-        return list(dict.fromkeys(backend for e in self.experiments for backend in e.linear.backends))
+        return list(dict.fromkeys(backend for e in self.experiments
+                                  for backend in (*e.linear.backends, *e.sensitivity_backends)))
 
     @property
     def cold_starts(self) -> int:
