@@ -47,7 +47,8 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
     its `sensitivity` again at the top level."""
     stats = result.statistics
     exported = stats[result.exported]
-    robust_plan = result.robust
+    # the robust plan where the nominal one was exported instead: `robust` is the exported plan's
+    candidate = result.exported != "robust" and result.robust is not None
     training_ok = [run for run in result.training if run.ok]
     samples = result.uncertainty.samples
     block = {
@@ -64,13 +65,11 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "robust": exported,  # the exported plan (SCENARIO.md)
         "sensitivity": {s.name: _vector(s.exit_error) for s in result.sensitivities},
         "exported": result.exported,
-        "robust_candidate": stats["robust"] if result.exported != "robust" and robust_plan is not None else None,
+        "robust_candidate": stats["robust"] if candidate else None,
         "evaluated_samples": int(result.evaluated.sum()),
-        # keyed as the statistics above: `robust` the exported plan, `robust_candidate` the other
-        "held_out_mean_exit_error_mm": {
+        "held_out_mean_exit_error_mm": {  # keyed as the statistics above
             **{label: _held_out_mean(result, result.exported if label == "robust" else label) for label in LABELS},
-            **({"robust_candidate": _held_out_mean(result, "robust")}
-               if result.exported != "robust" and robust_plan is not None else {})},
+            **({"robust_candidate": _held_out_mean(result, "robust")} if candidate else {})},
         "robust_design": ROBUST_DESIGN,
         "statistics_model": STATISTICS_MODEL[result.refined_offset is not None],
         "refined_offset_mm": _vector(result.refined_offset),
