@@ -264,7 +264,8 @@ def plot_plan(path: str | Path, result):
                    outline_label=f"tissue outline, {who} run")
     _draw_center_trajectory(trajectory, result)
     title_above(fig, [main, *zooms, trajectory], _plan_headline(result), fontsize=11)
-    legend_below(fig, [main, *zooms], columns=4)
+    # one legend under all panels, the trajectory's curves in it: two legends side by side ran into each other
+    legend_below(fig, [main, *zooms, trajectory], columns=5)
     save(fig, path)
     return fig
 
@@ -335,7 +336,6 @@ def _draw_center_trajectory(ax, result) -> None:
     ax.set_title("planned needle-centre trajectory O(t)" + (
         f"\nthe needle leaning {lean:.3g} rad ({math.degrees(lean):.2g}°) at entry" if lean else ""), fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=8, frameon=False)
 
 
 def _plan_headline(result) -> str:
