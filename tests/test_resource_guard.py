@@ -814,9 +814,11 @@ def test_a_failed_library_load_without_a_limit_stays_a_bug(monkeypatch):
     not the limit's: address_space_failure gives no line, and the traceback stays."""
     import resource
 
+    from stitchplan.cli import group
     from stitchplan.cli.group import address_space_failure
 
     mapped = ImportError("libscipy_openblas.so: failed to map segment from shared object")
+    monkeypatch.setattr(group, "_mapped_peak", lambda: 250e6)  # as at the imports (this process maps more)
     monkeypatch.setattr(resource, "getrlimit", lambda which: (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
     assert address_space_failure(mapped) is None
     monkeypatch.setattr(resource, "getrlimit", lambda which: (400000 * 1024, resource.RLIM_INFINITY))
@@ -824,6 +826,26 @@ def test_a_failed_library_load_without_a_limit_stays_a_bug(monkeypatch):
     assert address_space_failure(mapped).startswith("the numerical libraries could not be loaded within the "
                                                     "process's address-space limit (ulimit -v 400000) of 410 MB")
     assert address_space_failure(MemoryError()).startswith("out of memory within the process's address-space limit")
+
+
+def test_a_library_that_fails_to_load_within_a_run_is_not_blamed_on_the_imports(monkeypatch):
+    """Under `ulimit -v 700000` a calibration's late import of its optimizer failed to map once
+    the experiments' factors held the rest of the limit, and the line said the libraries' imports
+    alone map ~300 MB (of a 717 MB limit); a failure after the process mapped more than its
+    imports now says that the run's arrays and factors held the rest."""
+    import resource
+
+    from stitchplan.cli import group
+
+    failed = ImportError("_highspy/_core.cpython-311-x86_64-linux-gnu.so: failed to map segment from shared object")
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (700000 * 1024, resource.RLIM_INFINITY))
+    monkeypatch.setattr(group, "_mapped_peak", lambda: 716e6)
+    line = group.address_space_failure(failed)
+    assert line.startswith("a library loaded within the run could not be mapped within the process's address-space "
+                           "limit (ulimit -v 700000) of 717 MB, its arrays and factors holding the rest ("), line
+    assert line.endswith("); raise the limit, or make the run smaller")
+    monkeypatch.setattr(group, "_mapped_peak", lambda: 150e6)
+    assert group.address_space_failure(failed).endswith("their imports alone map ~300 MB of address space")
 
 
 def test_an_address_space_limit_too_small_for_any_model_names_the_limit():

@@ -137,6 +137,9 @@ def exit_code(run: Callable[[], Any]) -> int:
 
 # what the dynamic loader says when mapping a library fails for want of address space
 _MAP_FAILURES = ("failed to map segment", "cannot allocate memory", "cannot map zero-fill pages")
+# VmSize after a command's imports of the numerics: ~230-340 MB (simulate's ~290 MB, of which
+# ~80 MB resident); a failure past this mapped a run's arrays and factors too
+IMPORTS_MAPPED = 400e6
 
 
 def address_space_failure(error: BaseException) -> str | None:
@@ -144,7 +147,8 @@ def address_space_failure(error: BaseException) -> str | None:
     loader's mmap) or memory that could not be had (MemoryError) under the process's
     address-space limit (RLIMIT_AS, `ulimit -v`); None without such a limit, or for an
     ImportError of another cause. Under `ulimit -v 150000` importing scipy's OpenBLAS fails
-    before any guard can run."""
+    before any guard can run; a library imported within a run (calibrate material's optimizer)
+    may fail once the run's factors fill the limit, which the line then says."""
     import resource
 
     limit, _ = resource.getrlimit(resource.RLIMIT_AS)
@@ -153,11 +157,23 @@ def address_space_failure(error: BaseException) -> str | None:
     if isinstance(error, ImportError) and not any(text in str(error).lower() for text in _MAP_FAILURES):
         return None
     limit_text = f"the process's address-space limit (ulimit -v {limit // 1024}) of {limit / 1e6:.0f} MB"
-    if isinstance(error, ImportError):
-        # VmSize after simulate's imports: ~290 MB, of which ~80 MB resident
-        return (f"the numerical libraries could not be loaded within {limit_text} ({error}); raise the limit: "
-                "their imports alone map ~300 MB of address space")
-    return f"out of memory within {limit_text}; raise the limit, or make the run smaller"
+    if isinstance(error, MemoryError):
+        return f"out of memory within {limit_text}; raise the limit, or make the run smaller"
+    peak = _mapped_peak()
+    if peak is not None and peak > IMPORTS_MAPPED:  # the run's arrays had filled the limit
+        return (f"a library loaded within the run could not be mapped within {limit_text}, its arrays and "
+                f"factors holding the rest ({error}); raise the limit, or make the run smaller")
+    return (f"the numerical libraries could not be loaded within {limit_text} ({error}); raise the limit: "
+            "their imports alone map ~300 MB of address space")
+
+
+def _mapped_peak() -> float | None:
+    """The most address space this process has mapped (VmPeak), bytes; None where unknown."""
+    try:
+        with open("/proc/self/status") as handle:
+            return next((float(line.split()[1]) * 1024.0 for line in handle if line.startswith("VmPeak:")), None)
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 class _HeldStream(io.StringIO):
