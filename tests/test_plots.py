@@ -113,6 +113,27 @@ def test_deformed_plot_draws_outline_clamps_loads_and_probes_at_the_chosen_scale
     assert any("F1 = (-1, 0.5) N" in text.get_text() for text in ax.texts)
 
 
+def test_probe_numbers_round_a_small_hole_are_set_off_away_from_each_other(tmp_path):
+    """hole_near_stitch's four probes round a 2.5 mm hole had every number set up and right of
+    its probe: P2's and P3's fell on the other probes' circles. Crowded probes now set theirs
+    off away from their neighbours (P1 above, P2 below, P3 left, P4 right), and a probe with
+    none near keeps its number up and right."""
+    import matplotlib.pyplot as plt
+
+    from stitchplan.io.plot_elements import draw_probes
+
+    probes = np.array([[21.12, 19.0], [21.12, 14.0], [18.62, 16.5], [23.62, 16.5], [60.0, 15.0]])
+    fig, ax = plt.subplots()
+    draw_probes(ax, probes, probes + 0.1, size=60.0)
+    offsets = {text.get_text(): np.array(text.xyann) for text in ax.texts}
+    plt.close(fig)
+    assert offsets["P1"][1] > 0 and abs(offsets["P1"][0]) < 1e-9
+    assert offsets["P2"][1] < 0 and abs(offsets["P2"][0]) < 1e-9
+    assert offsets["P3"][0] < 0 and abs(offsets["P3"][1]) < 1e-9
+    assert offsets["P4"][0] > 0 and abs(offsets["P4"][1]) < 1e-9
+    assert offsets["P5"][0] > 0 and offsets["P5"][1] > 0 and np.isclose(*offsets["P5"])
+
+
 def test_exit_zoom_outline_is_the_rk_interpolant_recovered_from_particle_displacements(deformed):
     """The zooms draw the tissue edge with u(X) rebuilt from u(X_I) (insertion results keep
     particle displacements only): at the probes it must equal deform's own interpolant."""

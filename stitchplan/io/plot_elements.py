@@ -246,8 +246,10 @@ def _free_length(domain, start: np.ndarray, direction: np.ndarray, reach: float,
     return float(t[np.argmax(inside)]) if inside.any() else reach
 
 
-def draw_probes(ax, reference: np.ndarray, displaced: np.ndarray | None = None) -> None:
-    """Probes: open circle at rest, filled where they moved to, joined; numbered P1, P2, ..."""
+def draw_probes(ax, reference: np.ndarray, displaced: np.ndarray | None = None, size: float | None = None) -> None:
+    """Probes: open circle at rest, filled where they moved to, joined; numbered P1, P2, ...,
+    each number set off away from the probes within 8 % of `size` (mm, the tissue's larger
+    side) of it, so that probes round a small hole keep their numbers apart."""
     if len(reference) == 0:
         return
     ax.plot(*reference.T, "o", mfc="none", mec="black", ms=7, mew=1.2, zorder=4, label="probe at rest")
@@ -258,9 +260,31 @@ def draw_probes(ax, reference: np.ndarray, displaced: np.ndarray | None = None) 
         ax.plot(*displaced.T, "o", color="white", mec="crimson", ms=6, mew=1.8, zorder=4,
                 label="probe, displaced")
         where = displaced
-    for k, point in enumerate(where):
-        ax.annotate(f"P{k + 1}", point, xytext=(5, 5), textcoords="offset points", fontsize=8,
-                    color="crimson", fontweight="bold")
+    for k, (point, direction) in enumerate(zip(where, _label_directions(where, size))):
+        ax.annotate(f"P{k + 1}", point, xytext=7.0 * direction, textcoords="offset points", fontsize=8,
+                    color="crimson", fontweight="bold", ha=_alignment(direction[0], "left", "right"),
+                    va=_alignment(direction[1], "bottom", "top"))
+
+
+def _label_directions(points: np.ndarray, size: float | None) -> np.ndarray:
+    """Unit directions (n, 2) to set each point's label off in: up and right, or away from the
+    points within 8 % of `size` of it (weighted by 1 / distance, nearest most)."""
+    directions = np.tile([np.sqrt(0.5), np.sqrt(0.5)], (len(points), 1))
+    if size is None or len(points) < 2:
+        return directions
+    apart = points[:, None, :] - points[None, :, :]  # (n, n, 2): from each other point to this one
+    distance = np.linalg.norm(apart, axis=2)
+    near = (distance > 0.0) & (distance < 0.08 * size)
+    away = np.where(near[..., None], apart / np.where(near, distance**2, 1.0)[..., None], 0.0).sum(axis=1)
+    length = np.linalg.norm(away, axis=1)
+    crowded = length > 0.0
+    directions[crowded] = away[crowded] / length[crowded, None]
+    return directions
+
+
+def _alignment(component: float, positive: str, negative: str) -> str:
+    """A label's alignment along one axis for a set-off direction's component there."""
+    return positive if component > 0.38 else negative if component < -0.38 else "center"
 
 
 # --- scales, legends, axes -----------------------------------------------------------------

@@ -109,7 +109,7 @@ def plot_deformed(path: str | Path, result, scale: float = 1.0):
 
     ends = draw_loads(ax, scenario.loads, domain, 0.15 * size, move)
     probes_moved = result.probes + scale * result.probe_displacements
-    draw_probes(ax, result.probes, probes_moved)
+    draw_probes(ax, result.probes, probes_moved, size)
     frame(ax, np.vstack([particles, moved, ends, probes_moved]), margin=0.08)
     draw_clamps(ax, tissue, 0.025 * size)
     label_mm(ax)
