@@ -49,7 +49,10 @@ def dask_setup(worker: Any) -> None:
     A worker process (one its nanny started) ignores Ctrl-C: the terminal sends SIGINT to the
     whole process group, and the worker would end in a traceback of asyncio's CancelledError
     and KeyboardInterrupt while the command, which closes the cluster, stops it anyway.
-    Its allocator reuses freed memory, as the command's does (stitchplan/allocator.py)."""
+    Its allocator is set as the command's (stitchplan/allocator.py) only where the worker's
+    environment sets neither of glibc's variables: a local cluster's nanny sets
+    MALLOC_TRIM_THRESHOLD_ (64 KiB, Dask's `distributed.nanny.pre-spawn-environ`), which is
+    then left as Dask set it."""
     import multiprocessing
     import threading
 
