@@ -19,6 +19,7 @@ import csv
 import hashlib
 import json
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -88,6 +89,10 @@ def test_study_block_is_parsed_into_families_and_reference():
     ({"repeats": 0}, "study.repeats: got 0, expected an integer between 1 and 20"),
     ({"spacing": [6.0, 6.0]}, "study.spacing: got [6.0, 6.0], expected spacings each given once"),
     ({"families": [{"spacing": [4.0, 4]}]}, "study.families[0].spacing: got [4.0, 4.0], expected spacings each"),
+    # the study's own runs' families: a user's would share study.csv's family column with them
+    ({"families": [{"name": "a"}, {"name": "auto"}]}, "study.families[1].name: got 'auto', expected a name other "
+                                                      "than 'reference' and 'auto'"),
+    ({"families": [{"name": "reference"}]}, "study.families[0].name: got 'reference', expected a name other than"),
 ])
 def test_bad_study_blocks_are_refused_naming_the_field(study, fragment):
     with pytest.raises(ScenarioError) as error:
@@ -107,6 +112,38 @@ def test_a_study_run_too_big_names_the_study_field_that_set_its_spacing(tmp_path
     assert f"error: {scenario}: study.families[1].spacing: got 0.05 mm, expected a spacing giving at most" in result.output
     assert f"error: {scenario}: study.reference.spacing: got 0.04 mm, expected a spacing" in result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_the_reference_takes_the_sweeps_smallest_needle_step():
+    """A family with half the needle step was compared with a reference at the scenario's step,
+    which then was the coarser of the two in time (the default sweep's `step 0.05` against a
+    0.1 rad reference): the reference takes the smallest step of the sweep, unless it sets
+    its own."""
+    halved = {**SWEEP, "families": [*SWEEP["families"], {"name": "step 0.2", "step": 0.2}]}
+    _, reference, _ = plan_runs(parse_scenario(tiny_raw(halved)))
+    assert reference.scenario.needle.step == 0.2
+    _, reference, _ = plan_runs(parse_scenario(tiny_raw(SWEEP)))
+    assert reference.scenario.needle.step == 0.4
+    own = {**halved, "reference": {"spacing": 3.0, "step": 0.3}}
+    _, reference, _ = plan_runs(parse_scenario(tiny_raw(own)))
+    assert reference.scenario.needle.step == 0.3
+
+
+def test_the_guard_counts_the_reference_once_as_it_runs(caplog):
+    """`repeats` times the runs' timings; the reference runs once, and the guard said it ran
+    `repeats` times."""
+    import logging
+
+    from stitchplan.cli.guards import guard_study
+    from stitchplan.resources.limits import Limits
+
+    runs, reference, repeats = plan_runs(parse_scenario(tiny_raw({**SWEEP, "repeats": 3})))
+    with caplog.at_level(logging.INFO, logger="stitchplan.resources"):
+        guard_study(Path("tiny.yaml"), Limits(), runs, reference, repeats, workers=0)
+    lines = [record.getMessage() for record in caplog.records]
+    assert all("in each of 3 runs" in line for line in lines if "'reference h=3'" not in line)
+    (line,) = [line for line in lines if "'reference h=3'" in line]
+    assert "in each of" not in line
 
 
 def test_quick_study_is_two_families_of_two_spacings_and_a_finer_reference():
@@ -175,6 +212,11 @@ def test_study_json_records_provenance_and_outcome(studied):
     assert record["reference"]["label"] == rows[-1]["label"]
     assert set(record["pareto"]) == {r["label"] for r in rows if r["pareto"] == "true"}
     assert record["linear_solver_backends"] == sorted({r["linear_solver_backend"] for r in rows if r["status"] == "ok"})
+    # the sweep as run, its reference's needle step (the sweep's smallest)
+    families = {}
+    for r in rows:
+        families.setdefault(r["family"], []).append(float(r["spacing_mm"]))
+    assert record["families"] == families and record["reference"]["step_rad"] == float(rows[-1]["step_rad"])
 
 
 def test_study_writes_the_speed_accuracy_png(studied):

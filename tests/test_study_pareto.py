@@ -109,3 +109,24 @@ def test_a_study_without_a_front_rings_nothing_and_claims_none(tmp_path):
     assert all(not ringed_points(ax) for ax in fig.axes[:2])
     entries = [text.get_text() for legend in fig.legends for text in legend.get_texts()]
     assert not any("pareto" in entry.lower() for entry in entries)
+
+
+def test_the_spatial_panel_squares_the_runs_of_another_number_of_needle_steps(tmp_path):
+    """A run that took another number of needle steps than the finest run (it exits a step
+    early, or the reference takes a smaller step) has a spatial exit deviation of another
+    needle state, which deviation_mm leaves out: the right panel draws it squared, and says
+    why in the legend; the left panel does not."""
+    study = made_study()
+    apart = [run for run in study.runs[:-1] if run.spacing > 3.0]  # SWEPT's coarse runs: a step early
+    for run in apart:
+        run.deviations["spatial_compared"] = False
+    fig = plots.plot_speed_accuracy(tmp_path / "speed.png", study)
+    left, right = fig.axes[:2]
+
+    def squared(ax):
+        return {(float(x), float(y)) for line in ax.get_lines() if line.get_marker() == "s"
+                for x, y in zip(line.get_xdata(), line.get_ydata())}
+
+    assert squared(right) == panel_points(apart, "exit_deviation_mm") and not squared(left)
+    entries = [text.get_text() for legend in fig.legends for text in legend.get_texts()]
+    assert plots.SPATIAL_APART_LABEL in entries

@@ -67,16 +67,16 @@ def _verification(scenario, names: dict, count: int, verify: bool) -> list[tuple
 
 
 def guard_study(scenario_path: Path, limits, runs: list, reference, repeats: int, workers: Optional[int]) -> None:
-    """A study's runs (and its reference run), each `repeats` times; a refusal names the
-    study field that set the run's spacing. On a local cluster its `workers` run as many at
-    once, each in a process of its own (None: a scheduler's workers, elsewhere; 0: one after
-    another here)."""
+    """A study's runs, each `repeats` times, and its reference run, once (as run_study runs
+    it); a refusal names the study field that set the run's spacing. On a local cluster its
+    `workers` run as many at once, each in a process of its own (None: a scheduler's workers,
+    elsewhere; 0: one after another here)."""
     from ..resources.origin import Origin
 
     def origin(run) -> Origin:
         return Origin({"spacing": run.source, "needle_spacing": run.source},
                       {"spacing": run.spacing, "needle_spacing": run.spacing})
 
-    guard_runs(scenario_path, limits, *[("insertion", run.scenario, f"study run {run.label!r}", repeats, origin(run))
-                                        for run in [*runs, reference]],
+    guard_runs(scenario_path, limits, *[("insertion", run.scenario, f"study run {run.label!r}", count, origin(run))
+                                        for run, count in [*((run, repeats) for run in runs), (reference, 1)]],
                alongside=[] if workers else None, forked=False, workers=workers or None)

@@ -158,7 +158,7 @@ def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "
         loc, ctx = tuple(e["loc"]), e.get("ctx") or {}
         mapping = field_path(base, loc)  # of a problem of the block at loc (before ctx's field)
         if "field" in ctx:
-            loc += tuple(ctx["field"].split("."))
+            loc += tuple(int(part) if part.isdigit() else part for part in ctx["field"].split("."))  # "1.name": [1].name
         path = field_path(base, loc) or root
         value = ctx.get("value", e.get("input"))
         if e["type"] == "expected":

@@ -27,6 +27,7 @@ from .fields import (
 from .messages import valid_or_none, validate
 
 GRADINGS = (2, 4, 8, 16)
+STUDY_RUN_NAMES = ("reference", "auto")  # the families of the reference run and the auto discretization
 
 
 def _no_repeats(spacings: tuple[float, ...]) -> tuple[float, ...]:
@@ -109,6 +110,10 @@ class StudySpec:
     @classmethod
     def _distinct(cls, families: tuple[StudyFamily, ...] | None):
         names = [family.name for family in families or ()]
+        for k, name in enumerate(names):
+            if name in STUDY_RUN_NAMES:  # study.csv's family column would mix them with the study's own runs
+                raise problem("a name other than 'reference' and 'auto', the study's own runs' families",
+                              field=f"{k}.name", value=name)
         if len(set(names)) != len(names):
             raise problem("families with distinct names", value=names)
         return families

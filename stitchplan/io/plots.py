@@ -142,6 +142,11 @@ def plot_deformed(path: str | Path, result, scale: float = 1.0):
 PARETO_LABEL = "Pareto front on deviation_mm (study.csv pareto)"
 
 
+# the right panel's runs of another number of needle steps than the reference: their spatial exit
+# is of another needle state
+SPATIAL_APART_LABEL = "squared: not as many needle steps as the finest run"
+
+
 def plot_speed_accuracy(path: str | Path, study):
     """Wall time against exit-point deviation from the study's finest run (log-log), one
     series per method family; failed runs drawn as crosses at the right edge (deviation
@@ -199,6 +204,10 @@ def _speed_accuracy_panel(ax, key: str, xlabel: str, runs, families: list[str], 
             ax.plot([top] * len(failed), [min(max(r.wall_seconds, low), high) for r in failed], "x",
                     color=colours(k % 10), ms=8, mew=2, clip_on=False,
                     label=f"{family}: {len(failed)} failed (deviation unknown)")
+    apart = [r for r in done if not r.deviations.get("spatial_compared", True)]
+    if apart and key == "exit_deviation_mm":  # deviation_mm leaves these out (exit_deviations)
+        ax.plot([x_of(r) for r in apart], [r.wall_seconds for r in apart], "s", mfc="none", mec="0.45", ms=9,
+                mew=0.8, label=SPATIAL_APART_LABEL)
     front = sorted((r for r in done if r.pareto), key=lambda r: r.wall_seconds)
     if front and key == "deviation_mm":  # a staircase only on the measure the front is found on
         ax.step([x_of(r) for r in front], [r.wall_seconds for r in front], where="pre", color="black",

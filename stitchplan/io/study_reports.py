@@ -48,13 +48,19 @@ def study_outputs(out: str | Path) -> dict[str, Path]:
 
 def study_record(result: StudyResult, provenance: dict | None = None) -> dict:
     """study.json: the provenance of the study (version, command line, scenario and its
-    SHA-256, time), its counts, reference, Pareto front, notes and the linear-solver backends
-    its runs used (each run's diagnostics are its row of study.csv)."""
+    SHA-256, time), its counts, the sweep as run (each family's spacings), the reference (its
+    spacing and needle step), Pareto front, notes and the linear-solver backends its runs used
+    (each run's choices and diagnostics are its row of study.csv)."""
     reference = result.reference
+    families: dict[str, list[float]] = {}  # the sweep as resolved: each family's spacings, in run order
+    for run in result.runs:
+        families.setdefault(run.family, []).append(run.spacing)
     return {
         **(provenance or make_provenance()),
         "runs": len(result.runs), "ok": sum(run.ok for run in result.runs), "failed": len(result.failed),
+        "families": families,
         "reference": {"label": reference.label, "spacing_mm": reference.spacing,
+                      "step_rad": reference.scenario.needle.step,
                       "particles": reference.particles, "wall_seconds": reference.wall_seconds},
         "pareto": [run.label for run in sorted(result.front, key=lambda run: run.wall_seconds)],
         "linear_solver_backends": sorted({run.result.solver_counts.get("linear_solver_backend", "")
@@ -82,7 +88,10 @@ def summary_lines(result: StudyResult) -> list[str]:
     lines = [f"study: {len(result.runs)} runs ({len(ok)} ok, {len(result.runs) - len(ok)} failed); "
              f"{result.reference.label}: {result.reference.particles} particles, "
              f"{result.reference.wall_seconds:.2f} s"]
-    for run in sorted(result.front, key=lambda r: r.wall_seconds):
-        lines.append(f"  Pareto: {run.label:32s} {run.particles:6d} particles {run.wall_seconds:7.2f} s  "
-                     f"deviation {run.deviation_mm:.4f} mm")
+    front = sorted(result.front, key=lambda r: r.wall_seconds)
+    width = max([32, *(len(run.label) for run in front)])  # long family names keep the columns
+    for run in front:
+        # three significant figures, as speed_accuracy.png: a front's deviations fall with its times
+        lines.append(f"  Pareto: {run.label:{width}s} {run.particles:6d} particles {run.wall_seconds:7.2f} s  "
+                     f"deviation {run.deviation_mm:.3g} mm")
     return lines
