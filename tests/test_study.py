@@ -236,6 +236,22 @@ def test_study_without_a_needle_is_one_error_line_and_no_output(tmp_path, write_
     assert not (tmp_path / "out").exists()
 
 
+def test_a_study_whose_every_run_is_refused_by_its_choices_is_an_input_error(tmp_path, write_scenario):
+    """Every run refused by its discretization (a quadratic basis on too narrow a kernel) was
+    exit 1, "every run failed", naming no file: the study's choices are an input to mend, as
+    `simulate` refuses them: exit 2, the file named, no output."""
+    scenario = write_scenario(tiny_raw({"spacing": [6.0], "families": [{"name": "q2", "basis_order": 2,
+                                                                         "dilation": 1.1}],
+                                        "reference": {"spacing": 5.0, "basis_order": 2, "dilation": 1.1}}))
+    result = CliRunner().invoke(app, ["study", str(scenario), "--out", str(tmp_path / "out"), "--workers", "0"])
+    assert result.exit_code == 2, result.output
+    (line,) = result.output.splitlines()
+    assert line.startswith(f"error: {scenario}: study: every one of its 2 runs was refused by its choices, the "
+                           "reference 'reference h=5' as: discretization: dilation 1.1 with spacing 5 mm"), line
+    assert line.endswith("; expected families and a reference whose choices make a model")
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_study_whose_every_run_fails_is_a_numerical_failure(tmp_path, write_scenario):
     """Exit 1 as `simulate` gives for the same scene: the input was accepted, the method failed."""
     scenario = write_scenario(tiny_raw({"spacing": [6.0], "families": [{"name": "uniform"}],

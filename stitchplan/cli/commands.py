@@ -283,7 +283,7 @@ def study(
         runs, reference, repeats = plan_runs(scenario, quick)
     guard_study(scenario_path, guard_limits(max_particles, no_resource_check), runs, reference, repeats,
                 executor.workers)
-    with executor, progress_bar("study runs", study_size(scenario, quick)) as advance:
+    with executor, progress_bar("study runs", study_size(scenario, quick)) as advance, naming_files(scenario_path):
         result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
                            executor=executor)
     csv_path, png_path, json_path = write_study_outputs(result, out, run_provenance(scenario_path, scenario))

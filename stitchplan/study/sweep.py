@@ -52,6 +52,7 @@ from .runner import InsertionRun, run_timed
 
 # the study.csv and speed_accuracy.png writers: stitchplan.io.study_reports
 
+REFUSED = "InputError: "  # a run's reason where its scenario was refused (runner.run_timed)
 DEFAULT_ACCURACY = 0.05  # mm, asked of the auto discretization when the scenario gives none
 
 
@@ -221,6 +222,11 @@ def compared_run(runs: list[StudyRun], reference: StudyRun, notes: list[str]) ->
     if reference.ok:
         return reference
     finest = [r for r in runs if r.ok]
+    if not finest and all(r.reason.startswith(REFUSED) for r in [*runs, reference]):
+        # the study's choices make no model: an input to mend, as simulate refuses them (exit 2)
+        raise InputError(f"study: every one of its {len(runs) + 1} runs was refused by its choices, the reference "
+                         f"{reference.label!r} as: {reference.reason.removeprefix(REFUSED)}; expected families and "
+                         "a reference whose choices make a model")
     if not finest:
         raise NumericalFailure(f"study: every run failed (reference: {reference.reason})")
     compared = min(finest, key=lambda r: (r.spacing, -r.particles))
