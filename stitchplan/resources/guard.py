@@ -118,7 +118,8 @@ class Setting:
 
 def _particles_refusal(item: Estimate, limit: int) -> str:
     setting = _particle_setting(item, lambda particles: particles <= limit)
-    return (f"{setting.name}: got {setting.got}, expected {setting.expected} at most {limit} particles"
+    particles = "particle" if limit == 1 else "particles"
+    return (f"{setting.name}: got {setting.got}, expected {setting.expected} at most {limit} {particles}"
             f"{item.origin.derived} ({setting.note}estimated {item.describe()}); {setting.advice}, "
             f"{_skip(item)}or {OVERRIDE}")
 
