@@ -284,8 +284,9 @@ def study(
     guard_study(scenario_path, guard_limits(max_particles, no_resource_check), runs, reference, repeats,
                 executor.workers)
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance, naming_files(scenario_path):
-        result = run_study(scenario, quick=quick, on_run=lambda run: advance(description=run.label),
-                           executor=executor)
+        # the runs go on at once on a cluster: the bar names the one that ended last
+        result = run_study(scenario, quick=quick, executor=executor,
+                           on_run=lambda run: advance(description=f"study runs, last done: {run.label}"))
     csv_path, png_path, json_path = write_study_outputs(result, out, run_provenance(scenario_path, scenario))
     for line in summary_lines(result):
         typer.echo(line)
