@@ -875,3 +875,44 @@ def test_an_address_space_limit_too_small_for_any_model_names_the_limit():
     (line,) = error.value.lines
     assert line.startswith("discretization.spacing: got 1 mm, expected a model within the ~"), line
     assert "memory the process's address-space limit of 717 MB (ulimit -v 700000) leaves it" in line
+
+
+def test_a_calibrations_experiments_are_held_at_once_in_its_process(monkeypatch):
+    """calibrate material keeps every experiment's model and tangent factor between the fit's
+    evaluations, and factors one more for an experiment's sensitivity: under `ulimit -v` the
+    guard let the sample calibration (two experiments) through at 489 MB, each experiment
+    alone fitting, while it needed 614-742 MB (by the hash seed) and failed within the fit.
+    The experiments are now counted together, with the sensitivity's factor: ~711 MB, where
+    the sample ran under 614 MB for eight hash seeds (its optimizer imported before the guard)."""
+    from stitchplan.calibration import load_material_calibration
+    from stitchplan.cli.options import guard_calibration
+    from stitchplan.resources import guard
+    from stitchplan.resources.costs import held_in_one_process
+    from stitchplan.resources.machine import address_space_needed
+
+    path = REPOSITORY / "sample_runs" / "calibration" / "calibration.yaml"
+    problem = load_material_calibration(path, None, None)
+    original, seen = guard.check_resources, {}
+
+    def recorded(estimates, limits=Limits(), **options):
+        seen.update(estimates=estimates, **options)
+        return original(estimates, limits, **options)
+
+    mapped = 332e6  # after the calibration's imports, its optimizer's included
+    monkeypatch.setattr(guard, "check_resources", recorded)
+    monkeypatch.setattr(guard, "address_space", lambda: (680000 * 1024.0, mapped))
+    monkeypatch.setattr(guard, "available_memory", lambda: LARGE_MEMORY)
+    with pytest.raises(InputError) as error:
+        guard_calibration(path, problem, Limits())
+    memories = [item.memory_bytes for item in seen["estimates"]]
+    assert len(memories) == 2 and seen["in_one_process"] is True
+    together = held_in_one_process(memories)
+    assert together == pytest.approx(BASE_MEMORY + 3 * (max(memories) - BASE_MEMORY), rel=0.01)
+    assert all(address_space_needed(mapped, amount, BASE_MEMORY) < 680000 * 1024.0 for amount in memories)
+    (line,) = error.value.lines
+    assert "the process's address-space limit of 696 MB (ulimit -v 680000) leaves it beside the ~" in line, line
+    assert "of the runs held with it (estimated experiments[" in line
+    needed = address_space_needed(mapped, together, BASE_MEMORY)
+    assert 614e6 < needed < 1.3 * 614e6
+    monkeypatch.setattr(guard, "address_space", lambda: (needed + 1e6, mapped))
+    guard_calibration(path, problem, Limits())  # room for all of them: no refusal

@@ -41,6 +41,7 @@ def calibrate_material(
     outputs = material_outputs(out, plot_dir)
     check_command_outputs(outputs, {"CALIBRATION": calibration_path})  # --out's format once the markers are known
     problem = calibration.load_material_calibration(calibration_path, spacing, dilation)
+    import scipy.optimize  # noqa: F401 -- the fit's; mapped before the guard measures the address space left
     guard_calibration(calibration_path, problem, guard_limits(max_particles, no_resource_check),
                       names=option_names(spacing, dilation))
     check_command_outputs(outputs, {f"markers of experiments[{k}]": experiment.source

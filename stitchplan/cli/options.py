@@ -316,7 +316,7 @@ def guard_limits(max_particles: Optional[int], no_resource_check: bool):
 
 def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
                linear_solver: Optional[str] = None, alongside: Optional[list] = None, forked: bool = True,
-               workers: Optional[int] = None, condition_numbers: bool = False) -> None:
+               workers: Optional[int] = None, condition_numbers: bool = False, in_one_process: bool = False) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.origin.Origin of the run's discretization (default: the file's, with the fields in
@@ -325,7 +325,8 @@ def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] 
     memory held at once with `runs` (resources.guard.check_resources; None: `runs` do not go on at
     once), in processes `forked` from this one or (False) Dask workers; `workers`: `runs` go
     on in this many worker processes, none here (check_resources); `condition_numbers`: `runs`
-    take each needle step's dense condition numbers (--condition-numbers; not their replays).
+    take each needle step's dense condition numbers (--condition-numbers; not their replays);
+    `in_one_process`: `runs` are held at once in this process (check_resources).
     Lines name the file, or the option."""
     if limits is None:
         return
@@ -340,7 +341,7 @@ def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] 
 
     with naming_files(scenario_path):
         check_resources(estimates(runs, condition_numbers), limits, alongside=None if alongside is None else estimates(alongside),
-                        forked=forked, workers=workers)
+                        forked=forked, workers=workers, in_one_process=in_one_process)
 
 
 def estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:
@@ -361,7 +362,8 @@ def option_names(spacing: Optional[float], dilation: Optional[float]) -> dict:
 
 def guard_calibration(calibration_path: Path, problem, limits, names: Optional[dict] = None) -> None:
     """The resource guard on the forward model of each experiment of a material calibration
-    (run once per forward evaluation of the fit: grid^2 + max_evaluations times)."""
+    (run once per forward evaluation of the fit: grid^2 + max_evaluations times), all of them
+    held at once: each experiment keeps its model and tangent factor between evaluations."""
     from ..config import Scenario
 
     fit = problem.fit
@@ -369,7 +371,7 @@ def guard_calibration(calibration_path: Path, problem, limits, names: Optional[d
     guard_runs(calibration_path, limits, *[
         ("deform", Scenario(tissue=problem.tissue, discretization=problem.discretization, loads=experiment.loads,
                             load_steps=experiment.load_steps), f"experiments[{k}]", evaluations)
-        for k, experiment in enumerate(problem.experiments)], names=names)
+        for k, experiment in enumerate(problem.experiments)], names=names, in_one_process=True)
 
 
 def echo_notes(notes, quiet: bool) -> None:

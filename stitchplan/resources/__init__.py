@@ -79,7 +79,9 @@ them all; nothing raises the memory share: a smaller model is the way under it):
   Dask workers; the largest of a study's runs, as many as its local workers, and the
   study's own process, which runs none of them, with its interpreter), each helper
   process with its own share of the interpreter (HELPER_BASE_MEMORY), each worker with the
-  whole of its own.
+  whole of its own; a material calibration's experiments, which its process holds at once
+  with one more factor for a sensitivity (check_resources `in_one_process`,
+  costs.held_in_one_process), within the share and the address-space limit together.
 
 The guard also refuses a model too coarse to mean anything (`_coarse_refusal`), the other
 side of a spacing typed wrong: a spacing above half the tissue's smaller side (fewer than
@@ -103,6 +105,6 @@ Its modules, each importing only those before it: `limits` (Limits and their def
 `model_size` (ModelSize, model_size: particles, neighbours, quadrature points, steps),
 `origin` (Origin: what set a run's discretization), `formatting` (counts, bytes and
 durations as messages write them), `costs` (Estimate, estimate: time and memory,
-held_at_once), `machine` (available_memory, address_space_needed) and `guard` (check_resources, its refusals and
+held_at_once, held_in_one_process), `machine` (available_memory, address_space_needed) and `guard` (check_resources, its refusals and
 the settings they name).
 """

@@ -242,6 +242,17 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
                     condition_seconds, condition_memory)
 
 
+def held_in_one_process(memory_bytes: list[float]) -> float:
+    """Bytes of runs held at once in one process, from their estimates' `memory_bytes`: a
+    material calibration's experiments, each keeping its model and tangent factor between the
+    fit's evaluations, with one more run's worth beside them for the sensitivity's factor of
+    the experiment at hand (SuperLU maps ~1 kB of address space per stored entry of the
+    matrix it factors, a factor as large as the experiment's own); the interpreter's
+    BASE_MEMORY once."""
+    arrays = [max(amount - BASE_MEMORY, 0.0) for amount in memory_bytes]
+    return BASE_MEMORY + sum(arrays) + max(arrays, default=0.0)
+
+
 def held_at_once(memory_bytes: list[float], forked: bool = True) -> float:
     """Bytes of runs going on at once, each in its own process, from their estimates'
     `memory_bytes`: the interpreter's BASE_MEMORY in them counted once for the command and,

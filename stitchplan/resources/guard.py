@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 from ..config import DEFAULT_NEEDLE_REFINEMENT
 from ..errors import InputError
 from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate,
-                    condition_particles_within, held_at_once, size_scale)
+                    condition_particles_within, held_at_once, held_in_one_process, size_scale)
 from .formatting import amount_text, bytes_text, count_text, duration_text
 from .limits import Limits
 from .machine import (ADDRESS_GROWTH, ADDRESS_SPACE_RESERVE, address_space, address_space_needed, available_memory,
@@ -33,7 +33,7 @@ SKIP_GUARD = "pass --no-resource-check to run it anyway"
 def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                     memory: float | None = None, alongside: list[Estimate] | None = None,
                     forked: bool = True, workers: int | None = None,
-                    space: tuple[float, float] | None = None) -> None:
+                    space: tuple[float, float] | None = None, in_one_process: bool = False) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
@@ -53,7 +53,9 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     interpreter (BASE_MEMORY). `space`: (the address-space limit, what the process maps now)
     in bytes (default: machine.address_space(), None without a limit): a run of this process
     that needs more address space than the limit allows (machine.address_space_needed) is
-    refused naming the limit."""
+    refused naming the limit. `in_one_process`: the runs of `estimates` are held at once in this
+    process (costs.held_in_one_process: a material calibration's experiments), together
+    within the memory share and the address-space limit."""
     memory = available_memory() if memory is None else memory
     space = address_space() if space is None else space
     lines = []
@@ -91,6 +93,13 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     if not lines and alongside is not None and memory is not None and (len(held) > 1 or workers is not None) \
             and here + held_at_once([item.memory_bytes for item in held], forked) > limits.memory_share * memory:
         lines.append(_together_refusal(held, limits.memory_share, memory, forked, here))
+    if in_one_process and not lines and estimates:
+        total = held_in_one_process([item.memory_bytes for item in estimates])
+        largest = max(estimates, key=lambda item: item.memory_bytes)
+        if memory is not None and total > limits.memory_share * memory:
+            lines.append(_together_refusal(estimates, limits.memory_share, memory, total=total))
+        elif space is not None and address_space_needed(space[1], total, BASE_MEMORY) > space[0]:
+            lines.append(_address_space_refusal(largest, *space, beside=total - largest.memory_bytes))
     if lines:
         error = InputError("\n".join(lines))
         error.lines = lines
@@ -130,37 +139,40 @@ def _memory_refusal(item: Estimate, setting: Setting, share: float, memory: floa
             f"{setting.advice}, {_skip(item)}or {SKIP_GUARD}")
 
 
-def _address_space_refusal(item: Estimate, limit: float, mapped: float) -> str:
+def _address_space_refusal(item: Estimate, limit: float, mapped: float, beside: float = 0.0) -> str:
     """The line refusing a run that fits the machine's memory but not the process's address-space
     limit (a run short of address space crashes or hangs): the setting that drives the model
     past what the limit leaves, as a memory refusal names it, where a model would fit at all;
-    else the limit itself, what to change."""
-    needed = address_space_needed(mapped, item.memory_bytes, BASE_MEMORY)
-    budget = memory_within_address_space(limit, mapped, BASE_MEMORY)
+    else the limit itself, what to change. `beside`: bytes the runs held with it in the
+    process take (check_resources `in_one_process`)."""
+    needed = address_space_needed(mapped, item.memory_bytes + beside, BASE_MEMORY)
+    budget = memory_within_address_space(limit, mapped, BASE_MEMORY) - beside
+    others = f" beside the ~{bytes_text(beside)} of the runs held with it" if beside else ""
     if budget > BASE_MEMORY:
         setting = _memory_setting(item, budget)
         return (f"{setting.name}: got {setting.got}, expected a model within the ~{bytes_text(budget)} of memory the "
-                f"process's address-space limit of {bytes_text(limit)} (ulimit -v {limit / 1024:.0f}) leaves it"
+                f"process's address-space limit of {bytes_text(limit)} (ulimit -v {limit / 1024:.0f}) leaves it{others}"
                 f"{item.origin.derived} ({setting.note}estimated {item.describe()}); {setting.advice}, raise the "
                 f"limit (ulimit -v {math.ceil(needed / 1024)}), {_skip(item)}or {SKIP_GUARD}")
-    arrays = max(item.memory_bytes - BASE_MEMORY, 0.0)
+    arrays = max(item.memory_bytes - BASE_MEMORY, 0.0) + beside
     return (f"ulimit -v: got {limit / 1024:.0f} (the process's address-space limit of {bytes_text(limit)}; "
             f"{bytes_text(mapped)} mapped now), expected at least ~{bytes_text(needed)} for this "
-            f"run{item.origin.derived} "
+            f"run{' and the runs held with it' if beside else ''}{item.origin.derived} "
             f"({ADDRESS_GROWTH:g} x its ~{bytes_text(arrays)} of arrays, and {bytes_text(ADDRESS_SPACE_RESERVE)} of "
             f"libraries and buffers beyond the numerics' imports; estimated {item.describe()}); raise the limit "
             f"(ulimit -v {math.ceil(needed / 1024)}), {_skip(item)}or {SKIP_GUARD}")
 
 
 def _together_refusal(held: list[Estimate], share: float, memory: float, forked: bool = True,
-                      here: float = 0.0) -> str:
+                      here: float = 0.0, total: float | None = None) -> str:
     """The line refusing runs that each fit the memory share but not all at once: it names
     what drives the largest (what it could take, with the others' models left out of the
     share) and lists every run's estimate, and `here`, the bytes this process holds beside
     them when it runs none of them. The others follow the same fields (a spacing, a needle
     step), so what lowers the largest lowers them too."""
     largest = max(held, key=lambda item: item.memory_bytes)
-    total = here + held_at_once([item.memory_bytes for item in held], forked)
+    if total is None:  # given where they are held in one process (check_resources `in_one_process`)
+        total = here + held_at_once([item.memory_bytes for item in held], forked)
     # what the largest may take with the others' models beside it: a larger needle step
     # lowers what every run keeps of its steps, so theirs count without it
     others_kept = sum(item.step_memory for item in held) - largest.step_memory
