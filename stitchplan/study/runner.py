@@ -75,7 +75,10 @@ def run_timed(run: InsertionRun, repeats: int = 1) -> InsertionRun:
     except RUN_FAILURES:
         run.particles = 0
     walls, cpus = [], []
-    for _ in range(repeats):
+    for repeat in range(repeats):
+        # -v's step lines follow this one (a run in this process; a worker's log stays there)
+        log.info("study run %s: %d particles%s", run.label, run.particles,
+                 f", timing repeat {repeat + 1} of {repeats}" if repeats > 1 else "")
         start, cpu = time.perf_counter(), time.process_time()
         try:
             result = run_insertion(run.scenario)
