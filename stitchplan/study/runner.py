@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from ..config import Scenario
+from ..errors import InputError
 from ..events import Event, EventKind
 from ..needle.insertion import run_insertion
 # what a run may end with because of its configuration (recorded with its reason): the
@@ -31,6 +32,11 @@ if TYPE_CHECKING:
     from ..needle.results import InsertionResult
 
 log = logging.getLogger(__name__)
+
+# how a run's reason starts where its scenario was refused (a discretization that makes no
+# model): the study tells a sweep whose every run was refused from one whose methods failed
+REFUSED = f"{InputError.__name__}: "
+
 
 @dataclass
 class InsertionRun:

@@ -48,11 +48,10 @@ from ..errors import InputError, NumericalFailure
 from ..parallel.executor import Executor, run_all
 from .auto import AutoChoice, choose_discretization
 from ..planning.verification import exit_deviations
-from .runner import InsertionRun, run_timed
+from .runner import REFUSED, InsertionRun, run_timed
 
 # the study.csv and speed_accuracy.png writers: stitchplan.io.study_reports
 
-REFUSED = "InputError: "  # a run's reason where its scenario was refused (runner.run_timed)
 DEFAULT_ACCURACY = 0.05  # mm, asked of the auto discretization when the scenario gives none
 
 
@@ -167,8 +166,8 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
     runs = [StudyRun(family.name, f"{family.name} h={spacing:g}", configure(scenario, family, spacing), spacing,
                      source=source(k, family))
             for k, family in enumerate(families) for spacing in family.spacing or spacings]
-    # the finest run in the needle step too: a family with a smaller step is compared with a run
-    # that takes it (at the scenario's it would be the finer of the two in time)
+    # the finest run in the needle step too: a family with a smaller step than the scenario's
+    # would otherwise be finer in time than the run it is compared with
     finest_step = min(family.step or scenario.needle.step for family in families)
     if reference.step is None and finest_step < scenario.needle.step:
         reference = replace(reference, step=finest_step)
