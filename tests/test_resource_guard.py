@@ -894,7 +894,7 @@ def test_a_calibrations_experiments_are_held_at_once_in_its_process(monkeypatch)
     problem = load_material_calibration(path, None, None)
     original, seen = guard.check_resources, {}
 
-    def recorded(estimates, limits=Limits(), **options):
+    def recorded(estimates, limits, **options):
         seen.update(estimates=estimates, **options)
         return original(estimates, limits, **options)
 

@@ -90,8 +90,8 @@ def test_study_block_is_parsed_into_families_and_reference():
     ({"spacing": [6.0, 6.0]}, "study.spacing: got [6.0, 6.0], expected spacings each given once"),
     ({"families": [{"spacing": [4.0, 4]}]}, "study.families[0].spacing: got [4.0, 4.0], expected spacings each"),
     # the study's own runs' families: a user's would share study.csv's family column with them
-    ({"families": [{"name": "a"}, {"name": "auto"}]}, "study.families[1].name: got 'auto', expected a name other "
-                                                      "than 'reference' and 'auto'"),
+    ({"families": [{"name": "a"}, {"name": "auto"}]}, ("study.families[1].name: got 'auto', expected a name other "
+                                                       "than 'reference' and 'auto'")),
     ({"families": [{"name": "reference"}]}, "study.families[0].name: got 'reference', expected a name other than"),
 ])
 def test_bad_study_blocks_are_refused_naming_the_field(study, fragment):
