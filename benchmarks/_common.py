@@ -69,11 +69,17 @@ def command_failure(arguments: Sequence[str], cwd: Path, done: subprocess.Comple
     extract_revision) and the command's last line on stderr. A baseline older than the scene
     files' keys refuses them (exit 2): its comparison ran on the files of its day, recorded in
     its results file."""
+    return failure_line(f"stitchplan {' '.join(map(str, arguments[:2]))}", cwd, done)
+
+
+def failure_line(what: str, cwd: Path, done: subprocess.CompletedProcess) -> str:
+    """`what` with which code ran it (a baseline's revision, extract_revision), its exit code and
+    its last line on stderr."""
     marker = Path(cwd) / REVISION_FILE
     code = f"the code of {marker.read_text()}" if marker.exists() else f"the code in {cwd}"
-    lines = done.stderr.decode(errors="replace").strip().splitlines()
-    return (f"stitchplan {' '.join(map(str, arguments[:2]))} with {code} exited {done.returncode}: "
-            f"{lines[-1] if lines else '(nothing on stderr)'}")
+    stderr = done.stderr if isinstance(done.stderr, str) else done.stderr.decode(errors="replace")
+    lines = stderr.strip().splitlines()
+    return f"{what} with {code} exited {done.returncode}: {lines[-1] if lines else '(nothing on stderr)'}"
 
 
 def scene_command(name: str, scene: str, options: Sequence[str], folder: Path, cwd: Path,
@@ -135,8 +141,11 @@ def worker_record(script: str, source: Path, *arguments: str) -> dict:
     """`python SCRIPT --worker ARGUMENTS` in a fresh process with the code in `source` first
     on PYTHONPATH; the JSON record it prints last."""
     environment = {**os.environ, "PYTHONPATH": f"{source}{os.pathsep}{BENCH_DIR}"}
-    output = subprocess.run([sys.executable, str(Path(script).resolve()), "--worker", *arguments], check=True,
+    output = subprocess.run([sys.executable, str(Path(script).resolve()), "--worker", *arguments],
                             capture_output=True, text=True, env=environment, cwd=source)
+    if output.returncode != 0:  # a baseline refusing today's scene files, as command_failure says
+        command = " ".join([Path(script).name, "--worker", *(argument for argument in arguments if argument)])
+        raise SystemExit(failure_line(command, source, output))
     return json.loads(output.stdout.strip().splitlines()[-1])
 
 

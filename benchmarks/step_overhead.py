@@ -51,7 +51,10 @@ def worker(scene: str, spacing: float | None) -> dict:
     import numpy as np
 
     from stitchplan.config import load_scenario, with_discretization
-    from stitchplan.needle.prepared_tissue import PreparedTissue
+    try:
+        from stitchplan.needle.prepared_tissue import PreparedTissue
+    except ModuleNotFoundError:  # a baseline from before it had a module of its own (b0ea93e)
+        from stitchplan.needle.equilibrium import PreparedTissue
     from stitchplan.needle.insertion import run_insertion
     from stitchplan.planning.planner import run_plan
 
