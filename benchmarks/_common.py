@@ -137,6 +137,17 @@ def alternated(name: str, scene: str, options: Sequence[str], baseline: Path, fo
             f"{won} of {repeats}", "yes" if same else "no"]
 
 
+def prepared_tissue_class():
+    """PreparedTissue of the code on sys.path, for a `--worker` run with a baseline's code:
+    stitchplan.needle.prepared_tissue's, or needle.equilibrium's in a revision from before it
+    had a module of its own (8efa343)."""
+    try:
+        from stitchplan.needle.prepared_tissue import PreparedTissue
+    except ModuleNotFoundError:
+        from stitchplan.needle.equilibrium import PreparedTissue
+    return PreparedTissue
+
+
 def worker_record(script: str, source: Path, *arguments: str) -> dict:
     """`python SCRIPT --worker ARGUMENTS` in a fresh process with the code in `source` first
     on PYTHONPATH; the JSON record it prints last."""

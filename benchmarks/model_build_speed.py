@@ -66,7 +66,7 @@ def worker(scene: str, spacing: float | None, run: bool) -> dict:
     import numpy as np
 
     from stitchplan.config import load_scenario, with_discretization
-    from stitchplan.needle.prepared_tissue import PreparedTissue
+    PreparedTissue = common.prepared_tissue_class()
     from stitchplan.needle.geometry import scenario_needle
     from stitchplan.needle.insertion import run_insertion
 
@@ -101,7 +101,7 @@ def factor_record(scenario) -> dict:
     one right-hand side (median of SOLVES)."""
     import numpy as np
 
-    from stitchplan.needle.prepared_tissue import PreparedTissue
+    PreparedTissue = common.prepared_tissue_class()
     from stitchplan.tissue.factorization import SuperLUFactor, factorize
 
     tissue = PreparedTissue(scenario)

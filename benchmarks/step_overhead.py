@@ -51,16 +51,12 @@ def worker(scene: str, spacing: float | None) -> dict:
     import numpy as np
 
     from stitchplan.config import load_scenario, with_discretization
-    try:
-        from stitchplan.needle.prepared_tissue import PreparedTissue
-    except ModuleNotFoundError:  # a baseline from before it had a module of its own (b0ea93e)
-        from stitchplan.needle.equilibrium import PreparedTissue
     from stitchplan.needle.insertion import run_insertion
     from stitchplan.planning.planner import run_plan
 
     logging.disable(logging.WARNING)
     scenario = with_discretization(load_scenario(common.REPO_ROOT / "configs" / f"{scene}.yaml"), spacing=spacing)
-    tissue = PreparedTissue(scenario)
+    tissue = common.prepared_tissue_class()(scenario)
     tissue.model, tissue.factor_at_rest()  # built before the clock starts
     record = {"particles": int(tissue.model.n_particles)}
     run_insertion(scenario, tissue=tissue)  # first calls (imports, caches) out of the timings

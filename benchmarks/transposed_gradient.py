@@ -40,7 +40,7 @@ COMPARED = ("exit_error_mm", "verified_exit_error_mm", "exit_error_estimate_mm")
 
 def worker(scene: str) -> dict:
     """The shipped trajectory's replay on the refined model, timed in this process (`--worker`)."""
-    from stitchplan.needle.prepared_tissue import PreparedTissue
+    PreparedTissue = common.prepared_tissue_class()
     from stitchplan.needle.insertion import run_insertion
 
     refined, path = common.verification_replay(scene)
