@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -370,6 +371,20 @@ def test_speed_accuracy_mentions_failures_only_when_there_are_some(failed, tmp_p
             assert axis.get_major_formatter()(0.01) == "0.01"
             shown = [label.get_text() for label in axis.get_ticklabels(minor=True) if label.get_text()]
             assert all("10^" not in text and "$" not in text for text in shown)
+
+
+def test_speed_accuracy_counts_failed_runs_drawn_at_one_place(tmp_path):
+    """Failures before a solve take no time: a family's crosses fell on one spot at the right
+    edge, and the plot showed one where three runs failed. Crosses at one time are counted
+    beside them ("3x"), on both panels."""
+    study = fake_study(failed=True)
+    graded = next(run for run in study.runs if run.family == "graded x4" and not run.ok)
+    for spacing in (3.0, 4.0):
+        study.runs.insert(0, replace(graded, label=f"graded x4 h={spacing}", spacing=spacing, status="failed",
+                                     deviations={}))
+    fig = plots.plot_speed_accuracy(tmp_path / "speed.png", study)
+    for ax in data_axes(fig):
+        assert [text.get_text() for text in ax.texts if text.get_text().endswith("x")] == ["3x"]
 
 
 @pytest.mark.parametrize("scale", ["1e308", "1e7"])

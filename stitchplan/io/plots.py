@@ -11,6 +11,8 @@ shared drawing pieces live in `plot_elements`.
 from __future__ import annotations
 
 import io
+import math
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -201,9 +203,14 @@ def _speed_accuracy_panel(ax, key: str, xlabel: str, runs, families: list[str], 
                     **_family_style(family, colours(k % 10)))
         failed = [r for r in failures if r.family == family]
         if failed:  # times clipped to the successful runs' range (failures before a solve are instant)
-            ax.plot([top] * len(failed), [min(max(r.wall_seconds, low), high) for r in failed], "x",
-                    color=colours(k % 10), ms=8, mew=2, clip_on=False,
+            times = [min(max(r.wall_seconds, low), high) for r in failed]
+            ax.plot([top] * len(failed), times, "x", color=colours(k % 10), ms=8, mew=2, clip_on=False,
                     label=f"{family}: {len(failed)} failed (deviation unknown)")
+            # crosses at one time (failures before a solve, clipped alike) are counted beside them
+            for time, count in Counter(round(math.log10(t), 1) for t in times).items():
+                if count > 1:
+                    ax.annotate(f"{count}x", (top, 10.0 ** time), xytext=(7, 0), textcoords="offset points",
+                                fontsize=7, color=colours(k % 10), va="center", annotation_clip=False)
     apart = [r for r in done if not r.deviations.get("spatial_compared", True)]
     if apart and key == "exit_deviation_mm":  # deviation_mm leaves these out (exit_deviations)
         ax.plot([x_of(r) for r in apart], [r.wall_seconds for r in apart], "s", mfc="none", mec="0.45", ms=9,
