@@ -814,11 +814,11 @@ def test_a_failed_library_load_without_a_limit_stays_a_bug(monkeypatch):
     not the limit's: address_space_failure gives no line, and the traceback stays."""
     import resource
 
-    from stitchplan.cli import group
     from stitchplan.cli.group import address_space_failure
+    from stitchplan.resources import machine
 
     mapped = ImportError("libscipy_openblas.so: failed to map segment from shared object")
-    monkeypatch.setattr(group, "_mapped_peak", lambda: 250e6)  # as at the imports (this process maps more)
+    monkeypatch.setattr(machine, "mapped_peak", lambda: 250e6)  # as at the imports (this process maps more)
     monkeypatch.setattr(resource, "getrlimit", lambda which: (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
     assert address_space_failure(mapped) is None
     monkeypatch.setattr(resource, "getrlimit", lambda which: (400000 * 1024, resource.RLIM_INFINITY))
@@ -836,15 +836,16 @@ def test_a_library_that_fails_to_load_within_a_run_is_not_blamed_on_the_imports(
     import resource
 
     from stitchplan.cli import group
+    from stitchplan.resources import machine
 
     failed = ImportError("_highspy/_core.cpython-311-x86_64-linux-gnu.so: failed to map segment from shared object")
     monkeypatch.setattr(resource, "getrlimit", lambda which: (700000 * 1024, resource.RLIM_INFINITY))
-    monkeypatch.setattr(group, "_mapped_peak", lambda: 716e6)
+    monkeypatch.setattr(machine, "mapped_peak", lambda: 716e6)
     line = group.address_space_failure(failed)
     assert line.startswith("a library loaded within the run could not be mapped within the process's address-space "
                            "limit (ulimit -v 700000) of 717 MB, its arrays and factors holding the rest ("), line
     assert line.endswith("); raise the limit, or make the run smaller")
-    monkeypatch.setattr(group, "_mapped_peak", lambda: 150e6)
+    monkeypatch.setattr(machine, "mapped_peak", lambda: 150e6)
     assert group.address_space_failure(failed).endswith("their imports alone map ~300 MB of address space")
 
 

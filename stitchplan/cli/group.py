@@ -137,9 +137,6 @@ def exit_code(run: Callable[[], Any]) -> int:
 
 # what the dynamic loader says when mapping a library fails for want of address space
 _MAP_FAILURES = ("failed to map segment", "cannot allocate memory", "cannot map zero-fill pages")
-# VmSize after a command's imports of the numerics: ~230-340 MB (simulate's ~290 MB, of which
-# ~80 MB resident); a failure past this mapped a run's arrays and factors too
-IMPORTS_MAPPED = 400e6
 
 
 def address_space_failure(error: BaseException) -> str | None:
@@ -159,21 +156,14 @@ def address_space_failure(error: BaseException) -> str | None:
     limit_text = f"the process's address-space limit (ulimit -v {limit // 1024}) of {limit / 1e6:.0f} MB"
     if isinstance(error, MemoryError):
         return f"out of memory within {limit_text}; raise the limit, or make the run smaller"
-    peak = _mapped_peak()
-    if peak is not None and peak > IMPORTS_MAPPED:  # the run's arrays had filled the limit
+    from ..resources import machine
+
+    peak = machine.mapped_peak()
+    if peak is not None and peak > machine.IMPORTS_MAPPED_AT_MOST:  # the run's arrays had filled the limit
         return (f"a library loaded within the run could not be mapped within {limit_text}, its arrays and "
                 f"factors holding the rest ({error}); raise the limit, or make the run smaller")
     return (f"the numerical libraries could not be loaded within {limit_text} ({error}); raise the limit: "
             "their imports alone map ~300 MB of address space")
-
-
-def _mapped_peak() -> float | None:
-    """The most address space this process has mapped (VmPeak), bytes; None where unknown."""
-    try:
-        with open("/proc/self/status") as handle:
-            return next((float(line.split()[1]) * 1024.0 for line in handle if line.startswith("VmPeak:")), None)
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 class _HeldStream(io.StringIO):

@@ -13,6 +13,9 @@ import os
 # (37 MB): this model asks 1.04-1.6x of those. Short of it a run failed badly: SuperLU spun at a
 # failed allocation (SIGTERM unheard), CHOLMOD crashed.
 NUMERICS_MAPPED = 255e6  # VmSize once a command has imported the numerics (simulate at its guard)
+# the most any command's imports map (~230-340 MB; calibrate material's optimizer included): a
+# process that mapped more when a library failed to load had a run's arrays and factors mapped
+IMPORTS_MAPPED_AT_MOST = 400e6
 ADDRESS_SPACE_RESERVE = 180e6  # what a run maps beyond that besides its arrays: libraries loaded late, buffers
 ADDRESS_GROWTH = 2.3  # address space mapped per byte of a run's memory (deform at spacing 1 mm: 1824 MB for 798)
 
@@ -46,11 +49,23 @@ def address_space() -> tuple[float, float] | None:
         limit, _ = resource.getrlimit(resource.RLIMIT_AS)
         if limit == resource.RLIM_INFINITY:
             return None
-        with open("/proc/self/status") as handle:
-            mapped = next((float(line.split()[1]) * 1024.0 for line in handle if line.startswith("VmSize:")), 0.0)
-    except (ImportError, OSError, ValueError):
+    except ImportError:
         return None
-    return float(limit), mapped
+    return float(limit), status_bytes("VmSize") or 0.0
+
+
+def mapped_peak() -> float | None:
+    """The most address space this process has mapped (VmPeak), bytes; None where unknown."""
+    return status_bytes("VmPeak")
+
+
+def status_bytes(field: str) -> float | None:
+    """A size line of /proc/self/status (`VmSize`, `VmPeak`: kB there) in bytes; None where unknown."""
+    try:
+        with open("/proc/self/status") as handle:
+            return next((float(line.split()[1]) * 1024.0 for line in handle if line.startswith(f"{field}:")), None)
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def address_space_needed(mapped: float, run_memory: float, base_memory: float) -> float:
