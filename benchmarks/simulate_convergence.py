@@ -39,9 +39,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import _common as common  # noqa: E402
-import yaml  # noqa: E402
-
 from stitchplan.config.scenario import default_spacing, parse_scenario, with_discretization  # noqa: E402
+from stitchplan.config.yaml_files import read_yaml_file  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 
@@ -58,7 +57,7 @@ def at_default_discretization(name: str):
     """configs/NAME.yaml without its `discretization:` block: the default a needle scene gets
     (stitchplan.config.scenario.default_spacing, needle_refinement 2), which (a) and (b)
     study; the SH 1/2 files give their own since they were discretized for the needle."""
-    raw = yaml.safe_load((CONFIGS / f"{name}.yaml").read_text())
+    raw = dict(read_yaml_file(CONFIGS / f"{name}.yaml").data)  # read as `stitchplan` reads it
     raw.pop("discretization", None)
     return parse_scenario(raw)
 
