@@ -258,7 +258,7 @@ def main() -> None:
     left.set_ylabel("exit error (mm)")
     left.set_title("sh12_100x100: exit error vs spacing")
     left.invert_xaxis()
-    left.legend(fontsize=8, loc="lower left")
+    left.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)  # below: no point covered
     heights = [b[2] for b in block_runs]
     width = 2.5
     right.bar(np.array(heights) - width, [b[3]["exit_error_mm"] for b in block_runs], width, label="default")
@@ -271,8 +271,8 @@ def main() -> None:
     right.set_xlabel("block height (mm), width 100 mm")
     right.set_ylabel("exit error (mm)")
     right.set_title("SH 1/2 blocks: exit error vs block height")
-    right.legend(loc="upper right", fontsize=8)
-    twin.legend(loc="upper center", fontsize=8)
+    bars, thesis = right.get_legend_handles_labels(), twin.get_legend_handles_labels()
+    twin.legend(bars[0] + thesis[0], bars[1] + thesis[1], loc="upper right", fontsize=8)  # one legend, on top
     fig.tight_layout()
     fig.savefig(common.results_path("simulate_convergence.png"), dpi=120)
 
