@@ -436,7 +436,7 @@ RECORDING_CASES = {
             [["tissue.csv: line 4, force_N: got 'nan', expected a finite number"]]),
     "wrong columns": ("angle,force\n0,1\n", [["tissue.csv: columns: got 'angle,force', expected the columns "
                                              "'angle_rad,force_N' (in any order, no others)"]]),
-    "binary": (b"\xff\xfe\x00\x01", [["--tissue: ", "tissue.csv: cannot be read"]]),
+    "binary": (b"\xff\xfe\x00\x01", [["--tissue: ", "tissue.csv: not a text file; expected a CSV table"]]),
 }
 
 

@@ -280,11 +280,16 @@ def test_force_recording_numbers_are_plain_decimals(tmp_path, cell):
     assert_refused(result, out, f"--tissue: {tissue}: line 4, force_N: got {cell!r}, {PLAIN}")
 
 
-def test_calibration_tables_read_numbers_as_the_center_path_files_do():
-    from stitchplan.calibration import tables
-    from stitchplan.io import readers
-
-    assert tables.parse_number is readers.parse_number  # one rule for every CSV a user gives
+def test_marker_files_skip_a_spreadsheets_blank_rows_and_need_a_row(tmp_path):
+    """Read as the centre path files are: a ',,,' row is a blank line, a header alone is no data."""
+    path = marker_calibration(tmp_path, "10,10,10.5,10.2\n,,,\n50,30,50.3,30.1\n")
+    assert len(calibration.load_material_calibration(path).experiments[0].markers) == 2
+    markers = tmp_path / "markers0.csv"
+    markers.write_text("x,y,x_def,y_def\n,,,\n")
+    with pytest.raises(InputError) as error:
+        calibration.load_material_calibration(path)
+    assert error.value.lines == [(f"{path}: experiments[0].markers: {markers}: no rows below the header; "
+                                  "expected marker positions at rest and deformed, mm")]
 
 
 def test_one_marker_file_in_two_experiments_is_refused(tmp_path):

@@ -26,8 +26,9 @@ from stitchplan.cli import app
 from stitchplan.cli.options import check_angular_speed, parse_base_transform
 from stitchplan.config import Robot, load_scenario
 from stitchplan.config.blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
+from stitchplan.decimals import parse_number
 from stitchplan.errors import InputError
-from stitchplan.io.readers import ANGLE_TOLERANCE, parse_number, read_center_path
+from stitchplan.io.readers import ANGLE_TOLERANCE, read_center_path
 from stitchplan.needle.geometry import scenario_needle
 from stitchplan.planning.trajectory import exported_centers, trajectory_table
 
@@ -164,10 +165,10 @@ def test_a_bad_step_sequence_names_its_first_row(tmp_path, geometry, edit, messa
     (4, "NaN", "tip_x_mm: got 'NaN', expected a finite number"),
     (5, "-inf", "tip_y_mm: got '-inf', expected a finite number"),
     (2, "1e999", "center_x_mm: got '1e999', expected a finite number"),
-    (0, "1_0", "step: got '1_0', expected a number"),  # float() would read 10
-    (3, "0x10", "center_y_mm: got '0x10', expected a number"),
-    (3, "\u0661\u0660", "center_y_mm: got '\u0661\u0660', expected a number"),  # Arabic-Indic digits
-    (2, "", "center_x_mm: missing; expected a number"),
+    (0, "1_0", "step: got '1_0', expected a finite number in plain decimals (digits 0-9, like -1.5e-3)"),  # float() would read 10
+    (3, "0x10", "center_y_mm: got '0x10', expected a finite number in plain decimals (digits 0-9, like -1.5e-3)"),
+    (3, "\u0661\u0660", "center_y_mm: got '\u0661\u0660', expected a finite number in plain decimals (digits 0-9, like -1.5e-3)"),  # Arabic-Indic digits
+    (2, "", "center_x_mm: missing; expected a finite number"),
 ])
 def test_every_cell_is_a_plain_finite_number(tmp_path, geometry, column, text, expected):
     rows = trajectory_rows(geometry)

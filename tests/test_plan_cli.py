@@ -353,7 +353,7 @@ def test_bad_scenario_for_plan(tmp_path, raw, fragments):
 @pytest.mark.parametrize("text,fragments", [
     ("step,x,y\n0,0,19.12\n", ["path.csv: columns ['step', 'x', 'y'] lack ['center_x_mm', 'center_y_mm']",
                                "expected at least step, center_x_mm, center_y_mm"]),
-    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv: line 2, center_y_mm: got 'abc', expected a number"]),
+    ("step,center_x_mm,center_y_mm\n0,0,abc\n", ["path.csv: line 2, center_y_mm: got 'abc', expected a finite number in plain decimals"]),
     ("step,center_x_mm,center_y_mm\n0,0,9.12\n1,0\n", ["path.csv: line 3, center_y_mm: missing"]),
     ("step,center_x_mm,center_y_mm\n0,inf,9.12\n", ["path.csv: line 2, center_x_mm: got 'inf', expected a finite number"]),
     ("", ["path.csv: got an empty file (no header, no rows); expected a header with at least step, center_x_mm, center_y_mm"]),

@@ -3,7 +3,6 @@ appendix A.2), needle friction and cutting force from force recordings (section 
 
 Modules, in the order data flows through them:
 
-- tables: numeric CSV tables with a fixed header (marker files, force recordings);
 - inputs: the calibration YAML and its experiments as typed inputs;
 - forward: the static forward model of one experiment and its exact sensitivities;
 - material_fit: grid search, least squares and statistics for (lambda, mu);
@@ -39,12 +38,11 @@ from .needle_fit import (
     fit_needle,
     read_force_recording,
 )
-from .tables import read_columns
 
 __all__ = [
     "CORRELATION_LIMIT", "POORLY_DETERMINED", "Experiment", "ExperimentModel", "FitSettings",
     "GridSearch", "LineFit", "MarkerMisfit", "MaterialCalibration", "MaterialFit", "NeedleFit",
     "Progress", "calibrate_material", "calibrate_needle", "fit_line", "fit_material", "fit_needle",
-    "load_material_calibration", "no_progress", "parse_material_calibration", "read_columns",
+    "load_material_calibration", "no_progress", "parse_material_calibration",
     "read_force_recording", "simulate_markers",
 ]

@@ -26,8 +26,8 @@ from ..config.calibration import (
     parse_calibration,
 )
 from ..config.yaml_files import read_yaml_file, with_key_problems
+from ..csv_tables import read_numeric_table
 from ..errors import InputError
-from .tables import read_columns
 
 MARKER_COLUMNS = ("x", "y", "x_def", "y_def")
 # A marker moves by less than the tissue's size (the longer side of its bounding box): more
@@ -84,9 +84,8 @@ def fit_settings(fit: FitBlock) -> FitSettings:
 def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: str) -> Experiment:
     """The experiment with its marker file (relative to `folder`) read and checked."""
     markers_path = folder / block.markers
-    data, lines = read_columns(markers_path, MARKER_COLUMNS, f"{path}.markers")
-    if len(lines) == 0:
-        raise InputError(f"{path}.markers: {markers_path}: no marker rows, expected at least one")
+    data, lines = read_numeric_table(markers_path, MARKER_COLUMNS, "marker positions at rest and deformed, mm",
+                                     exact=True, label=f"{path}.markers")
     rest = np.stack([data["x"], data["y"]], axis=1)
     outside = np.flatnonzero(~tissue.domain.contains(rest))
     if len(outside):

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from ..config.blocks import NEEDLE_RADIUS_RANGE_MM
+from ..csv_tables import read_numeric_table
 from ..errors import InputError, NumericalFailure
-from .tables import read_columns
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +193,8 @@ def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit:
 def read_force_recording(path: str | Path, label: str) -> tuple[np.ndarray, np.ndarray]:
     """angle_rad, force_N of a recording; at least MIN_FORCE_SAMPLES rows, angles strictly
     increasing over at least MIN_ANGLE_SPAN rad."""
-    data, lines = read_columns(path, FORCE_COLUMNS, label)
+    data, lines = read_numeric_table(path, FORCE_COLUMNS, "a force recording over the needle angle", exact=True,
+                                     label=label)
     angle, force = data["angle_rad"], data["force_N"]
     beyond = np.flatnonzero(np.abs(force) > MAX_FORCE_N)
     if len(beyond):

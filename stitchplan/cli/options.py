@@ -391,7 +391,7 @@ def parse_base_transform(text: Optional[str]):
     """ROTATION_DEG,TX_MM,TY_MM within the bounds that keep the base-frame columns of
     trajectory.csv meaningful (planning.trajectory)."""
     from ..errors import InputError
-    from ..io.readers import parse_number
+    from ..decimals import parse_number
     from ..config.blocks import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG
 
     if text is None:

@@ -1,95 +1,22 @@
-"""Readers of the files a user gives besides the scenario: CSV tables with named columns.
-
-Every problem is an InputError with one line naming the file and, for a bad value, the line
-and the column (`file: line 5, center_x_mm: got ...`, as the calibration inputs' errors): the
-line number in the file, the row a spreadsheet shows, so with the header on the first line the
-first values are on line 2. As in the calibration recordings, blank lines and lines starting
-with '#' are skipped (a file may carry a comment header).
+"""The centre path a user gives `simulate --center-path`: a trajectory as `stitchplan plan`
+exports it, read by csv_tables (its errors name the file, the line and the column) and checked
+against the needle it is to move (its steps, angles and entry).
 """
 
 from __future__ import annotations
 
-import csv
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from ..decimals import parse_number, spells_a_number
+from ..csv_tables import read_numeric_table
 from ..errors import InputError
 from ..needle.geometry import ENTRY_TOLERANCE, LEAN_TOLERANCE, NeedleGeometry, length, on_entry_circle
 
 CENTER_PATH_COLUMNS = ("step", "center_x_mm", "center_y_mm")
 ANGLE_COLUMN = "angle_rad"
-
-def read_table(path: str | Path, required: Sequence[str], expected: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Every column of a CSV file with a header row, as float arrays, and the row number of
-    each data row (n,). The header must name the `required` columns; every cell must be a
-    finite number and every row have as many cells as the header. `expected` tells the user
-    what file was wanted."""
-    path = Path(path)
-    try:
-        with path.open(newline="", encoding="utf-8-sig") as handle:  # -sig: spreadsheets' BOM
-            lines = [(number, line) for number, line in enumerate(handle, start=1)
-                     if line.strip() and not line.lstrip().startswith("#")]
-    except OSError as error:
-        raise InputError(f"{path}: cannot be read ({error.strerror or error})") from None
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file; expected a CSV table ({expected})") from None
-    # rows of empty cells (',,,' as spreadsheets save blank rows) are blank lines too
-    rows = [(number, row) for (number, _), row in zip(lines, csv.reader(line for _, line in lines))
-            if any(cell.strip() for cell in row)]
-    if not rows:
-        raise InputError(f"{path}: got an empty file (no header, no rows); expected a header with at least "
-                         f"{', '.join(required)} ({expected})")
-    header = [name.strip() for name in rows[0][1]]
-    missing = [name for name in required if name not in header]
-    _check_header(path, rows[0][0], header, missing)  # a column given twice first: it may be the one missing
-    if missing:
-        raise InputError(f"{path}: columns {header} lack {missing}; expected at least "
-                         f"{', '.join(required)} ({expected})")
-    if len(rows) < 2:
-        raise InputError(f"{path}: no rows below the header; expected {expected}")
-    values = np.array([_row_values(path, number, row, header) for number, row in rows[1:]])  # (rows, columns)
-    row_numbers = np.array([number for number, _ in rows[1:]])
-    return {name: values[:, k] for k, name in enumerate(header)}, row_numbers
-
-
-def _check_header(path: Path, line: int, header: list[str], missing: list[str]) -> None:
-    """Every column named, and named once: a value must not depend on which one is read
-    (`missing`: required columns the header lacks, told with a column given twice)."""
-    for k, name in enumerate(header):
-        if not name:
-            raise InputError(f"{path}: line {line}, column {k + 1}: got no name, expected a column name "
-                             f"(header {','.join(header)})")
-        if name in header[:k]:
-            lacks = f" (the header lacks {', '.join(missing)})" if missing else ""
-            raise InputError(f"{path}: line {line}, column {k + 1}: got {name!r} again, expected each "
-                             f"column once{lacks}")
-
-
-def _row_values(path: Path, line: int, row: list[str], header: list[str]) -> list[float]:
-    """A row of as many cells as the header, each a finite number."""
-    if len(row) < len(header):
-        raise InputError(f"{path}: line {line}, {header[len(row)]}: missing; got {len(row)} cells, expected "
-                         f"{len(header)} as in the header ({','.join(header)})")
-    if len(row) > len(header):
-        raise InputError(f"{path}: line {line}: got {len(row)} cells, expected {len(header)} as in the "
-                         f"header ({','.join(header)})")
-    return [_number(path, line, name, text) for name, text in zip(header, row)]
-
-
-def _number(path: Path, line: int, name: str, text: str) -> float:
-    text = text.strip()
-    if not text:
-        raise InputError(f"{path}: line {line}, {name}: missing; expected a number")
-    value = parse_number(text)
-    if value is None:
-        finite = "a finite number" if spells_a_number(text) else "a number"
-        raise InputError(f"{path}: line {line}, {name}: got {text!r}, expected {finite}")
-    return value
-
 
 def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
                      leaning: Callable[[np.ndarray], NeedleGeometry] | None = None) -> np.ndarray:
@@ -101,7 +28,7 @@ def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
     and entry (check_center_path). `leaning(row 0)`: the needle a path starting there replays
     (needle.geometry.entry_lean: a plan may lean the needle at entry); a row 0 off the centre
     at entry but within LEAN_TOLERANCE of the circle about the entry is put onto it."""
-    table, row_numbers = read_table(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
+    table, row_numbers = read_numeric_table(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
     _check_steps(path, table["step"], row_numbers)
     centers = np.column_stack([table["center_x_mm"], table["center_y_mm"]])
     if geometry is not None and leaning is not None:

@@ -1,0 +1,101 @@
+"""Numeric CSV tables with a header row: the files a user gives besides the scenario (a
+centre path to replay, calibration markers and force recordings).
+
+Every problem is an InputError with one line naming the file and, for a bad value, the line
+and the column (`file: line 5, center_x_mm: got ...`): the line number in the file, the row a
+spreadsheet shows, so with the header on the first line the first values are on line 2.
+Blank lines, lines starting with '#' (a file may carry a comment header) and rows of empty
+cells (',,,' as spreadsheets save blank rows) are skipped. The first row is the header.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .decimals import parse_number, spells_a_number
+from .errors import InputError
+
+
+def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, *, exact: bool = False,
+                       label: str = "") -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Every column of the table as a float array, and the line number of each data row (n,).
+
+    The header must name each of `columns` once (with `exact`, those and no others, in any
+    order); every row has as many cells as the header, each a plain finite decimal
+    (decimals.parse_number); at least one row. `expected` tells the user what file was
+    wanted; `label` (e.g. the YAML field that named the file) goes before the path.
+    """
+    path = Path(path)
+    where = f"{label}: {path}" if label else f"{path}"
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as handle:  # -sig: spreadsheets' BOM
+            lines = [(number, line) for number, line in enumerate(handle, start=1)
+                     if line.strip() and not line.lstrip().startswith("#")]
+    except OSError as error:
+        raise InputError(f"{where}: cannot be read ({error.strerror or error})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{where}: not a text file; expected a CSV table ({expected})") from None
+    rows = [(number, row) for (number, _), row in zip(lines, csv.reader(line for _, line in lines))
+            if any(cell.strip() for cell in row)]
+    wanted = f"exactly the columns {','.join(columns)} (in any order)" if exact else f"at least {', '.join(columns)}"
+    if not rows:
+        raise InputError(f"{where}: got an empty file (no header, no rows); expected a header with {wanted} "
+                         f"({expected})")
+    header = [name.strip() for name in rows[0][1]]
+    missing = [name for name in columns if name not in header]
+    _check_header(where, rows[0][0], header, missing)  # a column given twice first: it may be the one missing
+    if exact and sorted(header) != sorted(columns):
+        raise InputError(f"{where}: columns: got {','.join(header)!r}, expected the columns "
+                         f"{','.join(columns)!r} (in any order, no others)")
+    if missing:
+        raise InputError(f"{where}: columns {header} lack {missing}; expected {wanted} ({expected})")
+    if len(rows) < 2:
+        raise InputError(f"{where}: no rows below the header; expected {expected}")
+    values = np.array([_row_values(where, number, row, header) for number, row in rows[1:]])  # (rows, columns)
+    row_numbers = np.array([number for number, _ in rows[1:]])
+    return {name: values[:, k] for k, name in enumerate(header)}, row_numbers
+
+
+def _check_header(where: str, line: int, header: list[str], missing: list[str]) -> None:
+    """Every column named, and named once: a value must not depend on which one is read
+    (`missing`: required columns the header lacks, told with a column given twice)."""
+    for k, name in enumerate(header):
+        if not name:
+            raise InputError(f"{where}: line {line}, column {k + 1}: got no name, expected a column name "
+                             f"(header {','.join(header)})")
+        if name in header[:k]:
+            lacks = f" (the header lacks {', '.join(missing)})" if missing else ""
+            raise InputError(f"{where}: line {line}, column {k + 1}: got {name!r} again, expected each "
+                             f"column once{lacks}")
+
+
+def _row_values(where: str, line: int, row: list[str], header: list[str]) -> list[float]:
+    """A row of as many cells as the header, each a finite number."""
+    if len(row) < len(header):
+        raise InputError(f"{where}: line {line}, {header[len(row)]}: missing; got {len(row)} cells, expected "
+                         f"{len(header)} as in the header ({','.join(header)})")
+    if len(row) > len(header):
+        raise InputError(f"{where}: line {line}: got {len(row)} cells, expected {len(header)} as in the "
+                         f"header ({','.join(header)})")
+    return [_number(where, line, name, text) for name, text in zip(header, row)]
+
+
+def _number(where: str, line: int, name: str, text: str) -> float:
+    value = parse_number(text)
+    if value is None:
+        raise InputError(f"{where}: line {line}, {name}: {_cell_problem(text)}")
+    return value
+
+
+def _cell_problem(text: str) -> str:
+    """What was wrong with a cell parse_number refused."""
+    text = text.strip()
+    if not text:
+        return "missing; expected a finite number"
+    if spells_a_number(text):
+        return f"got {text!r}, expected a finite number"
+    return f"got {text!r}, expected a finite number in plain decimals (digits 0-9, like -1.5e-3)"
