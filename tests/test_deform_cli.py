@@ -90,7 +90,7 @@ def test_displacement_segment_reaction_balances_the_clamp(displaced_slab):
 
 
 def test_mixed_loads_balance_globally(slab_raw):
-    """Force and displacement segments together (the SCENARIO.md example): the clamp and the
+    """Force and displacement segments together (the scenario format's example): the clamp and the
     displacement segment together take up the applied force."""
     slab_raw["loads"] = [
         {"segment": [[0.0, 40.0], [0.0, 60.0]], "force": [3.0, -2.0]},

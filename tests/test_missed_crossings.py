@@ -220,8 +220,8 @@ def test_a_crossing_back_through_the_wall_just_crossed_is_that_wall():
 
 
 def sagging_notch_scene() -> dict:
-    """A 60 x 30 mm slab clamped on its right edge only, a notch 8 mm deep in its top (SCENARIO.md's
-    outline) that the undeformed circle passes 0.84 mm below: the needle's loads sag the free
+    """A 60 x 30 mm slab clamped on its right edge only, a notch 8 mm deep in its top (the scenario
+    format's example outline) that the undeformed circle passes 0.84 mm below: the needle's loads sag the free
     left part by ~1.8 mm, and the tip comes out into the notch at 1.31 rad of a pi arc."""
     return {"name": "sagging notch",
             "tissue": {"outline": [[0, 0], [60, 0], [60, 30], [34, 30], [32, 22], [28, 22], [26, 30], [0, 30]],

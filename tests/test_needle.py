@@ -1,5 +1,5 @@
-"""Needle geometry (centre and desired exit of the orthogonal entry, SCENARIO.md "Needle
-geometry"), the user errors of impossible needles, the two tip-tracking kernels on fields
+"""Needle geometry (centre and desired exit of the orthogonal entry, as the scenario
+format defines it), the user errors of impossible needles, the two tip-tracking kernels on fields
 whose answer is known, and the geometry of the shipped needle scenarios."""
 
 from __future__ import annotations

@@ -180,12 +180,12 @@ SCENARIO_EXAMPLE = {
     "probes": [[10, 10], [30, 15], [50, 10], [38, 25]],
     "discretization": {"spacing": 5.0},
 }
-# the same tissue with SCENARIO.md's first hole drawn into the outline
+# the same tissue with the format example's first hole drawn into the outline
 CUT_OUTLINE = [[0, 0], [60, 0], [60, 20], [40, 20], [40, 30], [34, 30], [32, 22], [28, 22], [26, 30], [0, 30]]
 
 
-def test_the_example_of_scenario_md_reads():
-    """SCENARIO.md's shape example as written: its first hole reaches past the outline and
+def test_the_shape_example_of_the_scenario_format_reads():
+    """The scenario format's shape example (README, Tissue shapes) as written: its first hole reaches past the outline and
     is cut out of it, and `clamped: [right]` names the one outline edge left on the right
     side of the bounding box."""
     tissue = parse_scenario(SCENARIO_EXAMPLE).tissue
@@ -196,7 +196,7 @@ def test_the_example_of_scenario_md_reads():
 
 
 def test_a_hole_cut_into_the_outline_is_the_outline_drawn_with_the_cut(tmp_path):
-    """`deform` on SCENARIO.md's example gives, to round-off, what it gives with the cut drawn
+    """`deform` on the format's shape example gives, to round-off, what it gives with the cut drawn
     into the outline: as many particles and the same probe displacements."""
     drawn = copy.deepcopy(SCENARIO_EXAMPLE)
     drawn["tissue"]["outline"] = CUT_OUTLINE

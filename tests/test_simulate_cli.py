@@ -1,4 +1,4 @@
-"""`stitchplan simulate` on real files in tmp_path: the summary JSON (every SCENARIO.md key),
+"""`stitchplan simulate` on real files in tmp_path: the summary JSON (every key of the format),
 the HDF5 run log, the PNG, the options that reach the simulation, and bad needle geometry
 ending in one error line, exit code 2 and no output."""
 

@@ -311,7 +311,7 @@ def planned(tmp_path_factory):
     return folder, result
 
 
-def test_the_summary_has_the_uncertainty_block_of_scenario_md(planned):
+def test_the_summary_has_the_uncertainty_block_of_the_format(planned):
     folder, result = planned
     assert result.exit_code == 0, result.output
     summary = json.loads((folder / "s.json").read_text())
@@ -322,7 +322,7 @@ def test_the_summary_has_the_uncertainty_block_of_scenario_md(planned):
         assert block[label]["p50_mm"] <= block[label]["p95_mm"] <= block[label]["max_mm"]
     assert set(block["sensitivity"]) == {"lame_lambda", "lame_mu", "cutting_force", "thickness"}
     assert all(len(value) == 2 for value in block["sensitivity"].values())
-    assert summary["sensitivity"] == block["sensitivity"]  # SCENARIO.md read either way
+    assert summary["sensitivity"] == block["sensitivity"]  # the format read either way
     # the plans land far closer than the fixed centre on every held-out sample
     assert block["nominal"]["max_mm"] < 0.5 * block["unplanned"]["mean_mm"]
     # the exported plan is never worse than the nominal one on the held-out samples

@@ -3,7 +3,7 @@ planner, robot) as validated, frozen dataclasses.
 
 They are pydantic dataclasses: constructing one validates it, `dataclasses.replace` gives a
 validated copy, `asdict` and hashing work as for plain dataclasses. Units as in
-SCENARIO.md: mm, N, MPa, rad. The checks of a tissue's shape are tissue_shape's; those of the
+README, "Units and frames": mm, N, MPa, rad. The checks of a tissue's shape are tissue_shape's; those of the
 loads against the clamped edges, load_checks'.
 """
 
@@ -256,7 +256,7 @@ def within_limits(limits: dict) -> Any:
 @block(file_required=("thickness", "material"), one_of=("size", "outline"))
 class Tissue:
     """The tissue: the rectangle `size` or the polygon `outline` (clockwise accepted and walked
-    counter-clockwise), optional holes and material regions (SCENARIO.md)."""
+    counter-clockwise), optional holes and material regions (README, "Tissue shapes")."""
 
     size: described(Size | None, "[W, H] mm: the rectangle [0, W] x [0, H]; or give outline") = None
     thickness: described(PositiveMM, f"out-of-plane thickness t, mm (file forces are totals over t); "

@@ -1,5 +1,5 @@
-"""The input file of `stitchplan calibrate material` (thesis appendix A.2; docs SCENARIO.md,
-"Calibration inputs"): the tissue without its moduli, the experiments (loads and a marker
+"""The input file of `stitchplan calibrate material` (thesis appendix A.2; README,
+"Calibration: from measurements to a scenario"): the tissue without its moduli, the experiments (loads and a marker
 CSV each) and the search ranges of the fit. Validated like a scenario: every problem of the
 file at once. Reading the marker CSVs is stitchplan.calibration.inputs' part."""
 

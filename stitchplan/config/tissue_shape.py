@@ -1,7 +1,7 @@
 """A tissue's shape as the model can use it: the outer loop (the rectangle of `size` or the
 `outline`, walked counter-clockwise), the holes inside it or cut out of it, and the checks
 that the outline, holes, regions and clamped pieces make one simple piece of tissue, each
-problem naming its field (SCENARIO.md).
+problem naming its field (README, "Tissue shapes").
 
 The functions read a tissue block (stitchplan.config.blocks.Tissue) by its fields and import
 no block: blocks builds on them (Tissue.loops, Tissue.domain, the validation of a
@@ -37,7 +37,7 @@ def shape_loops(tissue: TissueBlock) -> tuple[np.ndarray | None, list[tuple[int,
     """The tissue's outer boundary (counter-clockwise), the holes inside it as (index in
     `holes`, vertices), whether holes were cut out of the outline, and the problems that
     stop the shape (naming their fields). A hole that reaches or crosses the outline is cut
-    out of it (SCENARIO.md's first hole: the tissue is the outline minus the hole), as long
+    out of it (the first hole of README's shape example: the tissue is the outline minus the hole), as long
     as one simple piece of tissue is left."""
     if (tissue.size is None) == (tissue.outline is None):
         given = "both" if tissue.size is not None else "neither"

@@ -1,4 +1,4 @@
-"""The `--uncertainty` file of `stitchplan plan` (SCENARIO.md, "Planning under parameter
+"""The `--uncertainty` file of `stitchplan plan` (README, "Planning under
 uncertainty"): how many parameter sets to draw, the seed, and a normal distribution around
 the scenario's value for each uncertain parameter, with correlations.
 

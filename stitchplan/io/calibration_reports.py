@@ -59,7 +59,7 @@ def material_report(result: MaterialFit, command: list[str] | None = None) -> di
             "lame_lambda": _round(result.lame_lambda),
             "lame_mu": _round(result.lame_mu),
         },
-        # the same figures at the top level, as SCENARIO.md names them
+        # the same figures at the top level, as the output format names them
         "lame_lambda": _round(result.lame_lambda),
         "lame_mu": _round(result.lame_mu),
         "residual_mean_mm": _round(float(distances.mean())),

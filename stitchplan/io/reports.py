@@ -223,7 +223,7 @@ def insertion_summary(result) -> dict:
         "solver": result.solver_counts,
         "timings_seconds": {**result.timings, "steps": step_time_distribution(steps)},
         "discretization": discretization_summary(result.model),
-        # every crossing after the first entry, the final exit last (SCENARIO.md, "Tissue shapes")
+        # every crossing after the first entry, the final exit last (README, "Tissue shapes")
         "crossings": [{key: record[key] for key in ("kind", "desired", "desired_def", "achieved_def", "error_mm")}
                       for record in getattr(result, "crossings", [])],
         **({"bites": result.bites} if getattr(result, "bites", None) else {}),

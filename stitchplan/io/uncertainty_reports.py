@@ -1,5 +1,5 @@
 """The outputs of `stitchplan plan --uncertainty`: the summary's `uncertainty` block
-(SCENARIO.md), the run log's `uncertainty` group, the lines printed, and uncertainty.png
+(README, "Planning under uncertainty"), the run log's `uncertainty` group, the lines printed, and uncertainty.png
 (exit clouds of the unplanned, nominal and robust paths on the held-out samples with 95 %
 ellipses, and the sensitivities). The plan's own files are io.reports' (the exported plan)."""
 
@@ -43,7 +43,7 @@ def _vector(value) -> list[float] | None:
 
 
 def uncertainty_summary(result: UncertaintyResult) -> dict:
-    """The summary's `uncertainty` block (SCENARIO.md's keys first, then how it was made) and
+    """The summary's `uncertainty` block (the format's keys first, then how it was made) and
     its `sensitivity` again at the top level."""
     stats = result.statistics
     exported = stats[result.exported]
@@ -52,7 +52,7 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
     training_ok = [run for run in result.training if run.ok]
     samples = result.uncertainty.samples
     block = {
-        # SCENARIO.md's counts, of the held-out samples the statistics below are over (as many
+        # the format's counts, of the held-out samples the statistics below are over (as many
         # train the robust plan); each set's own counts follow
         "samples": samples,
         "failed_samples": result.failed_held_out_samples,
@@ -62,7 +62,7 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "failed_training_samples": result.failed_training_samples,
         "unplanned": stats["unplanned"],
         "nominal": stats["nominal"],
-        "robust": exported,  # the exported plan (SCENARIO.md)
+        "robust": exported,  # the exported plan
         "sensitivity": {s.name: _vector(s.exit_error) for s in result.sensitivities},
         "exported": result.exported,
         "robust_candidate": stats["robust"] if candidate else None,
@@ -98,7 +98,7 @@ def uncertainty_summary(result: UncertaintyResult) -> dict:
         "notes": list(result.notes),
     }
     block = finite_only(block)
-    # SCENARIO.md's "adds to the summary `uncertainty`: ...; and `sensitivity`: ..." reads
+    # the format's "adds to the summary `uncertainty`: ...; and `sensitivity`: ..." reads
     # either way: the sensitivities are in the block and, the same values, beside it
     return {"uncertainty": block, "sensitivity": block["sensitivity"]}
 

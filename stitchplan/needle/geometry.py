@@ -175,7 +175,7 @@ class BoundaryLoops:
 def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> NeedleGeometry:
     """Centre on the boundary tangent at the entry (orthogonal entry), desired exit where the
     undeformed circle leaves the tissue for the last time within the needle's arc (the first
-    and only time on a convex tissue; SCENARIO.md, "Needle geometry", "Tissue shapes"). With
+    and only time on a convex tissue; README, "Scenario format", "Tissue shapes"). With
     `needle.entry_tilt` the needle leans from there, turned about the entry point (positive:
     against its turn, a deeper bite); its own circle then leaves the tissue elsewhere, while
     the desired exit stays the orthogonal needle's."""

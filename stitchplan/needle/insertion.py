@@ -535,7 +535,7 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
 
 
 def _crossings(insertion: NeedleInsertion, made: list[tuple[int, str, np.ndarray, float]]) -> list[dict]:
-    """The summary's `crossings` (SCENARIO.md, "Tissue shapes"): every crossing of the
+    """The summary's `crossings` (README, "Tissue shapes"): every crossing of the
     undeformed circle after the entry in needle order, its point (desired, at rest and moved
     with the tissue) against the tip's material point there (achieved, deformed); achieved,
     achieved_def and error_mm None for a crossing the tip missed (`made`: the tip's boundary
