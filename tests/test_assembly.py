@@ -180,3 +180,32 @@ def test_rigid_rotation_gives_no_internal_force(material):
     force = assembler.update(deformation_gradient)
     # scale: the force a 1 % strain would produce on one particle, lame_mu x spacing x thickness
     assert np.abs(force).max() < 1e-10 * 0.3 * 2.5 * 2.0
+
+
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_cell_quadrature_integrates_polynomials_exactly_on_oblong_cells(order):
+    """The background cells' tensor Gauss rule on a 3 x 2 mm domain in 2 x 3 cells (oblong,
+    unlike the patch tests' square ones): every point inside its cell, and x^a y^b integrated
+    exactly up to degree 2 order - 1 in each variable: W^(a+1) H^(b+1) / ((a+1)(b+1))."""
+    from stitchplan.tissue.quadrature import cell_quadrature
+
+    (width, height), (nx, ny) = (3.0, 2.0), (2, 3)
+    points, weights = cell_quadrature((width, height), (nx, ny), order)
+    assert len(points) == nx * ny * order**2
+    cell = np.floor(points / [width / nx, height / ny]).astype(int)
+    assert np.all(np.bincount(cell[:, 0] * ny + cell[:, 1], minlength=nx * ny) == order**2)  # each cell its own
+    for a in range(2 * order):
+        for b in range(2 * order):
+            exact = width ** (a + 1) * height ** (b + 1) / ((a + 1) * (b + 1))
+            assert weights @ (points[:, 0] ** a * points[:, 1] ** b) == pytest.approx(exact, rel=1e-12), (a, b)
+
+
+def test_the_needle_tracks_two_point_rule_integrates_cubics_exactly():
+    """load_quadrature.segment_gauss_points: the two-point Gauss rule on each of `pieces`
+    pieces of [0, 1], each point weighing 1 / (2 pieces), is exact for cubics."""
+    from stitchplan.needle.load_quadrature import segment_gauss_points
+
+    for pieces in (1, 3):
+        s = segment_gauss_points(pieces)
+        for degree in range(4):
+            assert np.sum(s**degree) / (2 * pieces) == pytest.approx(1.0 / (degree + 1), rel=1e-13), (pieces, degree)

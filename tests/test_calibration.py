@@ -588,3 +588,25 @@ def test_needle_refuses_one_recording_as_both_air_and_tissue(tmp_path):
     for tissue in (air, link):
         result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", RADIUS, "--out", out)
         assert_refused(result, out, f"--tissue: got {tissue}", f"the same file as --air ({air})")
+
+
+def test_the_fits_uncertainties_and_correlation_are_those_of_linear_least_squares():
+    """material_fit.statistics on a straight line y = a x + b fitted to noisy points: the
+    standard uncertainties and the correlation of (a, b) are scipy's curve_fit's (residual
+    variance over m - 2 degrees of freedom)."""
+    from scipy.optimize import curve_fit
+
+    from stitchplan.calibration.material_fit import statistics
+
+    rng = np.random.default_rng(5)
+    x = np.linspace(1.0, 4.0, 7)
+    y = 0.8 * x + 0.3 + rng.normal(0.0, 0.05, x.size)
+    (a, b), covariance = curve_fit(lambda x, a, b: a * x + b, x, y,
+                                   jac=lambda x, a, b: np.column_stack([x, np.ones_like(x)]))
+    residual = a * x + b - y
+    stats = statistics(residual, np.column_stack([x, np.ones_like(x)]), np.array([a, b]))
+    np.testing.assert_allclose(stats.uncertainty, np.sqrt(np.diag(covariance)), rtol=1e-9)
+    assert stats.correlation == pytest.approx(covariance[0, 1] / math.sqrt(covariance[0, 0] * covariance[1, 1]),
+                                              rel=1e-9)
+    ratio_gradient = np.array([1.0 / b, -a / b**2])  # of a / b, by the delta method
+    assert stats.ratio_uncertainty == pytest.approx(math.sqrt(ratio_gradient @ covariance @ ratio_gradient), rel=1e-9)

@@ -163,7 +163,8 @@ def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cu
     the ramp the whole force; with it cutting_force x the profile's share of [0, l] inside
     (smooth: z / l - sin(2 pi z / l) / 2 pi) to < 0.5 %. The smooth density's force on each
     segment is its integral over the segment's needle length (s from the tip), within 0.5 %
-    of the force: zero at the tip, the most at l / 2 behind it."""
+    of the force: zero at the tip, the most at l / 2 behind it; the uniform one's centroid lies
+    half its zone behind the tip."""
     monkeypatch.setattr(coupling_module, "CUTTING_PROFILE", profile)
     monkeypatch.setattr(coupling_module, "segment_subintervals", lambda length, spacing: pieces)
     scenario = small_scene(spacing=4.0, coupling="mortar", cutting_length=cutting_length, cutting_ramp=ramp)
@@ -186,12 +187,21 @@ def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cu
         rtol = 1e-12 if profile == "uniform" or not ramp else 5e-3
         assert cutting.sum() == pytest.approx(expected, rel=rtol)
         assert np.all(cutting >= -1e-15)
+        carrying = np.flatnonzero(cutting > 0.0)
+        behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])  # tip to each segment's end
+        if profile == "uniform":
+            # spread evenly over the zone behind the tip: its centroid half the zone behind it
+            points = coupling.loads.points[carrying]
+            segment = _segment_of(coupling, points)
+            start, end = coupling.points[segment], coupling.points[segment + 1]
+            t = np.einsum("ij,ij->i", points - start, end - start) / np.einsum("ij,ij->i", end - start, end - start)
+            behind_tip = behind[segment] + (1.0 - t) * needle_length[segment]
+            zone = min(cutting_length, inside)
+            assert np.average(behind_tip, weights=cutting[carrying]) == pytest.approx(zone / 2.0, rel=1e-9)
         if profile == "smooth":
             # the force on each segment against the density's integral over its needle length
-            carrying = np.flatnonzero(cutting > 0.0)
             per_segment = np.bincount(_segment_of(coupling, coupling.loads.points[carrying]), cutting[carrying],
                                       minlength=segments)
-            behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])
             share = np.array([cutting_share(b + n, cutting_length) - cutting_share(b, cutting_length)
                               for b, n in zip(behind, needle_length)])  # the track's segments: a few
             scale = needle.cutting_force if ramp else needle.cutting_force / cutting_share(inside, cutting_length)

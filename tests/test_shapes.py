@@ -643,3 +643,26 @@ def test_a_displacement_on_a_slanted_edge_holds_between_its_particles(tmp_path):
     assert result.exit_code == 0, result.output
     probes = np.loadtxt(tmp_path / "probes.csv", delimiter=",", skiprows=1)
     assert np.abs(probes[:, 2:] - [1.0, 0.0]).max() < 0.01
+
+
+def test_visibility_tests_every_pair_that_could_reach_the_boundary():
+    """Visibility.keep tests only the pairs at least a particle's clearance (its distance to
+    the boundary) long, which can reach the boundary: on a notched slab it gives, for every
+    pair of random points and particles within 8 mm, what testing each pair's segment against
+    the boundary gives (domain.blocked), those just longer than the clearance included."""
+    from stitchplan.geometry.polygon_domain import PolygonDomain
+    from stitchplan.tissue.shape_functions import Visibility
+
+    notched = PolygonDomain(np.array([[0.0, 0.0], [60.0, 0.0], [60.0, 30.0], [32.0, 30.0], [32.0, 18.0],
+                                      [28.0, 18.0], [28.0, 30.0], [0.0, 30.0]]))
+    rng = np.random.default_rng(2)
+    candidates = rng.uniform([18.0, 10.0], [42.0, 30.0], size=(1200, 2))
+    inside = candidates[notched.contains(candidates)]
+    points, particles = inside[:300], inside[300:]
+    rows, cols = np.nonzero(np.linalg.norm(points[:, None] - particles[None], axis=2) <= 8.0)
+    visibility = Visibility.of(notched, particles)
+    blocked = notched.blocked(points[rows], particles[cols])
+    np.testing.assert_array_equal(visibility.keep(points, particles, rows, cols), ~blocked)
+    length = np.linalg.norm(points[rows] - particles[cols], axis=1)
+    near = blocked & (length < 2.0 * visibility.clearance[cols])
+    assert np.count_nonzero(near) > 10  # pairs that cross though shorter than twice the clearance

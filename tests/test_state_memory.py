@@ -56,3 +56,31 @@ def test_the_states_of_a_long_insertion_share_their_buffers():
     assert max(part.shape[0] for load in loads for part in load.row_parts[1:]) <= 2
     for load in loads[::10]:
         assert np.array_equal(load.rows.toarray()[:load.row_parts[0].shape[0]], load.row_parts[0].toarray())
+
+
+def test_a_kept_copy_and_its_original_append_without_writing_into_each_other():
+    """A kept state's rows share the buffers with the coupling's until one of them appends:
+    the copy's first append must move to buffers of its own, or it writes over the rows the
+    original appended after the copy (and the other way round)."""
+    import copy
+
+    import scipy.sparse as sp
+
+    from stitchplan.needle.constraint_rows import GrowingRows, row_block
+
+    rng = np.random.default_rng(3)
+    blocks = [sp.random(2, 6, density=0.5, format="csr", random_state=rng) for _ in range(4)]
+    original = GrowingRows(6, interleaved=True)
+    original.append(row_block(blocks[0], 0, 2))
+    kept = copy.copy(original)
+    original.append(row_block(blocks[1], 0, 2))
+    kept.append(row_block(blocks[2], 0, 2))
+    original.append(row_block(blocks[3], 0, 2))
+
+    def interleaved(matrix: sp.csr_matrix) -> np.ndarray:  # row q -> rows (q, 0), (q, 1) on dofs (p, 0), (p, 1)
+        return np.kron(matrix.toarray(), np.eye(2))
+
+    for rows, own in ((original, [0, 1, 3]), (kept, [0, 2])):
+        expected = sp.vstack([blocks[k] for k in own]).toarray()
+        np.testing.assert_array_equal(rows.matrix.toarray(), expected)
+        np.testing.assert_array_equal(rows.expanded.toarray(), interleaved(sp.csr_matrix(expected)))

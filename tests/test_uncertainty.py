@@ -196,6 +196,24 @@ def test_exit_statistics_of_known_distances():
     assert stats == {"mean_mm": 10.5, "p50_mm": 10.5, "p95_mm": pytest.approx(19.05), "max_mm": 20.0}
 
 
+def test_the_95_percent_ellipse_holds_95_percent_of_a_normal_sample():
+    """uncertainty.png's ellipse: on a large correlated normal sample it holds 95 % of the
+    points (the chi^2 quantile of two degrees of freedom), and its axes are the covariance's
+    principal standard deviations times sqrt(chi^2_0.95)."""
+    from scipy.stats import chi2
+
+    from stitchplan.uncertainty.robust import ellipse_95
+
+    rng = np.random.default_rng(11)
+    covariance = np.array([[0.04, 0.03], [0.03, 0.09]])
+    points = rng.multivariate_normal([0.1, -0.2], covariance, size=20000)
+    center, axes = ellipse_95(points)
+    inside = np.linalg.norm(np.linalg.solve(axes, (points - center).T), axis=0) <= 1.0
+    assert inside.mean() == pytest.approx(0.95, abs=0.005)
+    lengths = np.sort(np.linalg.norm(axes, axis=0))
+    np.testing.assert_allclose(lengths, np.sqrt(np.linalg.eigvalsh(np.cov(points.T)) * chi2.ppf(0.95, 2)))
+
+
 # --- runs: on a cluster as in-process, failures recorded -------------------------------------
 
 

@@ -193,6 +193,29 @@ def test_exit_error_estimate_tracks_the_deviation_from_a_finer_run():
     assert actual <= estimate.estimate_mm <= 4.0 * actual, (estimate.estimate_mm, actual)
 
 
+def test_both_richardson_estimates_are_exact_for_an_exit_that_converges_at_the_assumed_order():
+    """With the exit point x(h) = x* + C h^p at the assumed order p, the estimate of the h
+    run's error |x(h) - x*| is exact from a coarser run (2h: d / (2^p - 1)) and from a finer
+    one (h/2: d / (1 - 2^-p), a verified plan's): d alone is half the error at p = 1."""
+    from types import SimpleNamespace
+
+    from stitchplan.planning.verification import ASSUMED_ORDER, estimate_from
+
+    converged, slope, h = np.array([31.2, 4.5]), np.array([0.03, -0.04]), 2.0
+
+    def run(spacing: float) -> SimpleNamespace:
+        exit_point = converged + slope * spacing**ASSUMED_ORDER
+        return SimpleNamespace(achieved_exit_def=exit_point, achieved_exit=exit_point - 0.5, steps=[0] * 20,
+                               desired_exit_def=np.array([31.0, 4.0]), model=SimpleNamespace(n_particles=100))
+
+    error = float(np.linalg.norm(slope * h**ASSUMED_ORDER))
+    coarse = estimate_from(run(h), run(2.0 * h), 2.0, 2.0 * h)
+    refined = estimate_from(run(h), run(0.5 * h), 0.5, 0.5 * h)
+    assert (coarse.basis, refined.basis) == ("coarse", "refined")
+    assert coarse.estimate_mm == pytest.approx(error, rel=1e-12)
+    assert refined.estimate_mm == pytest.approx(error, rel=1e-12)
+
+
 def test_the_predicted_aim_re_aims_before_the_refined_replay_and_saves_a_round():
     """With planner.predicted_aim the passes after the first aim at minus the refined model's
     offset predicted from a replay of the first pass's trajectory at 2h, (e(h) - e(2h)) /
