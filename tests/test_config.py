@@ -50,6 +50,10 @@ BAD_SCENARIOS = [
      ["tissue", "unknown key 'colour'", "size, thickness, material, clamped"]),
     ("negative lame_mu", lambda r: set_in(r, ("tissue", "material", "lame_mu"), -0.1),
      ["tissue.material.lame_mu", "-0.1", "positive number (MPa)"]),
+    ("zero lame_mu", lambda r: set_in(r, ("tissue", "material", "lame_mu"), 0.0),  # the bound itself
+     ["tissue.material.lame_mu", "got 0.0", "positive number (MPa)"]),
+    ("zero thickness", lambda r: set_in(r, ("tissue", "thickness"), 0.0),
+     ["tissue.thickness", "got 0.0", "positive number (mm)"]),
     ("negative lame_lambda", lambda r: set_in(r, ("tissue", "material", "lame_lambda"), -1.0),
      ["tissue.material.lame_lambda", "-1.0", "non-negative number (MPa)"]),
     ("negative thickness", lambda r: set_in(r, ("tissue", "thickness"), -10.0),

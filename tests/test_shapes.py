@@ -645,6 +645,25 @@ def test_a_displacement_on_a_slanted_edge_holds_between_its_particles(tmp_path):
     assert np.abs(probes[:, 2:] - [1.0, 0.0]).max() < 0.01
 
 
+def test_a_clamp_holds_the_corner_it_shares_with_a_displacement_segment(tmp_path):
+    """The slanted edge moved by (1, 0) mm starts at the bottom's clamped corner: the clamp
+    holds it (a particle both clamped and on the segment stays clamped), so the corner and the
+    clamped edge beside it stay put while the edge above moves."""
+    raw = {"tissue": {"outline": [[0, 0], [40, 0], [32, 30], [4, 30]], "thickness": 10.0,
+                      "material": {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688},
+                      "clamped": ["bottom"]},
+           "discretization": {"spacing": 2.0},
+           "loads": [{"segment": [[40, 0], [32, 30]], "displacement": [1.0, 0.0]}], "load_steps": 5,
+           "probes": [[40.0, 0.0], [39.0, 0.0], [38.0, 0.0], [30.0, 0.0], [36.0, 15.0]]}
+    write_scene(tmp_path, raw)
+    result = invoke(tmp_path, "deform", "scene.yaml", "--probes-out", "probes.csv")
+    assert result.exit_code == 0, result.output
+    moved = np.linalg.norm(np.loadtxt(tmp_path / "probes.csv", delimiter=",", skiprows=1)[:, 2:], axis=1)
+    assert moved[0] < 1e-9  # the corner, a clamped particle
+    assert moved[1:4].max() < 0.01
+    assert moved[4] == pytest.approx(1.0, abs=0.01)
+
+
 def test_visibility_tests_every_pair_that_could_reach_the_boundary():
     """Visibility.keep tests only the pairs at least a particle's clearance (its distance to
     the boundary) long, which can reach the boundary: on a notched slab it gives, for every

@@ -17,7 +17,7 @@ import pytest
 from stitchplan.config.scenario import load_scenario
 from stitchplan.io import plots
 from stitchplan.io.study_reports import COLUMNS, study_record, study_row
-from stitchplan.study.sweep import StudyResult, StudyRun, pareto_front
+from stitchplan.study.sweep import StudyResult, StudyRun, compared_run, pareto_front
 
 SCENARIO = Path(__file__).resolve().parents[1] / "configs" / "sh12_100x30.yaml"
 
@@ -32,7 +32,9 @@ SWEPT = [("uniform", 6.0, 0.46, 0.023, 0.227), ("uniform", 4.5, 0.69, 0.041, 0.1
 def study_run(scenario, family, spacing, seconds, deviation, spatial, status="ok") -> StudyRun:
     run = StudyRun(family=family, label=f"{family} h={spacing:g}", scenario=scenario, spacing=spacing,
                    particles=int(600 / spacing), wall_seconds=seconds, status=status)
-    if status == "ok":
+    if status != "ok":
+        run.reason = "InsertionFailure: made by hand"
+    else:
         run.deviations = {"deviation_mm": deviation, "exit_deviation_mm": spatial,
                           "material_exit_deviation_mm": deviation, "exit_error_deviation_mm": deviation / 2}
     return run
@@ -45,8 +47,10 @@ def made_study(reference_failed: bool = False) -> StudyResult:
     scenario = load_scenario(SCENARIO)
     runs = [study_run(scenario, *row) for row in SWEPT]
     reference = study_run(scenario, "reference", 1.5, 0.34, 0.0, 0.0, "failed" if reference_failed else "ok")
-    compared = runs[2] if reference_failed else reference
+    notes: list[str] = []
+    compared = compared_run(runs, reference, notes)
     if reference_failed:
+        assert compared is runs[2] and "finest successful run, uniform h=3" in notes[0]
         compared.deviations = {key: 0.0 for key in compared.deviations}
     for run in pareto_front([r for r in runs if r is not compared]):
         run.pareto = True

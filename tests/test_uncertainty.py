@@ -181,6 +181,26 @@ def test_values_at_or_below_zero_are_rejected_and_the_stream_continues():
     assert points.mean() > 0.7  # truncation shifts the mean up
 
 
+def test_a_point_with_any_value_at_or_below_zero_is_rejected():
+    """With two parameters each often drawn below zero, a point is kept only where both are
+    positive, and `rejected` counts, among the points drawn up to the last one kept, those
+    with either at or below zero (by brute force over the same seeded points)."""
+    from stitchplan.uncertainty.sampling import normal_points, scenario_values
+
+    scenario = parse_scenario(small_raw())
+    spec = uncertainty({"samples": 64, "seed": 3, "parameters": {"cutting_force": {"std": 0.7},
+                                                                 "friction": {"std": scenario.needle.friction}}})
+    design = draw(spec, scenario)
+    points = np.vstack([design.train, design.held_out])
+    assert (points > 0).all() and len(points) == 128
+    drawn = normal_points(spec, scenario_values(scenario, spec.names), design.drawn)
+    kept = np.flatnonzero((drawn > 0).all(axis=1))[:128]
+    np.testing.assert_array_equal(points, drawn[kept])
+    one_only = ((drawn[: kept[-1] + 1] <= 0).sum(axis=1) == 1).sum()
+    assert one_only > 10  # points refused for one value alone: `any`, not `all`
+    assert design.rejected == int((drawn[: kept[-1] + 1] <= 0).any(axis=1).sum())
+
+
 def test_a_sample_is_the_scenario_with_its_values():
     scenario = parse_scenario(small_raw())
     sample = with_parameters(scenario, ("lame_lambda", "thickness", "friction"), np.array([0.2, 9.0, 0.05]))
