@@ -85,6 +85,25 @@ def test_leans_the_needle_cannot_take_are_refused_naming_the_field():
     assert "planner.aim_entry_tilt: got true, expected false with target symmetric" in str(error.value)
 
 
+def test_the_leans_first_slope_is_the_undeformed_exits_one_sided_difference():
+    """The secant's first slope: the undeformed exit's move along a direction per radian of
+    lean, a forward difference where the needle can lean deeper, a backward one where it
+    cannot (a half circle exiting through its entry edge), each signed as the lean moves."""
+    from stitchplan.planning.entry_lean import LEAN_STEP, _leaned_exit, _undeformed_lean_slope
+
+    corner = parse_scenario(corner_scene(lean=False))
+    flat = corner_scene(lean=False)
+    flat["needle"]["entry"] = [30.0, 40.0]
+    flat = parse_scenario(flat)
+    assert _leaned_exit(flat, LEAN_STEP) is None and _leaned_exit(corner, LEAN_STEP) is not None
+    for scenario, change in ((corner, LEAN_STEP), (flat, -LEAN_STEP)):
+        moved = _leaned_exit(scenario, change) - _leaned_exit(scenario, 0.0)
+        direction = moved / np.linalg.norm(moved)  # along the edge the exit lies on
+        expected = direction @ moved / change
+        assert expected != 0.0  # 7.1 mm/rad at the corner; the half circle's chord 2R cos(lean) moves at second order
+        assert _undeformed_lean_slope(scenario, 0.0, direction) == pytest.approx(expected, rel=1e-12)
+
+
 # --- replays --------------------------------------------------------------------------------
 
 

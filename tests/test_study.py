@@ -321,14 +321,28 @@ def test_graded_particles_tile_the_slab_and_are_fine_in_the_needle_zone(graded):
     assert len(particles.particles) < 0.2 * 69 * 69  # a uniform fine grid has 69^2 particles
 
 
-def test_graded_leaves_are_2_to_1_balanced(graded):
-    """Leaves that touch (edge or corner) differ by at most a factor 2 in size."""
-    cells = graded[0].cells
+def assert_balanced(cells: np.ndarray) -> None:
+    """Leaves that touch (edge or corner) differ by at most a factor 2 in size (brute force)."""
     lo, hi = cells[:, :2], cells[:, :2] + cells[:, 2:]
     gap = np.maximum(lo[:, None] - hi[None], lo[None] - hi[:, None]).max(axis=2)  # <= 0: touching
     touching = gap <= 1e-9
     ratio = cells[:, 2][:, None] / cells[:, 2][None]
     assert ratio[touching].max() <= 2.0 + 1e-9
+
+
+def test_graded_leaves_are_2_to_1_balanced(graded):
+    assert_balanced(graded[0].cells)
+
+
+def test_a_steep_grading_is_balanced_where_the_zone_alone_would_not_be():
+    """A point zone off the lattice graded at 2 mm per mm asks for leaves four times the
+    size of their neighbours; the balance splits them until touching leaves differ by 2x."""
+    from stitchplan.tissue.particles import RefinementZone, graded_lattice
+
+    zone = RefinementZone(np.array([5.3, 7.1]), 0.0, 0.25)
+    particles = graded_lattice((16.0, 16.0), 4.0, (zone,), growth=2.0)
+    assert particles.cells[:, 2].min() == pytest.approx(0.25) and particles.cells[:, 2].max() == pytest.approx(4.0)
+    assert_balanced(particles.cells)
 
 
 def test_rk_functions_on_the_graded_set_reproduce_linear_fields(graded, rng):

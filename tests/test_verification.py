@@ -221,7 +221,7 @@ def test_the_predicted_aim_re_aims_before_the_refined_replay_and_saves_a_round()
     offset predicted from a replay of the first pass's trajectory at 2h, (e(h) - e(2h)) /
     PREDICTED_RATIO, before any refined replay: on this block one round then verifies within
     VERIFIED_FACTOR x the exit tolerance, where the unaimed plan misses on the refined model
-    and takes a second."""
+    and takes a second, aimed at minus the offset, that verifies."""
     raw = scene_raw(30.0, 24.0, 4.0, 0.16)
     scenario = parse_scenario(raw)
     aimed = plan_verified(scenario, compare=False)
@@ -237,6 +237,7 @@ def test_the_predicted_aim_re_aims_before_the_refined_replay_and_saves_a_round()
     assert plain.verification.rounds[0]["aimed_by"] == "none"
     assert plain.verification.rounds[0]["verified_exit_error_mm"] > threshold
     assert len(plain.verification.rounds) > 1
+    assert plain.verification.exit_error_mm <= threshold  # its second round, aimed at minus the offset
 
 
 def test_the_predicted_aim_replays_in_this_process_by_default():
