@@ -82,7 +82,8 @@ def test_an_unknown_switch_value_is_refused_naming_the_variable(monkeypatch):
 @pytest.mark.skipif(not cholesky_available(), reason="the optional `fast` extra (cvxopt) is not installed")
 def test_cholesky_solves_like_superlu_and_falls_back_silently_where_not_positive_definite(capfd):
     """Positive definite: the Cholesky. Indefinite: the L D L^T, as accurate as SuperLU. A
-    zero pivot whatever the ordering ([[0, 1], [1, 0]] blocks): SuperLU."""
+    zero pivot whatever the ordering ([[0, 1], [1, 0]] blocks), or one so small that the
+    L D L^T solve is NaN: SuperLU."""
     matrix = spd_matrix()
     rhs = np.random.default_rng(3).standard_normal((40, 2))
     cholesky = factorize(matrix, symmetric_positive=True)
@@ -97,6 +98,11 @@ def test_cholesky_solves_like_superlu_and_falls_back_silently_where_not_positive
     factor = factorize(swaps, symmetric_positive=True)
     assert factor.backend == SUPERLU
     np.testing.assert_allclose(swaps @ factor.solve(rhs), rhs, atol=1e-12)
+    # a pivot so small that L D L^T's solve is not finite (NaN): refused as inaccurate too
+    tiny_pivot = sp.csr_matrix(np.array([[1e-310, 1.0], [1.0, 1.0]]))
+    factor = factorize(tiny_pivot, symmetric_positive=True)
+    assert factor.backend == SUPERLU
+    np.testing.assert_allclose(factor.solve(np.array([1.0, 2.0])), [1.0, 1.0], rtol=1e-12)
     assert capfd.readouterr().err == ""  # CHOLMOD's own warning does not reach the user
 
 

@@ -403,3 +403,42 @@ def test_a_needle_leaving_through_a_clamped_edge_is_refused(clamped, where):
         scenario_needle(parse_scenario(raw))
     raw["tissue"]["clamped"] = ["right"]
     assert scenario_needle(parse_scenario(raw)).desired_exit[1] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_tip_conditions_jacobian_is_their_derivative_for_a_sheared_field():
+    """Eq. 3.68's two conditions (on the deformed needle circle, one insertion length from the
+    previous tip) and their Jacobian under a non-symmetric displacement gradient (a shear, as
+    friction gives along the track): the Jacobian is the conditions' central difference, so
+    the tip's Newton iteration converges quadratically."""
+    from stitchplan.needle.tip_tracking import _tip_conditions
+
+    gradient = np.array([[0.05, 0.4], [-0.1, 0.02]])  # u = A X: du_i / dX_j = A_ij
+    center, radius, step, previous = np.array([0.0, -20.0]), 20.0, 1.0, np.array([1.0, 0.0])
+
+    def conditions(x):
+        return _tip_conditions(x, gradient @ x, gradient, previous, center, radius, step)
+
+    x = np.array([1.7, 0.4])
+    _, jacobian = conditions(x)
+    h = 1e-6
+    numeric = np.column_stack([(conditions(x + h * e)[0] - conditions(x - h * e)[0]) / (2 * h) for e in np.eye(2)])
+    np.testing.assert_allclose(jacobian, numeric, atol=1e-8)
+
+
+def test_anderson_mixing_solves_a_linear_fixed_point_problem_like_gmres():
+    """AndersonMixing on x <- x + f(x), f(x) = b - A x (a modified Newton step with the
+    identity for the old factor): with depth >= n its iterates reach A^-1 b within n + 2
+    steps, as GMRES would, where the plain iteration (contracting by ~0.75) is still far off."""
+    from stitchplan.needle.newton import AndersonMixing
+
+    rng = np.random.default_rng(0)
+    n = 5
+    matrix = np.eye(n) + 0.3 * rng.normal(size=(n, n))
+    b = rng.normal(size=n)
+    solution = np.linalg.solve(matrix, b)
+    mixing, x, plain = AndersonMixing(depth=n + 1), np.zeros(n), np.zeros(n)
+    for _ in range(n + 2):
+        x = x + mixing.step(x, b - matrix @ x)
+        plain = plain + (b - matrix @ plain)
+    assert np.linalg.norm(x - solution) <= 1e-10 * np.linalg.norm(solution)
+    assert np.linalg.norm(plain - solution) > 1e-2 * np.linalg.norm(solution)

@@ -685,3 +685,35 @@ def test_visibility_tests_every_pair_that_could_reach_the_boundary():
     length = np.linalg.norm(points[rows] - particles[cols], axis=1)
     near = blocked & (length < 2.0 * visibility.clearance[cols])
     assert np.count_nonzero(near) > 10  # pairs that cross though shorter than twice the clearance
+
+
+def test_segments_cross_only_properly_and_alike_in_every_order():
+    """geometry.segments.segments_cross, the visibility criterion's test: on random segments
+    it agrees with solving p + t (q - p) = a + s (b - a) for 0 < t, s < 1, in any order of
+    each pair's ends and of the two segments; touching at an end, meeting at a vertex and
+    running along each other are not crossings."""
+    from stitchplan.geometry.segments import segments_cross
+
+    rng = np.random.default_rng(4)
+    p, q, a, b = (rng.uniform(0.0, 10.0, size=(2000, 2)) for _ in range(4))
+    d, e = q - p, b - a
+    matrix = np.stack([d, -e], axis=-1)  # (n, 2, 2): [d, -e] [t, s]^T = a - p
+    t, s = np.linalg.solve(matrix, (a - p)[..., None])[..., 0].T
+    expected = (t > 0) & (t < 1) & (s > 0) & (s < 1)
+    assert 100 < np.count_nonzero(expected) < 1900
+    for pair in ((p, q, a, b), (q, p, a, b), (p, q, b, a), (a, b, p, q), (b, a, q, p)):
+        np.testing.assert_array_equal(segments_cross(*pair, 0.0), expected)
+    edge = (np.array([0.0, 0.0]), np.array([4.0, 0.0]))
+
+    def orders(other):
+        o = (np.array(other[0]), np.array(other[1]))
+        return [(*edge, *o), (*edge[::-1], *o), (*o, *edge), (*o[::-1], *edge), (*o, *edge[::-1])]
+
+    for other in (([2.0, 0.0], [2.0, 3.0]),    # touching at its end
+                  ([4.0, 0.0], [6.0, 2.0]),    # meeting at a vertex
+                  ([3.0, 1.0], [5.0, -1.0]),   # through its end (a vertex the segment grazes)
+                  ([5.0, 1.0], [3.0, -1.0]),   # the same, the other way
+                  ([1.0, 0.0], [6.0, 0.0]),    # along it
+                  ([1.0, 1.0], [3.0, 1.0])):   # beside it
+        assert not any(segments_cross(*pair, 1e-9) for pair in orders(other)), other
+    assert all(segments_cross(*pair, 1e-9) for pair in orders(([2.0, -1.0], [2.0, 1.0])))

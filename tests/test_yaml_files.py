@@ -315,3 +315,32 @@ def test_a_piped_scenario_is_read_once(tmp_path):
         writer.join(timeout=10)
     assert scenario.name == "small"
     assert scenario.source_sha256 == hashlib.sha256(SCENE.encode()).hexdigest()
+
+
+@pytest.mark.parametrize("uses", [100, 101])
+def test_a_file_may_use_a_hundred_aliases_and_no_more(tmp_path, uses):
+    path = write(tmp_path, "b: &b [1]\nc: [" + ", ".join(["*b"] * uses) + "]\n", "aliases.yaml")
+    if uses > 100:
+        assert refusal(path) == [f"{path}: line 2: more than 100 YAML aliases, expected plain data"]
+    else:
+        data, _ = read_yaml(path)
+        assert data["c"] == [[1]] * uses
+
+
+@pytest.mark.parametrize("outer", [47, 48, 49])  # with the root, the anchored 50 and its 1: 99, 100, 101 levels
+def test_nesting_through_an_alias_counts_as_written_out(tmp_path, outer):
+    """An alias nests its anchored value where it is used: the document is read or refused
+    at the depth bound exactly as the same document with the value written out."""
+    inner = "[" * 50 + "1" + "]" * 50
+    aliased = write(tmp_path, f"a: &a {inner}\nb: {'[' * outer}*a{']' * outer}\n", "aliased.yaml")
+    written = write(tmp_path, f"a: {inner}\nb: {'[' * outer}{inner}{']' * outer}\n", "written.yaml")
+
+    def refused(path) -> bool:
+        try:
+            read_yaml(path)
+        except ScenarioError as error:
+            assert "nesting too deep" in str(error)
+            return True
+        return False
+
+    assert refused(aliased) == refused(written) == (outer > 48)
