@@ -690,3 +690,17 @@ def test_a_csv_writes_a_negative_zero_as_zero(tmp_path):
     assert path.read_text() == "segment,fx,fy\n0,-1,0\n1,0,2.5\n"
     files.write_csv(path, ["x"], [[-0.0]], precision=None)
     assert path.read_text() == "x\n-0\n"
+
+
+def test_a_datasets_units_are_looked_up_by_its_group_first(tmp_path):
+    """The run log's `step` datasets: the needle's step is an angle (rad), a step number
+    under `steps/` or `events/` is a count ("1"); the group's own entry wins over the name's."""
+    from stitchplan.io.reports import HDF5_UNITS
+
+    groups = {"needle": {"step": 0.08}, "steps": {"step": [0, 1], "rotation": [0.0, 0.08]},
+              "events": {"step": [1], "angle_rad": [0.08]}}
+    files.write_hdf5(tmp_path / "run.h5", groups, {}, HDF5_UNITS)
+    with h5py.File(tmp_path / "run.h5") as log:
+        units = {f"{group}/{name}": log[group][name].attrs["units"] for group, data in groups.items() for name in data}
+    assert units == {"needle/step": "rad", "steps/step": "1", "steps/rotation": "rad", "events/step": "1",
+                     "events/angle_rad": "rad"}

@@ -506,3 +506,22 @@ def test_a_reference_not_finer_than_the_sweep_is_refused(reference):
     with pytest.raises(ScenarioError, match=rf"study.reference.spacing: got {reference:g} mm, expected less "
                                             r"than the finest spacing of the sweep, 5 mm"):
         plan_runs(scenario)
+
+
+@pytest.mark.parametrize("direct_seconds, minres_seconds, chosen", [(1.0, 0.5, "minres"), (1.0, 0.9, "direct"),
+                                                                    (1.0, 1.5, "direct")])
+def test_the_auto_discretization_takes_minres_only_when_it_is_a_fifth_faster(direct_seconds, minres_seconds,
+                                                                            chosen):
+    """choose_linear_solver on two agreeing runs without fallbacks: MINRES where it takes at
+    most 0.8 x the direct solve's time, the direct solve otherwise."""
+    from stitchplan.study.auto import choose_linear_solver
+
+    def run(seconds: float) -> SimpleNamespace:
+        exit_point = np.array([30.0, 2.0])
+        result = SimpleNamespace(events=[], steps=[0] * 10, achieved_exit_def=exit_point, achieved_exit=exit_point,
+                                 desired_exit_def=exit_point)
+        return SimpleNamespace(ok=True, reason="", result=result, wall_seconds=seconds)
+
+    runs = {"direct": run(direct_seconds), "minres": run(minres_seconds)}
+    trials = SimpleNamespace(run=lambda purpose, h, tracking, solver: runs[solver])
+    assert choose_linear_solver(trials, 2.0, "levenberg-marquardt", 0.05)[0] == chosen
