@@ -610,3 +610,34 @@ def test_the_fits_uncertainties_and_correlation_are_those_of_linear_least_square
                                               rel=1e-9)
     ratio_gradient = np.array([1.0 / b, -a / b**2])  # of a / b, by the delta method
     assert stats.ratio_uncertainty == pytest.approx(math.sqrt(ratio_gradient @ covariance @ ratio_gradient), rel=1e-9)
+
+
+def test_the_grid_skips_only_points_softer_in_both_moduli_than_a_failure():
+    """Under force loads a grid point softer in lame_lambda and lame_mu than one whose solve
+    failed is not tried; every other point is: with the forward model failing below
+    mu = 0.05 MPa whatever lambda, the grid's cost is known exactly where mu >= 0.05 (by brute
+    force over the grid) and its best point is the best of those."""
+    from types import SimpleNamespace
+
+    from stitchplan.calibration.inputs import FitSettings
+    from stitchplan.calibration.material_fit import ForwardFailure, grid_axes, grid_search
+
+    fit = FitSettings("neo-hookean", (0.01, 2.0), (0.01, 2.0), grid_points=6)
+
+    def cost(theta):
+        return np.array([theta[0] - 0.02, theta[1] - 0.3])
+
+    def evaluate(theta, quick=False):
+        if theta[1] < 0.05:
+            raise ForwardFailure("pull", theta, "det F < 0")
+        return cost(theta), None, None
+
+    misfit = SimpleNamespace(force_controlled=True, evaluate=evaluate, labels=("pull",))
+    search = grid_search(misfit, fit, lambda *args: None)
+    lambdas, mus = grid_axes(fit)
+    expected = np.array([[float(cost((lam, mu)) @ cost((lam, mu))) if mu >= 0.05 else np.nan for mu in mus]
+                         for lam in lambdas])
+    np.testing.assert_array_equal(np.isnan(search.cost), np.isnan(expected))
+    np.testing.assert_allclose(search.cost[~np.isnan(expected)], expected[~np.isnan(expected)], rtol=1e-15)
+    i, j = np.unravel_index(np.nanargmin(expected), expected.shape)
+    assert search.best == (lambdas[i], mus[j])

@@ -281,3 +281,17 @@ def test_a_singular_moment_matrix_keeps_its_point_across_processes():
     error = pickle.loads(pickle.dumps(made))
     assert isinstance(error, NumericalFailure) and str(error).startswith("moment matrix")
     assert error.point.tolist() == [1.0, 2.0]
+
+
+def test_the_thinnest_spot_is_thinnest_for_its_spacing_not_in_millimetres():
+    """Two strips under the top edge: 0.6 mm where the particles are 2 mm apart (0.3 of the
+    spacing), 0.4 mm where they are 1 mm apart (0.4): the spot named is the first, the one
+    the particles resolve worst, though the second is thinner."""
+    from stitchplan.tissue.thin_features import thinnest_spot
+
+    raw = strip(0.6, needle=False, left=10.0)
+    raw["tissue"]["holes"].append({"polygon": [[40.0, 20.0], [50.0, 20.0], [50.0, 29.6], [40.0, 29.6]]})
+    tissue = parse_scenario(raw).tissue
+    spot = thinnest_spot(tissue, lambda points: np.where(points[:, 0] < 30.0, 2.0, 1.0), limit=0.5)
+    assert 10.0 <= spot.start[0] <= 20.0 and spot.thickness == pytest.approx(0.6, abs=1e-9)
+    assert spot.thickness / spot.spacing == pytest.approx(0.3, abs=1e-9)
