@@ -620,7 +620,11 @@ def test_the_grid_skips_only_points_softer_in_both_moduli_than_a_failure():
     from types import SimpleNamespace
 
     from stitchplan.calibration.inputs import FitSettings
-    from stitchplan.calibration.material_fit import ForwardFailure, grid_axes, grid_search
+    from stitchplan.calibration.material_fit import (
+        ForwardFailure,
+        grid_axes,
+        grid_search,
+    )
 
     fit = FitSettings("neo-hookean", (0.01, 2.0), (0.01, 2.0), grid_points=6)
 

@@ -24,9 +24,9 @@ from typer.testing import CliRunner
 
 from stitchplan.cli import app
 from stitchplan.config.scenario import ScenarioError, parse_scenario
-from stitchplan.needle.prepared_tissue import PreparedTissue
 from stitchplan.needle.geometry import entry_lean, leaning, orthogonal, scenario_needle
 from stitchplan.needle.insertion import run_insertion
+from stitchplan.needle.prepared_tissue import PreparedTissue
 from stitchplan.planning.planner import center_moves, run_plan
 from stitchplan.planning.trajectory import exported_centers
 
@@ -89,7 +89,11 @@ def test_the_leans_first_slope_is_the_undeformed_exits_one_sided_difference():
     """The secant's first slope: the undeformed exit's move along a direction per radian of
     lean, a forward difference where the needle can lean deeper, a backward one where it
     cannot (a half circle exiting through its entry edge), each signed as the lean moves."""
-    from stitchplan.planning.entry_lean import LEAN_STEP, _leaned_exit, _undeformed_lean_slope
+    from stitchplan.planning.entry_lean import (
+        LEAN_STEP,
+        _leaned_exit,
+        _undeformed_lean_slope,
+    )
 
     corner = parse_scenario(corner_scene(lean=False))
     flat = corner_scene(lean=False)
