@@ -358,10 +358,12 @@ def reading(rows: list[dict]) -> str:
         done = [(penalty, settled(group)[0]) for penalty, group in found]
         ran = [(penalty, value) for penalty, value in done if math.isfinite(value)]
         tie = "the jump tied at every station" if element == 1 else f"tied per element of {element} stations"
+        stopped = [(penalty, group) for (penalty, group), (_, value) in zip(found, done) if not math.isfinite(value)]
         if len(ran) >= 2:
             text.append(f"{scene}, {tie}: " + ", ".join(f"{value:.3f}" for _, value in ran) + " mm for the penalties "
                         + ", ".join(f"{penalty:g}" for penalty, _ in ran)
-                        + f", the last {ran[-1][0] / ran[-2][0]:g} times stiffer one moving it {percent(ran[-2][1], ran[-1][1])} %")
+                        + f", the last {ran[-1][0] / ran[-2][0]:g} times stiffer one moving it {percent(ran[-2][1], ran[-1][1])} %"
+                        + "".join(f", at {penalty:g} it stops ({short_failure(group[-1])})" for penalty, group in stopped))
         elif found:
             text.append(f"{scene}, {tie}: stops at every penalty ({short_failure(found[0][1][-1])})")
     coarse = sweep(rows, "soft_t2.5", 1, 1)
@@ -372,7 +374,7 @@ def reading(rows: list[dict]) -> str:
         sentence += (f" With one station per particle spacing {len(stopped)} of its {len(group)} rounds stop"
                      + (f" (the last: {short_failure(stopped[-1])})" if stopped else "") + ".")
     sentence += (" Tied at every station the answer follows the penalty (likely locking: the jump held to zero at more "
-                 "points than the faces' coefficients can follow); tied per element it settles. ")
+                 "points than the faces' coefficients can follow); tied per element it moves less with it. ")
     resolution = [(points, value) for points, value in cut_points(rows) if math.isfinite(value)]
     if len(resolution) > 1:
         sentence += ("The cut's own resolution moves it too: soft_t2.5 at h gives " + ", ".join(
