@@ -35,6 +35,21 @@ REVISION_FILE = ".benchmark-revision"  # in a baseline's extracted folder: the r
 STITCHPLAN = [sys.executable, "-c", "import sys; from stitchplan.cli import main; sys.argv[0] = 'stitchplan'; main()"]
 
 
+def command_line(doc: str | None, flags: Sequence[str] = ()) -> set[str]:
+    """A script's flags: `--help` prints its docstring (what it runs, how long) and exits;
+    an argument other than `flags` stops it in one line before anything runs."""
+    given = sys.argv[1:]
+    if "-h" in given or "--help" in given:
+        print((doc or "").strip())
+        raise SystemExit(0)
+    unknown = [argument for argument in given if argument not in flags]
+    if unknown:
+        expected = " and/or ".join(flags) if flags else "no arguments"
+        raise SystemExit(f"{Path(sys.argv[0]).name}: got {' '.join(unknown)}, expected {expected} (--help says "
+                         "what it runs)")
+    return set(given)
+
+
 def extract_revision(revision: str, folder: Path, *paths: str) -> Path:
     """The repository at `revision` (only `paths`, default all of it) extracted into
     `folder` with `git archive`, to time a baseline's code beside the working tree's."""

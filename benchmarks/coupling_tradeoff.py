@@ -264,7 +264,7 @@ def read_rows() -> list[dict]:
 
 
 def main() -> None:
-    if "--report" in sys.argv[1:]:  # the table and the chart again from the CSV, the accuracy
+    if "--report" in common.command_line(__doc__, ("--report",)):  # the table and the chart again from the CSV, the accuracy
         convergence = convergence_table()  # columns from results/needle_coupling.csv as it is now
         rows = [{**row, **convergence_of(row["scene"], row["coupling"], convergence)} for row in read_rows()]
         common.write_csv(common.results_path("coupling_tradeoff.csv"), FIELDS,

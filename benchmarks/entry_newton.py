@@ -467,7 +467,7 @@ def chart(rows: list[dict], path) -> None:
 
 
 def main() -> None:
-    if "--report" in sys.argv[1:]:  # the table and chart again from the CSV
+    if "--report" in common.command_line(__doc__, ("--report",)):  # the table and chart again from the CSV
         rows = common.csv_rows(common.results_path("entry_newton.csv"))
         common.publish("entry_newton", report(rows), chart, rows)
         return

@@ -385,7 +385,7 @@ def chart(rows: list[dict], path) -> None:
 def main() -> None:
     logging.disable(logging.WARNING)
     csv_path = common.results_path("needle_fem_reference.csv")
-    if "--report" in sys.argv[1:]:
+    if "--report" in common.command_line(__doc__, ("--report",)):
         rows = common.csv_rows(csv_path)
     else:
         jobs = [(scene, model, factor) for scene in SCENES for model in kinds_of(scene)

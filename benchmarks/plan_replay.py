@@ -177,4 +177,5 @@ def markdown(rows: list[dict]) -> str:
 
 
 if __name__ == "__main__":
+    common.command_line(__doc__)
     main()

@@ -239,7 +239,7 @@ def sweep_chart(rows: list[dict], path: Path) -> None:
 
 
 def main() -> None:
-    if "--chart" in sys.argv[1:]:  # only redraw the sweep's chart from its CSV
+    if "--chart" in common.command_line(__doc__, ("--chart",)):  # only redraw the sweep's chart from its CSV
         sweep_chart(common.csv_rows(common.results_path("thesis_table_thickness.csv")),
                     common.results_path("thesis_table_thickness.png"))
         return

@@ -493,7 +493,7 @@ def chart(rows: list[dict], path) -> None:
 
 def main() -> None:
     path = common.results_path("track_cut.csv")
-    if "--report" not in sys.argv[1:]:
+    if "--report" not in common.command_line(__doc__, ("--report",)):
         order = sorted(RUNS, key=lambda run_: run_[2])  # the slow, fine runs first
         with ProcessPoolExecutor(max_workers=2) as pool:
             finished = dict(zip(order, pool.map(run, *zip(*order))))
