@@ -917,3 +917,19 @@ def test_a_calibrations_experiments_are_held_at_once_in_its_process(monkeypatch)
     assert 614e6 < needed < 1.3 * 614e6
     monkeypatch.setattr(guard, "address_space", lambda: (needed + 1e6, mapped))
     guard_calibration(path, problem, Limits())  # room for all of them: no refusal
+
+
+def test_the_memory_that_fits_an_address_space_limit_is_the_need_inverted():
+    """machine.memory_within_address_space is address_space_needed solved for the run's
+    memory: a run estimated at that memory needs exactly the limit, whatever the process maps
+    now (below and above what the numerical libraries map)."""
+    from stitchplan.resources.machine import NUMERICS_MAPPED, address_space_needed, memory_within_address_space
+
+    checked = 0
+    for mapped in (0.5 * NUMERICS_MAPPED, NUMERICS_MAPPED, 1.7 * NUMERICS_MAPPED):
+        for limit in (4e8, 1.3e9, 8e9):
+            memory = memory_within_address_space(limit, mapped, BASE_MEMORY)
+            if memory > BASE_MEMORY:  # a run beyond the interpreter fits
+                assert address_space_needed(mapped, memory, BASE_MEMORY) == pytest.approx(limit, rel=1e-12)
+                checked += 1
+    assert checked >= 6

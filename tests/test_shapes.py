@@ -717,3 +717,28 @@ def test_segments_cross_only_properly_and_alike_in_every_order():
                   ([1.0, 1.0], [3.0, 1.0])):   # beside it
         assert not any(segments_cross(*pair, 1e-9) for pair in orders(other)), other
     assert all(segments_cross(*pair, 1e-9) for pair in orders(([2.0, -1.0], [2.0, 1.0])))
+
+
+def test_clip_takes_a_point_outside_to_the_nearest_point_of_the_tissue():
+    """PolygonDomain.clip against shapely's nearest point of the same polygon with its hole,
+    for points around the outline and inside the hole: the same distance, on the boundary;
+    points inside stay where they are."""
+    from shapely.geometry import Point, Polygon
+    from shapely.ops import nearest_points
+
+    from stitchplan.geometry.polygon_domain import PolygonDomain
+    from stitchplan.geometry.polygons import circle_polygon
+
+    hole = circle_polygon((30.0, 12.0), 4.0)
+    domain = PolygonDomain(np.array([[0.0, 0.0], [60.0, 0.0], [60.0, 30.0], [32.0, 30.0], [32.0, 18.0],
+                                     [28.0, 18.0], [28.0, 30.0], [0.0, 30.0]]), (hole,))
+    shape = Polygon(domain.outline, [hole])
+    points = np.random.default_rng(8).uniform([-10.0, -10.0], [70.0, 40.0], size=(600, 2))
+    clipped = domain.clip(points)
+    inside = domain.contains(points)
+    assert 50 < np.count_nonzero(~inside) < 550
+    np.testing.assert_array_equal(clipped[inside], points[inside])
+    nearest = np.array([nearest_points(shape, Point(p))[0].coords[0] for p in points[~inside]])
+    np.testing.assert_allclose(np.linalg.norm(clipped[~inside] - points[~inside], axis=1),
+                               np.linalg.norm(nearest - points[~inside], axis=1), atol=1e-9)
+    np.testing.assert_allclose([shape.boundary.distance(Point(p)) for p in clipped[~inside]], 0.0, atol=1e-9)
