@@ -334,6 +334,23 @@ def test_graded_leaves_are_2_to_1_balanced(graded):
     assert_balanced(graded[0].cells)
 
 
+def test_every_leaf_is_at_most_the_zones_spacing_plus_the_grading_times_its_distance():
+    """graded_lattice's rule, by brute force over the leaves: a leaf's side is at most the
+    zone's spacing plus `growth` x the distance from the zone to the nearest finest-cell
+    centre inside the leaf (the finest cells are what it refines), and the leaves at the
+    zone have its spacing."""
+    from stitchplan.tissue.particles import RefinementZone, graded_lattice
+
+    zone = RefinementZone(np.array([13.3, 21.7]), 2.0, 0.5)
+    particles = graded_lattice((40.0, 40.0), 8.0, (zone,), growth=0.5)
+    cells, finest = particles.cells, particles.fine_spacing
+    low, side = cells[:, :2] + 0.5 * finest, cells[:, 2]
+    nearest = np.clip(zone.center, low, cells[:, :2] + cells[:, 2:] - 0.5 * finest)  # finest-cell centre
+    distance = np.maximum(np.linalg.norm(nearest - zone.center, axis=1) - zone.radius, 0.0)
+    assert np.all(side <= (zone.spacing + 0.5 * distance) * (1.0 + 1e-9))
+    assert side.min() == pytest.approx(0.5) and side.max() == pytest.approx(8.0)
+
+
 def test_a_steep_grading_is_balanced_where_the_zone_alone_would_not_be():
     """A point zone off the lattice graded at 2 mm per mm asks for leaves four times the
     size of their neighbours; the balance splits them until touching leaves differ by 2x."""
