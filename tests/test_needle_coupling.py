@@ -142,15 +142,17 @@ def test_loads_add_up_to_friction_and_cutting_force_and_the_cut_sits_behind_the_
     np.testing.assert_allclose(cutting.sum(), needle.cutting_force, rtol=1e-12)
 
 
-def _segment_of(coupling, points: np.ndarray) -> np.ndarray:
-    """The track segment each reference point lies on (inside its chord), (n,)."""
+def _segment_of(coupling, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The track segment each reference point lies on (inside its chord), (n,), and the
+    point's fraction t along it from its start, (n,)."""
     start, end = coupling.points[:-1], coupling.points[1:]
     chord = end - start
     t = np.einsum("pij,ij->pi", points[:, None, :] - start[None], chord) / np.einsum("ij,ij->i", chord, chord)
     off = np.linalg.norm(start[None] + t[..., None] * chord[None] - points[:, None, :], axis=2)
     off[(t < 0.0) | (t > 1.0)] = np.inf
     assert np.all(off.min(axis=1) <= 1e-9)  # every load point on the track
-    return off.argmin(axis=1)
+    segment = off.argmin(axis=1)
+    return segment, t[np.arange(len(points)), segment]
 
 
 @pytest.mark.parametrize("cutting_length", [2.4, 10.0])  # 1.6 mm segments: own Gauss points / the friction ones
@@ -191,16 +193,13 @@ def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cu
         behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])  # tip to each segment's end
         if profile == "uniform":
             # spread evenly over the zone behind the tip: its centroid half the zone behind it
-            points = coupling.loads.points[carrying]
-            segment = _segment_of(coupling, points)
-            start, end = coupling.points[segment], coupling.points[segment + 1]
-            t = np.einsum("ij,ij->i", points - start, end - start) / np.einsum("ij,ij->i", end - start, end - start)
+            segment, t = _segment_of(coupling, coupling.loads.points[carrying])
             behind_tip = behind[segment] + (1.0 - t) * needle_length[segment]
             zone = min(cutting_length, inside)
             assert np.average(behind_tip, weights=cutting[carrying]) == pytest.approx(zone / 2.0, rel=1e-9)
         if profile == "smooth":
             # the force on each segment against the density's integral over its needle length
-            per_segment = np.bincount(_segment_of(coupling, coupling.loads.points[carrying]), cutting[carrying],
+            per_segment = np.bincount(_segment_of(coupling, coupling.loads.points[carrying])[0], cutting[carrying],
                                       minlength=segments)
             share = np.array([cutting_share(b + n, cutting_length) - cutting_share(b, cutting_length)
                               for b, n in zip(behind, needle_length)])  # the track's segments: a few

@@ -626,22 +626,28 @@ def test_the_wound_is_graded_at_the_needle_to_the_spacing_it_asks_for(factor, ne
     assert model.spacing < 0.5 * model.needle_spacing  # the corners' leaves
 
 
+def slanted_edge_probes(tmp_path, probes: list) -> np.ndarray:
+    """`deform`'s probes.csv rows (x, y, ux, uy) on a trapezoid clamped along its bottom whose
+    slanted right edge, from the clamped corner (40, 0) up, is moved by (1, 0) mm."""
+    raw = {"tissue": {"outline": [[0, 0], [40, 0], [32, 30], [4, 30]], "thickness": 10.0,
+                      "material": {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688},
+                      "clamped": ["bottom"]},
+           "discretization": {"spacing": 2.0},
+           "loads": [{"segment": [[40, 0], [32, 30]], "displacement": [1.0, 0.0]}], "load_steps": 5,
+           "probes": probes}
+    write_scene(tmp_path, raw)
+    result = invoke(tmp_path, "deform", "scene.yaml", "--probes-out", "probes.csv")
+    assert result.exit_code == 0, result.output
+    return np.loadtxt(tmp_path / "probes.csv", delimiter=",", skiprows=1)
+
+
 def test_a_displacement_on_a_slanted_edge_holds_between_its_particles(tmp_path):
     """A trapezoid whose slanted right edge is moved by (1, 0) mm: the edge carries a boundary
     particle at every local spacing, so the displacement between them stays within 1 % of the
     prescribed one from 6 mm above the clamped corner on (a boundary particle used to give way
     to a lattice particle just inside the edge, leaving 3.9 mm gaps where the edge sagged to
     0.83 mm, 17 % off; at the corner the clamp holds the edge's first particle)."""
-    raw = {"tissue": {"outline": [[0, 0], [40, 0], [32, 30], [4, 30]], "thickness": 10.0,
-                      "material": {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688},
-                      "clamped": ["bottom"]},
-           "discretization": {"spacing": 2.0},
-           "loads": [{"segment": [[40, 0], [32, 30]], "displacement": [1.0, 0.0]}], "load_steps": 5,
-           "probes": [[float(40 - 8 * t), float(30 * t)] for t in np.linspace(0.2, 0.9, 29)]}
-    write_scene(tmp_path, raw)
-    result = invoke(tmp_path, "deform", "scene.yaml", "--probes-out", "probes.csv")
-    assert result.exit_code == 0, result.output
-    probes = np.loadtxt(tmp_path / "probes.csv", delimiter=",", skiprows=1)
+    probes = slanted_edge_probes(tmp_path, [[float(40 - 8 * t), float(30 * t)] for t in np.linspace(0.2, 0.9, 29)])
     assert np.abs(probes[:, 2:] - [1.0, 0.0]).max() < 0.01
 
 
@@ -649,16 +655,8 @@ def test_a_clamp_holds_the_corner_it_shares_with_a_displacement_segment(tmp_path
     """The slanted edge moved by (1, 0) mm starts at the bottom's clamped corner: the clamp
     holds it (a particle both clamped and on the segment stays clamped), so the corner and the
     clamped edge beside it stay put while the edge above moves."""
-    raw = {"tissue": {"outline": [[0, 0], [40, 0], [32, 30], [4, 30]], "thickness": 10.0,
-                      "material": {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688},
-                      "clamped": ["bottom"]},
-           "discretization": {"spacing": 2.0},
-           "loads": [{"segment": [[40, 0], [32, 30]], "displacement": [1.0, 0.0]}], "load_steps": 5,
-           "probes": [[40.0, 0.0], [39.0, 0.0], [38.0, 0.0], [30.0, 0.0], [36.0, 15.0]]}
-    write_scene(tmp_path, raw)
-    result = invoke(tmp_path, "deform", "scene.yaml", "--probes-out", "probes.csv")
-    assert result.exit_code == 0, result.output
-    moved = np.linalg.norm(np.loadtxt(tmp_path / "probes.csv", delimiter=",", skiprows=1)[:, 2:], axis=1)
+    moved = np.linalg.norm(slanted_edge_probes(tmp_path, [[40.0, 0.0], [39.0, 0.0], [38.0, 0.0], [30.0, 0.0],
+                                                          [36.0, 15.0]])[:, 2:], axis=1)
     assert moved[0] < 1e-9  # the corner, a clamped particle
     assert moved[1:4].max() < 0.01
     assert moved[4] == pytest.approx(1.0, abs=0.01)
