@@ -443,13 +443,19 @@ def chart(rows: list[dict], path) -> None:
 
     figure, axes = plt.subplots(1, 4, figsize=(21, 5.2))
     for axis, scene in zip(axes[:2], ("soft_t2.5", "sh12_100x100")):
-        for element in (1, ELEMENT, 2 * ELEMENT):
-            done = [(penalty, *settled(group)) for penalty, group in sweep(rows, scene, STATIONS_PER_SPACING, element)]
-            done = [entry for entry in done if math.isfinite(entry[1])]
+        for k, element in enumerate((1, ELEMENT, 2 * ELEMENT)):
+            tried = [(penalty, *settled(group)) for penalty, group in sweep(rows, scene, STATIONS_PER_SPACING, element)]
+            done = [entry for entry in tried if math.isfinite(entry[1])]
+            tie = "tied at every station" if element == 1 else f"tied per {element} stations"
+            colour = None
             if done:
-                axis.errorbar([entry[0] for entry in done], [entry[1] for entry in done],
-                              yerr=[entry[2] for entry in done], fmt="o-", capsize=3,
-                              label="tied at every station" if element == 1 else f"tied per {element} stations")
+                bars = axis.errorbar([entry[0] for entry in done], [entry[1] for entry in done],
+                                     yerr=[entry[2] for entry in done], fmt="o-", capsize=3, label=tie)
+                colour = bars.lines[0].get_color()
+            stopped = [entry[0] for entry in tried if not math.isfinite(entry[1])]
+            if stopped:  # a run that stops has no exit error: a cross near the panel's top, a row per tie
+                axis.plot(stopped, [0.97 - 0.05 * k] * len(stopped), "x", color=colour, ms=8, mew=2,
+                          transform=axis.get_xaxis_transform(), label=f"{tie}: the run stops")
         line = line_needle(scene, "h")
         if line:
             axis.axhline(float(line), color="0.4", ls="--", label="line needle (the package)")
@@ -457,7 +463,8 @@ def chart(rows: list[dict], path) -> None:
         axis.set_xlabel("penalty on the faces' jump (x mu t per station spacing / particle spacing)")
         axis.set_ylabel("unplanned exit error at h (mm)")
         axis.set_title(f"{scene}: the tie", fontsize=10)
-        axis.legend(fontsize=8)
+        # below the crosses of runs that stop (at the top), above the curves
+        axis.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.62, 0.86))
     resolution = [(points, value) for points, value in cut_points(rows) if math.isfinite(value)]
     axes[2].plot(*zip(*resolution), "o-", label=f"track cut (penalty {TIED:g}, per {ELEMENT} stations)")
     axes[2].axhline(float(line_needle("soft_t2.5", "h")), color="0.4", ls="--", label="line needle (the package)")
