@@ -90,23 +90,24 @@ def released(release: Release):
     cls = coupling_module.NeedleCoupling
     partition, layout = cls._partition, cls._load_layout
 
-    def _partition(self) -> None:
-        partition(self)
+    def _partition(self) -> np.ndarray:
+        shares = partition(self)
         if release.constraint <= 0.0 or not self.multiplier_count:
-            return
+            return shares
         assert self.kind == coupling_module.MORTAR and not self.arc_ends, "segment Gauss points only"
         kept = (_gauss_arc(self) >= release.constraint).astype(float)
         ds = np.repeat(self.gauss_weight * self._segment_lengths(), len(self.gauss))
-        shares = self._shares * kept[:, None]
+        shares = shares * kept[:, None]
         weighted = shares * ds[:, None]
         columns = weighted.sum(axis=0) > 0.0
         columns[-1] = True  # the tip's multiplier: the tip stays on the needle
         if weighted[:, -1].sum() == 0.0:  # a track shorter than the release: the tip point alone
             shares[-1, -1] = weighted[-1, -1] = 1.0
         shares, weighted = shares[:, columns], weighted[:, columns]
-        self._shares, self.weights = shares, weighted / weighted.sum(axis=0)
+        self.weights = weighted / weighted.sum(axis=0)
         self.multiplier_count = shares.shape[1]
         self.multiplier_nodes = self.multiplier_nodes[columns]
+        return shares
 
     def _load_layout(self):
         magnitudes, points, lumping = layout(self)

@@ -41,7 +41,7 @@ def test_multiplier_elements_span_whole_segments_at_least_a_spacing_long(mortar)
     coupling = mortar.coupling
     segments = len(coupling.points) - 1
     lengths = np.linalg.norm(np.diff(coupling.points, axis=0), axis=1)
-    shares = coupling._shares  # (Q, m): phi_j at each Gauss point
+    shares = coupling._partition()  # P (Q, m): phi_j at each Gauss point (the same partition again)
     assert shares.shape == (2 * segments, coupling.multiplier_count)
     np.testing.assert_allclose(shares.sum(axis=1), 1.0, atol=1e-14)  # partition of unity
     weights = coupling.weights
@@ -105,7 +105,7 @@ def test_arc_ends_cut_the_track_every_local_spacing_from_the_tip():
     assert MULTIPLIER_SPACINGS * spacing[0] <= nodes[1] < 2 * MULTIPLIER_SPACINGS * spacing[0]
     assert np.min(np.abs(nodes[1:-1, None] - arc[None, :])) > 1e-3  # cut inside segments here
     assert coupling.multiplier_count == len(nodes) == int(arc[-1] / (MULTIPLIER_SPACINGS * spacing[0])) + 1
-    shares, weights = coupling._shares, coupling.weights
+    shares, weights = coupling._partition(), coupling.weights  # the same partition again
     np.testing.assert_allclose(shares.sum(axis=1), 1.0, atol=1e-14)
     np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-14)
     assert np.all((shares > 0).sum(axis=0) >= 2)  # every hat holds Gauss points

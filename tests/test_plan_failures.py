@@ -41,9 +41,12 @@ def test_a_later_pass_that_fails_leaves_the_best_pass_before_it():
     assert len(failed) == 1
     assert failed[0].message.startswith("planner pass 2 (offset (")
     assert "step 14 (needle rotation 2.800 rad)" in failed[0].message
-    # the collapse in front of the tip: det F < 0 (SuperLU's solves), or the load ramp stalling on
-    # it (CHOLMOD's, the `fast` extra: the same tangents factored otherwise take other iterates)
-    assert "det F = " in failed[0].message or "Saint Venant-Kirchhoff is unstable" in failed[0].message
+    # the collapse in front of the tip ends the ramp's last increment: det F < 0, the ramp
+    # stalling on it, or Newton's constraints stalling in it (which of them, round-off decides:
+    # CHOLMOD's factors or SuperLU's, the order of the saddle-point solver's products)
+    assert ("det F = " in failed[0].message or "Saint Venant-Kirchhoff is unstable" in failed[0].message
+            or "the needle constraints stall above their tolerance" in failed[0].message), failed[0].message
+    assert "the needle's load could not be carried: " in failed[0].message
     assert failed[0].message.endswith("the best of the 1 pass before it is exported")
     assert plan.planned.exit_error_mm == pytest.approx(plan.passes[0]["exit_error_mm"])
 

@@ -1,5 +1,5 @@
 """What a needle insertion keeps per step for a later run to take over (run_insertion's
-states): the saddle-point solver's E K^-1 E^T and the coupling's growing track rows (its
+states): the saddle-point solver's E K^-1 and E K^-1 E^T and the coupling's growing track rows (its
 constraint quadrature's and its loads') are views of a few shared buffers, not an array of
 their own per step. Kept per step, they made the
 memory grow with the cube of the steps: 1.4 GB after 305 steps of 0.01 rad on 99 particles,
@@ -32,10 +32,21 @@ def test_the_states_of_a_long_insertion_share_their_buffers():
     result = run_insertion(parse_scenario(raw))
     states = [state for state in result.states if state.solver is not None]
     assert len(states) > 60
-    coupled = [state.solver[4] for state in states if state.solver[4].size]
+    coupled = [state.solver[4] for state in states if state.solver[4] is not None and state.solver[4].size]
     total, largest = buffer_bytes(coupled)
     # doubling buffers: at most 1 + 1/4 + 1/16 + ... of the largest, whatever the steps
     assert total <= 1.5 * largest, (total, largest, len(coupled))
+    # E K^-1 E^T, (2Q, 2Q), is kept while 2Q <= n only: the later states hold none, and the
+    # largest buffer of it is at most (2n)^2
+    unknowns = result.model.n_free * 2
+    rows_kept = [state.solver[3] for state in states]
+    assert [block is None for block in (state.solver[4] for state in states)] == [count > unknowns
+                                                                                  for count in rows_kept]
+    assert rows_kept[-1] > unknowns and len(coupled) > 10
+    assert largest <= 8 * (2 * unknowns) ** 2
+    # E K^-1, (2Q, n): doubling buffers too (at most 1 + 1/2 + 1/4 + ... of the largest)
+    total, largest = buffer_bytes([state.solver[2] for state in states])
+    assert total <= 2.0 * largest, (total, largest)
     rows = [state.coupling["_quadrature_rows"].matrix.data for state in states]
     total, largest = buffer_bytes(rows)
     assert total <= 2.5 * largest, (total, largest)

@@ -214,9 +214,8 @@ class NeedleCoupling:
 
     def _start_multipliers(self) -> None:
         """No multipliers yet, and (multiplier_ends "arc") no constraint quadrature of its own."""
-        # dense: W and P have a few entries per row and columns, m ~ Q / 2
+        # dense: W has a few entries per row and columns, m ~ Q / 2
         self.weights = np.zeros((0, 0))  # W (Q, m): g = W^T g_q, G = E^T B(W, n)
-        self._shares = self.weights  # P (Q, m): share of each quadrature point in each multiplier
         self._spacing_of_segments = np.zeros(0)  # local particle spacing per segment (_segment_spacing)
         self.multiplier_count = 0
         self.multiplier_nodes = np.zeros(0)  # mortar: arc length of each multiplier's node (element start)
@@ -316,13 +315,12 @@ class NeedleCoupling:
         if self.kind == POINTS:
             self._quadrature_rows.append(row_block(rows, 0, 1))
             self.weights = np.eye(len(self.points))
-            self._shares = self.weights
             self.multiplier_count = len(self.points)
             carried = np.append(multipliers, 0.0)
         else:
-            self._partition()
-            forces = np.concatenate([forces, np.zeros(self._shares.shape[0] - len(forces))])
-            carried = self._shares.T @ forces
+            shares = self._partition()
+            forces = np.concatenate([forces, np.zeros(shares.shape[0] - len(forces))])
+            carried = shares.T @ forces
         self.previous_loads, self._track_rows = self.loads, None
         if len(part_points):
             part_rows = row_block_matrix(row_block(rows, ends[3], ends[4]), rows.shape[1])
@@ -386,21 +384,22 @@ class NeedleCoupling:
         cuts = tau[-1] - np.arange(count - 1, 0, -1, dtype=float)  # interior ends, increasing
         return np.concatenate([[0.0], np.interp(cuts, tau, arc), [arc[-1]]])
 
-    def _partition(self) -> None:
+    def _partition(self) -> np.ndarray:
         """Mortar elements: whole segments from the entry, each closed once it is at least
         MULTIPLIER_SPACINGS local spacings long; a shorter remainder at the tip joins the
         last closed element (one element while the track is shorter). The multipliers are
         the nodal values of a continuous piecewise-linear field on the elements' ends
         (MULTIPLIER_ORDER 1) or one constant per element (0).
 
-        `_shares` P (Q, m): the share phi_j(s_q) of quadrature point q in multiplier j (a
-        partition of unity); `weights` W (Q, m): P ds_q normalised per multiplier, so that
-        g_j = sum_q W_qj g_q is the phi_j-weighted mean violation."""
+        `weights` W (Q, m): P ds_q normalised per multiplier, so that g_j = sum_q W_qj g_q is
+        the phi_j-weighted mean violation, with P (Q, m) the share phi_j(s_q) of quadrature
+        point q in multiplier j (a partition of unity), returned for `add` to carry the
+        multipliers over; not kept (each step's state would hold one more (Q, m) array)."""
         lengths = self._segment_lengths()
         if not len(lengths):
-            self.weights = self._shares = np.zeros((0, 0))
+            self.weights = np.zeros((0, 0))
             self.multiplier_count = 0
-            return
+            return self.weights
         arc = np.concatenate([[0.0], np.cumsum(lengths)])  # arc length at the needle points
         if self.arc_ends:
             nodes = self._arc_nodes(lengths, arc)  # element ends, (m_e + 1,)
@@ -429,8 +428,9 @@ class NeedleCoupling:
             shares[q, element + 1] += upper
         self.multiplier_nodes = nodes if MULTIPLIER_ORDER == 1 else nodes[:-1]  # arc length, mm
         weighted = shares * ds[:, None]
-        self._shares, self.weights = shares, weighted / weighted.sum(axis=0)
+        self.weights = weighted / weighted.sum(axis=0)
         self.multiplier_count = shares.shape[1]
+        return shares
 
     # --- loads ------------------------------------------------------------------------------
 

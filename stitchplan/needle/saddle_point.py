@@ -132,14 +132,17 @@ class SaddlePointSolver:
         # per iteration; 1e-8 costs a third more MINRES iterations on the SH 1/2 scenario
         self.minres_true_rtol = minres_true_rtol
         self._factor = None  # LU of K + H for the direct solves
-        # (K + H)^-1 E^T for that factor in the first `_solved_count` columns of a buffer with
-        # room to grow (n, >= 2Q); sized by the first solve
+        # E (K + H)^-1, the transpose of (K + H)^-1 E^T (K + H symmetric), for that factor in
+        # the first `_solved_count` rows of a buffer with room to grow (>= 2Q, n): a new
+        # quadrature point's rows are appended, and S = B^T E (K + H)^-1 E^T B takes its
+        # contiguous rows through a sparse B (solve_direct); sized by the first solve
         self._solved_rows, self._solved_count = None, 0
         # E (K + H)^-1 E^T for that factor in the first (2Q, 2Q) block of a buffer with room to
         # grow: a snapshot per needle step keeps its block as a view (state), not a copy of its
         # own, so a long insertion's snapshots share a few buffers (a fresh (2Q, 2Q) array per
-        # step held ~1.2 GB after 305 steps of 0.01 rad on 99 particles)
-        self._coupled = np.zeros((0, 0))
+        # step held ~1.2 GB after 305 steps of 0.01 rad on 99 particles). Kept while 2Q <= n
+        # only, None beyond (solve_direct)
+        self._coupled: np.ndarray | None = np.zeros((0, 0))
         self.factorizations = 0
         self.solves = 0
         self.solved_columns = 0  # right-hand-side columns through the factor (its solves take them one at a time)
@@ -178,11 +181,12 @@ class SaddlePointSolver:
 
     def state(self) -> tuple:
         """The direct solves' factor and what is kept for it now, for a later run that takes
-        this state over (`restore`). Nothing is copied: a kept buffer's first columns are never
+        this state over (`restore`). Nothing is copied: a kept buffer's first rows are never
         written again for its factor, and only those are handed on."""
         count = self._solved_count
-        rows = None if self._solved_rows is None else self._solved_rows[:, :count]
-        return self._factor, self.backend, rows, count, self._coupled[:count, :count]
+        rows = None if self._solved_rows is None else self._solved_rows[:count]
+        coupled = None if self._coupled is None else self._coupled[:count, :count]
+        return self._factor, self.backend, rows, count, coupled
 
     def restore(self, state: tuple) -> None:
         """Solve on from `state` (made by `state()`), as the run that made it did; the next
@@ -214,7 +218,10 @@ class SaddlePointSolver:
         dense `weights` (2Q, m) that carry the normals (NeedleCoupling.normal_weights).
         For one factor, K^-1 E^T (n, 2Q) and E K^-1 E^T (2Q, 2Q) are kept and grown by the
         rows of new quadrature points only, so an iteration costs one solve with the factor, one sparse
-        product E a and small dense products. `rhs` may hold several columns.
+        product E a and small dense products. Once the constraint quadrature has more rows than
+        K has unknowns (2Q > n: long insertions in small needle steps), S is formed as
+        B^T E (K^-1 E^T B) instead, in n 2Q m operations rather than (2Q)^2 m, and E K^-1 E^T,
+        (2Q)^2 floats, is no longer kept. `rhs` may hold several columns.
 
         `on_rows` = (C (2Q, j), h (m, j)): j more right-hand sides [E^T C; h], whose K^-1 E^T C
         comes from the kept columns without a solve (the factor's solves take their columns one
@@ -225,7 +232,7 @@ class SaddlePointSolver:
             self._use(factorize(stiffness(), symmetric_positive=True))  # K + H: symmetric
             self.factorizations += 1
         if self._solved_rows is None:
-            self._solved_rows = np.zeros((n, 0))
+            self._solved_rows = np.zeros((0, n))
         if rhs.ndim == 2 and rhs.shape[1] == 0:  # only `on_rows` columns
             a = np.zeros((n, 0))
         else:
@@ -236,25 +243,36 @@ class SaddlePointSolver:
             return a
         self._grow(rows)
         count = rows.shape[0]
-        solved = self._solved_rows[:, :count]  # K^-1 E^T
+        solved = self._solved_rows[:count]  # E K^-1 (2Q, n)
         constraint_rhs = rhs[n:]
         if on_rows is not None:
-            a = np.column_stack([a, solved @ on_rows[0]])
+            a = np.column_stack([a, solved.T @ on_rows[0]])
             constraint_rhs = np.column_stack([constraint_rhs, on_rows[1]])
         if k == 0:
             return a
-        schur = weights.T @ self._coupled[:count, :count] @ weights  # G^T K^-1 G
+        if self._coupled is not None:
+            spread = None
+            schur = weights.T @ self._coupled[:count, :count] @ weights  # G^T K^-1 G
+        else:
+            # K^-1 G (n, m), B taken sparse: a point weights its element's ends only
+            spread = (sp.csr_matrix(weights).T @ solved).T
+            schur = weights.T @ (rows @ spread)
+            schur = 0.5 * (schur + schur.T)
         right = weights.T @ (rows @ a) - constraint_rhs
         try:  # the small Schur matrix: its Cholesky tests that it is positive definite (numpy has
             np.linalg.cholesky(schur)  # no triangular solve to reuse it with; m ~ 20-40: microseconds)
             multipliers = np.linalg.solve(schur, right)
         except np.linalg.LinAlgError:  # not positive definite: nearly dependent constraints, least squares
             multipliers = np.linalg.lstsq(schur, right, rcond=1e-13)[0]
-        return np.concatenate([a - solved @ (weights @ multipliers), multipliers])
+        correction = solved.T @ (weights @ multipliers) if spread is None else spread @ multipliers
+        return np.concatenate([a - correction, multipliers])
 
     def _grow(self, rows: sp.csr_matrix) -> None:
         """Extend K^-1 E^T and E K^-1 E^T by the rows added since the last solve (the
-        constraint quadrature only grows during an insertion, its earlier rows unchanged)."""
+        constraint quadrature only grows during an insertion, its earlier rows unchanged); the
+        latter dropped once the rows outnumber the unknowns (solve_direct). It is None only
+        then: the rows' count grows until a new factor (_use) or a kept state (restore)
+        resets both."""
         have, count = self._solved_count, rows.shape[0]
         if have >= count:
             return
@@ -263,12 +281,15 @@ class SaddlePointSolver:
                               shape=(count - have, rows.shape[1]))
         new = self._factor.solve_columns(added.T)  # (n, new)
         self.solved_columns += count - have
-        if self._solved_rows.shape[1] < count:  # room for the next steps' rows too
-            grown = np.empty((len(new), max(count, 2 * self._solved_rows.shape[1])))
-            grown[:, :have] = self._solved_rows[:, :have]
+        if len(self._solved_rows) < count:  # room for the next steps' rows too
+            grown = np.empty((max(count, 2 * len(self._solved_rows)), len(new)))
+            grown[:have] = self._solved_rows[:have]
             self._solved_rows = grown
-        self._solved_rows[:, have:count] = new
+        self._solved_rows[have:count] = new.T
         self._solved_count = count
+        if count > rows.shape[1]:
+            self._coupled = None
+            return
         cross = rows @ new  # E K^-1 E_new^T, (count, new)
         if self._coupled.shape[0] < count:  # room for the next steps' rows too
             grown = np.empty((max(count, 2 * self._coupled.shape[0]),) * 2)

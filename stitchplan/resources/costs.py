@@ -74,8 +74,8 @@ VERIFICATION_RUNS = 2
 # runs whose steps' states one process holds at once (_step_memory each), of the `runs` an
 # estimate counts: a plan holds its unplanned comparison (--compare), its first pass (later
 # passes take its early steps over: planning.planner.PassPrefix), its best pass so far and the
-# pass running, 1-4 runs (measured on SH 1/2 at 0.005 rad: 456 MiB for one run, 666 MiB for a
-# plan of two passes, 1027 MiB with the comparison, 866 MiB for the 100 x 30 block's two passes;
+# pass running, 1-4 runs (measured on SH 1/2 at 0.005 rad: 285 MiB for one run, 371 MiB for a
+# plan of two passes, 566 MiB with the comparison, 461 MiB for the 100 x 30 block's two passes;
 # tests/test_resource_guard.py MEASURED_PEAKS); a verification its first replay while the second
 # runs (run_insertion `start_from`). Two: within 2x of one and of four
 HELD_RUNS = 2
@@ -141,18 +141,19 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
     multipliers after step k (2k and ~k x step length / element length + 2 with the mortar
     coupling, k + 1 and k + 1 with the point coupling), and P particles (bounding the free ones):
 
-    - the saddle-point solver's E K^-1 E^T (2Q, 2Q) and K^-1 E^T (2 n_free, 2Q)
-      (SaddlePointSolver._grow) live in buffers whose capacity doubles from the first step's
-      2Q_1 to at least 2Q_N; every state holds a view of the buffer then in use, so every buffer
-      of the doubling stays (sum of capacities^2: ~4/3 of the last one's). Counted at their
-      capacity, which the last one's resident rows approach (numpy asks for transparent huge
-      pages for large arrays: 2Q_N rows written are resident whole), and which covers what the
-      allocator keeps of the steps' freed temporaries (SH 1/2 at 0.005 and 0.0025 rad, when
-      each state still held a copy of the load rows: peaks ~180 and ~430 MB above the
-      resident bytes of the arrays kept, ~100 MB of them the interpreter's and the model's;
-      the peaks are now 0.8x the estimate there, benchmarks/results/resource_costs.md);
-    - the coupling's dense W and P (Q_k, m_k), new in each step's state (NeedleCoupling._partition;
-      the point coupling's identity is both, (k + 1)^2): sum over the steps ~ N^3;
+    - the saddle-point solver's E K^-1 (2Q, 2 n_free) and E K^-1 E^T (2Q, 2Q), the latter while
+      2Q <= 2 n_free only (SaddlePointSolver._grow), live in buffers whose capacity doubles from
+      the first step's 2Q_1 to at least 2Q_N (E K^-1 E^T's until 2Q passes 2 n_free); every
+      state holds a view of the buffer then in use, so every buffer of the doubling stays (sum
+      of capacities^2: ~4/3 of the last one's). Counted at their capacity, which the last one's
+      resident rows approach (numpy asks for transparent huge pages for large arrays: 2Q_N rows
+      written are resident whole), and which covers what the allocator keeps of the steps' freed
+      temporaries (SH 1/2 at 0.005 and 0.0025 rad, when each state still held a copy of the load
+      rows: peaks ~180 and ~430 MB above the resident bytes of the arrays kept, ~100 MB of them
+      the interpreter's and the model's; the peaks are now 0.83-0.86x the estimate there,
+      tests/test_resource_guard.py);
+    - the coupling's dense W (Q_k, m_k), new in each step's state (NeedleCoupling._partition;
+      the point coupling's identity, (k + 1)^2): sum over the steps ~ N^3;
     - the track's arrays, new in each state (TRACK_BYTES_PER_POINT): ~ N^2;
     - STEP_BYTES_PER_PARTICLE per particle and step.
 
@@ -166,10 +167,10 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
     n = float(steps)
     sum_k, sum_k2 = n * (n + 1.0) / 2.0, n * (n + 1.0) * (2.0 * n + 1.0) / 6.0
     arc_ends = needle.coupling != POINTS and needle.multiplier_ends == ARC_ENDS
-    # Q_k = per_segment k + first, m_k = slope k + offset; `arrays`: W and P, or one for both
+    # Q_k = per_segment k + first, m_k = slope k + offset
     pieces = 1.0
     if needle.coupling == POINTS:
-        per_segment, first, slope, offset, arrays = 1.0, 1.0, 1.0, 1.0, 1.0
+        per_segment, first, slope, offset = 1.0, 1.0, 1.0, 1.0
     else:
         at_needle = d.spacing if d.needle_spacing is None else d.needle_spacing
         element = max(MULTIPLIER_SPACINGS * at_needle, needle.multiplier_length or 0.0)
@@ -180,14 +181,16 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
         # segment ends: the segments' Gauss points, 2 per piece; whole segments of at least an
         # element's length (at most one per segment)
         per_segment = max(2.0, float(math.ceil(QUADRATURE_PER_ELEMENT * ratio))) if arc_ends else 2.0 * pieces
-        first, slope, offset, arrays = 0.0, ratio if arc_ends else min(ratio, 1.0), 2.0, 2.0
-    weights = arrays * FLOAT_BYTES * (per_segment * slope * sum_k2 + (per_segment * offset + first * slope) * sum_k
-                                      + first * offset * n)
-    # the doubling buffers' capacities c_0 2^j, j = 0..J, c_0 = 2 Q_1, c_0 2^J >= 2 Q_N
+        first, slope, offset = 0.0, ratio if arc_ends else min(ratio, 1.0), 2.0
+    weights = FLOAT_BYTES * (per_segment * slope * sum_k2 + (per_segment * offset + first * slope) * sum_k
+                             + first * offset * n)
+    # the doubling buffers' capacities c_0 2^j, j = 0..J, c_0 = 2 Q_1, c_0 2^J >= 2 Q_N; E K^-1 E^T's
+    # up to J' with c_0 2^J' >= min(2 Q_N, 2 particles)
     start, end = 2.0 * (per_segment + first), 2.0 * (per_segment * STEP_MARGIN * n + first)
     doublings = max(math.ceil(math.log2(end / start) - 1e-9), 0)
     capacities = start * (2.0 ** (doublings + 1) - 1.0)  # sum of c_j
-    squares = start * start * (4.0 ** (doublings + 1) - 1.0) / 3.0  # sum of c_j^2
+    square_doublings = max(math.ceil(math.log2(min(end, 2.0 * particles) / start) - 1e-9), 0)
+    squares = start * start * (4.0 ** (square_doublings + 1) - 1.0) / 3.0  # sum of c_j^2, j <= J'
     blocks = FLOAT_BYTES * (squares + 2.0 * particles * capacities)
     track = (TRACK_BYTES_PER_POINT + TRACK_BYTES_PER_PIECE * (pieces - 1.0)
              + (ARC_BYTES_PER_QUADRATURE_POINT * per_segment if arc_ends else 0.0)) * sum_k
