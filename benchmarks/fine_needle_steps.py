@@ -4,9 +4,10 @@ A needle run's constraint quadrature grows by a segment's Gauss points every ste
 small steps its saddle-point solves grow with the steps taken: 2Q rows of E (the constraint
 points' shape functions, both directions) against n unknowns of the tissue. Each step's
 Schur complement S = B^T (E K^-1 E^T) B was formed from the kept E K^-1 E^T, (2Q)^2 floats,
-in (2Q)^2 m operations, and each step's state kept its block, the coupling's W and its
-partition of unity P, (Q, m) each. Now, once 2Q > n, S is formed from E K^-1 through a sparse
-B (n 2Q operations per multiplier's two rows) and E K^-1 E^T is no longer kept, nor P.
+in (2Q)^2 m operations, and each step's state kept its block and, dense, the coupling's W
+and its partition of unity P, (Q, m) each. Now, once 2Q > n, S is formed from E K^-1 through
+a sparse B (n operations for each of B's at most 4Q entries) and E K^-1 E^T is no longer
+kept; the states keep W sparse and P not at all.
 
 This script runs `stitchplan simulate configs/sh12_100x100.yaml` with `needle.step` set to
 STEPS (a copy of the file), with the code at BASELINE (extracted with `git archive`) and
@@ -37,7 +38,7 @@ from pathlib import Path  # noqa: E402
 import _common as common  # noqa: E402
 import yaml  # noqa: E402
 
-BASELINE = "503d511"  # the code before the Schur complement was formed from E K^-1
+BASELINE = "503d511"  # the code before: S always from E K^-1 E^T, W and P dense in every state
 SCENE = "sh12_100x100"
 STEPS = (0.08, 0.02, 0.01, 0.005, 0.0025)  # rad
 REPEATS = 2

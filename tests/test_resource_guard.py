@@ -335,13 +335,14 @@ def test_a_needle_run_is_estimated_to_keep_its_dense_blocks():
     E K^-1 E^T kept at least (2Q)^2 = n^2 floats (a (2Q)^2 block to the end would be ~200 MB,
     whose doubling buffers put the estimate past 2.1x the measured peak,
     test_the_memory_estimate_bounds_the_measured_peaks). The point coupling's states also keep
-    their own identity weights, (k + 1)^2 after step k."""
+    their own identity weights, sparse (k + 1 entries after step k), the last one dense."""
     item = estimate(sh12(0.0025), "insertion", "simulate")
     unknowns, rows = 2.0 * item.size.particles, 4.0 * item.steps
     assert item.steps > 1200 and rows > unknowns
     assert item.memory_bytes >= BASE_MEMORY + 8.0 * rows * unknowns + 8.0 * unknowns ** 2
     points = estimate(sh12(0.0025, coupling="points"), "insertion", "simulate")
-    assert points.memory_bytes >= BASE_MEMORY + 8.0 * sum((k + 1) ** 2 for k in range(1, points.steps + 1))
+    kept_weights = 16.0 * sum(k + 1 for k in range(1, points.steps + 1))  # sparse, 12 + 4 bytes a row
+    assert points.memory_bytes >= BASE_MEMORY + kept_weights + 8.0 * (points.steps + 1) ** 2
     # a plan holds two runs' steps at once (resources.costs.HELD_RUNS), a simulate one
     plan = estimate(sh12(0.0025), "insertion", "plan", PLAN_RUNS)
     assert plan.step_memory == pytest.approx(2.0 * item.step_memory)
@@ -353,24 +354,24 @@ def test_a_needle_run_is_estimated_to_keep_its_dense_blocks():
 # the SH 1/2 files were discretized for the needle (7.104 mm graded to 0.888 mm); the plans at
 # 0.005 rad hold two passes' steps
 MEASURED_PEAKS = [
-    ("sh12_100x100", 0.08, "simulate", 90.0), ("sh12_100x100", 0.02, "simulate", 119.6),
-    ("sh12_100x100", 0.01, "simulate", 177.8), ("sh12_100x100", 0.005, "simulate", 284.5),
-    ("sh12_100x100", 0.0025, "simulate", 618.5), ("sh12_100x30", 0.08, "simulate", 86.0),
-    ("sh12_100x30", 0.02, "simulate", 111.1), ("sh12_100x30", 0.01, "simulate", 141.1),
-    ("sh12_100x30", 0.005, "simulate", 231.7), ("sh12_100x30", 0.0025, "simulate", 530.4),
-    ("sh12_100x100", 0.01, "plan", 185.3), ("sh12_100x100", 0.005, "plan", 370.5),
-    ("sh12_100x100", 0.005, "compare", 566.2), ("sh12_100x30", 0.005, "plan", 461.4),
+    ("sh12_100x100", 0.08, "simulate", 89.6), ("sh12_100x100", 0.02, "simulate", 116.3),
+    ("sh12_100x100", 0.01, "simulate", 168.4), ("sh12_100x100", 0.005, "simulate", 237.2),
+    ("sh12_100x100", 0.0025, "simulate", 427.1), ("sh12_100x30", 0.08, "simulate", 85.9),
+    ("sh12_100x30", 0.02, "simulate", 106.7), ("sh12_100x30", 0.01, "simulate", 131.8),
+    ("sh12_100x30", 0.005, "simulate", 190.6), ("sh12_100x30", 0.0025, "simulate", 346.0),
+    ("sh12_100x100", 0.01, "plan", 173.9), ("sh12_100x100", 0.005, "plan", 322.7),
+    ("sh12_100x100", 0.005, "compare", 471.8), ("sh12_100x30", 0.005, "plan", 362.6),
 ]
 
 
 @pytest.mark.parametrize("name, step, command, peak", MEASURED_PEAKS)
 def test_the_memory_estimate_bounds_the_measured_peaks(name, step, command, peak):
-    """From steps of 0.08 to 0.0025 rad (37 to 1257 taken) the measured peaks grow 6-7-fold
-    (16-fold while every step's state kept E K^-1 E^T, remeasured when it stopped beyond
-    2Q > n); the estimate stays above 0.85 of each (the 100 x 30 block's plan of two passes at
-    0.005 rad 0.99 the lowest) and within 2.1 times it (a one-pass plan at 0.01 rad 1.85 the
+    """From steps of 0.08 to 0.0025 rad (37 to 1257 taken) the measured peaks grow 4-5-fold
+    (16-fold while every step's state kept E K^-1 E^T and a dense W, remeasured when they
+    stopped); the estimate stays above 0.85 of each (the 100 x 30 block's plan of two passes
+    at 0.005 rad 0.93 the lowest) and within 2.1 times it (a one-pass plan at 0.01 rad 1.80 the
     highest: a plan may hold two runs' steps, one pass holds one); it bounds the simulate peaks
-    by 1.16-1.30x. With the SH 1/2 files at the default spacing (979 particles, before they
+    by 1.13-1.30x. With the SH 1/2 files at the default spacing (979 particles, before they
     were discretized for the needle) the same measurements gave 1.14-2.07."""
     runs = {"simulate": 1, "plan": PLAN_RUNS, "compare": PLAN_RUNS + 1}[command]
     item = estimate(sh12(step, name), "insertion", command, runs)
@@ -378,17 +379,17 @@ def test_the_memory_estimate_bounds_the_measured_peaks(name, step, command, peak
 
 
 def test_steps_too_many_for_the_memory_are_refused_naming_the_needle_step():
-    """SH 1/2 at 0.0025 rad: the tissue's model (~115 MB) fits half of 1 GB, what its 1257
-    steps keep (~640 MB estimated; a run peaked at 619 MiB) does not: the refusal names the
-    needle step, not the spacing; at the shipped 0.08 rad it runs."""
-    line = refusal([estimate(sh12(0.0025), "insertion", "simulate")], memory=1e9)
-    assert line.startswith("needle.step: got 0.0025 rad, expected a model within 50% of the 1 GB of memory "
-                           "available (1257 needle steps keep ~638 MB of states and solver blocks until the run "
+    """SH 1/2 at 0.0025 rad: the tissue's model (~115 MB) fits half of 800 MB, with what its
+    1257 steps keep (~390 MB estimated; a run peaked at 427 MiB) it does not: the refusal names
+    the needle step, not the spacing; at the shipped 0.08 rad it runs."""
+    line = refusal([estimate(sh12(0.0025), "insertion", "simulate")], memory=8e8)
+    assert line.startswith("needle.step: got 0.0025 rad, expected a model within 50% of the 800 MB of memory "
+                           "available (1257 needle steps keep ~392 MB of states and solver blocks until the run "
                            "ends; estimated simulate: 642 particles, 1257 needle steps"), line
     assert line.endswith("take a larger step, or pass --no-resource-check to run it anyway")
-    plan = refusal([estimate(sh12(0.0025), "insertion", "plan", PLAN_RUNS)], memory=1e9)
-    assert "~638 MB of states and solver blocks until the run ends, 1.28 GB for the 2 runs held at once" in plan
-    check_resources([estimate(sh12(0.08), "insertion", "simulate")], memory=1e9)
+    plan = refusal([estimate(sh12(0.0025), "insertion", "plan", PLAN_RUNS)], memory=8e8)
+    assert "~392 MB of states and solver blocks until the run ends, 785 MB for the 2 runs held at once" in plan
+    check_resources([estimate(sh12(0.08), "insertion", "simulate")], memory=8e8)
     # past the step limit too: one line, the step limit's
     line = refusal([estimate(sh12(0.0012), "insertion", "simulate")], memory=2e9)
     assert line.startswith("needle.step: got 0.0012 rad, expected a step giving at most 2000 needle steps"), line
@@ -418,7 +419,7 @@ def past_the_guard(invoked) -> bool:
 
 
 def test_the_cli_refuses_steps_too_many_for_the_memory(tmp_path, monkeypatch):
-    """772 steps of 0.0025 rad on the 40 x 20 mm block keep ~180 MB: refused in one line on a
+    """772 steps of 0.0025 rad on the 40 x 20 mm block keep ~140 MB: refused in one line on a
     machine with 400 MB available, before the run (which would take seconds) starts."""
     invoke = guarded(monkeypatch, 4e8, "stitchplan.planning.verification.simulate_with_estimate")
     path = write(tmp_path, scene(needle__step=0.0025))
@@ -441,37 +442,37 @@ def runs_at_once(step: float) -> tuple[list, list]:
 
 
 def test_runs_that_go_on_at_once_are_refused_by_the_memory_they_hold_together():
-    """At 0.005 rad the plan (~250 MB), its verification (~590 MB) and the replay at twice the
-    spacing (~130 MB) each fit 800 MB, but not together (~880 MB: the interpreter counted once, and a
+    """At 0.005 rad the plan (~230 MB), its verification (~540 MB) and the replay at twice the
+    spacing (~120 MB) each fit 700 MB, but not together (~800 MB: the interpreter counted once, and a
     forked helper's own share of it for each helper): one line naming the needle step (what they keep
     of their steps drives all three) with every run's estimate. Runs not said to go on at
     once (no `alongside`) are checked one at a time, as before; at 0.01 rad they fit together."""
     own, alongside = runs_at_once(0.005)
-    assert all(item.memory_bytes < 8e8 for item in own + alongside)
+    assert all(item.memory_bytes < 7e8 for item in own + alongside)
     together = sum(item.memory_bytes for item in own + alongside) - 2 * (BASE_MEMORY - HELPER_BASE_MEMORY)
-    assert 8e8 < together < 1.6e9
-    check_resources(own, memory=1.6e9)  # one at a time: each fits
+    assert 7e8 < together < 1.4e9
+    check_resources(own, memory=1.4e9)  # one at a time: each fits
     with pytest.raises(InputError) as error:
-        check_resources(own, memory=1.6e9, alongside=alongside)
+        check_resources(own, memory=1.4e9, alongside=alongside)
     (line,) = error.value.lines
-    assert line.startswith("needle.step: got 0.005 rad, expected runs within 50% of the 1.6 GB of memory available "
+    assert line.startswith("needle.step: got 0.005 rad, expected runs within 50% of the 1.4 GB of memory available "
                            "when they run at once ("), line
     assert f"estimated ~{together / 1e6:.3g} MB together: plan: " in line
     assert "; plan verification: " in line and "; plan's replay at twice the spacing: " in line
     assert line.endswith("take a larger step, pass --no-verify to skip the verification, or pass "
                          "--no-resource-check to run it anyway"), line
-    check_resources(*runs_at_once(0.01)[:1], memory=1.6e9, alongside=runs_at_once(0.01)[1])
+    check_resources(*runs_at_once(0.01)[:1], memory=1.4e9, alongside=runs_at_once(0.01)[1])
 
 
 def test_the_cli_refuses_a_plan_whose_runs_do_not_fit_at_once(tmp_path, monkeypatch):
     """The same plan through the CLI: refused in one line before any run, no file written;
-    with --no-verify (its passes and the estimate's replay at 2h, ~340 MB) it passes the guard."""
-    invoke = guarded(monkeypatch, 1.6e9, "stitchplan.planning.verification.plan_verified")
+    with --no-verify (its passes and the estimate's replay at 2h, ~310 MB) it passes the guard."""
+    invoke = guarded(monkeypatch, 1.4e9, "stitchplan.planning.verification.plan_verified")
     path = write(tmp_path, scene(needle__step=0.005))
     arguments = ["plan", path, "--export", tmp_path / "trajectory.csv", "--no-compare"]
     code, (line,), _ = invoke(*arguments)
     assert code == 2
-    assert line.startswith(f"error: {path}: needle.step: got 0.005 rad, expected runs within 50% of the 1.6 GB "
+    assert line.startswith(f"error: {path}: needle.step: got 0.005 rad, expected runs within 50% of the 1.4 GB "
                            "of memory available when they run at once"), line
     assert "set planner.predicted_aim: false to skip the predicted aim" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
@@ -479,15 +480,15 @@ def test_the_cli_refuses_a_plan_whose_runs_do_not_fit_at_once(tmp_path, monkeypa
 
 
 def test_the_cli_counts_the_estimate_replay_of_a_simulate(tmp_path, monkeypatch):
-    """simulate at 0.0025 rad on the 40 x 20 mm block (~290 MB) fits 400 MB alone, not with
-    its exit error estimate's replay at twice the spacing (~190 MB) beside it: refused naming
+    """simulate at 0.0025 rad on the 40 x 20 mm block (~240 MB) fits 300 MB alone, not with
+    its exit error estimate's replay at twice the spacing (~170 MB) beside it: refused naming
     --no-estimate too; with --no-estimate it passes the guard."""
-    invoke = guarded(monkeypatch, 8e8, "stitchplan.planning.verification.simulate_with_estimate")
+    invoke = guarded(monkeypatch, 6e8, "stitchplan.planning.verification.simulate_with_estimate")
     path = write(tmp_path, scene(needle__step=0.0025))
     arguments = ["simulate", path, "--summary", tmp_path / "summary.json"]
     code, (line,), _ = invoke(*arguments)
     assert code == 2
-    assert line.startswith(f"error: {path}: needle.step: got 0.0025 rad, expected runs within 50% of the 800 MB "
+    assert line.startswith(f"error: {path}: needle.step: got 0.0025 rad, expected runs within 50% of the 600 MB "
                            "of memory available when they run at once"), line
     assert "; exit error estimate: " in line and "pass --no-estimate to skip the estimate" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
@@ -496,8 +497,8 @@ def test_the_cli_counts_the_estimate_replay_of_a_simulate(tmp_path, monkeypatch)
 
 def test_the_cli_counts_the_workers_of_a_plan_under_uncertainty(tmp_path, monkeypatch):
     """plan --uncertainty at 0.005 rad on the 40 x 20 mm block: this process's runs and each
-    local worker's sampled plans (~250 MB each) fit 600 MB one at a time, not with two workers
-    beside this process (~760 MB): refused naming the needle step and --workers; with one worker it
+    local worker's sampled plans (~230 MB each) fit 600 MB one at a time, not with two workers
+    beside this process (~690 MB): refused naming the needle step and --workers; with one worker it
     passes the guard. (The cluster is not started: a Dask cluster sets malloc variables in the
     process's environment, which later tests' processes would inherit.)"""
     invoke = guarded(monkeypatch, 1.2e9, "stitchplan.parallel.executor.Executor.__enter__")
@@ -516,7 +517,7 @@ def test_the_cli_counts_the_workers_of_a_plan_under_uncertainty(tmp_path, monkey
 
 def test_the_cli_counts_the_largest_study_runs_its_workers_hold_at_once(tmp_path, monkeypatch):
     """A quick study at 0.005 rad on the 40 x 20 mm block: each run fits 500 MB (its largest
-    ~320 MB), its two largest on two local workers do not (~680 MB with this process, each
+    ~290 MB), its two largest on two local workers do not (~640 MB with this process, each
     worker a process of its own): refused naming the needle step; on one worker the runs go one at a time and it
     passes the guard."""
     invoke = guarded(monkeypatch, 1e9, "stitchplan.parallel.executor.Executor.__enter__")

@@ -1,13 +1,14 @@
 """What a needle insertion keeps per step for a later run to take over (run_insertion's
-states): the saddle-point solver's E K^-1 and E K^-1 E^T and the coupling's growing track rows (its
-constraint quadrature's and its loads') are views of a few shared buffers, not an array of
-their own per step. Kept per step, they made the
-memory grow with the cube of the steps: 1.4 GB after 305 steps of 0.01 rad on 99 particles,
-an out-of-memory kill at 0.0025 rad."""
+states): the saddle-point solver's E K^-1 and E K^-1 E^T and the coupling's growing track
+rows (its constraint quadrature's and its loads') are views of a few shared buffers, not an
+array of their own per step, and the coupling's W is kept sparse. Kept per step, they made
+the memory grow with the cube of the steps: 1.4 GB after 305 steps of 0.01 rad on 99
+particles, an out-of-memory kill at 0.0025 rad."""
 
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from stitchplan.config.scenario import parse_scenario
 from stitchplan.needle.insertion import run_insertion
@@ -47,6 +48,11 @@ def test_the_states_of_a_long_insertion_share_their_buffers():
     # E K^-1, (2Q, n): doubling buffers too (at most 1 + 1/2 + 1/4 + ... of the largest)
     total, largest = buffer_bytes([state.solver[2] for state in states])
     assert total <= 2.0 * largest, (total, largest)
+    # the coupling's W (Q, m): sparse in every state, at most two entries a row (dense, the
+    # states' W grew with the cube of the steps)
+    weights = [state.coupling["weights"] for state in states]
+    assert all(sp.issparse(matrix) and matrix.nnz <= 2 * matrix.shape[0] for matrix in weights)
+    assert weights[-1].shape[1] > 2 and weights[-1].nnz < weights[-1].shape[0] * weights[-1].shape[1] / 2
     rows = [state.coupling["_quadrature_rows"].matrix.data for state in states]
     total, largest = buffer_bytes(rows)
     assert total <= 2.5 * largest, (total, largest)

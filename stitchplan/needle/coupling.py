@@ -253,12 +253,17 @@ class NeedleCoupling:
 
     def state(self) -> dict:
         """What `add` (and the ramp's load_factor) changed, for `restore`. Every attribute is
-        replaced, never changed in place, so a shallow copy keeps it."""
-        return _own_rows(self.__dict__)
+        replaced, never changed in place, so a shallow copy keeps it; W is kept sparse (a
+        state per needle step: dense, (Q, m) each, they grew with the cube of the steps)."""
+        attributes = _own_rows(self.__dict__)
+        attributes["weights"] = sp.csr_matrix(attributes["weights"])
+        return attributes
 
     def restore(self, state: dict) -> None:
         """Back to a `state` of this coupling (kept unchanged for another restore)."""
-        self.__dict__.update(_own_rows(state))
+        attributes = _own_rows(state)
+        attributes["weights"] = attributes["weights"].toarray()
+        self.__dict__.update(attributes)
 
     # --- the track ------------------------------------------------------------------------
 

@@ -17,9 +17,9 @@ the guard estimates
   plus for a needle run what it keeps of its steps until it ends (_step_memory, counted
   from the arrays the code keeps: each step's state with the saddle-point solver's dense
   blocks, E K^-1 (2Q, 2 n_free) with 2Q ~ 4 x the steps and E K^-1 E^T (2Q, 2Q) while
-  2Q <= 2 n_free, in doubling buffers the states share, and the coupling's weights (Q, m)),
-  which passes the rest from a few hundred steps on (SH 1/2: 0.62 GB measured at 0.0025
-  rad, 0.09 GB at its 0.08 rad);
+  2Q <= 2 n_free, in doubling buffers the states share, and the coupling's weights (Q, m),
+  sparse), which passes the rest from a few hundred steps on (SH 1/2: 0.45 GB measured at
+  0.0025 rad, 0.09 GB at its 0.08 rad);
 - time: the tangent assembly B^T W B costs ~ quadrature points x neighbours^2 per Newton
   iteration and the factorization grows a little faster than the particles; seconds =
   SECONDS_PER_PARTICLE_STEP x particles^TIME_EXPONENT x steps x (neighbours / 16)^2 x
@@ -44,11 +44,11 @@ iterations).
 The constants come from `python benchmarks/resource_costs.py` (benchmarks/results/
 resource_costs.md), measured on the 2-core machine the tool is developed on, which is
 shared: in its latest run the fitted memory model is within 0.79-1.28x of every measured
-case, the fitted time model within 0.87-1.09x of the dilation-2 cases at the scenarios'
+case, the fitted time model within 0.84-1.10x of the dilation-2 cases at the scenarios'
 needle steps, and the (neighbours/16)^2 time scaling overestimated the unfitted dilation-3
-case (0.59x there; 0.33x and 0.96x in earlier runs). What a needle run keeps of its steps is
+case (0.60x there; 0.33x and 0.96x in earlier runs). What a needle run keeps of its steps is
 not fitted: with the guard's constants the runs at 0.01 and 0.0025 rad on SH 1/2 peak at
-0.78 and 0.90x of the estimate (the other cases at 0.46-0.88x), and their time per step
+0.79 and 0.88x of the estimate (the other cases at 0.46-0.86x), and their time per step
 grows with the steps taken (1.7x the estimate at 0.0025 rad; 3.6x while the solver formed
 every step's Schur complement from E K^-1 E^T). The
 memory limit is what protects the machine; the time is a guide, not a promise.
@@ -63,8 +63,8 @@ them all; nothing raises the memory share: a smaller model is the way under it):
 - MAX_NEEDLE_STEPS = 2 000: the shipped needles take 15-40 steps; 2 000 steps over a half
   circle advance the SH needle's tip by radius x step ~ 0.014 mm each, 1/130 of the default
   particle spacing at the needle (1.78 mm): nothing the model resolves, while the run time
-  grows with every step, and the memory it keeps faster still (~1.5 GB estimated at 2 000
-  steps on SH 1/2, past the memory share of a machine with less than 3 GB available: then
+  grows with every step, and the memory it keeps faster still (~0.9 GB estimated at 2 000
+  steps on SH 1/2, past the memory share of a machine with less than 1.8 GB available: then
   refused naming needle.step);
 - MAX_NEIGHBOURS = 400 particles in a kernel support (dilation 10): the RK functions stop
   being local well before (RKPM practice: dilation 1.5-3, 9-36 neighbours), and the

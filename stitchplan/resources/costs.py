@@ -49,6 +49,9 @@ REFERENCE_POINTS_PER_PARTICLE = 4.0  # 2 x 2 Gauss points per cell, one cell per
 # what a needle run keeps of its steps until it ends (_step_memory, from the arrays the code
 # keeps; checked against measured peaks in benchmarks/results/resource_costs.md)
 FLOAT_BYTES = 8.0
+# a scipy CSR matrix: per entry its value and int32 column, per row its int32 start
+SPARSE_ENTRY_BYTES = 12.0
+SPARSE_ROW_BYTES = 4.0
 # a step's state holds its own copy of the track's arrays (NeedleCoupling.add makes new ones
 # each step): per needle point the points (16 bytes), the segments' two Gauss points and the
 # load points (32 each), the load magnitudes (16), segment fraction and spacing (8 each), gap (1)
@@ -74,8 +77,8 @@ VERIFICATION_RUNS = 2
 # runs whose steps' states one process holds at once (_step_memory each), of the `runs` an
 # estimate counts: a plan holds its unplanned comparison (--compare), its first pass (later
 # passes take its early steps over: planning.planner.PassPrefix), its best pass so far and the
-# pass running, 1-4 runs (measured on SH 1/2 at 0.005 rad: 285 MiB for one run, 371 MiB for a
-# plan of two passes, 566 MiB with the comparison, 461 MiB for the 100 x 30 block's two passes;
+# pass running, 1-4 runs (measured on SH 1/2 at 0.005 rad: 237 MiB for one run, 323 MiB for a
+# plan of two passes, 472 MiB with the comparison, 363 MiB for the 100 x 30 block's two passes;
 # tests/test_resource_guard.py MEASURED_PEAKS); a verification its first replay while the second
 # runs (run_insertion `start_from`). Two: within 2x of one and of four
 HELD_RUNS = 2
@@ -150,10 +153,11 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
       written are resident whole), and which covers what the allocator keeps of the steps' freed
       temporaries (SH 1/2 at 0.005 and 0.0025 rad, when each state still held a copy of the load
       rows: peaks ~180 and ~430 MB above the resident bytes of the arrays kept, ~100 MB of them
-      the interpreter's and the model's; the peaks are now 0.83-0.86x the estimate there,
+      the interpreter's and the model's; the peaks are now 0.83-0.88x the estimate there,
       tests/test_resource_guard.py);
-    - the coupling's dense W (Q_k, m_k), new in each step's state (NeedleCoupling._partition;
-      the point coupling's identity, (k + 1)^2): sum over the steps ~ N^3;
+    - the coupling's W (Q_k, m_k), new in each step (NeedleCoupling._partition; the point
+      coupling's identity, (k + 1)^2), which each step's state keeps sparse (at most two
+      entries a row, NeedleCoupling.state): sum over the steps ~ N^2, and the last one dense;
     - the track's arrays, new in each state (TRACK_BYTES_PER_POINT): ~ N^2;
     - STEP_BYTES_PER_PARTICLE per particle and step.
 
@@ -165,7 +169,7 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
 
     needle, d = scenario.needle, scenario.discretization
     n = float(steps)
-    sum_k, sum_k2 = n * (n + 1.0) / 2.0, n * (n + 1.0) * (2.0 * n + 1.0) / 6.0
+    sum_k = n * (n + 1.0) / 2.0
     arc_ends = needle.coupling != POINTS and needle.multiplier_ends == ARC_ENDS
     # Q_k = per_segment k + first, m_k = slope k + offset
     pieces = 1.0
@@ -182,8 +186,10 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
         # element's length (at most one per segment)
         per_segment = max(2.0, float(math.ceil(QUADRATURE_PER_ELEMENT * ratio))) if arc_ends else 2.0 * pieces
         first, slope, offset = 0.0, ratio if arc_ends else min(ratio, 1.0), 2.0
-    weights = FLOAT_BYTES * (per_segment * slope * sum_k2 + (per_segment * offset + first * slope) * sum_k
-                             + first * offset * n)
+    entries = 1.0 if needle.coupling == POINTS else 2.0  # of W's rows: the identity's, or two hats'
+    quadrature_sum = per_segment * sum_k + first * n  # sum of Q_k
+    weights = ((SPARSE_ENTRY_BYTES * entries + SPARSE_ROW_BYTES) * quadrature_sum
+               + FLOAT_BYTES * (per_segment * n + first) * (slope * n + offset))
     # the doubling buffers' capacities c_0 2^j, j = 0..J, c_0 = 2 Q_1, c_0 2^J >= 2 Q_N; E K^-1 E^T's
     # up to J' with c_0 2^J' >= min(2 Q_N, 2 particles)
     start, end = 2.0 * (per_segment + first), 2.0 * (per_segment * STEP_MARGIN * n + first)
