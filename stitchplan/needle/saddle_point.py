@@ -216,15 +216,16 @@ class SaddlePointSolver:
         `stiffness` returns the current K + H when a factor is needed. G = E^T B with E the
         interleaved shape-function `rows` of the constraint quadrature (2Q, n) and B the
         dense `weights` (2Q, m) that carry the normals (NeedleCoupling.normal_weights).
-        For one factor, K^-1 E^T (n, 2Q) and E K^-1 E^T (2Q, 2Q) are kept and grown by the
-        rows of new quadrature points only, so an iteration costs one solve with the factor, one sparse
-        product E a and small dense products. Once the constraint quadrature has more rows than
-        K has unknowns (2Q > n: long insertions in small needle steps), S is formed as
-        B^T E (K^-1 E^T B) instead, in n 2Q m operations rather than (2Q)^2 m, and E K^-1 E^T,
-        (2Q)^2 floats, is no longer kept. `rhs` may hold several columns.
+        For one factor, E K^-1 (2Q, n) and E K^-1 E^T (2Q, 2Q) are kept and grown by the
+        rows of new quadrature points only, so an iteration costs one solve with the factor,
+        one sparse product E a and small dense products. Once the constraint quadrature has
+        more rows than K has unknowns (2Q > n: long insertions in small needle steps), S is
+        formed as B^T E (K^-1 E^T B) instead, in ~n x B's entries operations rather than
+        (2Q)^2 m, and E K^-1 E^T, (2Q)^2 floats, is no longer kept. `rhs` may hold several
+        columns.
 
         `on_rows` = (C (2Q, j), h (m, j)): j more right-hand sides [E^T C; h], whose K^-1 E^T C
-        comes from the kept columns without a solve (the factor's solves take their columns one
+        comes from the kept rows without a solve (the factor's solves take their columns one
         at a time); their solutions follow rhs's columns.
         """
         n, k = rows.shape[1], weights.shape[1]
@@ -268,11 +269,10 @@ class SaddlePointSolver:
         return np.concatenate([a - correction, multipliers])
 
     def _grow(self, rows: sp.csr_matrix) -> None:
-        """Extend K^-1 E^T and E K^-1 E^T by the rows added since the last solve (the
-        constraint quadrature only grows during an insertion, its earlier rows unchanged); the
-        latter dropped once the rows outnumber the unknowns (solve_direct). It is None only
-        then: the rows' count grows until a new factor (_use) or a kept state (restore)
-        resets both."""
+        """Extend E K^-1 and E K^-1 E^T by the rows added since the last solve (the
+        constraint quadrature only grows during an insertion, its earlier rows unchanged). The
+        latter is dropped (None) once the rows outnumber the unknowns (solve_direct), and stays
+        so while they grow, until a new factor (_use) or a kept state (restore) replaces both."""
         have, count = self._solved_count, rows.shape[0]
         if have >= count:
             return
