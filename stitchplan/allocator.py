@@ -17,6 +17,13 @@ latest, and the same peak memory (benchmarks/plan_speed.py, the allocator table)
 process is not on glibc (musl, macOS, Windows), or the user set glibc's MALLOC_MMAP_THRESHOLD_ or MALLOC_TRIM_THRESHOLD_,
 nothing changes.
 
+A local Dask cluster's workers are processes started afresh, whose glibc reads its
+thresholds from the environment as they start: `worker_environment` gives them the same
+thresholds (stitchplan/parallel/executor.py), where Dask's own (MALLOC_TRIM_THRESHOLD_ of 64
+KiB, which also fixes the mmap threshold at 128 KiB) had every array above 128 KiB mapped
+afresh and faulted in page by page, ~28 000 page faults in each replay of
+configs/sh12_100x100.yaml and 1.4x its time in process (benchmarks/worker_allocator.py).
+
 The command's imports (numpy, scipy, pydantic and the scenario's classes, typer) make some
 hundred thousand objects that live as long as the process, none of them garbage, and the
 cyclic collector, run every few hundred allocations, looks for garbage among them as they
@@ -42,6 +49,9 @@ M_MMAP_THRESHOLD = -3
 MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024  # glibc's DEFAULT_MMAP_THRESHOLD_MAX on 64-bit systems
 TRIM_THRESHOLD_BYTES = 2 * MMAP_THRESHOLD_BYTES  # as glibc sets it when it raises the mmap threshold
 USER_VARIABLES = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+# whether the user's environment set either, as this module was first imported (a local Dask
+# cluster sets them in this process's environment for its workers)
+USER_SET = any(name in os.environ for name in USER_VARIABLES)
 
 
 def reuse_freed_memory() -> bool:
@@ -59,6 +69,15 @@ def reuse_freed_memory() -> bool:
     # M_MMAP_THRESHOLD first: setting it also stops glibc's own adjustment of the trim threshold
     return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD,
                                                                                   TRIM_THRESHOLD_BYTES))
+
+
+def worker_environment() -> dict[str, str]:
+    """glibc's variables for the thresholds reuse_freed_memory sets, for processes started
+    afresh (module docstring); empty where it sets nothing (not Linux, or the user's
+    environment set either variable, USER_SET)."""
+    if not sys.platform.startswith("linux") or USER_SET:
+        return {}
+    return {"MALLOC_MMAP_THRESHOLD_": str(MMAP_THRESHOLD_BYTES), "MALLOC_TRIM_THRESHOLD_": str(TRIM_THRESHOLD_BYTES)}
 
 
 _in_command = False  # this process runs the command line (cli.main, or a helper forked from it)

@@ -49,16 +49,11 @@ def dask_setup(worker: Any) -> None:
     A worker process (one its nanny started) ignores Ctrl-C: the terminal sends SIGINT to the
     whole process group, and the worker would end in a traceback of asyncio's CancelledError
     and KeyboardInterrupt while the command, which closes the cluster, stops it anyway.
-    Its allocator is set as the command's (stitchplan/allocator.py) only where the worker's
-    environment sets neither of glibc's variables: a local cluster's nanny sets
-    MALLOC_TRIM_THRESHOLD_ (64 KiB, Dask's `distributed.nanny.pre-spawn-environ`), which is
-    then left as Dask set it."""
+    Its allocator is set as the command's before it starts, by the environment its nanny
+    gives it (stitchplan/allocator.py, worker_environment)."""
     import multiprocessing
     import threading
 
-    from ..allocator import reuse_freed_memory
-
-    reuse_freed_memory()
     for name in _dask_logger_names():
         logging.getLogger(name).setLevel(logging.CRITICAL + 1)
     if multiprocessing.parent_process() is not None and threading.current_thread() is threading.main_thread():

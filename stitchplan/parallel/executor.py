@@ -86,6 +86,8 @@ class Executor:
         import dask
         from dask.distributed import Client, LocalCluster
 
+        from ..allocator import worker_environment
+
         try:
             os.getcwd()
         except FileNotFoundError:  # the workers start in it, and fail with a message about nannies
@@ -101,10 +103,14 @@ class Executor:
         configured = dask.config.get("distributed.worker.preload", default=None) or []
         preload = [*([configured] if isinstance(configured, str) else configured),
                    dask_setup.__module__]  # its dask_setup
+        # set before each worker process starts (a nanny's pre-spawn environment), where glibc reads them
+        spawned = {**(dask.config.get("distributed.nanny.pre-spawn-environ", default=None) or {}),
+                   **worker_environment()}
         try:
             # no dashboard; the scheduler's HTTP routes (health, metrics) on a free local port, not
             # on 8787, where another cluster would make distributed warn on stderr
-            with signals_deferred():  # a cluster interrupted half-started cannot be closed
+            with signals_deferred(), dask.config.set({"distributed.nanny.pre-spawn-environ": spawned}):
+                # a cluster interrupted half-started cannot be closed (signals_deferred)
                 cluster = self._stack.enter_context(LocalCluster(
                     n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
                     scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, silence_logs=logging.ERROR,
