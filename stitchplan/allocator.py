@@ -21,7 +21,7 @@ A local Dask cluster's workers are processes started afresh, whose glibc reads i
 thresholds from the environment as they start: `worker_environment` gives them the same
 thresholds (stitchplan/parallel/executor.py), where Dask's own (MALLOC_TRIM_THRESHOLD_ of 64
 KiB, which also fixes the mmap threshold at 128 KiB) had every array above 128 KiB mapped
-afresh and faulted in page by page, ~28 000 page faults in each replay of
+afresh and faulted in page by page, ~28 000 page faults in each unplanned run of
 configs/sh12_100x100.yaml and 1.4x its time in process (benchmarks/worker_allocator.py).
 
 The command's imports (numpy, scipy, pydantic and the scenario's classes, typer) make some
