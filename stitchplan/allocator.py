@@ -49,14 +49,15 @@ M_MMAP_THRESHOLD = -3
 MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024  # glibc's DEFAULT_MMAP_THRESHOLD_MAX on 64-bit systems
 TRIM_THRESHOLD_BYTES = 2 * MMAP_THRESHOLD_BYTES  # as glibc sets it when it raises the mmap threshold
 USER_VARIABLES = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
-# whether the user's environment set either, as this module was first imported (a local Dask
-# cluster sets them in this process's environment for its workers)
+# whether the user's environment set either, as this module was first imported: what this
+# process's glibc read as it started (a local Dask cluster later sets them in this process's
+# environment for its workers)
 USER_SET = any(name in os.environ for name in USER_VARIABLES)
 
 
 def reuse_freed_memory() -> bool:
     """Set glibc malloc's mmap and trim thresholds (module docstring); whether they were set."""
-    if not sys.platform.startswith("linux") or any(name in os.environ for name in USER_VARIABLES):
+    if not _thresholds_are_ours():
         return False
     try:
         import ctypes
@@ -75,9 +76,14 @@ def worker_environment() -> dict[str, str]:
     """glibc's variables for the thresholds reuse_freed_memory sets, for processes started
     afresh (module docstring); empty where it sets nothing (not Linux, or the user's
     environment set either variable, USER_SET)."""
-    if not sys.platform.startswith("linux") or USER_SET:
+    if not _thresholds_are_ours():
         return {}
     return {"MALLOC_MMAP_THRESHOLD_": str(MMAP_THRESHOLD_BYTES), "MALLOC_TRIM_THRESHOLD_": str(TRIM_THRESHOLD_BYTES)}
+
+
+def _thresholds_are_ours() -> bool:
+    """On Linux, where the user's environment set neither of glibc's variables (USER_SET)."""
+    return sys.platform.startswith("linux") and not USER_SET
 
 
 _in_command = False  # this process runs the command line (cli.main, or a helper forked from it)
