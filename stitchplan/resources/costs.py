@@ -193,14 +193,17 @@ def _step_memory(scenario: Scenario, particles: float, steps: float) -> float:
     # the doubling buffers' capacities c_0 2^j, j = 0..J, c_0 = 2 Q_1, c_0 2^J >= 2 Q_N; E K^-1 E^T's
     # up to J' with c_0 2^J' >= min(2 Q_N, 2 particles)
     start, end = 2.0 * (per_segment + first), 2.0 * (per_segment * STEP_MARGIN * n + first)
-    doublings = max(math.ceil(math.log2(end / start) - 1e-9), 0)
-    capacities = start * (2.0 ** (doublings + 1) - 1.0)  # sum of c_j
-    square_doublings = max(math.ceil(math.log2(min(end, 2.0 * particles) / start) - 1e-9), 0)
-    squares = start * start * (4.0 ** (square_doublings + 1) - 1.0) / 3.0  # sum of c_j^2, j <= J'
+    capacities = start * (2.0 ** (_doublings(start, end) + 1) - 1.0)  # sum of c_j
+    squares = start * start * (4.0 ** (_doublings(start, min(end, 2.0 * particles)) + 1) - 1.0) / 3.0  # c_j^2, j <= J'
     blocks = FLOAT_BYTES * (squares + 2.0 * particles * capacities)
     track = (TRACK_BYTES_PER_POINT + TRACK_BYTES_PER_PIECE * (pieces - 1.0)
              + (ARC_BYTES_PER_QUADRATURE_POINT * per_segment if arc_ends else 0.0)) * sum_k
     return blocks + weights + track + STEP_BYTES_PER_PARTICLE * particles * n
+
+
+def _doublings(start: float, end: float) -> int:
+    """J: the doublings from a buffer's first capacity `start` to one of at least `end`."""
+    return max(math.ceil(math.log2(end / start) - 1e-9), 0)
 
 
 def condition_costs(particles: float, steps: float) -> tuple[float, float]:
