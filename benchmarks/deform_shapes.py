@@ -1,8 +1,10 @@
 """Tissue shapes against an independent FEM: `stitchplan deform` on a plate with a
-rectangular hole, a two-layer slab and an L-shaped outline, each against a fine scikit-fem
-solution (Q2 quadrilaterals, graded toward every corner; benchmarks/skfem_reference.py,
-solve_skfem_shape), at the default spacing, half and a quarter of it: the max probe error
-and the observed convergence rate.
+rectangular hole, a two-layer slab, an L-shaped outline, a plate with a circular inclusion
+and one with a circular hole, each against a fine scikit-fem solution (Q2 quadrilaterals
+graded toward every corner, benchmarks/skfem_reference.py solve_skfem_shape; for the circles
+P2 triangles whose edges follow the model's 96-gons, solve_skfem_curved), at the default
+spacing, half and a quarter of it: the max probe error and the observed convergence rate.
+The reference's own probe displacements are a row of the CSV each (spacing 0).
 
 Writes benchmarks/results/deform_shapes.{csv,md} and prints the table.
 Run from the repository root:  python benchmarks/deform_shapes.py
@@ -18,7 +20,7 @@ import argparse  # noqa: E402
 import math  # noqa: E402
 
 import _common as common  # noqa: E402
-from skfem_reference import solve_skfem_shape  # noqa: E402
+from skfem_reference import solve_skfem_curved, solve_skfem_shape  # noqa: E402
 from stitchplan.config.scenario import parse_scenario, with_discretization  # noqa: E402
 from stitchplan.tissue.deform import run_deform  # noqa: E402
 
@@ -56,8 +58,26 @@ SCENES = {
         "loads": [{"segment": [[40.0, 0.0], [40.0, 20.0]], "force": [1.0, -0.3]}],
         "probes": [[40.0, 0.0], [40.0, 12.0], [40.0, 20.0], [20.0, 12.0], [20.0, 4.0], [20.0, 18.0]],
     },
+    # 40 x 20 mm plate, a 4x stiffer circular inclusion of radius 5 mm in the middle (the
+    # model's 96-gon, its edges cutting the background cells at every slope), clamped left,
+    # pulled and sheared on the right edge
+    "circular_inclusion": {
+        "name": "plate with a circular inclusion",
+        "tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": SOFT, "clamped": ["left"],
+                   "regions": [{"circle": {"center": [20.0, 10.0], "radius": 5.0}, "material": STIFF}]},
+        "loads": [{"segment": [[40.0, 0.0], [40.0, 20.0]], "force": [1.0, 0.3]}],
+        "probes": [[40.0, 10.0], [40.0, 20.0], [20.0, 10.0], [25.0, 10.0], [20.0, 15.0], [30.0, 3.0]],
+    },
+    # the same plate with a circular hole of radius 5 mm instead: free curved edges
+    "circular_hole": {
+        "name": "plate with a circular hole",
+        "tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": SOFT, "clamped": ["left"],
+                   "holes": [{"circle": {"center": [20.0, 10.0], "radius": 5.0}}]},
+        "loads": [{"segment": [[40.0, 0.0], [40.0, 20.0]], "force": [1.0, 0.3]}],
+        "probes": [[40.0, 10.0], [40.0, 20.0], [25.0, 10.0], [20.0, 15.0], [20.0, 5.0], [30.0, 3.0]],
+    },
 }
-REFERENCE_H = 0.25  # mm, skfem Q2 element side (plus grading at the corners)
+REFERENCE_H = 0.25  # mm, skfem element side (Q2 plus grading at the corners; P2 triangles for circles)
 REFINEMENTS = (1, 2, 4)  # spacing = default / r
 
 
@@ -70,9 +90,13 @@ def main() -> None:
         scenario = parse_scenario(raw)
         default = scenario.discretization.spacing
         print(f"{key}: skfem reference h = {args.reference_h:g} mm ...", flush=True)
-        reference = solve_skfem_shape(scenario, args.reference_h)
-        check = solve_skfem_shape(scenario, 2 * args.reference_h)
+        curved = any(hole.circle is not None for hole in scenario.tissue.holes) or any(
+            region.circle is not None for region in scenario.tissue.regions)
+        solve = solve_skfem_curved if curved else solve_skfem_shape
+        reference = solve(scenario, args.reference_h)
+        check = solve(scenario, 2 * args.reference_h)
         reference_change = common.max_probe_error(check.probe_displacements, reference.probe_displacements)
+        csv_rows.append([key, 0.0, "", "", "", reference.seconds, *reference.probe_displacements.ravel()])
         errors, spacings = [], []
         for r in REFINEMENTS:
             spacing = default / r
@@ -97,7 +121,8 @@ def main() -> None:
                      *(f"{q:.2f}" for q in rates), f"{reference.dofs} dofs, change {100 * reference_change:.3f} %"])
     header = ["scene", "default spacing (mm)", *(f"error at default/{r}" for r in REFINEMENTS),
               *(f"rate {REFINEMENTS[k]}->{REFINEMENTS[k + 1]}" for k in range(len(REFINEMENTS) - 1)),
-              f"skfem reference (Q2, h {args.reference_h:g} mm graded; change from h {2 * args.reference_h:g})"]
+              f"skfem reference (Q2 graded or P2 on circles, h {args.reference_h:g} mm; change from h "
+              f"{2 * args.reference_h:g})"]
     table = common.markdown_table(header, rows)
     common.write_csv(common.results_path("deform_shapes.csv"),
                      ["scene", "spacing_mm", "particles", "quadrature_points", "max_probe_error_rel",
@@ -108,8 +133,9 @@ def main() -> None:
         "`stitchplan deform` (default discretization: gauss integration, dilation 2, particles "
         "fitted to the shape, cut cells split 3 times, visibility criterion) against a fine "
         "scikit-fem solution of the same plane-strain St. Venant-Kirchhoff problem (Q2 "
-        "quadrilaterals, elements graded toward every corner, each element's material that of "
-        "its centre). Error = max over the probes of |u - u_ref| / max |u_ref|; rate = observed "
+        "quadrilaterals, elements graded toward every corner; on the circle scenes P2 triangles "
+        "whose edges follow the model's 96-gons; each element's material that of its centre). "
+        "The CSV's rows of spacing 0 hold the reference's probe displacements. Error = max over the probes of |u - u_ref| / max |u_ref|; rate = observed "
         "order log(e1/e2)/log(h1/h2). Scenes in benchmarks/deform_shapes.py (SCENES).",
         "",
         table,

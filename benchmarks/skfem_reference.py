@@ -284,40 +284,113 @@ def solve_skfem_shape(scenario: Scenario, h: float, grading: int = 3) -> SkfemRu
     a Q2 tensor mesh of side ~h over the bounding box with lines through every vertex and
     segment end, `grading` geometric levels of lines around every vertex (the corners are
     singular), elements outside the tissue removed, each element's Lame moduli those of the
-    region holding its centre. Clamped edges or segments u = 0; force segments dead
-    tractions (displacement segments are not implemented here)."""
-    from stitchplan.geometry.segments import on_segment
-    from stitchplan.tissue.shapes import region_index
-
+    region holding its centre (solve_on_shape_mesh)."""
     start = time.perf_counter()
     tissue = scenario.tissue
     domain = tissue.domain
-    materials = [tissue.material] + [region.material for region in tissue.regions]
-    if any(m.model != "saint-venant-kirchhoff" for m in materials):
-        raise ValueError("this reference implements St. Venant-Kirchhoff only")
-    if any(load.displacement is not None for load in scenario.loads):
-        raise ValueError("force loads only")
     origin = np.asarray(domain.origin, float)
     width, height = domain.size
     vertices = [np.asarray(domain.outline if hasattr(domain, "outline") else
                            [[0, 0], [width, 0], [width, height], [0, height]], float)]
     vertices += [np.asarray(h_, float) for h_ in domain.holes]
-    vertices += [np.asarray(r.polygon, float) for r in tissue.regions]
+    vertices += [r.vertices() for r in tissue.regions]
     corners = np.concatenate(vertices) - origin
     ends = np.asarray([p for load in scenario.loads for p in load.segment], float).reshape(-1, 2) - origin
     points = np.concatenate([corners, ends])
     x_lines = mesh_lines(width, max(int(round(width / h)), 1), list(points[:, 0]), list(corners[:, 0]), grading)
     y_lines = mesh_lines(height, max(int(round(height / h)), 1), list(points[:, 1]), list(corners[:, 1]), grading)
     mesh = MeshQuad.init_tensor(x_lines + origin[0], y_lines + origin[1])
+    return solve_on_shape_mesh(scenario, mesh, ElementQuad2(), "Q2-quad", h, start)
+
+
+def solve_skfem_curved(scenario: Scenario, h: float) -> SkfemRun:
+    """`solve_skfem` for a rectangle with holes and material regions of any shape (circles:
+    the model's 96-gons), on P2 triangles that follow every hole's and region's edges: the
+    Delaunay triangulation of a grid of side h over the rectangle without its points within
+    h/2 of those edges, and of the edges' vertices with each edge cut into pieces of at most
+    h/2 (each piece's diametral circle then holds no other point, so the piece is an edge of
+    the triangulation: no triangle straddles an edge, checked), triangles inside a hole
+    removed, each triangle's Lame moduli those of the region holding its centre
+    (solve_on_shape_mesh). The holes and regions must keep h from the rectangle's sides."""
+    from scipy.spatial import Delaunay
+
+    from stitchplan.geometry.segments import point_segment_distance
+
+    start = time.perf_counter()
+    tissue = scenario.tissue
+    domain = tissue.domain
+    if hasattr(domain, "outline") and not domain.edge_names:
+        raise ValueError("a rectangle with holes and regions only")
+    origin = np.asarray(domain.origin, float)
+    width, height = domain.size
+    loops = [np.asarray(hole, float) for hole in domain.holes] + [r.vertices() for r in tissue.regions]
+    starts = np.concatenate(loops)
+    ends = np.concatenate([np.roll(loop, -1, axis=0) for loop in loops])
+    pieces = np.maximum(np.ceil(np.linalg.norm(ends - starts, axis=1) / (0.5 * h)).astype(int), 1)
+    along = [a + (b - a) * (np.arange(n) / n)[:, None] for a, b, n in zip(starts, ends, pieces)]
+    edge_points = np.concatenate(along)
+    x = origin[0] + np.linspace(0.0, width, max(int(round(width / h)), 1) + 1)
+    y = origin[1] + np.linspace(0.0, height, max(int(round(height / h)), 1) + 1)
+    grid = np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
+    grid = grid[domain.contains(grid)]  # no nodes inside a hole
+    near = np.zeros(len(grid), dtype=bool)
+    for a, b in zip(starts, ends):
+        near |= point_segment_distance(grid, a, b) < 0.5 * h
+    points = np.concatenate([grid[~near], edge_points])
+    triangles = Delaunay(points).simplices
+    centres = points[triangles].mean(axis=1)
+    inside = domain.contains(centres)
+    triangles, centres = triangles[inside], centres[inside]
+    # a straddling triangle has a corner off the edges, or a point inside, in another region
+    # or in a hole: its corners and four inner points (barycentric) are looked at
+    tol = 1e-9 * max(width, height)
+    on_edge = np.zeros(len(points), dtype=bool)
+    for a, b in zip(starts, ends):
+        on_edge |= point_segment_distance(points, a, b) <= tol
+    inner = np.array([[2, 1, 1], [1, 2, 1], [1, 1, 2], [1, 1, 1]]) / np.array([[4], [4], [4], [3]])
+    looked_at = np.concatenate([points[triangles], np.einsum("sk,tkd->tsd", inner, points[triangles])], axis=1)
+    off_edge = np.concatenate([~on_edge[triangles], np.ones((len(triangles), len(inner)), dtype=bool)], axis=1)
+    which = region_of_points(tissue, looked_at.reshape(-1, 2)).reshape(len(triangles), -1)
+    in_hole = ~domain.contains(looked_at.reshape(-1, 2), tol).reshape(len(triangles), -1)
+    own = region_of_points(tissue, centres)
+    straddles = np.any(off_edge & ((which != own[:, None]) | in_hole), axis=1)
+    if np.any(straddles):
+        raise RuntimeError(f"{int(straddles.sum())} triangles straddle a hole's or a region's edge")
+    mesh = MeshTri(points.T.copy(), triangles.T.copy())
+    return solve_on_shape_mesh(scenario, mesh, ElementTriP2(), "P2-tri", h, start)
+
+
+def region_of_points(tissue, points: np.ndarray) -> np.ndarray:
+    """The region index of each point (-1: the tissue's own material), as the model assigns it."""
+    from stitchplan.tissue.shapes import region_index
+
+    return region_index(tissue, points) if tissue.regions else np.full(len(points), -1)
+
+
+def solve_on_shape_mesh(scenario: Scenario, mesh, element, label: str, h: float, start: float) -> SkfemRun:
+    """The shape scenes' solve on `mesh` (elements of the scalar `element`): elements whose
+    centre lies outside the tissue removed, each element's Lame moduli those of the region
+    holding its centre; clamped edges or segments u = 0, force segments dead tractions
+    (displacement segments are not implemented here), St. Venant-Kirchhoff only."""
+    from stitchplan.geometry.segments import on_segment
+
+    tissue = scenario.tissue
+    domain = tissue.domain
+    width, height = domain.size
+    materials = [tissue.material] + [region.material for region in tissue.regions]
+    if any(m.model != "saint-venant-kirchhoff" for m in materials):
+        raise ValueError("this reference implements St. Venant-Kirchhoff only")
+    if any(load.displacement is not None for load in scenario.loads):
+        raise ValueError("force loads only")
     centres = mesh.p[:, mesh.t].mean(axis=1).T  # (nel, 2)
     outside = ~domain.contains(centres)
     if np.any(outside):
         mesh = mesh.remove_elements(np.flatnonzero(outside))
         centres = mesh.p[:, mesh.t].mean(axis=1).T
-    which = region_index(tissue, centres) + 1
+    which = region_of_points(tissue, centres) + 1
     lame_lambda = np.array([m.lame_lambda for m in materials])[which][:, None]
     lame_mu = np.array([m.lame_mu for m in materials])[which][:, None]
-    vector_element = ElementVector(ElementQuad2())
+    vector_element = ElementVector(element)
     basis = Basis(mesh, vector_element, intorder=4)
 
     def facets_on(a, b):
@@ -339,7 +412,7 @@ def solve_skfem_shape(scenario: Scenario, h: float, grading: int = 3) -> SkfemRu
                                         scenario.load_steps, lame_lambda, lame_mu, h)
     probes = np.asarray(scenario.probes, dtype=float).reshape(-1, 2)
     values = (basis.probes(probes.T) @ u).reshape(2, -1).T
-    return SkfemRun("Q2-quad", int(round(max(width, height) / h)), basis.N, mesh.nelements, values,
+    return SkfemRun(label, int(round(max(width, height) / h)), basis.N, mesh.nelements, values,
                     iterations, time.perf_counter() - start)
 
 

@@ -211,12 +211,13 @@ def test_the_schema_gives_no_default_a_file_does_not_get(schema):
 
 
 def test_the_schema_refuses_a_load_of_both_kinds_and_an_edge_clamped_twice(schema, slab_raw):
-    """As the tool does: a load gives exactly one of force and displacement, a hole one of
-    polygon and circle, and an edge is clamped at most once (the schema let all of them
-    through, so an editor's check disagreed with the command)."""
+    """As the tool does: a load gives exactly one of force and displacement, a hole and a
+    region one of polygon and circle, and an edge is clamped at most once (the schema let all
+    of them through, so an editor's check disagreed with the command)."""
     raw = copy.deepcopy(slab_raw)
     raw["tissue"]["clamped"] = ["right", "right"]
     raw["tissue"]["holes"] = [{"polygon": [[40, 20], [60, 20], [50, 30]], "circle": {"center": [50, 50], "radius": 5}}]
+    raw["tissue"]["regions"] = [{"material": raw["tissue"]["material"]}]
     raw["loads"] = [{**raw["loads"][0], "displacement": [1.0, 0.0], "force": [1.0, 0.0]},
                     {"segment": raw["loads"][0]["segment"]}]
     assert sorted(problems(schema, schema, raw)) == [
@@ -224,11 +225,12 @@ def test_the_schema_refuses_a_load_of_both_kinds_and_an_edge_clamped_twice(schem
         "scenario.loads[1]: matches 0 of oneOf [['force'], ['displacement']]",
         "scenario.tissue.clamped: breaks uniqueItems",
         "scenario.tissue.holes[0]: matches 2 of oneOf [['polygon'], ['circle']]",
+        "scenario.tissue.regions[0]: matches 0 of oneOf [['polygon'], ['circle']]",
     ]
     jsonschema = pytest.importorskip("jsonschema")
     errors = sorted(jsonschema.Draft202012Validator(schema).iter_errors(raw), key=lambda e: list(e.absolute_path))
     assert [list(error.absolute_path) for error in errors] == [
-        ["loads", 0], ["loads", 1], ["tissue", "clamped"], ["tissue", "holes", 0]]
+        ["loads", 0], ["loads", 1], ["tissue", "clamped"], ["tissue", "holes", 0], ["tissue", "regions", 0]]
 
 
 def test_the_schema_wants_exactly_one_of_size_and_outline(schema, slab_raw):

@@ -4,7 +4,8 @@ Bad shapes are refused up front (one line naming file and field, exit 2, no file
 domain answers inside/boundary/circle questions; interpolation does not reach across a slit
 (visibility) yet reproduces linear fields next to re-entrant corners; the quadrature
 integrates the shape's area; a two-layer slab carries the stress jump its materials
-demand; the needle commands and calibration run on a polygon tissue.
+demand; a circular inclusion and a circular hole converge to an independent FEM; the needle
+commands and calibration run on a polygon tissue.
 """
 
 from __future__ import annotations
@@ -73,6 +74,12 @@ BAD_SHAPES = {
     "region outside": (shaped(regions=[{"polygon": [[50, 0], [60, 0], [60, 5]], "material": PHANTOM}]),
                        ["tissue.regions[0].polygon: got [[50.0, 0.0], [60.0, 0.0], [60.0, 5.0]]",
                         "a region overlapping the tissue"]),
+    "circle and polygon in one region": (shaped(regions=[{"circle": {"center": [10.0, 8.0], "radius": 2.0},
+                                                          "polygon": [[5, 5], [6, 5], [6, 6]], "material": PHANTOM}]),
+                                         ["tissue.regions[0]: got both", "exactly one of 'polygon' or 'circle'"]),
+    "circle region outside": (shaped(regions=[{"circle": {"center": [60.0, 50.0], "radius": 2.0}, "material": PHANTOM}]),
+                              ["tissue.regions[0].circle: got {'center': [60.0, 50.0], 'radius': 2.0}",
+                               "a region overlapping the tissue"]),
     "clamped segment off the boundary": (shaped(clamped=[{"segment": [[0, 1], [40, 1]]}]),
                                          ["tissue.clamped[0].segment: got [[0.0, 1.0], [40.0, 1.0]]",
                                           "a non-empty straight piece of one edge of the polygon tissue"]),
@@ -403,6 +410,76 @@ def test_a_two_layer_slab_carries_the_stress_jump():
     assert np.allclose(stress[y > 6.3, 0, 0], 2 * 0.5 * strain, rtol=2e-2)
     assert stress[above, 0, 0].mean() / stress[below, 0, 0].mean() == pytest.approx(5.0, rel=1e-2)
     assert np.abs(stress[:, 1, 1]).max() < 0.02 * stress[:, 0, 0].max()
+
+
+# --- circles: a region's and a hole's curved edges ------------------------------------------------
+
+SVK_SOFT = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}
+SVK_STIFF = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.756604, "lame_mu": 0.590752}  # 4 x SVK_SOFT
+CIRCLE = {"center": [20.0, 10.0], "radius": 5.0}
+
+
+def circle_plate(probes, **tissue) -> dict:
+    """40 x 20 mm plate clamped left, pulled and sheared on its right edge (the circle scenes
+    of benchmarks/deform_shapes.py); `tissue` adds its holes or regions."""
+    return {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": SVK_SOFT, "clamped": ["left"], **tissue},
+            "loads": [{"segment": [[40.0, 0.0], [40.0, 20.0]], "force": [1.0, 0.3]}], "probes": probes}
+
+
+INCLUSION_PROBES = [[40.0, 10.0], [40.0, 20.0], [20.0, 10.0], [25.0, 10.0], [20.0, 15.0], [30.0, 3.0]]
+HOLE_PROBES = [[40.0, 10.0], [40.0, 20.0], [25.0, 10.0], [20.0, 15.0], [20.0, 5.0], [30.0, 3.0]]
+# scikit-fem's solutions of the two scenes (P2 triangles whose edges follow the 96-gon, h 0.25 mm;
+# they changed by 0.024 and 0.017 % of the largest displacement from h 0.5 mm): the rows of spacing 0
+# in benchmarks/results/deform_shapes.csv (python benchmarks/deform_shapes.py)
+CIRCLE_SCENES = {
+    "inclusion": (circle_plate(INCLUSION_PROBES, regions=[{"circle": CIRCLE, "material": SVK_STIFF}]),
+                  [[0.36427, 2.11823], [-0.31183, 2.07191], [0.19301, 0.74231], [0.20405, 1.02361],
+                   [-0.06022, 0.73181], [0.70191, 1.43534]]),
+    "hole": (circle_plate(HOLE_PROBES, holes=[{"circle": CIRCLE}]),
+             [[0.58254, 2.50839], [-0.1383, 2.4826], [0.51442, 1.41845], [0.12834, 0.80756],
+              [0.47108, 1.06735], [0.89401, 1.80642]]),
+}
+
+
+def test_a_circle_region_is_the_polygon_of_its_vertices():
+    """A circle region is held as the 96-gon with its vertices on the circle: the same
+    particles, quadrature and displacements as that polygon given as a region (its short,
+    sloped edges add no lattice lines either way)."""
+    from stitchplan.tissue.deform import run_deform
+
+    polygon = circle_polygon(CIRCLE["center"], CIRCLE["radius"]).tolist()
+    as_circle = run_deform(parse_scenario(circle_plate(INCLUSION_PROBES, regions=[
+        {"circle": CIRCLE, "material": SVK_STIFF}])))
+    as_polygon = run_deform(parse_scenario(circle_plate(INCLUSION_PROBES, regions=[
+        {"polygon": polygon, "material": SVK_STIFF}])))
+    assert np.array_equal(as_circle.model.particles, as_polygon.model.particles)
+    assert np.array_equal(as_circle.model.quadrature_points, as_polygon.model.quadrature_points)
+    assert np.array_equal(as_circle.probe_displacements, as_polygon.probe_displacements)
+    uniform = run_deform(parse_scenario(circle_plate(INCLUSION_PROBES)))  # the region matters: 3.6 %
+    change = np.abs(as_circle.probe_displacements - uniform.probe_displacements).max()
+    assert change > 0.02 * np.abs(uniform.probe_displacements).max()
+
+
+@pytest.mark.parametrize("scene", list(CIRCLE_SCENES))
+def test_curved_edges_converge_to_an_independent_fem(scene):
+    """A circular inclusion 4x stiffer than the plate (its interface cutting the background
+    cells at every slope) and a circular hole (free curved edges), against scikit-fem: within
+    0.5 % of the largest displacement at the default spacing (1 mm; measured 0.30 and 0.44 %)
+    and at least twice as close at half of it (measured 2.3 and 6.1 times)."""
+    from stitchplan.config.scenario import with_discretization
+    from stitchplan.tissue.deform import run_deform
+
+    raw, reference = CIRCLE_SCENES[scene]
+    reference = np.asarray(reference)
+    scenario = parse_scenario(raw)
+    errors = []
+    for spacing in (1.0, 0.5):
+        result = run_deform(with_discretization(scenario, spacing=spacing))
+        errors.append(np.linalg.norm(result.probe_displacements - reference, axis=1).max()
+                      / np.linalg.norm(reference, axis=1).max())
+    assert scenario.discretization.spacing == 1.0
+    assert errors[0] < 5e-3
+    assert errors[1] < 0.5 * errors[0]
 
 
 # --- the commands on a polygon -----------------------------------------------------------------

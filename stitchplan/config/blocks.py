@@ -157,6 +157,15 @@ class Circle:
     radius: described(HoleRadius, f"radius, mm; {MIN_HOLE_RADIUS_MM:g} to {MAX_SCENE_MM:g}")
 
 
+def _polygon_or_circle(shape):
+    """A Hole or a Region, refused unless it gives exactly one of its polygon and circle."""
+    if (shape.polygon is None) == (shape.circle is None):
+        both = shape.polygon is not None
+        raise problem("exactly one of 'polygon' or 'circle'", value=Shown("both" if both else "neither"),
+                      absent=() if both else ("polygon", "circle"))
+    return shape
+
+
 @block(one_of=("polygon", "circle"))
 class Hole:
     """A cut-out with free edges: a polygon or a circle (held as a polygon of
@@ -167,11 +176,7 @@ class Hole:
 
     @model_validator(mode="after")
     def _one_shape(self) -> Hole:
-        if (self.polygon is None) == (self.circle is None):
-            both = self.polygon is not None
-            raise problem("exactly one of 'polygon' or 'circle'", value=Shown("both" if both else "neither"),
-                          absent=() if both else ("polygon", "circle"))
-        return self
+        return _polygon_or_circle(self)
 
     def vertices(self) -> np.ndarray:
         """Counter-clockwise vertices (k, 2)."""
@@ -180,10 +185,29 @@ class Hole:
         return counter_clockwise(np.asarray(self.polygon, dtype=float))
 
 
-@block()
+@block(one_of=("polygon", "circle"))
 class Region:
-    polygon: described(PolygonPoints, "vertices, mm; the first region holding a point gives its material")
+    """An area of another material: a polygon or a circle (held as a polygon, as a hole's
+    circle is); the first region holding a point gives its material."""
+
     material: described(Material, "the region's hyperelastic material")
+    polygon: described(PolygonPoints | None, "vertices, mm; the first region holding a point gives its material") = None
+    circle: described(Circle | None, "{center: [x, y], radius: r}, mm") = None
+
+    @model_validator(mode="after")
+    def _one_shape(self) -> Region:
+        return _polygon_or_circle(self)
+
+    def vertices(self) -> np.ndarray:
+        """The region's vertices (k, 2): a polygon's as the file gives them, a circle's
+        counter-clockwise."""
+        if self.circle is not None:
+            return circle_polygon(self.circle.center, self.circle.radius)
+        return np.asarray(self.polygon, dtype=float)
+
+    def shown(self) -> tuple[str, Any]:
+        """The field that gives the region's shape and its value, for a message."""
+        return ("polygon", self.polygon) if self.polygon is not None else ("circle", asdict(self.circle))
 
 
 @block()
@@ -268,7 +292,7 @@ class Tissue:
     outline: described(PolygonPoints | None, "a simple polygon [[x, y], ...] (mm), instead of size") = None
     holes: described(sequence(Hole, "a list of holes ({polygon: ...} or {circle: ...})"),
                      "cut-outs with free edges; one reaching the outline is cut out of it") = ()
-    regions: described(sequence(Region, "a list of regions ({polygon: ..., material: ...})"),
+    regions: described(sequence(Region, "a list of regions ({polygon: ...} or {circle: ...}, and material: ...)"),
                        "areas of other materials; the first region holding a point wins") = ()
 
     _thickness_within_limits = within_limits(THICKNESS_LIMITS)

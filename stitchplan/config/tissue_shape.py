@@ -146,7 +146,9 @@ def _region_polygon_problems(tissue: TissueBlock, tol: float | None) -> dict[int
     tissue's, None to take the region's own size when the tissue has no valid shape)."""
     problems = {}
     for i, region in enumerate(tissue.regions):
-        vertices = np.asarray(region.polygon, dtype=float)
+        if region.polygon is None:  # a circle's polygon is a simple one
+            continue
+        vertices = region.vertices()
         own = 1e-9 * float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
         why = polygon_problem(vertices, own if tol is None else tol)
         if why:
@@ -172,10 +174,10 @@ def shape_problems(tissue: TissueBlock) -> list:
     for i, region in enumerate(tissue.regions):
         if i in not_simple:
             continue
-        vertices = np.asarray(region.polygon, dtype=float)
-        if not _overlaps(PolygonDomain(counter_clockwise(vertices)), domain):
+        if not _overlaps(PolygonDomain(counter_clockwise(region.vertices())), domain):
+            name, shown = region.shown()
             problems.append(problem("a region overlapping the tissue (this one holds no tissue)",
-                                    field=f"regions[{i}].polygon", value=region.polygon))
+                                    field=f"regions[{i}].{name}", value=shown))
     for i, item in enumerate(tissue.clamped):
         if isinstance(item, str):
             if isinstance(domain, PolygonDomain) and not domain.edge_names and item not in domain.aliases:

@@ -131,7 +131,7 @@ def draw_regions(ax, tissue) -> None:
         region = regions[k]
         colour = REGION_COLOURS[k % len(REGION_COLOURS)]
         material = region.material
-        patch = ax.add_patch(Polygon(np.asarray(region.polygon, dtype=float), closed=True, facecolor=colour,
+        patch = ax.add_patch(Polygon(region.vertices(), closed=True, facecolor=colour,
                                      alpha=0.15, edgecolor=colour, ls=":", lw=1.2, zorder=0.5,
                                      label=f"region {k} (at rest): {material.model}, lambda "
                                            f"{material.lame_lambda:g}, mu {material.lame_mu:g} MPa"))

@@ -39,7 +39,7 @@ NEAREST_ALONG = 4  # lattice particles on the boundary looked at around each add
 
 def shape_breaks(tissue: Tissue, spacing: float | None = None) -> tuple[list[float], list[float]]:
     """Grid-line coordinates through the polygon vertices that need one (outline, polygon
-    holes, regions, and where holes cut into the outline): the x of every edge along y and the
+    holes and regions, and where holes cut into the outline): the x of every edge along y and the
     y of every edge along x (so those never cut a background cell), and both coordinates of
     every corner (a turn above CORNER_TURN) between two such long edges, where long is at
     least THIN x `spacing` (default: the tissue's default spacing, min(W, H)/20). Lines closer
@@ -59,7 +59,7 @@ def shape_breaks(tissue: Tissue, spacing: float | None = None) -> tuple[list[flo
                          | (r > hole.circle.radius + domain.tolerance))
         loops.append((outline, keep))
     loops += [(np.asarray(hole.polygon, dtype=float), None) for hole in tissue.holes if hole.polygon is not None]
-    loops += [(np.asarray(region.polygon, dtype=float), None) for region in tissue.regions]
+    loops += [(region.vertices(), None) for region in tissue.regions if region.polygon is not None]
     if not loops:
         return [], []
     tol = domain.tolerance
@@ -131,7 +131,7 @@ def cutting_edges(tissue: Tissue) -> tuple[np.ndarray, np.ndarray]:
     starts = [np.array([a for a, _ in domain.boundary_segments()])]
     ends = [np.array([b for _, b in domain.boundary_segments()])]
     for region in tissue.regions:
-        vertices = np.asarray(region.polygon, dtype=float)
+        vertices = region.vertices()
         starts.append(vertices)
         ends.append(np.roll(vertices, -1, axis=0))
     return np.concatenate(starts), np.concatenate(ends)
@@ -460,7 +460,7 @@ def region_index(tissue: Tissue, points: np.ndarray) -> np.ndarray:
     tissue's own material."""
     index = np.full(len(points), -1)
     for k in range(len(tissue.regions) - 1, -1, -1):  # the first region wins: assign it last
-        vertices = np.asarray(tissue.regions[k].polygon, dtype=float)
+        vertices = tissue.regions[k].vertices()
         region = PolygonDomain(vertices if _ccw(vertices) else vertices[::-1].copy())
         index[region._inside_strict(points)] = k
     return index
