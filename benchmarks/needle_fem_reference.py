@@ -94,15 +94,22 @@ class LinearTriangles(TissueModel):
     """A TissueModel whose shape functions are the P1 hat functions of `triangulation`."""
 
     triangulation: Delaunay
+    kept: np.ndarray  # mask over its simplices of those that carry the tissue (all on a slab)
 
-    def _shape_pairs(self, points: np.ndarray, gradients: bool) -> ShapePairs:
-        points = np.atleast_2d(points)
+    def located(self, points: np.ndarray) -> np.ndarray:
+        """The triangle of each point (n,); a point outside the slab (a tip just past the edge,
+        the exit's bracket) takes its nearest triangle, extended."""
         simplex = self.triangulation.find_simplex(points)
         outside = simplex < 0
-        if outside.any():  # a tip just past the edge (the exit's bracket): its nearest triangle, extended
+        if outside.any():
             width, height = self.tissue.bounding_size
             inner = np.clip(points[outside], [1e-9 * width, 1e-9 * height], [width * (1 - 1e-9), height * (1 - 1e-9)])
             simplex[outside] = self.triangulation.find_simplex(inner)
+        return simplex
+
+    def _shape_pairs(self, points: np.ndarray, gradients: bool) -> ShapePairs:
+        points = np.atleast_2d(points)
+        simplex = self.located(points)
         transform = self.triangulation.transform[simplex]  # (n, 3, 2): barycentric map and origin
         barycentric = np.einsum("nij,nj->ni", transform[:, :2], points - transform[:, 2])
         values = np.column_stack([barycentric, 1.0 - barycentric.sum(axis=1)])
@@ -118,10 +125,12 @@ class LinearTriangles(TissueModel):
                           values.ravel(), grad)
 
 
-def finite_element_model(scenario) -> LinearTriangles:
+def finite_element_model(scenario, model_class: type = LinearTriangles, kept_of=None) -> LinearTriangles:
     """P1 triangles on the particles stitchplan would use for `scenario` (its RK model's
     supports give the coupling its local spacing), checked: the triangles tile the slab and
-    the shape functions reproduce a linear field and its gradient."""
+    the shape functions reproduce a linear field and its gradient. `kept_of(centroids)`: the
+    mask of the triangles that carry the tissue (a shaped tissue's, benchmarks/needle_fem_shapes.py;
+    `model_class` then locates points in those alone), instead of the whole slab's."""
     particles_of = build_tissue_model(scenario.tissue, scenario.discretization, needle_zone=needle_zone(scenario))
     nodes = particles_of.particles
     triangulation = Delaunay(nodes)
@@ -131,19 +140,21 @@ def finite_element_model(scenario) -> LinearTriangles:
     width, height = scenario.tissue.bounding_size
     if area.min() <= 1e-12 * width * height or not math.isclose(area.sum(), width * height, rel_tol=1e-9):
         raise RuntimeError(f"{scenario.name}: the triangulation does not tile the slab")
+    kept = np.ones(len(corners), dtype=bool) if kept_of is None else kept_of(corners.mean(axis=1))
+    corners, area = corners[kept], area[kept]
     centroids = corners.mean(axis=1)
     constrained = boundary_particles(nodes, scenario.tissue, (), particles_of.spacing)
     held = len(constrained.indices)
     at_boundary = sp.csr_matrix((np.ones(held), (np.arange(held), constrained.indices)), shape=(held, len(nodes)))
     boundary = transformation(at_boundary, constrained, len(nodes))  # nodal values: T selects, T_g = I
-    model = LinearTriangles(
+    model = model_class(
         tissue=scenario.tissue, discretization=scenario.discretization,
         material=material_at(scenario.tissue, centroids), particles=nodes, support=particles_of.support,
         volumes=particles_of.volumes, search=particles_of.search, quadrature_points=centroids,
         quadrature_weights=area * scenario.tissue.thickness, shape=None, boundary=boundary, gradient=None,
         direction_gradient=None, spacing=particles_of.spacing, needle_spacing=particles_of.needle_spacing,
         particle_values=sp.identity(len(nodes), format="csr"))
-    model.triangulation = triangulation
+    model.triangulation, model.kept = triangulation, kept
     model.shape = model.shape_functions_at(centroids, gradients=True)
     grad_x, grad_y = model.shape.grad_x @ boundary.free_map, model.shape.grad_y @ boundary.free_map
     model.gradient = gradient_operator(grad_x, grad_y)
