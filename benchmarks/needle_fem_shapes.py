@@ -16,9 +16,10 @@ curved (the hole) the triangles' chords between boundary particles cut it off, b
 every refinement.
 
 Per scene: the unplanned exit error at the file's spacing h and at h/2 and h/4 (nested
-levels), RK and FE, and rk / fe - 1 at each level.
+levels), RK and FE (the chart: both against the spacing at the needle), and rk / fe - 1 at
+each level.
 
-Writes benchmarks/results/needle_fem_shapes.{csv,md}. About a minute on 2 cores.
+Writes benchmarks/results/needle_fem_shapes.{csv,md,png}. About a minute on 2 cores.
 Run from the repository root:  python benchmarks/needle_fem_shapes.py  (--report: only the
 tables from the CSV)
 """
@@ -35,7 +36,8 @@ from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 
 import _common as common  # noqa: E402
 import numpy as np  # noqa: E402
-from needle_fem_reference import LinearTriangles, compression, finite_element_model, ladder_figures, ladders  # noqa: E402
+from needle_fem_reference import (LinearTriangles, chart, compression, finite_element_model,  # noqa: E402
+                                  ladder_figures, ladders)
 from scipy.spatial import cKDTree  # noqa: E402
 
 from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
@@ -156,8 +158,7 @@ def main() -> None:
         rows = sorted(done, key=lambda row: order[(row["scene"], row["model"], row["factor"])])
         common.write_csv(csv_path, FIELDS, [[row[key] for key in FIELDS] for row in rows])
         rows = [{key: str(value) for key, value in row.items()} for row in rows]
-    common.results_path("needle_fem_shapes.md").write_text(markdown(rows))
-    print(markdown(rows))
+    common.publish("needle_fem_shapes", markdown(rows), chart, rows)
 
 
 if __name__ == "__main__":
