@@ -68,8 +68,9 @@ class ShapedTriangles(LinearTriangles):
 
 def shaped_model(scenario) -> tuple[ShapedTriangles, float]:
     """P1 triangles on the particles stitchplan places for `scenario`'s shape (the
-    triangulation of needle_fem_reference.finite_element_model without the triangles whose
-    centre lies outside the tissue), and their area over the tissue's, less 1."""
+    triangulation of needle_fem_reference.finite_element_model, which checks that it tiles the
+    bounding box: a tissue whose corners are its box's, as the three scenes', without the
+    triangles whose centre lies outside the tissue), and their area over the tissue's, less 1."""
     model = finite_element_model(scenario, ShapedTriangles, scenario.tissue.domain.contains)
     area = float(np.sum(model.quadrature_weights)) / scenario.tissue.thickness
     return model, area / domain_area(scenario.tissue.domain) - 1.0
