@@ -303,31 +303,44 @@ def solve_skfem_shape(scenario: Scenario, h: float, grading: int = 3) -> SkfemRu
     return solve_on_shape_mesh(scenario, mesh, ElementQuad2(), "Q2-quad", h, start)
 
 
-def solve_skfem_curved(scenario: Scenario, h: float) -> SkfemRun:
-    """`solve_skfem` for a rectangle with holes and material regions of any shape (circles:
-    the model's 96-gons), on P2 triangles that follow every hole's and region's edges: the
-    Delaunay triangulation of a grid of side h over the rectangle without its points within
-    h/2 of those edges, and of the edges' vertices with each edge cut into pieces of at most
-    h/2 (each piece's diametral circle then holds no other point, so the piece is an edge of
-    the triangulation: no triangle straddles an edge, checked), triangles inside a hole
-    removed, each triangle's Lame moduli those of the region holding its centre
-    (solve_on_shape_mesh). The holes and regions must keep h from the rectangle's sides."""
+def solve_skfem_curved(scenario: Scenario, h: float, grading: int = 0) -> SkfemRun:
+    """`solve_skfem` for a tissue whose edges need not run along x and y: a rectangle or a
+    polygon outline, holes and material regions of any shape (circles: the model's 96-gons),
+    on P2 triangles that follow every edge of the outline (a polygon's), the holes and the
+    regions: the Delaunay triangulation of a grid of side h over the bounding box, without its
+    points outside the tissue or within h/2 of those edges, and of the edges' points, each
+    edge cut into pieces of at most h/2 with the load and clamp segments' ends among them
+    (each piece's diametral circle then holds no other point, so the piece is an edge of the
+    triangulation: no triangle straddles an edge, checked), triangles outside the tissue
+    removed; then `grading` times the triangles within 2h / 2^k of a re-entrant corner split
+    (skfem's conforming refinement; the corners are singular); each triangle's Lame moduli
+    those of the region holding its centre (solve_on_shape_mesh). The holes and regions must
+    keep h from a rectangle's sides, and a region's edges must not cross the boundary."""
     from scipy.spatial import Delaunay
 
-    from stitchplan.geometry.segments import point_segment_distance
+    from stitchplan.geometry.polygons import turns
+    from stitchplan.geometry.segments import on_segment, point_segment_distance
 
     start = time.perf_counter()
     tissue = scenario.tissue
     domain = tissue.domain
-    if hasattr(domain, "outline") and not domain.edge_names:
-        raise ValueError("a rectangle with holes and regions only")
     origin = np.asarray(domain.origin, float)
     width, height = domain.size
-    loops = [np.asarray(hole, float) for hole in domain.holes] + [r.vertices() for r in tissue.regions]
+    tol = 1e-9 * max(width, height)
+    polygon = hasattr(domain, "outline") and not domain.edge_names  # an outline's edges, not a rectangle's
+    holes = [np.asarray(hole, float) for hole in domain.holes]
+    loops = ([np.asarray(domain.outline, float)] if polygon else []) + holes + [r.vertices() for r in tissue.regions]
     starts = np.concatenate(loops)
     ends = np.concatenate([np.roll(loop, -1, axis=0) for loop in loops])
-    pieces = np.maximum(np.ceil(np.linalg.norm(ends - starts, axis=1) / (0.5 * h)).astype(int), 1)
-    along = [a + (b - a) * (np.arange(n) / n)[:, None] for a, b, n in zip(starts, ends, pieces)]
+    breaks = np.asarray([p for load in scenario.loads for p in load.segment]
+                        + [p for piece in tissue.clamped_pieces() for p in piece], float).reshape(-1, 2)
+    along = []
+    for a, b in zip(starts, ends):
+        on = breaks[on_segment(breaks, a, b, tol)] if len(breaks) else breaks
+        knots = np.unique(np.concatenate([[0.0, 1.0], (on - a) @ (b - a) / float((b - a) @ (b - a))]))
+        for t0, t1 in zip(knots[:-1], knots[1:]):
+            n = max(int(np.ceil(np.linalg.norm(b - a) * (t1 - t0) / (0.5 * h))), 1)
+            along.append(a + (b - a) * (t0 + (t1 - t0) * np.arange(n) / n)[:, None])
     edge_points = np.concatenate(along)
     x = origin[0] + np.linspace(0.0, width, max(int(round(width / h)), 1) + 1)
     y = origin[1] + np.linspace(0.0, height, max(int(round(height / h)), 1) + 1)
@@ -336,14 +349,15 @@ def solve_skfem_curved(scenario: Scenario, h: float) -> SkfemRun:
     near = np.zeros(len(grid), dtype=bool)
     for a, b in zip(starts, ends):
         near |= point_segment_distance(grid, a, b) < 0.5 * h
-    points = np.concatenate([grid[~near], edge_points])
+    points = np.concatenate([grid[~near], edge_points[domain.contains(edge_points, tol)]])
+    _, first = np.unique(np.round(points / tol), axis=0, return_index=True)
+    points = points[np.sort(first)]  # each point once (edges meet at their ends), in order
     triangles = Delaunay(points).simplices
     centres = points[triangles].mean(axis=1)
     inside = domain.contains(centres)
     triangles, centres = triangles[inside], centres[inside]
     # a straddling triangle has a corner off the edges, or a point inside, in another region
-    # or in a hole: its corners and four inner points (barycentric) are looked at
-    tol = 1e-9 * max(width, height)
+    # or outside the tissue: its corners and four inner points (barycentric) are looked at
     on_edge = np.zeros(len(points), dtype=bool)
     for a, b in zip(starts, ends):
         on_edge |= point_segment_distance(points, a, b) <= tol
@@ -351,12 +365,18 @@ def solve_skfem_curved(scenario: Scenario, h: float) -> SkfemRun:
     looked_at = np.concatenate([points[triangles], np.einsum("sk,tkd->tsd", inner, points[triangles])], axis=1)
     off_edge = np.concatenate([~on_edge[triangles], np.ones((len(triangles), len(inner)), dtype=bool)], axis=1)
     which = region_of_points(tissue, looked_at.reshape(-1, 2)).reshape(len(triangles), -1)
-    in_hole = ~domain.contains(looked_at.reshape(-1, 2), tol).reshape(len(triangles), -1)
+    outside = ~domain.contains(looked_at.reshape(-1, 2), tol).reshape(len(triangles), -1)
     own = region_of_points(tissue, centres)
-    straddles = np.any(off_edge & ((which != own[:, None]) | in_hole), axis=1)
+    straddles = np.any(off_edge & ((which != own[:, None]) | outside), axis=1)
     if np.any(straddles):
-        raise RuntimeError(f"{int(straddles.sum())} triangles straddle a hole's or a region's edge")
+        raise RuntimeError(f"{int(straddles.sum())} triangles straddle an edge of the tissue or of a region")
     mesh = MeshTri(points.T.copy(), triangles.T.copy())
+    boundary_loops = ([np.asarray(domain.outline, float)] if polygon else []) + [hole[::-1] for hole in holes]
+    corners = np.concatenate([loop[turns(loop) < -0.2] for loop in boundary_loops]) if boundary_loops else np.zeros((0, 2))
+    for k in range(grading if len(corners) else 0):
+        vertices = mesh.p.T[mesh.t.T]  # (elements, 3, 2)
+        distance = np.linalg.norm(vertices[:, :, None, :] - corners[None, None], axis=-1).min(axis=(1, 2))
+        mesh = mesh.refined(np.flatnonzero(distance < 2.0 * h / 2**k))
     return solve_on_shape_mesh(scenario, mesh, ElementTriP2(), "P2-tri", h, start)
 
 
