@@ -398,15 +398,20 @@ def main() -> None:
     if "--report" in common.command_line(__doc__, ("--report",)):
         rows = common.csv_rows(csv_path)
     else:
-        jobs = [(scene, model, factor) for scene in SCENES for model in kinds_of(scene)
-                for factor in factors_of(scene, model)]
-        with ProcessPoolExecutor(2) as pool:  # the finest (slowest) first, so the two workers end together
-            done = list(pool.map(run, sorted(jobs, key=lambda job: job[2])))
-        order = {job: k for k, job in enumerate(jobs)}
-        rows = sorted(done, key=lambda row: order[(row["scene"], row["model"], row["factor"])])
-        common.write_csv(csv_path, FIELDS, [[row[key] for key in FIELDS] for row in rows])
-        rows = [{key: str(value) for key, value in row.items()} for row in rows]
+        rows = run_ladders([(scene, model, factor) for scene in SCENES for model in kinds_of(scene)
+                            for factor in factors_of(scene, model)], run, csv_path, FIELDS)
     common.publish("needle_fem_reference", markdown(rows), chart, rows)
+
+
+def run_ladders(jobs: list[tuple[str, str, float]], run_job, csv_path, fields: tuple[str, ...]) -> list[dict]:
+    """`run_job` of every (scene, model, factor) job on two processes, the rows in the jobs'
+    order written to `csv_path` (`fields`) and returned as text, as the CSV reads back."""
+    with ProcessPoolExecutor(2) as pool:  # the finest (slowest) first, so the two workers end together
+        done = list(pool.map(run_job, sorted(jobs, key=lambda job: job[2])))
+    order = {job: k for k, job in enumerate(jobs)}
+    rows = sorted(done, key=lambda row: order[(row["scene"], row["model"], row["factor"])])
+    common.write_csv(csv_path, fields, [[row[key] for key in fields] for row in rows])
+    return [{key: str(value) for key, value in row.items()} for row in rows]
 
 
 if __name__ == "__main__":

@@ -32,12 +32,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import logging  # noqa: E402
 import time  # noqa: E402
-from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 
 import _common as common  # noqa: E402
 import numpy as np  # noqa: E402
 from needle_fem_reference import (LinearTriangles, chart, compression, finite_element_model,  # noqa: E402
-                                  ladder_figures, ladders)
+                                  ladder_figures, ladders, run_ladders)
 from scipy.spatial import cKDTree  # noqa: E402
 
 from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
@@ -152,13 +151,8 @@ def main() -> None:
     if "--report" in common.command_line(__doc__, ("--report",)):
         rows = common.csv_rows(csv_path)
     else:
-        jobs = [(scene, model, factor) for scene in SCENES for model in ("rk", "fe") for factor in FACTORS]
-        with ProcessPoolExecutor(2) as pool:  # the finest (slowest) first, so the two workers end together
-            done = list(pool.map(run, sorted(jobs, key=lambda job: job[2])))
-        order = {job: k for k, job in enumerate(jobs)}
-        rows = sorted(done, key=lambda row: order[(row["scene"], row["model"], row["factor"])])
-        common.write_csv(csv_path, FIELDS, [[row[key] for key in FIELDS] for row in rows])
-        rows = [{key: str(value) for key, value in row.items()} for row in rows]
+        rows = run_ladders([(scene, model, factor) for scene in SCENES for model in ("rk", "fe") for factor in FACTORS],
+                           run, csv_path, FIELDS)
     common.publish("needle_fem_shapes", markdown(rows), chart, rows)
 
 
