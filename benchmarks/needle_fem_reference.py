@@ -346,12 +346,15 @@ def markdown(rows: list[dict]) -> str:
             cells = level_cells(group, lambda row: f"{float(row['min_det_f']):.3f} "
                                                    f"({float(row['min_det_f_from_entry_mm']):.2f})")
             lines.append(f"| {scene} | {model} | " + " | ".join(cells) + " |")
+    return "\n".join(lines + closing_lines(rows))
+
+
+def closing_lines(rows: list[dict]) -> list[str]:
+    """A report's end: its failed runs, each with its InsertionFailure, and the machine."""
     failures = [row for row in rows if row["failure"]]
-    if failures:
-        lines += ["", "Failed runs:", ""]
-        lines += [f"- {row['scene']} {row['model']} h x {float(row['factor']):g}: {row['failure']}" for row in failures]
-    lines += ["", common.machine_note(), ""]
-    return "\n".join(lines)
+    lines = ["", "Failed runs:", ""] if failures else []
+    lines += [f"- {row['scene']} {row['model']} h x {float(row['factor']):g}: {row['failure']}" for row in failures]
+    return lines + ["", common.machine_note(), ""]
 
 
 def chart(rows: list[dict], path) -> None:

@@ -36,7 +36,7 @@ import time  # noqa: E402
 import _common as common  # noqa: E402
 import numpy as np  # noqa: E402
 from needle_fem_reference import (LinearTriangles, chart, compression, finite_element_model,  # noqa: E402
-                                  ladder_figures, ladders, run_ladders)
+                                  closing_lines, ladder_figures, ladders, run_ladders)
 from scipy.spatial import cKDTree  # noqa: E402
 
 from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
@@ -137,12 +137,7 @@ def markdown(rows: list[dict]) -> str:
                   else f"{100 * (float(a['exit_error_mm']) / float(b['exit_error_mm']) - 1):+.2f} %"
                   for a, b in zip(rk, fe)]
         lines.append(f"| {scene} | " + " | ".join(ratios) + " |")
-    failures = [row for row in rows if row["failure"]]
-    if failures:
-        lines += ["", "Failed runs:", ""]
-        lines += [f"- {row['scene']} {row['model']} h x {float(row['factor']):g}: {row['failure']}" for row in failures]
-    lines += ["", common.machine_note(), ""]
-    return "\n".join(lines)
+    return "\n".join(lines + closing_lines(rows))
 
 
 def main() -> None:
