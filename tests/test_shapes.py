@@ -412,7 +412,7 @@ def test_a_two_layer_slab_carries_the_stress_jump():
     assert np.abs(stress[:, 1, 1]).max() < 0.02 * stress[:, 0, 0].max()
 
 
-# --- circles: a region's and a hole's curved edges ------------------------------------------------
+# --- curved and sloped edges: circle regions and holes, a notched outline ------------------------------
 
 SVK_SOFT = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}
 SVK_STIFF = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.756604, "lame_mu": 0.590752}  # 4 x SVK_SOFT
