@@ -378,6 +378,21 @@ def test_the_memory_estimate_bounds_the_measured_peaks(name, step, command, peak
     assert 0.85 <= item.memory_bytes / (peak * 2**20) <= 2.1, item.describe()
 
 
+# unplanned runs of sh12_100x100 (benchmarks/results/resource_costs.md): in steps of 0.08, 0.01
+# and 0.0025 rad they took 0.24, 2.42 and 17.8 s, each step longer than the one before (each
+# solve reads E K^-1, a row pair per needle point)
+MEASURED_RUN_SECONDS = [(0.08, 0.2357), (0.01, 2.415), (0.0025, 17.82)]
+
+
+@pytest.mark.parametrize("step, seconds", MEASURED_RUN_SECONDS)
+def test_the_time_estimate_bounds_runs_in_small_steps(step, seconds):
+    """The estimate stays above each measured time and within 2.5 times it (1.7-1.9x, the
+    deform runs' 1.6-3.2x): with the time of a run linear in its steps it fell to 0.66 of the
+    measured time at 0.0025 rad (1 257 steps estimated, 1 202 taken)."""
+    item = estimate(sh12(step), "insertion", "simulate")
+    assert 1.0 <= item.seconds / seconds <= 2.5, item.describe()
+
+
 def test_steps_too_many_for_the_memory_are_refused_naming_the_needle_step():
     """SH 1/2 at 0.0025 rad: the tissue's model (~115 MB) fits half of 800 MB, with what its
     1257 steps keep (~390 MB estimated; a run peaked at 427 MiB) it does not: the refusal names

@@ -46,11 +46,13 @@ resource_costs.md), measured on the 2-core machine the tool is developed on, whi
 shared: in its latest run the fitted memory model is within 0.79-1.28x of every measured
 case, the fitted time model within 0.84-1.10x of the dilation-2 cases at the scenarios'
 needle steps, and the (neighbours/16)^2 time scaling overestimated the unfitted dilation-3
-case (0.60x there; 0.33x and 0.96x in earlier runs). What a needle run keeps of its steps is
+case (0.62x there; 0.33x, 0.60x and 0.96x in earlier runs). What a needle run keeps of its steps is
 not fitted: with the guard's constants the runs at 0.01 and 0.0025 rad on SH 1/2 peak at
-0.79 and 0.88x of the estimate (the other cases at 0.46-0.86x), and their time per step
-grows with the steps taken (1.7x the estimate at 0.0025 rad; 3.6x while the solver formed
-every step's Schur complement from E K^-1 E^T). The
+0.78 and 0.88x of the estimate (the other cases at 0.46-0.84x), and their time per step
+grows with the steps taken: each solve reads a row pair per needle point, and the estimate
+takes a step k as a + b k (STEP_TIME_DOUBLES_AT = a / b, fitted on those runs alone), which
+puts them at 0.56 and 0.54x of it (1.5x at 0.0025 rad with a time linear in the steps; 3.6x
+while the solver formed every step's Schur complement from E K^-1 E^T). The
 memory limit is what protects the machine; the time is a guide, not a promise.
 
 Limits (Limits; the CLI's --max-particles raises the first, --no-resource-check skips

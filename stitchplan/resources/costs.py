@@ -23,6 +23,13 @@ TIME_EXPONENT = 1.07  # seconds ~ particles^TIME_EXPONENT
 # fitted on: 3.5-4.6x on SH 1/2 from 324 to 979 particles, 7.4x at 2601 (mortar coupling;
 # benchmarks/results/simulate_speed.md, "Where MINRES stagnates")
 MINRES_TIME_FACTOR = 5.0
+# a needle step's time grows with the steps before it: each Newton solve reads E K^-1, one
+# row pair per needle point (needle.saddle_point). The unplanned runs of sh12_100x100 in steps of
+# 0.01 and 0.0025 rad (301 and 1 202 steps: 2.4 and 17.8 s, benchmarks/results/resource_costs.md)
+# fit a step k taking a + b k with a / b = 381 steps (330 and 345 in two runs before: the middle
+# one kept), so N steps take a N (1 + N / (2 x 345)); both terms grow about linearly with the
+# particles, their ratio does not
+STEP_TIME_DOUBLES_AT = 345.0
 # `simulate --condition-numbers`: each needle step forms the saddle matrix, K0^-1, its Cholesky
 # factor and the preconditioned matrix densely and takes two sets of eigenvalues
 # (needle.saddle_point.condition_numbers), ~unknowns^3 time and ~unknowns^2 memory with
@@ -235,6 +242,8 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
     memory, time = size_scale(size)
     kept = 0.0 if kind == "deform" else min(runs, HELD_RUNS) * _step_memory(scenario, size.particles, steps)
     seconds = SECONDS_PER_PARTICLE_STEP[kind] * time * steps * runs
+    if kind != "deform":
+        seconds *= 1.0 + float(steps) / (2.0 * STEP_TIME_DOUBLES_AT)
     if kind != "deform" and (linear_solver or scenario.needle.linear_solver) == "minres":
         seconds *= MINRES_TIME_FACTOR
     condition_seconds, condition_memory = (condition_costs(size.particles, steps)
