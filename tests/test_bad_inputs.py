@@ -359,8 +359,8 @@ def test_a_study_too_large_for_the_machine_is_refused_before_its_first_run(tmp_p
     write_scene(tmp_path, raw)
     result = CliRunner().invoke(app, ["study", str(tmp_path / "scene.yaml"), "--out", str(tmp_path / "out")])
     assert_refused(result, tmp_path, {"scene.yaml"},
-                   [["scene.yaml: study.spacing: got 0.05 mm", "study run 'uniform h=0.05'"],
-                    ["scene.yaml: study.reference.spacing: got 0.04 mm", "study run 'reference h=0.04'"]])
+                   [["scene.yaml: study.spacing: got 0.05 mm", "study run 'uniform h=0.05 mm'"],
+                    ["scene.yaml: study.reference.spacing: got 0.04 mm", "study run 'reference h=0.04 mm'"]])
 
 
 # --- centre paths (simulate --center-path) ------------------------------------------------------

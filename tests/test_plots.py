@@ -345,7 +345,7 @@ def fake_study(failed: bool):
 
     def run(family, spacing, seconds, deviation, status="ok"):
         deviations = {"deviation_mm": deviation, "exit_deviation_mm": deviation / 2} if status == "ok" else {}
-        return StudyRun(family=family, label=f"{family} h={spacing}", scenario=scenario, spacing=spacing,
+        return StudyRun(family=family, label=f"{family} h={spacing} mm", scenario=scenario, spacing=spacing,
                         particles=int(1000 / spacing), wall_seconds=seconds, status=status,
                         deviations=deviations)
 
@@ -380,7 +380,7 @@ def test_speed_accuracy_counts_failed_runs_drawn_at_one_place(tmp_path):
     study = fake_study(failed=True)
     graded = next(run for run in study.runs if run.family == "graded x4" and not run.ok)
     for spacing in (3.0, 4.0):
-        study.runs.insert(0, replace(graded, label=f"graded x4 h={spacing}", spacing=spacing, status="failed",
+        study.runs.insert(0, replace(graded, label=f"graded x4 h={spacing} mm", spacing=spacing, status="failed",
                                      deviations={}))
     fig = plots.plot_speed_accuracy(tmp_path / "speed.png", study)
     for ax in data_axes(fig):

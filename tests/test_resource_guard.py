@@ -128,7 +128,7 @@ def test_a_study_family_too_coarse_names_the_coarse_spacing_its_grading_makes():
                 discretization={"spacing": 24.0, "needle_spacing": 6.0})
     study = Origin({"spacing": "study.spacing", "needle_spacing": "study.spacing"},
                    {"spacing": 6.0, "needle_spacing": 6.0})
-    line = refusal([estimate(parse_scenario(raw), "insertion", "study run 'graded x4 h=6'", origin=study)])
+    line = refusal([estimate(parse_scenario(raw), "insertion", "study run 'graded x4 h=6 mm'", origin=study)])
     assert line.startswith("study.spacing: got 6 mm (a coarse spacing of 24 mm), expected at most half the "
                            "tissue's smaller side (100 x 30 mm)"), line
 

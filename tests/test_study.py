@@ -141,8 +141,8 @@ def test_the_guard_counts_the_reference_once_as_it_runs(caplog):
     with caplog.at_level(logging.INFO, logger="stitchplan.resources"):
         guard_study(Path("tiny.yaml"), Limits(), runs, reference, repeats, workers=0)
     lines = [record.getMessage() for record in caplog.records]
-    assert all("in each of 3 runs" in line for line in lines if "'reference h=3'" not in line)
-    (line,) = [line for line in lines if "'reference h=3'" in line]
+    assert all("in each of 3 runs" in line for line in lines if "'reference h=3 mm'" not in line)
+    (line,) = [line for line in lines if "'reference h=3 mm'" in line]
     assert "in each of" not in line
 
 
@@ -247,7 +247,7 @@ def test_a_study_whose_every_run_is_refused_by_its_choices_is_an_input_error(tmp
     assert result.exit_code == 2, result.output
     (line,) = result.output.splitlines()
     assert line.startswith(f"error: {scenario}: study: every one of its 2 runs was refused by its choices, the "
-                           "reference 'reference h=5' as: discretization: dilation 1.1 with spacing 5 mm"), line
+                           "reference 'reference h=5 mm' as: discretization: dilation 1.1 with spacing 5 mm"), line
     assert line.endswith("; expected families and a reference whose choices make a model")
     assert not (tmp_path / "out").exists()
 

@@ -30,7 +30,7 @@ SWEPT = [("uniform", 6.0, 0.46, 0.023, 0.227), ("uniform", 4.5, 0.69, 0.041, 0.1
 
 
 def study_run(scenario, family, spacing, seconds, deviation, spatial, status="ok") -> StudyRun:
-    run = StudyRun(family=family, label=f"{family} h={spacing:g}", scenario=scenario, spacing=spacing,
+    run = StudyRun(family=family, label=f"{family} h={spacing:g} mm", scenario=scenario, spacing=spacing,
                    particles=int(600 / spacing), wall_seconds=seconds, status=status)
     if status != "ok":
         run.reason = "InsertionFailure: made by hand"
@@ -50,7 +50,7 @@ def made_study(reference_failed: bool = False) -> StudyResult:
     notes: list[str] = []
     compared = compared_run(runs, reference, notes)
     if reference_failed:
-        assert compared is runs[2] and "finest successful run, uniform h=3" in notes[0]
+        assert compared is runs[2] and "finest successful run, uniform h=3 mm" in notes[0]
         compared.deviations = {key: 0.0 for key in compared.deviations}
     for run in pareto_front([r for r in runs if r is not compared]):
         run.pareto = True
@@ -79,8 +79,8 @@ def test_the_spatial_panel_has_a_front_of_its_own_that_differs():
     runs = made_study().runs[:-1]
     by_spatial = {r.label for r in runs if r.deviations["exit_deviation_mm"] <= min(
         o.deviations["exit_deviation_mm"] for o in runs if o.wall_seconds <= r.wall_seconds)}
-    assert {r.label for r in runs if r.pareto} == {"uniform h=6"}
-    assert by_spatial == {"uniform h=6", "uniform h=4.5", "uniform h=3"}
+    assert {r.label for r in runs if r.pareto} == {"uniform h=6 mm"}
+    assert by_spatial == {"uniform h=6 mm", "uniform h=4.5 mm", "uniform h=3 mm"}
 
 
 def test_both_panels_ring_exactly_the_runs_study_csv_and_study_json_call_the_front(study, tmp_path):
@@ -90,7 +90,7 @@ def test_both_panels_ring_exactly_the_runs_study_csv_and_study_json_call_the_fro
                  if dict(zip(COLUMNS, study_row(run)))["pareto"] == "true"}
     json_front = study_record(study, provenance={})["pareto"]
     front = [run for run in study.runs if run.label in csv_front]
-    assert set(json_front) == csv_front == {"uniform h=6"}
+    assert set(json_front) == csv_front == {"uniform h=6 mm"}
     assert ringed_points(left) == panel_points(front, "deviation_mm")
     assert ringed_points(right) == panel_points(front, "exit_deviation_mm")
 

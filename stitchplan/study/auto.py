@@ -162,7 +162,7 @@ class Trials:
                 f"reaches within {self.max_particles} particles (the next trial, needle spacing "
                 f"{h:.3g} mm, needs about {self.particles(h)}): ask for a looser accuracy, or raise "
                 "--max-particles")
-        trial = run_timed(InsertionRun(purpose, f"{purpose} h={h:g} {tracking}/{solver}",
+        trial = run_timed(InsertionRun(purpose, f"{purpose} h={h:g} mm {tracking}/{solver}",
                                        graded_scenario(self.scenario, h, tracking, solver), h))
         self.runs.append(trial)
         log.info("auto discretization: %s run h=%.3g mm %s/%s: %s %.2f s", purpose, h, tracking, solver,

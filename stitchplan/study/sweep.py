@@ -163,7 +163,7 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
             return f"study.families[{k}].spacing"
         return "study.spacing" if spec.spacing else "the study's default spacings"
 
-    runs = [StudyRun(family.name, f"{family.name} h={spacing:g}", configure(scenario, family, spacing), spacing,
+    runs = [StudyRun(family.name, f"{family.name} h={spacing:g} mm", configure(scenario, family, spacing), spacing,
                      source=source(k, family))
             for k, family in enumerate(families) for spacing in family.spacing or spacings]
     # the finest run in the needle step too: a family with a smaller step than the scenario's
@@ -177,7 +177,7 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
         raise InputError(f"study.reference.spacing: got {spacing:g} mm, expected less than the finest "
                          f"spacing of the sweep, {finest:g} mm (the runs' deviations are measured from "
                          "the reference)")
-    reference_run = StudyRun("reference", f"reference h={spacing:g}", configure(scenario, reference, spacing),
+    reference_run = StudyRun("reference", f"reference h={spacing:g} mm", configure(scenario, reference, spacing),
                              spacing, source="study.reference.spacing" if spec.reference and not quick
                              else "the study's default reference spacing")
     return runs, reference_run, spec.repeats
