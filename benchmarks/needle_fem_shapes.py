@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
 from stitchplan.errors import InsertionFailure  # noqa: E402
+from stitchplan.geometry.polygons import signed_area  # noqa: E402
 from stitchplan.needle.insertion import run_insertion  # noqa: E402
 from stitchplan.needle.prepared_tissue import PreparedTissue  # noqa: E402
 
@@ -76,14 +77,10 @@ def shaped_model(scenario) -> tuple[ShapedTriangles, float]:
 
 
 def domain_area(domain) -> float:
-    """The tissue's area: its outline's less its holes' (shoelace), a rectangle's sides' product."""
-    def shoelace(loop):
-        x, y = np.asarray(loop, dtype=float).T
-        return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
-
+    """The tissue's area: its outline's less its holes', a rectangle's sides' product."""
     if not hasattr(domain, "outline"):
         return float(np.prod(domain.size))
-    return shoelace(domain.outline) - sum(shoelace(hole) for hole in domain.holes)
+    return abs(signed_area(domain.outline)) - sum(abs(signed_area(hole)) for hole in domain.holes)
 
 
 def run(job: tuple[str, str, float]) -> dict:

@@ -318,8 +318,8 @@ def solve_skfem_curved(scenario: Scenario, h: float, grading: int = 0) -> SkfemR
     keep h from a rectangle's sides, and a region's edges must not cross the boundary."""
     from scipy.spatial import Delaunay
 
-    from stitchplan.geometry.polygons import turns
     from stitchplan.geometry.segments import on_segment, point_segment_distance
+    from stitchplan.tissue.shapes import corner_zones, region_index
 
     start = time.perf_counter()
     tissue = scenario.tissue
@@ -328,8 +328,8 @@ def solve_skfem_curved(scenario: Scenario, h: float, grading: int = 0) -> SkfemR
     width, height = domain.size
     tol = 1e-9 * max(width, height)
     polygon = hasattr(domain, "outline") and not domain.edge_names  # an outline's edges, not a rectangle's
-    holes = [np.asarray(hole, float) for hole in domain.holes]
-    loops = ([np.asarray(domain.outline, float)] if polygon else []) + holes + [r.vertices() for r in tissue.regions]
+    loops = ([np.asarray(domain.outline, float)] if polygon else []) + [np.asarray(hole, float) for hole in domain.holes]
+    loops += [region.vertices() for region in tissue.regions]
     starts = np.concatenate(loops)
     ends = np.concatenate([np.roll(loop, -1, axis=0) for loop in loops])
     breaks = np.asarray([p for load in scenario.loads for p in load.segment]
@@ -364,27 +364,20 @@ def solve_skfem_curved(scenario: Scenario, h: float, grading: int = 0) -> SkfemR
     inner = np.array([[2, 1, 1], [1, 2, 1], [1, 1, 2], [1, 1, 1]]) / np.array([[4], [4], [4], [3]])
     looked_at = np.concatenate([points[triangles], np.einsum("sk,tkd->tsd", inner, points[triangles])], axis=1)
     off_edge = np.concatenate([~on_edge[triangles], np.ones((len(triangles), len(inner)), dtype=bool)], axis=1)
-    which = region_of_points(tissue, looked_at.reshape(-1, 2)).reshape(len(triangles), -1)
+    which = region_index(tissue, looked_at.reshape(-1, 2)).reshape(len(triangles), -1)
     outside = ~domain.contains(looked_at.reshape(-1, 2), tol).reshape(len(triangles), -1)
-    own = region_of_points(tissue, centres)
+    own = region_index(tissue, centres)
     straddles = np.any(off_edge & ((which != own[:, None]) | outside), axis=1)
     if np.any(straddles):
         raise RuntimeError(f"{int(straddles.sum())} triangles straddle an edge of the tissue or of a region")
     mesh = MeshTri(points.T.copy(), triangles.T.copy())
-    boundary_loops = ([np.asarray(domain.outline, float)] if polygon else []) + [hole[::-1] for hole in holes]
-    corners = np.concatenate([loop[turns(loop) < -0.2] for loop in boundary_loops]) if boundary_loops else np.zeros((0, 2))
+    # the re-entrant corners the model grades its particles toward
+    corners = np.array([zone.center for zone in corner_zones(tissue, scenario.discretization)]).reshape(-1, 2)
     for k in range(grading if len(corners) else 0):
         vertices = mesh.p.T[mesh.t.T]  # (elements, 3, 2)
         distance = np.linalg.norm(vertices[:, :, None, :] - corners[None, None], axis=-1).min(axis=(1, 2))
         mesh = mesh.refined(np.flatnonzero(distance < 2.0 * h / 2**k))
     return solve_on_shape_mesh(scenario, mesh, ElementTriP2(), "P2-tri", h, start)
-
-
-def region_of_points(tissue, points: np.ndarray) -> np.ndarray:
-    """The region index of each point (-1: the tissue's own material), as the model assigns it."""
-    from stitchplan.tissue.shapes import region_index
-
-    return region_index(tissue, points) if tissue.regions else np.full(len(points), -1)
 
 
 def solve_on_shape_mesh(scenario: Scenario, mesh, element, label: str, h: float, start: float) -> SkfemRun:
@@ -393,6 +386,7 @@ def solve_on_shape_mesh(scenario: Scenario, mesh, element, label: str, h: float,
     holding its centre; clamped edges or segments u = 0, force segments dead tractions
     (displacement segments are not implemented here), St. Venant-Kirchhoff only."""
     from stitchplan.geometry.segments import on_segment
+    from stitchplan.tissue.shapes import region_index
 
     tissue = scenario.tissue
     domain = tissue.domain
@@ -407,7 +401,7 @@ def solve_on_shape_mesh(scenario: Scenario, mesh, element, label: str, h: float,
     if np.any(outside):
         mesh = mesh.remove_elements(np.flatnonzero(outside))
         centres = mesh.p[:, mesh.t].mean(axis=1).T
-    which = region_of_points(tissue, centres) + 1
+    which = region_index(tissue, centres) + 1
     lame_lambda = np.array([m.lame_lambda for m in materials])[which][:, None]
     lame_mu = np.array([m.lame_mu for m in materials])[which][:, None]
     vector_element = ElementVector(element)

@@ -23,8 +23,9 @@ the guard estimates
 - time: the tangent assembly B^T W B costs ~ quadrature points x neighbours^2 per Newton
   iteration and the factorization grows a little faster than the particles; seconds =
   SECONDS_PER_PARTICLE_STEP x particles^TIME_EXPONENT x steps x (neighbours / 16)^2 x
-  (quadrature points per particle / 4) x runs, x MINRES_TIME_FACTOR for needle runs whose
-  steps MINRES solves;
+  (quadrature points per particle / 4) x runs, for needle runs x (1 + steps / (2 x
+  STEP_TIME_DOUBLES_AT)) (a step's solves read a row pair per needle point before it) and
+  x MINRES_TIME_FACTOR where MINRES solves the steps;
 - with `simulate --condition-numbers`, each needle step's dense condition numbers
   (condition_costs): CONDITION_SECONDS x (2 x particles / 1000)^3 seconds a step and
   CONDITION_MATRICES dense (2 x particles)^2 arrays of memory (benchmarks/results/

@@ -244,8 +244,8 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
     seconds = SECONDS_PER_PARTICLE_STEP[kind] * time * steps * runs
     if kind != "deform":
         seconds *= 1.0 + float(steps) / (2.0 * STEP_TIME_DOUBLES_AT)
-    if kind != "deform" and (linear_solver or scenario.needle.linear_solver) == "minres":
-        seconds *= MINRES_TIME_FACTOR
+        if (linear_solver or scenario.needle.linear_solver) == "minres":
+            seconds *= MINRES_TIME_FACTOR
     condition_seconds, condition_memory = (condition_costs(size.particles, steps)
                                            if condition_numbers and kind != "deform" else (0.0, 0.0))
     condition_seconds *= runs
