@@ -10,15 +10,18 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from pydantic import TypeAdapter
 from typer.testing import CliRunner
 
 from stitchplan import calibration
 from stitchplan.cli import app
+from stitchplan.config.blocks import Region
 from stitchplan.config.scenario import (
     Discretization,
     Load,
@@ -41,6 +44,10 @@ LOADS = {  # force-controlled experiments on the 100 x 60 mm block clamped on th
     "left-stretch": (Load(((0.0, 0.0), (0.0, 60.0)), force=(-4.0, 0.0)),),
 }
 DISPLACED = (Load(((0.0, 20.0), (0.0, 40.0)), displacement=(-4.0, 2.0)),)
+# a stiff inclusion of known material between the loaded edge and the clamp
+STIFF_DISC = {"circle": {"center": [45.0, 30.0], "radius": 14.0},
+              "material": {"model": "neo-hookean", "lame_lambda": 0.8, "lame_mu": 0.6}}
+REGION_ADAPTER = TypeAdapter(Region)
 FIT = {"lame_lambda": [0.01, 2.0], "lame_mu": [0.01, 2.0], "grid": 4}
 
 
@@ -61,22 +68,26 @@ def load_block(loads: tuple[Load, ...], scale: float = 1.0) -> list[dict]:
 
 
 def write_calibration(folder, experiments, fit=None, rng=None, noise=0.0, markers=20, scale=1.0,
-                      extra=None):
-    """Markers from the forward model at TRUE (+ noise) and the calibration YAML; returns its path."""
+                      extra=None, regions=None):
+    """Markers from the forward model at TRUE (+ noise) and the calibration YAML; returns its path.
+    `regions`: the tissue's regions as the file gives them (their markers simulated with them)."""
     rng = rng or np.random.default_rng(0)
+    tissue = TISSUE if regions is None else replace(TISSUE, regions=tuple(REGION_ADAPTER.validate_python(r)
+                                                                          for r in regions))
     entries = []
     for k, loads in enumerate(experiments):
         scaled = tuple(Load(l.segment, None if l.force is None else tuple(scale * f for f in l.force),
                             l.displacement) for l in loads)
         rest = random_markers(rng, markers)
-        deformed = calibration.simulate_markers(TISSUE, COARSE, scaled, rest, TRUE)
+        deformed = calibration.simulate_markers(tissue, COARSE, scaled, rest, TRUE)
         deformed += noise * rng.standard_normal(deformed.shape)
         name = f"markers{k}.csv"
         rows = "\n".join(",".join(f"{v:.12g}" for v in row) for row in np.hstack([rest, deformed]))
         (folder / name).write_text("x,y,x_def,y_def\n" + rows + "\n")
         entries.append({"loads": load_block(loads, scale), "markers": name})
     data = {
-        "tissue": {"size": [100.0, 60.0], "thickness": 10.0, "clamped": ["right"]},
+        "tissue": {"size": [100.0, 60.0], "thickness": 10.0, "clamped": ["right"],
+                   **({"regions": regions} if regions else {})},
         "experiments": entries,
         "fit": fit or dict(FIT),
         "discretization": {"spacing": 10.0},
@@ -134,6 +145,34 @@ def test_displacement_control_sees_only_the_ratio():
         b = calibration.simulate_markers(TISSUE, COARSE, loads, markers,
                                          Material(TRUE.model, 2 * TRUE.lame_lambda, 2 * TRUE.lame_mu))
         assert (np.abs(a - b).max() > 0.1) == moves
+
+
+def test_marker_jacobian_with_a_region_of_given_material_matches_finite_differences():
+    """With a region the fitted moduli act only outside it: S_theta is zero at its points."""
+    tissue = replace(TISSUE, regions=(REGION_ADAPTER.validate_python(STIFF_DISC),))
+    markers = random_markers(np.random.default_rng(2), 10)
+    loads = LOADS["left-pull"] + (Load(((0.0, 50.0), (0.0, 60.0)), displacement=(-1.0, 0.5)),)
+    experiment = calibration.Experiment("", loads, 10, markers, markers)
+    forward = calibration.ExperimentModel(tissue, COARSE, experiment, "saint-venant-kirchhoff", Solver())
+    _, jacobian = forward.predict(THETA, jacobian=True)
+    for k in range(2):
+        step = np.zeros(2)
+        step[k] = 1e-5 * THETA[k]
+        plus, _ = forward.predict(THETA + step)
+        minus, _ = forward.predict(THETA - step)
+        np.testing.assert_allclose(jacobian[:, :, k], (plus - minus) / (2 * step[k]),
+                                   rtol=1e-4, atol=1e-6 * np.abs(jacobian).max())
+
+
+def test_a_region_of_given_material_makes_displacements_show_the_moduli():
+    """Against a region that keeps its moduli, scaling the tissue's own moves the markers
+    under a prescribed displacement too (the scaling of a one-material tissue is broken)."""
+    tissue = replace(TISSUE, regions=(REGION_ADAPTER.validate_python(STIFF_DISC),))
+    markers = random_markers(np.random.default_rng(3), 8)
+    doubled = Material(TRUE.model, 2 * TRUE.lame_lambda, 2 * TRUE.lame_mu)
+    a = calibration.simulate_markers(tissue, COARSE, DISPLACED, markers, TRUE)
+    b = calibration.simulate_markers(tissue, COARSE, DISPLACED, markers, doubled)
+    assert np.abs(a - b).max() > 0.1
 
 
 # --- material round trips ---------------------------------------------------------------
@@ -210,6 +249,29 @@ def test_no_identifiability_warning_on_force_data(tmp_path):
     assert result.identifiable
     assert abs(result.correlation) < calibration.CORRELATION_LIMIT
     assert not any("cannot separate" in w for w in result.warnings)
+
+
+def test_round_trip_with_a_region_of_given_material_through_the_cli(tmp_path):
+    """The fit finds the tissue's own moduli around a region it keeps as given, from force
+    data and from displacement data alone (identified there too: the region breaks the
+    scaling); a fit that leaves the region out misses them."""
+    for experiments in ([DISPLACED], [LOADS["left-pull"], LOADS["top-press"]]):
+        path = write_calibration(tmp_path, experiments, regions=[STIFF_DISC])
+        out = tmp_path / "fitted.yaml"
+        result = run("calibrate", "material", path, "--out", out)
+        assert result.exit_code == 0, result.output
+        fitted = yaml.safe_load(out.read_text())
+        assert fitted["lame_lambda"] == pytest.approx(TRUE.lame_lambda, rel=1e-3)
+        assert fitted["lame_mu"] == pytest.approx(TRUE.lame_mu, rel=1e-3)
+        assert fitted["fit"]["residual_mean_mm"] < 1e-5
+        assert fitted["fit"]["identifiable"] is True and fitted["fit"]["warnings"] == []
+        assert fitted["diagnostics"]["regions"] == 1
+    data = yaml.safe_load(path.read_text())  # the force experiments' file
+    del data["tissue"]["regions"]
+    path.write_text(yaml.safe_dump(data))
+    blind = calibration.fit_material(calibration.load_material_calibration(path))
+    assert blind.distances.mean() > 0.01  # mm: the markers are not explained (fitted: < 1e-5)
+    assert abs(blind.lame_mu / TRUE.lame_mu - 1.0) > 0.03
 
 
 # --- needle -----------------------------------------------------------------------------
@@ -358,6 +420,14 @@ def _mutate_material_given(folder, data):
     data["tissue"]["material"] = {"lame_lambda": 0.2, "lame_mu": 0.1}
 
 
+def _mutate_region_without_material(folder, data):
+    data["tissue"]["regions"] = [{"circle": {"center": [45.0, 30.0], "radius": 14.0}}]
+
+
+def _mutate_region_outside(folder, data):
+    data["tissue"]["regions"] = [{**STIFF_DISC, "circle": {"center": [145.0, 30.0], "radius": 14.0}}]
+
+
 def _mutate_bad_range(folder, data):
     data["fit"]["lame_mu"] = [2.0, 0.01]
 
@@ -375,6 +445,8 @@ BAD_CALIBRATIONS = {
     "marker outside": (_mutate_marker_outside, ["line 3, x, y: got the rest position [120, 10] mm",
                                                 "inside [0, 100] x [0, 60]"]),
     "material given": (_mutate_material_given, ["tissue.material", "fit.model"]),
+    "region without material": (_mutate_region_without_material, ["tissue.regions[0].material", "missing"]),
+    "region outside": (_mutate_region_outside, ["tissue.regions[0].circle", "expected a region overlapping the tissue"]),
     "range reversed": (_mutate_bad_range, ["fit.lame_mu", "[2.0, 0.01]", "low < high"]),
     "unknown model": (_mutate_bad_model, ["fit.model", "'mooney-rivlin'", "neo-hookean"]),
 }

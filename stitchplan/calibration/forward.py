@@ -14,7 +14,9 @@ the equilibrium f_int(d; lambda, mu) = f_ext at fixed loads gives
 
     K dd/dtheta = -B^T (w F S_theta)                                         (theta = lambda, mu)
 
-one factorisation of the converged tangent K per parameter point.
+one factorisation of the converged tangent K per parameter point. Material regions keep the
+moduli they give: the fitted law holds at the other quadrature points, and S_theta is zero
+at theirs.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from ..config import Discretization, Load, Material, Scenario, Solver, Tissue
 from ..errors import InvertedMaterial, SolverDivergence
 from ..tissue.assembly import Assembler
 from ..tissue.deform import external_forces, prescribed_displacements, to_free
-from ..tissue.material import NeoHookean, SaintVenantKirchhoff
+from ..tissue.material import NeoHookean, PointwiseMaterial, SaintVenantKirchhoff
 from ..tissue.model import model_for_scenario
 from ..tissue.factorization import factorize
 from ..tissue.solver import (
@@ -67,6 +69,9 @@ class ExperimentModel:
             model = model_for_scenario(self.scenario)
             shared[key] = (model, Assembler(model))
         self.model, self.assembler = shared[key]
+        # with regions the model holds a material per quadrature point (part 0: the tissue's own)
+        built = self.model.material
+        self._regions = built if isinstance(built, PointwiseMaterial) else None
         self.external = to_free(self.model, external_forces(self.model, self.scenario))  # (2 n_free,)
         self.prescribed = prescribed_displacements(self.model, self.scenario)  # (Nb, 2)
         # u(X_i) = N(X_i) d (deform.interpolate), with N(X_i) computed once
@@ -79,11 +84,19 @@ class ExperimentModel:
         self.cold_starts = 0
         self.newton_iterations = 0
 
-    def material(self, lame_lambda: float, lame_mu: float):
-        """The constitutive law of the fitted model at the given moduli."""
+    def material(self, lame_lambda: float, lame_mu: float, regions_stressed: bool = True):
+        """The constitutive law of the fitted model at the given moduli, and the regions' own
+        where the tissue has regions. regions_stressed=False: the regions' laws at zero moduli
+        (no stress), for the stress per unit fitted modulus."""
         # also at the unit directions (1, 0), (0, 1) of the moduli, which no Material may hold
         law = SaintVenantKirchhoff if self.model_name == "saint-venant-kirchhoff" else NeoHookean
-        return law(lame_lambda, lame_mu)
+        fitted = law(lame_lambda, lame_mu)
+        if self._regions is None:
+            return fitted
+        regions = self._regions.parts[1:]
+        if not regions_stressed:
+            regions = tuple(type(part)(0.0, 0.0) for part in regions)
+        return PointwiseMaterial((fitted, *regions), self._regions.index)
 
     def predict(self, theta: np.ndarray, jacobian: bool = False,
                 quick: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
@@ -158,7 +171,7 @@ class ExperimentModel:
         weights = model.quadrature_weights[:, None, None]
         columns = []
         for unit in ((1.0, 0.0), (0.0, 1.0)):  # S_lambda, S_mu: the stress per unit modulus
-            stress, _ = self.material(*unit).pk2_stress(deformation_gradient)
+            stress, _ = self.material(*unit, regions_stressed=False).pk2_stress(deformation_gradient)
             first_piola = deformation_gradient @ stress  # (nq, 2, 2)
             columns.append(self.assembler.gradient_t @ (first_piola * weights).reshape(-1))
         # the assembler was last updated at the converged state, so this is K there

@@ -9,7 +9,9 @@ statistics at the optimum say how well each modulus is determined.
 
 Both material models have a PK2 stress linear in the moduli, so scaling both moduli by c is
 the same as dividing the forces by c: with displacement-controlled loading alone only
-lambda/mu can be identified, and the fit says so.
+lambda/mu can be identified, and the fit says so. Regions of a given material (the
+tissue's `regions`, kept as given) break that scaling: against them the tissue's own
+moduli show under displacements too.
 """
 
 from __future__ import annotations
@@ -336,7 +338,8 @@ def statistics(residual: np.ndarray, jacobian: np.ndarray, theta: np.ndarray) ->
 def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
                  refinement: Refinement, displacements_only: bool = True) -> list[str]:
     """What a user should know about the fitted moduli, most serious first.
-    `displacements_only`: every load of every experiment is a prescribed displacement."""
+    `displacements_only`: every load of every experiment is a prescribed displacement, on a
+    tissue of one material (the case where scaling both moduli moves no marker)."""
     identifiable = identified(theta, stats, fit)
     warnings: list[str] = []
     if not stats.separable:
@@ -423,7 +426,8 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         raise NumericalFailure(f"fit: the forward model failed at the fitted moduli: {failure}") from None
     stats = statistics(r, jac, theta)
     identifiable = identified(theta, stats, problem.fit)
-    displacements_only = all(load.displacement is not None for e in problem.experiments for load in e.loads)
+    displacements_only = (not problem.tissue.regions
+                          and all(load.displacement is not None for e in problem.experiments for load in e.loads))
     warnings = fit_warnings(theta, stats, problem.fit, refinement, displacements_only)
     for message in warnings:
         log.warning(message)

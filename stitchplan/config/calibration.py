@@ -26,6 +26,7 @@ from .blocks import (
     Load,
     Material,
     PolygonPoints,
+    Region,
     Size,
     Solver,
     Tissue,
@@ -99,7 +100,8 @@ MuLow = number(f"a number of at least {MIN_SEARCH_MODULUS:g} (MPa; 1 Pa, softer 
 
 @block(title="tissue", file_required=("thickness",), one_of=("size", "outline"))
 class CalibrationTissue:
-    """The tissue of a calibration: a scenario's tissue without its material."""
+    """The tissue of a calibration: a scenario's tissue without its material. Its regions
+    keep the materials they give; the fitted moduli are the tissue's own, everywhere else."""
 
     size: described(Size | None, "[W, H] mm: the rectangle [0, W] x [0, H]; or give outline") = None
     thickness: described(PositiveMM, f"out-of-plane thickness t, mm; {THICKNESS_RANGE_MM[0]:g} to "
@@ -108,6 +110,9 @@ class CalibrationTissue:
     outline: described(PolygonPoints | None, "a simple polygon [[x, y], ...] (mm), instead of size") = None
     holes: described(sequence(Hole, "a list of holes ({polygon: ...} or {circle: ...})"),
                      "cut-outs with free edges; one reaching the outline is cut out of it") = ()
+    regions: described(sequence(Region, "a list of regions ({polygon: ...} or {circle: ...}, and material: ...)"),
+                       "areas of a known material, kept as given: the fit finds the rest of the "
+                       "tissue's moduli") = ()
 
     _thickness_within_limits = within_limits(THICKNESS_LIMITS)
 
@@ -133,7 +138,7 @@ class CalibrationTissue:
         return self
 
     def tissue(self, material: Material) -> Tissue:
-        return Tissue(self.size, self.thickness, material, self.clamped, self.outline, self.holes)
+        return Tissue(self.size, self.thickness, material, self.clamped, self.outline, self.holes, self.regions)
 
 
 @block(kw_only=True, title="experiment")

@@ -13,6 +13,7 @@ from .plot_elements import (
     draw_clamps,
     draw_loads,
     draw_outline,
+    draw_regions,
     frame,
     label_mm,
     legend_below,
@@ -114,6 +115,7 @@ def plot_marker_residuals(path: str | Path, tissue, experiments, simulated: list
         experiment, q = experiments[k], simulated[k]
         p = experiment.measured
         draw_outline(ax, tissue.domain)
+        draw_regions(ax, tissue)
         ends = draw_loads(ax, experiment.loads, tissue.domain, 0.15 * size)
         ax.plot(*experiment.markers.T, ".", color="0.7", ms=4, label="marker at rest")
         ax.plot(*q.T, "o", mfc="none", mec="tab:blue", ms=6, label="simulated q (fitted moduli)")

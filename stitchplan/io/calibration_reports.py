@@ -112,6 +112,7 @@ def _material_diagnostics(result: MaterialFit) -> dict:
         "cold_starts": result.cold_starts,
         "newton_iterations": result.newton_iterations,
         "wall_seconds": round(result.wall_seconds, 3),
+        "regions": len(problem.tissue.regions),  # kept at the materials the file gives them
         "search_range": {"lame_lambda": list(problem.fit.lame_lambda),
                          "lame_mu": list(problem.fit.lame_mu)},
         "grid": {
