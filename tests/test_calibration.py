@@ -428,6 +428,12 @@ def _mutate_region_outside(folder, data):
     data["tissue"]["regions"] = [{**STIFF_DISC, "circle": {"center": [145.0, 30.0], "radius": 14.0}}]
 
 
+def _mutate_regions_cover_the_tissue(folder, data):
+    material = STIFF_DISC["material"]
+    data["tissue"]["regions"] = [{"polygon": [[-5, -5], [60, -5], [60, 65], [-5, 65]], "material": material},
+                                 {"polygon": [[50, -5], [105, -5], [105, 65], [50, 65]], "material": material}]
+
+
 def _mutate_bad_range(folder, data):
     data["fit"]["lame_mu"] = [2.0, 0.01]
 
@@ -447,6 +453,8 @@ BAD_CALIBRATIONS = {
     "material given": (_mutate_material_given, ["tissue.material", "fit.model"]),
     "region without material": (_mutate_region_without_material, ["tissue.regions[0].material", "missing"]),
     "region outside": (_mutate_region_outside, ["tissue.regions[0].circle", "expected a region overlapping the tissue"]),
+    "regions cover the tissue": (_mutate_regions_cover_the_tissue, ["tissue.regions", "2 regions covering the whole "
+                                                                     "tissue", "leave some of the tissue"]),
     "range reversed": (_mutate_bad_range, ["fit.lame_mu", "[2.0, 0.01]", "low < high"]),
     "unknown model": (_mutate_bad_model, ["fit.model", "'mooney-rivlin'", "neo-hookean"]),
 }

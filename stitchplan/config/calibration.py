@@ -49,6 +49,7 @@ from .fields import (
     sequence,
 )
 from .load_checks import load_problems
+from .tissue_shape import tissue_outside_regions
 from .messages import Shown, combined, valid_or_none, validate
 
 GRID_SCALES = ("log", "linear")
@@ -132,9 +133,14 @@ class CalibrationTissue:
     @model_validator(mode="after")
     def _shape(self) -> CalibrationTissue:
         try:
-            self.tissue(Material())
+            tissue = self.tissue(Material())
         except ValidationError as error:
             raise combined(error.errors()) from None
+        if self.regions and not tissue_outside_regions(tissue):
+            raise problem("regions that leave some of the tissue to its own material (the moduli the fit "
+                          "finds; the regions keep theirs)", field="regions",
+                          value=Shown(f"{len(self.regions)} region{'s' if len(self.regions) > 1 else ''} "
+                                      "covering the whole tissue"))
         return self
 
     def tissue(self, material: Material) -> Tissue:

@@ -218,13 +218,30 @@ def _loops_touch(a: np.ndarray, b: np.ndarray, tol: float) -> bool:
     return bool(np.any(segments_touch(a0, a1, b0, b1, tol)))
 
 
+def _box_lattice(low: np.ndarray, high: np.ndarray, count: int = 200) -> np.ndarray:
+    """count x count points (count^2, 2) at the centres of a grid over the box [low, high]."""
+    t = (np.arange(count) + 0.5) / count
+    return np.stack(np.meshgrid(low[0] + t * (high[0] - low[0]), low[1] + t * (high[1] - low[1])),
+                    axis=-1).reshape(-1, 2)
+
+
+def tissue_outside_regions(tissue: TissueBlock) -> bool:
+    """Whether some of the tissue lies outside every region (where its own material holds):
+    a lattice of 200 x 200 points over its bounding box with a point in the tissue and in no
+    region."""
+    domain = tissue.domain
+    low = np.asarray(domain.origin, dtype=float)
+    points = _box_lattice(low, low + np.array(domain.size))
+    points = points[domain.contains(points)]
+    for region in tissue.regions:
+        points = points[~PolygonDomain(counter_clockwise(region.vertices()))._inside_strict(points)]
+    return len(points) > 0
+
+
 def _overlaps(region: PolygonDomain, domain) -> bool:
     """Whether the region holds tissue: a lattice of 200 x 200 points over the region's
     bounding box with some point inside both (regions thinner than 1/200 of their box count
     as empty)."""
-    low, high = region.origin, region.origin + np.array(region.size)
-    t = (np.arange(200) + 0.5) / 200
-    points = np.stack(np.meshgrid(low[0] + t * (high[0] - low[0]), low[1] + t * (high[1] - low[1])),
-                      axis=-1).reshape(-1, 2)
+    points = _box_lattice(region.origin, region.origin + np.array(region.size))
     points = points[region._inside_strict(points)]
     return bool(np.any(domain.contains(points))) if len(points) else False
