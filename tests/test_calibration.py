@@ -251,7 +251,11 @@ def test_round_trip_with_a_region_of_given_material_through_the_cli(tmp_path):
         assert fitted["lame_mu"] == pytest.approx(TRUE.lame_mu, rel=1e-3)
         assert fitted["fit"]["residual_mean_mm"] < 1e-5
         assert fitted["fit"]["identifiable"] is True and fitted["fit"]["warnings"] == []
-        assert fitted["diagnostics"]["regions"] == 1
+        # the regions it kept, as a scenario's tissue takes them, read back by an uncertainty file
+        assert fitted["regions"] == [STIFF_DISC]
+        assert out.read_text().count("paste both into the scenario's `tissue:` block") == 1
+        from stitchplan.config.uncertainty import calibration_spread
+        assert calibration_spread(out, tmp_path / "u.yaml")[2] == (REGION_ADAPTER.validate_python(STIFF_DISC),)
     data = yaml.safe_load(path.read_text())  # the force experiments' file
     del data["tissue"]["regions"]
     path.write_text(yaml.safe_dump(data))

@@ -794,8 +794,9 @@ def _with_region() -> dict:
 
 
 def test_uncertain_moduli_on_a_scenario_with_material_regions_are_refused(tmp_path):
-    """A sample replaces tissue.material only: the regions' moduli would stay fixed and the
-    spread and sensitivity would read 0. Refused up front; thickness stays allowed."""
+    """A sample replaces tissue.material only: the regions' moduli would stay fixed, which
+    moduli given in the uncertainty file do not say. Refused up front; thickness stays
+    allowed."""
     scenario_path = write(tmp_path, _with_region())
     path = write(tmp_path, {"samples": 3, "parameters": {"lame_mu": {"std": 0.01}}}, "u.yaml")
     out = tmp_path / "out"
@@ -804,11 +805,75 @@ def test_uncertain_moduli_on_a_scenario_with_material_regions_are_refused(tmp_pa
     expected = (f"error: --uncertainty: {path}: parameters.lame_mu: got {{std: 0.01}}, expected no uncertain "
                 f"moduli for a scenario with material regions ({scenario_path} has 1 region in tissue.regions")
     assert line.startswith(expected), line
+    assert line.endswith("or take both moduli from a `calibrate material` fitted around the scenario's regions: "
+                         "from_calibration)"), line
     assert not out.exists()
-    scenario = parse_scenario(_with_region())
-    with pytest.raises(InputError, match="expected no uncertain moduli"):
-        with_parameters(scenario, ("lame_mu",), np.array([0.2]))
-    assert with_parameters(scenario, ("thickness",), np.array([9.0])).tissue.thickness == 9.0
+    assert with_parameters(parse_scenario(_with_region()), ("thickness",), np.array([9.0])).tissue.thickness == 9.0
+
+
+def _bottom_region(lame_mu: float = 0.3) -> dict:
+    """A stiffer band along the bottom of small_raw's 20 x 20 mm block (the needle enters at the top)."""
+    return {"polygon": [[0.0, 0.0], [20.0, 0.0], [20.0, 6.0], [0.0, 6.0]],
+            "material": {"model": "saint-venant-kirchhoff", "lame_lambda": 0.4, "lame_mu": lame_mu}}
+
+
+def _region_calibration(folder: Path, regions: list) -> Path:
+    """A `calibrate material` output fitted around `regions` (as it writes them)."""
+    fitted = folder / "fitted.yaml"
+    fitted.write_text(yaml.safe_dump({"lame_lambda": 0.19, "lame_mu": 0.15, "regions": regions,
+                                      "fit": {"standard_uncertainty": {"lame_lambda": 0.01, "lame_mu": 0.002},
+                                              "correlation": -0.5, "identifiable": True}}))
+    return fitted
+
+
+def test_moduli_calibrated_around_the_scenarios_regions_vary_its_own_material(tmp_path):
+    """A calibration fitted around regions of given material determines the tissue's own moduli
+    there: on a scenario with the same regions its stds are taken, and a sample replaces
+    tissue.material and keeps the regions'; other regions, other materials or none are refused,
+    naming the calibration's regions and the scenario's."""
+    from stitchplan.config.uncertainty import check_against_scenario
+
+    _region_calibration(tmp_path, [_bottom_region()])
+    resolved = uncertainty({"samples": 3, "from_calibration": "fitted.yaml"}, str(tmp_path / "u.yaml"))
+    raw = small_raw()
+    raw["tissue"]["regions"] = [_bottom_region()]
+    scenario = parse_scenario(raw)
+    check_against_scenario(resolved, scenario, "scene.yaml")  # the same regions: taken
+    sample = with_parameters(scenario, ("lame_lambda", "lame_mu"), np.array([0.2, 0.16]))
+    assert (sample.tissue.material.lame_lambda, sample.tissue.material.lame_mu) == (0.2, 0.16)
+    assert sample.tissue.regions == scenario.tissue.regions
+    raw["tissue"]["regions"] = [_bottom_region(lame_mu=0.31)]
+    for regions, fragment in (([_bottom_region(lame_mu=0.31)], "has 1 region in tissue.regions, with other shapes "
+                                                                  "or materials)"),
+                              ((), "has 0 regions in tissue.regions)")):
+        raw["tissue"]["regions"] = list(regions)
+        with pytest.raises(InputError) as refused:
+            check_against_scenario(resolved, parse_scenario(raw), "scene.yaml")
+        message = str(refused.value)
+        assert message.startswith(f"{tmp_path / 'u.yaml'}: from_calibration: {tmp_path / 'fitted.yaml'}: regions: "
+                                  "got 1 region, expected the scenario's regions as given (scene.yaml " + fragment)
+        assert message.count("\n") == 0
+
+
+def test_a_calibration_without_regions_is_refused_on_a_scenario_with_regions(tmp_path):
+    """Moduli fitted to a tissue of one material are not the tissue's own around regions."""
+    path = write(tmp_path, _with_region())
+    (tmp_path / "u.yaml").write_text(f"samples: 3\nfrom_calibration: {CALIBRATION / 'fitted.yaml'}\n")
+    out = tmp_path / "out"
+    line = one_error_line(invoke("plan", path, "--uncertainty", tmp_path / "u.yaml", "--export", out / "t.csv",
+                                 "--workers", "0"))
+    assert "regions: got 0 regions, expected the scenario's regions as given" in line, line
+    assert not out.exists()
+
+
+def test_a_calibrations_regions_that_are_no_regions_are_named(tmp_path):
+    from stitchplan.config.uncertainty import calibration_spread
+
+    for regions, fragment in (("a disc", "regions: got 'a disc', expected a list of regions"),
+                              ([{"circle": {"center": [5, 5], "radius": 2}}], "regions[0].material: missing")):
+        fitted = _region_calibration(tmp_path, regions)
+        with pytest.raises(InputError, match=fragment.replace("[", r"\[").replace("]", r"\]")):
+            calibration_spread(fitted, tmp_path / "u.yaml")
 
 
 def test_a_symmetric_target_across_a_wound_is_refused_with_uncertainty(tmp_path):

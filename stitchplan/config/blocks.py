@@ -209,6 +209,15 @@ class Region:
         """The field that gives the region's shape and its value, for a message."""
         return ("polygon", self.polygon) if self.polygon is not None else ("circle", asdict(self.circle))
 
+    def as_block(self) -> dict:
+        """The region as a scenario file gives it (plain lists and numbers): its shape and material."""
+        name, shape = self.shown()
+        if name == "polygon":
+            shape = [[float(x), float(y)] for x, y in shape]
+        else:
+            shape = {"center": [float(v) for v in shape["center"]], "radius": float(shape["radius"])}
+        return {name: shape, "material": asdict(self.material)}
+
 
 @block()
 class ClampedSegment:

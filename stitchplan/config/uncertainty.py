@@ -16,7 +16,8 @@ file): its `fit.standard_uncertainty` gives the std of lame_lambda and lame_mu a
 this file override them. `resolve_uncertainty` gives the resolved `Uncertainty` (names,
 stds, correlation matrix), refusing a matrix that is not positive definite;
 `check_against_scenario` refuses a parameter the scenario does not have, a std above the
-scenario's value, and uncertain moduli on a scenario with material regions.
+scenario's value, and uncertain moduli on a scenario with material regions unless they are a
+calibration's fitted around the same regions.
 """
 
 from __future__ import annotations
@@ -29,7 +30,9 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import Field, Strict, field_validator, model_validator
 
-from .blocks import block
+from ..errors import InputError
+
+from .blocks import Region, block
 from .fields import choice, described, expecting, integer, number, pair, problem, sequence
 from .messages import input_error, short, validate
 from .yaml_files import read_yaml, read_yaml_file, with_key_problems
@@ -128,6 +131,7 @@ class Uncertainty:
     path: str  # the uncertainty file
     calibration: str | None  # the calibrate material output read, if any
     correlation_sources: dict[frozenset, str] = field(default_factory=dict)  # pair -> "file" | "calibration"
+    calibration_regions: tuple = ()  # Region: those the calibration's moduli were fitted around
 
     @property
     def covariance(self) -> np.ndarray:
@@ -163,10 +167,10 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
     sources: dict[str, str] = {}
     pairs: dict[frozenset, float] = {}
     pair_sources: dict[frozenset, str] = {}
-    calibration = None
+    calibration, calibration_regions = None, ()
     if spec.from_calibration is not None:
         calibration = path.parent / spec.from_calibration
-        std, pair_value = calibration_spread(calibration, path)
+        std, pair_value, calibration_regions = calibration_spread(calibration, path)
         sources = {name: "calibration" for name in std}
         pairs[frozenset(("lame_lambda", "lame_mu"))] = pair_value
         pair_sources[frozenset(("lame_lambda", "lame_mu"))] = "calibration"
@@ -206,11 +210,13 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
                            f"definite correlation matrix (its smallest eigenvalue is {smallest:.3g})"]) from None
     return Uncertainty(spec.samples, spec.seed, names, np.array([std[name] for name in names]), matrix,
                        {name: sources[name] for name in names}, str(path),
-                       None if calibration is None else str(calibration), pair_sources)
+                       None if calibration is None else str(calibration), pair_sources, calibration_regions)
 
 
-def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float], float]:
-    """lame_lambda and lame_mu std and their correlation from a `calibrate material` output."""
+def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float], float, tuple]:
+    """lame_lambda and lame_mu std and their correlation from a `calibrate material` output,
+    and the regions (Region) it kept at their given materials (none in outputs without
+    `regions`)."""
     where = f"{source}: from_calibration: {calibration}"
     if not calibration.is_file():
         what = "Is a directory" if calibration.is_dir() else "No such file or directory"  # as the OS says it
@@ -240,7 +246,26 @@ def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float
         raise input_error([f"{where}: fit.correlation: got {short(value)}, expected a number between -1 and 1 "
                            "(exclusive)"])
     std = {name: float(v) for name, v in given.items()}
-    return std, float(value)
+    return std, float(value), _calibration_regions(raw.get("regions"), where)
+
+
+def _calibration_regions(raw: Any, where: str) -> tuple:
+    """The `regions` of a calibration output as Regions; an InputError naming them if they are
+    not a list of regions."""
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise input_error([f"{where}: regions: got {short(raw)}, expected a list of regions ({{polygon: ...}} or "
+                           "{circle: ...}, and material: ...), as `calibrate material` writes them"])
+    regions, lines = [], []
+    for i, given in enumerate(raw):
+        try:
+            regions.append(validate(Region, given, f"regions[{i}]"))
+        except InputError as error:
+            lines += [f"{where}: {line}" for line in getattr(error, "lines", [str(error)])]
+    if lines:
+        raise input_error(lines)
+    return tuple(regions)
 
 
 def _finite(value: Any) -> bool:
@@ -266,15 +291,18 @@ def check_against_scenario(uncertainty: Uncertainty, scenario, scenario_path: st
       and the distribution truncated to positive values would no longer be around the
       scenario's value (its mean moves up by more than 0.29 std; a std of 1e300 samples only
       values that overflow the model);
-    - lame_lambda or lame_mu on a scenario with material `regions`: a sample replaces
-      tissue.material only, so the regions' moduli would stay fixed and the spread and the
-      sensitivity would leave them out (no region-wise meaning is defined);
+    - lame_lambda or lame_mu on a scenario with material `regions`, unless they come from a
+      calibration fitted around the same regions: a sample replaces tissue.material only, so
+      the regions' moduli stay fixed, which is the calibration's model (the tissue's own
+      moduli around regions of given material) and no other file's;
+    - moduli from a calibration fitted around regions the scenario does not hold as given;
     - a std that does not move the value in double precision: the sensitivity's step, half a
       std (uncertainty.robust), must change it, else the samples and the step are the value
       itself and the sensitivity reads 0 (a std of 1e-300 on a 10 mm thickness)."""
     values = scenario_values(scenario, uncertainty.names)
-    regions = len(getattr(scenario.tissue, "regions", ()) or ())
-    lines = []
+    scenario_regions = tuple(getattr(scenario.tissue, "regions", ()) or ())
+    regions = len(scenario_regions)
+    lines = _region_problems(uncertainty, scenario_regions, scenario_path)
     for name, value, std in zip(uncertainty.names, values, uncertainty.std):
         where = {"friction": "needle", "cutting_force": "needle", "thickness": "tissue"}.get(name, "tissue.material")
         field = parameter_field(uncertainty, name)
@@ -294,14 +322,33 @@ def check_against_scenario(uncertainty: Uncertainty, scenario, scenario_path: st
                          f"{2.0 * np.spacing(value):.3g} {UNITS[name]}, a std that moves the scenario's value "
                          f"{value:g} ({scenario_path}: {where}.{name}) in double precision: half a std, the "
                          "sensitivity's step, would leave it as it is")
-        if name in ("lame_lambda", "lame_mu") and regions:
-            counted = f"{regions} region{'s' * (regions > 1)}"
+        if name in ("lame_lambda", "lame_mu") and regions and uncertainty.sources[name] != "calibration":
             lines.append(f"{uncertainty.path}: {field}: got {{std: {std:g}}}, expected no uncertain moduli for a "
-                         f"scenario with material regions ({scenario_path} has {counted} in tissue.regions, whose "
-                         f"moduli the uncertainty would not reach: only tissue.material.{name} would vary; remove "
-                         f"{name} from the uncertainty or the regions from the scenario)")
+                         f"scenario with material regions ({scenario_path} has {_counted(regions)} in tissue.regions, "
+                         f"whose moduli the uncertainty would not reach: only tissue.material.{name} would vary; "
+                         f"remove {name} from the uncertainty or the regions from the scenario, or take both moduli "
+                         "from a `calibrate material` fitted around the scenario's regions: from_calibration)")
     if lines:
         raise input_error(lines)
+
+
+def _counted(regions: int) -> str:
+    return f"{regions} region{'s' * (regions != 1)}"
+
+
+def _region_problems(uncertainty: Uncertainty, scenario_regions: tuple, scenario_path: str | Path) -> list[str]:
+    """Moduli from a calibration whose regions are not the scenario's (shapes and materials as
+    given): its moduli are the tissue's own around its regions, so they hold only there."""
+    from_calibration = [name for name in ("lame_lambda", "lame_mu") if uncertainty.sources.get(name) == "calibration"]
+    if not from_calibration or uncertainty.calibration_regions == scenario_regions:
+        return []
+    return [f"{uncertainty.path}: from_calibration: {uncertainty.calibration}: regions: got "
+            f"{_counted(len(uncertainty.calibration_regions))}, expected the scenario's regions as given "
+            f"({scenario_path} has {_counted(len(scenario_regions))} in tissue.regions"
+            + (", with other shapes or materials" if len(scenario_regions) == len(uncertainty.calibration_regions)
+               else "")
+            + f"): the calibration's {' and '.join(from_calibration)} are the tissue's own around the regions it kept "
+            "at their materials, and vary so only on the same regions"]
 
 
 def parameter_field(uncertainty: Uncertainty, name: str) -> str:

@@ -17,6 +17,8 @@ if TYPE_CHECKING:
 
 MATERIAL_HEADER = ("# stitchplan calibrate material: Lame moduli fitted to marker displacements\n"
                    "# (thesis eq. A.3). Paste the `material:` block into a scenario's `tissue:` block.\n")
+REGIONS_HEADER = ("# The moduli are the tissue's own around `regions:`, kept at the materials the\n"
+                  "# calibration file gave them: paste both into the scenario's `tissue:` block.\n")
 NEEDLE_HEADER = ("# stitchplan calibrate needle: friction (N/mm) and cutting force (N) from force\n"
                  "# recordings (thesis section 5.2). Paste both into a scenario's `needle:` block.\n")
 MATERIAL_PLOTS = ("cost_surface.png", "marker_residuals.png")  # written into --plot-dir
@@ -64,6 +66,8 @@ def material_report(result: MaterialFit, command: list[str] | None = None) -> di
         "lame_mu": _round(result.lame_mu),
         "residual_mean_mm": _round(float(distances.mean())),
         "residual_std_mm": _round(_spread(distances)),
+        # the regions the moduli were fitted around (a scenario's tissue.regions, as given)
+        "regions": [region.as_block() for region in result.problem.tissue.regions],
         "fit": _material_quality(result),
         "diagnostics": {**_material_diagnostics(result), "command": command,
                         "input_sha256": _inputs([result.problem.source]
@@ -112,7 +116,6 @@ def _material_diagnostics(result: MaterialFit) -> dict:
         "cold_starts": result.cold_starts,
         "newton_iterations": result.newton_iterations,
         "wall_seconds": round(result.wall_seconds, 3),
-        "regions": len(problem.tissue.regions),  # kept at the materials the file gives them
         "search_range": {"lame_lambda": list(problem.fit.lame_lambda),
                          "lame_mu": list(problem.fit.lame_mu)},
         "grid": {
@@ -172,7 +175,8 @@ def write_material_outputs(result: MaterialFit, out: str | Path,
     with OutputSet(outputs).staged() as files:
         if plot_dir is not None:
             _material_plots_to(result, *(files[label] for label in list(outputs)[1:]))
-        write_yaml(files["--out"], material_report(result, command), MATERIAL_HEADER)
+        write_yaml(files["--out"], material_report(result, command),
+                   MATERIAL_HEADER + (REGIONS_HEADER if result.problem.tissue.regions else ""))
 
 
 def material_summary_line(result: MaterialFit) -> str:
