@@ -35,6 +35,7 @@ python sample_runs/plan_table.py > $out/plan_table.md
  stitchplan calibrate material calibration.yaml --out fitted.yaml --plot-dir plots
  stitchplan calibrate material displacement_only.yaml --out fitted_displacement_only.yaml \
    --plot-dir plots_displacement_only
+ stitchplan calibrate material skin_layered.yaml --out fitted_skin_layered.yaml --plot-dir plots_skin_layered
  stitchplan calibrate needle --air air.csv --tissue tissue.csv --radius 8.88 --out needle.yaml \
    --plot forces.png)
 
@@ -43,3 +44,9 @@ python sample_runs/plan_table.py > $out/plan_table.md
 stitchplan plan configs/sh12_100x100.yaml --uncertainty configs/uncertainty/uncertainty_sample.yaml \
   --export $out/sh12_100x100/uncertainty/trajectory.csv --summary $out/sh12_100x100/uncertainty/summary.json \
   --uncertainty-plot $out/sh12_100x100/uncertainty/uncertainty.png
+
+# the same on the layered skin patch, its subcutaneous moduli from the calibration around its
+# skin layer (configs/uncertainty/uncertainty_skin_layered.yaml reads calibration/fitted_skin_layered.yaml)
+stitchplan plan configs/skin_layered.yaml --uncertainty configs/uncertainty/uncertainty_skin_layered.yaml \
+  --export $out/skin_layered/uncertainty/trajectory.csv --summary $out/skin_layered/uncertainty/summary.json \
+  --uncertainty-plot $out/skin_layered/uncertainty/uncertainty.png

@@ -489,6 +489,27 @@ def test_shipped_example_inputs_load_and_outputs_match_the_truth():
     assert abs(result.cutting_force - CUTTING) < 3 * result.standard_uncertainty[1]
 
 
+def test_shipped_skin_layered_example_fits_the_truth_around_the_scenes_skin_layer():
+    """sample_runs/calibration/skin_layered.yaml: the subcutaneous moduli fitted around the skin
+    layer lie within 3 reported sigma of configs/skin_layered.yaml's material, its regions are
+    the scene's, and the shipped uncertainty file takes its spread for that scene."""
+    from stitchplan.config import load_scenario
+    from stitchplan.config.uncertainty import check_against_scenario, load_uncertainty
+
+    configs = SAMPLES.parents[1] / "configs"
+    scene = load_scenario(configs / "skin_layered.yaml")
+    fitted = yaml.safe_load((SAMPLES / "fitted_skin_layered.yaml").read_text())
+    for name in ("lame_lambda", "lame_mu"):
+        sigma = fitted["fit"]["standard_uncertainty"][name]
+        assert abs(fitted["material"][name] - getattr(scene.tissue.material, name)) < 3 * sigma
+    assert fitted["fit"]["identifiable"] and fitted["fit"]["warnings"] == []
+    problem = calibration.load_material_calibration(SAMPLES / "skin_layered.yaml")
+    assert problem.tissue.regions == scene.tissue.regions
+    resolved = load_uncertainty(configs / "uncertainty" / "uncertainty_skin_layered.yaml")
+    assert resolved.sources["lame_mu"] == "calibration" and resolved.calibration_regions == scene.tissue.regions
+    check_against_scenario(resolved, scene, configs / "skin_layered.yaml")
+
+
 # --- layering -------------------------------------------------------------------------
 
 PACKAGE = Path(__file__).resolve().parents[1] / "stitchplan"
