@@ -49,8 +49,8 @@ from .fields import (
     sequence,
 )
 from .load_checks import load_problems
-from .tissue_shape import tissue_outside_regions
 from .messages import Shown, combined, valid_or_none, validate
+from .tissue_shape import tissue_outside_regions
 
 GRID_SCALES = ("log", "linear")
 MarkerFile = Annotated[str, Strict(), Field(min_length=1),

@@ -31,7 +31,6 @@ import numpy as np
 from pydantic import Field, Strict, field_validator, model_validator
 
 from ..errors import InputError
-
 from .blocks import Region, block
 from .fields import choice, described, expecting, integer, number, pair, problem, sequence
 from .messages import input_error, short, validate
