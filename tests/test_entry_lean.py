@@ -27,7 +27,8 @@ from stitchplan.config.scenario import ScenarioError, parse_scenario
 from stitchplan.needle.geometry import entry_lean, leaning, orthogonal, scenario_needle
 from stitchplan.needle.insertion import run_insertion
 from stitchplan.needle.prepared_tissue import PreparedTissue
-from stitchplan.planning.planner import center_moves, run_plan
+from stitchplan.planning.move_limits import center_moves
+from stitchplan.planning.planner import run_plan
 from stitchplan.planning.trajectory import exported_centers
 
 RADIUS = 8.88

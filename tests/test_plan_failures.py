@@ -75,7 +75,7 @@ def test_a_best_pass_that_left_early_is_run_again_braking_toward_its_exit():
     block its tip leaves three steps earlier, from full speed, and here it is the best pass.
     It is run once more with its offset, braking toward the step its tip left after: that
     path keeps the move limits and is exported, its exit a little further off."""
-    from stitchplan.planning.planner import MoveLimits, path_smoothness
+    from stitchplan.planning.move_limits import MoveLimits, path_smoothness
 
     scenario = parse_scenario(block("neo-hookean", 3.0, 0.3, 1.5))
     plan = run_plan(scenario, compare=False)
@@ -97,7 +97,7 @@ def test_a_path_that_stops_short_of_its_braking_says_it_breaks_the_move_limits(m
     centre stops at the exit row from full speed. The summary's
     max_center_second_difference_mm shows it; an event says so and why."""
     from stitchplan.planning import planner
-    from stitchplan.planning.planner import MoveLimits, path_smoothness
+    from stitchplan.planning.move_limits import MoveLimits, path_smoothness
 
     monkeypatch.setattr(planner._PlanPasses, "_brake_for_exit", lambda passes, number: None)
     scenario = parse_scenario(block("neo-hookean", 3.0, 0.3, 1.5))
@@ -118,7 +118,7 @@ def test_passes_after_the_first_brake_toward_where_its_tip_left():
     """On a 2.5 mm neo-Hookean slab (sh12_100x100 softened) the tip leaves steps before the
     undeformed circle would; the passes after the first brake toward the first pass's last
     step in the tissue, so the exported path (a later pass's) stops within the move limits."""
-    from stitchplan.planning.planner import MoveLimits, path_smoothness
+    from stitchplan.planning.move_limits import MoveLimits, path_smoothness
 
     raw = yaml.safe_load((CONFIGS / "sh12_100x100.yaml").read_text())
     raw["tissue"]["thickness"] = 2.5

@@ -21,7 +21,9 @@ import pytest
 
 from stitchplan.config.scenario import Robot, parse_scenario
 from stitchplan.needle.insertion import run_insertion
-from stitchplan.planning.planner import REAIM_FRACTION, REFERENCE_STEP, ExitTracker, final_mismatch, run_plan
+from stitchplan.planning.move_limits import REFERENCE_STEP
+from stitchplan.planning.pass_offsets import REAIM_FRACTION
+from stitchplan.planning.planner import ExitTracker, final_mismatch, run_plan
 from stitchplan.planning.trajectory import to_base_frame, trajectory_table
 
 from conftest import TIGHT_NEEDLE_NEWTON

@@ -152,7 +152,7 @@ def _streamed_in_two(scenario, shared: int, rows: int = 40):
 
 @pytest.mark.parametrize("shared", [7, 2])
 def test_a_pass_that_keeps_the_first_steps_of_the_one_before_is_replayed_alike(scenario, shared):
-    """A re-aimed pass keeps the earlier pass's first steps (planning.planner.PassPrefix): the
+    """A re-aimed pass keeps the earlier pass's first steps (planning.pass_offsets.PassPrefix): the
     helper goes on with it where the centres it has used agree, and starts again where they
     do not (shared = 2: the helper may have replayed up to row 4 of the first pass). Either way
     the replay is the second pass's, as this process replays it."""

@@ -30,12 +30,9 @@ from typer.testing import CliRunner
 from stitchplan.cli import app
 from stitchplan.config.scenario import parse_scenario
 from stitchplan.needle.insertion import run_insertion
-from stitchplan.planning.planner import (
-    MoveLimits,
-    PassOffsets,
-    path_smoothness,
-    run_plan,
-)
+from stitchplan.planning.move_limits import MoveLimits, path_smoothness
+from stitchplan.planning.pass_offsets import PassOffsets
+from stitchplan.planning.planner import run_plan
 from stitchplan.planning.trajectory import DECIMALS_MM
 from stitchplan.planning.verification import (
     PREDICTED_RATIO,

@@ -283,7 +283,7 @@ def discretization_keys(discretization) -> dict:
 def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
     """The exit error estimate, the verification on the refined model and the smoothness of
     the exported centre path `centers` (n, 2) of a PlanResult."""
-    from ..planning.planner import path_smoothness
+    from ..planning.move_limits import path_smoothness
 
     verification = result.verification
     replay = verification.result if verification is not None else None

@@ -104,7 +104,7 @@ def run_insertion(
     verification's first replay, for its second): each step's Newton solve starts from this
     run's previous state plus that run's change over the step (NeedleInsertion.equilibrate
     `guess`). Not for planner passes (planning.planner.run_plan says why), except over the
-    steps a later pass takes over from the first (planning.planner.PassPrefix). While this
+    steps a later pass takes over from the first (planning.pass_offsets.PassPrefix). While this
     run has taken the earlier run's centres (and the needle crosses no wound), its tip points
     are the earlier run's (they would be tracked from the same state about the same centre),
     and so are its equilibria where its centre control holds the centre where the earlier

@@ -8,11 +8,12 @@ moves less than the centre that drags it (eq. 4.2, ||du(X_exit)|| < ||dO||); whe
 not, planning stops with a message naming the step instead of diverging silently.
 
 The centres are also a path a robot follows: each step's centre is kept within move limits
-(MoveLimits: the centre's move per step and the change of that move, its second
+(move_limits.MoveLimits: the centre's move per step and the change of that move, its second
 difference) and the mismatch a limited step leaves is carried to the next steps, whose
 aim still holds it. Late in a stitch, where eq. 4.2 fails and no centre move changes the
 exit, the limits keep the centre from jumping between steps' best tries; the passes
-(run_plan) then correct the exit through the early, controllable steps.
+(run_plan, their offsets in pass_offsets) then correct the exit through the early,
+controllable steps.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,154 +35,12 @@ from ..needle.insertion import run_insertion
 from ..needle.prepared_tissue import PreparedTissue
 from ..needle.results import InsertionResult
 from .entry_lean import LeanSearch, lean_for_exit
+from .move_limits import MoveLimits, broken_limits
+from .pass_offsets import PassOffsets, PassPrefix
 from .replay_models import aims_at_bites
 from .trajectory import exported_center, exported_centers
 
 log = logging.getLogger(__name__)
-
-
-REFERENCE_STEP = 0.08  # rad per needle step at which the move limits (config Planner) are stated
-REAIM_LEAD = 4  # a later pass's offset acts from this many steps before the first pass's late limited steps
-# ... when it is at most this fraction of the second-difference limit: a larger one acts from step 1
-REAIM_FRACTION = 0.25
-
-
-@dataclass(frozen=True)
-class MoveLimits:
-    """Bounds on the centre path O(t_n) (mm per needle step of `step` rad): |O_n - O_(n-1)|
-    <= step_mm and |O_n - 2 O_(n-1) + O_(n-2)| <= second_difference_mm. The bounds are stated
-    at REFERENCE_STEP and scale linearly with the needle step. The centre also brakes so
-    that it can stop at the exit step, which keeps the centre of the step before
-    (trajectory.py): |O_n - O_(n-1)| <= second_difference_mm x (steps left before the exit)."""
-
-    step_mm: float
-    second_difference_mm: float
-    last_step: int  # the step the centre brakes toward: the last before the tip is expected to leave
-
-    @classmethod
-    def for_needle(cls, geometry, settings: Planner, exit_steps: int | None = None) -> MoveLimits:
-        """The scenario's limits (planner.center_step_limit and
-        center_second_difference_limit, stated per REFERENCE_STEP) at the needle's step,
-        braking toward the last step before the undeformed circle's exit, or toward the
-        last of `exit_steps` (a pass's steps in the tissue) when the tip left earlier."""
-        scale = geometry.step / REFERENCE_STEP
-        last_step = geometry.expected_steps - 1
-        if exit_steps is not None:
-            last_step = min(last_step, exit_steps)
-        return cls(settings.center_step_limit * scale, settings.center_second_difference_limit * scale, last_step)
-
-    def speed(self, step: int) -> float:
-        """The largest move at `step`, braking one step early (the tip may leave a step
-        before it was expected to)."""
-        return min(self.step_mm, self.second_difference_mm * max(self.last_step - step, 1))
-
-    def project(self, candidate: np.ndarray, centers: list[np.ndarray], step: int) -> np.ndarray:
-        """The point nearest `candidate` within both discs: the move limit about O_(n-1) and
-        the second-difference limit about 2 O_(n-1) - O_(n-2)."""
-        previous = centers[-1]
-        if len(centers) < 2:
-            return _into_disc(np.asarray(candidate, dtype=float), previous, self.speed(step))
-        return _into_both(np.asarray(candidate, dtype=float), 2.0 * previous - centers[-2],
-                          self.second_difference_mm, previous, self.speed(step))
-
-
-def _into_disc(point: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:
-    offset = point - center
-    distance = float(np.linalg.norm(offset))
-    return point if distance <= radius else center + offset * (radius / distance)
-
-
-def _into_both(point: np.ndarray, center_a: np.ndarray, radius_a: float, center_b: np.ndarray,
-               radius_b: float) -> np.ndarray:
-    """The point of the intersection of two discs nearest `point`: a projection onto one
-    disc if it lies in the other, else the nearer crossing of the two circles (if the discs
-    do not meet, the point of disc a nearest disc b)."""
-    for (center, radius), (other, other_radius) in (((center_a, radius_a), (center_b, radius_b)),
-                                                    ((center_b, radius_b), (center_a, radius_a))):
-        projected = _into_disc(point, center, radius)
-        if np.linalg.norm(projected - other) <= other_radius * (1 + 1e-12):
-            return projected
-    axis = center_b - center_a
-    distance = float(np.linalg.norm(axis))
-    if distance >= radius_a + radius_b:
-        return center_a + axis * (radius_a / distance)
-    along = (radius_a ** 2 - radius_b ** 2 + distance ** 2) / (2.0 * distance)
-    across = np.sqrt(max(radius_a ** 2 - along ** 2, 0.0))
-    middle = center_a + axis * (along / distance)
-    normal = np.array([-axis[1], axis[0]]) / distance
-    crossings = (middle + across * normal, middle - across * normal)
-    return min(crossings, key=lambda crossing: float(np.linalg.norm(crossing - point)))
-
-
-def center_moves(centers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """|O_n - O_(n-1)| (n - 1,) and |O_n - 2 O_(n-1) + O_(n-2)| (n - 2,) of a centre path (n, 2), mm."""
-    centers = np.asarray(centers, dtype=float).reshape(-1, 2)
-    return (np.linalg.norm(np.diff(centers, axis=0), axis=1),
-            np.linalg.norm(np.diff(centers, 2, axis=0), axis=1) if len(centers) > 2 else np.zeros(0))
-
-
-def path_smoothness(centers: np.ndarray) -> tuple[float, float]:
-    """Largest centre move and largest second difference (mm) of a centre path (n, 2)."""
-    moves, second = center_moves(centers)
-    return float(moves.max(initial=0.0)), float(second.max(initial=0.0))
-
-
-@dataclass(frozen=True)
-class PassPrefix:
-    """The steps a later pass takes over from the plan's first pass (PassOffsets): steps 1 ..
-    first_aimed - 1 keep the first pass's centres, tip points and equilibria (run_insertion
-    `start_from`: taken over, not solved again), so only the steps from `first_aimed` on are
-    solved with the pass's offset."""
-
-    reference: InsertionResult  # the first pass (offset zero)
-    first_aimed: int  # the first step whose centre the pass's offset moves
-    limited_steps: tuple[int, ...]  # the first pass's steps a move limit held back
-    largest_offset: float  # mm: a larger offset acts from step 1 (`for_offset`)
-
-    @classmethod
-    def of(cls, reference: InsertionResult, limited_steps: list[int], settings: Planner) -> PassPrefix:
-        """The offset acts REAIM_LEAD steps before the run of limited steps the first pass
-        ended with (its last step when it did not end held): the drift the offset
-        compensates comes after those steps, and the steps from there on still move the exit.
-        It enters there as a jump of the aimed centre, which the second-difference limit
-        passes only when small: up to REAIM_FRACTION of that limit (0.035 mm per 0.08 rad
-        by default). The thesis's table 5.1 100 x 100 block, whose first pass misses by
-        0.21 mm, took 3 passes to 0.00025 mm with the offset from step 1 and was still
-        0.021 mm off after 4 with it from step 15."""
-        late = len(reference.steps)
-        if late in limited_steps:
-            while late - 1 in limited_steps:
-                late -= 1
-        scale = reference.geometry.step / REFERENCE_STEP
-        return cls(reference, max(late - REAIM_LEAD, 1), tuple(limited_steps),
-                   REAIM_FRACTION * settings.center_second_difference_limit * scale)
-
-    def for_offset(self, offset: np.ndarray) -> PassPrefix | None:
-        """This prefix for a pass with `offset`, or None: the pass runs every step."""
-        return self if self.first_aimed > 1 and length(offset) <= self.largest_offset else None
-
-    def center(self, step: int) -> np.ndarray:
-        """The first pass's centre at `step` (0: the entry centre)."""
-        return self.reference.center_after(step).copy()
-
-    def start(self) -> InsertionResult:
-        """run_insertion's `start_from` for the prefix: the first pass, its states cut there."""
-        return replace(self.reference, states=self.reference.states[:self.first_aimed - 1])
-
-    def take_over(self, result: InsertionResult) -> None:
-        """Count the first pass's work for each prefix step in `result`'s record (its Newton
-        iterations and wall time added to the later pass's, its equilibrium solves, centre moves
-        and eq. 4.2 ratio instead of the later pass's), and add its planner events there: the
-        steps as planned. The result's solver_counts stay those of its own run."""
-        for record, planned in zip(result.steps[:self.first_aimed - 1], self.reference.steps):
-            record.newton_iterations += planned.newton_iterations
-            record.equilibrium_solves = planned.equilibrium_solves
-            record.wall_seconds += planned.wall_seconds
-            record.planner_iterations, record.eq42_ratio = planned.planner_iterations, planned.eq42_ratio
-        held = [event for event in self.reference.events
-                if event.kind == EventKind.PLANNER_NOT_CONVERGED and event.step is not None
-                and event.step < self.first_aimed]
-        result.events[:0] = held
 
 
 class ExitTracker:
@@ -309,118 +168,6 @@ def final_mismatch(result: InsertionResult) -> np.ndarray:
     """O(t0) + u(X_exit) - O at the last step: what Algorithm 2 drives to zero."""
     last = result.steps[-1]
     return result.geometry.center + last.exit_displacement - last.center
-
-
-class PassOffsets:
-    """The offsets c_k of the planning passes, a secant search along the exit edge.
-
-    The exit error e = achieved_exit_def - desired_exit_def lies along the deformed edge at
-    the exit (both points are on it), so the passes solve one equation: t . (e(c) - aim) = 0
-    with c = s t, t the direction of the first pass's miss. Moving the aim of the centre by
-    c moves the exit by about -c along the edge (de/dc ~ -1, the start of the secant); the
-    slope is then the secant of t . e over the last two passes (whatever each aimed at: a
-    later round or a predicted aim changes the aim, not e(c)), kept within [-3, -1/3] so that
-    a pass held back by the move limits cannot send the next one far off.
-
-    Where the move limits hold the centre back from the start, a larger offset can move the
-    exit away from the aim as well as toward it: once a secant's slope comes out zero or
-    positive, the offsets stop extrapolating and search between the passes already run for
-    the exit nearest the aim (`searching`, _offset_between): the root between two passes on
-    either side of the aim, else the vertex of the parabola through the nearest pass and its
-    neighbours (a golden-section point when the vertex falls outside them), so the passes close
-    in on the nearest exit the limits allow instead of running off; run_plan's passes stop
-    once the next offset is within the exit tolerance of one already run (`closest_tried`).
-
-    The offset of every pass after the first acts from the same step on (`prefix`, set from
-    the first pass): the steps before it are the first pass's, taken over rather than solved
-    again, so a pass costs only its late steps and e(c) stays one function of c.
-    """
-
-    def __init__(self, tilt: float | None = None):
-        self.offset = np.zeros(2)
-        self.tilt = tilt  # rad the needle leans at entry in these passes (planner.aim_entry_tilt)
-        self.prefix: PassPrefix | None = None
-        self.direction: np.ndarray | None = None
-        self.slope = -1.0
-        self.last: tuple[float, np.ndarray] | None = None  # (s, e) of the last pass run
-        self.tried: dict[float, float] = {}  # s: t . e of every pass advanced from
-        self._previous: tuple[float, float] | None = None  # (s, t . e) of the pass before
-        self.searching = False  # a secant slope came out >= 0: offsets between the passes run
-
-    @property
-    def position(self) -> float:
-        return 0.0 if self.direction is None else float(self.direction @ self.offset)
-
-    def record(self, error: np.ndarray) -> None:
-        """The exit error vector of the pass run with the current offset."""
-        self.last = (self.position, np.asarray(error, dtype=float))
-
-    def advance(self, aim: np.ndarray) -> None:
-        """The offset of the next pass, aiming the exit error at `aim`."""
-        position, error = self.last
-        miss = error - aim
-        if self.direction is None:
-            norm = float(np.linalg.norm(miss))
-            if norm == 0.0:
-                return
-            self.direction = miss / norm
-        along, exit_along = float(self.direction @ miss), float(self.direction @ error)
-        if self._previous is not None and position != self._previous[0]:
-            slope = (exit_along - self._previous[1]) / (position - self._previous[0])
-            self.searching = self.searching or slope >= 0.0
-            self.slope = float(np.clip(slope, -3.0, -1.0 / 3.0))
-        self._previous, self.tried[position] = (position, exit_along), exit_along
-        if self.searching:
-            self.offset = _offset_between(self.tried, exit_along - along) * self.direction
-        else:
-            self.offset = (position - along / self.slope) * self.direction
-
-    def closest_tried(self) -> float:
-        """mm between the next pass's offset and the nearest one already run (along the search)."""
-        return min(abs(self.position - position) for position in self.tried)
-
-
-GOLDEN_SECTION = (3.0 - math.sqrt(5.0)) / 2.0  # the smaller golden-section fraction of an interval
-
-
-def _offset_between(tried: dict[float, float], aim_along: float) -> float:
-    """The next offset s of PassOffsets' search, within the passes `tried` (s: t . e), about
-    the pass nearest the aim: with a neighbour (in s) on the aim's other side, the root
-    between them of the parabola through it and its two neighbours (of their secant when it
-    has no two neighbours or the parabola no root there); else the vertex of the parabola
-    through |t . e - aim| at the three, or a golden-section point of the wider side when that
-    parabola has no minimum between them; the midpoint toward its neighbour when the nearest
-    pass is the first or last in s."""
-    positions, exits = np.array(sorted(tried.items())).T
-    misses = exits - aim_along
-    best = int(np.argmin(np.abs(misses)))
-    sides = [k for k in (best - 1, best + 1) if 0 <= k < len(positions)]
-    three = positions[best - 1:best + 2] if len(sides) == 2 else None
-    for k in sides:
-        if misses[k] * misses[best] < 0.0:
-            low, high = sorted((positions[best], positions[k]))
-            if three is not None:
-                roots = np.roots(_parabola(three, misses[best - 1:best + 2]))
-                inside = [root.real for root in roots if root.imag == 0.0 and low < root.real < high]
-                if inside:
-                    return float(inside[0])
-            return float(positions[best] - misses[best] * (positions[k] - positions[best]) / (misses[k] - misses[best]))
-    if three is None:
-        return float(0.5 * (positions[best] + positions[sides[0]]))
-    curvature, slope, _ = _parabola(three, np.abs(misses[best - 1:best + 2]))
-    vertex = -slope / (2.0 * curvature) if curvature > 0.0 else np.nan
-    if three[0] < vertex < three[2]:
-        return float(vertex)
-    wider_end = three[0] if three[1] - three[0] > three[2] - three[1] else three[2]
-    return float(three[1] + GOLDEN_SECTION * (wider_end - three[1]))
-
-
-def _parabola(points: np.ndarray, values: np.ndarray) -> tuple[float, float, float]:
-    """(A, B, C) of A s^2 + B s + C through three (point, value) pairs (divided differences)."""
-    (a, b, c), (fa, fb, fc) = points, values
-    first = (fb - fa) / (b - a)
-    curvature = ((fc - fb) / (c - b) - first) / (c - a)
-    return curvature, first - curvature * (a + b), fa - first * a + curvature * a * b
 
 
 def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.ndarray | None = None,
@@ -583,7 +330,7 @@ class _PlanPasses:
         do not allow. The rerun is the plan's when its path keeps them (the centre braking
         sooner, its exit a little further off); it is not one of the secant's passes."""
         best, limits = self.best, self.best_limits()
-        if len(best.steps) > limits.last_step - 2 or not _broken_limits(exported_centers(best), limits):
+        if len(best.steps) > limits.last_step - 2 or not broken_limits(exported_centers(best), limits):
             return
         offset, prefix, _ = self.best_pass
         tracker = ExitTracker(self.settings, offset, smooth=True, prefix=prefix, exit_steps=len(best.steps))
@@ -594,7 +341,7 @@ class _PlanPasses:
                      failure)
             return
         miss = self._add_record(number, braked, tracker, prefix, offset)
-        if _broken_limits(exported_centers(braked), tracker.limits):
+        if broken_limits(exported_centers(braked), tracker.limits):
             return
         log.info("planning pass %d: the best pass braking toward step %d, where its tip left, keeps the move limits "
                  "(%.4g mm from the aim, %.4g mm before)", number, len(best.steps), miss, self.best_miss)
@@ -671,7 +418,7 @@ def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:
     stops the centre at the exit row from a speed the braking had not yet taken off, where the
     best pass run again braking toward its exit (_PlanPasses._brake_for_exit) failed or broke
     them too."""
-    broken = _broken_limits(exported_centers(result), limits)
+    broken = broken_limits(exported_centers(result), limits)
     if not broken:
         return
     steps = len(result.steps)
@@ -682,21 +429,6 @@ def _note_rough_path(result: InsertionResult, limits: MoveLimits) -> None:
                "center_second_difference_limit knowingly")
     result.events.append(Event(EventKind.PATH_LIMITS_EXCEEDED, message))
     log.info(message)
-
-
-def _broken_limits(centers: np.ndarray, limits: MoveLimits) -> list[str]:
-    """The move limits a centre path (n, 2) breaks, each as the largest breach and its row."""
-    moves, second = center_moves(centers)
-    broken = []
-    slack = 1e-6  # mm: the limits hold to round-off, and the exported centres are rounded to 1e-9 mm
-    if len(moves) and moves.max() > limits.step_mm + slack:
-        k = int(np.argmax(moves))
-        broken.append(f"a move of {moves[k]:.3g} mm into row {k + 1} (limit {limits.step_mm:.3g} mm)")
-    if len(second) and second.max() > limits.second_difference_mm + slack:
-        k = int(np.argmax(second))
-        broken.append(f"a second difference of {second[k]:.3g} mm at row {k + 2} (limit "
-                      f"{limits.second_difference_mm:.3g} mm)")
-    return broken
 
 
 def _streamed(on_step, stream, scenario: Scenario):

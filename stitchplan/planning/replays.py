@@ -288,7 +288,7 @@ class _StreamedPath(CenterReplay):
     (its path then: a row the pass did not reach ends the replay as CenterReplay's does).
 
     A newer pass from the same warm start whose centres agree with every one used so far (a
-    re-aimed pass keeps the earlier pass's first steps: planning.planner.PassPrefix) is
+    re-aimed pass keeps the earlier pass's first steps: planning.pass_offsets.PassPrefix) is
     adopted: the replay goes on with its centres instead of starting again. The pass's
     messages are kept: at the first centre that differs from one already used they go back to
     the inbox and the replay starts again from them (_Superseded)."""

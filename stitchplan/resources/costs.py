@@ -83,7 +83,7 @@ PLAN_RUNS = 3
 VERIFICATION_RUNS = 2
 # runs whose steps' states one process holds at once (_step_memory each), of the `runs` an
 # estimate counts: a plan holds its unplanned comparison (--compare), its first pass (later
-# passes take its early steps over: planning.planner.PassPrefix), its best pass so far and the
+# passes take its early steps over: planning.pass_offsets.PassPrefix), its best pass so far and the
 # pass running, 1-4 runs (measured on SH 1/2 at 0.005 rad: 237 MiB for one run, 323 MiB for a
 # plan of two passes, 472 MiB with the comparison, 363 MiB for the 100 x 30 block's two passes;
 # tests/test_resource_guard.py MEASURED_PEAKS); a verification its first replay while the second
