@@ -326,12 +326,8 @@ def markdown(rows: list[dict]) -> str:
             rk, fe = groups.get((scene, "rk" + suffix)), groups.get((scene, "fe" + suffix))
             if rk is None or fe is None:
                 continue
-            rk_at, fe_at = ({float(row["factor"]): row for row in group} for group in (rk, fe))
-            ratios = ["-" if f not in rk_at or f not in fe_at
-                      else "stops" if rk_at[f]["failure"] or fe_at[f]["failure"]
-                      else f"{100 * (float(rk_at[f]['exit_error_mm']) / float(fe_at[f]['exit_error_mm']) - 1):+.2f} %"
-                      for f in FACTORS]
-            lines.append(f"| {scene} | {suffix.strip() or 'in pieces'} | " + " | ".join(ratios) + " |")
+            lines.append(f"| {scene} | {suffix.strip() or 'in pieces'} | " + " | ".join(rk_over_fe(rk, fe, FACTORS))
+                         + " |")
     lines += ["", "The shipped plans (sample_runs/SCENE/trajectory.csv, planned on the file's model at h)",
               "replayed on each level's model, RK and FE: their exit errors (mm).", "",
               "| scene | model | h | h/2 | h/4 | h/8 |", "|---|---|---|---|---|---|"]
@@ -347,6 +343,16 @@ def markdown(rows: list[dict]) -> str:
                                                    f"({float(row['min_det_f_from_entry_mm']):.2f})")
             lines.append(f"| {scene} | {model} | " + " | ".join(cells) + " |")
     return "\n".join(lines + closing_lines(rows))
+
+
+def rk_over_fe(rk: list[dict], fe: list[dict], factors: tuple[float, ...]) -> list[str]:
+    """The cells rk / fe - 1 of one scene's two ladders at each spacing factor: "-" where a
+    level was not run, "stops" where either run failed."""
+    rk_at, fe_at = ({float(row["factor"]): row for row in group} for group in (rk, fe))
+    return ["-" if f not in rk_at or f not in fe_at
+            else "stops" if rk_at[f]["failure"] or fe_at[f]["failure"]
+            else f"{100 * (float(rk_at[f]['exit_error_mm']) / float(fe_at[f]['exit_error_mm']) - 1):+.2f} %"
+            for f in factors]
 
 
 def closing_lines(rows: list[dict]) -> list[str]:

@@ -36,7 +36,7 @@ import time  # noqa: E402
 import _common as common  # noqa: E402
 import numpy as np  # noqa: E402
 from needle_fem_reference import (LinearTriangles, chart, compression, finite_element_model,  # noqa: E402
-                                  closing_lines, ladder_figures, ladders, run_ladders)
+                                  closing_lines, ladder_figures, ladders, rk_over_fe, run_ladders)
 from scipy.spatial import cKDTree  # noqa: E402
 
 from stitchplan.config.scenario import load_scenario, with_discretization  # noqa: E402
@@ -130,10 +130,7 @@ def markdown(rows: list[dict]) -> str:
         rk, fe = groups.get((scene, "rk")), groups.get((scene, "fe"))
         if rk is None or fe is None:
             continue
-        ratios = ["stops" if a["failure"] or b["failure"]
-                  else f"{100 * (float(a['exit_error_mm']) / float(b['exit_error_mm']) - 1):+.2f} %"
-                  for a, b in zip(rk, fe)]
-        lines.append(f"| {scene} | " + " | ".join(ratios) + " |")
+        lines.append(f"| {scene} | " + " | ".join(rk_over_fe(rk, fe, FACTORS)) + " |")
     return "\n".join(lines + closing_lines(rows))
 
 

@@ -241,6 +241,8 @@ def test_round_trip_with_a_region_of_given_material_through_the_cli(tmp_path):
     """The fit finds the tissue's own moduli around a region it keeps as given, from force
     data and from displacement data alone (identified there too: the region breaks the
     scaling); a fit that leaves the region out misses them."""
+    from stitchplan.config.uncertainty import calibration_spread
+
     for experiments in ([DISPLACED], [LOADS["left-pull"], LOADS["top-press"]]):
         path = write_calibration(tmp_path, experiments, regions=[STIFF_DISC])
         out = tmp_path / "fitted.yaml"
@@ -254,7 +256,6 @@ def test_round_trip_with_a_region_of_given_material_through_the_cli(tmp_path):
         # the regions it kept, as a scenario's tissue takes them, read back by an uncertainty file
         assert fitted["regions"] == [STIFF_DISC]
         assert out.read_text().count("paste both into the scenario's `tissue:` block") == 1
-        from stitchplan.config.uncertainty import calibration_spread
         assert calibration_spread(out, tmp_path / "u.yaml")[2] == (REGION_ADAPTER.validate_python(STIFF_DISC),)
     data = yaml.safe_load(path.read_text())  # the force experiments' file
     del data["tissue"]["regions"]
