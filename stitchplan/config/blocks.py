@@ -211,12 +211,11 @@ class Region:
 
     def as_block(self) -> dict:
         """The region as a scenario file gives it (plain lists and numbers): its shape and material."""
-        name, shape = self.shown()
-        if name == "polygon":
-            shape = [[float(x), float(y)] for x, y in shape]
+        if self.circle is not None:
+            shape = {"circle": {"center": [float(v) for v in self.circle.center], "radius": float(self.circle.radius)}}
         else:
-            shape = {"center": [float(v) for v in shape["center"]], "radius": float(shape["radius"])}
-        return {name: shape, "material": asdict(self.material)}
+            shape = {"polygon": [[float(x), float(y)] for x, y in self.polygon]}
+        return {**shape, "material": asdict(self.material)}
 
 
 @block()
