@@ -118,23 +118,27 @@ def test_forward_model_is_the_deform_solve_at_the_markers():
     np.testing.assert_allclose(positions - markers, reference.probe_displacements, rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("model, regions", [("saint-venant-kirchhoff", False), ("neo-hookean", False),
-                                            ("saint-venant-kirchhoff", True)])
+@pytest.mark.parametrize("model, regions", [("saint-venant-kirchhoff", None), ("neo-hookean", None),
+                                            ("saint-venant-kirchhoff", "given"), ("neo-hookean", "fitted")])
 def test_marker_jacobian_matches_finite_differences(model, regions):
     """dq/dtheta from K dd/dtheta = -B^T (w F S_theta) against central differences of solves;
-    with a region of given material the fitted moduli act only outside it (S_theta zero there)."""
+    with a region of given material the fitted moduli act only outside it (S_theta zero there);
+    with the region's moduli fitted too, theta holds its pair and each acts only inside it."""
     tissue = replace(TISSUE, regions=(REGION_ADAPTER.validate_python(STIFF_DISC),)) if regions else TISSUE
     markers = random_markers(np.random.default_rng(2), 10)
     loads = LOADS["left-pull"] + (Load(((0.0, 50.0), (0.0, 60.0)), displacement=(-1.0, 0.5)),)
     experiment = calibration.Experiment("", loads, 10, markers, markers)
-    forward = calibration.ExperimentModel(tissue, COARSE, experiment, model, Solver())
-    _, jacobian = forward.predict(THETA, jacobian=True)
+    fitted = (0,) if regions == "fitted" else ()
+    forward = calibration.ExperimentModel(tissue, COARSE, experiment, model, Solver(), fitted_regions=fitted)
+    theta = np.array([*THETA, 0.8, 0.6]) if fitted else THETA
+    _, jacobian = forward.predict(theta, jacobian=True)
+    assert jacobian.shape == (len(markers), 2, len(theta))
     assert np.abs(jacobian).max() > 1.0  # mm per MPa: the markers do move with the moduli
-    for k in range(2):
-        step = np.zeros(2)
-        step[k] = 1e-5 * THETA[k]
-        plus, _ = forward.predict(THETA + step)
-        minus, _ = forward.predict(THETA - step)
+    for k in range(len(theta)):
+        step = np.zeros(len(theta))
+        step[k] = 1e-5 * theta[k]
+        plus, _ = forward.predict(theta + step)
+        minus, _ = forward.predict(theta - step)
         np.testing.assert_allclose(jacobian[:, :, k], (plus - minus) / (2 * step[k]),
                                    rtol=1e-4, atol=1e-6 * np.abs(jacobian).max())
 
@@ -263,6 +267,56 @@ def test_round_trip_with_a_region_of_given_material_through_the_cli(tmp_path):
     blind = calibration.fit_material(calibration.load_material_calibration(path))
     assert blind.distances.mean() > 0.01  # mm: the markers are not explained (fitted: < 1e-5)
     assert abs(blind.lame_mu / TRUE.lame_mu - 1.0) > 0.03
+
+
+def test_round_trip_fitting_a_region_too_through_the_cli(tmp_path):
+    """fit.regions fits the disc's moduli with the tissue's from a start far off (0.3 MPa
+    each against 0.8 and 0.6): all four come back from two force experiments; fitted.yaml's
+    regions hold the fitted moduli (pasted into a scenario as they are) and fit.fitted_regions
+    and fit.correlations their uncertainties, which an uncertainty file takes."""
+    from stitchplan.config.uncertainty import calibration_spread
+
+    path = write_calibration(tmp_path, [LOADS["left-pull"], LOADS["top-press"]], regions=[STIFF_DISC])
+    data = yaml.safe_load(path.read_text())
+    data["tissue"]["regions"][0]["material"].update(lame_lambda=0.3, lame_mu=0.3)
+    data["fit"]["regions"] = [0]
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "fitted.yaml"
+    result = run("calibrate", "material", path, "--out", out)
+    assert result.exit_code == 0, result.output
+    assert "tissue.regions[0]: lame_lambda 0.8" in result.output
+    fitted = yaml.safe_load(out.read_text())
+    assert fitted["lame_lambda"] == pytest.approx(TRUE.lame_lambda, rel=1e-3)
+    assert fitted["lame_mu"] == pytest.approx(TRUE.lame_mu, rel=1e-3)
+    region = REGION_ADAPTER.validate_python(fitted["regions"][0])  # a scenario's region as it is
+    assert region.material.lame_lambda == pytest.approx(0.8, rel=1e-3)
+    assert region.material.lame_mu == pytest.approx(0.6, rel=1e-3)
+    fit = fitted["fit"]
+    assert fit["identifiable"] is True and fit["warnings"] == [] and fit["residual_mean_mm"] < 1e-5
+    assert [entry["region"] for entry in fit["fitted_regions"]] == [0]
+    assert fit["fitted_regions"][0]["lame_mu"] == fitted["regions"][0]["material"]["lame_mu"]
+    matrix = np.array(fit["correlations"]["matrix"])
+    assert fit["correlations"]["parameters"][2:] == ["tissue.regions[0].lame_lambda", "tissue.regions[0].lame_mu"]
+    assert matrix.shape == (4, 4) and np.allclose(matrix, matrix.T) and matrix[0, 1] == fit["correlation"]
+    std, pairs, regions = calibration_spread(out, tmp_path / "u.yaml")
+    assert set(std) == set(fit["correlations"]["parameters"]) and len(pairs) == 6
+    assert std["tissue.regions[0].lame_mu"] == fit["fitted_regions"][0]["standard_uncertainty"]["lame_mu"]
+    assert regions == (region,)
+
+
+def test_fitting_every_region_under_displacements_sees_only_the_ratios(tmp_path):
+    """With the disc's moduli fitted too and only a prescribed displacement, scaling all four
+    moves no marker again: not identifiable, said so, yet each material's lambda/mu is right."""
+    path = write_calibration(tmp_path, [DISPLACED], regions=[STIFF_DISC])
+    data = yaml.safe_load(path.read_text())
+    data["fit"]["regions"] = [0]
+    path.write_text(yaml.safe_dump(data))
+    result = calibration.fit_material(calibration.load_material_calibration(path))
+    assert not result.identifiable
+    assert any("cannot separate" in w and "scaling every modulus" in w for w in result.warnings), result.warnings
+    assert result.lame_lambda / result.lame_mu == pytest.approx(TRUE.lame_lambda / TRUE.lame_mu, rel=1e-3)
+    (_, lame_lambda, lame_mu, *spread), = result.fitted_regions
+    assert lame_lambda / lame_mu == pytest.approx(0.8 / 0.6, rel=1e-3) and spread == [None, None]
 
 
 # --- needle -----------------------------------------------------------------------------
@@ -425,6 +479,26 @@ def _mutate_regions_cover_the_tissue(folder, data):
                                  {"polygon": [[50, -5], [105, -5], [105, 65], [50, 65]], "material": material}]
 
 
+def _mutate_fitted_region_missing(folder, data):
+    data["tissue"]["regions"] = [STIFF_DISC]
+    data["fit"]["regions"] = [0, 1]
+
+
+def _mutate_fitted_region_start(folder, data):
+    data["tissue"]["regions"] = [{**STIFF_DISC, "material": {"model": "neo-hookean", "lame_lambda": 0.8,
+                                                             "lame_mu": 5.0}}]
+    data["fit"]["regions"] = [0]
+
+
+def _mutate_fitted_region_without_regions(folder, data):
+    data["fit"]["regions"] = [0]
+
+
+def _mutate_fitted_region_twice(folder, data):
+    data["tissue"]["regions"] = [STIFF_DISC]
+    data["fit"]["regions"] = [0, 0]
+
+
 def _mutate_bad_range(folder, data):
     data["fit"]["lame_mu"] = [2.0, 0.01]
 
@@ -446,6 +520,13 @@ BAD_CALIBRATIONS = {
     "region outside": (_mutate_region_outside, ["tissue.regions[0].circle", "expected a region overlapping the tissue"]),
     "regions cover the tissue": (_mutate_regions_cover_the_tissue, ["tissue.regions", "2 regions covering the whole "
                                                                      "tissue", "leave some of the tissue"]),
+    "fitted region missing": (_mutate_fitted_region_missing, [
+        "fit.regions[1]: got 1, expected an index of tissue.regions (it has 1 region: 0 to 0)"]),
+    "fitted region start": (_mutate_fitted_region_start, [
+        "tissue.regions[0].material.lame_mu: got 5.0, expected a start within fit.lame_mu [0.01, 2] MPa"]),
+    "fitted region without regions": (_mutate_fitted_region_without_regions, [
+        "fit.regions[0]: got 0, expected none (tissue.regions is empty)"]),
+    "fitted region twice": (_mutate_fitted_region_twice, ["fit.regions: got [0, 0], expected each region at most once"]),
     "range reversed": (_mutate_bad_range, ["fit.lame_mu", "[2.0, 0.01]", "low < high"]),
     "unknown model": (_mutate_bad_model, ["fit.model", "'mooney-rivlin'", "neo-hookean"]),
 }
@@ -702,6 +783,26 @@ def test_the_fits_uncertainties_and_correlation_are_those_of_linear_least_square
                                               rel=1e-9)
     ratio_gradient = np.array([1.0 / b, -a / b**2])  # of a / b, by the delta method
     assert stats.ratio_uncertainty == pytest.approx(math.sqrt(ratio_gradient @ covariance @ ratio_gradient), rel=1e-9)
+
+
+def test_the_uncertainties_and_correlations_of_more_moduli_are_those_of_linear_least_squares():
+    """The same with four parameters (the tissue's pair and a fitted region's): y = a x + b +
+    c x^2 + d sin x, its m - 4 degrees of freedom and every correlation as curve_fit's."""
+    from scipy.optimize import curve_fit
+
+    from stitchplan.calibration.material_fit import statistics
+
+    rng = np.random.default_rng(6)
+    x = np.linspace(1.0, 4.0, 12)
+    columns = np.column_stack([x, np.ones_like(x), x**2, np.sin(x)])
+    y = columns @ [0.8, 0.3, -0.1, 0.5] + rng.normal(0.0, 0.05, x.size)
+    theta, covariance = curve_fit(lambda x, *p: columns @ p, x, y, p0=np.ones(4), jac=lambda x, *p: columns)
+    stats = statistics(columns @ theta - y, columns, theta)
+    spread = np.sqrt(np.diag(covariance))
+    np.testing.assert_allclose(stats.uncertainty, spread, rtol=1e-9)
+    np.testing.assert_allclose(stats.correlations, covariance / np.outer(spread, spread), rtol=1e-9, atol=1e-12)
+    assert stats.correlation == pytest.approx(stats.correlations[0, 1], rel=1e-12)
+    assert stats.separable
 
 
 def test_the_grid_skips_only_points_softer_in_both_moduli_than_a_failure():

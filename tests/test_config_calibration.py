@@ -71,7 +71,7 @@ def test_every_problem_of_the_file_at_once():
         "experiments[1].markers: got '', expected a CSV file name (relative to the YAML file)",
         "fit.lame_mu: got [2.0, 0.01], expected [low, high] with 0 < low < high (MPa)",
         ("fit: unknown key 'grdi', expected one of: lame_lambda, lame_mu, model, grid, grid_scale, "
-         "max_evaluations (did you mean 'grid'?)"),
+         "max_evaluations, regions (did you mean 'grid'?)"),
     ]
 
 

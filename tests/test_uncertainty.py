@@ -855,6 +855,93 @@ def test_moduli_calibrated_around_the_scenarios_regions_vary_its_own_material(tm
         assert message.count("\n") == 0
 
 
+REGION_NAMES = ("tissue.regions[0].lame_lambda", "tissue.regions[0].lame_mu")
+
+
+def _fitted_region_calibration(folder: Path, region_std: tuple = (0.04, 0.02), **changes) -> Path:
+    """A `calibrate material` output that fitted the bottom band's moduli too (as it writes
+    them: fit.fitted_regions and fit.correlations of all four); `changes` replace fit keys."""
+    fitted = _region_calibration(folder, [_bottom_region()])
+    raw = yaml.safe_load(fitted.read_text())
+    raw["fit"]["fitted_regions"] = [{"region": 0, "lame_lambda": 0.4, "lame_mu": 0.3, "standard_uncertainty":
+                                     dict(zip(("lame_lambda", "lame_mu"), region_std))}]
+    raw["fit"]["correlations"] = {"parameters": ["lame_lambda", "lame_mu", *REGION_NAMES],
+                                  "matrix": [[1.0, -0.5, 0.2, 0.1], [-0.5, 1.0, -0.3, 0.0],
+                                             [0.2, -0.3, 1.0, -0.6], [0.1, 0.0, -0.6, 1.0]]}
+    raw["fit"].update(changes)
+    fitted.write_text(yaml.safe_dump(raw))
+    return fitted
+
+
+def test_a_calibrations_fitted_regions_moduli_vary_with_their_correlations(tmp_path):
+    """A calibration that fitted a region's moduli too gives their stds and the correlations of
+    all four: a sample varies the region's material as well as the tissue's, with the
+    correlation matrix the calibration wrote; the run log's units name them."""
+    from stitchplan.config.uncertainty import check_against_scenario, scenario_values
+
+    _fitted_region_calibration(tmp_path)
+    resolved = uncertainty({"samples": 3, "from_calibration": "fitted.yaml", "parameters": {"thickness": {"std": 1.0}}},
+                           str(tmp_path / "u.yaml"))
+    assert resolved.names == ("lame_lambda", "lame_mu", "thickness", *REGION_NAMES)
+    np.testing.assert_array_equal(resolved.std, [0.01, 0.002, 1.0, 0.04, 0.02])
+    assert resolved.correlation[3, 4] == -0.6 and resolved.correlation[0, 3] == 0.2 and resolved.correlation[2, 3] == 0
+    record = resolved.as_record()
+    assert record["parameters"][REGION_NAMES[1]] == {"std": 0.02, "units": "MPa", "source": "calibration"}
+    raw = small_raw()
+    raw["tissue"]["regions"] = [_bottom_region()]
+    scenario = parse_scenario(raw)
+    check_against_scenario(resolved, scenario, "scene.yaml")
+    np.testing.assert_array_equal(scenario_values(scenario, REGION_NAMES), [0.4, 0.3])
+    sample = with_parameters(scenario, ("lame_mu", *REGION_NAMES), np.array([0.16, 0.45, 0.35]))
+    assert sample.tissue.material.lame_mu == 0.16
+    assert (sample.tissue.regions[0].material.lame_lambda, sample.tissue.regions[0].material.lame_mu) == (0.45, 0.35)
+    assert sample.tissue.regions[0].polygon == scenario.tissue.regions[0].polygon
+
+
+def test_plan_under_uncertainty_varies_a_fitted_regions_moduli(tmp_path):
+    """End to end: the region's moduli are sampled and get their own sensitivities."""
+    _fitted_region_calibration(tmp_path)
+    raw = small_raw()
+    raw["tissue"]["regions"] = [_bottom_region()]
+    scenario = write(tmp_path, raw)
+    path = write(tmp_path, {"samples": 3, "seed": 7, "from_calibration": "fitted.yaml"}, "u.yaml")
+    result = invoke("plan", scenario, "--uncertainty", path, "--export", tmp_path / "t.csv", "--summary",
+                    tmp_path / "s.json", "--no-verify", "--workers", "0")
+    assert result.exit_code == 0, result.output
+    block = _strict_json(tmp_path / "s.json")["uncertainty"]
+    assert list(block["sensitivity"]) == ["lame_lambda", "lame_mu", *REGION_NAMES]
+    assert all(abs(value) > 0 for name in REGION_NAMES for value in block["sensitivity"][name])
+    assert block["sensitivity_units"][REGION_NAMES[0]] == "mm/MPa" and block["failed_samples"] == 0
+
+
+def test_a_fitted_regions_spread_is_checked_as_the_tissues(tmp_path):
+    """A region's std above its modulus is refused naming the calibration's entry and the
+    scenario's field; a malformed fit.fitted_regions or fit.correlations is named."""
+    from stitchplan.config.uncertainty import calibration_spread, check_against_scenario
+
+    _fitted_region_calibration(tmp_path, region_std=(0.04, 0.5))
+    resolved = uncertainty({"samples": 3, "from_calibration": "fitted.yaml"}, str(tmp_path / "u.yaml"))
+    raw = small_raw()
+    raw["tissue"]["regions"] = [_bottom_region()]
+    with pytest.raises(InputError) as refused:
+        check_against_scenario(resolved, parse_scenario(raw), "scene.yaml")
+    assert str(refused.value) == (
+        f"{tmp_path / 'u.yaml'}: from_calibration: {tmp_path / 'fitted.yaml'}: fit.fitted_regions (region 0): "
+        "standard_uncertainty.lame_mu: got 0.5, expected at most the scenario's value 0.3 MPa (scene.yaml: "
+        "tissue.regions[0].material.lame_mu): a larger std puts more than 16 % of the normal at or below 0, and "
+        "truncated to positive values it is no longer centred on the scenario's value")
+    for changes, fragment in (({"fitted_regions": [{"region": 3}]}, "fit.fitted_regions[0].region: got 3, "
+                                                                     "expected an index of its regions: (0 to 0)"),
+                              ({"fitted_regions": "region 0"}, "fit.fitted_regions: got 'region 0', expected a list"),
+                              ({"correlations": {"parameters": ["lame_lambda"], "matrix": [[1.0]]}},
+                               "'parameters': ['lame_lambda']}, expected the parameters ['lame_lambda', 'lame_mu', "
+                               "'tissue.regions[0].lame_lambda'")):
+        fitted = _fitted_region_calibration(tmp_path, **changes)
+        with pytest.raises(InputError) as refused:
+            calibration_spread(fitted, tmp_path / "u.yaml")
+        assert fragment in str(refused.value) and str(refused.value).count("\n") == 0, str(refused.value)
+
+
 def test_a_calibration_without_regions_is_refused_on_a_scenario_with_regions(tmp_path):
     """Moduli fitted to a tissue of one material are not the tissue's own around regions."""
     path = write(tmp_path, _with_region())

@@ -16,7 +16,8 @@ the equilibrium f_int(d; lambda, mu) = f_ext at fixed loads gives
 
 one factorisation of the converged tangent K per parameter point. Material regions keep the
 moduli they give: the fitted law holds at the other quadrature points, and S_theta is zero
-at theirs.
+at theirs. A region whose moduli are fitted too (fit.regions) adds its own pair to theta,
+its S_theta non-zero at its quadrature points only.
 """
 
 from __future__ import annotations
@@ -55,8 +56,10 @@ class ExperimentModel:
     """
 
     def __init__(self, tissue: Tissue, discretization: Discretization, experiment: Experiment,
-                 model_name: str, settings: Solver, shared: dict | None = None):
+                 model_name: str, settings: Solver, shared: dict | None = None,
+                 fitted_regions: tuple[int, ...] = ()):
         self.experiment = experiment
+        self.fitted_regions = tuple(fitted_regions)  # tissue.regions whose moduli theta holds too
         self.settings = settings
         self.model_name = model_name
         self.scenario = Scenario(tissue=tissue, discretization=discretization, loads=experiment.loads,
@@ -84,24 +87,31 @@ class ExperimentModel:
         self.cold_starts = 0
         self.newton_iterations = 0
 
-    def material(self, lame_lambda: float, lame_mu: float, regions_stressed: bool = True):
-        """The constitutive law of the fitted model at the given moduli, and the regions' own
-        where the tissue has regions. regions_stressed=False: the regions' laws at zero moduli
-        (no stress), for the stress per unit fitted modulus."""
-        # also at the unit directions (1, 0), (0, 1) of the moduli, which no Material may hold
+    def material(self, theta: np.ndarray, fixed_regions_stressed: bool = True):
+        """The constitutive law at the parameters theta: the fitted law at the tissue's own
+        (lambda, mu) = theta[:2], and where the tissue has regions theirs, a fitted region's
+        at its pair of theta (theta[2 + 2j : 4 + 2j] for fit.regions[j]).
+        fixed_regions_stressed=False: the other regions' laws at zero moduli (no stress), for
+        the stress per unit of a fitted modulus."""
+        # also at the unit directions of theta, which no Material may hold
         law = SaintVenantKirchhoff if self.model_name == "saint-venant-kirchhoff" else NeoHookean
-        fitted = law(lame_lambda, lame_mu)
+        fitted = law(float(theta[0]), float(theta[1]))
         if self._regions is None:
             return fitted
-        regions = self._regions.parts[1:]
-        if not regions_stressed:
-            regions = tuple(type(part)(0.0, 0.0) for part in regions)
-        return PointwiseMaterial((fitted, *regions), self._regions.index)
+        parts = list(self._regions.parts)
+        parts[0] = fitted
+        pair_of = {1 + region: j for j, region in enumerate(self.fitted_regions)}
+        for k in range(1, len(parts)):
+            if k in pair_of:
+                parts[k] = type(parts[k])(*(float(v) for v in theta[2 + 2 * pair_of[k]: 4 + 2 * pair_of[k]]))
+            elif not fixed_regions_stressed:
+                parts[k] = type(parts[k])(0.0, 0.0)
+        return PointwiseMaterial(tuple(parts), self._regions.index)
 
     def predict(self, theta: np.ndarray, jacobian: bool = False,
                 quick: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
-        """Simulated marker positions q_i (n, 2) and, if asked, dq_i/dtheta (n, 2, 2)
-        indexed [marker, xy, theta].
+        """Simulated marker positions q_i (n, 2) and, if asked, dq_i/dtheta (n, 2, P)
+        indexed [marker, xy, parameter].
 
         Raises SolverDivergence when the static solve fails (e.g. far too soft a material).
         quick: give up after at most 2 load-step cuts (for a coarse look such as the grid).
@@ -120,7 +130,7 @@ class ExperimentModel:
     def _solve(self, theta: np.ndarray, settings: Solver) -> np.ndarray:
         """Free coefficients (n_free, 2) of the equilibrium for the moduli theta: a warm start
         from the nearest solution found so far, else the load-stepped cold solve."""
-        self.model.material = self.material(float(theta[0]), float(theta[1]))
+        self.model.material = self.material(theta)
         self.solves += 1
         free = self._warm_solve(theta, settings) if self._solutions else None
         if free is None:
@@ -165,22 +175,23 @@ class ExperimentModel:
             return 0.0
 
     def _sensitivity(self, coefficients: np.ndarray) -> np.ndarray:
-        """dq/dtheta (n, 2, 2) from K dd/dtheta = -B^T (w F S_theta) at the converged state."""
+        """dq/dtheta (n, 2, P) from K dd/dtheta = -B^T (w F S_theta) at the converged state."""
         model = self.model
         deformation_gradient = model.deformation_gradient(coefficients)  # (nq, 2, 2)
         weights = model.quadrature_weights[:, None, None]
+        count = 2 + 2 * len(self.fitted_regions)
         columns = []
-        for unit in ((1.0, 0.0), (0.0, 1.0)):  # S_lambda, S_mu: the stress per unit modulus
-            stress, _ = self.material(*unit, regions_stressed=False).pk2_stress(deformation_gradient)
+        for unit in np.eye(count):  # S_theta: the stress per unit of each fitted modulus
+            stress, _ = self.material(unit, fixed_regions_stressed=False).pk2_stress(deformation_gradient)
             first_piola = deformation_gradient @ stress  # (nq, 2, 2)
             columns.append(self.assembler.gradient_t @ (first_piola * weights).reshape(-1))
         # the assembler was last updated at the converged state, so this is K there
         tangent = factorize(self.assembler.tangent_matrix())
         if tangent.backend not in self.sensitivity_backends:
             self.sensitivity_backends.append(tangent.backend)
-        dfree = -tangent.solve(np.stack(columns, axis=1))  # (2 n_free, 2)
-        du = self.marker_free @ dfree.reshape(model.n_free, 4)  # (n, 4): (xy, theta)
-        return du.reshape(-1, 2, 2)
+        dfree = -tangent.solve(np.stack(columns, axis=1))  # (2 n_free, P)
+        du = self.marker_free @ dfree.reshape(model.n_free, 2 * count)  # (n, 2 P): (xy, theta)
+        return du.reshape(-1, 2, count)
 
 
 def simulate_markers(tissue: Tissue, discretization: Discretization, loads: tuple[Load, ...],

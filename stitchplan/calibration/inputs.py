@@ -64,6 +64,20 @@ class FitSettings:
     grid_points: int = 6  # per axis
     grid_scale: str = "log"
     max_evaluations: int = 40  # forward evaluations allowed to the least-squares refinement
+    regions: tuple[int, ...] = ()  # indices of tissue.regions whose moduli are fitted too
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """The fitted moduli in the order of the parameter vector: the tissue's own pair,
+        then each fitted region's."""
+        return ("lame_lambda", "lame_mu", *(f"tissue.regions[{k}].{name}" for k in self.regions
+                                            for name in ("lame_lambda", "lame_mu")))
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each parameter's search range (every pair shares the fit's)."""
+        pairs = 1 + len(self.regions)
+        return (np.tile([self.lame_lambda[0], self.lame_mu[0]], pairs),
+                np.tile([self.lame_lambda[1], self.lame_mu[1]], pairs))
 
 
 @dataclass(frozen=True)
@@ -76,9 +90,17 @@ class MaterialCalibration:
     name: str = ""
     source: str = ""
 
+    @property
+    def region_start(self) -> np.ndarray:
+        """The fitted regions' moduli as the file gives them, (lambda, mu) per region in
+        fit.regions' order: where the least squares starts them (and the grid holds them)."""
+        return np.array([(self.tissue.regions[k].material.lame_lambda, self.tissue.regions[k].material.lame_mu)
+                         for k in self.fit.regions], dtype=float).reshape(-1)
+
 
 def fit_settings(fit: FitBlock) -> FitSettings:
-    return FitSettings(fit.model, fit.lame_lambda, fit.lame_mu, fit.grid, fit.grid_scale, fit.max_evaluations)
+    return FitSettings(fit.model, fit.lame_lambda, fit.lame_mu, fit.grid, fit.grid_scale, fit.max_evaluations,
+                       fit.regions)
 
 
 def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: str) -> Experiment:

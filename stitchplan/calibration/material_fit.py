@@ -11,7 +11,10 @@ Both material models have a PK2 stress linear in the moduli, so scaling both mod
 the same as dividing the forces by c: with displacement-controlled loading alone only
 lambda/mu can be identified, and the fit says so. Regions of a given material (the
 tissue's `regions`, kept as given) break that scaling: against them the tissue's own
-moduli show under displacements too.
+moduli show under displacements too. Regions named in fit.regions have their moduli fitted
+with the tissue's: the least squares then runs over every fitted pair, starting each region
+at the moduli the file gives it (the grid searches the tissue's own pair with the regions
+there).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,11 +57,16 @@ def experiment_label(index: int, name: str) -> str:
     return f"experiments[{index}]" + (f" ({name!r})" if name else "")
 
 
+def parameter_point(theta: np.ndarray, names: tuple[str, ...] = MODULI) -> str:
+    """`lame_lambda 0.19, lame_mu 0.15 MPa`, and each fitted region's moduli after them."""
+    return ", ".join(f"{name} {value:.4g}" for name, value in zip(names, theta)) + " MPa"
+
+
 class ForwardFailure(NumericalFailure):
     """The forward model of one experiment gave no usable markers at a parameter point."""
 
-    def __init__(self, experiment: str, theta: np.ndarray, cause: str):
-        super().__init__(f"{experiment} at lame_lambda {theta[0]:.4g}, lame_mu {theta[1]:.4g} MPa: {cause}")
+    def __init__(self, experiment: str, theta: np.ndarray, cause: str, names: tuple[str, ...] = MODULI):
+        super().__init__(f"{experiment} at {parameter_point(theta, names)}: {cause}")
         self.experiment = experiment
         self.cause = cause
 
@@ -69,10 +77,12 @@ class MarkerMisfit:
     def __init__(self, problem: MaterialCalibration):
         shared: dict = {}
         self.experiments = [ExperimentModel(problem.tissue, problem.discretization, e, problem.fit.model,
-                                            problem.solver, shared) for e in problem.experiments]
+                                            problem.solver, shared, problem.fit.regions)
+                            for e in problem.experiments]
+        self.names = problem.fit.parameter_names  # of theta's entries
         self.labels = [experiment_label(i, e.name) for i, e in enumerate(problem.experiments)]
         self.measured = np.concatenate([e.measured for e in problem.experiments])  # (n, 2)
-        self._cache: dict[tuple[float, float], tuple[np.ndarray, np.ndarray | None, list]] = {}
+        self._cache: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray | None, list]] = {}
         self.evaluations: list[np.ndarray] = []
         self.particles = [e.model.n_particles for e in self.experiments]  # each experiment's model
 
@@ -82,11 +92,11 @@ class MarkerMisfit:
         return all(any(load.force is not None for load in e.experiment.loads) for e in self.experiments)
 
     def evaluate(self, theta: np.ndarray, jacobian: bool = False, quick: bool = False):
-        """(r (2n,), dr/dtheta (2n, 2) or None, simulated positions per experiment).
+        """(r (2n,), dr/dtheta (2n, P) or None, simulated positions per experiment).
 
         Raises ForwardFailure, naming the experiment, where a static solve fails or its
         markers (or their sensitivities) are not finite."""
-        key = (float(theta[0]), float(theta[1]))
+        key = tuple(float(v) for v in theta)
         cached = self._cache.get(key)
         if cached is not None and (cached[1] is not None or not jacobian):
             return cached
@@ -96,9 +106,10 @@ class MarkerMisfit:
         simulated = [q for q, _ in predictions]
         residual = (self.measured - np.concatenate(simulated)).ravel()
         with np.errstate(over="ignore"):  # an overflowing misfit is the caller's to judge
-            log.info("evaluation %d: lame_lambda %.6g MPa, lame_mu %.6g MPa: misfit %.6g mm^2 (%d Newton iterations)",
-                     len(self.evaluations), *key, float(residual @ residual), self.newton_iterations - iterations)
-        derivative = -np.concatenate([dq for _, dq in predictions]).reshape(-1, 2) if jacobian else None
+            log.info("evaluation %d: %s: misfit %.6g mm^2 (%d Newton iterations)", len(self.evaluations),
+                     parameter_point(np.array(key), self.names), float(residual @ residual),
+                     self.newton_iterations - iterations)
+        derivative = -np.concatenate([dq for _, dq in predictions]).reshape(-1, len(key)) if jacobian else None
         self._cache[key] = (residual, derivative, simulated)
         return self._cache[key]
 
@@ -107,9 +118,10 @@ class MarkerMisfit:
         try:
             positions, derivative = self.experiments[k].predict(theta, jacobian, quick)
         except FORWARD_FAILURES as failure:
-            raise ForwardFailure(self.labels[k], theta, str(failure) or type(failure).__name__) from failure
+            raise ForwardFailure(self.labels[k], theta, str(failure) or type(failure).__name__,
+                                 self.names) from failure
         if not (np.all(np.isfinite(positions)) and (derivative is None or np.all(np.isfinite(derivative)))):
-            raise ForwardFailure(self.labels[k], theta, "the simulated markers are not finite")
+            raise ForwardFailure(self.labels[k], theta, "the simulated markers are not finite", self.names)
         return positions, derivative
 
     @property
@@ -149,12 +161,13 @@ def grid_axes(fit: FitSettings) -> tuple[np.ndarray, np.ndarray]:
 
 
 def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., None],
-                source: str = "") -> GridSearch:
-    """f on the grid, from the stiffest corner towards the softest in a serpentine, so each
-    solve warm-starts from a neighbour that deformed less. Under force loads a point softer
-    in both moduli than one that failed is not tried: it would deform even more. A point
-    whose forward model fails, or whose cost is not finite, stays nan and is never the best;
-    none left is an InputError naming `source` (the calibration file) and its fit ranges."""
+                source: str = "", held: tuple[float, ...] = ()) -> GridSearch:
+    """f on the grid of the tissue's own moduli (the fitted regions' held at `held`, their
+    start), from the stiffest corner towards the softest in a serpentine, so each solve
+    warm-starts from a neighbour that deformed less. Under force loads a point softer in both
+    moduli than one that failed is not tried: it would deform even more. A point whose
+    forward model fails, or whose cost is not finite, stays nan and is never the best; none
+    left is an InputError naming `source` (the calibration file) and its fit ranges."""
     lambdas, mus = grid_axes(fit)
     cost = np.full((len(lambdas), len(mus)), np.nan)
     failures: list[tuple[int, int]] = []  # where a solve failed: softer points are skipped
@@ -167,7 +180,7 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
                 continue
             tried += 1
             try:
-                residual, _, _ = misfit.evaluate(np.array([lambdas[i], mus[j]]), quick=True)
+                residual, _, _ = misfit.evaluate(np.array([lambdas[i], mus[j], *held]), quick=True)
             except ForwardFailure as failure:
                 failures.append((i, j))
                 failed_experiments.setdefault(failure.experiment, failure.cause)
@@ -217,12 +230,12 @@ class Refinement:
                 "failed_solves": self.failed_solves}
 
 
-def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: tuple[float, float],
+def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: np.ndarray,
            start_cost: float, advance: Callable[..., None]) -> Refinement:
     """Bounded trust-region least squares on r(theta) with the exact Jacobian, from `start`
-    (whose cost f is `start_cost`). A trial point whose forward model fails gets a large
-    constant residual, costlier than the start, so the method steps back from it and never
-    ends there."""
+    (every fitted modulus; its cost f is `start_cost`). A trial point whose forward model
+    fails gets a large constant residual, costlier than the start, so the method steps back
+    from it and never ends there."""
     from scipy.optimize import least_squares
 
     fit = problem.fit
@@ -248,11 +261,9 @@ def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: tuple[floa
         try:
             return misfit.evaluate(theta, jacobian=True)[1]
         except ForwardFailure:  # the constant penalty residual there does not change
-            return np.zeros((count, 2))
+            return np.zeros((count, len(start)))
 
-    lower = np.array([fit.lame_lambda[0], fit.lame_mu[0]])
-    upper = np.array([fit.lame_lambda[1], fit.lame_mu[1]])
-    solution = least_squares(residual, np.array(start), jac=jacobian, bounds=(lower, upper),
+    solution = least_squares(residual, np.array(start, dtype=float), jac=jacobian, bounds=fit.bounds(),
                              method="trf", x_scale="jac", ftol=1e-10, xtol=1e-9, gtol=1e-10,
                              max_nfev=fit.max_evaluations)
     return Refinement(solution, failures)
@@ -262,14 +273,14 @@ def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: tuple[floa
 
 
 def moduli_on_bound(theta: np.ndarray, fit: FitSettings) -> list[tuple[int, int]]:
-    """(modulus index, 0 for the low bound or 1 for the high) of each fitted modulus on a
+    """(parameter index, 0 for the low bound or 1 for the high) of each fitted modulus on a
     bound of its search range. The margin is relative to the value, not the range: ranges
     span decades, and a fit of 0.2 MPa in [0.01, 1e6] is not on its bound. On a low bound
     of 0 (lambda's) a relative margin is none: there a value below the smallest non-zero
     bound a range may have (1 Pa, softer than any tissue) is 0; the least squares ends
     such fits at 1e-14 MPa and less, not at 0."""
     found = []
-    for k, bounds in enumerate((fit.lame_lambda, fit.lame_mu)):
+    for k, bounds in enumerate(zip(*fit.bounds())):
         for side, bound in enumerate(bounds):
             margin = 1e-6 * max(abs(bound), abs(theta[k])) if bound else MIN_SEARCH_MODULUS
             if abs(theta[k] - bound) <= margin:
@@ -278,7 +289,7 @@ def moduli_on_bound(theta: np.ndarray, fit: FitSettings) -> list[tuple[int, int]
 
 
 def identified(theta: np.ndarray, stats: Statistics, fit: FitSettings) -> bool:
-    """Both moduli estimated: the data separate them and neither ends on a bound of its search
+    """Every modulus estimated: the data separate them and none ends on a bound of its search
     range (where the best fit may lie beyond and (J^T J)^-1 does not describe the estimate)."""
     return stats.separable and not moduli_on_bound(theta, fit)
 
@@ -302,37 +313,61 @@ def bound_advice(name: str, side: int, bounds: tuple[float, float]) -> str:
 
 @dataclass
 class Statistics:
-    uncertainty: tuple[float | None, float | None]  # standard uncertainties, MPa
-    correlation: float  # of the two estimates
+    uncertainty: tuple[float | None, ...]  # standard uncertainties, MPa, per parameter
+    correlation: float  # of the tissue's two estimates
     ratio_uncertainty: float | None  # of lambda/mu
+    correlations: np.ndarray | None = None  # (P, P) of every estimate, where (J^T J) inverts
 
     @property
     def separable(self) -> bool:
-        """The data tell the two moduli apart (the fit also needs them inside their ranges)."""
-        return abs(self.correlation) < CORRELATION_LIMIT and self.uncertainty[0] is not None
+        """The data tell the moduli apart (the fit also needs them inside their ranges)."""
+        if self.uncertainty[0] is None:
+            return False
+        if self.correlations is None:
+            return abs(self.correlation) < CORRELATION_LIMIT
+        return bool(np.abs(self.correlations - np.eye(len(self.correlations))).max() < CORRELATION_LIMIT)
 
 
 def statistics(residual: np.ndarray, jacobian: np.ndarray, theta: np.ndarray) -> Statistics:
-    """Standard uncertainties sigma^2 (J^T J)^-1, sigma^2 = |r|^2 / (m - 2), and the
-    correlation of the two estimates (= minus the cosine between the Jacobian's columns)."""
-    m = len(residual)
-    sigma2 = float(residual @ residual) / max(m - 2, 1)
+    """Standard uncertainties sigma^2 (J^T J)^-1, sigma^2 = |r|^2 / (m - P), and the
+    correlations of the P estimates (for two, minus the cosine between the Jacobian's
+    columns)."""
+    m, count = jacobian.shape
+    sigma2 = float(residual @ residual) / max(m - count, 1)
     normal = jacobian.T @ jacobian
     scale = np.sqrt(np.diag(normal))
     if np.any(scale == 0.0):
-        return Statistics((None, None), float("nan"), None)
+        return Statistics((None,) * count, float("nan"), None)
     scaled = normal / np.outer(scale, scale)  # unit diagonal
-    correlation = float(-scaled[0, 1])
-    uncertainty: tuple[float | None, float | None] = (None, None)
+    uncertainty: tuple[float | None, ...] = (None,) * count
+    correlations = None
     if np.linalg.cond(scaled) < 1e12:
-        covariance = sigma2 * np.linalg.inv(scaled) / np.outer(scale, scale)
+        inverse = np.linalg.inv(scaled)
+        covariance = sigma2 * inverse / np.outer(scale, scale)
         uncertainty = tuple(float(math.sqrt(v)) for v in np.diag(covariance))
+        spread = np.sqrt(np.diag(inverse))
+        correlations = inverse / np.outer(spread, spread)
+    if count == 2 or correlations is None:
+        correlation = float(-scaled[0, 1]) if count == 2 else float("nan")
+    else:
+        correlation = float(correlations[0, 1])
     # lambda/mu is determined even when the pair is not: its gradient is orthogonal to the
     # scaling direction theta that the data cannot see, so the pseudo-inverse is exact there
     covariance = sigma2 * np.linalg.pinv(scaled, rcond=1e-9) / np.outer(scale, scale)
-    gradient = np.array([1.0 / theta[1], -theta[0] / theta[1] ** 2])
+    gradient = np.zeros(count)
+    gradient[:2] = [1.0 / theta[1], -theta[0] / theta[1] ** 2]
     ratio_variance = float(gradient @ covariance @ gradient)
-    return Statistics(uncertainty, correlation, math.sqrt(max(ratio_variance, 0.0)))
+    return Statistics(uncertainty, correlation, math.sqrt(max(ratio_variance, 0.0)), correlations)
+
+
+def least_separated(stats: Statistics, names: tuple[str, ...]) -> tuple[str, str, float] | None:
+    """The two moduli the data tell apart least and the correlation of their estimates; None
+    where (J^T J) does not invert."""
+    if stats.correlations is None:
+        return None
+    off = np.abs(stats.correlations - np.eye(len(names)))
+    i, j = sorted(int(k) for k in np.unravel_index(np.argmax(off), off.shape))
+    return names[i], names[j], float(stats.correlations[i, j])
 
 
 def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
@@ -341,27 +376,36 @@ def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
     `displacements_only`: every load of every experiment is a prescribed displacement, on a
     tissue of one material (the case where scaling both moduli moves no marker)."""
     identifiable = identified(theta, stats, fit)
+    names = fit.parameter_names
     warnings: list[str] = []
     if not stats.separable:
-        why = ("as when every load is a prescribed displacement (scaling both moduli then moves no "
+        scaled = "both moduli" if len(names) == 2 else "every modulus"
+        why = (f"as when every load is a prescribed displacement (scaling {scaled} then moves no "
                "marker, as here); add a force-controlled experiment" if displacements_only else
                "the markers' motion does not tell them apart (too little of it, or markers where the "
                "tissue hardly deforms: check their units, mm); add markers where the tissue deforms "
                "or another experiment")
-        warnings.append(
-            f"the data cannot separate lame_lambda and lame_mu (correlation of the estimates "
-            f"{stats.correlation:+.4f}): only lame_lambda/lame_mu = {theta[0] / theta[1]:.4g} is "
-            f"determined, {why}")
+        if len(names) == 2:
+            warnings.append(
+                f"the data cannot separate lame_lambda and lame_mu (correlation of the estimates "
+                f"{stats.correlation:+.4f}): only lame_lambda/lame_mu = {theta[0] / theta[1]:.4g} is "
+                f"determined, {why}")
+        else:
+            pair = least_separated(stats, names)
+            which = (f"{pair[0]} and {pair[1]} (correlation of the estimates {pair[2]:+.4f})" if pair else
+                     f"the {len(names)} fitted moduli (the markers' sensitivities to them are linearly dependent)")
+            warnings.append(f"the data cannot separate {which}, {why}; or fit fewer regions (fit.regions)")
     for k, side in moduli_on_bound(theta, fit):
-        name, bounds = MODULI[k], (fit.lame_lambda, fit.lame_mu)[k]
-        warnings.append(f"{name} = {theta[k]:.6g} MPa lies on the {('low', 'high')[side]} bound of its search "
+        modulus = MODULI[k % 2]
+        bounds = (fit.lame_lambda, fit.lame_mu)[k % 2]
+        warnings.append(f"{names[k]} = {theta[k]:.6g} MPa lies on the {('low', 'high')[side]} bound of its search "
                         f"range [{bounds[0]:g}, {bounds[1]:g}], so it is not identified (the best fit may lie "
-                        f"beyond): {bound_advice(name, side, bounds)}")
+                        f"beyond): {bound_advice(modulus, side, bounds)}")
     if refinement.failed_solves:
         warnings.append(f"least squares tried {refinement.failed_solves} parameter point(s) where "
                         "the forward model failed (too soft for the loads): the optimum may lie at "
                         "the edge of the solvable materials; check the cost surface plot")
-    for k, name in enumerate(MODULI):
+    for k, name in enumerate(names):
         u = stats.uncertainty[k]
         if identifiable and u is not None and u > POORLY_DETERMINED * theta[k]:
             warnings.append(f"{name} is poorly determined: standard uncertainty {u:.3g} MPa is "
@@ -388,7 +432,7 @@ class MaterialFit:
     residuals: list[np.ndarray]  # per experiment (n_e, 2): p - q, mm
     simulated: list[np.ndarray]  # per experiment (n_e, 2): q at the optimum
     grid: GridSearch
-    path: np.ndarray  # (k, 2) parameter points the refinement evaluated, in order
+    path: np.ndarray  # (k, P) parameter points the refinement evaluated, in order
     cost: float  # f at the optimum, mm^2
     optimizer: dict
     forward_solves: int
@@ -399,6 +443,31 @@ class MaterialFit:
     linear_solver_backends: list[str]  # the sparse factorizations that ran, static solves and sensitivities
     wall_seconds: float
     warnings: list[str] = field(default_factory=list)
+    # every fitted modulus (the tissue's pair, then each fitted region's; fit.parameter_names),
+    # their standard uncertainties (None where not identified) and correlations
+    parameters: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    parameter_uncertainty: tuple[float | None, ...] = ()
+    correlations: np.ndarray | None = None
+
+    @property
+    def fitted_regions(self) -> list[tuple[int, float, float, float | None, float | None]]:
+        """(region index, lame_lambda, lame_mu and their standard uncertainties) of each
+        region whose moduli were fitted, in fit.regions' order."""
+        return [(index, float(self.parameters[2 + 2 * j]), float(self.parameters[3 + 2 * j]),
+                 *self.parameter_uncertainty[2 + 2 * j: 4 + 2 * j])
+                for j, index in enumerate(self.problem.fit.regions)]
+
+    @property
+    def fitted_tissue(self):
+        """The calibration's tissue at the fitted moduli: its own material and the fitted
+        regions' (the others as given)."""
+        tissue = self.problem.tissue
+        regions = list(tissue.regions)
+        for index, lame_lambda, lame_mu, *_ in self.fitted_regions:
+            regions[index] = replace(regions[index], material=replace(regions[index].material, lame_lambda=lame_lambda,
+                                                                      lame_mu=lame_mu))
+        material = replace(tissue.material, lame_lambda=self.lame_lambda, lame_mu=self.lame_mu)
+        return replace(tissue, material=material, regions=tuple(regions))
 
     @property
     def distances(self) -> np.ndarray:
@@ -415,10 +484,11 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
     start = time.perf_counter()
     misfit = MarkerMisfit(problem)
     with progress("grid search", problem.fit.grid_points ** 2) as advance:
-        grid = grid_search(misfit, problem.fit, advance, problem.source)
+        grid = grid_search(misfit, problem.fit, advance, problem.source, tuple(problem.region_start))
     grid_solves, grid_evaluations = misfit.solves, len(misfit.evaluations)
     with progress("least squares", None) as advance:
-        refinement = refine(misfit, problem, grid.best, float(np.nanmin(grid.cost)), advance)
+        refinement = refine(misfit, problem, np.array([*grid.best, *problem.region_start]),
+                            float(np.nanmin(grid.cost)), advance)
     theta = refinement.solution.x
     try:
         r, jac, simulated = misfit.evaluate(theta, jacobian=True)
@@ -426,7 +496,8 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         raise NumericalFailure(f"fit: the forward model failed at the fitted moduli: {failure}") from None
     stats = statistics(r, jac, theta)
     identifiable = identified(theta, stats, problem.fit)
-    displacements_only = (not problem.tissue.regions
+    # with every region's moduli fitted (or none), scaling them all is dividing the forces
+    displacements_only = (len(problem.fit.regions) == len(problem.tissue.regions)
                           and all(load.displacement is not None for e in problem.experiments for load in e.loads))
     warnings = fit_warnings(theta, stats, problem.fit, refinement, displacements_only)
     for message in warnings:
@@ -438,7 +509,7 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         lame_mu=float(theta[1]),
         # not identifiable: no usable uncertainties (the pair is only known along lambda/mu, or
         # a modulus is on a bound)
-        standard_uncertainty=stats.uncertainty if identifiable else (None, None),
+        standard_uncertainty=stats.uncertainty[:2] if identifiable else (None, None),
         correlation=stats.correlation,
         lambda_over_mu=float(theta[0] / theta[1]),
         lambda_over_mu_uncertainty=stats.ratio_uncertainty,
@@ -446,7 +517,7 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         residuals=np.split(r.reshape(-1, 2), sizes),
         simulated=simulated,
         grid=grid,
-        path=np.array(misfit.evaluations[grid_evaluations:]).reshape(-1, 2),
+        path=np.array(misfit.evaluations[grid_evaluations:]).reshape(-1, len(theta)),
         cost=float(r @ r),
         optimizer=refinement.optimizer,
         forward_solves=misfit.solves,
@@ -457,6 +528,9 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         linear_solver_backends=misfit.backends,
         wall_seconds=time.perf_counter() - start,
         warnings=warnings,
+        parameters=np.array(theta, dtype=float),
+        parameter_uncertainty=stats.uncertainty if identifiable else (None,) * len(theta),
+        correlations=stats.correlations,
     )
 
 

@@ -102,7 +102,8 @@ MuLow = number(f"a number of at least {MIN_SEARCH_MODULUS:g} (MPa; 1 Pa, softer 
 @block(title="tissue", file_required=("thickness",), one_of=("size", "outline"))
 class CalibrationTissue:
     """The tissue of a calibration: a scenario's tissue without its material. Its regions
-    keep the materials they give; the fitted moduli are the tissue's own, everywhere else."""
+    keep the materials they give (those fit.regions names only their law, their moduli being
+    fitted from the ones given); the tissue's own moduli hold everywhere else."""
 
     size: described(Size | None, "[W, H] mm: the rectangle [0, W] x [0, H]; or give outline") = None
     thickness: described(PositiveMM, f"out-of-plane thickness t, mm; {THICKNESS_RANGE_MM[0]:g} to "
@@ -112,8 +113,8 @@ class CalibrationTissue:
     holes: described(sequence(Hole, "a list of holes ({polygon: ...} or {circle: ...})"),
                      "cut-outs with free edges; one reaching the outline is cut out of it") = ()
     regions: described(sequence(Region, "a list of regions ({polygon: ...} or {circle: ...}, and material: ...)"),
-                       "areas of a known material, kept as given: the fit finds the rest of the "
-                       "tissue's moduli") = ()
+                       "areas of another material, kept as given unless fit.regions fits their "
+                       "moduli too: the fit finds the rest of the tissue's moduli") = ()
 
     _thickness_within_limits = within_limits(THICKNESS_LIMITS)
 
@@ -190,6 +191,16 @@ class FitBlock:
     grid_scale: described(choice(GRID_SCALES) | None,
                           "log or linear grid; default log unless the lame_lambda range starts at 0") = None
     max_evaluations: described(integer(2, 1000), "forward evaluations of the least-squares refinement") = 40
+    regions: described(sequence(integer(0, 999), "a list of indices into tissue.regions"),
+                       "tissue.regions whose moduli are fitted too, within the same search ranges, "
+                       "starting from the moduli their material gives") = ()
+
+    @field_validator("regions")
+    @classmethod
+    def _each_once(cls, regions: tuple[int, ...]) -> tuple[int, ...]:
+        if len(set(regions)) != len(regions):
+            raise problem("each region at most once")
+        return regions
 
     @model_validator(mode="after")
     def _scale(self) -> FitBlock:
@@ -212,6 +223,30 @@ class CalibrationFile:
     fit: described(FitBlock, "search ranges and settings of the fit")
     discretization: described(Discretization | None, "optional; default spacing min(W, H)/20") = None
     solver: described(Solver | None, "Newton settings") = None
+
+    @model_validator(mode="after")
+    def _fitted_regions(self) -> CalibrationFile:
+        """fit.regions name regions of the tissue whose given moduli lie within the search
+        ranges (they start the least squares)."""
+        regions, problems = self.tissue.regions, []
+        for k, index in enumerate(self.fit.regions):
+            if index >= len(regions):
+                problems.append(problem(f"an index of tissue.regions (it has {len(regions)} "
+                                        f"region{'s' * (len(regions) != 1)}: 0 to {len(regions) - 1})"
+                                        if regions else "none (tissue.regions is empty)",
+                                        field=f"fit.regions.{k}", value=index))
+                continue
+            material = regions[index].material
+            for name in ("lame_lambda", "lame_mu"):
+                low, high = getattr(self.fit, name)
+                value = getattr(material, name)
+                if not low <= value <= high:
+                    problems.append(problem(f"a start within fit.{name} [{low:g}, {high:g}] MPa (fit.regions "
+                                            f"fits tissue.regions[{index}]'s moduli from its material's)",
+                                            field=f"tissue.regions.{index}.material.{name}", value=value))
+        if problems:
+            raise combined(problems)
+        return self
 
 
 def parse_calibration(raw: Any, source: str = "") -> CalibrationFile:

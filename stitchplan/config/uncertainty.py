@@ -12,7 +12,9 @@ the scenario's value for each uncertain parameter, with correlations.
 
 `from_calibration` reads a `stitchplan calibrate material` output (path relative to this
 file): its `fit.standard_uncertainty` gives the std of lame_lambda and lame_mu and its
-`fit.correlation` their correlation; entries of `parameters` and `correlation` given in
+`fit.correlation` their correlation (where it fitted regions' moduli too, those are sampled
+as well: `tissue.regions[k].lame_*`, their stds from `fit.fitted_regions`, every pair's
+correlation from `fit.correlations`); entries of `parameters` and `correlation` given in
 this file override them. `resolve_uncertainty` gives the resolved `Uncertainty` (names,
 stds, correlation matrix), refusing a matrix that is not positive definite;
 `check_against_scenario` refuses a parameter the scenario does not have, a std above the
@@ -23,6 +25,7 @@ calibration's fitted around the same regions.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -40,6 +43,14 @@ from .yaml_files import read_yaml, read_yaml_file, with_key_problems
 UNITS = {"lame_lambda": "MPa", "lame_mu": "MPa", "friction": "N/mm", "cutting_force": "N",
          "thickness": "mm"}
 PARAMETERS = tuple(UNITS)
+# a region's moduli, sampled when a calibration fitted them (its fit.fitted_regions)
+REGION_MODULUS = re.compile(r"tissue\.regions\[(\d+)\]\.(lame_lambda|lame_mu)")
+
+
+def unit_of(name: str) -> str:
+    """The units of parameter `name`, a region's moduli's too."""
+    region = REGION_MODULUS.fullmatch(name)
+    return UNITS[region.group(2) if region else name]
 MAX_SAMPLES = 10_000
 # the robust plan re-aims only when the training runs' mean exit shift stands out of their
 # noise, by Hotelling's T^2, which needs 3 deviations (uncertainty.robust.shift_significance):
@@ -138,7 +149,7 @@ class Uncertainty:
 
     def as_record(self) -> dict:
         return {"samples": self.samples, "seed": self.seed,
-                "parameters": {name: {"std": float(s), "units": UNITS[name], "source": self.sources[name]}
+                "parameters": {name: {"std": float(s), "units": unit_of(name), "source": self.sources[name]}
                                for name, s in zip(self.names, self.std)},
                 "correlation": [{"between": [a, b], "value": float(self.correlation[i, j]),
                                  "source": self.correlation_sources.get(frozenset((a, b)), "file")}
@@ -169,10 +180,9 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
     calibration, calibration_regions = None, ()
     if spec.from_calibration is not None:
         calibration = path.parent / spec.from_calibration
-        std, pair_value, calibration_regions = calibration_spread(calibration, path)
+        std, pairs, calibration_regions = calibration_spread(calibration, path)
         sources = {name: "calibration" for name in std}
-        pairs[frozenset(("lame_lambda", "lame_mu"))] = pair_value
-        pair_sources[frozenset(("lame_lambda", "lame_mu"))] = "calibration"
+        pair_sources = {pair: "calibration" for pair in pairs}
     given = spec.parameters or Spreads()
     for name in PARAMETERS:
         spread = getattr(given, name)
@@ -181,7 +191,8 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
     for entry in spec.correlation:
         pairs[frozenset(entry.between)] = entry.value
         pair_sources[frozenset(entry.between)] = "file"
-    names = tuple(name for name in PARAMETERS if name in std)
+    # the scenario's parameters, then the calibration's fitted regions' moduli in its order
+    names = tuple(name for name in PARAMETERS if name in std) + tuple(name for name in std if name not in PARAMETERS)
     lines = []
     if not names:
         lines.append(f"{path}: parameters: got none, expected at least one uncertain parameter among "
@@ -212,10 +223,11 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
                        None if calibration is None else str(calibration), pair_sources, calibration_regions)
 
 
-def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float], float, tuple]:
-    """lame_lambda and lame_mu std and their correlation from a `calibrate material` output,
-    and the regions (Region) it kept at their given materials (none in outputs without
-    `regions`)."""
+def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float], dict[frozenset, float], tuple]:
+    """The standard uncertainties of the moduli a `calibrate material` output fitted (the
+    tissue's lame_lambda and lame_mu, and `tissue.regions[k].lame_*` of each region in its
+    fit.fitted_regions), the correlations of their pairs, and the regions (Region) it was
+    fitted around (none in outputs without `regions`)."""
     where = f"{source}: from_calibration: {calibration}"
     if not calibration.is_file():
         what = "Is a directory" if calibration.is_dir() else "No such file or directory"  # as the OS says it
@@ -245,7 +257,60 @@ def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float
         raise input_error([f"{where}: fit.correlation: got {short(value)}, expected a number between -1 and 1 "
                            "(exclusive)"])
     std = {name: float(v) for name, v in given.items()}
-    return std, float(value), _calibration_regions(raw.get("regions"), where)
+    pairs = {frozenset(("lame_lambda", "lame_mu")): float(value)}
+    regions = _calibration_regions(raw.get("regions"), where)
+    if fit.get("fitted_regions"):
+        region_std, pairs = _fitted_regions_spread(fit, len(regions), where)
+        std.update(region_std)
+    return std, pairs, regions
+
+
+def _fitted_regions_spread(fit: dict, regions: int, where: str) -> tuple[dict[str, float], dict[frozenset, float]]:
+    """The fitted regions' moduli' stds (fit.fitted_regions) and the correlations of every pair
+    of fitted moduli (fit.correlations), as `calibrate material` writes them."""
+    entries, std = fit["fitted_regions"], {}
+    if not isinstance(entries, list):
+        raise input_error([f"{where}: fit.fitted_regions: got {short(entries)}, expected a list of "
+                           "{region: k, standard_uncertainty: {lame_lambda, lame_mu}}, as `calibrate material` "
+                           "writes it"])
+    lines = []
+    for i, entry in enumerate(entries):
+        index = entry.get("region") if isinstance(entry, dict) else None
+        spread = entry.get("standard_uncertainty") if isinstance(entry, dict) else None
+        if not (isinstance(index, int) and not isinstance(index, bool) and 0 <= index < regions):
+            lines.append(f"{where}: fit.fitted_regions[{i}].region: got {short(index)}, expected an index of its "
+                         f"regions: (0 to {regions - 1})" if regions else
+                         f"{where}: fit.fitted_regions[{i}].region: got {short(index)}, expected none: its "
+                         "regions: is empty")
+            continue
+        for name in ("lame_lambda", "lame_mu"):
+            value = spread.get(name) if isinstance(spread, dict) else None
+            if not (_finite(value) and value > 0):
+                lines.append(f"{where}: fit.fitted_regions[{i}].standard_uncertainty.{name}: got {short(value)}, "
+                             "expected a positive standard uncertainty (MPa)")
+            else:
+                std[f"tissue.regions[{index}].{name}"] = float(value)
+    correlations = fit.get("correlations")
+    names = correlations.get("parameters") if isinstance(correlations, dict) else None
+    matrix = correlations.get("matrix") if isinstance(correlations, dict) else None
+    expected = ["lame_lambda", "lame_mu", *std]
+    if not lines and (names != expected or not _correlation_matrix(matrix, len(expected))):
+        lines.append(f"{where}: fit.correlations: got {short(correlations)}, expected the parameters {expected} "
+                     "and their correlation matrix, as `calibrate material` writes them")
+    if lines:
+        raise input_error(lines)
+    pairs = {frozenset((a, b)): float(matrix[i][j]) for i, a in enumerate(names) for j, b in enumerate(names) if i < j}
+    return std, pairs
+
+
+def _correlation_matrix(matrix: Any, size: int) -> bool:
+    """A symmetric size x size matrix of numbers in (-1, 1) with a unit diagonal."""
+    if not (isinstance(matrix, list) and len(matrix) == size
+            and all(isinstance(row, list) and len(row) == size and all(_finite(v) for v in row) for row in matrix)):
+        return False
+    values = np.array(matrix, dtype=float)
+    return bool(np.allclose(values, values.T) and np.all(np.diag(values) == 1.0)
+                and np.all(np.abs(values[~np.eye(size, dtype=bool)]) < 1.0))
 
 
 def _calibration_regions(raw: Any, where: str) -> tuple:
@@ -272,12 +337,16 @@ def _finite(value: Any) -> bool:
 
 
 def scenario_values(scenario, names: tuple[str, ...]) -> np.ndarray:
-    """The scenario's values of the parameters `names` (PARAMETERS' units)."""
+    """The scenario's values of the parameters `names` (PARAMETERS' units; a region's moduli
+    `tissue.regions[k].lame_*` its material's)."""
     tissue, needle = scenario.tissue, scenario.needle
     values = {"lame_lambda": tissue.material.lame_lambda, "lame_mu": tissue.material.lame_mu,
               "thickness": tissue.thickness,
               "friction": needle.friction if needle is not None else 0.0,
               "cutting_force": needle.cutting_force if needle is not None else 0.0}
+    for k, region in enumerate(getattr(tissue, "regions", ()) or ()):
+        for modulus in ("lame_lambda", "lame_mu"):
+            values[f"tissue.regions[{k}].{modulus}"] = getattr(region.material, modulus)
     return np.array([values[name] for name in names], dtype=float)
 
 
@@ -294,33 +363,41 @@ def check_against_scenario(uncertainty: Uncertainty, scenario, scenario_path: st
       calibration fitted around the same regions: a sample replaces tissue.material only, so
       the regions' moduli stay fixed, which is the calibration's model (the tissue's own
       moduli around regions of given material) and no other file's;
-    - moduli from a calibration fitted around regions the scenario does not hold as given;
+    - moduli from a calibration fitted around regions the scenario does not hold as given
+      (a calibration that fitted regions' moduli too samples them as `tissue.regions[k].lame_*`,
+      around the scenario's values);
     - a std that does not move the value in double precision: the sensitivity's step, half a
       std (uncertainty.robust), must change it, else the samples and the step are the value
       itself and the sensitivity reads 0 (a std of 1e-300 on a 10 mm thickness)."""
-    values = scenario_values(scenario, uncertainty.names)
     scenario_regions = tuple(getattr(scenario.tissue, "regions", ()) or ())
     regions = len(scenario_regions)
     lines = _region_problems(uncertainty, scenario_regions, scenario_path)
+    if lines:  # a fitted region's modulus may name a region the scenario lacks
+        raise input_error(lines)
+    values = scenario_values(scenario, uncertainty.names)
     for name, value, std in zip(uncertainty.names, values, uncertainty.std):
         where = {"friction": "needle", "cutting_force": "needle", "thickness": "tissue"}.get(name, "tissue.material")
+        if REGION_MODULUS.fullmatch(name):
+            where, name_in_scenario = name.rsplit(".", 1)[0] + ".material", name.rsplit(".", 1)[1]
+        else:
+            name_in_scenario = name
         field = parameter_field(uncertainty, name)
         if value <= 0:
             lines.append(f"{uncertainty.path}: {field}: got {{std: {std:g}}}, expected a parameter the "
-                         f"scenario has ({scenario_path} has {where}.{name} = {value:g}; remove it or give the "
-                         "scenario a positive value)")
+                         f"scenario has ({scenario_path} has {where}.{name_in_scenario} = {value:g}; remove it or "
+                         "give the scenario a positive value)")
         elif std > value:
             std_field = field if uncertainty.sources.get(name) == "calibration" else f"{field}.std"
             lines.append(f"{uncertainty.path}: {std_field}: got {std:g}, expected at most the scenario's value "
-                         f"{value:g} {UNITS[name]} ({scenario_path}: {where}.{name}): a larger std puts more than "
-                         "16 % of the normal at or below 0, and truncated to positive values it is no longer "
-                         "centred on the scenario's value")
+                         f"{value:g} {unit_of(name)} ({scenario_path}: {where}.{name_in_scenario}): a larger std "
+                         "puts more than 16 % of the normal at or below 0, and truncated to positive values it is "
+                         "no longer centred on the scenario's value")
         elif std < 2.0 * np.spacing(value):
             std_field = field if uncertainty.sources.get(name) == "calibration" else f"{field}.std"
             lines.append(f"{uncertainty.path}: {std_field}: got {std:g}, expected at least "
-                         f"{2.0 * np.spacing(value):.3g} {UNITS[name]}, a std that moves the scenario's value "
-                         f"{value:g} ({scenario_path}: {where}.{name}) in double precision: half a std, the "
-                         "sensitivity's step, would leave it as it is")
+                         f"{2.0 * np.spacing(value):.3g} {unit_of(name)}, a std that moves the scenario's value "
+                         f"{value:g} ({scenario_path}: {where}.{name_in_scenario}) in double precision: half a "
+                         "std, the sensitivity's step, would leave it as it is")
         if name in ("lame_lambda", "lame_mu") and regions and uncertainty.sources[name] != "calibration":
             lines.append(f"{uncertainty.path}: {field}: got {{std: {std:g}}}, expected no uncertain moduli for a "
                          f"scenario with material regions ({scenario_path} has {_counted(regions)} in tissue.regions, "
@@ -353,6 +430,10 @@ def _region_problems(uncertainty: Uncertainty, scenario_regions: tuple, scenario
 def parameter_field(uncertainty: Uncertainty, name: str) -> str:
     """Where the uncertainty file gives parameter `name`: `parameters.<name>`, or
     `from_calibration: <file>: fit.standard_uncertainty.<name>` for the calibration's."""
+    region = REGION_MODULUS.fullmatch(name)
+    if region:
+        return (f"from_calibration: {uncertainty.calibration}: fit.fitted_regions (region {region.group(1)}): "
+                f"standard_uncertainty.{region.group(2)}")
     if uncertainty.sources.get(name) == "calibration":
         return f"from_calibration: {uncertainty.calibration}: fit.standard_uncertainty.{name}"
     return f"parameters.{name}"

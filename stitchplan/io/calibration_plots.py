@@ -28,12 +28,14 @@ def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.nda
                       cost: np.ndarray, grid_best: tuple[float, float], optimum: tuple[float, float],
                       refinement: np.ndarray | None = None, log_axes: bool = True, name: str = "",
                       residual: tuple[float, float] | None = None,
-                      uncertainty: tuple[float | None, float | None] = (None, None), identifiable: bool = True):
+                      uncertainty: tuple[float | None, float | None] = (None, None), identifiable: bool = True,
+                      note: str = ""):
     """Marker misfit f(lambda, mu) (eq. A.3) on the calibration grid, cost (n_lambda, n_mu) in
     mm^2 with nan where the solve failed; the grid's best point, the least-squares path and
     the optimum marked. `residual`: mean and standard deviation of the marker distances at the
     optimum (mm), shown in the title with the fitted moduli and their `uncertainty`, and
-    whether the moduli are `identifiable` (the command's summary line flags them alike)."""
+    whether the moduli are `identifiable` (the command's summary line flags them alike);
+    `note`: a further title line (the regions whose moduli were fitted too)."""
     from matplotlib import patheffects
     from matplotlib.colors import LogNorm
 
@@ -78,6 +80,8 @@ def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.nda
 
     title = (f"{name or 'calibrate material'}: marker misfit over the moduli\nfitted lambda = "
              f"{value(optimum[0], uncertainty[0])} MPa, mu = {value(optimum[1], uncertainty[1])} MPa")
+    if note:
+        title += f"\n{note}"
     if residual is not None:
         title += f"\nmarker residual {residual[0]:.3g} ± {residual[1]:.2g} mm"
     if not identifiable:

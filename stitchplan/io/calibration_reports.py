@@ -19,6 +19,10 @@ MATERIAL_HEADER = ("# stitchplan calibrate material: Lame moduli fitted to marke
                    "# (thesis eq. A.3). Paste the `material:` block into a scenario's `tissue:` block.\n")
 REGIONS_HEADER = ("# The moduli are the tissue's own around `regions:`, kept at the materials the\n"
                   "# calibration file gave them: paste both into the scenario's `tissue:` block.\n")
+FITTED_REGIONS_HEADER = ("# The moduli are the tissue's own around `regions:`; those fit.fitted_regions lists\n"
+                         "# were fitted too (`regions:` holds their fitted moduli), the others kept at the\n"
+                         "# materials the calibration file gave them: paste both into the scenario's\n"
+                         "# `tissue:` block.\n")
 NEEDLE_HEADER = ("# stitchplan calibrate needle: friction (N/mm) and cutting force (N) from force\n"
                  "# recordings (thesis section 5.2). Paste both into a scenario's `needle:` block.\n")
 MATERIAL_PLOTS = ("cost_surface.png", "marker_residuals.png")  # written into --plot-dir
@@ -66,12 +70,43 @@ def material_report(result: MaterialFit, command: list[str] | None = None) -> di
         "lame_mu": _round(result.lame_mu),
         "residual_mean_mm": _round(float(distances.mean())),
         "residual_std_mm": _round(_spread(distances)),
-        # the regions the moduli were fitted around (a scenario's tissue.regions, as given)
-        "regions": [region.as_block() for region in result.problem.tissue.regions],
+        # the regions the moduli were fitted around (a scenario's tissue.regions, as given),
+        # those whose moduli were fitted too at their fitted moduli
+        "regions": _regions(result),
         "fit": _material_quality(result),
         "diagnostics": {**_material_diagnostics(result), "command": command,
                         "input_sha256": _inputs([result.problem.source]
                                                 + [e.source for e in result.problem.experiments])},
+    }
+
+
+def _regions(result: MaterialFit) -> list[dict]:
+    blocks = [region.as_block() for region in result.problem.tissue.regions]
+    for index, lame_lambda, lame_mu, *_ in result.fitted_regions:
+        blocks[index]["material"].update(lame_lambda=_round(lame_lambda), lame_mu=_round(lame_mu))
+    return blocks
+
+
+def _regions_header(result: MaterialFit) -> str:
+    if result.fitted_regions:
+        return FITTED_REGIONS_HEADER
+    return REGIONS_HEADER if result.problem.tissue.regions else ""
+
+
+def _fitted_regions(result: MaterialFit) -> dict:
+    """fit.fitted_regions and the correlations of every fitted modulus, where fit.regions
+    named any (the tissue's own pair alone keeps its `correlation`)."""
+    if not result.fitted_regions:
+        return {}
+    names = result.problem.fit.parameter_names
+    correlations = result.correlations if result.identifiable else None
+    return {
+        "fitted_regions": [{"region": index, "lame_lambda": _round(lame_lambda), "lame_mu": _round(lame_mu),
+                            "standard_uncertainty": {"lame_lambda": _round(u_lambda, 3), "lame_mu": _round(u_mu, 3)}}
+                           for index, lame_lambda, lame_mu, u_lambda, u_mu in result.fitted_regions],
+        "correlations": {"parameters": list(names),
+                         "matrix": None if correlations is None else
+                         [[_round(float(v), 4) for v in row] for row in correlations]},
     }
 
 
@@ -101,6 +136,7 @@ def _material_quality(result: MaterialFit) -> dict:
         "lambda_over_mu": _round(result.lambda_over_mu),
         "lambda_over_mu_uncertainty": _round(result.lambda_over_mu_uncertainty, 3),
         "identifiable": result.identifiable,
+        **_fitted_regions(result),
         "warnings": list(result.warnings),
         "markers": len(distances),
         "experiments": per_experiment,
@@ -125,7 +161,8 @@ def _material_diagnostics(result: MaterialFit) -> dict:
                      "cost_mm2": _round(float(np.nanmin(grid.cost)))},
             "failed_points": grid.failed,
         },
-        "least_squares": {**result.optimizer, "start": [_round(v) for v in grid.best]},
+        "least_squares": {**result.optimizer,
+                          "start": [_round(v) for v in (*grid.best, *result.problem.region_start)]},
         # the sparse factorizations of the forward solves and sensitivities, as deform's `solver` gives them
         "linear_solver_backends": result.linear_solver_backends,
         "discretization": {"particles": sum(result.particles), "experiment_particles": result.particles,
@@ -156,9 +193,16 @@ def _material_plots_to(result: MaterialFit, cost_path: Path, residuals_path: Pat
                       (result.lame_lambda, result.lame_mu), result.path,
                       log_axes=problem.fit.grid_scale == "log", name=problem.name,
                       residual=(float(result.distances.mean()), _spread(result.distances)),
-                      uncertainty=result.standard_uncertainty, identifiable=result.identifiable)
-    plot_marker_residuals(residuals_path, problem.tissue, problem.experiments, result.simulated,
+                      uncertainty=result.standard_uncertainty, identifiable=result.identifiable,
+                      note=_fitted_regions_note(result))
+    plot_marker_residuals(residuals_path, result.fitted_tissue, problem.experiments, result.simulated,
                           name=problem.name)
+
+
+def _fitted_regions_note(result: MaterialFit) -> str:
+    """The cost surface's line on regions fitted too: the grid holds them at their start."""
+    return "; ".join(f"regions[{index}] fitted too: lambda {lame_lambda:.4g}, mu {lame_mu:.4g} MPa "
+                     f"(on the grid at its start)" for index, lame_lambda, lame_mu, *_ in result.fitted_regions)
 
 
 def material_outputs(out: str | Path, plot_dir: str | Path | None = None) -> dict[str, Path | None]:
@@ -176,15 +220,22 @@ def write_material_outputs(result: MaterialFit, out: str | Path,
         if plot_dir is not None:
             _material_plots_to(result, *(files[label] for label in list(outputs)[1:]))
         write_yaml(files["--out"], material_report(result, command),
-                   MATERIAL_HEADER + (REGIONS_HEADER if result.problem.tissue.regions else ""))
+                   MATERIAL_HEADER + _regions_header(result))
+
+
+def _plus_minus(value: float | None) -> str:
+    return f" +- {value:.2g}" if value is not None else ""
 
 
 def material_summary_line(result: MaterialFit) -> str:
-    u = result.standard_uncertainty
-    spread = [f" +- {value:.2g}" if value is not None else "" for value in u]
+    spread = [_plus_minus(value) for value in result.standard_uncertainty]
     flag = "" if result.identifiable else " (NOT identifiable: see warnings)"
+    regions = "".join(
+        f"; tissue.regions[{index}]: lame_lambda {lame_lambda:.6g}{_plus_minus(u_lambda)} MPa, "
+        f"lame_mu {lame_mu:.6g}{_plus_minus(u_mu)} MPa"
+        for index, lame_lambda, lame_mu, u_lambda, u_mu in result.fitted_regions)
     return (f"calibrate material: lame_lambda {result.lame_lambda:.6g}{spread[0]} MPa, lame_mu "
-            f"{result.lame_mu:.6g}{spread[1]} MPa{flag}; marker residual "
+            f"{result.lame_mu:.6g}{spread[1]} MPa{regions}{flag}; marker residual "
             f"{result.distances.mean():.4g} +- {_spread(result.distances):.2g} mm; "
             f"{result.forward_solves} forward solves, {result.wall_seconds:.2f} s")
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config.uncertainty import UNITS
+from ..config.uncertainty import unit_of
 from ..uncertainty.robust import LABELS, SENSITIVITY_STEP, Z_95, UncertaintyResult, ellipse_95, exit_statistics
 from .plot_elements import legend_below, pyplot, title_above
 from .plots import save
@@ -34,7 +34,7 @@ COLOURS = {"unplanned": "tab:red", "nominal": "tab:blue", "robust": "tab:green"}
 
 def per_unit(name: str) -> str:
     """The units of a sensitivity to parameter `name`: mm/MPa, mm/(N/mm), ..."""
-    unit = UNITS[name]
+    unit = unit_of(name)
     return f"mm/({unit})" if "/" in unit else f"mm/{unit}"
 
 
@@ -138,7 +138,7 @@ def uncertainty_datasets(result: UncertaintyResult) -> tuple[dict, dict]:
     """The run log's `uncertainty/...` groups and their units: parameters drawn, exit points,
     error vectors and failures of every sampled run, the sensitivities."""
     names = result.design.names
-    parameter_units = ",".join(UNITS[name] for name in names)
+    parameter_units = ",".join(unit_of(name) for name in names)
     groups = {"uncertainty": {
         "parameter_names": "\n".join(names),
         "nominal_values": result.design.nominal,

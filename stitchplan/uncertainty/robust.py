@@ -69,7 +69,7 @@ import numpy as np
 from scipy.stats import f as f_distribution
 
 from ..config import Scenario
-from ..config.uncertainty import UNITS, Uncertainty, check_against_scenario
+from ..config.uncertainty import Uncertainty, check_against_scenario, unit_of
 from ..errors import InputError, NumericalFailure
 from ..events import Event, EventKind
 from ..parallel.executor import Executor, run_all
@@ -251,11 +251,11 @@ class UncertaintyResult:
             partners = [f"{name} ({row[k]:+.3g})" for k, name in enumerate(names)
                         if name != dominant.name and row[k] != 0.0]
             return (f"exit spread: {dominant.name} alone would move the exit {alone:.3g} mm (p95, std "
-                    f"{dominant.std:g} {UNITS[dominant.name]}), more than the {total:.3g} mm p95 of all "
+                    f"{dominant.std:g} {unit_of(dominant.name)}), more than the {total:.3g} mm p95 of all "
                     f"parameters together (linearised): its correlation with {', '.join(partners)} cancels "
                     f"most of it{miss}")
         return (f"exit spread dominated by {dominant.name} ({alone:.3g} mm{of_total}; "
-                f"std {dominant.std:g} {UNITS[dominant.name]}{miss})")
+                f"std {dominant.std:g} {unit_of(dominant.name)}{miss})")
 
 
 def shift_significance(deviations: np.ndarray) -> float | None:

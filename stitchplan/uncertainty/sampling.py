@@ -29,7 +29,7 @@ import numpy as np
 from scipy.stats import norm, qmc
 
 from ..config import Scenario
-from ..config.uncertainty import Uncertainty, scenario_values
+from ..config.uncertainty import REGION_MODULUS, Uncertainty, scenario_values
 from ..errors import InputError
 
 MAX_DOUBLINGS = 12  # at most 2^12 x the wanted points: a distribution mostly below 0 is refused
@@ -90,15 +90,23 @@ def draw(uncertainty: Uncertainty, scenario: Scenario) -> Design:
 
 
 def with_parameters(scenario: Scenario, names: tuple[str, ...], values: np.ndarray) -> Scenario:
-    """The scenario with the parameters `names` set to `values` (a validated copy). Moduli
-    replace tissue.material only: material regions keep theirs (on a scenario with regions
-    config.uncertainty.check_against_scenario takes moduli only from a calibration fitted
-    around the same regions, the model where that is what the moduli mean)."""
+    """The scenario with the parameters `names` set to `values` (a validated copy). The
+    moduli lame_lambda and lame_mu replace tissue.material's; a region keeps its own unless
+    its `tissue.regions[k].lame_*` are among `names` (a calibration that fitted them: on a
+    scenario with regions config.uncertainty.check_against_scenario takes moduli only from a
+    calibration fitted around the same regions, the model where that is what they mean)."""
     given = dict(zip(names, (float(v) for v in values)))
     tissue, needle = scenario.tissue, scenario.needle
     moduli = {k: v for k, v in given.items() if k in ("lame_lambda", "lame_mu")}
     material = replace(tissue.material, **moduli)
-    tissue = replace(tissue, material=material, **({"thickness": given["thickness"]} if "thickness" in given else {}))
+    regions = list(tissue.regions)
+    for name, value in given.items():
+        region = REGION_MODULUS.fullmatch(name)
+        if region:  # a region's moduli a calibration fitted
+            k = int(region.group(1))
+            regions[k] = replace(regions[k], material=replace(regions[k].material, **{region.group(2): value}))
+    tissue = replace(tissue, material=material, regions=tuple(regions),
+                     **({"thickness": given["thickness"]} if "thickness" in given else {}))
     needle_changes = {k: v for k, v in given.items() if k in ("friction", "cutting_force")}
     if needle_changes:
         needle = replace(needle, **needle_changes)
