@@ -36,6 +36,7 @@ python sample_runs/plan_table.py > $out/plan_table.md
  stitchplan calibrate material displacement_only.yaml --out fitted_displacement_only.yaml \
    --plot-dir plots_displacement_only
  stitchplan calibrate material skin_layered.yaml --out fitted_skin_layered.yaml --plot-dir plots_skin_layered
+ stitchplan calibrate material inclusion.yaml --out fitted_inclusion.yaml --plot-dir plots_inclusion
  stitchplan calibrate needle --air air.csv --tissue tissue.csv --radius 8.88 --out needle.yaml \
    --plot forces.png)
 

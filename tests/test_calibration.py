@@ -592,6 +592,27 @@ def test_shipped_skin_layered_example_fits_the_truth_around_the_scenes_skin_laye
     check_against_scenario(resolved, scene, configs / "skin_layered.yaml")
 
 
+def test_shipped_inclusion_example_fits_both_materials_near_the_truth():
+    """sample_runs/calibration/inclusion.yaml: the block's moduli and the inclusion's, fitted
+    together, lie within 3 reported sigma of generate.py's truth; fitted_inclusion.yaml's
+    region is the file's circle at the fitted moduli, the poorly determined lame_lambda of the
+    inclusion said so."""
+    truth = {"lame_lambda": 0.756604, "lame_mu": 0.590752}  # generate.py's INCLUSION
+    problem = calibration.load_material_calibration(SAMPLES / "inclusion.yaml")
+    assert problem.fit.regions == (0,) and [len(e.markers) for e in problem.experiments] == [40, 40, 40]
+    fitted = yaml.safe_load((SAMPLES / "fitted_inclusion.yaml").read_text())
+    fit = fitted["fit"]
+    for name in ("lame_lambda", "lame_mu"):
+        assert abs(fitted["material"][name] - getattr(TRUE, name)) < 3 * fit["standard_uncertainty"][name]
+        region = fit["fitted_regions"][0]
+        assert abs(region[name] - truth[name]) < 3 * region["standard_uncertainty"][name]
+        assert fitted["regions"][0]["material"][name] == region[name]
+    assert fitted["regions"][0]["circle"] == {"center": [45.0, 30.0], "radius": 14.0}
+    assert fit["identifiable"] and fit["warnings"] == [
+        "tissue.regions[0].lame_lambda is poorly determined: standard uncertainty 0.439 MPa is 85 % of its "
+        "value; add markers or experiments"]
+
+
 # --- layering -------------------------------------------------------------------------
 
 PACKAGE = Path(__file__).resolve().parents[1] / "stitchplan"

@@ -8,8 +8,8 @@ Gaussian noise. Fitting them back shows how well the calibration recovers known 
 
     python sample_runs/calibration/generate.py        # rewrites the inputs (seeded)
 
-then the commands in README.md rewrite the fitted outputs and plots. The skin-layered files
-come out identical; the 100 x 60 mm block's marker files were made with the forward model of
+then the commands in README.md rewrite the fitted outputs and plots. The skin-layered and
+inclusion files come out identical; the 100 x 60 mm block's marker files were made with the forward model of
 stitchplan 0.1.0 and are kept as shipped (the fits, the regression pins and the uncertainty
 example are theirs): rewritten by today's model their deformed positions move by up to
 0.0006 mm under the forces and 0.069 mm under the displacement, whose segment now acts on
@@ -18,12 +18,15 @@ exactly the segment given (README, Load segments).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from pydantic import TypeAdapter
 
 from stitchplan.calibration import simulate_markers
 from stitchplan.config import load_scenario
+from stitchplan.config.blocks import Region
 from stitchplan.config.scenario import Discretization, Load, Material, Tissue
 from stitchplan.io.files import write_text
 
@@ -56,6 +59,18 @@ SKIN_MARKERS = 40
 SKIN_EXPERIMENTS = {
     "markers_skin1.csv": (Load(((60.0, 0.0), (60.0, 30.0)), force=(2.0, 0.0)),),
     "markers_skin2.csv": (Load(((20.0, 30.0), (40.0, 30.0)), force=(0.0, -2.0)),),
+}
+
+# --- a stiff inclusion whose moduli are fitted too: the block above around a lesion ---------
+# (neo-Hookean, 4x the tissue's moduli), from three force experiments; inclusion.yaml starts
+# the lesion's moduli at 0.3 MPa each
+INCLUSION = {"circle": {"center": [45.0, 30.0], "radius": 14.0},
+             "material": {"model": "neo-hookean", "lame_lambda": 0.756604, "lame_mu": 0.590752}}
+INCLUSION_MARKERS = 40
+INCLUSION_EXPERIMENTS = {
+    "markers_inclusion1.csv": EXPERIMENTS["markers1.csv"],
+    "markers_inclusion2.csv": EXPERIMENTS["markers2.csv"],
+    "markers_inclusion3.csv": (Load(((0.0, 0.0), (0.0, 60.0)), force=(4.0, 0.0)),),
 }
 
 # --- needle: ETHICON SH radius, friction and cutting force of the thesis's phantom -------
@@ -106,6 +121,22 @@ def skin_layered_data(rng: np.random.Generator) -> None:
         _csv(HERE / name, header, ["x", "y", "x_def", "y_def"], np.hstack([rest, deformed]))
 
 
+def inclusion_data(rng: np.random.Generator) -> None:
+    tissue = replace(TISSUE, regions=(TypeAdapter(Region).validate_python(INCLUSION),))
+    lesion = INCLUSION["material"]
+    for name, loads in INCLUSION_EXPERIMENTS.items():
+        rest = markers(rng, INCLUSION_MARKERS)
+        deformed = simulate_markers(tissue, GENERATION, loads, rest, TRUE_MATERIAL)
+        deformed += MARKER_NOISE_MM * rng.standard_normal(deformed.shape)
+        header = (f"SYNTHETIC markers, not measured: generate.py (seed {SEED + 2}), stitchplan forward model\n"
+                  f"of the block: lame_lambda {TRUE_MATERIAL.lame_lambda} MPa, lame_mu {TRUE_MATERIAL.lame_mu} MPa "
+                  f"around a stiff inclusion\n(circle centre {INCLUSION['circle']['center']} mm, radius "
+                  f"{INCLUSION['circle']['radius']} mm, {lesion['model']}, lame_lambda {lesion['lame_lambda']} MPa, "
+                  f"lame_mu {lesion['lame_mu']} MPa),\nspacing {GENERATION.spacing} mm, + Gaussian noise "
+                  f"{MARKER_NOISE_MM} mm")
+        _csv(HERE / name, header, ["x", "y", "x_def", "y_def"], np.hstack([rest, deformed]))
+
+
 def needle_data(rng: np.random.Generator) -> None:
     offset, slope = BACKGROUND
     air_angle = np.arange(0.0, np.pi, 0.02)
@@ -127,6 +158,7 @@ def main() -> None:
     material_data(rng)
     needle_data(rng)
     skin_layered_data(np.random.default_rng(SEED + 1))  # its own stream: the files above stay as they were
+    inclusion_data(np.random.default_rng(SEED + 2))
 
 
 if __name__ == "__main__":
