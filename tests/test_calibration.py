@@ -70,7 +70,9 @@ def load_block(loads: tuple[Load, ...], scale: float = 1.0) -> list[dict]:
 def write_calibration(folder, experiments, fit=None, rng=None, noise=0.0, markers=20, scale=1.0,
                       extra=None, regions=None):
     """Markers from the forward model at TRUE (+ noise) and the calibration YAML; returns its path.
-    `regions`: the tissue's regions as the file gives them (their markers simulated with them)."""
+    `regions`: the tissue's regions as the file gives them (their markers simulated with them).
+    The markers are the fit's own 10 mm model's, so a fit returns TRUE exactly: the round trips
+    skip the discretization estimate, which rightly finds that model far from converged."""
     rng = rng or np.random.default_rng(0)
     tissue = TISSUE if regions is None else replace(TISSUE, regions=tuple(REGION_ADAPTER.validate_python(r)
                                                                           for r in regions))
@@ -171,7 +173,7 @@ def test_a_region_of_given_material_makes_displacements_show_the_moduli():
 def test_round_trip_noise_free_through_the_cli(tmp_path):
     path = write_calibration(tmp_path, [LOADS["left-pull"], LOADS["top-press"]])
     out, plots = tmp_path / "fitted.yaml", tmp_path / "plots"
-    result = run("calibrate", "material", path, "--out", out, "--plot-dir", plots)
+    result = run("calibrate", "material", path, "--out", out, "--plot-dir", plots, "--no-estimate")
     assert result.exit_code == 0, result.output
     fitted = yaml.safe_load(out.read_text())
     material = parse_material(fitted["material"])  # pastes into a scenario as it is
@@ -202,7 +204,7 @@ def test_round_trip_with_noise(tmp_path):
     path = write_calibration(tmp_path, list(LOADS.values()), rng=rng, noise=0.05, markers=400,
                              scale=2.0)
     problem = calibration.load_material_calibration(path)
-    result = calibration.fit_material(problem)
+    result = calibration.fit_material(problem, estimate=False)  # the data are the 10 mm model's
     errors = np.array([result.lame_lambda, result.lame_mu]) / THETA - 1.0
     sigma = np.array(result.standard_uncertainty) / THETA
     assert np.all(np.abs(errors) < 0.02), errors
@@ -250,7 +252,7 @@ def test_round_trip_with_a_region_of_given_material_through_the_cli(tmp_path):
     for experiments in ([DISPLACED], [LOADS["left-pull"], LOADS["top-press"]]):
         path = write_calibration(tmp_path, experiments, regions=[STIFF_DISC])
         out = tmp_path / "fitted.yaml"
-        result = run("calibrate", "material", path, "--out", out)
+        result = run("calibrate", "material", path, "--out", out, "--no-estimate")
         assert result.exit_code == 0, result.output
         fitted = yaml.safe_load(out.read_text())
         assert fitted["lame_lambda"] == pytest.approx(TRUE.lame_lambda, rel=1e-3)
@@ -282,7 +284,7 @@ def test_round_trip_fitting_a_region_too_through_the_cli(tmp_path):
     data["fit"]["regions"] = [0]
     path.write_text(yaml.safe_dump(data))
     out = tmp_path / "fitted.yaml"
-    result = run("calibrate", "material", path, "--out", out)
+    result = run("calibrate", "material", path, "--out", out, "--no-estimate")
     assert result.exit_code == 0, result.output
     assert "tissue.regions[0]: lame_lambda 0.8" in result.output
     fitted = yaml.safe_load(out.read_text())
@@ -317,6 +319,81 @@ def test_fitting_every_region_under_displacements_sees_only_the_ratios(tmp_path)
     assert result.lame_lambda / result.lame_mu == pytest.approx(TRUE.lame_lambda / TRUE.lame_mu, rel=1e-3)
     (_, lame_lambda, lame_mu, *spread), = result.fitted_regions
     assert lame_lambda / lame_mu == pytest.approx(0.8 / 0.6, rel=1e-3) and spread == [None, None]
+
+
+# --- discretization estimate ------------------------------------------------------------
+
+
+def test_the_discretization_estimate_bounds_the_error_against_a_finer_model(tmp_path):
+    """Markers made noise-free on a model four times finer (2.5 mm) and fitted at 10 mm: the
+    fitted moduli are off by the 10 mm model's discretization error alone, and the estimate
+    (the fit again at 20 mm) bounds it within a factor 3 (measured 1.2 and 2.0)."""
+    fine = Discretization(spacing=2.5)
+    rng = np.random.default_rng(0)
+    experiments = []
+    for k, loads in enumerate([LOADS["left-pull"], LOADS["top-press"]]):
+        rest = random_markers(rng, 20)
+        deformed = calibration.simulate_markers(TISSUE, fine, loads, rest, TRUE)
+        rows = "\n".join(",".join(f"{v:.12g}" for v in row) for row in np.hstack([rest, deformed]))
+        (tmp_path / f"markers{k}.csv").write_text("x,y,x_def,y_def\n" + rows + "\n")
+        experiments.append({"loads": load_block(loads), "markers": f"markers{k}.csv"})
+    path = tmp_path / "calib.yaml"
+    path.write_text(yaml.safe_dump({"tissue": {"size": [100.0, 60.0], "thickness": 10.0, "clamped": ["right"]},
+                                    "experiments": experiments, "fit": dict(FIT), "discretization": {"spacing": 10.0}}))
+    result = calibration.fit_material(calibration.load_material_calibration(path))
+    error = np.abs(result.parameters - THETA)
+    assert result.estimate.spacing == 20.0 and np.all(error > 1e-3)
+    assert np.all(result.estimate.change >= error) and np.all(result.estimate.change <= 3.0 * error), \
+        (result.estimate.change, error)
+    # noise-free markers: any discretization error is large beside the (tiny) standard uncertainty
+    assert any("when fitted at twice the spacing (20 mm)" in w for w in result.warnings)
+
+
+def test_the_estimate_is_written_skipped_with_no_estimate_and_its_failure_said(tmp_path, monkeypatch):
+    """fitted.yaml's fit.discretization_estimate holds the moduli at twice the spacing and their
+    change; --no-estimate writes null; a fit at twice the spacing that fails is said, not fatal."""
+    path = write_calibration(tmp_path, [LOADS["left-pull"], LOADS["top-press"]], noise=0.05)
+    out = tmp_path / "fitted.yaml"
+    result = run("calibrate", "material", path, "--out", out)
+    assert result.exit_code == 0, result.output
+    assert "fitted at twice the spacing (20 mm) the moduli move by at most" in result.output
+    fitted = yaml.safe_load(out.read_text())
+    block = fitted["fit"]["discretization_estimate"]
+    assert block["spacing_mm"] == 20.0 and block["failure"] is None
+    for name in ("lame_lambda", "lame_mu"):
+        assert block["change"][name] == pytest.approx(abs(block["moduli"][name] - fitted[name]), rel=1e-3, abs=2e-6)
+        ratio = block["change"][name] / fitted["fit"]["standard_uncertainty"][name]
+        assert block["change_over_standard_uncertainty"][name] == pytest.approx(ratio, rel=1e-2)
+    assert fitted["diagnostics"]["estimate_forward_solves"] > 0
+    result = run("calibrate", "material", path, "--out", out, "--no-estimate")
+    assert result.exit_code == 0 and "twice the spacing" not in result.output
+    fitted = yaml.safe_load(out.read_text())
+    assert fitted["fit"]["discretization_estimate"] is None and fitted["diagnostics"]["estimate_forward_solves"] is None
+
+    def fail(*args, **kwargs):
+        raise material_fit.ForwardFailure("experiments[0]", THETA, "det F < 0")
+
+    from stitchplan.calibration import material_fit
+
+    monkeypatch.setattr(material_fit, "refine", _failing_at_twice_the_spacing(material_fit.refine, fail))
+    result = run("calibrate", "material", path, "--out", out)
+    assert result.exit_code == 0, result.output
+    assert "no discretization estimate (the fit at 20 mm failed)" in result.output
+    fitted = yaml.safe_load(out.read_text())
+    assert fitted["fit"]["discretization_estimate"]["failure"] == "experiments[0] at lame_lambda 0.1892, lame_mu " \
+                                                                   "0.1477 MPa: det F < 0"
+    assert any(w.startswith("no discretization estimate: the fit at twice the spacing (20 mm) failed")
+               for w in fitted["fit"]["warnings"])
+
+
+def _failing_at_twice_the_spacing(refine, fail):
+    """`refine` as it is, but for the estimate's fit (a coarser discretization than 10 mm)."""
+    def refine_or_fail(misfit, problem, *args):
+        if problem.discretization.spacing > 10.0:
+            fail()
+        return refine(misfit, problem, *args)
+
+    return refine_or_fail
 
 
 # --- needle -----------------------------------------------------------------------------
@@ -608,9 +685,14 @@ def test_shipped_inclusion_example_fits_both_materials_near_the_truth():
         assert abs(region[name] - truth[name]) < 3 * region["standard_uncertainty"][name]
         assert fitted["regions"][0]["material"][name] == region[name]
     assert fitted["regions"][0]["circle"] == {"center": [45.0, 30.0], "radius": 14.0}
-    assert fit["identifiable"] and fit["warnings"] == [
+    assert fit["identifiable"] and fit["warnings"][0] == (
         "tissue.regions[0].lame_lambda is poorly determined: standard uncertainty 0.439 MPa is 85 % of its "
-        "value; add markers or experiments"]
+        "value; add markers or experiments")
+    # at twice the spacing both lame_mu move by over a third of their sigma (benchmarks/calibration_spread.py
+    # finds the inclusion's biased at the default spacing)
+    moved = fit["discretization_estimate"]["change_over_standard_uncertainty"]
+    assert [w.split(" = ")[0] for w in fit["warnings"][1:]] == [name for name, share in moved.items() if share > 1 / 3]
+    assert sorted(name for name, share in moved.items() if share > 1 / 3) == ["lame_mu", "tissue.regions[0].lame_mu"]
 
 
 # --- layering -------------------------------------------------------------------------

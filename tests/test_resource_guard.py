@@ -925,7 +925,7 @@ def test_a_calibrations_experiments_are_held_at_once_in_its_process(monkeypatch)
     monkeypatch.setattr(guard, "address_space", lambda: (680000 * 1024.0, mapped))
     monkeypatch.setattr(guard, "available_memory", lambda: LARGE_MEMORY)
     with pytest.raises(InputError) as error:
-        guard_calibration(path, problem, Limits())
+        guard_calibration(path, problem, Limits(), estimate=False)  # as measured: the fit alone
     memories = [item.memory_bytes for item in seen["estimates"]]
     assert len(memories) == 2 and seen["in_one_process"] is True
     together = held_in_one_process(memories)
@@ -937,7 +937,12 @@ def test_a_calibrations_experiments_are_held_at_once_in_its_process(monkeypatch)
     needed = address_space_needed(mapped, together, BASE_MEMORY)
     assert 614e6 < needed < 1.3 * 614e6
     monkeypatch.setattr(guard, "address_space", lambda: (needed + 1e6, mapped))
-    guard_calibration(path, problem, Limits())  # room for all of them: no refusal
+    guard_calibration(path, problem, Limits(), estimate=False)  # room for all of them: no refusal
+    # the discretization estimate's models at twice the spacing are held beside them, smaller
+    with pytest.raises(InputError):
+        guard_calibration(path, problem, Limits())
+    coarse = [item for item in seen["estimates"] if "at twice the spacing" in item.label]
+    assert len(coarse) == 2 and max(item.memory_bytes for item in coarse) < min(memories)
 
 
 def test_the_memory_that_fits_an_address_space_limit_is_the_need_inverted():

@@ -37,6 +37,10 @@ from .inputs import FitSettings, MaterialCalibration, load_material_calibration
 log = logging.getLogger(__name__)
 
 CORRELATION_LIMIT = 0.999  # |corr(lambda, mu)| above this: the data cannot separate them
+# a modulus that moves by more than this many of its standard uncertainties when fitted at
+# twice the spacing: its discretization error is no longer small beside the noise's (a third
+# of sigma adds 5 % to the combined uncertainty)
+DISCRETIZATION_SHARE = 1.0 / 3.0
 POORLY_DETERMINED = 0.25  # relative standard uncertainty above which a modulus gets a warning
 MODULI = ("lame_lambda", "lame_mu")
 
@@ -416,6 +420,57 @@ def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
     return warnings
 
 
+# --- discretization estimate ----------------------------------------------------------
+
+
+@dataclass
+class DiscretizationEstimate:
+    """The fit repeated at twice the spacing, from the fitted moduli: how far each modulus
+    moves is its discretization error's estimate (the exit_error_estimate_mm of `simulate`
+    and `plan` for a calibration). At first order in the spacing the error at the fit's own
+    spacing is that change; converging faster, less."""
+
+    spacing: float  # mm, the coarser fit's
+    moduli: np.ndarray | None  # (P,) fitted there; None where it could not be fitted
+    change: np.ndarray | None  # (P,) |theta(h) - theta(2 h)|
+    forward_solves: int
+    failure: str | None = None
+
+
+def discretization_estimate(problem: MaterialCalibration, theta: np.ndarray,
+                            advance: Callable[..., None]) -> DiscretizationEstimate:
+    """The least squares of the fit at twice its spacing, started at the fitted moduli."""
+    from ..config.scenario import default_spacing
+
+    spacing = 2.0 * (problem.discretization.spacing or default_spacing(problem.tissue, None))
+    try:
+        coarse = replace(problem, discretization=problem.discretization.replaced(spacing=spacing))
+        misfit = MarkerMisfit(coarse)
+        residual, _, _ = misfit.evaluate(theta, jacobian=True)
+        refinement = refine(misfit, coarse, theta, float(residual @ residual), advance)
+    except (InputError, ForwardFailure, *FORWARD_FAILURES) as failure:
+        log.info("discretization estimate at spacing %g mm: no fit (%s)", spacing, failure)
+        return DiscretizationEstimate(spacing, None, None, 0, str(failure) or type(failure).__name__)
+    moduli = refinement.solution.x
+    return DiscretizationEstimate(spacing, moduli, np.abs(moduli - theta), misfit.solves)
+
+
+def discretization_warnings(estimate: DiscretizationEstimate, theta: np.ndarray,
+                            uncertainty: tuple[float | None, ...], names: tuple[str, ...]) -> list[str]:
+    """A modulus whose estimate is a sizable share of its standard uncertainty, or none."""
+    if estimate.change is None:
+        return [f"no discretization estimate: the fit at twice the spacing ({estimate.spacing:g} mm) failed "
+                f"({estimate.failure}); refit at a finer --spacing to see how far the moduli move"]
+    warnings = []
+    for name, value, change, sigma in zip(names, theta, estimate.change, uncertainty):
+        if sigma is not None and change > DISCRETIZATION_SHARE * sigma:
+            warnings.append(f"{name} = {value:.6g} MPa moves by {change:.3g} MPa ({change / sigma:.2g} of its "
+                            f"standard uncertainty) when fitted at twice the spacing ({estimate.spacing:g} mm): its "
+                            "discretization error is not small beside the markers' noise; refit at a finer "
+                            "--spacing and compare")
+    return warnings
+
+
 # --- the fit --------------------------------------------------------------------------
 
 
@@ -448,6 +503,7 @@ class MaterialFit:
     parameters: np.ndarray = field(default_factory=lambda: np.zeros(0))
     parameter_uncertainty: tuple[float | None, ...] = ()
     correlations: np.ndarray | None = None
+    estimate: DiscretizationEstimate | None = None  # None: not asked for
 
     @property
     def fitted_regions(self) -> list[tuple[int, float, float, float | None, float | None]]:
@@ -475,8 +531,10 @@ class MaterialFit:
         return np.linalg.norm(np.concatenate(self.residuals), axis=1)
 
 
-def fit_material(problem: MaterialCalibration, progress: Progress = no_progress) -> MaterialFit:
-    """Grid search then bounded least squares on f(lambda, mu) (eq. A.3).
+def fit_material(problem: MaterialCalibration, progress: Progress = no_progress,
+                 estimate: bool = True) -> MaterialFit:
+    """Grid search then bounded least squares on f(lambda, mu) (eq. A.3); with `estimate`,
+    the least squares again at twice the spacing for the moduli's discretization error.
 
     `progress(label, total)` is a context manager yielding advance(); pass
     stitchplan.io.progress.progress_bar for a bar on the terminal.
@@ -500,6 +558,12 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
     displacements_only = (len(problem.fit.regions) == len(problem.tissue.regions)
                           and all(load.displacement is not None for e in problem.experiments for load in e.loads))
     warnings = fit_warnings(theta, stats, problem.fit, refinement, displacements_only)
+    uncertainty = stats.uncertainty if identifiable else (None,) * len(theta)
+    coarse = None
+    if estimate:
+        with progress("discretization estimate", None) as advance:
+            coarse = discretization_estimate(problem, theta, advance)
+        warnings += discretization_warnings(coarse, theta, uncertainty, problem.fit.parameter_names)
     for message in warnings:
         log.warning(message)
     sizes = np.cumsum([len(e.markers) for e in problem.experiments])[:-1]
@@ -529,12 +593,13 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress)
         wall_seconds=time.perf_counter() - start,
         warnings=warnings,
         parameters=np.array(theta, dtype=float),
-        parameter_uncertainty=stats.uncertainty if identifiable else (None,) * len(theta),
+        parameter_uncertainty=uncertainty,
         correlations=stats.correlations,
+        estimate=coarse,
     )
 
 
 def calibrate_material(path: str | Path, spacing: float | None = None, dilation: float | None = None,
-                       progress: Progress = no_progress) -> MaterialFit:
+                       progress: Progress = no_progress, estimate: bool = True) -> MaterialFit:
     """`stitchplan calibrate material`: load, validate and fit."""
-    return fit_material(load_material_calibration(path, spacing, dilation), progress)
+    return fit_material(load_material_calibration(path, spacing, dilation), progress, estimate)

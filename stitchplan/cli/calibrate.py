@@ -26,6 +26,9 @@ def calibrate_material(
         None, "--plot-dir", help="Folder for cost_surface.png and marker_residuals.png."),
     spacing: Optional[float] = CalibrationSpacingOption,
     dilation: Optional[float] = CalibrationDilationOption,
+    estimate: bool = typer.Option(
+        True, "--estimate/--no-estimate",
+        help="Estimate the moduli's discretization error: the fit again at twice the spacing, from the fitted moduli."),
     max_particles: Optional[int] = MaxParticlesOption,
     no_resource_check: bool = CalibrationNoResourceCheckOption,
     verbose: int = MaterialFitVerboseOption,
@@ -43,11 +46,11 @@ def calibrate_material(
     problem = calibration.load_material_calibration(calibration_path, spacing, dilation)
     import scipy.optimize  # noqa: F401 -- the fit's; mapped before the guard measures the address space left
     guard_calibration(calibration_path, problem, guard_limits(max_particles, no_resource_check),
-                      names=option_names(spacing, dilation))
+                      names=option_names(spacing, dilation), estimate=estimate)
     check_command_outputs(outputs, {f"markers of experiments[{k}]": experiment.source
                                     for k, experiment in enumerate(problem.experiments)},
                           out_format="YAML")
-    result = calibration.fit_material(problem, progress=progress_bar)
+    result = calibration.fit_material(problem, progress=progress_bar, estimate=estimate)
     write_material_outputs(result, out, plot_dir, command=command_line_argv())
     typer.echo(material_summary_line(result))
 

@@ -3,6 +3,7 @@ overrides, logging switches, and the small parsers of option values."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from contextlib import contextmanager
@@ -360,17 +361,29 @@ def option_names(spacing: Optional[float], dilation: Optional[float]) -> dict:
     return {field: option for field, (option, value) in given.items() if value is not None}
 
 
-def guard_calibration(calibration_path: Path, problem, limits, names: Optional[dict] = None) -> None:
+def guard_calibration(calibration_path: Path, problem, limits, names: Optional[dict] = None,
+                      estimate: bool = True) -> None:
     """The resource guard on the forward model of each experiment of a material calibration
     (run once per forward evaluation of the fit: grid^2 + max_evaluations times), all of them
-    held at once: each experiment keeps its model and tangent factor between evaluations."""
+    held at once: each experiment keeps its model and tangent factor between evaluations.
+    With `estimate`, also each experiment's model at twice the spacing (the discretization
+    estimate's least squares: up to max_evaluations more), held beside them."""
     from ..config import Scenario
+    from ..config.scenario import default_spacing
+    from ..errors import InputError
 
     fit = problem.fit
     evaluations = fit.grid_points ** 2 + fit.max_evaluations
+    discretizations = [(problem.discretization, "", evaluations)]
+    if estimate:
+        coarse = 2.0 * (problem.discretization.spacing or default_spacing(problem.tissue, None))
+        with contextlib.suppress(InputError):  # a spacing no file may give: the estimate says so itself
+            discretizations.append((problem.discretization.replaced(spacing=coarse), " at twice the spacing",
+                                    fit.max_evaluations))
     guard_runs(calibration_path, limits, *[
-        ("deform", Scenario(tissue=problem.tissue, discretization=problem.discretization, loads=experiment.loads,
-                            load_steps=experiment.load_steps), f"experiments[{k}]", evaluations)
+        ("deform", Scenario(tissue=problem.tissue, discretization=discretization, loads=experiment.loads,
+                            load_steps=experiment.load_steps), f"experiments[{k}]{label}", count)
+        for discretization, label, count in discretizations
         for k, experiment in enumerate(problem.experiments)], names=names, in_one_process=True)
 
 

@@ -110,6 +110,24 @@ def _fitted_regions(result: MaterialFit) -> dict:
     }
 
 
+def _discretization_estimate(result: MaterialFit) -> dict | None:
+    """How far each fitted modulus moves when fitted at twice the spacing (None: not asked
+    for, --no-estimate)."""
+    estimate = result.estimate
+    if estimate is None:
+        return None
+    names = result.problem.fit.parameter_names
+    block = {"spacing_mm": estimate.spacing, "failure": estimate.failure, "moduli": None, "change": None,
+             "change_over_standard_uncertainty": None}
+    if estimate.change is not None:
+        block["moduli"] = {name: _round(float(v)) for name, v in zip(names, estimate.moduli)}
+        block["change"] = {name: _round(float(v), 3) for name, v in zip(names, estimate.change)}
+        block["change_over_standard_uncertainty"] = {
+            name: None if sigma is None else _round(float(change / sigma), 3)
+            for name, change, sigma in zip(names, estimate.change, result.parameter_uncertainty)}
+    return block
+
+
 def _material_quality(result: MaterialFit) -> dict:
     distances = result.distances
     per_experiment = []
@@ -137,6 +155,7 @@ def _material_quality(result: MaterialFit) -> dict:
         "lambda_over_mu_uncertainty": _round(result.lambda_over_mu_uncertainty, 3),
         "identifiable": result.identifiable,
         **_fitted_regions(result),
+        "discretization_estimate": _discretization_estimate(result),
         "warnings": list(result.warnings),
         "markers": len(distances),
         "experiments": per_experiment,
@@ -149,6 +168,7 @@ def _material_diagnostics(result: MaterialFit) -> dict:
         "forward_solves": result.forward_solves,
         "grid_forward_solves": result.grid_solves,
         "refinement_forward_solves": result.forward_solves - result.grid_solves,
+        "estimate_forward_solves": None if result.estimate is None else result.estimate.forward_solves,
         "cold_starts": result.cold_starts,
         "newton_iterations": result.newton_iterations,
         "wall_seconds": round(result.wall_seconds, 3),
@@ -236,8 +256,20 @@ def material_summary_line(result: MaterialFit) -> str:
         for index, lame_lambda, lame_mu, u_lambda, u_mu in result.fitted_regions)
     return (f"calibrate material: lame_lambda {result.lame_lambda:.6g}{spread[0]} MPa, lame_mu "
             f"{result.lame_mu:.6g}{spread[1]} MPa{regions}{flag}; marker residual "
-            f"{result.distances.mean():.4g} +- {_spread(result.distances):.2g} mm; "
+            f"{result.distances.mean():.4g} +- {_spread(result.distances):.2g} mm{_estimate_line(result)}; "
             f"{result.forward_solves} forward solves, {result.wall_seconds:.2f} s")
+
+
+def _estimate_line(result: MaterialFit) -> str:
+    """At twice the spacing the moduli move by at most ... of their standard uncertainty."""
+    estimate = result.estimate
+    if estimate is None or not result.identifiable:  # moduli not determined: their change says nothing
+        return ""
+    if estimate.change is None:
+        return f"; no discretization estimate (the fit at {estimate.spacing:g} mm failed)"
+    shares = [change / sigma for change, sigma in zip(estimate.change, result.parameter_uncertainty)]
+    return (f"; fitted at twice the spacing ({estimate.spacing:g} mm) the moduli move by at most "
+            f"{max(shares):.2g} of their standard uncertainty")
 
 
 # --- needle ---------------------------------------------------------------------------
