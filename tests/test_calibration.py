@@ -755,7 +755,8 @@ def test_the_bound_warning_names_only_a_modulus_at_its_bound(fitted, on_bound):
     from types import SimpleNamespace
 
     from stitchplan.calibration.inputs import FitSettings
-    from stitchplan.calibration.material_fit import Refinement, Statistics, fit_warnings
+    from stitchplan.calibration.fit_statistics import Statistics, fit_warnings
+    from stitchplan.calibration.material_fit import Refinement
 
     fit = FitSettings("neo-hookean", (0.01, 1e6), (0.001, 100.0))
     stats = Statistics((0.01, 0.01), 0.1, 0.01)
@@ -867,12 +868,12 @@ def test_needle_refuses_one_recording_as_both_air_and_tissue(tmp_path):
 
 
 def test_the_fits_uncertainties_and_correlation_are_those_of_linear_least_squares():
-    """material_fit.statistics on a straight line y = a x + b fitted to noisy points: the
+    """fit_statistics.statistics on a straight line y = a x + b fitted to noisy points: the
     standard uncertainties and the correlation of (a, b) are scipy's curve_fit's (residual
     variance over m - 2 degrees of freedom)."""
     from scipy.optimize import curve_fit
 
-    from stitchplan.calibration.material_fit import statistics
+    from stitchplan.calibration.fit_statistics import statistics
 
     rng = np.random.default_rng(5)
     x = np.linspace(1.0, 4.0, 7)
@@ -893,7 +894,7 @@ def test_the_uncertainties_and_correlations_of_more_moduli_are_those_of_linear_l
     c x^2 + d sin x, its m - 4 degrees of freedom and every correlation as curve_fit's."""
     from scipy.optimize import curve_fit
 
-    from stitchplan.calibration.material_fit import statistics
+    from stitchplan.calibration.fit_statistics import statistics
 
     rng = np.random.default_rng(6)
     x = np.linspace(1.0, 4.0, 12)

@@ -18,13 +18,8 @@ import yaml
 
 from stitchplan import calibration
 from stitchplan.calibration.inputs import Experiment, FitSettings
-from stitchplan.calibration.material_fit import (
-    ForwardFailure,
-    Refinement,
-    Statistics,
-    fit_warnings,
-    refine,
-)
+from stitchplan.calibration.fit_statistics import Statistics, fit_warnings
+from stitchplan.calibration.material_fit import ForwardFailure, Refinement, refine
 from stitchplan.errors import InputError, SolverDivergence
 
 from test_calibration import FIT, LOADS, RADIUS, assert_refused, load_block, run, write_calibration, write_recordings

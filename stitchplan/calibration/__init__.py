@@ -5,7 +5,8 @@ Modules, in the order data flows through them:
 
 - inputs: the calibration YAML and its experiments as typed inputs;
 - forward: the static forward model of one experiment and its exact sensitivities;
-- material_fit: grid search, least squares and statistics for (lambda, mu);
+- material_fit: grid search, least squares and the discretization estimate for the moduli;
+- fit_statistics: their standard uncertainties, correlations, identifiability and warnings;
 - needle_fit: background and tissue lines for friction and cutting force.
 
 Reports and plots of the results are written by stitchplan.io.calibration_reports.
@@ -19,9 +20,8 @@ from .inputs import (
     load_material_calibration,
     parse_material_calibration,
 )
+from .fit_statistics import CORRELATION_LIMIT, POORLY_DETERMINED
 from .material_fit import (
-    CORRELATION_LIMIT,
-    POORLY_DETERMINED,
     GridSearch,
     MarkerMisfit,
     MaterialFit,
