@@ -81,6 +81,7 @@ def material_report(result: MaterialFit, command: list[str] | None = None) -> di
 
 
 def _regions(result: MaterialFit) -> list[dict]:
+    """The tissue's regions as a scenario takes them, those of fit.regions at their fitted moduli."""
     blocks = [region.as_block() for region in result.problem.tissue.regions]
     for index, lame_lambda, lame_mu, *_ in result.fitted_regions:
         blocks[index]["material"].update(lame_lambda=_round(lame_lambda), lame_mu=_round(lame_mu))
