@@ -25,6 +25,7 @@ from ..config.calibration import (
     FitBlock,
     parse_calibration,
 )
+from ..config.scenario import default_spacing
 from ..config.yaml_files import read_yaml_file, with_key_problems
 from ..csv_tables import read_numeric_table
 from ..errors import InputError
@@ -89,6 +90,12 @@ class MaterialCalibration:
     solver: Solver = field(default_factory=Solver)
     name: str = ""
     source: str = ""
+
+    @property
+    def estimate_spacing(self) -> float:
+        """The discretization estimate's spacing, mm: twice the fit's (its default where the
+        file gives none)."""
+        return 2.0 * (self.discretization.spacing or default_spacing(self.tissue, None))
 
     @property
     def region_start(self) -> np.ndarray:

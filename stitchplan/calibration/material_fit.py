@@ -290,9 +290,7 @@ class DiscretizationEstimate:
 def discretization_estimate(problem: MaterialCalibration, theta: np.ndarray,
                             advance: Callable[..., None]) -> DiscretizationEstimate:
     """The least squares of the fit at twice its spacing, started at the fitted moduli."""
-    from ..config.scenario import default_spacing
-
-    spacing = 2.0 * (problem.discretization.spacing or default_spacing(problem.tissue, None))
+    spacing = problem.estimate_spacing
     try:
         coarse = replace(problem, discretization=problem.discretization.replaced(spacing=spacing))
         misfit = MarkerMisfit(coarse)

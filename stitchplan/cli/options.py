@@ -369,16 +369,15 @@ def guard_calibration(calibration_path: Path, problem, limits, names: Optional[d
     With `estimate`, also each experiment's model at twice the spacing (the discretization
     estimate's least squares: up to max_evaluations more), held beside them."""
     from ..config import Scenario
-    from ..config.scenario import default_spacing
     from ..errors import InputError
 
     fit = problem.fit
     evaluations = fit.grid_points ** 2 + fit.max_evaluations
     discretizations = [(problem.discretization, "", evaluations)]
     if estimate:
-        coarse = 2.0 * (problem.discretization.spacing or default_spacing(problem.tissue, None))
         with contextlib.suppress(InputError):  # a spacing no file may give: the estimate says so itself
-            discretizations.append((problem.discretization.replaced(spacing=coarse), " at twice the spacing",
+            discretizations.append((problem.discretization.replaced(spacing=problem.estimate_spacing),
+                                    " at twice the spacing",
                                     fit.max_evaluations))
     guard_runs(calibration_path, limits, *[
         ("deform", Scenario(tissue=problem.tissue, discretization=discretization, loads=experiment.loads,

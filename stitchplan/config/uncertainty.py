@@ -377,10 +377,10 @@ def check_against_scenario(uncertainty: Uncertainty, scenario, scenario_path: st
     values = scenario_values(scenario, uncertainty.names)
     for name, value, std in zip(uncertainty.names, values, uncertainty.std):
         where = {"friction": "needle", "cutting_force": "needle", "thickness": "tissue"}.get(name, "tissue.material")
-        if REGION_MODULUS.fullmatch(name):
-            where, name_in_scenario = name.rsplit(".", 1)[0] + ".material", name.rsplit(".", 1)[1]
-        else:
-            name_in_scenario = name
+        name_in_scenario = name
+        region = REGION_MODULUS.fullmatch(name)
+        if region:
+            where, name_in_scenario = f"tissue.regions[{region.group(1)}].material", region.group(2)
         field = parameter_field(uncertainty, name)
         if value <= 0:
             lines.append(f"{uncertainty.path}: {field}: got {{std: {std:g}}}, expected a parameter the "

@@ -81,10 +81,12 @@ def material_report(result: MaterialFit, command: list[str] | None = None) -> di
 
 
 def _regions(result: MaterialFit) -> list[dict]:
-    """The tissue's regions as a scenario takes them, those of fit.regions at their fitted moduli."""
-    blocks = [region.as_block() for region in result.problem.tissue.regions]
-    for index, lame_lambda, lame_mu, *_ in result.fitted_regions:
-        blocks[index]["material"].update(lame_lambda=_round(lame_lambda), lame_mu=_round(lame_mu))
+    """The tissue's regions as a scenario takes them, those of fit.regions at their fitted
+    moduli (rounded as the other moduli of the file)."""
+    blocks = [region.as_block() for region in result.fitted_tissue.regions]
+    for index in result.problem.fit.regions:
+        material = blocks[index]["material"]
+        material.update(lame_lambda=_round(material["lame_lambda"]), lame_mu=_round(material["lame_mu"]))
     return blocks
 
 
