@@ -238,7 +238,7 @@ def variant(coupling: str) -> dict:
     (needle/track_layout.py MULTIPLIER_SPACINGS, 1 by default), `ramp` the cutting force growing
     with the cutting edge inside (`needle.cutting_ramp`), `smooth` the cutting force
     as the density (2 / l) sin^2(pi s / l) over the cutting length instead of the uniform one
-    (needle/coupling.py CUTTING_PROFILE), `L=2` particles graded
+    (needle/load_quadrature.py CUTTING_PROFILE), `L=2` particles graded
     toward the needle's entry and exit (discretization.needle_end_levels), `r=4` the spacing
     at the needle a quarter of the spacing (discretization.needle_refinement, 2 by default),
     `fixed` the mortar elements' least length fixed in mm at c x the default spacing at the
@@ -267,16 +267,16 @@ def variant(coupling: str) -> dict:
 def run(name: str, coupling: str, factor: float) -> dict:
     """One `simulate` run with the coupling's options (see variant)."""
     options = variant(coupling)
-    names = ("MULTIPLIER_SPACINGS", "CUTTING_PROFILE")
-    saved = [getattr(coupling_module, key) for key in names]
+    patched = ((coupling_module, "MULTIPLIER_SPACINGS"), (load_quadrature, "CUTTING_PROFILE"))
+    saved = [getattr(module, key) for module, key in patched]
     spacings = 1.0 if options["fixed"] else options["spacings"]  # fixed: c is in multiplier_length
-    for key, value in zip(names, (spacings, options["profile"])):
-        setattr(coupling_module, key, value)
+    for (module, key), value in zip(patched, (spacings, options["profile"])):
+        setattr(module, key, value)
     try:
         return _run(name, coupling, factor)
     finally:
-        for key, value in zip(names, saved):
-            setattr(coupling_module, key, value)
+        for (module, key), value in zip(patched, saved):
+            setattr(module, key, value)
 
 
 def _run(name: str, coupling: str, factor: float) -> dict:
@@ -364,7 +364,7 @@ def markdown(table: list[dict]) -> str:
              "needle spacing / 2^n there at h, one level finer per halving), `ramp` (the scenario key",
              "`needle.cutting_ramp`: the cutting force grows with the cutting edge inside, cutting_force /",
              "cutting_length per mm, instead of the whole force on the needle inside from the first",
-             "step), `smooth` (needle/coupling.py CUTTING_PROFILE \"smooth\": the cutting force's density",
+             "step), `smooth` (needle/load_quadrature.py CUTTING_PROFILE \"smooth\": the cutting force's density",
              "(2/l) sin^2(pi s/l) at s mm behind the tip over the cutting length l instead of 1/l; with",
              "`ramp` the force inside is cutting_force x its integral over the part inside, rising like",
              "s^3 at the entry), `r=4` (`discretization.needle_refinement` 4: needle spacing h/4 instead of h/2).",

@@ -26,6 +26,7 @@ from test_simulation import advance_one, dense_rest_stiffness, small_scene, star
 
 from stitchplan.needle import coupling as coupling_module
 from stitchplan.needle.coupling import MULTIPLIER_ORDER
+from stitchplan.needle import load_quadrature
 from stitchplan.needle.load_quadrature import cutting_share
 from stitchplan.needle.track_layout import MULTIPLIER_SPACINGS, segment_subintervals
 from stitchplan.needle.equilibrium import NeedleInsertion
@@ -167,7 +168,7 @@ def test_cutting_force_on_the_track_at_each_depth(monkeypatch, profile, ramp, cu
     segment is its integral over the segment's needle length (s from the tip), within 0.5 %
     of the force: zero at the tip, the most at l / 2 behind it; the uniform one's centroid lies
     half its zone behind the tip."""
-    monkeypatch.setattr(coupling_module, "CUTTING_PROFILE", profile)
+    monkeypatch.setattr(load_quadrature, "CUTTING_PROFILE", profile)
     monkeypatch.setattr(coupling_module, "segment_subintervals", lambda length, spacing: pieces)
     scenario = small_scene(spacing=4.0, coupling="mortar", cutting_length=cutting_length, cutting_ramp=ramp)
     insertion = NeedleInsertion(scenario)

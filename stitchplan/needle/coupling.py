@@ -33,7 +33,8 @@ Two couplings (`needle.coupling`):
   cutting force is spread uniformly over `cutting_length` mm of needle behind the tip (a
   physical length: the needle point's cutting edge and taper), not over one step; with
   CUTTING_PROFILE "smooth" as the density (2 / l) sin^2(pi s / l) over it instead (see
-  CUTTING_PROFILE, `needle.cutting_ramp`; benchmarks/results/needle_coupling.md).
+  load_quadrature's CUTTING_PROFILE and TrackLoads, `needle.cutting_ramp`;
+  benchmarks/results/needle_coupling.md).
 
   `needle.multiplier_ends: arc` cuts the elements at exact arc lengths instead: the track
   measured in local spacings, cut every MULTIPLIER_SPACINGS from the tip, so the element
@@ -71,24 +72,12 @@ from ..config import Needle
 from ..tissue.model import TissueModel
 from .constraint_rows import GrowingRows, empty_row_block, joined_rows, row_block, row_block_matrix
 from .geometry import NeedleGeometry
-from .load_quadrature import SMOOTH, LoadQuadrature, cutting_density, segment_gauss_points
+from .load_quadrature import LoadQuadrature, TrackLoads, segment_gauss_points
 from .track_layout import (ARC_ENDS, MORTAR, MULTIPLIER_SPACINGS, POINTS, QUADRATURE_PER_ELEMENT, SEGMENT_ENDS,
                            segment_subintervals)
 
 MULTIPLIER_ORDER = 1  # mortar multipliers: 0 piecewise constant, 1 continuous piecewise linear
 PARTITION_FROM_TIP = True  # mortar elements counted from the tip (the shorter remainder at the entry)
-# mortar: the cutting force's density along the last cutting_length l mm of needle, s mm behind
-# the tip: "uniform" 1 / l; "smooth" (2 / l) sin^2(pi s / l) (cutting_density), zero at the tip
-# and at s = l (the taper's ends). With `needle.cutting_ramp` the force inside is
-# cutting_force x the density's integral over the part of [0, l] inside the tissue
-# (cutting_share: ~ s^3 at the entry for "smooth"); without, the density on that part is
-# scaled to the whole force.
-CUTTING_PROFILE = "uniform"
-# smooth profile: Gauss points per cutting_length on a covered segment (its density is not a
-# polynomial): at least P on a wholly covered one (its P friction Gauss points while they suffice),
-# 4 on the partly covered one at the zone's end; 8 per l keeps the total within 0.5 % of
-# cutting_share (tests/test_needle_coupling.py)
-SMOOTH_POINTS_PER_LENGTH = 8.0
 
 
 def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> list[int]:
@@ -109,21 +98,6 @@ def _element_starts(lengths: np.ndarray, needed: np.ndarray, from_tip: bool) -> 
         else:
             groups.append(current)
     return sorted(min(group) for group in groups)
-
-
-def _covered(zone: float, needle_length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For segments standing for `needle_length` mm of needle each (tip last, a wound's gaps
-    zero): the needle length between each segment's tip end and the tip, and the share of
-    each segment within `zone` mm of the tip."""
-    behind = np.concatenate([np.cumsum(needle_length[::-1])[::-1][1:], [0.0]])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        covered = np.where(needle_length > 0, np.clip((zone - behind) / needle_length, 0.0, 1.0), 0.0)
-    return behind, covered
-
-
-def _along_segments(start: np.ndarray, end: np.ndarray, along: np.ndarray) -> np.ndarray:
-    """Points at fractions `along` (k, n) of the segments start -> end (k, 2), as (k n, 2)."""
-    return (start[:, None, :] + along[..., None] * (end - start)[:, None, :]).reshape(-1, 2)
 
 
 def _own_rows(attributes: dict) -> dict:
@@ -175,6 +149,8 @@ class NeedleCoupling:
         # first steps (benchmarks/results/needle_coupling.md: the whole force on the first
         # step's 0.7 mm at the free edge has no resolved solution)
         self.cutting_ramp = bool(getattr(needle, "cutting_ramp", False))
+        self.track_loads = TrackLoads(geometry.insertion_step, needle.friction, needle.cutting_force,
+                                      self.cutting_length, self.cutting_ramp, on_tip_segment=self.kind == POINTS)
         # `needle.multiplier_length` (mortar): the elements' least length in mm besides
         # MULTIPLIER_SPACINGS local spacings (0: none); fixed in mm, the multiplier space stays
         # the same when the particles are refined
@@ -439,95 +415,9 @@ class NeedleCoupling:
 
     # --- loads ------------------------------------------------------------------------------
 
-    def _load_layout(self) -> tuple[np.ndarray, np.ndarray]:
-        """Friction on every segment's Gauss points (eq. 3.58, 3.64) and the cutting force:
-        on the tip segment (points) or uniformly over the last `cutting_length` mm of needle
-        (mortar), on the segments' P Gauss points (a partly covered segment's covered part: P
-        points of its own; the smooth profile: _smooth_cutting). Returns the magnitudes (N)
-        on the segments' Gauss points followed by those of the extra load points (a partly covered segment's), those points, (t, 2),
-        and their LoadQuadrature.lumping."""
-        segments = len(self.points) - 1
-        no_points = np.zeros((0, 2))
-        no_lumping = LoadQuadrature.lumping
-        if segments < 1:
-            return np.zeros(0), no_points, no_lumping
-        step_length = self.geometry.insertion_step  # needle length per segment, mm
-        needle_length = step_length * self.segment_fraction  # needle length each segment stands for
-        count, weight = len(self.gauss), self.gauss_weight
-        friction = np.repeat(weight * self.needle.friction * needle_length, count)
-        cutting = self.needle.cutting_force
-        if self.kind == POINTS or cutting == 0.0:
-            magnitudes = friction.copy()
-            magnitudes[-count:] += weight * cutting
-            return magnitudes, no_points, no_lumping
-        if CUTTING_PROFILE == SMOOTH:
-            return (*self._smooth_cutting(friction, needle_length), None)
-        full_steps = bool(np.all(self.segment_fraction == 1.0))
-        zone = min(self.cutting_length, segments * step_length if full_steps else float(needle_length.sum()))
-        if full_steps:  # whole steps: in step units
-            covered = np.clip(zone / step_length - np.arange(segments)[::-1], 0.0, 1.0)  # tip end of each segment
-        else:  # a wound: measured in needle length behind the tip
-            _, covered = _covered(zone, needle_length)
-        # wholly covered segments carry their share on their friction Gauss points (the same
-        # points and direction: the forces add); only partly covered ones (the zone's far end)
-        # need points and rows of their own
-        whole = np.flatnonzero(covered >= 1.0)
-        part = np.flatnonzero((covered > 0.0) & (covered < 1.0))
-        per_mm = cutting / (self.cutting_length if self.cutting_ramp else zone)
-        share = weight * per_mm * needle_length  # N per Gauss point of a wholly covered segment
-        magnitudes = friction.copy()
-        magnitudes[(count * whole[:, None] + np.arange(count)).ravel()] += np.repeat(share[whole], count)
-        if not len(part):
-            return magnitudes, no_points, no_lumping
-        fraction = covered[part]
-        start, end = self.points[part], self.points[part + 1]
-        along = 1.0 - fraction[:, None] + fraction[:, None] * self.gauss[None, :]  # (t, P)
-        part_points = _along_segments(start, end, along)
-        # each point lumped onto the two of its segment's Gauss points around it (the outer
-        # two beyond them), by linear interpolation along the segment
-        lower = np.clip(np.searchsorted(self.gauss, along, side="right") - 1, 0, count - 2)  # (t, P)
-        upper = ((along - self.gauss[lower]) / (self.gauss[lower + 1] - self.gauss[lower])).ravel()
-        first = (count * part[:, None] + lower).ravel()
-        lumping = (np.column_stack([first, first + 1]), np.column_stack([1.0 - upper, upper]))
-        return np.concatenate([magnitudes, np.repeat(share[part] * fraction, count)]), part_points, lumping
-
-    def _smooth_cutting(self, friction: np.ndarray, needle_length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """_load_layout's magnitudes and extra points for the smooth cutting profile: the force
-        cutting_density(s) ds (x cutting_force with the ramp, else scaled to the whole
-        force) at Gauss points of the covered part of each segment, s the needle length
-        between the point and the tip (a wound's gaps count zero). A wholly covered segment
-        uses its P friction Gauss points while SMOOTH_POINTS_PER_LENGTH asks no more; other
-        covered segments get points of their own (at least 4 on a partly covered one)."""
-        length, cutting = self.cutting_length, self.needle.cutting_force
-        no_points = np.zeros((0, 2))
-        behind, covered = _covered(min(length, float(needle_length.sum())), needle_length)
-        own_count = len(self.gauss)
-        count = np.maximum(np.where(covered >= 1.0, own_count, 4),
-                           np.ceil(SMOOTH_POINTS_PER_LENGTH * covered * needle_length / length - 1e-9)).astype(int)
-        reuse = np.flatnonzero((covered >= 1.0) & (count == own_count))
-        own = np.flatnonzero((covered > 0.0) & ((covered < 1.0) | (count > own_count)))
-        # the friction Gauss points: t = self.gauss, s = behind + (1 - t) x needle length
-        on_segments = np.zeros_like(friction)
-        s = behind[reuse, None] + (1.0 - self.gauss[None, :]) * needle_length[reuse, None]
-        on_segments[(own_count * reuse[:, None] + np.arange(own_count)).ravel()] = (
-            cutting_density(s, length) * self.gauss_weight * needle_length[reuse, None]).ravel()
-        points, loads = [no_points], [np.zeros(0)]
-        for n in np.unique(count[own]):  # a few distinct counts
-            segment = own[count[own] == n]
-            abscissae, weights = np.polynomial.legendre.leggauss(int(n))
-            a, w = 0.5 * (abscissae + 1.0), 0.5 * weights  # on [0, 1] of the covered part
-            part = covered[segment, None]
-            along = 1.0 - part + part * a[None, :]  # (k, n) along the segment toward its tip end
-            s = behind[segment, None] + part * (1.0 - a[None, :]) * needle_length[segment, None]
-            loads.append((cutting_density(s, length) * part * w[None, :] * needle_length[segment, None]).ravel())
-            start, end = self.points[segment], self.points[segment + 1]
-            points.append(_along_segments(start, end, along))
-        extra = np.concatenate(loads)
-        total = on_segments.sum() + extra.sum()  # the covered integral of the density, by quadrature
-        if total <= 0.0:
-            return friction.copy(), no_points
-        scale = cutting if self.cutting_ramp else cutting / total
-        return np.concatenate([friction + scale * on_segments, scale * extra]), np.vstack(points)
+    def _load_layout(self) -> tuple[np.ndarray, np.ndarray, tuple | None]:
+        """The friction and the cutting force on the track as it stands (TrackLoads.layout)."""
+        return self.track_loads.layout(self.points, self.segment_fraction, self.gauss)
 
     # --- the coupling's terms of the residual --------------------------------------------------
 
