@@ -181,7 +181,7 @@ def test_a_tip_back_in_through_the_wall_it_left_crosses_that_wall_again_then_the
     its exit at 1.51 rad is the right wall again (it used to be taken for the final exit, 12.8
     mm off, the run ending inside the wound). The run crosses the wound and exits the top
     surface left of it; the crossings record keeps the right wall's last exit."""
-    with caplog.at_level(logging.INFO, logger="stitchplan.needle.insertion"):
+    with caplog.at_level(logging.INFO, logger="stitchplan.needle"):
         result = run_insertion(parse_scenario(soft_notch_scene()))
     geometry = result.geometry
     assert [kind for _, kind in geometry.crossings] == ["exit", "entry", "exit"]

@@ -6,7 +6,7 @@ visibility criterion makes the displacement jump within hundredths of a mm of th
 the tip's material point at a crossing, root-found on a signed distance that jumps across zero
 there, may lie inside the tissue instead of on the wall. The bites then used to find no wall
 edge at the crossing and the run ended in a traceback after all its steps
-(needle/insertion.py, `_bites`).
+(needle/wound_crossings.py, `stitch_bites`).
 
 Where the tip enters the tissue again is found by carrying the boundary forward with u
 (needle/tip_tracking.py, `locate_reentry`). It used to invert x = X + u(X) for the tip in the
@@ -34,7 +34,8 @@ from stitchplan.errors import InsertionFailure
 from stitchplan.geometry.polygon_domain import PolygonDomain
 from stitchplan.geometry.polygons import circle_polygon
 from stitchplan.needle.geometry import scenario_needle
-from stitchplan.needle.insertion import _bites, run_insertion
+from stitchplan.needle.insertion import run_insertion
+from stitchplan.needle.wound_crossings import stitch_bites
 from stitchplan.needle.tip_tracking import MATERIAL_POINT_TOLERANCE, locate_reentry
 
 PHANTOM = {"model": "neo-hookean", "lame_lambda": 0.189151, "lame_mu": 0.147688}
@@ -122,7 +123,7 @@ def test_simulate_across_a_circular_hole_writes_its_summary(tmp_path):
 
 @pytest.mark.parametrize("off", [0.0, 0.01, 0.05])
 def test_the_wound_edge_of_a_crossing_off_a_holes_wall_is_the_nearest_wall_point(off):
-    """_bites on a still tissue (u = 0): wall crossings on the hole's 96-gon or `off` mm
+    """stitch_bites on a still tissue (u = 0): wall crossings on the hole's 96-gon or `off` mm
     inside the tissue find the point of the wall they lie nearest (only crossings on the wall,
     off = 0, passed once; then the wound edge was the end of that edge nearer the entry or the
     final exit, a vertex that moved by a chord between two models of the same stitch)."""
@@ -136,7 +137,7 @@ def test_the_wound_edge_of_a_crossing_off_a_holes_wall_is_the_nearest_wall_point
         on_edge = hole[k] + t * (hole[k + 1] - hole[k])
         walls.append(on_edge + off * (on_edge - center) / np.linalg.norm(on_edge - center))
     crossings = [{"achieved": walls[0]}, {"achieved": walls[1]}, {"achieved": FINAL_EXIT}]
-    bites = _bites(insertion, crossings)
+    bites = stitch_bites(insertion, crossings)
     # each crossing's foot on its edge (moved off along the radius, not the edge's normal)
     expected = [hole[k] + np.dot(wall - hole[k], hole[k + 1] - hole[k]) / np.sum((hole[k + 1] - hole[k]) ** 2)
                 * (hole[k + 1] - hole[k]) for k, wall in zip((8, 44), walls)]

@@ -19,14 +19,17 @@ import numpy as np
 
 from ..config import Scenario
 from ..errors import InputError, InsertionFailure
-from ..events import Event, EventKind
+from ..events import EventKind
 from ..tissue.shape_functions import SingularMomentAt
 from .equilibrium import NeedleInsertion
-from .geometry import BoundaryLoops, NeedleGeometry, entry_lean
+from .geometry import BoundaryLoops, entry_lean
 from .prepared_tissue import PreparedTissue
 from .results import InsertionResult, NeedleStep, Snapshot, StepsDone
 from .steering import CenterAim
-from .tip_tracking import entry_ahead, locate_exit, locate_reentry, track_step
+from .tip_tracking import entry_ahead, locate_exit, track_step
+from .wound_crossings import (Crossing, ahead_after, crossed_back, crossing_made, crossings_record, left_for_good,
+                              left_into_uncrossed_gap, log_crossing, point_text, reentry, stayed_on_near_side,
+                              stitch_bites)
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +199,7 @@ class _Run:
         # reference point, rotation): each matched to the undeformed circle's crossing it makes,
         # or to the wall it crosses back through (a crossing of the other kind: a soft wall that
         # bulged round the tip); the ones passed over missed
-        self.made: list[tuple[int, str, np.ndarray, float]] = []
+        self.made: list[Crossing] = []
         self.ahead = 0  # the first crossing of the undeformed circle the tip has yet to make (or miss)
         self.in_gap = False  # the tip crossing a wound: no new needle point until it re-enters
 
@@ -204,8 +207,8 @@ class _Run:
         """The tip's new material point (eq. 3.66-3.70), tracked about the previous step's
         centre, or the earlier run's while this run has taken that run's centres."""
         geometry, made = self.geometry, self.made
-        if rotation > geometry.arc and made and _crossed_back(geometry, made[-1]):
-            raise _stayed_on_near_side(self.insertion, step, rotation, made)
+        if rotation > geometry.arc and made and crossed_back(geometry, made[-1]):
+            raise stayed_on_near_side(self.insertion, step, rotation, made)
         self.followed = (self.followed and step <= len(self.earlier)
                          and np.array_equal(self.start_from.center_after(step - 1), self.insertion.center))
         taken = self.earlier[step - 1] if self.followed else None
@@ -220,17 +223,17 @@ class _Run:
         insertion, geometry, wall = self.insertion, self.geometry, self.made[-1]
         previous = rotation - geometry.step
         # the needle turns no further than its arc through a wound: the tip enters again within it
-        entered = _reentry(insertion, step, max(previous, wall[3]), min(rotation, geometry.arc))
+        entered = reentry(insertion, step, max(previous, wall[3]), min(rotation, geometry.arc))
         if entered is None:
             if rotation >= geometry.arc:
-                raise _left_for_good(insertion, step, wall)
+                raise left_for_good(insertion, step, wall)
             self.solve(step, rotation, None, "gap", started)
             return None
         entry_point, entry_rotation = entered
         self._cross(step, "entry", entry_point, entry_rotation, back=wall[0])
         _add_point(insertion, step, rotation, entry_point, gap=True)
         self.in_gap = False
-        _log_crossing(insertion, step, self.made)
+        log_crossing(insertion, step, self.made)
         point, method = track_step(insertion, step, rotation, rotation - entry_rotation)
         return _TrackedTip(point, method, (rotation - entry_rotation) / geometry.step)
 
@@ -247,15 +250,15 @@ class _Run:
         crossing = self._cross(step, "exit", exit_point, exit_rotation,
                                back=self.made[-1][0] if self.made else None)
         if crossing < len(geometry.crossings) - 1:
-            _log_crossing(insertion, step, self.made)
+            log_crossing(insertion, step, self.made)
             if rotation >= geometry.arc:  # too late in the arc to enter again
-                raise _left_for_good(insertion, step, self.made[-1])
+                raise left_for_good(insertion, step, self.made[-1])
             _add_point(insertion, step, rotation, exit_point, fraction=(exit_rotation - start) / geometry.step)
             self.in_gap = True
             self.solve(step, rotation, None, tip.method, started)
             return None
         if (ahead_entry := entry_ahead(insertion, exit_rotation, geometry.arc)) is not None:
-            raise _left_into_uncrossed_gap(insertion, self.loops, step, exit_point, exit_rotation, ahead_entry)
+            raise left_into_uncrossed_gap(insertion, self.loops, step, exit_point, exit_rotation, ahead_entry)
         return _result(insertion, self.entry_center, self.steps, self.states, self.coefficients, exit_point,
                        exit_rotation, time.perf_counter() - self.wall_start, self.made)
 
@@ -263,9 +266,9 @@ class _Run:
         """Keep the tip's boundary crossing at `point` (`kind`: "exit" or "entry"), matched by
         _crossing_made (`back`: the crossing made last, whose wall the tip may cross back
         through), and the crossing ahead after it; returns the index it matched."""
-        crossing = _crossing_made(self.insertion, self.loops, step, kind, point, rotation, self.ahead, back)
+        crossing = crossing_made(self.insertion, self.loops, step, kind, point, rotation, self.ahead, back)
         self.made.append((crossing, kind, point, rotation))
-        self.ahead = _ahead_after(self.geometry, self.made[-1])
+        self.ahead = ahead_after(self.geometry, self.made[-1])
         return crossing
 
     def solve(self, step: int, rotation: float, point: np.ndarray | None, method: str, started: float,
@@ -287,134 +290,6 @@ class _Run:
         self.coefficients.append(insertion.coefficients())  # a new array after each solve, never changed in place
         if self.on_step is not None:
             self.on_step(record)
-
-
-def _crossed_back(geometry: NeedleGeometry, crossing_made: tuple[int, str, np.ndarray, float]) -> bool:
-    """Whether the tip's boundary crossing went back through the wall of a crossing of the
-    other kind (the wall it had just left, or the far wall it had just entered)."""
-    crossing, kind, _, _ = crossing_made
-    return geometry.crossings[crossing][1] != kind
-
-
-def _ahead_after(geometry: NeedleGeometry, crossing_made: tuple[int, str, np.ndarray, float]) -> int:
-    """The first crossing of the undeformed circle still ahead after the tip's boundary
-    crossing: the next one when the tip made its crossing, the crossing itself when the tip
-    crossed back through its wall (the tip has to cross that wall again)."""
-    crossing = crossing_made[0]
-    return crossing if _crossed_back(geometry, crossing_made) else crossing + 1
-
-
-def _log_crossing(insertion: NeedleInsertion, step: int, made: list[tuple[int, str, np.ndarray, float]]) -> None:
-    """Say which wall the tip crossed through a wound, and whether it crossed back (a soft
-    wall that bulged round the tip) or crossed that wall once more."""
-    geometry = insertion.geometry
-    crossing, kind, point, rotation = made[-1]
-    wall = f"crossing {crossing + 1} of {len(geometry.crossings)} of the undeformed circle"
-    if _crossed_back(geometry, made[-1]):
-        if kind == "entry":
-            message = (f"step {step}: the tip entered the tissue again at {_point_text(point)} at needle rotation "
-                       f"{rotation:.3f} rad on the near side of the wound: nearest along the boundary to the wall "
-                       f"it left ({wall}), not to the far wall (the wall bulged round the tip); it has to leave "
-                       "through that wall again")
-        else:
-            message = (f"step {step}: the tip left the tissue back into the wound at {_point_text(point)} at needle "
-                       f"rotation {rotation:.3f} rad, through the far wall it had entered ({wall}); it has to "
-                       "enter that wall again")
-        insertion.events.append(Event(EventKind.WALL_CROSSED_BACK, message, step, rotation))
-        log.info(message)
-    elif any(earlier[:2] == (crossing, kind) for earlier in made[:-1]):  # the same wall once more
-        log.info("step %d: the tip %s at %s at needle rotation %.3f rad, through the same wall (%s)",
-                 step, "left the tissue into a wound again" if kind == "exit" else "entered the far wall again",
-                 _point_text(point), rotation, wall)
-    elif kind == "entry":
-        log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, rotation)
-    else:
-        log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad", step, rotation)
-
-
-def _stayed_on_near_side(insertion: NeedleInsertion, step: int, rotation: float,
-                         made: list[tuple[int, str, np.ndarray, float]]) -> InsertionFailure:
-    """The failure of a run whose tip entered the tissue again through the wall it had left
-    and is still on that side of the wound when the needle's arc ends."""
-    geometry = insertion.geometry
-    crossing, _, point, entered = made[-1]
-    return InsertionFailure(
-        f"step {step}: the needle's arc of {geometry.arc:.4g} rad ended (needle rotation {rotation:.3f} rad) with "
-        f"its tip still on the near side of the wound: the tip entered the tissue again at {_point_text(point)} "
-        f"at needle rotation {entered:.3f} rad through the wall it had left (crossing {crossing + 1} of the "
-        "undeformed circle; the wall bulged round the tip) and did not leave through it again to cross the wound")
-
-
-def _left_for_good(insertion: NeedleInsertion, step: int, wall: tuple[int, str, np.ndarray, float]) -> InsertionFailure:
-    """The failure of a run whose tip left the tissue into a wound and cannot enter it again
-    within the needle's arc (a needle turned no further through the air)."""
-    crossing, _, point, rotation = wall
-    geometry = insertion.geometry
-    return InsertionFailure(
-        f"step {step}: the needle tip left the tissue into a wound at {_point_text(point)} at needle rotation "
-        f"{rotation:.3f} rad (crossing {crossing + 1} of the undeformed circle) and did not enter it again within "
-        f"the needle's arc of {geometry.arc:.4g} rad")
-
-
-def _left_into_uncrossed_gap(insertion: NeedleInsertion, loops: BoundaryLoops, step: int, exit_point: np.ndarray,
-                             exit_rotation: float, ahead_entry: tuple[np.ndarray, float]) -> InsertionFailure:
-    """The failure of a run whose tip left the tissue where the undeformed circle stays inside
-    (the deformed tissue carried a notch's or a hole's wall across the needle's path): the
-    needle's circle enters the tissue again ahead, so the tip has not left for good, and a
-    crossing the undeformed circle does not make is not followed."""
-    geometry = insertion.geometry
-    point, rotation = ahead_entry
-    return InsertionFailure(
-        f"step {step}: the needle tip left the tissue through {loops.describe(exit_point)} at "
-        f"{_point_text(exit_point)} at needle rotation {exit_rotation:.3f} rad (the undeformed circle's final "
-        f"exit: {_point_text(geometry.desired_exit)} at {geometry.exit_rotation:.3f} rad), and its circle enters "
-        f"the deformed tissue again at {_point_text(point)} (deformed position, needle rotation {rotation:.3f} "
-        "rad): the tissue's deformation carried the boundary across the needle's path where the undeformed circle "
-        "crosses none, and such a crossing is not followed; move the entry or change the radius so that the "
-        "undeformed circle crosses that gap or clears it by more than the tissue moves")
-
-
-def _reentry(insertion: NeedleInsertion, step: int, start: float, end: float) -> tuple[np.ndarray, float] | None:
-    """locate_reentry, its failure naming the step."""
-    try:
-        return locate_reentry(insertion, start, end)
-    except InsertionFailure as failure:
-        raise InsertionFailure(f"step {step}: {failure}") from None
-
-
-def _crossing_made(insertion: NeedleInsertion, loops: BoundaryLoops, step: int, kind: str, point: np.ndarray,
-                   rotation: float, ahead: int, back: int | None) -> int:
-    """The crossing of the undeformed circle (index into geometry.crossings) that the tip
-    crossing the boundary at `point` (`kind`: "exit" or "entry") makes, or `back`, the one it
-    made last, when it crosses back through that wall (NeedleGeometry.crossing_made); an event
-    for each crossing from `ahead` on that it passed over without making. Raises
-    InsertionFailure when the tip crosses a wall the undeformed circle does not cross ahead."""
-    geometry = insertion.geometry
-    crossing = geometry.crossing_made(loops, point, kind, ahead, back)
-    where = f"{_point_text(point)} at needle rotation {rotation:.3f} rad"
-    verb = "left" if kind == "exit" else "entered"
-    if crossing is None:
-        raise InsertionFailure(
-            f"step {step}: the needle tip {verb} the tissue through {loops.describe(point)} at {where}, where the "
-            f"undeformed circle {'leaves' if kind == 'exit' else 'enters'} at none of its crossings "
-            f"{ahead + 1}-{len(geometry.crossings)}; expected the tip to {'leave' if kind == 'exit' else 'enter'} "
-            "where the undeformed circle does")
-    made = "the final exit" if crossing == len(geometry.crossings) - 1 else f"crossing {crossing + 1} ({kind})"
-    for missed in range(ahead, crossing):
-        missed_kind, desired = geometry.crossings[missed][1], geometry.crossing_point(missed)
-        message = (f"crossing {missed + 1} of {len(geometry.crossings)} of the undeformed circle ({missed_kind} at "
-                   f"{_point_text(desired)} on {loops.describe(desired)}) missed: the needle tip did not cross "
-                   f"the boundary there but next {verb} the tissue at {where}, nearest along the boundary to "
-                   f"{made}")
-        insertion.events.append(Event(EventKind.CROSSING_MISSED, message, step, rotation))
-        log.info(message)  # the user sees it once, as a `note:` from the event
-    return crossing
-
-
-def _point_text(point: np.ndarray) -> str:
-    """'[x, y]' to 4 digits, without -0 or 1e-16 off an edge."""
-    x, y = (round(float(value), 9) + 0.0 for value in point)
-    return f"[{x:.4g}, {y:.4g}]"
 
 
 def _tracked_before(earlier: InsertionResult | StepsDone, step: int,
@@ -448,7 +323,7 @@ def _add_point(insertion: NeedleInsertion, step: int, rotation: float, point: np
                "reaches: the tip was tracked past a wall the deformed tissue had moved; a finer spacing at that "
                "wall may carry it" if outside > insertion.domain.tolerance else str(error))
         raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): the needle's track reaches "
-                               f"{_point_text(error.point)}, {why}") from None
+                               f"{point_text(error.point)}, {why}") from None
 
 
 def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, rotation: float,
@@ -500,11 +375,11 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
             states: list[Snapshot],
             coefficients: list[np.ndarray],
             exit_point: np.ndarray, exit_rotation: float, wall_seconds: float,
-            made: list[tuple[int, str, np.ndarray, float]]) -> InsertionResult:
+            made: list[Crossing]) -> InsertionResult:
     """The run's record once the tip has left the tissue at `exit_point` (the final exit, the
     last of the tip's boundary crossings `made`)."""
     desired_exit = insertion.geometry.desired_exit
-    crossings = _crossings(insertion, made)
+    crossings = crossings_record(insertion, made)
     u_exit = insertion.displacement(np.vstack([exit_point, desired_exit]))  # achieved, desired
     result = InsertionResult(
         scenario=insertion.scenario, model=insertion.model, geometry=insertion.geometry,
@@ -526,81 +401,9 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
                        "needle_residual_tolerance": insertion.newton_tolerances[0],
                        "needle_constraint_tolerance": insertion.newton_tolerances[1]},
         crossings=crossings,
-        bites=_bites(insertion, crossings) if any(c["achieved"] is not None for c in crossings[:-1]) else None,
+        bites=stitch_bites(insertion, crossings) if any(c["achieved"] is not None for c in crossings[:-1]) else None,
         states=states,
     )
     log.info("the tip left the tissue at needle rotation %.3f rad: exit error %.4g mm",
              exit_rotation, result.exit_error_mm)
     return result
-
-
-def _crossings(insertion: NeedleInsertion, made: list[tuple[int, str, np.ndarray, float]]) -> list[dict]:
-    """The summary's `crossings` (README, "Tissue shapes"): every crossing of the
-    undeformed circle after the entry in needle order, its point (desired, at rest and moved
-    with the tissue) against the tip's material point there (achieved, deformed); achieved,
-    achieved_def and error_mm None for a crossing the tip missed (`made`: the tip's boundary
-    crossings in order, by index). A wall the tip crossed more than once (back into the tissue
-    through a bulging wall and out again) keeps the last time, the one before it went on."""
-    geometry = insertion.geometry
-    desired = np.array([geometry.desired_point(k) for k in range(len(geometry.crossings))])
-    # the last crossing of each wall made in its own direction (not a crossing back through it)
-    achieved = {crossing: point for crossing, kind, point, _ in made if kind == geometry.crossings[crossing][1]}
-    reached = np.array([achieved[k] for k in sorted(achieved)]).reshape(-1, 2)
-    u = insertion.displacement(np.vstack([desired, reached]))
-    u_reached = dict(zip(sorted(achieved), u[len(desired):]))
-    records = []
-    for k, (_, kind) in enumerate(geometry.crossings):
-        desired_def = desired[k] + u[k]
-        record = {"kind": kind, "desired": desired[k], "desired_def": desired_def,
-                  "achieved": None, "achieved_def": None, "error_mm": None}
-        if k in achieved:
-            achieved_def = achieved[k] + u_reached[k]
-            record.update(achieved=achieved[k], achieved_def=achieved_def,
-                          error_mm=float(np.linalg.norm(achieved_def - desired_def)))
-        records.append(record)
-    return records
-
-
-def _bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
-    """The stitch's bites across a wound: on the entry side the deformed distance from the
-    needle's entry to the wound edge (a cut's: the end of the wall the tip left through nearest
-    the entry, its lip on the surface; a hole's, which reaches no surface: the point of its wall
-    the tip left through), on the exit side from the final exit to the edge of the wall it came
-    back in through; and their difference (the symmetry surgeons look for).
-
-    A wall crossing's achieved point is the tip's material point, which need not lie on the
-    wall: the visibility criterion makes u jump within hundredths of a mm of a hole's wall
-    (a circle's 96-gon turns every vertex into a slightly re-entrant corner), so the signed
-    distance the crossing is root-found on can jump across zero there, and the point found
-    lies up to that jump inside the tissue (0.008 mm at the SH 1/2 needle's default spacing
-    across a 2 mm hole). The wall crossed is the boundary edge nearest the point (both edges at
-    a vertex), however near; a hole's wall point is the nearest to it (not an end of its
-    edge: a circle's 96-gon would put the bite's end at whichever vertex lies nearer)."""
-    domain, geometry = insertion.domain, insertion.geometry
-    tol = 1e-6 * max(domain.size)
-
-    def edge_near(point: np.ndarray, toward: np.ndarray) -> np.ndarray:
-        wall_point, cut = domain.nearest_boundary_point(point)
-        if not cut:  # a hole's wall
-            return wall_point
-        off = float(np.linalg.norm(wall_point - point))
-        if off > tol:
-            log.info("wound crossing %s lies %.3g mm off the boundary (u jumps near the wall); "
-                     "its wall is the nearest boundary edge", np.round(point, 6).tolist(), off)
-        names = domain.edges_at(point, off + tol)
-        ends = np.array([end for name in names for end in domain.edge(name)])  # (2 x edges, 2)
-        return ends[np.argmin(np.linalg.norm(ends - toward, axis=1))]
-
-    # the walls of the wounds the tip crossed (a wound it missed has none)
-    walls = [crossing["achieved"] for crossing in crossings[:-1] if crossing["achieved"] is not None]
-    first_wall, last_wall = walls[0], walls[-1]
-    entry, final_exit = geometry.entry, crossings[-1]["achieved"]
-    points = np.vstack([entry, edge_near(first_wall, entry), final_exit, edge_near(last_wall, final_exit)])
-    moved = points + insertion.displacement(points)
-    entry_side = float(np.linalg.norm(moved[1] - moved[0]))
-    exit_side = float(np.linalg.norm(moved[3] - moved[2]))
-    at_rest = (float(np.linalg.norm(points[1] - points[0])), float(np.linalg.norm(points[3] - points[2])))
-    return {"entry_side_mm": entry_side, "exit_side_mm": exit_side, "difference_mm": exit_side - entry_side,
-            "entry_wound_edge": points[1], "exit_wound_edge": points[3],
-            "entry_wound_edge_def": moved[1], "exit_wound_edge_def": moved[3],
-            "entry_side_at_rest_mm": at_rest[0], "exit_side_at_rest_mm": at_rest[1]}

@@ -192,7 +192,7 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     stop when they are within `tolerance` of it (default exit_tolerance) or after
     max_passes; the best pass is returned. With planner.target `symmetric` on a stitch
     across a wound the aim is, after each pass, the exit error that would make both bites
-    equal (needle.insertion._bites), so the passes trade exit error for symmetry, or that
+    equal (needle.wound_crossings.stitch_bites), so the passes trade exit error for symmetry, or that
     would make their difference `bite_aim` mm (planning.verification aims it by a refined
     model's offset). `shooting` continues from an earlier plan's
     passes; `smooth` keeps the centre path within MoveLimits. The runs share one model
