@@ -27,7 +27,7 @@ Converged means |r_u| <= needle_residual_tolerance x |f_needle| and every |g| <=
 needle_constraint_tolerance x R (config Solver; NEWTON_TOLERANCES where they are unset).
 Newton's parts (its tolerances and tuning, the factor's renewal, Anderson mixing, what a solve
 remembers) are needle/newton.py's; the tissue model and K0's factor that every insertion
-starts from, needle/prepared_tissue.py's.
+starts from, needle/prepared_tissue.py's; what a failed step says, needle/step_failures.py's.
 
 The tangent is K + H, symmetric: the follower loads' own stiffness (friction and cutting force
 turn with the needle's tangent at their points) is left out, so that K + H is factored by
@@ -49,9 +49,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..config import Scenario, Solver
-from ..config.boundary_points import shown_point
-from ..errors import (ConstraintStall, InputError, InsertionFailure, InvertedMaterial, NewtonExhausted, NonFiniteResidual,
-                      UnstableEquilibrium)
+from ..errors import InputError, InsertionFailure, InvertedMaterial, UnstableEquilibrium
 from ..events import Event, EventKind
 from ..tissue.assembly import Assembler
 from ..tissue.solver import checked
@@ -61,8 +59,9 @@ from .newton import Balance, NewtonHistory, Residuals, newton_tolerances
 from .prepared_tissue import PreparedTissue
 from .results import Snapshot
 from .saddle_point import SaddlePointSolver, condition_numbers
-from .stability import SoftestMode, mode_peak, softest_mode
+from .stability import SoftestMode, softest_mode
 from .steering import CenterAim
+from .step_failures import diverged, mode_place, not_converged, ramp_failure, stability_note
 
 log = logging.getLogger(__name__)
 
@@ -322,26 +321,12 @@ class NeedleInsertion:
 
     def _ramp_failure(self, rotation: float, step: int, carried: float, failure: InsertionFailure,
                       step_start: Snapshot) -> str:
-        """What went wrong when even the smallest load increment fails, and what to try. The
-        state is the last load carried; `step_start` the step's first."""
-        message = (f"step {step} (needle rotation {rotation:.3f} rad): the needle's load could not be "
-                   f"carried: {100 * carried:.3g} % of the step's cutting force and added friction held, "
-                   f"the next {100 * RAMP_SMALLEST:.3g} % increment failed ({failure})")
-        if isinstance(failure, (NonFiniteResidual, ConstraintStall)):  # not the material's doing
-            return message
-        iterations = self.scenario.solver.max_iterations
-        if isinstance(failure, NewtonExhausted) and iterations < Solver().max_iterations:
-            # Newton ran out of the few iterations it was given: no sign of the material's doing
-            return message + (f"; solver.max_iterations is {iterations} (the default "
-                              f"{Solver().max_iterations}): give Newton more iterations")
-        message += self._stability_note(step_start)
-        models = {self.scenario.tissue.material.model}
-        models |= {region.material.model for region in getattr(self.scenario.tissue, "regions", None) or []}
-        if "saint-venant-kirchhoff" in models:
-            message += ("; Saint Venant-Kirchhoff is unstable under strong compression (its stress "
-                        "turns back to zero as det F -> 0, so the tissue in front of the tip collapses): "
-                        "use `model: neo-hookean`, which stiffens instead")
-        return message
+        """What went wrong when even the smallest load increment fails (step_failures.ramp_failure).
+        The state is the last load carried; `step_start` the step's first."""
+        tissue = self.scenario.tissue
+        models = {tissue.material.model} | {region.material.model for region in getattr(tissue, "regions", None) or []}
+        return ramp_failure(step, rotation, carried, RAMP_SMALLEST, failure, self.scenario.solver.max_iterations,
+                            Solver().max_iterations, models, lambda: self._stability_note(step_start))
 
     def softest_mode(self) -> SoftestMode | None:
         """The least stiffness of the tangent on the needle's constraints at the current
@@ -351,45 +336,23 @@ class NeedleInsertion:
                             self.coupling.constraint_matrix(state.normal))
 
     def _stability_note(self, step_start: Snapshot) -> str:
-        """Whether the tissue itself gave way where a step's load could not be carried: its
-        least stiffness on the needle's constraints at the last load carried, negative (the
-        state is unstable) or against the step's start (falling toward zero, a limit point,
-        or not: Newton's failure), and where its mode moves the tissue most. Empty where the
-        eigensolver does not answer or nothing of the step was carried to compare."""
+        """step_failures.stability_note at the last load carried, against the step's start
+        (none where nothing of the step was carried)."""
         now = self.softest_mode()
         if now is None:
             return ""
-        where = self._mode_place(now)
-        if now.stiffness < 0.0:
-            return (f"; the state carried is unstable: the tangent's least stiffness on the needle's constraints "
-                    f"is negative, {where}: the tissue buckles or creases there, which the model does not follow "
-                    "(the needle is a line and the tissue does not touch itself)")
-        if np.array_equal(step_start.free, self.free):  # nothing of the step carried: nothing to compare
-            return ""
-        carried = self.snapshot()
-        self.restore(step_start)
-        before = self.softest_mode()
-        self.restore(carried)
-        if before is None or before.stiffness <= 0.0:
-            return ""
-        percent = round(100.0 * now.stiffness / before.stiffness)
-        if percent < 100:
-            return (f"; the tangent's least stiffness on the needle's constraints fell to {percent} % of the "
-                    f"step's start (at zero the tissue has no stable equilibrium), {where}")
-        return (f"; the tangent's least stiffness on the needle's constraints did not fall over the step "
-                f"({percent} % of the step's start): the tissue is not softening, Newton's steps failed")
+        before = None
+        if now.stiffness >= 0.0 and not np.array_equal(step_start.free, self.free):
+            carried = self.snapshot()
+            self.restore(step_start)
+            before = self.softest_mode()
+            self.restore(carried)
+        return stability_note(now, self._mode_place(now), before)
 
     def _mode_place(self, mode: SoftestMode) -> str:
-        """`its mode largest at [x, y] mm`, the particle it moves most, with `, the needle's entry`,
-        `tip` or `entry and tip`: those of the two (reference) within two of the particle's
-        spacings of it."""
-        particle = mode_peak(mode, self.model.boundary.free_map)
-        near = 2.0 * self.model.support[particle] / self.scenario.discretization.dilation
-        where = self.model.particles[particle]
-        points = {"entry": self.geometry.entry, "tip": self.points[-1] if len(self.points) else None}
-        names = [name for name, point in points.items()
-                 if point is not None and length(where - np.asarray(point, dtype=float)) <= near]
-        return f"its mode largest at {shown_point(where)} mm" + (f", the needle's {' and '.join(names)}" if names else "")
+        """Where the mode moves the tissue most, near the needle's entry or tip (step_failures.mode_place)."""
+        return mode_place(mode, self.model, self.scenario.discretization.dilation, self.geometry.entry,
+                          self.points[-1] if len(self.points) else None)
 
     def _newton(self, rotation: float, step: int, aim: CenterAim | None = None) -> tuple[int, int, float]:
         """Newton on the saddle-point system (eq. 3.62) at the current load, about the
@@ -417,7 +380,7 @@ class NeedleInsertion:
                 break
             if history.lost_fresh_factor(balance.measure, balance.forces_balance):
                 self._count(iteration)
-                raise self._diverged(step, rotation, history.losses, balance)
+                raise diverged(step, rotation, history.losses, balance)
             fresh = steering and history.stale_center_columns(aim.tolerance)
             rhs, on_rows = self._newton_rhs(state, free, multipliers, center, fresh)
             solution, modified = self._linear_step(state, multipliers, rhs, on_rows, balance, history, fresh,
@@ -435,7 +398,8 @@ class NeedleInsertion:
                 solution = history.mix(free, multipliers, center, solution, aim if steering else None)
             free, multipliers, center = free + solution[:n_dof], multipliers + solution[n_dof:-2], center + solution[-2:]
         self._count(iteration)
-        raise self._not_converged(step, rotation, iteration, balance)
+        raise not_converged(step, rotation, iteration, balance, settings.max_iterations, self.needle.coupling == "points",
+                            self.constraint_tolerance)
 
     def _balance(self, state: Residuals) -> Balance:
         """How far the iterate of `state` is from equilibrium, against the step's tolerances."""
@@ -519,35 +483,6 @@ class NeedleInsertion:
         self.events.append(Event(EventKind.MINRES_FALLBACK, message, step, rotation))
         self._told_steered_direct = True
         log.info(message)
-
-    def _diverged(self, step: int, rotation: float, losses: int, balance: Balance) -> InsertionFailure:
-        """Why _newton gave up: `losses` steps on a freshly factored tangent raised the residual
-        (FRESH_FACTOR_LOSSES)."""
-        return InsertionFailure(
-            f"Newton diverged at step {step} (needle rotation {rotation:.3f} rad): {losses} steps on "
-            f"a freshly factored tangent raised the residual (now {balance.residual_norm:.3e} N, constraint "
-            f"violation {balance.worst:.3e} mm)")
-
-    def _not_converged(self, step: int, rotation: float, iteration: int, balance: Balance) -> InsertionFailure:
-        """Why _newton stopped short of equilibrium at its last `iteration`: a residual that is
-        not finite, the forces out of balance after solver.max_iterations, or the forces balanced
-        with the needle constraints stalled above their tolerance."""
-        if not balance.finite:
-            return NonFiniteResidual(
-                f"Newton stopped at step {step} (needle rotation {rotation:.3f} rad): the residual is not finite "
-                f"after {iteration} iterations (needle force {balance.needle_force:.3e} N): the loads or the "
-                "deformation overflow floating point")
-        message = (f"Newton did not converge at step {step} (needle rotation {rotation:.3f} rad): residual "
-                   f"{balance.residual_norm:.3e} N, constraint violation {balance.worst:.3e} mm after "
-                   f"{self.scenario.solver.max_iterations} iterations")
-        if not balance.forces_balance:
-            return NewtonExhausted(message)
-        remedy = "refine the spacing or lengthen the needle step"
-        if self.needle.coupling == "points":
-            remedy = "refine the spacing, lengthen the needle step or use `needle.coupling: mortar`"
-        return ConstraintStall(f"{message}; the forces balance, but the needle constraints stall above their "
-                               f"tolerance of {self.constraint_tolerance:.3e} mm: their rows are nearly dependent, "
-                               f"needle points closer together than the particles resolve ({remedy})")
 
     def _accept(self, free: np.ndarray, multipliers: np.ndarray, center: np.ndarray, worst: float,
                 iterations: int) -> None:
