@@ -74,8 +74,9 @@ def shown_point_as_given(point) -> str:
 def nearest_note(domain: Rectangle | PolygonDomain, point) -> str:
     """'the nearest is [x, y], d mm away' (with the circle note on a domain with holes)."""
     nearest, distance = nearest_boundary_point(domain, point)
+    # a circle's hole is its inscribed polygon of CIRCLE_SEGMENTS vertices (tissue_shape)
     circles = (f" (a circular hole is held as its inscribed {CIRCLE_SEGMENTS}-gon)"
-               if getattr(domain, "holes", ()) else "")
+               if any(len(hole) == CIRCLE_SEGMENTS for hole in getattr(domain, "holes", ())) else "")
     return f"the nearest is {shown_point(nearest)}, {distance:.3g} mm away{circles}"
 
 

@@ -113,6 +113,9 @@ def _exit_zoom(ax, run, norm, colour: str, who: str, marker: str, desired_colour
     ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_aspect("equal")
     ax.ticklabel_format(useOffset=False)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=4))  # long labels of a narrow zoom (0.004 mm) side by side
     ax.tick_params(labelsize=7)
     ax.set_xlabel("x - x desired exit (mm)", fontsize=8)
     ax.set_ylabel("y - y desired exit (mm)", fontsize=8)
@@ -140,10 +143,12 @@ def _needle_frame(runs_and_steps, margin: float) -> np.ndarray:
     return np.vstack(points)
 
 
-def plot_insertion(path: str | Path, result, steps: list[int] | None = None, estimate_mm: float | None = None):
+def plot_insertion(path: str | Path, result, steps: list[int] | None = None, estimate_mm: float | None = None,
+                   center_path: str | None = None):
     """insertion.png of `stitchplan simulate`: the deformed tissue, needle and tip path at the
     chosen steps (default: the last), one colour scale for all, and a zoom on the exit.
-    `estimate_mm`: the discretization error estimate of the exit point, for the title."""
+    `estimate_mm`: the discretization error estimate of the exit point, for the title;
+    `center_path`: the trajectory file a replay's centre followed (`--center-path`)."""
     plt = pyplot()
     last = len(result.steps)
     # steps past the run's end draw its last step, once (the command's note says so)
@@ -185,7 +190,8 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
     _exit_zoom(zoom, result, norm, "crimson", "simulated", "o", desired_colour="blue",
                exit_labels=("desired exit, deformed", "achieved exit"))
     fig.colorbar(dots, ax=list(axes[0]), label="|u| displacement (mm)", shrink=0.8, pad=0.02)
-    title_above(fig, axes[0], f"{shown_name(result.scenario, 'simulate')}: needle insertion without planning\n"
+    how = "without planning" if center_path is None else f"along the centre path of {Path(center_path).name}"
+    title_above(fig, axes[0], f"{shown_name(result.scenario, 'simulate')}: needle insertion {how}\n"
                 f"exit error {result.exit_error_mm:.3g} mm (material point "
                 f"{result.exit_error_material_mm:.3g} mm), {last} steps, "
                 f"{result.model.n_particles} particles"

@@ -164,14 +164,20 @@ def deform_line(result) -> str:
             f"{result.report.iterations} Newton iterations, {result.wall_seconds:.3f} s")
 
 
+def _mm(value: float, sign: str = "") -> str:
+    """A length in mm for a result line: four decimals, or two significant digits below
+    0.0001 mm (a plan's exit error of 5e-11 mm is not 0.0000)."""
+    return f"{value:{sign}.4f}" if value == 0.0 or abs(value) >= 5e-5 else f"{value:{sign}.2g}"
+
+
 def insertion_line(result, command: str = "simulate", estimate=None) -> str:
     """The line `stitchplan simulate` prints when it is done, with the exit error's
     discretization error estimate (planning.verification.ExitEstimate) when there is one."""
     line = (f"{command}: {len(result.steps)} steps, {result.model.n_particles} particles, exit error "
-            f"{result.exit_error_mm:.4f} mm (material {result.exit_error_material_mm:.4f} mm), "
+            f"{_mm(result.exit_error_mm)} mm (material {_mm(result.exit_error_material_mm)} mm), "
             f"{result.wall_seconds:.2f} s")
     if estimate is not None:
-        line += (f"; discretization error estimate {estimate.estimate_mm:.4f} mm "
+        line += (f"; discretization error estimate {_mm(estimate.estimate_mm)} mm "
                  f"(from a run at spacing {estimate.other_spacing_mm:.3g} mm)")
     return line
 
@@ -179,16 +185,16 @@ def insertion_line(result, command: str = "simulate", estimate=None) -> str:
 def plan_line(result, export: Path) -> str:
     """The line `stitchplan plan` prints when it is done."""
     planned, unplanned = result.planned, result.unplanned
-    versus = f" vs {unplanned.exit_error_mm:.4f} mm unplanned" if unplanned is not None else ""
+    versus = f" vs {_mm(unplanned.exit_error_mm)} mm unplanned" if unplanned is not None else ""
     verification = getattr(result, "verification", None)
     if verification is not None and verification.result is not None:
-        versus += f", {verification.exit_error_mm:.4f} mm verified at spacing {verification.spacing_mm:.3g} mm"
+        versus += f", {_mm(verification.exit_error_mm)} mm verified at spacing {verification.spacing_mm:.3g} mm"
         if verification.result.bites:  # a stitch across a wound
-            versus += f" (bites differ by {verification.result.bites['difference_mm']:+.4f} mm there)"
+            versus += f" (bites differ by {_mm(verification.result.bites['difference_mm'], '+')} mm there)"
     estimate = getattr(result, "estimate", None)
     if estimate is not None:
-        versus += f", discretization error estimate {estimate.estimate_mm:.4f} mm"
-    return (f"plan: {len(planned.steps)} steps, exit error {planned.exit_error_mm:.4f} mm planned{versus}, "
+        versus += f", discretization error estimate {_mm(estimate.estimate_mm)} mm"
+    return (f"plan: {len(planned.steps)} steps, exit error {_mm(planned.exit_error_mm)} mm planned{versus}, "
             f"{planned.wall_seconds:.2f} s planned run; trajectory written to {export}")
 
 
@@ -405,7 +411,8 @@ def _write_insertion_files(result, command: str, out: Path | None, summary: Path
         from .needle_plots import plot_insertion
 
         plot_insertion(plot, result, plot_steps,
-                       estimate_mm=(extra_summary or {}).get("exit_error_estimate_mm"))
+                       estimate_mm=(extra_summary or {}).get("exit_error_estimate_mm"),
+                       center_path=provenance.get("center_path"))
 
 
 def prepare_plan_outputs(out: Path | None = None, plot: Path | None = None) -> None:

@@ -65,13 +65,12 @@ class CenterAim:
     updates: int = 0  # centre moves made
     limited: bool = False  # the move limits held the settled centre back
     held: tuple[EventKind, str] | None = None  # why the centre stopped moving before settling
-    mismatch_mm: float = float("nan")  # |m| at the last Newton iteration
     eq42_ratio: float = float("nan")  # ||B||_2 at the last iteration (eq. 4.2 holds below 1)
 
     def restart(self) -> None:
         """Forget the moves made, for a solve that starts again."""
         self.updates, self.limited, self.held = 0, False, None
-        self.mismatch_mm = self.eq42_ratio = float("nan")
+        self.eq42_ratio = float("nan")
 
     def update(self, free: np.ndarray, center: np.ndarray, solution: np.ndarray, exit_row: np.ndarray,
                balanced: bool) -> np.ndarray | None:
@@ -83,7 +82,6 @@ class CenterAim:
             return exit_row @ column.reshape(-1, 2)
 
         mismatch = self.origin + at_exit(free) - center
-        self.mismatch_mm = length(mismatch)
         predicted = mismatch + at_exit(solution[:, 0])  # after this iteration's equilibrium update
         jacobian = np.column_stack([at_exit(solution[:, 1]), at_exit(solution[:, 2])])  # B
         self.eq42_ratio = spectral_norm(jacobian)  # the plain update dO = m moves X_exit by B m
@@ -104,7 +102,8 @@ class CenterAim:
         if self.updates >= self.max_updates:
             self.held = (EventKind.PLANNER_NOT_CONVERGED,
                          f"no convergence at step {self.step} (needle rotation {self.rotation:.3f} rad) in "
-                         f"{self.max_updates} iterations, the centre still moves {size:.3g} mm")
+                         f"{self.max_updates} centre {'iteration' if self.max_updates == 1 else 'iterations'} "
+                         f"(planner.max_iterations), the centre still moves {size:.3g} mm")
             return None
         self.updates += 1
         return move

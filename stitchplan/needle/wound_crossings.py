@@ -25,6 +25,15 @@ log = logging.getLogger(__name__)
 Crossing = tuple[int, str, np.ndarray, float]
 
 
+def gap_at(insertion: NeedleInsertion, point: np.ndarray) -> str:
+    """'wound' where the wall nearest `point` is the outline's (a cut reaching the surface),
+    'hole' where it is a hole's: what the tip crossed, in its messages."""
+    domain = insertion.domain
+    if not hasattr(domain, "nearest_boundary_point"):  # a rectangle has neither
+        return "wound"
+    return "wound" if domain.nearest_boundary_point(point)[1] else "hole"
+
+
 def crossed_back(geometry: NeedleGeometry, made: Crossing) -> bool:
     """Whether the tip's boundary crossing went back through the wall of a crossing of the
     other kind (the wall it had just left, or the far wall it had just entered)."""
@@ -46,26 +55,27 @@ def log_crossing(insertion: NeedleInsertion, step: int, made: list[Crossing]) ->
     geometry = insertion.geometry
     crossing, kind, point, rotation = made[-1]
     wall = f"crossing {crossing + 1} of {len(geometry.crossings)} of the undeformed circle"
+    gap = gap_at(insertion, point)
     if crossed_back(geometry, made[-1]):
         if kind == "entry":
             message = (f"step {step}: the tip entered the tissue again at {point_text(point)} at needle rotation "
-                       f"{rotation:.3f} rad on the near side of the wound: nearest along the boundary to the wall "
+                       f"{rotation:.3f} rad on the near side of the {gap}: nearest along the boundary to the wall "
                        f"it left ({wall}), not to the far wall (the wall bulged round the tip); it has to leave "
                        "through that wall again")
         else:
-            message = (f"step {step}: the tip left the tissue back into the wound at {point_text(point)} at needle "
+            message = (f"step {step}: the tip left the tissue back into the {gap} at {point_text(point)} at needle "
                        f"rotation {rotation:.3f} rad, through the far wall it had entered ({wall}); it has to "
                        "enter that wall again")
         insertion.events.append(Event(EventKind.WALL_CROSSED_BACK, message, step, rotation))
         log.info(message)
     elif any(earlier[:2] == (crossing, kind) for earlier in made[:-1]):  # the same wall once more
         log.info("step %d: the tip %s at %s at needle rotation %.3f rad, through the same wall (%s)",
-                 step, "left the tissue into a wound again" if kind == "exit" else "entered the far wall again",
+                 step, f"left the tissue into a {gap} again" if kind == "exit" else "entered the far wall again",
                  point_text(point), rotation, wall)
     elif kind == "entry":
         log.info("step %d: the tip entered the tissue again at needle rotation %.3f rad", step, rotation)
     else:
-        log.info("step %d: the tip left the tissue into a wound at needle rotation %.3f rad", step, rotation)
+        log.info("step %d: the tip left the tissue into a %s at needle rotation %.3f rad", step, gap, rotation)
 
 
 def stayed_on_near_side(insertion: NeedleInsertion, step: int, rotation: float,
@@ -74,11 +84,12 @@ def stayed_on_near_side(insertion: NeedleInsertion, step: int, rotation: float,
     and is still on that side of the wound when the needle's arc ends."""
     geometry = insertion.geometry
     crossing, _, point, entered = made[-1]
+    gap = gap_at(insertion, point)
     return InsertionFailure(
         f"step {step}: the needle's arc of {geometry.arc:.4g} rad ended (needle rotation {rotation:.3f} rad) with "
-        f"its tip still on the near side of the wound: the tip entered the tissue again at {point_text(point)} "
+        f"its tip still on the near side of the {gap}: the tip entered the tissue again at {point_text(point)} "
         f"at needle rotation {entered:.3f} rad through the wall it had left (crossing {crossing + 1} of the "
-        "undeformed circle; the wall bulged round the tip) and did not leave through it again to cross the wound")
+        f"undeformed circle; the wall bulged round the tip) and did not leave through it again to cross the {gap}")
 
 
 def left_for_good(insertion: NeedleInsertion, step: int, wall: Crossing) -> InsertionFailure:
@@ -87,9 +98,9 @@ def left_for_good(insertion: NeedleInsertion, step: int, wall: Crossing) -> Inse
     crossing, _, point, rotation = wall
     geometry = insertion.geometry
     return InsertionFailure(
-        f"step {step}: the needle tip left the tissue into a wound at {point_text(point)} at needle rotation "
-        f"{rotation:.3f} rad (crossing {crossing + 1} of the undeformed circle) and did not enter it again within "
-        f"the needle's arc of {geometry.arc:.4g} rad")
+        f"step {step}: the needle tip left the tissue into a {gap_at(insertion, point)} at {point_text(point)} at "
+        f"needle rotation {rotation:.3f} rad (crossing {crossing + 1} of the undeformed circle) and did not enter "
+        f"it again within the needle's arc of {geometry.arc:.4g} rad")
 
 
 def left_into_uncrossed_gap(insertion: NeedleInsertion, loops: BoundaryLoops, step: int, exit_point: np.ndarray,

@@ -12,6 +12,11 @@ import numpy as np
 from ..config import Planner
 
 REFERENCE_STEP = 0.08  # rad per needle step at which the move limits (config Planner) are stated
+# the exported centres are rounded to 1e-9 mm (trajectory.DECIMALS_MM), which moves a centre's
+# move or second difference by up to 2e-9 mm: the planner keeps its path this far inside each
+# limit, so that the limits hold on the numbers a robot reads (the summary's largest moves are
+# the exported path's)
+EXPORT_MARGIN_MM = 5e-9
 
 
 @dataclass(frozen=True)
@@ -36,7 +41,8 @@ class MoveLimits:
         last_step = geometry.expected_steps - 1
         if exit_steps is not None:
             last_step = min(last_step, exit_steps)
-        return cls(settings.center_step_limit * scale, settings.center_second_difference_limit * scale, last_step)
+        return cls(_inside(settings.center_step_limit * scale), _inside(settings.center_second_difference_limit * scale),
+                   last_step)
 
     def speed(self, step: int) -> float:
         """The largest move at `step`, braking one step early (the tip may leave a step
@@ -51,6 +57,11 @@ class MoveLimits:
             return _into_disc(np.asarray(candidate, dtype=float), previous, self.speed(step))
         return _into_both(np.asarray(candidate, dtype=float), 2.0 * previous - centers[-2],
                           self.second_difference_mm, previous, self.speed(step))
+
+
+def _inside(limit: float) -> float:
+    """A limit less the export's margin (EXPORT_MARGIN_MM; at most half of it)."""
+    return max(limit - EXPORT_MARGIN_MM, 0.5 * limit)
 
 
 def _into_disc(point: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:

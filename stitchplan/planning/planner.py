@@ -111,7 +111,7 @@ class ExitTracker:
             kind, reason = aim.held
             if self.settings.strict:
                 raise PlanningFailure(f"planning failed: {reason}")
-            message = f"planning: {reason}; the step keeps its centre (mismatch {aim.mismatch_mm:.3g} mm)"
+            message = f"planning: {reason}; the step keeps its centre"
             insertion.events.append(Event(kind, message, step, rotation))
             log.info(message)  # the user sees it once, as a `note:` from the event
         self.centers.append(insertion.center.copy())
