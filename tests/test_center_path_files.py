@@ -120,6 +120,30 @@ def test_a_path_for_another_needle_step_is_refused(tmp_path, geometry):
     assert line == f"{path}: line 3, angle_rad: got 0.1, expected 0.12 (step 1 of the needle's 0.12 rad steps)"
 
 
+def test_tips_that_disagree_with_their_centres_are_refused(tmp_path, geometry):
+    """A centre edited without its tip (or the other way round): the row says two things, a
+    robot may follow either, so the replay refuses the first such row; the tips as written
+    (9 significant digits) pass, and a file without tip columns is not checked for them."""
+    rows = trajectory_rows(geometry)
+    assert read_center_path(write_rows(tmp_path, rows), geometry).shape == (geometry.expected_steps + 1, 2)
+    rows[6][2] = f"{float(rows[6][2]) + 0.05:.9g}"  # the centre moved, its tip not
+    line = refusal(write_rows(tmp_path, rows), geometry)
+    assert line.startswith(f"{tmp_path / 'path.csv'}: line 8, tip_x_mm, tip_y_mm: got [") and "0.05 mm off" in line
+    rows = trajectory_rows(geometry)
+    rows[9][4] = "0"
+    assert "line 11, tip_x_mm, tip_y_mm: got [0, " in refusal(write_rows(tmp_path, rows), geometry)
+
+
+def test_times_that_go_back_are_refused(tmp_path, geometry):
+    rows = [row + [f"{k * 0.2:.9g}"] for k, row in enumerate(trajectory_rows(geometry))]
+    header = HEADER + ",time_s"
+    assert read_center_path(write_rows(tmp_path, rows, header), geometry).shape == (geometry.expected_steps + 1, 2)
+    rows[7][-1] = "0.2"
+    line = refusal(write_rows(tmp_path, rows, header), geometry)
+    assert line == (f"{tmp_path / 'path.csv'}: line 9, time_s: got 0.2, expected more than the row before's 1.2 "
+                    "(the needle turns forward in time, one step per row)")
+
+
 def test_doubled_angles_are_refused(tmp_path, geometry):
     rows = [[row[0], f"{2 * float(row[1]):.9g}", *row[2:]] for row in trajectory_rows(geometry)]
     line = refusal(write_rows(tmp_path, rows), geometry)
@@ -302,7 +326,7 @@ def test_simulate_records_the_entry_centre_of_the_path_it_followed(tmp_path, geo
 
     shift = np.array([0.004, -0.003]) * geometry.radius
     rows = trajectory_rows(geometry, drift=(0.0, 0.0))
-    rows[0][2:4] = [f"{value:.9g}" for value in geometry.center + shift]
+    rows[0][2:6] = [f"{value:.9g}" for value in (*(geometry.center + shift), *geometry.tip(0.0, geometry.center + shift))]
     path = write_rows(tmp_path, rows)
     summary = tmp_path / "summary.json"
     result = CliRunner().invoke(app, ["simulate", str(SCENE), "--no-estimate", "--center-path", str(path),

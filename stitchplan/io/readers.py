@@ -17,15 +17,21 @@ from ..needle.geometry import ENTRY_TOLERANCE, LEAN_TOLERANCE, NeedleGeometry, l
 
 CENTER_PATH_COLUMNS = ("step", "center_x_mm", "center_y_mm")
 ANGLE_COLUMN = "angle_rad"
+TIP_COLUMNS = ("tip_x_mm", "tip_y_mm")
+TIME_COLUMN = "time_s"
+# a tip as trajectory.csv writes it (rounded to 1e-9 mm, from centres rounded alike) lies within
+# a few 1e-9 mm of its centre's needle; written with 9 significant digits, within 1e-7 mm
+TIP_TOLERANCE_MM = 1e-6
 
 def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
                      leaning: Callable[[np.ndarray], NeedleGeometry] | None = None) -> np.ndarray:
     """Needle centres (n, 2) in mm from a trajectory CSV as `stitchplan plan` exports it:
     row n holds step n, from 0, in the columns step, center_x_mm, center_y_mm; the other
-    columns (tips, times, base frame) must hold numbers too but are not used. With the
-    needle's `geometry`, the path must also fit that needle: its angle_rad, when the file has
-    one, the needle's rotation schedule (check_angles), and its centres the needle's steps
-    and entry (check_center_path). `leaning(row 0)`: the needle a path starting there replays
+    columns (tips, times, base frame) must hold numbers too, and time_s, when the file has
+    it, increase (check_times). With the needle's `geometry`, the path must also fit that
+    needle: its angle_rad, when the file has one, the needle's rotation schedule
+    (check_angles), its centres the needle's steps and entry (check_center_path), and its
+    tips, when it has them, the needle's tip about each centre (check_tips). `leaning(row 0)`: the needle a path starting there replays
     (needle.geometry.entry_lean: a plan may lean the needle at entry); a row 0 off the centre
     at entry but within LEAN_TOLERANCE of the circle about the entry is put onto it."""
     table, row_numbers = read_numeric_table(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
@@ -40,6 +46,10 @@ def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
         if ANGLE_COLUMN in table:
             check_angles(path, table[ANGLE_COLUMN], geometry, row_numbers)
         check_center_path(path, centers, geometry, row_numbers)
+        if TIP_COLUMNS[0] in table and TIP_COLUMNS[1] in table:
+            check_tips(path, np.column_stack([table[name] for name in TIP_COLUMNS]), centers, geometry, row_numbers)
+    if TIME_COLUMN in table:
+        check_times(path, table[TIME_COLUMN], row_numbers)
     return centers
 
 
@@ -69,6 +79,33 @@ def check_angles(path: str | Path, angles: np.ndarray, geometry: NeedleGeometry,
         k = off[0]
         raise InputError(f"{path}: line {row_numbers[k]}, angle_rad: got {angles[k]:.9g}, expected {expected[k]:.9g} "
                          f"(step {k} of the needle's {geometry.step:g} rad steps)")
+
+
+def check_tips(path: str | Path, tips: np.ndarray, centers: np.ndarray, geometry: NeedleGeometry,
+               row_numbers: np.ndarray) -> None:
+    """Each row's tip where its centre puts the needle's tip at its step's rotation (k x step,
+    the exit row's too): a file whose centres were edited and its tips not (or the other way
+    round) says two things, and a robot may follow either; the first row that disagrees is
+    refused."""
+    expected = np.array([geometry.tip(k * geometry.step, center) for k, center in enumerate(centers)])
+    off = np.linalg.norm(tips - expected, axis=1)
+    bad = np.flatnonzero(off > TIP_TOLERANCE_MM)
+    if bad.size:
+        k = bad[0]
+        raise InputError(
+            f"{path}: line {row_numbers[k]}, tip_x_mm, tip_y_mm: got [{tips[k, 0]:.9g}, {tips[k, 1]:.9g}], "
+            f"expected [{expected[k, 0]:.9g}, {expected[k, 1]:.9g}], the tip of the needle about the row's centre "
+            f"[{centers[k, 0]:.9g}, {centers[k, 1]:.9g}] at step {k} ({off[k]:.3g} mm off: the row's centre and "
+            "tip disagree; export the trajectory again, or drop the tip columns)")
+
+
+def check_times(path: str | Path, times: np.ndarray, row_numbers: np.ndarray) -> None:
+    """time_s increases from row to row: the needle turns forward in time."""
+    back = np.flatnonzero(np.diff(times) <= 0.0)
+    if back.size:
+        k = back[0] + 1
+        raise InputError(f"{path}: line {row_numbers[k]}, time_s: got {times[k]:.9g}, expected more than the row "
+                         f"before's {times[k - 1]:.9g} (the needle turns forward in time, one step per row)")
 
 
 # a replayed path may end this many steps (relative to the needle's expected steps, at least
