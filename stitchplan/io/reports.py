@@ -198,14 +198,31 @@ def plan_line(result, export: Path) -> str:
             f"{planned.wall_seconds:.2f} s planned run; trajectory written to {export}")
 
 
+POINT_DECIMALS = 12  # summary points (mm) to 1e-12 mm: 0, not the round-off 5.4e-16 of an exit on x = 0
+
+
+def _point(point) -> np.ndarray | None:
+    """A point of the summary rounded to POINT_DECIMALS (the errors are the unrounded points')."""
+    return None if point is None else np.round(np.asarray(point, dtype=float), POINT_DECIMALS) + 0.0
+
+
+def _points(record: dict, keys: tuple[str, ...]) -> dict:
+    """`record` with its points at `keys` rounded (_point)."""
+    return {key: _point(value) if key in keys else value for key, value in record.items()}
+
+
+CROSSING_POINTS = ("desired", "desired_def", "achieved_def")
+BITE_POINTS = ("entry_wound_edge", "exit_wound_edge", "entry_wound_edge_def", "exit_wound_edge_def")
+
+
 def insertion_summary(result) -> dict:
     steps = result.steps
     tip_at_exit = needle_tip_at_exit(result)
     return {
-        "desired_exit": result.desired_exit,
-        "desired_exit_def": result.desired_exit_def,
-        "achieved_exit_def": result.achieved_exit_def,
-        "achieved_exit": result.achieved_exit,
+        "desired_exit": _point(result.desired_exit),
+        "desired_exit_def": _point(result.desired_exit_def),
+        "achieved_exit_def": _point(result.achieved_exit_def),
+        "achieved_exit": _point(result.achieved_exit),
         "exit_error_mm": result.exit_error_mm,
         "exit_error_material_mm": result.exit_error_material_mm,
         "steps": len(steps),
@@ -214,9 +231,9 @@ def insertion_summary(result) -> dict:
         "exit_rotation_rad": result.exit_rotation,
         # the rigid needle's tip as the track reaches the boundary: the tissue at the cut's end,
         # carried along the needle by friction and the cutting force, is ahead of it on the arc
-        "needle_tip_at_exit": tip_at_exit,
+        "needle_tip_at_exit": _point(tip_at_exit),
         "exit_to_needle_tip_mm": float(np.linalg.norm(result.achieved_exit_def - tip_at_exit)),
-        "needle_center_at_entry": result.center_after(0),
+        "needle_center_at_entry": _point(result.center_after(0)),
         # rad the needle leaned from the orthogonal entry (needle.entry_tilt, a plan's lean)
         "needle_entry_tilt_rad": result.geometry.tilt,
         "needle_points": len(result.needle_points),
@@ -230,9 +247,9 @@ def insertion_summary(result) -> dict:
         "timings_seconds": {**result.timings, "steps": step_time_distribution(steps)},
         "discretization": discretization_summary(result.model),
         # every crossing after the first entry, the final exit last (README, "Tissue shapes")
-        "crossings": [{key: record[key] for key in ("kind", "desired", "desired_def", "achieved_def", "error_mm")}
+        "crossings": [_points({key: record[key] for key in ("kind", *CROSSING_POINTS, "error_mm")}, CROSSING_POINTS)
                       for record in getattr(result, "crossings", [])],
-        **({"bites": result.bites} if getattr(result, "bites", None) else {}),
+        **({"bites": _points(result.bites, BITE_POINTS)} if getattr(result, "bites", None) else {}),
     }
 
 
@@ -304,8 +321,8 @@ def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
             # the refined model and the needle's methods as a scenario file's keys: what
             # reproduces the replay where `--spacing` cannot (an auto discretization's choice)
             "scenario_keys": scenario_keys(replay.scenario) if replay is not None else None,
-            "achieved_exit_def": replay.achieved_exit_def if replay is not None else None,
-            "desired_exit_def": replay.desired_exit_def if replay is not None else None,
+            "achieved_exit_def": _point(replay.achieved_exit_def) if replay is not None else None,
+            "desired_exit_def": _point(replay.desired_exit_def) if replay is not None else None,
             "exit_error_material_mm": replay.exit_error_material_mm if replay is not None else None,
             "wall_seconds": replay.wall_seconds if replay is not None else None,
             "rounds": verification.rounds,
@@ -314,7 +331,7 @@ def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
             "replayed_in": verification.replayed_in,
             # a stitch across a wound: each side's bite on the refined model too (what a
             # symmetric plan aims at)
-            **({"bites": replay.bites} if replay is not None and replay.bites else {}),
+            **({"bites": _points(replay.bites, BITE_POINTS)} if replay is not None and replay.bites else {}),
         },
         "max_center_step_mm": max_step,
         "max_center_second_difference_mm": max_second,
@@ -482,7 +499,7 @@ def _plan_summary(result, columns: list[str], table: np.ndarray) -> dict:
     return {
         "unplanned_exit_error_mm": unplanned.exit_error_mm if unplanned else None,
         "unplanned_exit_error_material_mm": unplanned.exit_error_material_mm if unplanned else None,
-        "unplanned_achieved_exit_def": unplanned.achieved_exit_def if unplanned else None,
+        "unplanned_achieved_exit_def": _point(unplanned.achieved_exit_def) if unplanned else None,
         "unplanned_wall_seconds": unplanned.wall_seconds if unplanned else None,
         "error_reduction": (1.0 - planned.exit_error_mm / unplanned.exit_error_mm)
         if unplanned and unplanned.exit_error_mm > 0 else None,
