@@ -18,6 +18,7 @@ class EventKind(str, Enum):
     PASS_FAILED = "planner-pass-failed"  # a planner pass after the first failed numerically; the best before it is kept
     PATH_LIMITS_EXCEEDED = "path-limits-exceeded"  # the exported centre path breaks the planner's move limits
     TARGET_MISSED = "target-missed"  # a plan's best pass still misses its target (exit or bites)
+    TARGET_NOT_APPLICABLE = "target-not-applicable"  # planner.target symmetric on a needle crossing no wound: aimed at the exit
     CROSSING_MISSED = "crossing-missed"  # the tip did not make a crossing of the undeformed circle (a wound it passed by)
     WALL_CROSSED_BACK = "wall-crossed-back"  # a soft wound wall bulged round the tip: it crossed back to the side it left
     ACCURACY_CHECK = "accuracy-check"  # an exit error estimate or a verification could not be made, or an estimate is above the accuracy asked for

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from stitchplan.config.scenario import Robot, parse_scenario
+from stitchplan.events import EventKind
 from stitchplan.needle.insertion import run_insertion
 from stitchplan.planning.move_limits import REFERENCE_STEP
 from stitchplan.planning.pass_offsets import REAIM_FRACTION
@@ -86,6 +87,18 @@ def two_passes():
                 planner={"exit_tolerance": 1e-9, "max_passes": 2})
     raw["solver"] = TIGHT_NEEDLE_NEWTON  # a pass alone is compared with the same pass in sequence
     return run_plan(parse_scenario(raw), compare=False)
+
+
+def test_a_symmetric_target_on_a_needle_crossing_no_wound_aims_at_the_exit_and_says_so():
+    """planner.target symmetric means equal bites across a wound; on a needle that crosses
+    none the plan aims at the exit, as with the target `exit`, and a note says so."""
+    raw = scene((20.0, 20.0), (0.0, 18.0), "cw", ["right"], spacing=5.0, step=0.3)
+    symmetric = run_plan(parse_scenario({**raw, "planner": {"target": "symmetric"}}), compare=False)
+    at_exit = run_plan(parse_scenario(raw), compare=False)
+    np.testing.assert_array_equal(symmetric.center_trajectory, at_exit.center_trajectory)
+    notes = [event for event in symmetric.planned.events if event.kind == EventKind.TARGET_NOT_APPLICABLE]
+    assert len(notes) == 1 and "crosses no wound or hole: the plan aims at the desired exit" in notes[0].message
+    assert not [event for event in at_exit.planned.events if event.kind == EventKind.TARGET_NOT_APPLICABLE]
 
 
 def test_passes_come_from_the_scenario_planner(two_passes):
