@@ -322,6 +322,8 @@ OPTION_CASES = {
                                  [["--plot-steps: got 99, expected steps between 0 (the entry) and 9"]]),
     "negative plot step": ("simulate", ["--plot", "run.png", "--plot-steps", "-1"],
                            [["--plot-steps: got -1", "expected steps between"]]),
+    "an empty plot step": ("simulate", ["--plot", "run.png", "--plot-steps", "3,,5"],
+                           [["--plot-steps: got '3,,5', expected comma-separated step numbers"]]),
     "plot steps without a plot": ("simulate", ["--plot-steps", "3"],
                                   [["--plot-steps: got 3, expected it only with --plot PNG"]]),
     "a plot not named .png": ("plan", ["--plot", "plan.pdf"],

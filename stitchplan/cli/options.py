@@ -197,7 +197,7 @@ def parse_steps(text: Optional[str]) -> Optional[list[int]]:
     if not text:
         return None
     try:
-        return [int(part) for part in text.split(",") if part.strip()]
+        return [int(part) for part in text.split(",")]  # an empty item (10,,20) is a typing mistake too
     except ValueError:
         raise InputError(f"--plot-steps: got {text!r}, expected comma-separated step numbers") from None
 
