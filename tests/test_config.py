@@ -264,7 +264,7 @@ def test_the_file_path_starts_every_line(write_scenario, slab_raw):
 
 
 @pytest.mark.parametrize("value, shown", [
-    (float("nan"), "nan"), (float("inf"), "inf"), (True, "True"), ("10", "'10'"), (None, "null"),
+    (float("nan"), "nan"), (float("inf"), "inf"), (True, "true"), ("10", "'10'"), (None, "null"),
     ([10.0], "[10.0]"),
 ])
 def test_numbers_are_finite_numbers(slab_raw, value, shown):

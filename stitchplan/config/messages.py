@@ -84,10 +84,12 @@ class Shown(str):
 
 def short(value: Any) -> str:
     """The value as given, on one short line (tuples shown as the lists a file gives, a
-    blank value as YAML's null)."""
+    blank value as YAML's null, booleans as YAML's true and false)."""
     def plain(v: Any) -> Any:
         if v is None:
             return _Null()
+        if isinstance(v, bool):  # YAML's true and false, not Python's True and False
+            return Shown("true" if v else "false")
         if isinstance(v, (tuple, list)):
             return [plain(item) for item in v]
         if isinstance(v, dict):
