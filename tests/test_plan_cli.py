@@ -95,6 +95,9 @@ def test_plan_exports_the_documented_columns_one_row_per_step(planned):
     columns, table = read_trajectory(folder / "trajectory.csv")
     assert columns == TRAJECTORY_COLUMNS + ["time_s"] + BASE_COLUMNS
     assert summary["trajectory_columns"] == columns
+    # the options took the file's robot block's place, and the summary says what was applied
+    assert summary["robot"] == {"base_transform": {"rotation_deg": 90.0, "translation_mm": [100.0, -5.0]},
+                                "angular_speed_rad_s": 2.0}
     n = summary["steps"]  # simulated steps N; rows 0 .. N+1
     assert n > 10 and table.shape == (n + 2, len(columns)) and summary["trajectory_rows"] == n + 2
     data = dict(zip(columns, table.T))

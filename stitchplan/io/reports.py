@@ -514,8 +514,19 @@ def _plan_summary(result, columns: list[str], table: np.ndarray) -> dict:
         **planning_work(result),
         "trajectory_rows": len(table),
         "trajectory_columns": columns,
+        # the robot frame and speed the trajectory was written with (the file's robot block, or
+        # --base-transform and --angular-speed, which take its place)
+        "robot": _robot_record(planned.scenario.robot),
         **plan_accuracy_summary(result, table[:, 2:4]),
     }
+
+
+def _robot_record(robot) -> dict:
+    """The summary's `robot`: the base transform applied (None: the tissue frame only) and the
+    angular speed (None: no time_s)."""
+    transform = ({"rotation_deg": robot.rotation_deg, "translation_mm": list(robot.translation)}
+                 if robot.given else None)
+    return {"base_transform": transform, "angular_speed_rad_s": robot.angular_speed}
 
 
 def _plan_datasets(result, columns: list[str], table: np.ndarray) -> dict[str, dict]:
