@@ -222,7 +222,12 @@ def test_a_refinement_names_the_refinement_not_the_spacing():
                             origin=verification_origin(scenario))
     line = refusal([verification])
     assert line.startswith("discretization.needle_refinement: got 500, expected a refinement giving at most"), line
-    assert "a needle spacing of 2 mm / 500 = 0.004 mm, the run's 1 mm / 500 = 0.002 mm;" in line
+    assert "a needle spacing of 2 mm / 500 = 0.004 mm, the replay's 1 mm / 500 = 0.002 mm;" in line
+    assert "; lower it, pass --no-verify" in line
+    # the spacing given by --spacing: coarsening it is offered beside lowering the refinement
+    by_option = estimate(rescaled(scenario, 0.5), "insertion", "plan verification", 2,
+                         origin=verification_origin(scenario, {"spacing": "--spacing"}))
+    assert "; lower it or coarsen --spacing, pass --no-verify" in refusal([by_option])
 
 
 def test_a_needle_radius_that_sets_the_default_spacing_is_named():

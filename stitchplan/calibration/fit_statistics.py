@@ -73,6 +73,9 @@ class Statistics:
     correlation: float  # of the tissue's two estimates
     ratio_uncertainty: float | None  # of lambda/mu
     correlations: np.ndarray | None = None  # (P, P) of every estimate, where (J^T J) inverts
+    # indices of the parameters no marker moves with (a zero column of the Jacobian): there no
+    # correlation can be computed (it is nan)
+    insensitive: tuple[int, ...] = ()
 
     @property
     def separable(self) -> bool:
@@ -93,7 +96,7 @@ def statistics(residual: np.ndarray, jacobian: np.ndarray, theta: np.ndarray) ->
     normal = jacobian.T @ jacobian
     scale = np.sqrt(np.diag(normal))
     if np.any(scale == 0.0):
-        return Statistics((None,) * count, float("nan"), None)
+        return Statistics((None,) * count, float("nan"), None, insensitive=tuple(np.flatnonzero(scale == 0.0).tolist()))
     scaled = normal / np.outer(scale, scale)  # unit diagonal
     uncertainty: tuple[float | None, ...] = (None,) * count
     correlations = None
@@ -126,6 +129,11 @@ def least_separated(stats: Statistics, names: tuple[str, ...]) -> tuple[str, str
     return names[i], names[j], float(stats.correlations[i, j])
 
 
+def _correlation_text(value: float) -> str:
+    """A correlation as a warning writes it; one that could not be computed said so."""
+    return f"{value:+.4f}" if math.isfinite(value) else "not computable: the markers' sensitivities are not finite"
+
+
 def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
                  refinement: LeastSquaresRun, displacements_only: bool = True) -> list[str]:
     """What a user should know about the fitted moduli, most serious first.
@@ -141,10 +149,17 @@ def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
                "the markers' motion does not tell them apart (too little of it, or markers where the "
                "tissue hardly deforms: check their units, mm); add markers where the tissue deforms "
                "or another experiment")
-        if len(names) == 2:
+        if stats.insensitive:
+            still = " and ".join(names[k] for k in stats.insensitive)
+            warnings.append(
+                f"the data cannot separate the fitted moduli: the correlation of their estimates could not be "
+                f"computed, as no marker moves with {still} at the fitted moduli (a zero sensitivity: markers "
+                "where the tissue is held, or a model that did not deform under the loads); add markers where "
+                "the tissue deforms, and check the loads and the solver settings")
+        elif len(names) == 2:
             warnings.append(
                 f"the data cannot separate lame_lambda and lame_mu (correlation of the estimates "
-                f"{stats.correlation:+.4f}): only lame_lambda/lame_mu = {theta[0] / theta[1]:.4g} is "
+                f"{_correlation_text(stats.correlation)}): only lame_lambda/lame_mu = {theta[0] / theta[1]:.4g} is "
                 f"determined, {why}")
         else:
             pair = least_separated(stats, names)

@@ -3,6 +3,7 @@ calibration YAML, its experiments and their marker CSV files."""
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -29,6 +30,9 @@ from ..config.scenario import default_spacing
 from ..config.yaml_files import read_yaml_file, with_key_problems
 from ..csv_tables import read_numeric_table
 from ..errors import InputError
+from ..geometry.segments import on_segment
+
+log = logging.getLogger(__name__)
 
 MARKER_COLUMNS = ("x", "y", "x_def", "y_def")
 # A marker moves by less than the tissue's size (the longer side of its bounding box): more
@@ -41,6 +45,14 @@ MAX_DISPLACEMENT_OVER_SIZE = 1.0
 # 100 mm slab, far below what a photograph resolves) did not move: the deformed columns
 # repeat the rest ones. The fit would read them as an infinitely stiff material.
 NO_MOTION_OVER_SIZE = 1e-6
+# Markers whose rest positions span less than this fraction of the tissue's bounding box in
+# both directions sit in a speck of it: 1 mm of a 100 mm slab, where a calibration spreads its
+# markers over the slab (the shipped examples' span 90 % and more of each side). Positions
+# in metres read as mm put every marker within 0.1 mm of the origin: a 1000-fold shrink, which
+# this catches whatever the markers' spread, while a real cluster of markers this tight
+# would see almost none of the tissue's deformation. A warning, not a refusal: the data can
+# be right.
+CLUSTERED_SPAN_OVER_SIZE = 1e-2
 __all__ = ["GRID_SCALES", "MARKER_COLUMNS", "Experiment", "FitSettings", "MaterialCalibration",
            "load_material_calibration", "parse_material_calibration"]
 
@@ -55,6 +67,7 @@ class Experiment:
     markers: np.ndarray  # (n, 2) rest positions X_i, mm
     measured: np.ndarray  # (n, 2) measured deformed positions p_i, mm
     source: str = ""
+    warnings: tuple[str, ...] = ()  # what its markers suggest checking (read_experiment)
 
 
 @dataclass(frozen=True)
@@ -90,6 +103,12 @@ class MaterialCalibration:
     solver: Solver = field(default_factory=Solver)
     name: str = ""
     source: str = ""
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the inputs suggest checking (each experiment's markers'): the fit's warnings
+        start with them."""
+        return [warning for experiment in self.experiments for warning in experiment.warnings]
 
     @property
     def estimate_spacing(self) -> float:
@@ -133,7 +152,8 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
             f"{path}.markers: {markers_path}: line {lines[k]}, x, y: got the rest position [{rest[k, 0]:g}, "
             f"{rest[k, 1]:g}] mm again (first at line {lines[first[inverse.ravel()[k]]]}), expected each marker once")
     deformed = np.stack([data["x_def"], data["y_def"]], axis=1)
-    check_displacements(rest, deformed, lines, max(tissue.bounding_size), f"{path}.markers: {markers_path}")
+    where = f"{path}.markers: {markers_path}"
+    check_displacements(rest, deformed, lines, max(tissue.bounding_size), where)
     return Experiment(
         name=block.name,
         loads=block.loads,
@@ -141,7 +161,50 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
         markers=rest,
         measured=deformed,
         source=str(markers_path),
+        warnings=tuple(filter(None, [clustered_markers(rest, tissue, where),
+                                     moved_on_a_clamp(rest, deformed, lines, tissue, where)])),
     )
+
+
+def clustered_markers(rest: np.ndarray, tissue: Tissue, where: str) -> str | None:
+    """The warning for markers whose rest positions span less than CLUSTERED_SPAN_OVER_SIZE of
+    the tissue's bounding box in both x and y (positions in m read as mm), or None; a single
+    marker spans nothing and says nothing."""
+    if len(rest) < 2:
+        return None
+    span, size = np.ptp(rest, axis=0), np.asarray(tissue.bounding_size, dtype=float)
+    if np.any(span >= CLUSTERED_SPAN_OVER_SIZE * size):
+        return None
+    return (f"{where}: x, y: the {len(rest)} markers' rest positions span only {span[0]:.3g} x {span[1]:.3g} mm, "
+            f"less than 1/{1 / CLUSTERED_SPAN_OVER_SIZE:.0f} of the tissue's {size[0]:g} x {size[1]:g} mm in both "
+            "directions: are they in m rather than mm? (marker files are read in mm)")
+
+
+def moved_on_a_clamp(rest: np.ndarray, deformed: np.ndarray, lines: np.ndarray, tissue: Tissue,
+                     where: str) -> str | None:
+    """The warning for markers at rest on a clamped piece of the boundary whose measured
+    position moved (by more than NO_MOTION_OVER_SIZE of the tissue's size), or None: the model
+    holds them fixed whatever the moduli, so their move is misfit the fit cannot reduce (a
+    slipping clamp, or a marker off the clamped edge)."""
+    domain = tissue.domain
+    held = np.zeros(len(rest), dtype=bool)
+    piece = np.full(len(rest), -1)
+    for k, (start, end) in enumerate(tissue.clamped_pieces()):
+        on = on_segment(rest, start, end, domain.tolerance) & ~held
+        piece[on], held = k, held | on
+    move = np.linalg.norm(deformed - rest, axis=1)  # (n,)
+    moved = np.flatnonzero(held & (move > NO_MOTION_OVER_SIZE * max(tissue.bounding_size)))
+    if not len(moved):
+        return None
+    k = moved[np.argmax(move[moved])]
+    item = tissue.clamped[piece[k]]
+    clamp = f"the clamped edge {item!r}" if isinstance(item, str) else "a clamped segment"
+    more = (f"; {len(moved) - 1} more marker{'s' * (len(moved) > 2)} on a clamped piece moved too"
+            if len(moved) > 1 else "")
+    return (f"{where}: line {lines[k]}, x_def, y_def: the marker at rest at [{rest[k, 0]:g}, {rest[k, 1]:g}] mm lies "
+            f"on {clamp} (tissue.clamped[{piece[k]}]), which the model holds fixed, yet moved by {move[k]:.3g} mm to "
+            f"[{deformed[k, 0]:g}, {deformed[k, 1]:g}]: its move is misfit whatever the moduli (does the clamp slip, "
+            f"or does the marker lie off the clamped edge?){more}")
 
 
 def check_displacements(rest: np.ndarray, deformed: np.ndarray, lines: np.ndarray, size: float,
@@ -164,6 +227,21 @@ def check_displacements(rest: np.ndarray, deformed: np.ndarray, lines: np.ndarra
             f"{where}: x_def,y_def: got every marker at its rest position x,y (largest displacement "
             f"{largest:g} mm over {len(rest)} markers), expected markers the experiment's loads displace "
             "(are the deformed columns a copy of the rest ones?)")
+
+
+def check_marker_count(count: int, fit: FitSettings) -> None:
+    """Enough markers for the P fitted moduli (the tissue's pair and each fitted region's) and
+    their uncertainty: sigma^2 = |r|^2 / (m - P) needs m > P coordinates, and markers give
+    them in pairs, so at least P / 2 + 1 markers."""
+    parameters = len(fit.parameter_names)
+    needed = parameters // 2 + 1
+    if count >= needed:
+        return
+    regions = len(fit.regions)
+    which = (f": the tissue's 2 moduli and 2 for each of the {regions} region{'s' * (regions != 1)} of fit.regions "
+             f"{list(fit.regions)}" if regions else "")
+    raise InputError(f"experiments: {count} marker{'s' * (count != 1)} in all, expected at least {needed} "
+                     f"({2 * needed} coordinates for {parameters} parameters and their uncertainty{which})")
 
 
 def parse_material_calibration(raw: Any, folder: Path, source: str = "") -> MaterialCalibration:
@@ -189,11 +267,12 @@ def parse_material_calibration(raw: Any, folder: Path, source: str = "") -> Mate
                             "differently)")
     if problems:
         raise input_error(problems)
-    if sum(len(e.markers) for e in experiments) < 2:
-        raise InputError("experiments: 1 marker in all, expected at least 2 (4 coordinates "
-                         "for 2 parameters and their uncertainty)")
-    return MaterialCalibration(tissue, tuple(experiments), fit, spec.discretization or Discretization(),
-                               spec.solver or Solver(), spec.name, source)
+    check_marker_count(sum(len(e.markers) for e in experiments), fit)
+    calibration = MaterialCalibration(tissue, tuple(experiments), fit, spec.discretization or Discretization(),
+                                      spec.solver or Solver(), spec.name, source)
+    for warning in calibration.warnings:  # said now: a fit that fails on such data would not say them
+        log.warning(warning)
+    return calibration
 
 
 def load_material_calibration(path: str | Path, spacing: float | None = None,

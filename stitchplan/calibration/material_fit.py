@@ -29,7 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, NumericalFailure
+from ..config import Solver
+from ..config.blocks import coarsest_spacing
+from ..errors import InputError, NumericalFailure, SolverDivergence
 from .fit_statistics import MODULI, fit_warnings, identified, statistics
 from .forward import ExperimentModel
 from .inputs import FitSettings, MaterialCalibration, load_material_calibration
@@ -81,6 +83,7 @@ class MarkerMisfit:
                                             problem.solver, shared, problem.fit.regions)
                             for e in problem.experiments]
         self.names = problem.fit.parameter_names  # of theta's entries
+        self.solver = problem.solver
         self.labels = [experiment_label(i, e.name) for i, e in enumerate(problem.experiments)]
         self.measured = np.concatenate([e.measured for e in problem.experiments])  # (n, 2)
         self._cache: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray | None, list]] = {}
@@ -173,6 +176,7 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
     cost = np.full((len(lambdas), len(mus)), np.nan)
     failures: list[tuple[int, int]] = []  # where a solve failed: softer points are skipped
     failed_experiments: dict[str, str] = {}  # experiment -> its first failure
+    limited = True  # every failure so far Newton's iteration limit
     tried = 0
     for step, i in enumerate(reversed(range(len(lambdas)))):
         for j in (reversed(range(len(mus))) if step % 2 == 0 else range(len(mus))):
@@ -185,6 +189,7 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
             except ForwardFailure as failure:
                 failures.append((i, j))
                 failed_experiments.setdefault(failure.experiment, failure.cause)
+                limited = limited and iteration_limited(failure)
                 log.info("grid point: no solution (%s)", failure)
                 advance()
                 continue
@@ -194,23 +199,39 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
                 cost[i, j] = value
             else:  # markers finite, yet their squares overflow: no sign of a too soft material
                 failed_experiments.setdefault(" and ".join(misfit.labels), f"the misfit f = {value} overflows")
+                limited = False
             advance()
     failed = int(np.isnan(cost).sum())
     if failed == cost.size:
+        where = (f"all {cost.size} grid points" if tried == cost.size else
+                 f"the {tried} stiffest grid point{'s' if tried > 1 else ''} tried, the {cost.size - tried} "
+                 f"others softer still (not tried)")
+        causes = "; ".join(f"in {label}: {cause}" for label, cause in failed_experiments.items())
+        prefix = f"{source}: " if source else ""
+        iterations, default = misfit.solver.max_iterations, Solver().max_iterations
+        if limited and iterations < default:  # the solver's settings, not the moduli, stop it
+            raise InputError(
+                f"{prefix}solver.max_iterations: got {iterations}, expected enough Newton iterations for the "
+                f"forward model to converge (the default is {default}): every solve the fit's grid tried stopped at "
+                f"Newton's iteration limit ({where}); {causes}")
         raise InputError(
-            (f"{source}: " if source else "")
-            + f"fit: could not evaluate any moduli in lame_lambda {list(fit.lame_lambda)}, lame_mu "
-            f"{list(fit.lame_mu)} MPa: the forward model failed at "
-            + (f"all {cost.size} grid points, " if tried == cost.size else
-               f"the {tried} stiffest grid point{'s' if tried > 1 else ''} tried, the {cost.size - tried} "
-               f"others softer still (not tried), ")
-            + "; ".join(f"in {label}: {cause}" for label, cause in failed_experiments.items())
+            prefix + f"fit: could not evaluate any moduli in lame_lambda {list(fit.lame_lambda)}, lame_mu "
+            f"{list(fit.lame_mu)} MPa: the forward model failed at {where}, {causes}"
             + "; expected ranges where the tissue can carry the loads (raise the lower bounds or reduce the loads)")
     i, j = np.unravel_index(np.nanargmin(cost), cost.shape)
     if failed:
         log.info("grid: %d of %d points without a static solution (too soft for the loads)",
                  failed, cost.size)
     return GridSearch(lambdas, mus, cost, (float(lambdas[i]), float(mus[j])), failed)
+
+
+def iteration_limited(failure: ForwardFailure) -> bool:
+    """Whether a forward solve failed on Newton's iteration limit (solver.max_iterations): the
+    last try of the load step that failed, after its step cuts, ran out of iterations with a
+    finite residual (not an inverted material, a non-finite residual or a failed linear solve)."""
+    cause = failure.__cause__  # the solver's failure, raised after the step cuts
+    last = getattr(cause, "__context__", None)  # the last try's, which the step cuts caught
+    return isinstance(last, SolverDivergence) and str(last).startswith("no convergence in ")
 
 
 # --- least-squares refinement ---------------------------------------------------------
@@ -289,8 +310,17 @@ class DiscretizationEstimate:
 
 def discretization_estimate(problem: MaterialCalibration, theta: np.ndarray,
                             advance: Callable[..., None]) -> DiscretizationEstimate:
-    """The least squares of the fit at twice its spacing, started at the fitted moduli."""
+    """The least squares of the fit at twice its spacing, started at the fitted moduli; not
+    made (its `failure` says why) where that spacing is too coarse for the tissue, a model the
+    resource guard would refuse on its own (it lets the fit's finer model run)."""
     spacing = problem.estimate_spacing
+    size = problem.tissue.bounding_size
+    if spacing > coarsest_spacing(size):
+        failure = (f"its model at {spacing:g} mm would be too coarse for the tissue ({size[0]:g} x {size[1]:g} mm): "
+                   f"a spacing may be at most half the smaller side, {coarsest_spacing(size):g} mm, so that three "
+                   "particles span it")
+        log.info("discretization estimate: not made (%s)", failure)
+        return DiscretizationEstimate(spacing, None, None, 0, failure)
     try:
         coarse = replace(problem, discretization=problem.discretization.replaced(spacing=spacing))
         misfit = MarkerMisfit(coarse)
@@ -414,6 +444,7 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress,
         warnings += discretization_warnings(coarse, theta, uncertainty, problem.fit.parameter_names)
     for message in warnings:
         log.warning(message)
+    warnings = problem.warnings + warnings  # the inputs' first, said when they were read
     sizes = np.cumsum([len(e.markers) for e in problem.experiments])[:-1]
     return MaterialFit(
         problem=problem,

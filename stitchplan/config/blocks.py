@@ -455,6 +455,13 @@ def default_spacing_of(size: tuple[float, float], radius: float | None) -> float
     return min(0.4 * radius, max(size) / 20.0, min(size) / 8.0)
 
 
+def coarsest_spacing(size: tuple[float, float]) -> float:
+    """The coarsest spacing a model of a tissue whose bounding box has `size` (mm) may have:
+    half its smaller side, so that at least three particles span it (coarser, the model means
+    nothing: resources.guard's `_coarse_refusal`, a calibration's discretization estimate)."""
+    return min(size) / 2.0
+
+
 def parse_discretization(raw: Any, path: str = "discretization") -> Discretization:
     """The `discretization:` block (None: the defaults); errors name fields below `path`."""
     return Discretization() if raw is None else validate(Discretization, raw, path)
@@ -581,11 +588,22 @@ class Load:
 ONE_KIND = "exactly one of 'force' (N) or 'displacement' (mm)"
 
 
+# the load steps' relative Newton tolerances stay below this: at 1e-2 a solve may stop with a
+# hundredth of the load out of balance, and from a residual tolerance of 1 up a solve stops
+# before its first iteration (the model never moves: `calibrate material` then ends every
+# modulus on its bound). The defaults are 5e-6 and 1e-8.
+MAX_RELATIVE_TOLERANCE = 1e-2
+RelativeTolerance = number(f"a positive number below {MAX_RELATIVE_TOLERANCE:g} (a relative tolerance)",
+                           gt=0, lt=MAX_RELATIVE_TOLERANCE)
+
+
 @block(title="solver")
 class Solver:
     # static load steps (deform, calibration): full Newton, which the increment test ends
-    residual_tolerance: described(Positive, "load steps' Newton: force residual tolerance (relative)") = 5e-6
-    increment_tolerance: described(Positive, "load steps' Newton: increment tolerance (relative)") = 1e-8
+    residual_tolerance: described(RelativeTolerance, "load steps' Newton: force residual tolerance (relative, "
+                                  f"below {MAX_RELATIVE_TOLERANCE:g})") = 5e-6
+    increment_tolerance: described(RelativeTolerance, "load steps' Newton: increment tolerance (relative, "
+                                   f"below {MAX_RELATIVE_TOLERANCE:g})") = 1e-8
     max_iterations: described(integer(1, 500), "Newton iterations per load or needle step") = 25
     max_step_cuts: described(integer(0, 30), "halvings of a load step that fails to converge") = 6
     # a needle step's modified Newton stops on both; unset, they follow the coupling

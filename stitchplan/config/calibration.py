@@ -50,7 +50,7 @@ from .fields import (
 )
 from .load_checks import load_problems
 from .messages import Shown, combined, valid_or_none, validate
-from .tissue_shape import tissue_outside_regions
+from .tissue_shape import regions_covered_before, tissue_outside_regions
 
 GRID_SCALES = ("log", "linear")
 MarkerFile = Annotated[str, Strict(), Field(min_length=1),
@@ -137,6 +137,16 @@ class CalibrationTissue:
             tissue = self.tissue(Material())
         except ValidationError as error:
             raise combined(error.errors()) from None
+        # a calibration's region that holds no tissue fits nothing, or when fitted has no
+        # marker to see it: a user's mistake (a scenario keeps its regions as they come)
+        covered = [problem("a region overlapping the tissue (this one holds no tissue: "
+                           + " and ".join(f"tissue.regions[{j}]" for j in before)
+                           + f", listed before it, cover{'s' * (len(before) == 1)} its part of the tissue, and the region "
+                           "listed first wins where regions overlap)",
+                           field=f"regions[{i}].{self.regions[i].shown()[0]}", value=self.regions[i].shown()[1])
+                   for i, before in regions_covered_before(tissue).items()]
+        if covered:
+            raise combined(covered)
         if self.regions and not tissue_outside_regions(tissue):
             raise problem("regions that leave some of the tissue to its own material (the moduli the fit "
                           "finds; the regions keep theirs)", field="regions",
@@ -223,6 +233,24 @@ class CalibrationFile:
     fit: described(FitBlock, "search ranges and settings of the fit")
     discretization: described(Discretization | None, "optional; default spacing min(W, H)/20") = None
     solver: described(Solver | None, "Newton settings") = None
+
+    @model_validator(mode="after")
+    def _names_once(self) -> CalibrationFile:
+        """Each experiment's name once: fitted.yaml's per-experiment results and the residual
+        plot tell the experiments apart by it (unnamed ones by their index)."""
+        first: dict[str, int] = {}
+        problems = []
+        for i, experiment in enumerate(self.experiments):
+            if not experiment.name:
+                continue
+            j = first.setdefault(experiment.name, i)
+            if j != i:
+                problems.append(problem(f"a name of its own (experiments[{j}] has it too; fitted.yaml's results per "
+                                        "experiment are told apart by it)",
+                                        field=f"experiments.{i}.name", value=experiment.name))
+        if problems:
+            raise combined(problems)
+        return self
 
     @model_validator(mode="after")
     def _fitted_regions(self) -> CalibrationFile:

@@ -238,6 +238,33 @@ def tissue_outside_regions(tissue: TissueBlock) -> bool:
     return len(points) > 0
 
 
+def regions_covered_before(tissue: TissueBlock) -> dict[int, list[int]]:
+    """The regions that overlap the tissue yet hold none of it, as {index: the regions listed
+    before it that cover its part of the tissue}: a point belongs to the first region listed
+    that holds it, so a region within earlier ones gets no quadrature point (a lattice of
+    200 x 200 points over its bounding box, as _overlaps). Regions outside the tissue are
+    shape_problems' to refuse."""
+    domain = tissue.domain
+    shapes = [PolygonDomain(counter_clockwise(region.vertices())) for region in tissue.regions]
+    covered = {}
+    for i, region in enumerate(shapes):
+        if i == 0:
+            continue
+        points = _box_lattice(region.origin, region.origin + np.array(region.size))
+        points = points[region._inside_strict(points) & domain.contains(points)]
+        if not len(points):
+            continue
+        left, covering = points, []
+        for j, earlier in enumerate(shapes[:i]):
+            inside = earlier._inside_strict(left)
+            if np.any(inside):
+                covering.append(j)
+                left = left[~inside]
+        if not len(left):
+            covered[i] = covering
+    return covered
+
+
 def _overlaps(region: PolygonDomain, domain) -> bool:
     """Whether the region holds tissue: a lattice of 200 x 200 points over the region's
     bounding box with some point inside both (regions thinner than 1/200 of their box count

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from ..config import DEFAULT_NEEDLE_REFINEMENT
+from ..config.blocks import coarsest_spacing
 from ..errors import InputError
 from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate,
                     condition_particles_within, held_at_once, held_in_one_process, size_scale)
@@ -55,11 +56,19 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     that needs more address space than the limit allows (machine.address_space_needed) is
     refused naming the limit. `in_one_process`: the runs of `estimates` are held at once in this
     process (costs.held_in_one_process: a material calibration's experiments), together
-    within the memory share and the address-space limit."""
+    within the memory share and the address-space limit; there a run that is another's model
+    at a coarser spacing (_coarser_copies: the calibration's discretization estimate, each
+    experiment refitted at twice the spacing) counts only in the memory they hold together,
+    with no refusal line of its own: it is smaller than the run it copies, whose lines name the
+    same settings, and one too coarse for the tissue is not made (the calibration records its
+    estimate as not made, saying why) rather than refusing the fit."""
     memory = available_memory() if memory is None else memory
     space = address_space() if space is None else space
     lines = []
-    for item in estimates:
+    copies = _coarser_copies(estimates) if in_one_process else set()
+    for index, item in enumerate(estimates):
+        if index in copies:
+            continue
         size, what = item.size, f"estimated {item.describe()}"
         too_many_steps = item.needle_step is not None and item.steps > limits.max_needle_steps
         too_long = item.condition_seconds > limits.max_condition_seconds
@@ -110,6 +119,21 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             log.warning("a long run: estimated %s; -v shows its progress", item.describe())
     for item in alongside or []:  # they take no longer than the runs they go with: no warning of their own
         log.info("resources: %s", item.describe())
+
+
+def _coarser_copies(estimates: list[Estimate]) -> set[int]:
+    """Indices of the runs whose model is another run's at a coarser spacing: the same tissue
+    and discretization but for a larger spacing (a calibration's discretization estimate
+    beside its fit)."""
+    def rest(item: Estimate) -> tuple:
+        fields = item.discretization.as_input()
+        fields.pop("spacing")
+        return item.tissue_size, tuple(sorted(fields.items()))
+
+    keys = [rest(item) for item in estimates]
+    return {i for i, item in enumerate(estimates)
+            if any(j != i and keys[j] == keys[i] and other.discretization.spacing < item.discretization.spacing
+                   for j, other in enumerate(estimates))}
 
 
 @dataclass(frozen=True)
@@ -207,7 +231,7 @@ def _coarse_refusal(item: Estimate) -> str | None:
     d, origin = item.discretization, item.origin
     spacing = origin.value("spacing", d.spacing)
     width, height = item.tissue_size
-    if d.spacing > min(width, height) / 2.0:
+    if d.spacing > coarsest_spacing((width, height)):
         # the spacing as set (a study's at the needle) may differ from the model's coarse one
         coarse = "" if math.isclose(spacing, d.spacing) else f" (a coarse spacing of {d.spacing:.3g} mm)"
         return (f"{origin.name('spacing')}: got {spacing:g} mm{coarse}, expected at most half the tissue's smaller "
@@ -245,8 +269,10 @@ def _particle_setting(item: Estimate, fits: Callable[[float], bool]) -> Setting:
         spacing, refinement = origin.value("spacing", d.spacing), d.needle_refinement
         note = f"a needle spacing of {spacing:g} mm / {refinement:g} = {spacing / refinement:.3g} mm"
         if not math.isclose(spacing, d.spacing):  # a replay's (a plan's verification at half the spacing)
-            note += f", the run's {d.spacing:.4g} mm / {refinement:g} = {d.needle_spacing:.3g} mm"
-        return Setting(origin.name("needle_refinement"), f"{refinement:g}", "a refinement giving", "lower it",
+            note += f", the replay's {d.spacing:.4g} mm / {refinement:g} = {d.needle_spacing:.3g} mm"
+        # a spacing set by an option (--spacing) scaled the needle's with it: coarsening it helps too
+        remedy = f"lower it or coarsen {origin.name('spacing')}" if "spacing" in origin.names else "lower it"
+        return Setting(origin.name("needle_refinement"), f"{refinement:g}", "a refinement giving", remedy,
                        f"{note}; ")
     return Setting(origin.name("needle_spacing"), f"{origin.value('needle_spacing', d.needle_spacing):g} mm",
                    "a needle spacing giving", "coarsen it")
