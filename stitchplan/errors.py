@@ -35,7 +35,15 @@ class NumericalFailure(StitchplanError, RuntimeError):
 
 
 class SolverDivergence(NumericalFailure):
-    """Newton failed even after cutting the load step; the message says where."""
+    """Newton failed even after cutting the load step; the message says where. `last_try`: the
+    failure of the last try, after the step cuts (None: not a load step's)."""
+
+    last_try: Exception | None = None
+
+
+class IterationLimit(SolverDivergence):
+    """Newton ran out of solver.max_iterations with a finite residual (not an inverted material
+    or a failed linear solve): the solver's settings may be what stops it."""
 
 
 class InvertedMaterial(NumericalFailure, ArithmeticError):

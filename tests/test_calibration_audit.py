@@ -243,7 +243,7 @@ def test_a_grid_stopped_by_a_low_iteration_limit_names_solver_max_iterations(tmp
     result = run("calibrate", "material", path, "--out", out)
     assert_refused(result, out, "calib.yaml: solver.max_iterations: got 1, expected enough Newton iterations for the "
                                 "forward model to converge (the default is 25): every solve the fit's grid tried "
-                                "stopped at Newton's iteration limit (", "no convergence in 1 iterations")
+                                "stopped at Newton's iteration limit (", "no convergence in 1 iteration (")
     assert "expected ranges where the tissue can carry the loads" not in result.output
 
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..config import Solver
 from ..config.blocks import coarsest_spacing
-from ..errors import InputError, NumericalFailure, SolverDivergence
+from ..errors import InputError, IterationLimit, NumericalFailure
 from .fit_statistics import MODULI, fit_warnings, identified, statistics
 from .forward import ExperimentModel
 from .inputs import FitSettings, MaterialCalibration, load_material_calibration
@@ -228,10 +228,9 @@ def grid_search(misfit: MarkerMisfit, fit: FitSettings, advance: Callable[..., N
 def iteration_limited(failure: ForwardFailure) -> bool:
     """Whether a forward solve failed on Newton's iteration limit (solver.max_iterations): the
     last try of the load step that failed, after its step cuts, ran out of iterations with a
-    finite residual (not an inverted material, a non-finite residual or a failed linear solve)."""
-    cause = failure.__cause__  # the solver's failure, raised after the step cuts
-    last = getattr(cause, "__context__", None)  # the last try's, which the step cuts caught
-    return isinstance(last, SolverDivergence) and str(last).startswith("no convergence in ")
+    finite residual (IterationLimit; not an inverted material, a non-finite residual or a
+    failed linear solve)."""
+    return isinstance(getattr(failure.__cause__, "last_try", None), IterationLimit)
 
 
 # --- least-squares refinement ---------------------------------------------------------

@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from .assembly import Assembler
 from .factorization import factorize
 from ..config import Solver
-from ..errors import InvertedMaterial, SolverDivergence
+from ..errors import InvertedMaterial, IterationLimit, SolverDivergence
 from .model import TissueModel
 from .material import determinant
 
@@ -192,8 +192,15 @@ def newton(
             raise SolverDivergence(f"linear solve failed at iteration {iteration + 1}")
         x = x + delta
         increment_norm = float(np.abs(delta).max())
-    raise SolverDivergence(
-        f"no convergence in {settings.max_iterations} iterations (residual {residual_norm:.3e} N)"
+    iterations = f"{settings.max_iterations} iteration{'s' * (settings.max_iterations != 1)}"
+    if residual_norm <= tolerance:  # the forces balance; the increments have not settled
+        limit = settings.increment_tolerance * (np.abs(x).max() + length_scale)
+        raise IterationLimit(
+            f"no convergence in {iterations} (residual {residual_norm:.3e} N, within its "
+            f"tolerance {tolerance:.3e} N, but the last increment {increment_norm:.3e} mm above its tolerance "
+            f"{limit:.3e} mm)")
+    raise IterationLimit(
+        f"no convergence in {iterations} (residual {residual_norm:.3e} N)"
     )
 
 
@@ -290,10 +297,10 @@ class LoadPath:
                 x, its, residual, increment, initial = self._newton(trial, scale)
             except (SolverDivergence, InvertedMaterial) as failure:
                 if cuts >= self.settings.max_step_cuts:
-                    raise SolverDivergence(
-                        f"Newton failed at load step {step} (load fraction {trial:.4f}) after "
-                        f"{cuts} step cuts: {failure}"
-                    ) from None
+                    error = SolverDivergence(f"Newton failed at load step {step} (load fraction {trial:.4f}) after "
+                                             f"{cuts} step cuts: {failure}")
+                    error.last_try = failure
+                    raise error from None
                 cuts += 1
                 size *= 0.5
                 self.previous_increment = np.zeros_like(self.free)
