@@ -25,7 +25,7 @@ from typer.testing import CliRunner
 from stitchplan.cli import app
 from stitchplan.cli.options import check_angular_speed, parse_base_transform
 from stitchplan.config import Robot, load_scenario
-from stitchplan.config.blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
+from stitchplan.config.plan_blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
 from stitchplan.decimals import parse_number
 from stitchplan.errors import InputError
 from stitchplan.io.readers import ANGLE_TOLERANCE, read_center_path

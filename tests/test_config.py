@@ -350,7 +350,7 @@ def test_robot_block_takes_the_bounds_of_the_options(slab_raw):
     """The file's robot block accepts what --base-transform and --angular-speed accept, up to
     their bounds (the Robot held inside is not bounded: planning.trajectory is the backstop)."""
     from stitchplan.config import Robot
-    from stitchplan.config.blocks import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG, MIN_ANGULAR_SPEED
+    from stitchplan.config.plan_blocks import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG, MIN_ANGULAR_SPEED
 
     slab_raw["robot"] = {"base_transform": {"rotation_deg": -MAX_BASE_ROTATION_DEG,
                                             "translation": [MAX_BASE_OFFSET_MM, -MAX_BASE_OFFSET_MM]},

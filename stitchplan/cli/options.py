@@ -404,7 +404,7 @@ def parse_base_transform(text: Optional[str]):
     trajectory.csv meaningful (planning.trajectory)."""
     from ..errors import InputError
     from ..decimals import parse_number
-    from ..config.blocks import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG
+    from ..config.plan_blocks import MAX_BASE_OFFSET_MM, MAX_BASE_ROTATION_DEG
 
     if text is None:
         return None
@@ -421,7 +421,7 @@ def parse_base_transform(text: Optional[str]):
 def check_angular_speed(speed: Optional[float]) -> None:
     """--angular-speed: slower than MIN_ANGULAR_SPEED, time_s would overflow to inf."""
     from ..errors import InputError
-    from ..config.blocks import MIN_ANGULAR_SPEED
+    from ..config.plan_blocks import MIN_ANGULAR_SPEED
 
     if speed is not None and not MIN_ANGULAR_SPEED <= speed < math.inf:  # also refuses nan
         raise InputError(f"--angular-speed: got {speed!r}, expected a positive speed in rad/s of at least "

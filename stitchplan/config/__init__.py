@@ -9,7 +9,8 @@ Modules, each importing only those before it (and stitchplan.errors, stitchplan.
   tolerance or refused naming the nearest boundary point;
 - tissue_shape: a tissue's outline, holes, regions and clamps made into the shape the model
   uses, or the problems that stop it;
-- blocks: tissue, material, discretization, needle, loads, solver, planner, robot;
+- blocks: tissue, material, discretization, needle, loads, solver;
+- plan_blocks: planner, robot;
 - load_checks: loads off the clamped edges and apart from each other, a slab held in place;
 - study: the optional `study:` block;
 - scenario: the scenario file and Scenario, default spacing, load_scenario;
@@ -24,14 +25,13 @@ from .blocks import (
     Load,
     Material,
     Needle,
-    Planner,
-    Robot,
     Solver,
     Tissue,
     parse_discretization,
 )
 from .fields import EDGES, INTEGRATIONS, LINEAR_SOLVERS, MATERIAL_MODELS, TIP_TRACKING
 from .messages import input_error
+from .plan_blocks import Planner, Robot
 from .scenario import (
     DEFAULT_NEEDLE_REFINEMENT,
     Scenario,

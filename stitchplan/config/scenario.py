@@ -23,9 +23,6 @@ from .blocks import (
     Material,
     Needle,
     NeedleRadius,
-    Planner,
-    Robot,
-    RobotBlock,
     ScenePoint,
     Solver,
     Tissue,
@@ -51,6 +48,7 @@ from .fields import (
 )
 from .load_checks import HELD, load_problems
 from .messages import combined, input_error, merged_typos, valid_or_none, validate, value_at
+from .plan_blocks import Planner, Robot, RobotBlock
 from .study import StudySpec
 from .yaml_files import read_yaml, read_yaml_file, with_key_problems
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..config import Robot
 # the bounds of the robot's frame and speed (the robot block checks a file's, cli.options the options')
-from ..config.blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
+from ..config.plan_blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
 from ..errors import InputError, NumericalFailure
 from ..needle.results import InsertionResult
 
