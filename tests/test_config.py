@@ -263,6 +263,18 @@ def test_the_file_path_starts_every_line(write_scenario, slab_raw):
                                  f"{path}: tissue.thickness: got -1, expected a positive number (mm)"]
 
 
+@pytest.mark.parametrize("probe, placed", [
+    ([100.0000001, 25.0], (100.0, 25.0)), ([100.00000001, 25.0], (100.0, 25.0)), ([-1e-7, 25.0], (0.0, 25.0)),
+    ([50.0, 100.0000001], (50.0, 100.0)), ([100.0009, 25.0], (100.0, 25.0)), ([99.99999999, 25.0], (99.99999999, 25.0)),
+])
+def test_probes_just_outside_are_placed_on_the_boundary(slab_raw, probe, placed):
+    """A probe within the input tolerance (1 um) outside the tissue is moved onto its boundary,
+    also where it lies within round-off's tolerance of it (1e-7 mm out: kept as given, it was
+    outside the tissue the model checks, and `deform` stopped with a traceback)."""
+    slab_raw["probes"] = [probe]
+    assert parse_scenario(slab_raw).probes == (placed,)
+
+
 @pytest.mark.parametrize("value, shown", [
     (float("nan"), "nan"), (float("inf"), "inf"), (True, "true"), ("10", "'10'"), (None, "null"),
     ([10.0], "[10.0]"),

@@ -138,6 +138,8 @@ def probe_in_tissue(domain: Rectangle | PolygonDomain, point) -> tuple[tuple[flo
     snapped = snap_to_boundary(domain, point)
     if snapped is None:
         return None, f"{inside_expectation(domain)}; {nearest_note(domain, point)}"
+    if not domain.contains(snapped):  # kept as given, on the boundary to round-off, yet outside: onto it
+        snapped = nearest_boundary_point(domain, snapped)[0]
     return as_pair(snapped), ""
 
 

@@ -119,7 +119,8 @@ def _write_deform_files(result, files: dict[str, Path], provenance: dict, plot_s
     probes_out, reactions_out, summary, out, plot = (
         files.get(label) for label in ("--probes-out", "--reactions-out", "--summary", "--out", "--plot"))
     if probes_out is not None:
-        rows = np.hstack([result.probes, result.probe_displacements])
+        # to 1e-12 mm as the summary's points: 0, not 2.3e-21, at a probe the clamp holds
+        rows = np.hstack([result.probes, _point(result.probe_displacements)])
         write_csv(probes_out, ["x", "y", "ux", "uy"], rows)
     if reactions_out is not None:
         rows = [[i, fx, fy] for i, (fx, fy) in enumerate(result.reactions.tolist())]
@@ -198,7 +199,7 @@ def plan_line(result, export: Path) -> str:
             f"{planned.wall_seconds:.2f} s planned run; trajectory written to {export}")
 
 
-POINT_DECIMALS = 12  # summary points (mm) to 1e-12 mm: 0, not the round-off 5.4e-16 of an exit on x = 0
+POINT_DECIMALS = 12  # points and displacements (mm) to 1e-12 mm: 0, not the round-off 5.4e-16 of an exit on x = 0
 
 
 def _point(point) -> np.ndarray | None:
