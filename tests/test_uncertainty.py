@@ -88,6 +88,11 @@ BAD_FILES = [
      "parameters.friction: got {std: 0.01}, expected a parameter the scenario has"),
     ({"parameters": {"friction": None, "thickness": {"std": 1.0}}},  # `friction:` left blank
      "parameters.friction: got null, expected a mapping {std: ...} giving the parameter's standard deviation"),
+    # `from_calibration:` left blank: it ran without the calibration's moduli, saying nothing
+    ({"from_calibration": None}, ("u.yaml: from_calibration: got null, expected a `stitchplan calibrate material` "
+                                  "output file (fitted.yaml), relative to this file (or remove the key)")),
+    ({"parameters": None, "from_calibration": "fitted_displacement_only.yaml"},
+     "u.yaml: parameters: got null, expected a mapping of parameters to {std: ...} (or remove the key)"),
     ({"from_calibration": "missing.yaml"}, "from_calibration: "),
     ({"from_calibration": "."}, ": cannot be read (Is a directory), expected a `stitchplan calibrate material` output"),
     ({"from_calibration": "fitted_displacement_only.yaml"},

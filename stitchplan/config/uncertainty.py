@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import Field, Strict, field_validator, model_validator
+from pydantic import Field, Strict, ValidationInfo, field_validator, model_validator
 
 from ..errors import InputError
 from .blocks import Region, block
@@ -114,6 +114,17 @@ class UncertaintyFile:
     parameters: described(Spreads | None, "normal distributions around the scenario's values") = None
     correlation: described(sequence(Correlation, "a list of {between: [a, b], value: r}"),
                            "correlations between parameters") = ()
+
+    @field_validator("from_calibration", "parameters", mode="before")
+    @classmethod
+    def _not_blank(cls, value: Any, info: ValidationInfo) -> Any:
+        """A key given without a value (`from_calibration:`) is refused, not dropped: the run
+        would sample without what the file names (the calibration's moduli)."""
+        if value is None:
+            what = ("a `stitchplan calibrate material` output file (fitted.yaml), relative to this file"
+                    if info.field_name == "from_calibration" else "a mapping of parameters to {std: ...}")
+            raise problem(f"{what} (or remove the key)")
+        return value
 
     @model_validator(mode="after")
     def _pairs_once(self) -> UncertaintyFile:
