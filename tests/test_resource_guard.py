@@ -964,3 +964,15 @@ def test_the_memory_that_fits_an_address_space_limit_is_the_need_inverted():
                 assert address_space_needed(mapped, memory, BASE_MEMORY) == pytest.approx(limit, rel=1e-12)
                 checked += 1
     assert checked >= 6
+
+
+def test_a_setting_refused_for_several_runs_is_said_once():
+    """A study whose spacing is too coarse for the tissue: its families' runs were each refused
+    by the same field (three lines for one problem); now the field's first line alone."""
+    from stitchplan.resources.guard import _one_per_field
+
+    lines = ["study.spacing: got 500 mm, expected at most half ...",
+             "study.spacing: got 500 mm (a coarse spacing of 2e+03 mm), expected at most half ...",
+             "the study's default reference spacing: got 250 mm, expected ...",
+             "needle.step: got 1e-05 rad, expected a step giving at most 2000 needle steps"]
+    assert _one_per_field(lines) == [lines[0], lines[2], lines[3]]

@@ -115,7 +115,8 @@ class StudySpec:
                 raise problem("a name other than 'reference' and 'auto', the study's own runs' families",
                               field=f"{k}.name", value=name)
         if len(set(names)) != len(names):
-            raise problem("families with distinct names", value=names)
+            raise problem("families with distinct names (a family without a name is 'family k', k its place in "
+                          "the list)", value=names)
         return families
 
     @field_validator("reference")

@@ -110,6 +110,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         elif space is not None and address_space_needed(space[1], total, BASE_MEMORY) > space[0]:
             lines.append(_address_space_refusal(largest, *space, beside=total - largest.memory_bytes))
     if lines:
+        lines = _one_per_field(lines)
         error = InputError("\n".join(lines))
         error.lines = lines
         raise error
@@ -119,6 +120,18 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             log.warning("a long run: estimated %s; -v shows its progress", item.describe())
     for item in alongside or []:  # they take no longer than the runs they go with: no warning of their own
         log.info("resources: %s", item.describe())
+
+
+def _one_per_field(lines: list[str]) -> list[str]:
+    """The first refusal of each field or option (what precedes ': got'): the runs of one
+    command (a study's families, a plan's replays) refused for one setting say it once."""
+    seen, kept = set(), []
+    for line in lines:
+        name = line.split(": got ", 1)[0] if ": got " in line else line
+        if name not in seen:
+            seen.add(name)
+            kept.append(line)
+    return kept
 
 
 def _coarser_copies(estimates: list[Estimate]) -> set[int]:
