@@ -365,6 +365,15 @@ def _os_error(error: OSError, temporaries: dict[str, Path], paths: dict[str, Pat
 # --- provenance ----------------------------------------------------------------------------
 
 
+POINT_DECIMALS = 12  # points and displacements (mm) to 1e-12 mm: 0, not the round-off 5.4e-16 of an exit on x = 0
+
+
+def rounded_point(point) -> np.ndarray | None:
+    """A point (or displacements) in mm as the outputs write it, rounded to POINT_DECIMALS,
+    -0 made 0 (the errors reported are the unrounded points')."""
+    return None if point is None else np.round(np.asarray(point, dtype=float), POINT_DECIMALS) + 0.0
+
+
 def sha256(path: PathLike) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:

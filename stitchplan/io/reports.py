@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .files import OutputSet, write_csv, write_hdf5, write_json
+from .files import OutputSet, rounded_point, write_csv, write_hdf5, write_json
 from .files import provenance as make_provenance
 
 # units of the HDF5 run logs' datasets, by "group/name" or by name ("1": a pure number or a
@@ -123,7 +123,7 @@ def _write_deform_files(result, files: dict[str, Path], provenance: dict, plot_s
         files.get(label) for label in ("--probes-out", "--reactions-out", "--summary", "--out", "--plot"))
     if probes_out is not None:
         # to 1e-12 mm as the summary's points: 0, not 2.3e-21, at a probe the clamp holds
-        rows = np.hstack([result.probes, _point(result.probe_displacements)])
+        rows = np.hstack([result.probes, rounded_point(result.probe_displacements)])
         write_csv(probes_out, ["x", "y", "ux", "uy"], rows)
     if reactions_out is not None:
         rows = [[i, fx, fy] for i, (fx, fy) in enumerate(result.reactions.tolist())]
@@ -202,17 +202,9 @@ def plan_line(result, export: Path) -> str:
             f"{planned.wall_seconds:.2f} s planned run; trajectory written to {export}")
 
 
-POINT_DECIMALS = 12  # points and displacements (mm) to 1e-12 mm: 0, not the round-off 5.4e-16 of an exit on x = 0
-
-
-def _point(point) -> np.ndarray | None:
-    """A point of the summary rounded to POINT_DECIMALS (the errors are the unrounded points')."""
-    return None if point is None else np.round(np.asarray(point, dtype=float), POINT_DECIMALS) + 0.0
-
-
 def _points(record: dict, keys: tuple[str, ...]) -> dict:
-    """`record` with its points at `keys` rounded (_point)."""
-    return {key: _point(value) if key in keys else value for key, value in record.items()}
+    """`record` with its points at `keys` rounded (rounded_point)."""
+    return {key: rounded_point(value) if key in keys else value for key, value in record.items()}
 
 
 CROSSING_POINTS = ("desired", "desired_def", "achieved_def")
@@ -223,10 +215,10 @@ def insertion_summary(result) -> dict:
     steps = result.steps
     tip_at_exit = needle_tip_at_exit(result)
     return {
-        "desired_exit": _point(result.desired_exit),
-        "desired_exit_def": _point(result.desired_exit_def),
-        "achieved_exit_def": _point(result.achieved_exit_def),
-        "achieved_exit": _point(result.achieved_exit),
+        "desired_exit": rounded_point(result.desired_exit),
+        "desired_exit_def": rounded_point(result.desired_exit_def),
+        "achieved_exit_def": rounded_point(result.achieved_exit_def),
+        "achieved_exit": rounded_point(result.achieved_exit),
         "exit_error_mm": result.exit_error_mm,
         "exit_error_material_mm": result.exit_error_material_mm,
         "steps": len(steps),
@@ -235,9 +227,9 @@ def insertion_summary(result) -> dict:
         "exit_rotation_rad": result.exit_rotation,
         # the rigid needle's tip as the track reaches the boundary: the tissue at the cut's end,
         # carried along the needle by friction and the cutting force, is ahead of it on the arc
-        "needle_tip_at_exit": _point(tip_at_exit),
+        "needle_tip_at_exit": rounded_point(tip_at_exit),
         "exit_to_needle_tip_mm": float(np.linalg.norm(result.achieved_exit_def - tip_at_exit)),
-        "needle_center_at_entry": _point(result.center_after(0)),
+        "needle_center_at_entry": rounded_point(result.center_after(0)),
         # rad the needle leaned from the orthogonal entry (needle.entry_tilt, a plan's lean)
         "needle_entry_tilt_rad": result.geometry.tilt,
         "needle_points": len(result.needle_points),
@@ -325,8 +317,8 @@ def plan_accuracy_summary(result, centers: np.ndarray) -> dict:
             # the refined model and the needle's methods as a scenario file's keys: what
             # reproduces the replay where `--spacing` cannot (an auto discretization's choice)
             "scenario_keys": scenario_keys(replay.scenario) if replay is not None else None,
-            "achieved_exit_def": _point(replay.achieved_exit_def) if replay is not None else None,
-            "desired_exit_def": _point(replay.desired_exit_def) if replay is not None else None,
+            "achieved_exit_def": rounded_point(replay.achieved_exit_def) if replay is not None else None,
+            "desired_exit_def": rounded_point(replay.desired_exit_def) if replay is not None else None,
             "exit_error_material_mm": replay.exit_error_material_mm if replay is not None else None,
             "wall_seconds": replay.wall_seconds if replay is not None else None,
             "rounds": verification.rounds,
@@ -503,7 +495,7 @@ def _plan_summary(result, columns: list[str], table: np.ndarray) -> dict:
     return {
         "unplanned_exit_error_mm": unplanned.exit_error_mm if unplanned else None,
         "unplanned_exit_error_material_mm": unplanned.exit_error_material_mm if unplanned else None,
-        "unplanned_achieved_exit_def": _point(unplanned.achieved_exit_def) if unplanned else None,
+        "unplanned_achieved_exit_def": rounded_point(unplanned.achieved_exit_def) if unplanned else None,
         "unplanned_wall_seconds": unplanned.wall_seconds if unplanned else None,
         "error_reduction": (1.0 - planned.exit_error_mm / unplanned.exit_error_mm)
         if unplanned and unplanned.exit_error_mm > 0 else None,

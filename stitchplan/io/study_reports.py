@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 from ..study.sweep import StudyResult, StudyRun
-from .files import OutputSet, write_csv, write_json
+from .files import OutputSet, rounded_point, write_csv, write_json
 from .files import provenance as make_provenance
 from .plots import plot_speed_accuracy
 
@@ -35,7 +35,8 @@ def study_row(run: StudyRun) -> list:
         run.wall_seconds, run.cpu_seconds, len(steps), sum(s.newton_iterations for s in steps),
         sum(s.minres_iterations for s in steps), len(r.events) if r is not None else 0,
         r.exit_error_mm if r is not None else math.nan,
-        *(r.achieved_exit_def if r is not None else nan2), *(r.achieved_exit if r is not None else nan2),
+        # the exits to 1e-12 mm, as the summaries' points: 0, not 4e-16, on an exit edge at y = 0
+        *(rounded_point(r.achieved_exit_def) if r is not None else nan2), *(rounded_point(r.achieved_exit) if r is not None else nan2),
         *(run.deviations.get(key, math.nan) for key in DEVIATIONS),
         str(run.pareto).lower(), run.status, run.reason,
     ]
