@@ -948,6 +948,10 @@ def test_a_calibrations_experiments_are_held_at_once_in_its_process(monkeypatch)
         guard_calibration(path, problem, Limits())
     coarse = [item for item in seen["estimates"] if "at twice the spacing" in item.label]
     assert len(coarse) == 2 and max(item.memory_bytes for item in coarse) < min(memories)
+    # the limits the README quotes (MB of 1e6 bytes): ~711 without the estimate, ~740 with it
+    with_estimate = address_space_needed(
+        mapped, held_in_one_process([item.memory_bytes for item in seen["estimates"]]), BASE_MEMORY)
+    assert round(needed / 1e6) == 711 and round(with_estimate / 1e6) == 740, (needed, with_estimate)
 
 
 def test_the_memory_that_fits_an_address_space_limit_is_the_need_inverted():
