@@ -149,6 +149,32 @@ def test_a_strip_between_two_holes_names_both():
         model_for_scenario(parse_scenario(raw))
 
 
+@pytest.mark.parametrize("neck", [0.05, 0.01, 0.001])
+def test_a_neck_between_two_tips_is_refused_with_its_width(neck):
+    """Two pointed notches whose tips face each other across `neck` mm, and two diamond holes
+    whose corners do: no edge's normal crosses the neck, which the check measured from the
+    edges alone, so the tissue ran through a 1 um neck (exit 0, the far half carried by it);
+    the vertices' gaps find it and say its width."""
+    from stitchplan.tissue.model import model_for_scenario
+
+    raw = strip(0.05, needle=False)
+    low, high = 15.0 - neck / 2, 15.0 + neck / 2
+    raw["tissue"].pop("holes")
+    raw["tissue"].pop("size")
+    raw["tissue"]["outline"] = [[0, 0], [25, 0], [30, low], [35, 0], [60, 0], [60, 30], [35, 30], [30, high],
+                                [25, 30], [0, 30]]
+    raw["tissue"]["clamped"], raw["probes"] = ["left"], [[60.0, 15.0]]
+    with pytest.raises(InputError, match=rf"^tissue\.outline: the outline leaves tissue {neck:g} mm thin at \(30, "
+                                         r"15\) mm between two of its edges"):
+        model_for_scenario(parse_scenario(raw))
+    raw = strip(0.05, needle=False)
+    raw["tissue"]["holes"] = [{"polygon": [[30, 5], [35, 10], [30, low], [25, 10]]},
+                              {"polygon": [[30, high], [35, 20], [30, 25], [25, 20]]}]
+    with pytest.raises(InputError, match=rf"^tissue\.holes\[0\]: the hole leaves tissue {neck:g} mm thin at "
+                                         r"\(30, 15\) mm between it and holes\[1\]"):
+        model_for_scenario(parse_scenario(raw))
+
+
 def test_a_circle_cutting_the_edge_at_a_shallow_angle_is_refused_at_every_spacing():
     """A 5 mm hole poking 0.15 or 0.33 mm through the top edge meets it at 20 or 32 degrees
     (at a point on one of its 96-gon's edges): with the check off the sliver beyond it gives a

@@ -13,7 +13,9 @@ a model refuses such a tissue in one line naming the hole (or the outline), the 
 where, the particle spacing there and what to do.
 
 Thickness: from points along every boundary edge, SAMPLES_PER_SPACING per local spacing, a
-ray along the edge's inward normal to the first boundary edge it meets. A hit on the same
+ray along the edge's inward normal to the first boundary edge it meets; and from every
+boundary vertex, the nearest boundary edge other than its own two (two tips facing each
+other, a pinch no edge's normal crosses). A hit on the same
 boundary loop counts where the way round the boundary between the two points is more than
 ROUND_TRIP times their distance and passes no sharp convex corner: across a tongue, not
 across the corner of a wedge (near its tip any wedge is thinner than any spacing, yet the
@@ -102,10 +104,48 @@ def thinnest_spot(tissue: Tissue, spacing_at: Callable[[np.ndarray], np.ndarray]
     thickness, hit = _first_hits(domain, points, edge, normal, limit * spacing)
     thin = np.flatnonzero(hit >= 0)
     ends = points[thin] + thickness[thin, None] * normal[thin]
-    for k in np.argsort(thickness[thin] / spacing[thin], kind="stable"):  # the thinnest first; past a wedge's few
-        if boundary.across(int(edge[thin[k]]), points[thin[k]], int(hit[thin[k]]), ends[k], thickness[thin[k]]):
-            return ThinSpot(points[thin[k]], ends[k], float(thickness[thin[k]]), float(spacing[thin[k]]))
+    # the gaps from the vertices: two tips facing each other (a pinch between notches or
+    # between two holes' corners) leave a neck no edge's normal crosses
+    vertices = domain.segment_starts
+    vertex_spacing = spacing_at(vertices)
+    gap, nearest, foot = _vertex_gaps(domain, boundary, limit * vertex_spacing)
+    close = np.flatnonzero(nearest >= 0)
+    spots = [(float(thickness[t] / spacing[t]), int(edge[t]), points[t], int(hit[t]), ends[k], float(thickness[t]),
+              float(spacing[t])) for k, t in enumerate(thin)]
+    spots += [(float(gap[v] / vertex_spacing[v]), int(v), vertices[v], int(nearest[v]), foot[v], float(gap[v]),
+               float(vertex_spacing[v])) for v in close]
+    for _, wall, start, other, end, width, local in sorted(spots, key=lambda spot: spot[0]):  # thinnest first
+        if boundary.across(wall, start, other, end, width):  # past a wedge's few
+            return ThinSpot(start, end, width, local)
     return None
+
+
+def _vertex_gaps(domain: PolygonDomain, boundary: _Boundary,
+                 reach: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each boundary vertex (domain.segment_starts), the distance to the nearest boundary
+    edge other than its own two within `reach` (n,), that edge (-1: none) and the nearest point
+    on it (n, 2)."""
+    a, b = domain.segment_starts, domain.segment_ends
+    before = boundary.previous(np.arange(len(a)))
+    gap = np.full(len(a), np.inf)
+    nearest = np.full(len(a), -1)
+    foot = a.copy()
+    for q, e in domain.candidates(a - reach[:, None], a + reach[:, None]):
+        keep = (e != q) & (e != before[q])
+        q, e = q[keep], e[keep]
+        side = b[e] - a[e]
+        along = np.clip(np.sum((a[q] - a[e]) * side, axis=1) / np.sum(side * side, axis=1), 0.0, 1.0)
+        points = a[e] + along[:, None] * side
+        d = np.linalg.norm(points - a[q], axis=1)
+        met = (d > domain.tolerance) & (d <= reach[q])
+        q, e, d, points = q[met], e[met], d[met], points[met]
+        order = np.lexsort((d, q))  # by vertex, the nearest first
+        q, e, d, points = q[order], e[order], d[order], points[order]
+        first = np.concatenate([[True], q[1:] != q[:-1]]) if len(q) else np.zeros(0, dtype=bool)
+        q, e, d, points = q[first], e[first], d[first], points[first]
+        better = d < gap[q]
+        gap[q[better]], nearest[q[better]], foot[q[better]] = d[better], e[better], points[better]
+    return gap, nearest, foot
 
 
 @dataclass(frozen=True)
