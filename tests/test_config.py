@@ -263,6 +263,21 @@ def test_the_file_path_starts_every_line(write_scenario, slab_raw):
                                  f"{path}: tissue.thickness: got -1, expected a positive number (mm)"]
 
 
+@pytest.mark.parametrize("shape", [{"size": [0.06, 0.03]},
+                                   {"outline": [[0.0, 0.0], [0.06, 0.0], [0.06, 0.03], [0.0, 0.03]]}])
+def test_a_tissue_written_in_metres_is_refused(slab_raw, shape):
+    """A 6 x 3 cm block written in m ran on a 60 um speck, stretched to 16 times its size."""
+    slab_raw["tissue"].pop("size")
+    slab_raw["tissue"].update(shape)
+    slab_raw["probes"], slab_raw["loads"] = [], [{"segment": [[0.06, 0.0], [0.06, 0.03]], "force": [1.0, 0.0]}]
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    (name,) = shape
+    assert error.value.lines[0].startswith(f"tissue.{name}: got ")
+    assert error.value.lines[0].endswith("expected a tissue at least 0.5 mm across (mm; a smaller one is a tissue "
+                                         "written in m)")
+
+
 @pytest.mark.parametrize("probe, placed", [
     ([100.0000001, 25.0], (100.0, 25.0)), ([100.00000001, 25.0], (100.0, 25.0)), ([-1e-7, 25.0], (0.0, 25.0)),
     ([50.0, 100.0000001], (50.0, 100.0)), ([100.0009, 25.0], (100.0, 25.0)), ([99.99999999, 25.0], (99.99999999, 25.0)),

@@ -129,6 +129,9 @@ class Material:
 # 1e-20 mm a hole's vertices coincide, failing later without naming the field, and a needle
 # of 1e-300 mm ran 0 steps.
 MAX_SCENE_MM = 10_000.0
+# the smallest tissue, its larger side: below it every tissue is one written in m (a 6 x 3 cm
+# block as [0.06, 0.03]); a real patch a needle passes through is millimetres at the least
+MIN_TISSUE_MM = 0.5
 MIN_HOLE_RADIUS_MM = 1e-6
 NEEDLE_RADIUS_RANGE_MM = (0.05, 1_000.0)
 MIN_NEEDLE_RADIUS_MM, MAX_NEEDLE_RADIUS_MM = NEEDLE_RADIUS_RANGE_MM
@@ -303,6 +306,17 @@ class Tissue:
                        "areas of other materials; the first region holding a point wins") = ()
 
     _thickness_within_limits = within_limits(THICKNESS_LIMITS)
+
+    @field_validator("size", "outline")
+    @classmethod
+    def _not_in_metres(cls, value: Any, info: ValidationInfo) -> Any:
+        """A tissue under MIN_TISSUE_MM across is a unit mistake (metres), refused rather
+        than run on a speck (a 60 um block stretched to 16 times its size)."""
+        if value is not None and float(np.ptp(np.asarray(value, dtype=float).reshape(-1, 2), axis=0).max()
+                                       if info.field_name == "outline" else max(value)) < MIN_TISSUE_MM:
+            raise problem(f"a tissue at least {MIN_TISSUE_MM:g} mm across (mm; a smaller one is a tissue written "
+                          "in m)")
+        return value
 
     @field_validator("clamped")
     @classmethod
