@@ -263,6 +263,23 @@ def test_the_file_path_starts_every_line(write_scenario, slab_raw):
                                  f"{path}: tissue.thickness: got -1, expected a positive number (mm)"]
 
 
+def test_a_holes_or_regions_unknown_keys_are_said_once_with_where_they_belong(slab_raw):
+    """A hole given as {center, radius} and a region's moduli given beside it, not in its
+    material: each unknown key once (they came twice, from the scenario's check and the
+    shape's own, one with a hint that sent a hole's radius to the needle)."""
+    slab_raw["tissue"]["holes"] = [{"center": [30.0, 15.0], "radius": 3.0}]
+    slab_raw["tissue"]["regions"] = [{"polygon": [[10, 10], [20, 10], [20, 20], [10, 20]], "lame_mu": 1.2}]
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    circle = "expected one of: polygon, circle (a circle is given as circle: {center: [x, y], radius: r})"
+    assert error.value.lines == [
+        f"tissue.holes[0]: unknown key 'center', {circle}",
+        f"tissue.holes[0]: unknown key 'radius', {circle}",
+        "tissue.regions[0].material: missing, required: a mapping with keys among: model, lame_lambda, lame_mu",
+        "tissue.regions[0]: unknown key 'lame_mu', expected one of: material, polygon, circle "
+        "('lame_mu' belongs in material)"], error.value.lines
+
+
 @pytest.mark.parametrize("shape", [{"size": [0.06, 0.03]},
                                    {"outline": [[0.0, 0.0], [0.06, 0.0], [0.06, 0.03], [0.0, 0.03]]}])
 def test_a_tissue_written_in_metres_is_refused(slab_raw, shape):

@@ -184,11 +184,16 @@ def error_lines(error: ValidationError, kind: Any, base: str = "", root: str = "
     return merged_typos(lines)
 
 
+CIRCLE_KEYS = ("center", "centre", "radius", "r")
+
+
 def _unknown_key(kind: Any, loc: tuple, parent: str, raw: Any = None) -> tuple[str, str | None]:
     """The line of an unknown key, and the near key it suggests (None: none, or the key
     belongs in another block)."""
     key, allowed = _given_key(raw, loc), _keys(_block_at(kind, loc[:-1]))
     line = f"{parent}: unknown key {_as_written(key)}, expected one of: {', '.join(allowed)}"
+    if "circle" in allowed and str(key) in CIRCLE_KEYS:  # a hole's or region's circle given flat
+        return line + " (a circle is given as circle: {center: [x, y], radius: r})", None
     home = [name for name, block in _blocks(kind) if name != (loc[-2] if len(loc) > 1 else None)
             and str(key) in _keys(block)]
     if home:  # a key of another block: say where it goes, not a near spelling here

@@ -218,15 +218,15 @@ def parse_scenario(raw: Any, source_text: str = "", source_sha256: str | None = 
     try:
         scenario_file = validate(ScenarioFile, raw, "", root="scenario", context=context)
     except InputError as error:
-        raise input_error(merged_typos([*error.lines, *_shape_lines(raw, error.lines)])) from None
+        raise input_error(merged_typos(_with_shape_lines(error.lines, _shape_lines(raw)))) from None
     log_moves(scenario_file.tissue.domain, moved_points(raw, scenario_file), source)
     return scenario_file.scenario(source_text, source_sha256)
 
 
-def _shape_lines(raw: Any, known: list[str]) -> list[str]:
-    """The problems of the tissue's shape (size or outline, holes, regions, clamped) not among
-    `known`: a tissue whose other fields fail (a negative thickness, say) is not checked as a
-    whole, so its shape is checked on its own, that every problem is said at once."""
+def _shape_lines(raw: Any) -> list[str]:
+    """The problems of the tissue's shape (size or outline, holes, regions, clamped): a tissue
+    whose other fields fail (a negative thickness, say) is not checked as a whole, so its
+    shape is checked on its own, that every problem is said at once."""
     tissue = raw.get("tissue") if isinstance(raw, dict) else None
     if not isinstance(tissue, dict):
         return []
@@ -234,8 +234,21 @@ def _shape_lines(raw: Any, known: list[str]) -> list[str]:
     try:
         validate(Tissue, {**shape, "thickness": 1.0, "material": Material()}, "tissue")
     except InputError as error:
-        return [line for line in error.lines if line not in known]
+        return list(error.lines)
     return []
+
+
+def _with_shape_lines(known: list[str], shape: list[str]) -> list[str]:
+    """`known` with the shape's lines not among them; one that says the same with more (an
+    unknown key's line with where the key belongs) takes the shorter one's place."""
+    lines = list(known)
+    for line in shape:
+        fuller = next((k for k, said in enumerate(lines) if line.startswith(said)), None)
+        if fuller is not None:
+            lines[fuller] = line
+        elif not any(said.startswith(line) for said in lines):
+            lines.append(line)
+    return lines
 
 
 def moved_points(raw: Any, scenario_file: ScenarioFile) -> list[tuple[str, Any, Any]]:
