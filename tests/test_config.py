@@ -263,6 +263,15 @@ def test_the_file_path_starts_every_line(write_scenario, slab_raw):
                                  f"{path}: tissue.thickness: got -1, expected a positive number (mm)"]
 
 
+def test_a_closed_ring_outline_is_told_to_leave_out_its_last_vertex(slab_raw):
+    slab_raw["tissue"].pop("size")
+    slab_raw["tissue"]["outline"] = [[0, 0], [100, 0], [100, 100], [0, 100], [0, 0]]
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert error.value.lines[0].endswith("expected a polygon without repeated consecutive vertices (the last vertex "
+                                         "repeats the first: the polygon closes by itself, leave the last one out)")
+
+
 def test_a_holes_or_regions_unknown_keys_are_said_once_with_where_they_belong(slab_raw):
     """A hole given as {center, radius} and a region's moduli given beside it, not in its
     material: each unknown key once (they came twice, from the scenario's check and the

@@ -41,8 +41,13 @@ def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
     if k < 3:
         return "at least three vertices"
     starts, ends = vertices, np.roll(vertices, -1, axis=0)
-    if np.any(np.linalg.norm(ends - starts, axis=1) <= tol):
-        return "a polygon without repeated consecutive vertices (an edge has zero length)"
+    short = np.flatnonzero(np.linalg.norm(ends - starts, axis=1) <= tol)
+    if len(short) and short[-1] == k - 1:  # the last vertex is the first: a closed ring, as GeoJSON writes it
+        return ("a polygon without repeated consecutive vertices (the last vertex repeats the first: the polygon "
+                "closes by itself, leave the last one out)")
+    if len(short):
+        return (f"a polygon without repeated consecutive vertices (vertices {short[0]} and {(short[0] + 1) % k} "
+                "coincide: an edge of zero length)")
     # the pairs of edges (i < j) whose boxes, grown by tol, meet: the others cannot touch
     grid = EdgeGrid.of(starts, ends)
     low, high = np.minimum(starts, ends) - 2 * tol, np.maximum(starts, ends) + 2 * tol
