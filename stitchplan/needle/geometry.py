@@ -287,7 +287,8 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
         raise InputError(
             f"{field}: the needle {entering} crosses the boundary at rotations "
             f"{', '.join(f'{r:.3g}' for r, _ in crossings)} rad, expected crossings at least one step "
-            f"({needle.step:g} rad) apart (a gap or a bite shorter than a step)")
+            f"({needle.step:g} rad) apart (a gap or a bite shorter than a step: a smaller needle.step, or another "
+            "entry or radius)")
     rotation_first = crossings[0][0]
     if rotation_first < 2 * needle.step:
         raise InputError(
