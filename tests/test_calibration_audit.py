@@ -37,10 +37,13 @@ SPREAD = "10,10,10.5,10.2\n50,30,50.3,30.1\n80,50,80.1,49.9\n"  # three markers 
 
 def calibration_file(folder, rows=SPREAD, experiments=1, extra=None, tissue=None, fit=None):
     """A calibration of `experiments` left-pull experiments on the marker rows given (each its
-    own copy of them, so that no marker file is used twice), at a 10 mm spacing."""
+    own copy of them, its measured x moved by k x 1e-4 mm, so that no experiment repeats
+    another's markers), at a 10 mm spacing."""
     entries = []
     for k in range(experiments):
-        (folder / f"markers{k}.csv").write_text("x,y,x_def,y_def\n" + rows)
+        moved = [line.split(",") for line in rows.strip().splitlines()]
+        text = "".join(f"{x},{y},{float(x_def) + 1e-4 * k!r},{y_def}\n" for x, y, x_def, y_def in moved)
+        (folder / f"markers{k}.csv").write_text("x,y,x_def,y_def\n" + text)
         entries.append({"name": f"pull {k}", "loads": load_block(LOADS["left-pull"]), "markers": f"markers{k}.csv"})
     data = {"tissue": tissue or dict(TISSUE_BLOCK), "experiments": entries, "fit": fit or dict(FIT),
             "discretization": {"spacing": 10.0}, **(extra or {})}

@@ -298,3 +298,18 @@ def test_one_marker_file_in_two_experiments_is_refused(tmp_path):
     assert str(raised.value) == (f"{path}: experiments[1].markers: got {tmp_path / 'markers0.csv'}, the markers of "
                                  "experiments[0] again; expected each experiment's own marker file (its loads move "
                                  "the markers differently)")
+
+
+def test_a_copy_of_one_experiments_markers_under_another_name_is_refused(tmp_path):
+    """The same file under another name says the same photographs (it was accepted: only the
+    same path was refused)."""
+    path = marker_calibration(tmp_path, MOVED)
+    (tmp_path / "copy.csv").write_bytes((tmp_path / "markers0.csv").read_bytes())
+    data = yaml.safe_load(path.read_text())
+    data["experiments"].append({**data["experiments"][0], "name": "copy", "markers": "copy.csv"})
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(InputError) as raised:
+        calibration.load_material_calibration(path)
+    assert str(raised.value) == (f"{path}: experiments[1].markers: got {tmp_path / 'copy.csv'}, the same rest and "
+                                 f"measured positions as experiments[0]'s {tmp_path / 'markers0.csv'}; expected each "
+                                 "experiment's own markers (its loads move the markers differently)")

@@ -259,12 +259,18 @@ def parse_material_calibration(raw: Any, folder: Path, source: str = "") -> Mate
     # one marker file in two experiments counts the same photographs twice, halving their
     # stated scatter: a copied block whose file was not changed
     first_of: dict[Path, int] = {}
+    first_with: dict[bytes, int] = {}  # a copy of the file under another name says the same
     for i, experiment in enumerate(experiments):
         same = first_of.setdefault(Path(experiment.source).resolve(), i)
+        copied = first_with.setdefault(experiment.markers.tobytes() + experiment.measured.tobytes(), i)
         if same != i:
             problems.append(f"experiments[{i}].markers: got {experiment.source}, the markers of experiments[{same}] "
                             "again; expected each experiment's own marker file (its loads move the markers "
                             "differently)")
+        elif copied != i:
+            problems.append(f"experiments[{i}].markers: got {experiment.source}, the same rest and measured "
+                            f"positions as experiments[{copied}]'s {experiments[copied].source}; expected each "
+                            "experiment's own markers (its loads move the markers differently)")
     if problems:
         raise input_error(problems)
     check_marker_count(sum(len(e.markers) for e in experiments), fit)
