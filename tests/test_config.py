@@ -263,6 +263,16 @@ def test_the_file_path_starts_every_line(write_scenario, slab_raw):
                                  f"{path}: tissue.thickness: got -1, expected a positive number (mm)"]
 
 
+def test_a_load_segment_shorter_than_the_input_tolerance_is_one_point(slab_raw):
+    """Two ends 4e-15 mm apart (one vertex computed twice) were a segment: the run gave a probe
+    no displacement; now one point, refused."""
+    slab_raw["loads"] = [{"segment": [[100.0, 50.0], [100.0, 50.000000000000004]], "force": [1.0, 0.0]}]
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert "loads[0].segment: got [[100.0, 50.0], [100.0, 50.00000000000001]], expected a non-empty straight " \
+           "piece of one edge of the 100 x 100 mm tissue (its ends are one point: 7.1e-15 mm apart" in str(error.value)
+
+
 def test_a_closed_ring_outline_is_told_to_leave_out_its_last_vertex(slab_raw):
     slab_raw["tissue"].pop("size")
     slab_raw["tissue"]["outline"] = [[0, 0], [100, 0], [100, 100], [0, 100], [0, 0]]

@@ -830,3 +830,34 @@ def test_clip_takes_a_point_outside_to_the_nearest_point_of_the_tissue():
     np.testing.assert_allclose(np.linalg.norm(clipped[~inside] - points[~inside], axis=1),
                                np.linalg.norm(nearest - points[~inside], axis=1), atol=1e-9)
     np.testing.assert_allclose([shape.boundary.distance(Point(p)) for p in clipped[~inside]], 0.0, atol=1e-9)
+
+
+def test_segment_ends_a_hair_apart_make_one_lattice_line():
+    """A load on one 0.24 mm edge of a half-disc traced by 400 vertices: its ends lie 0.0009 mm
+    apart in y, and a lattice line through each made a sliver of cells between them, every
+    level of refinement stacking particles 1e-4 mm apart (the load step failed at 16 uN).
+    Breaks closer than an eighth of the spacing are one line now: no two particles that close,
+    and the load is carried."""
+    from stitchplan.tissue.deform import run_deform
+    from stitchplan.tissue.particles import MIN_BREAK_GAP, grid_lines
+
+    lines = grid_lines(60.0, 1.5, (29.999075, 30.0))
+    assert np.diff(lines).min() > MIN_BREAK_GAP * 1.5 and (30.0 in lines or 29.999075 in lines)
+    angle = np.pi * np.arange(400) / 400
+    arc = np.column_stack([30 + 30 * np.cos(angle), 30 * np.sin(angle)])[1:]
+    edge = [[30.0, 30.0], [round(float(arc[200, 0]), 6), round(float(arc[200, 1]), 6)]]  # from the top, one edge
+    raw = {"name": "traced half-disc",
+           "tissue": {"outline": [[0.0, 0.0], [60.0, 0.0], *arc.tolist()], "thickness": 10.0,
+                      "material": {"lame_lambda": 0.189151, "lame_mu": 0.147688}, "clamped": ["bottom"]},
+           "loads": [{"segment": edge, "force": [0.01, 0.0]}], "probes": [[30.0, 29.0]]}
+    scenario = parse_scenario(raw)
+    from scipy.spatial import cKDTree
+
+    from stitchplan.tissue.model import model_for_scenario
+
+    model = model_for_scenario(scenario)
+
+    gaps, _ = cKDTree(model.particles).query(model.particles, k=2)
+    assert gaps[:, 1].min() > 1e-3, gaps[:, 1].min()
+    result = run_deform(scenario)
+    assert np.all(np.isfinite(result.probe_displacements)) and result.probe_displacements[0, 0] > 0.0

@@ -117,6 +117,10 @@ def segment_on_boundary(domain: Rectangle | PolygonDomain, segment) -> tuple[tup
            for end, moved in zip(segment, snapped) if moved is None]
     if off:
         return None, f"{segment_expectation(domain)}; " + "; ".join(off)
+    apart = float(np.linalg.norm(np.subtract(snapped[1], snapped[0])))
+    if 0.0 < apart <= domain.input_tolerance:  # a point, typed as two (4e-15 mm apart: no load reached the tissue)
+        return None, (f"{segment_expectation(domain)} (its ends are one point: {apart:.2g} mm apart, within the "
+                      f"{domain.input_tolerance:g} mm to which points are placed)")
     if domain.segment_edge(*snapped) is None:
         why = ("its ends are one point" if np.array_equal(snapped[0], snapped[1])
                else "its ends are on the boundary, not on one edge or one straight run of edges")
