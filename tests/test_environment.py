@@ -149,6 +149,17 @@ def test_a_non_ascii_scenario_path_under_an_ascii_locale_is_logged_escaped(tmp_p
         assert log.attrs["scenario"].endswith("Gr\\udcc3\\udcb6\\udcc3\\udc9fe \\udcc3\\udcbc/plain.yaml")
 
 
+def test_a_non_ascii_output_path_on_an_ascii_standard_output_is_written_escaped(tmp_path):
+    """The done line names the output, which standard output under PYTHONIOENCODING=ascii
+    could not encode: a traceback after the run, its outputs undone (a study lost)."""
+    export = tmp_path / "tü.csv"
+    run = subprocess.run([sys.executable, "-m", "stitchplan", "plan", str(NEEDLE20), "--export", str(export),
+                          "--no-verify", "--no-compare", "-q"], cwd=REPOSITORY, capture_output=True,
+                         env={**os.environ, "PYTHONIOENCODING": "ascii", "OPENBLAS_NUM_THREADS": "1"}, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.decode("ascii").rstrip().endswith("t\\xfc.csv") and export.exists()
+
+
 def test_an_unknown_linear_backend_is_one_line_and_no_file(tmp_path):
     """STITCHPLAN_LINEAR_BACKEND takes scipy or superlu; anything else ends the command before
     any work (the helper process, which imports the same module, ends with it)."""

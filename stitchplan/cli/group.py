@@ -189,11 +189,20 @@ class _HeldStream(io.StringIO):
         self.truncate()
         try:
             if text:
-                self.stream.write(text)
+                self._write(text)
             self.stream.flush()
         except OSError as error:
             self.failure = error
             raise
+
+    def _write(self, text: str) -> None:
+        """`text` on the real stream; characters its encoding cannot hold (a non-ASCII path
+        under PYTHONIOENCODING=ascii) escaped, as the error lines on stderr are."""
+        try:
+            self.stream.write(text)
+        except UnicodeEncodeError:
+            encoding = getattr(self.stream, "encoding", None) or "ascii"
+            self.stream.write(text.encode(encoding, "backslashreplace").decode(encoding))
 
     def deliver_quietly(self) -> None:
         """What the command printed before it failed, if standard output takes it; nothing
