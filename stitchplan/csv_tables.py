@@ -11,6 +11,7 @@ cells (',,,' as spreadsheets save blank rows) are skipped. The first row is the 
 from __future__ import annotations
 
 import csv
+import io
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +19,24 @@ import numpy as np
 
 from .decimals import parse_number, spells_a_number
 from .errors import InputError
+
+
+# the largest input file read: a scenario or a table of markers is kilobytes (a 10 MB scenario
+# of comments reads in a second); an endless one (/dev/zero, a pipe that never ends) filled
+# the machine's memory until the kernel killed the command without a word
+MAX_INPUT_BYTES = 64 * 2**20
+
+
+def read_input_bytes(path: Path, where: str, expected: str) -> bytes:
+    """The bytes of an input file, at most MAX_INPUT_BYTES; OSError as reading raises it, an
+    InputError naming `where` for a file larger than that (`expected`: what was wanted)."""
+    with path.open("rb") as handle:
+        content = handle.read(MAX_INPUT_BYTES + 1)
+    if len(content) > MAX_INPUT_BYTES:
+        cap = MAX_INPUT_BYTES
+        size = f"{cap // 2**20} MB" if cap % 2**20 == 0 else f"{cap} bytes"
+        raise InputError(f"{where}: got more than {size}, expected {expected}")
+    return content
 
 
 def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, *, exact: bool = False,
@@ -32,13 +51,13 @@ def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, 
     path = Path(path)
     where = f"{label}: {path}" if label else f"{path}"
     try:
-        with path.open(newline="", encoding="utf-8-sig") as handle:  # -sig: spreadsheets' BOM
-            lines = [(number, line) for number, line in enumerate(handle, start=1)
-                     if line.strip() and not line.lstrip().startswith("#")]
+        text = read_input_bytes(path, where, f"a CSV table ({expected})").decode("utf-8-sig")  # -sig: a BOM
     except OSError as error:
         raise InputError(f"{where}: cannot be read ({error.strerror or error})") from None
     except UnicodeDecodeError:
         raise InputError(f"{where}: not a text file; expected a CSV table ({expected})") from None
+    lines = [(number, line) for number, line in enumerate(io.StringIO(text, newline=""), start=1)
+             if line.strip() and not line.lstrip().startswith("#")]
     rows = [(number, row) for (number, _), row in zip(lines, csv.reader(line for _, line in lines))
             if any(cell.strip() for cell in row)]
     wanted = f"exactly the columns {','.join(columns)} (in any order)" if exact else f"at least {', '.join(columns)}"

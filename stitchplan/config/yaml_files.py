@@ -23,6 +23,7 @@ from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import yaml
 
+from ..csv_tables import read_input_bytes
 from ..errors import InputError
 from .messages import input_error
 
@@ -277,7 +278,7 @@ def read_yaml_file(path: str | Path, keys_later: bool = False) -> YamlFile:
     in `key_problems`, for the reader to list with the problems of the data (with_key_problems)."""
     path = Path(path)
     try:
-        content = path.read_bytes()
+        content = read_input_bytes(path, str(path), "a YAML text file")
     except OSError as error:
         raise input_error([f"{path}: cannot be read ({error.strerror or error})"]) from None
     try:
