@@ -35,6 +35,19 @@ _handed: tuple | None = None  # what `hand` sent it: (scenario, options)
 _parent = os.getpid()  # the process that may take it (not a process forked from it later)
 
 
+HELPER_VALUES = ("0", "1")  # replays in the command's process; in a helper where one can run (the default)
+
+
+def helper_variable_problem() -> str | None:
+    """The line refusing a STITCHPLAN_REPLAY_HELPER other than 0 or 1 (a typo read as "on"
+    before), or None."""
+    given = os.environ.get(HELPER_VARIABLE)
+    if given is None or given in HELPER_VALUES:
+        return None
+    return (f"{HELPER_VARIABLE}: got {given!r}, expected 0 (the replays in the command's own process) or 1 "
+            "(in a helper process where one can run, the default)")
+
+
 def helper_available() -> bool:
     """Whether a forked helper process can run the replays: Linux (fork is its own way of
     starting a process; macOS's system libraries are not fork-safe), two or more cores, one
@@ -50,7 +63,8 @@ def start_for(arguments: list[str], server: str) -> None:
     """Fork the helper (`fork_helper`) when `arguments` (the command line after the program)
     run a command whose replays it would run, for the first replays that ask (`take`)."""
     global _started
-    if _started is not None or not arguments or arguments[0] not in COMMANDS or not helper_available():
+    if _started is not None or not arguments or arguments[0] not in COMMANDS or helper_variable_problem() \
+            or not helper_available():
         return
     # no replays to run: the help, a plan under uncertainty (its sampled runs go to a cluster;
     # `--uncertainty FILE` or `--uncertainty=FILE`), a simulate without its estimate

@@ -160,6 +160,18 @@ def test_a_non_ascii_output_path_on_an_ascii_standard_output_is_written_escaped(
     assert run.stdout.decode("ascii").rstrip().endswith("t\\xfc.csv") and export.exists()
 
 
+def test_a_replay_helper_setting_other_than_0_or_1_is_one_line_and_no_file(tmp_path):
+    """STITCHPLAN_REPLAY_HELPER=abc was read as "on" in silence; STITCHPLAN_WORKER_WAIT and
+    STITCHPLAN_LINEAR_BACKEND refuse a bad value, and so does it now."""
+    export = tmp_path / "t.csv"
+    run = subprocess.run([sys.executable, "-m", "stitchplan", "plan", str(NEEDLE20), "--export", str(export)],
+                         cwd=REPOSITORY, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "STITCHPLAN_REPLAY_HELPER": "abc", "OPENBLAS_NUM_THREADS": "1"})
+    assert run.returncode == 2 and not export.exists()
+    assert run.stderr == ("error: STITCHPLAN_REPLAY_HELPER: got 'abc', expected 0 (the replays in the command's own "
+                          "process) or 1 (in a helper process where one can run, the default)\n")
+
+
 def test_an_unknown_linear_backend_is_one_line_and_no_file(tmp_path):
     """STITCHPLAN_LINEAR_BACKEND takes scipy or superlu; anything else ends the command before
     any work (the helper process, which imports the same module, ends with it)."""

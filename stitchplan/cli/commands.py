@@ -19,7 +19,7 @@ from .options import (DilationOption, LinearSolver, LinearSolverOption, QuietOpt
                       SpacingOption, SummaryOption, TipTracking, TipTrackingOption, VerboseOption,
                       MaxParticlesOption, NoResourceCheckOption, SchedulerOption, SchemaVerboseOption, WorkersOption,
                       check_angular_speed, check_command_outputs, check_plot_scale_option, check_plot_steps,
-                      checked_needle_geometry, choice_value, command_executor, echo_events, echo_notes, given_value,
+                      check_replay_helper, checked_needle_geometry, choice_value, command_executor, echo_events, echo_notes, given_value,
                       guard_limits, guard_runs, load_with_options, named_file, naming_files, option_names,
                       parse_base_transform, parse_steps, plot_steps_note, run_provenance, setup_logging)
 from .plan_under_uncertainty import check_uncertainty_options, run_plan_under_uncertainty
@@ -105,6 +105,7 @@ def simulate(
     Thesis Algorithm 1. With --center-path the centre follows a trajectory instead (replay).
     """
     setup_logging(verbose, quiet)
+    check_replay_helper()
     check_command_outputs({"--out": out, "--summary": summary, "--plot": plot},
                           {"SCENARIO": scenario_path, "--center-path": center_path}, out_format="HDF5")
     steps_to_plot = _steps_to_plot(plot_steps, plot)
@@ -201,6 +202,7 @@ def plan(
                           out_format="HDF5" if uncertainty_path is None else None)  # else with from_calibration
     options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
     check_angular_speed(angular_speed)
+    check_replay_helper()
     transform = parse_base_transform(base_transform)
     scenario = load_with_options(scenario_path, spacing, dilation)
     accuracy = scenario.discretization.accuracy  # asked for; resolve_accuracy clears it

@@ -418,6 +418,17 @@ def parse_base_transform(text: Optional[str]):
     return rotation, (tx, ty)
 
 
+def check_replay_helper() -> None:
+    """STITCHPLAN_REPLAY_HELPER 0 or 1 (or unset): the commands whose replays a helper runs
+    refuse another value (a typo was read as "on")."""
+    from ..early_helper import helper_variable_problem
+    from ..errors import InputError
+
+    problem = helper_variable_problem()
+    if problem is not None:
+        raise InputError(problem)
+
+
 def check_angular_speed(speed: Optional[float]) -> None:
     """--angular-speed: slower than MIN_ANGULAR_SPEED, time_s would overflow to inf."""
     from ..errors import InputError
