@@ -190,6 +190,8 @@ def test_choice_option_reaches_the_command_as_its_value(monkeypatch, tmp_path):
     (["deform"], "error: missing argument 'SCENARIO'; see 'stitchplan deform --help'"),
     (["deform", "{scenario}", "-v", "-q"], "error: -v/--verbose and -q/--quiet: got both"),
     (["frobnicate"], "error: no such command 'frobnicate'"),
+    # click's suggestion ends in a question mark: the pointer to --help is a sentence of its own
+    (["stduy"], "error: no such command 'stduy'. Did you mean 'study'? See 'stitchplan --help'."),
 ])
 def test_usage_error_is_one_line_with_exit_code_2(slab_path, args, expected):
     result = CliRunner().invoke(app, [a.format(scenario=slab_path) for a in args], prog_name="stitchplan")

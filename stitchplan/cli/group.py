@@ -243,7 +243,11 @@ def usage_message(error, click_errors) -> str:
     message = error.format_message().strip().rstrip(".")
     message = message[:1].lower() + message[1:]
     ctx = getattr(error, "ctx", None)
-    return f"{message}; see '{ctx.command_path} --help'" if ctx is not None else message
+    if ctx is None:
+        return message
+    # click's suggestion ends the message as a question: the pointer to --help then follows it
+    return f"{message} See '{ctx.command_path} --help'." if message.endswith("?") else \
+        f"{message}; see '{ctx.command_path} --help'"
 
 
 def _bad_value(error) -> str:
