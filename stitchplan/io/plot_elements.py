@@ -327,8 +327,8 @@ def title_above(fig, axes, text: str, gap: float = 0.015, fontsize: float = 10):
 
 def readable_log_axis(axis) -> None:
     """Log axis ticks as plain numbers (0.03, 0.5, 2) instead of 3 x 10^-2; minor ticks
-    labelled (at 2, 3, 5, or more on a short axis) only when fewer than two powers of ten
-    are in view. Call it once the limits are final."""
+    labelled (at 2 and 5 over more than a decade, 2, 3, 5 or more on a shorter axis) only
+    when fewer than two powers of ten are in view. Call it once the limits are final."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
     def plain(value, _position=None):
@@ -343,7 +343,9 @@ def readable_log_axis(axis) -> None:
         axis.set_minor_formatter(NullFormatter())
         return
     span = math.log10(high / low)
-    leads = (2, 3, 5) if span > 0.5 else (2, 3, 4, 5, 6, 8) if span > 0.3 else tuple(range(1, 10))
+    # over more than a decade 2 and 3 stand too close for labels like 0.0002 (they ran together)
+    leads = ((2, 5) if span > 1.0 else (2, 3, 5) if span > 0.5 else (2, 3, 4, 5, 6, 8) if span > 0.3
+             else tuple(range(1, 10)))
 
     def some(value, _position=None):
         lead = round(value / 10 ** math.floor(math.log10(value) + 1e-9))
