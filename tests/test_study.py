@@ -33,6 +33,7 @@ from stitchplan.config.scenario import ScenarioError, parse_scenario, with_discr
 from stitchplan.config.study import StudyFamily
 from stitchplan.io.study_reports import COLUMNS
 from stitchplan.planning.verification import exit_deviations
+from stitchplan.errors import InputError
 from stitchplan.study.sweep import StudyRun, pareto_front, plan_runs, run_study
 
 PHANTOM = {"lame_lambda": 0.189151, "lame_mu": 0.147688}  # MPa, thesis appendix A.2
@@ -118,15 +119,20 @@ def test_the_reference_takes_the_sweeps_smallest_needle_step():
     """A family with half the needle step was compared with a reference at the scenario's step,
     which then was the coarser of the two in time (the default sweep's `step 0.05` against a
     0.1 rad reference): the reference takes the smallest step of the sweep, unless it sets
-    its own."""
+    its own, which may be no coarser (as its spacing may not: the deviations are measured
+    from it)."""
     halved = {**SWEEP, "families": [*SWEEP["families"], {"name": "step 0.2", "step": 0.2}]}
     _, reference, _ = plan_runs(parse_scenario(tiny_raw(halved)))
     assert reference.scenario.needle.step == 0.2
     _, reference, _ = plan_runs(parse_scenario(tiny_raw(SWEEP)))
     assert reference.scenario.needle.step == 0.4
-    own = {**halved, "reference": {"spacing": 3.0, "step": 0.3}}
+    own = {**halved, "reference": {"spacing": 3.0, "step": 0.15}}
     _, reference, _ = plan_runs(parse_scenario(tiny_raw(own)))
-    assert reference.scenario.needle.step == 0.3
+    assert reference.scenario.needle.step == 0.15
+    coarser = {**halved, "reference": {"spacing": 3.0, "step": 0.3}}
+    with pytest.raises(InputError, match=r"^study\.reference\.step: got 0\.3 rad, expected at most the finest step "
+                                         r"of the sweep, 0\.2 rad"):
+        plan_runs(parse_scenario(tiny_raw(coarser)))
 
 
 def test_the_guard_counts_the_reference_once_as_it_runs(caplog):

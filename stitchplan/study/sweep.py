@@ -171,6 +171,9 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
     finest_step = min(family.step or scenario.needle.step for family in families)
     if reference.step is None and finest_step < scenario.needle.step:
         reference = replace(reference, step=finest_step)
+    if reference.step is not None and reference.step > finest_step:  # the finest in time too
+        raise InputError(f"study.reference.step: got {reference.step:g} rad, expected at most the finest step of "
+                         f"the sweep, {finest_step:g} rad (the runs' deviations are measured from the reference)")
     spacing = reference.spacing[0]
     finest = min(run.spacing for run in runs)
     if spacing >= finest:  # every deviation is measured from the reference: it must be the finest
