@@ -86,6 +86,8 @@ def test_study_block_is_parsed_into_families_and_reference():
     ({"families": [{"grading": 3}]}, "study.families[0].grading: got 3, expected one of 2, 4, 8, 16"),
     ({"families": [{"dilation": 0.9}]}, "dilation: got 0.9, expected a number > 1"),
     ({"families": [{"name": "a"}, {"name": "a"}]}, "study.families: got ['a', 'a'], expected families with distinct names"),
+    ({"reference": {"spacing": 2.0, "name": "myref"}},  # taken and dropped before
+     "study.reference.name: got 'myref', expected no name: the reference's runs are named 'reference'"),
     ({"reference": {"spacing": [1.0, 2.0]}}, "study.reference.spacing: got [1.0, 2.0], expected one spacing (mm)"),
     ({"repeats": 0}, "study.repeats: got 0, expected an integer between 1 and 20"),
     ({"spacing": [6.0, 6.0]}, "study.spacing: got [6.0, 6.0], expected spacings each given once"),

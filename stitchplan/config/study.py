@@ -103,6 +103,10 @@ class StudySpec:
             data["families"] = [{"name": f"family {i + 1}", **item} if isinstance(item, dict) else item
                                 for i, item in enumerate(data["families"])]
         if isinstance(data.get("reference"), dict):
+            given = data["reference"].get("name", "reference")
+            if given != "reference":  # it was taken and dropped: the reference is study.csv's `reference`
+                raise problem("no name: the reference's runs are named 'reference' in study.csv and study.json",
+                              field="reference.name", value=given)
             data["reference"] = {**data["reference"], "name": "reference"}
         return data
 
