@@ -17,26 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .config.yaml_files import read_input_bytes
 from .decimals import parse_number, spells_a_number
 from .errors import InputError
-
-
-# the largest input file read: a scenario or a table of markers is kilobytes (a 10 MB scenario
-# of comments reads in a second); an endless one (/dev/zero, a pipe that never ends) filled
-# the machine's memory until the kernel killed the command without a word
-MAX_INPUT_BYTES = 64 * 2**20
-
-
-def read_input_bytes(path: Path, where: str, expected: str) -> bytes:
-    """The bytes of an input file, at most MAX_INPUT_BYTES; OSError as reading raises it, an
-    InputError naming `where` for a file larger than that (`expected`: what was wanted)."""
-    with path.open("rb") as handle:
-        content = handle.read(MAX_INPUT_BYTES + 1)
-    if len(content) > MAX_INPUT_BYTES:
-        cap = MAX_INPUT_BYTES
-        size = f"{cap // 2**20} MB" if cap % 2**20 == 0 else f"{cap} bytes"
-        raise InputError(f"{where}: got more than {size}, expected {expected}")
-    return content
 
 
 def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, *, exact: bool = False,

@@ -350,13 +350,12 @@ def test_an_endless_input_is_refused_at_the_size_cap_not_read_to_the_end(tmp_pat
     """/dev/zero as a scenario or a CSV filled the machine's memory until the kernel killed the
     command without a word: inputs are read up to MAX_INPUT_BYTES, and one larger is refused
     by name (the cap lowered here to keep the file small)."""
-    from stitchplan import csv_tables
-    from stitchplan.config import load_scenario
+    from stitchplan.config import load_scenario, yaml_files
     from stitchplan.errors import InputError
     from stitchplan.io.readers import read_center_path
 
-    assert csv_tables.MAX_INPUT_BYTES >= 10 * 2**20  # a 10 MB scenario of comments still reads
-    monkeypatch.setattr(csv_tables, "MAX_INPUT_BYTES", 1000)
+    assert yaml_files.MAX_INPUT_BYTES >= 10 * 2**20  # a 10 MB scenario of comments still reads
+    monkeypatch.setattr(yaml_files, "MAX_INPUT_BYTES", 1000)
     big = tmp_path / "big.yaml"
     big.write_text("# comment\n" * 200)
     with pytest.raises(InputError) as error:
@@ -367,6 +366,6 @@ def test_an_endless_input_is_refused_at_the_size_cap_not_read_to_the_end(tmp_pat
     with pytest.raises(InputError, match=r"big\.csv: got more than 1000 bytes, expected a CSV table \(a trajectory"):
         read_center_path(table)
     if os.path.exists("/dev/zero"):  # the endless file itself, at the real cap
-        monkeypatch.setattr(csv_tables, "MAX_INPUT_BYTES", 2**20)
+        monkeypatch.setattr(yaml_files, "MAX_INPUT_BYTES", 2**20)
         with pytest.raises(InputError, match=r"^/dev/zero: got more than 1 MB"):
             load_scenario("/dev/zero")

@@ -23,7 +23,6 @@ from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import yaml
 
-from ..csv_tables import read_input_bytes
 from ..errors import InputError
 from .messages import input_error
 
@@ -270,6 +269,24 @@ class YamlFile(NamedTuple):
     # lines refusing duplicate and merge keys, naming the file, for the reader to list with the
     # other problems of the data (read_yaml_file's keys_later)
     key_problems: tuple[str, ...] = ()
+
+
+# the largest input file read: a scenario or a table of markers is kilobytes (a 10 MB scenario
+# of comments reads in a second); an endless one (/dev/zero, a pipe that never ends) filled
+# the machine's memory until the kernel killed the command without a word
+MAX_INPUT_BYTES = 64 * 2**20
+
+
+def read_input_bytes(path: Path, where: str, expected: str) -> bytes:
+    """The bytes of an input file, at most MAX_INPUT_BYTES; OSError as reading raises it, an
+    InputError naming `where` for a file larger than that (`expected`: what was wanted)."""
+    with path.open("rb") as handle:
+        content = handle.read(MAX_INPUT_BYTES + 1)
+    if len(content) > MAX_INPUT_BYTES:
+        cap = MAX_INPUT_BYTES
+        size = f"{cap // 2**20} MB" if cap % 2**20 == 0 else f"{cap} bytes"
+        raise InputError(f"{where}: got more than {size}, expected {expected}")
+    return content
 
 
 def read_yaml_file(path: str | Path, keys_later: bool = False) -> YamlFile:
