@@ -275,13 +275,18 @@ class YamlFile(NamedTuple):
 # of comments reads in a second); an endless one (/dev/zero, a pipe that never ends) filled
 # the machine's memory until the kernel killed the command without a word
 MAX_INPUT_BYTES = 64 * 2**20
+INPUT_CHUNK_BYTES = 2**20
 
 
 def read_input_bytes(path: Path, where: str, expected: str) -> bytes:
     """The bytes of an input file, at most MAX_INPUT_BYTES; OSError as reading raises it, an
     InputError naming `where` for a file larger than that (`expected`: what was wanted)."""
-    with path.open("rb") as handle:
-        content = handle.read(MAX_INPUT_BYTES + 1)
+    chunks, size = [], 0
+    with path.open("rb") as handle:  # in pieces: one read of the cap would take its memory at once
+        while size <= MAX_INPUT_BYTES and (chunk := handle.read(INPUT_CHUNK_BYTES)):
+            chunks.append(chunk)
+            size += len(chunk)
+    content = b"".join(chunks)
     if len(content) > MAX_INPUT_BYTES:
         cap = MAX_INPUT_BYTES
         size = f"{cap // 2**20} MB" if cap % 2**20 == 0 else f"{cap} bytes"
