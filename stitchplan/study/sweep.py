@@ -229,8 +229,12 @@ def compared_run(runs: list[StudyRun], reference: StudyRun, notes: list[str]) ->
         raise InputError(f"study: every one of its {len(runs) + 1} runs was refused by its choices, the reference "
                          f"{reference.label!r} as: {reference.reason.removeprefix(REFUSED)}; expected families and "
                          "a reference whose choices make a model")
-    if not finest:
-        raise NumericalFailure(f"study: every run failed (reference: {reference.reason})")
+    if not finest:  # each reason once, the reference's first: no file is written to hold them
+        reasons = dict.fromkeys(run.reason for run in [reference, *runs])
+        said = "; ".join(f"{next(r.label for r in [reference, *runs] if r.reason == reason)!r} as: {reason}"
+                         for reason in list(reasons)[:3])
+        more = f"; {len(reasons) - 3} other reasons" if len(reasons) > 3 else ""
+        raise NumericalFailure(f"study: every one of its {len(runs) + 1} runs failed, {said}{more}")
     compared = min(finest, key=lambda r: (r.spacing, -r.particles))
     notes.append(f"the reference run failed ({reference.reason}); deviations are measured from "
                  f"the finest successful run, {compared.label}")
