@@ -109,8 +109,9 @@ def test_the_guard_refuses_a_calibration_by_the_fits_own_models(tmp_path):
 
 
 def test_the_estimates_coarser_models_still_count_in_the_memory_held_at_once():
-    """The guard's runs held in one process: a model that is another's at a coarser spacing gets
-    no line of its own, even one too coarse for the tissue, but its memory counts with the rest."""
+    """The guard's runs held in one process: a model held beside them (the estimate's, at a
+    coarser spacing) gets no line of its own, even one too coarse for the tissue, but its
+    memory counts with the rest."""
     from stitchplan.config import Discretization, Scenario, Tissue
     from stitchplan.resources.costs import estimate, held_in_one_process
     from stitchplan.resources.limits import Limits
@@ -120,7 +121,7 @@ def test_the_estimates_coarser_models_still_count_in_the_memory_held_at_once():
     loads = LOADS["left-pull"]
     fine, coarse = (estimate(Scenario(tissue=tissue, discretization=Discretization(spacing=spacing), loads=loads),
                              "deform", label) for spacing, label in ((20.0, "fit"), (40.0, "estimate")))
-    check_resources([fine, coarse], memory=1e12, space=None, in_one_process=True)  # no refusal
+    check_resources([fine], memory=1e12, space=None, in_one_process=True, beside=[coarse])  # no refusal
     with pytest.raises(InputError) as error:  # alone, the 40 mm model is too coarse
         check_resources([coarse], memory=1e12, space=None, in_one_process=True)
     assert "discretization.spacing: got 40 mm, expected at most half the tissue's smaller side" in str(error.value)
@@ -129,7 +130,7 @@ def test_the_estimates_coarser_models_still_count_in_the_memory_held_at_once():
     memory = both / Limits().memory_share - 1.0
     check_resources([fine], memory=memory, space=None, in_one_process=True)
     with pytest.raises(InputError) as error:
-        check_resources([fine, coarse], memory=memory, space=None, in_one_process=True)
+        check_resources([fine], memory=memory, space=None, in_one_process=True, beside=[coarse])
     assert "when they run at once" in str(error.value) and "estimate: " in str(error.value)
 
 

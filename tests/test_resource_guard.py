@@ -922,7 +922,7 @@ def test_a_calibrations_experiments_are_held_at_once_in_its_process(monkeypatch)
     original, seen = guard.check_resources, {}
 
     def recorded(estimates, limits, **options):
-        seen.update(estimates=estimates, **options)
+        seen.update(options, estimates=[*estimates, *options.get("beside", ())])  # the estimate's held beside
         return original(estimates, limits, **options)
 
     mapped = 332e6  # after the calibration's imports, its optimizer's included

@@ -317,7 +317,8 @@ def guard_limits(max_particles: Optional[int], no_resource_check: bool):
 
 def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
                linear_solver: Optional[str] = None, alongside: Optional[list] = None, forked: bool = True,
-               workers: Optional[int] = None, condition_numbers: bool = False, in_one_process: bool = False) -> None:
+               workers: Optional[int] = None, condition_numbers: bool = False, in_one_process: bool = False,
+               beside: tuple = ()) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.origin.Origin of the run's discretization (default: the file's, with the fields in
@@ -327,7 +328,8 @@ def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] 
     once), in processes `forked` from this one or (False) Dask workers; `workers`: `runs` go
     on in this many worker processes, none here (check_resources); `condition_numbers`: `runs`
     take each needle step's dense condition numbers (--condition-numbers; not their replays);
-    `in_one_process`: `runs` are held at once in this process (check_resources).
+    `in_one_process`: `runs` are held at once in this process (check_resources), with `beside`
+    (runs of the same form counted in that memory only: check_resources).
     Lines name the file, or the option."""
     if limits is None:
         return
@@ -342,7 +344,7 @@ def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] 
 
     with naming_files(scenario_path):
         check_resources(estimates(runs, condition_numbers), limits, alongside=None if alongside is None else estimates(alongside),
-                        forked=forked, workers=workers, in_one_process=in_one_process)
+                        forked=forked, workers=workers, in_one_process=in_one_process, beside=estimates(beside))
 
 
 def estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:
@@ -372,18 +374,19 @@ def guard_calibration(calibration_path: Path, problem, limits, names: Optional[d
     from ..errors import InputError
 
     fit = problem.fit
-    evaluations = fit.grid_points ** 2 + fit.max_evaluations
-    discretizations = [(problem.discretization, "", evaluations)]
+
+    def runs(discretization, label: str, count: int) -> list[tuple]:
+        return [("deform", Scenario(tissue=problem.tissue, discretization=discretization, loads=experiment.loads,
+                                    load_steps=experiment.load_steps), f"experiments[{k}]{label}", count)
+                for k, experiment in enumerate(problem.experiments)]
+
+    coarse = []
     if estimate:
         with contextlib.suppress(InputError):  # a spacing no file may give: the estimate says so itself
-            discretizations.append((problem.discretization.replaced(spacing=problem.estimate_spacing),
-                                    " at twice the spacing",
-                                    fit.max_evaluations))
-    guard_runs(calibration_path, limits, *[
-        ("deform", Scenario(tissue=problem.tissue, discretization=discretization, loads=experiment.loads,
-                            load_steps=experiment.load_steps), f"experiments[{k}]{label}", count)
-        for discretization, label, count in discretizations
-        for k, experiment in enumerate(problem.experiments)], names=names, in_one_process=True)
+            coarse = runs(problem.discretization.replaced(spacing=problem.estimate_spacing), " at twice the spacing",
+                          fit.max_evaluations)
+    guard_runs(calibration_path, limits, *runs(problem.discretization, "", fit.grid_points ** 2 + fit.max_evaluations),
+               names=names, in_one_process=True, beside=tuple(coarse))
 
 
 def echo_notes(notes, quiet: bool) -> None:

@@ -34,7 +34,8 @@ SKIP_GUARD = "pass --no-resource-check to run it anyway"
 def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                     memory: float | None = None, alongside: list[Estimate] | None = None,
                     forked: bool = True, workers: int | None = None,
-                    space: tuple[float, float] | None = None, in_one_process: bool = False) -> None:
+                    space: tuple[float, float] | None = None, in_one_process: bool = False,
+                    beside: list[Estimate] = ()) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
@@ -56,19 +57,15 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     that needs more address space than the limit allows (machine.address_space_needed) is
     refused naming the limit. `in_one_process`: the runs of `estimates` are held at once in this
     process (costs.held_in_one_process: a material calibration's experiments), together
-    within the memory share and the address-space limit; there a run that is another's model
-    at a coarser spacing (_coarser_copies: the calibration's discretization estimate, each
-    experiment refitted at twice the spacing) counts only in the memory they hold together,
-    with no refusal line of its own: it is smaller than the run it copies, whose lines name the
-    same settings, and one too coarse for the tissue is not made (the calibration records its
-    estimate as not made, saying why) rather than refusing the fit."""
+    within the memory share and the address-space limit. `beside`: runs held with them in this
+    process that count only in that memory, with no refusal line of their own (a calibration's
+    discretization estimate, each experiment refitted at twice the spacing: smaller than the
+    fit's models, whose lines name the same settings, and one too coarse for the tissue is not
+    made, the calibration recording its estimate as not made, rather than refusing the fit)."""
     memory = available_memory() if memory is None else memory
     space = address_space() if space is None else space
     lines = []
-    copies = _coarser_copies(estimates) if in_one_process else set()
-    for index, item in enumerate(estimates):
-        if index in copies:
-            continue
+    for item in estimates:
         size, what = item.size, f"estimated {item.describe()}"
         too_many_steps = item.needle_step is not None and item.steps > limits.max_needle_steps
         too_long = item.condition_seconds > limits.max_condition_seconds
@@ -103,10 +100,11 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             and here + held_at_once([item.memory_bytes for item in held], forked) > limits.memory_share * memory:
         lines.append(_together_refusal(held, limits.memory_share, memory, forked, here))
     if in_one_process and not lines and estimates:
-        total = held_in_one_process([item.memory_bytes for item in estimates])
-        largest = max(estimates, key=lambda item: item.memory_bytes)
+        held_here = [*estimates, *beside]
+        total = held_in_one_process([item.memory_bytes for item in held_here])
+        largest = max(held_here, key=lambda item: item.memory_bytes)
         if memory is not None and total > limits.memory_share * memory:
-            lines.append(_together_refusal(estimates, limits.memory_share, memory, total=total))
+            lines.append(_together_refusal(held_here, limits.memory_share, memory, total=total))
         elif space is not None and address_space_needed(space[1], total, BASE_MEMORY) > space[0]:
             lines.append(_address_space_refusal(largest, *space, beside=total - largest.memory_bytes))
     if lines:
@@ -118,7 +116,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         log.info("resources: %s", item.describe())
         if item.seconds > LONG_RUN_SECONDS:  # a run this long should not start in silence
             log.warning("a long run: estimated %s; -v shows its progress", item.describe())
-    for item in alongside or []:  # they take no longer than the runs they go with: no warning of their own
+    for item in [*(alongside or []), *beside]:  # no longer than the runs they go with: no warning of their own
         log.info("resources: %s", item.describe())
 
 
@@ -132,21 +130,6 @@ def _one_per_field(lines: list[str]) -> list[str]:
             seen.add(name)
             kept.append(line)
     return kept
-
-
-def _coarser_copies(estimates: list[Estimate]) -> set[int]:
-    """Indices of the runs whose model is another run's at a coarser spacing: the same tissue
-    and discretization but for a larger spacing (a calibration's discretization estimate
-    beside its fit)."""
-    def rest(item: Estimate) -> tuple:
-        fields = item.discretization.as_input()
-        fields.pop("spacing")
-        return item.tissue_size, tuple(sorted(fields.items()))
-
-    keys = [rest(item) for item in estimates]
-    return {i for i, item in enumerate(estimates)
-            if any(j != i and keys[j] == keys[i] and other.discretization.spacing < item.discretization.spacing
-                   for j, other in enumerate(estimates))}
 
 
 @dataclass(frozen=True)
