@@ -1,14 +1,11 @@
 """Numbers in the CSV files a user gives (trajectories, marker positions, force recordings):
 plain decimals only. Python's float() also takes '1_0' (as 10), 'infinity' and non-ASCII
-digits (Arabic-Indic ones as their values), none of which such a file should contain. And
-numbers as the outputs write them: rounded, without round-off's noise or -0."""
+digits (Arabic-Indic ones as their values), none of which such a file should contain."""
 
 from __future__ import annotations
 
 import math
 import re
-
-import numpy as np
 
 DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
@@ -27,9 +24,3 @@ def spells_a_number(text: str) -> bool:
     """Whether `text` spells a number parse_number refuses only for not being finite."""
     text = text.strip()
     return bool(DECIMAL.fullmatch(text) or NON_FINITE.fullmatch(text))
-
-
-def rounded(values, decimals: int) -> np.ndarray:
-    """`values` rounded to `decimals` decimals (numpy divides by 10**decimals: the nearest
-    double to the decimal), -0.0 made 0.0: 0, not 5.4e-16, in what a user reads."""
-    return np.round(np.asarray(values, dtype=float), decimals) + 0.0

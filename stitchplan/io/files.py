@@ -41,7 +41,6 @@ from typing import Any
 
 import numpy as np
 
-from ..decimals import rounded
 from ..errors import InputError
 from .commits import DEFERRED
 
@@ -372,7 +371,7 @@ POINT_DECIMALS = 12  # points and displacements (mm) to 1e-12 mm: 0, not the rou
 def rounded_point(point) -> np.ndarray | None:
     """A point (or displacements) in mm as the outputs write it, rounded to POINT_DECIMALS,
     -0 made 0 (the errors reported are the unrounded points')."""
-    return None if point is None else rounded(point, POINT_DECIMALS)
+    return None if point is None else np.round(np.asarray(point, dtype=float), POINT_DECIMALS) + 0.0
 
 
 def sha256(path: PathLike) -> str:

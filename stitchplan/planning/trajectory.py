@@ -15,7 +15,6 @@ import numpy as np
 from ..config import Robot
 # the bounds of the robot's frame and speed (the robot block checks a file's, cli.options the options')
 from ..config.plan_blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
-from ..decimals import rounded
 from ..errors import InputError, NumericalFailure
 from ..needle.results import InsertionResult
 
@@ -26,8 +25,9 @@ DECIMALS_ANGLE = 12  # angles (rad) and times (s) to 1e-12: 2.8, not n x 0.08 = 
 
 
 def _clean(values: np.ndarray, decimals: int = DECIMALS_MM) -> np.ndarray:
-    """Rounded as trajectory.csv writes them (decimals.rounded), to 1e-9 mm by default."""
-    return rounded(values, decimals)
+    """Rounded to `decimals` decimals (numpy divides by 10**decimals: the nearest double to
+    the decimal), with -0.0 made 0.0."""
+    return np.round(np.asarray(values, dtype=float), decimals) + 0.0
 
 
 def exported_center(center: np.ndarray) -> np.ndarray:
