@@ -268,7 +268,7 @@ def test_a_study_whose_every_run_fails_is_a_numerical_failure(tmp_path, write_sc
     assert result.exit_code == 1, result.output
     # each reason once, the reference's first, each with a run that failed so (the families'
     # were lost: only the reference's was said)
-    assert result.output.startswith("error: study: every one of its 2 runs failed, 'reference h=5 mm' as: "
+    assert result.output.startswith(f"error: {scenario}: study: every one of its 2 runs failed, 'reference h=5 mm' as: "
                                     "InsertionFailure: step 1"), result.output
     assert "'uniform h=6 mm' as: InsertionFailure: step 1" in result.output
     assert not (tmp_path / "out").exists()

@@ -278,7 +278,7 @@ def study(
     scenario = load_with_options(scenario_path, None, None)
     checked_needle_geometry(scenario_path, scenario)  # the sweep needs a needle that enters and exits
     from ..io.progress import progress_bar
-    from ..study.sweep import plan_runs, run_study, study_size
+    from ..study.sweep import EveryRunFailed, plan_runs, run_study, study_size
 
     resume_collection()
     with naming_files(scenario_path):
@@ -287,8 +287,11 @@ def study(
                 executor.workers)
     with executor, progress_bar("study runs", study_size(scenario, quick)) as advance, naming_files(scenario_path):
         # the runs go on at once on a cluster: the bar names the one that ended last
-        result = run_study(scenario, quick=quick, executor=executor,
-                           on_run=lambda run: advance(description=f"study runs, last done: {run.label}"))
+        try:
+            result = run_study(scenario, quick=quick, executor=executor,
+                               on_run=lambda run: advance(description=f"study runs, last done: {run.label}"))
+        except EveryRunFailed as failure:  # no study.csv holds the reasons: the line names the scenario
+            raise EveryRunFailed(f"{scenario_path}: {failure}") from None
     csv_path, png_path, json_path = write_study_outputs(result, out, run_provenance(scenario_path, scenario))
     for line in summary_lines(result):
         typer.echo(line)

@@ -90,7 +90,8 @@ class StudySpec:
     families: described(sequence(StudyFamily, "a non-empty list of families", min_length=1) | None,
                         "default: eight families, each changing one choice") = None
     reference: described(StudyFamily | None, "the finest run: one spacing") = None
-    repeats: described(integer(1, 20), "timing: median of this many runs") = 1
+    repeats: described(integer(1, 20), "timing: median of this many runs of each family run "
+                                        "(the reference runs once)") = 1
 
     @model_validator(mode="before")
     @classmethod

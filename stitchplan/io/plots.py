@@ -213,8 +213,8 @@ def _speed_accuracy_panel(ax, key: str, xlabel: str, runs, families: list[str], 
                                 fontsize=7, color=colours(k % 10), va="center", annotation_clip=False)
     apart = [r for r in done if not r.deviations.get("spatial_compared", True)]
     if apart and key == "exit_deviation_mm":  # deviation_mm leaves these out (exit_deviations)
-        ax.plot([x_of(r) for r in apart], [r.wall_seconds for r in apart], "s", mfc="none", mec="0.45", ms=9,
-                mew=0.8, label=SPATIAL_APART_LABEL)
+        ax.plot([x_of(r) for r in apart], [r.wall_seconds for r in apart], "s", mfc="none", mec="0.45", ms=15,
+                mew=0.8, zorder=3, label=SPATIAL_APART_LABEL)  # around the front's ring, not under it
     front = sorted((r for r in done if r.pareto), key=lambda r: r.wall_seconds)
     if front and key == "deviation_mm":  # a staircase only on the measure the front is found on
         ax.step([x_of(r) for r in front], [r.wall_seconds for r in front], where="pre", color="black",

@@ -33,7 +33,7 @@ Scenario block (optional; every key optional, unknown keys refused):
         - {name: minres, linear_solver: minres}
         - {name: dilation 1.5, dilation: 1.5, spacing: [4.0, 3.0]}
       reference: {grading: 4, spacing: 1.0} # the finest run (one spacing)
-      repeats: 1                            # timing: median of this many runs
+      repeats: 1                            # timing: median of this many runs (the reference: one)
 """
 
 from __future__ import annotations
@@ -219,6 +219,10 @@ def auto_run(choice: AutoChoice) -> StudyRun:
                     cpu_seconds=choice.cpu_seconds, result=choice.result)
 
 
+class EveryRunFailed(NumericalFailure):
+    """Every run of the study failed: no run to measure deviations from."""
+
+
 def compared_run(runs: list[StudyRun], reference: StudyRun, notes: list[str]) -> StudyRun:
     """The reference, or when it failed the finest successful run (noted)."""
     if reference.ok:
@@ -234,7 +238,7 @@ def compared_run(runs: list[StudyRun], reference: StudyRun, notes: list[str]) ->
         said = "; ".join(f"{next(r.label for r in [reference, *runs] if r.reason == reason)!r} as: {reason}"
                          for reason in list(reasons)[:3])
         more = f"; {len(reasons) - 3} other reasons" if len(reasons) > 3 else ""
-        raise NumericalFailure(f"study: every one of its {len(runs) + 1} runs failed, {said}{more}")
+        raise EveryRunFailed(f"study: every one of its {len(runs) + 1} runs failed, {said}{more}")
     compared = min(finest, key=lambda r: (r.spacing, -r.particles))
     notes.append(f"the reference run failed ({reference.reason}); deviations are measured from "
                  f"the finest successful run, {compared.label}")
