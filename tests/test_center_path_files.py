@@ -134,6 +134,19 @@ def test_tips_that_disagree_with_their_centres_are_refused(tmp_path, geometry):
     assert "line 11, tip_x_mm, tip_y_mm: got [0, " in refusal(write_rows(tmp_path, rows), geometry)
 
 
+def test_tips_printed_with_9_significant_digits_pass_far_from_the_origin(tmp_path, geometry):
+    """Beyond 100 mm 9 significant digits keep 6 decimals or fewer: each coordinate is then up to
+    5e-7 mm (at 1000 mm, 5e-6 mm) from the value plan computed, and a row's centre and tip
+    together up to ~1.4 times that apart from the needle's tip, which is rounding, not an edit;
+    a centre moved by 0.01 mm is still refused."""
+    far = replace(geometry, center=geometry.center + 1000.0, entry=geometry.entry + 1000.0)
+    rows = trajectory_rows(far)
+    centers = read_center_path(write_rows(tmp_path, rows), far)
+    assert centers.shape == (far.expected_steps + 1, 2)
+    rows[6][2] = f"{float(rows[6][2]) + 0.01:.9g}"
+    assert "line 8, tip_x_mm, tip_y_mm" in refusal(write_rows(tmp_path, rows), far)
+
+
 def test_times_that_go_back_are_refused(tmp_path, geometry):
     rows = [row + [f"{k * 0.2:.9g}"] for k, row in enumerate(trajectory_rows(geometry))]
     header = HEADER + ",time_s"

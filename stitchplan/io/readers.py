@@ -20,8 +20,20 @@ ANGLE_COLUMN = "angle_rad"
 TIP_COLUMNS = ("tip_x_mm", "tip_y_mm")
 TIME_COLUMN = "time_s"
 # a tip as trajectory.csv writes it (rounded to 1e-9 mm, from centres rounded alike) lies within
-# a few 1e-9 mm of its centre's needle; written with 9 significant digits, within 1e-7 mm
+# a few 1e-9 mm of its centre's needle. Written with 9 significant digits each coordinate is
+# within 5e-9 of its decade (5e-9 mm below 10 mm, 5e-8 mm below 100, 5e-7 mm from 100, 5e-6 mm from
+# 1000 mm), a centre and its tip together within 1.42 times that: TIP_TOLERANCE_MM, or
+# TIP_RELATIVE_TOLERANCE of the row's largest coordinate where that is more (2e-6 mm at 100 mm)
 TIP_TOLERANCE_MM = 1e-6
+TIP_RELATIVE_TOLERANCE = 2e-8
+
+
+def point_tolerance(*points: np.ndarray) -> np.ndarray:
+    """How far (mm) the points of each row may lie from where the needle puts them: the
+    rounding of their printed digits (TIP_TOLERANCE_MM, TIP_RELATIVE_TOLERANCE), (n,)."""
+    scale = np.max(np.abs(np.concatenate(points, axis=1)), axis=1)
+    return np.maximum(TIP_TOLERANCE_MM, TIP_RELATIVE_TOLERANCE * scale)
+
 
 def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
                      leaning: Callable[[np.ndarray], NeedleGeometry] | None = None) -> np.ndarray:
@@ -89,7 +101,7 @@ def check_tips(path: str | Path, tips: np.ndarray, centers: np.ndarray, geometry
     refused."""
     expected = np.array([geometry.tip(k * geometry.step, center) for k, center in enumerate(centers)])
     off = np.linalg.norm(tips - expected, axis=1)
-    bad = np.flatnonzero(off > TIP_TOLERANCE_MM)
+    bad = np.flatnonzero(off > point_tolerance(tips, centers))
     if bad.size:
         k = bad[0]
         raise InputError(
