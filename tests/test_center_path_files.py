@@ -30,7 +30,7 @@ from stitchplan.decimals import parse_number
 from stitchplan.errors import InputError
 from stitchplan.io.readers import ANGLE_TOLERANCE, read_center_path
 from stitchplan.needle.geometry import scenario_needle
-from stitchplan.planning.trajectory import exported_centers, trajectory_table
+from stitchplan.planning.trajectory import exported_centers, to_base_frame, trajectory_table
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 SCENE = REPOSITORY / "configs" / "needle20_entry30.yaml"
@@ -145,6 +145,42 @@ def test_tips_printed_with_9_significant_digits_pass_far_from_the_origin(tmp_pat
     assert centers.shape == (far.expected_steps + 1, 2)
     rows[6][2] = f"{float(rows[6][2]) + 0.01:.9g}"
     assert "line 8, tip_x_mm, tip_y_mm" in refusal(write_rows(tmp_path, rows), far)
+
+
+def base_rows(geometry, rotation_deg=30.0, translation=(400.0, 120.0), digits=None) -> list[list[str]]:
+    """trajectory_rows with the four base-frame columns plan writes with a base transform."""
+    robot = Robot(rotation_deg, translation, None, given=True)
+    rows = []
+    for row in trajectory_rows(geometry):
+        points = np.array([[float(row[2]), float(row[3])], [float(row[4]), float(row[5])]])
+        base = to_base_frame(points, robot)
+        cells = [f"{value:.{digits}g}" if digits else repr(float(np.round(value, 9)))
+                 for value in base.ravel()]
+        rows.append(row + cells)
+    return rows
+
+
+BASE_HEADER = HEADER + ",base_center_x_mm,base_center_y_mm,base_tip_x_mm,base_tip_y_mm"
+
+
+def test_base_frame_points_that_disagree_with_the_tissue_frame_are_refused(tmp_path, geometry):
+    """With a base transform the robot follows the base-frame columns: a row whose base-frame
+    centre or tip is not the same rigid motion of its tissue-frame points as the other rows'
+    says two things, and the replay would check a path the robot does not follow. Any
+    rotation and offset pass (the transform may be the file's robot block or the options),
+    also written with 9 significant digits."""
+    for rotation, translation, digits in ((30.0, (400.0, 120.0), None), (-90.0, (-2500.0, 7.5), 9)):
+        rows = base_rows(geometry, rotation, translation, digits)
+        centers = read_center_path(write_rows(tmp_path, rows, BASE_HEADER), geometry)
+        assert centers.shape == (geometry.expected_steps + 1, 2)
+    rows = base_rows(geometry)
+    rows[6][6] = f"{float(rows[6][6]) + 0.05:.12g}"  # base_center_x_mm of step 6 edited, not its tissue centre
+    line = refusal(write_rows(tmp_path, rows, BASE_HEADER), geometry)
+    assert line.startswith(f"{tmp_path / 'path.csv'}: line 8, base_center_x_mm, base_center_y_mm: got [")
+    assert "0.05 mm off" in line and "rotation 30 deg" in line
+    rows = base_rows(geometry)
+    rows[10][9] = "0"  # base_tip_y_mm
+    assert "line 12, base_tip_x_mm, base_tip_y_mm: got [" in refusal(write_rows(tmp_path, rows, BASE_HEADER), geometry)
 
 
 def test_times_that_go_back_are_refused(tmp_path, geometry):

@@ -19,9 +19,11 @@ CENTER_PATH_COLUMNS = ("step", "center_x_mm", "center_y_mm")
 ANGLE_COLUMN = "angle_rad"
 TIP_COLUMNS = ("tip_x_mm", "tip_y_mm")
 TIME_COLUMN = "time_s"
+BASE_CENTER_COLUMNS = ("base_center_x_mm", "base_center_y_mm")
+BASE_TIP_COLUMNS = ("base_tip_x_mm", "base_tip_y_mm")
 # a tip as trajectory.csv writes it (rounded to 1e-9 mm, from centres rounded alike) lies within
 # a few 1e-9 mm of its centre's needle. Written with 9 significant digits each coordinate is
-# within 5e-9 of its decade (5e-9 mm below 10 mm, 5e-8 mm below 100, 5e-7 mm from 100, 5e-6 mm from
+# within half a unit of its 9th digit (5e-9 mm below 10 mm, 5e-8 mm below 100, 5e-7 mm from 100, 5e-6 mm from
 # 1000 mm), a centre and its tip together within 1.42 times that: TIP_TOLERANCE_MM, or
 # TIP_RELATIVE_TOLERANCE of the row's largest coordinate where that is more (2e-6 mm at 100 mm)
 TIP_TOLERANCE_MM = 1e-6
@@ -34,13 +36,13 @@ def point_tolerance(*points: np.ndarray) -> np.ndarray:
     scale = np.max(np.abs(np.concatenate(points, axis=1)), axis=1)
     return np.maximum(TIP_TOLERANCE_MM, TIP_RELATIVE_TOLERANCE * scale)
 
-
 def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
                      leaning: Callable[[np.ndarray], NeedleGeometry] | None = None) -> np.ndarray:
     """Needle centres (n, 2) in mm from a trajectory CSV as `stitchplan plan` exports it:
     row n holds step n, from 0, in the columns step, center_x_mm, center_y_mm; the other
-    columns (tips, times, base frame) must hold numbers too, and time_s, when the file has
-    it, increase (check_times). With the needle's `geometry`, the path must also fit that
+    columns (tips, times, base frame) must hold numbers too, time_s, when the file has
+    it, increase (check_times), and the base-frame columns, when it has them, be one rigid
+    motion of the tissue frame's centres and tips (check_base_frame). With the needle's `geometry`, the path must also fit that
     needle: its angle_rad, when the file has one, the needle's rotation schedule
     (check_angles), its centres the needle's steps and entry (check_center_path), and its
     tips, when it has them, the needle's tip about each centre (check_tips). `leaning(row 0)`: the needle a path starting there replays
@@ -54,12 +56,18 @@ def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
         if placed is not None and length(centers[0] - geometry.center) > ENTRY_TOLERANCE * geometry.radius:
             centers[0] = placed
         geometry = leaning(centers[0])
+    tips = np.column_stack([table[name] for name in TIP_COLUMNS]) if all(name in table for name in TIP_COLUMNS) else None
     if geometry is not None:
         if ANGLE_COLUMN in table:
             check_angles(path, table[ANGLE_COLUMN], geometry, row_numbers)
         check_center_path(path, centers, geometry, row_numbers)
-        if TIP_COLUMNS[0] in table and TIP_COLUMNS[1] in table:
-            check_tips(path, np.column_stack([table[name] for name in TIP_COLUMNS]), centers, geometry, row_numbers)
+        if tips is not None:
+            check_tips(path, tips, centers, geometry, row_numbers)
+        else:
+            tips = np.array([geometry.tip(k * geometry.step, center) for k, center in enumerate(centers)])
+    if tips is not None and all(name in table for name in BASE_CENTER_COLUMNS + BASE_TIP_COLUMNS):
+        check_base_frame(path, centers, tips, np.column_stack([table[name] for name in BASE_CENTER_COLUMNS]),
+                         np.column_stack([table[name] for name in BASE_TIP_COLUMNS]), row_numbers)
     if TIME_COLUMN in table:
         check_times(path, table[TIME_COLUMN], row_numbers)
     return centers
@@ -109,6 +117,35 @@ def check_tips(path: str | Path, tips: np.ndarray, centers: np.ndarray, geometry
             f"expected [{expected[k, 0]:.9g}, {expected[k, 1]:.9g}], the tip of the needle about the row's centre "
             f"[{centers[k, 0]:.9g}, {centers[k, 1]:.9g}] at step {k} ({off[k]:.3g} mm off: the row's centre and "
             "tip disagree; export the trajectory again, or drop the tip columns)")
+
+
+def check_base_frame(path: str | Path, centers: np.ndarray, tips: np.ndarray, base_centers: np.ndarray,
+                     base_tips: np.ndarray, row_numbers: np.ndarray) -> None:
+    """The base-frame columns one rigid motion (p_base = R p + t, as plan writes them) of the
+    tissue frame's centres and tips: the robot follows those columns, the replay the tissue
+    frame's, so a row where they disagree says two things and the first such row is refused.
+    The transform is not the scenario's (the options may have replaced it) but the one the rows
+    agree on: each row's centre and tip give a rotation and an offset, the medians of which
+    hold however few rows were edited."""
+    turned = np.arctan2(*(base_tips - base_centers)[:, ::-1].T) - np.arctan2(*(tips - centers)[:, ::-1].T)
+    turned = turned[0] + np.angle(np.exp(1j * (turned - turned[0])))  # unwrapped about row 0's
+    angle = float(np.median(turned))
+    rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    offset = np.median(np.concatenate([base_centers - centers @ rotation.T, base_tips - tips @ rotation.T]), axis=0)
+    tolerance = point_tolerance(centers, tips, base_centers, base_tips)
+    for names, points, base in ((BASE_CENTER_COLUMNS, centers, base_centers), (BASE_TIP_COLUMNS, tips, base_tips)):
+        expected = points @ rotation.T + offset
+        off = np.linalg.norm(base - expected, axis=1)
+        bad = np.flatnonzero(off > tolerance)
+        if bad.size:
+            k = bad[0]
+            raise InputError(
+                f"{path}: line {row_numbers[k]}, {names[0]}, {names[1]}: got [{base[k, 0]:.9g}, {base[k, 1]:.9g}], "
+                f"expected [{expected[k, 0]:.9g}, {expected[k, 1]:.9g}], the row's tissue-frame point "
+                f"[{points[k, 0]:.9g}, {points[k, 1]:.9g}] in the base frame the other rows give (rotation "
+                f"{math.degrees(angle):.6g} deg, translation [{offset[0]:.6g}, {offset[1]:.6g}] mm; {off[k]:.3g} mm "
+                "off: the row's base-frame and tissue-frame points disagree; export the trajectory again, or drop "
+                "the base-frame columns)")
 
 
 def check_times(path: str | Path, times: np.ndarray, row_numbers: np.ndarray) -> None:
