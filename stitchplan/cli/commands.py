@@ -157,7 +157,7 @@ def plan(
     summary: Optional[Path] = SummaryOption,
     plot: Optional[Path] = typer.Option(None, "--plot", help="PNG: planned vs unplanned paths and O(t)."),
     base_transform: Optional[str] = typer.Option(
-        None, "--base-transform", help="Tissue -> robot base frame: ROTATION_DEG,TX_MM,TY_MM."),
+        None, "--base-transform", help="Tissue -> robot base frame: ROTATION_DEG,TX_MM,TY_MM (p_base = R p + t, R counter-clockwise by ROTATION_DEG degrees; adds base_* columns)."),
     angular_speed: Optional[float] = typer.Option(
         None, "--angular-speed", help="Needle rotation speed in rad/s; adds a time_s column."),
     strict: bool = typer.Option(False, "--strict", help="Fail when a step's centre does not settle "

@@ -61,7 +61,7 @@ MAX_BASE_OFFSET_MM = 10_000.0
 MAX_BASE_ROTATION_DEG = 360.0
 MIN_ANGULAR_SPEED = 1e-6  # rad/s
 
-ROTATION = "rotation of the tissue frame in the base frame, deg"
+ROTATION = "rotation of the tissue frame in the base frame, deg, counter-clockwise about the slab normal"
 TRANSLATION = "tissue origin in the base frame, mm"
 SPEED = "rad/s of needle rotation: adds time_s to trajectory.csv"
 
