@@ -209,3 +209,44 @@ def test_the_needle_tracks_two_point_rule_integrates_cubics_exactly():
         s = segment_gauss_points(pieces)
         for degree in range(4):
             assert np.sum(s**degree) / (2 * pieces) == pytest.approx(1.0 / (degree + 1), rel=1e-13), (pieces, degree)
+
+
+@pytest.mark.parametrize("essential", [
+    pytest.param((), id="whole-boundary"),
+    pytest.param((((3.0, 0.0), (3.0, 2.0)),), id="right-edge-clamped"),
+    pytest.param((((1.0, 2.0), (2.5, 2.0)),), id="segment-inside-the-top-edge"),
+])
+def test_natural_boundary_rule_has_outward_normals_and_satisfies_the_divergence_theorem(essential):
+    """quadrature.natural_boundary_quadrature, the boundary side of integration vci, on a
+    3 x 2 mm rectangle: every point on the boundary and off the essential pieces, each normal
+    the outward one of its edge, and the rule integrates x n_x, y n_y and n exactly as the
+    divergence theorem over the kept edges says (x n_x is x on the right edge, 0 on the left)."""
+    from stitchplan.tissue.quadrature import natural_boundary_quadrature
+
+    width, height = 3.0, 2.0
+    points, normals, weights = natural_boundary_quadrature((width, height), list(essential), interval=0.4, order=3)
+    x, y = points[:, 0], points[:, 1]
+    on_edge = np.isclose(x, 0.0) | np.isclose(x, width) | np.isclose(y, 0.0) | np.isclose(y, height)
+    assert np.all(on_edge) and np.all(weights > 0.0)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, rtol=0, atol=1e-15)
+    outside = points + 1e-3 * normals  # a step along an outward normal leaves the rectangle
+    assert not np.any((outside[:, 0] > 0.0) & (outside[:, 0] < width) & (outside[:, 1] > 0.0)
+                      & (outside[:, 1] < height))
+    for start, end in essential:  # no point on an essential piece
+        (x0, y0), (x1, y1) = start, end
+        on_piece = ((np.abs((x1 - x0) * (y - y0) - (y1 - y0) * (x - x0)) < 1e-12)
+                    & (x >= min(x0, x1) - 1e-12) & (x <= max(x0, x1) + 1e-12)
+                    & (y >= min(y0, y1) - 1e-12) & (y <= max(y0, y1) + 1e-12))
+        assert not on_piece.any()
+    # per edge (bottom, right, top, left): length kept, and its x n_x and y n_y integrals
+    removed = {"right": 2.0 if essential and essential[0][0] == (3.0, 0.0) else 0.0,
+               "top": 1.5 if essential and essential[0][0] == (1.0, 2.0) else 0.0}
+    kept_right, kept_top = 2.0 - removed["right"], 3.0 - removed["top"]
+    # the rule rounds each edge's break points to multiples of 1e-9 x the longest side, so an
+    # edge's length comes out within ~2e-9 mm of its own: bounds of 1e-8 (a wrong normal or a
+    # piece left in changes these sums by a whole edge)
+    assert weights.sum() == pytest.approx(2 * (width + height) - sum(removed.values()), abs=1e-8)
+    assert weights @ (x * normals[:, 0]) == pytest.approx(width * kept_right, abs=1e-8)
+    assert weights @ (y * normals[:, 1]) == pytest.approx(height * kept_top, abs=1e-8)
+    expected_normal_sum = np.array([kept_right - 2.0, kept_top - 3.0])  # the closed boundary's is zero
+    np.testing.assert_allclose(weights @ normals, expected_normal_sum, rtol=0, atol=1e-8)
