@@ -14,6 +14,8 @@
 - `multiplier_ends: arc`: element ends at exact arc lengths a local spacing apart;
 - the residual's coupling terms, kept on joined rows for speed, against their definitions
   written out point by point, for both couplings;
+- the residual's derivative in the centre, the follower loads' turn with it included, against
+  central differences;
 - segments longer than two particle spacings split into pieces with two Gauss points each
   (track_layout.segment_subintervals): their loads, constraint and centre columns.
 """
@@ -445,3 +447,44 @@ def test_split_segments_make_the_exit_error_converge_as_the_needle_zone_is_refin
     assert split[0] * split[1] > 0 and np.log2(split[0] / split[1]) > 2.0
     assert whole[0] * whole[1] > 0 and np.log2(whole[0] / whole[1]) < 1.0
     assert abs(split[1]) < 0.2 * abs(whole[1])
+
+
+@pytest.mark.parametrize("coupling", ["points", "mortar", "mortar-pieces"])
+def test_the_residuals_centre_derivative_matches_finite_differences(coupling):
+    """d r_u / dC = d (G lambda) / dC - d f_needle / dC (the planner's right-hand sides for the
+    centre's columns) against central differences of the residual in the centre, at a
+    deformed state off equilibrium with random multipliers, mid-ramp (both load sets carry).
+    The friction and the cutting force follow the needle's tangent at their points, which
+    turns with C: leaving that term out moves the planner's Jacobian by only ~3e-4 of its
+    norm, below what the finite-difference check of center_sensitivity can see, so it is
+    checked here on its own, and on the constraint rows (center_derivative_on_rows: exact
+    where every load point is a segment Gauss point, cutting length two whole 1.6 mm steps)."""
+    options = ({**PIECES_SCENE, "cutting_length": 8.0} if coupling == "mortar-pieces"  # two whole 4 mm steps
+               else {"spacing": 2.0, "coupling": coupling, "cutting_length": 3.2})
+    insertion = started(small_scene(**options), steps=3 if coupling == "mortar-pieces" else 4)
+    track = insertion.coupling
+    track.load_factor = 0.25
+    rng = np.random.default_rng(11)
+    free = 0.05 * rng.standard_normal(insertion.free.shape)
+    multipliers = rng.standard_normal(track.multiplier_count)
+    center = insertion.center + np.array([0.1, -0.05])
+    values, _, _ = track.residual_terms(free, multipliers, center)
+    turn = track.needle_force_center_derivative(free, center)  # d f_needle / dC, (2 n_free, 2)
+    exact = track.center_derivative(multipliers, values.normal, values.rho) - turn
+    h = 1e-6
+    needle_columns, residual_columns = [], []
+    for j in range(2):
+        step = h * np.eye(2)[j]
+        plus, minus = (track.residual_terms(free, multipliers, center + sign * step) for sign in (1.0, -1.0))
+        needle_columns.append((plus[1] - minus[1]) / (2 * h))
+        residual_columns.append(((plus[2] - plus[1]) - (minus[2] - minus[1])) / (2 * h))
+    needle_difference, residual_difference = np.column_stack(needle_columns), np.column_stack(residual_columns)
+    assert np.abs(turn).max() > 1e-3 and np.abs(exact).max() > 1e-2
+    # central differences: truncation h^2 / R^2 and cancellation 1e-16 |f| / h, below 1e-8 here
+    np.testing.assert_allclose(turn, needle_difference, rtol=0, atol=1e-7 * np.abs(turn).max())
+    np.testing.assert_allclose(exact, residual_difference, rtol=0, atol=1e-7 * np.abs(exact).max())
+    on_rows = track.center_derivative_on_rows(free, multipliers, values.normal, values.rho, center)
+    if coupling != "points":
+        assert on_rows is not None and len(track.loads.lumping[0]) == 0
+        np.testing.assert_allclose(track.expanded_rows_t @ on_rows, residual_difference, rtol=0,
+                                   atol=1e-7 * np.abs(exact).max())
