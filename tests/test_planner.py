@@ -3,7 +3,7 @@
 - on generated scenes (other entry edges, both turn directions, other clamped edges, block
   sizes and materials) the planned exit error is below 0.05 mm and below 5 % of the
   unplanned one, while the unplanned error is large enough for that to mean something;
-- within a step the centre satisfies the fixed point O = O(t0) - c + u(X_exit) (eq. 4.1) to
+- within a step the centre satisfies the fixed point O = O(t0) - c + u(X_exit) (Algorithm 2's update) to
   the planner tolerance wherever no eq. 4.2 event was recorded;
 - the passes follow the documented shooting update (a secant along the exit edge, started
   at de/dc = -1) and the best pass is returned;
@@ -197,7 +197,7 @@ def test_a_large_offset_acts_from_the_first_step(two_passes):
 
 def test_centre_solves_the_fixed_point_of_eq_4_1_also_where_eq_4_2_fails(two_passes):
     """The centre is a Newton unknown of each step's solve, so every step that no move limit
-    held back ends on the fixed point of eq. 4.1, also where the exit point follows the
+    held back ends on the fixed point of Algorithm 2's update, also where the exit point follows the
     centre nearly one for one (the thesis's plain update stalls there)."""
     planned = two_passes.planned
     best = [p for p in two_passes.passes if p["exit_error_mm"] == planned.exit_error_mm][0]

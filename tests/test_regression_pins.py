@@ -41,7 +41,7 @@ from conftest import CONFIGS, REPOSITORY
 # on the 20 mm needle, planned ones stay below 0.0025 mm. Step and particle counts unchanged.
 # Planned values re-pinned when the needle centre became an unknown of each step's Newton
 # solve (needle/steering.py; the unplanned values did not move): the planner now settles
-# the fixed point of eq. 4.1 also where eq. 4.2 fails, and all stay below 0.0025 mm.
+# the fixed point of Algorithm 2's update also where eq. 4.2 fails, and all stay below 0.0025 mm.
 # sh12_100x100's planned value re-pinned when the Newton residual tolerance became 1e-6 of
 # the needle force (config Solver): its passes take another path to the exit (0.00034 ->
 # 0.00067 mm, within the 0.001 mm planner tolerance); every unplanned value moved < 1e-7 mm.

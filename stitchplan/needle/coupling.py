@@ -11,7 +11,10 @@ configuration, joined by straight segments. It carries
 - the cutting force at the tip;
 - the constraint that keeps the track on the needle circle, g = |x(X) - C| - R = 0,
   written as a residual that Newton drives to zero (eq. 3.59-3.65), so the track does not
-  drift off the needle over many steps.
+  drift off the needle over many steps. Eq. 3.59 holds the incremental form, u^T a_1 = 0
+  (no displacement towards the centre); g is its total form, whose linearisation about the
+  current state is that (a_1 = (x - C) / |x - C|), and whose value does not accumulate the
+  increments' round-off and linearisation error over the steps.
 
 Two couplings (`needle.coupling`):
 
@@ -498,7 +501,7 @@ class NeedleCoupling:
         change is lumped onto two of the segment's Gauss points (LoadQuadrature.lumping), whose
         rows interpolate theirs linearly along the segment. The columns only make the Jacobian
         of the planner's centre move (needle/steering.py; tests/test_needle_coupling.py bounds
-        the change by 1e-3 of its norm), so the centre still settles where eq. 4.1 holds."""
+        the change by 1e-3 of its norm), so the centre still settles where Algorithm 2's update holds."""
         loads, previous = self.loads, self.previous_loads
         if not (self._segment_rows is self._quadrature_rows and loads.lumping is not None
                 and previous.lumping is not None):

@@ -356,7 +356,7 @@ class NeedleInsertion:
 
     def _newton(self, rotation: float, step: int, aim: CenterAim | None = None) -> tuple[int, int, float]:
         """Newton on the saddle-point system (eq. 3.62) at the current load, about the
-        current centre or, with `aim`, with the centre as a third unknown (CenterAim, eq. 4.1).
+        current centre or, with `aim`, with the centre as a third unknown (CenterAim, Algorithm 2's update).
         Each iteration: the residuals; converged?; a step of the linearised system, by MINRES
         (eq. 3.71-3.74) or on a kept factor of K + H renewed when Newton slows, whose steps are
         Anderson-mixed (Walker and Ni 2011); with `aim`, the centre's move; the update. What the
@@ -459,7 +459,7 @@ class NeedleInsertion:
 
     def _steer(self, aim: CenterAim, history: NewtonHistory, free: np.ndarray, center: np.ndarray,
                solution: np.ndarray, balanced: bool) -> np.ndarray | None:
-        """The step with the centre's move (CenterAim.update, eq. 4.1) appended, the equilibrium's
+        """The step with the centre's move (CenterAim.update, Algorithm 2) appended, the equilibrium's
         part moved with it by d(d, lambda)/dC; None where the tissue is balanced and the centre
         settled or held."""
         n_dof = len(free)

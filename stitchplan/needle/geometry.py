@@ -115,7 +115,8 @@ class NeedleGeometry:
 
     @property
     def insertion_step(self) -> float:
-        """IS = R theta (eq. 3.69)."""
+        """IS = R theta (eq. 3.69): the arc a step turns; the tip tracking holds the tip a chord
+        2 R sin(theta / 2) from the last one instead (tip_tracking.track_tip)."""
         return self.radius * self.step
 
     @property

@@ -138,7 +138,7 @@ class NewtonHistory:
     earlier iterations: the convergence measure at the last two direct solves (when to renew
     the kept factor of K + H), the measure where a fresh factor was made and the steps on one
     that raised it (when to give up), the Anderson mixing of the modified Newton steps, and in
-    a planner's step (`planned`: the centre an unknown, eq. 4.1) d(d, lambda)/dC and the last
+    a planner's step (`planned`: the centre an unknown, Algorithm 2) d(d, lambda)/dC and the last
     centre move."""
 
     planned: bool

@@ -2,7 +2,7 @@
 
 Algorithm 2 asks, within each needle step, for the centre O that satisfies
 
-    m(d, O) = O(t_0) - c + u(X_exit; d) - O = 0                                   (eq. 4.1)
+    m(d, O) = O(t_0) - c + u(X_exit; d) - O = 0                   (Algorithm 2's update)
 
 with the tissue in equilibrium about O. Solved as a fixed point (move O, re-solve the
 equilibrium, repeat) it costs a whole equilibrium solve per centre try. Here O joins the
@@ -13,7 +13,7 @@ _center_columns),
 
     [dd, dl] = [dd_0, dl_0] + [D, L] dO,
 
-and eq. 4.1 linearised, m + N_exit (dd_0 + D dO) - dO = 0, gives the centre move
+and the update linearised, m + N_exit (dd_0 + D dO) - dO = 0, gives the centre move
 
     dO = (I - B)^-1 (m + N_exit dd_0),    B = N_exit D = du(X_exit)/dO.
 

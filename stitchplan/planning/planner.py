@@ -47,7 +47,7 @@ class ExitTracker:
     """Algorithm 2's centre within each step, and the start of each step's iterations (a
     CenterControl for run_insertion).
 
-    Within a step the centre solves O = O(t_0) - c + u(X_exit; O) (eq. 4.1, c the pass's
+    Within a step the centre solves O = O(t_0) - c + u(X_exit; O) (Algorithm 2's update, c the pass's
     `offset`). The plain fixed-point iteration contracts by the factor ||du(X_exit)|| /
     ||dO|| of eq. 4.2, often 0.9 or more here, and costs an equilibrium solve per try; the
     centre is instead a third unknown of the step's equilibrium Newton solve
@@ -233,8 +233,8 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
 
 class _PlanPasses:
     """run_plan's passes of Algorithm 2: the scene and model they run on, the aim of the exit
-    error they stop within `target` of, the secant over their offsets c_k (eq. 4.1,
-    PassOffsets), their records (planner_passes) and timings, and the best pass so far."""
+    error they stop within `target` of, the secant over their offsets c_k (Algorithm 2's
+    update, PassOffsets), their records (planner_passes) and timings, and the best pass so far."""
 
     def __init__(self, scenario: Scenario, tissue: PreparedTissue, offsets: PassOffsets, aim: np.ndarray,
                  target: float, smooth: bool, on_step, stream, options: dict):
@@ -252,7 +252,7 @@ class _PlanPasses:
         self.ready: tuple[InsertionResult, list[int]] | None = None  # the lean search's run at its lean
 
     def run(self, leaned: Scenario, tracker: ExitTracker, prefix: PassPrefix | None = None) -> InsertionResult:
-        """One pass of Algorithm 2 on the shared model (each step's centre solving eq. 4.1 with
+        """One pass of Algorithm 2 on the shared model (each step's centre solving Algorithm 2's update with
         the tracker's offset), its centres handed to `stream`."""
         run = run_insertion(leaned, control=tracker, on_step=_streamed(self.on_step, self.stream, leaned),
                             tissue=self.tissue, start_from=prefix.start() if prefix else None, **self.options)

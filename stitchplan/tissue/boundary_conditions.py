@@ -4,7 +4,7 @@ RK shape functions lack the Kronecker-delta property, so prescribing a particle
 coefficient does not prescribe the displacement there. The transformation method
 enforces u(X_I) = g_I at every boundary particle exactly:
 
-    d_b = (D^b)^-1 g - (D^b)^-1 D^nb d_nb                       (eq. 3.33)
+    d_b = (D^b)^-1 g - (D^b)^-1 D^nb d_nb               (eq. 3.33 solved for d_b)
 
 so the full coefficient vector is d = T d_nb + T_g g with sparse T and T_g, and the
 transformed shape functions N T and N T_g are those of eq. 3.37-3.38.
