@@ -235,14 +235,6 @@ def _duplicate_line(key: Any, marks: list, path: str) -> tuple[tuple[int, int], 
     return (marks[1].line, marks[1].column), line
 
 
-def parse_yaml(text: str) -> Any:
-    """The data of one YAML document (raises _Refused or yaml.YAMLError)."""
-    data, problems = _parse_keys_apart(text)
-    if problems:
-        raise _Refused(*problems)
-    return data
-
-
 def _parse_keys_apart(text: str) -> tuple[Any, list[str]]:
     """The data of one YAML document and the lines refusing its keys (duplicate and merge
     keys, _key_problems), which need not stop it: the data is built as YAML 1.1 would build

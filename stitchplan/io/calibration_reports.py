@@ -198,16 +198,6 @@ def _material_diagnostics(result: MaterialFit) -> dict:
     }
 
 
-def material_plots(result: MaterialFit, folder: str | Path) -> list[Path]:
-    """cost_surface.png (grid, start and optimum, refinement path) and marker_residuals.png,
-    both or neither."""
-    folder = Path(folder)
-    paths = [folder / name for name in MATERIAL_PLOTS]
-    with OutputSet({str(path): path for path in paths}).staged() as files:
-        _material_plots_to(result, *files.values())
-    return paths
-
-
 def _material_plots_to(result: MaterialFit, cost_path: Path, residuals_path: Path) -> None:
     from .calibration_plots import plot_cost_surface, plot_marker_residuals
 

@@ -69,14 +69,6 @@ class Assembler:
         self.tangent_products += 1
         return self.gradient_t @ (self._pointwise @ (self.gradient @ vector))
 
-    def tangent_operator(self):
-        """K as a scipy LinearOperator (the iterative static solves; scipy.sparse.linalg is
-        imported here, not by the needle commands, which never need it)."""
-        from scipy.sparse.linalg import LinearOperator
-
-        n = self.gradient.shape[1]
-        return LinearOperator((n, n), matvec=self.tangent_product, dtype=float)
-
     def tangent_matrix(self) -> sp.csr_matrix:
         """Explicit K at the last update (eq. 3.45)."""
         self._refresh_tangent()
