@@ -122,7 +122,7 @@ def _exit_zoom(ax, run, norm, colour: str, who: str, marker: str, desired_colour
     ax.set_title(f"{who} exit: error {error:.3g} mm\n(zoom, {2 * half:.2g} mm wide)", fontsize=9, color=colour)
 
 
-def _needle_frame(runs_and_steps, margin: float) -> np.ndarray:
+def _needle_frame(runs_and_steps) -> np.ndarray:
     """Points the needle views must hold: needle bodies, tip paths and exits."""
     points = []
     for run, step in runs_and_steps:
@@ -162,7 +162,7 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
     axes = [[*panels, zoom]]
     particles, geometry, tissue = result.model.particles, result.geometry, result.scenario.tissue
     norm = magnitude_norm(*(result.displacements[s] for s in chosen), result.displacements[-1])
-    view = _needle_frame([(result, s) for s in chosen], 0.0)
+    view = _needle_frame([(result, s) for s in chosen])
     for ax, step in zip(panels, chosen):
         displacement = result.displacements[step]
         draw_outline(ax, tissue.domain, particles, displacement)
@@ -319,7 +319,7 @@ def _draw_runs_over_tissue(fig, ax, runs) -> None:
 def _frame_with_labels(fig, ax, runs, offsets: dict[str, np.ndarray]) -> None:
     """Frame the needles, tip paths and exits, then widen the frame until the exit-error
     labels (sized in points, so their size in mm follows the frame) fit inside."""
-    view = _needle_frame([(run, len(run.steps)) for run, *_ in runs], 0.0)
+    view = _needle_frame([(run, len(run.steps)) for run, *_ in runs])
     frame(ax, view, margin=0.08)
     for _ in range(2):
         ax.apply_aspect()

@@ -93,7 +93,7 @@ def interpolate(model: TissueModel, coefficients: np.ndarray, points: np.ndarray
 
 
 def reactions(model: TissueModel, scenario: Scenario, coefficients: np.ndarray,
-              assembler: Assembler, full_external: np.ndarray) -> np.ndarray:
+              full_external: np.ndarray) -> np.ndarray:
     """Total force the tissue exerts back on each loaded segment (N), in file order.
 
     For a prescribed segment it is minus the virtual work of the out-of-balance particle
@@ -149,7 +149,7 @@ def run_deform(
     probes = np.asarray(scenario.probes, dtype=float).reshape(-1, 2)
     probe_displacements = interpolate(model, solution.coefficients, probes)
     particle_displacements = model.particle_shape_values() @ solution.coefficients
-    segment_reactions = reactions(model, scenario, solution.coefficients, assembler, full_external)
+    segment_reactions = reactions(model, scenario, solution.coefficients, full_external)
     wall = time.perf_counter() - start
     return DeformResult(scenario, model, solution.coefficients, particle_displacements, probes,
                         probe_displacements, segment_reactions, solution.report, wall, timings)
