@@ -73,6 +73,7 @@ import scipy.sparse as sp
 
 from ..config import Needle
 from ..tissue.model import TissueModel
+from ..tissue.quadrature import gauss_legendre
 from .constraint_rows import GrowingRows, empty_row_block, joined_rows, row_block, row_block_matrix
 from .geometry import NeedleGeometry
 from .load_quadrature import LoadQuadrature, TrackLoads, segment_gauss_points
@@ -346,8 +347,8 @@ class NeedleCoupling:
         length = float(np.linalg.norm(end - start))
         element = float(self._least_element(self.local_spacing(0.5 * (start + end)))[0])
         count = max(2, math.ceil(QUADRATURE_PER_ELEMENT * length / element - 1e-9))
-        abscissae, gauss_weights = np.polynomial.legendre.leggauss(count)
-        along, ds = 0.5 * (abscissae + 1.0), 0.5 * gauss_weights * length
+        along, gauss_weights = gauss_legendre(count)  # on [0, 1]
+        ds = gauss_weights * length
         new = start + along[:, None] * (end - start)  # (count, 2)
         self._constraint_points = np.vstack([self._constraint_points, new])
         self._constraint_segment = np.append(self._constraint_segment, np.full(count, len(self.points) - 2))

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ..tissue.quadrature import gauss_legendre
 from .constraint_rows import joined_rows
 
 GAUSS_POINTS = 0.5 + np.array([-0.5, 0.5]) / math.sqrt(3.0)  # two-point rule on [0, 1]
@@ -183,8 +184,7 @@ class TrackLoads:
         extra_points, loads = [no_points], [np.zeros(0)]
         for n in np.unique(count[own]):  # a few distinct counts
             segment = own[count[own] == n]
-            abscissae, weights = np.polynomial.legendre.leggauss(int(n))
-            a, w = 0.5 * (abscissae + 1.0), 0.5 * weights  # on [0, 1] of the covered part
+            a, w = gauss_legendre(int(n))  # on [0, 1] of the covered part
             part = covered[segment, None]
             along = 1.0 - part + part * a[None, :]  # (k, n) along the segment toward its tip end
             s = behind[segment, None] + part * (1.0 - a[None, :]) * needle_length[segment, None]
