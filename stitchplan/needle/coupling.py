@@ -121,7 +121,7 @@ def _own_rows(attributes: dict) -> dict:
 class ConstraintValues:
     """The needle constraints at one state (eq. 3.59-3.61)."""
 
-    violation: np.ndarray  # g_e = sum_q w_q (|x_q - C| - R), (m,)
+    violation: np.ndarray  # g_j = sum_q W_qj (|x_q - C| - R_q), R_q the point's target_radius, (m,)
     normal: np.ndarray  # n_q = (x_q - C) / |x_q - C|, (Q, 2)
     rho: np.ndarray  # |x_q - C|, (Q,)
 

@@ -71,9 +71,9 @@ class Residuals:
     """The residuals of eq. 3.62 at one state, with what their linearisation needs."""
 
     residual: np.ndarray  # r_u = f_int - f_needle + G lambda, (2 n_free,)
-    violation: np.ndarray  # g_k = |x_k - C| - R, (k,)
-    normal: np.ndarray  # n_k, (k, 2)
-    rho: np.ndarray  # |x_k - C|, (k,)
+    violation: np.ndarray  # g_j, one per multiplier (coupling.ConstraintValues), (m,)
+    normal: np.ndarray  # n_q at the constraint quadrature's points, (Q, 2)
+    rho: np.ndarray  # |x_q - C|, (Q,)
     needle_force: float  # |f_needle|, N
 
     @property

@@ -6,8 +6,9 @@
 K is the tissue tangent, H the curvature of the needle constraints weighted by their
 multipliers, G the constraint rows (eq. 3.65). Two solvers:
 
-- direct: sparse LU of the whole saddle matrix, kept while Newton converges fast
-  (a modified Newton step) and renewed when it slows down or the system grows;
+- direct: block elimination on a sparse factor of K + H (tissue/factorization.py: CHOLMOD's
+  Cholesky or L D L^T, a band, or SuperLU), kept while Newton converges fast (a modified
+  Newton step) and renewed when it slows down;
 - minres: MINRES with the block-diagonal preconditioner diag(K0^-1, S^-1) of eq. 3.71-3.72,
   K0 the tangent at zero deformation (factorized once, on first use) and S = G^T K0^-1 G:
   K0^-1 N^T is solved once per needle point, S is re-formed with the current normals each
@@ -19,8 +20,9 @@ The thesis writes the Schur block as G^T K G; the preconditioner here uses G^T K
 the Schur complement of the saddle matrix, which is what makes diag(K, S) an optimal
 preconditioner (Murphy, Golub and Wathen 2000).
 
-The direct solves need numpy's LAPACK alone; scipy.linalg and scipy.sparse.linalg (~70 ms
-of start-up) are imported by the MINRES path where it runs.
+Beyond the factor of K + H, the direct solves need numpy's LAPACK alone (the small Schur
+matrix); the MINRES path imports scipy.linalg and scipy.sparse.linalg (~70 ms of start-up)
+where it runs.
 """
 
 from __future__ import annotations
@@ -131,7 +133,7 @@ class SaddlePointSolver:
         # |b - A x| / |b| a MINRES solution must reach: inexact Newton then contracts by ~1e-6
         # per iteration; 1e-8 costs a third more MINRES iterations on the SH 1/2 scenario
         self.minres_true_rtol = minres_true_rtol
-        self._factor = None  # LU of K + H for the direct solves
+        self._factor = None  # the factor of K + H for the direct solves
         # E (K + H)^-1, the transpose of (K + H)^-1 E^T (K + H symmetric), for that factor in
         # the first `_solved_count` rows of a buffer with room to grow (>= 2Q, n): a new
         # quadrature point's rows are appended, and S = B^T E (K + H)^-1 E^T B takes its
@@ -207,7 +209,7 @@ class SaddlePointSolver:
     def solve_direct(self, stiffness: Callable[[], sp.spmatrix], rhs: np.ndarray, refactor: bool,
                      rows: sp.csr_matrix, weights: np.ndarray,
                      on_rows: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """Block elimination with a sparse LU of K + H (renewed when `refactor` or missing):
+        """Block elimination with a sparse factor of K + H (renewed when `refactor` or missing):
 
             a = K^-1 (-r_u),  S = G^T K^-1 G,  dl = S^-1 (G^T a + g),  dd = a - K^-1 G dl
 
