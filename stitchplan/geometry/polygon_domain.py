@@ -262,10 +262,7 @@ class PolygonDomain(BoundingBox):
         out = ~self.contains(flat)
         if np.any(out):
             x = flat[out][:, None, :]
-            a, b = self.segment_starts[None], self.segment_ends[None]
-            e = b - a
-            t = np.clip(np.sum((x - a) * e, axis=-1) / np.sum(e * e, axis=-1), 0.0, 1.0)
-            nearest = a + t[..., None] * e
+            nearest = point_segment_foot(x, self.segment_starts[None], self.segment_ends[None])  # (n, edges, 2)
             k = np.argmin(np.linalg.norm(x - nearest, axis=-1), axis=1)
             flat[out] = nearest[np.arange(len(k)), k]
         return flat.reshape(points.shape)
