@@ -225,6 +225,8 @@ def test_study_json_records_provenance_and_outcome(studied):
     for r in rows:
         families.setdefault(r["family"], []).append(float(r["spacing_mm"]))
     assert record["families"] == families and record["reference"]["step_rad"] == float(rows[-1]["step_rad"])
+    # where the runs ran, which their wall times depend on (the default: a local cluster)
+    assert record["executor"].startswith("local Dask cluster of "), record["executor"]
 
 
 def test_study_writes_the_speed_accuracy_png(studied):

@@ -51,7 +51,8 @@ def study_record(result: StudyResult, provenance: dict | None = None) -> dict:
     """study.json: the provenance of the study (version, command line, scenario and its
     SHA-256, time), its counts, the sweep as run (each family's spacings), the reference (its
     spacing and needle step), Pareto front, notes and the linear-solver backends its runs used
-    (each run's choices and diagnostics are its row of study.csv)."""
+    (each run's choices and diagnostics are its row of study.csv) and where the runs ran
+    (`executor`: their wall times depend on how many ran at once)."""
     reference = result.reference
     families: dict[str, list[float]] = {}  # the sweep as resolved: each family's spacings, in run order
     for run in result.runs:
@@ -66,6 +67,7 @@ def study_record(result: StudyResult, provenance: dict | None = None) -> dict:
         "pareto": [run.label for run in sorted(result.front, key=lambda run: run.wall_seconds)],
         "linear_solver_backends": sorted({run.result.solver_counts.get("linear_solver_backend", "")
                                           for run in result.runs if run.result is not None}),
+        "executor": result.executor,
         "notes": list(result.notes),
     }
 

@@ -202,6 +202,8 @@ class StudyResult:
     reference: StudyRun  # the run the others are compared with (the finest that succeeded)
     notes: list[str] = field(default_factory=list)
     auto: AutoChoice | None = None  # when the scenario asks for an accuracy
+    # where the runs ran (Executor.where): their wall times compete for the cores there
+    executor: str = "in-process"
 
     @property
     def front(self) -> list[StudyRun]:
@@ -281,4 +283,5 @@ def run_study(scenario: Scenario, quick: bool = False,
     failed = [r for r in runs + [reference] if not r.ok]
     if failed:
         notes.append(f"{len(failed)} of {len(runs) + 1} runs failed; their reasons are in study.csv")
-    return StudyResult(scenario, runs + [reference], compared, notes, choice)
+    return StudyResult(scenario, runs + [reference], compared, notes, choice,
+                       executor.where if executor is not None else "in-process")
