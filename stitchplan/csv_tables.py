@@ -11,6 +11,7 @@ cells (',,,' as spreadsheets save blank rows) are skipped. The first row is the 
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 from collections.abc import Sequence
 from pathlib import Path
@@ -23,18 +24,24 @@ from .errors import InputError
 
 
 def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, *, exact: bool = False,
-                       label: str = "") -> tuple[dict[str, np.ndarray], np.ndarray]:
+                       label: str = "", digests: dict[str, str] | None = None
+                       ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Every column of the table as a float array, and the line number of each data row (n,).
 
     The header must name each of `columns` once (with `exact`, those and no others, in any
     order); every row has as many cells as the header, each a plain finite decimal
     (decimals.parse_number); at least one row. `expected` tells the user what file was
-    wanted; `label` (e.g. the YAML field that named the file) goes before the path.
+    wanted; `label` (e.g. the YAML field that named the file) goes before the path. With
+    `digests`, the SHA-256 of the bytes read (the ones the table holds, whatever becomes of
+    the file later) is put there under str(path).
     """
     path = Path(path)
     where = f"{label}: {path}" if label else f"{path}"
     try:
-        text = read_input_bytes(path, where, f"a CSV table ({expected})").decode("utf-8-sig")  # -sig: a BOM
+        content = read_input_bytes(path, where, f"a CSV table ({expected})")
+        if digests is not None:
+            digests[str(path)] = hashlib.sha256(content).hexdigest()
+        text = content.decode("utf-8-sig")  # -sig: a BOM
     except OSError as error:
         raise InputError(f"{where}: cannot be read ({error.strerror or error})") from None
     except UnicodeDecodeError:

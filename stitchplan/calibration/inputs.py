@@ -68,6 +68,7 @@ class Experiment:
     measured: np.ndarray  # (n, 2) measured deformed positions p_i, mm
     source: str = ""
     warnings: tuple[str, ...] = ()  # what its markers suggest checking (read_experiment)
+    source_sha256: str | None = None  # of the marker file's bytes as read
 
 
 @dataclass(frozen=True)
@@ -103,6 +104,7 @@ class MaterialCalibration:
     solver: Solver = field(default_factory=Solver)
     name: str = ""
     source: str = ""
+    source_sha256: str | None = None  # of the calibration file's bytes as parsed
 
     @property
     def warnings(self) -> list[str]:
@@ -132,8 +134,9 @@ def fit_settings(fit: FitBlock) -> FitSettings:
 def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: str) -> Experiment:
     """The experiment with its marker file (relative to `folder`) read and checked."""
     markers_path = folder / block.markers
+    digests: dict[str, str] = {}
     data, lines = read_numeric_table(markers_path, MARKER_COLUMNS, "marker positions at rest and deformed, mm",
-                                     exact=True, label=f"{path}.markers")
+                                     exact=True, label=f"{path}.markers", digests=digests)
     rest = np.stack([data["x"], data["y"]], axis=1)
     outside = np.flatnonzero(~tissue.domain.contains(rest))
     if len(outside):
@@ -161,6 +164,7 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
         markers=rest,
         measured=deformed,
         source=str(markers_path),
+        source_sha256=digests[str(markers_path)],
         warnings=tuple(filter(None, [clustered_markers(rest, tissue, where),
                                      moved_on_a_clamp(rest, deformed, lines, tissue, where)])),
     )
@@ -286,8 +290,9 @@ def load_material_calibration(path: str | Path, spacing: float | None = None,
     """Read and validate a calibration YAML; marker files are relative to it. `spacing` and
     `dilation` override its discretization (the CLI options)."""
     path = Path(path)
-    problem = with_key_problems(read_yaml_file(path, keys_later=True), path,
-                                lambda raw: parse_material_calibration(raw, path.parent, str(path)))
+    file = read_yaml_file(path, keys_later=True)
+    problem = with_key_problems(file, path, lambda raw: parse_material_calibration(raw, path.parent, str(path)))
+    problem = replace(problem, source_sha256=file.sha256)
     overrides = {k: v for k, v in {"spacing": spacing, "dilation": dilation}.items() if v is not None}
     if overrides:
         problem = replace(problem, discretization=problem.discretization.replaced(**overrides))

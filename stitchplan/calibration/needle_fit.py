@@ -95,6 +95,7 @@ class NeedleFit:
     inserted_length: np.ndarray  # (n,) radius x angle, mm
     warnings: list[str] = field(default_factory=list)
     sources: tuple[str, str] = ("", "")
+    source_sha256: tuple[str | None, str | None] = (None, None)  # of the recordings' bytes as read
 
 
 def fit_needle(air_angle: np.ndarray, air_force: np.ndarray, tissue_angle: np.ndarray,
@@ -190,11 +191,13 @@ def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit:
     return warnings
 
 
-def read_force_recording(path: str | Path, label: str) -> tuple[np.ndarray, np.ndarray]:
+def read_force_recording(path: str | Path, label: str,
+                         digests: dict[str, str] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """angle_rad, force_N of a recording; at least MIN_FORCE_SAMPLES rows, angles strictly
-    increasing over at least MIN_ANGLE_SPAN rad."""
+    increasing over at least MIN_ANGLE_SPAN rad (with `digests`, the SHA-256 of the bytes read
+    is put there under str(path))."""
     data, lines = read_numeric_table(path, FORCE_COLUMNS, "a force recording over the needle angle", exact=True,
-                                     label=label)
+                                     label=label, digests=digests)
     angle, force = data["angle_rad"], data["force_N"]
     beyond = np.flatnonzero(np.abs(force) > MAX_FORCE_N)
     if len(beyond):
@@ -234,8 +237,9 @@ def _needle_radius(radius: object) -> float:
 def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> NeedleFit:
     """`stitchplan calibrate needle`: read both recordings, validate and fit."""
     radius = _needle_radius(radius)
-    air_angle, air_force = read_force_recording(air, "--air")
-    tissue_angle, tissue_force = read_force_recording(tissue, "--tissue")
+    digests: dict[str, str] = {}
+    air_angle, air_force = read_force_recording(air, "--air", digests)
+    tissue_angle, tissue_force = read_force_recording(tissue, "--tissue", digests)
     if tissue_angle[0] < 0:
         raise InputError(f"--tissue: {tissue}: angle_rad: got {tissue_angle[0]:g} first, expected "
                          "angles >= 0 rad (rotation since the tip touched the tissue)")
@@ -244,4 +248,5 @@ def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> Need
     except NumericalFailure as failure:  # the recordings' doing: name them
         raise NumericalFailure(f"--tissue {tissue} and --air {air}: {failure}") from None
     result.sources = (str(air), str(tissue))
+    result.source_sha256 = (digests.get(str(air)), digests.get(str(tissue)))
     return result

@@ -36,10 +36,15 @@ def _created() -> str:
     return utc_now()
 
 
-def _inputs(paths: list[str]) -> dict:
-    """{path: SHA-256} of the files a fit read (the file as it is when the report is made)."""
+def _inputs(paths: list[str], read: list[str | None] | None = None) -> dict:
+    """{path: SHA-256} of the files a fit read: of the bytes read where `read` gives them (a
+    file edited or removed during the fit is recorded as the fit read it), else of the file
+    as it is when the report is made."""
     digests = {}
-    for path in paths:
+    for path, digest in zip(paths, read or [None] * len(paths)):
+        if digest is not None:
+            digests[path] = digest
+            continue
         try:
             digests[path] = sha256(path)
         except OSError:
@@ -76,7 +81,9 @@ def material_report(result: MaterialFit, command: list[str] | None = None) -> di
         "fit": _material_quality(result),
         "diagnostics": {**_material_diagnostics(result), "command": command,
                         "input_sha256": _inputs([result.problem.source]
-                                                + [e.source for e in result.problem.experiments])},
+                                                + [e.source for e in result.problem.experiments],
+                                                [result.problem.source_sha256]
+                                                + [e.source_sha256 for e in result.problem.experiments])},
     }
 
 
@@ -293,7 +300,7 @@ def needle_report(result: NeedleFit, command: list[str] | None = None) -> dict:
             "tissue": result.sources[1],
             "stitchplan_version": __version__,
             "command": command,
-            "input_sha256": _inputs(list(result.sources)),
+            "input_sha256": _inputs(list(result.sources), list(result.source_sha256)),
             "created_utc": _created(),
         },
     }
