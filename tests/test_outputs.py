@@ -343,6 +343,8 @@ def _check_provenance(record: dict, args: list, scene: Path) -> None:
     assert record["scenario"] == str(scene)
     assert record["scenario_sha256"] == hashlib.sha256(scene.read_bytes()).hexdigest()
     assert record["created_utc"].endswith("+00:00")
+    # what the relative paths of the command line are relative to
+    assert record["working_directory"] == os.getcwd()
 
 
 def test_deform_summary_and_run_log_carry_provenance_and_units(tmp_path, scene):
@@ -402,6 +404,7 @@ def _check_run_log(path: Path, scene: Path, command: str) -> dict[str, str]:
         for name in ("python_version", "numpy_version", "scipy_version", "h5py_version"):
             assert log.attrs[name]
         assert log.attrs["numpy_version"] == np.__version__
+        assert log.attrs["working_directory"] == os.getcwd()
         log.visititems(lambda name, item: units.update({name: item.attrs.get("units")})
                        if isinstance(item, h5py.Dataset) else None)
     assert units and all(isinstance(u, str) and u for u in units.values()), units
@@ -452,6 +455,7 @@ def test_calibrate_needle_records_command_and_input_digests(tmp_path, scene):
     diagnostics = yaml.safe_load((tmp_path / "needle.yaml").read_text())["diagnostics"]
     assert diagnostics["command"][1:] == list(map(str, args))
     assert diagnostics["stitchplan_version"] == stitchplan.__version__
+    assert diagnostics["working_directory"] == os.getcwd()
     for name in ("air.csv", "tissue.csv"):
         path = tmp_path / name
         assert diagnostics["input_sha256"][str(path)] == hashlib.sha256(path.read_bytes()).hexdigest()
@@ -463,6 +467,7 @@ def test_calibrate_material_records_command_and_input_digests(tmp_path, scene):
     assert result.exit_code == 0, result.output
     diagnostics = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["diagnostics"]
     assert diagnostics["command"][1:] == list(map(str, args))
+    assert diagnostics["working_directory"] == os.getcwd()
     for name in ("calib.yaml", "markers.csv"):
         path = tmp_path / name
         assert diagnostics["input_sha256"][str(path)] == hashlib.sha256(path.read_bytes()).hexdigest()

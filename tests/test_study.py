@@ -19,6 +19,7 @@ import csv
 import hashlib
 import json
 import math
+import os
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -215,6 +216,7 @@ def test_study_json_records_provenance_and_outcome(studied):
     record = json.loads((folder / "out" / "study.json").read_text())
     assert record["stitchplan_version"] == __version__ and record["command"][1] == "study"
     assert record["scenario"] == str(folder / "tiny.yaml")
+    assert record["working_directory"] == os.getcwd()
     assert record["scenario_sha256"] == hashlib.sha256((folder / "tiny.yaml").read_bytes()).hexdigest()
     assert (record["runs"], record["ok"], record["failed"]) == (len(rows), 5, 2)
     assert record["reference"]["label"] == rows[-1]["label"]

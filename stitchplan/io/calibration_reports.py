@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import __version__
-from .files import OutputSet, sha256, utc_now, write_yaml
+from .files import OutputSet, sha256, utc_now, working_directory, write_yaml
 
 if TYPE_CHECKING:
     from ..calibration import MaterialFit, NeedleFit
@@ -79,7 +79,7 @@ def material_report(result: MaterialFit, command: list[str] | None = None) -> di
         # those whose moduli were fitted too at their fitted moduli
         "regions": _regions(result),
         "fit": _material_quality(result),
-        "diagnostics": {**_material_diagnostics(result), "command": command,
+        "diagnostics": {**_material_diagnostics(result), "command": command, "working_directory": working_directory(),
                         "input_sha256": _inputs([result.problem.source]
                                                 + [e.source for e in result.problem.experiments],
                                                 [result.problem.source_sha256]
@@ -300,6 +300,7 @@ def needle_report(result: NeedleFit, command: list[str] | None = None) -> dict:
             "tissue": result.sources[1],
             "stitchplan_version": __version__,
             "command": command,
+            "working_directory": working_directory(),
             "input_sha256": _inputs(list(result.sources), list(result.source_sha256)),
             "created_utc": _created(),
         },

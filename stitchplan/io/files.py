@@ -390,7 +390,9 @@ def provenance(command: Sequence[str] | None = None, scenario: PathLike | None =
                scenario_sha256: str | None = None) -> dict:
     """Who wrote a result and from what: version, the command line (argv as a list), the
     scenario file and its SHA-256 (`scenario_sha256`: of the bytes the run parsed, which a
-    pipe cannot give twice; else of the file as it is now), the time."""
+    pipe cannot give twice; else of the file as it is now), the time, and the folder the
+    command ran in (`working_directory`: what relative paths in the command line and the
+    record are relative to)."""
     from .. import __version__
 
     return {
@@ -399,7 +401,16 @@ def provenance(command: Sequence[str] | None = None, scenario: PathLike | None =
         "scenario": str(scenario) if scenario is not None else None,
         "scenario_sha256": scenario_sha256 or _sha256_or_none(scenario),
         "created_utc": utc_now(),
+        "working_directory": working_directory(),
     }
+
+
+def working_directory() -> str | None:
+    """The folder the command runs in (None when it no longer exists)."""
+    try:
+        return os.getcwd()
+    except OSError:
+        return None
 
 
 def _sha256_or_none(path: PathLike | None) -> str | None:

@@ -45,6 +45,7 @@ def run_attributes(command: str, scenario, provenance: dict | None = None) -> di
         "scenario": record["scenario"],
         "scenario_sha256": record["scenario_sha256"],
         "created_utc": record["created_utc"],
+        "working_directory": record.get("working_directory") or "",
         # a replay's centre path (simulate --center-path), a plan's uncertainty file and the
         # calibration it reads (plan --uncertainty), as the summary gives them
         **{key: record[key] for key in ("center_path", "center_path_sha256", "uncertainty_file",
