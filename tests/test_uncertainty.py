@@ -653,6 +653,19 @@ def test_the_uncertainty_plot_without_an_evaluated_held_out_sample(tmp_path, mon
     assert "no held-out sample ran every path (3 samples with a failed run)" in plot_title(local, "s")
 
 
+def test_every_planned_task_is_reported_where_the_robust_plan_is_the_nominal_one():
+    """The progress bar counts planned_tasks + 2 runs; where the robust plan is the nominal
+    one (the mean shift within the noise) its plan and held-out runs are not run, and are
+    reported as done, so the bar ends full (before, it stopped at 4 of 6 samples' worth)."""
+    from stitchplan.uncertainty.robust import planned_tasks
+
+    spec = uncertainty(_thickness_only())
+    seen = []
+    result = plan_under_uncertainty(parse_scenario(small_raw()), spec, Executor(workers=0), on_run=seen.append)
+    assert result.robust is result.nominal or result.robust is None  # the case at hand
+    assert len(seen) == planned_tasks(spec) + 2
+
+
 def test_every_sampled_run_failing_is_a_numerical_failure_and_writes_nothing(tmp_path, monkeypatch):
     scenario_path = write(tmp_path, small_raw())
     path = write(tmp_path, _thickness_only(), "u.yaml")

@@ -337,6 +337,7 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     if len(ok) < 2:
         notes = [f"{len(ok)} of {uncertainty.samples} training runs succeeded: no mean shift to aim with; the "
                  "nominal plan is exported"]
+        _robust_runs_skipped(report, held)
         return UncertaintyResult(uncertainty, design, nominal, None, "nominal", np.zeros(2), training, held_out,
                                  sensitivities, _where(executor), notes, refined_offset=offset)
     own = nominal.planned.exit_error_vector_mm  # where the nominal plan exits on the planning model
@@ -345,6 +346,7 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
     significance, threshold = shift_significance(deviations), shift_threshold(len(ok))
     if significance is None or significance < threshold:  # aiming at noise only adds it to every exit
         notes = [_unaimed_note(shift, significance, threshold, len(ok))]
+        _robust_runs_skipped(report, held)
         return UncertaintyResult(uncertainty, design, nominal, nominal, "robust", shift, training, held_out,
                                  sensitivities, _where(executor), notes, aim=own, deviations=deviations,
                                  shift_significance=significance, shift_threshold=threshold, refined_offset=offset)
@@ -360,6 +362,13 @@ def plan_under_uncertainty(scenario: Scenario, uncertainty: Uncertainty, executo
                                shift_significance=significance, shift_threshold=threshold, refined_offset=offset)
     _choose(result)
     return result
+
+
+def _robust_runs_skipped(report: Callable[[str], None], held: list) -> None:
+    """The robust plan and its held-out runs, not run where the nominal plan stands for it:
+    reported as done, so that a progress bar over planned_tasks + 2 ends full."""
+    for _ in range(1 + len(held)):
+        report("robust plan: the nominal plan")
 
 
 def _sampled_scenarios(scenario: Scenario, names: tuple[str, ...], design: Design,
