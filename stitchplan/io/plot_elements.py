@@ -354,6 +354,24 @@ def readable_log_axis(axis) -> None:
     axis.set_minor_formatter(FuncFormatter(some))
 
 
+def label_with_multiplier(axis, quantity: str, unit: str) -> None:
+    """The axis label `quantity (unit)`, or `quantity (x 10^k unit)` where the tick labels
+    are scaled by 10^k: matplotlib's own `1e-3` at the axis' end stands apart from the label
+    and reads as a note, the ticks as millimetres. Call it once the limits are final."""
+    from matplotlib.ticker import ScalarFormatter
+
+    formatter = ScalarFormatter(useOffset=False)
+    formatter.set_powerlimits((-2, 3))
+    axis.set_major_formatter(formatter)
+    formatter.set_locs(axis.get_majorticklocs())  # sets orderOfMagnitude for these ticks
+    power = formatter.orderOfMagnitude
+    if power:
+        axis.offsetText.set_visible(False)
+        axis.set_label_text(rf"{quantity} ($\times 10^{{{power}}}$ {unit})")
+    else:
+        axis.set_label_text(f"{quantity} ({unit})")
+
+
 def frame(ax, points: np.ndarray, margin: float = 0.06, floor: float = 0.0) -> None:
     """Limits that hold all `points` (n, 2) with a margin of the larger side, equal aspect."""
     points = np.asarray(points, dtype=float).reshape(-1, 2)

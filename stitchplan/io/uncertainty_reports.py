@@ -14,7 +14,7 @@ import numpy as np
 
 from ..config.uncertainty import unit_of
 from ..uncertainty.robust import LABELS, SENSITIVITY_STEP, Z_95, UncertaintyResult, ellipse_95, exit_statistics
-from .plot_elements import legend_below, pyplot, title_above
+from .plot_elements import label_with_multiplier, legend_below, pyplot, title_above
 from .plots import save
 
 SENSITIVITY_METHOD = (f"central finite differences of the exit error vector (achieved - desired exit, deformed), "
@@ -280,9 +280,9 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
         ax.axvline(0.0, color="0.85", lw=0.6, zorder=0)
         ax.margins(0.15)  # x and y scaled separately: the exits lie along the deformed edge
         ax.xaxis.set_major_locator(MaxNLocator(4))
-        ax.ticklabel_format(axis="both", style="sci", scilimits=(-2, 3))
-        ax.set_xlabel("exit error x (mm)")
-        ax.set_ylabel("exit error y (mm)")
+        ax.get_xlim()  # settles the automatic limits before the labels read the ticks
+        label_with_multiplier(ax.xaxis, "exit error x", "mm")
+        label_with_multiplier(ax.yaxis, "exit error y", "mm")
         ax.set_title(title, fontsize=9)
     ax = axes[2]
     names = [s.name for s in result.sensitivities]
