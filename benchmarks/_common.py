@@ -178,11 +178,16 @@ def worker_record(script: str, source: Path, *arguments: str) -> dict:
 def verification_replay(scene: str):
     """The shipped trajectory of `scene` (sample_runs/SCENE/trajectory.csv) and the model its
     plan is verified on (half the spacing): (that scenario, the centres as run_insertion's
-    center_path). Imports the installed stitchplan."""
+    center_path). Imports the installed stitchplan: the replay models from
+    stitchplan.planning.replay_models, or planning.verification's in a revision from before it
+    had a module of its own (9032fde)."""
     from stitchplan.config.scenario import load_scenario
     from stitchplan.io.readers import read_center_path
     from stitchplan.needle.geometry import scenario_needle
-    from stitchplan.planning.replay_models import VERIFICATION_FACTOR, rescaled
+    try:
+        from stitchplan.planning.replay_models import VERIFICATION_FACTOR, rescaled
+    except ModuleNotFoundError:
+        from stitchplan.planning.verification import VERIFICATION_FACTOR, rescaled
 
     refined = rescaled(load_scenario(REPO_ROOT / "configs" / f"{scene}.yaml"), VERIFICATION_FACTOR)
     return refined, read_center_path(REPO_ROOT / "sample_runs" / scene / "trajectory.csv", scenario_needle(refined))

@@ -165,6 +165,7 @@ def levers() -> list[tuple]:
     import stitchplan.needle.saddle_point as saddle_point
     import stitchplan.needle.tip_tracking as tip_tracking
     from stitchplan.tissue.assembly import Assembler
+    import stitchplan.planning.pass_offsets as pass_offsets
     import stitchplan.planning.planner as planner
     import stitchplan.tissue.factorization as factorization
     import stitchplan.tissue.kernel as kernel
@@ -283,7 +284,7 @@ def levers() -> list[tuple]:
          {(equilibrium.NeedleInsertion, "residuals"): stress_every_time}, None),
         ("sh12_100x30", "each pass builds its own model and factors K0", {(planner, "run_insertion"): own_model}, None),
         ("sh12_100x30", "the second pass solves every step (its offset from step 1, no PassPrefix)",
-         {(planner, "REAIM_FRACTION"): 0.0}, None),
+         {(pass_offsets, "REAIM_FRACTION"): 0.0}, None),
     ]
     # every variant once per round, REPEATS rounds: the machine's speed drifts over minutes,
     # so each variant's runs are spread over the same span
@@ -325,7 +326,7 @@ def verified_warm_starts(scene: str = "sh12_100x100") -> list[tuple]:
     a second round) in process, with the second round's replay started from the first's
     (now) and started cold: (scene, label, median s, rounds, replay seconds, verified exit
     error mm)."""
-    import stitchplan.planning.planner as planner
+    import stitchplan.planning.pass_offsets as pass_offsets
     import stitchplan.planning.replays as replays
     import stitchplan.planning.verification as verification
     from stitchplan.config.scenario import load_scenario
@@ -340,7 +341,7 @@ def verified_warm_starts(scene: str = "sh12_100x100") -> list[tuple]:
 
     variants = (("second replay started from the first (now)", {}),
                 ("second replay started cold", {(replays, "run_insertion"): cold_run}),
-                ("second round's passes solve every step (no PassPrefix)", {(planner, "REAIM_FRACTION"): 0.0}))
+                ("second round's passes solve every step (no PassPrefix)", {(pass_offsets, "REAIM_FRACTION"): 0.0}))
     seconds: dict[str, list] = {label: [] for label, _ in variants}
     results: dict[str, list] = {label: [] for label, _ in variants}
     for _ in range(REPEATS):  # every variant once per round, as in levers()
