@@ -201,4 +201,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    common.command_line(__doc__)
     main()

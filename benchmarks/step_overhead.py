@@ -145,4 +145,6 @@ if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--worker":
         print(json.dumps(worker(sys.argv[2], float(sys.argv[3]) if sys.argv[3] else None)))
     else:
+        if {"-h", "--help"} & set(sys.argv[1:]):
+            common.command_line(__doc__)  # prints the docstring and exits
         main(sys.argv[1] if len(sys.argv) > 1 else BASELINE)

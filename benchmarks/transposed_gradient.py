@@ -95,4 +95,5 @@ if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--worker":
         print(json.dumps(worker(sys.argv[2])))
     else:
+        common.command_line(__doc__)
         main()
