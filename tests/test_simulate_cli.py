@@ -167,3 +167,41 @@ def test_bad_tip_tracking_option_is_refused(tmp_path, write_scenario):
     assert result.output.strip() == ("error: --tip-tracking: got 'newton', expected one of auto, "
                                      "inverse-gradient, levenberg-marquardt")
     assert not (tmp_path / "summary.json").exists()
+
+
+SPACING_BOUND = ("expected a positive number of at most 10000 (mm; a spacing beyond 10000 mm, the bound of every "
+                 "length of a scene, is a unit mistake)")
+
+
+@pytest.mark.parametrize("discretization, options, line", [
+    ({"spacing": 1e308}, (), "{scenario}: discretization.spacing: got 1e+308, " + SPACING_BOUND),
+    ({"spacing": 5.0, "needle_spacing": 2e4}, (), "{scenario}: discretization.needle_spacing: got 20000.0, "
+     + SPACING_BOUND),
+    ({"spacing": 5.0}, ("--spacing", "1e308"), "--spacing: got 1e+308, " + SPACING_BOUND),
+    ({"spacing": 5.0}, ("--spacing", "2e4", "--no-resource-check"), "--spacing: got 20000, " + SPACING_BOUND),
+])
+def test_a_spacing_beyond_the_scenes_bound_is_refused_naming_its_field(tmp_path, write_scenario, discretization,
+                                                                      options, line):
+    """A spacing of 1e308 mm passed the file's checks, and its exit error estimate's replay at
+    twice it, inf, was refused as `discretization.spacing: got inf`, naming neither the file
+    nor the option; a spacing is bounded as every length of a scene is."""
+    from stitchplan.cli.options import MAX_SPACING_MM
+    from stitchplan.config.blocks import MAX_SCENE_MM
+
+    assert MAX_SPACING_MM == MAX_SCENE_MM
+    raw = scene_raw()
+    raw["discretization"] = discretization
+    scenario = write_scenario(raw, "scene.yaml")
+    result = invoke(scenario, "--summary", tmp_path / "summary.json", *options)
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [f"error: {line.format(scenario=scenario)}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
+def test_a_spacing_at_the_scenes_bound_is_still_taken(write_scenario):
+    raw = scene_raw()
+    raw["discretization"] = {"spacing": 1e4, "needle_spacing": 1e4}
+    scenario = write_scenario(raw, "scene.yaml")
+    from stitchplan.config.scenario import load_scenario
+
+    assert load_scenario(scenario).discretization.spacing == 1e4

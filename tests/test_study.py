@@ -92,6 +92,10 @@ def test_study_block_is_parsed_into_families_and_reference():
     ({"reference": {"spacing": [1.0, 2.0]}}, "study.reference.spacing: got [1.0, 2.0], expected one spacing (mm)"),
     ({"repeats": 0}, "study.repeats: got 0, expected an integer between 1 and 20"),
     ({"spacing": [6.0, 6.0]}, "study.spacing: got [6.0, 6.0], expected spacings each given once"),
+    # a graded run's coarse spacing overflowed to inf, told as `study 'graded x4'.spacing: got inf`
+    ({"spacing": [1e308]}, "study.spacing[0]: got 1e+308, expected a positive number of at most 10000 (mm; a spacing"),
+    ({"families": [{"spacing": [4.0, 2e4]}]}, "study.families[0].spacing[1]: got 20000.0, expected a positive number "
+                                             "of at most 10000"),
     ({"families": [{"spacing": [4.0, 4]}]}, "study.families[0].spacing: got [4.0, 4.0], expected spacings each"),
     # the study's own runs' families: a user's would share study.csv's family column with them
     ({"families": [{"name": "a"}, {"name": "auto"}]}, ("study.families[1].name: got 'auto', expected a name other "

@@ -13,6 +13,10 @@ from typing import Optional
 
 import typer
 
+# the largest --spacing: config.blocks' MAX_SCENE_MM, a file's bound (written here, not imported, as
+# the choices below: the config imports numpy, and --help must not)
+MAX_SPACING_MM = 10_000.0
+
 
 class LinearSolver(str, Enum):
     """--linear-solver; the values of config.LINEAR_SOLVERS (written here, not imported:
@@ -33,6 +37,10 @@ class TipTracking(str, Enum):
 def _positive_spacing(value: Optional[float]) -> Optional[float]:
     if value is not None and not 0 < value < math.inf:  # also refuses nan
         raise typer.BadParameter(f"got {value!r}, expected a positive number (mm)")
+    if value is not None and value > MAX_SPACING_MM:  # as a file's spacing (config.blocks.SceneSpacing)
+        raise typer.BadParameter(f"got {value:g}, expected a positive number of at most {MAX_SPACING_MM:g} (mm; a "
+                                 f"spacing beyond {MAX_SPACING_MM:g} mm, the bound of every length of a scene, is a "
+                                 "unit mistake)")
     return value
 
 

@@ -147,6 +147,12 @@ SegmentPoints = pair("two points [[x0, y0], [x1, y1]] (mm)", ScenePoint)
 HoleRadius = within(PositiveMM, MAX_SCENE_MM,
                     f"a number between {MIN_HOLE_RADIUS_MM:g} and {MAX_SCENE_MM:g} (mm; a hole below a nanometre "
                     f"or a tissue reaching beyond {MAX_SCENE_MM:g} mm is a unit mistake)", low=MIN_HOLE_RADIUS_MM)
+# a particle spacing a file or an option gives: beyond the scene's bound it is a unit mistake too
+# (1e308 mm passed the file's checks, and its replay at twice the spacing, inf, was refused
+# naming no file); a spacing derived from one (a replay's, a study run's) is not bounded here
+SPACING_EXPECTED = (f"a positive number of at most {MAX_SCENE_MM:g} (mm; a spacing beyond {MAX_SCENE_MM:g} mm, "
+                    "the bound of every length of a scene, is a unit mistake)")
+SceneSpacing = within(PositiveMM, MAX_SCENE_MM, SPACING_EXPECTED)
 NeedleRadius = within(PositiveMM, MAX_NEEDLE_RADIUS_MM,
                       f"a number between {MIN_NEEDLE_RADIUS_MM:g} and {MAX_NEEDLE_RADIUS_MM:g} (mm; a suture "
                       "needle's radius is about 1-40 mm: a smaller or larger one is a unit mistake, such as "
@@ -423,6 +429,10 @@ class Discretization:
     @model_validator(mode="after")
     def _graded(self, info: ValidationInfo) -> Discretization:
         given = (info.context or {}).get("discretization_given", ())  # the keys a scenario file gives
+        for key in ("spacing", "needle_spacing"):  # a file's own spacings (SceneSpacing)
+            value = getattr(self, key)
+            if key in given and value is not None and value > MAX_SCENE_MM:
+                raise problem(SPACING_EXPECTED, field=key, value=value)
         # two ways to the same value: the one not taken would be dropped without a word
         if "needle_spacing" in given and "needle_refinement" in given:
             raise problem(f"either needle_spacing or needle_refinement (needle_refinement {self.needle_refinement:g} "

@@ -292,6 +292,8 @@ def parse_calibration(raw: Any, source: str = "") -> CalibrationFile:
             context["clamped_edges"] = valid_or_none(Clamps, tissue.get("clamped", ()))
         given = raw.get("discretization")
         given = {} if given is None else given
+        if isinstance(given, dict):  # the keys the file gives (the default spacing is filled in below)
+            context["discretization_given"] = {k for k, v in given.items() if v is not None}
         if isinstance(given, dict) and "spacing" not in given:
             if size is None:
                 context["default_spacing_unknown"] = True

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, WithJsonSchema, field_validator, model_validator
 
-from .blocks import block
+from .blocks import SceneSpacing, block
 from .fields import (
     BasisOrder,
     CellsPerSpacing,
@@ -38,7 +38,7 @@ def _no_repeats(spacings: tuple[float, ...]) -> tuple[float, ...]:
     return spacings
 
 
-Spacings = Annotated[sequence(PositiveMM, "a non-empty list of spacings (mm)", min_length=1),
+Spacings = Annotated[sequence(SceneSpacing, "a non-empty list of spacings (mm)", min_length=1),
                      AfterValidator(_no_repeats)]
 # a family's spacing: one number or a list in a file (so the schema says), held as a list (a
 # number is read as a list of one, StudyFamily._one_or_more), so that a bad value is one line
