@@ -843,10 +843,13 @@ def test_needle_fit_with_a_negative_value_fails_and_writes_nothing(tmp_path, tis
 
 
 def test_needle_fit_of_a_tissue_recording_equal_to_the_air_one_says_it_shows_no_force(tmp_path):
-    """Two copies of one recording: friction and cutting force zero to round-off, either sign,
-    within their uncertainty; the error says so, not that the recording starts below the air's."""
+    """One recording twice, the second 1 uN up (an exact copy is refused as one before the fit):
+    friction and cutting force zero to within their uncertainty, either sign; the error says
+    so, not that the recording starts below the air's."""
     air, tissue = write_recordings(tmp_path, noise=(0.01, 0.01))
-    tissue.write_text(air.read_text())
+    rows = air.read_text().splitlines()
+    tissue.write_text("\n".join([rows[0], *(f"{a},{float(f) + 1e-6!r}" for a, f in
+                                            (row.split(",") for row in rows[1:]))]) + "\n")
     out, plot = tmp_path / "needle.yaml", tmp_path / "forces.png"
     result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", RADIUS,
                  "--out", out, "--plot", plot)
@@ -865,6 +868,18 @@ def test_needle_refuses_one_recording_as_both_air_and_tissue(tmp_path):
     for tissue in (air, link):
         result = run("calibrate", "needle", "--air", air, "--tissue", tissue, "--radius", RADIUS, "--out", out)
         assert_refused(result, out, f"--tissue: got {tissue}", f"the same file as --air ({air})")
+
+
+def test_needle_refuses_a_copy_of_the_air_recording_as_the_tissue_one(tmp_path):
+    """The same file was refused, a copy of it was fitted: friction and cutting force of ~1e-17
+    written with a warning."""
+    air, _ = write_recordings(tmp_path)
+    copy = tmp_path / "copy.csv"
+    copy.write_bytes(air.read_bytes())
+    out = tmp_path / "needle.yaml"
+    result = run("calibrate", "needle", "--air", air, "--tissue", copy, "--radius", RADIUS, "--out", out)
+    assert_refused(result, out, f"--tissue: {copy}: got the same angles and forces as --air's {air}; expected the "
+                                "recording in tissue, not a copy of the one in air")
 
 
 def test_the_fits_uncertainties_and_correlation_are_those_of_linear_least_squares():

@@ -240,6 +240,11 @@ def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> Need
     digests: dict[str, str] = {}
     air_angle, air_force = read_force_recording(air, "--air", digests)
     tissue_angle, tissue_force = read_force_recording(tissue, "--tissue", digests)
+    # a copy of the air recording under another name (the same file is refused by name before):
+    # the fit subtracts it from itself and wrote friction and cutting force of ~1e-17
+    if np.array_equal(air_angle, tissue_angle) and np.array_equal(air_force, tissue_force):
+        raise InputError(f"--tissue: {tissue}: got the same angles and forces as --air's {air}; expected the "
+                         "recording in tissue, not a copy of the one in air")
     if tissue_angle[0] < 0:
         raise InputError(f"--tissue: {tissue}: angle_rad: got {tissue_angle[0]:g} first, expected "
                          "angles >= 0 rad (rotation since the tip touched the tissue)")
