@@ -296,6 +296,43 @@ def test_a_nearly_singular_stiffness_names_the_particles_closest_for_their_spaci
             "1 mm)") in str(refused.value)
 
 
+def test_a_nearly_incompressible_material_is_named_not_the_particles(tmp_path):
+    """lame_lambda 1e10 MPa over lame_mu 1 MPa made K0's condition number ~9e12 on a lattice
+    that gives ~1e3 with the shipped moduli, and the line blamed particles closer together than
+    the spacing; the material is named instead, a region's by its index. Crowded particles
+    under a compressible material are still told as before."""
+    from typer.testing import CliRunner
+
+    from stitchplan.cli import app
+    from stitchplan.config import Material, Tissue
+    from stitchplan.config.blocks import Region
+    from stitchplan.needle.prepared_tissue import refuse_singular_stiffness
+
+    raw = {"tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": ["right"],
+                      "material": {"lame_lambda": 1e10, "lame_mu": 1.0}},
+           "discretization": {"spacing": 5.0},
+           "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2, "friction": 0.0602,
+                      "cutting_force": 0.7}}
+    scenario = tmp_path / "stiff.yaml"
+    scenario.write_text(yaml.safe_dump(raw, sort_keys=False))
+    summary = tmp_path / "summary.json"
+    result = CliRunner().invoke(app, ["simulate", str(scenario), "--summary", str(summary), "--no-estimate"])
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert lines[0].startswith(f"error: {scenario}: tissue.material: got lame_lambda 1e+10 MPa with lame_mu 1 MPa, "
+                               "(lambda + 2 mu) / mu = 1e+10, a material so nearly incompressible"), lines[0]
+    assert "particles closer together" not in lines[0] and not summary.exists()
+
+    soft, stiff = Material(lame_lambda=0.189151, lame_mu=0.147688), Material(lame_lambda=1e12, lame_mu=0.5)
+    layered = Tissue((40.0, 30.0), 10.0, soft, ("right",),
+                     regions=(Region(material=stiff, polygon=((0.0, 28.0), (40.0, 28.0), (40.0, 30.0), (0.0, 30.0))),))
+    with pytest.raises(InputError, match=r"^tissue\.regions\[0\]\.material: got lame_lambda 1e\+12 MPa"):
+        refuse_singular_stiffness(3e15, Discretization(spacing=1.0, dilation=2.0), tissue=layered)
+    with pytest.raises(InputError, match="particles closer together than the spacing"):
+        refuse_singular_stiffness(3e13, Discretization(spacing=1.0, dilation=2.0),
+                                  tissue=Tissue((40.0, 30.0), 10.0, soft, ("right",)))
+
+
 def test_a_singular_moment_matrix_keeps_its_point_across_processes():
     """Replays run in helper processes and send their failures back pickled: the point the
     build's line is made from survives the trip."""

@@ -85,13 +85,14 @@ class PreparedTissue:
             stiffness = self.stiffness_at_rest()
             factor = factorize(stiffness, symmetric_positive=True)
             refuse_singular_stiffness(condition_estimate(stiffness, factor), self.scenario.discretization,
-                                      self.model.particles, self.model.support / self.scenario.discretization.dilation)
+                                      self.model.particles, self.model.support / self.scenario.discretization.dilation,
+                                      tissue=self.scenario.tissue)
             self._factor = factor
         return self._factor
 
 
 def refuse_singular_stiffness(condition: float, discretization, particles: np.ndarray | None = None,
-                              local_spacing: np.ndarray | None = None) -> None:
+                              local_spacing: np.ndarray | None = None, tissue=None) -> None:
     """Raise InputError where K0's `condition` number exceeds STIFFNESS_CONDITION. With a
     linear basis on evenly spaced particles the RK shape functions are the cubic-spline
     kernel's translates, and the kernel's Fourier transform, (sin(k a / 4) / (k a / 4))^4 per
@@ -104,10 +105,22 @@ def refuse_singular_stiffness(condition: float, discretization, particles: np.nd
     alternating mode over half the distance (hole_near_stitch at 0.75 mm had ~3e13 from
     boundary particles added between the lattice's own along its top edge), and the advice
     is about those, not the dilation: with the `particles` (n, 2) and their `local_spacing`
-    (n,), the line names the pair closest for their spacing, where to look."""
+    (n,), the line names the pair closest for their spacing, where to look. A material of the
+    `tissue` (config.Tissue) nearly incompressible multiplies the number by its
+    (lambda + 2 mu) / mu (~9e12 at lame_lambda 1e10 MPa and lame_mu 1 MPa where the discretization
+    alone makes ~1e3): where that ratio alone takes it past the bound, the line names the
+    material, not the discretization."""
     if not condition > STIFFNESS_CONDITION:
         return
     estimate = f"~{condition:.0e}" if math.isfinite(condition) else "infinite to rounding"
+    stiffest = None if tissue is None else _least_compressible(tissue)
+    if stiffest is not None and (not math.isfinite(condition) or condition / stiffest[2] <= STIFFNESS_CONDITION):
+        field, material, ratio = stiffest
+        raise InputError(f"{field}: got lame_lambda {material.lame_lambda:g} MPa with lame_mu {material.lame_mu:g} "
+                         f"MPa, (lambda + 2 mu) / mu = {ratio:.2g}, a material so nearly incompressible that the "
+                         f"tissue's stiffness is nearly singular (condition number {estimate}, estimated; above "
+                         f"{STIFFNESS_CONDITION:.0e} its solves keep fewer than 4 of 16 digits); expected moduli "
+                         f"whose ratio keeps it below that: check their units (MPa), or lower lame_lambda")
     found = (f"discretization: dilation {discretization.dilation:g} with spacing {discretization.spacing:g} mm "
              f"makes the tissue's stiffness nearly singular (condition number {estimate}, estimated; ~1e4 at "
              f"dilation 2; above {STIFFNESS_CONDITION:.0e} its solves keep fewer than 4 of 16 digits)")
@@ -119,6 +132,17 @@ def refuse_singular_stiffness(condition: float, discretization, particles: np.nd
                      "together than the spacing are, likely where the boundary crowds them (a sharp corner, "
                      f"tissue or boundary features thinner than the spacing){where}; try another spacing, or "
                      "change the shape there")
+
+
+def _least_compressible(tissue) -> tuple[str, object, float] | None:
+    """(field, material, (lambda + 2 mu) / mu) of the tissue's material or region material
+    with the largest ratio, where that ratio is above 100 (None below: the shipped moduli's
+    is 3-11)."""
+    materials = [("tissue.material", tissue.material)]
+    materials += [(f"tissue.regions[{k}].material", region.material) for k, region in enumerate(tissue.regions)]
+    field, material = max(materials, key=lambda item: (item[1].lame_lambda + 2.0 * item[1].lame_mu) / item[1].lame_mu)
+    ratio = (material.lame_lambda + 2.0 * material.lame_mu) / material.lame_mu
+    return (field, material, ratio) if ratio > 100.0 else None
 
 
 def _closest_for_spacing(particles: np.ndarray, local_spacing: np.ndarray) -> str:
