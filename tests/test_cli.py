@@ -257,6 +257,29 @@ def test_input_error_exits_2_naming_the_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
+def test_a_file_name_holding_a_line_break_stays_in_its_one_error_line(tmp_path, slab_raw):
+    """A file name with a line break (or a carriage return, a line separator) printed raw made
+    one problem two lines, the second without `error:`; it is shown escaped, as Python writes it."""
+    import yaml
+
+    missing = tmp_path / "a\nb.yaml"
+    line = one_error_line(invoke("deform", missing), 2)
+    assert line == f"error: {tmp_path}/a\\nb.yaml: cannot be read (No such file or directory)"
+    del slab_raw["loads"]
+    bad = tmp_path / "c\rd\u2028e.yaml"
+    bad.write_text(yaml.safe_dump(slab_raw))
+    line = one_error_line(invoke("deform", bad, "--summary", tmp_path / "s.json"), 2)
+    assert line.startswith(f"error: {tmp_path}/c\\rd\\u2028e.yaml: loads: got none, expected at least one load")
+    scenario = tmp_path / "slab.yaml"
+    scenario.write_text(yaml.safe_dump({**slab_raw, "needle": {"radius": 8.88, "entry": [0.0, 30.0], "turn": "cw",
+                                                               "step": 0.08}}))
+    (tmp_path / "out\nfile").write_text("")
+    for given in (["--out", f"{tmp_path}/out\nfile"], [f"--out={tmp_path}/out\nfile"]):
+        line = one_error_line(invoke("study", scenario, *given), 2)
+        assert line == f"error: --out: got {tmp_path}/out\\nfile, a file; expected a folder"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c\rd\u2028e.yaml", "out\nfile", "slab.yaml"]
+
+
 @pytest.mark.parametrize("how", ["lines", "newlines"])
 def test_input_error_with_several_lines_prints_each_as_an_error_line(monkeypatch, slab_path, how):
     problems = ["tissue.thickness: got -1.0, expected a positive number (mm)",

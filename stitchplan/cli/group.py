@@ -105,7 +105,7 @@ def exit_code(run: Callable[[], Any]) -> int:
                 stdout.deliver_quietly()
             raise
     except StitchplanError as error:
-        _echo_errors(getattr(error, "lines", None) or str(error).splitlines() or [type(error).__name__])
+        _echo_errors(problem_lines(error))
         return error.exit_code
     except click_errors.UsageError as error:
         if type(error).__name__ == "NoArgsIsHelpError":  # bare `stitchplan`: the help was the answer
@@ -216,12 +216,37 @@ class _HeldStream(io.StringIO):
 
 def _echo_errors(lines: list[str]) -> None:
     """One `error:` line per problem: a check that two models of a run make alike (an option
-    out of range for the planned and the refined model, or for two experiments) says it once."""
+    out of range for the planned and the refined model, or for two experiments) says it once.
+    A control character or line separator within a problem (a file name holding a line break)
+    is shown escaped, as Python writes it in a string (\\n), so that the problem stays one line."""
     try:
-        for line in dict.fromkeys(lines):
+        for line in dict.fromkeys(map(_one_line, lines)):
             typer.echo(f"error: {line}", err=True)
     except OSError:  # stderr cannot be written (a full disk): the exit code still tells
         pass
+
+
+def problem_lines(error: BaseException) -> list[str]:
+    """The problems of one of the project's errors: its `lines`, or its message's lines, where
+    an argument of the command line holding a line break (a file name) is one problem's text,
+    its line breaks shown escaped, not two problems."""
+    lines = getattr(error, "lines", None)
+    if lines:
+        return list(lines)
+    message = str(error)
+    given = {text for argument in COMMAND_LINE.get() or () for text in (argument, argument.partition("=")[2])}
+    for text in sorted((text for text in given if text and text.splitlines() != [text]), key=len, reverse=True):
+        message = message.replace(text, _one_line(text))
+    return message.splitlines() or [type(error).__name__]
+
+
+def _one_line(text: str) -> str:
+    """`text` with its control characters (Unicode category Cc: line breaks, tab, NUL, escape)
+    and line separators escaped (`\\n`, `\\x1b`, `\\u2028`)."""
+    import unicodedata
+
+    return "".join(ch.encode("unicode_escape").decode("ascii") if unicodedata.category(ch) in ("Cc", "Zl", "Zp")
+                   else ch for ch in text)
 
 
 # what typer's value checks expected, by pydantic error type

@@ -241,12 +241,13 @@ def naming_files(scenario_path: Path, center_path: Optional[Path] = None):
     errors do), the scenario's for the rest."""
     from ..config import input_error
     from ..errors import InputError
+    from .group import problem_lines
 
     try:
         yield
     except InputError as error:
         named = []
-        for line in getattr(error, "lines", str(error).splitlines()):
+        for line in problem_lines(error):
             if center_path is not None and line.startswith("centre path: "):
                 line = f"--center-path: {center_path}: {line.removeprefix('centre path: ')}"
             elif not line.startswith(("--", f"{scenario_path}:")):
