@@ -481,6 +481,36 @@ def test_a_calibration_too_fine_for_the_machine_is_refused(tmp_path):
                      "in each of 13 runs"]])
 
 
+@pytest.mark.parametrize("options, named", [
+    ((), "calibration.yaml: discretization: dilation 1 with spacing 5 mm"),
+    (("--dilation", "1.0000001"), "--dilation 1.0000001 over {folder}/calibration.yaml: discretization: dilation 1"),
+])
+def test_a_calibration_whose_model_cannot_be_built_names_the_file_or_the_option(tmp_path, options, named):
+    """A dilation that leaves a point covered by too few particles was found as the fit built its
+    first model, and its line named neither the calibration file nor the option that set it."""
+    write_calibration(tmp_path, "x,y,x_def,y_def\n10,10,10.5,10\n20,10,20.2,10\n", grid=3, max_evaluations=4)
+    if not options:
+        raw = yaml.safe_load((tmp_path / "calibration.yaml").read_text())
+        write_scene(tmp_path, {**raw, "discretization": {"spacing": 5.0, "dilation": 1.0000001}}, "calibration.yaml")
+    else:
+        options = (*options, "--spacing", "5")
+        named = named.replace("--dilation", "--spacing 5 and --dilation")
+    result = invoke(tmp_path, "calibrate", "material", "calibration.yaml", "--out", "fitted.yaml", *options)
+    assert_refused(result, tmp_path, {"calibration.yaml", "markers.csv"},
+                   [[named.format(folder=tmp_path), "gives a singular RK moment matrix"]])
+
+
+@pytest.mark.parametrize("command", ["deform", "simulate"])
+def test_a_discretization_an_option_changed_is_named_with_the_option(tmp_path, command):
+    """The model's build refused a dilation given by --dilation as the file's own
+    (`scene.yaml: discretization: dilation 1 ...`), naming a field the file may not even hold."""
+    write_scene(tmp_path, BASE)
+    result = invoke(tmp_path, command, "scene.yaml", *OUTPUTS[command], "--dilation", "1.0000001")
+    assert_refused(result, tmp_path, {"scene.yaml"},
+                   [[f"--dilation 1.0000001 over {tmp_path}/scene.yaml: discretization: dilation 1 with spacing 5 mm",
+                     "gives a singular RK moment matrix"]])
+
+
 def test_calibration_loads_meet_the_same_checks(tmp_path):
     """A calibration experiment's load on the clamped edge or over another load is refused
     like a scenario's."""

@@ -12,7 +12,7 @@ from .group import calibrate_app
 from .options import (CalibrationDilationOption, CalibrationNoResourceCheckOption, CalibrationSpacingOption,
                       MaterialFitVerboseOption, MaxParticlesOption, NeedleFitVerboseOption, QuietOption,
                       check_command_outputs, command_line_argv, guard_calibration, guard_limits, named_file,
-                      option_names, setup_logging)
+                      naming_files, option_names, setup_logging)
 
 
 @calibrate_app.command("material", short_help="Fit lame_lambda and lame_mu to marker displacements.")
@@ -50,7 +50,8 @@ def calibrate_material(
     check_command_outputs(outputs, {f"markers of experiments[{k}]": experiment.source
                                     for k, experiment in enumerate(problem.experiments)},
                           out_format="YAML")
-    result = calibration.fit_material(problem, progress=progress_bar, estimate=estimate)
+    with naming_files(calibration_path):  # a model the fit builds (a singular moment matrix) names the file
+        result = calibration.fit_material(problem, progress=progress_bar, estimate=estimate)
     write_material_outputs(result, out, plot_dir, command=command_line_argv())
     typer.echo(material_summary_line(result))
 

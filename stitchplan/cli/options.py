@@ -238,7 +238,8 @@ def naming_files(scenario_path: Path, center_path: Optional[Path] = None):
     """Input errors met after the scenario was loaded (the needle, the resource guard, the
     model's build, a replayed centre path) name what they concern: the option for a line
     that starts with one, --center-path and its file for the path's rows (as its reading's
-    errors do), the scenario's for the rest."""
+    errors do), the scenario's for the rest (a calibration file's for calibrate material), a
+    problem of the discretization with the --spacing and --dilation that changed it."""
     from ..config import input_error
     from ..errors import InputError
     from .group import problem_lines
@@ -247,9 +248,13 @@ def naming_files(scenario_path: Path, center_path: Optional[Path] = None):
         yield
     except InputError as error:
         named = []
+        options = " and ".join(f"{option} {given_value(option)}" for option in ("--spacing", "--dilation")
+                               if given_value(option) is not None)
         for line in problem_lines(error):
             if center_path is not None and line.startswith("centre path: "):
                 line = f"--center-path: {center_path}: {line.removeprefix('centre path: ')}"
+            elif options and line.startswith("discretization: "):  # the file's, changed by the options
+                line = f"{options} over {scenario_path}: {line}"
             elif not line.startswith(("--", f"{scenario_path}:")):
                 line = f"{scenario_path}: {line}"
             named.append(line)
