@@ -10,6 +10,8 @@ import signal
 import subprocess
 import sys
 import time
+
+import pytest
 from pathlib import Path
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -205,3 +207,59 @@ def test_the_collector_is_paused_for_the_imports_only(tmp_path):
         assert run.returncode == 0, run.stderr
         enabled, frozen = run.stderr.strip().splitlines()[-1].split()[1:]
         assert enabled == "True" and int(frozen) > 10_000, arguments  # numpy's and pydantic's objects among them
+
+
+# A command whose deform run is first interrupted where Python turns the interrupt into another
+# error or only reports it: `signal` sent to the process while a class body's __set_name__ runs
+# (3.11 raises a RuntimeError from it), or within a weak reference's callback (whose exceptions
+# are printed as `Exception ignored in ...` and dropped), then the run as it was.
+INTERRUPTED_RUN = """
+import os, signal, sys, time, weakref
+import stitchplan.tissue.deform as deform
+
+run_deform, where, number = deform.run_deform, sys.argv[1], getattr(signal, sys.argv[2])
+sys.argv = ["stitchplan", *sys.argv[3:]]
+
+
+def interrupted(*args, **kwargs):
+    def interrupt(*_):
+        os.kill(os.getpid(), number)
+        for _ in range(100000):  # the handler runs here
+            pass
+
+    if where == "set_name":
+        type("Owner", (), {"attribute": type("Name", (), {"__set_name__": interrupt})()})
+    else:
+        class Referent:
+            pass
+
+        referent = Referent()
+        reference = weakref.ref(referent, interrupt)
+        del referent
+    time.sleep(2.0)  # an interrupt dropped in the callback is sent again meanwhile
+    return run_deform(*args, **kwargs)
+
+
+deform.run_deform = interrupted
+from stitchplan.cli import main
+
+main()
+"""
+
+
+@pytest.mark.parametrize("where", ["set_name", "weakref"])
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGINT"])
+def test_an_interrupt_python_wraps_or_drops_still_ends_the_command(tmp_path, where, name):
+    """SIGTERM while matplotlib's axes were imported ended in a RuntimeError's traceback (exit 1);
+    one within a weak reference's callback printed `Exception ignored in ...` and the command
+    ran on, writing its outputs (exit 0). Either ends as the interrupt: 128 + the signal, no
+    file, no traceback."""
+    outputs = ["--summary", tmp_path / "s.json", "--probes-out", tmp_path / "p.csv"]
+    run = subprocess.Popen([sys.executable, "-c", INTERRUPTED_RUN, where, name, "deform",
+                            REPOSITORY / "configs" / "slab_edge_load.yaml", *map(str, outputs)], cwd=REPOSITORY,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    _, error = run.communicate(timeout=300)
+    assert run.returncode == 128 + getattr(signal, name), error
+    assert b"Traceback" not in error and b"Exception ignored" not in error, error
+    assert list(tmp_path.iterdir()) == []

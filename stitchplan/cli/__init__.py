@@ -38,6 +38,7 @@ def main() -> None:
     for signal_name in ("SIGTERM", "SIGHUP"):
         if hasattr(signal, signal_name):
             signal.signal(getattr(signal, signal_name), _terminated)
+    sys.unraisablehook = _unraisable  # an interrupt a callback swallowed is sent again
     if sys.argv[1:] == ["--version"]:  # answered before typer is imported
         from .. import __version__
 
@@ -60,11 +61,63 @@ def main() -> None:
         if isinstance(done.code, int):
             _exit(done.code)
         raise
+    except BaseException as error:
+        code = interrupt_code(error)
+        if code is None:  # a bug: its traceback
+            raise
+        _exit(code)
+
+
+class _Terminated(SystemExit):
+    """SIGTERM's or SIGHUP's exit (128 + the signal), raised where the command was."""
+
+    def __init__(self, number: int):
+        super().__init__(128 + number)
+        self.signal_number = number
 
 
 def _terminated(number: int, frame) -> None:
     """Unwind the command (context managers and `finally` clean up) and exit 128 + signal."""
-    raise SystemExit(128 + number)
+    raise _Terminated(number)
+
+
+def interrupt_code(error: BaseException | None) -> int | None:
+    """128 + the signal of the interrupt (Ctrl-C's KeyboardInterrupt, SIGTERM's or SIGHUP's
+    exit) that `error` is or was raised from, None if it is none. A signal's handler raises
+    where the command happens to be, and Python turns what is raised there into another error
+    in places: an exception in a class body's `__set_name__` into a RuntimeError (SIGTERM
+    while matplotlib's axes were imported ended in that traceback, exit 1), one in a C
+    extension's module initialisation into an ImportError (`initialization failed`, then a
+    fatal error as the interpreter finalised the half-made module)."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if isinstance(error, KeyboardInterrupt):
+            return 128 + signal.SIGINT
+        if isinstance(error, _Terminated):
+            return error.code
+        error = error.__cause__ or error.__context__
+    return None
+
+
+def _unraisable(unraisable) -> None:
+    """sys.unraisablehook: an interrupt raised within a callback whose exceptions Python only
+    reports (a weak reference's, an object's __del__) is sent to the process again, to be
+    raised where the command goes on (it was lost: the command ran to its end and wrote its
+    outputs, after printing `Exception ignored in ...` and the interrupt's traceback); any
+    other is reported as Python does."""
+    error = unraisable.exc_value
+    if isinstance(error, (KeyboardInterrupt, _Terminated)):
+        import threading
+
+        # from another thread, a moment later: sent from here, its handler would raise within
+        # this hook, where the interrupt would be lost again
+        number = signal.SIGINT if isinstance(error, KeyboardInterrupt) else error.signal_number
+        resend = threading.Timer(0.01, os.kill, (os.getpid(), number))
+        resend.daemon = True
+        resend.start()
+    else:
+        sys.__unraisablehook__(unraisable)
 
 
 def _exit(code: int) -> None:
