@@ -100,6 +100,24 @@ BAD_SHAPES = {
 }
 
 
+def test_holes_far_apart_are_not_compared_edge_by_edge(monkeypatch):
+    """Every pair of holes had every pair of edges compared: a file of 100 circular holes took
+    45 s to read and one of 400 did not finish; the edges are compared only for holes whose
+    bounding boxes come within the tolerance of each other, with the same verdicts."""
+    from stitchplan.config import tissue_shape
+
+    compared = []
+    loops_touch = tissue_shape._loops_touch
+    monkeypatch.setattr(tissue_shape, "_loops_touch", lambda a, b, tol: compared.append(1) or loops_touch(a, b, tol))
+    grid = [{"circle": {"center": [4.0 + 4.0 * (k % 9), 2.0 + 3.0 * (k // 9)], "radius": 1.0}} for k in range(45)]
+    raw = shaped(outline=[[0.0, 0.0], [40.0, 0.0], [40.0, 20.0], [0.0, 20.0]], holes=grid)
+    assert len(parse_scenario(raw).tissue.holes) == 45
+    assert len(compared) == 90  # each hole against the outline, twice: no pair of the 990 (before: 2070)
+    touching = [*grid, {"polygon": [[35.5, 13.5], [36.5, 13.5], [36.5, 14.5]]}]  # within holes[44], at (36, 14)
+    with pytest.raises(Exception, match=r"tissue\.holes\[45\]: got .*expected a hole apart from holes\[44\]"):
+        parse_scenario(shaped(outline=[[0.0, 0.0], [40.0, 0.0], [40.0, 20.0], [0.0, 20.0]], holes=touching))
+
+
 @pytest.mark.parametrize("case", list(BAD_SHAPES))
 def test_a_bad_shape_is_refused_in_one_line(tmp_path, case):
     raw, fragments = BAD_SHAPES[case]
