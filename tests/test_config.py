@@ -757,3 +757,22 @@ def test_a_calibration_files_thickness_has_the_same_bounds():
     with pytest.raises(ScenarioError) as error:
         parse_calibration(raw)
     assert error.value.lines == [f"tissue.thickness: got 1e+300, expected {THICKNESS}"]
+
+
+def test_loads_apart_are_not_compared_pair_by_pair(monkeypatch, slab_raw):
+    """Every pair of loads was compared: a file of 2000 loads took 45 s to read. Only loads whose
+    segments' boxes come within the tolerance of each other are, with the same verdicts."""
+    from stitchplan.config import load_checks
+
+    compared = []
+    shared_length = load_checks.shared_length
+    monkeypatch.setattr(load_checks, "shared_length", lambda a, b, tol: compared.append(1) or shared_length(a, b, tol))
+    slab_raw["loads"] = [{"segment": [[0.0, 0.5 * i], [0.0, 0.5 * i + 0.25]], "force": [0.01, 0.0]} for i in range(200)]
+    assert len(parse_scenario(slab_raw).loads) == 200
+    assert len(compared) == 200  # each against the clamped right edge alone (before: 20100)
+    slab_raw["loads"].append({"segment": [[0.0, 99.6], [0.0, 99.8]], "force": [0.01, 0.0]})  # over loads[199]
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert error.value.lines == ["loads[200].segment: got [[0.0, 99.6], [0.0, 99.8]], expected a segment sharing at "
+                                 "most an end point with loads[199].segment [[0.0, 99.5], [0.0, 99.75]] (they share "
+                                 "0.15 mm; one load would overrule the other there)"]
