@@ -20,8 +20,8 @@ from .origin import Origin, radius_default_of, size_default_of
 SECONDS_PER_PARTICLE_STEP = {"deform": 6.5e-5, "insertion": 1.5e-5}  # at 1 000 particles
 TIME_EXPONENT = 1.07  # seconds ~ particles^TIME_EXPONENT
 # a needle run with `linear_solver: minres` against the direct solve the constants above were
-# fitted on: 3.5-4.6x on SH 1/2 from 324 to 979 particles, 7.4x at 2601 (mortar coupling;
-# benchmarks/results/simulate_speed.md, "Where MINRES stagnates")
+# fitted on: 3.0-5.1x on SH 1/2 from 324 to 2601 particles (mortar coupling;
+# benchmarks/results/simulate_speed.md, "Where MINRES stagnates"; single runs, which vary)
 MINRES_TIME_FACTOR = 5.0
 # a needle step's time grows with the steps before it: each Newton solve reads E K^-1, one
 # row pair per needle point (needle.saddle_point). The unplanned runs of sh12_100x100 in steps of
