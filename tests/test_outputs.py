@@ -474,48 +474,32 @@ def test_calibrate_material_records_command_and_input_digests(tmp_path, scene):
     assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == ["cost_surface.png", "marker_residuals.png"]
 
 
-def test_calibrate_material_records_the_digests_of_the_inputs_as_it_read_them(tmp_path, scene, monkeypatch):
-    """A calibration file or marker file edited while the fit runs (it takes seconds to
-    minutes): the record gives the SHA-256 of the bytes the fit read, not of the edited
-    files (before, it hashed the files as they were when the report was made)."""
-    from stitchplan import calibration
+@pytest.mark.parametrize("command, inputs, module, fit_name, output", [
+    ("calibrate material", ["calib.yaml", "markers.csv"], "stitchplan.calibration", "fit_material", "fitted.yaml"),
+    ("calibrate needle", ["air.csv", "tissue.csv"], "stitchplan.calibration.needle_fit", "fit_needle", "needle.yaml"),
+])
+def test_calibration_records_the_digests_of_the_inputs_as_it_read_them(tmp_path, scene, monkeypatch, command, inputs,
+                                                                       module, fit_name, output):
+    """A calibration file, marker file or force recording edited while the fit runs (it takes
+    seconds to minutes): the record gives the SHA-256 of the bytes the fit read, not of the
+    edited files (before, it hashed the files as they were when the report was made)."""
+    import importlib
 
-    args = _commands(tmp_path, scene)["calibrate material"]
-    inputs = [tmp_path / "calib.yaml", tmp_path / "markers.csv"]
-    read = {str(path): hashlib.sha256(path.read_bytes()).hexdigest() for path in inputs}
-    fit = calibration.fit_material
+    args = _commands(tmp_path, scene)[command]
+    paths = [tmp_path / name for name in inputs]
+    read = {str(path): hashlib.sha256(path.read_bytes()).hexdigest() for path in paths}
+    fitting = importlib.import_module(module)
+    fit = getattr(fitting, fit_name)
 
     def fit_while_the_inputs_change(*fit_args, **fit_kwargs):
-        for path in inputs:
+        for path in paths:
             path.write_text(path.read_text() + "# edited during the fit\n")
         return fit(*fit_args, **fit_kwargs)
 
-    monkeypatch.setattr(calibration, "fit_material", fit_while_the_inputs_change)
+    monkeypatch.setattr(fitting, fit_name, fit_while_the_inputs_change)
     result = invoke(*args)
     assert result.exit_code == 0, result.output
-    diagnostics = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["diagnostics"]
-    assert diagnostics["input_sha256"] == read
-
-
-def test_calibrate_needle_records_the_digests_of_the_recordings_as_it_read_them(tmp_path, scene, monkeypatch):
-    """As calibrate material: recordings changed after they were read keep the digest of
-    what was fitted."""
-    from stitchplan.calibration import needle_fit
-
-    args = _commands(tmp_path, scene)["calibrate needle"]
-    inputs = [tmp_path / "air.csv", tmp_path / "tissue.csv"]
-    read = {str(path): hashlib.sha256(path.read_bytes()).hexdigest() for path in inputs}
-    fit = needle_fit.fit_needle
-
-    def fit_while_the_recordings_change(*fit_args, **fit_kwargs):
-        for path in inputs:
-            path.write_text(path.read_text() + "# edited during the fit\n")
-        return fit(*fit_args, **fit_kwargs)
-
-    monkeypatch.setattr(needle_fit, "fit_needle", fit_while_the_recordings_change)
-    result = invoke(*args)
-    assert result.exit_code == 0, result.output
-    assert yaml.safe_load((tmp_path / "needle.yaml").read_text())["diagnostics"]["input_sha256"] == read
+    assert yaml.safe_load((tmp_path / output).read_text())["diagnostics"]["input_sha256"] == read
 
 
 def test_calibrate_needle_failing_at_its_yaml_leaves_no_plot(tmp_path, scene, monkeypatch):
