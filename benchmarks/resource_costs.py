@@ -2,7 +2,7 @@
 
 Each case runs in a fresh Python process, so that its peak resident memory (ru_maxrss) is
 its own: deform on configs/slab_edge_load.yaml at several spacings (and one wider kernel,
-dilation 3), and the unplanned insertion (stitchplan.needle.run_insertion) on
+dilation 3), and the unplanned insertion (stitchplan.needle.insertion.run_insertion) on
 configs/sh12_100x100.yaml at its default and half spacing, and at needle steps far below its
 0.08 rad (what a run keeps of its steps, resources.costs._step_memory, then dominates its
 memory). For each case the guard's own estimate of the model (resources.model_size.model_size:
