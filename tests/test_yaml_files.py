@@ -91,6 +91,20 @@ def test_explicit_tags_take_yaml_1_2_values_only(tmp_path, text):
     assert str(error.value).startswith(f"{path}: not valid YAML at line 1 (got {tag} {value!r}, expected ")
 
 
+@pytest.mark.parametrize("text, line", [("a: 1\n---\nb: 2\n", 2), ("a: 1\n---\n", 2), ("---\na: 1\n---\nb: 2\n", 3)])
+def test_a_second_document_is_refused_saying_one_is_expected(tmp_path, text, line):
+    """A `---` after the first document (two scenarios pasted into one file): the line says
+    where the second starts and that one document is expected (it said only "but found
+    another document"); a `---` before the only document is read."""
+    path = write(tmp_path, text)
+    with pytest.raises(ScenarioError) as error:
+        read_yaml(path)
+    assert str(error.value) == (f"{path}: a second YAML document at line {line} (after a `---` line), expected one "
+                                "document a file; remove the `---` line and what follows it, or put that in a file "
+                                "of its own")
+    assert read_yaml(write(tmp_path, "---\na: 1\n", "one.yaml"))[0] == {"a": 1}
+
+
 def test_scientific_notation_reaches_the_scenario(tmp_path):
     scenario = load_scenario(write(tmp_path, SCENE + "solver: {residual_tolerance: 1e-6}\n"
                                    + "planner: {strict: True}\n"))

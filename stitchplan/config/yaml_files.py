@@ -318,6 +318,10 @@ def read_yaml_file(path: str | Path, keys_later: bool = False) -> YamlFile:
             raise input_error([f"{path}: {line}a tab character where the YAML reader takes spaces only (tabs "
                                "are read inside quoted text alone); expected spaces: replace the tab by "
                                "spaces"]) from None
+        if problem is not None and "another document" in problem:  # `---` and more after the first
+            raise input_error([f"{path}: a second YAML document{where} (after a `---` line), expected one "
+                               "document a file; remove the `---` line and what follows it, or put that in a "
+                               "file of its own"]) from None
         raise input_error([f"{path}: not valid YAML{where}" + (f" ({problem})" if problem else "")]) from None
     return YamlFile(data, text, hashlib.sha256(content).hexdigest(), tuple(f"{path}: {line}" for line in problems))
 
