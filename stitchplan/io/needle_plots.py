@@ -26,6 +26,8 @@ from .plot_elements import (
 )
 from .plots import save, shown_name
 
+PARTICLES_LABEL = "particles, coloured by |u| (the bar)"
+
 
 def _needle_body(geometry, center, rotation: float) -> np.ndarray:
     """The needle's arc (80, 2): from the tip back over `arc` rad along the circle."""
@@ -97,7 +99,8 @@ def _exit_zoom(ax, run, norm, colour: str, who: str, marker: str, desired_colour
     displacement = run.displacements[-1]
     moved = particles + displacement - desired
     near = np.all(np.abs(moved - centre) <= 1.5 * half, axis=1)
-    ax.scatter(*moved[near].T, s=40, c=np.linalg.norm(displacement[near], axis=1), cmap=CMAP, norm=norm)
+    ax.scatter(*moved[near].T, s=40, c=np.linalg.norm(displacement[near], axis=1), cmap=CMAP, norm=norm,
+               label=PARTICLES_LABEL)  # one legend entry with the main panel's: a dot here is a particle
     pieces = _boundary_near(run.scenario.tissue.domain, np.asarray(run.desired_exit), 6 * half + 1e-9)
     interpolant = _interpolant(run.model, displacement) if pieces else None
     for k, piece in enumerate(pieces):
@@ -168,7 +171,7 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
         draw_outline(ax, tissue.domain, particles, displacement)
         draw_regions(ax, tissue)
         dots = ax.scatter(*(particles + displacement).T, s=6, c=np.linalg.norm(displacement, axis=1),
-                          cmap=CMAP, norm=norm, zorder=2)
+                          cmap=CMAP, norm=norm, zorder=2, label=PARTICLES_LABEL)
         center, rotation = _state(result, step)
         ax.plot(*_needle_body(geometry, center, rotation).T, "-", color="crimson", lw=2.2, label="needle")
         tips = _tip_path(result, step)
@@ -287,7 +290,7 @@ def _draw_planned_tissue(ax, planned, unplanned, norm):
         for k, loop in enumerate(deformed_loops(tissue.domain, particles, unplanned.displacements[-1])):
             ax.plot(*loop.T, **RUN_OUTLINES["unplanned"], label="tissue outline, unplanned run" if k == 0 else None)
     return ax.scatter(*(particles + displacement).T, s=6, c=np.linalg.norm(displacement, axis=1),
-                      cmap=CMAP, norm=norm, zorder=2)
+                      cmap=CMAP, norm=norm, zorder=2, label=PARTICLES_LABEL)
 
 
 def _draw_runs_over_tissue(fig, ax, runs) -> None:
