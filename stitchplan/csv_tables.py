@@ -24,23 +24,19 @@ from .errors import InputError
 
 
 def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, *, exact: bool = False,
-                       label: str = "", digests: dict[str, str] | None = None
-                       ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Every column of the table as a float array, and the line number of each data row (n,).
+                       label: str = "") -> tuple[dict[str, np.ndarray], np.ndarray, str]:
+    """Every column of the table as a float array, the line number of each data row (n,) and
+    the SHA-256 of the bytes read (the ones the table holds, whatever becomes of the file).
 
     The header must name each of `columns` once (with `exact`, those and no others, in any
     order); every row has as many cells as the header, each a plain finite decimal
     (decimals.parse_number); at least one row. `expected` tells the user what file was
-    wanted; `label` (e.g. the YAML field that named the file) goes before the path. With
-    `digests`, the SHA-256 of the bytes read (the ones the table holds, whatever becomes of
-    the file later) is put there under str(path).
+    wanted; `label` (e.g. the YAML field that named the file) goes before the path.
     """
     path = Path(path)
     where = f"{label}: {path}" if label else f"{path}"
     try:
         content = read_input_bytes(path, where, f"a CSV table ({expected})")
-        if digests is not None:
-            digests[str(path)] = hashlib.sha256(content).hexdigest()
         text = content.decode("utf-8-sig")  # -sig: a BOM
     except OSError as error:
         raise InputError(f"{where}: cannot be read ({error.strerror or error})") from None
@@ -66,7 +62,7 @@ def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, 
         raise InputError(f"{where}: no rows below the header; expected {expected}")
     values = np.array([_row_values(where, number, row, header) for number, row in rows[1:]])  # (rows, columns)
     row_numbers = np.array([number for number, _ in rows[1:]])
-    return {name: values[:, k] for k, name in enumerate(header)}, row_numbers
+    return {name: values[:, k] for k, name in enumerate(header)}, row_numbers, hashlib.sha256(content).hexdigest()
 
 
 def _check_header(where: str, line: int, header: list[str], missing: list[str]) -> None:

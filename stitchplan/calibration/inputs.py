@@ -134,9 +134,8 @@ def fit_settings(fit: FitBlock) -> FitSettings:
 def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: str) -> Experiment:
     """The experiment with its marker file (relative to `folder`) read and checked."""
     markers_path = folder / block.markers
-    digests: dict[str, str] = {}
-    data, lines = read_numeric_table(markers_path, MARKER_COLUMNS, "marker positions at rest and deformed, mm",
-                                     exact=True, label=f"{path}.markers", digests=digests)
+    data, lines, digest = read_numeric_table(markers_path, MARKER_COLUMNS, "marker positions at rest and deformed, mm",
+                                             exact=True, label=f"{path}.markers")
     rest = np.stack([data["x"], data["y"]], axis=1)
     outside = np.flatnonzero(~tissue.domain.contains(rest))
     if len(outside):
@@ -164,7 +163,7 @@ def read_experiment(block: ExperimentBlock, tissue: Tissue, folder: Path, path: 
         markers=rest,
         measured=deformed,
         source=str(markers_path),
-        source_sha256=digests[str(markers_path)],
+        source_sha256=digest,
         warnings=tuple(filter(None, [clustered_markers(rest, tissue, where),
                                      moved_on_a_clamp(rest, deformed, lines, tissue, where)])),
     )

@@ -191,13 +191,11 @@ def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit:
     return warnings
 
 
-def read_force_recording(path: str | Path, label: str,
-                         digests: dict[str, str] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """angle_rad, force_N of a recording; at least MIN_FORCE_SAMPLES rows, angles strictly
-    increasing over at least MIN_ANGLE_SPAN rad (with `digests`, the SHA-256 of the bytes read
-    is put there under str(path))."""
-    data, lines = read_numeric_table(path, FORCE_COLUMNS, "a force recording over the needle angle", exact=True,
-                                     label=label, digests=digests)
+def read_force_recording(path: str | Path, label: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """angle_rad, force_N of a recording and the SHA-256 of the bytes read; at least
+    MIN_FORCE_SAMPLES rows, angles strictly increasing over at least MIN_ANGLE_SPAN rad."""
+    data, lines, digest = read_numeric_table(path, FORCE_COLUMNS, "a force recording over the needle angle",
+                                             exact=True, label=label)
     angle, force = data["angle_rad"], data["force_N"]
     beyond = np.flatnonzero(np.abs(force) > MAX_FORCE_N)
     if len(beyond):
@@ -220,7 +218,7 @@ def read_force_recording(path: str | Path, label: str,
     if span > MAX_ANGLE_SPAN:
         raise InputError(f"{label}: {path}: angle_rad: got a span of {span:.4g} rad, expected at most "
                          f"{MAX_ANGLE_SPAN:.4g} rad (one turn of the needle; are the angles in degrees?)")
-    return angle, force
+    return angle, force, digest
 
 
 def _needle_radius(radius: object) -> float:
@@ -237,9 +235,8 @@ def _needle_radius(radius: object) -> float:
 def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> NeedleFit:
     """`stitchplan calibrate needle`: read both recordings, validate and fit."""
     radius = _needle_radius(radius)
-    digests: dict[str, str] = {}
-    air_angle, air_force = read_force_recording(air, "--air", digests)
-    tissue_angle, tissue_force = read_force_recording(tissue, "--tissue", digests)
+    air_angle, air_force, air_digest = read_force_recording(air, "--air")
+    tissue_angle, tissue_force, tissue_digest = read_force_recording(tissue, "--tissue")
     # a copy of the air recording under another name (the same file is refused by name before):
     # the fit subtracts it from itself and wrote friction and cutting force of ~1e-17
     if np.array_equal(air_angle, tissue_angle) and np.array_equal(air_force, tissue_force):
@@ -253,5 +250,5 @@ def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> Need
     except NumericalFailure as failure:  # the recordings' doing: name them
         raise NumericalFailure(f"--tissue {tissue} and --air {air}: {failure}") from None
     result.sources = (str(air), str(tissue))
-    result.source_sha256 = (digests.get(str(air)), digests.get(str(tissue)))
+    result.source_sha256 = (air_digest, tissue_digest)
     return result

@@ -48,7 +48,7 @@ def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
     tips, when it has them, the needle's tip about each centre (check_tips). `leaning(row 0)`: the needle a path starting there replays
     (needle.geometry.entry_lean: a plan may lean the needle at entry); a row 0 off the centre
     at entry but within LEAN_TOLERANCE of the circle about the entry is put onto it."""
-    table, row_numbers = read_numeric_table(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
+    table, row_numbers, _ = read_numeric_table(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
     _check_steps(path, table["step"], row_numbers)
     centers = np.column_stack([table["center_x_mm"], table["center_y_mm"]])
     if geometry is not None and leaning is not None:
@@ -56,18 +56,17 @@ def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
         if placed is not None and length(centers[0] - geometry.center) > ENTRY_TOLERANCE * geometry.radius:
             centers[0] = placed
         geometry = leaning(centers[0])
-    tips = np.column_stack([table[name] for name in TIP_COLUMNS]) if all(name in table for name in TIP_COLUMNS) else None
+    tips = _points(table, TIP_COLUMNS)
     if geometry is not None:
         if ANGLE_COLUMN in table:
             check_angles(path, table[ANGLE_COLUMN], geometry, row_numbers)
         check_center_path(path, centers, geometry, row_numbers)
         if tips is not None:
             check_tips(path, tips, centers, geometry, row_numbers)
-        else:
-            tips = np.array([geometry.tip(k * geometry.step, center) for k, center in enumerate(centers)])
-    if tips is not None and all(name in table for name in BASE_CENTER_COLUMNS + BASE_TIP_COLUMNS):
-        check_base_frame(path, centers, tips, np.column_stack([table[name] for name in BASE_CENTER_COLUMNS]),
-                         np.column_stack([table[name] for name in BASE_TIP_COLUMNS]), row_numbers)
+    base_centers, base_tips = _points(table, BASE_CENTER_COLUMNS), _points(table, BASE_TIP_COLUMNS)
+    if base_centers is not None and base_tips is not None and (tips is not None or geometry is not None):
+        tips = geometry.tips_along(centers) if tips is None else tips
+        check_base_frame(path, centers, tips, base_centers, base_tips, row_numbers)
     if TIME_COLUMN in table:
         check_times(path, table[TIME_COLUMN], row_numbers)
     return centers
@@ -101,13 +100,18 @@ def check_angles(path: str | Path, angles: np.ndarray, geometry: NeedleGeometry,
                          f"(step {k} of the needle's {geometry.step:g} rad steps)")
 
 
+def _points(table: dict[str, np.ndarray], columns: tuple[str, str]) -> np.ndarray | None:
+    """The (n, 2) points of a pair of columns, None where the file lacks either."""
+    return np.column_stack([table[name] for name in columns]) if all(name in table for name in columns) else None
+
+
 def check_tips(path: str | Path, tips: np.ndarray, centers: np.ndarray, geometry: NeedleGeometry,
                row_numbers: np.ndarray) -> None:
     """Each row's tip where its centre puts the needle's tip at its step's rotation (k x step,
     the exit row's too): a file whose centres were edited and its tips not (or the other way
     round) says two things, and a robot may follow either; the first row that disagrees is
     refused."""
-    expected = np.array([geometry.tip(k * geometry.step, center) for k, center in enumerate(centers)])
+    expected = geometry.tips_along(centers)
     off = np.linalg.norm(tips - expected, axis=1)
     bad = np.flatnonzero(off > point_tolerance(tips, centers))
     if bad.size:

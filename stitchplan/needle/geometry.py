@@ -106,6 +106,11 @@ class NeedleGeometry:
         center = self.center if center is None else center
         return center + self.radius * unit(self.start_angle + self.sense * np.asarray(rotation))
 
+    def tips_along(self, centers: np.ndarray) -> np.ndarray:
+        """The tip (n, 2) at each step k of a centre path (n, 2): about centre k after k steps.
+        Row by row: trajectory.csv's tips and a replay's check of them agree to the bit."""
+        return np.array([self.tip(k * self.step, center) for k, center in enumerate(centers)])
+
     def tangent(self, angle: float | np.ndarray) -> np.ndarray:
         """Direction of needle motion at the point of polar angle `angle` (a_0 of eq. 3.58)."""
         angle = np.asarray(angle)

@@ -140,8 +140,7 @@ def _least_compressible(tissue) -> tuple[str, object, float] | None:
     is 3-11)."""
     materials = [("tissue.material", tissue.material)]
     materials += [(f"tissue.regions[{k}].material", region.material) for k, region in enumerate(tissue.regions)]
-    field, material = max(materials, key=lambda item: (item[1].lame_lambda + 2.0 * item[1].lame_mu) / item[1].lame_mu)
-    ratio = (material.lame_lambda + 2.0 * material.lame_mu) / material.lame_mu
+    ratio, field, material = max(((m.lame_lambda + 2.0 * m.lame_mu) / m.lame_mu, field, m) for field, m in materials)
     return (field, material, ratio) if ratio > 100.0 else None
 
 

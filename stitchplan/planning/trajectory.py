@@ -53,7 +53,7 @@ def trajectory_table(result: InsertionResult, robot: Robot) -> tuple[list[str], 
     centers = _centers(result)
     steps = np.arange(len(centers))
     angles = steps * geometry.step
-    tips = np.asarray([geometry.tip(a, c) for a, c in zip(angles, centers)])
+    tips = geometry.tips_along(centers)
     with np.errstate(over="ignore", invalid="ignore"):  # an overflow is inf, refused below by its column
         if robot.given:
             base_centers, base_tips = _clean(to_base_frame(centers, robot)), _clean(to_base_frame(tips, robot))

@@ -37,6 +37,7 @@ from ..errors import InputError
 from ..geometry.boundary import nearest_on_edges
 from ..geometry.polygon_domain import PolygonDomain
 from ..geometry.polygons import CIRCLE_SEGMENTS, turns
+from ..geometry.segments import point_segment_foot
 
 # Tissue thinner than this x the local particle spacing is refused. Measured with the check
 # off (deform on a 60 x 30 mm block clamped at the bottom, pulled on its right edge; ratios
@@ -133,9 +134,7 @@ def _vertex_gaps(domain: PolygonDomain, boundary: _Boundary,
     for q, e in domain.candidates(a - reach[:, None], a + reach[:, None]):
         keep = (e != q) & (e != before[q])
         q, e = q[keep], e[keep]
-        side = b[e] - a[e]
-        along = np.clip(np.sum((a[q] - a[e]) * side, axis=1) / np.sum(side * side, axis=1), 0.0, 1.0)
-        points = a[e] + along[:, None] * side
+        points = point_segment_foot(a[q], a[e], b[e])
         d = np.linalg.norm(points - a[q], axis=1)
         met = (d > domain.tolerance) & (d <= reach[q])
         q, e, d, points = q[met], e[met], d[met], points[met]
