@@ -205,7 +205,14 @@ def main() -> None:
     print()
     print(text)
 
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
+    plot_conditions(condition_rows)
+
+
+def plot_conditions(condition_rows: list) -> None:
+    """simulate_speed.png from the per-step rows of simulate_speed_condition.csv (coupling,
+    spacing, particles, step, needle points, condition saddle, preconditioned, MINRES and
+    Newton iterations); the legends below the panels, off the curves."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 5.4))
     for coupling, colours in zip(COUPLINGS, (("tab:blue", "tab:cyan"), ("tab:red", "tab:orange"))):
         for spacing, marker, colour in zip(CONDITION_SPACINGS, "os", colours):
             rows_s = [r for r in condition_rows if r[0] == coupling and r[1] == spacing]
@@ -218,11 +225,11 @@ def main() -> None:
     left.set_xlabel("needle points")
     left.set_ylabel("condition number")
     left.set_title("sh12_100x100: condition numbers per step")
-    left.legend(fontsize=8)
+    left.legend(fontsize=8, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     right.set_xlabel("needle points")
     right.set_ylabel("MINRES iterations in the step")
     right.set_title("MINRES iterations per step")
-    right.legend(fontsize=8)
+    right.legend(fontsize=8, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     fig.tight_layout()
     fig.savefig(common.results_path("simulate_speed.png"), dpi=120)
 
