@@ -488,3 +488,23 @@ def test_the_residuals_centre_derivative_matches_finite_differences(coupling):
         assert on_rows is not None and len(track.loads.lumping[0]) == 0
         np.testing.assert_allclose(track.expanded_rows_t @ on_rows, residual_difference, rtol=0,
                                    atol=1e-7 * np.abs(exact).max())
+
+
+def test_the_step_records_log_the_forces_the_loads_apply():
+    """Each step's friction_force and cutting_force (the run log's columns) are what the
+    track's loads apply: with `cutting_ramp` the cutting force grows over the first
+    cutting_length mm of needle inside (here 1.6 mm steps into a 4 mm cutting length:
+    0.4, 0.8, then the whole force), not the needle block's nominal value from the first
+    step on; the two add up to the loads' total."""
+    from stitchplan.needle.insertion import run_insertion
+
+    scenario = small_scene(spacing=4.0, coupling="mortar", cutting_length=4.0, cutting_ramp=True)
+    needle = scenario.needle
+    records = []
+    run_insertion(scenario, on_step=records.append)
+    assert len(records) >= 4
+    step_length = needle.radius * needle.step  # 1.6 mm
+    for record in records[:4]:
+        inside = record.step * step_length
+        assert record.friction_force == pytest.approx(needle.friction * inside, rel=1e-12)
+        assert record.cutting_force == pytest.approx(needle.cutting_force * min(inside / 4.0, 1.0), rel=1e-9)

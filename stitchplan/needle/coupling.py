@@ -423,6 +423,14 @@ class NeedleCoupling:
         """The friction and the cutting force on the track as it stands (TrackLoads.layout)."""
         return self.track_loads.layout(self.points, self.segment_fraction, self.gauss)
 
+    def applied_forces(self) -> tuple[float, float]:
+        """(friction, cutting force), N, that the track's loads apply once the step's ramp is
+        through: friction on the needle inside the tissue (a wound's gaps carry none), and the
+        cutting force as laid out (with `cutting_ramp`, only the share of the cutting edge
+        inside), not the needle block's nominal values."""
+        friction = self.needle.friction * self.geometry.insertion_step * float(self.segment_fraction.sum())
+        return friction, float(self.loads.magnitudes.sum()) - friction
+
     # --- the coupling's terms of the residual --------------------------------------------------
 
     def _track(self) -> tuple[sp.csr_matrix, sp.csc_matrix, np.ndarray]:

@@ -348,13 +348,13 @@ def _needle_step(insertion: NeedleInsertion, control: CenterControl, step: int, 
     if point is None:
         point = insertion.points[-1]
     planner_iterations = control.correct(insertion, step, rotation)
-    geometry, needle = insertion.geometry, insertion.needle
+    geometry = insertion.geometry
+    friction, cutting = insertion.coupling.applied_forces()
     record = NeedleStep(
         step=step, rotation=rotation, center=insertion.center.copy(),
         needle_tip=geometry.tip(rotation, insertion.center), tip_reference=point.copy(),
         tip_spatial=point + insertion.tip_displacement(), needle_points=len(insertion.points),
-        friction_force=needle.friction * geometry.radius * geometry.step * (len(insertion.points) - 1),
-        cutting_force=needle.cutting_force, newton_iterations=insertion.newton_iterations - newton_before,
+        friction_force=friction, cutting_force=cutting, newton_iterations=insertion.newton_iterations - newton_before,
         equilibrium_solves=insertion.equilibrium_solves - solves_before,
         minres_iterations=minres_iterations, constraint_violation=insertion.last_violation, tracking=method,
         exit_displacement=insertion.point_displacement(geometry.desired_exit),

@@ -42,8 +42,8 @@ class NeedleStep:
     tip_reference: np.ndarray  # (2,) tip material point, reference
     tip_spatial: np.ndarray  # (2,) tip material point, spatial
     needle_points: int
-    friction_force: float  # N, total along the needle
-    cutting_force: float  # N
+    friction_force: float  # N, total along the needle inside the tissue, as applied
+    cutting_force: float  # N, as applied (a ramp's share while the cutting edge enters)
     newton_iterations: int  # every Newton iteration of the step (the planner's centre tries too)
     minres_iterations: int
     constraint_violation: float  # mm, max |g_k|
