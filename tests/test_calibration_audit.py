@@ -332,3 +332,23 @@ def test_unnamed_experiments_are_told_apart_by_their_index(tmp_path):
     path = calibration_file(tmp_path, experiments=2)
     with_changes(path, lambda data: [experiment.pop("name") for experiment in data["experiments"]])
     assert len(calibration.load_material_calibration(path).experiments) == 2
+
+
+@pytest.mark.parametrize("markers, warned", [(2, True), (7, True), (8, False), (40, False)])
+def test_few_residual_degrees_of_freedom_say_the_interval_is_wider(markers, warned):
+    """sigma^2 from 2 x markers - 2 residuals: with 2 markers (2 degrees of freedom) +-1.96
+    standard uncertainties covered the truth in ~80 % of noisy fits (Student's t: 95 % needs
+    +-4.3); the fit says so where t widens the 95 % interval by more than 10 % (13 degrees of
+    freedom or fewer), and not beyond."""
+    rng = np.random.default_rng(3)
+    jacobian = rng.standard_normal((2 * markers, 2))
+    fit = FitSettings("saint-venant-kirchhoff", (0.01, 2.0), (0.01, 2.0))
+    theta = np.array([0.2, 0.15])
+    stats = statistics(0.01 * rng.standard_normal(2 * markers), jacobian, theta)
+    least_squares = SimpleNamespace(solution=SimpleNamespace(status=1, nfev=5), failed_solves=0)
+    warnings = fit_warnings(theta, stats, fit, least_squares, displacements_only=False)
+    found = [w for w in warnings if "degree(s) of freedom" in w]
+    assert bool(found) == warned, warnings
+    if markers == 2:
+        assert found[0].startswith("the standard uncertainties rest on 2 degree(s) of freedom only")
+        assert "+-4.3 standard uncertainties" in found[0]

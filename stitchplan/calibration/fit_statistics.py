@@ -18,6 +18,10 @@ from .inputs import FitSettings
 
 CORRELATION_LIMIT = 0.999  # |corr(lambda, mu)| above this: the data cannot separate them
 POORLY_DETERMINED = 0.25  # relative standard uncertainty above which a modulus gets a warning
+# a 95 % interval wider than 1.1 x 1.96 standard uncertainties (Student's t for the residual's
+# degrees of freedom, 13 or fewer): sigma^2 from so few residuals is itself poorly known, and
+# +-1.96 sigma covers the truth in far fewer than 95 % of fits (2 markers for 2 moduli: ~80 %)
+FEW_DEGREES_WIDENING = 1.1
 MODULI = ("lame_lambda", "lame_mu")
 
 
@@ -76,6 +80,7 @@ class Statistics:
     # indices of the parameters no marker moves with (a zero column of the Jacobian): there no
     # correlation can be computed (it is nan)
     insensitive: tuple[int, ...] = ()
+    degrees_of_freedom: int = 0  # residuals less fitted moduli, m - P, behind sigma^2
 
     @property
     def separable(self) -> bool:
@@ -96,7 +101,8 @@ def statistics(residual: np.ndarray, jacobian: np.ndarray, theta: np.ndarray) ->
     normal = jacobian.T @ jacobian
     scale = np.sqrt(np.diag(normal))
     if np.any(scale == 0.0):
-        return Statistics((None,) * count, float("nan"), None, insensitive=tuple(np.flatnonzero(scale == 0.0).tolist()))
+        return Statistics((None,) * count, float("nan"), None, insensitive=tuple(np.flatnonzero(scale == 0.0).tolist()),
+                          degrees_of_freedom=m - count)
     scaled = normal / np.outer(scale, scale)  # unit diagonal
     uncertainty: tuple[float | None, ...] = (None,) * count
     correlations = None
@@ -116,7 +122,24 @@ def statistics(residual: np.ndarray, jacobian: np.ndarray, theta: np.ndarray) ->
     gradient = np.zeros(count)
     gradient[:2] = [1.0 / theta[1], -theta[0] / theta[1] ** 2]
     ratio_variance = float(gradient @ covariance @ gradient)
-    return Statistics(uncertainty, correlation, math.sqrt(max(ratio_variance, 0.0)), correlations)
+    return Statistics(uncertainty, correlation, math.sqrt(max(ratio_variance, 0.0)), correlations,
+                      degrees_of_freedom=m - count)
+
+
+def few_degrees_warning(stats: Statistics) -> str | None:
+    """A warning where the residuals leave so few degrees of freedom that a 95 % interval is
+    more than FEW_DEGREES_WIDENING times +-1.96 standard uncertainties; None otherwise."""
+    from scipy.stats import t as student  # scipy is loaded by the fit already
+
+    dof = stats.degrees_of_freedom
+    if dof < 1:
+        return None
+    factor = float(student.ppf(0.975, dof))
+    if factor <= FEW_DEGREES_WIDENING * 1.959964:
+        return None
+    return (f"the standard uncertainties rest on {dof} degree(s) of freedom only (2 x markers less fitted "
+            f"moduli): the noise they are scaled by is itself poorly known, and a 95 % interval is "
+            f"+-{factor:.3g} standard uncertainties, not +-1.96 (Student's t); add markers")
 
 
 def least_separated(stats: Statistics, names: tuple[str, ...]) -> tuple[str, str, float] | None:
@@ -181,6 +204,9 @@ def fit_warnings(theta: np.ndarray, stats: Statistics, fit: FitSettings,
         if identifiable and u is not None and u > POORLY_DETERMINED * theta[k]:
             warnings.append(f"{name} is poorly determined: standard uncertainty {u:.3g} MPa is "
                             f"{100 * u / theta[k]:.0f} % of its value; add markers or experiments")
+    few = few_degrees_warning(stats) if identifiable else None
+    if few:
+        warnings.append(few)
     if refinement.solution.status == 0:
         warnings.append(f"least squares stopped after {refinement.solution.nfev} evaluations "
                         f"(fit.max_evaluations) before converging")
