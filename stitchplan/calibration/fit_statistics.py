@@ -20,7 +20,7 @@ CORRELATION_LIMIT = 0.999  # |corr(lambda, mu)| above this: the data cannot sepa
 POORLY_DETERMINED = 0.25  # relative standard uncertainty above which a modulus gets a warning
 # a 95 % interval wider than 1.1 x 1.96 standard uncertainties (Student's t for the residual's
 # degrees of freedom, 13 or fewer): sigma^2 from so few residuals is itself poorly known, and
-# +-1.96 sigma covers the truth in far fewer than 95 % of fits (2 markers for 2 moduli: ~80 %)
+# +-1.96 sigma covers far less than 95 % (2 markers for 2 moduli: 81 %, Student's t)
 FEW_DEGREES_WIDENING = 1.1
 MODULI = ("lame_lambda", "lame_mu")
 
