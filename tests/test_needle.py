@@ -138,6 +138,23 @@ def test_a_half_circle_entering_a_slanted_edge_within_round_off_is_accepted():
     assert 0.0 < geometry.exit_rotation - math.pi < 2e-8
 
 
+def test_a_half_circle_typed_as_3_14159_reaches_its_exit():
+    """A half circle's arc written to six digits ends 24 nm (2.7e-6 rad) before the exit on
+    the entry edge, well within the 1 um to which typed points are taken: accepted, on a block
+    and across a wound (both were refused as leaving past the arc); 5 um short is still refused."""
+    from stitchplan.geometry.polygon_domain import PolygonDomain
+
+    block = needle_geometry(make_needle((0.0, 20.0), radius=8.88, arc=3.14159), Rectangle.of_size(SIZE))
+    assert block.exit_rotation == pytest.approx(math.pi, abs=1e-12)
+    wound = PolygonDomain(np.array([[0.0, 0.0], [60.0, 0.0], [60.0, 30.0], [32.0, 30.0], [32.0, 18.0],
+                                    [28.0, 18.0], [28.0, 30.0], [0.0, 30.0]]))
+    across = needle_geometry(make_needle((38.88, 30.0), radius=8.88, arc=3.14159), wound)
+    assert [kind for _, kind in across.crossings] == ["exit", "entry", "exit"]
+    np.testing.assert_allclose(across.desired_exit, [21.12, 30.0], atol=1e-9)
+    with pytest.raises(ScenarioError, match="0.00059 rad past its arc"):
+        needle_geometry(make_needle((0.0, 20.0), radius=8.88, arc=3.141), Rectangle.of_size(SIZE))
+
+
 @pytest.mark.parametrize(("domain", "needle", "fragment"), [
     # an entry from within a 4 mm hole: the 16 mm needle's body crosses the tissue beyond it
     ("hole", ((28.0, 25.0), "cw", 8.0, math.pi, 0.0), "1.5 rad back along its arc of 3.142"),

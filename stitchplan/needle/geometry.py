@@ -265,17 +265,19 @@ def _circle_through(needle: Needle, domain: Rectangle | PolygonDomain, entry: np
     `center` from `entry`: refused where it leaves no exit within the arc, crosses the
     boundary twice within a step, or exits within two steps."""
     start_angle = math.atan2(*(entry - center)[::-1])
+    # an entry kept to the bit within the boundary's round-off (domain.tolerance) turns the exit by
+    # up to about that offset over the radius: a half circle on a slanted edge leaves 1e-8 rad past pi;
+    # and an arc typed to a few digits (pi as 3.14159) ends within the input tolerance of the exit
+    # along the needle, as a typed entry lies within it of the boundary
+    slack = 1e-9 + 4.0 * domain.tolerance / needle.radius + domain.input_tolerance / needle.radius
     first = domain.first_exit_rotation(center, needle.radius, start_angle, sense)
-    crossings = domain.circle_crossings(center, needle.radius, start_angle, sense, needle.arc)
+    crossings = domain.circle_crossings(center, needle.radius, start_angle, sense, needle.arc + slack)
     exits = [r for r, kind in crossings if kind == "exit"]
     # the last point where the circle leaves the tissue within the arc (the orthogonal needle's:
     # the desired exit); a convex tissue's only exit keeps first_exit_rotation's value
     rotation = exits[-1] if len(exits) > 1 else first
     entering = f"entering at {list(needle.entry)} turning {needle.turn}{lean}"
     field = _field(lean)
-    # an entry kept to the bit within the boundary's round-off (domain.tolerance) turns the exit by
-    # up to about that offset over the radius: a half circle on a slanted edge leaves 1e-8 rad past pi
-    slack = 1e-9 + 4.0 * domain.tolerance / needle.radius
     if rotation is None or rotation > needle.arc + slack:
         # the excess too: an entry a hair off a corner leaves a hair past the arc, which 4 digits hide
         reach = ("never leaves the tissue" if rotation is None
