@@ -351,3 +351,84 @@ def test_a_scheduler_lost_during_the_run_is_a_cluster_failure():
     message = str(failed.value)
     assert message.startswith(f"Dask scheduler {cluster.scheduler_address} lost a task: ") and "\n" not in message
     assert failed.value.exit_code == 1
+
+
+# --- the package on a scheduler's workers ----------------------------------------------------
+
+
+@pytest.fixture
+def worker_on():
+    """worker_on(pythonpath): a LocalCluster scheduler's address with one `dask worker`
+    process attached whose PYTHONPATH is `pythonpath`, as a user starts one elsewhere."""
+    import os
+    import subprocess
+
+    from dask.distributed import Client, LocalCluster
+
+    clusters, processes = [], []
+
+    def start(pythonpath: Path) -> str:
+        cluster = LocalCluster(n_workers=0, processes=False, protocol="tcp", dashboard_address=None,
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, silence_logs=logging.CRITICAL)
+        clusters.append(cluster)
+        environment = {**os.environ, "PYTHONPATH": str(pythonpath), "OPENBLAS_NUM_THREADS": "1"}
+        processes.append(subprocess.Popen(
+            [sys.executable, "-m", "distributed.cli.dask_worker", cluster.scheduler_address, "--nworkers", "1",
+             "--nthreads", "1", "--no-dashboard"], env=environment, cwd=pythonpath,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        with Client(cluster.scheduler_address, timeout=10) as client:
+            client.wait_for_workers(1, timeout=60)
+        return cluster.scheduler_address
+
+    yield start
+    for process in processes:
+        process.terminate()
+        process.wait(30)
+    for cluster in clusters:
+        cluster.close()
+
+
+def test_a_scheduler_whose_worker_cannot_import_the_package_is_refused_before_any_run(tmp_path, worker_on):
+    # another `stitchplan` first on the worker's path, a module without the package's modules,
+    # as on a worker started where stitchplan is neither installed nor on PYTHONPATH (such a
+    # worker died on its first task, which the command only saw as lost workers)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "stitchplan.py").write_text("")
+    address = worker_on(elsewhere)
+    scenario = write(tmp_path, small_raw())
+    uncertainty = write(tmp_path, UNCERTAINTY, "u.yaml")
+    start = time.perf_counter()
+    line = one_error_line(invoke("plan", scenario, "--uncertainty", uncertainty, "--export", tmp_path / "t.csv",
+                                 "--summary", tmp_path / "s.json", "--scheduler", address))
+    assert time.perf_counter() - start < FAST
+    assert line.startswith(f"error: --scheduler: worker tcp://127.0.0.1:") and f" of {address} cannot import " \
+        "this command's stitchplan (" in line and "No module named 'stitchplan.parallel'" in line
+    assert line.endswith("started where stitchplan is installed or with it on PYTHONPATH, and restarted since it "
+                         f"changed (`PYTHONPATH=DIR dask worker {address}`)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["elsewhere", "scene.yaml", "u.yaml"]
+
+
+def test_a_scheduler_whose_worker_runs_another_version_is_refused(worker_on, monkeypatch):
+    import stitchplan
+
+    address = worker_on(Path(stitchplan.__file__).resolve().parents[1])  # this package: its version
+    with Executor(scheduler=address) as executor:
+        assert executor.map(abs, [-1.0]) == [1.0]  # it runs tasks
+    monkeypatch.setattr(stitchplan, "__version__", "0.0.1")  # the command's, now another
+    with pytest.raises(InputError) as refused, Executor(scheduler=address):
+        pass
+    message = str(refused.value)
+    assert message.startswith("--scheduler: worker tcp://127.0.0.1:") and "\n" not in message
+    assert message.endswith(f" of {address} runs stitchplan {parallel_version()}, this command 0.0.1; expected "
+                            "the same version on every worker (the runs must not depend on where they ran)")
+
+
+def parallel_version() -> str:
+    """The version in the package's source, whatever a test has set in the module."""
+    import re
+
+    import stitchplan
+
+    text = (Path(stitchplan.__file__).parent / "__init__.py").read_text()
+    return re.search(r'__version__ = "([^"]+)"', text).group(1)

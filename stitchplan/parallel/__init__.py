@@ -32,7 +32,9 @@ each costs a process), and a scheduler address SCHEME://HOST:PORT with a scheme 
 distributed's comm layer that reaches another process (tcp, tls, ws, wss). Reaching the
 scheduler is bounded by CONNECT_TIMEOUT_S: an address where nothing listens, a server that
 never answers and one that answers something else than Dask's protocol each end as one
-InputError naming --scheduler, never as a hang or a traceback.
+InputError naming --scheduler, never as a hang or a traceback. The workers attached to a scheduler are
+asked for this package's version (check_package_on_workers) when it is reached and before
+each batch: one that cannot import it, or runs another version, is an InputError too.
 
 Dask's log records stay off the console: in this process, while an executor runs, they go
 to this module's logger at DEBUG (shown with -vv); the worker processes of a local cluster

@@ -73,6 +73,7 @@ class Executor:
         except Exception as error:  # noqa: BLE001 -- it answered the probe, then failed: gone, or not ours
             raise InputError(f"--scheduler: cannot connect to {self.scheduler} ({brief_error(error)}); expected "
                              "the address of a running `dask scheduler`") from None
+        check_package_on_workers(client, self.scheduler)
         workers = len(client.nthreads())
         self.had_workers = workers > 0
         if workers:
@@ -146,6 +147,8 @@ class Executor:
 
         from distributed.scheduler import KilledWorker
 
+        if self.scheduler is not None:  # workers may have joined since _connect
+            check_package_on_workers(self.client, self.scheduler)
         futures = self.client.map(function, *[list(column) for column in zip(*calls)],
                                   pure=False, retries=RETRIES)
         index_of = {future.key: index for index, future in enumerate(futures)}
@@ -168,6 +171,38 @@ class Executor:
             return [future.result() for future in futures]
         except (KilledWorker, CancelledError) as error:  # the cluster's failure, not the task's
             raise ClusterFailure(f"{self.where} lost a task: {brief_error(error)}") from None
+
+
+def package_version() -> str:
+    """This package's version where it runs: on a worker, check_package_on_workers's probe,
+    which also fails there where the package cannot be imported."""
+    from .. import __version__
+
+    return __version__
+
+
+def check_package_on_workers(client: Any, scheduler: str) -> None:
+    """An InputError naming --scheduler unless every worker attached to the scheduler imports
+    this package at this version. A worker that cannot import it dies on its first task (the
+    task cannot be unpickled), which the run would only see as lost workers; one at another
+    version would run other code, and the results would depend on where they ran."""
+    from .. import __version__
+
+    try:
+        versions = client.run(package_version, on_error="return")
+    except Exception as error:  # noqa: BLE001 -- the scheduler gone meanwhile: the run's own wait says so
+        log.debug("could not ask the workers of %s for their stitchplan: %s", scheduler, brief_error(error))
+        return
+    for worker, version in sorted(versions.items()):
+        if isinstance(version, BaseException):
+            raise InputError(f"--scheduler: worker {worker} of {scheduler} cannot import this "
+                             f"command's stitchplan ({brief_error(version)}); expected workers that can, started where stitchplan is "
+                             "installed or with it on PYTHONPATH, and restarted since it changed (`PYTHONPATH=DIR "
+                             f"dask worker {scheduler}`)")
+        if version != __version__:
+            raise InputError(f"--scheduler: worker {worker} of {scheduler} runs stitchplan {version}, this command "
+                             f"{__version__}; expected the same version on every worker (the runs must not depend "
+                             "on where they ran)")
 
 
 class _WorkerWatch:
