@@ -415,20 +415,12 @@ def test_a_scheduler_whose_worker_runs_another_version_is_refused(worker_on, mon
     address = worker_on(Path(stitchplan.__file__).resolve().parents[1])  # this package: its version
     with Executor(scheduler=address) as executor:
         assert executor.map(abs, [-1.0]) == [1.0]  # it runs tasks
+    version = stitchplan.__version__  # the worker's
     monkeypatch.setattr(stitchplan, "__version__", "0.0.1")  # the command's, now another
     with pytest.raises(InputError) as refused, Executor(scheduler=address):
         pass
     message = str(refused.value)
     assert message.startswith("--scheduler: worker tcp://127.0.0.1:") and "\n" not in message
-    assert message.endswith(f" of {address} runs stitchplan {parallel_version()}, this command 0.0.1; expected "
+    assert message.endswith(f" of {address} runs stitchplan {version}, this command 0.0.1; expected "
                             "the same version on every worker (the runs must not depend on where they ran)")
 
-
-def parallel_version() -> str:
-    """The version in the package's source, whatever a test has set in the module."""
-    import re
-
-    import stitchplan
-
-    text = (Path(stitchplan.__file__).parent / "__init__.py").read_text()
-    return re.search(r'__version__ = "([^"]+)"', text).group(1)
