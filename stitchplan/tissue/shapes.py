@@ -109,7 +109,10 @@ def corner_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refine
     (particles.end_spacing: the solution is singular there, r^(~1/2) at a slit's tip);
     none with discretization.segment_end_levels 0. A corner of an edge shorter than THIN x
     the spacing (a jagged traced contour's step, a feature the spacing does not resolve)
-    is left as it is."""
+    is left as it is, unless the short edge lies between long ones and its two corners
+    together turn re-entrant by more than REENTRANT (a jagged step's turns cancel): the tip
+    of a slit thinner than that (an incision), singular as one corner, graded at the short
+    edge's middle."""
     domain = tissue.domain
     if discretization.segment_end_levels == 0 or not isinstance(domain, PolygonDomain):
         return ()
@@ -121,6 +124,11 @@ def corner_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refine
         corner = (turns(loop) < -REENTRANT) & long & np.roll(long, 1)  # turn > 0: a left turn (convex)
         for vertex in loop[corner]:
             zones.append(RefinementZone(np.asarray(vertex, dtype=float), 0.0, fine))
+        # a slit's tip: without it a 0.1 mm slit's walls were 6.4 % off at 1 mm spacing (1.2 %)
+        after = np.roll(loop, -1, axis=0)
+        tip = ~long & np.roll(long, 1) & np.roll(long, -1) & (turns(loop) + np.roll(turns(loop), -1) < -REENTRANT)
+        for a, b in zip(loop[tip], after[tip]):
+            zones.append(RefinementZone(0.5 * (np.asarray(a, dtype=float) + b), 0.0, fine))
     return tuple(zones)
 
 
