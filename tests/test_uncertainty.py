@@ -1024,6 +1024,11 @@ def test_a_calibration_that_cannot_separate_the_moduli_is_refused_with_finite_st
                       "  correlation: -0.9995\n  identifiable: false\n")
     with pytest.raises(InputError, match="fit.identifiable: got false, expected a calibration that identifies"):
         calibration_spread(fitted, tmp_path / "u.yaml")
+    # quoted, "false" or "no" is a string: refused rather than read as true
+    fitted.write_text("fit:\n  standard_uncertainty: {lame_lambda: 0.02, lame_mu: 0.01}\n"
+                      "  correlation: -0.5\n  identifiable: 'no'\n")
+    with pytest.raises(InputError, match="fit.identifiable: got 'no', expected true or false"):
+        calibration_spread(fitted, tmp_path / "u.yaml")
 
 
 def test_correlated_moduli_that_cancel_are_not_called_a_share_of_the_spread():

@@ -258,6 +258,9 @@ def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float
                "separated, or one ended on a bound of its search range)" if fit.get("identifiable") is False else "")
         raise input_error([f"{where}: fit.standard_uncertainty: got {short(given)}, expected positive standard "
                            f"uncertainties of lame_lambda and lame_mu (MPa){why}"])
+    if not isinstance(fit.get("identifiable", True), bool):  # a quoted "no" is a string, not false
+        raise input_error([f"{where}: fit.identifiable: got {short(fit['identifiable'])}, expected true or "
+                           "false, as `calibrate material` writes it"])
     if fit.get("identifiable") is False:
         raise input_error([f"{where}: fit.identifiable: got false, expected a calibration that identifies "
                            "the moduli (its standard uncertainties and correlation are not usable: add a "
