@@ -320,3 +320,49 @@ def test_a_track_point_tracked_into_a_hole_fails_its_step_by_name():
                                                r"reaches \[50\.5\d, 32\.4\d\], 0\.01\d\d mm outside the tissue at "
                                                r"rest \(in a hole or a gap\), where no particle's kernel reaches"):
         run_insertion(parse_scenario(raw))
+
+
+# --- equal bites through a hole ---------------------------------------------------------------
+
+def symmetric_scene(max_passes: int) -> dict:
+    """The hole centred on the needle's deepest point, the block pulled at its right edge (as
+    configs/hole_near_stitch.yaml is): planner.target symmetric."""
+    raw = scene(HOLE)
+    raw["loads"] = [{"segment": [[60.0, 0.0], [60.0, 30.0]], "force": [2.0, 0.0]}]
+    raw["planner"] = {"target": "symmetric", "max_passes": max_passes}
+    return raw
+
+
+def passes_missed(result) -> list[float]:
+    return [float(np.linalg.norm(p["exit_error_vector_mm"] - p["aim_mm"])) for p in result.passes]
+
+
+def test_a_symmetric_plan_through_a_hole_closes_in_on_equal_bites():
+    """Through a hole the bites end at the wall points the needle crosses, which move with it:
+    the bites' difference moves faster than the exit error's secant says, and the passes used
+    to overshoot equal bites further each time (misses of their aim 0.302, 0.0248, 0.0452,
+    0.0725 mm; the best 0.0248 mm apart). Once a pass falls on the other side of equal bites
+    the secant takes the bites' difference, and the next pass closes in."""
+    from stitchplan.planning.planner import run_plan
+
+    result = run_plan(parse_scenario(symmetric_scene(4)), compare=False)
+    misses = passes_missed(result)
+    assert misses[-1] < min(misses[:-1])
+    assert abs(result.planned.bites["difference_mm"]) <= result.planned.scenario.planner.exit_tolerance
+
+
+def test_a_symmetric_plan_short_of_equal_bites_says_what_its_passes_did():
+    """Two passes, still closing in on equal bites: the target-missed note says that
+    planner.max_passes ran out, with each pass's miss, and no longer blames move limits the
+    passes never reached ('the centre could not be moved far enough')."""
+    from stitchplan.events import EventKind
+    from stitchplan.planning.verification import plan_verified
+
+    result = plan_verified(parse_scenario(symmetric_scene(2)), compare=False, verify=False)
+    notes = [event.message for event in result.planned.events if event.kind == EventKind.TARGET_MISSED]
+    first, second = passes_missed(result)
+    assert second < first
+    assert len(notes) == 1 and notes[0].endswith(
+        f"planner.max_passes (2) ran out with the passes still closing in (they missed their aim by {first:.3g}, "
+        f"{second:.3g} mm)")
+    assert "could not be moved" not in notes[0]

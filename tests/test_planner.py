@@ -293,6 +293,7 @@ def test_a_plan_that_misses_its_target_says_so(verify):
     assert misses[0].message.startswith(f"plan: the tip exits {miss:.4g} mm from the desired exit {where}, "
                                         f"above the {accepted:.4g} mm accepted, after {len(result.passes)} planner "
                                         "passes")
+    assert "the move limits held the centre back" in misses[0].message  # what the passes met, said
 
 
 def test_passes_held_back_at_every_step_search_between_their_offsets_and_stop_once_settled():

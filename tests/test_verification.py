@@ -95,6 +95,38 @@ def test_pass_offsets_start_with_unit_slope_along_the_exit_edge_then_take_the_se
     assert offsets.offset[1] < 0.08
 
 
+def test_symmetric_pass_offsets_take_the_bites_secant_once_a_pass_overshoots():
+    """The symmetric target's aim follows each pass (p: the exit error at equal bites its own
+    bites set). While the passes stay on one side of it the secant is t . e's, as for the
+    exit; once one falls on the other side it is t . (e - p)'s, which puts the next offset
+    where the bites' difference crosses zero between the two (t . e's, 0.4 here as through a
+    hole, took it to 0.35, back past equal bites by 0.19 mm where this pass was 0.1 mm past: an
+    overshoot growing each pass)."""
+    offsets = PassOffsets()
+    offsets.record(np.array([0.0, 0.0]), follows=np.array([0.0, 0.6]))  # bites 0.6 mm apart
+    offsets.advance(np.array([0.0, 0.6]))
+    np.testing.assert_allclose(offsets.offset, [0.0, -0.6])  # de/dc = -1
+    offsets.record(np.array([0.0, 0.24]), follows=np.array([0.0, 0.14]))  # beyond: 0.1 mm the other way
+    offsets.advance(np.array([0.0, 0.14]))
+    assert offsets.overshot
+    # the bites' difference along t went from -0.6 to 0.1 over 0.6 mm of offset
+    np.testing.assert_allclose(offsets.offset, [0.0, -0.6 + 0.1 * 0.6 / 0.7])
+
+
+def test_passes_short_of_their_aim_are_said_to_overshoot_or_be_held_not_guessed():
+    """The target-missed note's cause comes from the passes' misses (planner.why_short):
+    misses that swing from side to side and grow are no convergence, not move limits."""
+    from stitchplan.planning.planner import why_short
+
+    offsets = PassOffsets()
+    offsets.direction = np.array([1.0, 0.0])
+    swinging = [{"exit_error_vector_mm": np.array([x, 0.0]), "aim_mm": np.zeros(2)} for x in (0.55, -0.24, 0.59)]
+    assert why_short(swinging, offsets, 4) == ("the passes did not converge: they missed their aim by 0.55, 0.24, "
+                                               "0.59 mm, overshooting it from side to side (see planner_passes)")
+    offsets.searching = True
+    assert why_short(swinging, offsets, 4).startswith("the move limits held the centre back")
+
+
 def test_planned_centre_path_is_smooth_and_still_hits_the_exit():
     scenario = parse_scenario(scene_raw(30.0, 24.0, 4.0, 0.08))
     result = run_plan(scenario, compare=False)

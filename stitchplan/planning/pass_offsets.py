@@ -89,6 +89,16 @@ class PassOffsets:
     later round or a predicted aim changes the aim, not e(c)), kept within [-3, -1/3] so that
     a pass held back by the move limits cannot send the next one far off.
 
+    With the symmetric target the aim follows each pass's bites (planner.symmetric_aim: the
+    exit moved by the bites' difference), and t . e has the difference's slope only where the
+    bites end at points fixed in the tissue (a cut's lips). Through a hole they end where the
+    needle crosses its wall, which moves with the offset: there the difference moved 1.4 mm
+    per mm of offset where t . e moved 0.4, so each pass overshot the aim further than the
+    one before. Once two passes lie on either side of the aim (`overshot`), the secant is
+    taken of t . (e - p) instead, p the aim at equal bites each pass's own bites set (the
+    bites' difference along t, whatever bite difference a round aims at), which brings the
+    next pass between them.
+
     Where the move limits hold the centre back from the start, a larger offset can move the
     exit away from the aim as well as toward it: once a secant's slope comes out zero or
     positive, the offsets stop extrapolating and search between the passes already run for
@@ -110,17 +120,21 @@ class PassOffsets:
         self.direction: np.ndarray | None = None
         self.slope = -1.0
         self.last: tuple[float, np.ndarray] | None = None  # (s, e) of the last pass run
+        self.follows: np.ndarray | None = None  # p of the last pass run (symmetric target)
         self.tried: dict[float, float] = {}  # s: t . e of every pass advanced from
-        self._previous: tuple[float, float] | None = None  # (s, t . e) of the pass before
+        self._previous: tuple[float, float, float | None] | None = None  # (s, t . e, t . (e - p)) of the pass before
+        self.overshot = False  # (symmetric target) two passes fell on either side of the aim
         self.searching = False  # a secant slope came out >= 0: offsets between the passes run
 
     @property
     def position(self) -> float:
         return 0.0 if self.direction is None else float(self.direction @ self.offset)
 
-    def record(self, error: np.ndarray) -> None:
-        """The exit error vector of the pass run with the current offset."""
+    def record(self, error: np.ndarray, follows: np.ndarray | None = None) -> None:
+        """The exit error vector of the pass run with the current offset and (symmetric
+        target) `follows`, the aim at equal bites its bites set."""
         self.last = (self.position, np.asarray(error, dtype=float))
+        self.follows = None if follows is None else np.asarray(follows, dtype=float)
 
     def advance(self, aim: np.ndarray) -> None:
         """The offset of the next pass, aiming the exit error at `aim`."""
@@ -132,11 +146,19 @@ class PassOffsets:
                 return
             self.direction = miss / norm
         along, exit_along = float(self.direction @ miss), float(self.direction @ error)
-        if self._previous is not None and position != self._previous[0]:
-            slope = (exit_along - self._previous[1]) / (position - self._previous[0])
+        bites_along = None if self.follows is None else float(self.direction @ (error - self.follows))
+        previous = self._previous
+        if previous is not None and previous[2] is not None and bites_along is not None:
+            # the pass before's miss of this aim: previous t . (e - p) - this one's + this miss
+            self.overshot = self.overshot or along * (previous[2] - bites_along + along) < 0.0
+        if previous is not None and position != previous[0]:
+            if self.overshot and previous[2] is not None and bites_along is not None:
+                slope = (bites_along - previous[2]) / (position - previous[0])
+            else:
+                slope = (exit_along - previous[1]) / (position - previous[0])
             self.searching = self.searching or slope >= 0.0
             self.slope = float(np.clip(slope, -3.0, -1.0 / 3.0))
-        self._previous, self.tried[position] = (position, exit_along), exit_along
+        self._previous, self.tried[position] = (position, exit_along, bites_along), exit_along
         if self.searching:
             self.offset = _offset_between(self.tried, exit_along - along) * self.direction
         else:

@@ -22,6 +22,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -135,6 +136,7 @@ class PlanResult:
     verification: object | None = None  # planning.verification.Verification, when verified
     estimate: object | None = None  # planning.verification.ExitEstimate of the planned run
     lean: LeanSearch | None = None  # the needle's lean at entry, when the planner chose it
+    stopped: str | None = None  # why the passes stopped short of their aim (None: they met it)
 
     @property
     def center_trajectory(self) -> np.ndarray:
@@ -228,7 +230,8 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     # whether or not the comparison runs (and a helper replaying the passes has their centres sooner);
     # the comparison's needle is the scenario's as given, not leaned
     unplanned = run_insertion(scenario, on_step=on_step, tissue=tissue, **options) if compare else None
-    return PlanResult(best, unplanned, passes.records, shooting=passes.offsets, lean=lean)
+    return PlanResult(best, unplanned, passes.records, shooting=passes.offsets, lean=lean,
+                      stopped=passes.stopped)
 
 
 class _PlanPasses:
@@ -250,6 +253,8 @@ class _PlanPasses:
         # the best pass's offset, prefix and the move limits it kept (None: not smooth)
         self.best_pass: tuple[np.ndarray, PassPrefix | None, MoveLimits | None] | None = None
         self.ready: tuple[InsertionResult, list[int]] | None = None  # the lean search's run at its lean
+        self.stopped: str | None = None  # why the passes stopped short of their aim (None: they met it)
+        self.follows: np.ndarray | None = None  # the last pass's aim at equal bites (symmetric target)
 
     def run(self, leaned: Scenario, tracker: ExitTracker, prefix: PassPrefix | None = None) -> InsertionResult:
         """One pass of Algorithm 2 on the shared model (each step's centre solving Algorithm 2's update with
@@ -296,6 +301,7 @@ class _PlanPasses:
                 if self.best is None or isinstance(failure, PlanningFailure):  # no pass to export, or --strict
                     raise
                 self._note_failed(number, failure)
+                self.stopped = f"planner pass {number} failed (its note says where)"
                 break
             error, miss = self._record(number, planned, tracker, prefix, bite_aim)
             retargeted = retarget(planned) if retarget is not None and number == 1 else None
@@ -305,11 +311,13 @@ class _PlanPasses:
             if miss < self.best_miss:
                 self.best, self.best_miss = planned, miss
                 self.best_pass = (offsets.offset.copy(), prefix, tracker.limits)
-            offsets.record(error)
+            offsets.record(error, self.follows)
             if miss <= self.target:
+                self.stopped = None
                 break
             searching = offsets.searching
             offsets.advance(self.aim)
+            self.stopped = why_short(self.records[-number:], offsets, self.settings.max_passes)
             if offsets.searching and not searching:
                 log.info("planning pass %d: the exit moved along with the offset rather than against it (the move "
                          "limits hold the centre back): the next passes search between the offsets run", number)
@@ -377,8 +385,10 @@ class _PlanPasses:
         offset = self.offsets.offset
         if prefix is None and not offset.any():  # the plan's first pass: later passes take over its early steps
             self.offsets.prefix = PassPrefix.of(planned, tracker.limited_steps, self.settings)
+        self.follows = None
         if self.symmetric and planned.bites is not None:
             self.aim = symmetric_aim(planned, bite_aim)
+            self.follows = symmetric_aim(planned)  # the secant's part of the aim (PassOffsets)
         elif self.symmetric:  # this pass's tip passed the wound by: no bites to aim, its exit is judged
             log.info("planning pass %d: the tip crossed no wound (no bites); the pass keeps its exit aim", number)
         return planned.exit_error_vector_mm, self._add_record(number, planned, tracker, prefix, offset)
@@ -406,6 +416,26 @@ class _PlanPasses:
         log.info("planning pass %d: offset (%.4g, %.4g) mm, exit error %.4g mm (%.4g mm from the aim)", number,
                  *offset, planned.exit_error_mm, miss)
         return miss
+
+
+def why_short(records: list[dict], offsets: PassOffsets, max_passes: int) -> str:
+    """What passes none of which came within the target of its aim did (their planner_passes
+    `records`, `offsets` after them), for the target-missed note of a plan that misses its
+    target: held back by the move limits (the offsets searching between those run), still
+    closing in when max_passes ran out, or not converging (a pass missing by more than the
+    one before it)."""
+    misses = [float(np.linalg.norm(r["exit_error_vector_mm"] - r["aim_mm"])) for r in records]
+    listed = f"they missed their aim by {', '.join(f'{miss:.3g}' for miss in misses)} mm"
+    if offsets.searching:
+        return ("the move limits held the centre back: a larger offset moved the exit away from the aim and the "
+                f"passes searched between the offsets run ({listed}; planner.center_step_limit, "
+                "center_second_difference_limit, or the steps where eq. 4.2 fails: see planner_passes)")
+    if all(later < earlier for earlier, later in pairwise(misses)):
+        return f"planner.max_passes ({max_passes}) ran out with the passes still closing in ({listed})"
+    sides = [np.sign(offsets.direction @ (r["exit_error_vector_mm"] - r["aim_mm"])) for r in records]
+    swung = len(sides) > 2 and all(a * b < 0 for a, b in pairwise(sides))
+    return (f"the passes did not converge: {listed}{', overshooting it from side to side' if swung else ''} "
+            "(see planner_passes)")
 
 
 def add_timings(total: dict[str, float], more: dict[str, float]) -> None:

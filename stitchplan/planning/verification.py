@@ -330,7 +330,7 @@ def _estimated(scenario: Scenario, result: PlanResult, replays: InlineReplays, s
     result.estimate = estimate_exit_error(scenario, result.planned, result.exported_centers, replays=replays,
                                           **options)
     _note_missed(result, _verified_miss(result.planned, symmetric), scenario.planner.exit_tolerance,
-                 "on the planning model", symmetric)
+                 "on the planning model", symmetric, result.stopped)
     return result
 
 
@@ -404,8 +404,16 @@ class _VerificationRounds:
             record["round"] = number
         result = self.result
         self.result = PlanResult(again.planned, result.unplanned, result.passes + again.passes, again.shooting,
-                                 lean=again.lean.after(result.lean) if again.lean else None)
+                                 lean=again.lean.after(result.lean) if again.lean else None, stopped=again.stopped)
         return True
+
+    def _rounds_moved(self) -> str:
+        """Why a plan whose passes met their aim on the planning model still misses on the
+        refined one: that model's offset changed from round to round (each round's miss there)."""
+        key = "verified_bite_difference_mm" if self.symmetric else "verified_exit_error_mm"
+        misses = ", ".join("none" if record.get(key) is None else f"{abs(record[key]):.3g}" for record in self.records)
+        return (f"the passes met their aim on the planning model, but the refined model's offset changed from round "
+                f"to round (its miss {misses} mm over the {len(self.records)} rounds)")
 
     def _aim_by_offset(self, replayed: InsertionResult) -> tuple[np.ndarray, float]:
         """The re-aimed passes' aim of the exit error vector and of the bites' difference
@@ -430,23 +438,24 @@ class _VerificationRounds:
         best.plan.planned.wall_seconds, best.plan.planned.timings = self.planning_seconds, self.planning_timings
         if np.isfinite(best.miss):
             _note_missed(best.plan, best.miss, VERIFIED_FACTOR * self.settings.exit_tolerance,
-                         f"on the refined model (spacing {spacing:.4g} mm)", self.symmetric)
+                         f"on the refined model (spacing {spacing:.4g} mm)", self.symmetric,
+                         best.plan.stopped or self._rounds_moved())
         verification = Verification(spacing, best.replayed, self.records, self.replays.where, best.record["aimed_by"],
                                     best.record.get("no_replay"))
         return _verified(self.scenario, best.plan, verification, **self.options)
 
 
-def _note_missed(result: PlanResult, miss: float, accepted: float, where: str, symmetric: bool) -> None:
+def _note_missed(result: PlanResult, miss: float, accepted: float, where: str, symmetric: bool,
+                 why: str | None) -> None:
     """An event on the exported plan when even its best pass misses the target by more than
     `accepted` mm (the planner's exit_tolerance, or 1.5 x it on the refined model): the
-    trajectory is still written, the best found, and the summary and the stderr note say so."""
+    trajectory is still written, the best found, and the summary and the stderr note say so,
+    and `why`: what its passes did (planner.PlanResult.stopped)."""
     if miss <= accepted:
         return
     what = f"its bites differ by {miss:.4g} mm" if symmetric else f"the tip exits {miss:.4g} mm from the desired exit"
-    message = (f"plan: {what} {where}, above the {accepted:.4g} mm accepted, after "
-               f"{len(result.passes)} planner passes: the best trajectory found is exported; the centre "
-               "could not be moved far enough (planner.center_step_limit and the other move limits, "
-               "planner.max_passes, or the steps where eq. 4.2 fails: see planner_passes in the summary)")
+    message = (f"plan: {what} {where}, above the {accepted:.4g} mm accepted, after {len(result.passes)} planner "
+               f"passes: the best trajectory found is exported; {why or 'see planner_passes in the summary'}")
     result.planned.events.append(Event(EventKind.TARGET_MISSED, message))
     log.info(message)
 
