@@ -95,9 +95,12 @@ def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
     zone = needle_zone(scenario)
     held, pulled = load_segments(scenario)
     segments = held + pulled  # in the model's order
-    estimated = _shaped_estimate(scenario, zone, segments)
-    if estimated > COUNT_SHAPED_UP_TO:
-        return replace(nominal, particles=estimated)
+    # the estimate over the whole bounding box bounds the shape's from above: within the
+    # limit, the shape's (a point-in-polygon test of its 40 000 grid points) is not needed
+    if _shaped_estimate(scenario, zone, segments, whole_box=True) > COUNT_SHAPED_UP_TO:
+        estimated = _shaped_estimate(scenario, zone, segments)
+        if estimated > COUNT_SHAPED_UP_TO:
+            return replace(nominal, particles=estimated)
     shaped = shaped_discretization(scenario.tissue, scenario.discretization, segments, zone)
     square = _mean_square_neighbours(scenario.tissue.domain, shaped.points, shaped.particles, shaped.support)
     crowding = square / nominal.neighbours ** 2 if math.isfinite(nominal.neighbours) else 1.0
@@ -122,12 +125,14 @@ def _mean_square_neighbours(domain, points: np.ndarray, particles: np.ndarray, s
     return float(np.mean(counts ** 2)) if len(sample) else 0.0
 
 
-def _shaped_estimate(scenario: Scenario, zone, segments, samples: int = 200) -> int:
+def _shaped_estimate(scenario: Scenario, zone, segments, samples: int = 200, whole_box: bool = False) -> int:
     """Particles of a shaped tissue without placing them: the lattice as the integral of
     1 / side^2 over the tissue (side: the spacing, graded toward the refinement zones as the
     lattice is: corners, segment ends, the needle), the boundary's as the integral of
     1 / side along it, the shape's lattice lines (tissue.shapes.shape_breaks) across the
-    bounding box, and a particle at each vertex that keeps one (tissue.shapes.kept_vertices)."""
+    bounding box, and a particle at each vertex that keeps one (tissue.shapes.kept_vertices).
+    With `whole_box` the lattice's integral runs over the whole bounding box: at least the
+    estimate without it."""
     from ..tissue.particles import END_GROWTH, end_zones
     from ..tissue.shapes import corner_zones, kept_vertices, shape_breaks
 
@@ -149,7 +154,7 @@ def _shaped_estimate(scenario: Scenario, zone, segments, samples: int = 200) -> 
 
     t = (np.arange(samples) + 0.5) / samples
     grid = origin + np.stack(np.meshgrid(t * width, t * height, indexing="ij"), axis=-1).reshape(-1, 2)
-    inside = grid[domain.contains(grid)]
+    inside = grid if whole_box else grid[domain.contains(grid)]
     lines = shape_breaks(tissue, d.spacing)
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a side too small for a float: inf
         lattice = np.sum(width * height / samples**2 / side(inside) ** 2)
