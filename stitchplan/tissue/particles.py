@@ -193,10 +193,13 @@ def _leaf_levels(required: np.ndarray, levels: int) -> np.ndarray:
     needs no split (no finest cell inside asks for more than l)."""
     fx, fy = required.shape
     leaf = np.full_like(required, levels)
+    block = required
     for level in range(levels - 1, -1, -1):
         b = 2 ** (levels - level)
-        block = required.reshape(fx // b, b, fy // b, b).max(axis=(1, 3))
-        leaf = np.where(np.repeat(np.repeat(block, b, 0), b, 1) <= level, level, leaf)
+        # the level-l blocks' maxima from the level-(l + 1) ones, written through a view of
+        # the leaves: neither is taken over the whole finest lattice again at each level
+        block = block.reshape(fx // b, 2, fy // b, 2).max(axis=(1, 3))
+        np.copyto(leaf.reshape(fx // b, b, fy // b, b), level, where=(block <= level)[:, None, :, None])
     return leaf
 
 
@@ -214,14 +217,12 @@ def _balanced_leaf_levels(required: np.ndarray, levels: int) -> np.ndarray:
 def _leaf_cells(leaf: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
     """The leaf cells of the finest cells' leaf levels (fx, fy): lower-left corners on the
     finest lattice (nc, 2) and sides in finest cells (nc,), by level."""
-    fx, fy = leaf.shape
     corners, sides = [], []
-    i, j = np.meshgrid(np.arange(fx), np.arange(fy), indexing="ij")
     for level in range(levels + 1):
         b = 2 ** (levels - level)
-        first = (leaf == level) & (i % b == 0) & (j % b == 0)
-        corners.append(np.stack([i[first], j[first]], axis=1))
-        sides.append(np.full(int(first.sum()), b))
+        i, j = np.nonzero(leaf[::b, ::b] == level)  # a leaf's first cell lies on every b-th line
+        corners.append(np.stack([i * b, j * b], axis=1))
+        sides.append(np.full(len(i), b))
     return np.concatenate(corners), np.concatenate(sides)
 
 
@@ -249,7 +250,8 @@ def _neighbourhood_max(levels: np.ndarray) -> np.ndarray:
     """The largest value in each cell's 3 x 3 neighbourhood (edges repeated outward)."""
     padded = np.pad(levels, 1, mode="edge")
     rows, cols = levels.shape
-    return np.max([padded[i:i + rows, j:j + cols] for i in range(3) for j in range(3)], axis=0)
+    across = np.maximum(np.maximum(padded[:, :cols], padded[:, 1:cols + 1]), padded[:, 2:])  # by rows, then columns
+    return np.maximum(np.maximum(across[:rows], across[1:rows + 1]), across[2:])
 
 
 def _subdivided(lines: np.ndarray, n: int) -> tuple[np.ndarray, float | None]:
