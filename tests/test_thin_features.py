@@ -175,6 +175,26 @@ def test_a_neck_between_two_tips_is_refused_with_its_width(neck):
         model_for_scenario(parse_scenario(raw))
 
 
+def test_a_gap_narrower_than_the_spacing_is_no_thin_tissue():
+    """A wound 2 mm wide and 10 mm deep at 5 mm spacing: the lips of its walls lie 2 mm apart
+    across the gap, outside the tissue, which the vertices' gaps measured as tissue 2 mm thin
+    at the gap's middle and refused (so did a needle run's estimate at twice its spacing);
+    the tissue either side is 29 mm wide, and the run's two sides move apart as at 1 mm."""
+    from stitchplan.tissue.deform import run_deform
+
+    raw = strip(0.05, needle=False)
+    raw["tissue"].pop("holes")
+    raw["tissue"].pop("size")
+    raw["tissue"]["outline"] = [[0, 0], [60, 0], [60, 30], [31, 30], [31, 20], [29, 20], [29, 30], [0, 30]]
+    raw["loads"] = [{"segment": [[0.0, 10.0], [0.0, 30.0]], "force": [-1.0, 0.0]}]
+    raw["probes"] = [[29.0, 25.0], [31.0, 25.0]]
+    raw["discretization"] = {"spacing": 5.0}
+    coarse = run_deform(parse_scenario(raw)).probe_displacements
+    raw["discretization"] = {"spacing": 1.0}
+    fine = run_deform(parse_scenario(raw)).probe_displacements
+    np.testing.assert_allclose(coarse[:, 0], fine[:, 0], rtol=0.1)  # x: -0.43 mm left of it, -0.15 right
+
+
 def test_a_circle_cutting_the_edge_at_a_shallow_angle_is_refused_at_every_spacing():
     """A 5 mm hole poking 0.15 or 0.33 mm through the top edge meets it at 20 or 32 degrees
     (at a point on one of its 96-gon's edges): with the check off the sliver beyond it gives a

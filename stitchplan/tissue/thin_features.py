@@ -138,6 +138,10 @@ def _vertex_gaps(domain: PolygonDomain, boundary: _Boundary,
         d = np.linalg.norm(points - a[q], axis=1)
         met = (d > domain.tolerance) & (d <= reach[q])
         q, e, d, points = q[met], e[met], d[met], points[met]
+        # a gap through tissue only: across a slit or a wound's gap (the walls' lips facing
+        # each other) the way leaves the tissue, which is no neck
+        inside = ~domain.blocked(a[q], points)
+        q, e, d, points = q[inside], e[inside], d[inside], points[inside]
         order = np.lexsort((d, q))  # by vertex, the nearest first
         q, e, d, points = q[order], e[order], d[order], points[order]
         first = np.concatenate([[True], q[1:] != q[:-1]]) if len(q) else np.zeros(0, dtype=bool)
