@@ -242,6 +242,12 @@ SCENARIO_CASES = {
        for command in ("deform", "simulate", "plan")},
     "deform without loads": ("deform", scene(loads=None),
                              [["scene.yaml: loads: got none, expected at least one load"]]),
+    # a needle without friction and cutting force (both default to 0) left the tissue at rest
+    # and reported a 0.0000 mm exit error, planned and unplanned
+    **{f"a needle without loads ({command})": (command, scene(needle__friction=None, needle__cutting_force=None),
+                                               [["scene.yaml: needle: got friction 0 N/mm and cutting_force 0 N",
+                                                 f"expected a positive friction or cutting_force for {command}"]])
+       for command in ("simulate", "plan")},
     # resources
     "accuracy no model reaches": ("simulate", scene(discretization={"accuracy": 1e-9}),
                                   [["scene.yaml: discretization.accuracy: got 1e-09, expected a number >= 0.001"]]),

@@ -117,7 +117,7 @@ def simulate(
 
     resume_collection()
     options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
-    geometry = checked_needle_geometry(scenario_path, scenario)
+    geometry = checked_needle_geometry(scenario_path, scenario, "simulate")
     path = read_center_path_option(scenario_path, center_path, scenario, geometry) if center_path is not None else None
     if center_path is not None:  # the replay's path recorded as its scenario is (of the file as read)
         from ..io.files import sha256
@@ -241,7 +241,7 @@ def _guard_and_hand_replay_model(scenario_path: Path, scenario, guard, verify: b
     """A needle that cannot enter or exit refused with the file named; then, when the scenario
     settles its model (no `accuracy` to resolve), the resource `guard`, and with `hand` the
     replay helper (stitchplan/early_helper.py) handed the model the plan's replays run on."""
-    checked_needle_geometry(scenario_path, scenario)
+    checked_needle_geometry(scenario_path, scenario, "plan")
     if scenario.discretization.accuracy is None:
         guard(scenario)
         if hand:
@@ -276,7 +276,7 @@ def study(
     executor = command_executor(workers, scheduler)
     check_command_outputs(study_outputs(out), {"SCENARIO": scenario_path})
     scenario = load_with_options(scenario_path, None, None)
-    checked_needle_geometry(scenario_path, scenario)  # the sweep needs a needle that enters and exits
+    checked_needle_geometry(scenario_path, scenario, "study")  # the sweep needs a needle that enters and exits
     from ..io.progress import progress_bar
     from ..study.sweep import EveryRunFailed, plan_runs, run_study, study_size
 

@@ -224,13 +224,16 @@ def scenario_expected_steps(scenario) -> int:
     return scenario_needle(scenario).expected_steps
 
 
-def checked_needle_geometry(scenario_path: Path, scenario):
-    """The scenario's needle geometry; a needle that cannot enter or exit is refused with
-    the file named."""
+def checked_needle_geometry(scenario_path: Path, scenario, command: str):
+    """The scenario's needle geometry; a needle that cannot enter or exit, or that puts no
+    load on the tissue, is refused with the file named."""
+    from ..config.scenario import require_needle_loads
     from ..needle.geometry import scenario_needle
 
     with naming_files(scenario_path):
-        return scenario_needle(scenario)
+        geometry = scenario_needle(scenario)
+    require_needle_loads(scenario, scenario_path, command)
+    return geometry
 
 
 @contextmanager

@@ -277,6 +277,17 @@ def require_loads(scenario: Scenario, source: str | Path) -> None:
                             "displacement) for deform; without loads the slab stays at rest")])
 
 
+def require_needle_loads(scenario: Scenario, source: str | Path, command: str) -> None:
+    """simulate, plan and study need a needle that loads the tissue: with neither friction
+    nor a cutting force (both 0 when not given) the tissue stays at rest and every exit
+    error is 0, which reads as a perfect stitch (one line naming the file)."""
+    needle = scenario.needle
+    if needle is not None and needle.friction == 0 and needle.cutting_force == 0:
+        raise input_error([(f"{source}: needle: got friction 0 N/mm and cutting_force 0 N (their defaults when "
+                            f"not given), expected a positive friction or cutting_force for {command}; without "
+                            "either the needle puts no load on the tissue, which stays at rest")])
+
+
 def parse_material(raw: Any, path: str = "tissue.material") -> Material:
     return validate(Material, raw, path)
 
