@@ -13,6 +13,7 @@ through ends in one line, never a traceback. Small models: the module runs in a 
 
 from __future__ import annotations
 
+import json
 import math
 import re
 
@@ -127,6 +128,25 @@ def test_a_strip_thinner_than_the_spacing_is_refused_by_every_command(tmp_path, 
         f"{path}: tissue.holes[0]: the hole leaves tissue {thickness:g} mm thin at (", "between it and the outline",
         "below what the particle spacing there (", "expected tissue at least 0.5 x the local spacing thick",
         f"refine the spacing there to {2 * thickness:g} mm or less", "or move or shrink the hole"]])
+
+
+def test_a_strip_only_the_estimate_s_coarser_model_cannot_resolve_leaves_the_run_without_estimate(tmp_path):
+    """A 1 mm strip over a circular hole at 1.5 mm spacing (0.67 of it) runs; at twice the
+    spacing, the exit error estimate's model, it is too thin. The resource guard, which places
+    that model's particles, refused the whole simulate (exit 2, 'refine the spacing there to
+    2.01 mm or less' where the file's was 1.5 mm); the estimate's failure is now the run's
+    accuracy-check event, as when that model fails otherwise."""
+    raw = strip(1.0)
+    raw["tissue"]["holes"] = [{"circle": {"center": [45.0, 24.0], "radius": 5.0}}]
+    raw["discretization"] = {"spacing": 1.5}
+    write_scene(tmp_path, raw)
+    result = invoke(tmp_path, "simulate", "scene.yaml", "--summary", "summary.json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["exit_error_estimate_mm"] is None
+    assert [event["kind"] for event in summary["events"]] == ["accuracy-check"]
+    assert "the model at twice the spacing failed (tissue.holes[0]: the hole leaves tissue 1.01 mm thin" in (
+        summary["events"][0]["message"])
 
 
 def test_a_strip_half_the_spacing_thick_runs():

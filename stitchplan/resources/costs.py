@@ -234,7 +234,7 @@ def estimate(scenario: Scenario, kind: str, label: str | None = None, runs: floa
     what set its discretization, when not (all of) the scenario file's `discretization:`;
     `linear_solver`: the needle steps' where an option overrides the scenario's;
     `condition_numbers`: each needle step takes its dense condition numbers (condition_costs)."""
-    size = model_size(scenario)
+    size = model_size(scenario, derived=bool(origin and origin.derived))
     if kind == "deform":
         steps, step_kind = scenario.load_steps, "load steps"
     else:

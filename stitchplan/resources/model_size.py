@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import Scenario
+from ..errors import InputError
 from ..geometry.polygon_domain import PolygonDomain
 from ..needle.geometry import needle_zone, scenario_needle
 from .limits import MAX_PARTICLES
@@ -45,17 +46,19 @@ class ModelSize:
         return min(self.neighbours, float(self.particles))
 
 
-def model_size(scenario: Scenario) -> ModelSize:
+def model_size(scenario: Scenario, derived: bool = False) -> ModelSize:
     """Particles, neighbours per kernel support and quadrature points per particle of the
     scenario's discretization, without building its shape functions (a shaped tissue's
-    particles and quadrature points are placed and counted: _shaped_size)."""
+    particles and quadrature points are placed and counted: _shaped_size). A `derived` model
+    (a replay at another spacing) whose shape its build refuses is estimated instead: that
+    replay's failure is an event of the run, not the command's error."""
     d = scenario.discretization
     points = float(d.quadrature_order ** 2 * d.cells_per_spacing ** 2)
     support = 2.0 * d.dilation
     neighbours = support * support  # a product: inf where ** would raise
     tissue = scenario.tissue
     if isinstance(tissue.domain, PolygonDomain) or tissue.regions:
-        return _shaped_size(scenario, ModelSize(0, False, neighbours, points))
+        return _shaped_size(scenario, ModelSize(0, False, neighbours, points), derived)
     particles, exact = _particles(scenario)
     return ModelSize(particles, exact, neighbours, points)
 
@@ -82,7 +85,7 @@ def _particles(scenario: Scenario) -> tuple[int, bool]:
     return _graded_estimate(tissue.bounding_size, d.spacing, d.needle_spacing, zone, d.needle_grading), False
 
 
-def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
+def _shaped_size(scenario: Scenario, nominal: ModelSize, derived: bool = False) -> ModelSize:
     """A polygon tissue's, or one with holes or regions: its particles and quadrature points
     as the model places them (tissue.model's shaped discretization: the lattice with the
     shape's lines, fitted to the boundary, and the cut-cell quadrature), and how its
@@ -101,7 +104,12 @@ def _shaped_size(scenario: Scenario, nominal: ModelSize) -> ModelSize:
         estimated = _shaped_estimate(scenario, zone, segments)
         if estimated > COUNT_SHAPED_UP_TO:
             return replace(nominal, particles=estimated)
-    shaped = shaped_discretization(scenario.tissue, scenario.discretization, segments, zone)
+    try:
+        shaped = shaped_discretization(scenario.tissue, scenario.discretization, segments, zone)
+    except InputError:  # tissue thinner than the derived model's spacing resolves
+        if not derived:
+            raise
+        return replace(nominal, particles=_shaped_estimate(scenario, zone, segments))
     square = _mean_square_neighbours(scenario.tissue.domain, shaped.points, shaped.particles, shaped.support)
     crowding = square / nominal.neighbours ** 2 if math.isfinite(nominal.neighbours) else 1.0
     return replace(nominal, particles=len(shaped.particles), exact=True,
