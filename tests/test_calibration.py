@@ -226,6 +226,7 @@ def test_identifiability_warning_on_displacement_only_data(tmp_path, caplog):
     assert "cannot separate lame_lambda and lame_mu" in caplog.text  # logged warning
     fit = yaml.safe_load(out.read_text())["fit"]
     assert fit["identifiable"] is False
+    assert "# NOT IDENTIFIED (fit.identifiable: false)" in out.read_text().split("\nmaterial:")[0]
     assert fit["correlation"] == pytest.approx(1.0, abs=1e-3)
     assert any("cannot separate" in w for w in fit["warnings"])
     assert fit["standard_uncertainty"] == {"lame_lambda": None, "lame_mu": None}

@@ -23,6 +23,10 @@ FITTED_REGIONS_HEADER = ("# The moduli are the tissue's own around `regions:`; t
                          "# were fitted too (`regions:` holds their fitted moduli), the others kept at the\n"
                          "# materials the calibration file gave them: paste both into the scenario's\n"
                          "# `tissue:` block.\n")
+# a fit that did not identify the moduli still writes its best point (and lambda/mu), but a
+# `material:` block pasted from it can be far off: the file says so before its first key
+NOT_IDENTIFIED_HEADER = ("# NOT IDENTIFIED (fit.identifiable: false): the markers do not determine these moduli\n"
+                         "# (see fit.warnings); do not paste them into a scenario as a calibration.\n")
 NEEDLE_HEADER = ("# stitchplan calibrate needle: friction (N/mm) and cutting force (N) from force\n"
                  "# recordings (thesis section 5.2). Paste both into a scenario's `needle:` block.\n")
 MATERIAL_PLOTS = ("cost_surface.png", "marker_residuals.png")  # written into --plot-dir
@@ -240,7 +244,7 @@ def write_material_outputs(result: MaterialFit, out: str | Path,
         if plot_dir is not None:
             _material_plots_to(result, *(files[label] for label in list(outputs)[1:]))
         write_yaml(files["--out"], material_report(result, command),
-                   MATERIAL_HEADER + _regions_header(result))
+                   MATERIAL_HEADER + _regions_header(result) + ("" if result.identifiable else NOT_IDENTIFIED_HEADER))
 
 
 def _plus_minus(value: float | None) -> str:
