@@ -240,6 +240,20 @@ def test_plan_plot_marks_each_runs_error_at_its_own_desired_exit(plan_result, tm
     assert "O(t)" in trajectory.get_title()
 
 
+def test_plan_plot_draws_the_centre_trajectory_in_colours_no_run_has(plan_result, tmp_path):
+    """O_y(t) was drawn in matplotlib's default orange, beside the unplanned run's dark orange
+    in the one legend under all panels: its curve read as the unplanned run's."""
+    from matplotlib.colors import to_rgb
+
+    fig = needle_plots.plot_plan(tmp_path / "plan.png", plan_result)
+    main, *_, trajectory = data_axes(fig)
+    runs = {to_rgb(line.get_color()) for line in main.get_lines() if "tip path" in line.get_label()}
+    assert len(runs) == 2
+    for curve in trajectory.get_lines():
+        for run in runs:
+            assert np.linalg.norm(np.subtract(to_rgb(curve.get_color()), run)) > 0.3, curve.get_label()
+
+
 def test_plan_plot_says_when_the_plan_was_aimed_for_the_refined_model(plan_result, tmp_path):
     """A plan re-aimed by the refined model's offset misses on its own model on purpose: the
     headline says so, beside its planned exit error; a plan not aimed so says nothing."""
@@ -302,6 +316,19 @@ def test_cost_surface_names_the_fit_and_keeps_white_marks_visible_in_the_legend(
             assert handle.get_path_effects(), text.get_text()  # a dark edge around the white
     ax = data_axes(fig)[0]
     assert ax.xaxis.get_major_formatter()(0.1) == "0.1"  # plain numbers on log axes
+
+
+def test_log_axes_write_thousands_as_plain_numbers():
+    """A misfit colour bar from 50 to 1500 mm² was labelled 100 and 1e+03."""
+    from stitchplan.io.plot_elements import pyplot, readable_log_axis
+
+    fig, ax = pyplot().subplots()
+    ax.set_yscale("log")
+    ax.set_ylim(50.0, 1500.0)
+    readable_log_axis(ax.yaxis)
+    formatter = ax.yaxis.get_major_formatter()
+    assert [formatter(v) for v in (100.0, 1000.0, 20000.0, 0.001)] == ["100", "1000", "20000", "0.001"]
+    pyplot().close(fig)
 
 
 def test_marker_residuals_draw_the_tissue_clamps_and_loads(tmp_path):
@@ -466,3 +493,45 @@ def test_a_circular_holes_deformed_outline_follows_its_vertices_not_only_its_par
     np.testing.assert_allclose(np.sort(np.linalg.norm(hole - [20.0, 15.0], axis=1)), 4.0, atol=1e-9)
     at_vertices = np.min(np.linalg.norm(drawn[:, None] - (hole + shift)[None], axis=2), axis=0)
     assert np.max(at_vertices) < 1e-9
+
+
+# --- uncertainty ----------------------------------------------------------------------------
+
+
+def fake_uncertainty():
+    """Held-out exit errors of the unplanned path and a plan (robust = nominal), and the
+    sensitivities of configs/uncertainty/uncertainty_sample.yaml on sh12_100x100."""
+    from stitchplan.uncertainty.robust import Sensitivity
+
+    rng = np.random.default_rng(3)
+    errors = {"unplanned": rng.normal([-0.006, 0.49], [0.002, 0.03], (16, 2)),
+              "nominal": rng.normal(0.0, [0.0005, 0.02], (16, 2))}
+    sensitivities = [Sensitivity(name, std, 0.5 * std, np.array([value, 0.0]), None) for name, value, std in
+                     (("lame_lambda", 0.372, 0.0129), ("lame_mu", 2.58, 0.00167), ("friction", 4.81, 0.000264),
+                      ("cutting_force", 0.232, 0.00385), ("thickness", 0.0452, 0.5))]
+    return SimpleNamespace(robust_is_nominal=True, exported="nominal", evaluated=np.ones(16, dtype=bool),
+                           errors=errors.__getitem__, sensitivities=sensitivities, refined_offset=None,
+                           statistics={"unplanned": {"p95_mm": 0.535}, "nominal": {"p95_mm": 0.0436}},
+                           failed_held_out_samples=0, uncertainty=SimpleNamespace(samples=16))
+
+
+def test_uncertainty_sensitivity_labels_stay_inside_their_panel_as_saved(tmp_path):
+    """The room for the sensitivities' labels was measured at matplotlib's 100 dpi, the PNG drawn
+    at 120, where 7 pt text is relatively wider: the thickness label ran through the panel's
+    right edge. Measured on the figure at the dpi it is saved at."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from stitchplan.io.uncertainty_reports import plot_uncertainty
+
+    fig = plot_uncertainty(tmp_path / "uncertainty.png", fake_uncertainty(), "sh12")
+    assert is_png(tmp_path / "uncertainty.png")
+    fig.set_dpi(plots.SAVED_DPI)
+    canvas = FigureCanvasAgg(fig)  # the saved figure is closed: a canvas to measure it on
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    panel = fig.axes[2]
+    edge = panel.get_window_extent(renderer).x1
+    labels = [text for text in panel.texts if " x 1.96 x " in text.get_text()]
+    assert len(labels) == 5
+    for label in labels:
+        assert label.get_window_extent(renderer).x1 <= edge, label.get_text()

@@ -10,6 +10,7 @@ import numpy as np
 
 from .plot_elements import (
     CMAP,
+    SAVED_DPI,
     draw_clamps,
     draw_loads,
     draw_outline,
@@ -47,7 +48,7 @@ def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.nda
         return np.exp(e) if log_axes else e
 
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.8, 5.4))
+    fig, ax = plt.subplots(figsize=(6.8, 5.4), dpi=SAVED_DPI)
     masked = np.ma.masked_invalid(cost.T)  # rows: mu, columns: lambda
     positive = masked.compressed()
     positive = positive[positive > 0]
@@ -104,7 +105,7 @@ def plot_marker_residuals(path: str | Path, tissue, experiments, simulated: list
     width, height = tissue.domain.size
     size = max(width, height)
     panel_height = 5.0 * max(height / width, 0.5)
-    fig, axes = plt.subplots(rows, columns, figsize=(5.2 * columns, panel_height * rows + 1.0),
+    fig, axes = plt.subplots(rows, columns, figsize=(5.2 * columns, panel_height * rows + 1.0), dpi=SAVED_DPI,
                              squeeze=False)
     residuals = [p - q for p, q in zip((e.measured for e in experiments), simulated)]
     distances = np.concatenate([np.linalg.norm(r, axis=1) for r in residuals])
@@ -147,7 +148,7 @@ def plot_needle_forces(path: str | Path, result):
     plt = pyplot()
     air, tissue = result.air, result.tissue
     background = result.background
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11.0, 4.8))
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11.0, 4.8), dpi=SAVED_DPI)
     angles = np.linspace(min(air[0, 0], tissue[0, 0]), max(air[-1, 0], tissue[-1, 0]), 50)
     left.plot(*air.T, ".", ms=3, color="0.5", label="needle in air")
     left.plot(*tissue.T, ".", ms=3, color="tab:blue", label="needle into tissue")

@@ -13,6 +13,7 @@ import numpy as np
 from .plot_elements import (
     CMAP,
     DEFORMED,
+    SAVED_DPI,
     deformed_loops,
     draw_clamps,
     draw_outline,
@@ -157,7 +158,7 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
     # steps past the run's end draw its last step, once (the command's note says so)
     chosen = list(dict.fromkeys(min(max(int(s), 0), last) for s in (steps or [last])))
     n = len(chosen)
-    fig = plt.figure(figsize=(4.4 * n + 5.0, 5.0))
+    fig = plt.figure(figsize=(4.4 * n + 5.0, 5.0), dpi=SAVED_DPI)
     grid = fig.add_gridspec(1, n + 2, width_ratios=[1.0] * n + [0.12, 0.85], wspace=0.12)
     panels = [fig.add_subplot(grid[0, 0])]
     panels += [fig.add_subplot(grid[0, k], sharex=panels[0], sharey=panels[0]) for k in range(1, n)]
@@ -258,7 +259,7 @@ def plot_plan(path: str | Path, result):
     runs = [(planned, "planned", "crimson", "o")]
     if unplanned is not None:
         runs.append((unplanned, "unplanned", "darkorange", "s"))
-    fig = plt.figure(figsize=(15.0, 6.4))
+    fig = plt.figure(figsize=(15.0, 6.4), dpi=SAVED_DPI)
     grid = fig.add_gridspec(2, 3, width_ratios=[2.1, 1.0, 1.5], wspace=0.35, hspace=0.45)
     main = fig.add_subplot(grid[:, 0])
     zooms = [fig.add_subplot(grid[k, 1]) for k in range(len(runs))]
@@ -337,8 +338,9 @@ def _draw_center_trajectory(ax, result) -> None:
     planned = result.planned
     centers = result.center_trajectory
     rotation = np.arange(len(centers)) * planned.geometry.step
-    ax.plot(rotation, centers[:, 0] - centers[0, 0], label="O_x(t) - O_x(0)")
-    ax.plot(rotation, centers[:, 1] - centers[0, 1], label="O_y(t) - O_y(0)")
+    # colours of their own: matplotlib's second default orange is the unplanned run's in the shared legend
+    ax.plot(rotation, centers[:, 0] - centers[0, 0], color="tab:blue", label="O_x(t) - O_x(0)")
+    ax.plot(rotation, centers[:, 1] - centers[0, 1], "--", color="tab:green", label="O_y(t) - O_y(0)")
     ax.set_xlabel("needle rotation (rad)")
     ax.set_ylabel("centre offset from the entry centre (mm)")
     lean = planned.geometry.tilt  # O(0) leaning from the orthogonal entry's centre (planner.aim_entry_tilt)

@@ -21,6 +21,7 @@ from ..errors import InputError
 from .files import write_bytes
 from .plot_elements import (
     CMAP,
+    SAVED_DPI,
     draw_clamps,
     draw_loads,
     draw_outline,
@@ -34,9 +35,6 @@ from .plot_elements import (
     readable_log_axis,
     title_above,
 )
-
-
-SAVED_DPI = 120
 
 
 def save(fig, path: str | Path) -> None:
@@ -95,7 +93,7 @@ def plot_deformed(path: str | Path, result, scale: float = 1.0):
     particles, u = result.model.particles, result.particle_displacements  # (NP, 2)
     size = float(max(domain.size))
     magnitude = np.linalg.norm(u, axis=1)
-    fig, ax = plt.subplots(figsize=(7.5, 7.0))
+    fig, ax = plt.subplots(figsize=(7.5, 7.0), dpi=SAVED_DPI)
     draw_outline(ax, domain, particles, u, scale)
     draw_regions(ax, tissue)
     moved = particles + scale * u
@@ -163,7 +161,7 @@ def plot_speed_accuracy(path: str | Path, study):
     runs = [r for r in study.runs if r is not study.reference]
     families = list(dict.fromkeys(r.family for r in runs))
     colours = plt.get_cmap("tab10")
-    fig, axes = plt.subplots(1, 2, figsize=(13.0, 5.8))
+    fig, axes = plt.subplots(1, 2, figsize=(13.0, 5.8), dpi=SAVED_DPI)
     panels = (("deviation_mm", ("exit-point deviation from the finest run (mm)\n"
                "largest of spatial (if as many needle steps), material and exit-error vector")),
               ("exit_deviation_mm", "achieved exit (spatial) deviation from the finest run (mm)"))

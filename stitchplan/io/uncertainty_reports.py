@@ -14,7 +14,7 @@ import numpy as np
 
 from ..config.uncertainty import unit_of
 from ..uncertainty.robust import LABELS, SENSITIVITY_STEP, Z_95, UncertaintyResult, ellipse_95, exit_statistics
-from .plot_elements import label_with_multiplier, legend_below, pyplot, title_above
+from .plot_elements import SAVED_DPI, label_with_multiplier, legend_below, pyplot, title_above
 from .plots import save
 
 SENSITIVITY_METHOD = (f"central finite differences of the exit error vector (achieved - desired exit, deformed), "
@@ -253,7 +253,7 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
-    fig, axes = plt.subplots(1, 3, figsize=(14.0, 4.6), gridspec_kw={"width_ratios": [1.0, 1.0, 0.9]})
+    fig, axes = plt.subplots(1, 3, figsize=(14.0, 4.6), dpi=SAVED_DPI, gridspec_kw={"width_ratios": [1.0, 1.0, 0.9]})
     fig.subplots_adjust(wspace=0.5)  # before the labels' room is measured
     paths = plotted_paths(result)
     plans = "the plan (robust = nominal)" if result.robust_is_nominal else "the plans"
