@@ -414,6 +414,13 @@ class Discretization:
                                                 "spacing at the needle's entry and exit (at the "
                                                 "default spacing; one more per halving of the "
                                                 "spacing); 0: none") = 0
+    # particles graded toward the edges between regions of different materials, where the
+    # strain jumps and the smooth RK functions smear its kink (stitchplan.tissue.shapes.
+    # interface_zones): leaf side there spacing / 2^levels at the default spacing, one more per
+    # halving; 0: none
+    interface_levels: described(integer(0, 8), "particle refinement levels at the interfaces between "
+                                               "material regions (at the default spacing; one more per "
+                                               "halving of the spacing); 0: none") = 0
     # "gauss": Galerkin with background-cell Gauss quadrature; "vci": the test-function
     # gradients corrected so that the quadrature satisfies the divergence theorem
     # (variationally consistent integration; passes the linear patch test; deform only)

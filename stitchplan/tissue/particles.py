@@ -94,11 +94,28 @@ class GradedParticles:
 
 @dataclass(frozen=True)
 class RefinementZone:
-    """Leaf cells of side ~`spacing` within `radius` of `center` (a disk; radius 0: a point)."""
+    """Leaf cells of side ~`spacing` within `radius` of `center` (a disk; radius 0: a point),
+    or with an `end` within `radius` of the segment from `center` to `end` (a material
+    interface)."""
 
     center: np.ndarray  # (2,)
     radius: float
     spacing: float
+    end: np.ndarray | None = None  # (2,)
+
+    def distance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Distance (mm, negative inside) of the points (x, y) (broadcast together) from the zone."""
+        dx, dy = x - self.center[0], y - self.center[1]
+        if self.end is not None:
+            (ax, ay) = self.end - self.center
+            t = np.clip((dx * ax + dy * ay) / (ax * ax + ay * ay), 0.0, 1.0)
+            dx, dy = dx - t * ax, dy - t * ay
+        return np.hypot(dx, dy) - self.radius
+
+    def shifted(self, offset: np.ndarray) -> RefinementZone:
+        """The zone moved by `offset` (2,)."""
+        end = None if self.end is None else self.end + offset
+        return RefinementZone(self.center + offset, self.radius, self.spacing, end)
 
 
 def graded_particles(size: tuple[float, float], spacing: float, fine_spacing: float,
@@ -181,7 +198,7 @@ def _required_levels(zones: tuple[RefinementZone, ...], base: float, levels: int
         group = [zone for zone in zones if own_level(zone) == cap]
         target = np.full((len(xc), len(yc)), np.inf)
         for zone in group:
-            distance = np.hypot(xc[:, None] - zone.center[0], yc[None, :] - zone.center[1]) - zone.radius
+            distance = zone.distance(xc[:, None], yc[None, :])
             target = np.minimum(target, zone.spacing * (1.0 + 1e-9) + growth * np.maximum(distance, 0.0))
         with np.errstate(divide="ignore"):  # no zone: target inf, no refinement
             required = np.maximum(required, np.clip(np.ceil(np.log2(side0 / target)), 0, cap).astype(int))

@@ -132,6 +132,50 @@ def corner_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refine
     return tuple(zones)
 
 
+# pieces of a region edge at most: where the edge leaves the tissue, its zone ends within
+# 1/INTERFACE_PIECES of the edge's length from there
+INTERFACE_PIECES = 4096
+
+
+def interface_zones(tissue: Tissue, discretization: Discretization) -> tuple[RefinementZone, ...]:
+    """Refinement zones along the material interfaces: the pieces of the regions' edges with
+    tissue of different materials on their two sides (not where an edge runs along the
+    boundary, lies outside the tissue or inside a region listed before it), graded like the
+    load-segment ends (particles.end_spacing from discretization.interface_levels). The
+    displacement has a kink there that the smooth RK functions spread over their support, an
+    error of order h in a band along the interface that pollutes the whole field; graded, the
+    band narrows like the end spacing, h^2 (benchmarks/layer_contrast.py). None with
+    interface_levels 0."""
+    if discretization.interface_levels == 0 or not tissue.regions:
+        return ()
+    fine = end_spacing(discretization.spacing, default_spacing_of(tissue.bounding_size, None),
+                       discretization.interface_levels)
+    materials = [tissue.material, *(region.material for region in tissue.regions)]
+    domain = tissue.domain
+    starts = np.concatenate([region.vertices() for region in tissue.regions])
+    ends = np.concatenate([np.roll(region.vertices(), -1, axis=0) for region in tissue.regions])
+    # each edge tested in pieces of half the fine spacing (at most INTERFACE_PIECES); a run of
+    # kept pieces is one zone
+    pieces = np.clip(np.ceil(np.hypot(*(ends - starts).T) / (0.5 * fine)), 1, INTERFACE_PIECES).astype(int)
+    edge = np.repeat(np.arange(len(starts)), pieces)
+    t = (concatenated_ranges(np.zeros(len(pieces), dtype=int), pieces) + 0.5) / pieces[edge]
+    middles = starts[edge] + t[:, None] * (ends - starts)[edge]
+    along = (ends - starts)[edge]
+    normal = np.column_stack([-along[:, 1], along[:, 0]]) / np.hypot(*along.T)[:, None] * 10.0 * domain.tolerance
+    sides = np.concatenate([middles + normal, middles - normal])
+    inside = domain.contains(sides).reshape(2, -1).all(axis=0)
+    which = (region_index(tissue, sides) + 1).reshape(2, -1)
+    kept = inside & np.array([materials[i] != materials[j] for i, j in which.T], dtype=bool)
+    zones = []
+    first_piece = np.concatenate([[0], np.cumsum(pieces)])
+    for k, (a, b) in enumerate(zip(starts, ends)):
+        flags = kept[first_piece[k]:first_piece[k + 1]].astype(int)
+        jumps = np.diff(np.concatenate([[0], flags, [0]]))  # runs of kept pieces: [first, last)
+        for first, last in zip(np.flatnonzero(jumps == 1), np.flatnonzero(jumps == -1)):
+            zones.append(RefinementZone(a + first / pieces[k] * (b - a), 0.0, fine, a + last / pieces[k] * (b - a)))
+    return tuple(zones)
+
+
 def cutting_edges(tissue: Tissue) -> tuple[np.ndarray, np.ndarray]:
     """Start and end points (n, 2) of every edge that cuts background cells: the boundary
     and the regions' edges."""
