@@ -244,7 +244,8 @@ SCENARIO_CASES = {
                              [["scene.yaml: loads: got none, expected at least one load"]]),
     # a needle without friction and cutting force (both default to 0) left the tissue at rest
     # and reported a 0.0000 mm exit error, planned and unplanned
-    **{f"a needle without loads ({command})": (command, scene(needle__friction=None, needle__cutting_force=None),
+    **{f"a needle without loads ({command})": (command, scene(needle__friction=None, needle__cutting_force=None,
+                                                                     loads=None),
                                                [["scene.yaml: needle: got friction 0 N/mm and cutting_force 0 N",
                                                  f"expected a positive friction or cutting_force for {command}"]])
        for command in ("simulate", "plan")},

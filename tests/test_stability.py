@@ -253,7 +253,7 @@ def test_a_dilation_too_small_for_the_moment_matrix_is_refused_before_any_solve(
 def test_the_cli_turns_the_moment_matrix_error_into_one_line(tmp_path, write_scenario):
     raw = {"tissue": {"size": [40.0, 30.0], "thickness": 10.0, "clamped": ["right"], "material": dict(PHANTOM)},
            "discretization": {"spacing": 4.0, "dilation": 1.5, "basis_order": 2},
-           "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2}}
+           "needle": {"radius": 8.0, "entry": [0.0, 22.0], "turn": "cw", "step": 0.2, "friction": 0.06}}
     summary = tmp_path / "summary.json"
     scenario = write_scenario(raw)
     result = CliRunner().invoke(app, ["simulate", str(scenario), "--summary", str(summary)])

@@ -278,14 +278,15 @@ def require_loads(scenario: Scenario, source: str | Path) -> None:
 
 
 def require_needle_loads(scenario: Scenario, source: str | Path, command: str) -> None:
-    """simulate, plan and study need a needle that loads the tissue: with neither friction
-    nor a cutting force (both 0 when not given) the tissue stays at rest and every exit
-    error is 0, which reads as a perfect stitch (one line naming the file)."""
+    """simulate, plan and study need something that deforms the tissue: with neither friction
+    nor a cutting force (both 0 when not given) and no `loads`, the tissue stays at rest and
+    every exit error is 0, which reads as a perfect stitch (one line naming the file). With
+    loads, a needle without its own is a scene of the loads' deformation alone."""
     needle = scenario.needle
-    if needle is not None and needle.friction == 0 and needle.cutting_force == 0:
+    if needle is not None and needle.friction == 0 and needle.cutting_force == 0 and not scenario.loads:
         raise input_error([(f"{source}: needle: got friction 0 N/mm and cutting_force 0 N (their defaults when "
-                            f"not given), expected a positive friction or cutting_force for {command}; without "
-                            "either the needle puts no load on the tissue, which stays at rest")])
+                            f"not given) and no loads, expected a positive friction or cutting_force for {command}; "
+                            "without them nothing loads the tissue, which stays at rest")])
 
 
 def parse_material(raw: Any, path: str = "tissue.material") -> Material:
