@@ -535,3 +535,29 @@ def test_uncertainty_sensitivity_labels_stay_inside_their_panel_as_saved(tmp_pat
     assert len(labels) == 5
     for label in labels:
         assert label.get_window_extent(renderer).x1 <= edge, label.get_text()
+
+
+def test_an_axis_scaled_by_a_power_of_ten_says_so_in_its_label():
+    """Ticks of millimetre thousandths are labelled "(x 10^-3 mm)" in the axis label, with
+    matplotlib's detached "1e-3" hidden; ticks of whole millimetres keep "(mm)"."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stitchplan.io.plot_elements import label_with_multiplier
+
+    fig, (small, plain) = plt.subplots(1, 2)
+    small.plot([0.0, 0.004], [0.0, 1.0])
+    plain.plot([0.0, 5.0], [0.0, 1.0])
+    fig.canvas.draw()
+    import warnings
+
+    with warnings.catch_warnings():  # no deprecated matplotlib attribute read
+        warnings.simplefilter("error")
+        label_with_multiplier(small.xaxis, "exit error", "mm")
+        label_with_multiplier(plain.xaxis, "exit error", "mm")
+    fig.canvas.draw()
+    assert small.get_xlabel() == r"exit error ($\times 10^{-3}$ mm)" and not small.xaxis.offsetText.get_visible()
+    assert plain.get_xlabel() == "exit error (mm)"
+    plt.close(fig)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 from collections.abc import Callable
 
 import numpy as np
@@ -371,8 +372,11 @@ def label_with_multiplier(axis, quantity: str, unit: str) -> None:
     formatter = ScalarFormatter(useOffset=False)
     formatter.set_powerlimits((-2, 3))
     axis.set_major_formatter(formatter)
-    formatter.set_locs(axis.get_majorticklocs())  # sets orderOfMagnitude for these ticks
-    power = formatter.orderOfMagnitude
+    formatter.set_locs(axis.get_majorticklocs())  # the scaling for these ticks
+    # its offset text ("1e-3", a Unicode minus where axes.unicode_minus) names the power: the
+    # orderOfMagnitude attribute is deprecated since matplotlib 3.11
+    scaled = re.search(r"e([-\u2212+]?\d+)", formatter.get_offset())
+    power = int(scaled.group(1).replace("\u2212", "-")) if scaled else 0
     if power:
         axis.offsetText.set_visible(False)
         axis.set_label_text(rf"{quantity} ($\times 10^{{{power}}}$ {unit})")
