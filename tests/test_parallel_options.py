@@ -222,16 +222,23 @@ def test_a_closed_port_is_refused_naming_the_reason(closed_port):
     assert elapsed < 3
 
 
-@pytest.mark.parametrize("server", ["silent", "http", "closed_port"])
-def test_the_plan_command_ends_in_one_line_at_an_address_without_a_scheduler(tmp_path, monkeypatch, request, server):
-    address = request.getfixturevalue(server)
-    monkeypatch.setattr(scheduler, "CONNECT_TIMEOUT_S", 1.0)
+def refused_plan_line(tmp_path: Path, address: str) -> str:
+    """The one error line of `plan --uncertainty --scheduler address` on a small scene, which
+    must end well before any run could (FAST)."""
     scenario = write(tmp_path, small_raw())
     uncertainty = write(tmp_path, UNCERTAINTY, "u.yaml")
     start = time.perf_counter()
     line = one_error_line(invoke("plan", scenario, "--uncertainty", uncertainty, "--export", tmp_path / "t.csv",
                                  "--summary", tmp_path / "s.json", "--scheduler", address))
     assert time.perf_counter() - start < FAST
+    return line
+
+
+@pytest.mark.parametrize("server", ["silent", "http", "closed_port"])
+def test_the_plan_command_ends_in_one_line_at_an_address_without_a_scheduler(tmp_path, monkeypatch, request, server):
+    address = request.getfixturevalue(server)
+    monkeypatch.setattr(scheduler, "CONNECT_TIMEOUT_S", 1.0)
+    line = refused_plan_line(tmp_path, address)
     assert line.startswith("error: --scheduler: ") and address in line
     assert line.endswith("expected the address of a running `dask scheduler`")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml", "u.yaml"]
@@ -396,12 +403,7 @@ def test_a_scheduler_whose_worker_cannot_import_the_package_is_refused_before_an
     elsewhere.mkdir()
     (elsewhere / "stitchplan.py").write_text("")
     address = worker_on(elsewhere)
-    scenario = write(tmp_path, small_raw())
-    uncertainty = write(tmp_path, UNCERTAINTY, "u.yaml")
-    start = time.perf_counter()
-    line = one_error_line(invoke("plan", scenario, "--uncertainty", uncertainty, "--export", tmp_path / "t.csv",
-                                 "--summary", tmp_path / "s.json", "--scheduler", address))
-    assert time.perf_counter() - start < FAST
+    line = refused_plan_line(tmp_path, address)
     assert line.startswith(f"error: --scheduler: worker tcp://127.0.0.1:") and f" of {address} cannot import " \
         "this command's stitchplan (" in line and "No module named 'stitchplan.parallel'" in line
     assert line.endswith("started where stitchplan is installed or with it on PYTHONPATH, and restarted since it "
