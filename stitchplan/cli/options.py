@@ -289,7 +289,8 @@ def check_plot_steps(steps: Optional[list[int]], scenario) -> None:
     outside = [step for step in steps if not 0 <= step <= last]
     if outside:
         raise InputError(f"--plot-steps: got {','.join(map(str, outside))}, expected steps between 0 "
-                         f"(the entry) and {last} (the needle's last step before its tip exits)")
+                         f"(the entry) and {last} (the undeformed circle's last step before its tip exits; "
+                         "a run whose tip exits sooner draws its last step instead)")
 
 
 def plot_steps_note(steps: Optional[list[int]], result, quiet: bool) -> None:
