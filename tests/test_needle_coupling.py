@@ -508,3 +508,27 @@ def test_the_step_records_log_the_forces_the_loads_apply():
         inside = record.step * step_length
         assert record.friction_force == pytest.approx(needle.friction * inside, rel=1e-12)
         assert record.cutting_force == pytest.approx(needle.cutting_force * min(inside / 4.0, 1.0), rel=1e-9)
+
+
+def test_a_singular_moment_matrix_met_during_a_step_names_the_step(monkeypatch):
+    """Shape functions asked for during a step where too few particles see the point (the
+    exit search's boundary samples on a hole's wall, met on a finely graded inclusion around
+    a hole) ended the run with the bare moment-matrix line: the step and the angle are named,
+    as for the step's other failures, and the planner can take it as a failed pass."""
+    from stitchplan.errors import InsertionFailure
+    from stitchplan.needle import insertion as module
+    from stitchplan.tissue.shape_functions import SingularMomentAt
+
+    track = module._Run.track_in_tissue
+
+    def failing_at_step_3(self, step, rotation):
+        if step == 3:
+            raise SingularMomentAt("moment matrix M(X) is singular at (44.87, 12) mm", np.array([44.87, 12.0]))
+        return track(self, step, rotation)
+
+    monkeypatch.setattr(module._Run, "track_in_tissue", failing_at_step_3)
+    scenario = small_scene(spacing=4.0, coupling="mortar")
+    with pytest.raises(InsertionFailure) as failed:
+        module.run_insertion(scenario)
+    rotation = 3 * scenario.needle.step
+    assert str(failed.value) == f"step 3 (needle rotation {rotation:.3f} rad): moment matrix M(X) is singular at (44.87, 12) mm"

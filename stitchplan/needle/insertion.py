@@ -132,14 +132,18 @@ def run_insertion(
     for step in range(1, limit + 1):  # Algorithm 1: rotate the needle by one step
         rotation = step * geometry.step
         started = time.perf_counter()  # the step's wall time counts tracking its tip
-        tip = run.step_in_gap(step, rotation, started) if run.in_gap else run.track_in_tissue(step, rotation)
-        if tip is None:  # the tip still in a wound's gap: the step is solved and recorded
-            continue
-        if insertion.domain.outside_distance(tip.point) > 0.0:
-            if (result := run.tip_outside(step, rotation, tip, started)) is not None:
-                return result  # through the final exit
-        else:
-            run.solve(step, rotation, tip.point, tip.method, started, tip.fraction, tip.taken)
+        try:
+            tip = run.step_in_gap(step, rotation, started) if run.in_gap else run.track_in_tissue(step, rotation)
+            if tip is None:  # the tip still in a wound's gap: the step is solved and recorded
+                continue
+            if insertion.domain.outside_distance(tip.point) > 0.0:
+                if (result := run.tip_outside(step, rotation, tip, started)) is not None:
+                    return result  # through the final exit
+            else:
+                run.solve(step, rotation, tip.point, tip.method, started, tip.fraction, tip.taken)
+        except SingularMomentAt as error:  # shape functions asked for where too few particles see (the
+            # exit search's samples on a hole's wall, ...): the step named, as its other failures
+            raise InsertionFailure(f"step {step} (needle rotation {rotation:.3f} rad): {error}") from None
     raise InsertionFailure(f"the needle tip did not leave the tissue within {limit} steps "
                            f"(needle rotation {limit * geometry.step:.3f} rad)")
 
