@@ -40,20 +40,15 @@ from .plot_elements import (
 def save(fig, path: str | Path) -> None:
     """Write the figure as PNG to `path` as given: the writers of io.reports and friends hand
     the plots the temporaries of their OutputSet, which renames them only when all succeeded.
-    Cropped to its tight box at the PNG's dpi, padded as savefig's bbox_inches="tight" pads
-    it, measured without the draw of the whole figure that "tight" makes first (the same PNG
-    byte for byte, benchmarks/command_overlap.py)."""
+    Cropped to its tight box at the PNG's dpi (the figures are made at it, SAVED_DPI), padded
+    as savefig's bbox_inches="tight" pads it, measured without the draw of the whole figure
+    that "tight" makes first (the same PNG byte for byte, benchmarks/command_overlap.py)."""
     import matplotlib
     import matplotlib.pyplot as plt
 
     buffer = io.BytesIO()  # drawn in memory, so that a failed write names its file (files.write_bytes)
     try:
-        dpi = fig.dpi
-        fig.set_dpi(SAVED_DPI)
-        try:
-            box = fig.get_tightbbox(fig.canvas.get_renderer()).padded(matplotlib.rcParams["savefig.pad_inches"])
-        finally:
-            fig.set_dpi(dpi)
+        box = fig.get_tightbbox(fig.canvas.get_renderer()).padded(matplotlib.rcParams["savefig.pad_inches"])
         fig.savefig(buffer, dpi=SAVED_DPI, bbox_inches=box, format="png")
     finally:
         plt.close(fig)
