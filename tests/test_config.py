@@ -747,6 +747,38 @@ def test_the_magnitude_bounds_admit_their_ends_and_python_callers(slab_raw):
     assert definitions["Needle"]["properties"]["cutting_force"]["maximum"] == 1e6
 
 
+MODULUS = ("a number between 1e-06 and 1e+06 (MPa; below 1e-06, 1 Pa, softer than any tissue, or beyond 1e+06, "
+           "1 TPa, stiffer than diamond, is a unit mistake)")
+
+
+@pytest.mark.parametrize("path, value, line", [
+    (("tissue", "material", "lame_lambda"), 1e300, f"tissue.material.lame_lambda: got 1e+300, expected 0 or {MODULUS}"),
+    (("tissue", "material", "lame_lambda"), 1e7, f"tissue.material.lame_lambda: got 10000000.0, expected 0 or {MODULUS}"),
+    (("tissue", "material", "lame_mu"), 1e300, f"tissue.material.lame_mu: got 1e+300, expected {MODULUS}"),
+    (("tissue", "material", "lame_mu"), 1e-300, f"tissue.material.lame_mu: got 1e-300, expected {MODULUS}"),
+    (("tissue", "regions", 0, "material", "lame_mu"), 1e300,
+     f"tissue.regions[0].material.lame_mu: got 1e+300, expected {MODULUS}"),
+])
+def test_moduli_beyond_any_tissue_are_unit_mistakes(slab_raw, path, value, line):
+    """Before, a modulus of 1e300 MPa (or lame_lambda 1e7) failed Newton's first load step and
+    a lame_mu of 1e-300 inverted the slab there, naming no field."""
+    slab_raw["tissue"]["regions"] = [{"polygon": [[40, 40], [60, 40], [60, 60], [40, 60]],
+                                      "material": {"lame_lambda": 0.2, "lame_mu": 0.1}}]
+    set_in(slab_raw, path, value)
+    with pytest.raises(ScenarioError) as error:
+        parse_scenario(slab_raw)
+    assert error.value.lines == [line]
+
+
+def test_the_moduli_bounds_admit_their_ends_and_a_zero_lambda(slab_raw):
+    from stitchplan.config import Material
+
+    for lame_lambda, lame_mu in ((0, 1e-6), (1e-6, 1e6), (1e6, 1e-6)):
+        slab_raw["tissue"]["material"].update(lame_lambda=lame_lambda, lame_mu=lame_mu)
+        assert parse_scenario(slab_raw).tissue.material.lame_mu == lame_mu
+    assert Material(lame_mu=1e300).lame_mu == 1e300  # Python callers (an uncertainty's samples) may
+
+
 def test_a_calibration_files_thickness_has_the_same_bounds():
     from stitchplan.config.calibration import parse_calibration
 

@@ -112,13 +112,51 @@ def block(*, file_required: tuple[str, ...] = (), one_of: tuple[str, ...] = (), 
     return make
 
 
+def within_limits(limits: dict) -> Any:
+    """A wrap validator refusing a file's numbers (data a mapping) outside `limits` (key:
+    ((low, high), expected)), reported with every other problem of the block. A value the
+    field's own type refuses (a negative thickness, a string) is left to that type."""
+
+    def check(cls, data: Any, handler):
+        problems = []
+        for key, ((low, high), expected) in limits.items():
+            value = data.get(key) if isinstance(data, dict) else None
+            if (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and value > 0 and not low <= value <= high):
+                problems.append(problem(expected, field=key, value=value))
+        if not problems:
+            return handler(data)
+        raise combined([*_field_errors(handler, data), *problems])
+
+    return model_validator(mode="wrap")(check)
+
+
+# A file's moduli, MPa, as a calibration's search ranges (config.calibration): 1e-6 MPa is 1 Pa,
+# softer than any tissue, 1e6 MPa is 1 TPa, stiffer than diamond; beyond them a modulus is a
+# unit mistake. At 1e300 MPa (or lame_lambda 1e7 with the phantom's lame_mu) Newton failed in
+# the first load step, and at a lame_mu of 1e-300 the slab inverted there, naming no field.
+MODULUS_RANGE_MPA = (1e-6, 1e6)
+_MODULUS_WHY = (f"(MPa; below {MODULUS_RANGE_MPA[0]:g}, 1 Pa, softer than any tissue, or beyond "
+                f"{MODULUS_RANGE_MPA[1]:g}, 1 TPa, stiffer than diamond, is a unit mistake)")
+MODULUS_LIMITS = {
+    "lame_lambda": (MODULUS_RANGE_MPA, f"0 or a number between {MODULUS_RANGE_MPA[0]:g} and "
+                                       f"{MODULUS_RANGE_MPA[1]:g} {_MODULUS_WHY}"),
+    "lame_mu": (MODULUS_RANGE_MPA, f"a number between {MODULUS_RANGE_MPA[0]:g} and "
+                                   f"{MODULUS_RANGE_MPA[1]:g} {_MODULUS_WHY}"),
+}
+
+
 @block(file_required=("lame_lambda", "lame_mu"))
 class Material:
     """Defaults (the thesis's phantom) for Python callers; a file must give both moduli."""
 
     model: described(choice(MATERIAL_MODELS), "constitutive law") = "saint-venant-kirchhoff"
-    lame_lambda: described(number("a non-negative number (MPa)", ge=0), "Lamé lambda, MPa") = 0.189151
-    lame_mu: described(number("a positive number (MPa)", gt=0), "Lamé mu (shear modulus), MPa") = 0.147688
+    lame_lambda: described(number("a non-negative number (MPa)", ge=0), "Lamé lambda, MPa",
+                           maximum=MODULUS_RANGE_MPA[1]) = 0.189151
+    lame_mu: described(number("a positive number (MPa)", gt=0), "Lamé mu (shear modulus), MPa",
+                       minimum=MODULUS_RANGE_MPA[0], maximum=MODULUS_RANGE_MPA[1]) = 0.147688
+
+    _moduli_within_limits = within_limits(MODULUS_LIMITS)
 
 
 # Lengths and points of a scene beyond 10 m (the robot's frame ends there too, MAX_BASE_OFFSET_MM)
@@ -272,25 +310,6 @@ NEEDLE_LIMITS = {
     "cutting_force": ((0.0, MAX_CUTTING_FORCE_N), f"a number between 0 and {MAX_CUTTING_FORCE_N:g} (N; a "
                       "larger force at the needle's tip is a unit mistake)"),
 }
-
-
-def within_limits(limits: dict) -> Any:
-    """A wrap validator refusing a file's numbers (data a mapping) outside `limits` (key:
-    ((low, high), expected)), reported with every other problem of the block. A value the
-    field's own type refuses (a negative thickness, a string) is left to that type."""
-
-    def check(cls, data: Any, handler):
-        problems = []
-        for key, ((low, high), expected) in limits.items():
-            value = data.get(key) if isinstance(data, dict) else None
-            if (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                    and value > 0 and not low <= value <= high):
-                problems.append(problem(expected, field=key, value=value))
-        if not problems:
-            return handler(data)
-        raise combined([*_field_errors(handler, data), *problems])
-
-    return model_validator(mode="wrap")(check)
 
 
 @block(file_required=("thickness", "material"), one_of=("size", "outline"))

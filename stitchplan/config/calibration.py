@@ -18,6 +18,7 @@ from pydantic import (
 )
 
 from .blocks import (
+    MODULUS_RANGE_MPA,
     THICKNESS_LIMITS,
     THICKNESS_RANGE_MM,
     Clamps,
@@ -75,8 +76,7 @@ def _increasing(expected: str):
 # hundreds of decades overflows the least squares' trust region and leaves the grid a point
 # per fifty decades. Within them a range spans at most 12 decades. lame_lambda may still
 # start at exactly 0 (a linear grid).
-MIN_SEARCH_MODULUS = 1e-6
-MAX_SEARCH_MODULUS = 1e6
+MIN_SEARCH_MODULUS, MAX_SEARCH_MODULUS = MODULUS_RANGE_MPA  # a scenario's moduli have the same bounds
 
 
 def _at_least_softest_or_zero(value: float) -> float:
