@@ -87,6 +87,15 @@ BAD_FILES = [
      "expected a positive definite correlation matrix"),
     ({"parameters": {"friction": {"std": 0.01}}},
      "parameters.friction: got {std: 0.01}, expected a parameter the scenario has"),
+    # another distribution: one line, not a missing std and an unknown key each (three lines)
+    ({"parameters": {"lame_mu": {"low": 0.2, "high": 0.1}}},
+     "parameters.lame_mu: got {'low': 0.2, 'high': 0.1}, expected {std: s}: a normal distribution around the "
+     "scenario's value with standard deviation s (the parameter's units), truncated to positive values; no other "
+     "distribution is sampled"),
+    ({"parameters": {"thickness": {"mean": 10.0, "sigma": 0.5}}}, "parameters.thickness: got {'mean': 10.0, "),
+    ({"parameters": {"thickness": {"sd": 0.5}}},  # a misspelt std keeps its line
+     "parameters.thickness: unknown key 'sd', expected one of: std (did you mean 'std'? parameters.thickness.std "
+     "is missing)"),
     ({"parameters": {"friction": None, "thickness": {"std": 1.0}}},  # `friction:` left blank
      "parameters.friction: got null, expected a mapping {std: ...} giving the parameter's standard deviation"),
     # `from_calibration:` left blank: it ran without the calibration's moduli, saying nothing

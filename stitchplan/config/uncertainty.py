@@ -24,6 +24,7 @@ calibration's fitted around the same regions.
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from dataclasses import dataclass, field
@@ -67,6 +68,17 @@ class Spread:
     """A normal distribution around the scenario's value, truncated to positive values."""
 
     std: described(number("a positive number (the parameter's units)", gt=0), "standard deviation")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _a_normal_distribution(cls, data: Any) -> Any:
+        """Another distribution ({low, high}, {mean, sigma}) is one problem, told as such, not a
+        missing std and an unknown key each (a misspelt std keeps its own line)."""
+        if (isinstance(data, dict) and data and "std" not in data
+                and not any(difflib.get_close_matches(str(key), ["std"]) for key in data)):
+            raise problem("{std: s}: a normal distribution around the scenario's value with standard deviation s "
+                          "(the parameter's units), truncated to positive values; no other distribution is sampled")
+        return data
 
 
 @block(title="parameters")
