@@ -105,6 +105,20 @@ def test_a_second_document_is_refused_saying_one_is_expected(tmp_path, text, lin
     assert read_yaml(write(tmp_path, "---\na: 1\n", "one.yaml"))[0] == {"a": 1}
 
 
+@pytest.mark.parametrize("text, line, character, code", [
+    ("name: a\x1b[31mb\n", 1, 8, "001B"), ("name: ok\r\n\x00\n", 2, 1, "0000"),
+    ("\ufeffa: [1]\nb: \x7f\n", 2, 4, "007F")])
+def test_a_raw_control_character_is_placed_and_named(tmp_path, text, line, character, code):
+    """PyYAML's reader refuses it with no mark: the line said only "not valid YAML"."""
+    path = tmp_path / "scene.yaml"
+    path.write_text(text, encoding="utf-8", newline="")
+    with pytest.raises(ScenarioError) as error:
+        read_yaml(path)
+    assert str(error.value) == (f"{path}: line {line}, character {character}: got U+{code}, a character YAML text may "
+                                "not hold, expected printable characters, tabs and line breaks (inside double quotes "
+                                "a control character is written as an escape such as \\x1b)")
+
+
 def test_scientific_notation_reaches_the_scenario(tmp_path):
     scenario = load_scenario(write(tmp_path, SCENE + "solver: {residual_tolerance: 1e-6}\n"
                                    + "planner: {strict: True}\n"))

@@ -309,6 +309,13 @@ def read_yaml_file(path: str | Path, keys_later: bool = False) -> YamlFile:
         raise input_error([f"{path}: {line}" for line in error.lines]) from None
     except RecursionError:  # MAX_DEPTH stops the loader first; any deeper recursion ends here too
         raise input_error([f"{path}: nesting too deep, expected plain data"]) from None
+    except yaml.reader.ReaderError as error:  # a character YAML refuses anywhere: no mark, a position
+        body = text.removeprefix("\ufeff")
+        line = body.count("\n", 0, error.position) + 1
+        column = error.position - (body.rfind("\n", 0, error.position) + 1) + 1
+        raise input_error([f"{path}: line {line}, character {column}: got U+{error.character:04X}, a character "
+                           "YAML text may not hold, expected printable characters, tabs and line breaks (inside "
+                           "double quotes a control character is written as an escape such as \\x1b)"]) from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
