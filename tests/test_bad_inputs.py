@@ -176,6 +176,10 @@ SCENARIO_CASES = {
                                     [[f"scene.yaml: robot.angular_speed: got {speed!r}, expected a positive number of "
                                       "at least 1e-06 (rad/s"]])
        for speed in (1e-9, 1e-300)},
+    # its step in under a nanosecond: every time_s after row 0 was written 0, refused on replay
+    "angular speed 1e12": ("plan", scene(robot={"angular_speed": 1e12}),
+                           [["scene.yaml: robot.angular_speed: got 1000000000000.0, expected a speed of at most "
+                             "2e+08 rad/s (the needle's step of 0.2 rad in at least 1e-09 s"]]),
     # magnitudes that are unit mistakes
     "a force of 1e300 N": ("deform", scene(loads=[{"segment": [[0.0, 5.0], [0.0, 15.0]], "force": [-1e300, 0.5]}]),
                            [["scene.yaml: loads[0].force[0]: got -1e+300, expected a number between -1e+06 and "
@@ -348,6 +352,9 @@ OPTION_CASES = {
     "a missing uncertainty file": ("plan", ["--uncertainty", "absent.yaml"],
                                    [["--uncertainty: ", "absent.yaml: cannot be read (No such file or directory)"]]),
     "an empty study folder": ("study", ["--out", ""], [["--out: got an empty path, expected a folder name"]]),
+    "a needle turning 1e12 rad/s": ("plan", ["--angular-speed", "1e12"],
+                                    [["--angular-speed: got 1000000000000.0, expected a speed of at most 2e+08 rad/s "
+                                      "(the needle's step of 0.2 rad in at least 1e-09 s"]]),
 }
 
 

@@ -60,6 +60,19 @@ class Planner:
 MAX_BASE_OFFSET_MM = 10_000.0
 MAX_BASE_ROTATION_DEG = 360.0
 MIN_ANGULAR_SPEED = 1e-6  # rad/s
+# and one turning its step in less than a nanosecond: time_s is written to 1e-12 s, and at
+# 1e12 rad/s every time after row 0 was written 0, refused by the trajectory's own replay
+MIN_STEP_SECONDS = 1e-9
+
+
+def speed_problem(speed: float, step: float) -> str | None:
+    """What a needle speed (rad/s) is expected to be with the needle's `step` (rad), or None
+    when it turns each step in at least MIN_STEP_SECONDS."""
+    if step / speed >= MIN_STEP_SECONDS:
+        return None
+    return (f"a speed of at most {step / MIN_STEP_SECONDS:g} rad/s (the needle's step of {step:g} rad in at least "
+            f"{MIN_STEP_SECONDS:g} s: a needle turning faster is a typing or unit mistake, and time_s would stop "
+            "increasing)")
 
 ROTATION = "rotation of the tissue frame in the base frame, deg, counter-clockwise about the slab normal"
 TRANSLATION = "tissue origin in the base frame, mm"

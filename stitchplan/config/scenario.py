@@ -48,7 +48,7 @@ from .fields import (
 )
 from .load_checks import HELD, load_problems
 from .messages import combined, input_error, merged_typos, valid_or_none, validate, value_at
-from .plan_blocks import Planner, Robot, RobotBlock
+from .plan_blocks import Planner, Robot, RobotBlock, speed_problem
 from .study import StudySpec
 from .yaml_files import read_yaml, read_yaml_file, with_key_problems
 
@@ -148,6 +148,14 @@ class ScenarioFile:
             raise problem(f"a lean of at most planner.max_entry_tilt ({planner.max_entry_tilt:g} rad) either way with "
                           "planner.aim_entry_tilt (the lean search starts from it)", field="needle.entry_tilt",
                           value=needle.entry_tilt)
+        return self
+
+    @model_validator(mode="after")
+    def _speed_within_the_steps(self) -> ScenarioFile:
+        speed = self.robot.angular_speed if self.robot is not None else None
+        expected = speed_problem(speed, self.needle.step) if speed is not None and self.needle is not None else None
+        if expected is not None:
+            raise problem(expected, field="robot.angular_speed", value=speed)
         return self
 
     def scenario(self, source_text: str = "", source_sha256: str | None = None) -> Scenario:

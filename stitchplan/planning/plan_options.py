@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..config import Scenario
+from ..config.plan_blocks import speed_problem
+from ..errors import InputError
 
 
 def with_plan_options(scenario: Scenario, base_transform: tuple[float, tuple[float, float]] | None = None,
@@ -18,5 +20,8 @@ def with_plan_options(scenario: Scenario, base_transform: tuple[float, tuple[flo
     if base_transform is not None:
         robot = replace(robot, rotation_deg=base_transform[0], translation=base_transform[1], given=True)
     if angular_speed is not None:
+        expected = speed_problem(angular_speed, scenario.needle.step) if scenario.needle is not None else None
+        if expected is not None:
+            raise InputError(f"--angular-speed: got {angular_speed!r}, expected {expected}")
         robot = replace(robot, angular_speed=angular_speed)
     return replace(scenario, robot=robot, planner=replace(scenario.planner, strict=scenario.planner.strict or strict))
