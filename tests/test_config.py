@@ -87,6 +87,10 @@ BAD_SCENARIOS = [
      ["robot.base_transform.rotation_deg: got 1000, expected a number between -360 and 360 (deg)"]),
     ("a needle turning at 1e-300 rad/s", lambda r: set_in(r, ("robot",), {"angular_speed": 1e-300}),
      ["robot.angular_speed: got 1e-300, expected a positive number of at least 1e-06 (rad/s"]),
+    # from 1 up every needle step stopped before its first iteration: an exit error of 5e-16 mm
+    ("a needle residual tolerance of 1", lambda r: set_in(r, ("solver",), {"needle_residual_tolerance": 1.0}),
+     ["solver.needle_residual_tolerance: got 1.0, expected a positive number of at most 0.01 (a relative "
+      "tolerance: a larger one leaves the tissue out of balance, from 1 up at rest)"]),
     ("a study reference spacing below 0", lambda r: set_in(r, ("study",), {"reference": {"grading": 4, "spacing": -1}}),
      ["study.reference.spacing: got -1, expected a positive number (mm) or a non-empty list of them"]),
     ("a study reference spacing list with one below 0",

@@ -644,6 +644,12 @@ ONE_KIND = "exactly one of 'force' (N) or 'displacement' (mm)"
 MAX_RELATIVE_TOLERANCE = 1e-2
 RelativeTolerance = number(f"a positive number below {MAX_RELATIVE_TOLERANCE:g} (a relative tolerance)",
                            gt=0, lt=MAX_RELATIVE_TOLERANCE)
+# a needle step's, of the needle force: from 1 up the tissue at rest met it, so every step
+# stopped before its first iteration and the run reported the undeformed circle's exit
+# (an exit error of 5e-16 mm); the bound itself is one of benchmarks/solver_tolerance.py's pairs
+NeedleResidualTolerance = number(f"a positive number of at most {MAX_RELATIVE_TOLERANCE:g} (a relative tolerance: "
+                                 "a larger one leaves the tissue out of balance, from 1 up at rest)",
+                                 gt=0, le=MAX_RELATIVE_TOLERANCE)
 
 
 @block(title="solver")
@@ -657,8 +663,9 @@ class Solver:
     max_step_cuts: described(integer(0, 30), "halvings of a load step that fails to converge") = 6
     # a needle step's modified Newton stops on both; unset, they follow the coupling
     # (needle/newton.py NEWTON_TOLERANCES)
-    needle_residual_tolerance: described(Positive | None, "needle steps' Newton: force residual / needle force "
-                                         "(default 1e-3; 5e-6 with needle.coupling points)") = None
+    needle_residual_tolerance: described(NeedleResidualTolerance | None, "needle steps' Newton: force residual / "
+                                         "needle force (default 1e-3; 5e-6 with needle.coupling points; at most "
+                                         f"{MAX_RELATIVE_TOLERANCE:g})") = None
     needle_constraint_tolerance: described(Positive | None, "needle steps' Newton: largest distance of the "
                                            "track from the needle / needle radius (default 1e-7; 1e-9 with "
                                            "needle.coupling points)") = None
