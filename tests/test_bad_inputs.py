@@ -405,9 +405,20 @@ PATH_CASES = {
                                       [["path.csv: line 2, center_x_mm, center_y_mm: got [1, 3.12]",
                                         "expected the needle centre at entry [0, 3.12]"]]),
     "binary": (b"\x00\xff\xfe\x89", [["path.csv: not a text file"]]),
+    # a norm's squares overflowed: "inf mm", and numpy's overflow warning on stderr besides
+    "a centre at 1e300 mm": (center_rows(11, shift=(1e300, 0.0)),
+                             [["path.csv: line 3, center_x_mm, center_y_mm: got [1e+300, 3.12], 1e+300 mm from the "
+                               "entry centre [0, 3.12]"]]),
+    "row 0 at 1e300 mm": (center_rows(11, first=(1e300, 3.12)),
+                          [["path.csv: line 2, center_x_mm, center_y_mm: got [1e+300, 3.12], expected the needle "
+                            "centre at entry"]]),
+    "a tip at 1e300 mm": ("step,center_x_mm,center_y_mm,tip_x_mm,tip_y_mm\n0,0,3.12,0,12\n"
+                          + "".join(f"{step},0,3.12,1e300,12\n" for step in range(1, 11)),
+                          [["path.csv: line 3, tip_x_mm, tip_y_mm: got [1e+300, 12]", "(1e+300 mm off"]]),
 }
 
 
+@pytest.mark.filterwarnings("error")  # a warning of the numerics is a line on stderr besides the error's
 @pytest.mark.parametrize("case", list(PATH_CASES))
 def test_a_bad_center_path_is_refused_up_front(tmp_path, case):
     text, expected = PATH_CASES[case]

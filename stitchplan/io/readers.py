@@ -112,7 +112,7 @@ def check_tips(path: str | Path, tips: np.ndarray, centers: np.ndarray, geometry
     round) says two things, and a robot may follow either; the first row that disagrees is
     refused."""
     expected = geometry.tips_along(centers)
-    off = np.linalg.norm(tips - expected, axis=1)
+    off = np.hypot(*(tips - expected).T)  # a norm's squares overflow at 1e300 mm, warning on stderr
     bad = np.flatnonzero(off > point_tolerance(tips, centers))
     if bad.size:
         k = bad[0]
@@ -139,7 +139,7 @@ def check_base_frame(path: str | Path, centers: np.ndarray, tips: np.ndarray, ba
     tolerance = point_tolerance(centers, tips, base_centers, base_tips)
     for names, points, base in ((BASE_CENTER_COLUMNS, centers, base_centers), (BASE_TIP_COLUMNS, tips, base_tips)):
         expected = points @ rotation.T + offset
-        off = np.linalg.norm(base - expected, axis=1)
+        off = np.hypot(*(base - expected).T)
         bad = np.flatnonzero(off > tolerance)
         if bad.size:
             k = bad[0]
@@ -201,14 +201,14 @@ def check_center_path(path: str | Path, centers: np.ndarray, geometry: NeedleGeo
             f"({geometry.expected_steps} steps of {geometry.step:g} rad until the tip exits: "
             f"{rows} rows as `stitchplan plan` exports them, give or take the steps deformation adds)")
     entry = geometry.center
-    start = float(np.linalg.norm(centers[0] - entry))
+    start = math.hypot(*(centers[0] - entry))
     if start > ENTRY_TOLERANCE * geometry.radius:
         raise InputError(
             f"{path}: line {row_numbers[0]}, center_x_mm, center_y_mm: got [{centers[0, 0]:.6g}, {centers[0, 1]:.6g}], "
             f"expected the needle centre at entry [{entry[0]:.6g}, {entry[1]:.6g}] (step 0), or one "
             f"{geometry.radius:g} mm from the entry point [{geometry.entry[0]:.6g}, {geometry.entry[1]:.6g}] "
             "(the needle leaning at entry)")
-    distance = np.linalg.norm(centers - entry, axis=1)
+    distance = np.hypot(*(centers - entry).T)
     far = int(np.argmax(distance))
     if distance[far] > MAX_CENTER_MOVE * geometry.radius:
         raise InputError(
