@@ -138,9 +138,11 @@ def within_limits(limits: dict) -> Any:
 MODULUS_RANGE_MPA = (1e-6, 1e6)
 _MODULUS_WHY = (f"(MPa; below {MODULUS_RANGE_MPA[0]:g}, 1 Pa, softer than any tissue, or beyond "
                 f"{MODULUS_RANGE_MPA[1]:g}, 1 TPa, stiffer than diamond, is a unit mistake)")
+# lame_lambda has no lower bound besides 0: a calibration's linear grid from 0 may fit any
+# value above it (a Poisson's ratio near 0), and a tiny one runs as 0 does
 MODULUS_LIMITS = {
-    "lame_lambda": (MODULUS_RANGE_MPA, f"0 or a number between {MODULUS_RANGE_MPA[0]:g} and "
-                                       f"{MODULUS_RANGE_MPA[1]:g} {_MODULUS_WHY}"),
+    "lame_lambda": ((0.0, MODULUS_RANGE_MPA[1]), f"a non-negative number of at most {MODULUS_RANGE_MPA[1]:g} "
+                                                 f"(MPa; beyond it, 1 TPa, stiffer than diamond, is a unit mistake)"),
     "lame_mu": (MODULUS_RANGE_MPA, f"a number between {MODULUS_RANGE_MPA[0]:g} and "
                                    f"{MODULUS_RANGE_MPA[1]:g} {_MODULUS_WHY}"),
 }
