@@ -366,3 +366,24 @@ def test_a_symmetric_plan_short_of_equal_bites_says_what_its_passes_did():
         f"planner.max_passes (2) ran out with the passes still closing in (they missed their aim by {first:.3g}, "
         f"{second:.3g} mm)")
     assert "could not be moved" not in notes[0]
+
+
+def test_a_needle_through_the_far_side_of_a_thin_slab_runs_as_on_the_same_outline():
+    """A 6 mm slab given by `size`, the needle leaving through its bottom and coming back in
+    (the undeformed circle reaches 2.88 mm below it): the crossings' walls are asked of the
+    rectangle as of a polygon, which it could not answer (AttributeError after the whole run).
+    The rectangle now gives the crossings and bites of the same slab drawn as an outline."""
+    def thin(tissue_shape: dict) -> dict:
+        return {"tissue": {**tissue_shape, "thickness": 10.0, "material": dict(PHANTOM), "clamped": ["left", "right"]},
+                "discretization": {"spacing": 2.0},
+                "needle": {"radius": 8.88, "entry": [30.0, 6.0], "turn": "cw", "step": 0.1, "friction": 0.0602,
+                           "cutting_force": 0.1, "cutting_ramp": True}}
+
+    by_size = run_insertion(parse_scenario(thin({"size": [60.0, 6.0]})))
+    by_outline = run_insertion(parse_scenario(thin({"outline": [[0, 0], [60, 0], [60, 6], [0, 6]]})))
+    assert [c["kind"] for c in by_size.crossings] == ["exit", "entry", "exit"]
+    for ours, theirs in zip(by_size.crossings, by_outline.crossings):
+        assert np.allclose(ours["achieved_def"], theirs["achieved_def"], rtol=0.0, atol=1e-9)
+    assert by_size.bites.keys() == by_outline.bites.keys()
+    for key, value in by_size.bites.items():
+        assert np.allclose(value, by_outline.bites[key], rtol=0.0, atol=1e-9)

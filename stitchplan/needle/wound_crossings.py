@@ -28,10 +28,7 @@ Crossing = tuple[int, str, np.ndarray, float]
 def gap_at(insertion: NeedleInsertion, point: np.ndarray) -> str:
     """'wound' where the wall nearest `point` is the outline's (a cut reaching the surface),
     'hole' where it is a hole's: what the tip crossed, in its messages."""
-    domain = insertion.domain
-    if not hasattr(domain, "nearest_boundary_point"):  # a rectangle has neither
-        return "wound"
-    return "wound" if domain.nearest_boundary_point(point)[1] else "hole"
+    return "wound" if insertion.domain.nearest_boundary_point(point)[1] else "hole"
 
 
 def crossed_back(geometry: NeedleGeometry, made: Crossing) -> bool:
