@@ -27,15 +27,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from conftest import CONFIGS
 from test_bad_inputs import OUTPUTS, invoke, write_scene
 
-from stitchplan.config.scenario import parse_scenario
+from stitchplan.config.scenario import load_scenario, parse_scenario
 from stitchplan.errors import InsertionFailure
 from stitchplan.geometry.polygon_domain import PolygonDomain
 from stitchplan.geometry.polygons import circle_polygon
 from stitchplan.needle.geometry import scenario_needle
 from stitchplan.needle.insertion import run_insertion
 from stitchplan.needle.wound_crossings import stitch_bites
+from stitchplan.planning.replay_models import aims_at_bites
 from stitchplan.needle.tip_tracking import MATERIAL_POINT_TOLERANCE, locate_reentry
 
 PHANTOM = {"model": "neo-hookean", "lame_lambda": 0.189151, "lame_mu": 0.147688}
@@ -130,7 +132,7 @@ def test_the_wound_edge_of_a_crossing_off_a_holes_wall_is_the_nearest_wall_point
     center, radius = np.array([30.0, 21.12]), 2.0
     hole = circle_polygon(center, radius)
     domain = PolygonDomain.rectangle(SIZE, holes=(hole,))
-    insertion = SimpleNamespace(domain=domain, geometry=SimpleNamespace(entry=ENTRY),
+    insertion = SimpleNamespace(domain=domain, geometry=SimpleNamespace(entry=ENTRY, wound_walls={0, 1}),
                                 displacement=lambda points: np.zeros_like(np.atleast_2d(points)))
     walls = []
     for k, t in ((8, 0.3), (44, 0.6)):  # on edges 8 and 44 of the 96-gon, moved off into the tissue
@@ -372,7 +374,9 @@ def test_a_needle_through_the_far_side_of_a_thin_slab_runs_as_on_the_same_outlin
     """A 6 mm slab given by `size`, the needle leaving through its bottom and coming back in
     (the undeformed circle reaches 2.88 mm below it): the crossings' walls are asked of the
     rectangle as of a polygon, which it could not answer (AttributeError after the whole run).
-    The rectangle now gives the crossings and bites of the same slab drawn as an outline."""
+    The rectangle now gives the crossings of the same slab drawn as an outline. The gap is the
+    outside beyond the slab's far side, no wound: neither has bites (they were measured to the
+    slab's bottom corners, 16 mm apart), and a symmetric target aims at the exit."""
     def thin(tissue_shape: dict) -> dict:
         return {"tissue": {**tissue_shape, "thickness": 10.0, "material": dict(PHANTOM), "clamped": ["left", "right"]},
                 "discretization": {"spacing": 2.0},
@@ -384,6 +388,14 @@ def test_a_needle_through_the_far_side_of_a_thin_slab_runs_as_on_the_same_outlin
     assert [c["kind"] for c in by_size.crossings] == ["exit", "entry", "exit"]
     for ours, theirs in zip(by_size.crossings, by_outline.crossings):
         assert np.allclose(ours["achieved_def"], theirs["achieved_def"], rtol=0.0, atol=1e-9)
-    assert by_size.bites.keys() == by_outline.bites.keys()
-    for key, value in by_size.bites.items():
-        assert np.allclose(value, by_outline.bites[key], rtol=0.0, atol=1e-9)
+    assert by_size.bites is None and by_outline.bites is None
+    symmetric = parse_scenario({**thin({"size": [60.0, 6.0]}), "planner": {"target": "symmetric"}})
+    assert len(scenario_needle(symmetric).gaps) == 1 and scenario_needle(symmetric).wounds == ()
+    assert not aims_at_bites(symmetric)
+
+
+def test_a_wound_and_a_hole_are_wounds_to_the_needle():
+    """Tissue lies beyond the needle across a wound's gap and a hole: both are stitched across."""
+    for scenario in (load_scenario(CONFIGS / "wound_closure_symmetric.yaml"), parse_scenario(scene(HOLE))):
+        geometry = scenario_needle(scenario)
+        assert len(geometry.gaps) == 1 and geometry.wounds == tuple(geometry.gaps)

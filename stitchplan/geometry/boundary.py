@@ -28,6 +28,19 @@ def boundary_edges(domain) -> tuple[np.ndarray, np.ndarray]:
             np.array([end for _, end in segments], dtype=float))
 
 
+def ray_meets_edges(starts: np.ndarray, ends: np.ndarray, origin, direction) -> bool:
+    """Whether the ray from `origin` along `direction` (2,) meets any of the segments
+    starts -> ends (k, 2)."""
+    o, d = np.asarray(origin, dtype=float), np.asarray(direction, dtype=float)
+    e, w = ends - starts, starts - o  # (k, 2)
+    cross = d[0] * e[:, 1] - d[1] * e[:, 0]  # d x e
+    parallel = np.abs(cross) <= 1e-15 * np.linalg.norm(e, axis=1) * np.linalg.norm(d)
+    safe = np.where(parallel, 1.0, cross)
+    along_ray = (w[:, 0] * e[:, 1] - w[:, 1] * e[:, 0]) / safe  # w x e / d x e
+    along_edge = (w[:, 0] * d[1] - w[:, 1] * d[0]) / safe  # w x d / d x e
+    return bool(np.any(~parallel & (along_ray > 0.0) & (along_edge >= 0.0) & (along_edge <= 1.0)))
+
+
 def nearest_on_edges(starts: np.ndarray, ends: np.ndarray, point) -> tuple[int, float, np.ndarray, float]:
     """The point of the segments starts -> ends (k, 2) nearest `point` (2,): its segment,
     the fraction along it, the point, and how far it is (mm)."""

@@ -15,7 +15,7 @@ from ..config import Needle, Scenario
 from ..config.blocks import MAX_ENTRY_TILT, default_spacing_of
 from ..config.boundary_points import nearest_note, shown_point, shown_point_as_given
 from ..errors import InputError
-from ..geometry.boundary import boundary_edges, nearest_on_edges, smooth_vertex
+from ..geometry.boundary import boundary_edges, nearest_on_edges, ray_meets_edges, smooth_vertex
 from ..geometry.polygon_domain import PolygonDomain
 from ..geometry.rectangle import Rectangle, circle_center_at_entry
 from ..tissue.particles import RefinementZone, end_spacing
@@ -55,12 +55,24 @@ class NeedleGeometry:
     # the orthogonal needle's point of each crossing, the last the desired exit: what a leaning
     # needle aims at (its own circle's crossings are `crossings`); () for the crossings' own points
     desired_points: tuple = ()
+    # the gaps (as `gaps`) with tissue beyond the circle across them: a wound or a hole, whose
+    # walls a stitch's bites end at; a gap with none is the needle leaving the tissue's far
+    # side and coming back (needle_geometry, _wounds)
+    wounds: tuple = ()
 
     @property
     def gaps(self) -> list[tuple[float, float]]:
-        """(exit, re-entry) rotations of every gap the undeformed circle crosses (a wound)."""
+        """(exit, re-entry) rotations of every gap the undeformed circle crosses (a wound, a
+        hole, or the outside beyond the tissue's far side)."""
         return [(a, b) for (a, ka), (b, kb) in zip(self.crossings, self.crossings[1:])
                 if ka == "exit" and kb == "entry"]
+
+    @property
+    def wound_walls(self) -> set[int]:
+        """Indices into `crossings` of the walls of the wounds (the exit into each and the
+        re-entry out of it)."""
+        rotations = [r for r, _ in self.crossings]
+        return {rotations.index(r) for gap in self.wounds for r in gap}
 
     def crossing_point(self, k: int) -> np.ndarray:
         """The undeformed circle's point at crossing k, (2,)."""
@@ -202,7 +214,7 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
                               edge, rotation, entry, crossings)
     geometry = replace(geometry, desired_exit=geometry.tip(rotation))
     if needle.entry_tilt == 0.0:
-        return _body_outside(geometry, needle, domain)
+        return _wounds(_body_outside(geometry, needle, domain), domain)
     lean = f" leaning {needle.entry_tilt:.4g} rad"
     center = entry - needle.radius * unit(start_angle - sense * needle.entry_tilt)  # turned about the entry
     start_angle, rotation, crossings = _circle_through(needle, domain, entry, center, sense, lean)
@@ -223,7 +235,21 @@ def needle_geometry(needle: Needle, domain: Rectangle | PolygonDomain) -> Needle
         raise InputError(
             f"needle.entry_tilt: got {needle.entry_tilt:.4g} rad, which makes the needle cross the boundary {how}; "
             "expected a lean that keeps the needle's way through the tissue (the same gaps and exit)")
-    return _body_outside(leaned, needle, domain, lean)
+    return _wounds(_body_outside(leaned, needle, domain, lean), domain)
+
+
+def _wounds(geometry: NeedleGeometry, domain: Rectangle | PolygonDomain) -> NeedleGeometry:
+    """`geometry` with its `wounds`: the gaps beyond whose middle, outward from the needle's
+    centre, the tissue goes on (a wound's far side, a hole's far wall). Across a gap with no
+    tissue beyond it (a thin slab's far side, left and entered again) there is no wound to
+    stitch: bites measured to its walls would end at the slab's far corners."""
+    starts, ends = boundary_edges(domain)
+    wounds = []
+    for gap in geometry.gaps:
+        middle = geometry.tip(0.5 * (gap[0] + gap[1]))
+        if ray_meets_edges(starts, ends, middle, middle - geometry.center):
+            wounds.append(gap)
+    return replace(geometry, wounds=tuple(wounds))
 
 
 def _field(lean: str) -> str:

@@ -27,8 +27,11 @@ Crossing = tuple[int, str, np.ndarray, float]
 
 def gap_at(insertion: NeedleInsertion, point: np.ndarray) -> str:
     """'wound' where the wall nearest `point` is the outline's (a cut reaching the surface),
-    'hole' where it is a hole's: what the tip crossed, in its messages."""
-    return "wound" if insertion.domain.nearest_boundary_point(point)[1] else "hole"
+    'hole' where it is a hole's: what the tip crossed, in its messages; on a needle whose
+    only gaps lie beyond the tissue's far side (no wounds), the gap outside the tissue."""
+    if not insertion.domain.nearest_boundary_point(point)[1]:
+        return "hole"
+    return "wound" if insertion.geometry.wounds else "gap outside the tissue"
 
 
 def crossed_back(geometry: NeedleGeometry, made: Crossing) -> bool:
@@ -188,6 +191,14 @@ def crossings_record(insertion: NeedleInsertion, made: list[Crossing]) -> list[d
     return records
 
 
+def wound_walls_crossed(geometry: NeedleGeometry, crossings: list[dict]) -> list[np.ndarray]:
+    """The achieved points, in needle order, of the wounds' walls the tip crossed
+    (`crossings`: crossings_record's)."""
+    walls = geometry.wound_walls
+    return [crossing["achieved"] for k, crossing in enumerate(crossings[:-1])
+            if k in walls and crossing["achieved"] is not None]
+
+
 def stitch_bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
     """The stitch's bites across a wound: on the entry side the deformed distance from the
     needle's entry to the wound edge (a cut's: the end of the wall the tip left through nearest
@@ -218,8 +229,9 @@ def stitch_bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
         ends = np.array([end for name in names for end in domain.edge(name)])  # (2 x edges, 2)
         return ends[np.argmin(np.linalg.norm(ends - toward, axis=1))]
 
-    # the walls of the wounds the tip crossed (a wound it missed has none)
-    walls = [crossing["achieved"] for crossing in crossings[:-1] if crossing["achieved"] is not None]
+    # the walls of the wounds the tip crossed (a wound it missed has none; a gap that is the
+    # outside beyond the tissue's far side is no wound)
+    walls = wound_walls_crossed(geometry, crossings)
     first_wall, last_wall = walls[0], walls[-1]
     entry, final_exit = geometry.entry, crossings[-1]["achieved"]
     points = np.vstack([entry, edge_near(first_wall, entry), final_exit, edge_near(last_wall, final_exit)])

@@ -39,9 +39,9 @@ def replay_options(options: dict) -> dict:
 
 def aims_at_bites(scenario: Scenario) -> bool:
     """Whether the plan aims at equal bites: planner.target symmetric on a stitch across a
-    wound, where the scenario's undeformed needle circle crosses a gap (elsewhere the target
-    means the exit)."""
-    return scenario.planner.target == "symmetric" and bool(scenario_needle(scenario).gaps)
+    wound, where the scenario's undeformed needle circle crosses a wound or a hole (elsewhere the
+    target means the exit)."""
+    return scenario.planner.target == "symmetric" and bool(scenario_needle(scenario).wounds)
 
 
 def predicts_aim(scenario: Scenario, verify: bool = True) -> bool:
