@@ -399,3 +399,19 @@ def test_the_outputs_libraries_are_imported_ahead_only_for_the_outputs_asked_for
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split("\n")[:4] == ["False False", "True False", "True True", "agg"]
+
+
+def test_a_runs_verdict_is_noted_before_its_steps_notes(capsys):
+    """Three planner-not-converged notes of steps came first and pushed the missed target, the
+    run's verdict, behind "1 more notes in the summary and run log"."""
+    from stitchplan.cli.options import echo_events
+    from stitchplan.events import Event, EventKind
+
+    steps = [Event(EventKind.PLANNER_NOT_CONVERGED, f"step {k}: not converged", step=k, angle_rad=0.08 * k)
+             for k in (30, 31, 32)]
+    echo_events([*steps, Event(EventKind.TARGET_MISSED, "the tip exits 0.0078 mm off")], quiet=False)
+    assert capsys.readouterr().err.splitlines() == [
+        "note: the tip exits 0.0078 mm off", "note: step 30: not converged", "note: step 31: not converged",
+        "note: 1 more note in the summary and run log"]
+    echo_events(steps[:2], quiet=False)
+    assert capsys.readouterr().err.splitlines() == ["note: step 30: not converged", "note: step 31: not converged"]

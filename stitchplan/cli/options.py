@@ -415,9 +415,15 @@ def echo_notes(notes, quiet: bool) -> None:
 
 
 def echo_events(events, quiet: bool, shown: int = 3) -> None:
-    """The first `shown` events of a run as `note:` lines on stderr (none with -q)."""
-    more = [f"{len(events) - shown} more notes in the summary and run log"] if len(events) > shown else []
-    echo_notes([event.message for event in events[:shown]] + more, quiet)
+    """A run's events as `note:` lines on stderr (none with -q): every one about the whole run
+    (a missed target, a verification that could not be made: a few at most), then its steps'
+    in order up to `shown` notes in all; a run's verdict is never cut behind its steps' notes."""
+    whole_run = [event for event in events if event.step is None]
+    of_steps = [event for event in events if event.step is not None]
+    listed = whole_run + of_steps[:max(0, shown - len(whole_run))]
+    left = len(events) - len(listed)
+    more = [f"{left} more note{'s' if left > 1 else ''} in the summary and run log"] if left else []
+    echo_notes([event.message for event in listed] + more, quiet)
 
 
 def parse_base_transform(text: Optional[str]):
