@@ -165,6 +165,19 @@ def test_signals_are_deferred_until_the_block_closes():
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+@pytest.mark.usefixtures("ctrl_c_interrupts")
+def test_an_interrupt_noted_in_a_block_that_fails_is_still_the_interrupt():
+    """A terminal's Ctrl-C reaches a local cluster's workers as they start, and their nannies
+    fail: the noted interrupt was dropped and the command ended on the failed start (exit 2,
+    `cannot start a local Dask cluster ...; expected fewer --workers`) instead of 130."""
+    with pytest.raises(KeyboardInterrupt) as raised, signals_deferred():
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        raise RuntimeError("Nanny failed to start.")
+    assert isinstance(raised.value.__context__, RuntimeError)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def signal_handling() -> str:
     import signal
 

@@ -13,7 +13,8 @@ DEFERRED_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")  # the ones that end a comman
 @contextlib.contextmanager
 def signals_deferred() -> Iterator[None]:
     """While it is open, Ctrl-C (and SIGTERM, SIGHUP) only are noted; on closing, the first
-    one noted is handled as it would have been (KeyboardInterrupt, the command's exit). For the
+    one noted is handled as it would have been (KeyboardInterrupt, the command's exit), also
+    when the block raised (the interrupt then raised from its error). For the
     start of a local cluster: distributed cannot close one interrupted half-started (its exit
     function fails on the nannies still starting, with a traceback), so the interrupt waits
     the seconds until the cluster is up and in the executor's hands. Outside the main thread
@@ -31,9 +32,11 @@ def signals_deferred() -> Iterator[None]:
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-    if noted:
-        handler = previous[noted[0]]
-        if callable(handler):
-            handler(noted[0], None)
-        elif handler == signal.SIG_DFL:
-            os.kill(os.getpid(), noted[0])
+        # also when the block failed: a group's Ctrl-C stops a cluster's workers as they start
+        # too, and the interrupt, not the start that failed of it, is how the command ended
+        if noted:
+            handler = previous[noted[0]]
+            if callable(handler):
+                handler(noted[0], None)
+            elif handler == signal.SIG_DFL:
+                os.kill(os.getpid(), noted[0])
