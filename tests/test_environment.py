@@ -263,3 +263,69 @@ def test_an_interrupt_python_wraps_or_drops_still_ends_the_command(tmp_path, whe
     assert run.returncode == 128 + getattr(signal, name), error
     assert b"Traceback" not in error and b"Exception ignored" not in error, error
     assert list(tmp_path.iterdir()) == []
+
+
+# A deform command interrupted (`signal` sent to itself) while its outputs land: after the
+# first of them has been renamed onto its target ("rename"), or while the renames are made
+# final ("keep"), then the command as it was.
+INTERRUPTED_COMMIT = """
+import os, signal, sys
+from stitchplan.io import files
+
+where, number = sys.argv[1], getattr(signal, sys.argv[2])
+sys.argv = ["stitchplan", *sys.argv[3:]]
+replace, keep = os.replace, files.Renamed.keep
+
+
+def interrupt():
+    os.kill(os.getpid(), number)
+    for _ in range(100000):  # the handler runs here
+        pass
+
+
+def replace_then_interrupt(source, target):
+    replace(source, target)
+    if where == "rename" and not str(source).endswith(".old"):  # an output, not a backup put back
+        interrupt()
+
+
+def keep_interrupted(self):
+    if where == "keep" and self.labels:
+        interrupt()
+    keep(self)
+
+
+files.os.replace = replace_then_interrupt
+files.Renamed.keep = keep_interrupted
+from stitchplan.cli import main
+
+main()
+"""
+
+
+@pytest.mark.parametrize("name", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("where", ["rename", "keep"])
+def test_an_interrupt_while_the_outputs_land_leaves_all_or_none(tmp_path, where, name):
+    """An interrupt between two renames ended the command with 128 + the signal having
+    replaced the first output and left the backups of the replaced files beside them; one
+    after they were kept ended it with a traceback (exit by the signal) or 128 + the signal,
+    which says no file was written. Before the outputs are final the interrupt undoes them
+    (the files as they were); once they are, it is too late and the command ends done."""
+    outputs = {"--summary": tmp_path / "s.json", "--probes-out": tmp_path / "p.csv",
+               "--reactions-out": tmp_path / "r.csv"}
+    for path in outputs.values():
+        path.write_text("before\n")
+    run = subprocess.run([sys.executable, "-c", INTERRUPTED_COMMIT, where, name, "deform",
+                          REPOSITORY / "configs" / "slab_edge_load.yaml",
+                          *(str(part) for item in outputs.items() for part in item)], cwd=REPOSITORY,
+                         capture_output=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+                         timeout=300)
+    assert b"Traceback" not in run.stderr, run.stderr
+    assert sorted(path.name for path in tmp_path.iterdir()) == sorted(path.name for path in outputs.values())
+    contents = [path.read_text() for path in outputs.values()]
+    if where == "rename":
+        assert run.returncode == 128 + getattr(signal, name), run.stderr
+        assert contents == ["before\n"] * 3
+    else:
+        assert run.returncode == 0, run.stderr
+        assert "before\n" not in contents

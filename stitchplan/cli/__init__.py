@@ -28,8 +28,19 @@ if "__mp_main__" in sys.modules:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+_OWN_PROCESS = False  # main() runs the command: it ends the process
+
+
+def own_process() -> bool:
+    """The command runs as its process's own (main()), not within another program (a test's
+    CliRunner): once its outputs are final, interrupts are ignored until the process exits."""
+    return _OWN_PROCESS
+
+
 def main() -> None:
     """Console entry point of `stitchplan` and `python -m stitchplan`."""
+    global _OWN_PROCESS
+    _OWN_PROCESS = True
     for name in ("stdout", "stderr"):  # a closed stream (`2>&-`) is None in Python: write nowhere
         if getattr(sys, name) is None:
             setattr(sys, name, open(os.devnull, "w"))

@@ -83,7 +83,7 @@ def exit_code(run: Callable[[], Any]) -> int:
     output cannot be written, the files are undone, so a failed command leaves none."""
     from ..errors import StitchplanError  # no imports of its own: stays instant
     from ..io.commits import deferred_commits
-    from . import stdout_failure
+    from . import stdout_failure, own_process
 
     click_errors = sys.modules[typer.BadParameter.__module__]  # click's, or typer's copy of it
     # numpy's floating-point warnings (an overflow to inf, an invalid operation to nan) in the
@@ -94,7 +94,7 @@ def exit_code(run: Callable[[], Any]) -> int:
     sys.stdout = stdout
     try:
         try:
-            with deferred_commits() as outputs:
+            with deferred_commits(ignore_interrupts_until_exit=own_process()) as outputs:
                 result = run()
                 stdout.finished = True
                 outputs.commit()

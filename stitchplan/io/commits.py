@@ -7,9 +7,13 @@ Light on imports: the command group enters it before every command, `--help` inc
 from __future__ import annotations
 
 import contextlib
+import signal
+import threading
 from collections.abc import Callable, Iterator
 from contextvars import ContextVar
 from typing import Any
+
+from ..parallel.signals import DEFERRED_SIGNALS, signals_deferred
 
 
 DEFERRED: ContextVar[DeferredOutputs | None] = ContextVar("stitchplan_deferred_outputs", default=None)
@@ -23,6 +27,7 @@ class DeferredOutputs:
         self.pending: list[Any] = []  # io.files._Staged
         self.renamed = None  # io.files.Renamed, committed but not yet kept
         self._commit_all: Callable[[list[Any]], Any] | None = None
+        self.ignored: dict[int, Any] = {}  # the interrupts' handlers before keep() ignored them
 
     def add(self, staged: Any, commit_all: Callable[[list[Any]], Any]) -> None:
         """Hold a staged set until `commit()`, which renames the held sets by `commit_all`
@@ -32,25 +37,44 @@ class DeferredOutputs:
 
     def commit(self) -> None:
         if self.pending:
-            self.renamed = self._commit_all(self.pending)
+            # an interrupt waits for the renames and their record, then undoes them all: between
+            # two renames it left one output replaced, the others not, and backups beside them
+            with signals_deferred():
+                self.renamed = self._commit_all(self.pending)
 
     def keep(self) -> None:
+        """Make the renames final. An interrupt from here on, until the process exits, is
+        ignored: it can no longer undo them, and its exit code would say none was written."""
         if self.renamed is not None:
+            if threading.current_thread() is threading.main_thread():
+                self.ignored = {number: signal.signal(number, signal.SIG_IGN)
+                                for number in (getattr(signal, name) for name in DEFERRED_SIGNALS
+                                               if hasattr(signal, name))}
             self.renamed.keep()
             self.renamed = None
 
+    def restore_interrupts(self) -> None:
+        for number, handler in self.ignored.items():
+            signal.signal(number, handler)
+        self.ignored = {}
+
 
 @contextlib.contextmanager
-def deferred_commits() -> Iterator[DeferredOutputs]:
+def deferred_commits(ignore_interrupts_until_exit: bool = False) -> Iterator[DeferredOutputs]:
     """Within the block, OutputSet.staged() leaves its written temporaries staged (see
-    DeferredOutputs); leaving it undoes a commit not kept and removes what was not committed."""
+    DeferredOutputs); leaving it undoes a commit not kept and removes what was not committed.
+    Interrupts ignored once the outputs are kept are handled again when it ends, unless
+    `ignore_interrupts_until_exit` (the command is its process's: cli.main)."""
     outputs = DeferredOutputs()
     token = DEFERRED.set(outputs)
     try:
         yield outputs
     finally:
         DEFERRED.reset(token)
-        if outputs.renamed is not None:
-            outputs.renamed.undo()
-        for staged in outputs.pending:
-            staged.discard()
+        with signals_deferred():  # an undo cut short would leave some files replaced
+            if outputs.renamed is not None:
+                outputs.renamed.undo()
+            for staged in outputs.pending:
+                staged.discard()
+        if not ignore_interrupts_until_exit:
+            outputs.restore_interrupts()

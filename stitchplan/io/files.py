@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..parallel.signals import signals_deferred
 from .commits import DEFERRED
 
 HDF5_SCHEMA_VERSION = 2  # 2: `units` on every dataset, provenance and library versions on the file
@@ -150,7 +151,8 @@ class _Staged:
 
     def commit(self) -> None:
         try:
-            _rename_all(self.temporaries, self.targets, self.paths).keep()
+            with signals_deferred():  # an interrupt between two renames: some files replaced, backups left
+                _rename_all(self.temporaries, self.targets, self.paths).keep()
         except BaseException:
             self.discard()
             raise
