@@ -265,22 +265,29 @@ def test_an_interrupt_python_wraps_or_drops_still_ends_the_command(tmp_path, whe
     assert list(tmp_path.iterdir()) == []
 
 
-# A deform command interrupted (`signal` sent to itself) while its outputs land: after the
-# first of them has been renamed onto its target ("rename"), or while the renames are made
-# final ("keep"), then the command as it was.
+# A deform command interrupted (`signal` sent to itself) while its outputs are staged and land:
+# as the first temporary has been made ("temporary"), after the first output has been renamed
+# onto its target ("rename"), or while the renames are made final ("keep").
 INTERRUPTED_COMMIT = """
 import os, signal, sys
 from stitchplan.io import files
 
 where, number = sys.argv[1], getattr(signal, sys.argv[2])
 sys.argv = ["stitchplan", *sys.argv[3:]]
-replace, keep = os.replace, files.Renamed.keep
+replace, keep, mkstemp = os.replace, files.Renamed.keep, files.tempfile.mkstemp
 
 
 def interrupt():
     os.kill(os.getpid(), number)
     for _ in range(100000):  # the handler runs here
         pass
+
+
+def temporary_then_interrupt(*args, **kwargs):
+    made = mkstemp(*args, **kwargs)
+    if where == "temporary" and kwargs.get("suffix") == ".tmp":
+        interrupt()
+    return made
 
 
 def replace_then_interrupt(source, target):
@@ -296,6 +303,7 @@ def keep_interrupted(self):
 
 
 files.os.replace = replace_then_interrupt
+files.tempfile.mkstemp = temporary_then_interrupt
 files.Renamed.keep = keep_interrupted
 from stitchplan.cli import main
 
@@ -304,13 +312,14 @@ main()
 
 
 @pytest.mark.parametrize("name", ["SIGINT", "SIGTERM"])
-@pytest.mark.parametrize("where", ["rename", "keep"])
+@pytest.mark.parametrize("where", ["temporary", "rename", "keep"])
 def test_an_interrupt_while_the_outputs_land_leaves_all_or_none(tmp_path, where, name):
-    """An interrupt between two renames ended the command with 128 + the signal having
-    replaced the first output and left the backups of the replaced files beside them; one
-    after they were kept ended it with a traceback (exit by the signal) or 128 + the signal,
-    which says no file was written. Before the outputs are final the interrupt undoes them
-    (the files as they were); once they are, it is too late and the command ends done."""
+    """An interrupt just after a temporary was made left it beside its target; one between two
+    renames ended the command with 128 + the signal having replaced the first output and left
+    the backups of the replaced files beside them; one after they were kept ended it with a
+    traceback (exit by the signal) or 128 + the signal, which says no file was written. Before
+    the outputs are final the interrupt undoes them (the files as they were); once they are,
+    it is too late and the command ends done."""
     outputs = {"--summary": tmp_path / "s.json", "--probes-out": tmp_path / "p.csv",
                "--reactions-out": tmp_path / "r.csv"}
     for path in outputs.values():
@@ -323,7 +332,7 @@ def test_an_interrupt_while_the_outputs_land_leaves_all_or_none(tmp_path, where,
     assert b"Traceback" not in run.stderr, run.stderr
     assert sorted(path.name for path in tmp_path.iterdir()) == sorted(path.name for path in outputs.values())
     contents = [path.read_text() for path in outputs.values()]
-    if where == "rename":
+    if where != "keep":
         assert run.returncode == 128 + getattr(signal, name), run.stderr
         assert contents == ["before\n"] * 3
     else:

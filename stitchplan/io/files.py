@@ -110,9 +110,10 @@ class OutputSet:
         self.check()
         staged = _Staged({label: _target(path) for label, path in self.outputs.items()}, self.outputs)
         try:
-            for label, target in staged.targets.items():
-                staged.made += _make_folders(target.parent, self.outputs[label], label)
-                staged.temporaries[label] = _temporary(target, self.outputs[label], label)
+            with signals_deferred():  # an interrupt between making a file and noting it left it behind
+                for label, target in staged.targets.items():
+                    staged.made += _make_folders(target.parent, self.outputs[label], label)
+                    staged.temporaries[label] = _temporary(target, self.outputs[label], label)
             try:
                 yield dict(staged.temporaries)
             except OSError as error:
