@@ -252,3 +252,25 @@ def test_failed_training_samples_are_not_counted_as_held_out(tmp_path, monkeypat
     assert (block["held_out_samples"], block["failed_held_out_samples"]) == (4, 0)
     assert (block["training_samples"], block["failed_training_samples"]) == (4, 2)
     assert {failure["set"] for failure in block["failures"]} == {"training"}
+
+
+TRACKER_SIGNALS = """
+from multiprocessing import resource_tracker
+from stitchplan.parallel.executor import Executor
+
+with Executor(workers=1) as executor:
+    with open(f"/proc/{resource_tracker._resource_tracker._pid}/status") as status:
+        fields = dict(line.split(":\\t", 1) for line in status)
+    print(int(fields["SigBlk"], 16), int(fields["SigIgn"], 16))
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the tracker's signal masks in /proc")
+def test_a_hangup_does_not_stop_the_local_clusters_resource_tracker():
+    """SIGHUP to the process group (the terminal closed) killed multiprocessing's resource
+    tracker, which only ignores SIGINT and SIGTERM; the one started in its place printed a
+    warning and a KeyError traceback for every semaphore the closing cluster released."""
+    run = subprocess.run([sys.executable, "-c", TRACKER_SIGNALS], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    blocked, ignored = map(int, run.stdout.split())
+    assert (blocked | ignored) & (1 << (signal.SIGHUP - 1))

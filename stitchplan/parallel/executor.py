@@ -111,6 +111,7 @@ class Executor:
             # no dashboard; the scheduler's HTTP routes (health, metrics) on a free local port, not
             # on 8787, where another cluster would make distributed warn on stderr
             with signals_deferred(), dask.config.set({"distributed.nanny.pre-spawn-environ": spawned}):
+                _start_resource_tracker_deaf_to_hangups()
                 # a cluster interrupted half-started cannot be closed (signals_deferred)
                 cluster = self._stack.enter_context(LocalCluster(
                     n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
@@ -276,3 +277,21 @@ def _open_file_limit() -> int | None:
         return None
     soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
     return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
+def _start_resource_tracker_deaf_to_hangups() -> None:
+    """multiprocessing's resource tracker, which the nannies' semaphores register with, started
+    with SIGHUP blocked, as it has Ctrl-C and SIGTERM ignored: a hangup of the terminal's process
+    group killed it, and the one started in its place printed a warning and a traceback for every
+    semaphore the closing cluster released. The mask, unlike a handler, is kept across its exec."""
+    import signal
+    import threading
+    from multiprocessing import resource_tracker
+
+    if not hasattr(signal, "SIGHUP") or threading.current_thread() is not threading.main_thread():
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGHUP})
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
