@@ -392,6 +392,13 @@ def test_a_needle_through_the_far_side_of_a_thin_slab_runs_as_on_the_same_outlin
     symmetric = parse_scenario({**thin({"size": [60.0, 6.0]}), "planner": {"target": "symmetric"}})
     assert len(scenario_needle(symmetric).gaps) == 1 and scenario_needle(symmetric).wounds == ()
     assert not aims_at_bites(symmetric)
+    from stitchplan.events import EventKind
+    from stitchplan.planning.planner import run_plan
+
+    notes = [event.message for event in run_plan(symmetric, compare=False).planned.events
+             if event.kind == EventKind.TARGET_NOT_APPLICABLE]
+    assert len(notes) == 1 and notes[0].endswith("(the gap it crosses lies beyond the tissue's far side: no tissue "
+                                                 "across it to stitch)")
 
 
 def test_a_wound_and_a_hole_are_wounds_to_the_needle():

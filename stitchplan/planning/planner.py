@@ -225,8 +225,9 @@ def run_plan(scenario: Scenario, compare: bool = True, on_step=None, aim: np.nda
     if settings.target == "symmetric" and not passes.symmetric:
         best.events.append(Event(EventKind.TARGET_NOT_APPLICABLE, (
             "planner.target: symmetric aims at equal bites on a stitch across a wound, and this needle's "
-            "undeformed circle crosses no wound or hole (leaving the tissue's far side and coming back is "
-            "none): the plan aims at the desired exit")))
+            "undeformed circle crosses no wound or hole: the plan aims at the desired exit"
+            + (" (the gap it crosses lies beyond the tissue's far side: no tissue across it to stitch)"
+               if scenario_needle(scenario).gaps else ""))))
     # after the passes, so that the planned run's wall time counts building the model it runs on
     # whether or not the comparison runs (and a helper replaying the passes has their centres sooner);
     # the comparison's needle is the scenario's as given, not leaned
