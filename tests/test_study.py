@@ -545,6 +545,32 @@ def test_a_reference_not_finer_than_the_sweep_is_refused(reference):
         plan_runs(scenario)
 
 
+@pytest.mark.parametrize("study, discretization", [
+    ({"spacing": [0.00009]}, {}),  # its half rounded to 4 decimals was 0: a traceback
+    ({"spacing": [0.0001]}, {}),  # its half rounded up to it: refused as a reference the user never gave
+    ({}, {"spacing": 0.004}),  # the default spacings to 3 decimals: 0.006, 0.005, 0.005, 0.004, 0.003, 0.003
+])
+def test_the_default_spacings_and_reference_stay_apart_and_positive_at_small_spacings(study, discretization):
+    raw = tiny_raw(study)
+    raw["discretization"].update(discretization)
+    runs, reference, _ = plan_runs(parse_scenario(raw))
+    spacings = [run.spacing for run in runs if run.family == runs[0].family]
+    assert len(set(spacings)) == len(spacings) and min(spacings) > 0
+    assert 0 < reference.spacing < min(run.spacing for run in runs)
+
+
+def test_the_default_spacings_keep_their_three_decimals():
+    runs, reference, _ = plan_runs(parse_scenario(tiny_raw()))
+    assert sorted({run.spacing for run in runs}) == [3.5, 4.25, 5.0, 5.75, 6.75, 8.0]
+    assert reference.spacing == 1.75
+
+
+def test_a_default_reference_no_finer_than_the_sweep_is_not_named_as_the_users():
+    with pytest.raises(ScenarioError, match=r"^the study's default reference spacing: got 4\.94066e-324 mm, "
+                                            r"expected less than the finest spacing"):
+        plan_runs(parse_scenario(tiny_raw({"spacing": [5e-324]})))
+
+
 @pytest.mark.parametrize("direct_seconds, minres_seconds, chosen", [(1.0, 0.5, "minres"), (1.0, 0.9, "direct"),
                                                                     (1.0, 1.5, "direct")])
 def test_the_auto_discretization_takes_minres_only_when_it_is_a_fifth_faster(direct_seconds, minres_seconds,

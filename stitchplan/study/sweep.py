@@ -64,7 +64,7 @@ def default_spacings(scenario: Scenario, quick: bool = False) -> tuple[float, ..
     d = scenario.discretization
     h = d.needle_spacing if d.needle_spacing is not None else d.spacing
     factors = (1.4, 1.0) if quick else (1.6, 1.35, 1.15, 1.0, 0.85, 0.7)
-    return tuple(round(h * f, 3) for f in factors)
+    return _rounded(tuple(h * f for f in factors), 3)
 
 
 def default_families(scenario: Scenario, quick: bool = False) -> tuple[StudyFamily, ...]:
@@ -90,7 +90,21 @@ def default_families(scenario: Scenario, quick: bool = False) -> tuple[StudyFami
 def default_reference(spacings: tuple[float, ...]) -> StudyFamily:
     """Graded x4 at half the finest swept spacing: finer at the needle than any run (plan_runs
     gives it the sweep's smallest needle step)."""
-    return StudyFamily("reference", spacing=(round(min(spacings) / 2, 4),), grading=4)
+    finest = min(spacings)
+    # half of the smallest float is 0: then the finest itself, which plan_runs refuses
+    return StudyFamily("reference", spacing=_rounded((finest / 2 or finest, finest), 4)[:1], grading=4)
+
+
+def _rounded(spacings: tuple[float, ...], decimals: int) -> tuple[float, ...]:
+    """The spacings to `decimals` decimals for readable labels, with more where fewer would
+    make one 0 or two alike (a spacing of 1e-4 mm halved to 0.0001 mm, not below it)."""
+    while True:
+        rounded = tuple(round(s, decimals) for s in spacings)
+        if all(rounded) and len(set(rounded)) == len(set(spacings)):
+            return rounded
+        if decimals > 330:  # past the smallest float: as they are
+            return spacings
+        decimals += 1
 
 
 # --- the runs --------------------------------------------------------------------------
@@ -176,13 +190,13 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
                          f"the sweep, {finest_step:g} rad (the runs' deviations are measured from the reference)")
     spacing = reference.spacing[0]
     finest = min(run.spacing for run in runs)
+    named = "study.reference.spacing" if spec.reference and not quick else "the study's default reference spacing"
     if spacing >= finest:  # every deviation is measured from the reference: it must be the finest
-        raise InputError(f"study.reference.spacing: got {spacing:g} mm, expected less than the finest "
+        raise InputError(f"{named}: got {spacing:g} mm, expected less than the finest "
                          f"spacing of the sweep, {finest:g} mm (the runs' deviations are measured from "
                          "the reference)")
     reference_run = StudyRun("reference", f"reference h={spacing:g} mm", configure(scenario, reference, spacing),
-                             spacing, source="study.reference.spacing" if spec.reference and not quick
-                             else "the study's default reference spacing")
+                             spacing, source=named)
     return runs, reference_run, spec.repeats
 
 
