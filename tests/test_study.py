@@ -159,6 +159,37 @@ def test_the_guard_counts_the_reference_once_as_it_runs(caplog):
     assert "in each of" not in line
 
 
+@pytest.mark.parametrize("study, fragment", [
+    ({"families": [{"name": "a"}, {"name": "wide", "dilation": 11}]}, "study.families[1].dilation: got 11, expected at most 10"),
+    ({"reference": {"spacing": 3.0, "dilation": 11}}, "study.reference.dilation: got 11, expected at most 10"),
+    ({"families": [{"name": "a"}, {"name": "fine", "step": 0.0001}]},
+     "study.families[1].step: got 0.0001 rad, expected a step giving at most 2000 needle steps"),
+    ({"reference": {"spacing": 3.0, "step": 0.0001}}, "study.reference.step: got 0.0001 rad, expected a step giving"),
+])
+def test_a_study_choice_the_guard_refuses_is_named_by_the_study_field_that_set_it(study, fragment):
+    """A family's or the reference's dilation or needle step beyond the guard's limits was
+    named as the scenario's discretization.dilation or needle.step, which the file gave
+    otherwise or not at all."""
+    from stitchplan.cli.guards import guard_study
+    from stitchplan.resources.limits import Limits
+
+    runs, reference, repeats = plan_runs(parse_scenario(tiny_raw({**SWEEP, **study})))
+    with pytest.raises(InputError) as error:
+        guard_study(Path("tiny.yaml"), Limits(), runs, reference, repeats, workers=0)
+    assert fragment in str(error.value)
+    assert "discretization.dilation" not in str(error.value) and "needle.step" not in str(error.value)
+
+
+def test_the_default_quadrature_family_stays_within_the_largest_order():
+    """A scenario at quadrature_order 10, its largest, made the default sweep's `quadrature 11`
+    family: a traceback."""
+    raw = tiny_raw()
+    raw["discretization"]["quadrature_order"] = 10
+    runs, _, _ = plan_runs(parse_scenario(raw))
+    orders = {run.family: run.scenario.discretization.quadrature_order for run in runs}
+    assert orders["quadrature 9"] == 9 and max(orders.values()) == 10
+
+
 def test_quick_study_is_two_families_of_two_spacings_and_a_finer_reference():
     runs, reference, _ = plan_runs(parse_scenario(tiny_raw(SWEEP)), quick=True)
     assert len(runs) == 4 and {r.family for r in runs} == {"uniform", "graded x4"}

@@ -74,7 +74,7 @@ def guard_study(scenario_path: Path, limits, runs: list, reference, repeats: int
     from ..resources.origin import Origin
 
     def origin(run) -> Origin:
-        return Origin({"spacing": run.source, "needle_spacing": run.source},
+        return Origin({"spacing": run.source, "needle_spacing": run.source, **run.fields},
                       {"spacing": run.spacing, "needle_spacing": run.spacing})
 
     guard_runs(scenario_path, limits, *[("insertion", run.scenario, f"study run {run.label!r}", count, origin(run))

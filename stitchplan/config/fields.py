@@ -154,7 +154,8 @@ Flag = Annotated[bool, Strict(), expecting("true or false")]
 # shared by the discretization, the needle and the families of a study
 Dilation = number("a number > 1 (kernel support / spacing; at least ~1.5 for a linear basis, at most ~3: "
                   "wider kernels make the stiffness nearly singular)", gt=1)
-QuadratureOrder = integer(1, 10)
+MAX_QUADRATURE_ORDER = 10
+QuadratureOrder = integer(1, MAX_QUADRATURE_ORDER)
 BasisOrder = integer(1, 2)
 CellsPerSpacing = integer(1, 4)
 NeedleStep = number("a positive angle of at most 0.5 rad per step", gt=0, le=0.5)

@@ -79,7 +79,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         elif memory is not None and item.memory_bytes > limits.memory_share * memory:
             setting = _memory_setting(item, limits.memory_share * memory)
             # the step limit's and the condition numbers' lines below name these
-            if not (setting.name == "needle.step" and too_many_steps or setting.name == CONDITION_OPTION and too_long):
+            if not (setting.name == item.origin.name("step", "needle.step") and too_many_steps or setting.name == CONDITION_OPTION and too_long):
                 lines.append(_memory_refusal(item, setting, limits.memory_share, memory))
         elif space is not None and workers is None and \
                 address_space_needed(space[1], item.memory_bytes, BASE_MEMORY) > space[0]:
@@ -88,8 +88,8 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
         if coarse is not None:
             lines.append(coarse)
         if too_many_steps:
-            lines.append(f"needle.step: got {item.needle_step:g} rad, expected a step giving at most "
-                         f"{limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
+            lines.append(f"{item.origin.name('step', 'needle.step')}: got {item.needle_step:g} rad, expected a step "
+                         f"giving at most {limits.max_needle_steps} needle steps ({what}); take a larger step, or pass "
                          "--no-resource-check")
         if too_long and not too_many_steps:  # fewer steps are the way under both
             lines.append(_condition_refusal(item, limits.max_condition_seconds))
@@ -308,7 +308,7 @@ def _memory_setting(item: Estimate, budget: float) -> Setting:
     if item.needle_step is not None and item.memory_bytes - item.step_memory <= budget:
         held = min(item.runs, HELD_RUNS)
         both = f", {bytes_text(item.step_memory)} for the {held:g} runs held at once" if held > 1 else ""
-        return Setting("needle.step", f"{item.needle_step:g} rad", "", "take a larger step",
+        return Setting(origin.name("step", "needle.step"), f"{item.needle_step:g} rad", "", "take a larger step",
                        f"{count_text(item.steps)} needle steps keep ~{bytes_text(item.step_memory / held)} of states "
                        f"and solver blocks until the run ends{both}; ")
 

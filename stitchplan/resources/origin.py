@@ -25,8 +25,8 @@ class Origin:
     derived: str = ""  # follows what was expected, e.g. " in the plan's verification at half the spacing"
     skip: str = ""  # advice, e.g. "pass --no-verify to skip the verification"
 
-    def name(self, key: str) -> str:
-        return self.names.get(key, f"discretization.{key}")
+    def name(self, key: str, default: str | None = None) -> str:
+        return self.names.get(key, default or f"discretization.{key}")
 
     def value(self, key: str, run_value: float) -> float:
         return self.given.get(key, run_value)

@@ -43,6 +43,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 from ..config import Scenario
+from ..config.fields import MAX_QUADRATURE_ORDER
 from ..config.study import StudyFamily, StudySpec
 from ..errors import InputError, NumericalFailure
 from ..parallel.executor import Executor, run_all
@@ -53,6 +54,8 @@ from .runner import REFUSED, InsertionRun, run_timed
 # the study.csv and speed_accuracy.png writers: stitchplan.io.study_reports
 
 DEFAULT_ACCURACY = 0.05  # mm, asked of the auto discretization when the scenario gives none
+# a family's choices the resource guard may refuse, naming the study field that set them
+GUARDED_CHOICES = ("dilation", "quadrature_order", "cells_per_spacing", "step")
 
 
 # --- defaults --------------------------------------------------------------------------
@@ -75,11 +78,13 @@ def default_families(scenario: Scenario, quick: bool = False) -> tuple[StudyFami
     d, needle = scenario.discretization, scenario.needle
     other_tracking = "auto" if needle.tip_tracking == "levenberg-marquardt" else "levenberg-marquardt"
     other_solver = "minres" if needle.linear_solver == "direct" else "direct"
+    other_order = d.quadrature_order + 1 if d.quadrature_order < MAX_QUADRATURE_ORDER else d.quadrature_order - 1
     return tuple(base + [
         StudyFamily(f"tip tracking {other_tracking}", tip_tracking=other_tracking),
         StudyFamily(f"linear solver {other_solver}", linear_solver=other_solver),
         StudyFamily("dilation 1.5", dilation=1.5) if d.dilation != 1.5 else StudyFamily("dilation 2.5", dilation=2.5),
-        StudyFamily(f"quadrature {d.quadrature_order + 1}", quadrature_order=d.quadrature_order + 1),
+        # one more Gauss point a direction, one fewer where the scenario's is the largest allowed
+        StudyFamily(f"quadrature {other_order}", quadrature_order=other_order),
         # a quadratic basis needs the support to reach past two neighbours at the edges
         StudyFamily("basis order 2, dilation 2.5", basis_order=2, dilation=max(d.dilation, 2.5))
         if d.basis_order == 1 else StudyFamily("basis order 1", basis_order=1),
@@ -135,6 +140,9 @@ class StudyRun(InsertionRun):
     deviations: dict[str, float] = field(default_factory=dict)  # exit_deviations(), mm
     pareto: bool = False
     source: str = ""  # what set the run's spacing (`study.families[1].spacing`), for refusals
+    # the fields that set its other choices ({"dilation": "study.families[1].dilation"}), for
+    # refusals: those it leaves to the scenario are the scenario's own
+    fields: dict[str, str] = field(default_factory=dict)
 
     @property
     def deviation_mm(self) -> float:
@@ -177,14 +185,23 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
             return f"study.families[{k}].spacing"
         return "study.spacing" if spec.spacing else "the study's default spacings"
 
+    def fields(k: int, family) -> dict[str, str]:
+        given = f"study.families[{k}]" if spec.families and not quick else None
+        return {key: f"{given}.{key}" if given else f"{key} of the study's default family {family.name!r}"
+                for key in GUARDED_CHOICES if getattr(family, key) is not None}
+
     runs = [StudyRun(family.name, f"{family.name} h={spacing:g} mm", configure(scenario, family, spacing), spacing,
-                     source=source(k, family))
+                     source=source(k, family), fields=fields(k, family))
             for k, family in enumerate(families) for spacing in family.spacing or spacings]
+    reference_fields = {key: f"study.reference.{key}" for key in GUARDED_CHOICES
+                        if getattr(reference, key) is not None} if spec.reference and not quick else {}
     # the finest run in the needle step too: a family with a smaller step than the scenario's
     # would otherwise be finer in time than the run it is compared with
     finest_step = min(family.step or scenario.needle.step for family in families)
     if reference.step is None and finest_step < scenario.needle.step:
         reference = replace(reference, step=finest_step)
+        finest_family = min(range(len(families)), key=lambda k: families[k].step or math.inf)
+        reference_fields["step"] = fields(finest_family, families[finest_family])["step"]
     if reference.step is not None and reference.step > finest_step:  # the finest in time too
         raise InputError(f"study.reference.step: got {reference.step:g} rad, expected at most the finest step of "
                          f"the sweep, {finest_step:g} rad (the runs' deviations are measured from the reference)")
@@ -196,7 +213,7 @@ def plan_runs(scenario: Scenario, quick: bool = False) -> tuple[list[StudyRun], 
                          f"spacing of the sweep, {finest:g} mm (the runs' deviations are measured from "
                          "the reference)")
     reference_run = StudyRun("reference", f"reference h={spacing:g} mm", configure(scenario, reference, spacing),
-                             spacing, source=named)
+                             spacing, source=named, fields=reference_fields)
     return runs, reference_run, spec.repeats
 
 
