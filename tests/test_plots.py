@@ -561,3 +561,57 @@ def test_an_axis_scaled_by_a_power_of_ten_says_so_in_its_label():
     assert small.get_xlabel() == r"exit error ($\times 10^{-3}$ mm)" and not small.xaxis.offsetText.get_visible()
     assert plain.get_xlabel() == "exit error (mm)"
     plt.close(fig)
+
+
+# --- a user's text in the figures -----------------------------------------------------------
+
+DOLLARS = "a $x^{$ b"  # a lone `$` ... `$` pair matplotlib read as mathtext, which failed to parse
+
+
+def shown_as_written(text, written: str) -> bool:
+    """The figure draws `written` as plain text, its `$` signs included (no mathtext)."""
+    return text._preprocess_math(text.get_text()) == (written, False)
+
+
+def test_a_scenario_name_with_dollar_signs_is_drawn_as_written(slab_raw, write_scenario, tmp_path):
+    """A scenario, calibration, experiment or study family named with `$` (or a recording's
+    file name) ended every figure of it in a matplotlib traceback, and the command wrote none
+    of its files."""
+    scenario = write_scenario({**slab_raw, "name": DOLLARS})
+    result = CliRunner().invoke(app, ["deform", str(scenario), "--plot", str(tmp_path / "d.png"),
+                                      "--summary", str(tmp_path / "s.json")])
+    assert result.exit_code == 0, result.output
+    assert is_png(tmp_path / "d.png") and (tmp_path / "s.json").exists()
+
+
+def test_calibration_names_and_recording_files_with_dollar_signs_are_drawn_as_written(tmp_path):
+    from stitchplan.calibration import calibrate_needle
+
+    scenario = parse_scenario({"tissue": {"size": [50.0, 30.0], "thickness": 10.0, "clamped": ["right"],
+                                          "material": MATERIAL},
+                               "loads": [{"segment": [[0.0, 10.0], [0.0, 20.0]], "force": [1.0, 0.0]}]})
+    markers = np.array([[10.0, 10.0], [20.0, 15.0], [30.0, 20.0]])
+    experiment = SimpleNamespace(name=DOLLARS, markers=markers, measured=markers + 0.5, loads=scenario.loads)
+    fig = calibration_plots.plot_marker_residuals(tmp_path / "markers.png", scenario.tissue, [experiment],
+                                                  [markers + 0.4], name="$")
+    assert is_png(tmp_path / "markers.png")
+    assert shown_as_written(data_axes(fig)[0].title, f"{DOLLARS}: rms residual 0.141 mm")
+    assert fig._suptitle.get_text().startswith(r"\$: marker residuals")
+    folder = REPOSITORY / "sample_runs" / "calibration"
+    tissue = tmp_path / "tissue $x^{$.csv"
+    tissue.write_bytes((folder / "tissue.csv").read_bytes())
+    fig = calibration_plots.plot_needle_forces(tmp_path / "forces.png", calibrate_needle(folder / "air.csv", tissue,
+                                                                                         8.88))
+    assert is_png(tmp_path / "forces.png")
+    assert fig._suptitle.get_text().startswith(r"calibrate needle (air.csv / tissue \$x^{\$.csv)")
+
+
+def test_study_family_names_with_dollar_signs_are_drawn_as_written(tmp_path):
+    study = fake_study(failed=True)
+    for run in study.runs:
+        if run.family == "uniform":
+            run.family, run.label = DOLLARS, run.label.replace("uniform", DOLLARS)
+    fig = plots.plot_speed_accuracy(tmp_path / "speed.png", study)
+    assert is_png(tmp_path / "speed.png")
+    legend = [text for text in fig.legends[0].get_texts() if "x^" in text.get_text()]
+    assert legend and all(shown_as_written(text, DOLLARS) for text in legend)

@@ -18,6 +18,7 @@ from .plot_elements import (
     frame,
     label_mm,
     legend_below,
+    literal,
     pyplot,
     readable_log_axis,
     title_above,
@@ -79,7 +80,7 @@ def plot_cost_surface(path: str | Path, lame_lambda: np.ndarray, lame_mu: np.nda
     def value(x: float, u: float | None) -> str:
         return f"{x:.4g}" + (f" ± {u:.2g}" if u is not None else "")
 
-    title = (f"{name or 'calibrate material'}: marker misfit over the moduli\nfitted lambda = "
+    title = (f"{literal(name) or 'calibrate material'}: marker misfit over the moduli\nfitted lambda = "
              f"{value(optimum[0], uncertainty[0])} MPa, mu = {value(optimum[1], uncertainty[1])} MPa")
     if note:
         title += f"\n{note}"
@@ -130,11 +131,11 @@ def plot_marker_residuals(path: str | Path, tissue, experiments, simulated: list
         rms = float(np.sqrt(np.mean(np.sum((p - q) ** 2, axis=1))))
         extents.append(np.vstack([[[0.0, 0.0], [width, height]], ends, p, q]))
         label_mm(ax)
-        ax.set_title(f"{experiment.name or f'experiments[{k}]'}: rms residual {rms:.3g} mm", fontsize=9)
+        ax.set_title(f"{literal(experiment.name) or f'experiments[{k}]'}: rms residual {rms:.3g} mm", fontsize=9)
     for ax in used:  # the same frame in every panel
         frame(ax, np.vstack(extents), margin=0.06)
         draw_clamps(ax, tissue, 0.025 * size)
-    title_above(fig, used, f"{name or 'calibrate material'}: marker residuals at the fitted moduli, "
+    title_above(fig, used, f"{literal(name) or 'calibrate material'}: marker residuals at the fitted moduli, "
                 f"mean {distances.mean():.3g} mm, largest {largest:.3g} mm")
     legend_below(fig, used, columns=4)
     save(fig, path)
@@ -169,7 +170,7 @@ def plot_needle_forces(path: str | Path, result):
         ax.grid(alpha=0.3)
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize=8, frameon=False)
     u = result.standard_uncertainty
-    sources = " / ".join(Path(s).name for s in result.sources if s) or "recordings"
+    sources = " / ".join(literal(Path(s).name) for s in result.sources if s) or "recordings"
     fig.suptitle(f"calibrate needle ({sources}): friction {result.friction:.4g} ± {u[0]:.2g} N/mm, "
                  f"cutting force {result.cutting_force:.4g} ± {u[1]:.2g} N "
                  f"(R² {result.tissue_fit.r_squared:.4f})", fontsize=10)

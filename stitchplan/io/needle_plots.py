@@ -21,6 +21,7 @@ from .plot_elements import (
     frame,
     label_mm,
     legend_below,
+    literal,
     magnitude_norm,
     pyplot,
     title_above,
@@ -194,7 +195,7 @@ def plot_insertion(path: str | Path, result, steps: list[int] | None = None, est
     _exit_zoom(zoom, result, norm, "crimson", "simulated", "o", desired_colour="blue",
                exit_labels=("desired exit, deformed", "achieved exit"))
     fig.colorbar(dots, ax=list(axes[0]), label="|u| displacement (mm)", shrink=0.8, pad=0.02)
-    how = "without planning" if center_path is None else f"along the centre path of {Path(center_path).name}"
+    how = "without planning" if center_path is None else f"along the centre path of {literal(Path(center_path).name)}"
     title_above(fig, axes[0], f"{shown_name(result.scenario, 'simulate')}: needle insertion {how}\n"
                 f"exit error {result.exit_error_mm:.3g} mm (material point "
                 f"{result.exit_error_material_mm:.3g} mm), {last} steps, "

@@ -35,6 +35,12 @@ def pyplot():
     return plt
 
 
+def literal(text: str) -> str:
+    """A user's text (a name, a file name) as a figure shows it: matplotlib reads what lies
+    between two `$` as mathtext, and a lone one failed the figure, so each is escaped."""
+    return text.replace("$", r"\$")
+
+
 # --- the tissue outline ---------------------------------------------------------------------
 
 

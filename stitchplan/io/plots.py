@@ -30,6 +30,7 @@ from .plot_elements import (
     frame,
     label_mm,
     legend_below,
+    literal,
     magnitude_norm,
     pyplot,
     readable_log_axis,
@@ -56,7 +57,7 @@ def save(fig, path: str | Path) -> None:
 
 
 def shown_name(scenario, fallback: str) -> str:
-    return getattr(scenario, "name", "") or fallback
+    return literal(getattr(scenario, "name", "")) or fallback
 
 
 # --- deform ---------------------------------------------------------------------------------
@@ -192,13 +193,13 @@ def _speed_accuracy_panel(ax, key: str, xlabel: str, runs, families: list[str], 
     for k, family in enumerate(families):
         members = sorted((r for r in done if r.family == family), key=lambda r: r.spacing, reverse=True)
         if members:
-            ax.plot([x_of(r) for r in members], [r.wall_seconds for r in members], label=family,
+            ax.plot([x_of(r) for r in members], [r.wall_seconds for r in members], label=literal(family),
                     **_family_style(family, colours(k % 10)))
         failed = [r for r in failures if r.family == family]
         if failed:  # times clipped to the successful runs' range (failures before a solve are instant)
             times = [min(max(r.wall_seconds, low), high) for r in failed]
             ax.plot([top] * len(failed), times, "x", color=colours(k % 10), ms=8, mew=2, clip_on=False,
-                    label=f"{family}: {len(failed)} failed (deviation unknown)")
+                    label=f"{literal(family)}: {len(failed)} failed (deviation unknown)")
             # crosses at one time (failures before a solve, clipped alike) are counted beside them
             for time, count in Counter(round(math.log10(t), 1) for t in times).items():
                 if count > 1:
@@ -253,9 +254,9 @@ def _speed_accuracy_headline(study, runs) -> str:
     counts = f"{len(runs) + 1} runs" + (f", {len(failures)} failed (crosses at the right)" if failures else "")
     best = min(done, key=lambda r: r.wall_seconds) if done else None
     headline = (f"{shown_name(study.scenario, 'study')}: speed against accuracy of the needle insertion, {counts}\n"
-                f"deviations from the finest run {reference.label}: {reference.particles} particles, "
+                f"deviations from the finest run {literal(reference.label)}: {reference.particles} particles, "
                 f"{reference.wall_seconds:.2f} s")
     if best is not None:
-        headline += (f"; fastest run: {best.label}, {best.wall_seconds:.2f} s, "
+        headline += (f"; fastest run: {literal(best.label)}, {best.wall_seconds:.2f} s, "
                      f"deviation {best.deviations.get('deviation_mm', math.nan):.3g} mm")
     return headline

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..config.uncertainty import unit_of
 from ..uncertainty.robust import LABELS, SENSITIVITY_STEP, Z_95, UncertaintyResult, ellipse_95, exit_statistics
-from .plot_elements import SAVED_DPI, label_with_multiplier, legend_below, pyplot, title_above
+from .plot_elements import SAVED_DPI, label_with_multiplier, legend_below, literal, pyplot, title_above
 from .plots import save
 
 SENSITIVITY_METHOD = (f"central finite differences of the exit error vector (achieved - desired exit, deformed), "
@@ -299,7 +299,7 @@ def plot_uncertainty(path: str | Path, result: UncertaintyResult, scenario_name:
     ax.invert_yaxis()
     ax.set_xlabel("95 % exit move from the parameter alone (mm)")
     ax.set_title("sensitivity of the exit (nominal path)", fontsize=9)
-    title_above(fig, list(axes), plot_title(result, scenario_name))
+    title_above(fig, list(axes), plot_title(result, literal(scenario_name)))
     legend_below(fig, list(axes[:2]), columns=4)
     save(fig, path)
     return fig
