@@ -328,6 +328,18 @@ def test_two_experiments_of_one_name_are_refused(tmp_path):
                    "too; fitted.yaml's results per experiment are told apart by it)")
 
 
+def test_a_name_that_is_an_unnamed_experiments_index_is_refused(tmp_path):
+    """fitted.yaml calls an unnamed experiment by its index: one named `experiments[1]` beside
+    an unnamed experiments[1] gave two results of one name."""
+    path = calibration_file(tmp_path, experiments=2)
+    with_changes(path, lambda data: (data["experiments"][0].update(name="experiments[1]"),
+                                     data["experiments"][1].pop("name")))
+    out = tmp_path / "fitted.yaml"
+    assert_refused(run("calibrate", "material", path, "--out", out), out,
+                   "calib.yaml: experiments[0].name: got 'experiments[1]', expected a name of its own (experiments[1], "
+                   "unnamed, is called so; fitted.yaml's results per experiment are told apart by it)")
+
+
 def test_unnamed_experiments_are_told_apart_by_their_index(tmp_path):
     path = calibration_file(tmp_path, experiments=2)
     with_changes(path, lambda data: [experiment.pop("name") for experiment in data["experiments"]])

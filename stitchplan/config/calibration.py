@@ -240,6 +240,8 @@ class CalibrationFile:
         plot tell the experiments apart by it (unnamed ones by their index)."""
         first: dict[str, int] = {}
         problems = []
+        # an unnamed one is called by its index: a name that is another's index is taken too
+        unnamed = {f"experiments[{i}]": i for i, experiment in enumerate(self.experiments) if not experiment.name}
         for i, experiment in enumerate(self.experiments):
             if not experiment.name:
                 continue
@@ -247,6 +249,10 @@ class CalibrationFile:
             if j != i:
                 problems.append(problem(f"a name of its own (experiments[{j}] has it too; fitted.yaml's results per "
                                         "experiment are told apart by it)",
+                                        field=f"experiments.{i}.name", value=experiment.name))
+            elif experiment.name in unnamed:
+                problems.append(problem(f"a name of its own (experiments[{unnamed[experiment.name]}], unnamed, is "
+                                        "called so; fitted.yaml's results per experiment are told apart by it)",
                                         field=f"experiments.{i}.name", value=experiment.name))
         if problems:
             raise combined(problems)
