@@ -198,6 +198,20 @@ def test_a_spacing_beyond_the_scenes_bound_is_refused_naming_its_field(tmp_path,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
 
 
+def test_a_spacing_below_the_files_needle_spacing_is_refused_naming_the_option_and_file(tmp_path, write_scenario):
+    """Refining a file that gives its own needle_spacing past it with --spacing was refused
+    as `discretization.needle_spacing: got 2.5, ...`, naming neither the option nor the file."""
+    raw = scene_raw()
+    raw["discretization"] = {"spacing": 5.0, "needle_spacing": 2.5}
+    scenario = write_scenario(raw, "scene.yaml")
+    result = invoke(scenario, "--summary", tmp_path / "summary.json", "--spacing", "1.25")
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [
+        f"error: --spacing 1.25 over {scenario}: discretization.needle_spacing: got 2.5, expected a spacing (mm) "
+        "no larger than spacing = 1.25 mm"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.yaml"]
+
+
 def test_a_spacing_at_the_scenes_bound_is_still_taken(write_scenario):
     raw = scene_raw()
     raw["discretization"] = {"spacing": 1e4, "needle_spacing": 1e4}

@@ -105,9 +105,22 @@ def setup_logging(verbose: int, quiet: bool = False) -> None:
 
 
 def load_with_options(scenario_path: Path, spacing: Optional[float], dilation: Optional[float]):
-    from ..config import load_scenario, with_discretization
+    from ..config import input_error, load_scenario, with_discretization
+    from ..errors import InputError
+    from .group import problem_lines
 
-    return with_discretization(load_scenario(scenario_path), spacing=spacing, dilation=dilation)
+    scenario = load_scenario(scenario_path)
+    try:
+        return with_discretization(scenario, spacing=spacing, dilation=dilation)
+    except InputError as error:  # the file's block, made invalid by the options (a needle_spacing above --spacing)
+        options = _discretization_options()
+        raise input_error([f"{options} over {scenario_path}: {line}" for line in problem_lines(error)]) from None
+
+
+def _discretization_options() -> str:
+    """--spacing and --dilation as given on the command line, for a problem they made."""
+    return " and ".join(f"{option} {given_value(option)}" for option in ("--spacing", "--dilation")
+                        if given_value(option) is not None)
 
 
 def check_command_outputs(outputs: dict[str, Optional[Path]],
@@ -251,8 +264,7 @@ def naming_files(scenario_path: Path, center_path: Optional[Path] = None):
         yield
     except InputError as error:
         named = []
-        options = " and ".join(f"{option} {given_value(option)}" for option in ("--spacing", "--dilation")
-                               if given_value(option) is not None)
+        options = _discretization_options()
         for line in problem_lines(error):
             if center_path is not None and line.startswith("centre path: "):
                 line = f"--center-path: {center_path}: {line.removeprefix('centre path: ')}"
