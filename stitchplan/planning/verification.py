@@ -8,9 +8,10 @@ points). With x(h) - x* ~ C h^p,
 
     e(h) = d / (1 - 2^-p)   from (h, h/2),        e(h) = d / (2^p - 1)   from (h, 2h).
 
-p = ASSUMED_ORDER = 1, the safe side: the exit point converges about that fast or slower
-on the shipped scenes, where a cutting force concentrated at the tip makes the absolute
-exit position converge slowly; the exit *error* (achieved minus desired, both moved alike)
+p = ASSUMED_ORDER = 1: the exit point converges about that fast on the shipped scenes, where
+a cutting force concentrated at the tip makes the absolute exit position converge slowly (at
+order 1 or above the estimate is on the safe side; where it converges more slowly, very soft
+tissue under a large friction, it falls short); the exit *error* (achieved minus desired, both moved alike)
 converges much faster, and the deviations say which part moved (`ExitEstimate.deviations`).
 
 Verified plans (`plan_verified`). The planner's own exit error is measured on the model it
