@@ -12,6 +12,7 @@ import numpy as np
 from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
 from ..geometry.boundary import smooth_vertex
+from ..geometry.segments import point_segment_distance
 from .quadrature import cell_quadrature
 
 log = logging.getLogger(__name__)
@@ -310,20 +311,41 @@ def end_spacing(spacing: float, reference: float, reference_levels: int = 3) -> 
     return spacing / 2**levels
 
 
+def clamp_ends(tissue: Tissue) -> list[np.ndarray]:
+    """The ends of the clamped stretches of the boundary: the clamped pieces' end points that
+    lie on no other clamped piece (a clamp of several pieces along a traced contour ends
+    twice, not at every vertex between its pieces)."""
+    pieces = tissue.clamped_pieces()
+    if not pieces:
+        return []
+    starts, ends = (np.array([piece[k] for piece in pieces], dtype=float) for k in (0, 1))
+    points = np.vstack([starts, ends])  # (2 p, 2)
+    owner = np.tile(np.arange(len(pieces)), 2)
+    free = np.empty(len(points), dtype=bool)
+    for first in range(0, len(points), 256):  # (256, p) distances at a time: a traced clamp may have thousands
+        rows = slice(first, first + 256)
+        distance = point_segment_distance(points[rows, None, :], starts[None], ends[None])
+        distance[np.arange(len(distance)), owner[rows]] = np.inf
+        free[rows] = (distance > tissue.domain.tolerance).all(axis=1)
+    return list(points[free])
+
+
 def end_zones(tissue: Tissue, segments, discretization: Discretization) -> tuple[RefinementZone, ...]:
-    """Refinement zones (points) at the load-segment ends that lie inside an edge or at a
-    vertex where the boundary hardly turns (a traced contour's: geometry.boundary.smooth_vertex;
-    corners are left as they are); none with discretization.segment_end_levels 0."""
+    """Refinement zones (points) at the load-segment ends and the clamped stretches' ends
+    (clamp_ends) that lie inside an edge or at a vertex where the boundary hardly turns (a
+    traced contour's: geometry.boundary.smooth_vertex; corners are left as they are); none
+    with discretization.segment_end_levels 0. A clamp ending inside an edge (u = 0 beside a
+    free edge) is as singular as a displacement segment's end: ungraded, a slab held along part
+    of its bottom edge was 2.2 % off scikit-fem at the default spacing and 2.9 % at half of it."""
     if discretization.segment_end_levels == 0:
         return ()
     domain = tissue.domain
     fine = end_spacing(discretization.spacing, default_spacing_of(tissue.bounding_size, None),
                        discretization.segment_end_levels)
     zones = []
-    for segment in segments:
-        for point in segment:
-            if len(domain.edges_at(point)) == 1 or smooth_vertex(domain, point):
-                zones.append(RefinementZone(np.asarray(point, dtype=float), 0.0, fine))
+    for point in (*(point for segment in segments for point in segment), *clamp_ends(tissue)):
+        if len(domain.edges_at(point)) == 1 or smooth_vertex(domain, point):
+            zones.append(RefinementZone(np.asarray(point, dtype=float), 0.0, fine))
     return tuple(zones)
 
 
