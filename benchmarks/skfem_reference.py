@@ -355,6 +355,10 @@ def solve_skfem_curved(scenario: Scenario, h: float, grading: int = 0) -> SkfemR
     triangles = Delaunay(points).simplices
     centres = points[triangles].mean(axis=1)
     inside = domain.contains(centres)
+    # a flat triangle of collinear boundary points has its centre on the edge, inside by the
+    # test, and no area: the solve gave NaN
+    sides = points[triangles[:, 1:]] - points[triangles[:, :1]]
+    inside &= 0.5 * np.abs(np.cross(sides[:, 0], sides[:, 1])) > 1e-9 * h * h
     triangles, centres = triangles[inside], centres[inside]
     # a straddling triangle has a corner off the edges, or a point inside, in another region
     # or outside the tissue: its corners and four inner points (barycentric) are looked at
