@@ -9,7 +9,7 @@ import numpy as np
 
 from .bounding_box import BoundingBox
 from .polygon_domain import circle_crossings
-from .segments import point_segment_foot
+from .boundary import nearest_boundary_point
 
 EDGE_NAMES = ("left", "right", "bottom", "top")
 
@@ -100,10 +100,7 @@ class Rectangle(BoundingBox):
         """The boundary point nearest `point`, and True: every edge is the outline's (no holes).
         A needle leaving through the far side of a thin slab and coming back in crosses it
         as it would a wound's wall (needle.wound_crossings asks for the wall)."""
-        x = np.asarray(point, dtype=float)
-        starts, ends = (np.array(ends) for ends in zip(*self.boundary_segments()))
-        nearest = point_segment_foot(x[None], starts, ends)  # (edges, 2)
-        return nearest[int(np.argmin(np.linalg.norm(nearest - x, axis=1)))], True
+        return nearest_boundary_point(self, point)[0], True
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Distance (...,) of points to the boundary."""

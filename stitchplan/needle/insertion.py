@@ -29,7 +29,7 @@ from .steering import CenterAim
 from .tip_tracking import entry_ahead, locate_exit, track_step
 from .wound_crossings import (Crossing, ahead_after, crossed_back, crossing_made, crossings_record, left_for_good,
                               left_into_uncrossed_gap, log_crossing, point_text, reentry, stayed_on_near_side,
-                              stitch_bites, wound_walls_crossed)
+                              stitch_bites)
 
 log = logging.getLogger(__name__)
 
@@ -405,7 +405,7 @@ def _result(insertion: NeedleInsertion, entry_center: np.ndarray, steps: list[Ne
                        "needle_residual_tolerance": insertion.newton_tolerances[0],
                        "needle_constraint_tolerance": insertion.newton_tolerances[1]},
         crossings=crossings,
-        bites=stitch_bites(insertion, crossings) if wound_walls_crossed(insertion.geometry, crossings) else None,
+        bites=stitch_bites(insertion, crossings),
         states=states,
     )
     log.info("the tip left the tissue at needle rotation %.3f rad: exit error %.4g mm",

@@ -199,12 +199,13 @@ def wound_walls_crossed(geometry: NeedleGeometry, crossings: list[dict]) -> list
             if k in walls and crossing["achieved"] is not None]
 
 
-def stitch_bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
+def stitch_bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict | None:
     """The stitch's bites across a wound: on the entry side the deformed distance from the
     needle's entry to the wound edge (a cut's: the end of the wall the tip left through nearest
     the entry, its lip on the surface; a hole's, which reaches no surface: the point of its wall
     the tip left through), on the exit side from the final exit to the edge of the wall it came
-    back in through; and their difference (the symmetry surgeons look for).
+    back in through; and their difference (the symmetry surgeons look for). None where the tip
+    crossed no wound's walls.
 
     A wall crossing's achieved point is the tip's material point, which need not lie on the
     wall: the visibility criterion makes u jump within hundredths of a mm of a hole's wall
@@ -232,6 +233,8 @@ def stitch_bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict:
     # the walls of the wounds the tip crossed (a wound it missed has none; a gap that is the
     # outside beyond the tissue's far side is no wound)
     walls = wound_walls_crossed(geometry, crossings)
+    if not walls:  # no bites
+        return None
     first_wall, last_wall = walls[0], walls[-1]
     entry, final_exit = geometry.entry, crossings[-1]["achieved"]
     points = np.vstack([entry, edge_near(first_wall, entry), final_exit, edge_near(last_wall, final_exit)])
