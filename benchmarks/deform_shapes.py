@@ -101,7 +101,7 @@ CURVED = {"circular_inclusion": 0, "circular_hole": 0, "notched_outline": 4}
 REFERENCE_H = 0.25  # mm, skfem element side (Q2 plus grading at the corners; P2 triangles where curved)
 REFINEMENTS = (1, 2, 4)  # spacing = default / r
 # one level further for these scenes (a note under the table, with the error of every probe at
-# the last two levels): the notched outline's second rate is one probe's pre-asymptotic step
+# the last two levels): the notched outline, whose probes the reference's own change bounds there
 FURTHER = {"notched_outline": 8}
 
 

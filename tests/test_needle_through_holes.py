@@ -308,20 +308,28 @@ def test_a_far_wall_whose_displacement_jumps_across_the_needle_stops_the_run_nam
 
 
 def test_a_track_point_tracked_into_a_hole_fails_its_step_by_name():
-    """A soft slab whose hole's wall bulges round the tip: the tip crosses back through the
-    wall it left, and the track's next segment reaches 0.01 mm into the hole at rest, where no
-    particle's kernel reaches. The step stops naming itself, the point and why (it used to end
-    in the shape functions' 'covered by 0 particles ... refine the spacing', no step named)."""
-    raw = {"tissue": {"size": [100.0, 40.0], "thickness": 10.0, "clamped": ["right"],
-                      "material": {"model": "neo-hookean", "lame_lambda": 0.38, "lame_mu": 0.3},
-                      "holes": [{"circle": {"center": [50.0, 30.0], "radius": 2.5}}]},
-           "discretization": {"spacing": 2.0, "needle_refinement": 2},
-           "needle": {"radius": 8.3, "entry": [43.0, 40.0], "turn": "ccw", "step": 0.14, "friction": 0.06,
-                      "cutting_force": 0.7}}
+    """A track point that no particle's kernel covers (a tip tracked past a wall the deformed
+    tissue had moved, into a hole at rest) fails its step naming the step, the point, how far
+    outside the tissue it lies and why; it used to end in the shape functions' 'covered by 0
+    particles ... refine the spacing', no step named. (A soft slab whose round hole's wall
+    bulged round the tip reached this; with the hole tested only for pairs that can reach
+    across it, points just inside it are covered and that slab fails later, naming the wall
+    the tip came back through.)"""
+    from stitchplan.needle.insertion import _add_point
+    from stitchplan.tissue.shape_functions import SingularMomentAt
+
+    domain = PolygonDomain.rectangle((100.0, 40.0), (circle_polygon([50.0, 30.0], 2.5),))
+    inside = np.array([50.53, 32.43])  # 0.0115 mm inside the hole's wall
+
+    def add_point(point, **options):
+        raise SingularMomentAt("moment matrix M(X) is singular at (50.53, 32.43) mm: covered by 0 particles",
+                               inside)
+
+    insertion = SimpleNamespace(domain=domain, add_point=add_point)
     with pytest.raises(InsertionFailure, match=r"^step 11 \(needle rotation 1\.540 rad\): the needle's track "
-                                               r"reaches \[50\.5\d, 32\.4\d\], 0\.01\d\d mm outside the tissue at "
+                                               r"reaches \[50\.53, 32\.43\], 0\.01\d\d mm outside the tissue at "
                                                r"rest \(in a hole or a gap\), where no particle's kernel reaches"):
-        run_insertion(parse_scenario(raw))
+        _add_point(insertion, 11, 1.54, inside)
 
 
 # --- equal bites through a hole ---------------------------------------------------------------

@@ -34,6 +34,39 @@ def turns(loop: np.ndarray) -> np.ndarray:
     return np.arctan2(before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0], np.sum(before * after, axis=1))
 
 
+def round_width(loop: np.ndarray) -> float | None:
+    """The least width of a convex counter-clockwise polygon (k, 2) without corners (a
+    circle's, a traced round contour's: every vertex turning left by less than CORNER_TURN),
+    the least over its edges of the farthest vertex's distance from the edge's line; None for
+    any other polygon."""
+    turn = turns(loop)
+    if np.any(turn < -1e-9) or np.any(turn >= CORNER_TURN):
+        return None
+    along = np.roll(loop, -1, axis=0) - loop
+    normals = np.stack([-along[:, 1], along[:, 0]], axis=1) / np.linalg.norm(along, axis=1)[:, None]
+    heights = np.einsum("ekd,ed->ek", loop[None, :, :] - loop[:, None, :], normals)  # (edge, vertex)
+    return float(heights.max(axis=1).min())
+
+
+def segments_enter_convex(starts: np.ndarray, ends: np.ndarray, loop: np.ndarray, tol: float) -> np.ndarray:
+    """Mask (n,) of the segments starts-ends (n, 2) that pass through the interior of the
+    convex counter-clockwise polygon `loop` (k, 2) shrunk by `tol` (touching or grazing its
+    boundary is not entering): the parameter range inside every edge's half-plane
+    (Cyrus-Beck clipping) is not empty."""
+    along = np.roll(loop, -1, axis=0) - loop
+    outward = np.stack([along[:, 1], -along[:, 0]], axis=1) / np.linalg.norm(along, axis=1)[:, None]
+    limit = np.einsum("kd,kd->k", outward, loop) - tol  # n . x <= limit inside
+    direction = ends - starts
+    room = limit[None, :] - starts @ outward.T  # (n, k): n . (x(t) - start) <= room
+    rate = direction @ outward.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = room / rate
+    low = np.max(np.where(rate < 0.0, bound, 0.0), axis=1, initial=0.0)
+    high = np.min(np.where(rate > 0.0, bound, 1.0), axis=1, initial=1.0)
+    parallel_outside = np.any((rate == 0.0) & (room < 0.0), axis=1)
+    return (low < high) & ~parallel_outside
+
+
 def polygon_problem(vertices: np.ndarray, tol: float) -> str | None:
     """Why `vertices` (k, 2) is not a simple polygon (None when it is): fewer than three
     vertices, a repeated vertex, no area, or two edges that cross or touch."""

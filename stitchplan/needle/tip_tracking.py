@@ -423,7 +423,7 @@ def _wall_point(insertion: NeedleInsertion, start: np.ndarray, end: np.ndarray, 
     """The point X of the boundary chord start-end (at rest) whose position X + u(X) lies on
     the needle's circle, and the needle rotation there: Brent's method along the chord on
     |X + u(X) - O| - R, which differs in sign at its ends. Where u jumps along the wall (the
-    visibility criterion at a round hole's vertices) the zero found may be the jump: the chord
+    visibility criterion at a hole's vertices) the zero found may be the jump: the chord
     is then cut into WALL_REFINEMENT pieces, and of the zeros that X + u(X) meets within
     MATERIAL_POINT_TOLERANCE local particle spacings the first in needle order from `earliest`
     is taken; a TipTrackingJump when there is none (the deformed wall jumps across the circle)."""

@@ -124,11 +124,9 @@ def _mean_square_neighbours(domain, points: np.ndarray, particles: np.ndarray, s
 
     sample = points[::max(len(points) // CROWDING_SAMPLE, 1)]
     rows, cols, _ = neighbour_pairs(sample, particles, support)
-    if isinstance(domain, PolygonDomain) and not domain.convex:
-        clearance = np.zeros(len(particles))  # only the sampled pairs' particles: 0 tests a pair
-        seen = np.unique(cols)
-        clearance[seen] = domain.distance(particles[seen])
-        rows = rows[Visibility(domain, clearance).keep(sample, particles, rows, cols)]
+    visibility = Visibility.of(domain, particles, tested=np.unique(cols))  # the sampled pairs' particles
+    if visibility is not None:
+        rows = rows[visibility.keep(sample, particles, rows, cols)]
     counts = np.bincount(rows, minlength=len(sample)).astype(float)
     return float(np.mean(counts ** 2)) if len(sample) else 0.0
 

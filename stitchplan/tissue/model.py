@@ -291,8 +291,7 @@ class ParticleFunctions:
     def of(cls, particles: np.ndarray, support: np.ndarray, volumes: np.ndarray, order: int,
            domain: Rectangle | PolygonDomain) -> ParticleFunctions:
         search = ParticleSearch.of(particles, support)
-        visibility = (Visibility.of(domain, particles)
-                      if isinstance(domain, PolygonDomain) and not domain.convex else None)
+        visibility = Visibility.of(domain, particles)
         return cls(particles, support, volumes, order, search, visibility)
 
     def at(self, points: np.ndarray, gradients: bool = False) -> ShapeFunctions:

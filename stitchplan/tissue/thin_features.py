@@ -4,8 +4,8 @@ outline at a shallow angle.
 
 A strip under about half a particle spacing thick holds particles on its two walls only,
 and fewer still where the particles of one wall merge into the other's
-(shapes.fit_particles); a point near a hole's wall sees (visibility) few of the wall's own
-particles. The particles a point inside the strip sees then lie nearly on one line: its RK
+(shapes.fit_particles); a point near a hole's wall may see (visibility) few of the wall's
+own particles. The particles a point inside the strip sees then lie nearly on one line: its RK
 moment matrix M(X) is singular, or nearly so and the results far off (the measurements at
 THIN_TISSUE). The check looks at the geometry and the graded lattice before any particle is
 fitted or shape function built (model.shaped_discretization), so every command that builds
@@ -390,23 +390,6 @@ def _corner_message(tissue: Tissue, spot: ThinSpot, outline: str) -> str:
             "widen it")
 
 
-def _beside_a_hole(tissue: Tissue, point: np.ndarray, local_spacing: float, dilation: float) -> str:
-    """What to add to a singular moment matrix's line met within a tenth of the spacing of a
-    hole's wall: straight lines from there to the wall's particles pass through the hole (a
-    circle's polygon bulges toward the tissue between its vertices), so the visibility
-    criterion hides them and those left may lie on a line, at some spacings and not at others
-    (the plate with a circular hole of benchmarks/deform_shapes.py at 0.45 and 0.55 mm, not at
-    0.44 or 0.46); a wider kernel reaches past them, a finer spacing need not."""
-    wall, on_outline = tissue.domain.nearest_boundary_point(point)
-    off = float(np.linalg.norm(np.asarray(point, dtype=float) - wall))
-    field = None if on_outline else wall_field(tissue, wall)
-    if field is None or off > 0.1 * local_spacing:
-        return ""
-    return (f"; it lies {off:.2g} mm from the wall of tissue.{field}, and the straight lines from it to the wall's "
-            f"particles pass through the hole, which hides them: a larger discretization.dilation (e.g. "
-            f"{dilation + 0.5:g}) or a slightly different spacing helps there, a finer spacing need not")
-
-
 def singular_moment_message(tissue: Tissue, discretization, local_spacing: float, error) -> str:
     """The build's line for a singular RK moment matrix (a SingularMomentMatrix `error`, with
     the `point` it was met at where it has one; `local_spacing` there, mm): where the tissue
@@ -421,7 +404,7 @@ def singular_moment_message(tissue: Tissue, discretization, local_spacing: float
         return described
     width, one, other = chord_through(tissue.domain, point)
     if not width < THIN_TISSUE * local_spacing:
-        return described + _beside_a_hole(tissue, point, local_spacing, discretization.dilation)
+        return described
     spot = ThinSpot(one, other, width, local_spacing)
     corner = _wedge_corner(tissue, point, local_spacing)
     if corner is not None:
