@@ -629,6 +629,39 @@ def test_a_command_whose_standard_output_is_full_writes_no_file(tmp_path, scene)
     assert snapshot(tmp_path) == before
 
 
+def test_a_command_renaming_into_a_folder_another_is_renaming_into_waits_for_it(tmp_path, scene):
+    """Two commands writing the same outputs rename, keep or undo them one after the other
+    (files.FolderLocks on the outputs' folders), so each set lands whole: between one's renames
+    the other's used to land, a mixed set, and one undoing its renames put the old files back
+    over the other's. While another process holds the folder the command has its temporaries
+    written and renames nothing; once it is released the whole set lands."""
+    import time
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "probes.csv").write_text("earlier\n")
+    locks = files.FolderLocks.waiting([out])  # as another command renaming into `out` would hold it
+    try:
+        process = subprocess.Popen([sys.executable, "-m", "stitchplan", "deform", str(scene), "--probes-out",
+                                    str(out / "probes.csv"), "--summary", str(out / "summary.json")],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                   env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+        while len(list(out.glob(".*.tmp"))) < 2 and process.poll() is None:
+            time.sleep(0.05)
+        for _ in range(100):  # the command's remaining work is short: it would have renamed by now
+            if process.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert process.poll() is None, process.stderr.read()
+        assert (out / "probes.csv").read_text() == "earlier\n" and not (out / "summary.json").exists()
+    finally:
+        locks.release()
+    stdout, stderr = process.communicate(timeout=600)
+    assert process.returncode == 0, stderr
+    assert sorted(p.name for p in out.iterdir()) == ["probes.csv", "summary.json"]
+    assert (out / "probes.csv").read_text() != "earlier\n"
+
+
 @pytest.mark.parametrize("how", ["the file itself", "a link to /dev/stdout"])
 def test_the_file_standard_output_goes_to_is_refused_as_an_output(tmp_path, scene, how):
     """`--summary s.json > s.json`, or a link to /dev/stdout with standard output redirected to

@@ -26,21 +26,28 @@ class DeferredOutputs:
     def __init__(self):
         self.pending: list[Any] = []  # io.files._Staged
         self.renamed = None  # io.files.Renamed, committed but not yet kept
-        self._commit_all: Callable[[list[Any]], Any] | None = None
+        self._commit_all: Callable[..., Any] | None = None
+        self._lock_all: Callable[[list[Any]], Any] | None = None
         self.ignored: dict[int, Any] = {}  # the interrupts' handlers before keep() ignored them
 
-    def add(self, staged: Any, commit_all: Callable[[list[Any]], Any]) -> None:
-        """Hold a staged set until `commit()`, which renames the held sets by `commit_all`
-        (io.files.commit_staged: this module stays free of the writers' imports)."""
+    def add(self, staged: Any, commit_all: Callable[..., Any], lock_all: Callable[[list[Any]], Any]) -> None:
+        """Hold a staged set until `commit()`, which locks the held sets' folders by
+        `lock_all` and renames them by `commit_all` (io.files.lock_staged, commit_staged:
+        this module stays free of the writers' imports)."""
         self.pending.append(staged)
-        self._commit_all = commit_all
+        self._commit_all, self._lock_all = commit_all, lock_all
 
     def commit(self) -> None:
         if self.pending:
+            locks = self._lock_all(self.pending)  # before the interrupts wait: another command may hold them
             # an interrupt waits for the renames and their record, then undoes them all: between
             # two renames it left one output replaced, the others not, and backups beside them
-            with signals_deferred():
-                self.renamed = self._commit_all(self.pending)
+            try:
+                with signals_deferred():
+                    self.renamed = self._commit_all(self.pending, locks)
+            except BaseException:
+                locks.release()
+                raise
 
     def keep(self) -> None:
         """Make the renames final. An interrupt from here on, until the process exits, is

@@ -13,7 +13,8 @@ InputError line naming the file (exit 2).
 
 Within a command (io/commits.py, cli.group.exit_code) the renames wait until the command has
 returned and its lines have reached standard output: a command that then fails (standard
-output full or closed) leaves no file either.
+output full or closed) leaves no file either. Two commands writing into the same folders
+rename, keep or undo their sets one after the other (FolderLocks), so each set lands whole.
 
 The writers below write to the path they are given: inside `staged()`, a temporary. (A
 script writing one file the same way: `with OutputSet({"out": path}).staged() as files:
@@ -35,6 +36,7 @@ import re
 import shutil
 import stat
 import tempfile
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -125,21 +127,77 @@ class OutputSet:
         if deferred is None:
             staged.commit()
         else:
-            deferred.add(staged, commit_staged)
+            deferred.add(staged, commit_staged, lock_staged)
 
 
-def commit_staged(pending: list[_Staged]) -> Renamed:
+def lock_staged(pending: list[_Staged]) -> FolderLocks:
+    """The folders every staged set renames into, locked (FolderLocks.waiting)."""
+    return FolderLocks.waiting([target.parent for staged in pending for target in staged.targets.values()])
+
+
+def commit_staged(pending: list[_Staged], locks: FolderLocks | None = None) -> Renamed:
     """Rename the temporaries of every staged set onto their targets, all or none; the
-    replaced files' backups are kept until the Renamed is kept or undone."""
+    replaced files' backups are kept until the Renamed is kept or undone, and `locks`
+    (lock_staged's) held until then."""
     temporaries, targets, paths = {}, {}, {}
     for staged in pending:
         for label, temporary in staged.temporaries.items():
             key = label if label not in temporaries else f"{label} ({len(temporaries)})"
             temporaries[key], targets[key], paths[key] = temporary, staged.targets[label], staged.paths[label]
-    renamed = _rename_all(temporaries, targets, paths)
+    renamed = _rename_all(temporaries, targets, paths, locks)
     for staged in pending:
         staged.temporaries = {}
     return renamed
+
+
+LOCK_POLL_SECONDS = 0.02  # between tries for a folder another command is renaming into
+
+
+class FolderLocks:
+    """Exclusive flock(2) locks on folders outputs are renamed into, taken in path order and
+    held from the renames until they are kept or undone. Two commands writing the same
+    outputs used to interleave: one's renames between the other's left a mixed set, and one
+    undoing its renames (its standard output closed) put back files over the other's, which
+    had reported them written. A folder that cannot be opened (or a system without flock)
+    goes unlocked."""
+
+    def __init__(self, handles: list[int]):
+        self.handles = handles
+
+    @classmethod
+    def waiting(cls, folders: Sequence[Path]) -> FolderLocks:
+        """Lock `folders`, waiting while another process holds one; the wait polls, so an
+        interrupt ends it (nothing renamed yet)."""
+        try:
+            import fcntl
+        except ImportError:  # not a POSIX system
+            return cls([])
+        locks = cls([])
+        try:
+            for folder in sorted({str(folder) for folder in folders}):
+                try:
+                    handle = os.open(folder, os.O_RDONLY)
+                except OSError:
+                    continue
+                locks.handles.append(handle)
+                while True:
+                    try:
+                        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                        break
+                    except BlockingIOError:
+                        time.sleep(LOCK_POLL_SECONDS)
+                    except OSError:  # a file system without locks
+                        break
+        except BaseException:
+            locks.release()
+            raise
+        return locks
+
+    def release(self) -> None:
+        for handle in self.handles:
+            with contextlib.suppress(OSError):
+                os.close(handle)  # closing the last descriptor releases the lock
+        self.handles = []
 
 
 class _Staged:
@@ -152,8 +210,9 @@ class _Staged:
 
     def commit(self) -> None:
         try:
+            locks = FolderLocks.waiting([target.parent for target in self.targets.values()])
             with signals_deferred():  # an interrupt between two renames: some files replaced, backups left
-                _rename_all(self.temporaries, self.targets, self.paths).keep()
+                _rename_all(self.temporaries, self.targets, self.paths, locks).keep()
         except BaseException:
             self.discard()
             raise
@@ -303,16 +362,19 @@ class Renamed:
     """Temporaries renamed onto their targets, with backups of what they replaced: `keep()`
     drops the backups, `undo()` puts them back and removes what the renames created."""
 
-    def __init__(self, targets: dict[str, Path]):
+    def __init__(self, targets: dict[str, Path], locks: FolderLocks | None = None):
         self.targets = targets
         self.backups: dict[str, Path] = {}
         self.labels: list[str] = []  # renamed, in order
+        self.locks = locks  # on the targets' folders, released once kept or undone
 
     def keep(self) -> None:
         for backup in self.backups.values():
             with contextlib.suppress(OSError):
                 os.unlink(backup)
         self.backups, self.labels = {}, []
+        if self.locks is not None:
+            self.locks.release()
 
     def undo(self) -> None:
         for done in reversed(self.labels):
@@ -324,10 +386,11 @@ class Renamed:
         self.keep()
 
 
-def _rename_all(temporaries: dict[str, Path], targets: dict[str, Path], paths: dict[str, Path]) -> Renamed:
+def _rename_all(temporaries: dict[str, Path], targets: dict[str, Path], paths: dict[str, Path],
+                locks: FolderLocks | None = None) -> Renamed:
     """Rename each temporary onto its target, keeping a backup (hard-linked or copied) of
-    each file replaced; if one fails, undo the earlier ones."""
-    renamed = Renamed(targets)
+    each file replaced; if one fails, undo the earlier ones (and release `locks`)."""
+    renamed = Renamed(targets, locks)
     label = ""
     try:
         for label, temporary in temporaries.items():
