@@ -265,6 +265,32 @@ with Executor(workers=1) as executor:
 """
 
 
+WORKER_SIGNALS = """
+from stitchplan.parallel.executor import Executor
+
+def masks():
+    with open("/proc/self/status") as status:
+        fields = dict(line.split(":\\t", 1) for line in status)
+    return int(fields["SigBlk"], 16), int(fields["SigIgn"], 16)
+
+with Executor(workers=1) as executor:
+    print(*executor.client.submit(masks, pure=False).result())
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the workers' signal masks in /proc")
+def test_a_local_clusters_workers_start_with_ctrl_c_blocked():
+    """The terminal's Ctrl-C reaches every process of the group: a local cluster's workers
+    still importing printed a KeyboardInterrupt traceback each (they ignore it once up). They
+    start with SIGINT blocked (inherited from the threads that spawn them) and keep it so."""
+    run = subprocess.run([sys.executable, "-c", WORKER_SIGNALS], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    assert run.returncode == 0, run.stderr
+    blocked, ignored = map(int, run.stdout.split())
+    sigint = 1 << (signal.SIGINT - 1)
+    assert blocked & sigint and ignored & sigint
+
+
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the tracker's signal masks in /proc")
 def test_a_hangup_does_not_stop_the_local_clusters_resource_tracker():
     """SIGHUP to the process group (the terminal closed) killed multiprocessing's resource

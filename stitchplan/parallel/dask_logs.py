@@ -48,7 +48,9 @@ def dask_setup(worker: Any) -> None:
     scheduler that has closed first fails; a task's own failure reaches the client anyway.
     A worker process (one its nanny started) ignores Ctrl-C: the terminal sends SIGINT to the
     whole process group, and the worker would end in a traceback of asyncio's CancelledError
-    and KeyboardInterrupt while the command, which closes the cluster, stops it anyway.
+    and KeyboardInterrupt while the command, which closes the cluster, stops it anyway. (Until
+    here, while it imports, it has SIGINT blocked from its start: executor's
+    _workers_deaf_to_ctrl_c.)
     Its allocator is set as the command's before it starts, by the environment its nanny
     gives it (stitchplan/allocator.py, worker_environment)."""
     import multiprocessing

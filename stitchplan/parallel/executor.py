@@ -110,7 +110,8 @@ class Executor:
         try:
             # no dashboard; the scheduler's HTTP routes (health, metrics) on a free local port, not
             # on 8787, where another cluster would make distributed warn on stderr
-            with signals_deferred(), dask.config.set({"distributed.nanny.pre-spawn-environ": spawned}):
+            with signals_deferred(), dask.config.set({"distributed.nanny.pre-spawn-environ": spawned}), \
+                    _workers_deaf_to_ctrl_c():
                 _start_resource_tracker_deaf_to_hangups()
                 # a cluster interrupted half-started cannot be closed (signals_deferred)
                 cluster = self._stack.enter_context(LocalCluster(
@@ -277,6 +278,23 @@ def _open_file_limit() -> int | None:
         return None
     soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
     return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
+@contextlib.contextmanager
+def _workers_deaf_to_ctrl_c():
+    """SIGINT blocked in this thread while a local cluster starts: the threads distributed
+    starts then (its event loop's, the ones that spawn the workers) keep the mask, and the
+    worker processes too, across their exec. A worker ignores Ctrl-C once it is up (its
+    preload, dask_logs.dask_setup), but the terminal's SIGINT to the process group reached
+    the workers still importing, each printing a KeyboardInterrupt traceback. This thread's
+    interrupt is delivered when the block ends (into signals_deferred's hands)."""
+    import signal
+
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _start_resource_tracker_deaf_to_hangups() -> None:
