@@ -980,3 +980,165 @@ def test_a_setting_refused_for_several_runs_is_said_once():
              "the study's default reference spacing: got 250 mm, expected ...",
              "needle.step: got 1e-05 rad, expected a step giving at most 2000 needle steps"]
     assert _one_per_field(lines) == [lines[0], lines[2], lines[3]]
+
+
+# --- the calibrations' measured data: markers and recording rows ------------------------------
+
+# peak RSS of `calibrate material` (/usr/bin/time -f %M, MiB) on the sample calibration with its
+# first experiment's markers sampled at 1e4 to 1e6 points of the same experiment (its second's 20
+# kept), dilation 2; before, the fit
+# kept every evaluation's residual, Jacobian and simulated markers, which the guard did not count
+# (230, 521 and 1246 MiB; 3610 MiB at 1e6)
+MEASURED_MARKER_PEAKS = [(10_000, 179.9), (100_000, 315.7), (300_000, 553.7), (1_000_000, 1329.4)]
+
+
+def sample_calibration(markers: int):
+    """The sample calibration with `markers` markers in its first experiment (the guard reads
+    only their count)."""
+    from stitchplan.calibration import load_material_calibration
+
+    problem = load_material_calibration(REPOSITORY / "sample_runs" / "calibration" / "calibration.yaml")
+    first = replace(problem.experiments[0], markers=np.zeros((markers, 2)), measured=np.zeros((markers, 2)))
+    return replace(problem, experiments=(first, *problem.experiments[1:]))
+
+
+def guarded_calibration(monkeypatch, markers: int, memory: float = LARGE_MEMORY) -> dict:
+    """What guard_calibration hands check_resources for the sample calibration with `markers`
+    markers in its first experiment: the estimates, those held beside them and the markers."""
+    from stitchplan.cli.options import guard_calibration
+    from stitchplan.resources import guard
+
+    original, seen = guard.check_resources, {}
+
+    def recorded(estimates, limits, **options):
+        seen.update(options, estimates=list(estimates))
+        return original(estimates, limits, **options)
+
+    monkeypatch.setattr(guard, "check_resources", recorded)
+    monkeypatch.setattr(guard, "available_memory", lambda: memory)
+    monkeypatch.setattr(guard, "address_space", lambda: None)
+    path = REPOSITORY / "sample_runs" / "calibration" / "calibration.yaml"
+    guard_calibration(path, sample_calibration(markers), Limits())
+    return seen
+
+
+@pytest.mark.parametrize("markers, peak", MEASURED_MARKER_PEAKS)
+def test_a_calibrations_estimate_counts_its_markers(monkeypatch, markers, peak):
+    """calibrate material with a million markers peaked at 3.8 GB (1.4 GB since the fit keeps
+    only the evaluations it asks for again) where the guard estimated ~193 MB, its experiments'
+    models alone: it now counts each marker (costs.marker_bytes), and the estimate bounds each
+    measured peak by 1.11-1.35x, growing with the markers (twice the markers, twice their memory)."""
+    from stitchplan.resources.costs import held_in_one_process, marker_bytes
+
+    seen = guarded_calibration(monkeypatch, markers)
+    data = seen["data"]
+    assert (data.count, data.total, data.unit) == (markers, markers + 20, "markers")
+    assert data.name.startswith("experiments[0].markers: ") and data.name.endswith("markers1.csv")
+    assert data.memory_bytes == pytest.approx((markers + 20) * marker_bytes(16.0))
+    models = held_in_one_process([item.memory_bytes for item in [*seen["estimates"], *seen["beside"]]])
+    assert 1.0 <= (models + data.memory_bytes) / (peak * 2**20) <= 1.4, (models, data.describe())
+    double = guarded_calibration(monkeypatch, 2 * markers)["data"]
+    assert double.memory_bytes == pytest.approx(data.memory_bytes * (2 * markers + 20) / (markers + 20))
+
+
+def test_markers_past_the_memory_are_refused_naming_the_marker_file(monkeypatch):
+    """The sample calibration's models (~194 MB with its discretization estimate's) fit half of
+    a memory leaving 5 MB beside them, its first experiment's 10 000 markers (~17 MB) do not: one
+    line naming the marker file, the markers got and how many fit."""
+    from stitchplan.resources.costs import held_in_one_process
+
+    seen = guarded_calibration(monkeypatch, 20)
+    memory = 2 * (held_in_one_process([item.memory_bytes for item in [*seen["estimates"], *seen["beside"]]]) + 5e6)
+    with pytest.raises(InputError) as error:
+        guarded_calibration(monkeypatch, 10_000, memory=memory)
+    (line,) = error.value.lines
+    calibration = REPOSITORY / "sample_runs" / "calibration"
+    assert line.startswith(f"{calibration / 'calibration.yaml'}: experiments[0].markers: "
+                           f"{calibration / 'markers1.csv'}: got 10000 markers (10020 in all experiments), expected "
+                           "at most "), line
+    fits = int(line.split("expected at most ")[1].split()[0])
+    assert 0 < fits < 10_000
+    assert f"markers in all experiments within 50% of the {memory / 1e6:.3g} MB of memory available" in line
+    assert line.endswith("fit fewer markers (a subset of them), or pass --no-resource-check to run it anyway")
+    guarded_calibration(monkeypatch, fits - 20, memory=memory)  # as many as it says fit: no refusal
+
+
+def marker_calibration(folder: Path, markers: int) -> Path:
+    """A calibration of the sample's tissue and loads in `folder`, its first experiment with
+    `markers` markers (moved by 0.1 mm: the guard reads them before any fit)."""
+    rng = np.random.default_rng(3)
+    rest = np.column_stack([rng.uniform(2.0, 95.0, markers), rng.uniform(2.0, 58.0, markers)])
+    rows = ["x,y,x_def,y_def", *(f"{x:.6f},{y:.6f},{x + 0.1:.6f},{y:.6f}" for x, y in rest)]
+    (folder / "many.csv").write_text("\n".join(rows) + "\n")
+    sample = REPOSITORY / "sample_runs" / "calibration"
+    data = yaml.safe_load((sample / "calibration.yaml").read_text())
+    data["experiments"][0]["markers"] = "many.csv"
+    data["experiments"][1]["markers"] = str(sample / "markers2.csv")
+    path = folder / "calibration.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_calibrate_material_with_too_many_markers_is_refused_before_the_fit(monkeypatch, tmp_path):
+    """The command: one line, exit 2, and the existing --out file left as it was."""
+    path = marker_calibration(tmp_path, 5000)
+    out = tmp_path / "fitted.yaml"
+    out.write_text("kept\n")
+    invoke = guarded(monkeypatch, 2 * (BASE_MEMORY + 100e6 + 4e6), "stitchplan.calibration.fit_material")
+    monkeypatch.setattr("stitchplan.resources.guard.address_space", lambda: None)
+    code, lines, _ = invoke("calibrate", "material", path, "--out", out)
+    assert code == 2, lines
+    (line,) = lines
+    assert line.startswith(f"error: {path}: experiments[0].markers: {tmp_path / 'many.csv'}: got 5000 markers "
+                           "(5020 in all experiments), expected at most "), line
+    assert out.read_text() == "kept\n"
+
+
+def test_calibrate_needle_with_too_many_rows_is_refused_before_reading_them_all(monkeypatch, tmp_path):
+    """A needle recording of a million rows peaked at 399 MB with no guard (and the reading
+    alone held ~0.3 kB a row): the rows are now counted against the memory as they are read
+    (costs.MEMORY_PER_RECORDING_ROW), refused in one line naming the recording, exit 2, the
+    existing --out file left as it was; --no-resource-check reads them."""
+    from stitchplan.resources.costs import MEMORY_PER_RECORDING_ROW
+
+    sample = REPOSITORY / "sample_runs" / "calibration"
+    angles = np.linspace(0.0, 2.5, 3000)
+    tissue = tmp_path / "tissue.csv"
+    tissue.write_text("angle_rad,force_N\n" + "".join(f"{a:.6f},{1.0 + 0.6 * a:.6f}\n" for a in angles))
+    out = tmp_path / "needle.yaml"
+    out.write_text("kept\n")
+    monkeypatch.setattr("stitchplan.resources.guard.address_space", lambda: None)
+    invoke = guarded(monkeypatch, 2 * (BASE_MEMORY + 1000 * MEMORY_PER_RECORDING_ROW),
+                     "stitchplan.calibration.needle_fit.fit_needle")
+    command = ["calibrate", "needle", "--air", sample / "air.csv", "--tissue", tissue, "--radius", "8.88",
+               "--out", out]
+    code, lines, _ = invoke(*command)
+    assert code == 2, lines
+    (line,) = lines
+    assert line.startswith(f"error: --tissue: {tissue}: got 3000 rows, expected at most 842 beside --air's 158 "
+                           "(1000 in both recordings) within 50% of the "), line
+    assert line.endswith("record fewer rows (or average them), or pass --no-resource-check to run it anyway")
+    assert out.read_text() == "kept\n"
+    code, lines, error = invoke(*command, "--no-resource-check")
+    assert isinstance(error, AssertionError) and "past the guard" in str(error)  # read, then fitted
+
+
+def test_a_tables_rows_are_read_without_holding_their_lines(tmp_path):
+    """A million-row force recording took ~0.3 kB a row to read (every line kept as a string
+    until the last was parsed); a table now takes its text and its parsed columns (~0.07 kB a row
+    for this one's 24-byte rows)."""
+    import tracemalloc
+
+    from stitchplan.csv_tables import read_numeric_table
+
+    rows = 100_000
+    path = tmp_path / "table.csv"
+    path.write_text("angle_rad,force_N\n" + "".join(f"{k * 1e-5:.9f},{1.5:.9f}\n" for k in range(rows)))
+    tracemalloc.start()
+    try:
+        data, lines, _ = read_numeric_table(path, ("angle_rad", "force_N"), "a table")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(lines) == rows and lines[-1] == rows + 1 and data["force_N"][-1] == 1.5
+    assert peak / rows < 120, peak / rows

@@ -86,7 +86,11 @@ class MarkerMisfit:
         self.solver = problem.solver
         self.labels = [experiment_label(i, e.name) for i, e in enumerate(problem.experiments)]
         self.measured = np.concatenate([e.measured for e in problem.experiments])  # (n, 2)
+        # the evaluations asked for again: the latest (the least squares' Jacobian after its
+        # residual) and the point it last took a Jacobian at (`kept`: its solution, which the fit
+        # evaluates at the end); every evaluation kept took ~1.5 kB a marker over a fit's 76
         self._cache: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray | None, list]] = {}
+        self.kept: tuple[float, ...] | None = None
         self.evaluations: list[np.ndarray] = []
         self.particles = [e.model.n_particles for e in self.experiments]  # each experiment's model
 
@@ -114,6 +118,7 @@ class MarkerMisfit:
                      parameter_point(np.array(key), self.names), float(residual @ residual),
                      self.newton_iterations - iterations)
         derivative = -np.concatenate([dq for _, dq in predictions]).reshape(-1, len(key)) if jacobian else None
+        self._cache = {kept: entry for kept, entry in self._cache.items() if kept == self.kept}
         self._cache[key] = (residual, derivative, simulated)
         return self._cache[key]
 
@@ -279,6 +284,7 @@ def refine(misfit: MarkerMisfit, problem: MaterialCalibration, start: np.ndarray
             return np.full(count, penalty)
 
     def jacobian(theta: np.ndarray, *_: object) -> np.ndarray:
+        misfit.kept = tuple(float(v) for v in theta)  # an accepted point: the solution, if none follows
         try:
             return misfit.evaluate(theta, jacobian=True)[1]
         except ForwardFailure:  # the constant penalty residual there does not change
@@ -436,6 +442,11 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress,
                           and all(load.displacement is not None for e in problem.experiments for load in e.loads))
     warnings = fit_warnings(theta, stats, problem.fit, refinement, displacements_only)
     uncertainty = stats.uncertainty if identifiable else (None,) * len(theta)
+    counts = dict(path=np.array(misfit.evaluations[grid_evaluations:]).reshape(-1, len(theta)),
+                  forward_solves=misfit.solves, grid_solves=grid_solves, cold_starts=misfit.cold_starts,
+                  newton_iterations=misfit.newton_iterations, particles=misfit.particles,
+                  linear_solver_backends=misfit.backends)
+    del misfit  # its models and factors, before the estimate's at twice the spacing are built
     coarse = None
     if estimate:
         with progress("discretization estimate", None) as advance:
@@ -459,15 +470,9 @@ def fit_material(problem: MaterialCalibration, progress: Progress = no_progress,
         residuals=np.split(r.reshape(-1, 2), sizes),
         simulated=simulated,
         grid=grid,
-        path=np.array(misfit.evaluations[grid_evaluations:]).reshape(-1, len(theta)),
         cost=float(r @ r),
         optimizer=refinement.optimizer,
-        forward_solves=misfit.solves,
-        grid_solves=grid_solves,
-        cold_starts=misfit.cold_starts,
-        newton_iterations=misfit.newton_iterations,
-        particles=misfit.particles,
-        linear_solver_backends=misfit.backends,
+        **counts,
         wall_seconds=time.perf_counter() - start,
         warnings=warnings,
         parameters=np.array(theta, dtype=float),

@@ -191,11 +191,13 @@ def needle_warnings(air_angle: np.ndarray, tissue_angle: np.ndarray, tissue_fit:
     return warnings
 
 
-def read_force_recording(path: str | Path, label: str) -> tuple[np.ndarray, np.ndarray, str]:
+def read_force_recording(path: str | Path, label: str, max_rows: int | None = None,
+                         rows_note: str = "") -> tuple[np.ndarray, np.ndarray, str]:
     """angle_rad, force_N of a recording and the SHA-256 of the bytes read; at least
-    MIN_FORCE_SAMPLES rows, angles strictly increasing over at least MIN_ANGLE_SPAN rad."""
+    MIN_FORCE_SAMPLES rows, angles strictly increasing over at least MIN_ANGLE_SPAN rad, at
+    most `max_rows` (read_numeric_table's)."""
     data, lines, digest = read_numeric_table(path, FORCE_COLUMNS, "a force recording over the needle angle",
-                                             exact=True, label=label)
+                                             exact=True, label=label, max_rows=max_rows, rows_note=rows_note)
     angle, force = data["angle_rad"], data["force_N"]
     beyond = np.flatnonzero(np.abs(force) > MAX_FORCE_N)
     if len(beyond):
@@ -232,11 +234,15 @@ def _needle_radius(radius: object) -> float:
     return float(radius)
 
 
-def calibrate_needle(air: str | Path, tissue: str | Path, radius: float) -> NeedleFit:
-    """`stitchplan calibrate needle`: read both recordings, validate and fit."""
+def calibrate_needle(air: str | Path, tissue: str | Path, radius: float, max_rows: int | None = None,
+                     rows_note: str = "") -> NeedleFit:
+    """`stitchplan calibrate needle`: read both recordings, validate and fit; at most
+    `max_rows` rows in both (the resource guard's; `rows_note`: why)."""
     radius = _needle_radius(radius)
-    air_angle, air_force, air_digest = read_force_recording(air, "--air")
-    tissue_angle, tissue_force, tissue_digest = read_force_recording(tissue, "--tissue")
+    air_angle, air_force, air_digest = read_force_recording(air, "--air", max_rows, f" in both recordings{rows_note}")
+    left = None if max_rows is None else max_rows - len(air_angle)
+    tissue_angle, tissue_force, tissue_digest = read_force_recording(
+        tissue, "--tissue", left, f" beside --air's {len(air_angle)} ({max_rows} in both recordings){rows_note}")
     # a copy of the air recording under another name (the same file is refused by name before):
     # the fit subtracts it from itself and wrote friction and cutting force of ~1e-17
     if np.array_equal(air_angle, tissue_angle) and np.array_equal(air_force, tissue_force):

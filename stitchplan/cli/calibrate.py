@@ -12,7 +12,7 @@ from .group import calibrate_app
 from .options import (CalibrationDilationOption, CalibrationNoResourceCheckOption, CalibrationSpacingOption,
                       MaterialFitVerboseOption, MaxParticlesOption, NeedleFitVerboseOption, QuietOption,
                       check_command_outputs, command_line_argv, guard_calibration, guard_limits, named_file,
-                      naming_files, option_names, setup_logging)
+                      naming_files, option_names, recording_rows, setup_logging)
 
 
 @calibrate_app.command("material", short_help="Fit lame_lambda and lame_mu to marker displacements.")
@@ -68,6 +68,8 @@ def calibrate_needle(
     radius: float = typer.Option(..., "--radius", help="Needle radius, mm (0.05 to 1000)."),
     out: Path = typer.Option(..., "--out", help="YAML with friction, cutting_force and diagnostics."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="PNG of the recordings and the fit."),
+    no_resource_check: bool = typer.Option(
+        False, "--no-resource-check", help="Read recordings of more rows than the memory available holds."),
     verbose: int = NeedleFitVerboseOption,
     quiet: bool = QuietOption,
 ) -> None:
@@ -80,7 +82,8 @@ def calibrate_needle(
     from ..io.calibration_reports import needle_summary_line, write_needle_outputs
 
     resume_collection()
-    result = calibration.calibrate_needle(air, tissue, radius)
+    max_rows, rows_note = recording_rows(guard_limits(None, no_resource_check), plot is not None)
+    result = calibration.calibrate_needle(air, tissue, radius, max_rows, rows_note)
     write_needle_outputs(result, out, plot, command=command_line_argv())
     typer.echo(needle_summary_line(result))
 

@@ -348,7 +348,7 @@ def guard_limits(max_particles: Optional[int], no_resource_check: bool):
 def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] = None,
                linear_solver: Optional[str] = None, alongside: Optional[list] = None, forked: bool = True,
                workers: Optional[int] = None, condition_numbers: bool = False, in_one_process: bool = False,
-               beside: tuple = ()) -> None:
+               beside: tuple = (), data=None) -> None:
     """Refuse, before any heavy work, runs past the resource guard's limits; `runs` are
     (kind, scenario, label, count) with kind "deform" or "insertion", and optionally the
     resources.origin.Origin of the run's discretization (default: the file's, with the fields in
@@ -359,7 +359,8 @@ def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] 
     on in this many worker processes, none here (check_resources); `condition_numbers`: `runs`
     take each needle step's dense condition numbers (--condition-numbers; not their replays);
     `in_one_process`: `runs` are held at once in this process (check_resources), with `beside`
-    (runs of the same form counted in that memory only: check_resources).
+    (runs of the same form counted in that memory only: check_resources), and `data` (a
+    resources.costs.Data: a calibration's markers) held with them.
     Lines name the file, or the option."""
     if limits is None:
         return
@@ -374,7 +375,8 @@ def guard_runs(scenario_path: Path, limits, *runs: tuple, names: Optional[dict] 
 
     with naming_files(scenario_path):
         check_resources(estimates(runs, condition_numbers), limits, alongside=None if alongside is None else estimates(alongside),
-                        forked=forked, workers=workers, in_one_process=in_one_process, beside=estimates(beside))
+                        forked=forked, workers=workers, in_one_process=in_one_process, beside=estimates(beside),
+                        data=data)
 
 
 def estimate_run(scenario, label: str, skip: str, names: Optional[dict] = None) -> tuple:
@@ -399,9 +401,11 @@ def guard_calibration(calibration_path: Path, problem, limits, names: Optional[d
     (run once per forward evaluation of the fit: grid^2 + max_evaluations times), all of them
     held at once: each experiment keeps its model and tangent factor between evaluations.
     With `estimate`, also each experiment's model at twice the spacing (the discretization
-    estimate's least squares: up to max_evaluations more), held beside them."""
+    estimate's least squares: up to max_evaluations more), held beside them, and the fit's
+    markers (costs.marker_bytes each), named by the largest marker file."""
     from ..config import Scenario
     from ..errors import InputError
+    from ..resources.costs import Data, marker_bytes
 
     fit = problem.fit
 
@@ -415,9 +419,31 @@ def guard_calibration(calibration_path: Path, problem, limits, names: Optional[d
         with contextlib.suppress(InputError):  # a spacing no file may give: the estimate says so itself
             coarse = runs(problem.discretization.replaced(spacing=problem.estimate_spacing), " at twice the spacing",
                           fit.max_evaluations)
+    counts = [len(experiment.markers) for experiment in problem.experiments]
+    k = counts.index(max(counts))
+    neighbours = (2.0 * problem.discretization.dilation) ** 2  # per kernel support, as model_size counts them
+    markers = Data(f"experiments[{k}].markers: {problem.experiments[k].source}", counts[k], sum(counts), "markers",
+                   marker_bytes(neighbours), "in all experiments", "fit fewer markers (a subset of them)")
     guard_runs(calibration_path, limits, *runs(problem.discretization, "", fit.grid_points ** 2 + fit.max_evaluations),
-               names=names, in_one_process=True, beside=tuple(coarse))
+               names=names, in_one_process=True, beside=tuple(coarse), data=markers)
 
+
+def recording_rows(limits, plot: bool) -> tuple[Optional[int], str]:
+    """The rows calibrate needle may read in both recordings within the resource guard's
+    `limits` (None: no check), and why, as a refusal says it (None, "": no limit)."""
+    from ..resources.costs import BASE_MEMORY, MEMORY_PER_RECORDING_ROW, PLOT_MEMORY
+    from ..resources.formatting import bytes_text
+    from ..resources.guard import SKIP_GUARD, data_budget, items_within
+
+    held = BASE_MEMORY + (PLOT_MEMORY if plot else 0.0)
+    budget = None if limits is None else data_budget(held, limits)
+    if budget is None:
+        return None, ""
+    bytes_left, within = budget
+    what = "the interpreter and the --plot's figure" if plot else "the interpreter"
+    return items_within(MEMORY_PER_RECORDING_ROW, bytes_left), (
+        f" {within} (~{bytes_text(MEMORY_PER_RECORDING_ROW)} a row beside ~{bytes_text(held)} for {what}); record "
+        f"fewer rows (or average them), or {SKIP_GUARD}")
 
 def echo_notes(notes, quiet: bool) -> None:
     """A command's notes as `note:` lines on stderr (none with -q)."""

@@ -90,6 +90,52 @@ VERIFICATION_RUNS = 2
 # runs (run_insertion `start_from`). Two: within 2x of one and of four
 HELD_RUNS = 2
 
+# calibrate material: what the fit holds a marker beside its experiments' models: the shape
+# functions' rows at the markers twice (N(X_i) and its free columns, SPARSE_ENTRY_BYTES a
+# neighbour each: MARKER_ROWS), and the rest MARKER_BYTES (the markers read, the residual, its
+# Jacobian and the simulated positions of the evaluations the fit keeps, the least squares'
+# copies of them). Measured with /usr/bin/time -f %M on the sample calibration's first
+# experiment sampled at 1e4 to 1e6 markers (tests/test_resource_guard.py MEASURED_MARKER_PEAKS):
+# 1.2-1.4 kB a marker above the models' estimate at dilation 2 (within 1.11-1.35x of the
+# estimate), ~1.5 kB at dilation 3 (300 000 markers)
+MARKER_BYTES = 1.3e3
+MARKER_ROWS = 2.0
+# calibrate needle: a row of the force recordings, as read (the text, the parsed columns and
+# their line numbers) and fitted (the line fits' design matrices and residuals, the result's
+# columns), with the --plot's figure; measured as the markers, on the sample recording in tissue
+# sampled at 1e4 to 1e6 rows: 98 bytes a row, 123 with --plot (matplotlib's import: ~40 MB more;
+# the estimate 1.31-1.32x and 1.07x the peaks)
+MEMORY_PER_RECORDING_ROW = 130.0
+PLOT_MEMORY = 25e6  # beyond BASE_MEMORY, which the needle fit's interpreter stays ~20 MB below
+
+
+def marker_bytes(neighbours: float) -> float:
+    """Bytes a marker takes in calibrate material at `neighbours` particles per kernel support."""
+    return MARKER_BYTES + MARKER_ROWS * SPARSE_ENTRY_BYTES * neighbours
+
+
+@dataclass(frozen=True)
+class Data:
+    """Measured data whose memory grows with its items beside a command's models: a material
+    calibration's markers, a needle calibration's recording rows. A refusal names `name`, the
+    field and file of most of them."""
+
+    name: str  # e.g. "experiments[0].markers: markers1.csv", "--tissue: tissue.csv"
+    count: int  # that file's items
+    total: int  # every file's
+    unit: str  # "markers", "rows"
+    bytes_per_item: float
+    others: str = ""  # what `total` counts beside the file, e.g. "in all 2 experiments"
+    advice: str = ""  # how to take fewer
+
+    @property
+    def memory_bytes(self) -> float:
+        return self.bytes_per_item * self.total
+
+    def describe(self) -> str:
+        return (f"{self.total} {self.unit}{f' {self.others}' if self.others else ''}, ~{bytes_text(self.memory_bytes)} "
+                f"memory (~{bytes_text(self.bytes_per_item)} each)")
+
 
 @dataclass(frozen=True)
 class Estimate:

@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 from ..config import DEFAULT_NEEDLE_REFINEMENT
 from ..config.blocks import coarsest_spacing
 from ..errors import InputError
-from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Estimate,
+from .costs import (BASE_MEMORY, HELD_RUNS, REFERENCE_NEIGHBOURS, REFERENCE_POINTS_PER_PARTICLE, Data, Estimate,
                     condition_particles_within, held_at_once, held_in_one_process, size_scale)
 from .formatting import amount_text, bytes_text, count_text, duration_text
 from .limits import Limits
@@ -35,7 +35,7 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
                     memory: float | None = None, alongside: list[Estimate] | None = None,
                     forked: bool = True, workers: int | None = None,
                     space: tuple[float, float] | None = None, in_one_process: bool = False,
-                    beside: list[Estimate] = ()) -> None:
+                    beside: list[Estimate] = (), data: Data | None = None) -> None:
     """Refuse (InputError, one line per limit passed) runs beyond the limits; log the
     estimates otherwise. `memory`: bytes available (default: available_memory()).
 
@@ -61,7 +61,9 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
     process that count only in that memory, with no refusal line of their own (a calibration's
     discretization estimate, each experiment refitted at twice the spacing: smaller than the
     fit's models, whose lines name the same settings, and one too coarse for the tissue is not
-    made, the calibration recording its estimate as not made, rather than refusing the fit)."""
+    made, the calibration recording its estimate as not made, rather than refusing the fit).
+    `data`: measured data held with the runs of `in_one_process` (a calibration's markers),
+    refused naming its file where the runs would fit without it (_data_refusal)."""
     memory = available_memory() if memory is None else memory
     space = address_space() if space is None else space
     lines = []
@@ -107,6 +109,10 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             lines.append(_together_refusal(held_here, limits.memory_share, memory, total=total))
         elif space is not None and address_space_needed(space[1], total, BASE_MEMORY) > space[0]:
             lines.append(_address_space_refusal(largest, *space, beside=total - largest.memory_bytes))
+        elif data is not None:
+            budget = data_budget(total, limits, memory, space)
+            if budget is not None and data.memory_bytes > budget[0]:
+                lines.append(_data_refusal(data, total, *budget, "the experiments' models"))
     if lines:
         lines = _one_per_field(lines)
         error = InputError("\n".join(lines))
@@ -118,6 +124,42 @@ def check_resources(estimates: list[Estimate], limits: Limits = Limits(),
             log.warning("a long run: estimated %s; -v shows its progress", item.describe())
     for item in [*(alongside or []), *beside]:  # no longer than the runs they go with: no warning of their own
         log.info("resources: %s", item.describe())
+    if data is not None:
+        log.info("resources: %s", data.describe())
+
+
+def data_budget(held: float, limits: Limits, memory: float | None = None,
+                space: tuple[float, float] | None = None) -> tuple[float, str] | None:
+    """(bytes, the limit as a refusal says it) that measured data may take beside `held` bytes
+    (the interpreter's BASE_MEMORY included) within the memory share and the address-space
+    limit (defaults as check_resources's), the tighter of the two; None where neither is known."""
+    memory = available_memory() if memory is None else memory
+    space = address_space() if space is None else space
+    budgets = []
+    if memory is not None:
+        budgets.append((limits.memory_share * memory - held,
+                        f"within {limits.memory_share:.0%} of the {bytes_text(memory)} of memory available"))
+    if space is not None:
+        limit, mapped = space
+        budgets.append((memory_within_address_space(limit, mapped, BASE_MEMORY) - held,
+                        f"within the memory the process's address-space limit of {bytes_text(limit)} (ulimit -v "
+                        f"{limit / 1024:.0f}) leaves it"))
+    return min(budgets, key=lambda budget: budget[0], default=None)
+
+
+def items_within(bytes_per_item: float, budget: float) -> int:
+    """The items of `bytes_per_item` that `budget` bytes hold (none below zero)."""
+    return max(int(budget // bytes_per_item), 0)
+
+
+def _data_refusal(data: Data, held: float, budget: float, within: str, models: str) -> str:
+    """The line refusing data whose items take more than `budget` bytes beside the `held` bytes
+    of `models` (and the interpreter): the file, its items, and how many would fit."""
+    total = f" ({data.total} {data.others})" if data.total != data.count else ""
+    return (f"{data.name}: got {data.count} {data.unit}{total}, expected at most "
+            f"{items_within(data.bytes_per_item, budget)} {data.unit}{f' {data.others}' if data.others else ''} {within} (~"
+            f"{bytes_text(data.bytes_per_item)} each beside ~{bytes_text(held)} for {models}); {data.advice}, or "
+            f"{SKIP_GUARD}")
 
 
 def _one_per_field(lines: list[str]) -> list[str]:
