@@ -984,7 +984,8 @@ def test_a_setting_refused_for_several_runs_is_said_once():
 
 # --- the calibrations' measured data: markers and recording rows ------------------------------
 
-# peak RSS of `calibrate material` (/usr/bin/time -f %M, MiB) on the sample calibration with its
+# peak RSS of `calibrate material` (/usr/bin/time -f %M, MiB; benchmarks/calibration_memory.py
+# measures them again, in MB) on the sample calibration with its
 # first experiment's markers sampled at 1e4 to 1e6 points of the same experiment (its second's 20
 # kept), dilation 2; before, the fit
 # kept every evaluation's residual, Jacobian and simulated markers, which the guard did not count
