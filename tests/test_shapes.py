@@ -950,6 +950,13 @@ def test_visibility_tests_a_round_hole_only_for_pairs_that_can_reach_across_it()
     assert np.count_nonzero(through_circle & (length < width) & ~cornered) > 100  # caps cut, kept
     assert np.count_nonzero(through_circle & (length >= width) & ~cornered) > 100  # across, blocked
     assert Visibility.of(PolygonDomain.rectangle((40.0, 20.0), (circle,)), particles).domain is None
+    # a traced 20 x 1 mm ellipse of 400 vertices turns by < 20 degrees at every one, but is no
+    # round hole: 3 mm from its tip a 0.8 mm pair crosses it, its two ends 6 mm apart round the tip
+    angle = 2.0 * np.pi * np.arange(400) / 400
+    slit = np.column_stack([20.0 + 10.0 * np.cos(angle), 10.0 + 0.5 * np.sin(angle)])
+    assert round_width(slit) is None
+    across = Visibility.of(PolygonDomain.rectangle((40.0, 20.0), (slit,)), np.array([[27.0, 10.4]]))
+    assert not across.keep(np.array([[27.0, 9.6]]), np.array([[27.0, 10.4]]), np.array([0]), np.array([0]))[0]
 
 
 def test_a_small_round_hole_squeezed_matches_scikit_fem_at_its_wall():

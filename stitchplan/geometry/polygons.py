@@ -34,18 +34,27 @@ def turns(loop: np.ndarray) -> np.ndarray:
     return np.arctan2(before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0], np.sum(before * after, axis=1))
 
 
+ROUND = 0.9  # a round polygon's least width over its diameter (a circle's 96-gon: 0.9995)
+
+
 def round_width(loop: np.ndarray) -> float | None:
-    """The least width of a convex counter-clockwise polygon (k, 2) without corners (a
-    circle's, a traced round contour's: every vertex turning left by less than CORNER_TURN),
-    the least over its edges of the farthest vertex's distance from the edge's line; None for
-    any other polygon."""
+    """The least width of a round counter-clockwise polygon (k, 2), the least over its edges
+    of the farthest vertex's distance from the edge's line; None for any other polygon. Round:
+    convex, without corners (every vertex turning left by less than CORNER_TURN) and nearly as
+    wide every way (least width at least ROUND x the diameter): a circle's, a traced round
+    contour's. A chord shorter than such a polygon's least width cuts off a cap whose wall is
+    at most ~1.7 times the chord's length (pi/2 on a circle); a long thin ellipse's least
+    width is its short axis, and a chord of half that length crosses it near a tip whose way
+    round is many times longer."""
     turn = turns(loop)
     if np.any(turn < -1e-9) or np.any(turn >= CORNER_TURN):
         return None
     along = np.roll(loop, -1, axis=0) - loop
     normals = np.stack([-along[:, 1], along[:, 0]], axis=1) / np.linalg.norm(along, axis=1)[:, None]
     heights = np.einsum("ekd,ed->ek", loop[None, :, :] - loop[:, None, :], normals)  # (edge, vertex)
-    return float(heights.max(axis=1).min())
+    width = float(heights.max(axis=1).min())
+    diameter = max(float(np.linalg.norm(loop - vertex, axis=1).max()) for vertex in loop)
+    return width if width >= ROUND * diameter else None
 
 
 def segments_enter_convex(starts: np.ndarray, ends: np.ndarray, loop: np.ndarray, tol: float) -> np.ndarray:

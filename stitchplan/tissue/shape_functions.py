@@ -84,7 +84,7 @@ _MAPS = {order: _derivative_maps(order) for order in (1, 2)}
 
 @dataclass(frozen=True, eq=False)
 class RoundHole:
-    """A round hole (a convex polygon without corners, geometry.polygons.round_width) as the
+    """A round hole (geometry.polygons.round_width) as the
     visibility criterion tests it: only pairs at least its least `width` long, which can
     reach across it."""
 
@@ -111,9 +111,10 @@ class Visibility:
     point when the straight segment between them leaves the tissue (crosses the boundary of
     a hole or a notch), so material across a gap never shares shape functions.
 
-    A round hole (convex, no corner) is tested only for pairs at least as long as its least
-    width: a shorter pair cannot reach from one side of it to the other, its segment at most
-    cuts off a cap of the hole (the way round through the tissue at most pi/2 times as long).
+    A round hole (geometry.polygons.round_width: convex, no corner, nearly as wide every way)
+    is tested only for pairs at least as long as its least width: a shorter pair cannot reach
+    from one side of it to the other, its segment at most cuts off a cap of the hole (the way
+    round through the tissue at most ~1.7 times as long, pi/2 on a circle).
     Tested for every pair, its wall hid the wall's own particles from the points next to it
     (the wall curves away from the straight line to them) and the shape functions jumped
     across the lines that graze it: a plate with a 5 mm circular hole was 0.80 and 0.55 % off
