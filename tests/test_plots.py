@@ -268,6 +268,20 @@ def test_plan_plot_says_when_the_plan_was_aimed_for_the_refined_model(plan_resul
         assert f"{plan_result.planned.exit_error_mm:.3g} mm planned" in headline
 
 
+def test_plan_plot_gives_both_runs_bites_across_a_wound(plan_result, tmp_path):
+    """Across a wound the surgeon judges a stitch by its bites: the headline gives the
+    planned and the unplanned run's (entry / exit side); a stitch across none gives none."""
+    from dataclasses import replace
+
+    bites = {"entry_side_mm": 6.8921, "exit_side_mm": 6.8824, "difference_mm": -0.0097}
+    unplanned = {"entry_side_mm": 6.877, "exit_side_mm": 6.2515, "difference_mm": -0.6255}
+    across = replace(plan_result, planned=replace(plan_result.planned, bites=bites),
+                     unplanned=replace(plan_result.unplanned, bites=unplanned))
+    headline = needle_plots.plot_plan(tmp_path / "plan.png", across)._suptitle.get_text()
+    assert "bites (entry / exit side) 6.892 / 6.882 mm planned vs 6.877 / 6.252 mm unplanned" in headline
+    assert "bites" not in needle_plots.plot_plan(tmp_path / "plan.png", plan_result)._suptitle.get_text()
+
+
 def test_plan_plot_keeps_both_error_labels_inside_the_panel_at_a_top_edge_exit(tmp_path):
     """An exit on a top or bottom edge: side by side the two labels would need more width than
     the panel has (the unplanned one was cut by the colour bar); each leans to its own side,

@@ -351,8 +351,9 @@ def _draw_center_trajectory(ax, result) -> None:
 
 
 def _plan_headline(result) -> str:
-    """plan.png's title: the scenario, both runs' exit errors, the steps and particles, and
-    the accuracy checks that ran (the discretization error estimate, the refined replay)."""
+    """plan.png's title: the scenario, both runs' exit errors, the steps and particles, across
+    a wound both runs' bites, and the accuracy checks that ran (the discretization error
+    estimate, the refined replay)."""
     planned, unplanned = result.planned, result.unplanned
     headline = f"exit error {planned.exit_error_mm:.3g} mm planned"
     verification = getattr(result, "verification", None)
@@ -362,6 +363,11 @@ def _plan_headline(result) -> str:
         headline += f" vs {unplanned.exit_error_mm:.3g} mm unplanned"
     headline += f" ({len(planned.steps)} steps, {planned.model.n_particles} particles)"
     checks = []
+    if planned.bites:  # a stitch across a wound: the bites a surgeon sees
+        checks.append(f"bites (entry / exit side) {planned.bites['entry_side_mm']:.3f} / "
+                      f"{planned.bites['exit_side_mm']:.3f} mm planned"
+                      + (f" vs {unplanned.bites['entry_side_mm']:.3f} / {unplanned.bites['exit_side_mm']:.3f} mm "
+                         "unplanned" if unplanned is not None and unplanned.bites else ""))
     estimate = getattr(result, "estimate", None)
     if estimate is not None:
         checks.append(f"discretization error of the exit about {estimate.estimate_mm:.2g} mm")
