@@ -406,6 +406,7 @@ def guard_calibration(calibration_path: Path, problem, limits, names: Optional[d
     from ..config import Scenario
     from ..errors import InputError
     from ..resources.costs import Data, marker_bytes
+    from ..resources.model_size import kernel_neighbours
 
     fit = problem.fit
 
@@ -421,9 +422,9 @@ def guard_calibration(calibration_path: Path, problem, limits, names: Optional[d
                           fit.max_evaluations)
     counts = [len(experiment.markers) for experiment in problem.experiments]
     k = counts.index(max(counts))
-    neighbours = (2.0 * problem.discretization.dilation) ** 2  # per kernel support, as model_size counts them
     markers = Data(f"experiments[{k}].markers: {problem.experiments[k].source}", counts[k], sum(counts), "markers",
-                   marker_bytes(neighbours), "in all experiments", "fit fewer markers (a subset of them)")
+                   marker_bytes(kernel_neighbours(problem.discretization.dilation)), "in all experiments",
+                   "fit fewer markers (a subset of them)")
     guard_runs(calibration_path, limits, *runs(problem.discretization, "", fit.grid_points ** 2 + fit.max_evaluations),
                names=names, in_one_process=True, beside=tuple(coarse), data=markers)
 

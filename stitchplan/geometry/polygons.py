@@ -35,6 +35,7 @@ def turns(loop: np.ndarray) -> np.ndarray:
 
 
 ROUND = 0.9  # a round polygon's least width over its diameter (a circle's 96-gon: 0.9995)
+VERTICES_AT_ONCE = 256  # round_width's rows of vertex-by-vertex tables made at once
 
 
 def round_width(loop: np.ndarray) -> float | None:
@@ -51,9 +52,12 @@ def round_width(loop: np.ndarray) -> float | None:
         return None
     along = np.roll(loop, -1, axis=0) - loop
     normals = np.stack([-along[:, 1], along[:, 0]], axis=1) / np.linalg.norm(along, axis=1)[:, None]
-    heights = np.einsum("ekd,ed->ek", loop[None, :, :] - loop[:, None, :], normals)  # (edge, vertex)
-    width = float(heights.max(axis=1).min())
-    diameter = max(float(np.linalg.norm(loop - vertex, axis=1).max()) for vertex in loop)
+    width, diameter = np.inf, 0.0
+    for first in range(0, len(loop), VERTICES_AT_ONCE):  # (part, k) at a time: a traced contour may have thousands
+        part = slice(first, first + VERTICES_AT_ONCE)
+        heights = (loop @ normals[part].T).T - np.einsum("ed,ed->e", loop[part], normals[part])[:, None]
+        width = min(width, float(heights.max(axis=1).min()))  # over edges: the farthest vertex from each
+        diameter = max(diameter, float(np.linalg.norm(loop[None, :, :] - loop[part, None, :], axis=2).max()))
     return width if width >= ROUND * diameter else None
 
 

@@ -210,7 +210,7 @@ class _Staged:
 
     def commit(self) -> None:
         try:
-            locks = FolderLocks.waiting([target.parent for target in self.targets.values()])
+            locks = lock_staged([self])
             with signals_deferred():  # an interrupt between two renames: some files replaced, backups left
                 _rename_all(self.temporaries, self.targets, self.paths, locks).keep()
         except BaseException:

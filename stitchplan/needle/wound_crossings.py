@@ -210,11 +210,11 @@ def stitch_bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict | No
     A wall crossing's achieved point is the tip's material point, which need not lie on the
     wall: the visibility criterion makes u jump within hundredths of a mm of a wall it tests
     for pairs along it (a wound's, a hole's with corners; a round hole's for pairs as long as
-    it is wide, shape_functions.Visibility), so the signed
-    distance the crossing is root-found on can jump across zero there, and the point found
-    lies up to that jump inside the tissue (0.008 mm at the SH 1/2 needle's default spacing
-    across a 2 mm hole while round holes were tested for every pair). The wall crossed is the boundary edge nearest the point (both edges at
-    a vertex), however near; a hole's wall point is the nearest to it (not an end of its
+    it is wide, shape_functions.Visibility), so the signed distance the crossing is
+    root-found on can jump across zero there, and the point found lies up to that jump inside
+    the tissue (0.008 mm at the SH 1/2 needle's default spacing across a 2 mm hole while round
+    holes were tested for every pair). The wall crossed is the boundary edge nearest the
+    point (both edges at a vertex), however near; a hole's wall point is the nearest to it (not an end of its
     edge: a circle's 96-gon would put the bite's end at whichever vertex lies nearer)."""
     domain, geometry = insertion.domain, insertion.geometry
     tol = 1e-6 * max(domain.size)

@@ -281,35 +281,39 @@ def _open_file_limit() -> int | None:
 
 
 @contextlib.contextmanager
-def _workers_deaf_to_ctrl_c():
-    """SIGINT blocked in this thread while a local cluster starts: the threads distributed
-    starts then (its event loop's, the ones that spawn the workers) keep the mask, and the
-    worker processes too, across their exec. A worker ignores Ctrl-C once it is up (its
-    preload, dask_logs.dask_setup), but the terminal's SIGINT to the process group reached
-    the workers still importing, each printing a KeyboardInterrupt traceback. This thread's
-    interrupt is delivered when the block ends (into signals_deferred's hands)."""
+def _signals_blocked(*names: str):
+    """The named signals blocked in this thread while the block runs: threads it starts keep
+    the mask, and so do processes they start, across their exec (a handler, not the mask, is
+    reset there). A signal for this thread arrives when the block ends."""
     import signal
 
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {getattr(signal, name) for name in names})
     try:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+def _workers_deaf_to_ctrl_c():
+    """SIGINT blocked while a local cluster starts: the threads distributed starts then (its
+    event loop's, the ones that spawn the workers) keep the mask, and the worker processes too.
+    A worker ignores Ctrl-C once it is up (its preload, dask_logs.dask_setup), but the
+    terminal's SIGINT to the process group reached the workers still importing, each printing
+    a KeyboardInterrupt traceback. This thread's interrupt is delivered when the block ends
+    (into signals_deferred's hands)."""
+    return _signals_blocked("SIGINT")
+
+
 def _start_resource_tracker_deaf_to_hangups() -> None:
     """multiprocessing's resource tracker, which the nannies' semaphores register with, started
     with SIGHUP blocked, as it has Ctrl-C and SIGTERM ignored: a hangup of the terminal's process
     group killed it, and the one started in its place printed a warning and a traceback for every
-    semaphore the closing cluster released. The mask, unlike a handler, is kept across its exec."""
+    semaphore the closing cluster released."""
     import signal
     import threading
     from multiprocessing import resource_tracker
 
     if not hasattr(signal, "SIGHUP") or threading.current_thread() is not threading.main_thread():
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGHUP})
-    try:
+    with _signals_blocked("SIGHUP"):
         resource_tracker.ensure_running()
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)

@@ -46,6 +46,12 @@ class ModelSize:
         return min(self.neighbours, float(self.particles))
 
 
+def kernel_neighbours(dilation: float) -> float:
+    """Particles in a kernel support on a lattice, (2 x dilation)^2."""
+    support = 2.0 * dilation
+    return support * support  # a product: inf where ** would raise
+
+
 def model_size(scenario: Scenario, derived: bool = False) -> ModelSize:
     """Particles, neighbours per kernel support and quadrature points per particle of the
     scenario's discretization, without building its shape functions (a shaped tissue's
@@ -54,8 +60,7 @@ def model_size(scenario: Scenario, derived: bool = False) -> ModelSize:
     replay's failure is an event of the run, not the command's error."""
     d = scenario.discretization
     points = float(d.quadrature_order ** 2 * d.cells_per_spacing ** 2)
-    support = 2.0 * d.dilation
-    neighbours = support * support  # a product: inf where ** would raise
+    neighbours = kernel_neighbours(d.dilation)
     tissue = scenario.tissue
     if isinstance(tissue.domain, PolygonDomain) or tissue.regions:
         return _shaped_size(scenario, ModelSize(0, False, neighbours, points), derived)

@@ -93,6 +93,13 @@ class RoundHole:
     low: np.ndarray  # (2,) its bounding box
     high: np.ndarray
 
+    @classmethod
+    def of(cls, hole) -> RoundHole | None:
+        """The hole (k, 2) as a round one, or None where it is not round."""
+        loop = np.asarray(hole, dtype=float)
+        width = round_width(loop)
+        return None if width is None else cls(loop, width, loop.min(axis=0), loop.max(axis=0))
+
     def crossed(self, starts: np.ndarray, ends: np.ndarray, tol: float) -> np.ndarray:
         """Mask of the segments (n, 2)-(n, 2) that pass through the hole, made in parts of at
         most PAIRS_AT_ONCE segment-edge entries."""
@@ -140,10 +147,9 @@ class Visibility:
         holes = getattr(domain, "holes", ())
         if getattr(domain, "convex", True):
             return None
-        widths = [round_width(np.asarray(hole, dtype=float)) for hole in holes]
-        round_holes = tuple(RoundHole(np.asarray(hole, dtype=float), width, hole.min(axis=0), hole.max(axis=0))
-                            for hole, width in zip(holes, widths) if width is not None)
-        cornered = replace(domain, holes=tuple(hole for hole, width in zip(holes, widths) if width is None))
+        rounds = [RoundHole.of(hole) for hole in holes]
+        round_holes = tuple(hole for hole in rounds if hole is not None)
+        cornered = replace(domain, holes=tuple(hole for hole, as_round in zip(holes, rounds) if as_round is None))
         clearance = np.full(len(particles), np.inf)
         if cornered.convex:
             cornered = None
