@@ -43,10 +43,9 @@ def round_width(loop: np.ndarray) -> float | None:
     of the farthest vertex's distance from the edge's line; None for any other polygon. Round:
     convex, without corners (every vertex turning left by less than CORNER_TURN) and nearly as
     wide every way (least width at least ROUND x the diameter): a circle's, a traced round
-    contour's. A chord shorter than such a polygon's least width cuts off a cap whose wall is
-    at most ~1.7 times the chord's length (pi/2 on a circle); a long thin ellipse's least
-    width is its short axis, and a chord of half that length crosses it near a tip whose way
-    round is many times longer."""
+    contour's. The visibility criterion weighs the pairs through a round hole by the way round
+    it (tissue.shape_functions.Visibility); a corner, and the tip of a long thin hole, act as
+    a crack's tip, where blocking the pairs that reach round them is measured the closer."""
     turn = turns(loop)
     if np.any(turn < -1e-9) or np.any(turn >= CORNER_TURN):
         return None
@@ -143,3 +142,35 @@ def cut_outline(outline: np.ndarray, cuts: list[np.ndarray],
     if why:
         return None, f"an outline that is not {why}", idle
     return (vertices if signed_area(vertices) > 0 else vertices[::-1].copy()), "", idle
+
+
+def around_convex(starts: np.ndarray, ends: np.ndarray, loop: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The shortest way (n,) from each start to its end (n, 2) round the convex
+    counter-clockwise polygon `loop` (k, 2) that the straight segment crosses: a tangent from
+    the start to the polygon, the boundary between the two tangent points, a tangent to the
+    end, on the shorter side; and its gradient (n, 2) with respect to the start, the unit
+    vector from the start's tangent point to the start. `center` is a point inside the polygon."""
+    perimeter = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.roll(loop, -1, axis=0) - loop, axis=1))])
+    total, position = perimeter[-1], perimeter[:-1]
+
+    def sines(origin):  # (n, k): sine of each vertex's angle seen from origin, from the centre's direction
+        toward = center - origin  # the polygon is seen within a half-turn about it: the sine orders the angles
+        to_vertex = loop[None, :, :] - origin[:, None, :]
+        cross = toward[:, None, 0] * to_vertex[..., 1] - toward[:, None, 1] * to_vertex[..., 0]
+        return cross / np.maximum(np.sqrt(np.einsum("nkd,nkd->nk", to_vertex, to_vertex)), 1e-300)
+
+    from_start, from_end = sines(starts), sines(ends)
+    best = np.full(len(starts), np.inf)
+    gradient = np.zeros_like(starts)
+    # the start's counter-clockwise tangent and the end's clockwise one lie on one side, the
+    # boundary between them running clockwise from the start's; the other side the reverse
+    for start_vertex, end_vertex, clockwise in ((np.argmax(from_start, axis=1), np.argmin(from_end, axis=1), True),
+                                                (np.argmin(from_start, axis=1), np.argmax(from_end, axis=1), False)):
+        leg_start = starts - loop[start_vertex]
+        leg_length = np.linalg.norm(leg_start, axis=1)
+        arc = position[start_vertex] - position[end_vertex] if clockwise else position[end_vertex] - position[start_vertex]
+        length = leg_length + np.mod(arc, total) + np.linalg.norm(ends - loop[end_vertex], axis=1)
+        shorter = length < best
+        best[shorter] = length[shorter]
+        gradient[shorter] = leg_start[shorter] / np.maximum(leg_length[shorter], 1e-300)[:, None]
+    return best, gradient

@@ -1,0 +1,209 @@
+"""Round holes no wider than the kernel's reach: `stitchplan deform` on a 40 x 20 mm plate
+pushed down and sideways on its top edge, clamped at its bottom, with one round hole of
+radius 0.5, 1, 1.5 or 2.5 mm at its centre, at spacings 3, 2, 1.5, 1 and 0.5 mm (supports
+6 to 1 mm: pairs of particles and points reach across the smaller holes), against scikit-fem
+(P2 triangles of side 0.125 mm following the hole's 96-gon, solve_skfem_curved in
+benchmarks/skfem_reference.py; its change from side 0.25 mm in the table). Probes: eight
+0.002 mm outside the hole's wall, the top edge's middle, two points beside the hole and two
+1 mm from it. Error = max over the probes of |u - u_ref| / max |u_ref|, and over the wall's
+eight alone.
+
+The visibility criterion weighs a pair whose segment crosses a round hole by the way round it
+(tissue.shape_functions.Visibility); BASELINE blocked such pairs when at least as long as the
+hole is wide and kept the shorter ones whole. Both are run (BASELINE's code extracted with git
+archive, each level in a fresh process of its own code).
+
+A second table asks whether holes that are not round should be weighed so too: the same plate
+with a 4 x 4 mm square hole and with a 10 x 1.5 mm elliptic one (200 vertices; not round, its
+least width 0.15 of its diameter), each as shipped (every pair through it blocked) and weighed
+by the way round it (geometry's round_width made to accept any convex hole, in the worker).
+
+Writes benchmarks/results/small_holes.{csv,md,png} and prints the tables. About 35 minutes
+(the references). Run from the repository root:  python benchmarks/small_holes.py
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import json  # noqa: E402
+import sys  # noqa: E402
+
+import _common as common  # noqa: E402
+import numpy as np  # noqa: E402
+
+BASELINE = "144b415"  # round holes blocking the pairs at least as long as their width
+RADII = (0.5, 1.0, 1.5, 2.5)  # mm
+CONVEX = {  # holes that are not round: (name, vertices)
+    "square": ("4 x 4 mm square", [[18.0, 8.0], [22.0, 8.0], [22.0, 12.0], [18.0, 12.0]]),
+    "ellipse": ("10 x 1.5 mm ellipse",
+                np.column_stack([20.0 + 5.0 * np.cos(2.0 * np.pi * np.arange(200) / 200),
+                                 10.0 + 0.75 * np.sin(2.0 * np.pi * np.arange(200) / 200)]).round(6).tolist()),
+}
+SPACINGS = (3.0, 2.0, 1.5, 1.0, 0.5)  # mm
+REFERENCE_H = 0.125  # mm, P2 triangle side
+SOFT = {"model": "saint-venant-kirchhoff", "lame_lambda": 0.189151, "lame_mu": 0.147688}
+CENTER = (20.0, 10.0)
+WALL_PROBES = 8
+
+
+def scene(hole: str, spacing: float) -> dict:
+    """The plate's scenario (raw) at `spacing` with a round hole of radius `hole` (mm) or one
+    of CONVEX; its first WALL_PROBES probes 0.002 mm outside the hole's wall (radially from its
+    centre)."""
+    if hole in CONVEX:
+        loop = np.array(CONVEX[hole][1])
+        # the square's probes off its corners, the ellipse's on its tips among them
+        angle = 2.0 * np.pi * np.arange(WALL_PROBES) / WALL_PROBES + (np.pi / WALL_PROBES if hole == "square" else 0.0)
+        direction = np.column_stack([np.cos(angle), np.sin(angle)])
+        # the wall where each direction leaves the hole: the largest t with CENTER + t d inside every edge
+        along = np.roll(loop, -1, axis=0) - loop
+        outward = np.column_stack([along[:, 1], -along[:, 0]])
+        limit = np.einsum("kd,kd->k", outward, loop - np.array(CENTER))
+        rate = direction @ outward.T
+        reach = np.min(np.where(rate > 0, limit / np.maximum(rate, 1e-300), np.inf), axis=1)
+        wall = np.array(CENTER) + (reach + 0.002)[:, None] * direction
+        holes = [{"polygon": loop.tolist()}]
+        size = float(np.ptp(loop[:, 1])) / 2.0
+    else:
+        radius = float(hole)
+        angle = 2.0 * np.pi * np.arange(WALL_PROBES) / WALL_PROBES
+        wall = np.array(CENTER) + (radius + 0.002) * np.column_stack([np.cos(angle), np.sin(angle)])
+        holes = [{"circle": {"center": list(CENTER), "radius": radius}}]
+        size = radius
+    others = [[20.0, 20.0], [10.0, 10.0], [30.0, 10.0], [20.0, 11.0 + size], [20.0, 9.0 - size]]
+    return {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": SOFT, "clamped": ["bottom"],
+                       "holes": holes},
+            "discretization": {"spacing": spacing},
+            "loads": [{"segment": [[0.0, 20.0], [40.0, 20.0]], "force": [0.3, -1.5]}],
+            "probes": [*wall.round(6).tolist(), *others]}
+
+
+def worker(hole: str, spacing: str, weighed: str = "") -> dict:
+    """The model's probe displacements on one plate (`--worker`), with the code on sys.path;
+    `weighed`: every convex hole weighed by the way round it, as a round one."""
+    from stitchplan.config.scenario import parse_scenario
+    from stitchplan.tissue.deform import run_deform
+
+    if weighed:
+        import stitchplan.tissue.shape_functions as shape_functions
+        from stitchplan.geometry.polygons import turns
+
+        shape_functions.round_width = lambda loop: None if np.any(turns(loop) < -1e-9) else 1.0
+    try:
+        result = run_deform(parse_scenario(scene(hole, float(spacing))))
+    except Exception as failure:  # noqa: BLE001 - a level the code refuses is a row of the table
+        return {"failure": str(failure).splitlines()[0][:120]}
+    return {"particles": result.model.n_particles, "probes": result.probe_displacements.tolist()}
+
+
+def errors(probes: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
+    """The max probe error over all probes and over the wall's, relative to the largest reference displacement."""
+    error = np.linalg.norm(probes - reference, axis=1) / np.linalg.norm(reference, axis=1).max()
+    return float(error.max()), float(error[:WALL_PROBES].max())
+
+
+def chart(rows: list[dict], path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(7.0, 4.6))
+    for index, radius in enumerate(RADII):
+        colour = f"C{index}"
+        for code, style in (("before", "--"), ("now", "-")):
+            points = [(float(row["spacing_mm"]), 100 * float(row["error"])) for row in rows
+                      if row["hole"] == str(radius) and row["code"] == code and row["error"] != ""]
+            if points:
+                x, y = zip(*points)
+                axes.loglog(x, y, style, marker="o" if code == "now" else "x", color=colour,
+                            label=f"hole {2 * radius:g} mm, {'blocked past its width' if code == 'before' else 'weighed by the way round'}")
+    axes.set_xlabel("particle spacing (mm)")
+    axes.set_ylabel("max probe error vs scikit-fem (% of largest displacement)")
+    axes.set_title("Plate with a small round hole: deform against scikit-fem")
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=7, ncol=2)
+    common.save_figure(figure, path, (0, 0, 1, 1))
+
+
+def reference(hole: str) -> tuple[np.ndarray, float]:
+    """scikit-fem's probe displacements on the plate with `hole`, and their change from side
+    2 x REFERENCE_H (relative to the largest)."""
+    from skfem_reference import solve_skfem_curved
+    from stitchplan.config.scenario import parse_scenario
+
+    scenario = parse_scenario(scene(hole, 1.0))
+    print(f"hole {hole}: scikit-fem reference, side {REFERENCE_H:g} mm ...", flush=True)
+    fine = solve_skfem_curved(scenario, REFERENCE_H, grading=0).probe_displacements
+    coarser = solve_skfem_curved(scenario, 2 * REFERENCE_H, grading=0).probe_displacements
+    return fine, errors(coarser, fine)[0]
+
+
+def measured(rows: list[dict], hole: str, code: str, source, fine: np.ndarray, *options: str) -> list[str]:
+    """One code's levels on the plate with `hole`: rows appended, the table's cells."""
+    cells = []
+    for spacing in SPACINGS:
+        record = common.worker_record(__file__, source, hole, str(spacing), *options)
+        error, wall = errors(np.array(record["probes"]), fine) if "probes" in record else ("", "")
+        rows.append({"hole": hole, "spacing_mm": spacing, "code": code, "particles": record.get("particles", ""),
+                     "error": error, "wall_error": wall, "failure": record.get("failure", "")})
+        cells.append(record.get("failure") or f"{100 * error:.2f} % ({100 * wall:.2f} %)")
+        print(f"  {code} spacing {spacing:g} mm: {cells[-1]}", flush=True)
+    return cells
+
+
+def main() -> None:
+    rows, round_table, convex_table = [], [], []
+    with common.against(BASELINE) as (baseline, _):
+        for radius in RADII:
+            fine, change = reference(str(radius))
+            for code, source, label in (("before", baseline, "blocked past its width"),
+                                        ("now", common.REPO_ROOT, "way round")):
+                cells = measured(rows, str(radius), code, source, fine)
+                round_table.append([f"{2 * radius:g} mm circle", label, *cells, f"{100 * change:.3f} %"])
+    for hole, (name, _) in CONVEX.items():
+        fine, change = reference(hole)
+        for code, options, label in (("now", (), "blocked (as shipped)"), ("weighed", ("weighed",), "way round")):
+            cells = measured(rows, hole, code, common.REPO_ROOT, fine, *options)
+            convex_table.append([name, label, *cells, f"{100 * change:.3f} %"])
+    header = ["hole", "pairs through it", *(f"spacing {spacing:g} mm" for spacing in SPACINGS),
+              f"reference change (side {2 * REFERENCE_H:g} to {REFERENCE_H:g} mm)"]
+    common.write_csv(common.results_path("small_holes.csv"), list(rows[0]), [list(row.values()) for row in rows])
+    tables = [common.markdown_table(header, round_table), common.markdown_table(header, convex_table)]
+    common.results_path("small_holes.md").write_text("\n".join([
+        "# Small holes against scikit-fem",
+        "",
+        "`stitchplan deform` on a 40 x 20 mm plate with a hole at its centre (clamped bottom, "
+        "force (0.3, -1.5) N/mm on the top edge, St. Venant-Kirchhoff), against scikit-fem P2 triangles "
+        f"of side {REFERENCE_H:g} mm following the hole's edges (a circle's 96-gon). Each cell: max probe "
+        "error over all probes (over the eight 0.002 mm outside the hole's wall), % of the largest "
+        "displacement. Scenes in benchmarks/small_holes.py.",
+        "",
+        f"Round holes: 'blocked past its width' is {BASELINE}, a pair through the hole blocked when at "
+        "least as long as the hole is wide and kept whole when shorter; 'way round', the pair's kernel "
+        "taken at its offset stretched by the way round the hole over the straight length "
+        "(tissue.shape_functions.Visibility).",
+        "",
+        tables[0],
+        "",
+        "Holes that are not round, as shipped (every pair through them blocked) and weighed by the way "
+        "round them as round holes are (round_width made to accept any convex hole):",
+        "",
+        tables[1],
+        "",
+        f"Machine: {common.machine_note()}.",
+        "",
+    ]))
+    chart(rows, common.results_path("small_holes.png"))
+    print("\n\n".join(tables))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--worker":
+        print(json.dumps(worker(*sys.argv[2:])))
+    else:
+        common.command_line(__doc__)
+        main()
