@@ -34,30 +34,14 @@ def turns(loop: np.ndarray) -> np.ndarray:
     return np.arctan2(before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0], np.sum(before * after, axis=1))
 
 
-ROUND = 0.9  # a round polygon's least width over its diameter (a circle's 96-gon: 0.9995)
-VERTICES_AT_ONCE = 256  # round_width's rows of vertex-by-vertex tables made at once
-
-
-def round_width(loop: np.ndarray) -> float | None:
-    """The least width of a round counter-clockwise polygon (k, 2), the least over its edges
-    of the farthest vertex's distance from the edge's line; None for any other polygon. Round:
-    convex, without corners (every vertex turning left by less than CORNER_TURN) and nearly as
-    wide every way (least width at least ROUND x the diameter): a circle's, a traced round
-    contour's. The visibility criterion weighs the pairs through a round hole by the way round
-    it (tissue.shape_functions.Visibility); a corner, and the tip of a long thin hole, act as
-    a crack's tip, where blocking the pairs that reach round them is measured the closer."""
+def is_round(loop: np.ndarray) -> bool:
+    """Whether a counter-clockwise polygon (k, 2) is round: convex and without corners, every
+    vertex turning left by less than CORNER_TURN (a circle's, an ellipse's, a traced round
+    contour's). The visibility criterion weighs the pairs through a round hole by the way
+    round it (tissue.shape_functions.Visibility) and blocks those through any other: at a
+    corner blocking was measured the closer (benchmarks/results/cornered_holes.md)."""
     turn = turns(loop)
-    if np.any(turn < -1e-9) or np.any(turn >= CORNER_TURN):
-        return None
-    along = np.roll(loop, -1, axis=0) - loop
-    normals = np.stack([-along[:, 1], along[:, 0]], axis=1) / np.linalg.norm(along, axis=1)[:, None]
-    width, diameter = np.inf, 0.0
-    for first in range(0, len(loop), VERTICES_AT_ONCE):  # (part, k) at a time: a traced contour may have thousands
-        part = slice(first, first + VERTICES_AT_ONCE)
-        heights = (loop @ normals[part].T).T - np.einsum("ed,ed->e", loop[part], normals[part])[:, None]
-        width = min(width, float(heights.max(axis=1).min()))  # over edges: the farthest vertex from each
-        diameter = max(diameter, float(np.linalg.norm(loop[None, :, :] - loop[part, None, :], axis=2).max()))
-    return width if width >= ROUND * diameter else None
+    return bool(np.all(turn >= -1e-9) and np.all(turn < CORNER_TURN))
 
 
 def segments_enter_convex(starts: np.ndarray, ends: np.ndarray, loop: np.ndarray, tol: float) -> np.ndarray:
@@ -153,13 +137,18 @@ def around_convex(starts: np.ndarray, ends: np.ndarray, loop: np.ndarray, center
     perimeter = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.roll(loop, -1, axis=0) - loop, axis=1))])
     total, position = perimeter[-1], perimeter[:-1]
 
-    def sines(origin):  # (n, k): sine of each vertex's angle seen from origin, from the centre's direction
-        toward = center - origin  # the polygon is seen within a half-turn about it: the sine orders the angles
+    def angles(origin):  # (n, k): each vertex's angle seen from origin, from the centre's direction
+        # the polygon is seen within less than a half-turn holding that direction, so the angles
+        # lie in (-pi, pi); sign(sin) (1 - cos) orders them as they are, without arctan2
+        toward = center - origin
+        toward = toward / np.maximum(np.linalg.norm(toward, axis=1), 1e-300)[:, None]
         to_vertex = loop[None, :, :] - origin[:, None, :]
         cross = toward[:, None, 0] * to_vertex[..., 1] - toward[:, None, 1] * to_vertex[..., 0]
-        return cross / np.maximum(np.sqrt(np.einsum("nkd,nkd->nk", to_vertex, to_vertex)), 1e-300)
+        dot = np.einsum("nd,nkd->nk", toward, to_vertex)
+        return np.copysign(1.0 - dot / np.maximum(np.sqrt(np.einsum("nkd,nkd->nk", to_vertex, to_vertex)), 1e-300),
+                           cross)
 
-    from_start, from_end = sines(starts), sines(ends)
+    from_start, from_end = angles(starts), angles(ends)
     best = np.full(len(starts), np.inf)
     gradient = np.zeros_like(starts)
     # the start's counter-clockwise tangent and the end's clockwise one lie on one side, the

@@ -209,8 +209,8 @@ def stitch_bites(insertion: NeedleInsertion, crossings: list[dict]) -> dict | No
 
     A wall crossing's achieved point is the tip's material point, which need not lie on the
     wall: the visibility criterion makes u jump within hundredths of a mm of a wall it tests
-    for pairs along it (a wound's, a hole's with corners; a round hole's for pairs as long as
-    it is wide, shape_functions.Visibility), so the signed distance the crossing is
+    for pairs along it (a wound's, a hole's with corners; not a round hole's, whose pairs it
+    weighs by the way round: shape_functions.Visibility), so the signed distance the crossing is
     root-found on can jump across zero there, and the point found lies up to that jump inside
     the tissue (0.008 mm at the SH 1/2 needle's default spacing across a 2 mm hole while round
     holes were tested for every pair). The wall crossed is the boundary edge nearest the

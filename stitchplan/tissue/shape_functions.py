@@ -15,7 +15,7 @@ import scipy.sparse as sp
 from .kernel import tensor_kernel
 from .neighbours import CellGrid
 from ..errors import SingularMomentMatrix
-from ..geometry.polygons import around_convex, round_width, segments_enter_convex
+from ..geometry.polygons import around_convex, is_round, segments_enter_convex
 
 
 class SingularMomentAt(SingularMomentMatrix):
@@ -84,7 +84,7 @@ _MAPS = {order: _derivative_maps(order) for order in (1, 2)}
 
 @dataclass(frozen=True, eq=False)
 class RoundHole:
-    """A round hole (geometry.polygons.round_width) as the visibility criterion weighs the
+    """A round hole (geometry.polygons.is_round) as the visibility criterion weighs the
     pairs through it: a counter-clockwise `loop` (k, 2) about `center`, within `radius` of it,
     and no edge nearer than `inradius`."""
 
@@ -97,7 +97,7 @@ class RoundHole:
     def of(cls, hole) -> RoundHole | None:
         """The hole (k, 2) as a round one, or None where it is not round."""
         loop = np.asarray(hole, dtype=float)
-        if round_width(loop) is None:
+        if not is_round(loop):
             return None
         center = loop.mean(axis=0)
         along = np.roll(loop, -1, axis=0) - loop
@@ -137,8 +137,8 @@ class Visibility:
     point when the straight segment between them leaves the tissue (crosses the boundary of
     a hole or a notch), so material across a gap never shares shape functions.
 
-    A round hole (geometry.polygons.round_width: convex, no corner, nearly as wide every way)
-    blocks no pair: a pair whose segment passes through it is weighed by the way round it
+    A round hole (geometry.polygons.is_round: convex, no corner; a circle, an ellipse) blocks
+    no pair: a pair whose segment passes through it is weighed by the way round it
     (`stretch`: the kernel of the offset stretched by that way over the straight length), so
     that the shape functions stay continuous where a segment starts to cross the hole and
     fade as the way round grows past the support (the diffraction method's idea, with the
@@ -146,11 +146,13 @@ class Visibility:
     grazes the wall: tested for every pair, the wall hid its own particles from the points
     next to it (a plate with a 5 mm circular hole was 0.80 and 0.55 % off scikit-fem at the
     wall at spacings 1 and 0.5 mm, and had a singular moment matrix at 0.45 mm); tested for the
-    pairs at least as long as the hole is wide, a 3 mm hole among particles 2 mm apart was
-    3.06 % off at its wall (tests/test_shapes.py). A hole with a corner blocks every pair
-    through it: the solution is singular at the corner, and the criterion keeps the functions
-    from reaching round it (a plate with an 8 mm square hole was 0.24 % off scikit-fem tested
-    as a round one, 0.20 % weighed by the way round its corners, 0.10 % blocked).
+    pairs at least as long as a circle is wide, a 3 mm hole among particles 2 mm apart was
+    3.22 % off at its wall, 2.17 % weighed, and a 10 x 1.5 mm ellipse, blocked, 21 % at 2 mm
+    and refused at 1.5 mm (a singular moment matrix), 7.8 % weighed
+    (benchmarks/results/small_holes.md). A hole with a corner blocks every pair through it:
+    the solution is singular at the corner, and the criterion keeps the functions from
+    reaching round it (a plate with an 8 mm square hole was 0.101 % off scikit-fem so,
+    0.197 % weighed by the way round its corners: benchmarks/results/cornered_holes.md).
 
     `clearance` (NP,) is each particle's distance to `domain` (the outline and the holes with
     a corner): a segment shorter than it cannot reach them, only the others are tested."""
@@ -201,8 +203,9 @@ class Visibility:
             return None
         length = way = gradient = None
         crossing = np.zeros(0, dtype=np.int64)
-        for hole in self.round_holes:  # the pairs whose point is near enough to the hole
-            close = np.einsum("nd,nd->n", points - hole.center, points - hole.center) < (hole.radius + reach) ** 2
+        for hole in self.round_holes:  # the pairs whose point is near enough to the hole, and not inside it
+            squared = np.einsum("nd,nd->n", points - hole.center, points - hole.center)
+            close = (squared < (hole.radius + reach) ** 2) & (squared >= hole.inradius ** 2)
             test = np.flatnonzero(close[rows])
             if not len(test):
                 continue

@@ -386,10 +386,10 @@ def circle_vertices(tissue: Tissue, spacing_at: np.ndarray) -> np.ndarray:
     they stand at least DENSE x h apart (one vertex of a circle far below h); none elsewhere,
     where the wall is followed one local spacing apart as any edge (boundary_points).
 
-    The visibility criterion (shape_functions.Visibility) tests a round hole's wall for the
-    pairs at least as long as the hole is wide, and a hole cut into the outline, part of the
-    outline, for every pair: a point near such a wall sees, of the wall's particles, those at
-    the ends of the edge it is next to and few more.
+    The visibility criterion (shape_functions.Visibility) weighs the pairs through a round
+    hole by the way round it, and blocks those through a hole cut into the outline, part of
+    the outline: a point near such a wall sees, of the wall's particles, those at the ends of
+    the edge it is next to and few more.
     Where the tissue beyond the wall is thick, particles there cover the point; in a strip
     under a spacing or two thick (a hole near the outline or near another, a hole cut into
     the outline at a shallow angle) the other side's particles may be all it sees, on one

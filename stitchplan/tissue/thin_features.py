@@ -49,11 +49,11 @@ from ..geometry.segments import point_segment_foot
 # 0.4 on, as with thicker strips (1.5 % at 0.3, 8 % at 0.15 where it ran); a strip over a
 # circular hole of radius 1.5, 3 or 6 mm, or between two, failed up to 0.40 and ran in all
 # 250 runs between 0.45 and 0.6. Half a spacing leaves a margin of 1.25 to the circles'
-# failures and 2 to the straight walls'. (Since a round hole's wall is tested only for pairs
-# that reach across it, shape_functions.Visibility, a strip over one of 1.5, 3 or 6 mm at
-# spacing 1.5 mm ran at all 5 positions at every ratio from 0.2 to 0.45, where 18 of those 90
-# runs failed before, all at 0.3 and below: benchmarks/thin_strips.py. The limit stays, for
-# the straight walls' accuracy.)
+# failures and 2 to the straight walls'. (Since a round hole's wall no longer blocks the
+# pairs too short to reach across it, shape_functions.Visibility, a strip over one of 1.5, 3
+# or 6 mm at spacing 1.5 mm ran at all 5 positions at every ratio from 0.2 to 0.45, where 18
+# of those 90 runs failed before, all at 0.3 and below: benchmarks/thin_strips.py. The limit
+# stays, for the straight walls' accuracy.)
 THIN_TISSUE = 0.5
 SAMPLES_PER_SPACING = 4  # ray starts per local spacing along an edge
 ROUND_TRIP = 6.0  # a same-loop hit counts where the boundary between is longer than this x the gap
