@@ -101,7 +101,8 @@ class RoundHole:
             return None
         center = loop.mean(axis=0)
         along = np.roll(loop, -1, axis=0) - loop
-        inradius = np.abs(np.cross(along, center - loop)) / np.linalg.norm(along, axis=1)
+        to_center = center - loop
+        inradius = np.abs(along[:, 0] * to_center[:, 1] - along[:, 1] * to_center[:, 0]) / np.linalg.norm(along, axis=1)
         return cls(loop, center, float(np.linalg.norm(loop - center, axis=1).max()), float(inradius.min()))
 
     def crossing(self, starts: np.ndarray, ends: np.ndarray, tol: float) -> np.ndarray:
