@@ -202,8 +202,7 @@ class Visibility:
         looked at."""
         if not self.round_holes:
             return None
-        length = way = gradient = None
-        crossing = np.zeros(0, dtype=np.int64)
+        crossed = extra = extra_gradient = None  # each pair's way round the holes less its length, and its gradient
         for hole in self.round_holes:  # the pairs whose point is near enough to the hole, and not inside it
             squared = np.einsum("nd,nd->n", points - hole.center, points - hole.center)
             close = (squared < (hole.radius + reach) ** 2) & (squared >= hole.inradius ** 2)
@@ -211,23 +210,25 @@ class Visibility:
             if not len(test):
                 continue
             starts, ends = points[rows[test]], particles[cols[test]]
-            crossing_here = hole.crossing(starts, ends, self.tol)
-            test = test[crossing_here]
-            if not len(test):
+            crossing = hole.crossing(starts, ends, self.tol)
+            if not crossing.any():
                 continue
-            around, around_gradient = around_convex(starts[crossing_here], ends[crossing_here], hole.loop, hole.center)
-            if length is None:
-                length = np.linalg.norm(offset, axis=1)  # lazily: most tissues' pairs cross no hole
-                way, gradient = length.copy(), offset / np.where(length > 0.0, length, 1.0)[:, None]
-            way[test] += around - length[test]
-            gradient[test] += around_gradient - offset[test] / length[test, None]
-            crossing = np.union1d(crossing, test)
-        if not len(crossing):
+            test = test[crossing]
+            around, around_gradient = around_convex(starts[crossing], ends[crossing], hole.loop, hole.center)
+            length = np.linalg.norm(offset[test], axis=1)
+            if crossed is None:  # lazily: most tissues' pairs cross no hole
+                crossed, extra, extra_gradient = np.zeros(len(rows), bool), np.zeros(len(rows)), np.zeros((len(rows), 2))
+            crossed[test] = True
+            extra[test] += around - length
+            extra_gradient[test] += around_gradient - offset[test] / length[:, None]
+        if crossed is None:
             return None
-        length, way, unit, gradient = length[crossing], way[crossing], offset[crossing] / length[crossing, None], gradient[crossing]
-        # s = way / length, ds/dX = (dway/dX - s unit) / length
-        ratio = way / length
-        return Stretch(crossing, ratio, (gradient - ratio[:, None] * unit) / length[:, None])
+        crossing = np.flatnonzero(crossed)
+        length = np.linalg.norm(offset[crossing], axis=1)
+        unit = offset[crossing] / length[:, None]
+        # s = way / length, ds/dX = (dway/dX - s unit) / length, dway/dX = unit + the extra's gradient
+        ratio = (length + extra[crossing]) / length
+        return Stretch(crossing, ratio, (unit + extra_gradient[crossing] - ratio[:, None] * unit) / length[:, None])
 
 
 @dataclass(frozen=True)
