@@ -10,18 +10,24 @@ eight alone.
 
 The visibility criterion weighs a pair whose segment crosses a round hole by the way round it
 (tissue.shape_functions.Visibility); BASELINE blocked such pairs when at least as long as the
-hole is wide and kept the shorter ones whole. Both are run (BASELINE's code extracted with git
-archive, each level in a fresh process of its own code).
+hole is wide and kept the shorter ones whole. The particles are graded toward a round hole the
+default spacing (1 mm here) does not resolve, to leaves of at most inradius / 2 at its wall
+(tissue.shapes.hole_zones, discretization.hole_resolution 2); "way round, ungraded" is the
+same code with hole_resolution 0, as the code was before the grading. All three are run
+(BASELINE's code extracted with git archive, each level in a fresh process of its own code),
+and charted against the spacing and against the particles they cost.
 
 A second table asks which holes to weigh so: the same plate with a 4 x 4 mm square hole (not
 round: corners) and with a 10 x 1.5 mm elliptic one (200 vertices; round), each with the pairs
-through it blocked (every convex hole taken as not round, in the worker) and weighed by the way
-round it (every convex hole taken as round); "(as shipped)" marks what the code does.
+through it blocked (every convex hole taken as not round by the visibility criterion, in the
+worker) and weighed by the way round it (every convex hole taken as round); "(as shipped)"
+marks what the code does. Both are graded as shipped (the ellipse toward its wall, the square
+toward its corners).
 
 `--holes H ...` runs only those holes (0.5 1.0 1.5 2.5 square ellipse), replacing their rows in
 results/small_holes.csv; `--report` only rewrites the tables and chart from the CSV.
 
-Writes benchmarks/results/small_holes.{csv,md,png} and prints the tables. About 35 minutes
+Writes benchmarks/results/small_holes.{csv,md,png} and prints the tables. About 50 minutes
 (the references). Run from the repository root:  python benchmarks/small_holes.py
 """
 
@@ -84,16 +90,20 @@ def scene(hole: str, spacing: float) -> dict:
             "probes": [*wall.round(6).tolist(), *others]}
 
 
-def worker(hole: str, spacing: str, pairs: str = "") -> dict:
+def worker(hole: str, spacing: str, option: str = "") -> dict:
     """The model's probe displacements on one plate (`--worker`), with the code on sys.path;
-    `pairs`: "weighed" or "blocked" through every convex hole (take_convex_holes)."""
+    `option`: "weighed" or "blocked" through every convex hole (take_convex_holes), or
+    "ungraded" (hole_resolution 0)."""
     from stitchplan.config.scenario import parse_scenario
     from stitchplan.tissue.deform import run_deform
 
-    if pairs:
-        take_convex_holes(as_round=pairs == "weighed")
+    raw = scene(hole, float(spacing))
+    if option in ("weighed", "blocked"):
+        take_convex_holes(as_round=option == "weighed")
+    elif option == "ungraded":
+        raw["discretization"]["hole_resolution"] = 0
     try:
-        result = run_deform(parse_scenario(scene(hole, float(spacing))))
+        result = run_deform(parse_scenario(raw))
     except Exception as failure:  # noqa: BLE001 - a level the code refuses is a row of the table
         return {"failure": str(failure).splitlines()[0][:120]}
     return {"particles": result.model.n_particles, "probes": result.probe_displacements.tolist()}
@@ -115,28 +125,38 @@ def errors(probes: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
     return float(error.max()), float(error[:WALL_PROBES].max())
 
 
+STYLES = {"before": ("--", "x"), "ungraded": (":", "s"), "now": ("-", "o")}
+
+
 def chart(rows: list[dict], path) -> None:
+    """Max probe error against the spacing (left) and against the particles (right): each
+    circle's three codes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
-    figure, axes = plt.subplots(figsize=(7.0, 4.6))
+    figure, panels = plt.subplots(1, 2, figsize=(11.0, 4.8))
     for index, radius in enumerate(RADII):
-        colour = f"C{index}"
-        for code, style in (("before", "--"), ("now", "-")):
-            points = [(float(row["spacing_mm"]), 100 * float(row["error"])) for row in rows
-                      if row["hole"] == str(radius) and row["code"] == code and row["error"] != ""]
-            if points:
-                x, y = zip(*points)
-                axes.loglog(x, y, style, marker="o" if code == "now" else "x", color=colour,
-                            label=f"hole {2 * radius:g} mm, {'blocked past its width' if code == 'before' else 'weighed by the way round'}")
-    axes.set_xlabel("particle spacing (mm)")
-    axes.set_ylabel("max probe error vs scikit-fem (% of largest displacement)")
-    axes.set_title("Plate with a small round hole: deform against scikit-fem")
-    axes.grid(True, which="both", alpha=0.3)
-    axes.legend(fontsize=7, ncol=2)
-    common.save_figure(figure, path, (0, 0, 1, 1))
+        for code, (style, marker) in STYLES.items():
+            chosen = [row for row in rows if row["hole"] == str(radius) and row["code"] == code and row["error"] != ""]
+            for axes, key in zip(panels, ("spacing_mm", "particles")):
+                if chosen:
+                    axes.loglog([float(row[key]) for row in chosen], [100 * float(row["error"]) for row in chosen],
+                                style, marker=marker, color=f"C{index}", markersize=4)
+    panels[0].set_xlabel("particle spacing (mm)")
+    panels[1].set_xlabel("particles")
+    for axes in panels:
+        axes.set_ylabel("max probe error vs scikit-fem (% of largest displacement)")
+        axes.grid(True, which="both", alpha=0.3)
+    holes = [Line2D([], [], color=f"C{index}", label=f"{2 * radius:g} mm circle") for index, radius in enumerate(RADII)]
+    codes = [Line2D([], [], color="0.3", linestyle=style, marker=marker, label=CODES[code])
+             for code, (style, marker) in STYLES.items()]
+    panels[0].legend(handles=holes, fontsize=8)
+    panels[1].legend(handles=codes, fontsize=8)
+    figure.suptitle("Plate with a small round hole: deform against scikit-fem, by spacing and by cost")
+    common.save_figure(figure, path, (0, 0, 1, 0.95))
 
 
 def reference(hole: str) -> tuple[np.ndarray, float]:
@@ -154,7 +174,8 @@ def reference(hole: str) -> tuple[np.ndarray, float]:
 
 HOLES = (*(str(radius) for radius in RADII), *CONVEX)
 # the codes run on each hole: round ones before (BASELINE) and now, the others both ways
-CODES = {"before": "blocked past its width", "now": "way round", "blocked": "blocked", "weighed": "way round"}
+CODES = {"before": "blocked past its width", "ungraded": "way round, ungraded", "now": "way round, graded",
+         "blocked": "blocked", "weighed": "way round"}
 
 
 def run(hole: str, baseline) -> list[dict]:
@@ -162,7 +183,8 @@ def run(hole: str, baseline) -> list[dict]:
     fine, change = reference(hole)
     rows = []
     codes = (("blocked", common.REPO_ROOT, ("blocked",)), ("weighed", common.REPO_ROOT, ("weighed",))) \
-        if hole in CONVEX else (("before", baseline, ()), ("now", common.REPO_ROOT, ()))
+        if hole in CONVEX else (("before", baseline, ()), ("ungraded", common.REPO_ROOT, ("ungraded",)),
+                                ("now", common.REPO_ROOT, ()))
     for code, source, options in codes:
         for spacing in SPACINGS:
             record = common.worker_record(__file__, source, hole, str(spacing), *options)
@@ -177,7 +199,7 @@ def run(hole: str, baseline) -> list[dict]:
 def cell(row: dict) -> str:
     if row["failure"]:
         return row["failure"]
-    return f"{100 * float(row['error']):.2f} % ({100 * float(row['wall_error']):.2f} %)"
+    return f"{100 * float(row['error']):.2f} % ({100 * float(row['wall_error']):.2f} %), {row['particles']}"
 
 
 def report(rows: list[dict]) -> None:
@@ -190,7 +212,7 @@ def report(rows: list[dict]) -> None:
         table = []
         for hole in holes:
             shipped = "weighed" if hole in CONVEX and is_round(np.array(CONVEX[hole][1])) else "blocked"
-            for code in ("before", "now") if hole not in CONVEX else ("blocked", "weighed"):
+            for code in ("before", "ungraded", "now") if hole not in CONVEX else ("blocked", "weighed"):
                 cells = {float(row["spacing_mm"]): row for row in rows if row["hole"] == hole and row["code"] == code}
                 if not cells:
                     continue
@@ -207,17 +229,20 @@ def report(rows: list[dict]) -> None:
         "force (0.3, -1.5) N/mm on the top edge, St. Venant-Kirchhoff), against scikit-fem P2 triangles "
         f"of side {REFERENCE_H:g} mm following the hole's edges (a circle's 96-gon). Each cell: max probe "
         "error over all probes (over the eight 0.002 mm outside the hole's wall), % of the largest "
-        "displacement. Scenes in benchmarks/small_holes.py.",
+        "displacement, and the model's particles. Scenes in benchmarks/small_holes.py.",
         "",
         f"Round holes: 'blocked past its width' is {BASELINE}, a pair through the hole blocked when at "
         "least as long as the hole is wide and kept whole when shorter; 'way round', the pair's kernel "
         "taken at its offset stretched by the way round the hole over the straight length "
-        "(tissue.shape_functions.Visibility).",
+        "(tissue.shape_functions.Visibility); 'ungraded', the particles at the spacing round the hole "
+        "(hole_resolution 0); 'graded', toward the hole to leaves of at most inradius / 2 at its wall at the "
+        "default spacing (1 mm), as many levels below any other (tissue.shapes.hole_zones; as shipped).",
         "",
         tables[0],
         "",
         "A hole with corners and a thin round one, the pairs through them blocked and weighed by the way "
-        "round them (in the worker, every convex hole taken as not round or as round):",
+        "round them (in the worker, every convex hole taken as not round or as round by the visibility "
+        "criterion; both graded as shipped: the ellipse toward its wall, the square toward its corners):",
         "",
         tables[1],
         "",

@@ -108,8 +108,12 @@ SHAPE_SCENES = {
     # 0.3196, 0.3215 and 0.3224 mm at h/2, h/4 and h/8 (0.3216, 0.3221 at h/2, h/4 before),
     # the linear triangles on the same particles 0.2951, 0.3085, 0.3137 mm at h, h/2, h/4.
     # Re-pinned when a pair through a round hole was weighed by the way round it instead of
-    # kept whole (tissue.shape_functions.Visibility): unplanned 0.318523 -> 0.318540 mm
-    "hole_near_stitch": (39, 417, 0.31854001794098946, 0.00015041050003921966, None),
+    # kept whole (tissue.shape_functions.Visibility): unplanned 0.318523 -> 0.318540 mm.
+    # Re-pinned when the particles were graded toward a round hole to leaves of at most half its
+    # inradius at the default spacing (tissue.shapes.hole_zones; here 1.5 mm, the needle's spacing,
+    # now along the hole's whole wall): 417 -> 424 particles, unplanned 0.318540 -> 0.318531 mm,
+    # with 0.3190, 0.3198 and 0.3216 mm at h/sqrt2, h/2 and h/4 (0.3188, 0.3196, 0.3215 before)
+    "hole_near_stitch": (39, 424, 0.31853135385161496, 0.0001500468466868511, None),
     # re-pinned with hole_near_stitch (no boundary particles between the lattice's own on an
     # edge along a lattice line): 1474 -> 1457 particles, unplanned 0.7260 -> 0.7244 mm, with
     # 0.7246 and 0.7280 mm at h/2 and h/4 (0.7254 and 0.7281 before)

@@ -442,6 +442,14 @@ class Discretization:
     interface_levels: described(integer(0, 8), "particle refinement levels at the interfaces between "
                                                "material regions (at the default spacing; one more per "
                                                "halving of the spacing); 0: none") = 0
+    # particles graded toward the round holes the default spacing does not resolve, whose wall
+    # carries a stress concentration about an inradius long (stitchplan.tissue.shapes.hole_zones):
+    # leaf side there at most inradius / hole_resolution at the default spacing, as many levels
+    # below the spacing at any other; 0: none
+    hole_resolution: described(number("a number between 0 and 16 (leaf sides per inradius)", ge=0, le=16),
+                               "particle spacings across a round hole's inradius at its wall (at the "
+                               "default spacing; finer and coarser with the spacing); 0: as the "
+                               "spacing") = 2.0
     # "gauss": Galerkin with background-cell Gauss quadrature; "vci": the test-function
     # gradients corrected so that the quadrature satisfies the divergence theorem
     # (variationally consistent integration; passes the linear patch test; deform only)

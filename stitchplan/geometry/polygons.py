@@ -44,6 +44,16 @@ def is_round(loop: np.ndarray) -> bool:
     return bool(np.all(turn >= -1e-9) and np.all(turn < CORNER_TURN))
 
 
+def round_extent(loop: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """A convex polygon's (k, 2) centre (its vertices' mean), the distance from it to the
+    farthest vertex and to the nearest edge's line (circumradius and inradius about it)."""
+    center = loop.mean(axis=0)
+    along = np.roll(loop, -1, axis=0) - loop
+    to_center = center - loop
+    inradius = np.abs(along[:, 0] * to_center[:, 1] - along[:, 1] * to_center[:, 0]) / np.linalg.norm(along, axis=1)
+    return center, float(np.linalg.norm(loop - center, axis=1).max()), float(inradius.min())
+
+
 def segments_enter_convex(starts: np.ndarray, ends: np.ndarray, loop: np.ndarray, tol: float) -> np.ndarray:
     """Mask (n,) of the segments starts-ends (n, 2) that pass through the interior of the
     convex counter-clockwise polygon `loop` (k, 2) shrunk by `tol` (touching or grazing its

@@ -139,19 +139,18 @@ def _mean_square_neighbours(domain, points: np.ndarray, particles: np.ndarray, s
 def _shaped_estimate(scenario: Scenario, zone, segments, samples: int = 200, whole_box: bool = False) -> int:
     """Particles of a shaped tissue without placing them: the lattice as the integral of
     1 / side^2 over the tissue (side: the spacing, graded toward the refinement zones as the
-    lattice is: corners, segment ends, material interfaces, the needle), the boundary's as the
+    lattice is: corners, segment ends, material interfaces, round holes, the needle), the boundary's as the
     integral of 1 / side along it, the shape's lattice lines (tissue.shapes.shape_breaks) across the
     bounding box, and a particle at each vertex that keeps one (tissue.shapes.kept_vertices).
     With `whole_box` the lattice's integral runs over the whole bounding box: at least the
     estimate without it."""
     from ..tissue.particles import END_GROWTH, RefinementZone, end_zones
-    from ..tissue.shapes import corner_zones, interface_zones, kept_vertices, shape_breaks
+    from ..tissue.shapes import kept_vertices, shape_breaks, shape_zones
 
     tissue, d = scenario.tissue, scenario.discretization
     domain = tissue.domain
     (width, height), origin = tissue.bounding_size, np.asarray(domain.origin, dtype=float)
-    zones = [(z, END_GROWTH) for z in (*end_zones(tissue, segments, d), *corner_zones(tissue, d),
-                                       *interface_zones(tissue, d))]
+    zones = [(z, END_GROWTH) for z in (*end_zones(tissue, segments, d), *shape_zones(tissue, d))]
     if zone is not None:
         zones.append((RefinementZone(np.asarray(zone[0], dtype=float), zone[1], d.needle_spacing), d.needle_grading))
         zones += [(z, d.needle_grading) for z in zone[2]]

@@ -24,7 +24,7 @@ from .particles import (END_GROWTH, GradedParticles, end_zones, graded_lattice, 
 from .quadrature import cell_quadrature, natural_boundary_quadrature
 from .shape_functions import (ParticleSearch, ShapeFunctions, ShapePairs, SingularMomentMatrix,
                               Visibility, rk_shape_functions, rk_shape_pairs, rows_csr)
-from .shapes import (corner_zones, fit_particles, interface_zones, lattice_spacing, region_index, shape_breaks,
+from .shapes import (fit_particles, lattice_spacing, region_index, shape_breaks, shape_zones,
                      shaped_quadrature)
 from .thin_features import refuse_thin_tissue, singular_moment_message
 
@@ -386,16 +386,15 @@ def shaped_lattice(tissue: Tissue, discretization: Discretization, segments: tup
                    needle_zone: tuple | None = None) -> GradedParticles:
     """The graded lattice over a shaped tissue's bounding box (in the tissue's coordinates),
     before it is fitted to the shape: lines through the shape's and the segments' vertices,
-    graded toward re-entrant corners, segment ends, material interfaces (interface_zones) and the
-    needle."""
+    graded toward re-entrant corners, segment ends, material interfaces, unresolved round holes
+    (shapes.shape_zones) and the needle."""
     domain = tissue.domain
     origin = np.asarray(domain.origin, dtype=float)
     xb, yb = segment_breaks(segments) if segments else ([], [])
     sx, sy = shape_breaks(tissue, discretization.spacing)
     breaks = ([x - origin[0] for x in (*xb, *sx)], [y - origin[1] for y in (*yb, *sy)])
     ends = tuple(zone.shifted(-origin) for zone in (*end_zones(tissue, segments, discretization),
-                                                    *corner_zones(tissue, discretization),
-                                                    *interface_zones(tissue, discretization)))
+                                                    *shape_zones(tissue, discretization)))
     size = tuple(domain.size)
     if discretization.needle_spacing is not None:
         if needle_zone is None:

@@ -15,7 +15,7 @@ import scipy.sparse as sp
 from .kernel import tensor_kernel
 from .neighbours import CellGrid
 from ..errors import SingularMomentMatrix
-from ..geometry.polygons import around_convex, is_round, segments_enter_convex
+from ..geometry.polygons import around_convex, is_round, round_extent, segments_enter_convex
 
 
 class SingularMomentAt(SingularMomentMatrix):
@@ -99,11 +99,7 @@ class RoundHole:
         loop = np.asarray(hole, dtype=float)
         if not is_round(loop):
             return None
-        center = loop.mean(axis=0)
-        along = np.roll(loop, -1, axis=0) - loop
-        to_center = center - loop
-        inradius = np.abs(along[:, 0] * to_center[:, 1] - along[:, 1] * to_center[:, 0]) / np.linalg.norm(along, axis=1)
-        return cls(loop, center, float(np.linalg.norm(loop - center, axis=1).max()), float(inradius.min()))
+        return cls(loop, *round_extent(loop))
 
     def crossing(self, starts: np.ndarray, ends: np.ndarray, tol: float) -> np.ndarray:
         """Mask of the segments (n, 2)-(n, 2) that pass through the hole: those passing

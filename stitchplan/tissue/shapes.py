@@ -26,7 +26,7 @@ from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
 from ..geometry.edge_grid import EdgeGrid, concatenated_ranges
 from ..geometry.polygon_domain import PolygonDomain
-from ..geometry.polygons import CIRCLE_SEGMENTS, CORNER_TURN, turns
+from ..geometry.polygons import CIRCLE_SEGMENTS, CORNER_TURN, is_round, round_extent, turns
 from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
 from .thin_features import wall_thickness
 
@@ -131,6 +131,50 @@ def corner_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refine
         for a, b in zip(loop[tip], after[tip]):
             zones.append(RefinementZone(0.5 * (np.asarray(a, dtype=float) + b), 0.0, fine))
     return tuple(zones)
+
+
+HOLE_LEVELS = 8  # refinement levels toward a round hole at most (a 1 um hole: 2^8 below the spacing)
+
+
+def hole_zones(tissue: Tissue, discretization: Discretization) -> tuple[RefinementZone, ...]:
+    """Refinement zones at the round holes (geometry.polygons.is_round) whose wall the default
+    spacing does not resolve: the stress round a hole peaks at its wall and falls off over
+    about its inradius, which a spacing near that length smooths over (a 1 mm hole in a plate
+    was 1.55 % off scikit-fem at its wall at the default spacing; benchmarks/small_holes.py).
+    The leaf side at the wall is at most inradius / discretization.hole_resolution at the
+    default spacing (min(W, H)/20) and the same number of levels below any other, so that
+    `--spacing` refines it with the rest; the zone is a capsule along the hole's longest axis,
+    its inradius wide, which holds the hole (a circle's: a disk). None with hole_resolution 0."""
+    domain = tissue.domain
+    if discretization.hole_resolution == 0 or not isinstance(domain, PolygonDomain):
+        return ()
+    reference = default_spacing_of(tissue.bounding_size, None)
+    zones = []
+    for hole in domain.holes:
+        loop = np.asarray(hole, dtype=float)
+        if not is_round(loop):  # a hole with corners is graded at them (corner_zones)
+            continue
+        center, radius, inradius = round_extent(loop)
+        # 1 % slack: a circle's polygon is resolved where the circle would be
+        levels = min(int(np.ceil(np.log2(reference * discretization.hole_resolution / inradius) - 0.01)), HOLE_LEVELS)
+        if levels <= 0:
+            continue
+        fine = discretization.spacing / 2**levels
+        farthest = loop[np.argmax(np.linalg.norm(loop - center, axis=1))]
+        reach = (radius - inradius) / radius * (farthest - center)  # centre to the capsule's end
+        if radius - inradius <= 1e-3 * radius:  # a circle's polygon: a disk
+            zones.append(RefinementZone(center, radius, fine))
+        else:
+            zones.append(RefinementZone(center - reach, inradius, fine, center + reach))
+    return tuple(zones)
+
+
+def shape_zones(tissue: Tissue, discretization: Discretization) -> tuple[RefinementZone, ...]:
+    """Every refinement zone a shaped tissue's own geometry asks for: re-entrant corners and
+    slits' tips (corner_zones), material interfaces (interface_zones), unresolved round holes
+    (hole_zones)."""
+    return (*corner_zones(tissue, discretization), *interface_zones(tissue, discretization),
+            *hole_zones(tissue, discretization))
 
 
 # pieces of a region edge at most: where the edge leaves the tissue, its zone ends within
