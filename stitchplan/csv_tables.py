@@ -48,7 +48,7 @@ def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, 
         raise InputError(f"{where}: not a text file; expected a CSV table ({expected})") from None
     digest = hashlib.sha256(content).hexdigest()
     del content
-    rows = _rows(text)
+    rows = _rows(text, where)
     wanted = f"exactly the columns {','.join(columns)} (in any order)" if exact else f"at least {', '.join(columns)}"
     first = next(rows, None)
     if first is None:
@@ -81,9 +81,10 @@ def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, 
 LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+")
 
 
-def _rows(text: str) -> Iterator[tuple[int, list[str]]]:
+def _rows(text: str, where: str) -> Iterator[tuple[int, list[str]]]:
     """(line number, cells) of each row of the text, one at a time, skipping blank lines, lines
-    starting with '#' and rows of empty cells; a row's number is its first line's."""
+    starting with '#' and rows of empty cells; a row's number is its first line's. A cell past
+    csv's field limit is refused naming the line it starts on."""
     start: list[int | None] = [None]
 
     def kept() -> Iterator[str]:
@@ -94,7 +95,16 @@ def _rows(text: str) -> Iterator[tuple[int, list[str]]]:
                     start[0] = number
                 yield line
 
-    for row in csv.reader(kept()):
+    reader = csv.reader(kept())
+    while True:
+        try:
+            row = next(reader, None)
+        except csv.Error:  # the field limit: a stray quote's cell runs on to the end of the file
+            raise InputError(f"{where}: line {start[0]}: got a cell longer than {csv.field_size_limit()} "
+                             "characters (a quote left open takes in the lines after it), expected a number in "
+                             "each cell") from None
+        if row is None:
+            return
         number, start[0] = start[0], None
         if any(cell.strip() for cell in row):
             yield number, row

@@ -258,6 +258,17 @@ def test_rows_of_another_length_than_the_header_are_refused(tmp_path, geometry):
                                        f"the header ({HEADER})")
 
 
+def test_a_quote_left_open_in_a_long_file_is_refused_by_its_line(tmp_path, geometry):
+    """A stray quote takes in the lines after it as one cell; past csv's field limit (128 KiB,
+    a few thousand rows) that ended in a traceback instead of naming the line."""
+    rows = trajectory_rows(geometry)
+    rows += [[str(k)] + rows[-1][1:] for k in range(len(rows), 4000)]
+    rows[3][2] = '"' + rows[3][2]
+    path = write_rows(tmp_path, rows)
+    assert refusal(path, geometry) == (f"{path}: line 5: got a cell longer than 131072 characters (a quote left "
+                                       "open takes in the lines after it), expected a number in each cell")
+
+
 def test_a_column_named_twice_is_refused(tmp_path, geometry):
     path = write_rows(tmp_path, [row + [row[2]] for row in trajectory_rows(geometry)], HEADER + ",center_x_mm")
     assert refusal(path, geometry) == f"{path}: line 1, column 7: got 'center_x_mm' again, expected each column once"
