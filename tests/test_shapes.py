@@ -1034,7 +1034,8 @@ def test_a_hole_the_default_spacing_does_not_resolve_is_graded_to_its_size():
     largest displacement off scikit-fem; graded toward the hole (tissue.shapes.hole_zones:
     leaves of at most a quarter of a millimetre there, inradius / hole_resolution 2) 0.10 %,
     for 1130 particles against 863 (a uniform 0.5 mm spacing: 0.39 % for 3324). Halving the
-    spacing halves the leaves at the hole too (the same levels below it)."""
+    spacing halves the leaves at the hole too (the same levels below it); a pinhole is left at
+    the spacing (shapes.HOLE_LEVELS)."""
     from stitchplan.tissue.deform import run_deform
     from stitchplan.tissue.shapes import hole_zones
 
@@ -1066,6 +1067,9 @@ def test_a_hole_the_default_spacing_does_not_resolve_is_graded_to_its_size():
     half = scenario.discretization.replaced(spacing=0.5)
     assert hole_zones(scenario.tissue, half)[0].spacing == 0.125
     assert hole_zones(ungraded.tissue, ungraded.discretization) == ()
+    raw["tissue"]["holes"][0]["circle"]["radius"] = 0.001  # a pinhole: 2^12 below the spacing, not graded
+    pinhole = parse_scenario(raw)
+    assert hole_zones(pinhole.tissue, pinhole.discretization) == ()
 
 
 def test_segments_cross_only_properly_and_alike_in_every_order():
