@@ -37,17 +37,38 @@ def read_numeric_table(path: str | Path, columns: Sequence[str], expected: str, 
     `max_rows` rows are refused, counted but not kept past it (`rows_note`: why, after "expected
     at most `max_rows`").
     """
-    path = Path(path)
+    content = read_table_bytes(path, expected, label=label)
+    text, digest = decode_table(content, path, expected, label=label)
+    del content  # the text alone from here: a million-row file's bytes are ~40 MB
+    return parse_numeric_table(text, digest, path, columns, expected, exact=exact, label=label,
+                               max_rows=max_rows, rows_note=rows_note)
+
+
+def read_table_bytes(path: str | Path, expected: str, *, label: str = "") -> bytes:
+    """The bytes of a table file, read once: a pipe gives them once, so the text parsed, its
+    SHA-256 and the text a run records all come from them."""
     where = f"{label}: {path}" if label else f"{path}"
     try:
-        content = read_input_bytes(path, where, f"a CSV table ({expected})")
-        text = content.decode("utf-8-sig")  # -sig: a BOM
+        return read_input_bytes(Path(path), where, f"a CSV table ({expected})")
     except OSError as error:
         raise InputError(f"{where}: cannot be read ({error.strerror or error})") from None
+
+
+def decode_table(content: bytes, path: str | Path, expected: str, *, label: str = "") -> tuple[str, str]:
+    """The text of a table's bytes (a byte-order mark left out) and their SHA-256."""
+    try:
+        text = content.decode("utf-8-sig")  # -sig: a BOM
     except UnicodeDecodeError:
+        where = f"{label}: {path}" if label else f"{path}"
         raise InputError(f"{where}: not a text file; expected a CSV table ({expected})") from None
-    digest = hashlib.sha256(content).hexdigest()
-    del content
+    return text, hashlib.sha256(content).hexdigest()
+
+
+def parse_numeric_table(text: str, digest: str, path: str | Path, columns: Sequence[str], expected: str, *,
+                        exact: bool = False, label: str = "", max_rows: int | None = None,
+                        rows_note: str = "") -> tuple[dict[str, np.ndarray], np.ndarray, str]:
+    """read_numeric_table of a table's `text` read from `path` (decode_table: with `digest`)."""
+    where = f"{label}: {path}" if label else f"{path}"
     rows = _rows(text, where)
     wanted = f"exactly the columns {','.join(columns)} (in any order)" if exact else f"at least {', '.join(columns)}"
     first = next(rows, None)

@@ -395,6 +395,39 @@ def test_a_replay_records_its_centre_path_and_its_sha256(tmp_path, scene):
         assert log.attrs["center_path"] == str(path) and log.attrs["center_path_sha256"] == digest
 
 
+
+def test_a_replay_from_a_pipe_records_the_path_it_read_and_reruns_from_its_run_log_alone(tmp_path, scene):
+    """A pipe gives the centre path once (`--center-path <(ssh robot cat t.csv)`): its SHA-256
+    is of the bytes replayed, not of a second, empty read (a named pipe's second open waited
+    for a writer for ever), and the run log keeps their text beside the scenario's, so that a
+    folder holding only run.h5 replays the same steps again."""
+    planned = invoke("plan", scene, "--export", tmp_path / "t.csv", "--no-compare", "--no-verify")
+    assert planned.exit_code == 0, planned.output
+    content = (tmp_path / "t.csv").read_bytes()
+    read_end, write_end = os.pipe()
+    os.write(write_end, content)  # a few rows: within the pipe's buffer
+    os.close(write_end)
+    try:
+        result = invoke("simulate", scene, "--center-path", f"/dev/fd/{read_end}", "--summary", tmp_path / "s.json",
+                        "--out", tmp_path / "run.h5", "--no-estimate")
+    finally:
+        os.close(read_end)
+    assert result.exit_code == 0, result.output
+    digest = hashlib.sha256(content).hexdigest()
+    assert json.loads((tmp_path / "s.json").read_text())["center_path_sha256"] == digest
+    again = tmp_path / "again"
+    again.mkdir()
+    with h5py.File(tmp_path / "run.h5") as log:
+        assert log.attrs["center_path_sha256"] == digest and log["center_path/text"][()] == content
+        (again / "scene.yaml").write_bytes(log["scenario/text"][()])
+        (again / "path.csv").write_bytes(log["center_path/text"][()])
+        first = log["steps/tip_spatial"][()]
+    rerun = invoke("simulate", again / "scene.yaml", "--center-path", again / "path.csv", "--out",
+                   again / "run.h5", "--no-estimate")
+    assert rerun.exit_code == 0, rerun.output
+    with h5py.File(again / "run.h5") as log:
+        np.testing.assert_array_equal(log["steps/tip_spatial"][()], first)
+
 def _check_run_log(path: Path, scene: Path, command: str) -> dict[str, str]:
     units = {}
     with h5py.File(path) as log:

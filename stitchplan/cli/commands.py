@@ -118,11 +118,10 @@ def simulate(
     resume_collection()
     options = {"linear_solver": choice_value(linear_solver), "tip_tracking": choice_value(tip_tracking)}
     geometry = checked_needle_geometry(scenario_path, scenario, "simulate")
-    path = read_center_path_option(scenario_path, center_path, scenario, geometry) if center_path is not None else None
-    if center_path is not None:  # the replay's path recorded as its scenario is (of the file as read)
-        from ..io.files import sha256
-
-        provenance.update(center_path=str(center_path), center_path_sha256=sha256(center_path))
+    path_file = read_center_path_option(scenario_path, center_path, scenario, geometry) if center_path is not None else None
+    path, path_text = (path_file.centers, {"center_path": {"text": path_file.text}}) if path_file else (None, None)
+    if path_file is not None:  # the replay's path recorded as its scenario is: of the bytes read, a pipe's too
+        provenance.update(center_path=str(center_path), center_path_sha256=path_file.sha256)
     check_plot_steps(steps_to_plot, scenario)
     limits = guard_limits(max_particles, no_resource_check)
     if accuracy is None:
@@ -134,7 +133,9 @@ def simulate(
     put_accuracy_notes_first(result.events, auto_note, accuracy, error_estimate)
     reports.write_insertion_outputs(result, "simulate", out=out, summary=summary, plot=plot,
                                     plot_steps=steps_to_plot, provenance=provenance,
-                                    extra_summary=reports.exit_estimate_summary(error_estimate))
+                                    extra_summary=reports.exit_estimate_summary(error_estimate),
+                                    # the path's text beside the scenario's: the run log alone replays it again
+                                    extra_datasets=path_text)
     typer.echo(reports.insertion_line(result, "simulate", error_estimate))
     plot_steps_note(steps_to_plot, result, quiet)
     echo_events(result.events, quiet)

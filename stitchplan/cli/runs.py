@@ -29,8 +29,8 @@ def resolve_accuracy_guarded(scenario_path: Path, scenario, limits, linear_solve
 
 
 def read_center_path_option(scenario_path: Path, center_path: Path, scenario, geometry):
-    """The needle centres of the --center-path file, checked against the scenario's needle
-    `geometry`, its rows' errors naming the file."""
+    """The --center-path file as read (readers.CenterPathFile), its centres checked against
+    the scenario's needle `geometry`, its rows' errors naming the file."""
 
     def needle_for(first_center):
         """The needle a path starting about `first_center` replays: a path planned with the
@@ -39,7 +39,7 @@ def read_center_path_option(scenario_path: Path, center_path: Path, scenario, ge
             return needle_geometry.scenario_needle(needle_geometry.entry_lean(scenario, first_center))
 
     with naming_option("--center-path", center_path):  # as --air's and --tissue's lines do
-        return readers.read_center_path(center_path, geometry, needle_for)
+        return readers.read_center_path_file(center_path, geometry, needle_for)
 
 
 def simulate_with_replays(scenario_path: Path, scenario, center_path: Optional[Path], path, estimate: bool,

@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..csv_tables import read_numeric_table
+from ..csv_tables import decode_table, parse_numeric_table, read_table_bytes
 from ..errors import InputError
 from ..needle.geometry import ENTRY_TOLERANCE, LEAN_TOLERANCE, NeedleGeometry, length, on_entry_circle
 
@@ -36,6 +37,28 @@ def point_tolerance(*points: np.ndarray) -> np.ndarray:
     scale = np.max(np.abs(np.concatenate(points, axis=1)), axis=1)
     return np.maximum(TIP_TOLERANCE_MM, TIP_RELATIVE_TOLERANCE * scale)
 
+
+@dataclass(frozen=True)
+class CenterPathFile:
+    """A centre path as read, once: its centres and what a run records of the file."""
+
+    centers: np.ndarray  # (n, 2) mm
+    text: str  # the file's text, a byte-order mark kept: the bytes `sha256` is of
+    sha256: str
+
+
+def read_center_path_file(path: str | Path, geometry: NeedleGeometry | None = None,
+                          leaning: Callable[[np.ndarray], NeedleGeometry] | None = None) -> CenterPathFile:
+    """read_center_path's centres, with the text and SHA-256 of the bytes they were read from
+    (a pipe gives them once)."""
+    expected = "a trajectory written by `stitchplan plan`"
+    content = read_table_bytes(path, expected)
+    text, digest = decode_table(content, path, expected)
+    table, row_numbers, _ = parse_numeric_table(text, digest, path, CENTER_PATH_COLUMNS, expected)
+    return CenterPathFile(_checked_centers(path, table, row_numbers, geometry, leaning), content.decode("utf-8"),
+                          digest)
+
+
 def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
                      leaning: Callable[[np.ndarray], NeedleGeometry] | None = None) -> np.ndarray:
     """Needle centres (n, 2) in mm from a trajectory CSV as `stitchplan plan` exports it:
@@ -48,7 +71,13 @@ def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
     tips, when it has them, the needle's tip about each centre (check_tips). `leaning(row 0)`: the needle a path starting there replays
     (needle.geometry.entry_lean: a plan may lean the needle at entry); a row 0 off the centre
     at entry but within LEAN_TOLERANCE of the circle about the entry is put onto it."""
-    table, row_numbers, _ = read_numeric_table(path, CENTER_PATH_COLUMNS, "a trajectory written by `stitchplan plan`")
+    return read_center_path_file(path, geometry, leaning).centers
+
+
+def _checked_centers(path: str | Path, table: dict[str, np.ndarray], row_numbers: np.ndarray,
+                     geometry: NeedleGeometry | None,
+                     leaning: Callable[[np.ndarray], NeedleGeometry] | None) -> np.ndarray:
+    """The centres of a centre path's table, checked as read_center_path says."""
     _check_steps(path, table["step"], row_numbers)
     centers = np.column_stack([table["center_x_mm"], table["center_y_mm"]])
     if geometry is not None and leaning is not None:
