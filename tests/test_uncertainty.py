@@ -407,6 +407,26 @@ def test_the_summary_has_the_uncertainty_block_of_the_format(planned):
     assert f"exit spread dominated by {block['dominant_parameter']}" in result.stdout
 
 
+
+def test_an_uncertainty_file_from_a_pipe_records_the_checksum_of_what_was_parsed(tmp_path):
+    """`--uncertainty <(cat u.yaml)`: the pipe gives its bytes once, so uncertainty_file_sha256
+    is theirs, not that of a second, empty read (a named pipe's second open waited for ever)."""
+    import os
+
+    scenario = write(tmp_path, small_raw())
+    content = yaml.safe_dump(small_uncertainty(samples=3)).encode()
+    read_end, write_end = os.pipe()
+    os.write(write_end, content)  # a few lines: within the pipe's buffer
+    os.close(write_end)
+    try:
+        result = invoke("plan", scenario, "--uncertainty", f"/dev/fd/{read_end}", "--export", tmp_path / "t.csv",
+                        "--summary", tmp_path / "s.json", "--no-verify", "--workers", "0")
+    finally:
+        os.close(read_end)
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["uncertainty_file_sha256"] == hashlib.sha256(content).hexdigest()
+
 def test_the_exported_plan_under_uncertainty_is_verified_by_default(planned):
     """As any plan: the exported trajectory replayed on the refined model (at the scenario's
     values), which `simulate --center-path ... --spacing` reproduces, and an estimate from it."""

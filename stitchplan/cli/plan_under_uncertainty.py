@@ -54,8 +54,9 @@ def run_plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: 
     with naming_option("--uncertainty", uncertainty_path):  # its lines against the scenario's values too
         check_inputs(uncertainty, scenario, scenario_path)
     # the files the distributions came from, as the scenario's is recorded (their resolved
-    # stds and correlations are the summary's uncertainty.distributions)
-    provenance.update(uncertainty_file=str(uncertainty_path), uncertainty_file_sha256=sha256(uncertainty_path))
+    # stds and correlations are the summary's uncertainty.distributions); the file's SHA-256 of the
+    # bytes parsed, which a pipe gives once
+    provenance.update(uncertainty_file=str(uncertainty_path), uncertainty_file_sha256=uncertainty.sha256)
     if uncertainty.calibration is not None:
         provenance.update(calibration_file=uncertainty.calibration,
                           calibration_file_sha256=sha256(uncertainty.calibration))

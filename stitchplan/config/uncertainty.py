@@ -27,7 +27,7 @@ from __future__ import annotations
 import difflib
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -165,6 +165,7 @@ class Uncertainty:
     calibration: str | None  # the calibrate material output read, if any
     correlation_sources: dict[frozenset, str] = field(default_factory=dict)  # pair -> "file" | "calibration"
     calibration_regions: tuple = ()  # Region: those the calibration's moduli were fitted around
+    sha256: str | None = None  # of the file's bytes as parsed (a pipe gives them once)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -188,8 +189,9 @@ def parse_uncertainty(raw: Any) -> UncertaintyFile:
 
 def load_uncertainty(path: str | Path) -> Uncertainty:
     """The resolved uncertainty of a file; every error line starts with the file's path."""
-    spec = with_key_problems(read_yaml_file(path, keys_later=True), path, parse_uncertainty)
-    return resolve_uncertainty(spec, path)
+    file = read_yaml_file(path, keys_later=True)
+    spec = with_key_problems(file, path, parse_uncertainty)
+    return replace(resolve_uncertainty(spec, path), sha256=file.sha256)
 
 
 def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
