@@ -339,12 +339,30 @@ def test_deform_failing_at_its_last_rename_replaces_nothing(tmp_path, scene, mon
 
 def _check_provenance(record: dict, args: list, scene: Path) -> None:
     assert record["stitchplan_version"] == stitchplan.__version__
+    assert record["stitchplan_source_sha256"] == stitchplan.source_sha256()  # the code, which the version is not
     assert record["command"][1:] == list(map(str, args))  # [0]: the program as invoked
     assert record["scenario"] == str(scene)
     assert record["scenario_sha256"] == hashlib.sha256(scene.read_bytes()).hexdigest()
     assert record["created_utc"].endswith("+00:00")
     # what the relative paths of the command line are relative to
     assert record["working_directory"] == os.getcwd()
+
+
+
+def test_the_source_digest_tells_apart_code_of_one_version(tmp_path):
+    """The version stays the same over many changes of the numerics between releases (plan's
+    exit error on sh12_100x100 went from 0.021 to 0.00023 mm at 0.2.0): the records' source
+    digest changes with any byte of the package's code, and only with its code."""
+    import shutil
+
+    copy = tmp_path / "stitchplan"
+    shutil.copytree(Path(stitchplan.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    assert stitchplan.sources_digest(copy) == stitchplan.source_sha256()
+    (copy / "notes.txt").write_text("not code")
+    assert stitchplan.sources_digest(copy) == stitchplan.source_sha256()
+    module = copy / "tissue" / "material.py"
+    module.write_bytes(module.read_bytes() + b"\n")
+    assert stitchplan.sources_digest(copy) != stitchplan.source_sha256()
 
 
 def test_deform_summary_and_run_log_carry_provenance_and_units(tmp_path, scene):
@@ -433,6 +451,7 @@ def _check_run_log(path: Path, scene: Path, command: str) -> dict[str, str]:
     with h5py.File(path) as log:
         assert log.attrs["schema_version"] == files.HDF5_SCHEMA_VERSION
         assert log.attrs["command"] == command
+        assert log.attrs["stitchplan_source_sha256"] == stitchplan.source_sha256()
         assert log.attrs["scenario_sha256"] == hashlib.sha256(scene.read_bytes()).hexdigest()
         for name in ("python_version", "numpy_version", "scipy_version", "h5py_version"):
             assert log.attrs[name]
@@ -488,6 +507,7 @@ def test_calibrate_needle_records_command_and_input_digests(tmp_path, scene):
     diagnostics = yaml.safe_load((tmp_path / "needle.yaml").read_text())["diagnostics"]
     assert diagnostics["command"][1:] == list(map(str, args))
     assert diagnostics["stitchplan_version"] == stitchplan.__version__
+    assert diagnostics["stitchplan_source_sha256"] == stitchplan.source_sha256()
     assert diagnostics["working_directory"] == os.getcwd()
     for name in ("air.csv", "tissue.csv"):
         path = tmp_path / name
@@ -500,6 +520,7 @@ def test_calibrate_material_records_command_and_input_digests(tmp_path, scene):
     assert result.exit_code == 0, result.output
     diagnostics = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["diagnostics"]
     assert diagnostics["command"][1:] == list(map(str, args))
+    assert diagnostics["stitchplan_source_sha256"] == stitchplan.source_sha256()
     assert diagnostics["working_directory"] == os.getcwd()
     for name in ("calib.yaml", "markers.csv"):
         path = tmp_path / name

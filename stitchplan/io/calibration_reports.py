@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import __version__
+from .. import __version__, source_sha256
 from .files import OutputSet, sha256, utc_now, working_directory, write_yaml
 
 if TYPE_CHECKING:
@@ -205,6 +205,7 @@ def _material_diagnostics(result: MaterialFit) -> dict:
                            "basis_order": d.basis_order},
         "source": problem.source,
         "stitchplan_version": __version__,
+        "stitchplan_source_sha256": source_sha256(),
         "created_utc": _created(),
     }
 
@@ -303,6 +304,7 @@ def needle_report(result: NeedleFit, command: list[str] | None = None) -> dict:
             "air": result.sources[0],
             "tissue": result.sources[1],
             "stitchplan_version": __version__,
+            "stitchplan_source_sha256": source_sha256(),
             "command": command,
             "working_directory": working_directory(),
             "input_sha256": _inputs(list(result.sources), list(result.source_sha256)),

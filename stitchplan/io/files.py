@@ -459,10 +459,11 @@ def provenance(command: Sequence[str] | None = None, scenario: PathLike | None =
     pipe cannot give twice; else of the file as it is now), the time, and the folder the
     command ran in (`working_directory`: what relative paths in the command line and the
     record are relative to)."""
-    from .. import __version__
+    from .. import __version__, source_sha256
 
     return {
         "stitchplan_version": __version__,
+        "stitchplan_source_sha256": source_sha256(),
         "command": list(command) if command is not None else None,
         "scenario": str(scenario) if scenario is not None else None,
         "scenario_sha256": scenario_sha256 or _sha256_or_none(scenario),

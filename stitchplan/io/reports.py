@@ -39,6 +39,7 @@ def run_attributes(command: str, scenario, provenance: dict | None = None) -> di
     record = provenance or make_provenance()
     return {
         "stitchplan_version": record["stitchplan_version"],
+        "stitchplan_source_sha256": record["stitchplan_source_sha256"],
         "command": command,
         "command_line": record["command"],
         "scenario_name": scenario.name,
