@@ -426,3 +426,20 @@ def test_a_scheduler_whose_worker_runs_another_version_is_refused(worker_on, mon
     assert message.endswith(f" of {address} runs stitchplan {version}, this command 0.0.1; expected "
                             "the same version on every worker (the runs must not depend on where they ran)")
 
+
+
+def test_a_scheduler_whose_worker_runs_other_sources_of_this_version_is_refused(worker_on, monkeypatch):
+    """The version stays the same over many changes of the numerics: a worker started before the
+    code changed, or from another checkout, runs other code under it."""
+    import stitchplan
+
+    address = worker_on(Path(stitchplan.__file__).resolve().parents[1])
+    theirs = stitchplan.source_sha256()
+    monkeypatch.setattr(stitchplan, "source_sha256", lambda: "0" * 64)  # the command's code, now changed
+    with pytest.raises(InputError) as refused, Executor(scheduler=address):
+        pass
+    message = str(refused.value)
+    assert message.startswith("--scheduler: worker tcp://127.0.0.1:") and "\n" not in message
+    assert message.endswith(f" of {address} runs stitchplan {stitchplan.__version__} from other sources (SHA-256 "
+                            f"{theirs[:12]}..., this command's 000000000000...); expected the same code on every "
+                            "worker, restarted since it changed (the runs must not depend on where they ran)")

@@ -175,20 +175,23 @@ class Executor:
             raise ClusterFailure(f"{self.where} lost a task: {brief_error(error)}") from None
 
 
-def package_version() -> str:
-    """This package's version where it runs: on a worker, check_package_on_workers's probe,
-    which also fails there where the package cannot be imported."""
-    from .. import __version__
+def package_version() -> tuple[str, str]:
+    """This package's version and the SHA-256 of its sources where it runs: on a worker,
+    check_package_on_workers's probe, which also fails there where the package cannot be
+    imported."""
+    from .. import __version__, source_sha256
 
-    return __version__
+    return __version__, source_sha256()
 
 
 def check_package_on_workers(client: Any, scheduler: str) -> None:
     """An InputError naming --scheduler unless every worker attached to the scheduler imports
-    this package at this version. A worker that cannot import it dies on its first task (the
-    task cannot be unpickled), which the run would only see as lost workers; one at another
-    version would run other code, and the results would depend on where they ran."""
-    from .. import __version__
+    this package at this version from the same sources. A worker that cannot import it dies on
+    its first task (the task cannot be unpickled), which the run would only see as lost
+    workers; one at another version, or at this one from other sources (the version stays the
+    same over many changes of the numerics), would run other code, and the results would
+    depend on where they ran."""
+    from .. import __version__, source_sha256
 
     try:
         versions = client.run(package_version, on_error="return")
@@ -201,10 +204,16 @@ def check_package_on_workers(client: Any, scheduler: str) -> None:
                              f"command's stitchplan ({brief_error(version)}); expected workers that can, started where stitchplan is "
                              "installed or with it on PYTHONPATH, and restarted since it changed (`PYTHONPATH=DIR "
                              f"dask worker {scheduler}`)")
+        version, sources = version
         if version != __version__:
             raise InputError(f"--scheduler: worker {worker} of {scheduler} runs stitchplan {version}, this command "
                              f"{__version__}; expected the same version on every worker (the runs must not depend "
                              "on where they ran)")
+        if sources != source_sha256():
+            raise InputError(f"--scheduler: worker {worker} of {scheduler} runs stitchplan {version} from other "
+                             f"sources (SHA-256 {sources[:12]}..., this command's {source_sha256()[:12]}...); "
+                             "expected the same code on every worker, restarted since it changed (the runs must "
+                             "not depend on where they ran)")
 
 
 class _WorkerWatch:
