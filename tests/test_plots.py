@@ -629,3 +629,18 @@ def test_study_family_names_with_dollar_signs_are_drawn_as_written(tmp_path):
     assert is_png(tmp_path / "speed.png")
     legend = [text for text in fig.legends[0].get_texts() if "x^" in text.get_text()]
     assert legend and all(shown_as_written(text, DOLLARS) for text in legend)
+
+
+def test_a_saved_figure_names_the_code_that_drew_it(tmp_path):
+    """A PNG kept alone says which code drew it: the version and the sources' SHA-256, as the
+    summaries and run logs record them (stitchplan_source_sha256)."""
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    import stitchplan
+
+    fig, _ = plt.subplots()
+    plots.save(fig, tmp_path / "figure.png")
+    with Image.open(tmp_path / "figure.png") as image:
+        software = image.text["Software"]
+    assert software == f"stitchplan {stitchplan.__version__} (sources SHA-256 {stitchplan.source_sha256()})"

@@ -43,14 +43,19 @@ def save(fig, path: str | Path) -> None:
     the plots the temporaries of their OutputSet, which renames them only when all succeeded.
     Cropped to its tight box at the PNG's dpi (the figures are made at it, SAVED_DPI), padded
     as savefig's bbox_inches="tight" pads it, measured without the draw of the whole figure
-    that "tight" makes first (the same PNG byte for byte, benchmarks/command_overlap.py)."""
+    that "tight" makes first (the same PNG byte for byte, benchmarks/command_overlap.py). Its
+    Software text names the package's version and the SHA-256 of its sources, as the run's
+    other records do: a figure kept alone still says which code drew it."""
     import matplotlib
     import matplotlib.pyplot as plt
 
+    from .. import __version__, source_sha256
+
+    software = f"stitchplan {__version__} (sources SHA-256 {source_sha256()})"
     buffer = io.BytesIO()  # drawn in memory, so that a failed write names its file (files.write_bytes)
     try:
         box = fig.get_tightbbox(fig.canvas.get_renderer()).padded(matplotlib.rcParams["savefig.pad_inches"])
-        fig.savefig(buffer, dpi=SAVED_DPI, bbox_inches=box, format="png")
+        fig.savefig(buffer, dpi=SAVED_DPI, bbox_inches=box, format="png", metadata={"Software": software})
     finally:
         plt.close(fig)
     write_bytes(path, buffer.getbuffer())
