@@ -1072,6 +1072,31 @@ def test_a_hole_the_default_spacing_does_not_resolve_is_graded_to_its_size():
     assert hole_zones(pinhole.tissue, pinhole.discretization) == ()
 
 
+
+def test_a_finer_hole_resolution_never_grades_a_hole_less():
+    """A hole_resolution above the default asks for finer leaves at a round hole's wall: a
+    0.25 mm hole on a plate at 1 mm was graded to 0.125 mm at 2 and to 0.03 mm at 8, but not
+    at all at 16 (more than shapes.HOLE_LEVELS levels: taken for a pinhole, 862 particles
+    against 1456 at 8), and a 0.1 mm one not at all from 4 on. The pinhole is judged by its
+    size alone; a hole that needs more levels gets HOLE_LEVELS."""
+    from stitchplan.tissue.shapes import HOLE_LEVELS, hole_zones
+
+    for radius in (0.5, 0.25, 0.1):
+        raw = {"tissue": {"size": [40.0, 20.0], "thickness": 10.0, "material": SVK_SOFT, "clamped": ["bottom"],
+                          "holes": [{"circle": {"center": [20.0, 10.0], "radius": radius}}]},
+               "loads": [{"segment": [[0.0, 20.0], [40.0, 20.0]], "force": [0.3, -1.5]}]}
+        scenario = parse_scenario(raw)
+        leaves = []
+        for resolution in (1, 2, 4, 8, 16):
+            (zone,) = hole_zones(scenario.tissue, scenario.discretization.replaced(hole_resolution=resolution))
+            leaves.append(zone.spacing)
+        assert all(finer <= coarser for coarser, finer in zip(leaves, leaves[1:])), (radius, leaves)
+        assert leaves[-1] == max(radius / 16, 1.0 / 2**HOLE_LEVELS)
+    raw["tissue"]["holes"][0]["circle"]["radius"] = 0.05  # a pinhole at any resolution
+    pinhole = parse_scenario(raw)
+    for resolution in (1, 2, 16):
+        assert hole_zones(pinhole.tissue, pinhole.discretization.replaced(hole_resolution=resolution)) == ()
+
 def test_segments_cross_only_properly_and_alike_in_every_order():
     """geometry.segments.segments_cross, the visibility criterion's test: on random segments
     it agrees with solving p + t (q - p) = a + s (b - a) for 0 < t, s < 1, in any order of

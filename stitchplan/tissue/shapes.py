@@ -133,11 +133,13 @@ def corner_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refine
     return tuple(zones)
 
 
-# refinement levels toward a round hole at most: a smaller hole (a pinhole, under 1/16 of the
-# default spacing across) is left at the spacing, its wall's stress peak too small for any output
-# to see (a 1 um hole on a plate at 1 mm: graded, 1197 particles against 861, 2.6x the time, the
-# probes moved by 0.04 % of the largest displacement)
+# refinement levels toward a round hole at most
 HOLE_LEVELS = 5
+# a pinhole, its inradius more than 2^PINHOLE_LEVELS below the default spacing, is left at the
+# spacing whatever the hole_resolution, its wall's stress peak too small for any output to see (a
+# 1 um hole on a plate at 1 mm: graded, 1197 particles against 861, 2.6x the time, the probes
+# moved by 0.04 % of the largest displacement); a larger hole needing more levels gets HOLE_LEVELS
+PINHOLE_LEVELS = 4
 
 
 def hole_zones(tissue: Tissue, discretization: Discretization) -> tuple[RefinementZone, ...]:
@@ -148,8 +150,8 @@ def hole_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refineme
     The leaf side at the wall is at most inradius / discretization.hole_resolution at the
     default spacing (min(W, H)/20) and the same number of levels below any other, so that
     `--spacing` refines it with the rest; the zone is a capsule along the hole's longest axis,
-    its inradius wide, which holds the hole (a circle's: a disk). None with hole_resolution 0,
-    nor for a hole that needs more than HOLE_LEVELS levels."""
+    its inradius wide, which holds the hole (a circle's: a disk); at most HOLE_LEVELS levels.
+    None with hole_resolution 0, nor for a pinhole (PINHOLE_LEVELS)."""
     domain = tissue.domain
     if discretization.hole_resolution == 0 or not isinstance(domain, PolygonDomain):
         return ()
@@ -161,8 +163,10 @@ def hole_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refineme
             continue
         center, radius, inradius = round_extent(loop)
         # 1 % slack: a circle's polygon is resolved where the circle would be
-        levels = int(np.ceil(np.log2(reference * discretization.hole_resolution / inradius) - 0.01))
-        if not 0 < levels <= HOLE_LEVELS:
+        if np.log2(reference / inradius) - 0.01 > PINHOLE_LEVELS:  # by size: a finer resolution asked grades no less
+            continue
+        levels = min(int(np.ceil(np.log2(reference * discretization.hole_resolution / inradius) - 0.01)), HOLE_LEVELS)
+        if levels <= 0:
             continue
         fine = discretization.spacing / 2**levels
         farthest = loop[np.argmax(np.linalg.norm(loop - center, axis=1))]
