@@ -145,6 +145,8 @@ def chart(rows: list[dict], path) -> None:
                 if chosen:
                     axes.loglog([float(row[key]) for row in chosen], [100 * float(row["error"]) for row in chosen],
                                 style, marker=marker, color=f"C{index}", markersize=4)
+    panels[0].set_xticks(SPACINGS, [f"{spacing:g}" for spacing in SPACINGS])
+    panels[0].minorticks_off()
     panels[0].set_xlabel("particle spacing (mm)")
     panels[1].set_xlabel("particles")
     for axes in panels:
