@@ -150,8 +150,9 @@ def hole_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refineme
     The leaf side at the wall is at most inradius / discretization.hole_resolution at the
     default spacing (min(W, H)/20) and the same number of levels below any other, so that
     `--spacing` refines it with the rest; the zone is a capsule along the hole's longest axis,
-    its inradius wide, which holds the hole (a circle's: a disk); at most HOLE_LEVELS levels.
-    None with hole_resolution 0, nor for a pinhole (PINHOLE_LEVELS)."""
+    its inradius wide, which holds the hole (a circle's: a disk); at most HOLE_LEVELS levels,
+    and in a needle scene no finer than the needle's spacing. None with hole_resolution 0, nor
+    for a pinhole (PINHOLE_LEVELS)."""
     domain = tissue.domain
     if discretization.hole_resolution == 0 or not isinstance(domain, PolygonDomain):
         return ()
@@ -169,6 +170,12 @@ def hole_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refineme
         if levels <= 0:
             continue
         fine = discretization.spacing / 2**levels
+        if discretization.needle_spacing is not None:
+            # a needle scene's particles no finer than at the needle: its coupling is set for that
+            # spacing, and a patch of much finer ones by the track moved the exit by 1-2 %
+            fine = max(fine, discretization.needle_spacing)
+            if fine >= discretization.spacing:
+                continue
         farthest = loop[np.argmax(np.linalg.norm(loop - center, axis=1))]
         reach = (radius - inradius) / radius * (farthest - center)  # centre to the capsule's end
         if radius - inradius <= 1e-3 * radius:  # a circle's polygon: a disk
