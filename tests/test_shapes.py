@@ -1105,9 +1105,9 @@ def test_a_needle_scene_grades_a_hole_no_finer_than_its_needle():
     zone stops at the needle's spacing, which is the ungraded model inside the needle's zone.
     Graded to their size, leaves of 0.1-0.2 mm by the track, eight such blocks with a hole of
     0.1-0.9 mm 0.3-2 mm from the track had their unplanned exit errors at the default spacing
-    -0.0052 to +0.0067 mm off their values at an eighth of it (540-702 particles); held at the
+    -0.0052 to +0.0067 mm off their values at an eighth of it (541-702 particles); held at the
     needle's spacing, -0.0035 to -0.0014 mm (417-419 particles). Beyond the needle's zone the
-    hole is still graded, to the needle's spacing."""
+    hole is still graded, to the needle's spacing (benchmarks/hole_near_needle.py)."""
     import yaml
 
     from stitchplan.needle.geometry import needle_zone
