@@ -113,9 +113,9 @@ def report(rows: list[dict]) -> None:
     print(text)
 
 
-def main() -> None:
+def main(flags: set[str]) -> None:
     path = common.results_path("hole_near_needle.csv")
-    if "--report" not in sys.argv:
+    if "--report" not in flags:
         rows = []
         for hole in HOLES:
             for code in CODES:
@@ -128,9 +128,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1 and sys.argv[1] == "--worker":
+    if sys.argv[1:2] == ["--worker"]:  # one level in a fresh process: the patched zones stay in it
         print(json.dumps(worker(*sys.argv[2:])))
     else:
-        if "-h" in sys.argv or "--help" in sys.argv:
-            common.command_line(__doc__)
-        main()
+        main(common.command_line(__doc__, ("--report",)))
