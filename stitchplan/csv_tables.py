@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .config.yaml_files import read_input_bytes
-from .decimals import parse_number, spells_a_number
+from .decimals import last_digit, parse_number, spells_a_number
 from .errors import InputError
 
 
@@ -95,6 +95,18 @@ def parse_numeric_table(text: str, digest: str, path: str | Path, columns: Seque
     table = np.frombuffer(values, dtype=float).reshape(-1, len(header))  # (rows, columns)
     return ({name: table[:, k].copy() for k, name in enumerate(header)}, np.array(row_numbers, dtype=int),
             digest)
+
+
+def last_digits(text: str, path: str | Path, columns: Sequence[str]) -> dict[str, np.ndarray]:
+    """For each of `columns` a table's text has, the unit of the last digit written in each of
+    its rows (decimals.last_digit), in the rows parse_numeric_table reads (the table is read
+    already: its cells are numbers)."""
+    rows = _rows(text, str(path))
+    header = [name.strip() for name in next(rows)[1]]
+    wanted = [(name, header.index(name)) for name in columns if name in header]
+    units = [[last_digit(row[k]) for name, k in wanted] for _, row in rows]
+    table = np.array(units, dtype=float).reshape(-1, len(wanted))
+    return {name: table[:, j] for j, (name, _) in enumerate(wanted)}
 
 
 # a line as io.StringIO(text, newline="") splits them (ended by \n, \r\n or \r), found in the

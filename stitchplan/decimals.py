@@ -20,6 +20,18 @@ def parse_number(text: str) -> float | None:
     return value if math.isfinite(value) else None  # '1e999' overflows to inf
 
 
+PARTS = re.compile(r"[+-]?[0-9]*(?:\.([0-9]*))?(?:[eE]([+-]?[0-9]+))?")
+
+
+def last_digit(text: str) -> float:
+    """The value of one unit in the last digit a plain decimal `text` writes: 1e-3 for
+    '12.345', 1 for '12', 1e-4 for '1.5e-3' (what rounding to its digits may have moved it by,
+    twice over)."""
+    match = PARTS.fullmatch(text.strip())
+    fraction, exponent = (match.group(1) or "", match.group(2) or "0") if match else ("", "0")
+    return 10.0 ** (int(exponent) - len(fraction))
+
+
 def spells_a_number(text: str) -> bool:
     """Whether `text` spells a number parse_number refuses only for not being finite."""
     text = text.strip()

@@ -147,6 +147,22 @@ def test_tips_printed_with_9_significant_digits_pass_far_from_the_origin(tmp_pat
     assert "line 8, tip_x_mm, tip_y_mm" in refusal(write_rows(tmp_path, rows), far)
 
 
+def test_a_trajectory_rounded_to_fewer_decimals_keeps_its_tips(tmp_path, geometry):
+    """A file whose centres and tips were all rounded to 6 or 3 decimals (as a robot's toolchain
+    may write them) was refused for tips 1.06e-6 mm off their centres' needle: the rounding of
+    its finest cell, half a unit in each coordinate of a centre and a tip, is allowed, and a
+    centre moved by 0.01 mm is still refused in the 3-decimal file; a file whose cells keep 9
+    digits but for a few (zeros dropped, '30' for 30.000000000) stays as strict."""
+    for decimals in (6, 3):
+        rows = [row[:2] + [f"{float(cell):.{decimals}f}" for cell in row[2:6]] for row in trajectory_rows(geometry)]
+        assert read_center_path(write_rows(tmp_path, rows), geometry).shape == (geometry.expected_steps + 1, 2)
+    rows[6][2] = f"{float(rows[6][2]) + 0.01:.3f}"
+    assert "line 8, tip_x_mm, tip_y_mm" in refusal(write_rows(tmp_path, rows), geometry)
+    rows = trajectory_rows(geometry)
+    rows[6][4] = f"{float(rows[6][4]):.3f}"  # one tip rounded among 9-digit cells: an edit, not the file's rounding
+    assert "line 8, tip_x_mm, tip_y_mm" in refusal(write_rows(tmp_path, rows), geometry)
+
+
 def base_rows(geometry, rotation_deg=30.0, translation=(400.0, 120.0), digits=None) -> list[list[str]]:
     """trajectory_rows with the four base-frame columns plan writes with a base transform."""
     robot = Robot(rotation_deg, translation, None, given=True)

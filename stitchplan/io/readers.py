@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..csv_tables import decode_table, parse_numeric_table, read_table_bytes
+from ..csv_tables import decode_table, last_digits, parse_numeric_table, read_table_bytes
 from ..errors import InputError
 from ..needle.geometry import ENTRY_TOLERANCE, LEAN_TOLERANCE, NeedleGeometry, length, on_entry_circle
 
@@ -55,8 +55,10 @@ def read_center_path_file(path: str | Path, geometry: NeedleGeometry | None = No
     content = read_table_bytes(path, expected)
     text, digest = decode_table(content, path, expected)
     table, row_numbers, _ = parse_numeric_table(text, digest, path, CENTER_PATH_COLUMNS, expected)
-    return CenterPathFile(_checked_centers(path, table, row_numbers, geometry, leaning), content.decode("utf-8"),
-                          digest)
+    digits = last_digits(text, path, (*CENTER_PATH_COLUMNS[1:], *TIP_COLUMNS)) if all(
+        name in table for name in TIP_COLUMNS) else None
+    return CenterPathFile(_checked_centers(path, table, row_numbers, geometry, leaning, digits),
+                          content.decode("utf-8"), digest)
 
 
 def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
@@ -76,8 +78,10 @@ def read_center_path(path: str | Path, geometry: NeedleGeometry | None = None,
 
 def _checked_centers(path: str | Path, table: dict[str, np.ndarray], row_numbers: np.ndarray,
                      geometry: NeedleGeometry | None,
-                     leaning: Callable[[np.ndarray], NeedleGeometry] | None) -> np.ndarray:
-    """The centres of a centre path's table, checked as read_center_path says."""
+                     leaning: Callable[[np.ndarray], NeedleGeometry] | None,
+                     digits: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """The centres of a centre path's table, checked as read_center_path says (`digits`: the
+    unit of the last digit of each centre and tip cell, csv_tables.last_digits)."""
     _check_steps(path, table["step"], row_numbers)
     centers = np.column_stack([table["center_x_mm"], table["center_y_mm"]])
     if geometry is not None and leaning is not None:
@@ -91,7 +95,7 @@ def _checked_centers(path: str | Path, table: dict[str, np.ndarray], row_numbers
             check_angles(path, table[ANGLE_COLUMN], geometry, row_numbers)
         check_center_path(path, centers, geometry, row_numbers)
         if tips is not None:
-            check_tips(path, tips, centers, geometry, row_numbers)
+            check_tips(path, tips, centers, geometry, row_numbers, digits)
     base_centers, base_tips = _points(table, BASE_CENTER_COLUMNS), _points(table, BASE_TIP_COLUMNS)
     if base_centers is not None and base_tips is not None and (tips is not None or geometry is not None):
         tips = geometry.tips_along(centers) if tips is None else tips
@@ -135,14 +139,22 @@ def _points(table: dict[str, np.ndarray], columns: tuple[str, str]) -> np.ndarra
 
 
 def check_tips(path: str | Path, tips: np.ndarray, centers: np.ndarray, geometry: NeedleGeometry,
-               row_numbers: np.ndarray) -> None:
+               row_numbers: np.ndarray, digits: dict[str, np.ndarray] | None = None) -> None:
     """Each row's tip where its centre puts the needle's tip at its step's rotation (k x step,
     the exit row's too): a file whose centres were edited and its tips not (or the other way
     round) says two things, and a robot may follow either; the first row that disagrees is
-    refused."""
+    refused. With `digits` (the unit of the last digit of each centre and tip cell) a file
+    rounded to fewer digits may be off by what rounding moves a centre and a tip, half a unit
+    of its finest cell in each coordinate of each: a trajectory rounded to the micrometre
+    replays. The finest cell, not each cell's own: a writer that drops trailing zeros ('30'
+    for 30.000000000, as plan's does) says nothing of its precision in those cells."""
     expected = geometry.tips_along(centers)
     off = np.hypot(*(tips - expected).T)  # a norm's squares overflow at 1e300 mm, warning on stderr
-    bad = np.flatnonzero(off > point_tolerance(tips, centers))
+    tolerance = point_tolerance(tips, centers)
+    if digits is not None:
+        finest = min(float(units.min()) for units in digits.values())
+        tolerance = np.maximum(tolerance, (1.0 + 1e-9) * math.sqrt(2.0) * finest)
+    bad = np.flatnonzero(off > tolerance)
     if bad.size:
         k = bad[0]
         raise InputError(
