@@ -29,7 +29,11 @@ def last_digit(text: str) -> float:
     twice over)."""
     match = PARTS.fullmatch(text.strip())
     fraction, exponent = (match.group(1) or "", match.group(2) or "0") if match else ("", "0")
-    return 10.0 ** (int(exponent) - len(fraction))
+    # parse_number takes a zero's '0e400' (and an exponent of thousands of digits): such a unit
+    # is inf or 0, not an OverflowError of 10.0 ** 400 nor int()'s digit limit
+    if len(exponent.lstrip("+-0")) > 6:
+        exponent = "-1000000" if exponent.startswith("-") else "1000000"
+    return float(f"1e{int(exponent) - len(fraction)}")
 
 
 def spells_a_number(text: str) -> bool:

@@ -26,7 +26,7 @@ from stitchplan.cli import app
 from stitchplan.cli.options import check_angular_speed, parse_base_transform
 from stitchplan.config import Robot, load_scenario
 from stitchplan.config.plan_blocks import MAX_BASE_OFFSET_MM, MIN_ANGULAR_SPEED
-from stitchplan.decimals import parse_number
+from stitchplan.decimals import last_digit, parse_number
 from stitchplan.errors import InputError
 from stitchplan.io.readers import ANGLE_TOLERANCE, read_center_path
 from stitchplan.needle.geometry import scenario_needle
@@ -161,6 +161,19 @@ def test_a_trajectory_rounded_to_fewer_decimals_keeps_its_tips(tmp_path, geometr
     rows = trajectory_rows(geometry)
     rows[6][4] = f"{float(rows[6][4]):.3f}"  # one tip rounded among 9-digit cells: an edit, not the file's rounding
     assert "line 8, tip_x_mm, tip_y_mm" in refusal(write_rows(tmp_path, rows), geometry)
+
+
+def test_a_zero_written_with_a_huge_exponent_is_read_as_zero(tmp_path, geometry):
+    """'0e400' and '0e' followed by thousands of digits spell 0 (parse_number takes them): the
+    unit of their last digit, for the tips' rounding tolerance, is inf rather than an
+    OverflowError or int()'s digit limit escaping as a traceback, and the path is read."""
+    assert last_digit("0e400") == math.inf and last_digit("0e-" + "9" * 5000) == 0.0
+    assert (last_digit("1."), last_digit("-0"), last_digit("+.5e+3"), last_digit(" 1.50 ")) == (1.0, 1.0, 100.0, 0.01)
+    for zero in ("0e400", "0e" + "9" * 5000):
+        rows = trajectory_rows(geometry)
+        assert rows[0][2] == "0"  # the needle's centre at x = 0
+        rows[0][2] = zero
+        assert read_center_path(write_rows(tmp_path, rows), geometry)[0, 0] == 0.0
 
 
 def base_rows(geometry, rotation_deg=30.0, translation=(400.0, 120.0), digits=None) -> list[list[str]]:
