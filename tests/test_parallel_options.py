@@ -443,3 +443,24 @@ def test_a_scheduler_whose_worker_runs_other_sources_of_this_version_is_refused(
     assert message.endswith(f" of {address} runs stitchplan {stitchplan.__version__} from other sources (SHA-256 "
                             f"{theirs[:12]}..., this command's 000000000000...); expected the same code on every "
                             "worker, restarted since it changed (the runs must not depend on where they ran)")
+
+
+def test_a_worker_at_code_that_answers_its_version_alone_is_refused_in_one_line(tmp_path, worker_on):
+    """A worker started before its sources were checked runs the earlier probe, which answers
+    the version alone (a str, not the pair): at this very version it is still other code, refused
+    naming the worker, not a traceback of the pair's unpacking."""
+    import stitchplan
+
+    earlier = tmp_path / "earlier" / "stitchplan"
+    (earlier / "parallel").mkdir(parents=True)
+    (earlier / "__init__.py").write_text(f"__version__ = {stitchplan.__version__!r}\n")
+    (earlier / "parallel" / "__init__.py").write_text("")
+    (earlier / "parallel" / "executor.py").write_text(
+        "def package_version():\n    from .. import __version__\n\n    return __version__\n")
+    address = worker_on(earlier.parent)
+    with pytest.raises(InputError) as refused, Executor(scheduler=address):
+        pass
+    message = str(refused.value)
+    assert message.startswith("--scheduler: worker tcp://127.0.0.1:") and "\n" not in message
+    assert f" of {address} runs stitchplan {stitchplan.__version__} from other sources (" in message
+

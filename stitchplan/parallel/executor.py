@@ -204,14 +204,16 @@ def check_package_on_workers(client: Any, scheduler: str) -> None:
                              f"command's stitchplan ({brief_error(version)}); expected workers that can, started where stitchplan is "
                              "installed or with it on PYTHONPATH, and restarted since it changed (`PYTHONPATH=DIR "
                              f"dask worker {scheduler}`)")
-        version, sources = version
+        # a worker at code from before the sources were checked answers its version alone
+        version, sources = (version, None) if isinstance(version, str) else version
         if version != __version__:
             raise InputError(f"--scheduler: worker {worker} of {scheduler} runs stitchplan {version}, this command "
                              f"{__version__}; expected the same version on every worker (the runs must not depend "
                              "on where they ran)")
         if sources != source_sha256():
+            theirs = f"SHA-256 {sources[:12]}..." if sources else "code that does not give its SHA-256"
             raise InputError(f"--scheduler: worker {worker} of {scheduler} runs stitchplan {version} from other "
-                             f"sources (SHA-256 {sources[:12]}..., this command's {source_sha256()[:12]}...); "
+                             f"sources ({theirs}, this command's {source_sha256()[:12]}...); "
                              "expected the same code on every worker, restarted since it changed (the runs must "
                              "not depend on where they ran)")
 
