@@ -301,7 +301,7 @@ def test_round_trip_fitting_a_region_too_through_the_cli(tmp_path):
     matrix = np.array(fit["correlations"]["matrix"])
     assert fit["correlations"]["parameters"][2:] == ["tissue.regions[0].lame_lambda", "tissue.regions[0].lame_mu"]
     assert matrix.shape == (4, 4) and np.allclose(matrix, matrix.T) and matrix[0, 1] == fit["correlation"]
-    std, pairs, regions = calibration_spread(out, tmp_path / "u.yaml")
+    std, pairs, regions, _ = calibration_spread(out, tmp_path / "u.yaml")
     assert set(std) == set(fit["correlations"]["parameters"]) and len(pairs) == 6
     assert std["tissue.regions[0].lame_mu"] == fit["fitted_regions"][0]["standard_uncertainty"]["lame_mu"]
     assert regions == (region,)

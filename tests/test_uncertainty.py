@@ -954,6 +954,15 @@ def test_a_calibrations_fitted_regions_moduli_vary_with_their_correlations(tmp_p
     assert sample.tissue.regions[0].polygon == scenario.tissue.regions[0].polygon
 
 
+def test_the_calibrations_checksum_is_of_the_bytes_its_spread_was_read_from(tmp_path):
+    """The uncertainty resolved from a calibration carries the SHA-256 of the calibration's bytes
+    as parsed, which the run records (calibration_file_sha256): before, the command hashed the
+    file in a second read, which a file replaced between the two would have made another's."""
+    fitted = _fitted_region_calibration(tmp_path)
+    resolved = uncertainty({"samples": 3, "from_calibration": "fitted.yaml"}, str(tmp_path / "u.yaml"))
+    assert resolved.calibration_sha256 == hashlib.sha256(fitted.read_bytes()).hexdigest()
+
+
 def test_plan_under_uncertainty_varies_a_fitted_regions_moduli(tmp_path):
     """End to end: the region's moduli are sampled and get their own sensitivities."""
     _fitted_region_calibration(tmp_path)

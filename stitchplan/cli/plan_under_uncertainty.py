@@ -38,7 +38,6 @@ def run_plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: 
     pause_collection()  # again, for the imports of the uncertainty's modules (stitchplan/allocator.py)
     from ..config.uncertainty import load_uncertainty
     from ..io import reports
-    from ..io.files import sha256
     from ..io.progress import progress_bar
     from ..io.uncertainty_reports import uncertainty_lines
     from ..uncertainty.robust import check_exported_plan, check_inputs, plan_under_uncertainty, planned_tasks
@@ -59,7 +58,7 @@ def run_plan_under_uncertainty(scenario_path: Path, scenario, uncertainty_path: 
     provenance.update(uncertainty_file=str(uncertainty_path), uncertainty_file_sha256=uncertainty.sha256)
     if uncertainty.calibration is not None:
         provenance.update(calibration_file=uncertainty.calibration,
-                          calibration_file_sha256=sha256(uncertainty.calibration))
+                          calibration_file_sha256=uncertainty.calibration_sha256)
     tasks = planned_tasks(uncertainty)
     guard_plan_under_uncertainty(scenario_path, limits, names, scenario, verify, tasks, executor.workers,
                                  options.get("linear_solver"))

@@ -38,7 +38,7 @@ from ..errors import InputError
 from .blocks import Region, block
 from .fields import choice, described, expecting, integer, number, pair, problem, sequence
 from .messages import input_error, short, validate
-from .yaml_files import read_yaml, read_yaml_file, with_key_problems
+from .yaml_files import read_yaml_file, with_key_problems
 
 # the uncertain parameters and their units (the scenario's fields they replace: UNITS order)
 UNITS = {"lame_lambda": "MPa", "lame_mu": "MPa", "friction": "N/mm", "cutting_force": "N",
@@ -166,6 +166,7 @@ class Uncertainty:
     correlation_sources: dict[frozenset, str] = field(default_factory=dict)  # pair -> "file" | "calibration"
     calibration_regions: tuple = ()  # Region: those the calibration's moduli were fitted around
     sha256: str | None = None  # of the file's bytes as parsed (a pipe gives them once)
+    calibration_sha256: str | None = None  # of the calibration's bytes as parsed
 
     @property
     def covariance(self) -> np.ndarray:
@@ -202,10 +203,10 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
     sources: dict[str, str] = {}
     pairs: dict[frozenset, float] = {}
     pair_sources: dict[frozenset, str] = {}
-    calibration, calibration_regions = None, ()
+    calibration, calibration_regions, calibration_sha256 = None, (), None
     if spec.from_calibration is not None:
         calibration = path.parent / spec.from_calibration
-        std, pairs, calibration_regions = calibration_spread(calibration, path)
+        std, pairs, calibration_regions, calibration_sha256 = calibration_spread(calibration, path)
         sources = {name: "calibration" for name in std}
         pair_sources = {pair: "calibration" for pair in pairs}
     given = spec.parameters or Spreads()
@@ -245,21 +246,23 @@ def resolve_uncertainty(spec: UncertaintyFile, path: str | Path) -> Uncertainty:
                            f"definite correlation matrix (its smallest eigenvalue is {smallest:.3g})"]) from None
     return Uncertainty(spec.samples, spec.seed, names, np.array([std[name] for name in names]), matrix,
                        {name: sources[name] for name in names}, str(path),
-                       None if calibration is None else str(calibration), pair_sources, calibration_regions)
+                       None if calibration is None else str(calibration), pair_sources, calibration_regions,
+                       calibration_sha256=calibration_sha256)
 
 
-def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float], dict[frozenset, float], tuple]:
+def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float], dict[frozenset, float], tuple, str]:
     """The standard uncertainties of the moduli a `calibrate material` output fitted (the
     tissue's lame_lambda and lame_mu, and `tissue.regions[k].lame_*` of each region in its
-    fit.fitted_regions), the correlations of their pairs, and the regions (Region) it was
-    fitted around (none in outputs without `regions`)."""
+    fit.fitted_regions), the correlations of their pairs, the regions (Region) it was
+    fitted around (none in outputs without `regions`) and the SHA-256 of the bytes parsed."""
     where = f"{source}: from_calibration: {calibration}"
     if not calibration.is_file():
         what = "Is a directory" if calibration.is_dir() else "No such file or directory"  # as the OS says it
         raise input_error([f"{where}: cannot be read ({what}), expected a `stitchplan calibrate "
                            "material` output (path relative to the uncertainty file)"])
     try:
-        raw, _ = read_yaml(calibration)
+        file = read_yaml_file(calibration)
+        raw = file.data
     except Exception as error:
         raise input_error([f"{source}: from_calibration: {line}" for line in getattr(error, "lines", [str(error)])]) from None
     fit = raw.get("fit") if isinstance(raw, dict) else None
@@ -290,7 +293,7 @@ def calibration_spread(calibration: Path, source: Path) -> tuple[dict[str, float
     if fit.get("fitted_regions"):
         region_std, pairs = _fitted_regions_spread(fit, len(regions), where)
         std.update(region_std)
-    return std, pairs, regions
+    return std, pairs, regions, file.sha256
 
 
 def _fitted_regions_spread(fit: dict, regions: int, where: str) -> tuple[dict[str, float], dict[frozenset, float]]:
