@@ -1,10 +1,13 @@
 """stitchplan: curved suture needle insertion simulation and trajectory planning."""
 
+import functools
+
 # the one place the version is written: pyproject.toml reads it ([tool.setuptools.dynamic]),
 # run logs record it, `stitchplan --version` prints it
 __version__ = "0.2.0"
 
 
+@functools.cache  # read once a process (every record, PNG and worker check asks): the code it imported
 def source_sha256() -> str:
     """SHA-256 of the package's Python sources, their paths and bytes in path order: the code
     a result came from, which the version alone does not say (it stays the same over many
