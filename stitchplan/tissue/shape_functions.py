@@ -85,8 +85,9 @@ _MAPS = {order: _derivative_maps(order) for order in (1, 2)}
 @dataclass(frozen=True, eq=False)
 class RoundHole:
     """A round hole (geometry.polygons.is_round) as the visibility criterion weighs the
-    pairs through it: a counter-clockwise `loop` (k, 2) about `center`, within `radius` of it,
-    and no edge nearer than `inradius`."""
+    pairs through it and the particles are graded toward it (tissue.shapes.hole_zones): a
+    counter-clockwise `loop` (k, 2) about `center`, within `radius` of it, and no edge nearer
+    than `inradius`."""
 
     loop: np.ndarray
     center: np.ndarray  # (2,) its vertices' mean

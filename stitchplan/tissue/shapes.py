@@ -26,8 +26,9 @@ from ..config import Discretization, Tissue
 from ..config.blocks import default_spacing_of
 from ..geometry.edge_grid import EdgeGrid, concatenated_ranges
 from ..geometry.polygon_domain import PolygonDomain
-from ..geometry.polygons import CIRCLE_SEGMENTS, CORNER_TURN, is_round, round_extent, turns
+from ..geometry.polygons import CIRCLE_SEGMENTS, CORNER_TURN, turns
 from .particles import GradedParticles, RefinementZone, end_spacing, leaf_quadrature
+from .shape_functions import RoundHole
 from .thin_features import wall_thickness
 
 CUT_LEVELS = 3  # halvings of a cut background cell
@@ -159,10 +160,10 @@ def hole_zones(tissue: Tissue, discretization: Discretization) -> tuple[Refineme
     reference = default_spacing_of(tissue.bounding_size, None)
     zones = []
     for hole in domain.holes:
-        loop = np.asarray(hole, dtype=float)
-        if not is_round(loop):  # a hole with corners is graded at them (corner_zones)
+        round_hole = RoundHole.of(hole)
+        if round_hole is None:  # a hole with corners is graded at them (corner_zones)
             continue
-        center, radius, inradius = round_extent(loop)
+        loop, center, radius, inradius = round_hole.loop, round_hole.center, round_hole.radius, round_hole.inradius
         # 1 % slack: a circle's polygon is resolved where the circle would be
         if np.log2(reference / inradius) - 0.01 > PINHOLE_LEVELS:  # by size: a finer resolution asked grades no less
             continue
